@@ -1,0 +1,16 @@
+"""lidarcal_ros: quasi-rigorous airborne LiDAR calibration and radiometric correction for ROS 2.
+
+Layout (imports only run downward):
+
+``core``
+    Pure numerics (numpy/scipy, no rclpy): local trajectory, bias model, TIN matching,
+    least-squares adjustment, observability, radiometry, simulator.
+``io``
+    Clouds, bags, calibration/config/control files. Depends on ``core`` only.
+``pipeline``
+    The one procedure both the CLI and the nodes drive (batch and streaming).
+``cli`` / ``nodes``
+    Thin front ends: argument parsing / rclpy message plumbing.
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,1 @@
+"""The ``lidarcal`` command line."""

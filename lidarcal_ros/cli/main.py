@@ -1,0 +1,189 @@
+"""``lidarcal``: simulate, calibrate (and more) from the command line.
+
+Every subcommand exits 0 on success; on bad input it prints one line naming the file, topic,
+field or parameter at fault and exits 1 (2 for usage errors).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from lidarcal_ros import __version__
+from lidarcal_ros.errors import LidarcalError
+
+logger = logging.getLogger("lidarcal")
+
+
+def _progress_bar(enabled: bool) -> tuple[Any, Any]:
+    """A tqdm-backed progress callback (stderr; silent when not a terminal)."""
+    if not enabled:
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=100, unit="%", file=sys.stderr, leave=False,
+               bar_format="{desc:<28} {bar} {elapsed}", disable=None)
+
+    def update(stage: str, fraction: float) -> None:
+        bar.set_description_str(stage)
+        bar.n = int(round(100 * max(0.0, min(1.0, fraction))))
+        bar.refresh()
+
+    return update, bar.close
+
+
+# ---------------------------------------------------------------------------- simulate
+def _add_simulate(sub: Any) -> None:
+    p = sub.add_parser("simulate", help="synthetic mission with known biases",
+                       description="Ray-cast a linear scanner over built-up terrain with known "
+                       "biases; write a mission bag, control points (CSV) and the truth (YAML).")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output rosbag2 directory; OUT_control.csv and OUT_truth.yaml beside it")
+    p.add_argument("--scenario", default="paper", choices=("paper", "flat", "one_track"),
+                   help="flight configuration and terrain (default: paper)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (terrain, noise)")
+    p.add_argument("--density", type=float, default=1.0,
+                   help="points per m^2 at the 1150 m lines (default 1.0)")
+    p.add_argument("--line-length", type=float, default=1000.0, help="metres (default 1000)")
+    p.add_argument("--biases", default=None,
+                   help="e.g. 'dX=0.05,domega=-29arcsec,dr=11.8cm' (default: paper-like)")
+    p.add_argument("--range-noise", type=float, default=0.02, help="metres (default 0.02)")
+    p.add_argument("--control", type=int, default=1, help="number of control points")
+    p.add_argument("--origin", default="0,0",
+                   help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.pipeline import parse_biases, write_simulation
+
+    try:
+        origin = tuple(float(v) for v in args.origin.split(","))
+    except ValueError:
+        raise ConfigError(f"--origin: expected X,Y, got '{args.origin}'") from None
+    if len(origin) != 2:
+        raise ConfigError(f"--origin: expected X,Y, got '{args.origin}'")
+    if not args.density > 0:
+        raise ConfigError(f"--density must be positive, got {args.density}")
+    kwargs: dict[str, Any] = {}
+    if args.biases is not None:
+        kwargs["biases"] = parse_biases(args.biases)
+    started = time.perf_counter()
+    sim = simulate_mission(scenario=args.scenario, seed=args.seed, density=args.density,
+                           line_length_m=args.line_length, range_noise_m=args.range_noise,
+                           n_control=args.control, origin=origin, **kwargs)
+    paths = write_simulation(args.output, sim, overwrite=args.overwrite)
+    print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
+          f"({time.perf_counter() - started:.1f} s)")
+    for label, path in paths.items():
+        print(f"  {label}: {path}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- calibrate
+def _add_calibrate(sub: Any) -> None:
+    p = sub.add_parser("calibrate", help="estimate the system biases from a mission bag",
+                       description="Quasi-rigorous calibration (Habib et al. 2011) of a "
+                       "mission bag; writes the calibration file and prints a report.")
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("-o", "--output", required=True, type=Path, help="calibration YAML")
+    p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
+    p.add_argument("--control", type=Path, help="control points CSV id,x,y,z")
+    p.add_argument("--solve-for", default=None,
+                   help="comma-separated parameters to estimate, e.g. dX,dY,domega,dphi")
+    p.add_argument("--points", help="points topic (default from config)")
+    p.add_argument("--trajectory", help="trajectory topic (default from config)")
+    p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
+    p.add_argument("--truth", type=Path, help="truth YAML of a simulation, shown beside")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from lidarcal_ros.core.params import parse_parameter_list
+    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
+    from lidarcal_ros.io.config_file import load_flight_config
+    from lidarcal_ros.pipeline import Truth, calibrate_mission, format_report, load_mission
+
+    config = load_flight_config(args.config)
+    overrides = {}
+    if args.points:
+        overrides["topics__points"] = args.points
+    if args.trajectory:
+        overrides["topics__trajectory"] = args.trajectory
+    if args.time_field:
+        overrides["time_field"] = args.time_field
+    config = config.with_values(**overrides)
+    solve_for = None
+    if args.solve_for is not None:
+        try:
+            solve_for = parse_parameter_list(args.solve_for)
+        except ValueError as exc:
+            raise ConfigError(f"--solve-for: {exc}") from None
+    truth = Truth.read(args.truth) if args.truth else None
+    started = time.perf_counter()
+    progress, close = _progress_bar(True)
+    try:
+        mission = load_mission(args.bag, config, control_csv=args.control)
+        result = calibrate_mission(mission, config, solve_for=solve_for, progress=progress)
+    finally:
+        close()
+    path = write_calibration(args.output, result)
+    elapsed = time.perf_counter() - started
+    if args.json:
+        import json
+
+        print(json.dumps(calibration_document(result), indent=1))
+    else:
+        n_ctrl = len(mission.control) if mission.control is not None else 0
+        title = (f"{args.bag}: {len(mission.strips)} strips, {mission.n_points} points, "
+                 f"{len(result.pairs)} overlapping pairs, {n_ctrl} control points "
+                 f"({elapsed:.1f} s)")
+        print(format_report(result, config, title=title, truth=truth))
+        print(f"calibration written to {path}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lidarcal",
+        description="Airborne LiDAR calibration (quasi-rigorous, Habib et al. 2011) and "
+                    "radiometric correction for ROS 2.",
+    )
+    parser.add_argument("--version", action="version", version=f"lidarcal {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_simulate(sub)
+    _add_calibrate(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``lidarcal`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except LidarcalError as exc:
+        print(f"lidarcal {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"lidarcal {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Pure numeric core of lidarcal_ros: numpy and scipy only, never rclpy."""

@@ -1,0 +1,476 @@
+"""The quasi-rigorous calibration procedure (method.md sections 4-7), batch form.
+
+``match -> solve -> correct -> match again`` until the corrections to the parameters are
+negligible. What is computed once per mission: the laser-frame geometry of every point, one TIN
+per strip, the overlap between strips and the candidate points of each overlap. What each
+iteration does: correct vertex coordinates (a linear function of the estimate), re-match the
+selected sample points to the corrected TINs, re-solve with robust weights.
+
+Sample points are chosen so that slopes and aspects are well represented: every candidate in
+an overlap is matched once, classed by its patch's slope and aspect, and each class is capped,
+so flat ground (which sees only vertical effects) does not drown the sloped roofs that reveal
+the horizontal parameters.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from lidarcal_ros.core.adjustment import (
+    NormalEquations,
+    ObservabilityLimits,
+    Observations,
+    Solution,
+    solve,
+)
+from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip
+from lidarcal_ros.core.model import normal_design_rows, point_offsets
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, as_vector
+from lidarcal_ros.core.tin import PatchMatches, Tin, TinQuality, match_to_tin
+from lidarcal_ros.errors import CalibrationError
+
+logger = logging.getLogger(__name__)
+
+#: Progress callback: (stage description, fraction done in [0, 1]).
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class CalibrationSettings:
+    """Options of the adjustment (flight configuration ``calibration.*`` and ``matching.*``).
+
+    Lengths in metres, angles in degrees unless stated.
+    """
+
+    solve_for: tuple[str, ...] = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
+    fixed: dict[str, float] = field(default_factory=dict)
+    trajectory_window_s: float = 0.5
+    max_normal_distance_m: float = 2.0
+    min_normal_distance_m: float = 0.15
+    max_edge_factor: float = 4.0
+    max_slope_deg: float = 70.0
+    max_bend_deg: float = 10.0
+    overlap_cell_m: float = 10.0
+    min_overlap_cells: int = 20
+    max_candidates_per_pair: int = 100_000
+    per_class_cap: int = 3_000
+    flat_class_factor: int = 4
+    max_iterations: int = 10
+    convergence_fraction: float = 0.01
+    robust_k: float = 3.0
+    control_weight: float = 1.0
+    seed: int = 0
+    limits: ObservabilityLimits = field(default_factory=ObservabilityLimits)
+
+    def __post_init__(self) -> None:
+        self.solve_for = tuple(n for n in PARAMETER_NAMES if n in self.solve_for)
+
+
+@dataclass
+class PreparedStrip:
+    """A strip with what the calibration computes once."""
+
+    strip: Strip
+    geometry: LaserGeometry
+    density: float  # points per m^2 over its footprint
+    raster: np.ndarray  # footprint on the mission grid (bool)
+    tin: Tin | None = None
+
+    @property
+    def strip_id(self) -> int:
+        return self.strip.strip_id
+
+
+@dataclass
+class PairStats:
+    """QA of one strip pair: RMS normal discrepancy before and after calibration (metres)."""
+
+    strip_a: int
+    strip_b: int
+    coverage: float
+    correspondences: int
+    rms_before: float
+    rms_after: float
+    n_before: int
+    n_after: int
+
+
+@dataclass
+class ControlResidual:
+    """Normal discrepancy of one control point against one strip, before and after (metres)."""
+
+    control_id: str
+    strip_id: int
+    before: float
+    after: float
+
+
+@dataclass
+class CalibrationResult:
+    """Everything ``lidarcal calibrate`` reports and writes."""
+
+    solution: Solution
+    iterations: int
+    converged: bool
+    pairs: list[PairStats]
+    control: list[ControlResidual]
+    n_pair_correspondences: int
+    n_control_correspondences: int
+    history: list[np.ndarray]
+    dropped_non_finite: int = 0
+
+
+@dataclass
+class _Grid:
+    """The mission's footprint raster (overlap detection)."""
+
+    x0: float
+    y0: float
+    cell: float
+    shape: tuple[int, int]
+
+    def index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ix = np.floor((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
+        iy = np.floor((xy[:, 1] - self.y0) / self.cell).astype(np.int64)
+        return np.clip(ix, 0, self.shape[0] - 1), np.clip(iy, 0, self.shape[1] - 1)
+
+    def raster(self, xy: np.ndarray) -> np.ndarray:
+        r = np.zeros(self.shape, dtype=bool)
+        ix, iy = self.index(xy)
+        r[ix, iy] = True
+        return r
+
+
+@dataclass
+class _PairWork:
+    """Working state of one strip pair: points of ``a`` matched to the TIN of ``b``."""
+
+    index: int
+    a: int
+    b: int
+    coverage: float
+    candidates: np.ndarray
+    sample: np.ndarray | None = None
+    before: np.ndarray | None = None
+
+
+class Calibrator:
+    """Batch calibration of one mission.
+
+    Parameters
+    ----------
+    mission : Mission
+    settings : CalibrationSettings
+    progress : callable, optional
+        Called with (stage, fraction) as work proceeds.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        settings: CalibrationSettings,
+        *,
+        progress: Progress | None = None,
+    ) -> None:
+        self.mission = mission
+        self.settings = settings
+        self._progress = progress or (lambda stage, frac: None)
+        self._rng = np.random.default_rng(settings.seed)
+        if not mission.strips:
+            raise CalibrationError("mission has no strips")
+        self._prepare()
+
+    # ------------------------------------------------------------------ preparation
+    def _prepare(self) -> None:
+        s = self.settings
+        self._progress("local trajectories", 0.0)
+        allxy = np.concatenate([st.xyz[:, :2] for st in self.mission.strips])
+        lo = allxy.min(axis=0)
+        hi = allxy.max(axis=0)
+        shape = tuple(int(v) + 1 for v in np.ceil((hi - lo) / s.overlap_cell_m))
+        self.grid = _Grid(float(lo[0]), float(lo[1]), s.overlap_cell_m, (shape[0], shape[1]))
+        self.strips: list[PreparedStrip] = []
+        for k, st in enumerate(self.mission.strips):
+            geom = laser_geometry(st.t, st.xyz, self.mission.trajectory,
+                                  window_s=s.trajectory_window_s,
+                                  source=f"strip {st.strip_id}")
+            raster = self.grid.raster(st.xyz[:, :2])
+            area = raster.sum() * s.overlap_cell_m**2
+            self.strips.append(PreparedStrip(st, geom, len(st) / max(area, 1.0), raster))
+            self._progress("local trajectories", (k + 1) / len(self.mission.strips))
+        self.pairs = self._find_pairs()
+
+    def _find_pairs(self) -> list[_PairWork]:
+        s = self.settings
+        pairs: list[_PairWork] = []
+        n = len(self.strips)
+        for i in range(n):
+            for j in range(i + 1, n):
+                si, sj = self.strips[i], self.strips[j]
+                both = si.raster & sj.raster
+                n_cells = int(both.sum())
+                if n_cells < s.min_overlap_cells:
+                    continue
+                coverage = n_cells / min(si.raster.sum(), sj.raster.sum())
+                # Points come from the sparser strip, the TIN from the denser.
+                a, b = (i, j) if si.density <= sj.density else (j, i)
+                inner_b = ndimage.binary_erosion(self.strips[b].raster, iterations=1)
+                zone = self.strips[a].raster & inner_b
+                ix, iy = self.grid.index(self.strips[a].strip.xyz[:, :2])
+                cand = np.flatnonzero(zone[ix, iy])
+                if cand.size == 0:
+                    continue
+                if cand.size > s.max_candidates_per_pair:
+                    cand = np.sort(self._rng.choice(cand, s.max_candidates_per_pair,
+                                                    replace=False))
+                pairs.append(_PairWork(len(pairs), a, b, coverage, cand))
+        logger.info("%d overlapping strip pairs", len(pairs))
+        return pairs
+
+    def _tin(self, k: int) -> Tin:
+        ps = self.strips[k]
+        if ps.tin is None:
+            s = self.settings
+            spacing = 1.0 / np.sqrt(max(ps.density, 1e-6))
+            quality = TinQuality(max_edge_m=s.max_edge_factor * spacing,
+                                 max_slope_deg=s.max_slope_deg, max_bend_deg=s.max_bend_deg)
+            ps.tin = Tin(ps.strip.xyz, quality)
+        return ps.tin
+
+    # ------------------------------------------------------------------ matching
+    def _corrected(self, k: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Corrected coordinates of strip k and the shift ``delivered - corrected``."""
+        g = self.strips[k].geometry
+        off = point_offsets(delta, g.x, g.z, g.kappa, g.beta)
+        return self.strips[k].strip.xyz - off, off
+
+    def _match_pair(
+        self, pair: _PairWork, points_idx: np.ndarray, delta: np.ndarray,
+        corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float,
+    ) -> PatchMatches:
+        a_xyz, _ = corrected[pair.a]
+        b_xyz, b_shift = corrected[pair.b]
+        shift = b_shift if np.any(delta) else None
+        return match_to_tin(a_xyz[points_idx], self._tin(pair.b), b_xyz,
+                            max_normal_distance=threshold, vertex_shift=shift)
+
+    def _pair_observations(
+        self, pair: _PairWork, points_idx: np.ndarray, m: PatchMatches
+    ) -> Observations:
+        sa, sb = self.strips[pair.a], self.strips[pair.b]
+        ok = m.valid
+        idx = points_idx[ok]
+        n = m.normal[ok]
+        w = m.weights[ok]
+        verts = self._tin(pair.b).simplices[m.triangle[ok]]
+        ga = sa.geometry.take(idx)
+        rows = normal_design_rows(n, ga.x, ga.z, ga.kappa, ga.beta)
+        foot = np.zeros((idx.size, 3))
+        for v in range(3):
+            gv = sb.geometry.take(verts[:, v])
+            rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
+            foot += w[:, v:v + 1] * (sb.strip.xyz[verts[:, v]] - sa.strip.xyz[idx])
+        # y = n . (X_A - X_B) in delivered coordinates; differences taken first for precision.
+        y = -(n * foot).sum(axis=1)
+        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index))
+
+    def _select_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
+        """Stratify matched candidates by patch slope and aspect; cap each class."""
+        s = self.settings
+        ok = np.flatnonzero(m.valid)
+        n = m.normal[ok]
+        slope = np.degrees(np.arccos(np.clip(n[:, 2], -1.0, 1.0)))
+        aspect = np.degrees(np.arctan2(n[:, 0], n[:, 1])) % 360.0
+        sector = np.floor(aspect / 45.0).astype(np.int64) % 8
+        cls = np.where(slope < 5.0, 0, 1 + sector + 8 * (slope >= 25.0))
+        order = self._rng.permutation(ok.size)
+        keep = np.zeros(ok.size, dtype=bool)
+        for c in np.unique(cls):
+            members = order[cls[order] == c]
+            cap = s.per_class_cap * (s.flat_class_factor if c == 0 else 1)
+            keep[members[:cap]] = True
+        return np.sort(pair.candidates[ok[keep]])
+
+    def _control_observations(
+        self, control: ControlPoints, delta: np.ndarray,
+        corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float,
+    ) -> tuple[Observations, list[tuple[int, int, float]]]:
+        parts = []
+        found: list[tuple[int, int, float]] = []
+        for k, ps in enumerate(self.strips):
+            ix, iy = self.grid.index(control.xyz[:, :2])
+            inside = ps.raster[ix, iy]
+            if not inside.any():
+                continue
+            cps = np.flatnonzero(inside)
+            xyz, shift = corrected[k]
+            m = match_to_tin(control.xyz[cps], self._tin(k), xyz,
+                             max_normal_distance=threshold,
+                             vertex_shift=shift if np.any(delta) else None)
+            if not m.valid.any():
+                continue
+            ok = m.valid
+            n = m.normal[ok]
+            w = m.weights[ok]
+            verts = self._tin(k).simplices[m.triangle[ok]]
+            rows = np.zeros((int(ok.sum()), N_PARAMETERS))
+            foot = np.zeros((int(ok.sum()), 3))
+            for v in range(3):
+                gv = ps.geometry.take(verts[:, v])
+                rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
+                foot += w[:, v:v + 1] * (ps.strip.xyz[verts[:, v]] - control.xyz[cps[ok]])
+            y = -(n * foot).sum(axis=1)
+            weights = np.full(y.size, self.settings.control_weight)
+            parts.append(Observations(rows, y, weights, -1 - cps[ok]))
+            for c, d in zip(cps[ok], m.distance[ok]):
+                found.append((int(c), k, float(d)))
+        return Observations.concatenate(parts), found
+
+    # ------------------------------------------------------------------ adjustment
+    def _robust_solve(self, obs: Observations) -> Solution:
+        """Solve, then iteratively zero the weights of outliers (> robust_k robust sigmas)."""
+        s = self.settings
+        base_w = obs.weights.copy()
+        sol = None
+        for _ in range(6):
+            neq = NormalEquations.from_observations(obs)
+            sol = solve(neq, solve_for=s.solve_for, fixed=s.fixed, limits=s.limits)
+            v = obs.residuals(sol.delta)
+            scale = 1.4826 * np.median(np.abs(v[base_w > 0]))
+            new_w = np.where(np.abs(v) <= s.robust_k * max(scale, 1e-6), base_w, 0.0)
+            if np.array_equal(new_w > 0, obs.weights > 0):
+                break
+            obs.weights = new_w
+        assert sol is not None
+        return sol
+
+    def run(self) -> CalibrationResult:
+        """Iterate matching and adjustment to convergence."""
+        s = self.settings
+        control = self.mission.control
+        if not self.pairs and (control is None or len(control) == 0):
+            raise CalibrationError("no overlap between strips and no control points")
+        delta = np.zeros(N_PARAMETERS)
+        threshold = s.max_normal_distance_m
+        history: list[np.ndarray] = []
+        converged = False
+        sol: Solution | None = None
+        obs = Observations.empty()
+        control_before: list[tuple[int, int, float]] = []
+        n_total = len(self.pairs)
+        iteration = 0
+        for iteration in range(1, s.max_iterations + 1):
+            corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))}
+            parts = []
+            for p_i, pair in enumerate(self.pairs):
+                self._progress(f"iteration {iteration}: matching", p_i / max(n_total, 1))
+                if pair.sample is None:
+                    m = self._match_pair(pair, pair.candidates, delta, corrected, threshold)
+                    pair.sample = self._select_sample(pair, m)
+                    sel = np.isin(pair.candidates, pair.sample)
+                    m = m.take(sel)
+                    pair.before = m.distance[m.valid]
+                else:
+                    m = self._match_pair(pair, pair.sample, delta, corrected, threshold)
+                parts.append(self._pair_observations(pair, pair.sample, m))
+            if control is not None and len(control):
+                cobs, found = self._control_observations(control, delta, corrected, threshold)
+                if iteration == 1:
+                    control_before = found
+                parts.append(cobs)
+            obs = Observations.concatenate(parts)
+            if len(obs) == 0:
+                raise CalibrationError(
+                    "no point-to-patch correspondences: the overlaps hold no usable patches"
+                )
+            self._progress(f"iteration {iteration}: adjusting", 1.0)
+            sol = self._robust_solve(obs)
+            step = sol.delta - delta
+            delta = sol.delta.copy()
+            history.append(delta.copy())
+            est = np.isfinite(sol.sigma)
+            logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
+                        iteration, sol.sigma0, len(obs),
+                        float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
+            inl = obs.weights > 0
+            scale = float(np.sqrt(np.mean(obs.residuals(delta)[inl] ** 2)))
+            threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m,
+                                      threshold))
+            if iteration > 1 and np.all(
+                np.abs(step[est]) <= s.convergence_fraction * sol.sigma[est]
+            ):
+                converged = True
+                break
+        assert sol is not None
+        return self._finish(sol, obs, delta, iteration, converged, history, control_before)
+
+    def _finish(
+        self, sol: Solution, obs: Observations, delta: np.ndarray, iterations: int,
+        converged: bool, history: list[np.ndarray],
+        control_before: list[tuple[int, int, float]],
+    ) -> CalibrationResult:
+        """QA: re-match the samples with the final estimate at the first threshold."""
+        s = self.settings
+        corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))}
+        stats = []
+        for pair in self.pairs:
+            assert pair.sample is not None and pair.before is not None
+            m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
+            after = m.distance[m.valid]
+            stats.append(PairStats(
+                strip_a=self.strips[pair.a].strip_id, strip_b=self.strips[pair.b].strip_id,
+                coverage=pair.coverage,
+                correspondences=int(np.count_nonzero(
+                    (obs.group == pair.index) & (obs.weights > 0))),
+                rms_before=_rms(pair.before), rms_after=_rms(after),
+                n_before=int(pair.before.size), n_after=int(after.size),
+            ))
+        residuals: list[ControlResidual] = []
+        control = self.mission.control
+        if control is not None and len(control):
+            _, found_after = self._control_observations(
+                control, delta, corrected, s.max_normal_distance_m)
+            after_map = {(c, k): d for c, k, d in found_after}
+            for c, k, d in control_before:
+                residuals.append(ControlResidual(
+                    control.ids[c], self.strips[k].strip_id, d,
+                    after_map.get((c, k), float("nan"))))
+        n_ctrl = int(np.count_nonzero((obs.group < 0) & (obs.weights > 0)))
+        return CalibrationResult(
+            solution=sol, iterations=iterations, converged=converged, pairs=stats,
+            control=residuals, n_pair_correspondences=int(np.count_nonzero(
+                (obs.group >= 0) & (obs.weights > 0))),
+            n_control_correspondences=n_ctrl, history=history,
+            dropped_non_finite=self.mission.dropped_non_finite,
+        )
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+
+def calibrate(
+    mission: Mission,
+    settings: CalibrationSettings | None = None,
+    *,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Calibrate a mission: see :class:`Calibrator`."""
+    return Calibrator(mission, settings or CalibrationSettings(), progress=progress).run()
+
+
+def fixed_vector(settings: CalibrationSettings) -> np.ndarray:
+    """The fixed values of all parameters as a vector (SI)."""
+    return as_vector(settings.fixed)
+
+
+__all__: Sequence[str] = (
+    "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual", "PairStats",
+    "calibrate",
+)

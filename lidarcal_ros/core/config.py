@@ -1,0 +1,259 @@
+"""The flight configuration: one schema for the parameters file, the CLI and the live nodes.
+
+Each parameter has a dotted name (``calibration.solve_for``), a type, a default, a unit and a
+range. The CLI validates a parameters file against it; the nodes declare ROS 2 parameters from
+it (with descriptors) and validate run-time changes with the same code, so a value refused live
+is refused offline with the same reason.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from lidarcal_ros.core.adjustment import DEFAULT_MAX_SIGMA, ObservabilityLimits
+from lidarcal_ros.core.calibrate import CalibrationSettings
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One flight-configuration parameter.
+
+    ``kind`` is one of ``float``, ``int``, ``str``, ``bool``, ``str_list``.
+    """
+
+    default: Any
+    kind: str
+    description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = False
+
+
+def _f(default: float, description: str, lo: float | None = None, hi: float | None = None,
+       read_only: bool = False) -> ParameterSpec:
+    return ParameterSpec(float(default), "float", description, lo, hi, read_only=read_only)
+
+
+def _i(default: int, description: str, lo: int, hi: int) -> ParameterSpec:
+    return ParameterSpec(int(default), "int", description, lo, hi)
+
+
+_DEFAULT_SOLVE = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
+
+#: Every flight-configuration parameter, by dotted name.
+SCHEMA: dict[str, ParameterSpec] = {
+    "frame_id": ParameterSpec("map", "str", "Map frame of points and trajectory", read_only=True),
+    "time_field": ParameterSpec("t", "str", "PointCloud2 field holding the firing time "
+                                "(aliases: time, timestamp, gps_time)"),
+    "topics.points": ParameterSpec("/lidar/points", "str", "Input strips (PointCloud2)",
+                                   read_only=True),
+    "topics.trajectory": ParameterSpec("/lidar/trajectory", "str",
+                                       "Trajectory (PoseStamped or Odometry)", read_only=True),
+    "topics.control_points": ParameterSpec("/lidar/control_points", "str",
+                                           "Control points (PointCloud2, transient local)",
+                                           read_only=True),
+    "topics.corrected": ParameterSpec("/lidar/points_corrected", "str",
+                                      "Corrected clouds (PointCloud2)", read_only=True),
+    "sensor.wavelength_nm": _f(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
+    "sensor.beam_divergence_mrad": _f(0.33, "Beam divergence, mrad", 0.01, 10.0),
+    "sensor.fov_deg": _f(50.0, "Full field of view of the scanner, degrees", 1.0, 180.0),
+    "sensor.pulse_rate_hz": _f(70000.0, "Pulse repetition frequency, Hz", 1.0, 1e7),
+    "sensor.range_noise_m": _f(0.03, "Range noise (1 sigma), metres", 1e-4, 1.0),
+    "atmosphere.visibility_km": _f(48.3, "Visibility of the day, km", 0.1, 500.0),
+    "atmosphere.temperature_c": _f(29.8, "Air temperature, deg C", -60.0, 60.0),
+    "atmosphere.pressure_kpa": _f(101.81, "Air pressure, kPa", 50.0, 110.0),
+    "radiometry.reference_range_m": _f(1000.0, "Range reflectance is normalised to, metres",
+                                       1.0, 1e5),
+    "radiometry.reference_pulse_rate_hz": _f(70000.0, "Pulse rate of the reference power, Hz",
+                                             1.0, 1e7),
+    "radiometry.power_model": ParameterSpec(
+        "constant", "str", "Transmitted power: constant, or inversely proportional to pulse "
+        "rate (pulse_rate)", choices=("constant", "pulse_rate")),
+    "radiometry.min_cos_incidence": _f(0.1, "Clamp of cos(incidence); below it points are "
+                                       "flagged grazing", 0.01, 1.0),
+    "calibration.solve_for": ParameterSpec(list(_DEFAULT_SOLVE), "str_list",
+                                           "Parameters to estimate (others held fixed)"),
+    "calibration.control_points_file": ParameterSpec("", "str",
+                                                     "CSV id,x,y,z of vertical control points"),
+    "calibration.max_iterations": _i(10, "Most match-solve iterations", 1, 100),
+    "calibration.convergence_fraction": _f(0.01, "Converged when every correction is below "
+                                           "this fraction of its sigma", 1e-6, 1.0),
+    "calibration.robust_k": _f(3.0, "Outlier rejection at this many robust sigmas", 1.5, 20.0),
+    "calibration.control_weight": _f(1.0, "Weight of a control observation relative to a "
+                                     "strip-pair one", 0.0, 1e6),
+    "calibration.max_correlation": _f(0.999, "Above this |correlation| two parameters are "
+                                      "reported as not separable", 0.5, 1.0),
+    "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
+                                                  "Where ~/save writes the calibration"),
+    "matching.trajectory_window_s": _f(0.5, "Half-width of the local-trajectory window, s",
+                                       0.01, 60.0),
+    "matching.max_normal_distance_m": _f(2.0, "Largest point-to-patch distance accepted at "
+                                         "the first iteration, metres", 0.01, 50.0),
+    "matching.min_normal_distance_m": _f(0.15, "Smallest matching threshold later "
+                                         "iterations shrink to, metres", 0.001, 50.0),
+    "matching.max_edge_factor": _f(4.0, "Longest patch edge, in point spacings", 1.0, 100.0),
+    "matching.max_slope_deg": _f(70.0, "Steepest usable patch, degrees", 1.0, 89.9),
+    "matching.max_bend_deg": _f(10.0, "Largest angle between a patch and its neighbours, "
+                                "degrees", 0.1, 90.0),
+    "matching.overlap_cell_m": _f(10.0, "Cell of the overlap raster, metres", 0.5, 1000.0),
+    "matching.max_candidates_per_pair": _i(100_000, "Candidate points matched per pair at "
+                                           "the first iteration", 100, 100_000_000),
+    "matching.per_class_cap": _i(3000, "Correspondences kept per slope/aspect class and pair",
+                                 10, 10_000_000),
+    "qa.rmsdz_warn_m": _f(0.08, "Swath-to-swath RMS discrepancy above which QA warns, metres "
+                          "(USGS LBS QL2: 8 cm)", 0.0, 10.0),
+    "qa.max_difference_m": _f(0.16, "Discrepancy no point pair may exceed, metres "
+                              "(USGS LBS QL2: 16 cm)", 0.0, 10.0),
+}
+for _name in PARAMETER_NAMES:
+    SCHEMA[f"calibration.fixed.{_name}"] = _f(
+        0.0, f"Value of {_name} when not estimated (surveyed), SI units")
+
+
+def coerce(name: str, value: Any) -> Any:
+    """Check one value against the schema and return it in its canonical type.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the parameter and what is wrong.
+    """
+    spec = SCHEMA.get(name)
+    if spec is None:
+        raise ConfigError(f"unknown parameter '{name}'")
+    kind = spec.kind
+    if kind == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{name}: expected a number, got {value!r}")
+        out: Any = float(value)
+        if not math.isfinite(out):
+            raise ConfigError(f"{name}: must be finite, got {value!r}")
+    elif kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{name}: expected an integer, got {value!r}")
+        out = int(value)
+    elif kind == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name}: expected true or false, got {value!r}")
+        out = value
+    elif kind == "str":
+        if not isinstance(value, str):
+            raise ConfigError(f"{name}: expected a string, got {value!r}")
+        out = value
+        if spec.choices and value not in spec.choices:
+            raise ConfigError(f"{name}: '{value}' is not one of {', '.join(spec.choices)}")
+    elif kind == "str_list":
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{name}: expected a list of names, got {value!r}")
+        out = list(value)
+        if name == "calibration.solve_for":
+            unknown = [v for v in out if v not in PARAMETER_NAMES]
+            if unknown:
+                raise ConfigError(f"{name}: unknown parameter(s) {', '.join(unknown)}; "
+                                  f"known: {', '.join(PARAMETER_NAMES)}")
+    else:  # pragma: no cover - schema error
+        raise ConfigError(f"{name}: unsupported kind {kind}")
+    if spec.minimum is not None and out < spec.minimum:
+        raise ConfigError(f"{name}: {out} is below the minimum {spec.minimum}")
+    if spec.maximum is not None and out > spec.maximum:
+        raise ConfigError(f"{name}: {out} is above the maximum {spec.maximum}")
+    return out
+
+
+def cross_check(values: Mapping[str, Any], *, has_control: bool | None = None) -> str | None:
+    """Checks across parameters; returns the reason a configuration is refused, or None.
+
+    ``has_control``: whether control points are available; None = judge from
+    ``calibration.control_points_file``.
+    """
+    solve_for = set(values.get("calibration.solve_for", _DEFAULT_SOLVE))
+    if has_control is None:
+        has_control = bool(values.get("calibration.control_points_file", ""))
+    if not has_control and "dZ" in solve_for:
+        return ("calibration.solve_for: dZ cannot be estimated without vertical control "
+                "(strips alone cannot see it); give control points or fix dZ")
+    if not has_control and {"dZ", "dr"} <= solve_for:
+        return "calibration.solve_for: dZ and dr both solved without control"
+    lo = values.get("matching.min_normal_distance_m", 0.15)
+    hi = values.get("matching.max_normal_distance_m", 2.0)
+    if lo > hi:
+        return (f"matching.min_normal_distance_m ({lo}) exceeds "
+                f"matching.max_normal_distance_m ({hi})")
+    warn = values.get("qa.rmsdz_warn_m", 0.08)
+    err = values.get("qa.max_difference_m", 0.16)
+    if warn > err:
+        return f"qa.rmsdz_warn_m ({warn}) exceeds qa.max_difference_m ({err})"
+    return None
+
+
+@dataclass
+class FlightConfig:
+    """Validated flight configuration (dotted names -> values)."""
+
+    values: dict[str, Any] = field(default_factory=lambda: {k: s.default
+                                                            for k, s in SCHEMA.items()})
+
+    @classmethod
+    def from_mapping(cls, flat: Mapping[str, Any], *, source: str = "configuration",
+                     check: bool = True) -> FlightConfig:
+        """Validate dotted-name values over the defaults.
+
+        Raises
+        ------
+        ConfigError
+            Naming ``source`` and the parameter at fault.
+        """
+        cfg = cls()
+        for name, value in flat.items():
+            try:
+                cfg.values[name] = coerce(name, value)
+            except ConfigError as exc:
+                raise ConfigError(f"{source}: {exc}") from None
+        if check:
+            reason = cross_check(cfg.values, has_control=True)
+            if reason:
+                raise ConfigError(f"{source}: {reason}")
+        return cfg
+
+    def __getitem__(self, name: str) -> Any:
+        return self.values[name]
+
+    def with_values(self, **updates: Any) -> FlightConfig:
+        """A copy with dotted names (``__`` for ``.``) replaced, validated."""
+        out = FlightConfig(dict(self.values))
+        for key, value in updates.items():
+            name = key.replace("__", ".")
+            out.values[name] = coerce(name, value)
+        return out
+
+    def calibration_settings(self) -> CalibrationSettings:
+        """The adjustment options this configuration sets."""
+        v = self.values
+        fixed = {n: float(v[f"calibration.fixed.{n}"]) for n in PARAMETER_NAMES}
+        return CalibrationSettings(
+            solve_for=tuple(v["calibration.solve_for"]),
+            fixed=fixed,
+            trajectory_window_s=v["matching.trajectory_window_s"],
+            max_normal_distance_m=v["matching.max_normal_distance_m"],
+            min_normal_distance_m=v["matching.min_normal_distance_m"],
+            max_edge_factor=v["matching.max_edge_factor"],
+            max_slope_deg=v["matching.max_slope_deg"],
+            max_bend_deg=v["matching.max_bend_deg"],
+            overlap_cell_m=v["matching.overlap_cell_m"],
+            max_candidates_per_pair=v["matching.max_candidates_per_pair"],
+            per_class_cap=v["matching.per_class_cap"],
+            max_iterations=v["calibration.max_iterations"],
+            convergence_fraction=v["calibration.convergence_fraction"],
+            robust_k=v["calibration.robust_k"],
+            control_weight=v["calibration.control_weight"],
+            limits=ObservabilityLimits(max_correlation=v["calibration.max_correlation"],
+                                       max_sigma=dict(DEFAULT_MAX_SIGMA)),
+        )

@@ -1,0 +1,179 @@
+"""Method.md section 4: laser-frame quantities recovered from points and trajectory positions.
+
+For a point fired at time ``t``, a straight line (position linear in time) is fitted by least
+squares to the trajectory samples in ``(t - window, t + window)``. Its position at ``t`` is the
+firing point ``X_o(t)``; its ground direction gives the heading ``kappa``; the point's signed
+horizontal distance to the line (positive to the right of the flight direction) is ``x``; its
+height above ``X_o(t)`` is ``z`` (negative); ``beta = atan(x / z)``.
+
+Points sharing the same set of trajectory samples share one line fit, so the fits are computed
+once per distinct window, not once per point.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.errors import TrajectoryError
+
+logger = logging.getLogger(__name__)
+
+#: Windows processed per block when fitting lines (bounds the memory of the ragged gather).
+_FIT_BLOCK_SAMPLES = 4_000_000
+
+
+@dataclass
+class LaserGeometry:
+    """Per-point quantities of method.md section 4 (all (n,) float64).
+
+    Attributes
+    ----------
+    x : lateral laser-frame coordinate, metres, positive right of the flight direction.
+    z : vertical laser-frame coordinate, metres (negative: ground below the sensor).
+    kappa : heading of the local trajectory, radians, ``atan2(-d_x, d_y)``.
+    beta : mirror angle, radians, ``atan(x / z)``.
+    origin : (n, 3) firing position ``X_o(t)`` in the map frame, metres.
+    """
+
+    x: np.ndarray
+    z: np.ndarray
+    kappa: np.ndarray
+    beta: np.ndarray
+    origin: np.ndarray
+
+    @property
+    def range(self) -> np.ndarray:
+        """Range from the firing position, ``sqrt(x^2 + z^2)``, metres."""
+        return np.hypot(self.x, self.z)
+
+    def take(self, index: np.ndarray) -> LaserGeometry:
+        """A subset of the points (fancy or boolean index)."""
+        return LaserGeometry(
+            self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index]
+        )
+
+
+def _fit_windows(
+    traj_t: np.ndarray, traj_xyz: np.ndarray, start: np.ndarray, stop: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares line through samples ``start[k]:stop[k]`` for each window ``k``.
+
+    Returns the window's mean time ``t_mean`` (k,), mean position ``p_mean`` (k, 3) and
+    velocity ``v`` (k, 3). Sums are centred per window (two passes) so that absolute GPS times
+    and projected coordinates lose no precision.
+    """
+    lengths = stop - start
+    n_windows = start.shape[0]
+    t_mean = np.empty(n_windows)
+    p_mean = np.empty((n_windows, 3))
+    vel = np.empty((n_windows, 3))
+    # Blocks of windows whose total sample count stays bounded.
+    cum = np.cumsum(lengths)
+    block_edges = np.searchsorted(cum, np.arange(_FIT_BLOCK_SAMPLES, cum[-1], _FIT_BLOCK_SAMPLES))
+    bounds = np.concatenate(([0], block_edges + 1, [n_windows]))
+    bounds = np.unique(np.clip(bounds, 0, n_windows))
+    for b0, b1 in itertools.pairwise(bounds):
+        s0, ln = start[b0:b1], lengths[b0:b1]
+        offsets = np.concatenate(([0], np.cumsum(ln)[:-1]))
+        flat = np.repeat(s0 - offsets, ln) + np.arange(int(ln.sum()))
+        # Reference each window to its first sample to keep magnitudes small before summing.
+        ref_t = np.repeat(traj_t[s0], ln)
+        ref_p = np.repeat(traj_xyz[s0], ln, axis=0)
+        tt = traj_t[flat] - ref_t
+        pp = traj_xyz[flat] - ref_p
+        tm = np.add.reduceat(tt, offsets) / ln
+        pm = np.add.reduceat(pp, offsets, axis=0) / ln[:, None]
+        dt = tt - np.repeat(tm, ln)
+        dp = pp - np.repeat(pm, ln, axis=0)
+        stt = np.add.reduceat(dt * dt, offsets)
+        stp = np.add.reduceat(dt[:, None] * dp, offsets, axis=0)
+        t_mean[b0:b1] = tm + traj_t[s0]
+        p_mean[b0:b1] = pm + traj_xyz[s0]
+        vel[b0:b1] = stp / stt[:, None]
+    return t_mean, p_mean, vel
+
+
+def laser_geometry(
+    t: np.ndarray,
+    xyz: np.ndarray,
+    trajectory: Trajectory,
+    *,
+    window_s: float = 0.5,
+    min_samples: int = 2,
+    source: str = "points",
+) -> LaserGeometry:
+    """Recover ``x, z, kappa, beta`` for each point (method.md section 4).
+
+    Parameters
+    ----------
+    t : (n,) float64
+        Firing times, seconds, on the trajectory's clock.
+    xyz : (n, 3) float64
+        Points in the map frame, metres.
+    trajectory : Trajectory
+        IMU-origin positions.
+    window_s : float
+        Half-width ``Dt`` of the time window of samples fitted, seconds.
+    min_samples : int
+        Fewest samples a window may hold; fewer means a trajectory gap at that time.
+    source : str
+        Name used in error messages (e.g. ``"strip 3"``).
+
+    Raises
+    ------
+    TrajectoryError
+        If the trajectory does not cover a point's time (a gap, or outside its span).
+    """
+    t = np.asarray(t, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = t.shape[0]
+    if n == 0:
+        empty = np.empty(0)
+        return LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
+    if len(trajectory) < min_samples:
+        raise TrajectoryError(
+            f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
+        )
+    traj_t = trajectory.t
+    start = np.searchsorted(traj_t, t - window_s, side="right")
+    stop = np.searchsorted(traj_t, t + window_s, side="left")
+    counts = stop - start
+    # A window must hold enough samples and bracket the point (no extrapolation past a gap).
+    before = start < stop
+    lo_ok = before & (traj_t[np.minimum(start, len(traj_t) - 1)] <= t)
+    hi_ok = before & (traj_t[np.maximum(stop - 1, 0)] >= t)
+    bad = (counts < min_samples) | ~lo_ok | ~hi_ok
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise TrajectoryError(
+            f"{source}: trajectory gap at t={t[first]:.3f} s "
+            f"({int(bad.sum())} of {n} points not covered by >= {min_samples} samples "
+            f"within +-{window_s:g} s)"
+        )
+    # One fit per distinct window.
+    key = start.astype(np.int64) * (len(traj_t) + 1) + stop
+    _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
+    t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, start[first_idx], stop[first_idx])
+    speed_h = np.hypot(vel[:, 0], vel[:, 1])
+    if np.any(speed_h <= 1e-6):
+        raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
+    kappa_w = np.arctan2(-vel[:, 0], vel[:, 1])
+    inv = inverse.ravel()
+    origin = p_mean[inv] + vel[inv] * (t - t_mean[inv])[:, None]
+    kappa = kappa_w[inv]
+    rel = xyz - origin
+    x = rel[:, 0] * np.cos(kappa) + rel[:, 1] * np.sin(kappa)
+    z = rel[:, 2]
+    if np.any(z >= 0):
+        k = int(np.argmax(z >= 0))
+        raise TrajectoryError(
+            f"{source}: point at t={t[k]:.3f} s is not below the trajectory (z={z[k]:.2f} m); "
+            "wrong trajectory or time base?"
+        )
+    beta = np.arctan(x / z)
+    return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin)

@@ -1,0 +1,36 @@
+"""Exceptions of lidarcal_ros.
+
+Every error the package raises on bad input derives from :class:`LidarcalError`, whose message
+is one line naming the file, topic, field or parameter at fault. The CLI prints that line and
+exits non-zero; nodes log it and keep running.
+"""
+
+from __future__ import annotations
+
+
+class LidarcalError(Exception):
+    """Root of every lidarcal_ros error."""
+
+
+class InputError(LidarcalError):
+    """Input data is malformed or inconsistent (cloud fields, frames, bags, files)."""
+
+
+class CloudFormatError(InputError):
+    """A PointCloud2 lacks a required field, has an unsupported type or an inconsistent layout."""
+
+
+class BagError(InputError):
+    """A bag cannot be opened or read (missing, truncated, wrong storage, missing topic)."""
+
+
+class TrajectoryError(InputError):
+    """The trajectory does not cover a point's time or is otherwise unusable."""
+
+
+class ConfigError(LidarcalError):
+    """A flight configuration, calibration file or parameter value is invalid."""
+
+
+class CalibrationError(LidarcalError):
+    """The adjustment cannot proceed (no overlap, no correspondences, nothing to estimate)."""

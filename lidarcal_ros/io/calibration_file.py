@@ -1,0 +1,151 @@
+"""The calibration file of interface.md (YAML, SI units)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lidarcal_ros.core.calibrate import CalibrationResult
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.errors import ConfigError
+
+ROOT_KEY = "lidarcal_calibration"
+
+
+@dataclass
+class CalibrationRecord:
+    """What a calibration file holds: values (SI) and which were estimated."""
+
+    values: dict[str, float]
+    sigmas: dict[str, float | None]
+    estimated: dict[str, bool]
+    sigma0: float | None = None
+
+    @property
+    def delta(self) -> np.ndarray:
+        return np.array([self.values[n] for n in PARAMETER_NAMES])
+
+
+def _num(value: float) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def calibration_document(result: CalibrationResult) -> dict[str, Any]:
+    """The YAML document (a dict) for a calibration result."""
+    sol = result.solution
+    biases: dict[str, Any] = {}
+    for i, name in enumerate(PARAMETER_NAMES):
+        st = sol.status[name]
+        entry: dict[str, Any] = {
+            "value": float(sol.delta[i]),
+            "sigma": _num(float(sol.sigma[i])),
+            "estimated": st.state == "estimated",
+        }
+        if st.state == "not_estimable":
+            entry["not_estimable"] = st.reason
+        biases[name] = entry
+    doc: dict[str, Any] = {
+        "biases": biases,
+        "sigma0": float(sol.sigma0),
+        "redundancy": int(sol.redundancy),
+        "correlation": {
+            "names": list(sol.estimated),
+            "matrix": [[float(v) for v in row] for row in sol.correlation],
+        },
+        "iterations": int(result.iterations),
+        "converged": bool(result.converged),
+        "correspondences": {
+            "strip_pairs": int(result.n_pair_correspondences),
+            "control": int(result.n_control_correspondences),
+        },
+        "strip_pairs": [
+            {"strips": [p.strip_a, p.strip_b], "coverage": round(p.coverage, 4),
+             "correspondences": p.correspondences,
+             "rms_before_m": _num(p.rms_before), "rms_after_m": _num(p.rms_after)}
+            for p in result.pairs
+        ],
+        "control_residuals": [
+            {"id": c.control_id, "strip": c.strip_id, "before_m": _num(c.before),
+             "after_m": _num(c.after)} for c in result.control
+        ],
+    }
+    if result.dropped_non_finite:
+        doc["dropped_non_finite_points"] = int(result.dropped_non_finite)
+    if sol.warnings:
+        doc["warnings"] = list(sol.warnings)
+    return {ROOT_KEY: doc}
+
+
+def write_calibration(path: str | Path, result: CalibrationResult) -> Path:
+    """Write the calibration file; returns its path."""
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    text = yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)  # atomic: a reader never sees half a file
+    return path
+
+
+def read_calibration(path: str | Path) -> CalibrationRecord:
+    """Read a calibration file.
+
+    Raises
+    ------
+    ConfigError
+        Missing file or key, non-numeric value; one line naming the key.
+    """
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read calibration ({exc.strerror})") from None
+    except yaml.YAMLError:
+        raise ConfigError(f"{path}: calibration is not valid YAML") from None
+    if not isinstance(doc, Mapping) or not isinstance(doc.get(ROOT_KEY), Mapping):
+        raise ConfigError(f"{path}: missing top-level key '{ROOT_KEY}'")
+    body = doc[ROOT_KEY]
+    biases = body.get("biases")
+    if not isinstance(biases, Mapping):
+        raise ConfigError(f"{path}: missing '{ROOT_KEY}.biases'")
+    values: dict[str, float] = {}
+    sigmas: dict[str, float | None] = {}
+    estimated: dict[str, bool] = {}
+    for name in PARAMETER_NAMES:
+        entry = biases.get(name)
+        if not isinstance(entry, Mapping) or "value" not in entry:
+            raise ConfigError(f"{path}: missing 'biases.{name}.value'")
+        value = entry["value"]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                not math.isfinite(value):
+            raise ConfigError(f"{path}: biases.{name}.value is not a finite number: {value!r}")
+        _check_units(path, name, float(value))
+        values[name] = float(value)
+        sigma = entry.get("sigma")
+        sigmas[name] = float(sigma) if isinstance(sigma, (int, float)) else None
+        estimated[name] = bool(entry.get("estimated", False))
+    sigma0 = body.get("sigma0")
+    return CalibrationRecord(values, sigmas, estimated,
+                             float(sigma0) if isinstance(sigma0, (int, float)) else None)
+
+
+#: Plausibility bounds (SI) that catch values written in other units (arcsec, cm, ppm).
+_PLAUSIBLE = {"dX": 5.0, "dY": 5.0, "dZ": 5.0, "domega": 0.05, "dphi": 0.05, "dkappa": 0.05,
+              "dr": 5.0, "dS": 0.05}
+
+
+def _check_units(path: Path, name: str, value: float) -> None:
+    limit = _PLAUSIBLE[name]
+    if abs(value) > limit:
+        unit = "rad" if name in ("domega", "dphi", "dkappa") else ("m" if name != "dS" else "1")
+        raise ConfigError(
+            f"{path}: biases.{name}.value {value:g} is implausible in SI units ({unit}; "
+            f"|value| <= {limit:g}); arcseconds or centimetres written by mistake?"
+        )

@@ -1,0 +1,121 @@
+"""Control points as CSV: ``id,x,y,z`` with a header line, map frame, metres."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lidarcal_ros.core.mission import ControlPoints
+from lidarcal_ros.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+COLUMNS: tuple[str, ...] = ("id", "x", "y", "z")
+
+
+def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
+    """Read control points.
+
+    Parameters
+    ----------
+    path : path-like
+        CSV file whose first non-blank line is a header naming ``id, x, y, z`` (any order,
+        case-insensitive, further columns ignored); blank lines and lines starting with ``#``
+        are skipped; whitespace around values is ignored.
+
+    Returns
+    -------
+    ControlPoints
+        Ids as strings, coordinates (n, 3) float64 in the map frame, metres.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, missing columns, a non-numeric or non-finite value (with
+        its line number), a duplicate id, or no rows.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError(f"{p}: control point file not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{p}: cannot read control point file ({err})") from None
+    lines = [
+        (no, line) for no, line in enumerate(text.splitlines(), start=1)
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    if not lines:
+        raise InputError(f"{p}: empty control point file (expected header id,x,y,z)")
+    header_no, header = lines[0]
+    names = [c.strip().lower() for c in header.split(",")]
+    missing = [c for c in COLUMNS if c not in names]
+    if missing:
+        raise InputError(
+            f"{p}: line {header_no}: header lacks column(s) {', '.join(missing)} "
+            f"(found: {header.strip()})"
+        )
+    col = {c: names.index(c) for c in COLUMNS}
+    ids: list[str] = []
+    xyz: list[tuple[float, float, float]] = []
+    for no, line in lines[1:]:
+        cells = [c.strip() for c in line.split(",")]
+        if len(cells) < len(names):
+            raise InputError(
+                f"{p}: line {no}: {len(cells)} values, expected {len(names)}"
+            )
+        pid = cells[col["id"]]
+        if not pid:
+            raise InputError(f"{p}: line {no}: empty id")
+        if pid in ids:
+            raise InputError(f"{p}: line {no}: duplicate id '{pid}'")
+        coords = []
+        for c in ("x", "y", "z"):
+            value = cells[col[c]]
+            try:
+                v = float(value)
+            except ValueError:
+                raise InputError(
+                    f"{p}: line {no}: {c} value '{value}' is not a number"
+                ) from None
+            if not math.isfinite(v):
+                raise InputError(f"{p}: line {no}: {c} value '{value}' is not finite")
+            coords.append(v)
+        ids.append(pid)
+        xyz.append((coords[0], coords[1], coords[2]))
+    if not ids:
+        raise InputError(f"{p}: no control points after the header line")
+    logger.debug("%s: read %d control points", p, len(ids))
+    return ControlPoints(ids, np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+
+
+def write_control_csv(path: str | os.PathLike[str], control: ControlPoints) -> None:
+    """Write control points as ``id,x,y,z`` with a header line.
+
+    Coordinates are written with ``repr`` precision, so reading back gives identical
+    float64 values.
+
+    Raises
+    ------
+    InputError
+        Ids and coordinates disagree in number, or an id contains a comma or newline.
+    """
+    p = Path(path)
+    xyz = np.asarray(control.xyz, dtype=np.float64).reshape(-1, 3)
+    if len(control.ids) != len(xyz):
+        raise InputError(
+            f"{p}: {len(control.ids)} control ids but {len(xyz)} coordinates"
+        )
+    rows = ["id,x,y,z"]
+    for pid, (x, y, z) in zip(control.ids, xyz, strict=True):
+        if any(ch in str(pid) for ch in ",\n\r"):
+            raise InputError(f"{p}: control id {pid!r} contains a comma or newline")
+        rows.append(f"{pid},{float(x)!r},{float(y)!r},{float(z)!r}")
+    try:
+        p.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    except OSError as err:
+        raise InputError(f"{p}: cannot write control point file ({err})") from None

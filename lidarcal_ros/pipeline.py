@@ -1,0 +1,221 @@
+"""The one procedure the CLI and the nodes both drive.
+
+Batch (``lidarcal calibrate``) and streaming (the calibrator node) call the same functions here,
+which call :mod:`lidarcal_ros.core` for numerics and :mod:`lidarcal_ros.io` for data, so the two
+cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.mission import Mission
+from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.bag import read_mission
+from lidarcal_ros.io.control import read_control_csv
+
+logger = logging.getLogger(__name__)
+
+
+def load_mission(
+    bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None
+) -> Mission:
+    """Read a mission bag with the topics and time field of ``config``.
+
+    Control points come from ``control_csv`` if given, else from the configuration's
+    ``calibration.control_points_file`` if set, else from the bag's control topic.
+    """
+    mission = read_mission(
+        bag,
+        points_topic=config["topics.points"],
+        trajectory_topic=config["topics.trajectory"],
+        control_topic=config["topics.control_points"],
+        time_field=config["time_field"],
+    )
+    csv = control_csv or config["calibration.control_points_file"] or None
+    if csv:
+        mission.control = read_control_csv(csv)
+    return mission
+
+
+def calibrate_mission(
+    mission: Mission,
+    config: FlightConfig,
+    *,
+    solve_for: tuple[str, ...] | None = None,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Run the calibration of ``mission`` with the options of ``config``."""
+    settings = config.calibration_settings()
+    if solve_for is not None:
+        settings.solve_for = tuple(n for n in PARAMETER_NAMES if n in solve_for)
+    return calibrate(mission, settings, progress=progress)
+
+
+# ---------------------------------------------------------------------------- reports
+@dataclass
+class Truth:
+    """Simulated truth kept beside a simulated bag."""
+
+    biases: dict[str, float]
+
+    @classmethod
+    def read(cls, path: str | Path) -> Truth:
+        path = Path(path)
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError):
+            raise ConfigError(f"{path}: cannot read truth file") from None
+        biases = doc.get("biases") if isinstance(doc, Mapping) else None
+        if not isinstance(biases, Mapping):
+            raise ConfigError(f"{path}: missing 'biases'")
+        return cls({n: float(biases.get(n, 0.0)) for n in PARAMETER_NAMES})
+
+
+def _fmt(name: str, value: float, sign: bool = True) -> str:
+    v, unit = display_value(name, value)
+    if name == "dS":
+        return f"{v:+.2e}" if sign else f"{v:.1e}"
+    return f"{v:+8.2f} {unit}" if sign else f"{v:.2f} {unit}"
+
+
+def format_report(
+    result: CalibrationResult,
+    config: FlightConfig,
+    *,
+    title: str = "",
+    truth: Truth | None = None,
+) -> str:
+    """A readable table: estimates with sigmas (arcsec, cm), correlations above 0.5, and per
+    strip pair the RMS normal discrepancy before and after with its QA level."""
+    sol = result.solution
+    lines = []
+    if title:
+        lines.append(title)
+    header = f"{'parameter':<9} {'estimate':>14} {'sigma':>12}"
+    if truth is not None:
+        header += f" {'truth':>14} {'error/sigma':>11}"
+    lines.append(header)
+    for i, name in enumerate(PARAMETER_NAMES):
+        st = sol.status[name]
+        if st.state == "estimated":
+            sigma = "+- " + _fmt(name, sol.sigma[i], False)
+            row = f"{name:<9} {_fmt(name, sol.delta[i]):>14} {sigma:>12}"
+            if truth is not None:
+                err = (sol.delta[i] - truth.biases[name]) / sol.sigma[i]
+                row += f" {_fmt(name, truth.biases[name]):>14} {err:>+11.2f}"
+        elif st.state == "fixed":
+            row = f"{name:<9} {'fixed at ' + _fmt(name, sol.delta[i]).strip():>27}"
+            if truth is not None:
+                row += f" {_fmt(name, truth.biases[name]):>14}"
+        else:
+            row = f"{name:<9} not estimable: {st.reason}"
+        lines.append(row)
+    lines.append(
+        f"sigma0 {sol.sigma0 * 100:.2f} cm, redundancy {sol.redundancy}, "
+        f"{result.iterations} iterations, {'converged' if result.converged else 'NOT converged'}; "
+        f"{result.n_pair_correspondences} strip-pair and {result.n_control_correspondences} "
+        "control correspondences"
+    )
+    pairs = sol.correlated_pairs(0.5)
+    if pairs:
+        lines.append("correlations above 0.5: " + ", ".join(f"{a}/{b} {r:+.2f}"
+                                                             for a, b, r in pairs))
+    for w in sol.warnings:
+        lines.append(f"warning: {w}")
+    if result.dropped_non_finite:
+        lines.append(f"dropped {result.dropped_non_finite} points with non-finite values")
+    warn = config["qa.rmsdz_warn_m"]
+    lines.append(f"{'strip pair':<11} {'coverage':>8} {'matches':>8} {'RMS before':>11} "
+                 f"{'RMS after':>10}  QA (warn above {warn * 100:.0f} cm)")
+    for p in result.pairs:
+        level = "OK" if p.rms_after <= warn else "WARN"
+        lines.append(f"{p.strip_a:>4} & {p.strip_b:<4} {p.coverage * 100:>7.0f}% "
+                     f"{p.correspondences:>8} {p.rms_before * 100:>8.1f} cm "
+                     f"{p.rms_after * 100:>7.1f} cm  {level}")
+    if result.control:
+        lines.append("control residuals (normal distance, before -> after):")
+        for c in result.control:
+            after = "n/a" if math.isnan(c.after) else f"{c.after * 100:+.1f} cm"
+            lines.append(f"  {c.control_id} in strip {c.strip_id}: {c.before * 100:+.1f} cm "
+                         f"-> {after}")
+    return "\n".join(lines)
+
+
+def parse_biases(text: str) -> dict[str, float]:
+    """``"dX=0.05,domega=-29arcsec,dr=11.8cm"`` to SI values.
+
+    Units accepted as suffixes: ``arcsec`` (angles), ``cm``, ``mm``, ``m``, ``rad``, ``ppm``.
+    """
+    out: dict[str, float] = {}
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "=" not in part:
+            raise ConfigError(f"--biases: expected NAME=VALUE, got '{part}'")
+        name, raw = (s.strip() for s in part.split("=", 1))
+        if name not in PARAMETER_NAMES:
+            raise ConfigError(f"--biases: unknown parameter '{name}'")
+        factor = 1.0
+        for suffix, f in (("arcsec", math.pi / 180 / 3600), ("ppm", 1e-6), ("cm", 0.01),
+                          ("mm", 0.001), ("rad", 1.0), ("m", 1.0)):
+            if raw.endswith(suffix):
+                raw, factor = raw[: -len(suffix)], f
+                break
+        try:
+            out[name] = float(raw) * factor
+        except ValueError:
+            raise ConfigError(f"--biases: '{part}' is not a number") from None
+    return out
+
+
+def truth_document(biases: Mapping[str, float], config: Mapping[str, Any]) -> dict[str, Any]:
+    """The truth file written beside a simulated bag."""
+    return {
+        "biases": {n: float(biases.get(n, 0.0)) for n in PARAMETER_NAMES},
+        "simulation": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                       for k, v in config.items()},
+    }
+
+
+def simulation_paths(output: str | Path) -> dict[str, Path]:
+    """Where ``lidarcal simulate -o OUT`` writes: the bag, ``OUT_control.csv``,
+    ``OUT_truth.yaml``."""
+    out = Path(output)
+    stem = out.with_suffix("") if out.suffix == ".mcap" else out
+    return {
+        "bag": out,
+        "control": stem.parent / f"{stem.name}_control.csv",
+        "truth": stem.parent / f"{stem.name}_truth.yaml",
+    }
+
+
+def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -> dict[str, Path]:
+    """Write a :class:`~lidarcal_ros.core.simulate.SimulatedMission` as the contract's files."""
+    from lidarcal_ros.io.bag import write_mission_bag
+    from lidarcal_ros.io.control import write_control_csv
+
+    paths = simulation_paths(output)
+    for key in ("control", "truth"):
+        if paths[key].exists() and not overwrite:
+            raise ConfigError(f"{paths[key]}: exists (use --overwrite to replace)")
+    write_mission_bag(paths["bag"], sim.mission, overwrite=overwrite)
+    if sim.mission.control is not None and len(sim.mission.control):
+        write_control_csv(paths["control"], sim.mission.control)
+    else:
+        paths.pop("control")
+    paths["truth"].write_text(yaml.safe_dump(truth_document(sim.biases, sim.config),
+                                             sort_keys=False))
+    return paths

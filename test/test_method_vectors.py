@@ -1,0 +1,103 @@
+"""Pin every sign of method.md with the shared test vectors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lidarcal_ros.core.local_trajectory import laser_geometry
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.model import correct_points, design_matrix, normal_design_rows, point_offsets
+from lidarcal_ros.core.params import PARAMETER_NAMES, as_vector
+from lidarcal_ros.errors import TrajectoryError
+
+VECTORS = Path(__file__).resolve().parents[1].parent / "shared" / "vectors" / "method_vectors.json"
+
+
+@pytest.fixture(scope="module")
+def vectors() -> dict:
+    if not VECTORS.exists():  # pragma: no cover - shared/ sits beside every checkout
+        pytest.skip(f"{VECTORS} not present")
+    return json.loads(VECTORS.read_text())
+
+
+def test_parameter_order(vectors: dict) -> None:
+    assert tuple(vectors["parameter_order"]) == PARAMETER_NAMES
+
+
+def test_design_rows(vectors: dict) -> None:
+    for row in vectors["design_rows"]:
+        args = [np.array([row[k]]) for k in ("x", "z", "kappa", "beta")]
+        a = design_matrix(*args)[0]
+        np.testing.assert_allclose(a, np.array(row["A"]), rtol=0, atol=1e-9)
+
+
+def test_normal_rows_and_offsets_agree_with_design_matrix(vectors: dict) -> None:
+    rng = np.random.default_rng(1)
+    for row in vectors["design_rows"]:
+        args = [np.array([row[k]]) for k in ("x", "z", "kappa", "beta")]
+        a = design_matrix(*args)[0]
+        delta = rng.normal(size=8)
+        n = rng.normal(size=(1, 3))
+        n /= np.linalg.norm(n)
+        np.testing.assert_allclose(point_offsets(delta, *args)[0], a @ delta, atol=1e-9)
+        np.testing.assert_allclose(normal_design_rows(n, *args)[0], n[0] @ a, atol=1e-9)
+
+
+def test_linearised_offsets_of_pulses(vectors: dict) -> None:
+    delta = as_vector(vectors["biases_used_for_pulses"])
+    for pulse in vectors["pulses"]:
+        args = [np.array([pulse[k]]) for k in ("x", "z", "kappa", "beta")]
+        offset = point_offsets(delta, *args)[0]
+        np.testing.assert_allclose(offset, pulse["linearised_offset"], atol=1e-9)
+        # The linearised model is within about 0.1 mm of the exact one.
+        assert np.max(np.abs(offset - np.array(pulse["exact_offset"]))) < 1.5e-4
+        # Eq. [13] takes the biased point back to the true one (within linearisation).
+        corrected = correct_points(np.array([pulse["biased_point"]]), delta, *args)[0]
+        assert np.max(np.abs(corrected - np.array(pulse["true_point"]))) < 2e-4
+
+
+def test_local_trajectory(vectors: dict) -> None:
+    lt = vectors["local_trajectory"]
+    samples = np.array(lt["samples"])
+    traj = Trajectory(samples[:, 0], samples[:, 1:])
+    t = np.array([p["t"] for p in lt["points"]])
+    xyz = np.array([p["point"] for p in lt["points"]])
+    g = laser_geometry(t, xyz, traj, window_s=0.5)
+    for i, p in enumerate(lt["points"]):
+        e = p["expected"]
+        assert g.x[i] == pytest.approx(e["x"], abs=1e-6)
+        assert g.z[i] == pytest.approx(e["z"], abs=1e-6)
+        assert g.kappa[i] == pytest.approx(e["kappa"], abs=1e-9)
+        assert g.beta[i] == pytest.approx(e["beta"], abs=1e-9)
+
+
+def test_local_trajectory_at_projected_magnitudes_and_gps_time() -> None:
+    """Absolute GPS seconds and UTM-size coordinates must not cost precision."""
+    t = 1.4e9 + np.arange(0.0, 60.0, 0.005)  # 200 Hz
+    kappa = np.radians(37.0)
+    direction = np.array([-np.sin(kappa), np.cos(kappa), 0.0])
+    start = np.array([512_345.678, 5_432_109.876, 1150.0])
+    traj = Trajectory(t, start + np.outer(t - t[0], 65.0 * direction))
+    tp = t[0] + np.array([10.0012, 33.3337])
+    right = np.array([np.cos(kappa), np.sin(kappa), 0.0])
+    origin = start + np.outer(tp - t[0], 65.0 * direction)
+    pts = origin + np.outer([-212.5, 401.25], right) + np.array([0, 0, -1107.0])
+    g = laser_geometry(tp, pts, traj)
+    np.testing.assert_allclose(g.x, [-212.5, 401.25], atol=1e-6)
+    np.testing.assert_allclose(g.z, [-1107.0, -1107.0], atol=1e-6)
+    np.testing.assert_allclose(g.kappa, kappa, atol=1e-10)
+
+
+def test_trajectory_gap_is_reported() -> None:
+    t = np.concatenate([np.arange(0.0, 10.0, 0.1), np.arange(20.0, 30.0, 0.1)])
+    xyz = np.column_stack([np.zeros_like(t), 50.0 * t, np.full_like(t, 1000.0)])
+    traj = Trajectory(t, xyz)
+    with pytest.raises(TrajectoryError, match=r"trajectory gap at t=15\.000"):
+        laser_geometry(np.array([5.0, 15.0]), np.array([[10, 250, 0], [10, 750, 0.0]]), traj,
+                       source="strip 7")
+    with pytest.raises(TrajectoryError, match="strip 7"):
+        laser_geometry(np.array([35.0]), np.array([[10, 1750, 0.0]]), traj, source="strip 7")
