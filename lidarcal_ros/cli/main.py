@@ -63,7 +63,7 @@ def _add_simulate(sub: Any) -> None:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from lidarcal_ros.core.simulate import simulate_mission
     from lidarcal_ros.errors import ConfigError
-    from lidarcal_ros.pipeline import parse_biases, write_simulation
+    from lidarcal_ros.pipeline.calibration import parse_biases, write_simulation
 
     try:
         origin = tuple(float(v) for v in args.origin.split(","))
@@ -112,7 +112,12 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.pipeline import Truth, calibrate_mission, format_report, load_mission
+    from lidarcal_ros.pipeline.calibration import (
+        Truth,
+        calibrate_mission,
+        format_report,
+        load_mission,
+    )
 
     config = load_flight_config(args.config)
     overrides = {}

@@ -1,4 +1,4 @@
-"""The one procedure the CLI and the nodes both drive.
+"""Calibration procedure shared by `lidarcal calibrate` and the calibrator node.
 
 Batch (``lidarcal calibrate``) and streaming (the calibrator node) call the same functions here,
 which call :mod:`lidarcal_ros.core` for numerics and :mod:`lidarcal_ros.io` for data, so the two
