@@ -101,3 +101,18 @@ def test_trajectory_gap_is_reported() -> None:
                        source="strip 7")
     with pytest.raises(TrajectoryError, match="strip 7"):
         laser_geometry(np.array([35.0]), np.array([[10, 1750, 0.0]]), traj, source="strip 7")
+
+
+def test_exact_correction_inverts_the_biased_pulses(vectors: dict) -> None:
+    from lidarcal_ros.core.model import correct_points_exact
+
+    delta = as_vector(vectors["biases_used_for_pulses"])
+    for pulse in vectors["pulses"]:
+        xo = np.array([pulse["trajectory_position"]])
+        corrected = correct_points_exact(np.array([pulse["biased_point"]]), xo,
+                                         np.array([pulse["kappa"]]), delta)[0]
+        np.testing.assert_allclose(corrected, pulse["true_point"], atol=1e-8)
+        # And differs from the linear eq. [13] only at second order.
+        args = [np.array([pulse[k]]) for k in ("x", "z", "kappa", "beta")]
+        linear = correct_points(np.array([pulse["biased_point"]]), delta, *args)[0]
+        assert np.max(np.abs(linear - corrected)) < 2e-4

@@ -1,13 +1,15 @@
 """``lidarcal``: simulate, calibrate (and more) from the command line.
 
 Every subcommand exits 0 on success; on bad input it prints one line naming the file, topic,
-field or parameter at fault and exits 1 (2 for usage errors).
+field or parameter at fault and exits 1 (2 for usage errors). An unexpected exception (a bug)
+is also reported in one line, with exit status 3; ``-vv`` adds its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -119,6 +121,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         load_mission,
     )
 
+    _check_output_file(args.output)
     config = load_flight_config(args.config)
     overrides = {}
     if args.points:
@@ -158,6 +161,19 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_output_file(path: Path) -> None:
+    """Refuse an output path that cannot be written, before hours of work."""
+    from lidarcal_ros.errors import ConfigError
+
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a directory; -o/--output takes a file name")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{path}: cannot write here ({parent} is not a writable directory)")
+
+
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -188,6 +204,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"lidarcal {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a file the command reads or writes
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"lidarcal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug: still one line, traceback with -vv
+        logger.debug("traceback", exc_info=True)
+        text = " ".join(str(exc).split())
+        print(f"lidarcal {args.command}: internal error: {type(exc).__name__}: {text} "
+              "(rerun with -vv for the traceback)", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":  # pragma: no cover

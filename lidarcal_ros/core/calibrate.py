@@ -30,8 +30,8 @@ from lidarcal_ros.core.adjustment import (
 )
 from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip
-from lidarcal_ros.core.model import normal_design_rows, point_offsets
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, as_vector
+from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import PatchMatches, Tin, TinQuality, match_to_tin
 from lidarcal_ros.errors import CalibrationError
 
@@ -247,8 +247,9 @@ class Calibrator:
     def _corrected(self, k: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Corrected coordinates of strip k and the shift ``delivered - corrected``."""
         g = self.strips[k].geometry
-        off = point_offsets(delta, g.x, g.z, g.kappa, g.beta)
-        return self.strips[k].strip.xyz - off, off
+        xyz = self.strips[k].strip.xyz
+        corrected = correct_points_exact(xyz, g.origin, g.kappa, delta)
+        return corrected, xyz - corrected
 
     def _match_pair(
         self, pair: _PairWork, points_idx: np.ndarray, delta: np.ndarray,
@@ -271,13 +272,12 @@ class Calibrator:
         verts = self._tin(pair.b).simplices[m.triangle[ok]]
         ga = sa.geometry.take(idx)
         rows = normal_design_rows(n, ga.x, ga.z, ga.kappa, ga.beta)
-        foot = np.zeros((idx.size, 3))
         for v in range(3):
             gv = sb.geometry.take(verts[:, v])
             rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
-            foot += w[:, v:v + 1] * (sb.strip.xyz[verts[:, v]] - sa.strip.xyz[idx])
-        # y = n . (X_A - X_B) in delivered coordinates; differences taken first for precision.
-        y = -(n * foot).sum(axis=1)
+        # Observed: the normal discrepancy n . (X_A - X_B) left by the current estimate; the
+        # adjustment solves for the increment that removes it (Gauss-Newton on eq. [11]).
+        y = m.distance[ok]
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index))
 
     def _select_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
@@ -320,12 +320,10 @@ class Calibrator:
             w = m.weights[ok]
             verts = self._tin(k).simplices[m.triangle[ok]]
             rows = np.zeros((int(ok.sum()), N_PARAMETERS))
-            foot = np.zeros((int(ok.sum()), 3))
             for v in range(3):
                 gv = ps.geometry.take(verts[:, v])
                 rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
-                foot += w[:, v:v + 1] * (ps.strip.xyz[verts[:, v]] - control.xyz[cps[ok]])
-            y = -(n * foot).sum(axis=1)
+            y = m.distance[ok]  # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
             weights = np.full(y.size, self.settings.control_weight)
             parts.append(Observations(rows, y, weights, -1 - cps[ok]))
             for c, d in zip(cps[ok], m.distance[ok]):
@@ -333,14 +331,21 @@ class Calibrator:
         return Observations.concatenate(parts), found
 
     # ------------------------------------------------------------------ adjustment
-    def _robust_solve(self, obs: Observations) -> Solution:
-        """Solve, then iteratively zero the weights of outliers (> robust_k robust sigmas)."""
+    def _robust_solve(self, obs: Observations, delta: np.ndarray) -> Solution:
+        """Solve for the increment to ``delta``, zeroing the weights of outliers
+        (> robust_k robust sigmas) until they no longer change.
+
+        Returns the solution with ``delta`` = current estimate + increment; parameters not
+        solved for are moved to their fixed values.
+        """
         s = self.settings
+        fixed_step = {name: float(s.fixed.get(name, 0.0) - delta[i])
+                      for i, name in enumerate(PARAMETER_NAMES)}
         base_w = obs.weights.copy()
         sol = None
         for _ in range(6):
             neq = NormalEquations.from_observations(obs)
-            sol = solve(neq, solve_for=s.solve_for, fixed=s.fixed, limits=s.limits)
+            sol = solve(neq, solve_for=s.solve_for, fixed=fixed_step, limits=s.limits)
             v = obs.residuals(sol.delta)
             scale = 1.4826 * np.median(np.abs(v[base_w > 0]))
             new_w = np.where(np.abs(v) <= s.robust_k * max(scale, 1e-6), base_w, 0.0)
@@ -348,6 +353,7 @@ class Calibrator:
                 break
             obs.weights = new_w
         assert sol is not None
+        sol.delta = sol.delta + delta
         return sol
 
     def run(self) -> CalibrationResult:
@@ -390,7 +396,7 @@ class Calibrator:
                     "no point-to-patch correspondences: the overlaps hold no usable patches"
                 )
             self._progress(f"iteration {iteration}: adjusting", 1.0)
-            sol = self._robust_solve(obs)
+            sol = self._robust_solve(obs, delta)
             step = sol.delta - delta
             delta = sol.delta.copy()
             history.append(delta.copy())
@@ -399,7 +405,7 @@ class Calibrator:
                         iteration, sol.sigma0, len(obs),
                         float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
             inl = obs.weights > 0
-            scale = float(np.sqrt(np.mean(obs.residuals(delta)[inl] ** 2)))
+            scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2)))
             threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m,
                                       threshold))
             if iteration > 1 and np.all(
@@ -463,11 +469,6 @@ def calibrate(
 ) -> CalibrationResult:
     """Calibrate a mission: see :class:`Calibrator`."""
     return Calibrator(mission, settings or CalibrationSettings(), progress=progress).run()
-
-
-def fixed_vector(settings: CalibrationSettings) -> np.ndarray:
-    """The fixed values of all parameters as a vector (SI)."""
-    return as_vector(settings.fixed)
 
 
 __all__: Sequence[str] = (

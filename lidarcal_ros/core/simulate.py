@@ -31,10 +31,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
+from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
+from lidarcal_ros.core.radiometry import atmospheric_alpha
 from lidarcal_ros.core.terrain import Terrain, cast_rays
 from lidarcal_ros.errors import ConfigError
 
@@ -86,11 +87,6 @@ class SimulatedMission:
 
 
 # ---------------------------------------------------------------------- exact bias model
-
-
-def boresight_matrix(domega: float, dphi: float, dkappa: float) -> np.ndarray:
-    """Exact boresight rotation ``Rz(dkappa) Ry(dphi) Rx(domega)`` (body frame)."""
-    return np.asarray(Rotation.from_euler("xyz", [domega, dphi, dkappa]).as_matrix())
 
 
 def _check_biases(biases: dict[str, float] | None) -> dict[str, float]:
@@ -193,29 +189,6 @@ def biased_point_exact(
 
 
 # ---------------------------------------------------------------------- sensor and atmosphere
-
-
-def atmospheric_alpha(visibility_km: float = 48.3, wavelength_nm: float = WAVELENGTH_NM) -> float:
-    """Extinction coefficient per metre, Kim et al. (2001).
-
-    ``alpha = 3.912 / V * (lambda / 550 nm)^-q`` per km, ``q = 1.6`` (V > 50 km), ``1.3``
-    (6 < V < 50), ``0.16 V + 0.34`` (1 < V < 6), ``V - 0.5`` (0.5 < V < 1), else 0.
-    """
-    v = float(visibility_km)
-    if v <= 0:
-        raise ConfigError(f"visibility_km must be positive, got {visibility_km}")
-    if v > 50.0:
-        q = 1.6
-    elif v > 6.0:
-        q = 1.3
-    elif v > 1.0:
-        q = 0.16 * v + 0.34
-    elif v > 0.5:
-        q = v - 0.5
-    else:
-        q = 0.0
-    per_km = 3.912 / v * (wavelength_nm / 550.0) ** (-q)
-    return per_km / 1000.0
 
 
 def swath_width(height: float, fov_deg: float) -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -65,8 +66,9 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
             "control": int(result.n_control_correspondences),
         },
         "strip_pairs": [
-            {"strips": [p.strip_a, p.strip_b], "coverage": round(p.coverage, 4),
-             "correspondences": p.correspondences,
+            {"strips": [int(p.strip_a), int(p.strip_b)],
+             "coverage": round(float(p.coverage), 4),
+             "correspondences": int(p.correspondences),
              "rms_before_m": _num(p.rms_before), "rms_after_m": _num(p.rms_after)}
             for p in result.pairs
         ],
@@ -85,12 +87,18 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
 def write_calibration(path: str | Path, result: CalibrationResult) -> Path:
     """Write the calibration file; returns its path."""
     path = Path(path)
-    if path.parent and not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
     text = yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)  # atomic: a reader never sees half a file
+    try:
+        if path.parent and not path.parent.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(text)
+        tmp.replace(path)  # atomic: a reader never sees half a file
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            if tmp.is_file():
+                tmp.unlink()
+        raise ConfigError(f"{path}: cannot write calibration ({exc.strerror or exc})") from None
     return path
 
 

@@ -1,0 +1,311 @@
+"""Radiometric correction: recorded intensity to relative reflectance (method.md section 8).
+
+For an extended Lambertian target filling the footprint the radar equation reduces to
+``I ~ P_t * rho * cos(theta) * eta_atm(r) / r^2``, so the reflectance is recovered, up to one
+constant per mission, as
+
+``rho = I * (r / r_ref)^2 / cos(theta) / eta_atm(r) * (P_ref / P_t)``
+
+with ``r`` the range (m) from the firing point to the (corrected) point, ``theta`` the
+incidence angle between the laser direction and the local surface normal, ``eta_atm(r) =
+exp(-2 alpha r)`` the two-way transmittance and ``P_ref / P_t`` the transmitted-power
+normalisation. The result is in the unit of the intensity: the value the sensor would have
+recorded for the same target at the reference range, at normal incidence, through a clear
+atmosphere, at the reference power ("intensity normalised to ``r_ref``"). An absolute
+reflectance needs one more factor (a target of known reflectance), which is a single global
+scale.
+
+Atmosphere
+----------
+The extinction coefficient follows Kim et al. (2001) from the visibility ``V`` (km) of the day:
+``alpha = 3.912 / V * (lambda / 550 nm)^-q`` per km, ``q = 1.6`` (V > 50 km), ``1.3``
+(6 < V <= 50), ``0.16 V + 0.34`` (1 < V <= 6), ``V - 0.5`` (0.5 < V <= 1), else 0. Kim's relation
+is taken as the extinction at standard air density (15 deg C, 101.325 kPa); the day's
+temperature and pressure rescale its molecular (Rayleigh) part, ``sigma_R(lambda) = 0.01162
+km^-1 (550 nm / lambda)^4`` (Bucholtz 1995, sea level, 15 deg C), by the air-density ratio
+``rho_air / rho_0 = (P / P_0) (T_0 / T)``. At 1064 nm this term is below 1e-4 km^-1 (a
+change of transmittance under 0.02% over 1 km); it matters only at short wavelengths.
+
+All functions are vectorised over points and pure numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.errors import ConfigError
+
+#: Standard air: temperature (K) and pressure (kPa) of Kim's relation and the Rayleigh term.
+T0_K = 288.15
+P0_KPA = 101.325
+#: Rayleigh (molecular) extinction at 550 nm, standard air, per km (Bucholtz 1995).
+RAYLEIGH_550_PER_KM = 0.01162
+#: Power models accepted in the flight configuration (``radiometry.power_model``).
+POWER_MODELS = ("constant", "pulse_rate")
+
+
+def kim_q(visibility_km: float) -> float:
+    """Size-distribution exponent ``q`` of Kim et al. (2001) for a visibility in km."""
+    v = float(visibility_km)
+    if v > 50.0:
+        return 1.6
+    if v > 6.0:
+        return 1.3
+    if v > 1.0:
+        return 0.16 * v + 0.34
+    if v > 0.5:
+        return v - 0.5
+    return 0.0
+
+
+def atmospheric_alpha(visibility_km: float = 48.3, wavelength_nm: float = 1064.0) -> float:
+    """Extinction coefficient per metre, Kim et al. (2001), at standard air density.
+
+    ``alpha = 3.912 / V * (lambda / 550 nm)^-q`` per km, ``q = 1.6`` (V > 50 km), ``1.3``
+    (6 < V <= 50), ``0.16 V + 0.34`` (1 < V <= 6), ``V - 0.5`` (0.5 < V <= 1), else 0.
+
+    Parameters
+    ----------
+    visibility_km : float
+        Meteorological visibility, km.
+    wavelength_nm : float
+        Laser wavelength, nm.
+
+    Returns
+    -------
+    float
+        Extinction coefficient, 1/m.
+
+    Raises
+    ------
+    ConfigError
+        Non-positive visibility or wavelength.
+    """
+    v = float(visibility_km)
+    if not v > 0:
+        raise ConfigError(f"visibility_km must be positive, got {visibility_km}")
+    if not float(wavelength_nm) > 0:
+        raise ConfigError(f"wavelength_nm must be positive, got {wavelength_nm}")
+    per_km = 3.912 / v * (float(wavelength_nm) / 550.0) ** (-kim_q(v))
+    return per_km / 1000.0
+
+
+def rayleigh_alpha(
+    wavelength_nm: float, temperature_c: float = 15.0, pressure_kpa: float = P0_KPA
+) -> float:
+    """Molecular (Rayleigh) extinction per metre at a temperature and pressure.
+
+    ``sigma_R = 0.01162 km^-1 (550 nm / lambda)^4 (P / P_0) (T_0 / T)``.
+
+    Parameters
+    ----------
+    wavelength_nm : float
+        nm.
+    temperature_c : float
+        Air temperature, deg C.
+    pressure_kpa : float
+        Air pressure, kPa.
+
+    Returns
+    -------
+    float
+        1/m.
+    """
+    t_k = float(temperature_c) + 273.15
+    if not t_k > 0 or not float(pressure_kpa) > 0 or not float(wavelength_nm) > 0:
+        raise ConfigError(
+            f"rayleigh_alpha: need positive wavelength, absolute temperature and pressure, got "
+            f"{wavelength_nm} nm, {temperature_c} C, {pressure_kpa} kPa"
+        )
+    density = (float(pressure_kpa) / P0_KPA) * (T0_K / t_k)
+    return RAYLEIGH_550_PER_KM * (550.0 / float(wavelength_nm)) ** 4 * density / 1000.0
+
+
+def extinction_coefficient(
+    visibility_km: float,
+    wavelength_nm: float,
+    temperature_c: float = 15.0,
+    pressure_kpa: float = P0_KPA,
+) -> float:
+    """The day's extinction coefficient per metre (module docstring).
+
+    Kim's coefficient at standard air, with its molecular part rescaled to the day's air
+    density: ``alpha_Kim(V, lambda) + sigma_R(lambda, T, P) - sigma_R(lambda, 15 C, 101.325 kPa)``
+    (never below 0).
+    """
+    alpha = atmospheric_alpha(visibility_km, wavelength_nm)
+    alpha += rayleigh_alpha(wavelength_nm, temperature_c, pressure_kpa)
+    alpha -= rayleigh_alpha(wavelength_nm)
+    return max(alpha, 0.0)
+
+
+def two_way_transmittance(range_m: np.ndarray, alpha_per_m: float) -> np.ndarray:
+    """``eta_atm(r) = exp(-2 alpha r)``: two-way transmittance over ``range_m`` metres."""
+    return np.exp(-2.0 * alpha_per_m * np.asarray(range_m, dtype=np.float64))
+
+
+def power_ratio(
+    model: str, pulse_rate_hz: float, reference_pulse_rate_hz: float
+) -> float:
+    """Transmitted-power normalisation ``P_ref / P_t``.
+
+    ``constant``: 1. ``pulse_rate``: the pulse energy of a diode-pumped laser falls as the
+    repetition frequency rises (constant mean power), ``P_t ~ 1 / PRF``, so
+    ``P_ref / P_t = PRF / PRF_ref``.
+
+    Raises
+    ------
+    ConfigError
+        Unknown model or non-positive rate.
+    """
+    if model == "constant":
+        return 1.0
+    if model == "pulse_rate":
+        if not (pulse_rate_hz > 0 and reference_pulse_rate_hz > 0):
+            raise ConfigError(
+                f"pulse rates must be positive, got {pulse_rate_hz} and {reference_pulse_rate_hz}"
+            )
+        return float(pulse_rate_hz) / float(reference_pulse_rate_hz)
+    raise ConfigError(f"radiometry.power_model: '{model}' is not one of {', '.join(POWER_MODELS)}")
+
+
+def cos_incidence(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """``|n . l|`` per point: cosine of the incidence angle.
+
+    Parameters
+    ----------
+    normals : (n, 3) float
+        Unit surface normals, map frame (either orientation).
+    directions : (n, 3) float
+        Unit laser directions (sensor to point), map frame.
+
+    Returns
+    -------
+    (n,) float64
+        In [0, 1]; NaN where a normal is NaN.
+    """
+    d = np.einsum("ij,ij->i", np.asarray(normals, dtype=np.float64),
+                  np.asarray(directions, dtype=np.float64))
+    return np.minimum(np.abs(d), 1.0)
+
+
+@dataclass(frozen=True)
+class RadiometricModel:
+    """Parameters of the radiometric correction, from the flight configuration.
+
+    Attributes
+    ----------
+    wavelength_nm : float
+        Laser wavelength, nm (``sensor.wavelength_nm``).
+    visibility_km, temperature_c, pressure_kpa : float
+        Atmosphere of the day (``atmosphere.*``): km, deg C, kPa.
+    reference_range_m : float
+        Range the reflectance is normalised to, m (``radiometry.reference_range_m``).
+    power_model : str
+        ``constant`` or ``pulse_rate`` (``radiometry.power_model``).
+    pulse_rate_hz, reference_pulse_rate_hz : float
+        Pulse repetition frequency of the mission and of the reference power, Hz.
+    min_cos_incidence : float
+        Clamp of ``cos(theta)``; points below it are flagged grazing
+        (``radiometry.min_cos_incidence``).
+    """
+
+    wavelength_nm: float = 1064.0
+    visibility_km: float = 48.3
+    temperature_c: float = 29.8
+    pressure_kpa: float = 101.81
+    reference_range_m: float = 1000.0
+    power_model: str = "constant"
+    pulse_rate_hz: float = 70000.0
+    reference_pulse_rate_hz: float = 70000.0
+    min_cos_incidence: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not self.reference_range_m > 0:
+            raise ConfigError(
+                f"radiometry.reference_range_m must be positive, got {self.reference_range_m}"
+            )
+        if not 0.0 < self.min_cos_incidence <= 1.0:
+            raise ConfigError(
+                f"radiometry.min_cos_incidence must be in (0, 1], got {self.min_cos_incidence}"
+            )
+        power_ratio(self.power_model, self.pulse_rate_hz, self.reference_pulse_rate_hz)
+        extinction_coefficient(self.visibility_km, self.wavelength_nm, self.temperature_c,
+                               self.pressure_kpa)
+
+    @classmethod
+    def from_config(cls, config: Any) -> RadiometricModel:
+        """From a :class:`~lidarcal_ros.core.config.FlightConfig` (or any ``name -> value``
+        mapping with the dotted names of the schema)."""
+        return cls(
+            wavelength_nm=float(config["sensor.wavelength_nm"]),
+            visibility_km=float(config["atmosphere.visibility_km"]),
+            temperature_c=float(config["atmosphere.temperature_c"]),
+            pressure_kpa=float(config["atmosphere.pressure_kpa"]),
+            reference_range_m=float(config["radiometry.reference_range_m"]),
+            power_model=str(config["radiometry.power_model"]),
+            pulse_rate_hz=float(config["sensor.pulse_rate_hz"]),
+            reference_pulse_rate_hz=float(config["radiometry.reference_pulse_rate_hz"]),
+            min_cos_incidence=float(config["radiometry.min_cos_incidence"]),
+        )
+
+    @property
+    def alpha_per_m(self) -> float:
+        """The day's extinction coefficient, 1/m (:func:`extinction_coefficient`)."""
+        return extinction_coefficient(self.visibility_km, self.wavelength_nm,
+                                      self.temperature_c, self.pressure_kpa)
+
+    @property
+    def power_factor(self) -> float:
+        """``P_ref / P_t`` (:func:`power_ratio`)."""
+        return power_ratio(self.power_model, self.pulse_rate_hz, self.reference_pulse_rate_hz)
+
+    def reflectance(
+        self,
+        intensity: np.ndarray,
+        range_m: np.ndarray,
+        cos_theta: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Relative reflectance of each point (module docstring) and its grazing flag.
+
+        Parameters
+        ----------
+        intensity : (n,) float
+            Recorded intensity (any unit; the result has the same unit).
+        range_m : (n,) float
+            Firing point to point, metres.
+        cos_theta : (n,) float
+            ``|n . l|``, cosine of the incidence angle (NaN where unknown).
+
+        Returns
+        -------
+        reflectance : (n,) float32
+            ``I (r / r_ref)^2 / max(cos theta, c_min) / exp(-2 alpha r) * P_ref / P_t``; NaN
+            where an input is NaN.
+        grazing : (n,) bool
+            ``cos theta < c_min``: the clamped value was used; never divided by a cosine
+            below ``c_min``.
+        """
+        r = np.asarray(range_m, dtype=np.float64)
+        cos_t = np.asarray(cos_theta, dtype=np.float64)
+        grazing = cos_t < self.min_cos_incidence  # False for NaN
+        cos_eff = np.maximum(cos_t, self.min_cos_incidence)  # NaN stays NaN
+        scale = self.power_factor / (self.reference_range_m * self.reference_range_m)
+        gain = (r * r) * np.exp(2.0 * self.alpha_per_m * r)
+        gain *= scale
+        gain /= cos_eff
+        gain *= np.asarray(intensity, dtype=np.float64)
+        return gain.astype(np.float32), grazing
+
+
+def describe_alpha(model: RadiometricModel) -> str:
+    """One line on the atmosphere used (for logs and reports)."""
+    a = model.alpha_per_m
+    return (f"alpha {a * 1000:.4f}/km at {model.wavelength_nm:g} nm (visibility "
+            f"{model.visibility_km:g} km, q {kim_q(model.visibility_km):.2f}, "
+            f"{model.temperature_c:g} C, {model.pressure_kpa:g} kPa); two-way transmittance "
+            f"{math.exp(-2 * a * model.reference_range_m):.4f} at {model.reference_range_m:g} m")

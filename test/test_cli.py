@@ -1,0 +1,391 @@
+"""The ``lidarcal`` command line on real bags: bad input gets one line and a non-zero exit.
+
+Bags are built with lidarcal's own writers (and, once, the mcap project's ROS 2 writer) from
+one small simulated mission (helpers_missions). Most cases run ``main([...])`` in-process;
+a few run ``python -m lidarcal_ros`` to check the real exit status and stderr.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import helpers_missions
+import numpy as np
+import pytest
+import yaml
+from helpers_missions import (
+    MissionFiles,
+    shift_strip,
+    strip_span,
+    subset,
+    truncate,
+    with_non_finite,
+    without_control,
+    without_trajectory,
+    write_cloud_bag,
+    write_mcap_ros2_bag,
+    write_params_file,
+)
+
+from lidarcal_ros.cli.main import main
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.io.bag import write_mission_bag
+
+# The shared fixtures (module attributes are collected as fixtures).
+mission_factory = helpers_missions.mission_factory
+small_mission = helpers_missions.small_mission
+
+
+# ------------------------------------------------------------------ helpers
+def run(capsys: pytest.CaptureFixture[str], *args: Any) -> tuple[int, str, str]:
+    """``lidarcal ARGS`` in-process: exit status, stdout, stderr."""
+    capsys.readouterr()
+    rc = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def run_process(*args: Any, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``python -m lidarcal_ros ARGS`` in a fresh interpreter."""
+    return subprocess.run([sys.executable, "-m", "lidarcal_ros", *(str(a) for a in args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=120, check=False)
+
+
+def one_line_error(rc: int, err: str, command: str = "calibrate") -> str:
+    """Check the bad-input contract; return the reason (after ``error: ``)."""
+    assert rc == 1, f"exit status {rc}; stderr: {err!r}"
+    assert "Traceback" not in err
+    lines = err.splitlines()
+    assert len(lines) == 1, f"stderr is not one line: {err!r}"
+    prefix = f"lidarcal {command}: error: "
+    assert lines[0].startswith(prefix), lines[0]
+    return lines[0][len(prefix):]
+
+
+def calibration_values(path: Path) -> dict[str, Any]:
+    doc = yaml.safe_load(path.read_text())["lidarcal_calibration"]
+    return doc
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("cli")
+
+
+@pytest.fixture(scope="module")
+def bag_without_control(small_mission: MissionFiles, work: Path) -> Path:
+    return write_mission_bag(work / "no_control", without_control(small_mission.mission))
+
+
+# ------------------------------------------------------------------ bag and topics
+def test_bag_missing(capsys, tmp_path):
+    rc, out, err = run(capsys, "calibrate", tmp_path / "nowhere", "-o", tmp_path / "c.yaml")
+    reason = one_line_error(rc, err)
+    assert reason.startswith(f"{tmp_path / 'nowhere'}: no such bag")
+    assert out == ""
+    assert not (tmp_path / "c.yaml").exists()
+
+
+def test_bag_missing_subprocess(tmp_path):
+    proc = run_process("calibrate", "nowhere", "-o", "c.yaml", cwd=tmp_path)
+    reason = one_line_error(proc.returncode, proc.stderr)
+    assert reason == "nowhere: no such bag (file or directory not found)"
+    assert proc.stdout == ""
+
+
+@pytest.mark.parametrize(("option", "topic"), [("--points", "/nope"),
+                                               ("--trajectory", "/nav/pose")])
+def test_topic_missing(capsys, tmp_path, small_mission, option, topic):
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     option, topic)
+    reason = one_line_error(rc, err)
+    assert f"topic {topic} not found" in reason
+    assert str(small_mission.bag) in reason
+    assert "/lidar/points" in reason.split("topics present:")[1]  # what there is instead
+
+
+def test_topic_of_wrong_type(capsys, tmp_path, small_mission):
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--points", "/lidar/trajectory")
+    reason = one_line_error(rc, err)
+    assert "topic /lidar/trajectory has type geometry_msgs/msg/PoseStamped" in reason
+
+
+def test_truncated_bag(capsys, small_mission, work):
+    cut = truncate(small_mission.bag, work / "truncated")
+    rc, _, err = run(capsys, "calibrate", cut, "-o", work / "c.yaml")
+    reason = one_line_error(rc, err)
+    assert "truncated" in reason
+    assert str(cut / "mission.mcap") in reason
+
+
+def test_truncated_bag_subprocess(small_mission, tmp_path):
+    cut = truncate(small_mission.bag, tmp_path / "cut")
+    proc = run_process("calibrate", cut, "-o", "c.yaml", cwd=tmp_path)
+    reason = one_line_error(proc.returncode, proc.stderr)
+    assert reason.startswith(f"{cut / 'mission.mcap'}: truncated or corrupt MCAP")
+    assert not (tmp_path / "c.yaml").exists()
+
+
+# ------------------------------------------------------------------ cloud fields
+XY_T_SID = [("x", "<f8"), ("y", "<f8"), ("t", "<f8"), ("strip_id", "<u2")]
+XYZ_SID = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4"), ("strip_id", "<u2")]
+
+
+@pytest.mark.parametrize(("dtype", "expected"), [
+    (XY_T_SID, "/lidar/points: cloud lacks field(s) z; fields present: x, y, t, strip_id"),
+    (XYZ_SID, "/lidar/points: cloud lacks time field 't'; fields present: x, y, z, "
+              "intensity, strip_id"),
+], ids=["no-z", "no-time"])
+def test_cloud_without_field(capsys, tmp_path, small_mission, dtype, expected):
+    bag = write_cloud_bag(tmp_path / "bag", small_mission.mission, dtype=dtype,
+                          max_chunks_per_strip=2)
+    rc, _, err = run(capsys, "calibrate", bag, "-o", tmp_path / "c.yaml")
+    assert one_line_error(rc, err) == expected
+
+
+def test_time_field_option_names_the_field(capsys, tmp_path, small_mission):
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--time-field", "gps_time")
+    assert "cloud lacks time field 'gps_time'" in one_line_error(rc, err)
+
+
+def test_frame_ids_differ(capsys, tmp_path, small_mission):
+    bag = write_cloud_bag(tmp_path / "bag", small_mission.mission, cloud_frame="map",
+                          trajectory_frame="odom", max_chunks_per_strip=2)
+    rc, _, err = run(capsys, "calibrate", bag, "-o", tmp_path / "c.yaml")
+    reason = one_line_error(rc, err)
+    assert reason == (f"{bag}: clouds on /lidar/points are in frame 'map' but the trajectory "
+                      "on /lidar/trajectory is in frame 'odom'")
+
+
+# ------------------------------------------------------------------ trajectory and geometry
+def test_trajectory_gap(capsys, tmp_path, small_mission):
+    mission = small_mission.mission
+    t0, t1 = strip_span(mission, 2)
+    mid = 0.5 * (t0 + t1)
+    bag = write_mission_bag(tmp_path / "gap", without_trajectory(mission, mid - 1.5, mid + 1.5))
+    rc, _, err = run(capsys, "calibrate", bag, "-o", tmp_path / "c.yaml",
+                     "--config", small_mission.fast_config)
+    reason = one_line_error(rc, err)
+    assert reason.startswith("strip 2: trajectory gap at t=")
+    t_gap = float(reason.split("t=")[1].split()[0])
+    assert mid - 2.5 < t_gap < mid + 1.5  # within the window around the removed samples
+
+
+def test_no_overlap_between_strips(capsys, tmp_path, small_mission):
+    # Strips 1 and 3 flown 5 km apart, no control: nothing ties them together.
+    apart = shift_strip(subset(small_mission.mission, [1, 3]), 3, (5000.0, 0.0, 0.0))
+    bag = write_mission_bag(tmp_path / "apart", without_control(apart))
+    rc, _, err = run(capsys, "calibrate", bag, "-o", tmp_path / "c.yaml",
+                     "--config", small_mission.fast_config)
+    assert "no overlap between strips" in one_line_error(rc, err)
+
+
+def test_nothing_left_to_estimate(capsys, tmp_path, small_mission, bag_without_control):
+    rc, _, err = run(capsys, "calibrate", bag_without_control, "-o", tmp_path / "c.yaml",
+                     "--config", small_mission.fast_config, "--solve-for", "dZ")
+    reason = one_line_error(rc, err)
+    assert reason.startswith("nothing left to estimate")
+    assert "dZ" in reason and "control" in reason  # why, and what would fix it
+    assert not (tmp_path / "c.yaml").exists()
+
+
+# ------------------------------------------------------------------ options and files
+@pytest.mark.parametrize("value", ["dX,dfoo", "dx"])
+def test_bad_solve_for(capsys, tmp_path, small_mission, value):
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--solve-for", value)
+    reason = one_line_error(rc, err)
+    assert reason.startswith("--solve-for: unknown parameter(s)")
+    assert value.split(",")[-1] in reason
+    assert ", ".join(PARAMETER_NAMES) in reason  # the names that exist
+
+
+def test_bad_solve_for_subprocess(tmp_path, small_mission):
+    proc = run_process("calibrate", small_mission.bag, "-o", "c.yaml", "--solve-for", "dQ",
+                       cwd=tmp_path)
+    assert "--solve-for: unknown parameter(s) dQ" in one_line_error(proc.returncode,
+                                                                    proc.stderr)
+
+
+@pytest.mark.parametrize(("values", "expected"), [
+    ({"matching.foo": 1.0}, "unknown parameter 'matching.foo'"),
+    ({"matching.max_slope_deg": "steep"}, "matching.max_slope_deg: expected a number, got"),
+    ({"calibration.max_iterations": 2.5}, "calibration.max_iterations: expected an integer"),
+    ({"calibration.robust_k": 0.5}, "calibration.robust_k: 0.5 is below the minimum 1.5"),
+    ({"sensor.fov_deg": 500.0}, "sensor.fov_deg: 500.0 is above the maximum"),
+    ({"calibration.solve_for": ["dX", "dQ"]}, "calibration.solve_for: unknown parameter(s) dQ"),
+], ids=["unknown", "type", "int", "below", "above", "solve_for"])
+def test_bad_config(capsys, tmp_path, small_mission, values, expected):
+    cfg = write_params_file(tmp_path / "flight.yaml", values)
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--config", cfg)
+    reason = one_line_error(rc, err)
+    assert reason.startswith(f"{cfg}: ")
+    assert expected in reason
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    ("a: [1\n", "not valid YAML at line 2"),
+    ("sensor: {fov_deg: 40}\n", "no 'ros__parameters' section under '/**'"),
+], ids=["yaml", "layout"])
+def test_config_file_not_parameters(capsys, tmp_path, small_mission, text, expected):
+    cfg = tmp_path / "flight.yaml"
+    cfg.write_text(text)
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--config", cfg)
+    assert one_line_error(rc, err) == f"{cfg}: {expected}"
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    ("id,x,y,z\nC1,10.0,20.0,4x.2\n", "line 2: z value '4x.2' is not a number"),
+    ("id,x,y\nC1,10.0,20.0\n", "line 1: header lacks column(s) z"),
+    ("id,x,y,z\nC1,10.0,20.0\n", "line 2: 3 values, expected 4"),
+    ("id,x,y,z\nC1,1,2,3\nC1,4,5,6\n", "line 3: duplicate id 'C1'"),
+    ("id,x,y,z\nC1,1,2,nan\n", "line 2: z value 'nan' is not finite"),
+    ("", "empty control point file"),
+], ids=["number", "column", "short", "duplicate", "nan", "empty"])
+def test_control_csv_malformed(capsys, tmp_path, small_mission, text, expected):
+    csv = tmp_path / "control.csv"
+    csv.write_text(text)
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--control", csv)
+    reason = one_line_error(rc, err)
+    assert reason.startswith(f"{csv}: ")
+    assert expected in reason
+
+
+def test_control_csv_missing(capsys, tmp_path, small_mission):
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
+                     "--control", tmp_path / "nope.csv")
+    assert one_line_error(rc, err) == f"{tmp_path / 'nope.csv'}: control point file not found"
+
+
+def test_output_is_a_directory(capsys, tmp_path, small_mission):
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path)
+    assert one_line_error(rc, err).startswith(f"{tmp_path}: is a directory")
+
+
+def test_usage_error_exits_2(capsys, small_mission):
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate", str(small_mission.bag)])  # no -o
+    assert exc.value.code == 2
+    assert "-o/--output" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ successful runs
+def test_non_finite_points_dropped_and_counted(capsys, tmp_path, small_mission):
+    spoiled, n_bad = with_non_finite(small_mission.mission, per_strip=2)
+    bag = write_mission_bag(tmp_path / "nan", spoiled)
+    cal = tmp_path / "cal.yaml"
+    rc, out, err = run(capsys, "calibrate", bag, "-o", cal, "--config", small_mission.fast_config)
+    assert rc == 0, err
+    assert "Traceback" not in err
+    assert f"dropped {n_bad} points with non-finite values" in out
+    assert f"{small_mission.mission.n_points - n_bad} points" in out.splitlines()[0]
+    doc = calibration_values(cal)
+    assert doc["dropped_non_finite_points"] == n_bad
+    assert all(math.isfinite(doc["biases"][n]["value"]) for n in PARAMETER_NAMES)
+
+
+@pytest.fixture(scope="module")
+def rosbags_calibration(small_mission: MissionFiles, work: Path) -> tuple[Path, str]:
+    """Calibration of the lidarcal-written bag (with --truth): file and stdout."""
+    cal = work / "rosbags_cal.yaml"
+    buf = io.StringIO()  # capsys is function-scoped
+    with contextlib.redirect_stdout(buf):
+        rc = main(["calibrate", str(small_mission.bag), "-o", str(cal),
+                   "--config", str(small_mission.fast_config), "--truth",
+                   str(small_mission.truth)])
+    assert rc == 0
+    return cal, buf.getvalue()
+
+
+def test_calibrate_with_truth_column(rosbags_calibration, small_mission):
+    cal, out = rosbags_calibration
+    lines = out.splitlines()
+    header = next(line for line in lines if line.startswith("parameter"))
+    assert header.split() == ["parameter", "estimate", "sigma", "truth", "error/sigma"]
+    truth = yaml.safe_load(small_mission.truth.read_text())["biases"]
+    assert truth["dX"] == pytest.approx(small_mission.sim.biases["dX"])
+    row = next(line for line in lines if line.startswith("dX "))
+    assert f"{truth['dX'] * 100:+.2f} cm" in row  # the truth, in the report's units
+    assert "calibration written to" in lines[-1]
+    doc = calibration_values(cal)
+    assert doc["converged"] is True
+    assert doc["biases"]["dZ"] == {"value": 0.0, "sigma": None, "estimated": False}
+    for name in ("dX", "dY", "dr"):  # metres: close to the simulated truth
+        assert doc["biases"][name]["value"] == pytest.approx(truth[name], abs=0.01)
+
+
+def test_mcap_ros2_writer_bag_same_result(capsys, tmp_path, small_mission, rosbags_calibration):
+    """The mcap project's own ROS 2 writer (bare .mcap, schema names without /msg/)."""
+    from mcap.reader import make_reader
+
+    foreign = write_mcap_ros2_bag(tmp_path / "foreign.mcap", small_mission.mission)
+    with foreign.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    assert sorted(s.name for s in summary.schemas.values()) == [
+        "geometry_msgs/PoseStamped", "sensor_msgs/PointCloud2"]
+    cal = tmp_path / "foreign_cal.yaml"
+    rc, out, err = run(capsys, "calibrate", foreign, "-o", cal,
+                       "--config", small_mission.fast_config, "--json")
+    assert rc == 0, err
+    got = calibration_values(cal)
+    assert json.loads(out)["lidarcal_calibration"] == got  # --json prints the same document
+    want = calibration_values(rosbags_calibration[0])
+    for name in PARAMETER_NAMES:
+        g, w = got["biases"][name], want["biases"][name]
+        assert g["estimated"] == w["estimated"]
+        assert g["value"] == pytest.approx(w["value"], rel=1e-9, abs=1e-15), name
+        if w["sigma"] is None:
+            assert g["sigma"] is None
+        else:
+            assert g["sigma"] == pytest.approx(w["sigma"], rel=1e-9), name
+    assert got["sigma0"] == pytest.approx(want["sigma0"], rel=1e-9)
+    for key in ("redundancy", "iterations", "converged", "correspondences"):
+        assert got[key] == want[key], key
+    np.testing.assert_allclose(got["correlation"]["matrix"], want["correlation"]["matrix"],
+                               rtol=1e-9, atol=1e-12)
+
+
+def test_simulate_writes_and_refuses_overwrite(capsys, tmp_path):
+    out_bag = tmp_path / "sim"
+    args = ["simulate", "-o", out_bag, "--scenario", "one_track", "--density", "0.05",
+            "--line-length", "100", "--seed", "3"]
+    rc, out, err = run(capsys, *args)
+    assert rc == 0, err
+    assert (out_bag / "metadata.yaml").is_file() and list(out_bag.glob("*.mcap"))
+    control = tmp_path / "sim_control.csv"
+    truth = tmp_path / "sim_truth.yaml"
+    assert control.read_text().splitlines()[0] == "id,x,y,z"
+    assert set(yaml.safe_load(truth.read_text())["biases"]) == set(PARAMETER_NAMES)
+    for path in (out_bag, control, truth):
+        assert str(path) in out
+    before = truth.read_text()
+
+    rc, _, err = run(capsys, *args, "--seed", "4")
+    reason = one_line_error(rc, err, command="simulate")
+    assert "exists" in reason and "--overwrite" in reason
+    assert truth.read_text() == before
+
+    rc, _, err = run(capsys, *args, "--overwrite")
+    assert rc == 0, err
+
+
+def test_simulate_refuses_existing_bag_subprocess(tmp_path):
+    (tmp_path / "sim").mkdir()
+    proc = run_process("simulate", "-o", "sim", "--scenario", "one_track", "--density", "0.05",
+                       "--line-length", "100", cwd=tmp_path)
+    reason = one_line_error(proc.returncode, proc.stderr, command="simulate")
+    assert reason.startswith("sim: output exists")
+    assert not (tmp_path / "sim_truth.yaml").exists()
