@@ -1,7 +1,9 @@
 """Baseline for the benchmarks: a straightforward implementation of the same method.
 
-Same data, same local trajectories, same design rows, same least-squares solver and robust
-re-weighting as ``lidarcal calibrate`` (it imports :mod:`lidarcal_ros.core.local_trajectory`,
+Same data, same local trajectories, same design rows (evaluated at the corrected points), same
+exact bias removal between iterations (Gauss-Newton: each iteration solves for the increment
+that removes the normal discrepancies left by the current estimate), same least-squares solver
+and robust re-weighting as ``lidarcal calibrate`` (it imports :mod:`lidarcal_ros.core.local_trajectory`,
 :mod:`lidarcal_ros.core.model` and :func:`lidarcal_ros.core.adjustment.solve`), but the matching
 is done the obvious way:
 
@@ -12,6 +14,8 @@ is done the obvious way:
   neighbour candidates, no vertex shift);
 - there is no sample stratification: every iteration matches all candidates of every pair (up
   to ``max_candidates_per_pair``, the same random subset ``lidarcal`` starts from);
+- ``find_simplex`` walks from the triangle found for the previous query, so it is fed the
+  candidates in acquisition order (sorted indices), as ``lidarcal`` matches them;
 - it runs a fixed number of iterations (``--iterations``, the count ``lidarcal`` reported), then
   rebuilds once more for the QA figures (RMS before / after per pair), as ``lidarcal`` does.
 
@@ -25,6 +29,7 @@ The JSON result holds the estimate (SI), timings per phase (seconds) and counts.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -39,7 +44,7 @@ from lidarcal_ros.core.adjustment import NormalEquations, Observations, Solution
 from lidarcal_ros.core.calibrate import CalibrationSettings
 from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
 from lidarcal_ros.core.mission import Mission
-from lidarcal_ros.core.model import normal_design_rows, point_offsets
+from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 
 # ---------------------------------------------------------------------------- TIN, matching
@@ -70,6 +75,9 @@ def build_tin(xyz: np.ndarray, max_edge_m: float, max_slope_deg: float,
     origin = xyz.mean(axis=0)
     local = xyz - origin
     tri = Delaunay(local[:, :2], qhull_options="Qbb Qc Qz")
+    # The barycentric transforms find_simplex needs (scipy computes them on first use, one
+    # small LAPACK solve per triangle): part of building a TIN that can locate points.
+    tri.transform  # noqa: B018
     simp = tri.simplices
     corners = local[simp]
     edges = corners[:, [1, 2, 0], :2] - corners[:, :, :2]
@@ -151,12 +159,15 @@ class Timer:
         self.total[phase] = self.total.get(phase, 0.0) + time.perf_counter() - started
 
 
-def _robust_solve(obs: Observations, s: CalibrationSettings) -> Solution:
+def _robust_solve(obs: Observations, s: CalibrationSettings, delta: np.ndarray) -> Solution:
+    """Solve for the increment to ``delta`` (Gauss-Newton), re-weighting outliers."""
+    fixed_step = {name: float(s.fixed.get(name, 0.0) - delta[i])
+                  for i, name in enumerate(PARAMETER_NAMES)}
     base_w = obs.weights.copy()
     sol = None
     for _ in range(6):
         sol = solve(NormalEquations.from_observations(obs), solve_for=s.solve_for,
-                    fixed=s.fixed, limits=s.limits)
+                    fixed=fixed_step, limits=s.limits)
         v = obs.residuals(sol.delta)
         scale = 1.4826 * np.median(np.abs(v[base_w > 0]))
         new_w = np.where(np.abs(v) <= s.robust_k * max(scale, 1e-6), base_w, 0.0)
@@ -164,20 +175,38 @@ def _robust_solve(obs: Observations, s: CalibrationSettings) -> Solution:
             break
         obs.weights = new_w
     assert sol is not None
+    sol.delta = sol.delta + delta
     return sol
 
 
-def _observations(n: np.ndarray, w: np.ndarray, verts: np.ndarray, ga: LaserGeometry | None,
-                  xyz_a: np.ndarray, sb: _Strip) -> tuple[np.ndarray, np.ndarray]:
-    """Design rows and ``y = n . (X_A - X_B)`` (delivered coordinates) of matched points."""
+def _observations(rows: np.ndarray, y: np.ndarray, weights: np.ndarray,
+                  group: np.ndarray) -> Observations:
+    """Observations; extra per-observation fields the class may have (e.g. a spatial cluster
+    for error statistics the baseline does not report) are filled with zeros."""
+    extra = {f.name: np.zeros(y.size, dtype=np.int64) for f in dataclasses.fields(Observations)
+             if f.name not in ("rows", "y", "weights", "group")}
+    return Observations(rows, y, weights, group, **extra)
+
+
+def _geometry_at(xyz: np.ndarray, g0: LaserGeometry) -> LaserGeometry:
+    """Laser-frame x, z, beta of (corrected) points from the fixed firing positions and headings:
+    the design rows are the Jacobian at the current estimate."""
+    rel = xyz - g0.origin
+    x = rel[:, 0] * np.cos(g0.kappa) + rel[:, 1] * np.sin(g0.kappa)
+    z = rel[:, 2]
+    return LaserGeometry(x=x, z=z, kappa=g0.kappa, beta=np.arctan(x / z), origin=g0.origin)
+
+
+def _design_rows(n: np.ndarray, w: np.ndarray, verts: np.ndarray, ga: LaserGeometry | None,
+                 sb: _Strip) -> np.ndarray:
+    """``n^T (A_A - A_B)`` of matched points, ``A_B`` interpolated at the foot of the normal
+    (``-n^T A_B`` for control points: ``ga`` None)."""
     rows = (normal_design_rows(n, ga.x, ga.z, ga.kappa, ga.beta) if ga is not None
             else np.zeros((n.shape[0], N_PARAMETERS)))
-    foot = np.zeros((n.shape[0], 3))
     for v in range(3):
         gv = sb.geometry.take(verts[:, v])
         rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
-        foot += w[:, v:v + 1] * (sb.xyz[verts[:, v]] - xyz_a)
-    return rows, -(n * foot).sum(axis=1)
+    return rows
 
 
 def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
@@ -227,9 +256,15 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
                     max_slope_deg=s.max_slope_deg, max_bend_deg=s.max_bend_deg)
                for st in strips]
 
+    geometry0 = [st.geometry for st in strips]
+
     def corrected(delta: np.ndarray) -> list[np.ndarray]:
-        return [st.xyz - point_offsets(delta, st.geometry.x, st.geometry.z, st.geometry.kappa,
-                                       st.geometry.beta) for st in strips]
+        out = []
+        for st, g0 in zip(strips, geometry0):
+            xyz = correct_points_exact(st.xyz, g0.origin, g0.kappa, delta)
+            st.geometry = _geometry_at(xyz, g0)
+            out.append(xyz)
+        return out
 
     def rebuild(xyz: list[np.ndarray]) -> list[BaselineTin]:
         t = time.perf_counter()
@@ -265,9 +300,11 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
             t = time.perf_counter()
             verts = tins[b].tri.simplices[tri[valid]]
             idx = cand[valid]
-            rows, y = _observations(n[valid], w[valid], verts, strips[a].geometry.take(idx),
-                                    strips[a].xyz[idx], strips[b])
-            parts.append(Observations(rows, y, np.ones(y.size), np.full(y.size, p_i)))
+            rows = _design_rows(n[valid], w[valid], verts, strips[a].geometry.take(idx),
+                                strips[b])
+            # Observed: n . (X_A - X_B) left by the current estimate; solve the increment.
+            y = dist[valid]
+            parts.append(_observations(rows, y, np.ones(y.size), np.full(y.size, p_i)))
             timer.add("design rows", t)
         if control is not None and len(control):
             for k, st in enumerate(strips):
@@ -279,18 +316,19 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
                 if not valid.any():
                     continue
                 verts = tins[k].tri.simplices[tri[valid]]
-                rows, y = _observations(n[valid], w[valid], verts, None,
-                                        control.xyz[inside[valid]], st)
-                parts.append(Observations(rows, y, np.full(y.size, s.control_weight),
-                                          -1 - inside[valid]))
+                rows = _design_rows(n[valid], w[valid], verts, None, st)
+                y = dist[valid]
+                parts.append(_observations(rows, y, np.full(y.size, s.control_weight),
+                                           -1 - inside[valid]))
         obs = Observations.concatenate(parts)
         t = time.perf_counter()
-        sol = _robust_solve(obs, s)
+        sol = _robust_solve(obs, s, delta)
         timer.add("adjustment", t)
+        step = sol.delta - delta
         delta = sol.delta.copy()
         history.append(delta.tolist())
         inl = obs.weights > 0
-        scale = float(np.sqrt(np.mean(obs.residuals(delta)[inl] ** 2)))
+        scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2)))
         threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m, threshold))
     assert sol is not None
 

@@ -154,7 +154,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         n_ctrl = len(mission.control) if mission.control is not None else 0
         title = (f"{args.bag}: {len(mission.strips)} strips, {mission.n_points} points, "
-                 f"{len(result.pairs)} overlapping pairs, {n_ctrl} control points "
+                 f"{len(result.pairs)} overlapping pairs, {n_ctrl} control point{'' if n_ctrl == 1 else 's'} "
                  f"({elapsed:.1f} s)")
         print(format_report(result, config, title=title, truth=truth))
         print(f"calibration written to {path}")
@@ -174,6 +174,62 @@ def _check_output_file(path: Path) -> None:
         raise ConfigError(f"{path}: cannot write here ({parent} is not a writable directory)")
 
 
+# ---------------------------------------------------------------------------- correct
+def _add_correct(sub: Any) -> None:
+    p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
+                       description="Move every point by the estimated biases (method.md eq. "
+                       "[13]) and turn its intensity into reflectance (radar equation); write "
+                       "a bag (corrected clouds beside the input topics) or LAS/LAZ 1.4.")
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--calibration", required=True, type=Path,
+                   help="calibration YAML (lidarcal calibrate)")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output: .mcap or a directory (rosbag2), or .las/.laz")
+    p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
+    p.add_argument("--crs", help="CRS of the map frame for LAS/LAZ output, e.g. EPSG:32633")
+    p.add_argument("--points", help="points topic (default from config)")
+    p.add_argument("--trajectory", help="trajectory topic (default from config)")
+    p.add_argument("--corrected", help="output topic of the corrected clouds (default from "
+                   "config)")
+    p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="threads correcting batches in parallel (default 2)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_correct)
+
+
+def _cmd_correct(args: argparse.Namespace) -> int:
+    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.io.calibration_file import read_calibration
+    from lidarcal_ros.io.config_file import load_flight_config
+    from lidarcal_ros.io.las import parse_crs
+    from lidarcal_ros.pipeline.correction import correct_bag, output_kind
+
+    config = load_flight_config(args.config)
+    overrides = {}
+    for opt, name in (("points", "topics__points"), ("trajectory", "topics__trajectory"),
+                      ("corrected", "topics__corrected"), ("time_field", "time_field")):
+        if getattr(args, opt):
+            overrides[name] = getattr(args, opt)
+    config = config.with_values(**overrides)
+    calibration = read_calibration(args.calibration)
+    crs = parse_crs(args.crs) if args.crs else None
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    if output_kind(args.output) == "las" and args.output.is_dir():
+        raise ConfigError(f"{args.output}: is a directory; a LAS output is a file")
+    progress, close = _progress_bar(True)
+    try:
+        report = correct_bag(args.bag, calibration, args.output, config, crs=crs,
+                             overwrite=args.overwrite, workers=args.workers,
+                             progress=progress)
+    finally:
+        close()
+    for line in report.lines():
+        print(line)
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -187,6 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_simulate(sub)
     _add_calibrate(sub)
+    _add_correct(sub)
     return parser
 
 

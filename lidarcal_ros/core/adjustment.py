@@ -29,11 +29,12 @@ logger = logging.getLogger(__name__)
 REFERENCE_MAGNITUDE = np.array([0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4, 0.1, 1e-4])
 
 #: Default largest standard deviation for which a parameter counts as determined (SI units):
-#: 5 cm for lengths, 20 arcsec for angles, 5e-5 for the scale.
+#: 2 cm for lengths, 5 arcsec for angles, 2e-5 for the scale: a few times the accuracy a
+#: calibration is expected to reach (1 cm, 1 arcsec, 1e-5).
 DEFAULT_MAX_SIGMA = {
-    "dX": 0.05, "dY": 0.05, "dZ": 0.05,
-    "domega": 1e-4, "dphi": 1e-4, "dkappa": 1e-4,
-    "dr": 0.05, "dS": 5e-5,
+    "dX": 0.02, "dY": 0.02, "dZ": 0.02,
+    "domega": 2.5e-5, "dphi": 2.5e-5, "dkappa": 2.5e-5,
+    "dr": 0.02, "dS": 2e-5,
 }
 
 
@@ -99,16 +100,21 @@ class Observations:
         Current weights (robust zeros included).
     group : (k,) int64
         Index of the strip pair (>= 0) or ``-1 - control_index`` for control observations.
+    cluster : (k,) int64
+        Spatial cell of the observation: observations in one cell share errors (the same
+        patches and points serve several strip pairs), see :func:`cluster_robust_sigma`.
     """
 
     rows: np.ndarray
     y: np.ndarray
     weights: np.ndarray
     group: np.ndarray
+    cluster: np.ndarray
 
     @classmethod
     def empty(cls) -> Observations:
-        return cls(np.empty((0, N_PARAMETERS)), np.empty(0), np.empty(0), np.empty(0, np.int64))
+        return cls(np.empty((0, N_PARAMETERS)), np.empty(0), np.empty(0),
+                   np.empty(0, np.int64), np.empty(0, np.int64))
 
     @classmethod
     def concatenate(cls, parts: Iterable[Observations]) -> Observations:
@@ -120,6 +126,7 @@ class Observations:
             np.concatenate([p.y for p in parts]),
             np.concatenate([p.weights for p in parts]),
             np.concatenate([p.group for p in parts]),
+            np.concatenate([p.cluster for p in parts]),
         )
 
     def __len__(self) -> int:
@@ -318,8 +325,9 @@ def solve(
         weak = [int(idx[j]) for j in range(len(idx))
                 if sig[j] > limits.max_sigma.get(PARAMETER_NAMES[idx[j]], np.inf)]
         if weak:
-            drop(weak, "the data flown determines it too weakly to be useful "
-                       f"({_weak_hint(weak)})")
+            for i in weak:
+                drop([i], "the data flown determines it too weakly to be useful "
+                          f"({_weak_hint(PARAMETER_NAMES[i])})")
             continue
         for name, _, r in _pairs(idx, corr, 0.9):
             warnings.append(f"{name} strongly correlated ({r:+.2f})")
@@ -371,15 +379,57 @@ def _correlation_hint(a: str, b: str) -> str:
     return ""
 
 
-def _weak_hint(indices: list[int]) -> str:
-    names = {PARAMETER_NAMES[i] for i in indices}
-    hints = []
-    if names & {"dX", "dY", "domega", "dkappa"}:
-        hints.append("horizontal effects need sloped features of varied aspect in the overlaps")
-    if "dkappa" in names:
-        hints.append("dkappa needs lines flown in the same direction with an offset, or crossing")
-    if names & {"dr", "dZ"}:
-        hints.append("dr and dZ need vertical control or lines at different heights")
-    if "dS" in names:
-        hints.append("dS needs data spread across the swath")
-    return "; ".join(hints) or "more overlap or control"
+def _weak_hint(name: str) -> str:
+    if name == "dkappa":
+        return "dkappa needs lines flown in the same direction with an offset, or crossing lines"
+    if name in ("dY", "domega"):
+        return (f"{name} needs sloped features of varied aspect in the overlaps and lines at "
+                "two flying heights")
+    if name in ("dX", "dphi"):
+        return f"{name} needs opposite lines over sloped features"
+    if name in ("dr", "dZ"):
+        return f"{name} needs vertical control or lines at different heights"
+    return "dS needs data spread across the swath"
+
+
+def cluster_robust_sigma(sol: Solution, obs: Observations, step: np.ndarray) -> np.ndarray:
+    """Standard deviations that allow for errors shared within spatial clusters.
+
+    Every overlapping strip pair is used, so the same points and patches (and their noise)
+    enter several observations: the formal ``sigma0^2 N^-1`` then claims more independent
+    information than the data hold. The cluster-robust ("sandwich") covariance
+    ``N^-1 (sum_c s_c s_c^T) N^-1`` with ``s_c = sum_{i in c} w_i a_i v_i`` over spatial
+    clusters ``c`` does not assume independence within a cluster.
+
+    Parameters
+    ----------
+    sol : Solution
+        The adjustment's result (``step`` solved from ``obs``).
+    obs : Observations
+    step : (8,) float64
+        The increment the last solve found (residuals are ``y - a . step``).
+
+    Returns
+    -------
+    (m,) float64
+        Cluster-robust standard deviations of ``sol.estimated`` (small-sample corrected).
+    """
+    idx = np.array([PARAMETER_INDEX[n] for n in sol.estimated])
+    w = obs.weights
+    used = w > 0
+    a = obs.rows[used][:, idx]
+    v = obs.residuals(step)[used]
+    score = a * (w[used] * v)[:, None]
+    _, inverse = np.unique(obs.cluster[used], return_inverse=True)
+    n_clusters = int(inverse.max()) + 1 if inverse.size else 0
+    if n_clusters <= len(idx) + 1:
+        return np.full(len(idx), np.nan)
+    s = np.zeros((n_clusters, len(idx)))
+    np.add.at(s, inverse.ravel(), score)
+    meat = s.T @ s
+    n_mat = (a * w[used][:, None]).T @ a
+    n_inv = np.linalg.inv(n_mat)
+    cov = n_inv @ meat @ n_inv
+    q = int(used.sum())
+    factor = n_clusters / (n_clusters - 1) * (q - 1) / max(q - len(idx), 1)
+    return np.sqrt(np.maximum(np.diag(cov) * factor, 0.0))

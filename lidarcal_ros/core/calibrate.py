@@ -26,9 +26,10 @@ from lidarcal_ros.core.adjustment import (
     ObservabilityLimits,
     Observations,
     Solution,
+    cluster_robust_sigma,
     solve,
 )
-from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
+from lidarcal_ros.core.local_trajectory import LaserGeometry, geometry_at, laser_geometry
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip
 from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
@@ -56,6 +57,8 @@ class CalibrationSettings:
     max_edge_factor: float = 4.0
     max_slope_deg: float = 70.0
     max_bend_deg: float = 10.0
+    flat_slope_deg: float = 5.0
+    cluster_cell_m: float = 25.0
     overlap_cell_m: float = 10.0
     min_overlap_cells: int = 20
     max_candidates_per_pair: int = 100_000
@@ -77,10 +80,14 @@ class PreparedStrip:
     """A strip with what the calibration computes once."""
 
     strip: Strip
-    geometry: LaserGeometry
+    geometry0: LaserGeometry  # at the delivered points
     density: float  # points per m^2 over its footprint
     raster: np.ndarray  # footprint on the mission grid (bool)
     tin: Tin | None = None
+    geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
+
+    def __post_init__(self) -> None:
+        self.geometry = self.geometry0
 
     @property
     def strip_id(self) -> int:
@@ -99,6 +106,7 @@ class PairStats:
     rms_after: float
     n_before: int
     n_after: int
+    p95_after: float = float("nan")  # 95th percentile of |discrepancy| after, metres
 
 
 @dataclass
@@ -217,7 +225,7 @@ class Calibrator:
                 n_cells = int(both.sum())
                 if n_cells < s.min_overlap_cells:
                     continue
-                coverage = n_cells / min(si.raster.sum(), sj.raster.sum())
+                coverage = float(n_cells) / float(min(si.raster.sum(), sj.raster.sum()))
                 # Points come from the sparser strip, the TIN from the denser.
                 a, b = (i, j) if si.density <= sj.density else (j, i)
                 inner_b = ndimage.binary_erosion(self.strips[b].raster, iterations=1)
@@ -239,16 +247,25 @@ class Calibrator:
             s = self.settings
             spacing = 1.0 / np.sqrt(max(ps.density, 1e-6))
             quality = TinQuality(max_edge_m=s.max_edge_factor * spacing,
-                                 max_slope_deg=s.max_slope_deg, max_bend_deg=s.max_bend_deg)
+                                 max_slope_deg=s.max_slope_deg, max_bend_deg=s.max_bend_deg,
+                                 flat_slope_deg=s.flat_slope_deg)
             ps.tin = Tin(ps.strip.xyz, quality)
         return ps.tin
 
     # ------------------------------------------------------------------ matching
     def _corrected(self, k: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Corrected coordinates of strip k and the shift ``delivered - corrected``."""
-        g = self.strips[k].geometry
-        xyz = self.strips[k].strip.xyz
-        corrected = correct_points_exact(xyz, g.origin, g.kappa, delta)
+        """Corrected coordinates of strip k and the shift ``delivered - corrected``.
+
+        Also re-evaluates the strip's laser-frame geometry (x, z, beta) at the corrected
+        points: the design rows are the Jacobian at the current estimate. Evaluated at the
+        delivered points instead, effects that cancel between opposite lines (dr, dS, dkappa)
+        would appear not to cancel, and mimic dphi.
+        """
+        ps = self.strips[k]
+        g0 = ps.geometry0
+        xyz = ps.strip.xyz
+        corrected = correct_points_exact(xyz, g0.origin, g0.kappa, delta)
+        ps.geometry = geometry_at(corrected, g0.origin, g0.kappa)
         return corrected, xyz - corrected
 
     def _match_pair(
@@ -267,7 +284,7 @@ class Calibrator:
         sa, sb = self.strips[pair.a], self.strips[pair.b]
         ok = m.valid
         idx = points_idx[ok]
-        n = m.normal[ok]
+        n = self._observed_normal(m.normal[ok], self._tin(pair.b).sloped[m.triangle[ok]])
         w = m.weights[ok]
         verts = self._tin(pair.b).simplices[m.triangle[ok]]
         ga = sa.geometry.take(idx)
@@ -277,8 +294,29 @@ class Calibrator:
             rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
         # Observed: the normal discrepancy n . (X_A - X_B) left by the current estimate; the
         # adjustment solves for the increment that removes it (Gauss-Newton on eq. [11]).
-        y = m.distance[ok]
-        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index))
+        # n_obs . (X_A - foot of the normal): the patch distance along the observed normal.
+        y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+        cluster = self._cluster_of(sa.strip.xyz[idx])
+        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster)
+
+    def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
+        """Spatial cluster (cell of ``cluster_cell_m``) of observations at ``xyz``."""
+        size = self.settings.cluster_cell_m
+        ix = np.floor((xyz[:, 0] - self.grid.x0) / size).astype(np.int64)
+        iy = np.floor((xyz[:, 1] - self.grid.y0) / size).astype(np.int64)
+        return ix * 1_000_003 + iy
+
+    @staticmethod
+    def _observed_normal(normal: np.ndarray, sloped: np.ndarray) -> np.ndarray:
+        """Normals of patches that are not clearly sloped set exactly vertical.
+
+        On flat ground a triangle tilts only by the noise of its vertices; that tilt would
+        lend the horizontal parameters an information that is noise (and bias them toward
+        zero), so such patches observe vertical effects only (see ``TinQuality``).
+        """
+        out = normal.copy()
+        out[~sloped] = (0.0, 0.0, 1.0)
+        return out
 
     def _select_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
         """Stratify matched candidates by patch slope and aspect; cap each class."""
@@ -316,16 +354,18 @@ class Calibrator:
             if not m.valid.any():
                 continue
             ok = m.valid
-            n = m.normal[ok]
+            n = self._observed_normal(m.normal[ok], self._tin(k).sloped[m.triangle[ok]])
             w = m.weights[ok]
             verts = self._tin(k).simplices[m.triangle[ok]]
             rows = np.zeros((int(ok.sum()), N_PARAMETERS))
             for v in range(3):
                 gv = ps.geometry.take(verts[:, v])
                 rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
-            y = m.distance[ok]  # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
+            # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
+            y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
             weights = np.full(y.size, self.settings.control_weight)
-            parts.append(Observations(rows, y, weights, -1 - cps[ok]))
+            parts.append(Observations(rows, y, weights, -1 - cps[ok],
+                                      self._cluster_of(control.xyz[cps[ok]])))
             for c, d in zip(cps[ok], m.distance[ok]):
                 found.append((int(c), k, float(d)))
         return Observations.concatenate(parts), found
@@ -347,8 +387,12 @@ class Calibrator:
             neq = NormalEquations.from_observations(obs)
             sol = solve(neq, solve_for=s.solve_for, fixed=fixed_step, limits=s.limits)
             v = obs.residuals(sol.delta)
-            scale = 1.4826 * np.median(np.abs(v[base_w > 0]))
-            new_w = np.where(np.abs(v) <= s.robust_k * max(scale, 1e-6), base_w, 0.0)
+            # Robust weights for strip pairs only: control points are surveyed and few, and
+            # before dZ and dr are estimated their discrepancies are legitimately large.
+            pairs = (obs.group >= 0) & (base_w > 0)
+            scale = 1.4826 * np.median(np.abs(v[pairs])) if pairs.any() else 1.0
+            outlier = pairs & (np.abs(v) > s.robust_k * max(scale, 1e-6))
+            new_w = np.where(outlier, 0.0, base_w)
             if np.array_equal(new_w > 0, obs.weights > 0):
                 break
             obs.weights = new_w
@@ -386,7 +430,8 @@ class Calibrator:
                     m = self._match_pair(pair, pair.sample, delta, corrected, threshold)
                 parts.append(self._pair_observations(pair, pair.sample, m))
             if control is not None and len(control):
-                cobs, found = self._control_observations(control, delta, corrected, threshold)
+                cobs, found = self._control_observations(control, delta, corrected,
+                                                         s.max_normal_distance_m)
                 if iteration == 1:
                     control_before = found
                 parts.append(cobs)
@@ -404,8 +449,8 @@ class Calibrator:
             logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
                         iteration, sol.sigma0, len(obs),
                         float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
-            inl = obs.weights > 0
-            scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2)))
+            inl = (obs.weights > 0) & (obs.group >= 0)
+            scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2))) if inl.any() else 0.0
             threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m,
                                       threshold))
             if iteration > 1 and np.all(
@@ -414,7 +459,23 @@ class Calibrator:
                 converged = True
                 break
         assert sol is not None
+        self._allow_for_shared_errors(sol, obs, step)
         return self._finish(sol, obs, delta, iteration, converged, history, control_before)
+
+    @staticmethod
+    def _allow_for_shared_errors(sol: Solution, obs: Observations, step: np.ndarray) -> None:
+        """Widen each sigma to its cluster-robust value where that is larger.
+
+        The formal covariance assumes independent observations, but the same patches and
+        points serve several strip pairs. Correlations stay those of the formal covariance;
+        only standard deviations grow (the covariance stays positive semi-definite).
+        """
+        robust = cluster_robust_sigma(sol, obs, step)
+        idx = [PARAMETER_NAMES.index(n) for n in sol.estimated]
+        formal = sol.sigma[idx]
+        wider = np.where(np.isfinite(robust), np.maximum(formal, robust), formal)
+        sol.sigma[idx] = wider
+        sol.covariance = sol.correlation * wider[:, None] * wider[None, :]
 
     def _finish(
         self, sol: Solution, obs: Observations, delta: np.ndarray, iterations: int,
@@ -429,14 +490,17 @@ class Calibrator:
             assert pair.sample is not None and pair.before is not None
             m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
             after = m.distance[m.valid]
+            ids = sorted((self.strips[pair.a].strip_id, self.strips[pair.b].strip_id))
             stats.append(PairStats(
-                strip_a=self.strips[pair.a].strip_id, strip_b=self.strips[pair.b].strip_id,
-                coverage=pair.coverage,
+                strip_a=ids[0], strip_b=ids[1],
+                coverage=float(pair.coverage),
                 correspondences=int(np.count_nonzero(
                     (obs.group == pair.index) & (obs.weights > 0))),
                 rms_before=_rms(pair.before), rms_after=_rms(after),
                 n_before=int(pair.before.size), n_after=int(after.size),
+                p95_after=float(np.percentile(np.abs(after), 95)) if after.size else np.nan,
             ))
+        stats.sort(key=lambda p: (p.strip_a, p.strip_b))
         residuals: list[ControlResidual] = []
         control = self.mission.control
         if control is not None and len(control):

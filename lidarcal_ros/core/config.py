@@ -101,6 +101,8 @@ SCHEMA: dict[str, ParameterSpec] = {
     "matching.max_slope_deg": _f(70.0, "Steepest usable patch, degrees", 1.0, 89.9),
     "matching.max_bend_deg": _f(10.0, "Largest angle between a patch and its neighbours, "
                                 "degrees", 0.1, 90.0),
+    "matching.flat_slope_deg": _f(5.0, "Patches (and all their neighbours) flatter than this "
+                                  "observe vertical effects only, degrees", 0.0, 45.0),
     "matching.overlap_cell_m": _f(10.0, "Cell of the overlap raster, metres", 0.5, 1000.0),
     "matching.max_candidates_per_pair": _i(100_000, "Candidate points matched per pair at "
                                            "the first iteration", 100, 100_000_000),
@@ -247,6 +249,7 @@ class FlightConfig:
             max_edge_factor=v["matching.max_edge_factor"],
             max_slope_deg=v["matching.max_slope_deg"],
             max_bend_deg=v["matching.max_bend_deg"],
+            flat_slope_deg=v["matching.flat_slope_deg"],
             overlap_cell_m=v["matching.overlap_cell_m"],
             max_candidates_per_pair=v["matching.max_candidates_per_pair"],
             per_class_cap=v["matching.per_class_cap"],

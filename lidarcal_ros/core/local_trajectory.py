@@ -166,14 +166,32 @@ def laser_geometry(
     inv = inverse.ravel()
     origin = p_mean[inv] + vel[inv] * (t - t_mean[inv])[:, None]
     kappa = kappa_w[inv]
+    geometry = geometry_at(xyz, origin, kappa)
+    above = geometry.z >= 0
+    if np.any(above):
+        k = int(np.argmax(above))
+        raise TrajectoryError(
+            f"{source}: point at t={t[k]:.3f} s is not below the trajectory "
+            f"(z={geometry.z[k]:.2f} m); wrong trajectory or time base?"
+        )
+    return geometry
+
+
+def geometry_at(xyz: np.ndarray, origin: np.ndarray, kappa: np.ndarray) -> LaserGeometry:
+    """Laser-frame ``x, z, beta`` of points seen from known firing positions and headings.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64
+        Points, map frame, metres.
+    origin : (n, 3) float64
+        Firing positions ``X_o(t)``, map frame, metres.
+    kappa : (n,) float64
+        Headings, radians.
+    """
     rel = xyz - origin
     x = rel[:, 0] * np.cos(kappa) + rel[:, 1] * np.sin(kappa)
     z = rel[:, 2]
-    if np.any(z >= 0):
-        k = int(np.argmax(z >= 0))
-        raise TrajectoryError(
-            f"{source}: point at t={t[k]:.3f} s is not below the trajectory (z={z[k]:.2f} m); "
-            "wrong trajectory or time base?"
-        )
-    beta = np.arctan(x / z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.arctan(x / z)
     return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin)

@@ -1,8 +1,8 @@
 """Local surface normals of a LiDAR strip by grid plane fits (for the incidence angle).
 
 Per-point k-nearest-neighbour searches are too slow for a stream of millions of points per
-second, so the neighbourhood is a grid: the points are binned into square cells of about 1.5
-point spacings in a frame aligned with the flight line (``u`` along, ``v`` across, metres), the
+second, so the neighbourhood is a grid: the points are binned into cells of 1.5 point spacings in a
+frame aligned with the flight line (``u`` along, ``v`` across, metres), the
 first and second moments of each cell are summed with ``np.bincount``, and a plane is fitted
 (principal component analysis, closed-form 3x3 eigen-decomposition) to every 2x2 block of
 cells. Each cell takes the normal of the most planar of the four blocks that contain it (the
@@ -10,6 +10,12 @@ smallest residual variance), so a cell beside a roof ridge or a building edge ta
 lying on its own side where there is one; cells whose four blocks are all degenerate (fewer than
 ``min_points`` points, or all on one scan line) fall back to the 3x3 block centred on them, and
 failing that get no normal (NaN). Every point takes the normal of its cell.
+
+A linear (zig-zag) scanner samples anisotropically: points follow each other closely along a
+sweep while the sweeps are further apart (twice their mean distance near the swath edges,
+where consecutive sweeps meet). :func:`cell_size` therefore measures the spacing across track
+from consecutive pulses and the spacing along track from the area per point, and the cells
+are rectangles of 1.5 of each; a 2x2 block then always spans two sweeps.
 
 Cost: ten ``bincount`` passes over the points and a few dozen array operations over the cells
 (about one cell per 2.25 points). Tree crowns, whose bumps are smaller than the blocks, get
@@ -34,6 +40,9 @@ CELL_SPACINGS = 1.5
 MIN_BLOCK_POINTS = 5
 #: Largest number of grid cells per point before the dense grid is replaced by a compact one.
 _MAX_CELLS_PER_POINT = 4.0
+#: A point further than this (m, and three times the typical residual) from its cell's plane,
+#: or whose cell's plane fits worse, looks for a nearer plane among the blocks around its cell.
+_EDGE_TOLERANCE_M = 0.05
 #: Points used at most to estimate the spacing (a regular subsample beyond).
 _SPACING_SAMPLE = 20_000
 
@@ -48,13 +57,18 @@ class GridNormals:
         Unit upward normals, map frame; NaN where ``valid`` is False.
     valid : (n,) bool
         A plane could be fitted to the point's neighbourhood.
-    cell_m : float
-        Cell size used, metres (NaN if none could be chosen).
+    cell_m : (float, float)
+        Cell used, ``(along, across)`` metres (NaN if none could be chosen).
+    rough : (n,) bool
+        The plane fits the point's neighbourhood badly (mean squared distance of its points
+        plus the point's own squared distance above ``(3 sigma_noise)^2``, at least
+        ``(5 cm)^2``): an edge, vegetation; the normal, hence the incidence, is uncertain.
     """
 
     normals: np.ndarray
     valid: np.ndarray
-    cell_m: float
+    cell_m: tuple[float, float]
+    rough: np.ndarray | None = None
 
 
 def mean_spacing(xyz: np.ndarray, heading: float) -> float:
@@ -82,6 +96,54 @@ def mean_spacing(xyz: np.ndarray, heading: float) -> float:
     lo_v, hi_v = np.percentile(v, [1.0, 99.0])
     area = max(float(hi - lo), 1e-3) * max(float(hi_v - lo_v), 1e-3)
     return math.sqrt(area / (0.98 * n))
+
+
+def cell_size(
+    xyz: np.ndarray, heading: float, t: np.ndarray | None = None
+) -> tuple[float, float]:
+    """Grid cell ``(along, across)`` in metres for a piece of strip: 1.5 spacings each.
+
+    With the firing times ``t``, the across-track spacing is the median lateral distance
+    between consecutive pulses (the in-sweep spacing) and the along-track spacing the area per
+    point divided by it (the sweep spacing); their ratio is kept within 1/8..8. Without
+    ``t`` (or where that fails) the cell is square, 1.5 :func:`mean_spacing`.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+        Finite points, map frame, m.
+    heading : float
+        Heading of the flight line, rad.
+    t : (n,) float, optional
+        Firing times, s (consecutive points should be consecutive pulses, as delivered).
+
+    Returns
+    -------
+    (float, float)
+        NaN when there are too few points.
+    """
+    s = mean_spacing(xyz, heading)
+    if not math.isfinite(s):
+        return math.nan, math.nan
+    square = (CELL_SPACINGS * s, CELL_SPACINGS * s)
+    n = xyz.shape[0]
+    if t is None or n < 20:
+        return square
+    m = min(n, 4 * _SPACING_SAMPLE)
+    start = (n - m) // 2
+    sl = slice(start, start + m)
+    _, v = _flight_frame(xyz[sl], heading, float(xyz[0, 0]), float(xyz[0, 1]))
+    dt = np.diff(np.asarray(t[sl], dtype=np.float64))
+    good = dt > 0
+    if good.sum() < 10:
+        return square
+    good &= dt <= 3.0 * float(np.median(dt[good]))
+    across = float(np.median(np.abs(np.diff(v))[good]))
+    if not (math.isfinite(across) and across > 0):
+        return square
+    across = min(max(across, s / math.sqrt(8.0)), s * math.sqrt(8.0))
+    along = s * s / across
+    return CELL_SPACINGS * along, CELL_SPACINGS * across
 
 
 def _flight_frame(
@@ -169,51 +231,86 @@ def smallest_eigen(
 
 def _box_sums(moments: np.ndarray, size: int) -> np.ndarray:
     """Sums over ``size x size`` blocks of a (k, nu, nv) stack of cell grids, anchored at each
-    cell (block ``[i:i+size, j:j+size]``; zero beyond the grid)."""
-    k, nu, nv = moments.shape
-    acc = np.zeros((k, nu + size - 1, nv + size - 1))
-    for di in range(size):
-        for dj in range(size):
-            acc[:, di:di + nu, dj:dj + nv] += moments
-    return acc[:, size - 1:, size - 1:]
+    cell (block ``[i:i+size, j:j+size]``; zero beyond the grid). Separable: one pass per axis
+    and offset."""
+    rows = moments.copy()
+    for d in range(1, size):
+        rows[:, :-d, :] += moments[:, d:, :]
+    out = rows.copy()
+    for d in range(1, size):
+        out[:, :, :-d] += rows[:, :, d:]
+    return out
 
 
 def _fit_sums(
     sums: np.ndarray, min_points: int, min_spread: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Plane fits to blocks given their ten moment sums (10, m).
 
-    Returns the residual variance (``inf`` where there is no valid plane), unit upward normals
-    (m, 3) and validity. Only blocks with at least ``min_points`` points are decomposed; a
-    block must also spread at least ``min_spread`` (m^2, variance) in its second direction.
+    A least-squares height plane ``z = a + b u + c v`` where the points spread in both
+    horizontal directions (both eigenvalues of their horizontal covariance at least
+    ``min_spread``, m^2); the principal-component plane (:func:`smallest_eigen`) for the few
+    blocks that do not (walls, single scan lines), valid if the points spread over a plane.
+
+    Returns
+    -------
+    residual : (m,) float64
+        Residual variance normal to the plane, m^2 (``inf`` where there is no valid plane).
+    normals : (m, 3) float64
+        Unit upward normals in the frame of the sums (NaN where not valid).
+    valid : (m,) bool
+    centroid : (m, 3) float64
+        Mean point of each block, frame of the sums.
     """
-    m = sums.shape[1]
-    lam = np.full(m, np.inf)
-    vec = np.full((m, 3), np.nan)
-    ok = np.zeros(m, dtype=bool)
-    idx = np.flatnonzero(sums[0] >= min_points)
-    if idx.size == 0:
-        return lam, vec, ok
-    n, su, sv, sz, suu, suv, suz, svv, svz, szz = sums[:, idx]
-    inv = 1.0 / n
-    mu, mv, mz = su * inv, sv * inv, sz * inv
-    lam_min, lam_mid, v, good = smallest_eigen(
-        suu * inv - mu * mu, suv * inv - mu * mv, suz * inv - mu * mz,
-        svv * inv - mv * mv, svz * inv - mv * mz, szz * inv - mz * mz)
-    good &= lam_mid >= min_spread
-    sel = idx[good]
-    lam[sel] = np.maximum(lam_min[good], 0.0)
-    vec[sel] = v[good]
-    ok[sel] = True
-    return lam, vec, ok
+    n, su, sv, sz, suu, suv, suz, svv, svz, szz = sums
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / n
+        mu, mv, mz = su * inv, sv * inv, sz * inv
+        cuu = suu * inv - mu * mu
+        cuv = suv * inv - mu * mv
+        cvv = svv * inv - mv * mv
+        cuz = suz * inv - mu * mz
+        cvz = svz * inv - mv * mz
+        czz = szz * inv - mz * mz
+        det = cuu * cvv - cuv * cuv
+        half_tr = 0.5 * (cuu + cvv)
+        lam_h = half_tr - np.sqrt(np.maximum(half_tr * half_tr - det, 0.0))
+        enough = n >= min_points
+        ls = enough & (lam_h >= min_spread)
+        inv_det = 1.0 / det
+        b = (cvv * cuz - cuv * cvz) * inv_det
+        c = (cuu * cvz - cuv * cuz) * inv_det
+        norm2 = 1.0 + b * b + c * c
+        residual = (czz - b * cuz - c * cvz) / norm2
+        scale = 1.0 / np.sqrt(norm2)
+        normals = np.empty((n.shape[0], 3))
+        normals[:, 0] = -b * scale
+        normals[:, 1] = -c * scale
+        normals[:, 2] = scale
+    residual = np.where(ls, np.maximum(residual, 0.0), np.inf)
+    valid = ls.copy()
+    rest = np.flatnonzero(enough & ~ls)
+    if rest.size:
+        lam_min, lam_mid, vec, good = smallest_eigen(
+            cuu[rest], cuv[rest], cuz[rest], cvv[rest], cvz[rest], czz[rest])
+        good &= lam_mid >= min_spread
+        sel = rest[good]
+        residual[sel] = np.maximum(lam_min[good], 0.0)
+        normals[sel] = vec[good]
+        valid[sel] = True
+    normals[~valid] = np.nan
+    centroid = np.empty((n.shape[0], 3))
+    centroid[:, 0], centroid[:, 1], centroid[:, 2] = mu, mv, mz
+    return residual, normals, valid, centroid
 
 
 def grid_normals(
     xyz: np.ndarray,
     heading: float,
     *,
-    cell_m: float | None = None,
+    cell_m: float | tuple[float, float] | None = None,
     group: np.ndarray | None = None,
+    t: np.ndarray | None = None,
     min_points: int = MIN_BLOCK_POINTS,
 ) -> GridNormals:
     """Upward unit normals of the surface around each point (module docstring).
@@ -225,10 +322,12 @@ def grid_normals(
         Non-finite points get no normal and are nobody's neighbour.
     heading : float
         Heading ``kappa`` of the flight line, radians; aligns the grid with the scan pattern.
-    cell_m : float, optional
-        Cell size, metres; default ``1.5 *`` :func:`mean_spacing`.
+    cell_m : float or (float, float), optional
+        Cell size (square, or ``(along, across)``), metres; default :func:`cell_size`.
     group : (n,) int, optional
         Points of different groups (strips) are never neighbours.
+    t : (n,) float, optional
+        Firing times, s, for :func:`cell_size` when ``cell_m`` is not given.
     min_points : int
         Fewest points a block needs.
 
@@ -240,13 +339,18 @@ def grid_normals(
     n = xyz.shape[0]
     normals = np.full((n, 3), np.nan)
     valid = np.zeros(n, dtype=bool)
+    rough = np.zeros(n, dtype=bool)
     finite = np.isfinite(xyz).all(axis=1)
     all_finite = bool(finite.all())
     if cell_m is None:
-        spacing = mean_spacing(xyz if all_finite else xyz[finite], heading)
-        cell_m = CELL_SPACINGS * spacing
-    if not (math.isfinite(cell_m) and cell_m > 0):
-        return GridNormals(normals, valid, math.nan)
+        cell = cell_size(xyz if all_finite else xyz[finite], heading,
+                         None if t is None else (t if all_finite else t[finite]))
+    elif isinstance(cell_m, tuple):
+        cell = (float(cell_m[0]), float(cell_m[1]))
+    else:
+        cell = (float(cell_m), float(cell_m))
+    if not all(math.isfinite(c) and c > 0 for c in cell):
+        return GridNormals(normals, valid, (math.nan, math.nan), rough)
     subsets: list[np.ndarray | None]
     if group is not None and n:
         g = np.asarray(group)
@@ -261,32 +365,31 @@ def grid_normals(
         sub = xyz if idx is None else xyz[idx]
         if sub.shape[0] < min_points:
             continue
-        nrm, ok = _fit_group(sub, heading, float(cell_m), min_points)
+        nrm, ok, rgh = _fit_group(sub, heading, cell, min_points)
         nrm[~ok] = np.nan
         if idx is None:
-            normals, valid = nrm, ok
+            normals, valid, rough = nrm, ok, rgh
         else:
             normals[idx] = nrm
             valid[idx] = ok
-    return GridNormals(normals, valid, float(cell_m))
+            rough[idx] = rgh
+    return GridNormals(normals, valid, cell, rough)
 
 
 def _fit_group(
-    xyz: np.ndarray, heading: float, cell: float, min_points: int
-) -> tuple[np.ndarray, np.ndarray]:
+    xyz: np.ndarray, heading: float, cell: tuple[float, float], min_points: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    cu, cv = cell
     x0, y0 = float(xyz[0, 0]), float(xyz[0, 1])
     u, v = _flight_frame(xyz, heading, x0, y0)
     z = xyz[:, 2] - float(xyz[0, 2])
-    fu = np.floor(u * (1.0 / cell))
-    fv = np.floor(v * (1.0 / cell))
-    iu0, iv0 = float(fu.min()), float(fv.min())
-    iu = (fu - iu0).astype(np.int64)
-    iv = (fv - iv0).astype(np.int64)
-    # Coordinates relative to the grid origin keep the moments small.
-    u -= iu0 * cell
-    v -= iv0 * cell
+    # Grid origin at the lowest coordinates: moments stay small, indices non-negative.
+    u -= u.min()
+    v -= v.min()
+    iu = (u * (1.0 / cu)).astype(np.int64)
+    iv = (v * (1.0 / cv)).astype(np.int64)
     weights = (None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)
-    min_spread = (0.3 * cell) ** 2 / 3.0
+    min_spread = (0.3 * min(cu, cv)) ** 2 / 3.0
     nu = int(iu.max()) + 1
     nv = int(iv.max()) + 1
     if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
@@ -295,44 +398,85 @@ def _fit_group(
     size = nu * nv
     moments = np.stack([np.bincount(key, weights=w, minlength=size) for w in weights])
     moments = moments.reshape(10, nu, nv)
-    lam2, vec2, _ = _fit_sums(_box_sums(moments, 2).reshape(10, -1), min_points, min_spread)
-    lam2 = lam2.reshape(nu, nv)
-    vec2 = vec2.reshape(nu, nv, 3)
+    lam2, vec2, ok2, cen2 = _fit_sums(_box_sums(moments, 2).reshape(10, -1), min_points,
+                                      min_spread)
     # Each cell: the best of the four 2x2 blocks containing it, anchored at (i-1..i, j-1..j).
-    best = lam2.copy()
-    choice = np.zeros((nu, nv), dtype=np.int64)
-    for code, (di, dj) in enumerate(((1, 0), (0, 1), (1, 1)), start=1):
-        shifted = np.full_like(lam2, np.inf)
-        shifted[di:, dj:] = lam2[:nu - di, :nv - dj]
-        take = shifted < best
-        best[take] = shifted[take]
-        choice[take] = code
-    cell_ok = np.isfinite(best)
-    ci = np.arange(nu)[:, None] - np.array([0, 1, 0, 1])[choice]
-    cj = np.arange(nv)[None, :] - np.array([0, 0, 1, 1])[choice]
-    cell_vec = vec2[np.maximum(ci, 0), np.maximum(cj, 0)]
-    need = (moments[0] > 0) & ~cell_ok
+    grid_lam = lam2.reshape(nu, nv)
+    best = grid_lam.copy()
+    shift = np.zeros((nu, nv), dtype=np.int64)  # flat offset from the cell to its block
+    for off_flat, (di, dj) in ((nv, (1, 0)), (1, (0, 1)), (nv + 1, (1, 1))):
+        cand = grid_lam[:nu - di, :nv - dj]
+        view = best[di:, dj:]
+        take = cand < view
+        np.minimum(view, cand, out=view)
+        shift[di:, dj:][take] = off_flat
+    cell_lam = best.reshape(-1)
+    cell_ok = np.isfinite(cell_lam)
+    anchor = np.arange(size) - shift.reshape(-1)
+    # The plane of each cell, packed for one gather per point: normal (3), offset n.c, residual.
+    plane = np.empty((size, 5))
+    plane[:, :3] = vec2[anchor]
+    plane[:, 3] = np.einsum("ij,ij->i", plane[:, :3], cen2[anchor])
+    plane[:, 4] = cell_lam
+    need = (moments[0] > 0).reshape(-1) & ~cell_ok
     if need.any():
         # 3x3 blocks centred on the occupied cells that still lack a plane.
-        ni, nj = np.nonzero(need)
+        ni, nj = np.divmod(np.flatnonzero(need), nv)
         sums3 = np.zeros((10, ni.size))
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
                 ii, jj = ni + di, nj + dj
                 inside = (ii >= 0) & (ii < nu) & (jj >= 0) & (jj < nv)
                 sums3[:, inside] += moments[:, ii[inside], jj[inside]]
-        _, vec3, ok3 = _fit_sums(sums3, min_points, min_spread)
-        cell_vec[ni[ok3], nj[ok3]] = vec3[ok3]
-        cell_ok[ni[ok3], nj[ok3]] = True
-    ok = cell_ok.reshape(-1)[key]
-    nl = cell_vec.reshape(-1, 3)[key]
-    return _to_map(nl, heading), ok
+        lam3, vec3, ok3, cen3 = _fit_sums(sums3, min_points, min_spread)
+        fill = np.flatnonzero(need)[ok3]
+        plane[fill, :3] = vec3[ok3]
+        plane[fill, 3] = np.einsum("ij,ij->i", vec3[ok3], cen3[ok3])
+        plane[fill, 4] = lam3[ok3]
+        cell_ok[fill] = True
+    # Per point: the plane of its cell, unless the point lies off it, or the plane fits its
+    # block badly (a cell across an edge); then the nearest of the planes of the nine 2x2
+    # blocks around its cell (score: squared distance plus the block's residual variance).
+    pp = plane[key]
+    nrm = pp[:, :3]
+    d = nrm[:, 0] * u + nrm[:, 1] * v + nrm[:, 2] * z - pp[:, 3]
+    lam_p = pp[:, 4]
+    good_lam = lam2[ok2]
+    noise = math.sqrt(float(np.median(good_lam))) if good_lam.size else 0.0
+    tol = max(3.0 * noise, _EDGE_TOLERANCE_M)
+    ok = cell_ok[key]
+    rough = np.zeros(len(u), dtype=bool)
+    off = ((np.abs(d) > tol) | (lam_p > tol * tol)) & ok
+    if off.any():
+        idx = np.flatnonzero(off)
+        block_plane = np.empty((size, 5))
+        block_plane[:, :3] = vec2
+        block_plane[:, 3] = np.einsum("ij,ij->i", vec2, cen2)
+        block_plane[:, 4] = np.where(ok2, lam2, np.inf)
+        pi, pj = iu[idx], iv[idx]
+        di = np.repeat(np.array([-1, 0, 1]), 3)[:, None]
+        dj = np.tile(np.array([-1, 0, 1]), 3)[:, None]
+        ii, jj = pi[None, :] + di, pj[None, :] + dj
+        inside = (ii >= 0) & (ii < nu) & (jj >= 0) & (jj < nv)
+        blk = np.where(inside, ii * nv + jj, 0)
+        bp = block_plane[blk]  # (9, k, 5)
+        dk = (bp[..., 0] * u[idx] + bp[..., 1] * v[idx] + bp[..., 2] * z[idx] - bp[..., 3])
+        score = np.where(inside, dk * dk + bp[..., 4], np.inf)
+        pick = np.argmin(score, axis=0)
+        cols = np.arange(idx.size)
+        best_score = score[pick, cols]
+        own = d[idx] ** 2 + lam_p[idx]
+        better = best_score < own
+        nrm[idx[better]] = bp[pick[better], cols[better], :3]
+        rough[idx] = np.minimum(best_score, own) > tol * tol
+    nrm[~ok] = np.nan
+    return _to_map(nrm, heading), ok, rough & ok
 
 
 def _fit_sparse(
     weights: tuple[np.ndarray | None, ...], iu: np.ndarray, iv: np.ndarray, heading: float,
     min_points: int, min_spread: float,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Like the dense path, for point sets whose grid would be mostly empty: the occupied
     cells are compacted first (``np.unique``) and neighbours found by binary search."""
     nv = int(iv.max()) + 3
@@ -355,15 +499,19 @@ def _fit_sparse(
     best_vec = np.full((m, 3), np.nan)
     for bu, bv in ((0, 0), (-1, 0), (0, -1), (-1, -1)):
         offs = [(bu + a, bv + b) for a in (0, 1) for b in (0, 1)]
-        lam, vec, ok = _fit_sums(block(offs), min_points, min_spread)
+        lam, vec, ok, _ = _fit_sums(block(offs), min_points, min_spread)
         take = ok & (lam < best)
         best[take] = lam[take]
         best_vec[take] = vec[take]
     cell_ok = np.isfinite(best)
     if not cell_ok.all():
         offs = [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)]
-        _, vec, ok = _fit_sums(block(offs), min_points, min_spread)
+        _, vec, ok, _ = _fit_sums(block(offs), min_points, min_spread)
         fill = ~cell_ok & ok
         best_vec[fill] = vec[fill]
         cell_ok |= fill
-    return _to_map(best_vec[inverse], heading), cell_ok[inverse]
+    good = best[np.isfinite(best)]
+    noise = math.sqrt(float(np.median(good))) if good.size else 0.0
+    tol = max(3.0 * noise, _EDGE_TOLERANCE_M)
+    rough = (best > tol * tol) & cell_ok
+    return _to_map(best_vec[inverse], heading), cell_ok[inverse], rough[inverse]

@@ -352,6 +352,7 @@ def simulate_mission(
     visibility_km: float = 48.3,
     intensity_noise: float = 0.02,
     terrain_kind: str | None = None,
+    noise_seed: int | None = None,
 ) -> SimulatedMission:
     """Simulate a linear-scanner mission with known biases (module docstring for the model).
 
@@ -376,6 +377,8 @@ def simulate_mission(
     visibility_km : for the atmospheric attenuation of the intensities.
     intensity_noise : relative (multiplicative) Gaussian noise of the intensities.
     terrain_kind : ``"built-up"`` or ``"flat"``; default from the scenario.
+    noise_seed : seed of the range, intensity and trajectory noise alone (default: ``seed``),
+        for Monte Carlo runs over one terrain.
 
     Returns
     -------
@@ -411,7 +414,8 @@ def simulate_mission(
                       origin=(ox, oy))
     delta = as_vector(bias)
 
-    rng_noise = np.random.default_rng([int(seed), 0x5EED])
+    noise_key = int(seed if noise_seed is None else noise_seed)
+    rng_noise = np.random.default_rng([noise_key, 0x5EED])
     strips: list[Strip] = []
     true_xyz: list[np.ndarray] = []
     classes: list[np.ndarray] = []

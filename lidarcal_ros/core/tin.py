@@ -43,11 +43,15 @@ class TinQuality:
         Steepest patch, degrees from horizontal.
     max_bend_deg : float
         Largest angle between a patch's normal and any neighbour's normal, degrees.
+    flat_slope_deg : float
+        A patch counts as sloped only if it and all its neighbours are steeper than this,
+        degrees: on flat ground the vertices' noise tilts single triangles by several degrees.
     """
 
     max_edge_m: float = 6.0
     max_slope_deg: float = 70.0
     max_bend_deg: float = 10.0
+    flat_slope_deg: float = 5.0
 
 
 def triangle_normals(vertices: np.ndarray, simplices: np.ndarray) -> np.ndarray:
@@ -110,12 +114,16 @@ class Tin:
         nrm = triangle_normals(local, self.simplices)
         ok = (max_edge <= q.max_edge_m) & (nrm[:, 2] >= np.cos(np.radians(q.max_slope_deg)))
         cos_bend = np.cos(np.radians(q.max_bend_deg))
+        cos_flat = np.cos(np.radians(q.flat_slope_deg))
+        self.sloped = nrm[:, 2] < cos_flat
         for k in range(3):
             nb = self.neighbors[:, k]
             has = nb >= 0
             agree = np.ones_like(ok)
             agree[has] = (nrm[has] * nrm[nb[has]]).sum(axis=1) >= cos_bend
             ok &= agree
+            self.sloped &= has
+            self.sloped[has] &= nrm[nb[has], 2] < cos_flat
         return ok
 
     def locate(self, xy: np.ndarray) -> np.ndarray:

@@ -69,7 +69,8 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
             {"strips": [int(p.strip_a), int(p.strip_b)],
              "coverage": round(float(p.coverage), 4),
              "correspondences": int(p.correspondences),
-             "rms_before_m": _num(p.rms_before), "rms_after_m": _num(p.rms_after)}
+             "rms_before_m": _num(p.rms_before), "rms_after_m": _num(p.rms_after),
+             "p95_after_m": _num(p.p95_after)}
             for p in result.pairs
         ],
         "control_residuals": [

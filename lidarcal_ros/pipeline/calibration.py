@@ -75,12 +75,20 @@ class Truth:
         path = Path(path)
         try:
             doc = yaml.safe_load(path.read_text())
-        except (OSError, yaml.YAMLError):
-            raise ConfigError(f"{path}: cannot read truth file") from None
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read truth file ({exc.strerror})") from None
+        except yaml.YAMLError:
+            raise ConfigError(f"{path}: truth file is not valid YAML") from None
         biases = doc.get("biases") if isinstance(doc, Mapping) else None
         if not isinstance(biases, Mapping):
             raise ConfigError(f"{path}: missing 'biases'")
-        return cls({n: float(biases.get(n, 0.0)) for n in PARAMETER_NAMES})
+        values = {}
+        for name in PARAMETER_NAMES:
+            value = biases.get(name, 0.0)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{path}: biases.{name} is not a number: {value!r}")
+            values[name] = float(value)
+        return cls(values)
 
 
 def _fmt(name: str, value: float, sign: bool = True) -> str:
@@ -103,22 +111,22 @@ def format_report(
     lines = []
     if title:
         lines.append(title)
-    header = f"{'parameter':<9} {'estimate':>14} {'sigma':>12}"
+    header = f"{'parameter':<9} {'estimate':>15} {'sigma':>17}"
     if truth is not None:
-        header += f" {'truth':>14} {'error/sigma':>11}"
+        header += f" {'truth':>15} {'error/sigma':>11}"
     lines.append(header)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
         if st.state == "estimated":
             sigma = "+- " + _fmt(name, sol.sigma[i], False)
-            row = f"{name:<9} {_fmt(name, sol.delta[i]):>14} {sigma:>12}"
+            row = f"{name:<9} {_fmt(name, sol.delta[i]):>15} {sigma:>17}"
             if truth is not None:
                 err = (sol.delta[i] - truth.biases[name]) / sol.sigma[i]
-                row += f" {_fmt(name, truth.biases[name]):>14} {err:>+11.2f}"
+                row += f" {_fmt(name, truth.biases[name]):>15} {err:>+11.2f}"
         elif st.state == "fixed":
-            row = f"{name:<9} {'fixed at ' + _fmt(name, sol.delta[i]).strip():>27}"
+            row = f"{name:<9} {'fixed at ' + _fmt(name, sol.delta[i]).strip():>33}"
             if truth is not None:
-                row += f" {_fmt(name, truth.biases[name]):>14}"
+                row += f" {_fmt(name, truth.biases[name]):>15}"
         else:
             row = f"{name:<9} not estimable: {st.reason}"
         lines.append(row)
@@ -137,13 +145,15 @@ def format_report(
     if result.dropped_non_finite:
         lines.append(f"dropped {result.dropped_non_finite} points with non-finite values")
     warn = config["qa.rmsdz_warn_m"]
-    lines.append(f"{'strip pair':<11} {'coverage':>8} {'matches':>8} {'RMS before':>11} "
-                 f"{'RMS after':>10}  QA (warn above {warn * 100:.0f} cm)")
+    error = config["qa.max_difference_m"]
+    lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS before':>11} "
+                 f"{'RMS after':>10} {'95% after':>10}  QA (RMS: WARN > {warn * 100:.0f} cm, "
+                 f"ERROR > {error * 100:.0f} cm)")
     for p in result.pairs:
-        level = "OK" if p.rms_after <= warn else "WARN"
-        lines.append(f"{p.strip_a:>4} & {p.strip_b:<4} {p.coverage * 100:>7.0f}% "
+        level = qa_level(p.rms_after, warn_m=warn, error_m=error)
+        lines.append(f"{p.strip_a:>3} & {p.strip_b:<3} {p.coverage * 100:>7.0f}% "
                      f"{p.correspondences:>8} {p.rms_before * 100:>8.1f} cm "
-                     f"{p.rms_after * 100:>7.1f} cm  {level}")
+                     f"{p.rms_after * 100:>7.1f} cm {p.p95_after * 100:>7.1f} cm  {level}")
     if result.control:
         lines.append("control residuals (normal distance, before -> after):")
         for c in result.control:
@@ -151,6 +161,13 @@ def format_report(
             lines.append(f"  {c.control_id} in strip {c.strip_id}: {c.before * 100:+.1f} cm "
                          f"-> {after}")
     return "\n".join(lines)
+
+
+def qa_level(rms_m: float, *, warn_m: float, error_m: float) -> str:
+    """OK / WARN / ERROR for a swath-to-swath RMS discrepancy (USGS LBS QL2: 8 cm, 16 cm)."""
+    if not math.isfinite(rms_m) or rms_m > error_m:
+        return "ERROR"
+    return "WARN" if rms_m > warn_m else "OK"
 
 
 def parse_biases(text: str) -> dict[str, float]:
@@ -208,7 +225,7 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
     from lidarcal_ros.io.control import write_control_csv
 
     paths = simulation_paths(output)
-    for key in ("control", "truth"):
+    for key in ("bag", "control", "truth"):
         if paths[key].exists() and not overwrite:
             raise ConfigError(f"{paths[key]}: exists (use --overwrite to replace)")
     write_mission_bag(paths["bag"], sim.mission, overwrite=overwrite)

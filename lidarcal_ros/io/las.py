@@ -1,0 +1,325 @@
+"""Writing corrected clouds as LAS 1.4 / LAZ (point format 6), chunk by chunk.
+
+Each point record holds X, Y, Z (scale 0.001 m, offsets chosen from the first chunk: X and Y
+rounded down to a kilometre, Z 0), the intensity, return number and count, the scan angle, the
+point source id (strip), the GPS time, and extra-bytes dimensions (LAS 1.4 "extra bytes" VLR)
+``reflectance`` (float32, unit of the intensity normalised to the reference range),
+``range`` (float32, m), ``incidence`` (float32, rad) and ``correction_flags`` (uint8, the bits
+of :mod:`lidarcal_ros.pipeline.correction`). Points whose geometry could not be corrected are
+written with the LAS *withheld* flag set. The CRS, when known, goes into an OGC WKT VLR.
+
+Conventions
+-----------
+- Scan angle: LAS counts degrees in steps of 0.006, negative to the left of the flight
+  direction; lidarcal's ``scan_angle`` (method.md's ``beta``) is positive to the left, so the
+  LAS value is ``-degrees(scan_angle) / 0.006``.
+- GPS time: bag times are ROS times (UNIX epoch, UTC). Times after the GPS epoch
+  (1980-01-06) are written as Adjusted Standard GPS Time (``GPS seconds - 1e9``, leap seconds
+  applied) with global-encoding bit 0 set; earlier (relative) times are written unchanged with
+  the bit clear (GPS week time). :func:`unix_to_adjusted_gps` and
+  :func:`adjusted_gps_to_unix` convert.
+- Intensity: UINT16 values are kept, UINT8 scaled by 257 (to the 16-bit range, as LAS asks),
+  FLOAT32 rounded and clipped to 0..65535 (a warning says how many were clipped).
+- Return number and number of returns default to 1 when the cloud has none; they are clipped
+  to 1..15. Points with a non-finite coordinate cannot be stored in LAS and are skipped (and
+  counted).
+"""
+
+from __future__ import annotations
+
+import calendar
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+import numpy as np
+
+from lidarcal_ros.errors import ConfigError, InputError
+
+logger = logging.getLogger(__name__)
+
+#: Coordinate resolution, metres.
+SCALE_M = 0.001
+#: UNIX time of the GPS epoch, 1980-01-06T00:00:00Z.
+GPS_EPOCH_UNIX = 315_964_800
+#: Offset of Adjusted Standard GPS Time.
+ADJUSTED_GPS_OFFSET = 1.0e9
+#: (UNIX time from which it applies, GPS - UTC in seconds).
+_LEAP_SECONDS: tuple[tuple[int, int], ...] = tuple(
+    (calendar.timegm((y, m, 1, 0, 0, 0)), n)
+    for (y, m), n in zip(
+        ((1981, 7), (1982, 7), (1983, 7), (1985, 7), (1988, 1), (1990, 1), (1991, 1),
+         (1992, 7), (1993, 7), (1994, 7), (1996, 1), (1997, 7), (1999, 1), (2006, 1),
+         (2009, 1), (2012, 7), (2015, 7), (2017, 1)),
+        range(1, 19),
+    )
+)
+_LEAP_T = np.array([t for t, _ in _LEAP_SECONDS], dtype=np.float64)
+_LEAP_N = np.array([0] + [n for _, n in _LEAP_SECONDS], dtype=np.float64)
+
+#: Extra-bytes dimensions written: name, numpy type, description (LAS allows 32 characters).
+EXTRA_DIMENSIONS: tuple[tuple[str, str, str], ...] = (
+    ("reflectance", "f4", "intensity normalised to r_ref"),
+    ("range", "f4", "sensor to point, m"),
+    ("incidence", "f4", "incidence angle, rad"),
+    ("correction_flags", "u1", "lidarcal correction flags"),
+)
+_FLAG_NOT_CORRECTED = 1
+
+
+def leap_seconds(unix_time: np.ndarray) -> np.ndarray:
+    """GPS - UTC (s) in force at each UNIX time (table up to the 2017 leap second)."""
+    return _LEAP_N[np.searchsorted(_LEAP_T, np.asarray(unix_time, dtype=np.float64),
+                                   side="right")]
+
+
+def unix_to_adjusted_gps(unix_time: np.ndarray) -> np.ndarray:
+    """UNIX (UTC) seconds to Adjusted Standard GPS Time (GPS seconds - 1e9)."""
+    t = np.asarray(unix_time, dtype=np.float64)
+    return (t - (GPS_EPOCH_UNIX + ADJUSTED_GPS_OFFSET)) + leap_seconds(t)
+
+
+def adjusted_gps_to_unix(gps_time: np.ndarray) -> np.ndarray:
+    """Adjusted Standard GPS Time to UNIX (UTC) seconds (inverse of
+    :func:`unix_to_adjusted_gps`, exact away from the second of a leap)."""
+    g = np.asarray(gps_time, dtype=np.float64)
+    approx = g + (GPS_EPOCH_UNIX + ADJUSTED_GPS_OFFSET)
+    return approx - leap_seconds(approx - leap_seconds(approx))
+
+
+def parse_crs(text: str) -> Any:
+    """A ``pyproj.CRS`` from ``EPSG:N`` (or anything pyproj accepts).
+
+    Raises
+    ------
+    ConfigError
+        pyproj does not know it.
+    """
+    import pyproj
+
+    try:
+        return pyproj.CRS.from_user_input(text)
+    except pyproj.exceptions.CRSError as exc:
+        raise ConfigError(f"--crs: '{text}' is not a known CRS ({' '.join(str(exc).split())})"
+                          ) from None
+
+
+@dataclass
+class LasStats:
+    """What a :class:`LasChunkWriter` wrote."""
+
+    points: int = 0
+    skipped_non_finite: int = 0
+    clipped_intensity: int = 0
+    withheld: int = 0
+
+
+def _field(arr: np.ndarray, *names: str) -> np.ndarray | None:
+    present = arr.dtype.names or ()
+    for name in names:
+        if name in present:
+            return arr[name]
+    return None
+
+
+class LasChunkWriter:
+    """Stream corrected point arrays into a LAS 1.4 / LAZ file; use as a context manager.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.las`` or ``.laz`` (compressed with lazrs).
+    time_field : str
+        Field of the arrays holding the firing time (absolute seconds).
+    crs : pyproj.CRS, optional
+        Written as an OGC WKT VLR.
+    overwrite : bool
+        Replace an existing file.
+
+    Notes
+    -----
+    The header (offsets) is made when the first chunk arrives; bounds and point counts are
+    updated as chunks are written and rewritten on close. Memory does not grow with the number
+    of points. If the ``with`` block fails, the partial file is removed.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        time_field: str = "t",
+        crs: Any = None,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in (".las", ".laz"):
+            raise ConfigError(f"{self.path}: a LAS output must end in .las or .laz")
+        if self.path.exists() and not overwrite:
+            raise InputError(f"{self.path}: output exists (use --overwrite to replace it)")
+        if not self.path.parent.is_dir():
+            raise InputError(f"{self.path}: parent directory does not exist")
+        self.compress = suffix == ".laz"
+        self.time_field = time_field
+        self.crs = crs
+        self.stats = LasStats()
+        self._writer: Any = None
+        self._header: Any = None
+        self._gps_standard: bool | None = None
+        self._tmp = self.path.with_name(f".{self.path.name}.lidarcal-tmp-{os.getpid()}")
+
+    # -- life cycle ----------------------------------------------------------------------
+
+    def __enter__(self) -> LasChunkWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> Literal[False]:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False
+
+    def _open(self, xyz: np.ndarray, t: np.ndarray) -> None:
+        import laspy
+
+        header = laspy.LasHeader(version="1.4", point_format=6)
+        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=np.dtype(kind),
+                                                      description=desc)
+                               for name, kind, desc in EXTRA_DIMENSIONS])
+        header.scales = np.array([SCALE_M, SCALE_M, SCALE_M])
+        if xyz.shape[0]:
+            lo = np.nanmin(xyz, axis=0)
+            header.offsets = np.array([math.floor(lo[0] / 1000.0) * 1000.0,
+                                       math.floor(lo[1] / 1000.0) * 1000.0, 0.0])
+        else:
+            header.offsets = np.zeros(3)
+        finite_t = t[np.isfinite(t)]
+        self._gps_standard = bool(finite_t.size == 0 or finite_t.min() >= GPS_EPOCH_UNIX)
+        header.global_encoding.gps_time_type = (
+            laspy.header.GpsTimeType.STANDARD if self._gps_standard
+            else laspy.header.GpsTimeType.WEEK_TIME)
+        if not self._gps_standard:
+            logger.warning("%s: point times are before 1980 (not UNIX/ROS times?); written "
+                           "unchanged as GPS week time", self.path)
+        header.global_encoding.wkt = True  # required for point formats 6-10 (LAS 1.4 R15)
+        header.system_identifier = "lidarcal_ros"
+        header.generating_software = "lidarcal correct"
+        if self.crs is not None:
+            header.add_crs(self.crs)
+        self._header = header
+        try:
+            self._writer = laspy.open(str(self._tmp), mode="w", header=header,
+                                      do_compress=self.compress)
+        except OSError as exc:
+            raise InputError(f"{self.path}: cannot create ({exc.strerror or exc})") from None
+
+    def close(self) -> None:
+        """Finish the file (header with bounds and counts) and move it into place."""
+        if self._writer is None:
+            # No chunk at all: still write a valid, empty file.
+            self._open(np.empty((0, 3)), np.empty(0))
+        writer, self._writer = self._writer, None
+        try:
+            writer.close()
+            self._tmp.replace(self.path)
+        except OSError as exc:
+            self._discard()
+            raise InputError(f"{self.path}: cannot finish ({exc.strerror or exc})") from None
+
+    def abort(self) -> None:
+        """Stop writing and remove the partial file."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            try:
+                writer.close()
+            except Exception:  # best effort
+                logger.debug("error closing %s", self._tmp, exc_info=True)
+        self._discard()
+
+    def _discard(self) -> None:
+        try:
+            self._tmp.unlink()
+        except FileNotFoundError:
+            pass
+
+    # -- writing -------------------------------------------------------------------------
+
+    def write(self, points: np.ndarray) -> int:
+        """Append a chunk of corrected points (a structured array with ``x, y, z``, the time
+        field and optionally ``intensity``, ``strip_id``/``point_source_id``,
+        ``return_number``, ``number_of_returns``, ``scan_angle``, ``reflectance``, ``range``,
+        ``incidence``, ``correction_flags``). Returns the number of points written."""
+        import laspy
+
+        xyz = np.column_stack([np.asarray(points[c], dtype=np.float64) for c in "xyz"]) \
+            if len(points) else np.empty((0, 3))
+        t = np.asarray(points[self.time_field], dtype=np.float64)
+        finite = np.isfinite(xyz).all(axis=1)
+        if not finite.all():
+            self.stats.skipped_non_finite += int((~finite).sum())
+            points, xyz, t = points[finite], xyz[finite], t[finite]
+        if self._writer is None:
+            self._open(xyz, t)
+        n = len(points)
+        if n == 0:
+            return 0
+        rec = laspy.ScaleAwarePointRecord.zeros(n, header=self._header)
+        rec.x = xyz[:, 0]
+        rec.y = xyz[:, 1]
+        rec.z = xyz[:, 2]
+        rec.gps_time = unix_to_adjusted_gps(t) if self._gps_standard else t
+        inten = _field(points, "intensity")
+        if inten is not None:
+            rec.intensity = self._intensity16(inten)
+        sid = _field(points, "strip_id", "point_source_id")
+        if sid is not None:
+            rec.point_source_id = np.clip(np.asarray(sid, dtype=np.int64), 0, 65535)
+        rn = _field(points, "return_number")
+        nr = _field(points, "number_of_returns")
+        one = np.ones(n, dtype=np.uint8)
+        rec.return_number = np.clip(rn, 1, 15).astype(np.uint8) if rn is not None else one
+        rec.number_of_returns = np.clip(nr, 1, 15).astype(np.uint8) if nr is not None else one
+        scan = _field(points, "scan_angle")
+        if scan is not None:
+            steps = np.degrees(-np.asarray(scan, dtype=np.float64)) / 0.006
+            rec.scan_angle = np.clip(np.nan_to_num(np.rint(steps)), -30000, 30000).astype(
+                np.int16)
+        for name, kind, _ in EXTRA_DIMENSIONS:
+            col = _field(points, name)
+            if col is not None:
+                rec[name] = np.asarray(col).astype(kind)
+            elif kind.startswith("f"):
+                rec[name] = np.full(n, np.nan, dtype=kind)
+        flags = _field(points, "correction_flags")
+        if flags is not None:
+            withheld = (np.asarray(flags) & _FLAG_NOT_CORRECTED) != 0
+            rec.withheld = withheld.astype(np.uint8)
+            self.stats.withheld += int(withheld.sum())
+        self._writer.write_points(rec)
+        self.stats.points += n
+        return n
+
+    def _intensity16(self, values: np.ndarray) -> np.ndarray:
+        kind = values.dtype
+        if kind == np.uint16:
+            return np.asarray(values)
+        if kind == np.uint8:
+            return np.asarray(values, dtype=np.uint16) * np.uint16(257)
+        v = np.nan_to_num(np.rint(np.asarray(values, dtype=np.float64)), nan=0.0)
+        clipped = (v < 0) | (v > 65535)
+        if clipped.any():
+            if self.stats.clipped_intensity == 0:
+                logger.warning("%s: intensities outside 0..65535 are clipped to the LAS range",
+                               self.path)
+            self.stats.clipped_intensity += int(clipped.sum())
+        return np.clip(v, 0, 65535).astype(np.uint16)

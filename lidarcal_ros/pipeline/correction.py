@@ -1,0 +1,1028 @@
+"""Apply a calibration and the radiometric model to clouds: `lidarcal correct` and the
+corrector node share this module.
+
+Per point (method.md sections 2-4 and 8):
+
+1. the local trajectory gives ``x, z, kappa, beta`` and the firing position ``X_o(t)``
+   (:func:`lidarcal_ros.core.local_trajectory.laser_geometry`);
+2. the point is moved by the estimated biases, ``X_c = X_b - A(x, z, kappa, beta) delta``
+   (eq. [13], :func:`lidarcal_ros.core.model.correct_points`);
+3. ``range = |X_c - X_o|`` (m), laser direction ``l = (X_c - X_o) / range``, and
+   ``scan_angle = atan(x_c / z_c)`` (rad, method.md's ``beta`` of the corrected point, positive
+   to the left of the flight direction). This is the physical mirror angle: the recorded one
+   divided by the scale ``1 + dS``, i.e. ``(1 - dS) beta`` to first order. The firing point is
+   taken at the IMU origin: the lever arm itself (not only its bias) is unknown to the
+   quasi-rigorous method; at airborne ranges it changes angles by < 1e-3 rad;
+4. the local surface normal from a grid plane fit over the point's neighbourhood in its own
+   strip (:mod:`lidarcal_ros.core.normals`), ``incidence = arccos |n . l|`` (rad);
+5. ``reflectance`` by the radar equation (:mod:`lidarcal_ros.core.radiometry`), with
+   ``cos(incidence)`` clamped at ``radiometry.min_cos_incidence``.
+
+Normals are fitted to the delivered (uncorrected) coordinates: the correction is a smooth field
+(its gradient is of the order of the boresight angles and ``dS``, below 1e-3), so it would turn
+the normals by less than 0.1 deg, and this way the context points of neighbouring chunks need
+no correction of their own and points the trajectory does not cover still help their neighbours.
+
+Output: every input field, ``x, y, z`` corrected (in their own type), and the FLOAT32 fields
+``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus the UINT8 ``correction_flags``
+(bits below). Nothing is silently wrong: a point that cannot be corrected keeps its delivered
+coordinates, gets NaN in the four derived fields and a flag, and is counted.
+
+Streaming: :class:`StreamCorrector` takes clouds one at a time, gathers them into batches
+(``batch_points``; 0 = one cloud at a time, as the node does) and releases a batch once the
+clouds after it reach a short time beyond it, so that points at a batch edge have their
+neighbours for the normal. Memory holds one batch plus that look-ahead, whatever the mission
+length.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import itertools
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.model import correct_points
+from lidarcal_ros.core.normals import cell_size, grid_normals
+from lidarcal_ros.core.radiometry import RadiometricModel, cos_incidence, describe_alpha
+from lidarcal_ros.errors import BagError, ConfigError, InputError, TrajectoryError
+from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
+from lidarcal_ros.io.pointcloud import cloud_to_array, extract_columns
+
+logger = logging.getLogger(__name__)
+
+#: Geometry not corrected: non-finite input, time not covered by the trajectory, or point
+#: not below it. ``x, y, z`` are the delivered ones; range, incidence, scan_angle and
+#: reflectance are NaN. (LAS: the point is also *withheld*.)
+FLAG_NOT_CORRECTED = 1
+#: ``cos(incidence)`` below ``radiometry.min_cos_incidence``: reflectance uses the clamp.
+FLAG_GRAZING = 2
+#: No plane could be fitted around the point (too few neighbours): incidence and
+#: reflectance NaN.
+FLAG_NO_NORMAL = 4
+#: The cloud has no ``intensity`` field: reflectance NaN.
+FLAG_NO_INTENSITY = 8
+#: The neighbourhood is not planar at the noise level (building edge, vegetation): the
+#: normal, hence incidence and reflectance, is uncertain (computed all the same).
+FLAG_ROUGH = 16
+
+#: Fields added to the corrected clouds (name, numpy type).
+ADDED_FIELDS: tuple[tuple[str, str], ...] = (
+    ("reflectance", "<f4"),
+    ("range", "<f4"),
+    ("incidence", "<f4"),
+    ("scan_angle", "<f4"),
+    ("correction_flags", "u1"),
+)
+#: Default batch of the offline correction, points.
+DEFAULT_BATCH_POINTS = 400_000
+#: Points closer than this below the trajectory are refused (m): no real return comes from
+#: within a metre of the sensor, and laser_geometry needs them below.
+_MIN_DEPTH_M = 1.0
+
+
+# ---------------------------------------------------------------------------- settings
+@dataclass(frozen=True)
+class CorrectionSettings:
+    """Everything the correction of a cloud needs besides the cloud and the trajectory.
+
+    Attributes
+    ----------
+    delta : (8,) float64
+        Biases (method.md order, SI) to remove.
+    radiometry : RadiometricModel
+    window_s : float
+        Half-width of the local-trajectory window, s (``matching.trajectory_window_s``).
+    min_samples : int
+        Fewest trajectory samples in a window.
+    time_field : str
+        Cloud field holding the firing time (``time_field``; aliases accepted).
+    """
+
+    delta: np.ndarray
+    radiometry: RadiometricModel = field(default_factory=RadiometricModel)
+    window_s: float = 0.5
+    min_samples: int = 2
+    time_field: str = "t"
+
+    @classmethod
+    def from_config(
+        cls, config: FlightConfig, calibration: CalibrationRecord | np.ndarray
+    ) -> CorrectionSettings:
+        """From a flight configuration and a calibration (record or bias vector)."""
+        delta = (calibration.delta if isinstance(calibration, CalibrationRecord)
+                 else np.asarray(calibration, dtype=np.float64))
+        if delta.shape != (8,) or not np.isfinite(delta).all():
+            raise ConfigError(f"calibration: expected 8 finite biases, got {delta}")
+        return cls(
+            delta=np.asarray(delta, dtype=np.float64),
+            radiometry=RadiometricModel.from_config(config),
+            window_s=float(config["matching.trajectory_window_s"]),
+            time_field=str(config["time_field"]),
+        )
+
+
+@dataclass
+class CorrectionStats:
+    """Counts over everything corrected so far."""
+
+    clouds: int = 0
+    points: int = 0
+    not_corrected: int = 0
+    grazing: int = 0
+    no_normal: int = 0
+    no_intensity: int = 0
+    rough: int = 0
+    seconds: float = 0.0
+
+    def add(self, flags: np.ndarray) -> None:
+        self.points += int(flags.size)
+        if flags.size:
+            counts = np.bincount(flags, minlength=32)
+            bits = np.arange(counts.size)
+            self.not_corrected += int(counts[(bits & FLAG_NOT_CORRECTED) != 0].sum())
+            self.grazing += int(counts[(bits & FLAG_GRAZING) != 0].sum())
+            self.no_normal += int(counts[(bits & FLAG_NO_NORMAL) != 0].sum())
+            self.no_intensity += int(counts[(bits & FLAG_NO_INTENSITY) != 0].sum())
+            self.rough += int(counts[(bits & FLAG_ROUGH) != 0].sum())
+
+
+# ---------------------------------------------------------------------------- core
+@dataclass
+class CorrectedColumns:
+    """Per-point results of :func:`correct_columns`.
+
+    Attributes
+    ----------
+    xyz : (n, 3) float64
+        Corrected points (delivered ones where not corrected), map frame, m.
+    range, incidence, scan_angle, reflectance : (n,) float32
+        m, rad, rad, intensity unit normalised to the reference range (NaN where unknown).
+    flags : (n,) uint8
+        ``FLAG_*`` bits.
+    cell_m : (float, float)
+        Grid cell ``(along, across)`` of the normals, m.
+    """
+
+    xyz: np.ndarray
+    range: np.ndarray
+    incidence: np.ndarray
+    scan_angle: np.ndarray
+    reflectance: np.ndarray
+    flags: np.ndarray
+    cell_m: tuple[float, float] = (math.nan, math.nan)
+
+    def __len__(self) -> int:
+        return int(self.flags.shape[0])
+
+
+def covered_by_trajectory(
+    t: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5, min_samples: int = 2
+) -> np.ndarray:
+    """Which firing times the local trajectory covers: at least ``min_samples`` samples within
+    ``(t - window_s, t + window_s)`` bracketing ``t`` (the rule of
+    :func:`~lidarcal_ros.core.local_trajectory.laser_geometry`, which raises where it fails)."""
+    t = np.asarray(t, dtype=np.float64)
+    traj_t = trajectory.t
+    if len(traj_t) < min_samples or t.size == 0:
+        return np.zeros(t.shape, dtype=bool)
+    t_lo, t_hi = float(t.min()), float(t.max())
+    if math.isfinite(t_lo) and math.isfinite(t_hi):
+        # Fast path: samples bracket the whole span with every gap shorter than the window, so
+        # each (t - w, t + w) holds a sample below and one above t (and min_samples <= 2).
+        i0 = int(np.searchsorted(traj_t, t_lo, side="right")) - 1
+        i1 = int(np.searchsorted(traj_t, t_hi, side="left"))
+        if (min_samples <= 2 and 0 <= i0 < i1 < len(traj_t)
+                and float(np.max(np.diff(traj_t[i0:i1 + 1]))) < window_s):
+            return np.ones(t.shape, dtype=bool)
+    start = np.searchsorted(traj_t, t - window_s, side="right")
+    stop = np.searchsorted(traj_t, t + window_s, side="left")
+    before = start < stop
+    last = len(traj_t) - 1
+    lo_ok = traj_t[np.minimum(start, last)] <= t
+    hi_ok = traj_t[np.maximum(stop - 1, 0)] >= t
+    return before & lo_ok & hi_ok & ((stop - start) >= min_samples)
+
+
+def flagged_geometry(
+    t: np.ndarray,
+    xyz: np.ndarray,
+    trajectory: Trajectory,
+    *,
+    window_s: float = 0.5,
+    min_samples: int = 2,
+    source: str = "cloud",
+) -> tuple[np.ndarray, LaserGeometry]:
+    """:func:`~lidarcal_ros.core.local_trajectory.laser_geometry` for the points it can serve,
+    flagging the others instead of raising.
+
+    Returns
+    -------
+    ok : (n,) bool
+        Finite point and time, covered by the trajectory, at least 1 m below it.
+    geometry : LaserGeometry
+        For the points ``ok`` (in order).
+    """
+    ok = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
+    ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
+    if ok.any():
+        z_traj = np.interp(t, trajectory.t, trajectory.xyz[:, 2])
+        ok &= xyz[:, 2] < z_traj - _MIN_DEPTH_M
+    everything = bool(ok.all())
+    try:
+        geo = laser_geometry(t if everything else t[ok], xyz if everything else xyz[ok],
+                             trajectory, window_s=window_s, min_samples=min_samples,
+                             source=source)
+    except TrajectoryError as exc:
+        logger.warning("%s: %s; %d points left uncorrected", source, exc, int(ok.sum()))
+        ok[:] = False
+        empty = np.empty(0)
+        geo = LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
+    return ok, geo
+
+
+def trajectory_heading(trajectory: Trajectory, t: float) -> float:
+    """Heading ``kappa`` (rad, ``atan2(-d_x, d_y)``) of the trajectory around time ``t``
+    (0 if undefined)."""
+    n = len(trajectory)
+    if n < 2 or not math.isfinite(t):
+        return 0.0
+    i = int(np.clip(np.searchsorted(trajectory.t, t), 1, n - 1))
+    a, b = max(i - 2, 0), min(i + 2, n - 1)
+    d = trajectory.xyz[b] - trajectory.xyz[a]
+    if math.hypot(d[0], d[1]) <= 0:
+        return 0.0
+    return math.atan2(-d[0], d[1])
+
+
+def trajectory_speed(trajectory: Trajectory) -> float:
+    """Median horizontal speed of the trajectory, m/s (NaN for fewer than 2 samples)."""
+    if len(trajectory) < 2:
+        return math.nan
+    dt = np.diff(trajectory.t)
+    dxy = np.hypot(*np.diff(trajectory.xyz[:, :2], axis=0).T)
+    good = dt > 0
+    if not good.any():
+        return math.nan
+    return float(np.median(dxy[good] / dt[good]))
+
+
+def correct_columns(
+    xyz: np.ndarray,
+    t: np.ndarray,
+    intensity: np.ndarray | None,
+    trajectory: Trajectory,
+    settings: CorrectionSettings,
+    *,
+    group: np.ndarray | None = None,
+    context_xyz: np.ndarray | None = None,
+    context_group: np.ndarray | None = None,
+    heading: float | None = None,
+    cell_m: tuple[float, float] | None = None,
+    source: str = "cloud",
+) -> CorrectedColumns:
+    """Correct the geometry and compute reflectance of a set of points (module docstring).
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64
+        Delivered points, map frame, m.
+    t : (n,) float64
+        Firing times, s, on the trajectory's clock.
+    intensity : (n,) float or None
+        Recorded intensity; None (or NaN per point) gives NaN reflectance.
+    trajectory : Trajectory
+    settings : CorrectionSettings
+    group : (n,) int, optional
+        Strip id per point; points of different strips are never neighbours for normals.
+    context_xyz, context_group : optional
+        Further delivered points (and their strips) that are neighbours but not corrected
+        (the end of the previous chunk, the start of the next).
+    heading : float, optional
+        Flight heading (rad) to align the normals' grid; default from the trajectory.
+    cell_m : (float, float), optional
+        Grid cell ``(along, across)`` of the normals (m); default
+        :func:`~lidarcal_ros.core.normals.cell_size` of ``xyz``.
+    source : str
+        Named in log messages.
+
+    Returns
+    -------
+    CorrectedColumns
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    n = t.shape[0]
+    flags = np.zeros(n, dtype=np.uint8)
+    rng = np.full(n, np.nan, dtype=np.float32)
+    inc = np.full(n, np.nan, dtype=np.float32)
+    scan = np.full(n, np.nan, dtype=np.float32)
+    refl = np.full(n, np.nan, dtype=np.float32)
+    if n == 0:
+        return CorrectedColumns(xyz.copy(), rng, inc, scan, refl, flags)
+    ok, geo = flagged_geometry(t, xyz, trajectory, window_s=settings.window_s,
+                               min_samples=settings.min_samples, source=source)
+    everything = bool(ok.all())
+    flags[~ok] |= FLAG_NOT_CORRECTED
+    out_xyz = xyz.copy()
+    if heading is None:
+        heading = trajectory_heading(trajectory, float(np.nanmedian(t)))
+    # Normals from the delivered coordinates of the points and their context.
+    if context_xyz is not None and len(context_xyz):
+        all_xyz = np.concatenate([xyz, context_xyz])
+        all_group = None
+        if group is not None or context_group is not None:
+            g0 = group if group is not None else np.zeros(n, dtype=np.int64)
+            g1 = (context_group if context_group is not None
+                  else np.zeros(len(context_xyz), dtype=np.int64))
+            all_group = np.concatenate([np.asarray(g0, dtype=np.int64),
+                                        np.asarray(g1, dtype=np.int64)])
+    else:
+        all_xyz, all_group = xyz, group
+    if cell_m is None:
+        finite = np.isfinite(xyz).all(axis=1) & np.isfinite(t)
+        cell_m = cell_size(xyz[finite], heading, t[finite])
+    gn = grid_normals(all_xyz, heading, cell_m=cell_m, group=all_group)
+    normals = gn.normals[:n]
+    if not ok.any():
+        stats_flags = flags
+        if intensity is None:
+            stats_flags |= FLAG_NO_INTENSITY
+        return CorrectedColumns(out_xyz, rng, inc, scan, refl, stats_flags, gn.cell_m)
+
+    sel = slice(None) if everything else ok
+    xc = correct_points(xyz[sel], settings.delta, geo.x, geo.z, geo.kappa, geo.beta)
+    out_xyz[sel] = xc
+    rel = xc - geo.origin
+    r = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+    direction = rel / r[:, None]
+    c, s = np.cos(geo.kappa), np.sin(geo.kappa)
+    x_right = rel[:, 0] * c + rel[:, 1] * s
+    scan[sel] = np.arctan(x_right / rel[:, 2])
+    rng[sel] = r
+    cos_t = cos_incidence(normals[sel], direction)
+    has_normal = np.isfinite(cos_t)
+    inc[sel] = np.arccos(cos_t)
+    nn = np.zeros(n, dtype=bool)
+    nn[sel] = ~has_normal
+    flags[nn] |= FLAG_NO_NORMAL
+    if gn.rough is not None:
+        flags[gn.rough[:n] & ok] |= FLAG_ROUGH
+    if intensity is None:
+        flags |= FLAG_NO_INTENSITY
+    else:
+        inten = np.asarray(intensity)[sel]
+        rho, grazing = settings.radiometry.reflectance(inten, r, cos_t)
+        refl[sel] = rho
+        gz = np.zeros(n, dtype=bool)
+        gz[sel] = grazing
+        flags[gz] |= FLAG_GRAZING
+        missing = np.zeros(n, dtype=bool)
+        missing[sel] = ~np.isfinite(np.asarray(inten, dtype=np.float64))
+        flags[missing] |= FLAG_NO_INTENSITY
+    return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags, gn.cell_m)
+
+
+# ---------------------------------------------------------------------------- clouds
+def corrected_dtype(dtype: np.dtype[Any]) -> np.dtype[Any]:
+    """The layout of a corrected cloud: the input fields at their offsets (minus any named
+    like an added one), then :data:`ADDED_FIELDS` (4-byte aligned)."""
+    added = {name for name, _ in ADDED_FIELDS}
+    fields: Mapping[str, Any] = dtype.fields or {}
+    names: list[str] = []
+    formats: list[Any] = []
+    offsets: list[int] = []
+    for name, (fdt, off, *_rest) in fields.items():
+        if name in added:
+            continue
+        names.append(name)
+        formats.append(fdt)
+        offsets.append(int(off))
+    pos = (dtype.itemsize + 3) // 4 * 4
+    for name, kind in ADDED_FIELDS:
+        k = np.dtype(kind)
+        pos = (pos + k.itemsize - 1) // k.itemsize * k.itemsize
+        names.append(name)
+        formats.append(k)
+        offsets.append(pos)
+        pos += k.itemsize
+    itemsize = (pos + 7) // 8 * 8
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                     "itemsize": itemsize})
+
+
+def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
+                    b: int | None = None) -> np.ndarray:
+    """The corrected cloud of ``points`` from rows ``a:b`` of ``res``."""
+    n = len(points)
+    b = a + n if b is None else b
+    dtype = corrected_dtype(points.dtype)
+    out = np.zeros(n, dtype=dtype)
+    if n == 0:
+        return out
+    src = np.ascontiguousarray(points).view(np.uint8).reshape(n, points.dtype.itemsize)
+    out.view(np.uint8).reshape(n, dtype.itemsize)[:, :points.dtype.itemsize] = src
+    out["x"] = res.xyz[a:b, 0]
+    out["y"] = res.xyz[a:b, 1]
+    out["z"] = res.xyz[a:b, 2]
+    out["reflectance"] = res.reflectance[a:b]
+    out["range"] = res.range[a:b]
+    out["incidence"] = res.incidence[a:b]
+    out["scan_angle"] = res.scan_angle[a:b]
+    out["correction_flags"] = res.flags[a:b]
+    return out
+
+
+def correct_cloud(
+    points: np.ndarray,
+    trajectory: Trajectory,
+    settings: CorrectionSettings,
+    *,
+    context: np.ndarray | None = None,
+    source: str = "cloud",
+) -> tuple[np.ndarray, CorrectedColumns]:
+    """Correct one cloud (a structured point array) on its own.
+
+    Parameters
+    ----------
+    points : structured array
+        Fields of interface.md (``x, y, z``, time, optional ``intensity``, ``strip_id``).
+    trajectory : Trajectory
+    settings : CorrectionSettings
+    context : (m, 3) float64, optional
+        Delivered neighbours for the normals (e.g. the previous cloud's points).
+    source : str
+        Topic or file named in messages.
+
+    Returns
+    -------
+    corrected : structured array
+        :func:`corrected_dtype` of the input.
+    columns : CorrectedColumns
+    """
+    cols = extract_columns(points, time_field=settings.time_field, source=source)
+    res = correct_columns(cols.xyz, cols.t, cols.intensity, trajectory, settings,
+                          group=cols.strip_id, context_xyz=context, source=source)
+    return build_corrected(points, res), res
+
+
+@dataclass
+class _Message:
+    tag: Any
+    points: np.ndarray
+    xyz: np.ndarray
+    t: np.ndarray
+    intensity: np.ndarray | None
+    group: np.ndarray | None
+    t_max: float
+    strip: int
+    cell_m: float
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+@dataclass
+class _Job:
+    """A batch ready to be corrected, with its context."""
+
+    batch: list[_Message]
+    xyz: np.ndarray
+    t: np.ndarray
+    intensity: np.ndarray | None
+    group: np.ndarray | None
+    context_xyz: np.ndarray | None
+    context_group: np.ndarray | None
+    heading: float
+    cell: tuple[float, float]
+
+
+class StreamCorrector:
+    """Correct a stream of clouds with neighbours across cloud boundaries (module docstring).
+
+    Parameters
+    ----------
+    trajectory : Trajectory
+        The whole trajectory of the mission (or at least up to the clouds pushed).
+    settings : CorrectionSettings
+    batch_points : int
+        Clouds of one strip are corrected together until a batch holds this many points; 0
+        corrects each cloud on its own (least latency).
+    workers : int
+        Batches corrected in parallel threads (numpy releases the GIL in most of the work);
+        1 corrects in the calling thread.
+    source : str
+        Topic named in messages.
+
+    Notes
+    -----
+    :meth:`push` returns the corrected clouds that became ready, as ``(tag, array)`` in the
+    order pushed; :meth:`flush` returns the rest. ``stats`` counts everything released.
+    Batches are independent given their context (delivered coordinates of the neighbouring
+    clouds), which is what lets them run in parallel.
+    """
+
+    def __init__(
+        self,
+        trajectory: Trajectory,
+        settings: CorrectionSettings,
+        *,
+        batch_points: int = DEFAULT_BATCH_POINTS,
+        workers: int = 1,
+        source: str = "cloud",
+    ) -> None:
+        self.trajectory = trajectory
+        self.settings = settings
+        self.batch_points = max(int(batch_points), 0)
+        self.workers = max(int(workers), 1)
+        self.source = source
+        self.stats = CorrectionStats()
+        self._pending: deque[_Message] = deque()
+        self._history: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._cell_cache: dict[int, float] = {}
+        speed = trajectory_speed(trajectory)
+        self._speed = speed if math.isfinite(speed) and speed > 1.0 else 1.0
+        self._warned_intensity = False
+        self._pool: ThreadPoolExecutor | None = None
+        self._inflight: deque[Future[tuple[list[tuple[Any, np.ndarray]], np.ndarray, float]]] = (
+            deque())
+
+    def context_seconds(self, cell_m: float) -> float:
+        """Time before and after a batch whose points are neighbours of its edge, s."""
+        if not math.isfinite(cell_m):
+            cell_m = 10.0
+        return min((2.5 * cell_m + 2.0) / self._speed, 5.0)
+
+    def push(self, points: np.ndarray, tag: Any = None) -> list[tuple[Any, np.ndarray]]:
+        """Add a cloud (structured array); returns the corrected clouds now ready."""
+        cols = extract_columns(points, time_field=self.settings.time_field, source=self.source)
+        if cols.intensity is None and not self._warned_intensity:
+            logger.warning("%s: clouds without an 'intensity' field: geometry is corrected, "
+                           "reflectance is NaN (flag %d)", self.source, FLAG_NO_INTENSITY)
+            self._warned_intensity = True
+        finite_t = cols.t[np.isfinite(cols.t)]
+        t_max = float(finite_t.max()) if finite_t.size else -math.inf
+        strip = int(cols.strip_id[0]) if cols.strip_id is not None and len(cols) else -1
+        cell = self._cell_cache.get(strip, math.nan)
+        if not math.isfinite(cell) and finite_t.size:
+            # First cloud of a strip: a first estimate of the cell, to size the look-ahead.
+            finite = np.isfinite(cols.xyz).all(axis=1) & np.isfinite(cols.t)
+            heading = trajectory_heading(self.trajectory, float(np.median(finite_t)))
+            cell = max(cell_size(cols.xyz[finite], heading, cols.t[finite]))
+        self._pending.append(_Message(tag, points, cols.xyz, cols.t, cols.intensity,
+                                      cols.strip_id, t_max, strip, cell))
+        return self._drain(final=False)
+
+    def flush(self) -> list[tuple[Any, np.ndarray]]:
+        """Correct everything still held."""
+        out = self._drain(final=True)
+        out.extend(self._collect(wait_all=True))
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+        return out
+
+    # -- internals -------------------------------------------------------------------
+
+    def _drain(self, *, final: bool) -> list[tuple[Any, np.ndarray]]:
+        out: list[tuple[Any, np.ndarray]] = []
+        while True:
+            job = self._next_job(final=final)
+            if job is None:
+                break
+            if self.workers == 1:
+                done, flags, seconds = self._run(job)
+                self._account(len(job.batch), flags, seconds)
+                out.extend(done)
+            else:
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(max_workers=self.workers,
+                                                    thread_name_prefix="lidarcal-correct")
+                self._inflight.append(self._pool.submit(self._run, job))
+                out.extend(self._collect(wait_all=False))
+        return out
+
+    def _collect(self, *, wait_all: bool) -> list[tuple[Any, np.ndarray]]:
+        """Results of finished batches, in order; waits while too many are in flight."""
+        out: list[tuple[Any, np.ndarray]] = []
+        while self._inflight and (wait_all or self._inflight[0].done()
+                                  or len(self._inflight) > self.workers):
+            done, flags, seconds = self._inflight.popleft().result()
+            self._account(len(done), flags, seconds)
+            out.extend(done)
+        return out
+
+    def _account(self, clouds: int, flags: np.ndarray, seconds: float) -> None:
+        self.stats.clouds += clouds
+        self.stats.seconds += seconds
+        self.stats.add(flags)
+
+    def _next_job(self, *, final: bool) -> _Job | None:
+        if not self._pending:
+            return None
+        # The next batch: clouds of one strip up to batch_points points.
+        first = self._pending[0]
+        k, total = 0, 0
+        closed = False
+        for m in self._pending:
+            if k and (m.strip != first.strip or total >= self.batch_points):
+                closed = True
+                break
+            total += len(m)
+            k += 1
+        closed = closed or total >= self.batch_points
+        if not (closed or final):
+            return None
+        batch = list(itertools.islice(self._pending, 0, k))
+        cells = [m.cell_m for m in batch if math.isfinite(m.cell_m)]
+        ctx_s = self.context_seconds(max(cells) if cells else math.nan)
+        t_end = max(m.t_max for m in batch)
+        later = list(itertools.islice(self._pending, k, None))
+        if not final and not any(m.t_max >= t_end + ctx_s for m in later):
+            return None
+        xyz, t, inten, group = self._concat(batch)
+        finite_t = t[np.isfinite(t)]
+        t_start = float(finite_t.min()) if finite_t.size else math.inf
+        heading = trajectory_heading(
+            self.trajectory, float(np.median(finite_t)) if finite_t.size else math.nan)
+        finite = np.isfinite(xyz).all(axis=1) & np.isfinite(t)
+        every = bool(finite.all())
+        cell = cell_size(xyz if every else xyz[finite], heading, t if every else t[finite])
+        if all(math.isfinite(c) for c in cell):
+            self._cell_cache[first.strip] = max(cell)
+        ctx_xyz, ctx_group = self._context(later, t_start, t_end, ctx_s)
+        self._remember(xyz, t, group, t_end, ctx_s)
+        for _ in range(k):
+            self._pending.popleft()
+        return _Job(batch, xyz, t, inten, group, ctx_xyz, ctx_group, heading, cell)
+
+    def _run(self, job: _Job) -> tuple[list[tuple[Any, np.ndarray]], np.ndarray, float]:
+        started = time.perf_counter()
+        res = correct_columns(job.xyz, job.t, job.intensity, self.trajectory, self.settings,
+                              group=job.group, context_xyz=job.context_xyz,
+                              context_group=job.context_group, heading=job.heading,
+                              cell_m=job.cell, source=self.source)
+        out: list[tuple[Any, np.ndarray]] = []
+        a = 0
+        for msg in job.batch:
+            b = a + len(msg)
+            out.append((msg.tag, build_corrected(msg.points, res, a, b)))
+            a = b
+        return out, res.flags, time.perf_counter() - started
+
+    @staticmethod
+    def _concat(
+        batch: list[_Message],
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        if len(batch) == 1:
+            m = batch[0]
+            return m.xyz, m.t, m.intensity, m.group
+        xyz = np.concatenate([m.xyz for m in batch])
+        t = np.concatenate([m.t for m in batch])
+        inten: np.ndarray | None = None
+        if any(m.intensity is not None for m in batch):
+            inten = np.concatenate([
+                m.intensity if m.intensity is not None else np.full(len(m), np.nan, np.float32)
+                for m in batch])
+        group: np.ndarray | None = None
+        if any(m.group is not None for m in batch):
+            group = np.concatenate([
+                m.group if m.group is not None else np.zeros(len(m), np.uint32)
+                for m in batch])
+        return xyz, t, inten, group
+
+    def _context(
+        self, later: list[_Message], t_start: float, t_end: float, ctx_s: float
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        parts_xyz: list[np.ndarray] = []
+        parts_g: list[np.ndarray] = []
+        if self._history is not None:
+            hx, ht, hg = self._history
+            keep = ht >= t_start - ctx_s
+            parts_xyz.append(hx[keep])
+            parts_g.append(hg[keep])
+        for m in later:
+            keep = m.t <= t_end + ctx_s
+            if not keep.any():
+                continue
+            parts_xyz.append(m.xyz[keep])
+            parts_g.append(m.group[keep] if m.group is not None
+                           else np.zeros(int(keep.sum()), np.uint32))
+        if not parts_xyz:
+            return None, None
+        return np.concatenate(parts_xyz), np.concatenate(parts_g).astype(np.int64)
+
+    def _remember(self, xyz: np.ndarray, t: np.ndarray, group: np.ndarray | None,
+                  t_end: float, ctx_s: float) -> None:
+        keep = t >= t_end - ctx_s
+        g = group if group is not None else np.zeros(t.shape[0], np.uint32)
+        self._history = (xyz[keep].copy(), t[keep].copy(), np.asarray(g[keep], dtype=np.int64))
+
+
+# ---------------------------------------------------------------------------- bags
+@dataclass
+class CorrectionReport:
+    """What :func:`correct_bag` did."""
+
+    output: Path
+    kind: str
+    stats: CorrectionStats
+    passthrough_messages: int = 0
+    las_skipped_non_finite: int = 0
+    seconds: float = 0.0
+    frame_id: str = ""
+    atmosphere: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    def lines(self) -> list[str]:
+        """A short human-readable summary."""
+        s = self.stats
+        rate = s.points / self.seconds if self.seconds > 0 else math.nan
+        out = [f"corrected {s.points} points in {s.clouds} clouds -> {self.output} "
+               f"({self.kind}, {self.seconds:.1f} s, {rate / 1e6:.2f} M points/s)"]
+        if self.kind == "bag":
+            out.append(f"passed through {self.passthrough_messages} other messages")
+        out.append(self.atmosphere)
+        out.append(f"grazing incidence (clamped): {s.grazing}; rough surface: {s.rough}; "
+                   f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
+                   f"without intensity: {s.no_intensity}")
+        out.extend(f"warning: {w}" for w in self.warnings)
+        return out
+
+
+def output_kind(path: str | Path) -> str:
+    """``las`` for ``.las``/``.laz``, else ``bag`` (``.mcap`` file or rosbag2 directory)."""
+    return "las" if Path(path).suffix.lower() in (".las", ".laz") else "bag"
+
+
+def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
+    """First pass: every trajectory sample of an open bag, and the frames they are in."""
+    from lidarcal_ros.io.bag import TRAJECTORY_TYPES
+
+    t: list[float] = []
+    xyz: list[tuple[float, float, float]] = []
+    frames: set[str] = set()
+    for _topic, msgtype, _ns, raw in bag.messages([topic]):
+        getter = TRAJECTORY_TYPES.get(msgtype)
+        if getter is None:
+            raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+        msg = bag.deserialize(raw, msgtype, topic=topic)
+        pos = getter(msg)
+        stamp = msg.header.stamp
+        t.append(float(stamp.sec) + int(stamp.nanosec) * 1e-9)
+        xyz.append((pos.x, pos.y, pos.z))
+        frames.add(msg.header.frame_id)
+    if not t:
+        raise BagError(f"{bag.path}: topic {topic} has no messages")
+    return Trajectory.from_samples(np.asarray(t), np.asarray(xyz)), frames
+
+
+def correct_bag(
+    bag_path: str | Path,
+    calibration: str | Path | CalibrationRecord,
+    output: str | Path,
+    config: FlightConfig | None = None,
+    *,
+    crs: Any = None,
+    overwrite: bool = False,
+    batch_points: int = DEFAULT_BATCH_POINTS,
+    workers: int = 1,
+    progress: Callable[[str, float], None] | None = None,
+) -> CorrectionReport:
+    """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
+
+    Parameters
+    ----------
+    bag_path : path
+        rosbag2 directory or ``.mcap`` with the topics of ``config``.
+    calibration : path or CalibrationRecord
+        Calibration file of interface.md.
+    output : path
+        ``.las``/``.laz``: LAS 1.4 point format 6 (:mod:`lidarcal_ros.io.las`); otherwise a
+        rosbag2 bag (bare MCAP for ``.mcap``) with the corrected clouds on
+        ``topics.corrected`` and every input message passed through unchanged.
+    config : FlightConfig, optional
+        Defaults when None.
+    crs : pyproj.CRS, optional
+        CRS of the map frame, written into LAS output (ignored, with a warning, for bags).
+    overwrite : bool
+        Replace an existing output.
+    batch_points : int
+        Points corrected together (memory is about 1 kB per point of batch).
+    workers : int
+        Batches corrected in parallel threads.
+    progress : callable(stage, fraction), optional
+
+    Returns
+    -------
+    CorrectionReport
+
+    Raises
+    ------
+    BagError, CloudFormatError, InputError, ConfigError, TrajectoryError
+        One line naming the file, topic or field at fault.
+    """
+    from lidarcal_ros.io.bag import POINTCLOUD2, TRAJECTORY_TYPES, open_bag
+
+    started = time.perf_counter()
+    config = config or FlightConfig()
+    record = (calibration if isinstance(calibration, CalibrationRecord)
+              else read_calibration(calibration))
+    settings = CorrectionSettings.from_config(config, record)
+    out_path = Path(output)
+    kind = output_kind(out_path)
+    points_topic = config["topics.points"]
+    traj_topic = config["topics.trajectory"]
+    corrected_topic = config["topics.corrected"]
+    bag_path = Path(bag_path)
+    if out_path.resolve() == bag_path.resolve():
+        raise InputError(f"{out_path}: output would overwrite the input bag")
+    warnings: list[str] = []
+    if crs is not None and kind == "bag":
+        warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
+        logger.warning("%s", warnings[-1])
+    with open_bag(bag_path) as bag:
+        for topic, types in ((points_topic, (POINTCLOUD2,)),
+                             (traj_topic, tuple(TRAJECTORY_TYPES))):
+            if topic not in bag.topics:
+                raise BagError(f"{bag.path}: topic {topic} not found; topics present: "
+                               f"{', '.join(bag.topics) or 'none'}")
+            got = bag.topics[topic].msgtype
+            if got not in types:
+                raise BagError(f"{bag.path}: topic {topic} has type {got}; expected "
+                               f"{' or '.join(types)}")
+        if corrected_topic in bag.topics and kind == "bag":
+            raise BagError(f"{bag.path}: already has topic {corrected_topic}; a corrected "
+                           "bag cannot be corrected again into the same topic")
+        if progress:
+            progress("reading trajectory", 0.0)
+        trajectory, traj_frames = read_trajectory(bag, traj_topic)
+        if len(traj_frames) > 1:
+            raise InputError(f"{bag.path}: poses on {traj_topic} are in several frames: "
+                             f"{sorted(traj_frames)}")
+        frame = next(iter(traj_frames))
+        corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
+                                    workers=workers, source=points_topic)
+        n_clouds = max(bag.topics[points_topic].count, 1)
+        report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
+                                  atmosphere=describe_alpha(settings.radiometry),
+                                  warnings=warnings)
+        if kind == "las":
+            _correct_to_las(bag, corrector, out_path, points_topic, frame, crs, overwrite,
+                            n_clouds, progress, report)
+        else:
+            _correct_to_bag(bag, corrector, out_path, points_topic, corrected_topic, frame,
+                            overwrite, n_clouds, progress, report)
+    s = corrector.stats
+    if s.not_corrected:
+        report.warnings.append(
+            f"{s.not_corrected} of {s.points} points not covered by the trajectory (or not "
+            f"below it): left uncorrected, flagged {FLAG_NOT_CORRECTED} in correction_flags")
+        logger.warning("%s: %s", bag_path, report.warnings[-1])
+    if s.no_intensity:
+        report.warnings.append(f"{s.no_intensity} points without intensity: reflectance NaN")
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str, frame: str) -> tuple[Any,
+                                                                                        np.ndarray]:
+    from lidarcal_ros.io.bag import POINTCLOUD2
+
+    if msgtype != POINTCLOUD2:
+        raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+    msg = bag.deserialize(raw, msgtype, topic=topic)
+    if msg.header.frame_id != frame:
+        raise InputError(f"{bag.path}: clouds on {topic} are in frame '{msg.header.frame_id}' "
+                         f"but the trajectory is in frame '{frame}'")
+    return msg, cloud_to_array(msg, source=topic)
+
+
+def _correct_to_las(
+    bag: Any, corrector: StreamCorrector, out_path: Path, points_topic: str, frame: str,
+    crs: Any, overwrite: bool, n_clouds: int,
+    progress: Callable[[str, float], None] | None, report: CorrectionReport,
+) -> None:
+    from lidarcal_ros.io.las import LasChunkWriter
+
+    seen = 0
+    time_field: str | None = None
+    with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
+                        overwrite=overwrite) as writer:
+        for topic, msgtype, _ns, raw in bag.messages([points_topic]):
+            _msg, points = _cloud_points(bag, msgtype, raw, topic, frame)
+            if time_field is None and len(points):
+                from lidarcal_ros.io.pointcloud import resolve_time_field
+
+                time_field = resolve_time_field(points, corrector.settings.time_field,
+                                                source=topic)
+                writer.time_field = time_field
+            for _tag, corrected in corrector.push(points, None):
+                writer.write(corrected)
+            seen += 1
+            if progress and seen % 50 == 0:
+                progress("correcting", seen / n_clouds)
+        for _tag, corrected in corrector.flush():
+            writer.write(corrected)
+    report.las_skipped_non_finite = writer.stats.skipped_non_finite
+    if writer.stats.skipped_non_finite:
+        report.warnings.append(f"{writer.stats.skipped_non_finite} points with non-finite "
+                               "coordinates cannot be stored in LAS: skipped")
+
+
+def _correct_to_bag(
+    bag: Any, corrector: StreamCorrector, out_path: Path, points_topic: str,
+    corrected_topic: str, frame: str, overwrite: bool, n_clouds: int,
+    progress: Callable[[str, float], None] | None, report: CorrectionReport,
+) -> None:
+    from lidarcal_ros.io.bag import POINTCLOUD2, BagWriter
+
+    latched = [t for t, info in bag.topics.items() if info.transient_local]
+    # Output queue keyed by (input sequence number, 0 = passed through / 1 = corrected).
+    # Passed-through messages are ready at once, corrected clouds when their batch is
+    # released; everything before the oldest cloud still held is written, so the output
+    # keeps the input's (log-time) order.
+    ready: list[tuple[int, int, Any]] = []
+    held: deque[int] = deque()
+    skipped_topics: set[str] = set()
+    seen = 0
+
+    with BagWriter(out_path, overwrite=overwrite, latched_topics=latched) as writer:
+
+        def emit(limit: tuple[float, int]) -> None:
+            while ready and (ready[0][0], ready[0][1]) < limit:
+                _, kind_, payload = heapq.heappop(ready)
+                if kind_ == 1:
+                    ns_, msg_, corrected_ = payload
+                    writer.write_message(corrected_topic, POINTCLOUD2, ns_,
+                                         _cloud_message(msg_, corrected_))
+                    continue
+                topic_, msgtype_, ns_, raw_ = payload
+                try:
+                    writer.write_raw(topic_, msgtype_, ns_, raw_,
+                                     msgdef=bag.topics[topic_].msgdef or None)
+                except BagError as exc:
+                    if topic_ not in skipped_topics:
+                        skipped_topics.add(topic_)
+                        report.warnings.append(f"topic {topic_} not passed through ({exc})")
+                        logger.warning("%s", report.warnings[-1])
+                    continue
+                report.passthrough_messages += 1
+
+        def collect(done: list[tuple[Any, np.ndarray]]) -> None:
+            for (k_, ns_, msg_), corrected in done:
+                heapq.heappush(ready, (k_, 1, (ns_, msg_, corrected)))
+                held.remove(k_)
+
+        for k, (topic, msgtype, ns, raw) in enumerate(bag.messages()):
+            heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
+            if topic == points_topic:
+                msg, points = _cloud_points(bag, msgtype, raw, topic, frame)
+                held.append(k)
+                collect(corrector.push(points, (k, ns, msg)))
+                seen += 1
+                if progress and seen % 50 == 0:
+                    progress("correcting", seen / n_clouds)
+            emit((held[0], 1) if held else (math.inf, 0))
+        collect(corrector.flush())
+        emit((math.inf, 0))
+
+
+def _cloud_message(msg: Any, points: np.ndarray) -> Any:
+    """A PointCloud2 like ``msg`` (same header) carrying ``points`` as one row."""
+    from lidarcal_ros.io.pointcloud import array_to_cloud_parts
+
+    fields, step, data = array_to_cloud_parts(points)
+    field_cls = type(msg.fields[0])
+    n = len(points)
+    return dataclasses.replace(
+        msg, height=1, width=n,
+        fields=[field_cls(name=name, offset=off, datatype=dt, count=cnt)
+                for name, off, dt, cnt in fields],
+        is_bigendian=False, point_step=step, row_step=n * step, data=data)
+
+
+def iter_corrected(
+    clouds: Iterator[np.ndarray], trajectory: Trajectory, settings: CorrectionSettings, *,
+    batch_points: int = DEFAULT_BATCH_POINTS, source: str = "cloud",
+) -> Iterator[np.ndarray]:
+    """Corrected clouds of an iterable of clouds, in order (in-memory streaming)."""
+    corrector = StreamCorrector(trajectory, settings, batch_points=batch_points, source=source)
+    for points in clouds:
+        for _tag, out in corrector.push(points):
+            yield out
+    for _tag, out in corrector.flush():
+        yield out

@@ -1,0 +1,294 @@
+"""Unit tests of the radiometric model (core.radiometry), the grid normals (core.normals) and
+the small pieces of the correction pipeline that do not need a mission."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.normals import cell_size, grid_normals, smallest_eigen
+from lidarcal_ros.core.radiometry import (
+    RadiometricModel,
+    atmospheric_alpha,
+    cos_incidence,
+    extinction_coefficient,
+    kim_q,
+    power_ratio,
+    rayleigh_alpha,
+    two_way_transmittance,
+)
+from lidarcal_ros.errors import ConfigError, TrajectoryError
+from lidarcal_ros.io.las import adjusted_gps_to_unix, unix_to_adjusted_gps
+from lidarcal_ros.pipeline.correction import (
+    ADDED_FIELDS,
+    corrected_dtype,
+    covered_by_trajectory,
+)
+
+# ---------------------------------------------------------------------- atmosphere
+
+
+@pytest.mark.parametrize(("visibility", "q"), [
+    (80.0, 1.6), (50.0, 1.3), (48.3, 1.3), (6.0, 0.16 * 6.0 + 0.34), (3.0, 0.16 * 3.0 + 0.34),
+    (0.8, 0.3), (0.4, 0.0),
+])
+def test_kim_q_branches(visibility: float, q: float) -> None:
+    assert kim_q(visibility) == pytest.approx(q)
+
+
+def test_kim_alpha_values() -> None:
+    # The paper's day: visibility 48.3 km at 1064 nm.
+    expected = 3.912 / 48.3 * (1064.0 / 550.0) ** -1.3 / 1000.0
+    assert atmospheric_alpha(48.3, 1064.0) == pytest.approx(expected, rel=1e-12)
+    assert atmospheric_alpha(48.3, 1064.0) == pytest.approx(3.435e-5, rel=1e-3)
+    # At 550 nm Koschmieder: 3.912 / V whatever q.
+    assert atmospheric_alpha(10.0, 550.0) == pytest.approx(3.912e-4, rel=1e-12)
+    with pytest.raises(ConfigError, match="visibility"):
+        atmospheric_alpha(0.0)
+
+
+def test_temperature_and_pressure_rescale_the_molecular_part() -> None:
+    # Standard air: Kim alone.
+    assert extinction_coefficient(48.3, 1064.0, 15.0, 101.325) == pytest.approx(
+        atmospheric_alpha(48.3, 1064.0), rel=1e-12)
+    assert rayleigh_alpha(550.0) == pytest.approx(1.162e-5, rel=1e-9)
+    assert rayleigh_alpha(1100.0) == pytest.approx(1.162e-5 / 16.0, rel=1e-9)
+    # Warmer, thinner air extinguishes less; the effect is tiny at 1064 nm.
+    hot = extinction_coefficient(48.3, 1064.0, 29.8, 101.81)
+    cold = extinction_coefficient(48.3, 1064.0, -20.0, 101.81)
+    std = atmospheric_alpha(48.3, 1064.0)
+    assert hot < std < cold
+    density = (101.81 / 101.325) * (288.15 / (29.8 + 273.15))
+    assert hot - std == pytest.approx(rayleigh_alpha(1064.0) * (density - 1.0), rel=1e-9)
+    assert abs(hot - std) < 1e-7  # per metre: below 1e-4 per km
+
+
+def test_two_way_transmittance() -> None:
+    alpha = 3.435e-5
+    eta = two_way_transmittance(np.array([0.0, 1000.0, 1150.0]), alpha)
+    np.testing.assert_allclose(eta, np.exp(-2 * alpha * np.array([0.0, 1000.0, 1150.0])))
+    assert 0.92 < eta[2] < 0.93
+
+
+def test_power_ratio() -> None:
+    assert power_ratio("constant", 140e3, 70e3) == 1.0
+    assert power_ratio("pulse_rate", 140e3, 70e3) == pytest.approx(2.0)
+    with pytest.raises(ConfigError, match="power_model"):
+        power_ratio("laser", 1.0, 1.0)
+
+
+# ---------------------------------------------------------------------- reflectance
+
+
+def test_reflectance_undoes_range_atmosphere_and_incidence() -> None:
+    model = RadiometricModel(reference_range_m=1000.0)
+    alpha = model.alpha_per_m
+    rng = np.random.default_rng(1)
+    rho = rng.uniform(0.1, 0.6, 1000)
+    r = rng.uniform(500.0, 1300.0, 1000)
+    cos_t = rng.uniform(0.2, 1.0, 1000)
+    intensity = 1e10 * rho * cos_t * np.exp(-2 * alpha * r) / r**2
+    out, grazing = model.reflectance(intensity, r, cos_t)
+    assert out.dtype == np.float32
+    assert not grazing.any()
+    np.testing.assert_allclose(out, 1e10 / 1000.0**2 * rho, rtol=1e-6)
+
+
+def test_range_normalisation_to_the_reference_range() -> None:
+    model = RadiometricModel(reference_range_m=1000.0, visibility_km=500.0)
+    # A target at the reference range, normal incidence: reflectance = intensity / eta(r_ref).
+    out, _ = model.reflectance(np.array([1000.0]), np.array([1000.0]), np.array([1.0]))
+    assert out[0] == pytest.approx(1000.0 / two_way_transmittance(1000.0, model.alpha_per_m))
+    # Twice as far: four times the normalisation.
+    far, _ = model.reflectance(np.array([1000.0]), np.array([2000.0]), np.array([1.0]))
+    ratio = far[0] / out[0]
+    assert ratio == pytest.approx(4.0 * math.exp(2 * model.alpha_per_m * 1000.0), rel=1e-6)
+
+
+def test_grazing_incidence_is_clamped_and_flagged() -> None:
+    model = RadiometricModel(min_cos_incidence=0.1)
+    cos_t = np.array([1.0, 0.1, 0.05, 0.0, np.nan])
+    out, grazing = model.reflectance(np.ones(5), np.full(5, 1000.0), cos_t)
+    assert grazing.tolist() == [False, False, True, True, False]
+    assert np.isfinite(out[:4]).all()
+    # Clamped: never divided by a cosine below 0.1.
+    assert out[2] == out[1] == out[3]
+    assert out[1] == pytest.approx(10.0 * out[0], rel=1e-6)
+    assert np.isnan(out[4])
+
+
+def test_pulse_rate_power_model() -> None:
+    base = RadiometricModel(power_model="constant", pulse_rate_hz=140e3)
+    prf = RadiometricModel(power_model="pulse_rate", pulse_rate_hz=140e3,
+                           reference_pulse_rate_hz=70e3)
+    args = (np.array([100.0]), np.array([1000.0]), np.array([1.0]))
+    assert prf.reflectance(*args)[0][0] == pytest.approx(2.0 * base.reflectance(*args)[0][0])
+
+
+def test_model_from_flight_configuration() -> None:
+    cfg = FlightConfig().with_values(atmosphere__visibility_km=20.0,
+                                     radiometry__reference_range_m=800.0)
+    model = RadiometricModel.from_config(cfg)
+    assert model.visibility_km == 20.0
+    assert model.reference_range_m == 800.0
+    assert model.wavelength_nm == 1064.0
+    assert model.min_cos_incidence == 0.1
+    with pytest.raises(ConfigError):
+        RadiometricModel(min_cos_incidence=0.0)
+
+
+def test_cos_incidence_is_orientation_free() -> None:
+    n = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    l = np.array([[0.0, 0.6, -0.8], [0.0, 0.6, -0.8], [0.0, 0.6, -0.8]])
+    np.testing.assert_allclose(cos_incidence(n, l), [0.8, 0.8, 0.0])
+
+
+# ---------------------------------------------------------------------- normals
+
+
+def test_smallest_eigen_matches_numpy() -> None:
+    rng = np.random.default_rng(2)
+    a = rng.normal(size=(500, 3, 3))
+    c = a @ np.transpose(a, (0, 2, 1))
+    lam_min, lam_mid, vec, ok = smallest_eigen(c[:, 0, 0], c[:, 0, 1], c[:, 0, 2],
+                                               c[:, 1, 1], c[:, 1, 2], c[:, 2, 2])
+    w, v = np.linalg.eigh(c)
+    assert ok.all()
+    np.testing.assert_allclose(lam_min, w[:, 0], atol=1e-9)
+    np.testing.assert_allclose(lam_mid, w[:, 1], atol=1e-9)
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", vec, v[:, :, 0])), 1.0, atol=1e-6)
+    assert (vec[:, 2] >= 0).all()
+
+
+def _scan_pattern(n_sweeps: int = 120, per_sweep: int = 400, swath: float = 400.0,
+                  spacing_along: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
+    """A zig-zag scan over the plane z = 0: (u, v) in a north-flying frame, and times."""
+    k = np.arange(n_sweeps * per_sweep)
+    sweep, pos = np.divmod(k, per_sweep)
+    frac = np.where(sweep % 2 == 0, pos / per_sweep, 1.0 - pos / per_sweep)
+    v = (frac - 0.5) * swath
+    u = (k / per_sweep) * spacing_along
+    return np.column_stack([v, u]), k * 1e-5
+
+
+def test_plane_normals_of_any_orientation() -> None:
+    xy, t = _scan_pattern()
+    rng = np.random.default_rng(3)
+    for normal in ([0.3, -0.2, 1.0], [0.0, 0.0, 1.0], [-0.7, 0.5, 1.0]):
+        nt = np.asarray(normal) / np.linalg.norm(normal)
+        z = -(nt[0] * xy[:, 0] + nt[1] * xy[:, 1]) / nt[2] + rng.normal(0, 0.02, len(t))
+        xyz = np.column_stack([xy, z])
+        g = grid_normals(xyz, 0.0, t=t)
+        assert g.valid.mean() > 0.995  # the first and last sweeps are a V, not a plane
+        err = np.degrees(np.arccos(np.clip(g.normals[g.valid] @ nt, -1, 1)))
+        assert np.median(err) < 1.0
+        assert np.percentile(err, 99) < 5.0
+
+
+def test_cells_follow_the_scan_pattern() -> None:
+    # 0.5 m between pulses across, 1.5 m between sweeps along: rectangular cells.
+    xy, t = _scan_pattern(n_sweeps=60, per_sweep=400, swath=200.0, spacing_along=1.5)
+    xyz = np.column_stack([xy, np.zeros(len(t))])
+    along, across = cell_size(xyz, 0.0, t)
+    assert along == pytest.approx(1.5 * 1.5, rel=0.1)
+    assert across == pytest.approx(1.5 * 0.5, rel=0.1)
+    # Without times the cell is square.
+    sq = cell_size(xyz, 0.0)
+    assert sq[0] == sq[1]
+
+
+def test_gable_roof_keeps_the_ridge_sharp() -> None:
+    xy, t = _scan_pattern(swath=200.0, spacing_along=1.0, per_sweep=200)
+    x = xy[:, 0]
+    rng = np.random.default_rng(4)
+    z = 10.0 - 0.5 * np.abs(x) + rng.normal(0, 0.02, len(t))
+    g = grid_normals(np.column_stack([xy, z]), 0.0, t=t)
+    truth = np.column_stack([0.5 * np.sign(x), np.zeros_like(x), np.ones_like(x)]) / math.sqrt(1.25)
+    err = np.degrees(np.arccos(np.clip(np.sum(g.normals * truth, axis=1), -1, 1)))
+    assert g.valid.mean() > 0.99
+    far = (np.abs(x) > 2.0 * max(g.cell_m)) & g.valid
+    assert np.percentile(err[far], 99) < 3.0
+    # Most points beside the ridge still take a block on their own side.
+    near = (np.abs(x) > 0.5 * g.cell_m[1]) & ~far & g.valid
+    assert np.mean(err[near] < 5.0) > 0.6
+
+
+def test_degenerate_neighbourhoods_get_no_normal() -> None:
+    # Points on a single line: no plane.
+    x = np.linspace(0, 100, 500)
+    xyz = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    g = grid_normals(xyz, 0.0, cell_m=1.0)
+    assert not g.valid.any()
+    assert np.isnan(g.normals).all()
+    # Non-finite points are ignored.
+    xy, t = _scan_pattern(n_sweeps=20)
+    xyz = np.column_stack([xy, np.zeros(len(t))])
+    xyz[5] = np.nan
+    g = grid_normals(xyz, 0.0, t=t)
+    assert not g.valid[5]
+    assert g.valid.mean() > 0.98
+
+
+def test_groups_are_never_neighbours() -> None:
+    xy, t = _scan_pattern(n_sweeps=40)
+    a = np.column_stack([xy, np.zeros(len(t))])
+    b = np.column_stack([xy + 0.3, 0.5 * xy[:, 0] + 3.0])  # a slope through the same area
+    xyz = np.concatenate([a, b])
+    group = np.repeat([1, 2], len(t))
+    g = grid_normals(xyz, 0.0, cell_m=(1.8, 1.8), group=group)
+    flat = g.normals[:len(t)][g.valid[:len(t)]]
+    assert np.median(flat[:, 2]) > 0.9999
+    slope = g.normals[len(t):][g.valid[len(t):]]
+    np.testing.assert_allclose(np.median(slope, axis=0), [-0.5 / math.sqrt(1.25), 0.0,
+                                                          1 / math.sqrt(1.25)], atol=1e-3)
+
+
+# ---------------------------------------------------------------------- pipeline pieces
+
+
+def test_coverage_rule_matches_laser_geometry() -> None:
+    from lidarcal_ros.core.local_trajectory import laser_geometry
+
+    tt = np.concatenate([np.arange(0.0, 10.0, 0.02), np.arange(12.0, 20.0, 0.02)])
+    traj = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt, np.full_like(tt, 1e3)]))
+    t = np.linspace(-1.0, 21.0, 2000)
+    cov = covered_by_trajectory(t, traj, window_s=0.5)
+    assert not cov[(t > 10.5) & (t < 11.5)].any()
+    assert not cov[t < 0].any() and not cov[t > 19.98].any()
+    assert cov[(t > 0.1) & (t < 9.9)].all()
+    xyz = np.column_stack([np.full_like(t, 5.0), 60.0 * t, np.zeros_like(t)])
+    laser_geometry(t[cov], xyz[cov], traj)  # does not raise
+    with pytest.raises(TrajectoryError):
+        laser_geometry(t[~cov][:1], xyz[~cov][:1], traj)
+    # The fast path (no gap at all) agrees with the point-by-point rule.
+    inner = t[(t > 1.0) & (t < 9.0)]
+    assert covered_by_trajectory(inner, traj).all()
+
+
+def test_corrected_dtype_keeps_input_layout() -> None:
+    dt = np.dtype({"names": ["x", "y", "z", "t", "intensity", "reflectance"],
+                   "formats": ["<f4", "<f4", "<f4", "<f8", "<u2", "<f8"],
+                   "offsets": [0, 4, 8, 16, 24, 32], "itemsize": 48})
+    out = corrected_dtype(dt)
+    names = out.names or ()
+    assert names[:5] == ("x", "y", "z", "t", "intensity")
+    assert [n for n, _ in ADDED_FIELDS] == list(names[5:])
+    assert out.fields is not None
+    assert out.fields["x"][1] == 0 and out.fields["t"][1] == 16
+    assert out.fields["reflectance"][0] == np.dtype("<f4")
+    assert out.fields["reflectance"][1] >= 48
+
+
+def test_las_gps_time_conversion() -> None:
+    # 2023-11-14T22:13:20Z: GPS - UTC = 18 s.
+    assert unix_to_adjusted_gps(np.array([1.7e9]))[0] == pytest.approx(
+        1.7e9 - 315964800 + 18 - 1e9)
+    # 2010: 15 leap seconds.
+    assert unix_to_adjusted_gps(np.array([1.27e9]))[0] == pytest.approx(
+        1.27e9 - 315964800 + 15 - 1e9)
+    t = np.array([1.0e9, 1.5e9, 1.7e9 + 0.123456])
+    np.testing.assert_allclose(adjusted_gps_to_unix(unix_to_adjusted_gps(t)), t, atol=1e-6)
