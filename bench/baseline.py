@@ -3,9 +3,9 @@
 Same data, same local trajectories, same design rows (evaluated at the corrected points), same
 exact bias removal between iterations (Gauss-Newton: each iteration solves for the increment
 that removes the normal discrepancies left by the current estimate), same least-squares solver
-and robust re-weighting as ``lidarcal calibrate`` (it imports :mod:`lidarcal_ros.core.local_trajectory`,
-:mod:`lidarcal_ros.core.model` and :func:`lidarcal_ros.core.adjustment.solve`), but the matching
-is done the obvious way:
+and robust re-weighting as ``lidarcal calibrate`` (it imports
+:mod:`lidarcal_ros.core.local_trajectory`, :mod:`lidarcal_ros.core.model` and
+:func:`lidarcal_ros.core.adjustment.solve`), but the matching is done the obvious way:
 
 - every iteration, every strip's TIN is rebuilt from the *corrected* coordinates with
   ``scipy.spatial.Delaunay`` (qhull), and its triangles are judged again (edge length, slope,

@@ -154,7 +154,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         n_ctrl = len(mission.control) if mission.control is not None else 0
         title = (f"{args.bag}: {len(mission.strips)} strips, {mission.n_points} points, "
-                 f"{len(result.pairs)} overlapping pairs, {n_ctrl} control point{'' if n_ctrl == 1 else 's'} "
+                 f"{len(result.pairs)} overlapping pairs, "
+                 f"{n_ctrl} control point{'' if n_ctrl == 1 else 's'} "
                  f"({elapsed:.1f} s)")
         print(format_report(result, config, title=title, truth=truth))
         print(f"calibration written to {path}")
