@@ -19,7 +19,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
 from lidarcal_ros.core.adjustment import (
     NormalEquations,
@@ -30,7 +29,7 @@ from lidarcal_ros.core.adjustment import (
     solve,
 )
 from lidarcal_ros.core.local_trajectory import LaserGeometry, geometry_at, laser_geometry
-from lidarcal_ros.core.mission import ControlPoints, Mission, Strip
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import PatchMatches, Tin, TinQuality, match_to_tin
@@ -82,9 +81,11 @@ class PreparedStrip:
     strip: Strip
     geometry0: LaserGeometry  # at the delivered points
     density: float  # points per m^2 over its footprint
-    raster: np.ndarray  # footprint on the mission grid (bool)
+    point_cells: np.ndarray  # footprint cell key of every point (int64)
+    cells: np.ndarray  # sorted unique footprint cells
     tin: Tin | None = None
     geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
+    dropped: bool = False  # points released (memory budget); its pairs are frozen
 
     def __post_init__(self) -> None:
         self.geometry = self.geometry0
@@ -134,25 +135,27 @@ class CalibrationResult:
     dropped_non_finite: int = 0
 
 
-@dataclass
-class _Grid:
-    """The mission's footprint raster (overlap detection)."""
+@dataclass(frozen=True)
+class _Footprint:
+    """Sparse footprint cells (overlap detection), keyed in absolute map coordinates so that
+    strips arriving one by one share one grid."""
 
-    x0: float
-    y0: float
     cell: float
-    shape: tuple[int, int]
 
-    def index(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ix = np.floor((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
-        iy = np.floor((xy[:, 1] - self.y0) / self.cell).astype(np.int64)
-        return np.clip(ix, 0, self.shape[0] - 1), np.clip(iy, 0, self.shape[1] - 1)
+    def keys(self, xy: np.ndarray) -> np.ndarray:
+        ix = np.floor(xy[:, 0] / self.cell).astype(np.int64)
+        iy = np.floor(xy[:, 1] / self.cell).astype(np.int64)
+        return ix * (1 << 32) + (iy + (1 << 31))
 
-    def raster(self, xy: np.ndarray) -> np.ndarray:
-        r = np.zeros(self.shape, dtype=bool)
-        ix, iy = self.index(xy)
-        r[ix, iy] = True
-        return r
+    @staticmethod
+    def interior(cells: np.ndarray) -> np.ndarray:
+        """Cells whose eight neighbours are all in ``cells`` (a one-cell erosion)."""
+        keep = np.ones(cells.size, dtype=bool)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                if dx or dy:
+                    keep &= np.isin(cells + dx * (1 << 32) + dy, cells, assume_unique=True)
+        return cells[keep]
 
 
 @dataclass
@@ -164,82 +167,154 @@ class _PairWork:
     b: int
     coverage: float
     candidates: np.ndarray
+    rng: np.random.Generator
     sample: np.ndarray | None = None
     before: np.ndarray | None = None
+    frozen: Observations | None = None  # last observations, kept when a strip is dropped
+    last: Observations | None = None  # observations of the latest matching
 
 
 class Calibrator:
-    """Batch calibration of one mission.
+    """Calibration of a mission, batch or strip by strip.
+
+    Strips are added with :meth:`add_strip` (each is prepared once: local trajectory,
+    footprint, pairs with the strips before it); :meth:`run` iterates matching and adjustment
+    from the current estimate. Adding all strips and running once is the batch calibration;
+    adding strips as they end and running after each is the live one, and both sample each
+    pair the same way (seeded by the strip ids), so they agree.
 
     Parameters
     ----------
-    mission : Mission
     settings : CalibrationSettings
+    control : ControlPoints, optional
     progress : callable, optional
         Called with (stage, fraction) as work proceeds.
     """
 
     def __init__(
         self,
-        mission: Mission,
         settings: CalibrationSettings,
         *,
+        control: ControlPoints | None = None,
         progress: Progress | None = None,
     ) -> None:
-        self.mission = mission
         self.settings = settings
+        self.control = control
         self._progress = progress or (lambda stage, frac: None)
-        self._rng = np.random.default_rng(settings.seed)
+        self.footprint = _Footprint(settings.overlap_cell_m)
+        self.strips: list[PreparedStrip] = []
+        self.pairs: list[_PairWork] = []
+        self.delta = np.zeros(N_PARAMETERS)
+        self.threshold = settings.max_normal_distance_m
+        self.dropped_non_finite = 0
+        self.normal_equations = NormalEquations()
+        self._restored = Observations.empty()
+        self._control_before: list[tuple[int, int, float]] | None = None
+
+    @classmethod
+    def from_mission(
+        cls, mission: Mission, settings: CalibrationSettings, *,
+        progress: Progress | None = None,
+    ) -> Calibrator:
+        """A calibrator holding every strip of ``mission``."""
         if not mission.strips:
             raise CalibrationError("mission has no strips")
-        self._prepare()
+        cal = cls(settings, control=mission.control, progress=progress)
+        cal.dropped_non_finite = mission.dropped_non_finite
+        for k, strip in enumerate(mission.strips):
+            cal.add_strip(strip, mission.trajectory)
+            cal._progress("local trajectories", (k + 1) / len(mission.strips))
+        logger.info("%d overlapping strip pairs", len(cal.pairs))
+        return cal
 
     # ------------------------------------------------------------------ preparation
-    def _prepare(self) -> None:
-        s = self.settings
-        self._progress("local trajectories", 0.0)
-        allxy = np.concatenate([st.xyz[:, :2] for st in self.mission.strips])
-        lo = allxy.min(axis=0)
-        hi = allxy.max(axis=0)
-        shape = tuple(int(v) + 1 for v in np.ceil((hi - lo) / s.overlap_cell_m))
-        self.grid = _Grid(float(lo[0]), float(lo[1]), s.overlap_cell_m, (shape[0], shape[1]))
-        self.strips: list[PreparedStrip] = []
-        for k, st in enumerate(self.mission.strips):
-            geom = laser_geometry(st.t, st.xyz, self.mission.trajectory,
-                                  window_s=s.trajectory_window_s,
-                                  source=f"strip {st.strip_id}")
-            raster = self.grid.raster(st.xyz[:, :2])
-            area = raster.sum() * s.overlap_cell_m**2
-            self.strips.append(PreparedStrip(st, geom, len(st) / max(area, 1.0), raster))
-            self._progress("local trajectories", (k + 1) / len(self.mission.strips))
-        self.pairs = self._find_pairs()
+    @property
+    def n_points(self) -> int:
+        """Points held (dropped strips excluded)."""
+        return sum(len(ps.strip) for ps in self.strips if not ps.dropped)
 
-    def _find_pairs(self) -> list[_PairWork]:
+    def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+        """Prepare a strip and find its pairs with the strips already held.
+
+        Returns the ``(strip_id, strip_id)`` pairs it forms.
+
+        Raises
+        ------
+        TrajectoryError
+            The trajectory does not cover the strip's points.
+        CalibrationError
+            A strip with this id is already held.
+        """
         s = self.settings
-        pairs: list[_PairWork] = []
-        n = len(self.strips)
-        for i in range(n):
-            for j in range(i + 1, n):
-                si, sj = self.strips[i], self.strips[j]
-                both = si.raster & sj.raster
-                n_cells = int(both.sum())
-                if n_cells < s.min_overlap_cells:
-                    continue
-                coverage = float(n_cells) / float(min(si.raster.sum(), sj.raster.sum()))
-                # Points come from the sparser strip, the TIN from the denser.
-                a, b = (i, j) if si.density <= sj.density else (j, i)
-                inner_b = ndimage.binary_erosion(self.strips[b].raster, iterations=1)
-                zone = self.strips[a].raster & inner_b
-                ix, iy = self.grid.index(self.strips[a].strip.xyz[:, :2])
-                cand = np.flatnonzero(zone[ix, iy])
-                if cand.size == 0:
-                    continue
-                if cand.size > s.max_candidates_per_pair:
-                    cand = np.sort(self._rng.choice(cand, s.max_candidates_per_pair,
-                                                    replace=False))
-                pairs.append(_PairWork(len(pairs), a, b, coverage, cand))
-        logger.info("%d overlapping strip pairs", len(pairs))
-        return pairs
+        if any(ps.strip_id == strip.strip_id for ps in self.strips):
+            raise CalibrationError(f"strip {strip.strip_id} added twice")
+        geom = laser_geometry(strip.t, strip.xyz, trajectory, window_s=s.trajectory_window_s,
+                              source=f"strip {strip.strip_id}")
+        keys = self.footprint.keys(strip.xyz[:, :2])
+        cells = np.unique(keys)
+        density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
+        self.strips.append(PreparedStrip(strip, geom, density, keys, cells))
+        new = len(self.strips) - 1
+        formed = []
+        for other in range(new):
+            pair = self._make_pair(other, new)
+            if pair is not None:
+                self.pairs.append(pair)
+                formed.append((self.strips[other].strip_id, strip.strip_id))
+        return formed
+
+    def _make_pair(self, i: int, j: int) -> _PairWork | None:
+        s = self.settings
+        si, sj = self.strips[i], self.strips[j]
+        if si.dropped or sj.dropped:
+            return None
+        n_cells = int(np.intersect1d(si.cells, sj.cells, assume_unique=True).size)
+        if n_cells < s.min_overlap_cells:
+            return None
+        coverage = float(n_cells) / float(min(si.cells.size, sj.cells.size))
+        # Points come from the sparser strip, the TIN from the denser.
+        a, b = (i, j) if si.density <= sj.density else (j, i)
+        zone = np.intersect1d(self.strips[a].cells,
+                              self.footprint.interior(self.strips[b].cells), assume_unique=True)
+        cand = np.flatnonzero(np.isin(self.strips[a].point_cells, zone))
+        if cand.size == 0:
+            return None
+        ids = sorted((si.strip_id, sj.strip_id))
+        rng = np.random.default_rng([s.seed, *ids])
+        if cand.size > s.max_candidates_per_pair:
+            cand = np.sort(rng.choice(cand, s.max_candidates_per_pair, replace=False))
+        return _PairWork(len(self.pairs), a, b, coverage, cand, rng)
+
+    def frozen_observations(self) -> Observations:
+        """Correspondences kept without their points (released strips, restored state)."""
+        return Observations.concatenate(
+            [self._restored] + [p.frozen for p in self.pairs if p.frozen is not None])
+
+    def restore_frozen(self, obs: Observations) -> None:
+        """Take frozen correspondences back from a checkpoint."""
+        self._restored = obs
+
+    def drop_strip(self, strip_id: int) -> int:
+        """Release a strip's points (memory budget); its pairs keep their last observations.
+
+        Returns the number of points released.
+        """
+        for ps in self.strips:
+            if ps.strip_id == strip_id and not ps.dropped:
+                k = self.strips.index(ps)
+                for pair in self.pairs:
+                    if k in (pair.a, pair.b) and pair.frozen is None:
+                        pair.frozen = pair.last if pair.last is not None else \
+                            Observations.empty()
+                n = len(ps.strip)
+                ps.dropped = True
+                ps.tin = None
+                empty = np.empty((0, 3))
+                ps.strip = Strip(ps.strip_id, empty, np.empty(0))
+                ps.geometry0 = ps.geometry = ps.geometry0.take(np.zeros(0, dtype=np.int64))
+                ps.point_cells = np.empty(0, dtype=np.int64)
+                return n
+        return 0
 
     def _tin(self, k: int) -> Tin:
         ps = self.strips[k]
@@ -301,10 +376,7 @@ class Calibrator:
 
     def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
         """Spatial cluster (cell of ``cluster_cell_m``) of observations at ``xyz``."""
-        size = self.settings.cluster_cell_m
-        ix = np.floor((xyz[:, 0] - self.grid.x0) / size).astype(np.int64)
-        iy = np.floor((xyz[:, 1] - self.grid.y0) / size).astype(np.int64)
-        return ix * 1_000_003 + iy
+        return _Footprint(self.settings.cluster_cell_m).keys(xyz[:, :2])
 
     @staticmethod
     def _observed_normal(normal: np.ndarray, sloped: np.ndarray) -> np.ndarray:
@@ -327,7 +399,7 @@ class Calibrator:
         aspect = np.degrees(np.arctan2(n[:, 0], n[:, 1])) % 360.0
         sector = np.floor(aspect / 45.0).astype(np.int64) % 8
         cls = np.where(slope < 5.0, 0, 1 + sector + 8 * (slope >= 25.0))
-        order = self._rng.permutation(ok.size)
+        order = pair.rng.permutation(ok.size)
         keep = np.zeros(ok.size, dtype=bool)
         for c in np.unique(cls):
             members = order[cls[order] == c]
@@ -341,9 +413,11 @@ class Calibrator:
     ) -> tuple[Observations, list[tuple[int, int, float]]]:
         parts = []
         found: list[tuple[int, int, float]] = []
+        cp_cells = self.footprint.keys(control.xyz[:, :2])
         for k, ps in enumerate(self.strips):
-            ix, iy = self.grid.index(control.xyz[:, :2])
-            inside = ps.raster[ix, iy]
+            if ps.dropped:
+                continue
+            inside = np.isin(cp_cells, ps.cells)
             if not inside.any():
                 continue
             cps = np.flatnonzero(inside)
@@ -400,41 +474,58 @@ class Calibrator:
         sol.delta = sol.delta + delta
         return sol
 
-    def run(self) -> CalibrationResult:
-        """Iterate matching and adjustment to convergence."""
+    def run(self, *, max_iterations: int | None = None) -> CalibrationResult:
+        """Iterate matching and adjustment from the current estimate to convergence.
+
+        Pairs met for the first time are matched once at zero correction: that chooses their
+        sample points and gives the "before" discrepancies.
+        """
         s = self.settings
-        control = self.mission.control
-        if not self.pairs and (control is None or len(control) == 0):
+        control = self.control
+        live = [p for p in self.pairs if p.frozen is None]
+        frozen = [p.frozen for p in self.pairs if p.frozen is not None]
+        if len(self._restored):
+            frozen.append(self._restored)
+        if not self.pairs and not frozen and (control is None or len(control) == 0):
             raise CalibrationError("no overlap between strips and no control points")
-        delta = np.zeros(N_PARAMETERS)
-        threshold = s.max_normal_distance_m
+        delta = self.delta.copy()
+        threshold = self.threshold
         history: list[np.ndarray] = []
         converged = False
         sol: Solution | None = None
         obs = Observations.empty()
-        control_before: list[tuple[int, int, float]] = []
-        n_total = len(self.pairs)
+        step = np.zeros(N_PARAMETERS)
         iteration = 0
-        for iteration in range(1, s.max_iterations + 1):
-            corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))}
-            parts = []
-            for p_i, pair in enumerate(self.pairs):
-                self._progress(f"iteration {iteration}: matching", p_i / max(n_total, 1))
-                if pair.sample is None:
-                    m = self._match_pair(pair, pair.candidates, delta, corrected, threshold)
-                    pair.sample = self._select_sample(pair, m)
-                    sel = np.isin(pair.candidates, pair.sample)
-                    m = m.take(sel)
-                    pair.before = m.distance[m.valid]
-                else:
-                    m = self._match_pair(pair, pair.sample, delta, corrected, threshold)
-                parts.append(self._pair_observations(pair, pair.sample, m))
+        fresh = [p for p in live if p.sample is None]
+        if fresh:
+            zero = np.zeros(N_PARAMETERS)
+            delivered = {k: self._corrected(k, zero) for k in self._used_strips(fresh)}
+            for p_i, pair in enumerate(fresh):
+                self._progress("choosing sample points", p_i / len(fresh))
+                m = self._match_pair(pair, pair.candidates, zero, delivered,
+                                     s.max_normal_distance_m)
+                pair.sample = self._select_sample(pair, m)
+                pair.before = m.take(np.isin(pair.candidates, pair.sample)).distance
+                pair.before = pair.before[np.isfinite(pair.before)]
+        if control is not None and len(control) and self._control_before is None:
+            zero = np.zeros(N_PARAMETERS)
+            delivered = {k: self._corrected(k, zero) for k in range(len(self.strips))}
+            self._control_before = self._control_observations(
+                control, zero, delivered, s.max_normal_distance_m)[1]
+        for iteration in range(1, (max_iterations or s.max_iterations) + 1):
+            corrected = {k: self._corrected(k, delta) for k in self._used_strips(live)}
+            parts = list(frozen)
+            for p_i, pair in enumerate(live):
+                self._progress(f"iteration {iteration}: matching", p_i / max(len(live), 1))
+                assert pair.sample is not None
+                m = self._match_pair(pair, pair.sample, delta, corrected, threshold)
+                pair.last = self._pair_observations(pair, pair.sample, m)
+                parts.append(pair.last)
             if control is not None and len(control):
-                cobs, found = self._control_observations(control, delta, corrected,
-                                                         s.max_normal_distance_m)
-                if iteration == 1:
-                    control_before = found
-                parts.append(cobs)
+                corrected.update({k: self._corrected(k, delta) for k in range(len(self.strips))
+                                  if k not in corrected and not self.strips[k].dropped})
+                parts.append(self._control_observations(control, delta, corrected,
+                                                        s.max_normal_distance_m)[0])
             obs = Observations.concatenate(parts)
             if len(obs) == 0:
                 raise CalibrationError(
@@ -459,8 +550,14 @@ class Calibrator:
                 converged = True
                 break
         assert sol is not None
+        self.delta = delta
+        self.threshold = threshold
+        self.normal_equations = NormalEquations.from_observations(obs)
         self._allow_for_shared_errors(sol, obs, step)
-        return self._finish(sol, obs, delta, iteration, converged, history, control_before)
+        return self._finish(sol, obs, delta, iteration, converged, history)
+
+    def _used_strips(self, pairs: Sequence[_PairWork]) -> set[int]:
+        return {k for p in pairs for k in (p.a, p.b)}
 
     @staticmethod
     def _allow_for_shared_errors(sol: Solution, obs: Observations, step: np.ndarray) -> None:
@@ -480,16 +577,21 @@ class Calibrator:
     def _finish(
         self, sol: Solution, obs: Observations, delta: np.ndarray, iterations: int,
         converged: bool, history: list[np.ndarray],
-        control_before: list[tuple[int, int, float]],
     ) -> CalibrationResult:
         """QA: re-match the samples with the final estimate at the first threshold."""
         s = self.settings
-        corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))}
+        corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))
+                     if not self.strips[k].dropped}
         stats = []
         for pair in self.pairs:
             assert pair.sample is not None and pair.before is not None
-            m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
-            after = m.distance[m.valid]
+            if pair.frozen is not None:
+                after = pair.frozen.residuals(delta - self.delta) if len(pair.frozen) else \
+                    np.empty(0)
+            else:
+                m = self._match_pair(pair, pair.sample, delta, corrected,
+                                     s.max_normal_distance_m)
+                after = m.distance[m.valid]
             ids = sorted((self.strips[pair.a].strip_id, self.strips[pair.b].strip_id))
             stats.append(PairStats(
                 strip_a=ids[0], strip_b=ids[1],
@@ -502,12 +604,12 @@ class Calibrator:
             ))
         stats.sort(key=lambda p: (p.strip_a, p.strip_b))
         residuals: list[ControlResidual] = []
-        control = self.mission.control
+        control = self.control
         if control is not None and len(control):
             _, found_after = self._control_observations(
                 control, delta, corrected, s.max_normal_distance_m)
             after_map = {(c, k): d for c, k, d in found_after}
-            for c, k, d in control_before:
+            for c, k, d in self._control_before or []:
                 residuals.append(ControlResidual(
                     control.ids[c], self.strips[k].strip_id, d,
                     after_map.get((c, k), float("nan"))))
@@ -517,7 +619,7 @@ class Calibrator:
             control=residuals, n_pair_correspondences=int(np.count_nonzero(
                 (obs.group >= 0) & (obs.weights > 0))),
             n_control_correspondences=n_ctrl, history=history,
-            dropped_non_finite=self.mission.dropped_non_finite,
+            dropped_non_finite=self.dropped_non_finite,
         )
 
 
@@ -532,7 +634,8 @@ def calibrate(
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Calibrate a mission: see :class:`Calibrator`."""
-    return Calibrator(mission, settings or CalibrationSettings(), progress=progress).run()
+    cal = Calibrator.from_mission(mission, settings or CalibrationSettings(), progress=progress)
+    return cal.run()
 
 
 __all__: Sequence[str] = (

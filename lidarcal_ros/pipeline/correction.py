@@ -88,7 +88,9 @@ ADDED_FIELDS: tuple[tuple[str, str], ...] = (
     ("correction_flags", "u1"),
 )
 #: Default batch of the offline correction, points.
-DEFAULT_BATCH_POINTS = 400_000
+DEFAULT_BATCH_POINTS = 200_000
+#: Points per LAS write (corrected clouds are gathered into runs of this size).
+_LAS_RUN_POINTS = 100_000
 #: Points closer than this below the trajectory are refused (m): no real return comes from
 #: within a metre of the sensor, and laser_geometry needs them below.
 _MIN_DEPTH_M = 1.0
@@ -917,26 +919,43 @@ def _correct_to_las(
     progress: Callable[[str, float], None] | None, report: CorrectionReport,
 ) -> None:
     from lidarcal_ros.io.las import LasChunkWriter
+    from lidarcal_ros.io.pointcloud import resolve_time_field
 
     seen = 0
     time_field: str | None = None
+    # Corrected clouds are written in runs of at least this many points (fewer, larger LAZ
+    # chunks); clouds of one layout only in a run.
+    run: list[np.ndarray] = []
+    run_points = 0
+
     with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
                         overwrite=overwrite) as writer:
+
+        def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
+            nonlocal run_points
+            for _tag, corrected in done:
+                if run and corrected.dtype != run[0].dtype:
+                    writer.write(np.concatenate(run))
+                    run.clear()
+                    run_points = 0
+                run.append(corrected)
+                run_points += len(corrected)
+            if run and (final or run_points >= _LAS_RUN_POINTS):
+                writer.write(np.concatenate(run) if len(run) > 1 else run[0])
+                run.clear()
+                run_points = 0
+
         for topic, msgtype, _ns, raw in bag.messages([points_topic]):
             _msg, points = _cloud_points(bag, msgtype, raw, topic, frame)
             if time_field is None and len(points):
-                from lidarcal_ros.io.pointcloud import resolve_time_field
-
                 time_field = resolve_time_field(points, corrector.settings.time_field,
                                                 source=topic)
                 writer.time_field = time_field
-            for _tag, corrected in corrector.push(points, None):
-                writer.write(corrected)
+            write(corrector.push(points, None))
             seen += 1
             if progress and seen % 50 == 0:
                 progress("correcting", seen / n_clouds)
-        for _tag, corrected in corrector.flush():
-            writer.write(corrected)
+        write(corrector.flush(), final=True)
     report.las_skipped_non_finite = writer.stats.skipped_non_finite
     if writer.stats.skipped_non_finite:
         report.warnings.append(f"{writer.stats.skipped_non_finite} points with non-finite "

@@ -1,0 +1,345 @@
+"""ROS 2 messages of the node suite as raw CDR and plain Python, without rclpy.
+
+The nodes move point clouds as serialised CDR bytes (``raw=True`` subscriptions, publishing
+``bytes``): a cloud is parsed into a zero-copy numpy view of its point bytes
+(:func:`parse_cloud`, rosbags' ``deserialize_cdr``) and a corrected cloud is serialised with
+one copy of its points (:func:`cloud_cdr`). Everything here is testable without ROS.
+
+The estimate message
+--------------------
+``std_msgs/Float64MultiArray`` on ``/lidar/calibration/estimate`` (transient-local, depth 1),
+a 10 x 8 row-major matrix (:data:`ESTIMATE_ROWS` x :data:`PARAMETER_NAMES`):
+
+* ``layout.dim[0]``: label ``"value,sigma,covariance[dX..dS]"``, size 10, stride 80;
+* ``layout.dim[1]``: label ``"dX,dY,dZ,domega,dphi,dkappa,dr,dS"``, size 8, stride 8;
+* row 0: the values (SI: m, rad, 1; the fixed value for parameters not estimated);
+* row 1: the standard deviations (NaN for parameters not estimated);
+* rows 2-9: the 8 x 8 covariance (SI^2), zero in the rows and columns of parameters not
+  estimated.
+
+:func:`estimate_matrix` builds the data from a :class:`CalibrationResult`,
+:func:`parse_estimate` reads it back. The calibration YAML of interface.md is published beside
+it as ``std_msgs/String`` on ``/lidar/calibration/yaml`` (transient-local).
+
+Diagnostics
+-----------
+:func:`qa_statuses` turns a result into the ``diagnostic_msgs/DiagnosticStatus`` contents
+(level, name, message, key-values) the calibrator publishes on ``/diagnostics``: one status per
+strip pair (``lidarcal: strips 5&6``, RMS after calibration against the USGS Lidar Base
+Specification QL2 thresholds of the configuration, 8 cm WARN / 16 cm ERROR), convergence and
+observability.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
+from lidarcal_ros.errors import CloudFormatError
+from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+
+#: Diagnostic levels (diagnostic_msgs/DiagnosticStatus).
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
+
+#: Rows of the estimate matrix.
+ESTIMATE_ROWS = ("value", "sigma", *(f"covariance_{n}" for n in PARAMETER_NAMES))
+ESTIMATE_ROW_LABEL = "value,sigma,covariance[" + ",".join(PARAMETER_NAMES) + "]"
+ESTIMATE_COLUMN_LABEL = ",".join(PARAMETER_NAMES)
+
+_NS = 1_000_000_000
+_ENCAPSULATION_LE = b"\x00\x01\x00\x00"
+
+_typestore: Any = None
+
+
+def typestore() -> Any:
+    """The rosbags typestore of the standard ROS 2 messages (created once)."""
+    global _typestore
+    if _typestore is None:
+        from rosbags.typesys import Stores, get_typestore
+
+        _typestore = get_typestore(getattr(Stores, "ROS2_JAZZY", Stores.ROS2_HUMBLE))
+    return _typestore
+
+
+def deserialize(raw: bytes | memoryview, msgtype: str) -> Any:
+    """A rosbags message object from CDR bytes; arrays are views on ``raw``."""
+    return typestore().deserialize_cdr(raw, msgtype)
+
+
+def serialize(msg: Any, msgtype: str) -> bytes:
+    """CDR bytes of a rosbags message object."""
+    return bytes(typestore().serialize_cdr(msg, msgtype))
+
+
+def stamp_ns(stamp: Any) -> int:
+    """A builtin_interfaces/Time as integer nanoseconds."""
+    return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+# ---------------------------------------------------------------------------- clouds
+@dataclass
+class CloudMessage:
+    """A PointCloud2 read from CDR bytes.
+
+    Attributes
+    ----------
+    stamp_ns : int
+        ``header.stamp``, nanoseconds.
+    frame_id : str
+    points : numpy.ndarray
+        Structured view of the points (no copy unless rows are padded).
+    msg : object
+        The rosbags message object (``data`` is a view on the CDR bytes).
+    """
+
+    stamp_ns: int
+    frame_id: str
+    points: np.ndarray
+    msg: Any
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+def parse_cloud(raw: bytes | memoryview, *, source: str = "cloud") -> CloudMessage:
+    """Parse a serialised ``sensor_msgs/PointCloud2``.
+
+    Raises
+    ------
+    CloudFormatError
+        Undecodable bytes, or a field layout / data size that does not add up (one line
+        naming ``source``).
+    """
+    try:
+        msg = deserialize(raw, POINTCLOUD2)
+    except Exception as err:  # truncated or garbage bytes
+        text = " ".join(str(err).split()) or type(err).__name__
+        raise CloudFormatError(f"{source}: undecodable PointCloud2 ({text})") from None
+    points = cloud_to_array(msg, source=source)
+    return CloudMessage(stamp_ns(msg.header.stamp), str(msg.header.frame_id), points, msg)
+
+
+def _cdr_string(out: bytearray, text: str) -> None:
+    data = text.encode("utf-8") + b"\x00"
+    _align(out, 4)
+    out += struct.pack("<I", len(data))
+    out += data
+
+
+def _align(out: bytearray, n: int) -> None:
+    # Alignment is relative to the start of the payload (after the 4-byte encapsulation).
+    pad = (-(len(out) - 4)) % n
+    if pad:
+        out += b"\x00" * pad
+
+
+def cloud_header_cdr(
+    stamp: int, frame_id: str, fields: Sequence[tuple[str, int, int, int]], point_step: int,
+    n: int,
+) -> bytes:
+    """CDR bytes of a one-row PointCloud2 up to and including the length of ``data``."""
+    out = bytearray(_ENCAPSULATION_LE)
+    sec, nsec = divmod(int(stamp), _NS)
+    out += struct.pack("<iI", sec, nsec)
+    _cdr_string(out, frame_id)
+    _align(out, 4)
+    out += struct.pack("<III", 1, n, len(fields))
+    for name, offset, datatype, count in fields:
+        _cdr_string(out, name)
+        _align(out, 4)
+        out += struct.pack("<IB", offset, datatype)
+        _align(out, 4)
+        out += struct.pack("<I", count)
+    out += b"\x00"  # is_bigendian
+    _align(out, 4)
+    out += struct.pack("<III", point_step, n * point_step, n * point_step)
+    return bytes(out)
+
+
+def cloud_cdr(
+    stamp: int, frame_id: str, points: np.ndarray, *, is_dense: bool | None = None
+) -> bytes:
+    """Serialise a structured point array as a one-row ``sensor_msgs/PointCloud2``.
+
+    Parameters
+    ----------
+    stamp : int
+        ``header.stamp``, nanoseconds.
+    frame_id : str
+    points : structured numpy array
+        Fields of the eight PointField types (see
+        :func:`~lidarcal_ros.io.pointcloud.array_to_cloud_parts`).
+    is_dense : bool, optional
+        Default: whether ``x, y, z`` (those present) are all finite.
+
+    Returns
+    -------
+    bytes
+        CDR (little-endian) bytes, identical to rosbags' and rclpy's serialisation; the point
+        bytes are copied once, straight into the result.
+    """
+    fields, point_step, data = array_to_cloud_parts(points)
+    n = data.size // point_step if point_step else 0
+    if is_dense is None:
+        names = points.dtype.names or ()
+        is_dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
+    head = cloud_header_cdr(stamp, frame_id, fields, point_step, n)
+    return b"".join((head, memoryview(data), b"\x01" if is_dense else b"\x00"))
+
+
+# ---------------------------------------------------------------------------- estimate
+def estimate_matrix(result: Any) -> np.ndarray:
+    """The 10 x 8 estimate matrix (module docstring) of a CalibrationResult."""
+    sol = result.solution
+    out = np.zeros((len(ESTIMATE_ROWS), N_PARAMETERS), dtype=np.float64)
+    out[0] = np.asarray(sol.delta, dtype=np.float64)
+    sigma = np.full(N_PARAMETERS, np.nan)
+    index = [PARAMETER_NAMES.index(n) for n in sol.estimated]
+    for k, i in enumerate(index):
+        sigma[i] = float(sol.sigma[i])
+        for kk, j in enumerate(index):
+            out[2 + i, j] = float(sol.covariance[k, kk])
+    out[1] = sigma
+    return out
+
+
+@dataclass
+class Estimate:
+    """The estimate message read back (SI units)."""
+
+    values: dict[str, float]
+    sigmas: dict[str, float | None]
+    covariance: np.ndarray  # (8, 8), zero for parameters not estimated
+
+    @property
+    def delta(self) -> np.ndarray:
+        return np.array([self.values[n] for n in PARAMETER_NAMES])
+
+    @property
+    def estimated(self) -> tuple[str, ...]:
+        return tuple(n for n in PARAMETER_NAMES if self.sigmas[n] is not None)
+
+
+def parse_estimate(data: Sequence[float] | np.ndarray, labels: Sequence[str] = ()) -> Estimate:
+    """Read the estimate matrix (``Float64MultiArray.data``, and optionally the dim labels).
+
+    Raises
+    ------
+    ValueError
+        Wrong size, or column labels that are not the eight parameters in order.
+    """
+    arr = np.asarray(data, dtype=np.float64)
+    if arr.size != len(ESTIMATE_ROWS) * N_PARAMETERS:
+        raise ValueError(f"estimate has {arr.size} values, expected "
+                         f"{len(ESTIMATE_ROWS) * N_PARAMETERS} (10 x 8)")
+    if len(labels) >= 2 and labels[1] != ESTIMATE_COLUMN_LABEL:
+        raise ValueError(f"estimate columns are '{labels[1]}', expected "
+                         f"'{ESTIMATE_COLUMN_LABEL}'")
+    m = arr.reshape(len(ESTIMATE_ROWS), N_PARAMETERS)
+    values = {n: float(m[0, i]) for i, n in enumerate(PARAMETER_NAMES)}
+    sigmas = {n: (float(m[1, i]) if math.isfinite(m[1, i]) else None)
+              for i, n in enumerate(PARAMETER_NAMES)}
+    return Estimate(values, sigmas, m[2:].copy())
+
+
+def calibration_yaml(result: Any) -> str:
+    """The calibration file of interface.md as YAML text."""
+    from lidarcal_ros.io.calibration_file import calibration_document
+
+    return yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)
+
+
+# ---------------------------------------------------------------------------- diagnostics
+@dataclass
+class StatusSpec:
+    """Contents of one ``diagnostic_msgs/DiagnosticStatus``."""
+
+    level: int
+    name: str
+    message: str
+    values: dict[str, str] = field(default_factory=dict)
+
+
+def _cm(value: float) -> str:
+    return "n/a" if not math.isfinite(value) else f"{value * 100:.1f} cm"
+
+
+def _num(value: Any) -> str:
+    if isinstance(value, float):
+        return "nan" if not math.isfinite(value) else f"{value:.6g}"
+    return str(value)
+
+
+def pair_level(rms_after: float, p95_after: float, *, warn_m: float, error_m: float) -> int:
+    """QA level of a strip pair: ERROR when the RMS after calibration exceeds ``error_m`` (or
+    is unknown), WARN when it exceeds ``warn_m`` or when the 95th percentile of the
+    discrepancies exceeds ``error_m`` ("no difference beyond 16 cm"), else OK."""
+    if not math.isfinite(rms_after) or rms_after > error_m:
+        return ERROR
+    if rms_after > warn_m or (math.isfinite(p95_after) and p95_after > error_m):
+        return WARN
+    return OK
+
+
+def qa_statuses(
+    result: Any, *, warn_m: float, error_m: float, solve_for: Iterable[str] = (),
+) -> list[StatusSpec]:
+    """The per-pair, convergence and observability statuses of a CalibrationResult."""
+    out: list[StatusSpec] = []
+    for p in result.pairs:
+        level = pair_level(p.rms_after, p.p95_after, warn_m=warn_m, error_m=error_m)
+        out.append(StatusSpec(
+            level, f"lidarcal: strips {p.strip_a}&{p.strip_b}",
+            f"RMS {_cm(p.rms_after)}: {LEVEL_NAMES[level]}",
+            {"coverage": _num(float(p.coverage)), "rms_before": _num(float(p.rms_before)),
+             "rms_after": _num(float(p.rms_after)), "p95_after": _num(float(p.p95_after)),
+             "correspondences": str(int(p.correspondences)),
+             "rms_warn_threshold": _num(float(warn_m)),
+             "max_difference_threshold": _num(float(error_m))}))
+    sol = result.solution
+    conv_level = OK if result.converged else WARN
+    out.append(StatusSpec(
+        conv_level, "lidarcal: convergence",
+        (f"converged in {result.iterations} iterations" if result.converged else
+         f"NOT converged after {result.iterations} iterations")
+        + f", sigma0 {_cm(float(sol.sigma0))}",
+        {"iterations": str(int(result.iterations)), "converged": str(bool(result.converged)),
+         "sigma0": _num(float(sol.sigma0)), "redundancy": str(int(sol.redundancy)),
+         "strip_pair_correspondences": str(int(result.n_pair_correspondences)),
+         "control_correspondences": str(int(result.n_control_correspondences))}))
+    wanted = set(solve_for) or set(PARAMETER_NAMES)
+    missing = {n: st.reason for n, st in sol.status.items()
+               if st.state == "not_estimable" and n in wanted}
+    values = {n: (st.state if st.state != "not_estimable" else f"not estimable: {st.reason}")
+              for n, st in sol.status.items()}
+    for a, b, r in sol.correlated_pairs(0.9):
+        values[f"correlation {a}/{b}"] = f"{r:+.3f}"
+    if missing:
+        text = "; ".join(f"{n} not estimable: {why}" for n, why in missing.items())
+        out.append(StatusSpec(WARN, "lidarcal: observability", text, values))
+    else:
+        out.append(StatusSpec(OK, "lidarcal: observability",
+                              f"all {len(sol.estimated)} parameters asked for are estimable",
+                              values))
+    return out
+
+
+def worst_level(statuses: Iterable[StatusSpec]) -> int:
+    """The highest level among ``statuses`` (OK for none)."""
+    return max((s.level for s in statuses if s.level != STALE), default=OK)
+
+
+def flatten_values(values: Mapping[str, Any]) -> dict[str, str]:
+    """Key-values as strings (numbers formatted compactly)."""
+    return {str(k): _num(v) for k, v in values.items()}

@@ -1,0 +1,375 @@
+"""Live calibration: a mission fed message by message (the calibrator node's core).
+
+Clouds arrive as chunks; a strip is complete once no point of it has arrived for
+``strip_gap_s`` seconds of point time (and the trajectory covers its end). Each completed strip
+is prepared once (local trajectory, footprint), paired with the strips before it, and the
+adjustment is re-run from the current estimate: the new correspondences join the normal
+equations without re-preparing anything older. :meth:`StreamingCalibration.solve` runs the
+full adjustment exactly as ``lidarcal calibrate`` does on the same data, so a replayed bag gives
+the offline estimate.
+
+Memory: points are held under a budget; past it the oldest complete strip is released first,
+its strip pairs keeping their last correspondences (frozen), and the count is reported.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lidarcal_ros.core.adjustment import NormalEquations, Observations
+from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
+from lidarcal_ros.errors import CalibrationError, InputError
+from lidarcal_ros.io.pointcloud import CloudColumns
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class _OpenStrip:
+    """Chunks of a strip still being flown."""
+
+    xyz: list[np.ndarray] = field(default_factory=list)
+    t: list[np.ndarray] = field(default_factory=list)
+    intensity: list[np.ndarray] = field(default_factory=list)
+    has_intensity: bool = True
+    last_t: float = -np.inf
+    n: int = 0
+
+    def add(self, xyz: np.ndarray, t: np.ndarray, intensity: np.ndarray | None) -> None:
+        self.xyz.append(np.ascontiguousarray(xyz, dtype=np.float64))
+        self.t.append(np.ascontiguousarray(t, dtype=np.float64))
+        if intensity is None:
+            self.has_intensity = False
+        elif self.has_intensity:
+            self.intensity.append(np.asarray(intensity, dtype=np.float32))
+        self.last_t = max(self.last_t, float(t.max()))
+        self.n += int(t.shape[0])
+
+    def to_strip(self, strip_id: int) -> Strip:
+        t = np.concatenate(self.t)
+        order = np.argsort(t, kind="stable")
+        inten = np.concatenate(self.intensity)[order] if self.has_intensity else None
+        return Strip(strip_id, np.concatenate(self.xyz)[order], t[order], inten)
+
+
+class StreamingCalibration:
+    """Accumulate clouds, trajectory and control; calibrate strip by strip.
+
+    Parameters
+    ----------
+    config : FlightConfig
+    control : ControlPoints, optional
+    max_points : int
+        Memory budget in points held (open and complete strips).
+    strip_gap_s : float
+        Seconds of point time without a point of a strip after which it is complete.
+    """
+
+    def __init__(
+        self,
+        config: FlightConfig,
+        *,
+        control: ControlPoints | None = None,
+        max_points: int = 50_000_000,
+        strip_gap_s: float = 2.0,
+    ) -> None:
+        if max_points <= 0:
+            raise CalibrationError(f"max_points must be positive, got {max_points}")
+        self.config = config
+        self.max_points = int(max_points)
+        self.strip_gap_s = float(strip_gap_s)
+        self.frame_id: str | None = None
+        self.dropped_points = 0
+        self.dropped_strips: list[int] = []
+        self.dropped_non_finite = 0
+        self.latest: CalibrationResult | None = None
+        self.waiting_for = "no strip complete yet"
+        self.normal_equations = NormalEquations()
+        self._traj_t: list[np.ndarray] = []
+        self._traj_xyz: list[np.ndarray] = []
+        self._trajectory: Trajectory | None = None
+        self._open: dict[int, _OpenStrip] = {}
+        self._closed: list[Strip] = []
+        self._control = control
+        self._now = -np.inf
+        self._calibrator = self._new_calibrator()
+
+    # ------------------------------------------------------------------ inputs
+    def _new_calibrator(self) -> Calibrator:
+        return Calibrator(self.config.calibration_settings(), control=self._control)
+
+    def _check_frame(self, frame_id: str, what: str) -> None:
+        if self.frame_id is None:
+            self.frame_id = frame_id
+        elif frame_id != self.frame_id:
+            raise InputError(f"{what} in frame '{frame_id}' but the mission is in "
+                             f"'{self.frame_id}'")
+
+    def add_trajectory(self, t: np.ndarray, xyz: np.ndarray, frame_id: str) -> None:
+        """Add trajectory samples (seconds; IMU origin, map frame, metres)."""
+        self._check_frame(frame_id, "trajectory")
+        self._traj_t.append(np.atleast_1d(np.asarray(t, dtype=np.float64)))
+        self._traj_xyz.append(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+        self._trajectory = None
+
+    def add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
+        """Add one PointCloud2 chunk (already decoded to columns).
+
+        Raises
+        ------
+        InputError
+            Frame mismatch or no strip id.
+        """
+        self._check_frame(frame_id, "cloud")
+        if columns.strip_id is None:
+            raise InputError("cloud has no strip_id / point_source_id field")
+        ok = np.isfinite(columns.xyz).all(axis=1) & np.isfinite(columns.t)
+        self.dropped_non_finite += int((~ok).sum())
+        if not ok.any():
+            return
+        ids = columns.strip_id[ok]
+        xyz, t = columns.xyz[ok], columns.t[ok]
+        inten = columns.intensity[ok] if columns.intensity is not None else None
+        closed_ids = {s.strip_id for s in self._closed}
+        for sid in np.unique(ids):
+            sel = ids == sid
+            key = int(sid)
+            if key in closed_ids:
+                logger.warning("points of strip %d arrived after it was closed: ignored", key)
+                continue
+            self._open.setdefault(key, _OpenStrip()).add(
+                xyz[sel], t[sel], inten[sel] if inten is not None else None)
+        self._now = max(self._now, float(t.max()))
+        self._enforce_budget()
+
+    def set_control(self, control: ControlPoints) -> None:
+        """Control points for the next solves."""
+        self._control = control
+        self._calibrator.control = control
+        self._calibrator._control_before = None
+
+    def update_config(self, config: FlightConfig) -> None:
+        """New configuration: the strips are re-prepared with it at the next update."""
+        self.config = config
+        self._rebuild()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def trajectory(self) -> Trajectory:
+        if self._trajectory is None:
+            if not self._traj_t:
+                raise InputError("no trajectory received yet")
+            self._trajectory = Trajectory.from_samples(np.concatenate(self._traj_t),
+                                                       np.concatenate(self._traj_xyz))
+        return self._trajectory
+
+    @property
+    def n_points(self) -> int:
+        return self._calibrator.n_points + sum(o.n for o in self._open.values())
+
+    @property
+    def strip_ids(self) -> list[int]:
+        return [s.strip_id for s in self._closed] + sorted(self._open)
+
+    @property
+    def open_strip_ids(self) -> list[int]:
+        return sorted(self._open)
+
+    def _enforce_budget(self) -> None:
+        while self.n_points > self.max_points:
+            held = [ps for ps in self._calibrator.strips if not ps.dropped]
+            if not held:
+                logger.warning("memory budget of %d points exceeded by open strips alone",
+                               self.max_points)
+                return
+            oldest = held[0].strip_id
+            n = self._calibrator.drop_strip(oldest)
+            self.dropped_points += n
+            self.dropped_strips.append(oldest)
+            self._closed = [s for s in self._closed if s.strip_id != oldest]
+            logger.warning("memory budget: released strip %d (%d points); its pairs keep their "
+                           "last correspondences", oldest, n)
+
+    def _close(self, strip_id: int) -> list[tuple[int, int]]:
+        strip = self._open.pop(strip_id).to_strip(strip_id)
+        self._closed.append(strip)
+        return self._calibrator.add_strip(strip, self.trajectory)
+
+    def _covered(self, t_end: float) -> bool:
+        traj = self.trajectory
+        return bool(len(traj) and traj.t[-1] >= t_end + self.config["matching.trajectory_window_s"])
+
+    # ------------------------------------------------------------------ solving
+    def update(self, now_s: float | None = None) -> CalibrationResult | None:
+        """Close the strips idle for ``strip_gap_s`` (point time, or ``now_s``), pair them
+        with the earlier strips and re-solve from the current estimate.
+
+        Returns the new result, or None if no strip was closed.
+        """
+        now = self._now if now_s is None else max(self._now, float(now_s))
+        ready = [sid for sid, o in self._open.items()
+                 if now - o.last_t >= self.strip_gap_s and self._covered(o.last_t)]
+        if not ready:
+            return None
+        for sid in sorted(ready, key=lambda k: self._open[k].last_t):
+            formed = self._close(sid)
+            logger.info("strip %d complete: overlaps %s", sid,
+                        ", ".join(str(a) for a, _ in formed) or "no earlier strip")
+        try:
+            return self._solve(max_iterations=3)
+        except CalibrationError as exc:
+            # Too little data so far (one strip, no overlap yet): keep accumulating.
+            self.waiting_for = str(exc)
+            logger.info("not solved yet: %s", exc)
+            return None
+
+    def solve(self) -> CalibrationResult:
+        """Close every open strip the trajectory covers and run the full adjustment, as
+        ``lidarcal calibrate`` does on the same data."""
+        for sid in sorted(self._open, key=lambda k: self._open[k].last_t):
+            if self._covered(self._open[sid].last_t):
+                self._close(sid)
+        self._calibrator.delta = np.zeros_like(self._calibrator.delta)
+        self._calibrator.threshold = self._calibrator.settings.max_normal_distance_m
+        return self._solve(max_iterations=None)
+
+    def _solve(self, *, max_iterations: int | None) -> CalibrationResult:
+        self._calibrator.dropped_non_finite = self.dropped_non_finite
+        result = self._calibrator.run(max_iterations=max_iterations)
+        self.latest = result
+        self.waiting_for = ""
+        self.normal_equations = self._calibrator.normal_equations
+        return result
+
+    def reset(self) -> None:
+        """Forget everything accumulated (data, estimate, correspondences); keep the
+        configuration and control points."""
+        self.frame_id = None
+        self.dropped_points = 0
+        self.dropped_strips = []
+        self.dropped_non_finite = 0
+        self.latest = None
+        self.normal_equations = NormalEquations()
+        self._traj_t, self._traj_xyz, self._trajectory = [], [], None
+        self._open, self._closed = {}, []
+        self._now = -np.inf
+        self._calibrator = self._new_calibrator()
+
+    def _rebuild(self) -> None:
+        cal = self._new_calibrator()
+        for strip in self._closed:
+            cal.add_strip(strip, self.trajectory)
+        cal.delta = self._calibrator.delta
+        self._calibrator = cal
+
+    # ------------------------------------------------------------------ checkpoints
+    def save_checkpoint(self, path: str | Path) -> Path:
+        """Write everything needed to resume (atomic ``.npz``)."""
+        path = Path(path)
+        arrays: dict[str, np.ndarray] = {
+            "version": np.array(CHECKPOINT_VERSION),
+            "traj_t": np.concatenate(self._traj_t) if self._traj_t else np.empty(0),
+            "traj_xyz": np.concatenate(self._traj_xyz) if self._traj_xyz else np.empty((0, 3)),
+            "delta": self._calibrator.delta,
+            "threshold": np.array(self._calibrator.threshold),
+            "counters": np.array([self.dropped_points, self.dropped_non_finite]),
+            "dropped_strips": np.array(self.dropped_strips, dtype=np.int64),
+            "neq_n": self.normal_equations.n, "neq_u": self.normal_equations.u,
+            "neq_yy": np.array(self.normal_equations.yy),
+            "neq_count": np.array(self.normal_equations.count),
+            "frame_id": np.array(self.frame_id or ""),
+        }
+        closed_ids = []
+        for strip in self._closed:
+            closed_ids.append(strip.strip_id)
+            arrays[f"closed_{strip.strip_id}_xyz"] = strip.xyz
+            arrays[f"closed_{strip.strip_id}_t"] = strip.t
+            if strip.intensity is not None:
+                arrays[f"closed_{strip.strip_id}_i"] = strip.intensity
+        arrays["closed_ids"] = np.array(closed_ids, dtype=np.int64)
+        open_ids = []
+        for sid, o in self._open.items():
+            open_ids.append(sid)
+            s = o.to_strip(sid)
+            arrays[f"open_{sid}_xyz"] = s.xyz
+            arrays[f"open_{sid}_t"] = s.t
+            if s.intensity is not None:
+                arrays[f"open_{sid}_i"] = s.intensity
+        arrays["open_ids"] = np.array(open_ids, dtype=np.int64)
+        frozen = self._calibrator.frozen_observations()
+        for name in ("rows", "y", "weights", "group", "cluster"):
+            arrays[f"frozen_{name}"] = getattr(frozen, name)
+        if self._control is not None:
+            arrays["control_xyz"] = self._control.xyz
+            arrays["control_ids"] = np.array(self._control.ids)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        with tmp.open("wb") as fh:
+            np.savez(fh, allow_pickle=False, **arrays)
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load_checkpoint(
+        cls, path: str | Path, config: FlightConfig, *, max_points: int = 50_000_000,
+        strip_gap_s: float = 2.0,
+    ) -> StreamingCalibration:
+        """Resume from :meth:`save_checkpoint`.
+
+        Raises
+        ------
+        InputError
+            Unreadable or incompatible checkpoint.
+        """
+        path = Path(path)
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: cannot read checkpoint ({exc})") from None
+        with data:
+            if int(data["version"]) != CHECKPOINT_VERSION:
+                raise InputError(f"{path}: checkpoint version {int(data['version'])} unknown")
+            control = None
+            if "control_xyz" in data:
+                control = ControlPoints([str(i) for i in data["control_ids"]],
+                                        data["control_xyz"])
+            self = cls(config, control=control, max_points=max_points, strip_gap_s=strip_gap_s)
+            frame = str(data["frame_id"])
+            self.frame_id = frame or None
+            if data["traj_t"].size:
+                self._traj_t = [data["traj_t"]]
+                self._traj_xyz = [data["traj_xyz"]]
+            self.dropped_points, self.dropped_non_finite = (int(v) for v in data["counters"])
+            self.dropped_strips = [int(v) for v in data["dropped_strips"]]
+            for sid in data["closed_ids"]:
+                key = f"closed_{int(sid)}"
+                inten = data[f"{key}_i"] if f"{key}_i" in data else None
+                strip = Strip(int(sid), data[f"{key}_xyz"], data[f"{key}_t"], inten)
+                self._closed.append(strip)
+                self._calibrator.add_strip(strip, self.trajectory)
+            for sid in data["open_ids"]:
+                key = f"open_{int(sid)}"
+                o = _OpenStrip()
+                inten = data[f"{key}_i"] if f"{key}_i" in data else None
+                o.add(data[f"{key}_xyz"], data[f"{key}_t"], inten)
+                self._open[int(sid)] = o
+            frozen = Observations(data["frozen_rows"], data["frozen_y"], data["frozen_weights"],
+                                  data["frozen_group"], data["frozen_cluster"])
+            self._calibrator.restore_frozen(frozen)
+            self._calibrator.delta = np.array(data["delta"])
+            self._calibrator.threshold = float(data["threshold"])
+            self.normal_equations = NormalEquations(
+                np.array(data["neq_n"]), np.array(data["neq_u"]), float(data["neq_yy"]),
+                int(data["neq_count"]))
+            if self._closed:
+                self._now = max(float(s.t[-1]) for s in self._closed)
+            for o in self._open.values():
+                self._now = max(self._now, o.last_t)
+        return self
