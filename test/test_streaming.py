@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ def _chunks(sim: SimulatedMission, seconds: float = 0.5):
     events = []
     for strip in sim.mission.strips:
         edges = np.arange(strip.t[0], strip.t[-1] + seconds, seconds)
-        for a, b in zip(edges[:-1], edges[1:]):
+        for a, b in itertools.pairwise(edges):
             sel = (strip.t >= a) & (strip.t < b)
             if sel.any():
                 cols = CloudColumns(strip.xyz[sel], strip.t[sel], strip.intensity[sel],
@@ -40,7 +41,7 @@ def _chunks(sim: SimulatedMission, seconds: float = 0.5):
 
 def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> int:
     updates = 0
-    for k, (t, kind, payload) in enumerate(events[:stop]):
+    for t, kind, payload in events[:stop]:
         if kind == "pose":
             stream.add_trajectory(np.array([t]), payload[None, :], "map")
         else:
