@@ -110,6 +110,23 @@ def _lines(*specs: tuple[int, float, bool, float], half: float = 100.0) -> list[
     return out
 
 
+def test_remark2_dr_needs_control_or_two_heights() -> None:
+    """Parallel lines at one height do not see dr; lines at two heights do (normal matrix)."""
+    one = _small(biases=dict(BIASES, dS=0.0), n_control=0,
+                 lines=_lines((1, 0.0, True, HIGH), (2, 0.0, False, HIGH)))
+    res = calibrate(one.mission, CalibrationSettings(solve_for=("dX", "dphi", "dr"),
+                                                     max_iterations=3))
+    assert _states(res)["dr"] == "not_estimable"
+    two = _small(biases=dict(BIASES, dS=0.0), n_control=0, line_length_m=300.0,
+                 lines=_lines((1, 0.0, True, HIGH), (2, 0.0, False, HIGH),
+                              (3, 0.0, True, LOW), (4, 0.0, False, LOW), half=150.0))
+    res = calibrate(two.mission, CalibrationSettings(
+        solve_for=("dX", "dY", "domega", "dphi", "dr"), max_iterations=5))
+    i = PARAMETER_NAMES.index("dr")
+    assert _states(res)["dr"] == "estimated"
+    assert abs(res.solution.delta[i] - BIASES["dr"]) < max(3 * res.solution.sigma[i], 0.01)
+
+
 def test_remarks_3_4_opposite_lines_one_height() -> None:
     """One opposite pair: the dkappa and dS effects cancel (3); dX and dphi double (4)."""
     # dY and domega double too, but at one height they cannot be told apart (remark 5).

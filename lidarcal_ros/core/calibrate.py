@@ -593,14 +593,15 @@ class Calibrator:
                                      s.max_normal_distance_m)
                 after = m.distance[m.valid]
             ids = sorted((self.strips[pair.a].strip_id, self.strips[pair.b].strip_id))
+            rms_after, p95_after = _robust_qa(after, s.min_normal_distance_m)
             stats.append(PairStats(
                 strip_a=ids[0], strip_b=ids[1],
                 coverage=float(pair.coverage),
                 correspondences=int(np.count_nonzero(
                     (obs.group == pair.index) & (obs.weights > 0))),
-                rms_before=_rms(pair.before), rms_after=_rms(after),
+                rms_before=_robust_qa(pair.before, s.min_normal_distance_m)[0],
+                rms_after=rms_after, p95_after=p95_after,
                 n_before=int(pair.before.size), n_after=int(after.size),
-                p95_after=float(np.percentile(np.abs(after), 95)) if after.size else np.nan,
             ))
         stats.sort(key=lambda p: (p.strip_a, p.strip_b))
         residuals: list[ControlResidual] = []
@@ -625,6 +626,22 @@ class Calibrator:
 
 def _rms(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+
+def _robust_qa(distances: np.ndarray, floor_m: float) -> tuple[float, float]:
+    """RMS and 95th percentile of |discrepancy| without gross mismatches (metres).
+
+    Correspondences further than ``max(floor_m, 5 x 1.4826 x median |d|)`` from their patch are
+    left out: points on walls or in trees matched to a neighbouring roof or ground patch. The
+    scale is taken about zero, so a systematic offset between strips widens the cut and shows
+    in full rather than being trimmed away.
+    """
+    d = np.abs(distances[np.isfinite(distances)])
+    if not d.size:
+        return float("nan"), float("nan")
+    cut = max(floor_m, 5.0 * 1.4826 * float(np.median(d)))
+    kept = d[d <= cut]
+    return _rms(kept), float(np.percentile(kept, 95))
 
 
 def calibrate(
