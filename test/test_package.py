@@ -39,6 +39,7 @@ THIRD_PARTY: dict[str, tuple[str, str | None]] = {
     "scipy": ("python3-scipy", "scipy"),
     "yaml": ("python3-yaml", "PyYAML"),
     "tqdm": ("python3-tqdm", "tqdm"),
+    "triangle": ("python3-triangle-pip", "triangle"),
     "pyproj": ("python3-pyproj", "pyproj"),
     "rosbags": ("python3-rosbags-pip", "rosbags"),
     "mcap": ("python3-mcap-pip", "mcap"),
@@ -55,7 +56,7 @@ THIRD_PARTY: dict[str, tuple[str, str | None]] = {
 NEWER_STDLIB = frozenset({"compression"})  # 3.14
 ROS_MODULES = frozenset({
     "rclpy", "ament_index_python", "builtin_interfaces", "rcl_interfaces", "std_msgs",
-    "sensor_msgs", "geometry_msgs", "nav_msgs", "std_srvs", "diagnostic_msgs",
+    "sensor_msgs", "geometry_msgs", "nav_msgs", "std_srvs", "diagnostic_msgs", "rosgraph_msgs",
 })
 
 
