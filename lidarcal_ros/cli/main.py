@@ -180,7 +180,16 @@ def _add_correct(sub: Any) -> None:
     p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
                        description="Move every point by the estimated biases (method.md eq. "
                        "[13]) and turn its intensity into reflectance (radar equation); write "
-                       "a bag (corrected clouds beside the input topics) or LAS/LAZ 1.4.")
+                       "a bag (corrected clouds beside the input topics) or LAS/LAZ 1.4.",
+                       epilog="Corrected clouds carry every input field, x, y, z corrected, "
+                       "and FLOAT32 reflectance (intensity normalised to the reference range, "
+                       "normal incidence, clear air), range (m), incidence (rad), scan_angle "
+                       "(rad), plus UINT8 correction_flags: 1 not corrected (trajectory gap; "
+                       "x, y, z as delivered, the rest NaN), 2 grazing incidence (cosine "
+                       "clamped), 4 no surface normal (incidence, reflectance NaN), 8 no "
+                       "intensity (reflectance NaN), 16 rough surface (edge, vegetation: "
+                       "incidence uncertain). LAS: extra bytes reflectance, range, incidence, "
+                       "correction_flags; flag 1 also sets 'withheld'.")
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
     p.add_argument("--calibration", required=True, type=Path,
                    help="calibration YAML (lidarcal calibrate)")
@@ -194,7 +203,8 @@ def _add_correct(sub: Any) -> None:
                    "config)")
     p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
     p.add_argument("--workers", type=int, default=2,
-                   help="threads correcting batches in parallel (default 2)")
+                   help="threads correcting batches in parallel, with reading and writing in "
+                   "threads of their own (default 2; 1: all in one thread)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_correct)
 
@@ -204,8 +214,9 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.las import parse_crs
-    from lidarcal_ros.pipeline.correction import correct_bag, output_kind
+    from lidarcal_ros.pipeline.correction import correct_bag, output_kind, tune_allocator
 
+    tune_allocator()
     config = load_flight_config(args.config)
     overrides = {}
     for opt, name in (("points", "topics__points"), ("trajectory", "topics__trajectory"),
@@ -217,8 +228,13 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     crs = parse_crs(args.crs) if args.crs else None
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
-    if output_kind(args.output) == "las" and args.output.is_dir():
-        raise ConfigError(f"{args.output}: is a directory; a LAS output is a file")
+    out = args.output
+    if output_kind(out) == "las" and out.is_dir():
+        raise ConfigError(f"{out}: is a directory; a LAS output is a file")
+    if (out.exists() or out.is_symlink()) and not args.overwrite:
+        raise ConfigError(f"{out}: exists (use --overwrite to replace it)")
+    if not out.parent.is_dir():
+        raise ConfigError(f"{out}: parent directory {out.parent} does not exist")
     progress, close = _progress_bar(True)
     try:
         report = correct_bag(args.bag, calibration, args.output, config, crs=crs,
@@ -228,6 +244,103 @@ def _cmd_correct(args: argparse.Namespace) -> int:
         close()
     for line in report.lines():
         print(line)
+    return 0
+
+
+# ---------------------------------------------------------------------------- replay / run / record
+def _add_replay(sub: Any) -> None:
+    from lidarcal_ros.cli.ros_commands import add_replay_arguments
+
+    p = sub.add_parser("replay", help="publish a bag to live topics with its original timing",
+                       description="Publish a bag's messages (raw CDR) on their topics with "
+                       "the original timing scaled by --rate; --clock publishes /clock for "
+                       "nodes with use_sim_time.")
+    add_replay_arguments(p)
+    p.set_defaults(func=_cmd_replay)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from lidarcal_ros.cli.ros_commands import cmd_replay
+
+    return cmd_replay(args)
+
+
+def _add_run(sub: Any) -> None:
+    from lidarcal_ros.cli.ros_commands import add_run_arguments
+
+    p = sub.add_parser("run", help="start the node suite (calibrator, corrector, flight config)",
+                       description="Start lidarcal_flight_config, lidarcal_calibrator and "
+                       "lidarcal_corrector in this process; Ctrl-C or SIGTERM stops them "
+                       "cleanly.")
+    add_run_arguments(p)
+    p.set_defaults(func=_cmd_run)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from lidarcal_ros.cli.ros_commands import cmd_run
+
+    return cmd_run(args)
+
+
+def _add_record(sub: Any) -> None:
+    from lidarcal_ros.cli.ros_commands import add_record_arguments
+
+    p = sub.add_parser("record", help="record live topics (default: the outputs) to MCAP",
+                       description="Record topics (raw CDR, with their types and durability) "
+                       "into a rosbag2 MCAP bag; Ctrl-C or SIGTERM finishes the bag.")
+    add_record_arguments(p)
+    p.set_defaults(func=_cmd_record)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from lidarcal_ros.cli.ros_commands import cmd_record
+
+    return cmd_record(args)
+
+
+# ---------------------------------------------------------------------------- plan
+def _add_plan(sub: Any) -> None:
+    p = sub.add_parser("plan", help="which parameters a flight plan can recover",
+                       description="Simulate a flight plan's lines over the chosen terrain, form "
+                       "the normal matrix the calibration would see and report, per parameter, "
+                       "whether it can be estimated, its predicted sigma and its largest "
+                       "correlation, with advice in words.")
+    p.add_argument("plan", type=Path, help="flight plan YAML (interface.md)")
+    p.add_argument("--json", action="store_true", help="print JSON (interface.md format)")
+    p.add_argument("--seed", type=int, default=0, help="terrain seed (default 0)")
+    p.set_defaults(func=_cmd_plan)
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    import json
+
+    import yaml
+
+    from lidarcal_ros.core.params import display_value
+    from lidarcal_ros.core.planning import FlightPlan, predict
+    from lidarcal_ros.errors import ConfigError
+
+    try:
+        doc = yaml.safe_load(args.plan.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{args.plan}: cannot read ({exc.strerror})") from None
+    except yaml.YAMLError:
+        raise ConfigError(f"{args.plan}: not valid YAML") from None
+    report = predict(FlightPlan.from_mapping(doc, source=str(args.plan)), seed=args.seed)
+    if args.json:
+        print(json.dumps(report.to_json_dict(), indent=1))
+        return 0
+    print(f"{args.plan}: {report.strip_pairs} overlapping strip pairs, "
+          f"{report.correspondences} correspondences")
+    for name, pred in report.parameters.items():
+        if pred.estimable and pred.sigma is not None:
+            value, unit = display_value(name, pred.sigma)
+            print(f"  {name:<7} estimable   sigma {value:9.3g} {unit:<6} largest correlation "
+                  f"{pred.max_correlation:.2f} with {pred.correlated_with}")
+        else:
+            print(f"  {name:<7} NOT estimable: {pred.reason}")
+    for line in report.advice:
+        print(f"advice: {line}")
     return 0
 
 
@@ -245,6 +358,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_calibrate(sub)
     _add_correct(sub)
+    _add_replay(sub)
+    _add_run(sub)
+    _add_record(sub)
+    _add_plan(sub)
     return parser
 
 

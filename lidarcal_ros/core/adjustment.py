@@ -363,7 +363,10 @@ def _pairs(idx: np.ndarray, corr: np.ndarray, threshold: float) -> list[tuple[st
 def _no_effect_hint(name: str) -> str:
     if name == "dZ":
         return "strips alone cannot see dZ: it cancels between strips; add vertical control"
-    if name in ("dX", "dY", "domega", "dkappa"):
+    if name == "dkappa":
+        return ("dkappa cancels on lines flown along one track and on flat ground: it needs "
+                "same-direction lines with an offset, or crossing lines, over sloped surfaces")
+    if name in ("dX", "dY", "domega"):
         return "horizontal effects need sloped surfaces in the overlaps"
     return "no correspondence is sensitive to it"
 

@@ -556,6 +556,32 @@ class Calibrator:
         self._allow_for_shared_errors(sol, obs, step)
         return self._finish(sol, obs, delta, iteration, converged, history)
 
+    def observations_at(self, delta: np.ndarray) -> Observations:
+        """The correspondences of every pair (and control) at the estimate ``delta``, with
+        no adjustment: what flight planning analyses."""
+        s = self.settings
+        zero = np.zeros(N_PARAMETERS)
+        corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))
+                     if not self.strips[k].dropped}
+        delivered = corrected if not np.any(delta) else \
+            {k: self._corrected(k, zero) for k in corrected}
+        parts = []
+        for pair in self.pairs:
+            if pair.frozen is not None:
+                continue
+            if pair.sample is None:
+                m = self._match_pair(pair, pair.candidates, zero, delivered,
+                                     s.max_normal_distance_m)
+                pair.sample = self._select_sample(pair, m)
+            if np.any(delta):
+                corrected = {k: self._corrected(k, delta) for k in corrected}
+            m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
+            parts.append(self._pair_observations(pair, pair.sample, m))
+        if self.control is not None and len(self.control):
+            parts.append(self._control_observations(self.control, delta, corrected,
+                                                    s.max_normal_distance_m)[0])
+        return Observations.concatenate(parts)
+
     def _used_strips(self, pairs: Sequence[_PairWork]) -> set[int]:
         return {k for p in pairs for k in (p.a, p.b)}
 

@@ -353,6 +353,7 @@ def simulate_mission(
     intensity_noise: float = 0.02,
     terrain_kind: str | None = None,
     noise_seed: int | None = None,
+    control_xy: Sequence[Sequence[float]] | None = None,
 ) -> SimulatedMission:
     """Simulate a linear-scanner mission with known biases (module docstring for the model).
 
@@ -379,6 +380,8 @@ def simulate_mission(
     terrain_kind : ``"built-up"`` or ``"flat"``; default from the scenario.
     noise_seed : seed of the range, intensity and trajectory noise alone (default: ``seed``),
         for Monte Carlo runs over one terrain.
+    control_xy : explicit control point locations (local X, Y), instead of ``n_control``
+        placed automatically; kept clear of buildings and trees, Z from the terrain.
 
     Returns
     -------
@@ -409,7 +412,10 @@ def simulate_mission(
     alpha = atmospheric_alpha(visibility_km)
 
     extent = _terrain_extent(plan, fov_deg)
-    ctrl_xy = _control_locations(plan, fov_deg, n_control, extent)
+    if control_xy is not None:
+        ctrl_xy = np.asarray(control_xy, dtype=np.float64).reshape(-1, 2)
+    else:
+        ctrl_xy = _control_locations(plan, fov_deg, n_control, extent)
     terrain = Terrain(extent, seed=seed, kind=kind, keep_clear=ctrl_xy, clear_radius=15.0,
                       origin=(ox, oy))
     delta = as_vector(bias)

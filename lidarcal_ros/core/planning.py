@@ -1,0 +1,239 @@
+"""Flight planning: which parameters a planned flight will be able to calibrate.
+
+The planned lines are simulated over the chosen terrain (noise-free, no biases), the
+correspondences the calibration would form are matched exactly as ``lidarcal calibrate`` does,
+and the normal matrix they give is analysed with the a-priori noise: per parameter whether it
+can be estimated, its predicted standard deviation and its largest correlation. The verdict
+comes from the normal matrix, not from rules; the advice in words then names the line or
+control that would fix what cannot be seen (method.md section 7).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.adjustment import NormalEquations, ObservabilityLimits, solve
+from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.simulate import simulate_mission, swath_width
+from lidarcal_ros.errors import CalibrationError, ConfigError
+
+logger = logging.getLogger(__name__)
+
+TERRAINS = ("built-up", "flat")
+#: Planning simulates at most this density (points/m^2) and scales the predicted sigmas.
+MAX_SIMULATED_DENSITY = 0.3
+
+
+@dataclass
+class FlightPlan:
+    """A flight plan (interface.md "Flight plan"); map frame, metres."""
+
+    lines: list[dict[str, Any]]
+    terrain: str = "built-up"
+    fov_deg: float = 50.0
+    range_noise_m: float = 0.03
+    density: float = 1.0
+    speed_mps: float = 60.0
+    control: list[tuple[float, float, float]] = field(default_factory=list)
+
+    @classmethod
+    def from_mapping(cls, doc: Any, *, source: str = "plan") -> FlightPlan:
+        """Validate a parsed plan document.
+
+        Raises
+        ------
+        ConfigError
+            One line naming the key at fault.
+        """
+        if not isinstance(doc, Mapping):
+            raise ConfigError(f"{source}: expected a mapping with 'lines'")
+        sensor = doc.get("sensor", {}) or {}
+        if not isinstance(sensor, Mapping):
+            raise ConfigError(f"{source}: 'sensor' must be a mapping")
+
+        def number(where: Mapping[str, Any], key: str, default: float, lo: float,
+                   hi: float) -> float:
+            value = where.get(key, default)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                    not math.isfinite(value) or not lo < value <= hi:
+                raise ConfigError(f"{source}: {key} must be a number in ({lo}, {hi}], "
+                                  f"got {value!r}")
+            return float(value)
+
+        fov = number(sensor, "fov_deg", 50.0, 0.0, 120.0)
+        noise = number(sensor, "range_noise_m", 0.03, 0.0, 1.0)
+        density = number(sensor, "density", 1.0, 0.0, 100.0)
+        speed = number(sensor, "speed_mps", 60.0, 0.0, 500.0)
+        terrain = doc.get("terrain", "built-up")
+        if not isinstance(terrain, str):
+            raise ConfigError(f"{source}: terrain must be built-up, flat or a DSM path")
+        if terrain not in TERRAINS:
+            raise ConfigError(f"{source}: terrain '{terrain}': DSM files are not supported yet; "
+                              "use built-up or flat")
+        raw_lines = doc.get("lines")
+        if not isinstance(raw_lines, Sequence) or isinstance(raw_lines, str) or not raw_lines:
+            raise ConfigError(f"{source}: 'lines' must be a non-empty list")
+        lines = []
+        for i, ln in enumerate(raw_lines):
+            try:
+                lid = int(ln.get("id", i + 1))
+                start = (float(ln["start"][0]), float(ln["start"][1]))
+                end = (float(ln["end"][0]), float(ln["end"][1]))
+                height = float(ln["height"])
+            except (AttributeError, KeyError, TypeError, ValueError, IndexError):
+                raise ConfigError(f"{source}: line {i + 1} needs id, start [x, y], end [x, y] "
+                                  "and height") from None
+            lines.append({"id": lid, "start": start, "end": end, "height": height})
+        control = []
+        for i, c in enumerate(doc.get("control", []) or []):
+            try:
+                x, y = float(c[0]), float(c[1])
+                z = float(c[2]) if len(c) > 2 else 0.0
+            except (TypeError, ValueError, IndexError):
+                raise ConfigError(f"{source}: control point {i + 1} must be [x, y, z]") from None
+            control.append((x, y, z))
+        return cls(lines, terrain, fov, noise, density, speed, control)
+
+
+@dataclass
+class ParameterPrediction:
+    """What the plan predicts for one parameter."""
+
+    estimable: bool
+    sigma: float | None
+    max_correlation: float | None
+    correlated_with: str | None
+    reason: str = ""
+
+
+@dataclass
+class PlanReport:
+    """Predictions per parameter plus advice in words."""
+
+    parameters: dict[str, ParameterPrediction]
+    advice: list[str]
+    strip_pairs: int
+    correspondences: int
+
+    def to_json_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"parameters": {}, "advice": list(self.advice)}
+        for name, p in self.parameters.items():
+            entry: dict[str, Any] = {
+                "estimable": p.estimable, "sigma": p.sigma,
+                "max_correlation": p.max_correlation, "correlated_with": p.correlated_with,
+            }
+            if p.reason:
+                entry["reason"] = p.reason
+            out["parameters"][name] = entry
+        out["strip_pairs"] = self.strip_pairs
+        out["correspondences"] = self.correspondences
+        return out
+
+
+def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
+    """Predict which parameters ``plan`` can calibrate (all eight are asked for)."""
+    simulated_density = min(plan.density, MAX_SIMULATED_DENSITY)
+    sim = simulate_mission(
+        lines=plan.lines, terrain_kind=plan.terrain, fov_deg=plan.fov_deg,
+        density=simulated_density, speed_mps=plan.speed_mps, range_noise_m=0.0, biases={},
+        intensity_noise=0.0, seed=seed, n_control=0,
+        control_xy=[(c[0], c[1]) for c in plan.control] if plan.control else None,
+    )
+    settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits())
+    cal = Calibrator.from_mission(sim.mission, settings)
+    obs = cal.observations_at(np.zeros(len(PARAMETER_NAMES)))
+    neq = NormalEquations.from_observations(obs)
+    # A correspondence compares a point with a patch interpolated from three noisy vertices;
+    # the calibration samples a fixed share of the points, so sigmas scale with density.
+    sigma_obs = plan.range_noise_m * math.sqrt(1.5)
+    sigma_obs *= math.sqrt(simulated_density / plan.density)
+    parameters: dict[str, ParameterPrediction] = {}
+    try:
+        sol = solve(neq, solve_for=PARAMETER_NAMES, sigma0_apriori=sigma_obs,
+                    limits=settings.limits)
+    except CalibrationError as exc:
+        reason = str(exc)
+        parameters = {n: ParameterPrediction(False, None, None, None, reason)
+                      for n in PARAMETER_NAMES}
+        return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs))
+    est = list(sol.estimated)
+    for i, name in enumerate(PARAMETER_NAMES):
+        st = sol.status[name]
+        if st.state != "estimated":
+            parameters[name] = ParameterPrediction(False, None, None, None, st.reason)
+            continue
+        j = est.index(name)
+        corr = np.abs(sol.correlation[j]).copy()
+        corr[j] = -1.0
+        k = int(np.argmax(corr)) if len(est) > 1 else -1
+        parameters[name] = ParameterPrediction(
+            True, float(sol.sigma[i]),
+            round(float(corr[k]), 3) if k >= 0 else None, est[k] if k >= 0 else None)
+    return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs))
+
+
+def _advice(plan: FlightPlan, parameters: dict[str, ParameterPrediction]) -> list[str]:
+    """Words on what line or control would fix what the plan cannot see."""
+    blind = {n for n, p in parameters.items() if not p.estimable}
+    advice = []
+    geometry = _line_geometry(plan)
+    if "dZ" in blind:
+        advice.append("dZ: not observable from strips alone; add a vertical control point "
+                      "seen by several strips" if not plan.control else
+                      "dZ: the control cannot separate dZ from dr; fix dZ to its surveyed "
+                      "value (the default) or add lines at another height")
+    if "dkappa" in blind:
+        if not geometry["offset_same_direction"] and not geometry["crossing"]:
+            advice.append("dkappa: every line is on one track; add a line flown in the same "
+                          "direction, offset by at least 40% of the swath (or a crossing line)")
+        else:
+            advice.append("dkappa: needs sloped features in the overlap of the same-direction "
+                          "offset lines; widen their overlap or move it over buildings")
+    if "dr" in blind:
+        advice.append("dr: fly a second pair at another height or add vertical control")
+    horizontal = {"dX", "dY", "domega"} & blind
+    if horizontal and plan.terrain == "flat":
+        advice.append(f"{', '.join(sorted(horizontal))}: the terrain is flat; horizontal "
+                      "biases need sloped features (buildings, gable roofs) in the overlaps")
+    elif {"dY", "domega"} <= blind:
+        advice.append("dY, domega: they act alike at one flying height; fly the opposite pair "
+                      "at two heights")
+    elif "dX" in blind:
+        advice.append("dX: fly opposite lines with full overlap over sloped features")
+    if "dS" in blind:
+        advice.append("dS: needs data spread across the swath; fly lines whose overlaps cover "
+                      "the swath edges")
+    if "dphi" in blind:
+        advice.append("dphi: fly opposite lines with full overlap")
+    for name, p in parameters.items():
+        if p.estimable and p.max_correlation is not None and p.max_correlation > 0.95:
+            advice.append(f"{name}: strongly correlated with {p.correlated_with} "
+                          f"({p.max_correlation:.2f}); its estimate will be weak")
+    return advice
+
+
+def _line_geometry(plan: FlightPlan) -> dict[str, bool]:
+    """Which line arrangements the plan holds (method.md section 7)."""
+    dirs = []
+    for ln in plan.lines:
+        d = np.subtract(ln["end"], ln["start"])
+        dirs.append((d / np.linalg.norm(d), np.array(ln["start"], dtype=float), ln["height"]))
+    offset_same = crossing = False
+    for i in range(len(dirs)):
+        for j in range(i + 1, len(dirs)):
+            (ui, pi, hi), (uj, pj, _) = dirs[i], dirs[j]
+            cos = float(ui @ uj)
+            if abs(cos) < math.cos(math.radians(30)):
+                crossing = True
+            elif cos > 0:
+                lateral = abs(float((pj - pi) @ np.array([-ui[1], ui[0]])))
+                if lateral >= 0.2 * swath_width(hi, plan.fov_deg):
+                    offset_same = True
+    return {"offset_same_direction": offset_same, "crossing": crossing}
