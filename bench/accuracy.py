@@ -41,11 +41,14 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[101, 102, 103])
     ap.add_argument("--density", type=float, default=0.3)
     ap.add_argument("--line-length", type=float, default=1000.0)
+    ap.add_argument("--trajectory-noise", type=float, default=0.0,
+                    help="white noise on the trajectory samples, metres")
     args = ap.parse_args()
     failures = 0
     for seed in args.seeds:
         biases = random_biases(np.random.default_rng(seed + 7919))
-        opts = {"density": args.density, "line_length_m": args.line_length, "seed": seed}
+        opts = {"density": args.density, "line_length_m": args.line_length, "seed": seed,
+                "trajectory_noise_m": args.trajectory_noise}
         t0 = time.perf_counter()
         sim = simulate_mission(biases=biases, **opts)
         t1 = time.perf_counter()

@@ -64,4 +64,8 @@ def load_flight_config(path: str | Path | None) -> FlightConfig:
         return FlightConfig()
     flat = read_parameters_file(path, node_names=(
         "lidarcal_calibrator", "lidarcal_corrector", "lidarcal_flight_config"))
+    control = flat.get("calibration.control_points_file")
+    if isinstance(control, str) and control and not Path(control).is_absolute():
+        # Relative paths in a parameters file are relative to the file, not to the caller.
+        flat["calibration.control_points_file"] = str(Path(path).parent / control)
     return FlightConfig.from_mapping(flat, source=str(path), check=False)
