@@ -387,5 +387,5 @@ def test_simulate_refuses_existing_bag_subprocess(tmp_path):
     proc = run_process("simulate", "-o", "sim", "--scenario", "one_track", "--density", "0.05",
                        "--line-length", "100", cwd=tmp_path)
     reason = one_line_error(proc.returncode, proc.stderr, command="simulate")
-    assert reason.startswith("sim: output exists")
+    assert reason.startswith("sim: exists (use --overwrite")
     assert not (tmp_path / "sim_truth.yaml").exists()

@@ -83,6 +83,7 @@ class PreparedStrip:
     density: float  # points per m^2 over its footprint
     point_cells: np.ndarray  # footprint cell key of every point (int64)
     cells: np.ndarray  # sorted unique footprint cells
+    priority: np.ndarray  # random rank of every point for sampling, fixed per strip
     tin: Tin | None = None
     geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
     dropped: bool = False  # points released (memory budget); its pairs are frozen
@@ -167,7 +168,6 @@ class _PairWork:
     b: int
     coverage: float
     candidates: np.ndarray
-    rng: np.random.Generator
     sample: np.ndarray | None = None
     before: np.ndarray | None = None
     frozen: Observations | None = None  # last observations, kept when a strip is dropped
@@ -253,7 +253,8 @@ class Calibrator:
         keys = self.footprint.keys(strip.xyz[:, :2])
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
-        self.strips.append(PreparedStrip(strip, geom, density, keys, cells))
+        priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
+        self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority))
         new = len(self.strips) - 1
         formed = []
         for other in range(new):
@@ -279,11 +280,11 @@ class Calibrator:
         cand = np.flatnonzero(np.isin(self.strips[a].point_cells, zone))
         if cand.size == 0:
             return None
-        ids = sorted((si.strip_id, sj.strip_id))
-        rng = np.random.default_rng([s.seed, *ids])
         if cand.size > s.max_candidates_per_pair:
-            cand = np.sort(rng.choice(cand, s.max_candidates_per_pair, replace=False))
-        return _PairWork(len(self.pairs), a, b, coverage, cand, rng)
+            prio = self.strips[a].priority[cand]
+            cand = np.sort(cand[np.argpartition(prio, s.max_candidates_per_pair)
+                                [:s.max_candidates_per_pair]])
+        return _PairWork(len(self.pairs), a, b, coverage, cand)
 
     def frozen_observations(self) -> Observations:
         """Correspondences kept without their points (released strips, restored state)."""
@@ -313,6 +314,7 @@ class Calibrator:
                 ps.strip = Strip(ps.strip_id, empty, np.empty(0))
                 ps.geometry0 = ps.geometry = ps.geometry0.take(np.zeros(0, dtype=np.int64))
                 ps.point_cells = np.empty(0, dtype=np.int64)
+                ps.priority = np.empty(0)
                 return n
         return 0
 
@@ -399,7 +401,9 @@ class Calibrator:
         aspect = np.degrees(np.arctan2(n[:, 0], n[:, 1])) % 360.0
         sector = np.floor(aspect / 45.0).astype(np.int64) % 8
         cls = np.where(slope < 5.0, 0, 1 + sector + 8 * (slope >= 25.0))
-        order = pair.rng.permutation(ok.size)
+        # Lowest priority first: a point's priority is fixed per strip, so a few candidates
+        # changing validity change the sample by a few points, not all of it.
+        order = np.argsort(self.strips[pair.a].priority[pair.candidates[ok]], kind="stable")
         keep = np.zeros(ok.size, dtype=bool)
         for c in np.unique(cls):
             members = order[cls[order] == c]
