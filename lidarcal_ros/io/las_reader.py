@@ -1,0 +1,257 @@
+"""Reading LAS 1.0-1.4 and LAZ flight lines, chunk by chunk (laspy with the lazrs backend).
+
+What lidarcal needs from a delivered point file is read here and nothing more: coordinates,
+GPS time, intensity, point source id, return number and count, classification. Every failure
+(missing file, not a LAS file, a point format without GPS time, corrupt or truncated LAZ data)
+becomes a one-line :class:`~lidarcal_ros.errors.InputError` naming the file.
+
+Units and frames
+----------------
+Coordinates are returned as stored (scaled and offset), in the file's CRS and its linear unit
+(metres, or feet for many US state-plane deliveries: :func:`crs_units` gives the factors to
+metres). GPS times are returned raw: seconds of the GPS week when the header's global
+encoding bit 0 is clear, Adjusted Standard GPS Time (GPS seconds - 1e9) when it is set
+(:attr:`LasFileInfo.gps_time_type`).
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from lidarcal_ros.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+#: Points decoded per chunk (about 60 MB of columns).
+CHUNK_POINTS = 1_000_000
+
+GpsTimeType = Literal["week", "adjusted"]
+
+
+class LasFileError(InputError):
+    """A LAS/LAZ file is missing, unreadable, corrupt or lacks what lidarcal needs."""
+
+
+@dataclass
+class LasFileInfo:
+    """Header facts of one LAS/LAZ file.
+
+    Attributes
+    ----------
+    path : Path
+    version : str
+        ``"1.2"``, ``"1.4"``, ...
+    point_format : int
+    point_count : int
+    compressed : bool
+        LAZ.
+    gps_time_type : ``"week"`` or ``"adjusted"``
+        Global encoding bit 0: clear = GPS week seconds, set = Adjusted Standard GPS Time.
+    creation_date : datetime.date or None
+        Header creation date (processing date, usually on or after the flight).
+    crs : pyproj.CRS or None
+        From the WKT or GeoTIFF VLRs.
+    mins, maxs : (3,) float64
+        Header bounds, file units.
+    """
+
+    path: Path
+    version: str
+    point_format: int
+    point_count: int
+    compressed: bool
+    gps_time_type: GpsTimeType
+    creation_date: datetime.date | None
+    crs: Any
+    mins: np.ndarray
+    maxs: np.ndarray
+
+
+@dataclass
+class LasChunk:
+    """Columns of consecutive points of one file (all (n,) unless stated).
+
+    Attributes
+    ----------
+    xyz : (n, 3) float64
+        Coordinates in the file's CRS and units.
+    gps_time : float64
+        Raw GPS time (see :attr:`LasFileInfo.gps_time_type`), seconds.
+    intensity : uint16
+    point_source_id : uint16
+    return_number, number_of_returns, classification : uint8
+    """
+
+    xyz: np.ndarray
+    gps_time: np.ndarray
+    intensity: np.ndarray
+    point_source_id: np.ndarray
+    return_number: np.ndarray
+    number_of_returns: np.ndarray
+    classification: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.gps_time.shape[0])
+
+    def take(self, index: np.ndarray) -> LasChunk:
+        """A subset of the points (boolean or fancy index)."""
+        return LasChunk(self.xyz[index], self.gps_time[index], self.intensity[index],
+                        self.point_source_id[index], self.return_number[index],
+                        self.number_of_returns[index], self.classification[index])
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__
+
+
+def _check_path(path: Path) -> None:
+    if not path.exists():
+        raise LasFileError(f"{path}: LAS/LAZ file not found")
+    if path.is_dir():
+        raise LasFileError(f"{path}: is a directory, not a LAS/LAZ file")
+
+
+def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
+    """Read and check the header of a LAS/LAZ file.
+
+    Raises
+    ------
+    LasFileError
+        Missing or unreadable file, not LAS, no GPS time in its point format.
+    """
+    import laspy
+
+    p = Path(path)
+    _check_path(p)
+    try:
+        with laspy.open(str(p)) as reader:
+            header = reader.header
+            compressed = bool(header.are_points_compressed)
+    except OSError as exc:
+        raise LasFileError(f"{p}: cannot read ({exc.strerror or _one_line(exc)})") from None
+    except Exception as exc:  # laspy/lazrs raise various types for a bad header
+        raise LasFileError(f"{p}: not a readable LAS/LAZ file ({_one_line(exc)})") from None
+    dims = set(header.point_format.dimension_names)
+    if "gps_time" not in dims:
+        raise LasFileError(
+            f"{p}: point format {header.point_format.id} has no GPS time; lidarcal needs "
+            "the firing time of every point (point formats 1, 3-10)"
+        )
+    crs = None
+    try:
+        crs = header.parse_crs()
+    except Exception as exc:  # a malformed CRS VLR: usable with --crs
+        logger.warning("%s: cannot parse the CRS VLR (%s)", p, _one_line(exc))
+    encoding = header.global_encoding.gps_time_type
+    gps_type: GpsTimeType = "adjusted" if int(encoding) == 1 else "week"
+    return LasFileInfo(
+        path=p,
+        version=f"{header.version.major}.{header.version.minor}",
+        point_format=int(header.point_format.id),
+        point_count=int(header.point_count),
+        compressed=compressed,
+        gps_time_type=gps_type,
+        creation_date=header.creation_date,
+        crs=crs,
+        mins=np.asarray(header.mins, dtype=np.float64),
+        maxs=np.asarray(header.maxs, dtype=np.float64),
+    )
+
+
+def iter_las_chunks(
+    path: str | os.PathLike[str], *, chunk_points: int = CHUNK_POINTS
+) -> Iterator[LasChunk]:
+    """Stream the points of a LAS/LAZ file.
+
+    Parameters
+    ----------
+    path : path-like
+    chunk_points : int, keyword-only
+        Points per chunk; memory is bounded by it, whatever the file's size.
+
+    Yields
+    ------
+    LasChunk
+
+    Raises
+    ------
+    LasFileError
+        Unreadable, corrupt or truncated point data (names the file and the point reached),
+        or a point format without GPS time.
+    """
+    import laspy
+
+    p = Path(path)
+    _check_path(p)
+    done = 0
+    expected = -1
+    try:
+        with laspy.open(str(p)) as reader:
+            header = reader.header
+            expected = int(header.point_count)
+            if "gps_time" not in set(header.point_format.dimension_names):
+                raise LasFileError(f"{p}: point format {header.point_format.id} has no GPS time")
+            for pts in reader.chunk_iterator(max(1, int(chunk_points))):
+                n = len(pts)
+                if n == 0:
+                    break
+                xyz = np.empty((n, 3), dtype=np.float64)
+                xyz[:, 0] = pts.x
+                xyz[:, 1] = pts.y
+                xyz[:, 2] = pts.z
+                chunk = LasChunk(
+                    xyz=xyz,
+                    gps_time=np.array(pts.gps_time, dtype=np.float64),
+                    intensity=np.array(pts.intensity, dtype=np.uint16),
+                    point_source_id=np.array(pts.point_source_id, dtype=np.uint16),
+                    return_number=np.array(pts.return_number, dtype=np.uint8),
+                    number_of_returns=np.array(pts.number_of_returns, dtype=np.uint8),
+                    classification=np.array(pts.classification, dtype=np.uint8),
+                )
+                done += n
+                yield chunk
+    except LasFileError:
+        raise
+    except OSError as exc:
+        raise LasFileError(
+            f"{p}: cannot read point data after {done} points ({exc.strerror or _one_line(exc)})"
+        ) from None
+    except Exception as exc:  # lazrs / laspy decoding errors: corrupt or truncated data
+        raise LasFileError(
+            f"{p}: corrupt or truncated point data after {done} of {expected} points "
+            f"({_one_line(exc)})"
+        ) from None
+    if expected >= 0 and done != expected:
+        raise LasFileError(f"{p}: truncated: header says {expected} points, read {done}")
+
+
+def crs_units(crs: Any) -> tuple[float, float]:
+    """Factors from a projected CRS's horizontal and vertical units to metres.
+
+    The vertical factor comes from the vertical axis of a compound (or 3-D) CRS; for a 2-D
+    CRS the heights are taken to be in the horizontal unit (the ASPRS convention when no
+    vertical CRS is declared).
+    """
+    horizontal = crs
+    vertical = None
+    if crs.is_compound:
+        subs = crs.sub_crs_list
+        horizontal = subs[0]
+        vertical = subs[1] if len(subs) > 1 else None
+    axes = horizontal.axis_info
+    hfac = float(axes[0].unit_conversion_factor) if axes else 1.0
+    vfac = hfac
+    if vertical is not None and vertical.axis_info:
+        vfac = float(vertical.axis_info[0].unit_conversion_factor)
+    elif len(axes) >= 3:
+        vfac = float(axes[2].unit_conversion_factor)
+    return hfac, vfac

@@ -1,0 +1,416 @@
+"""Trajectory files as delivered after a flight: Applanix SBET and ASCII ``time,x,y,z``.
+
+SBET
+----
+Binary, little-endian, 17 float64 per record (136 bytes): time (GPS seconds of the week),
+latitude (rad), longitude (rad), altitude (m, ellipsoidal), x/y/z velocity (m/s), roll,
+pitch, platform heading (rad), wander angle (rad), x/y/z acceleration (m/s^2), x/y/z angular
+rate (rad/s). Only time, latitude, longitude and altitude are used. Positions are geographic
+on the ellipsoid of the GNSS processing (WGS 84 / ITRF by default: EPSG:4979).
+
+ASCII
+-----
+One sample per line, ``time,x,y,z[,roll,pitch,heading,...]``, comma, semicolon or
+whitespace separated; blank lines and lines starting with ``#`` or ``%`` are skipped. An
+optional header line names the columns (case-insensitive): ``time``/``t``/``gps_time``/
+``timestamp``/``sow``; ``x``/``easting``, ``y``/``northing``, ``z``/``height``/``h``/``alt``/
+``altitude``/``elevation``; or ``lat``/``latitude`` and ``lon``/``long``/``longitude``
+(degrees: geographic). Without a header the first four columns are time, x, y, z.
+
+Time bases
+----------
+``week`` (GPS seconds of the week, 0-604800), ``adjusted`` (Adjusted Standard GPS Time, GPS
+seconds - 1e9), ``gps`` (GPS seconds since 1980-01-06) and ``unix`` (UTC seconds since 1970,
+the ROS clock). :func:`to_gps_seconds` and :func:`gps_to_unix` convert between them.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from lidarcal_ros.errors import InputError, TrajectoryError
+from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, GPS_EPOCH_UNIX, adjusted_gps_to_unix
+
+logger = logging.getLogger(__name__)
+
+TimeBase = Literal["week", "adjusted", "gps", "unix"]
+TIME_BASES: tuple[str, ...] = ("week", "adjusted", "gps", "unix")
+WEEK_S = 604_800.0
+
+SBET_FIELDS: tuple[str, ...] = (
+    "time", "latitude", "longitude", "altitude",
+    "x_velocity", "y_velocity", "z_velocity",
+    "roll", "pitch", "heading", "wander_angle",
+    "x_acceleration", "y_acceleration", "z_acceleration",
+    "x_angular_rate", "y_angular_rate", "z_angular_rate",
+)
+SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
+SBET_RECORD_BYTES = SBET_DTYPE.itemsize  # 136
+
+_SBET_SUFFIXES = {".out", ".sbet", ".bin", ".smrmsg"}
+_ASCII_SUFFIXES = {".csv", ".txt", ".asc", ".pos", ".xyz", ".tsv", ".dat"}
+_TIME_NAMES = {"time", "t", "gps_time", "gpstime", "timestamp", "sow", "seconds", "gps_seconds"}
+_X_NAMES = {"x", "easting", "east", "e"}
+_Y_NAMES = {"y", "northing", "north", "n"}
+_Z_NAMES = {"z", "height", "h", "alt", "altitude", "elevation", "ellipsoidal_height", "up"}
+_LAT_NAMES = {"lat", "latitude", "phi"}
+_LON_NAMES = {"lon", "long", "longitude", "lambda"}
+
+
+class TrajectoryFileError(TrajectoryError):
+    """A trajectory file is missing, unreadable or malformed."""
+
+
+@dataclass
+class TrajectoryFile:
+    """Samples of a trajectory file, as stored.
+
+    Attributes
+    ----------
+    path : Path
+    kind : ``"sbet"`` or ``"ascii"``
+    t : (n,) float64
+        Raw times, seconds, in the file's time base (SBET: week seconds).
+    a, b, c : (n,) float64
+        Geographic: longitude (deg), latitude (deg), ellipsoidal height (m).
+        Projected: x, y, z in the file's CRS and unit.
+    geographic : bool
+    """
+
+    path: Path
+    kind: Literal["sbet", "ascii"]
+    t: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    geographic: bool
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def take(self, index: np.ndarray | slice) -> TrajectoryFile:
+        """A subset of the samples."""
+        return TrajectoryFile(self.path, self.kind, self.t[index], self.a[index],
+                              self.b[index], self.c[index], self.geographic)
+
+
+# ---------------------------------------------------------------------------- time bases
+def gps_week_of_unix(unix_time: float) -> int:
+    """GPS week number of a UNIX time (leap seconds ignored: a week is what matters)."""
+    return int(math.floor((unix_time - GPS_EPOCH_UNIX) / WEEK_S))
+
+
+def to_gps_seconds(values: np.ndarray, base: str, *, week: int | None = None) -> np.ndarray:
+    """Times of ``base`` as GPS seconds since the GPS epoch.
+
+    Parameters
+    ----------
+    values : (n,) float64
+    base : ``"week"``, ``"adjusted"``, ``"gps"`` or ``"unix"``
+    week : int, keyword-only
+        GPS week of ``week`` times (required for them).
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if base == "week":
+        if week is None:
+            raise ValueError("week times need the GPS week")
+        return v + week * WEEK_S
+    if base == "adjusted":
+        return v + ADJUSTED_GPS_OFFSET
+    if base == "gps":
+        return v
+    if base == "unix":
+        from lidarcal_ros.io.las import unix_to_adjusted_gps
+
+        return np.asarray(unix_to_adjusted_gps(v)) + ADJUSTED_GPS_OFFSET
+    raise ValueError(f"unknown time base {base!r}")
+
+
+def gps_to_unix(gps_seconds: np.ndarray) -> np.ndarray:
+    """GPS seconds since the GPS epoch to UNIX (UTC) seconds, leap seconds applied."""
+    return np.asarray(adjusted_gps_to_unix(np.asarray(gps_seconds) - ADJUSTED_GPS_OFFSET))
+
+
+# ---------------------------------------------------------------------------- SBET
+def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
+    """Read an Applanix SBET (module docstring).
+
+    Returns
+    -------
+    TrajectoryFile
+        ``t`` week seconds; ``a`` longitude and ``b`` latitude in degrees; ``c`` altitude (m).
+
+    Raises
+    ------
+    TrajectoryFileError
+        Missing file, a size that is not a whole number of 136-byte records, no records, or
+        records that are not SBET (latitude/longitude out of range, non-finite time).
+    """
+    p = _check_file(path)
+    size = p.stat().st_size
+    if size == 0 or size % SBET_RECORD_BYTES:
+        raise TrajectoryFileError(
+            f"{p}: not an SBET: {size} bytes is not a whole number of {SBET_RECORD_BYTES}-byte "
+            "records"
+        )
+    try:
+        records = np.memmap(p, dtype=SBET_DTYPE, mode="r")
+    except (OSError, ValueError) as exc:
+        raise TrajectoryFileError(f"{p}: cannot read ({exc})") from None
+    t = np.array(records["time"])
+    lat = np.array(records["latitude"])
+    lon = np.array(records["longitude"])
+    alt = np.array(records["altitude"])
+    del records
+    bad = ~(np.isfinite(t) & np.isfinite(alt) & (np.abs(lat) <= math.pi / 2 + 1e-9)
+            & (np.abs(lon) <= 2 * math.pi + 1e-9))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise TrajectoryFileError(
+            f"{p}: not an SBET: record {k} has time {t[k]!r}, latitude {lat[k]!r} rad, "
+            f"longitude {lon[k]!r} rad"
+        )
+    lon_deg = np.degrees(lon)
+    lon_deg = np.where(lon_deg > 180.0, lon_deg - 360.0, lon_deg)
+    return TrajectoryFile(p, "sbet", t, lon_deg, np.degrees(lat), alt, True)
+
+
+def write_sbet(
+    path: str | os.PathLike[str],
+    t: np.ndarray,
+    latitude_rad: np.ndarray,
+    longitude_rad: np.ndarray,
+    altitude_m: np.ndarray,
+    **fields: np.ndarray,
+) -> Path:
+    """Write an SBET (module docstring); fields not given are zero.
+
+    Parameters
+    ----------
+    path : path-like
+    t : (n,) float64
+        GPS seconds of the week.
+    latitude_rad, longitude_rad : (n,) float64, radians
+    altitude_m : (n,) float64, metres above the ellipsoid
+    **fields : (n,) float64
+        Further SBET fields by name (``roll``, ``heading``, ...).
+    """
+    unknown = [k for k in fields if k not in SBET_FIELDS]
+    if unknown:
+        raise InputError(f"{path}: unknown SBET field(s) {', '.join(unknown)}")
+    t = np.asarray(t, dtype=np.float64)
+    rec = np.zeros(t.shape[0], dtype=SBET_DTYPE)
+    rec["time"] = t
+    rec["latitude"] = latitude_rad
+    rec["longitude"] = longitude_rad
+    rec["altitude"] = altitude_m
+    for name, values in fields.items():
+        rec[name] = values
+    p = Path(path)
+    rec.tofile(p)
+    return p
+
+
+# ---------------------------------------------------------------------------- ASCII
+def _split(line: str) -> list[str]:
+    for sep in (",", ";"):
+        if sep in line:
+            return [c.strip() for c in line.split(sep)]
+    return line.split()
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
+    """Read an ASCII trajectory (module docstring).
+
+    Raises
+    ------
+    TrajectoryFileError
+        Missing file, no samples, fewer than four columns, a header without time and
+        position columns, or a value that is not a number (with its line).
+    """
+    p = _check_file(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig", errors="strict")
+    except UnicodeDecodeError:
+        raise TrajectoryFileError(
+            f"{p}: not a text trajectory (binary data; an SBET needs the .out suffix or "
+            "a size that is a multiple of 136 bytes)"
+        ) from None
+    except OSError as exc:
+        raise TrajectoryFileError(f"{p}: cannot read ({exc.strerror or exc})") from None
+    rows = [(no, line) for no, line in enumerate(text.splitlines(), start=1)
+            if line.strip() and not line.lstrip().startswith(("#", "%", "//"))]
+    if not rows:
+        raise TrajectoryFileError(f"{p}: empty trajectory file (expected time,x,y,z lines)")
+    first = _split(rows[0][1])
+    geographic = False
+    cols: tuple[int | None, ...]
+    if not all(_is_number(c) for c in first):
+        header_no = rows[0][0]
+        names = [c.strip().strip('"').lower() for c in first]
+        rows = rows[1:]
+        col_t = _find(names, _TIME_NAMES)
+        col_lat, col_lon = _find(names, _LAT_NAMES), _find(names, _LON_NAMES)
+        col_z = _find(names, _Z_NAMES)
+        col_a: int | None
+        col_b: int | None
+        if col_lat is not None and col_lon is not None:
+            geographic = True
+            col_a, col_b = col_lon, col_lat
+        else:
+            col_a, col_b = _find(names, _X_NAMES), _find(names, _Y_NAMES)
+        missing = [label for label, col in (("time", col_t), ("x/lon", col_a), ("y/lat", col_b),
+                                            ("z/height", col_z)) if col is None]
+        if missing:
+            raise TrajectoryFileError(
+                f"{p}: line {header_no}: header lacks column(s) {', '.join(missing)} "
+                f"(found: {', '.join(names)})"
+            )
+        cols = (col_t, col_a, col_b, col_z)
+        width = len(names)
+    else:
+        cols = (0, 1, 2, 3)
+        width = len(first)
+        if width < 4:
+            raise TrajectoryFileError(
+                f"{p}: line {rows[0][0]}: {width} columns; expected time,x,y,z[,...]"
+            )
+    if not rows:
+        raise TrajectoryFileError(f"{p}: no samples after the header line")
+    body = "\n".join(",".join(_split(line)) for _, line in rows)
+    try:
+        data = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=2,
+                          usecols=[c for c in cols if c is not None])
+    except ValueError as exc:
+        raise TrajectoryFileError(f"{p}: {_locate_bad_row(rows, cols, width) or exc}") from None
+    out = TrajectoryFile(p, "ascii", data[:, 0], data[:, 1], data[:, 2], data[:, 3], geographic)
+    bad = ~np.isfinite(data).all(axis=1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise TrajectoryFileError(f"{p}: line {rows[k][0]}: non-finite value")
+    return out
+
+
+def _find(names: list[str], wanted: set[str]) -> int | None:
+    for i, name in enumerate(names):
+        if name in wanted:
+            return i
+    return None
+
+
+def _locate_bad_row(rows: list[tuple[int, str]], cols: tuple[int | None, ...], width: int) -> str:
+    for no, line in rows:
+        cells = _split(line)
+        if len(cells) < width:
+            return f"line {no}: {len(cells)} values, expected {width}"
+        for c in cols:
+            if c is not None and not _is_number(cells[c]):
+                return f"line {no}: '{cells[c]}' is not a number"
+    return ""
+
+
+def _check_file(path: str | os.PathLike[str]) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise TrajectoryFileError(f"{p}: trajectory file not found")
+    if p.is_dir():
+        raise TrajectoryFileError(f"{p}: is a directory, not a trajectory file")
+    return p
+
+
+def read_trajectory_file(
+    path: str | os.PathLike[str], *, kind: Literal["auto", "sbet", "ascii"] = "auto"
+) -> TrajectoryFile:
+    """Read an SBET or ASCII trajectory.
+
+    ``kind="auto"`` decides by suffix (``.out``, ``.sbet``, ``.bin``: SBET; ``.csv``,
+    ``.txt``, ``.pos``, ...: ASCII), else by content (text or not).
+    """
+    p = _check_file(path)
+    if kind == "auto":
+        suffix = p.suffix.lower()
+        if suffix in _SBET_SUFFIXES:
+            kind = "sbet"
+        elif suffix in _ASCII_SUFFIXES:
+            kind = "ascii"
+        else:
+            with p.open("rb") as fh:
+                head = fh.read(4096)
+            textual = bool(head) and all(b in b"\t\n\r" or 32 <= b < 127 for b in head)
+            kind = "ascii" if textual else "sbet"
+    traj = read_sbet(p) if kind == "sbet" else read_ascii_trajectory(p)
+    if len(traj) < 2:
+        raise TrajectoryFileError(f"{p}: {len(traj)} trajectory sample(s); need at least 2")
+    return traj
+
+
+# ---------------------------------------------------------------------------- projection
+def make_transformer(source_crs: Any, target_crs: Any, *, where: str) -> Any:
+    """A pyproj transformer (x/y in the CRSs' easting/northing or lon/lat order).
+
+    Raises
+    ------
+    TrajectoryError
+        The best transformation needs a grid PROJ does not have (a geoid model for a
+        compound target CRS, a datum grid), or none exists.
+    """
+    import pyproj
+
+    try:
+        transformer = pyproj.Transformer.from_crs(source_crs, target_crs, always_xy=True,
+                                                  only_best=True)
+    except pyproj.exceptions.ProjError as exc:
+        raise TrajectoryError(
+            f"{where}: cannot transform from {source_crs.name} to {target_crs.name} "
+            f"({' '.join(str(exc).split())})"
+        ) from None
+    desc = transformer.description or ""
+    if "ballpark vertical" in desc.lower():
+        raise TrajectoryError(
+            f"{where}: heights of {target_crs.name} need a geoid model PROJ does not have "
+            "(install the PROJ grid, enable PROJ_NETWORK, or give --crs with a 2-D CRS to "
+            "keep ellipsoidal heights)"
+        )
+    return transformer
+
+
+def project(
+    traj: TrajectoryFile, source_crs: Any, target_crs: Any, *, block: int = 1_000_000
+) -> np.ndarray:
+    """Positions of ``traj`` in ``target_crs`` (units of that CRS), ``(n, 3)`` float64.
+
+    Geographic input: longitude, latitude (deg) and ellipsoidal height (m) of
+    ``source_crs`` (a 3-D geographic CRS). A 2-D projected target keeps the ellipsoidal
+    height (in metres); a compound target converts it to its vertical datum (geoid model
+    needed, see :func:`make_transformer`).
+    """
+    transformer = make_transformer(source_crs, target_crs, where=str(traj.path))
+    out = np.empty((len(traj), 3))
+    for i0 in range(0, len(traj), block):
+        sl = slice(i0, min(i0 + block, len(traj)))
+        x, y, z = transformer.transform(traj.a[sl], traj.b[sl], traj.c[sl])
+        out[sl, 0], out[sl, 1], out[sl, 2] = x, y, z
+    bad = ~np.isfinite(out).all(axis=1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise TrajectoryError(
+            f"{traj.path}: sample {k} ({traj.a[k]:.6f}, {traj.b[k]:.6f}) cannot be projected "
+            f"to {target_crs.name}; wrong CRS?"
+        )
+    return out

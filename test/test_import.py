@@ -1,0 +1,530 @@
+"""``lidarcal import``: LAS/LAZ strips plus SBET / ASCII / rebuilt trajectory into a mission bag.
+
+Simulated missions are exported the way a survey delivers them (LAS 1.4 / LAZ tiles, point
+format 6, adjusted standard GPS time, point source id = strip; an SBET in GPS week seconds
+with geographic positions) and imported again: the bag must hold the same points (within the
+LAS scale) and give the same calibration. Multiple returns are synthesised on the exact
+(biased) laser ray of a fraction of the pulses to test the trajectory estimate.
+
+Real files (public test data of laspy and lidR) are looked for in ``$LIDARCAL_REAL_LAS_DIR``
+or ``shared/data/las`` beside the repository; their tests are skipped when absent.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lidarcal_ros.cli.main import main as cli_main
+from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
+from lidarcal_ros.core.mission import Mission
+from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
+from lidarcal_ros.core.simulate import SimulatedMission, biased_from_pulse, simulate_mission
+from lidarcal_ros.errors import InputError, TrajectoryError
+from lidarcal_ros.io.bag import read_mission
+from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
+from lidarcal_ros.io.trajectory_files import WEEK_S, read_sbet, write_sbet
+from lidarcal_ros.pipeline.importer import import_mission, reconcile_times
+
+CRS = "EPSG:32633"
+ORIGIN = (500_000.0, 5_000_000.0)
+FAST = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
+#: Twice the tolerances of the calibration issue (1 arcsec, 1 cm, 1e-5).
+TWICE = {"dX": 0.02, "dY": 0.02, "dZ": 0.02, "dr": 0.02, "dS": 2e-5,
+         "domega": arcsec_to_rad(2), "dphi": arcsec_to_rad(2), "dkappa": arcsec_to_rad(2)}
+
+
+# ---------------------------------------------------------------------------- export helpers
+def add_first_returns(
+    sim: SimulatedMission, *, fraction: float = 0.3, seed: int = 0,
+    separation: tuple[float, float] = (3.0, 30.0), noise_m: float = 0.02,
+) -> list[dict[str, np.ndarray]]:
+    """Per strip: the mission's points as last returns plus, for ``fraction`` of the pulses, a
+    first return on the same (biased) laser ray, ``separation`` metres before the last.
+
+    The ray of a pulse is exact: ``X_o + R_kappa dL + R_kappa R_B rho(r)`` is linear in the
+    range ``r``, so the earlier return is the last one moved along the unit vector between
+    the biased points at ranges ``r`` and ``r - 1`` of the true pulse (true firing position
+    from the noiseless trajectory, true mirror angle, heading of the line).
+    """
+    rng = np.random.default_rng(seed)
+    traj = sim.mission.trajectory
+    out = []
+    for k, strip in enumerate(sim.mission.strips):
+        n = len(strip)
+        xo = np.column_stack([np.interp(strip.t, traj.t, traj.xyz[:, i]) for i in range(3)])
+        kappa = sim.lines[k]["kappa"]
+        theta = sim.scan_angle_true[k].astype(np.float64)
+        r_true = sim.range_true[k]
+        up = (biased_from_pulse(xo, kappa, r_true - 1.0, theta, sim.biases)
+              - biased_from_pulse(xo, kappa, r_true, theta, sim.biases))
+        up /= np.linalg.norm(up, axis=1)[:, None]
+        multi = rng.random(n) < fraction
+        sep = rng.uniform(*separation, n)
+        first = strip.xyz + sep[:, None] * up + rng.normal(0.0, noise_m, (n, 3))
+        rn = np.where(multi, 2, 1).astype(np.uint8)
+        idx = np.flatnonzero(multi)
+        cols = {
+            "xyz": np.concatenate([strip.xyz, first[idx]]),
+            "t": np.concatenate([strip.t, strip.t[idx]]),
+            "intensity": np.concatenate([strip.intensity, 0.5 * strip.intensity[idx]]),
+            "return_number": np.concatenate([rn, np.ones(idx.size, np.uint8)]),
+            "number_of_returns": np.concatenate([rn, np.full(idx.size, 2, np.uint8)]),
+            "strip_id": np.full(n + idx.size, strip.strip_id, dtype=np.uint16),
+        }
+        order = np.argsort(cols["t"], kind="stable")
+        out.append({key: v[order] for key, v in cols.items()})
+    return out
+
+
+def _plain_strips(sim: SimulatedMission) -> list[dict[str, np.ndarray]]:
+    return [{"xyz": s.xyz, "t": s.t, "intensity": s.intensity,
+             "return_number": np.ones(len(s), np.uint8),
+             "number_of_returns": np.ones(len(s), np.uint8),
+             "strip_id": np.full(len(s), s.strip_id, dtype=np.uint16)}
+            for s in sim.mission.strips]
+
+
+def write_las_tiles(
+    strips: list[dict[str, np.ndarray]], directory: Path, *, crs: str | None = CRS,
+    tiles: tuple[int, int] = (2, 2), laz: Sequence[int] = (0,), time_type: str = "adjusted",
+    version: str = "1.4", point_format: int = 6, point_source_id: bool = True,
+) -> list[Path]:
+    """Write the points as a grid of LAS/LAZ tiles (0.001 m scale).
+
+    ``time_type``: ``"adjusted"`` (UNIX times to adjusted standard GPS time, encoding bit
+    set) or ``"week"`` (GPS week seconds, bit clear). Tiles listed in ``laz`` are LAZ.
+    Points within a tile are stored in reverse time order (the importer must sort).
+    """
+    import laspy
+    import pyproj
+
+    cols = {key: np.concatenate([s[key] for s in strips]) for key in strips[0]}
+    xyz = cols["xyz"]
+    gps = unix_to_adjusted_gps(cols["t"])
+    if time_type == "week":
+        gps = np.mod(gps + ADJUSTED_GPS_OFFSET, WEEK_S)
+    nx, ny = tiles
+    ex = np.quantile(xyz[:, 0], np.linspace(0, 1, nx + 1)[1:-1])
+    ey = np.quantile(xyz[:, 1], np.linspace(0, 1, ny + 1)[1:-1])
+    tile = np.searchsorted(ex, xyz[:, 0]) * ny + np.searchsorted(ey, xyz[:, 1])
+    paths = []
+    for k in range(nx * ny):
+        sel = np.flatnonzero(tile == k)[::-1]
+        header = laspy.LasHeader(version=version, point_format=point_format)
+        header.scales = np.array([0.001, 0.001, 0.001])
+        header.offsets = np.floor(xyz[sel].min(axis=0) / 1000.0) * 1000.0
+        header.global_encoding.gps_time_type = (
+            laspy.header.GpsTimeType.STANDARD if time_type == "adjusted"
+            else laspy.header.GpsTimeType.WEEK_TIME)
+        if version == "1.4" and point_format >= 6:
+            header.global_encoding.wkt = True
+        if crs is not None:
+            header.add_crs(pyproj.CRS.from_user_input(crs))
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = xyz[sel, 0], xyz[sel, 1], xyz[sel, 2]
+        las.gps_time = gps[sel]
+        las.intensity = np.clip(np.rint(cols["intensity"][sel]), 0, 65535).astype(np.uint16)
+        las.return_number = cols["return_number"][sel]
+        las.number_of_returns = cols["number_of_returns"][sel]
+        if point_source_id:
+            las.point_source_id = cols["strip_id"][sel]
+        path = directory / f"tile{k}.{'laz' if k in laz else 'las'}"
+        las.write(str(path))
+        paths.append(path)
+    return paths
+
+
+def write_mission_sbet(mission: Mission, path: Path, *, crs: str = CRS) -> Path:
+    """The mission's trajectory as an SBET: GPS week seconds, lat/lon (rad), ellipsoidal
+    height (the map heights, taken as ellipsoidal)."""
+    import pyproj
+
+    to_geo = pyproj.Transformer.from_crs(pyproj.CRS(crs).to_3d(), "EPSG:4979", always_xy=True)
+    traj = mission.trajectory
+    lon, lat, h = to_geo.transform(traj.xyz[:, 0], traj.xyz[:, 1], traj.xyz[:, 2])
+    sow = np.mod(unix_to_adjusted_gps(traj.t) + ADJUSTED_GPS_OFFSET, WEEK_S)
+    return write_sbet(path, sow, np.radians(lat), np.radians(lon), h)
+
+
+def _solution_diff(a: Any, b: Any) -> dict[str, float]:
+    return {n: float(abs(a.solution.delta[i] - b.solution.delta[i]) / a.solution.sigma[i])
+            for i, n in enumerate(PARAMETER_NAMES) if n in a.solution.estimated}
+
+
+# ---------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def sim() -> SimulatedMission:
+    return simulate_mission(density=0.2, line_length_m=250.0, seed=11, origin=ORIGIN)
+
+
+@pytest.fixture(scope="module")
+def original_result(sim: SimulatedMission) -> Any:
+    """Calibration of the original mission, its points rounded to the LAS scale (1 mm).
+
+    The rounding alone moves the estimate by up to about 0.9 sigma here (sigmas of 0.04
+    arcsec: the adjustment's discrete choices of correspondences change), so the import is
+    compared with what the LAS files can hold.
+    """
+    mission = copy.deepcopy(sim.mission)
+    for strip in mission.strips:
+        strip.xyz = np.round(strip.xyz / 0.001) * 0.001
+    return calibrate(mission, CalibrationSettings(**FAST))
+
+
+@pytest.fixture(scope="module")
+def exported(sim: SimulatedMission, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    work = tmp_path_factory.mktemp("export")
+    tiles = write_las_tiles(_plain_strips(sim), work)
+    sbet = write_mission_sbet(sim.mission, work / "mission.out")
+    return {"dir": work, "tiles": tiles, "sbet": sbet}
+
+
+@pytest.fixture(scope="module")
+def multi_return(sim: SimulatedMission, tmp_path_factory: pytest.TempPathFactory
+                 ) -> dict[str, Any]:
+    work = tmp_path_factory.mktemp("multi")
+    tiles = write_las_tiles(add_first_returns(sim, fraction=0.3, seed=4), work, laz=(1, 2))
+    bag = work / "estimated"
+    report = import_mission(tiles, bag, trajectory="estimate", returns="last")
+    return {"tiles": tiles, "bag": bag, "report": report}
+
+
+# ---------------------------------------------------------------------------- round trip
+def test_sbet_round_trip_gives_the_same_points(sim, exported, tmp_path) -> None:
+    bag = tmp_path / "imported"
+    report = import_mission(exported["tiles"], bag, trajectory=exported["sbet"])
+    assert report.time_rule.clock == "unix"
+    assert report.time_rule.trajectory_base == "week"
+    mission = read_mission(bag)
+    assert [s.strip_id for s in mission.strips] == [s.strip_id for s in sim.mission.strips]
+    for got, want in zip(mission.strips, sim.mission.strips, strict=True):
+        assert len(got) == len(want)
+        assert np.max(np.abs(got.xyz - want.xyz)) <= 0.0005 + 1e-6
+        assert np.max(np.abs(got.t - want.t)) < 1e-6
+        assert got.intensity is not None and want.intensity is not None
+        assert np.max(np.abs(got.intensity - want.intensity)) <= 0.5 + 1e-3
+        assert set(got.extra) >= {"return_number", "number_of_returns", "classification"}
+    # trajectory: the same positions at the same times (decimated to <= 50 Hz)
+    traj, truth = mission.trajectory, sim.mission.trajectory
+    at = np.column_stack([np.interp(traj.t, truth.t, truth.xyz[:, i]) for i in range(3)])
+    assert np.max(np.abs(traj.xyz - at)) < 1e-3
+    assert traj.t[0] <= sim.mission.strips[0].t[0]
+
+
+def test_sbet_round_trip_gives_the_same_calibration(sim, exported, original_result,
+                                                   tmp_path) -> None:
+    bag = tmp_path / "imported.mcap"
+    import_mission(exported["tiles"], bag, trajectory=exported["sbet"])
+    mission = read_mission(bag)
+    mission.control = sim.mission.control  # as `lidarcal calibrate --control CSV`
+    result = calibrate(mission, CalibrationSettings(**FAST))
+    diff = _solution_diff(original_result, result)
+    assert max(diff.values()) <= 0.1, diff
+
+
+def test_week_time_las_and_ascii_trajectory(sim, tmp_path) -> None:
+    """LAS 1.2 in GPS week seconds, no point source ids, an ASCII trajectory in adjusted
+    standard time: strips come from time gaps, the week from the trajectory."""
+    tiles = write_las_tiles(_plain_strips(sim), tmp_path, tiles=(1, 2), laz=(), version="1.2",
+                            point_format=3, time_type="week", point_source_id=False)
+    traj = sim.mission.trajectory
+    csv = tmp_path / "trajectory.csv"
+    rows = np.column_stack([unix_to_adjusted_gps(traj.t), traj.xyz])
+    np.savetxt(csv, rows, delimiter=",", fmt="%.6f", header="time,x,y,z", comments="")
+    bag = tmp_path / "bag"
+    report = import_mission(tiles, bag, trajectory=csv)
+    assert report.time_rule.points_base == "week"
+    assert report.time_rule.trajectory_base == "adjusted"
+    mission = read_mission(bag)
+    assert [s.strip_id for s in mission.strips] == list(range(1, 7))
+    assert all(s.source == "split at GPS-time gaps" for s in report.strips)
+    for got, want in zip(mission.strips, sim.mission.strips, strict=True):
+        assert len(got) == len(want)
+        assert np.max(np.abs(got.t - want.t)) < 1e-5
+        assert np.max(np.abs(got.xyz - want.xyz)) <= 0.0005 + 1e-6
+
+
+def test_week_time_las_and_sbet_keep_week_seconds(sim, exported, tmp_path) -> None:
+    tiles = write_las_tiles(_plain_strips(sim), tmp_path, tiles=(1, 1), laz=(),
+                            time_type="week")
+    bag = tmp_path / "bag"
+    report = import_mission(tiles, bag, trajectory=exported["sbet"])
+    assert report.time_rule.clock == "week"
+    mission = read_mission(bag)
+    sow = np.mod(unix_to_adjusted_gps(sim.mission.strips[0].t) + ADJUSTED_GPS_OFFSET, WEEK_S)
+    assert np.max(np.abs(mission.strips[0].t - sow)) < 1e-6
+    # with the GPS week given, UNIX time again
+    report = import_mission(tiles, tmp_path / "bag2", trajectory=exported["sbet"],
+                            gps_week=report_week(sim))
+    assert report.time_rule.clock == "unix"
+    assert np.max(np.abs(read_mission(tmp_path / "bag2").strips[0].t
+                         - sim.mission.strips[0].t)) < 1e-6
+
+
+def report_week(sim: SimulatedMission) -> int:
+    gps = float(unix_to_adjusted_gps(sim.mission.strips[0].t[:1])[0]) + ADJUSTED_GPS_OFFSET
+    return int(gps // WEEK_S)
+
+
+def test_streaming_spills_and_merges(sim, exported, tmp_path) -> None:
+    """A tiny memory budget forces sorted runs on disk; the bag is the same."""
+    bag = tmp_path / "spilled"
+    report = import_mission(exported["tiles"], bag, trajectory=exported["sbet"],
+                            memory_points=20_000, chunk_points=7_000)
+    assert report.spilled_runs >= 10
+    mission = read_mission(bag)
+    for got, want in zip(mission.strips, sim.mission.strips, strict=True):
+        assert len(got) == len(want)
+        assert np.max(np.abs(got.t - want.t)) < 1e-6
+
+
+# ---------------------------------------------------------------------------- estimate
+def test_rebuilt_trajectory_lies_near_the_truth(sim, multi_return) -> None:
+    report = multi_return["report"]
+    est = report.estimate
+    assert est is not None and not est.failed_strips
+    assert {q.level for q in est.segments} == {"OK"}
+    traj = est.trajectory
+    truth = sim.mission.trajectory
+    at = np.column_stack([np.interp(traj.t, truth.t, truth.xyz[:, i]) for i in range(3)])
+    err = np.linalg.norm(traj.xyz - at, axis=1)
+    assert err.max() < 3.0, err.max()
+    for q in est.segments:
+        assert q.n_rays >= 100
+        assert q.sigma_m < 1.0
+
+
+def test_calibration_from_rebuilt_trajectory(sim, multi_return) -> None:
+    mission = read_mission(multi_return["bag"])
+    assert mission.n_points == sim.mission.n_points  # --returns last: the original points
+    mission.control = sim.mission.control
+    result = calibrate(mission, CalibrationSettings(**FAST))
+    for i, name in enumerate(PARAMETER_NAMES):
+        if name in result.solution.estimated:
+            err = abs(result.solution.delta[i] - sim.biases[name])
+            assert err <= TWICE[name], (name, err)
+
+
+def test_no_multiple_returns_cannot_be_estimated(exported, tmp_path) -> None:
+    with pytest.raises(TrajectoryError, match="multiple returns"):
+        import_mission(exported["tiles"], tmp_path / "bag", trajectory="estimate")
+
+
+# ---------------------------------------------------------------------------- time rules
+def test_reconcile_week_from_points() -> None:
+    gps = 2288 * WEEK_S + 250_000.0
+    rule = reconcile_times("adjusted", (gps - 1e9, gps - 1e9 + 600), (249_000.0, 252_000.0),
+                           ["week"])
+    assert rule.week == 2288 and rule.clock == "unix"
+    # a flight across the week boundary: trajectory week seconds of the previous week
+    rule = reconcile_times("adjusted", (gps - 1e9 - 250_100, gps - 1e9 - 250_000),
+                           (WEEK_S - 200.0, WEEK_S + 1.0), ["week"])
+    assert rule.week == 2287
+
+
+def test_reconcile_refuses_disjoint_times() -> None:
+    with pytest.raises(TrajectoryError, match="do not overlap"):
+        reconcile_times("week", (1000.0, 2000.0), (5000.0, 6000.0), ["week", "adjusted"])
+
+
+# ---------------------------------------------------------------------------- bad input
+def _cli(*args: str | Path) -> int:
+    return cli_main(["import", *map(str, args)])
+
+
+def test_cli_import_and_calibrate(exported, tmp_path, capsys) -> None:
+    bag = tmp_path / "cli_bag"
+    assert _cli(*exported["tiles"], "--trajectory", exported["sbet"], "-o", bag) == 0
+    out = capsys.readouterr().out
+    assert "6 strips" in out
+    assert read_mission(bag).n_points > 0
+
+
+def test_las_without_gps_time(tmp_path, capsys) -> None:
+    import laspy
+
+    las = laspy.LasData(laspy.LasHeader(version="1.2", point_format=2))
+    las.x = np.array([1.0, 2.0])
+    las.y = np.array([1.0, 2.0])
+    las.z = np.array([1.0, 2.0])
+    path = tmp_path / "nogps.las"
+    las.write(str(path))
+    assert _cli(path, "-o", tmp_path / "bag") == 1
+    err = capsys.readouterr().err.strip()
+    assert "nogps.las" in err and "no GPS time" in err and "\n" not in err
+
+
+def test_trajectory_not_covering_the_points(sim, exported, tmp_path, capsys) -> None:
+    rec = read_sbet(exported["sbet"])
+    short = tmp_path / "short.out"
+    half = len(rec) // 2
+    write_sbet(short, rec.t[:half], np.radians(rec.b[:half]), np.radians(rec.a[:half]),
+               rec.c[:half])
+    assert _cli(*exported["tiles"], "--trajectory", short, "-o", tmp_path / "bag") == 1
+    err = capsys.readouterr().err.strip()
+    assert "short.out" in err and "does not cover" in err and "\n" not in err
+    assert not (tmp_path / "bag").exists()
+
+
+def test_unknown_crs(exported, tmp_path, capsys) -> None:
+    assert _cli(*exported["tiles"], "--trajectory", exported["sbet"], "--crs", "EPSG:999999",
+                "-o", tmp_path / "bag") == 1
+    err = capsys.readouterr().err.strip()
+    assert "EPSG:999999" in err and "\n" not in err
+
+
+def test_sbet_without_crs(sim, exported, tmp_path, capsys) -> None:
+    tiles = write_las_tiles(_plain_strips(sim), tmp_path, tiles=(1, 1), laz=(), crs=None)
+    assert _cli(*tiles, "--trajectory", exported["sbet"], "-o", tmp_path / "bag") == 1
+    err = capsys.readouterr().err.strip()
+    assert "--crs" in err and "\n" not in err
+
+
+def test_corrupt_laz(exported, tmp_path, capsys) -> None:
+    laz = next(p for p in exported["tiles"] if p.suffix == ".laz")
+    data = bytearray(laz.read_bytes())
+    start = len(data) // 3
+    data[start:start + 4000] = os.urandom(4000)
+    bad = tmp_path / "corrupt.laz"
+    bad.write_bytes(bytes(data))
+    assert _cli(bad, "--trajectory", exported["sbet"], "-o", tmp_path / "bag") == 1
+    err = capsys.readouterr().err.strip()
+    assert "corrupt.laz" in err and "\n" not in err
+    assert not (tmp_path / "bag").exists()
+
+
+def test_not_an_sbet(exported, tmp_path) -> None:
+    bad = tmp_path / "bad.out"
+    bad.write_bytes(b"\x00" * 100)
+    with pytest.raises(InputError, match="not an SBET"):
+        import_mission(exported["tiles"], tmp_path / "bag", trajectory=bad)
+
+
+# ---------------------------------------------------------------------------- real data
+def _real_dir() -> Path | None:
+    env = os.environ.get("LIDARCAL_REAL_LAS_DIR")
+    for cand in ([Path(env)] if env else []) + [
+            Path(__file__).resolve().parents[2] / "shared" / "data" / "las"]:
+        if cand.is_dir():
+            return cand
+    return None
+
+
+def _real(name: str) -> Path:
+    d = _real_dir()
+    if d is None or not (d / name).is_file():
+        pytest.skip(f"real test file {name} not available (shared/data/las)")
+    return d / name
+
+
+def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
+    """laspy's simple.las (LAS 1.2, week time, 9 point source ids, no CRS): reading and
+    strip splitting; an ASCII trajectory made up to cover it."""
+    path = _real("simple.las")
+    import laspy
+
+    las = laspy.read(str(path))
+    t = np.arange(math.floor(las.gps_time.min()) - 2, math.ceil(las.gps_time.max()) + 2, 0.25)
+    centre = np.array([np.mean(las.x), np.mean(las.y), np.max(las.z) + 1000.0])
+    xyz = centre + np.outer(t - t[0], [5.0, 0.0, 0.0])
+    csv = tmp_path / "traj.txt"
+    np.savetxt(csv, np.column_stack([t, xyz]), fmt="%.4f")
+    report = import_mission([path], tmp_path / "bag", trajectory=csv)
+    mission = read_mission(tmp_path / "bag")
+    ids, counts = np.unique(np.asarray(las.point_source_id), return_counts=True)
+    assert [s.strip_id for s in mission.strips] == ids.tolist()
+    assert [len(s) for s in mission.strips] == counts.tolist()
+    assert report.time_rule.clock == "week"
+
+
+def _made_up_trajectory(path: Path, csv: Path, *, gap_s: float = 10.0) -> np.ndarray:
+    """An ASCII trajectory (week seconds, header) 1500 m above each pass of a real file:
+    one straight northward line per group of GPS times; returns the sorted times."""
+    import laspy
+
+    las = laspy.read(str(path))
+    t_las = np.sort(np.asarray(las.gps_time))
+    cuts = np.flatnonzero(np.diff(t_las) > gap_s)
+    rows = []
+    for lo, hi in zip(t_las[np.concatenate(([0], cuts + 1))],
+                      t_las[np.concatenate((cuts, [t_las.size - 1]))], strict=True):
+        t = np.arange(math.floor(lo) - 2, math.ceil(hi) + 2, 0.1)
+        rows.append(np.column_stack([t, np.full(t.size, np.mean(las.x)),
+                                     np.mean(las.y) + 60.0 * (t - t[0]),
+                                     np.full(t.size, 1500.0)]))
+    np.savetxt(csv, np.concatenate(rows), delimiter=",", fmt="%.4f",
+               header="gps_time,easting,northing,height", comments="")
+    return t_las
+
+
+def test_real_lidr_megaplot_strips_from_time_gaps(tmp_path) -> None:
+    """lidR's Megaplot.laz (UTM 17N, week time): point source id 0 everywhere, two passes
+    542 s apart become strips 1 and 2."""
+    path = _real("Megaplot.laz")
+    t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
+    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
+    mission = read_mission(tmp_path / "bag")
+    assert [s.strip_id for s in mission.strips] == [1, 2]
+    assert sum(len(s) for s in mission.strips) == t_las.size
+    assert all(s.source == "split at GPS-time gaps" for s in report.strips)
+    t_split = t_las[np.argmax(np.diff(t_las))]
+    assert mission.strips[0].t[-1] <= t_split < mission.strips[1].t[0]
+    assert report.crs_name == "NAD83 / UTM zone 17N"
+
+
+def test_real_lidr_mixed_conifer_overlap_qa(tmp_path) -> None:
+    """lidR's MixedConifer.laz: four passes over a forest plot (ids 0, week time); the
+    swath-to-swath QA of last returns on smooth 2 m cells finds the overlaps consistent
+    to a few centimetres."""
+    path = _real("MixedConifer.laz")
+    _made_up_trajectory(path, tmp_path / "traj.csv")
+    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv",
+                            qa_cell_m=2.0)
+    assert [s.strip_id for s in report.strips] == [1, 2, 3, 4]
+    big = [q for q in report.overlaps if q.n_cells >= 100]
+    assert len(big) >= 3
+    for q in big:
+        assert q.coverage > 0.8
+        assert abs(q.median_dz) < 0.05 and q.rms_dz < 0.08 and q.level == "OK", q
+
+
+def test_real_topography_trajectory_estimate(tmp_path) -> None:
+    """lidR's Topography.laz (adjusted standard time, up to 6 returns, MTM zone 7): a
+    sensor path is rebuilt from its multiple returns, high above the ground and moving at
+    an aircraft's speed."""
+    path = _real("Topography.laz")
+    report = import_mission([path], tmp_path / "bag", trajectory="estimate")
+    est = report.estimate
+    assert est is not None and not est.failed_strips
+    q = est.segments[0]
+    assert q.n_rays > 100
+    assert 100.0 < q.height_m < 5000.0
+    assert 20.0 < q.speed_mps < 150.0
+    mission = read_mission(tmp_path / "bag")
+    assert [s.strip_id for s in mission.strips] == [3]
+    assert report.strips[0].source == "point_source_id 3"
+
+
+def test_real_autzen_feet_to_metres(tmp_path) -> None:
+    """laspy's autzen_trim.laz: Oregon Lambert in international feet, week time, one id
+    (7326): coordinates become metres and the rebuilt sensor flies some 800 m up."""
+    path = _real("autzen_trim.laz")
+    report = import_mission([path], tmp_path / "bag", trajectory="estimate")
+    assert report.unit_factors == (0.3048, 0.3048)
+    assert report.time_rule.clock == "week"
+    est = report.estimate
+    assert est is not None and est.segments[0].level in ("OK", "WARN")
+    assert 300.0 < est.segments[0].height_m < 3000.0
+    mission = read_mission(tmp_path / "bag")
+    import laspy
+
+    las = laspy.read(str(path))
+    assert np.isclose(mission.strips[0].xyz[:, 0].min(), 0.3048 * np.min(las.x), atol=1e-6)
