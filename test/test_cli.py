@@ -234,7 +234,7 @@ def test_bad_config(capsys, tmp_path, small_mission, values, expected):
 
 
 @pytest.mark.parametrize(("text", "expected"), [
-    ("a: [1\n", "not valid YAML at line 2"),
+    ("a: [1\n", "parameters file is not valid YAML at line 2"),
     ("sensor: {fov_deg: 40}\n", "no 'ros__parameters' section under '/**'"),
 ], ids=["yaml", "layout"])
 def test_config_file_not_parameters(capsys, tmp_path, small_mission, text, expected):

@@ -15,6 +15,7 @@ import yaml
 from lidarcal_ros.core.calibrate import CalibrationResult
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.yaml_file import read_yaml
 
 ROOT_KEY = "lidarcal_calibration"
 
@@ -112,12 +113,7 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
         Missing file or key, non-numeric value; one line naming the key.
     """
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read calibration ({exc.strerror})") from None
-    except yaml.YAMLError:
-        raise ConfigError(f"{path}: calibration is not valid YAML") from None
+    doc = read_yaml(path, what="calibration")
     if not isinstance(doc, Mapping) or not isinstance(doc.get(ROOT_KEY), Mapping):
         raise ConfigError(f"{path}: missing top-level key '{ROOT_KEY}'")
     body = doc[ROOT_KEY]

@@ -6,10 +6,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.yaml_file import read_yaml
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -36,14 +35,7 @@ def read_parameters_file(path: str | Path, *, node_names: tuple[str, ...] = ()) 
         Unreadable file, not YAML, or no ``ros__parameters`` section.
     """
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{path}: not valid YAML{where}") from None
+    doc = read_yaml(path, what="parameters file")
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{path}: expected '/**: ros__parameters:' at the top")
     flat: dict[str, Any] = {}

@@ -24,6 +24,7 @@ from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.control import read_control_csv
+from lidarcal_ros.io.yaml_file import read_yaml
 
 logger = logging.getLogger(__name__)
 
@@ -73,12 +74,7 @@ class Truth:
     @classmethod
     def read(cls, path: str | Path) -> Truth:
         path = Path(path)
-        try:
-            doc = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read truth file ({exc.strerror})") from None
-        except yaml.YAMLError:
-            raise ConfigError(f"{path}: truth file is not valid YAML") from None
+        doc = read_yaml(path, what="truth file")
         biases = doc.get("biases") if isinstance(doc, Mapping) else None
         if not isinstance(biases, Mapping):
             raise ConfigError(f"{path}: missing 'biases'")
