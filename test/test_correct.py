@@ -339,22 +339,27 @@ def test_streaming_batches_do_not_change_results(corrected: dict[str, Any]) -> N
     pts = _strip_points(strip, {}, "test")
     bounds = [*range(0, len(pts), 4000), len(pts)]
     outs = {}
-    for batch in (0, 40_000):
+    for batch, workers, executor in ((0, 1, "thread"), (40_000, 2, "thread"),
+                                     (40_000, 2, "process")):
         corr = StreamCorrector(sim.mission.trajectory, settings, batch_points=batch,
-                               workers=2 if batch else 1)
+                               workers=workers, executor=executor)
         res = []
         for a, b in itertools.pairwise(bounds):
             res.extend(o for _t, o in corr.push(pts[a:b]))
             # Bounded: one batch and its short look-ahead.
             assert sum(len(m) for m in corr._pending) <= batch + 3 * 4000
         res.extend(o for _t, o in corr.flush())
-        outs[batch] = np.concatenate(res)
-    a, b = outs[0], outs[40_000]
-    np.testing.assert_array_equal(a["x"], b["x"])
-    np.testing.assert_array_equal(a["range"], b["range"])
-    ok = np.isfinite(a["reflectance"]) & np.isfinite(b["reflectance"])
-    assert ok.mean() > 0.99
-    assert np.median(np.abs(a["reflectance"][ok] / b["reflectance"][ok] - 1)) < 0.01
+        outs[executor, batch] = np.concatenate(res)
+    a = outs["thread", 0]
+    for key in (("thread", 40_000), ("process", 40_000)):
+        b = outs[key]
+        np.testing.assert_array_equal(a["x"], b["x"])
+        np.testing.assert_array_equal(a["range"], b["range"])
+        ok = np.isfinite(a["reflectance"]) & np.isfinite(b["reflectance"])
+        assert ok.mean() > 0.99
+        assert np.median(np.abs(a["reflectance"][ok] / b["reflectance"][ok] - 1)) < 0.01
+    # Threads and processes: the same bytes (NaN included).
+    assert outs["thread", 40_000].tobytes() == outs["process", 40_000].tobytes()
 
 
 # ------------------------------------------------------------------ bad input
@@ -439,3 +444,27 @@ def test_grazing_points_are_flagged_not_divided(corrected: dict[str, Any]) -> No
     # Divided by the clamp, not by the cosine: bounded by the normal-incidence value x 10.
     ok = np.isfinite(p["reflectance"]) & ~grazing
     assert np.median(p["reflectance"][grazing]) < 10 * np.percentile(p["reflectance"][ok], 99)
+
+
+def test_node_mode_one_cloud_at_a_time_with_empty_clouds(small_mission: MissionFiles) -> None:
+    """batch_points=0 (the corrector node): each cloud is released once a later cloud reaches
+    past its look-ahead; empty clouds pass; flush releases the rest; order is kept."""
+    from lidarcal_ros.core.config import FlightConfig
+    from lidarcal_ros.io.bag import _strip_points
+
+    sim = small_mission.sim
+    settings = CorrectionSettings.from_config(
+        FlightConfig(), np.array([sim.biases[n] for n in PARAMETER_NAMES]))
+    corr = StreamCorrector(sim.mission.trajectory, settings, batch_points=0)
+    pts = _strip_points(sim.mission.strips[0], {}, "test")
+    empty = pts[:0]
+    released = []
+    cuts = [*range(0, len(pts), 1500), len(pts)]
+    for i, (a, b) in enumerate(itertools.pairwise(cuts)):
+        released.extend(tag for tag, _ in corr.push(pts[a:b], ("cloud", i)))
+        released.extend(tag for tag, _ in corr.push(empty, ("empty", i)))
+        assert len(corr._pending) <= 8
+    released.extend(tag for tag, _ in corr.flush())
+    expected = [(kind, i) for i in range(len(cuts) - 1) for kind in ("cloud", "empty")]
+    assert released == expected
+    assert corr.stats.points == len(pts)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,6 +99,41 @@ def _fit_windows(
     return t_mean, p_mean, vel
 
 
+def covered_by_trajectory(
+    t: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5, min_samples: int = 2
+) -> np.ndarray:
+    """Which firing times the local trajectory covers: at least ``min_samples`` samples within
+    ``(t - window_s, t + window_s)`` bracketing ``t`` (the rule of
+    :func:`laser_geometry`, which raises where it fails)."""
+    t = np.asarray(t, dtype=np.float64)
+    traj_t = trajectory.t
+    if len(traj_t) < min_samples or t.size == 0:
+        return np.zeros(t.shape, dtype=bool)
+    t_lo, t_hi = float(t.min()), float(t.max())
+    if math.isfinite(t_lo) and math.isfinite(t_hi):
+        # Fast path: samples bracket the whole span with every gap shorter than the window, so
+        # each (t - w, t + w) holds a sample below and one above t (and min_samples <= 2).
+        i0 = int(np.searchsorted(traj_t, t_lo, side="right")) - 1
+        i1 = int(np.searchsorted(traj_t, t_hi, side="left"))
+        if (min_samples <= 2 and 0 <= i0 < i1 < len(traj_t)
+                and float(np.max(np.diff(traj_t[i0:i1 + 1]))) < window_s):
+            return np.ones(t.shape, dtype=bool)
+    start = np.searchsorted(traj_t, t - window_s, side="right")
+    stop = np.searchsorted(traj_t, t + window_s, side="left")
+    return _bracketed(t, traj_t, start, stop, min_samples)
+
+
+def _bracketed(
+    t: np.ndarray, traj_t: np.ndarray, start: np.ndarray, stop: np.ndarray, min_samples: int
+) -> np.ndarray:
+    """A window must hold enough samples and bracket the point (no extrapolation past a gap)."""
+    before = start < stop
+    last = len(traj_t) - 1
+    lo_ok = traj_t[np.minimum(start, last)] <= t
+    hi_ok = traj_t[np.maximum(stop - 1, 0)] >= t
+    return before & lo_ok & hi_ok & ((stop - start) >= min_samples)
+
+
 def laser_geometry(
     t: np.ndarray,
     xyz: np.ndarray,
@@ -142,12 +178,7 @@ def laser_geometry(
     traj_t = trajectory.t
     start = np.searchsorted(traj_t, t - window_s, side="right")
     stop = np.searchsorted(traj_t, t + window_s, side="left")
-    counts = stop - start
-    # A window must hold enough samples and bracket the point (no extrapolation past a gap).
-    before = start < stop
-    lo_ok = before & (traj_t[np.minimum(start, len(traj_t) - 1)] <= t)
-    hi_ok = before & (traj_t[np.maximum(stop - 1, 0)] >= t)
-    bad = (counts < min_samples) | ~lo_ok | ~hi_ok
+    bad = ~_bracketed(t, traj_t, start, stop, min_samples)
     if bad.any():
         first = int(np.argmax(bad))
         raise TrajectoryError(

@@ -290,16 +290,21 @@ class RadiometricModel:
             ``cos theta < c_min``: the clamped value was used; never divided by a cosine
             below ``c_min``.
         """
-        r = np.asarray(range_m, dtype=np.float64)
-        cos_t = np.asarray(cos_theta, dtype=np.float64)
-        grazing = cos_t < self.min_cos_incidence  # False for NaN
-        cos_eff = np.maximum(cos_t, self.min_cos_incidence)  # NaN stays NaN
-        scale = self.power_factor / (self.reference_range_m * self.reference_range_m)
-        gain = (r * r) * np.exp(2.0 * self.alpha_per_m * r)
+        # float32 throughout (the result's type; relative precision 1e-7).
+        r = np.asarray(range_m, dtype=np.float32)
+        cos_t = np.asarray(cos_theta, dtype=np.float32)
+        c_min = np.float32(self.min_cos_incidence)
+        grazing = cos_t < c_min  # False for NaN
+        cos_eff = np.maximum(cos_t, c_min)  # NaN stays NaN
+        scale = np.float32(self.power_factor / (self.reference_range_m
+                                                * self.reference_range_m))
+        gain = np.exp(np.float32(2.0 * self.alpha_per_m) * r)
+        gain *= r
+        gain *= r
         gain *= scale
         gain /= cos_eff
-        gain *= np.asarray(intensity, dtype=np.float64)
-        return gain.astype(np.float32), grazing
+        gain *= np.asarray(intensity, dtype=np.float32)
+        return gain, grazing
 
 
 def describe_alpha(model: RadiometricModel) -> str:

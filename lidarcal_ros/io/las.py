@@ -38,6 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import ConfigError, InputError
 
 logger = logging.getLogger(__name__)
@@ -264,7 +265,7 @@ class LasChunkWriter:
         xyz = np.column_stack([np.asarray(points[c], dtype=np.float64) for c in "xyz"]) \
             if len(points) else np.empty((0, 3))
         t = np.asarray(points[self.time_field], dtype=np.float64)
-        finite = np.isfinite(xyz).all(axis=1)
+        finite = finite_rows(xyz)
         if not finite.all():
             self.stats.skipped_non_finite += int((~finite).sum())
             points, xyz, t = points[finite], xyz[finite], t[finite]

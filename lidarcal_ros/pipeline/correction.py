@@ -42,6 +42,7 @@ import heapq
 import itertools
 import logging
 import math
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
@@ -53,14 +54,18 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
+from lidarcal_ros.core.local_trajectory import (
+    LaserGeometry,
+    covered_by_trajectory,
+    laser_geometry,
+)
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.model import correct_points
-from lidarcal_ros.core.normals import cell_size, grid_normals
-from lidarcal_ros.core.radiometry import RadiometricModel, cos_incidence, describe_alpha
+from lidarcal_ros.core.normals import cell_size, finite_rows, grid_normals
+from lidarcal_ros.core.radiometry import RadiometricModel, describe_alpha
 from lidarcal_ros.errors import BagError, ConfigError, InputError, TrajectoryError
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
-from lidarcal_ros.io.pointcloud import cloud_to_array, extract_columns
+from lidarcal_ros.io.pointcloud import cloud_to_array, extract_columns, resolve_time_field
 
 logger = logging.getLogger(__name__)
 
@@ -89,11 +94,44 @@ ADDED_FIELDS: tuple[tuple[str, str], ...] = (
 )
 #: Default batch of the offline correction, points.
 DEFAULT_BATCH_POINTS = 200_000
+#: Most points held as look-ahead (or kept as context) beyond a batch: bounds memory when
+#: firing times stall (a cloud whose times never advance would otherwise wait forever).
+_MAX_LOOKAHEAD_POINTS = 500_000
 #: Points per LAS write (corrected clouds are gathered into runs of this size).
 _LAS_RUN_POINTS = 100_000
 #: Points closer than this below the trajectory are refused (m): no real return comes from
 #: within a metre of the sensor, and laser_geometry needs them below.
 _MIN_DEPTH_M = 1.0
+
+
+def tune_allocator() -> bool:
+    """Keep freed memory in the process (glibc ``mallopt``): no ``mmap``/``munmap`` and page
+    faults for every large numpy temporary.
+
+    The correction makes a few dozen temporaries per batch of 10^5 points; with glibc's
+    defaults each is mapped, touched page by page and unmapped again, which costs about a
+    quarter of the run. Memory stays bounded by the batch size either way; it is just not
+    returned to the system between batches. One malloc arena for all threads keeps the
+    worker threads from each holding a high-water mark of their own (without it the peak
+    of a threaded run creeps up with the mission's length). Process-wide: ``lidarcal correct``
+    calls it; the corrector node should. Returns whether the settings were applied
+    (Linux/glibc only).
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name or sys.platform != "linux":
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        m_trim_threshold, m_mmap_threshold, m_arena_max = -1, -3, -8
+        ok = libc.mallopt(m_mmap_threshold, 256 << 20) == 1
+        ok &= libc.mallopt(m_trim_threshold, 512 << 20) == 1
+        ok &= libc.mallopt(m_arena_max, 1) == 1
+    except (OSError, AttributeError):
+        return False
+    return bool(ok)
 
 
 # ---------------------------------------------------------------------------- settings
@@ -191,34 +229,6 @@ class CorrectedColumns:
         return int(self.flags.shape[0])
 
 
-def covered_by_trajectory(
-    t: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5, min_samples: int = 2
-) -> np.ndarray:
-    """Which firing times the local trajectory covers: at least ``min_samples`` samples within
-    ``(t - window_s, t + window_s)`` bracketing ``t`` (the rule of
-    :func:`~lidarcal_ros.core.local_trajectory.laser_geometry`, which raises where it fails)."""
-    t = np.asarray(t, dtype=np.float64)
-    traj_t = trajectory.t
-    if len(traj_t) < min_samples or t.size == 0:
-        return np.zeros(t.shape, dtype=bool)
-    t_lo, t_hi = float(t.min()), float(t.max())
-    if math.isfinite(t_lo) and math.isfinite(t_hi):
-        # Fast path: samples bracket the whole span with every gap shorter than the window, so
-        # each (t - w, t + w) holds a sample below and one above t (and min_samples <= 2).
-        i0 = int(np.searchsorted(traj_t, t_lo, side="right")) - 1
-        i1 = int(np.searchsorted(traj_t, t_hi, side="left"))
-        if (min_samples <= 2 and 0 <= i0 < i1 < len(traj_t)
-                and float(np.max(np.diff(traj_t[i0:i1 + 1]))) < window_s):
-            return np.ones(t.shape, dtype=bool)
-    start = np.searchsorted(traj_t, t - window_s, side="right")
-    stop = np.searchsorted(traj_t, t + window_s, side="left")
-    before = start < stop
-    last = len(traj_t) - 1
-    lo_ok = traj_t[np.minimum(start, last)] <= t
-    hi_ok = traj_t[np.maximum(stop - 1, 0)] >= t
-    return before & lo_ok & hi_ok & ((stop - start) >= min_samples)
-
-
 def flagged_geometry(
     t: np.ndarray,
     xyz: np.ndarray,
@@ -238,7 +248,7 @@ def flagged_geometry(
     geometry : LaserGeometry
         For the points ``ok`` (in order).
     """
-    ok = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
+    ok = np.isfinite(t) & finite_rows(xyz)
     ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
     if ok.any():
         z_traj = np.interp(t, trajectory.t, trajectory.xyz[:, 2])
@@ -355,7 +365,7 @@ def correct_columns(
     else:
         all_xyz, all_group = xyz, group
     if cell_m is None:
-        finite = np.isfinite(xyz).all(axis=1) & np.isfinite(t)
+        finite = finite_rows(xyz) & np.isfinite(t)
         cell_m = cell_size(xyz[finite], heading, t[finite])
     gn = grid_normals(all_xyz, heading, cell_m=cell_m, group=all_group)
     normals = gn.normals[:n]
@@ -370,12 +380,18 @@ def correct_columns(
     out_xyz[sel] = xc
     rel = xc - geo.origin
     r = np.sqrt(np.einsum("ij,ij->i", rel, rel))
-    direction = rel / r[:, None]
-    c, s = np.cos(geo.kappa), np.sin(geo.kappa)
-    x_right = rel[:, 0] * c + rel[:, 1] * s
-    scan[sel] = np.arctan(x_right / rel[:, 2])
+    inv_r = 1.0 / r
+    # Angles in float32 (the fields' type): half the cost of the transcendental functions.
+    kappa32 = geo.kappa.astype(np.float32)
+    x_right = (rel[:, 0].astype(np.float32) * np.cos(kappa32)
+               + rel[:, 1].astype(np.float32) * np.sin(kappa32))
+    scan[sel] = np.arctan(x_right / rel[:, 2].astype(np.float32))
     rng[sel] = r
-    cos_t = cos_incidence(normals[sel], direction)
+    nrm = normals if everything else normals[sel]
+    # |n . l| with l = rel / r
+    cos_t = np.abs((nrm[:, 0] * rel[:, 0] + nrm[:, 1] * rel[:, 1] + nrm[:, 2] * rel[:, 2])
+                   * inv_r).astype(np.float32)
+    np.minimum(cos_t, np.float32(1.0), out=cos_t)
     has_normal = np.isfinite(cos_t)
     inc[sel] = np.arccos(cos_t)
     nn = np.zeros(n, dtype=bool)
@@ -483,33 +499,128 @@ def correct_cloud(
 
 @dataclass
 class _Message:
+    """A cloud waiting in :class:`StreamCorrector` (its points are not yet decoded)."""
+
     tag: Any
     points: np.ndarray
-    xyz: np.ndarray
-    t: np.ndarray
-    intensity: np.ndarray | None
-    group: np.ndarray | None
+    t_min: float
     t_max: float
     strip: int
-    cell_m: float
 
     def __len__(self) -> int:
-        return int(self.t.shape[0])
+        return int(self.points.shape[0])
 
 
 @dataclass
 class _Job:
-    """A batch ready to be corrected, with its context."""
+    """A batch ready to be corrected, with its context: the clouds of the batch and the
+    neighbouring clouds whose points within ``context_s`` of the batch's time span are
+    neighbours for the normals. Self-contained (picklable) so that it can run in another
+    process."""
 
-    batch: list[_Message]
-    xyz: np.ndarray
-    t: np.ndarray
-    intensity: np.ndarray | None
-    group: np.ndarray | None
-    context_xyz: np.ndarray | None
-    context_group: np.ndarray | None
+    batch: list[np.ndarray]
+    before: list[np.ndarray]
+    after: list[np.ndarray]
+    t_start: float
+    t_end: float
+    context_s: float
     heading: float
-    cell: tuple[float, float]
+
+
+#: Trajectory and settings of a worker process (set once by :func:`_init_worker`).
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(trajectory: Trajectory, settings: CorrectionSettings, source: str) -> None:
+    tune_allocator()
+    _WORKER.update(trajectory=trajectory, settings=settings, source=source)
+    try:
+        _warm_up(trajectory, settings)
+    except Exception:  # only a warm-up
+        logger.debug("worker warm-up failed", exc_info=True)
+
+
+def _warm_up(trajectory: Trajectory, settings: CorrectionSettings, n: int = 50_000) -> None:
+    """Run the correction once on a synthetic flat strip under the trajectory, so that the
+    first real batch of a worker does not pay for its first allocations and calls."""
+    if len(trajectory) < 2:
+        return
+    i = len(trajectory) // 2
+    t0 = float(trajectory.t[i])
+    t = t0 + np.linspace(-0.2, 0.2, n)
+    rng = np.random.default_rng(0)
+    pos = np.column_stack([np.interp(t, trajectory.t, trajectory.xyz[:, j]) for j in range(3)])
+    dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), (settings.time_field, "<f8"),
+                      ("intensity", "<f4"), ("strip_id", "<u2")])
+    pts = np.zeros(n, dtype=dtype)
+    pts["x"] = pos[:, 0] + rng.uniform(-200.0, 200.0, n)
+    pts["y"] = pos[:, 1] + rng.uniform(-5.0, 5.0, n)
+    pts["z"] = pos[:, 2] - 500.0
+    pts[settings.time_field] = t
+    pts["intensity"] = 100.0
+    job = _Job([pts], [], [], float(t[0]), float(t[-1]), 0.1,
+               trajectory_heading(trajectory, t0))
+    _run_job(job, trajectory, settings, "warm-up")
+
+
+def _noop() -> None:
+    return None
+
+
+def _run_in_worker(job: _Job) -> tuple[list[np.ndarray], np.ndarray, float, float]:
+    return _run_job(job, _WORKER["trajectory"], _WORKER["settings"], _WORKER["source"])
+
+
+def _columns(clouds: list[np.ndarray], settings: CorrectionSettings, source: str
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """xyz, t, intensity (NaN for clouds without) and strip id (0 where absent) of clouds."""
+    cols = [extract_columns(c, time_field=settings.time_field, source=source) for c in clouds]
+    if len(cols) == 1:
+        c = cols[0]
+        return c.xyz, c.t, c.intensity, c.strip_id
+    xyz = np.concatenate([c.xyz for c in cols]) if cols else np.empty((0, 3))
+    t = np.concatenate([c.t for c in cols]) if cols else np.empty(0)
+    inten: np.ndarray | None = None
+    if any(c.intensity is not None for c in cols):
+        inten = np.concatenate([c.intensity if c.intensity is not None
+                                else np.full(len(c), np.nan, np.float32) for c in cols])
+    group: np.ndarray | None = None
+    if any(c.strip_id is not None for c in cols):
+        group = np.concatenate([c.strip_id if c.strip_id is not None
+                                else np.zeros(len(c), np.uint32) for c in cols])
+    return xyz, t, inten, group
+
+
+def _run_job(job: _Job, trajectory: Trajectory, settings: CorrectionSettings, source: str
+             ) -> tuple[list[np.ndarray], np.ndarray, float, float]:
+    """Correct one batch: the corrected clouds, the flags, seconds spent, the cell (m)."""
+    started = time.perf_counter()
+    xyz, t, inten, group = _columns(job.batch, settings, source)
+    ctx_xyz: list[np.ndarray] = []
+    ctx_group: list[np.ndarray] = []
+    for clouds, keep_of in ((job.before, lambda tt: tt >= job.t_start - job.context_s),
+                            (job.after, lambda tt: tt <= job.t_end + job.context_s)):
+        if clouds:
+            cx, ct, _ci, cg = _columns(clouds, settings, source)
+            keep = keep_of(ct)
+            ctx_xyz.append(cx[keep])
+            ctx_group.append(cg[keep].astype(np.int64) if cg is not None
+                             else np.zeros(int(keep.sum()), np.int64))
+    finite = finite_rows(xyz) & np.isfinite(t)
+    every = bool(finite.all())
+    cell = cell_size(xyz if every else xyz[finite], job.heading, t if every else t[finite])
+    res = correct_columns(
+        xyz, t, inten, trajectory, settings, group=group,
+        context_xyz=np.concatenate(ctx_xyz) if ctx_xyz else None,
+        context_group=np.concatenate(ctx_group) if ctx_group else None,
+        heading=job.heading, cell_m=cell, source=source)
+    out: list[np.ndarray] = []
+    a = 0
+    for points in job.batch:
+        b = a + len(points)
+        out.append(build_corrected(points, res, a, b))
+        a = b
+    return out, res.flags, time.perf_counter() - started, max(cell)
 
 
 class StreamCorrector:
@@ -524,17 +635,24 @@ class StreamCorrector:
         Clouds of one strip are corrected together until a batch holds this many points; 0
         corrects each cloud on its own (least latency).
     workers : int
-        Batches corrected in parallel threads (numpy releases the GIL in most of the work);
-        1 corrects in the calling thread.
+        Batches corrected in parallel; 1 corrects in the calling thread.
+    executor : ``"process"`` or ``"thread"``
+        With ``workers > 1``: worker processes (no contention for the global interpreter
+        lock; batches and results are copied to and from them; each starts in about half a
+        second and warms up on a synthetic strip) or threads (lighter; numpy releases the
+        lock in most, not all, of the work). Either way the output does not depend on the
+        executor, the number of workers or timing.
     source : str
         Topic named in messages.
 
     Notes
     -----
     :meth:`push` returns the corrected clouds that became ready, as ``(tag, array)`` in the
-    order pushed; :meth:`flush` returns the rest. ``stats`` counts everything released.
-    Batches are independent given their context (delivered coordinates of the neighbouring
-    clouds), which is what lets them run in parallel.
+    order pushed; :meth:`flush` returns the rest (and stops the workers). ``stats`` counts
+    everything released. Batches are independent given their context (the delivered
+    coordinates of the neighbouring clouds), which is what lets them run in parallel. Held in
+    memory: the batch being formed and its look-ahead, ``workers + 1`` batches in flight, and
+    the last clouds of the previous batch (the context before the next).
     """
 
     def __init__(
@@ -544,23 +662,26 @@ class StreamCorrector:
         *,
         batch_points: int = DEFAULT_BATCH_POINTS,
         workers: int = 1,
+        executor: str = "thread",
         source: str = "cloud",
     ) -> None:
+        if executor not in ("thread", "process"):
+            raise ConfigError(f"executor must be 'thread' or 'process', got {executor!r}")
         self.trajectory = trajectory
         self.settings = settings
         self.batch_points = max(int(batch_points), 0)
         self.workers = max(int(workers), 1)
+        self.executor = executor
         self.source = source
         self.stats = CorrectionStats()
         self._pending: deque[_Message] = deque()
-        self._history: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._previous: deque[_Message] = deque()  # clouds of earlier batches, for context
         self._cell_cache: dict[int, float] = {}
         speed = trajectory_speed(trajectory)
         self._speed = speed if math.isfinite(speed) and speed > 1.0 else 1.0
         self._warned_intensity = False
-        self._pool: ThreadPoolExecutor | None = None
-        self._inflight: deque[Future[tuple[list[tuple[Any, np.ndarray]], np.ndarray, float]]] = (
-            deque())
+        self._pool: Any = None
+        self._inflight: deque[tuple[list[Any], int, Future[Any]]] = deque()
 
     def context_seconds(self, cell_m: float) -> float:
         """Time before and after a batch whose points are neighbours of its edge, s."""
@@ -568,33 +689,109 @@ class StreamCorrector:
             cell_m = 10.0
         return min((2.5 * cell_m + 2.0) / self._speed, 5.0)
 
+    def lookahead_seconds(self) -> float:
+        """The look-ahead a cloud currently waits for, s (largest cell seen so far)."""
+        cells = [c for c in self._cell_cache.values() if math.isfinite(c)]
+        return self.context_seconds(max(cells) if cells else math.nan)
+
+    def set_trajectory(self, trajectory: Trajectory) -> None:
+        """Use a newer trajectory (e.g. grown while streaming); the look-ahead follows its
+        recent speed. Worker processes restart with it at the next batch."""
+        if trajectory is self.trajectory:
+            return
+        self.trajectory = trajectory
+        tail = trajectory if len(trajectory) <= 500 else Trajectory(trajectory.t[-500:],
+                                                                    trajectory.xyz[-500:])
+        speed = trajectory_speed(tail)
+        if math.isfinite(speed) and speed > 1.0:
+            self._speed = speed
+        if self.executor == "process":
+            self._restart()
+
+    def set_settings(self, settings: CorrectionSettings) -> None:
+        """Use new settings (calibration, radiometry) from the next batch on."""
+        self.settings = settings
+        if self.executor == "process":
+            self._restart()
+
+    def _restart(self) -> None:
+        """Let the worker processes finish what they have and stop; new ones start with the
+        current trajectory and settings at the next batch."""
+        if self._pool is not None:
+            pool, self._pool = self._pool, None
+            pool.shutdown(wait=False)
+
+    def start(self) -> None:
+        """Start the workers now (they otherwise start with the first batch)."""
+        if self.workers == 1 or self._pool is not None:
+            return
+        if self.executor == "thread":
+            self._pool = ThreadPoolExecutor(max_workers=self.workers,
+                                            thread_name_prefix="lidarcal-correct")
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # forkserver: workers fork from a clean server process, never from this one
+            # (which may run threads); they import this module once.
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload([__name__])
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
+                initargs=(self.trajectory, self.settings, self.source))
+            for _ in range(self.workers):  # start them now, not at the first batch
+                self._pool.submit(_noop)
+
+    def close(self) -> None:
+        """Stop the workers (also done by :meth:`flush`)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
     def push(self, points: np.ndarray, tag: Any = None) -> list[tuple[Any, np.ndarray]]:
-        """Add a cloud (structured array); returns the corrected clouds now ready."""
-        cols = extract_columns(points, time_field=self.settings.time_field, source=self.source)
-        if cols.intensity is None and not self._warned_intensity:
+        """Add a cloud (structured array); returns the corrected clouds now ready.
+
+        Raises
+        ------
+        CloudFormatError
+            The cloud lacks ``x, y, z`` or its time field, or has unsupported types.
+        """
+        names = points.dtype.names or ()
+        tname = resolve_time_field(points, self.settings.time_field, source=self.source)
+        if len(points) and "intensity" not in names and not self._warned_intensity:
             logger.warning("%s: clouds without an 'intensity' field: geometry is corrected, "
                            "reflectance is NaN (flag %d)", self.source, FLAG_NO_INTENSITY)
             self._warned_intensity = True
-        finite_t = cols.t[np.isfinite(cols.t)]
-        t_max = float(finite_t.max()) if finite_t.size else -math.inf
-        strip = int(cols.strip_id[0]) if cols.strip_id is not None and len(cols) else -1
-        cell = self._cell_cache.get(strip, math.nan)
-        if not math.isfinite(cell) and finite_t.size:
-            # First cloud of a strip: a first estimate of the cell, to size the look-ahead.
-            finite = np.isfinite(cols.xyz).all(axis=1) & np.isfinite(cols.t)
-            heading = trajectory_heading(self.trajectory, float(np.median(finite_t)))
+        t = points[tname]
+        t_min, t_max = math.inf, -math.inf
+        if len(points):
+            with np.errstate(invalid="ignore"):
+                t_min, t_max = float(np.nanmin(t)), float(np.nanmax(t))
+            if not math.isfinite(t_max):
+                t_min, t_max = math.inf, -math.inf
+        sid_name = "strip_id" if "strip_id" in names else (
+            "point_source_id" if "point_source_id" in names else None)
+        strip = int(points[sid_name][0]) if sid_name is not None and len(points) else -1
+        if strip not in self._cell_cache and len(points) and math.isfinite(t_max):
+            # First cloud of a strip: an estimate of the cell, to size the look-ahead of
+            # the strip's batches.
+            cols = extract_columns(points, time_field=self.settings.time_field,
+                                   source=self.source)
+            finite = finite_rows(cols.xyz) & np.isfinite(cols.t)
+            heading = trajectory_heading(self.trajectory, 0.5 * (t_min + t_max))
             cell = max(cell_size(cols.xyz[finite], heading, cols.t[finite]))
-        self._pending.append(_Message(tag, points, cols.xyz, cols.t, cols.intensity,
-                                      cols.strip_id, t_max, strip, cell))
+            if math.isfinite(cell):
+                self._cell_cache[strip] = cell
+        self._pending.append(_Message(tag, points, t_min, t_max, strip))
         return self._drain(final=False)
 
     def flush(self) -> list[tuple[Any, np.ndarray]]:
-        """Correct everything still held."""
-        out = self._drain(final=True)
-        out.extend(self._collect(wait_all=True))
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        """Correct everything still held; stop the workers."""
+        try:
+            out = self._drain(final=True)
+            out.extend(self._collect(wait_all=True))
+        finally:
+            self.close()
         return out
 
     # -- internals -------------------------------------------------------------------
@@ -602,37 +799,51 @@ class StreamCorrector:
     def _drain(self, *, final: bool) -> list[tuple[Any, np.ndarray]]:
         out: list[tuple[Any, np.ndarray]] = []
         while True:
-            job = self._next_job(final=final)
-            if job is None:
+            got = self._next_job(final=final)
+            if got is None:
                 break
+            tags, strip, job = got
             if self.workers == 1:
-                done, flags, seconds = self._run(job)
-                self._account(len(job.batch), flags, seconds)
-                out.extend(done)
-            else:
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(max_workers=self.workers,
-                                                    thread_name_prefix="lidarcal-correct")
-                self._inflight.append(self._pool.submit(self._run, job))
-                out.extend(self._collect(wait_all=False))
+                result = _run_job(job, self.trajectory, self.settings, self.source)
+                self._account(tags, strip, result, out)
+                continue
+            self.start()
+            fn = _run_in_worker if self.executor == "process" else (
+                lambda j: _run_job(j, self.trajectory, self.settings, self.source))
+            self._inflight.append((tags, strip, self._pool.submit(fn, job)))
+            out.extend(self._collect(wait_all=False))
         return out
 
     def _collect(self, *, wait_all: bool) -> list[tuple[Any, np.ndarray]]:
         """Results of finished batches, in order; waits while too many are in flight."""
         out: list[tuple[Any, np.ndarray]] = []
-        while self._inflight and (wait_all or self._inflight[0].done()
+        while self._inflight and (wait_all or self._inflight[0][2].done()
                                   or len(self._inflight) > self.workers):
-            done, flags, seconds = self._inflight.popleft().result()
-            self._account(len(done), flags, seconds)
-            out.extend(done)
+            tags, strip, future = self._inflight.popleft()
+            self._account(tags, strip, future.result(), out)
         return out
 
-    def _account(self, clouds: int, flags: np.ndarray, seconds: float) -> None:
-        self.stats.clouds += clouds
+    def _account(self, tags: list[Any], strip: int,
+                 result: tuple[list[np.ndarray], np.ndarray, float, float],
+                 out: list[tuple[Any, np.ndarray]]) -> None:
+        # (The cell of the batch is not fed back into the look-ahead: the batches' context
+        # must not depend on when results come back, or output would depend on timing.)
+        clouds, flags, seconds, _cell = result
+        self.stats.clouds += len(clouds)
         self.stats.seconds += seconds
         self.stats.add(flags)
+        out.extend(zip(tags, clouds))
 
-    def _next_job(self, *, final: bool) -> _Job | None:
+    def _slice(self, m: _Message, *, lo: float = -math.inf, hi: float = math.inf
+               ) -> np.ndarray:
+        """The points of a cloud with times in ``[lo, hi]`` (all of it if inside)."""
+        if m.t_min >= lo and m.t_max <= hi:
+            return m.points
+        tname = resolve_time_field(m.points, self.settings.time_field, source=self.source)
+        t = m.points[tname]
+        return m.points[(t >= lo) & (t <= hi)]
+
+    def _next_job(self, *, final: bool) -> tuple[list[Any], int, _Job] | None:
         if not self._pending:
             return None
         # The next batch: clouds of one strip up to batch_points points.
@@ -649,89 +860,30 @@ class StreamCorrector:
         if not (closed or final):
             return None
         batch = list(itertools.islice(self._pending, 0, k))
-        cells = [m.cell_m for m in batch if math.isfinite(m.cell_m)]
-        ctx_s = self.context_seconds(max(cells) if cells else math.nan)
+        ctx_s = self.context_seconds(self._cell_cache.get(first.strip, math.nan))
         t_end = max(m.t_max for m in batch)
+        t_start = min(m.t_min for m in batch)
         later = list(itertools.islice(self._pending, k, None))
-        if not final and not any(m.t_max >= t_end + ctx_s for m in later):
-            return None
-        xyz, t, inten, group = self._concat(batch)
-        finite_t = t[np.isfinite(t)]
-        t_start = float(finite_t.min()) if finite_t.size else math.inf
-        heading = trajectory_heading(
-            self.trajectory, float(np.median(finite_t)) if finite_t.size else math.nan)
-        finite = np.isfinite(xyz).all(axis=1) & np.isfinite(t)
-        every = bool(finite.all())
-        cell = cell_size(xyz if every else xyz[finite], heading, t if every else t[finite])
-        if all(math.isfinite(c) for c in cell):
-            self._cell_cache[first.strip] = max(cell)
-        ctx_xyz, ctx_group = self._context(later, t_start, t_end, ctx_s)
-        self._remember(xyz, t, group, t_end, ctx_s)
+        if (not final and not any(m.t_max >= t_end + ctx_s for m in later)
+                and sum(len(m) for m in later) < _MAX_LOOKAHEAD_POINTS):
+            return None  # wait for the look-ahead (unless times stall: then go without)
+        # Context: only the points within ctx_s of the batch (a cloud may be long).
+        after = [self._slice(m, hi=t_end + ctx_s) for m in later
+                 if m.t_min <= t_end + ctx_s and len(m)]
+        before = [self._slice(m, lo=t_start - ctx_s) for m in self._previous
+                  if m.t_max >= t_start - ctx_s and len(m)]
+        mid = 0.5 * (t_start + t_end) if math.isfinite(t_start + t_end) else math.nan
+        job = _Job([m.points for m in batch], before, after, t_start, t_end, ctx_s,
+                   trajectory_heading(self.trajectory, mid))
         for _ in range(k):
-            self._pending.popleft()
-        return _Job(batch, xyz, t, inten, group, ctx_xyz, ctx_group, heading, cell)
-
-    def _run(self, job: _Job) -> tuple[list[tuple[Any, np.ndarray]], np.ndarray, float]:
-        started = time.perf_counter()
-        res = correct_columns(job.xyz, job.t, job.intensity, self.trajectory, self.settings,
-                              group=job.group, context_xyz=job.context_xyz,
-                              context_group=job.context_group, heading=job.heading,
-                              cell_m=job.cell, source=self.source)
-        out: list[tuple[Any, np.ndarray]] = []
-        a = 0
-        for msg in job.batch:
-            b = a + len(msg)
-            out.append((msg.tag, build_corrected(msg.points, res, a, b)))
-            a = b
-        return out, res.flags, time.perf_counter() - started
-
-    @staticmethod
-    def _concat(
-        batch: list[_Message],
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-        if len(batch) == 1:
-            m = batch[0]
-            return m.xyz, m.t, m.intensity, m.group
-        xyz = np.concatenate([m.xyz for m in batch])
-        t = np.concatenate([m.t for m in batch])
-        inten: np.ndarray | None = None
-        if any(m.intensity is not None for m in batch):
-            inten = np.concatenate([
-                m.intensity if m.intensity is not None else np.full(len(m), np.nan, np.float32)
-                for m in batch])
-        group: np.ndarray | None = None
-        if any(m.group is not None for m in batch):
-            group = np.concatenate([
-                m.group if m.group is not None else np.zeros(len(m), np.uint32)
-                for m in batch])
-        return xyz, t, inten, group
-
-    def _context(
-        self, later: list[_Message], t_start: float, t_end: float, ctx_s: float
-    ) -> tuple[np.ndarray | None, np.ndarray | None]:
-        parts_xyz: list[np.ndarray] = []
-        parts_g: list[np.ndarray] = []
-        if self._history is not None:
-            hx, ht, hg = self._history
-            keep = ht >= t_start - ctx_s
-            parts_xyz.append(hx[keep])
-            parts_g.append(hg[keep])
-        for m in later:
-            keep = m.t <= t_end + ctx_s
-            if not keep.any():
-                continue
-            parts_xyz.append(m.xyz[keep])
-            parts_g.append(m.group[keep] if m.group is not None
-                           else np.zeros(int(keep.sum()), np.uint32))
-        if not parts_xyz:
-            return None, None
-        return np.concatenate(parts_xyz), np.concatenate(parts_g).astype(np.int64)
-
-    def _remember(self, xyz: np.ndarray, t: np.ndarray, group: np.ndarray | None,
-                  t_end: float, ctx_s: float) -> None:
-        keep = t >= t_end - ctx_s
-        g = group if group is not None else np.zeros(t.shape[0], np.uint32)
-        self._history = (xyz[keep].copy(), t[keep].copy(), np.asarray(g[keep], dtype=np.int64))
+            self._previous.append(self._pending.popleft())
+        # Keep only the clouds that may still be context of a later batch.
+        while self._previous and self._previous[0].t_max < t_end - 2.0 * ctx_s - 1.0:
+            self._previous.popleft()
+        while len(self._previous) > 1 and sum(
+                len(m) for m in self._previous) > _MAX_LOOKAHEAD_POINTS:
+            self._previous.popleft()
+        return [m.tag for m in batch], first.strip, job
 
 
 # ---------------------------------------------------------------------------- bags
@@ -802,6 +954,7 @@ def correct_bag(
     overwrite: bool = False,
     batch_points: int = DEFAULT_BATCH_POINTS,
     workers: int = 1,
+    executor: str = "thread",
     progress: Callable[[str, float], None] | None = None,
 ) -> CorrectionReport:
     """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
@@ -825,7 +978,11 @@ def correct_bag(
     batch_points : int
         Points corrected together (memory is about 1 kB per point of batch).
     workers : int
-        Batches corrected in parallel threads.
+        Batches corrected in parallel (reading and writing stay in the calling thread:
+        they are mostly Python code, and threads of their own only contend for the
+        interpreter lock).
+    executor : ``"process"`` or ``"thread"``
+        Where the parallel batches run (:class:`StreamCorrector`).
     progress : callable(stage, fraction), optional
 
     Returns
@@ -866,6 +1023,8 @@ def correct_bag(
             if got not in types:
                 raise BagError(f"{bag.path}: topic {topic} has type {got}; expected "
                                f"{' or '.join(types)}")
+            if bag.topics[topic].count == 0:
+                raise BagError(f"{bag.path}: topic {topic} has no messages")
         if corrected_topic in bag.topics and kind == "bag":
             raise BagError(f"{bag.path}: already has topic {corrected_topic}; a corrected "
                            "bag cannot be corrected again into the same topic")
@@ -877,17 +1036,21 @@ def correct_bag(
                              f"{sorted(traj_frames)}")
         frame = next(iter(traj_frames))
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
-                                    workers=workers, source=points_topic)
+                                    workers=workers, executor=executor, source=points_topic)
         n_clouds = max(bag.topics[points_topic].count, 1)
         report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
                                   atmosphere=describe_alpha(settings.radiometry),
                                   warnings=warnings)
-        if kind == "las":
-            _correct_to_las(bag, corrector, out_path, points_topic, frame, crs, overwrite,
-                            n_clouds, progress, report)
-        else:
-            _correct_to_bag(bag, corrector, out_path, points_topic, corrected_topic, frame,
-                            overwrite, n_clouds, progress, report)
+        try:
+            corrector.start()  # the workers start while the clouds are read
+            if kind == "las":
+                _correct_to_las(bag, corrector, out_path, points_topic, frame, crs, overwrite,
+                                n_clouds, progress, report)
+            else:
+                _correct_to_bag(bag, corrector, out_path, points_topic, corrected_topic,
+                                frame, overwrite, n_clouds, progress, report)
+        finally:
+            corrector.close()
     s = corrector.stats
     if s.not_corrected:
         report.warnings.append(
@@ -931,19 +1094,20 @@ def _correct_to_las(
     with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
                         overwrite=overwrite) as writer:
 
+        def write_run(parts: list[np.ndarray]) -> None:
+            writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
+
         def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
-            nonlocal run_points
+            nonlocal run, run_points
             for _tag, corrected in done:
                 if run and corrected.dtype != run[0].dtype:
-                    writer.write(np.concatenate(run))
-                    run.clear()
-                    run_points = 0
+                    write_run(run)
+                    run, run_points = [], 0
                 run.append(corrected)
                 run_points += len(corrected)
             if run and (final or run_points >= _LAS_RUN_POINTS):
-                writer.write(np.concatenate(run) if len(run) > 1 else run[0])
-                run.clear()
-                run_points = 0
+                write_run(run)
+                run, run_points = [], 0
 
         for topic, msgtype, _ns, raw in bag.messages([points_topic]):
             _msg, points = _cloud_points(bag, msgtype, raw, topic, frame)
@@ -981,25 +1145,27 @@ def _correct_to_bag(
 
     with BagWriter(out_path, overwrite=overwrite, latched_topics=latched) as writer:
 
+        def write_corrected(ns_: int, msg_: Any, corrected_: np.ndarray) -> None:
+            writer.write_message(corrected_topic, POINTCLOUD2, ns_,
+                                 _cloud_message(msg_, corrected_))
+
+        def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
+            if topic_ in skipped_topics:
+                return
+            try:
+                writer.write_raw(topic_, msgtype_, ns_, raw_,
+                                 msgdef=bag.topics[topic_].msgdef or None)
+            except BagError as exc:
+                skipped_topics.add(topic_)
+                report.warnings.append(f"topic {topic_} not passed through ({exc})")
+                logger.warning("%s", report.warnings[-1])
+                return
+            report.passthrough_messages += 1
+
         def emit(limit: tuple[float, int]) -> None:
             while ready and (ready[0][0], ready[0][1]) < limit:
                 _, kind_, payload = heapq.heappop(ready)
-                if kind_ == 1:
-                    ns_, msg_, corrected_ = payload
-                    writer.write_message(corrected_topic, POINTCLOUD2, ns_,
-                                         _cloud_message(msg_, corrected_))
-                    continue
-                topic_, msgtype_, ns_, raw_ = payload
-                try:
-                    writer.write_raw(topic_, msgtype_, ns_, raw_,
-                                     msgdef=bag.topics[topic_].msgdef or None)
-                except BagError as exc:
-                    if topic_ not in skipped_topics:
-                        skipped_topics.add(topic_)
-                        report.warnings.append(f"topic {topic_} not passed through ({exc})")
-                        logger.warning("%s", report.warnings[-1])
-                    continue
-                report.passthrough_messages += 1
+                (write_corrected if kind_ == 1 else write_raw)(*payload)
 
         def collect(done: list[tuple[Any, np.ndarray]]) -> None:
             for (k_, ns_, msg_), corrected in done:
