@@ -232,9 +232,8 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
                              len(st) / max(float(raster.sum()) * cell**2, 1.0)))
     timer.add("local trajectories", t0)
 
-    # Overlapping pairs and their candidate points: the same rule and random subset as lidarcal.
+    # Overlapping pairs and their candidate points: the same rule and random draw as lidarcal.
     t0 = time.perf_counter()
-    rng = np.random.default_rng(s.seed)
     pairs: list[tuple[int, int, np.ndarray]] = []
     for i in range(len(strips)):
         for j in range(i + 1, len(strips)):
@@ -242,11 +241,14 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
             if int(both.sum()) < s.min_overlap_cells:
                 continue
             a, b = (i, j) if strips[i].density <= strips[j].density else (j, i)
-            zone = strips[a].raster & ndimage.binary_erosion(strips[b].raster, iterations=1)
+            zone = strips[a].raster & ndimage.binary_erosion(
+                strips[b].raster, structure=np.ones((3, 3), dtype=bool))
             cand = np.flatnonzero(zone[index(strips[a].xyz[:, :2])])
             if cand.size == 0:
                 continue
             if cand.size > s.max_candidates_per_pair:
+                ids = sorted((mission.strips[i].strip_id, mission.strips[j].strip_id))
+                rng = np.random.default_rng([s.seed, *ids])
                 cand = np.sort(rng.choice(cand, s.max_candidates_per_pair, replace=False))
             pairs.append((a, b, cand))
     timer.add("overlaps", t0)
