@@ -172,6 +172,7 @@ class _PairWork:
     before: np.ndarray | None = None
     frozen: Observations | None = None  # last observations, kept when a strip is dropped
     last: Observations | None = None  # observations of the latest matching
+    last_triangle: np.ndarray | None = None  # patch of each sample point at the last matching
 
 
 class Calibrator:
@@ -352,8 +353,14 @@ class Calibrator:
         a_xyz, _ = corrected[pair.a]
         b_xyz, b_shift = corrected[pair.b]
         shift = b_shift if np.any(delta) else None
-        return match_to_tin(a_xyz[points_idx], self._tin(pair.b), b_xyz,
-                            max_normal_distance=threshold, vertex_shift=shift)
+        # The sample is matched every iteration: start each search at its last patch.
+        on_sample = points_idx is pair.sample
+        start = pair.last_triangle if on_sample else None
+        m = match_to_tin(a_xyz[points_idx], self._tin(pair.b), b_xyz,
+                         max_normal_distance=threshold, vertex_shift=shift, start=start)
+        if on_sample:
+            pair.last_triangle = m.triangle
+        return m
 
     def _pair_observations(
         self, pair: _PairWork, points_idx: np.ndarray, m: PatchMatches

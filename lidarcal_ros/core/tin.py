@@ -126,9 +126,12 @@ class Tin:
             self.sloped[has] &= nrm[nb[has], 2] < cos_flat
         return ok
 
-    def locate(self, xy: np.ndarray) -> np.ndarray:
-        """Triangle containing each XY (map frame) in the delivered geometry, -1 outside."""
-        return self._locator.locate(xy - self.origin[:2])
+    def locate(self, xy: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """Triangle containing each XY (map frame) in the delivered geometry, -1 outside.
+
+        ``start``: triangles to begin the search from (e.g. a previous match), -1 for none.
+        """
+        return self._locator.locate(xy - self.origin[:2], self.neighbors, start)
 
 
 def delaunay(xy: np.ndarray, *, backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
@@ -219,8 +222,53 @@ class GridLocator:
         self.inv[:, 1, 1] = m[:, 0, 0] / det
         self.a = a
 
-    def locate(self, q: np.ndarray) -> np.ndarray:
-        """Index of the triangle containing each query point (local XY), -1 if none."""
+    def locate(self, q: np.ndarray, neighbors: np.ndarray | None = None,
+               start: np.ndarray | None = None) -> np.ndarray:
+        """Index of the triangle containing each query point (local XY), -1 if none.
+
+        With ``neighbors`` (triangle opposite each vertex), walks from a triangle listed in the
+        query's cell (or from ``start`` where given and >= 0) toward the query, crossing the
+        edge with the most negative barycentric coordinate: a few vectorised steps for all
+        queries, whatever their order. Queries a walk does not settle fall back to testing
+        every triangle listed in their cell.
+        """
+        if neighbors is None:
+            return self._scan(q, np.arange(q.shape[0]))
+        out = np.full(q.shape[0], -1, dtype=np.int64)
+        ix = np.floor((q[:, 0] - self.x0) / self.cell).astype(np.int64)
+        iy = np.floor((q[:, 1] - self.y0) / self.cell).astype(np.int64)
+        inside = (ix >= 0) & (ix < self.nx) & (iy >= 0) & (iy < self.ny) & np.isfinite(q).all(1)
+        cell = np.where(inside, ix * self.ny + iy, 0)
+        has = inside & (self.starts[cell + 1] > self.starts[cell])
+        tri = np.where(has, self.entries[np.minimum(self.starts[cell], self.entries.size - 1)], -1)
+        if start is not None:
+            tri = np.where((start >= 0) & inside, start, tri)
+        active = np.flatnonzero(tri >= 0)
+        t = tri[active]
+        eps = -1e-12
+        for _ in range(self.MAX_WALK):
+            if not active.size:
+                break
+            d = q[active] - self.a[t]
+            inv = self.inv[t]
+            l1 = inv[:, 0, 0] * d[:, 0] + inv[:, 0, 1] * d[:, 1]
+            l2 = inv[:, 1, 0] * d[:, 0] + inv[:, 1, 1] * d[:, 1]
+            lam = np.stack([1.0 - l1 - l2, l1, l2], axis=1)
+            worst = np.argmin(lam, axis=1)
+            hit = lam[np.arange(t.size), worst] >= eps
+            out[active[hit]] = t[hit]
+            step = neighbors[t, worst]
+            going = ~hit & (step >= 0)  # stepping out of the hull: outside, stays -1
+            active, t = active[going], step[going]
+        if active.size:  # rare: degenerate walks; settle them by scanning their cells
+            out[active] = self._scan(q[active], np.arange(active.size))
+        return out
+
+    #: Most walking steps before falling back to a scan.
+    MAX_WALK = 64
+
+    def _scan(self, q: np.ndarray, _: np.ndarray) -> np.ndarray:
+        """Test every triangle listed in each query's cell."""
         out = np.full(q.shape[0], -1, dtype=np.int64)
         ix = np.floor((q[:, 0] - self.x0) / self.cell).astype(np.int64)
         iy = np.floor((q[:, 1] - self.y0) / self.cell).astype(np.int64)
@@ -287,6 +335,7 @@ def match_to_tin(
     *,
     max_normal_distance: float,
     vertex_shift: np.ndarray | None = None,
+    start: np.ndarray | None = None,
 ) -> PatchMatches:
     """Match points to the closest usable patch of a TIN (method.md section 6).
 
@@ -304,6 +353,8 @@ def match_to_tin(
         The TIN's vertices in their current (corrected) coordinates, map frame, metres.
     max_normal_distance : float
         Largest accepted |normal distance|, metres.
+    start : (k,) int64, optional
+        Triangles to begin each point's search from (its previous match, -1 for none).
     vertex_shift : (n, 3) float64, optional
         ``delivered - current`` for each vertex, used to locate queries in the delivered
         triangulation. None when ``vertices`` are the delivered coordinates.
@@ -319,6 +370,7 @@ def match_to_tin(
     for b0 in range(0, k, _MATCH_BLOCK):
         b1 = min(k, b0 + _MATCH_BLOCK)
         _match_block(points[b0:b1], tin, vertices, max_normal_distance, vertex_shift,
+                     None if start is None else start[b0:b1],
                      out, slice(b0, b1))
     return out
 
@@ -329,18 +381,25 @@ def _match_block(
     vertices: np.ndarray,
     max_normal_distance: float,
     vertex_shift: np.ndarray | None,
+    start: np.ndarray | None,
     out: PatchMatches,
     where: slice,
 ) -> None:
     xy = points[:, :2]
-    tri = tin.locate(xy)
-    if vertex_shift is not None:
-        # Move the query into the delivered geometry by the local shift of the TIN.
-        found = tri >= 0
-        shift = vertex_shift[tin.simplices[tri[found]]].mean(axis=1)[:, :2]
+    if vertex_shift is None:
+        tri = tin.locate(xy, start)
+    else:
+        # Move the query into the delivered geometry by the local shift of the TIN, taken at
+        # its previous match (or at a first guess), then walk from there.
+        guess = np.full(xy.shape[0], -1, dtype=np.int64) if start is None else start.copy()
+        fresh = guess < 0
+        if fresh.any():
+            guess[fresh] = tin.locate(xy[fresh])
+        found = guess >= 0
+        shift = vertex_shift[tin.simplices[guess[found]]].mean(axis=1)[:, :2]
         xy2 = xy.copy()
         xy2[found] += shift
-        tri = tin.locate(xy2)
+        tri = tin.locate(xy2, guess)
     found = tri >= 0
     cand = np.full((points.shape[0], _CANDIDATES), -1, dtype=np.int64)
     cand[found, 0] = tri[found]
