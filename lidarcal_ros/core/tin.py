@@ -400,33 +400,69 @@ def _match_block(
         xy2 = xy.copy()
         xy2[found] += shift
         tri = tin.locate(xy2, guess)
-    found = tri >= 0
-    cand = np.full((points.shape[0], _CANDIDATES), -1, dtype=np.int64)
-    cand[found, 0] = tri[found]
-    cand[found, 1:] = tin.neighbors[tri[found]]
+    n = points.shape[0]
+    best_tri = np.full(n, -1, dtype=np.int64)
+    best_abs = np.full(n, np.inf)
+    best_nrm = np.zeros((n, 3))
+    best_w = np.zeros((n, 3))
+    best_d = np.full(n, np.nan)
+
+    def consider(rows: np.ndarray, cand: np.ndarray) -> None:
+        ok, nrm, dist, w = _patch_test(points[rows], cand, tin, vertices, max_normal_distance)
+        better = ok & (np.abs(dist) < best_abs[rows])
+        r = rows[better]
+        best_tri[r] = cand[better]
+        best_abs[r] = np.abs(dist[better])
+        best_nrm[r] = nrm[better]
+        best_w[r] = w[better]
+        best_d[r] = dist[better]
+
+    # The patch containing the point's XY settles almost every point; its three neighbours
+    # are tried only where it does not qualify (foot of the normal outside it, or unusable).
+    rows = np.flatnonzero(tri >= 0)
+    consider(rows, tri[rows])
+    rest = rows[best_tri[rows] < 0]
+    for k in range(_CANDIDATES - 1):
+        cand = tin.neighbors[tri[rest], k]
+        consider(rest, cand)
+    valid = best_tri >= 0
+    out.valid[where] = valid
+    out.triangle[where] = best_tri
+    out.normal[where] = best_nrm
+    out.weights[where] = best_w
+    out.distance[where] = best_d
+
+
+def _patch_test(
+    points: np.ndarray, cand: np.ndarray, tin: Tin, vertices: np.ndarray,
+    max_normal_distance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Whether each point's patch ``cand`` qualifies: usable, foot of the normal inside, close.
+
+    Returns ``(ok, normal, signed distance, barycentric weights of the foot)``.
+    """
     ok = cand >= 0
     ok[ok] = tin.usable[cand[ok]]
-    cand_safe = np.where(ok, cand, 0)
+    safe = np.where(ok, cand, 0)
     # Local origin: the query point, so differences stay small at projected magnitudes.
-    tv = vertices[tin.simplices[cand_safe]] - points[:, None, None, :]  # (k, 4, 3, 3)
-    v0 = tv[:, :, 0, :]
-    e1 = tv[:, :, 1, :] - v0
-    e2 = tv[:, :, 2, :] - v0
+    tv = vertices[tin.simplices[safe]] - points[:, None, :]  # (k, 3, 3)
+    v0 = tv[:, 0, :]
+    e1 = tv[:, 1, :] - v0
+    e2 = tv[:, 2, :] - v0
     nrm = np.cross(e1, e2)
-    length = np.linalg.norm(nrm, axis=2)
+    length = np.linalg.norm(nrm, axis=1)
     ok &= length > 0
     length[length == 0] = 1.0
-    nrm /= length[..., None]
-    nrm *= np.where(nrm[..., 2:3] < 0, -1.0, 1.0)
+    nrm /= length[:, None]
+    nrm *= np.where(nrm[:, 2:3] < 0, -1.0, 1.0)
     # Point is at the origin: distance = n . (0 - v0).
-    dist = -(nrm * v0).sum(axis=2)
-    foot = -dist[..., None] * nrm  # point minus d*n, relative to the point
-    ep = foot - v0
-    d00 = (e1 * e1).sum(axis=2)
-    d01 = (e1 * e2).sum(axis=2)
-    d11 = (e2 * e2).sum(axis=2)
-    d20 = (ep * e1).sum(axis=2)
-    d21 = (ep * e2).sum(axis=2)
+    dist = -(nrm * v0).sum(axis=1)
+    ep = -dist[:, None] * nrm - v0  # foot of the normal, from v0
+    d00 = (e1 * e1).sum(axis=1)
+    d01 = (e1 * e2).sum(axis=1)
+    d11 = (e2 * e2).sum(axis=1)
+    d20 = (ep * e1).sum(axis=1)
+    d21 = (ep * e2).sum(axis=1)
     denom = d00 * d11 - d01 * d01
     denom[denom == 0] = np.inf
     wv = (d11 * d20 - d01 * d21) / denom
@@ -435,12 +471,4 @@ def _match_block(
     eps = -1e-9
     ok &= (wu >= eps) & (wv >= eps) & (ww >= eps)
     ok &= np.abs(dist) <= max_normal_distance
-    score = np.where(ok, np.abs(dist), np.inf)
-    best = np.argmin(score, axis=1)
-    rows = np.arange(points.shape[0])
-    valid = ok[rows, best]
-    out.valid[where] = valid
-    out.triangle[where] = np.where(valid, cand[rows, best], -1)
-    out.normal[where] = nrm[rows, best]
-    out.weights[where] = np.stack([wu[rows, best], wv[rows, best], ww[rows, best]], axis=1)
-    out.distance[where] = np.where(valid, dist[rows, best], np.nan)
+    return ok, nrm, dist, np.stack([wu, wv, ww], axis=1)
