@@ -203,8 +203,8 @@ def _add_correct(sub: Any) -> None:
                    "config)")
     p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
     p.add_argument("--workers", type=int, default=2,
-                   help="threads correcting batches in parallel, with reading and writing in "
-                   "threads of their own (default 2; 1: all in one thread)")
+                   help="threads correcting batches in parallel (default 2; 1: all in one "
+                   "thread)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_correct)
 
@@ -314,18 +314,11 @@ def _add_plan(sub: Any) -> None:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import json
 
-    import yaml
-
     from lidarcal_ros.core.params import display_value
     from lidarcal_ros.core.planning import FlightPlan, predict
-    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.io.yaml_file import read_yaml
 
-    try:
-        doc = yaml.safe_load(args.plan.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{args.plan}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError:
-        raise ConfigError(f"{args.plan}: not valid YAML") from None
+    doc = read_yaml(args.plan, what="flight plan")
     report = predict(FlightPlan.from_mapping(doc, source=str(args.plan)), seed=args.seed)
     if args.json:
         print(json.dumps(report.to_json_dict(), indent=1))
@@ -341,6 +334,77 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             print(f"  {name:<7} NOT estimable: {pred.reason}")
     for line in report.advice:
         print(f"advice: {line}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- import
+def _add_import(sub: Any) -> None:
+    p = sub.add_parser("import", help="LAS/LAZ strips and a trajectory into a mission bag",
+                       description="Bring LAS/LAZ flight lines (LAS 1.0-1.4, any number of "
+                       "files) and an Applanix SBET, an ASCII trajectory time,x,y,z[,...], or "
+                       "a trajectory rebuilt from multiple returns into a mission bag that "
+                       "calibrate, correct and replay read.",
+                       epilog="Strips come from point_source_id, or from GPS-time gaps where "
+                       "it is 0 or the same everywhere. LAS GPS time is adjusted standard "
+                       "time (global encoding bit 0) or week seconds, SBET time week seconds: "
+                       "the GPS week comes from the absolute side, the bag's clock is UNIX "
+                       "time whenever an absolute time is known, else week seconds. SBET "
+                       "positions (EPSG:4979) are projected to the points' CRS, heights kept "
+                       "ellipsoidal unless the CRS is compound; coordinates in feet are "
+                       "converted to metres.")
+    p.add_argument("inputs", nargs="+", type=Path, metavar="STRIP",
+                   help="LAS or LAZ files")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output rosbag2 directory (or .mcap file)")
+    p.add_argument("--trajectory", dest="trajectory_source", default="estimate",
+                   metavar="SBET|CSV|estimate",
+                   help="SBET (.out), ASCII trajectory, or 'estimate' to rebuild it from "
+                   "multiple returns (default)")
+    p.add_argument("--crs", help="CRS of the points, e.g. EPSG:32633 (default: LAS header)")
+    p.add_argument("--trajectory-crs",
+                   help="CRS of the trajectory positions (default EPSG:4979 for SBET and "
+                   "lat/lon columns, the points' CRS for ASCII x,y,z)")
+    p.add_argument("--trajectory-time", default="auto",
+                   choices=("auto", "week", "adjusted", "gps", "unix"),
+                   help="time base of the trajectory file (default: SBET week seconds, ASCII "
+                   "by magnitude and overlap with the points)")
+    p.add_argument("--gps-week", type=int, help="GPS week of week-second times")
+    p.add_argument("--strip-gap", type=float, default=10.0,
+                   help="GPS-time gap separating strips without point source ids, s "
+                   "(default 10)")
+    p.add_argument("--returns", default="all", choices=("all", "first", "last"),
+                   help="returns written to the bag (default all; every return feeds "
+                   "--trajectory estimate)")
+    p.add_argument("--frame", default="map", help="map frame id (default map)")
+    p.add_argument("--points", default="/lidar/points", help="points topic")
+    p.add_argument("--trajectory-topic", default="/lidar/trajectory", help="trajectory topic")
+    p.add_argument("--trajectory-rate", type=float, default=50.0,
+                   help="trajectory samples kept per second, 0 for all (default 50)")
+    p.add_argument("--memory-points", type=int, default=2_000_000,
+                   help="points held in memory before spilling sorted runs to disk")
+    p.add_argument("--qa-cell", type=float, default=2.0,
+                   help="cell of the swath-to-swath overlap QA grid, m (default 2; 0: none)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_import)
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from lidarcal_ros.pipeline.importer import import_mission
+
+    progress, close = _progress_bar(True)
+    try:
+        report = import_mission(
+            args.inputs, args.output, trajectory=args.trajectory_source, crs=args.crs,
+            trajectory_crs=args.trajectory_crs, trajectory_time=args.trajectory_time,
+            gps_week=args.gps_week, strip_gap_s=args.strip_gap, returns=args.returns,
+            frame_id=args.frame, points_topic=args.points,
+            trajectory_topic=args.trajectory_topic, trajectory_rate_hz=args.trajectory_rate,
+            memory_points=args.memory_points, qa_cell_m=args.qa_cell,
+            overwrite=args.overwrite, progress=progress)
+    finally:
+        close()
+    for line in report.lines():
+        print(line)
     return 0
 
 
@@ -362,6 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_record(sub)
     _add_plan(sub)
+    _add_import(sub)
     return parser
 
 

@@ -195,7 +195,7 @@ def cloud_cdr(
         names = points.dtype.names or ()
         is_dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
     head = cloud_header_cdr(stamp, frame_id, fields, point_step, n)
-    return b"".join((head, memoryview(data), b"\x01" if is_dense else b"\x00"))
+    return b"".join((head, data.data, b"\x01" if is_dense else b"\x00"))
 
 
 # ---------------------------------------------------------------------------- estimate

@@ -1,0 +1,646 @@
+"""Benchmark of the ROS 2 nodes over loopback DDS (bench/README.md, "Nodes").
+
+    .venv/bin/python bench/bench_nodes.py                    # everything (~6 min)
+    .venv/bin/python bench/bench_nodes.py --only codec,corrector
+    .venv/bin/python bench/bench_nodes.py --rates 0.25,0.5,1,2,4 --seconds 10
+
+Sections (every figure measured in this run; the typed-rclpy path is measured beside the raw
+CDR path under the same load):
+
+codec      per-chunk cost of getting a PointCloud2 in and out of Python: raw CDR (rosbags
+           ``deserialize_cdr`` view, :func:`lidarcal_ros.io.ros_messages.cloud_cdr`) against
+           rclpy's typed messages (``deserialize_message`` + ``np.frombuffer``, building a
+           ``sensor_msgs.msg.PointCloud2`` + ``serialize_message``), no DDS.
+corrector  sustained throughput of ``lidarcal_corrector`` through DDS: a source process offers
+           synthetic chunks at a given point rate (trajectory ahead of them), the corrector runs
+           in its own process, the benchmark process receives the corrected chunks. Per offered
+           rate: points/s out, latency per chunk (source publish -> corrected chunk received;
+           header stamps carry the publish wall time) p50/p99, and the latency trend (last third
+           minus first third: growth = backlog). Once with the node's raw path, once with a
+           typed-rclpy variant of the same node (typed subscription and publisher).
+calibrator ``lidarcal run`` (separate processes) fed ``lidarcal replay bags/paper_sample --rate
+           10``: when each strip's estimate appears relative to the end of the strip in the
+           replay, and the lag of the last estimate behind the end of the replay.
+memory     resident memory of the calibrator and corrector processes over a looped replay of
+           the sample mission (``--loop``), sampled every second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+ROOT = BENCH.parent
+PYTHON = sys.executable
+SAMPLE_BAG = ROOT / "bags" / "paper_sample"
+SAMPLE_CONTROL = ROOT / "bags" / "paper_sample_control.csv"
+
+GOAL_POINTS_PER_S = 4.0e6
+GOAL_P99_S = 0.100
+
+#: Synthetic stream: aircraft at 1000 m along +y at 60 m/s; flat ground; swath +-400 m.
+SPEED = 60.0
+HEIGHT = 1000.0
+SWATH = 400.0
+TRAJ_HZ = 200.0
+
+
+# ---------------------------------------------------------------------------- synthetic data
+def synthetic_chunk(k: int, n: int, dt: float, t0: float, rng: np.random.Generator) -> np.ndarray:
+    """Chunk ``k`` of ``n`` points covering mission time ``[t0 + k dt, t0 + (k+1) dt)``."""
+    from lidarcal_ros.io.pointcloud import make_point_dtype
+
+    pts = np.zeros(n, dtype=make_point_dtype())
+    t = t0 + (k + np.sort(rng.random(n))) * dt
+    pts["t"] = t
+    # a zig-zag scanner: across-track position from the mirror phase
+    phase = (t * 70.0) % 2.0
+    across = SWATH * (np.abs(phase - 1.0) * 2.0 - 1.0)
+    pts["x"] = across
+    pts["y"] = SPEED * (t - t0) + rng.normal(0, 0.3, n)
+    pts["z"] = rng.normal(0.0, 0.05, n) + 0.01 * across
+    pts["intensity"] = rng.uniform(20, 200, n).astype(np.float32)
+    pts["strip_id"] = 1
+    return pts
+
+
+def pose_cdr(t: float) -> bytes:
+    from lidarcal_ros.io.ros_messages import serialize, typestore
+
+    types = typestore().types
+    sec, nsec = divmod(round(t * 1e9), 1_000_000_000)
+    msg = types["geometry_msgs/msg/PoseStamped"](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id="map"),
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=0.0, y=SPEED * (t - T0), z=HEIGHT),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+    return serialize(msg, "geometry_msgs/msg/PoseStamped")
+
+
+T0 = 1.7e9
+
+
+def _source_main(argv: list[str]) -> int:
+    """Child process: publish synthetic chunks at ``rate`` points/s for ``seconds``."""
+    rate, points, seconds, topic = float(argv[0]), int(argv[1]), float(argv[2]), argv[3]
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    configure_ros_environment()
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.context import Context
+    from sensor_msgs.msg import PointCloud2
+
+    from lidarcal_ros.io.ros_messages import cloud_cdr
+    from lidarcal_ros.nodes.common import stream_qos
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("bench_source", context=ctx)
+    pub = node.create_publisher(PointCloud2, topic, stream_qos(200))
+    traj = node.create_publisher(PoseStamped, "/lidar/trajectory", stream_qos(10000))
+    dt = points / rate
+    n_chunks = max(int(seconds / dt), 1)
+    rng = np.random.default_rng(0)
+    # Pre-built chunks (cycled), so that the source spends its time publishing.
+    templates = [synthetic_chunk(k, points, dt, 0.0, rng) for k in range(4)]
+    deadline = time.monotonic() + 20
+    while (pub.get_subscription_count() < 1 or traj.get_subscription_count() < 1) and \
+            time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(1.0)
+    next_pose = 0.0
+    # the trajectory covers the first chunks before they are sent
+    while next_pose < 2 * dt + 0.5:
+        traj.publish(pose_cdr(T0 + next_pose))
+        next_pose += 1.0 / TRAJ_HZ
+    start = time.monotonic()
+    for k in range(n_chunks):
+        target = start + k * dt
+        now = time.monotonic()
+        if target > now:
+            time.sleep(target - now)
+        while next_pose < (k + 2) * dt + 0.5:
+            traj.publish(pose_cdr(T0 + next_pose))
+            next_pose += 1.0 / TRAJ_HZ
+        pts = templates[k % 4].copy()
+        pts["t"] += T0 + (k - k % 4) * dt
+        pts["y"] += SPEED * (k - k % 4) * dt
+        pub.publish(cloud_cdr(time.time_ns(), "map", pts))
+    print(json.dumps({"chunks": n_chunks, "seconds": time.monotonic() - start}), flush=True)
+    time.sleep(1.0)
+    node.destroy_node()
+    ctx.try_shutdown()
+    return 0
+
+
+# ---------------------------------------------------------------------------- typed corrector
+def _typed_corrector_main(argv: list[str]) -> int:
+    """Child process: the corrector with rclpy's typed PointCloud2 in and out."""
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    configure_ros_environment()
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
+    from lidarcal_ros.nodes import corrector as mod
+    from lidarcal_ros.nodes.common import run_main, stream_qos
+
+    class TypedCorrector(mod.CorrectorNode):
+        def __init__(self, *, context: Any = None) -> None:
+            super().__init__(context=context, parameter_overrides=[
+                Parameter("topics.points", value="/bench/unused"),
+                Parameter("topics.corrected", value="/bench/unused_out")])
+            self.typed_pub = self.create_publisher(PointCloud2, "/lidar/points_corrected",
+                                                   stream_qos(1000))
+            self.create_subscription(PointCloud2, "/lidar/points", self._on_typed,
+                                     stream_qos(1000))
+
+        def _on_typed(self, msg: PointCloud2) -> None:
+            chunk = mod._Chunk(b"", time.monotonic())
+            chunk.points = cloud_to_array(msg)
+            chunk.stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            chunk.frame_id = msg.header.frame_id
+            t = chunk.points["t"]
+            chunk.t_max = float(np.nanmax(t)) if len(t) else -math.inf
+            with self._lock:
+                self._queue.append(chunk)
+                self._lock.notify()
+
+        def _release(self, out: list[tuple[Any, np.ndarray]]) -> None:
+            for tag, corrected in out:
+                chunk = self._held.pop(tag, None)
+                if chunk is None:
+                    continue
+                fields, step, data = array_to_cloud_parts(corrected)
+                msg = PointCloud2()
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(chunk.stamp_ns,
+                                                                        1_000_000_000)
+                msg.header.frame_id = chunk.frame_id
+                msg.height, msg.width = 1, len(corrected)
+                msg.fields = [PointField(name=n, offset=o, datatype=d, count=c)
+                              for n, o, d, c in fields]
+                msg.point_step, msg.row_step = step, step * len(corrected)
+                msg.data = data.tobytes()
+                msg.is_dense = True
+                self.typed_pub.publish(msg)
+                self.stats.clouds_out += 1
+                self.stats.points_out += len(corrected)
+                self.stats.latencies.append(time.monotonic() - chunk.received)
+
+    return run_main([TypedCorrector], ["bench_typed_corrector"])
+
+
+# ---------------------------------------------------------------------------- helpers
+def _env() -> dict[str, str]:
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    env = dict(os.environ)
+    configure_ros_environment(env)
+    return env
+
+
+def _stop(proc: subprocess.Popen[Any], timeout: float = 20.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            return proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return proc.wait()
+
+
+def _rss_mib(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return math.nan
+
+
+class Receiver:
+    """Counts corrected chunks in the benchmark process (raw CDR, header only)."""
+
+    def __init__(self, context: Any) -> None:
+        import rclpy
+        from sensor_msgs.msg import PointCloud2
+
+        from lidarcal_ros.nodes.common import stream_qos
+
+        self.node = rclpy.create_node("bench_sink", context=context)
+        self.samples: list[tuple[float, float, int]] = []  # (recv wall, latency, points)
+        self.node.create_subscription(PointCloud2, "/lidar/points_corrected", self._on,
+                                      stream_qos(1000), raw=True)
+
+    def _on(self, raw: bytes) -> None:
+        now = time.time_ns()
+        sec, nsec = np.frombuffer(raw, dtype="<i4", count=2, offset=4)
+        stamp = int(sec) * 1_000_000_000 + int(np.uint32(nsec))
+        # width: after the frame id string
+        flen = int(np.frombuffer(raw, dtype="<u4", count=1, offset=12)[0])
+        off = 16 + flen
+        off += (-(off - 4)) % 4
+        width = int(np.frombuffer(raw, dtype="<u4", count=1, offset=off + 4)[0])
+        self.samples.append((now / 1e9, (now - stamp) / 1e9, width))
+
+
+def _spin_in_thread(context: Any, nodes: list[Any]) -> tuple[threading.Event, threading.Thread,
+                                                              Any]:
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor(context=context)
+    for n in nodes:
+        ex.add_node(n)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+    return stop, th, ex
+
+
+# ---------------------------------------------------------------------------- codec
+def bench_codec(points: int, repeats: int) -> dict[str, Any]:
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    configure_ros_environment()
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
+    from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
+    from lidarcal_ros.pipeline.correction import corrected_dtype
+
+    rng = np.random.default_rng(1)
+    pts = synthetic_chunk(0, points, 0.05, T0, rng)
+    out_dtype = corrected_dtype(pts.dtype)
+    out = np.zeros(points, dtype=out_dtype)
+    raw = cloud_cdr(1, "map", pts)
+
+    def raw_in() -> None:
+        c = parse_cloud(raw)
+        c.points["x"].sum()
+
+    def typed_in() -> None:
+        m = deserialize_message(raw, PointCloud2)
+        cloud_to_array(m)["x"].sum()
+
+    def raw_out() -> None:
+        cloud_cdr(1, "map", out)
+
+    def typed_out() -> None:
+        fields, step, data = array_to_cloud_parts(out)
+        m = PointCloud2()
+        m.header.frame_id = "map"
+        m.height, m.width = 1, len(out)
+        m.fields = [PointField(name=n, offset=o, datatype=d, count=c) for n, o, d, c in fields]
+        m.point_step, m.row_step = step, step * len(out)
+        m.data = data.tobytes()
+        serialize_message(m)
+
+    res: dict[str, Any] = {"points": points, "bytes_in": len(raw),
+                           "bytes_out": points * out_dtype.itemsize}
+    for name, fn in (("raw_in", raw_in), ("typed_in", typed_in), ("raw_out", raw_out),
+                     ("typed_out", typed_out)):
+        fn()
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        res[name] = statistics.median(times)
+    return res
+
+
+# ---------------------------------------------------------------------------- corrector
+def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant: str,
+                    context: Any) -> list[dict[str, Any]]:
+    results = []
+    env = _env()
+    typed = variant == "typed"
+    cmd = ([PYTHON, str(Path(__file__)), "_typed_corrector"] if typed else
+           [PYTHON, "-m", "lidarcal_ros.nodes.corrector"])
+    if variant == "raw-nolookahead":
+        cmd += ["--ros-args", "-p", "lookahead:=false"]
+    for rate in rates:
+        points = max(int(rate * chunk_s), 100)
+        corrector = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True)
+        receiver = Receiver(context)
+        stop, th, ex = _spin_in_thread(context, [receiver.node])
+        try:
+            time.sleep(2.0)
+            source = subprocess.run(
+                [PYTHON, str(Path(__file__)), "_source", str(rate), str(points), str(seconds),
+                 "/lidar/points"], env=env, capture_output=True, text=True,
+                timeout=seconds + 120)
+            sent = json.loads(source.stdout.strip().splitlines()[-1]) if \
+                source.returncode == 0 else {"chunks": 0, "seconds": math.nan}
+            # let the corrector drain (bounded)
+            deadline = time.monotonic() + 30
+            while len(receiver.samples) < sent["chunks"] and time.monotonic() < deadline:
+                time.sleep(0.1)
+            rss = _rss_mib(corrector.pid)
+        finally:
+            stop.set()
+            th.join()
+            ex.shutdown()
+            receiver.node.destroy_node()
+            _stop(corrector)
+        s = receiver.samples
+        if len(s) >= 3:
+            recv = np.array([x[0] for x in s])
+            lat = np.array([x[1] for x in s])
+            n_pts = np.array([x[2] for x in s])
+            span = recv[-1] - recv[0]
+            thirds = np.array_split(lat, 3)
+            out_rate = float(n_pts[1:].sum() / span) if span > 0 else math.nan
+            growth = float(np.median(thirds[-1]) - np.median(thirds[0]))
+            p50, p99 = (float(v) for v in np.percentile(lat, [50, 99]))
+        else:
+            out_rate = growth = p50 = p99 = math.nan
+        results.append({
+            "path": variant, "offered_pts_s": rate, "chunk_points": points,
+            "chunks_sent": sent["chunks"], "chunks_received": len(s),
+            "out_pts_s": out_rate, "latency_p50_s": p50, "latency_p99_s": p99,
+            "latency_growth_s": growth, "corrector_rss_mib": rss,
+        })
+        print(f"  {variant:15} offered {rate / 1e6:5.2f} M/s ({points} pts/chunk): "
+              f"out {out_rate / 1e6:5.2f} M/s, {len(s)}/{sent['chunks']} chunks, "
+              f"p50 {p50 * 1000:7.1f} ms, p99 {p99 * 1000:7.1f} ms, "
+              f"growth {growth * 1000:+7.1f} ms", flush=True)
+    return results
+
+
+def bench_transport(rate: float, seconds: float, chunk_s: float,
+                    context: Any) -> dict[str, Any]:
+    """The source publishing straight to the receiver: what DDS alone costs."""
+    points = max(int(rate * chunk_s), 100)
+    receiver = Receiver(context)
+    stop, th, ex = _spin_in_thread(context, [receiver.node])
+    try:
+        source = subprocess.run(
+            [PYTHON, str(Path(__file__)), "_source", str(rate), str(points), str(seconds),
+             "/lidar/points_corrected"], env=_env(), capture_output=True, text=True,
+            timeout=seconds + 120)
+        sent = json.loads(source.stdout.strip().splitlines()[-1])
+        time.sleep(1.0)
+    finally:
+        stop.set()
+        th.join()
+        ex.shutdown()
+        receiver.node.destroy_node()
+    s = receiver.samples
+    recv = np.array([x[0] for x in s])
+    lat = np.array([x[1] for x in s])
+    n_pts = np.array([x[2] for x in s])
+    span = recv[-1] - recv[0] if len(s) > 1 else math.nan
+    p50, p99 = (float(v) for v in np.percentile(lat, [50, 99])) if len(s) else (math.nan,) * 2
+    return {"offered_pts_s": rate, "chunk_points": points, "chunks_sent": sent["chunks"],
+            "chunks_received": len(s), "out_pts_s": float(n_pts[1:].sum() / span),
+            "latency_p50_s": p50, "latency_p99_s": p99}
+
+
+# ---------------------------------------------------------------------------- calibrator
+def bench_calibrator(rate: float, context: Any) -> dict[str, Any]:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Float64MultiArray
+
+    from lidarcal_ros.io.bag import open_bag
+    from lidarcal_ros.io.ros_messages import parse_cloud
+    from lidarcal_ros.nodes.common import latched_qos
+
+    env = _env()
+    with open_bag(SAMPLE_BAG) as bag:
+        start_ns = bag.start_ns
+        strip_end: dict[int, float] = {}
+        for _t, _m, ns, raw in bag.messages(["/lidar/points"]):
+            sid = int(parse_cloud(raw).points["strip_id"][0])
+            strip_end[sid] = (ns - start_ns) / 1e9
+    node = rclpy.create_node("bench_cal_probe", context=context)
+    events: list[tuple[float, str]] = []
+    estimates: list[float] = []
+    closed: dict[str, float] = {}
+
+    def on_diag(msg: Any) -> None:
+        for s in msg.status:
+            if s.name == "lidarcal: memory":
+                values = {kv.key: kv.value for kv in s.values}
+                closed_ids = set(values["strips"].split(",")) - set(
+                    values["open_strips"].split(",")) - {""}
+                for sid in closed_ids:
+                    closed.setdefault(sid, time.monotonic())
+            if s.name == "lidarcal: state":
+                values = {kv.key: kv.value for kv in s.values}
+                events.append((time.monotonic(), values["solves"]))
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
+    node.create_subscription(Float64MultiArray, "/lidar/calibration/estimate",
+                             lambda m: estimates.append(time.monotonic()), latched_qos())
+    stop, th, ex = _spin_in_thread(context, [node])
+    suite = subprocess.Popen([PYTHON, "-m", "lidarcal_ros", "run", "--control",
+                              str(SAMPLE_CONTROL), "--ros-args", "-p", "idle_close_s:=1.0"],
+                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        time.sleep(3.0)
+        t_start = time.monotonic()
+        replay = subprocess.run(
+            [PYTHON, "-m", "lidarcal_ros", "replay", str(SAMPLE_BAG), "--rate", str(rate),
+             "--wait-for-subscribers", "30", "--min-subscribers", "2"],
+            env=env, capture_output=True, text=True, timeout=600)
+        t_end = time.monotonic()
+        deadline = time.monotonic() + 300
+        while len(closed) < len(strip_end) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        # the estimate after the last strip closed
+        time.sleep(0.5)
+        while time.monotonic() < deadline and (not estimates or estimates[-1] <
+                                               max(closed.values(), default=0)):
+            time.sleep(0.1)
+        rss = _rss_mib(suite.pid)
+    finally:
+        stop.set()
+        th.join()
+        ex.shutdown()
+        node.destroy_node()
+        _stop(suite)
+    wall_per_bag_s = 1.0 / rate
+    # replay start: bag time 0 at the first message, after --wait-for-subscribers
+    first_pub = t_end - (bag_duration(SAMPLE_BAG) * wall_per_bag_s)
+    lags = {sid: closed.get(str(sid), math.nan) - (first_pub + end * wall_per_bag_s)
+            for sid, end in strip_end.items()}
+    last_estimate_lag = (estimates[-1] - t_end) if estimates else math.nan
+    out = {"rate": rate, "replay_wall_s": t_end - t_start, "replay_rc": replay.returncode,
+           "strip_closed_lag_s": lags, "estimates": len(estimates),
+           "last_estimate_after_replay_end_s": last_estimate_lag,
+           "strip_interval_wall_s": float(np.median(np.diff(sorted(strip_end.values()))))
+           * wall_per_bag_s, "run_parent_rss_mib": rss}
+    return out
+
+
+def bag_duration(path: Path) -> float:
+    from lidarcal_ros.io.bag import open_bag
+
+    with open_bag(path) as bag:
+        return (bag.end_ns - bag.start_ns) / 1e9
+
+
+# ---------------------------------------------------------------------------- memory
+def bench_memory(rate: float, passes: int) -> dict[str, Any]:
+    env = _env()
+    procs = {name: subprocess.Popen(
+        [PYTHON, "-m", f"lidarcal_ros.nodes.{name}", "--ros-args", "-p",
+         f"calibration.control_points_file:={SAMPLE_CONTROL}", "-p", "idle_close_s:=1.0"],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        for name in ("calibrator", "corrector")}
+    samples: list[tuple[float, float, float]] = []
+    try:
+        time.sleep(3.0)
+        length = bag_duration(SAMPLE_BAG) / rate
+        replay = subprocess.Popen(
+            [PYTHON, "-m", "lidarcal_ros", "replay", str(SAMPLE_BAG), "--rate", str(rate),
+             "--loop", "--wait-for-subscribers", "30", "--min-subscribers", "2"],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < passes * length + 5:
+            samples.append((time.monotonic() - t0, _rss_mib(procs["calibrator"].pid),
+                            _rss_mib(procs["corrector"].pid)))
+            time.sleep(1.0)
+        _stop(replay)
+    finally:
+        for p in procs.values():
+            _stop(p)
+    per_pass = []
+    for k in range(passes):
+        sel = [s for s in samples if k * length <= s[0] < (k + 1) * length]
+        if sel:
+            per_pass.append({"pass": k + 1, "calibrator_max_mib": max(s[1] for s in sel),
+                             "corrector_max_mib": max(s[2] for s in sel)})
+    return {"rate": rate, "passes": passes, "pass_wall_s": length, "per_pass": per_pass}
+
+
+# ---------------------------------------------------------------------------- main
+def main() -> int:
+    if len(sys.argv) > 1 and sys.argv[1] == "_source":
+        return _source_main(sys.argv[2:])
+    if len(sys.argv) > 1 and sys.argv[1] == "_typed_corrector":
+        return _typed_corrector_main(sys.argv[2:])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--only", default="codec,transport,corrector,calibrator,memory")
+    parser.add_argument("--rates", default="0.25,0.5,1,2,4",
+                        help="offered corrector loads, million points/s")
+    parser.add_argument("--seconds", type=float, default=8.0, help="per offered load")
+    parser.add_argument("--chunk-s", type=float, default=0.05,
+                        help="mission time per chunk, s (points per chunk = rate x this)")
+    parser.add_argument("--variants", default="raw,raw-nolookahead,typed",
+                        help="corrector variants: raw (the node), raw-nolookahead "
+                        "(lookahead:=false), typed (typed-rclpy PointCloud2 in and out)")
+    parser.add_argument("--calibrator-rate", type=float, default=10.0)
+    parser.add_argument("--memory-rate", type=float, default=20.0)
+    parser.add_argument("--memory-passes", type=int, default=4)
+    parser.add_argument("--dds-profile", type=Path,
+                        help="Fast DDS profile for every process (default: the project's "
+                        "loopback profile); e.g. bench/dds_large_shm.xml")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    only = set(args.only.split(","))
+
+    from lidarcal_ros.rosenv import claim_domain_id, configure_ros_environment
+
+    if args.dds_profile is not None:
+        os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(args.dds_profile.resolve())
+    if not os.environ.get("ROS_DOMAIN_ID"):
+        configure_ros_environment(domain_id=claim_domain_id())
+    else:
+        configure_ros_environment()
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context)
+    results: dict[str, Any] = {"cpus": os.cpu_count(),
+                               "dds_profile": os.environ["FASTDDS_DEFAULT_PROFILES_FILE"],
+                               "load_avg_at_start": os.getloadavg()}
+    print(f"bench_nodes: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, "
+          f"ROS_DOMAIN_ID {os.environ['ROS_DOMAIN_ID']}, DDS profile "
+          f"{os.environ['FASTDDS_DEFAULT_PROFILES_FILE']}", flush=True)
+    try:
+        if "codec" in only:
+            print("codec (per chunk, no DDS):", flush=True)
+            results["codec"] = []
+            for n in (2_000, 200_000):
+                r = bench_codec(n, 30 if n < 100_000 else 10)
+                results["codec"].append(r)
+                print(f"  {n:>7} points: in  raw {r['raw_in'] * 1e3:7.3f} ms  typed "
+                      f"{r['typed_in'] * 1e3:7.3f} ms ({r['typed_in'] / r['raw_in']:5.1f}x)   "
+                      f"out raw {r['raw_out'] * 1e3:7.3f} ms  typed "
+                      f"{r['typed_out'] * 1e3:7.3f} ms ({r['typed_out'] / r['raw_out']:5.1f}x)",
+                      flush=True)
+        if "transport" in only:
+            print("transport only (source -> this process, no corrector):", flush=True)
+            results["transport"] = []
+            for rate in [float(r) * 1e6 for r in args.rates.split(",")]:
+                r = bench_transport(rate, args.seconds, args.chunk_s, context)
+                results["transport"].append(r)
+                print(f"  offered {rate / 1e6:5.2f} M/s: out {r['out_pts_s'] / 1e6:5.2f} M/s, "
+                      f"{r['chunks_received']}/{r['chunks_sent']} chunks, p50 "
+                      f"{r['latency_p50_s'] * 1000:6.1f} ms, p99 "
+                      f"{r['latency_p99_s'] * 1000:6.1f} ms", flush=True)
+        if "corrector" in only:
+            rates = [float(r) * 1e6 for r in args.rates.split(",")]
+            print(f"corrector through DDS ({args.seconds:g} s per load, chunks of "
+                  f"{args.chunk_s * 1000:g} ms):", flush=True)
+            results["corrector"] = []
+            for variant in args.variants.split(","):
+                results["corrector"] += bench_corrector(rates, args.seconds, args.chunk_s,
+                                                        variant, context)
+        if "calibrator" in only:
+            print(f"calibrator: sample mission replayed at {args.calibrator_rate:g}x:",
+                  flush=True)
+            r = bench_calibrator(args.calibrator_rate, context)
+            results["calibrator"] = r
+            lags = ", ".join(f"{k}: {v:.1f} s" for k, v in sorted(r["strip_closed_lag_s"].items()))
+            print(f"  replay {r['replay_wall_s']:.1f} s wall; strip interval "
+                  f"{r['strip_interval_wall_s']:.1f} s wall; strip closed + solved after its "
+                  f"end: {lags}; last estimate {r['last_estimate_after_replay_end_s']:.1f} s "
+                  f"after the replay ended ({r['estimates']} estimates)", flush=True)
+        if "memory" in only:
+            print(f"memory: looped replay at {args.memory_rate:g}x, {args.memory_passes} "
+                  "passes:", flush=True)
+            r = bench_memory(args.memory_rate, args.memory_passes)
+            results["memory"] = r
+            for p in r["per_pass"]:
+                print(f"  pass {p['pass']}: calibrator {p['calibrator_max_mib']:.0f} MiB, "
+                      f"corrector {p['corrector_max_mib']:.0f} MiB", flush=True)
+    finally:
+        context.try_shutdown()
+    results["load_avg_at_end"] = os.getloadavg()
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,308 @@
+"""The ROS subcommands of ``lidarcal``: ``replay``, ``run`` and ``record``.
+
+Each confines DDS to this machine (:func:`lidarcal_ros.rosenv.configure_ros_environment`)
+before rclpy is imported, turns SIGINT and SIGTERM into a clean stop (exit status 0, no
+traceback) and passes ``--ros-args ...`` through to rclpy (remappings, ``-p``,
+``--params-file``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from lidarcal_ros.errors import ConfigError
+
+
+def _ros_argv(ros_args: list[str] | None, extra: list[str] | None = None) -> list[str]:
+    args = list(extra or []) + list(ros_args or [])
+    return ["lidarcal", "--ros-args", *args] if args else ["lidarcal"]
+
+
+def _start_ros(argv: list[str]) -> tuple[Any, Any]:
+    """Confine DDS, initialise a context with our own signal handling."""
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    configure_ros_environment()
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+
+    from lidarcal_ros.nodes.common import Shutdown
+
+    shutdown = Shutdown().install()
+    context = Context()
+    rclpy.init(args=argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    return context, shutdown
+
+
+# ---------------------------------------------------------------------------- replay
+def add_replay_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--rate", type=float, default=1.0,
+                   help="speed factor of the original timing (default 1; 10 = ten times faster)")
+    p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
+    p.add_argument("--clock", action="store_true",
+                   help="publish the bag time on /clock (for nodes with use_sim_time)")
+    p.add_argument("--clock-hz", type=float, default=40.0,
+                   help="/clock messages per wall second (default 40)")
+    p.add_argument("--start", type=float, default=0.0,
+                   help="start this many seconds after the bag's first message")
+    p.add_argument("--duration", type=float, default=None,
+                   help="replay this many seconds of the bag (default: to the end)")
+    p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
+                   help="replay only these topics (default: all)")
+    p.add_argument("--queue", type=int, default=100,
+                   help="keep-last depth of the publishers (default 100)")
+    p.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
+                   help="first wait up to this long until every topic has --min-subscribers")
+    p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
+                   help="subscribers each topic needs before --wait-for-subscribers ends "
+                   "(default 1)")
+    p.add_argument("--delay", type=float, default=0.0,
+                   help="wait this long after creating the publishers (discovery), seconds")
+    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
+                   help="rclpy arguments (e.g. remappings -r /lidar/points:=/other)")
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from lidarcal_ros.io.bag import open_bag
+    from lidarcal_ros.pipeline.replay import Pacer, replay, replay_window
+
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise ConfigError(f"--rate must be a positive number, got {args.rate}")
+    if args.queue < 1:
+        raise ConfigError(f"--queue must be at least 1, got {args.queue}")
+    with open_bag(args.bag) as bag:
+        if args.topics:
+            unknown = [t for t in args.topics if t not in bag.topics]
+            if unknown:
+                raise ConfigError(f"{args.bag}: topic(s) {', '.join(unknown)} not in the bag; "
+                                  f"topics present: {', '.join(bag.topics) or 'none'}")
+        window = replay_window(bag.start_ns, bag.end_ns, start_s=args.start,
+                               duration_s=args.duration)
+        context, shutdown = _start_ros(_ros_argv(args.ros_args))
+        from lidarcal_ros.nodes.player import PlayerNode
+
+        node = None
+        try:
+            node = PlayerNode(bag, topics=args.topics, queue=args.queue, clock=args.clock,
+                              context=context)
+            pacer = Pacer(args.rate, clock=node.publish_clock if args.clock else None,
+                          clock_hz=args.clock_hz, wait=shutdown.event.wait)
+            if args.wait_for_subscribers > 0:
+                missing = node.wait_for_subscribers(args.wait_for_subscribers,
+                                                    minimum=args.min_subscribers,
+                                                    stop=lambda: shutdown.requested)
+                if missing:
+                    print(f"lidarcal replay: no subscriber on {', '.join(missing)}; "
+                          "replaying anyway", file=sys.stderr)
+            if args.delay > 0:
+                shutdown.event.wait(args.delay)
+            topics = node.topics
+            print(f"replaying {args.bag}: {window.duration_s:.1f} s of bag time at rate "
+                  f"{args.rate:g} ({', '.join(topics)})", flush=True)
+            stats = replay(lambda: bag.messages(topics), node.publish, window, pacer,
+                           latched=node.latched, loop=args.loop,
+                           stop=lambda: shutdown.requested)
+            node.wait_for_all_acked(5.0)
+            state = "interrupted" if stats.interrupted else "done"
+            print(f"{state}: {stats.messages} messages in {stats.wall_s:.1f} s "
+                  f"({stats.passes} pass{'es' if stats.passes != 1 else ''}, "
+                  f"largest delay behind schedule {stats.max_lateness_s * 1000:.0f} ms"
+                  + (f", {stats.clock_messages} /clock messages" if args.clock else "")
+                  + ")", flush=True)
+        finally:
+            if node is not None:
+                node.destroy_node()
+            context.try_shutdown()
+            shutdown.restore()
+    return 0
+
+
+# ---------------------------------------------------------------------------- run
+NODE_CHOICES = ("flight_config", "calibrator", "corrector")
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path,
+                   help="flight configuration (ROS 2 parameters file), for every node")
+    p.add_argument("--control", type=Path, help="control points CSV id,x,y,z")
+    p.add_argument("--nodes", default=",".join(NODE_CHOICES),
+                   help="comma-separated nodes to start (default: all three)")
+    p.add_argument("--record", type=Path, metavar="OUT",
+                   help="also record the output topics to this bag (.mcap or directory)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --record bag")
+    p.add_argument("--single-process", action="store_true",
+                   help="run the nodes in this process (one executor) instead of one process "
+                   "each")
+    p.add_argument("--threads", type=int, default=4,
+                   help="executor threads with --single-process (default 4)")
+    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
+                   help="rclpy arguments passed to every node (-p, -r, --params-file, ...)")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from lidarcal_ros.io.config_file import load_flight_config
+
+    names = [n.strip() for n in args.nodes.split(",") if n.strip()]
+    unknown = [n for n in names if n not in NODE_CHOICES]
+    if unknown or not names:
+        raise ConfigError(f"--nodes: unknown node(s) {', '.join(unknown) or '(none)'}; "
+                          f"choose from {', '.join(NODE_CHOICES)}")
+    extra: list[str] = []
+    if args.config is not None:
+        load_flight_config(args.config)  # one-line reason before anything starts
+        extra += ["--params-file", str(args.config)]
+    if args.control is not None:
+        from lidarcal_ros.io.control import read_control_csv
+
+        read_control_csv(args.control)
+        extra += ["-p", f"calibration.control_points_file:={args.control.resolve()}"]
+    if args.record is not None and args.record.exists() and not args.overwrite:
+        raise ConfigError(f"{args.record}: exists (use --overwrite to replace)")
+
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    configure_ros_environment()
+    argv = _ros_argv(args.ros_args, extra)
+    if args.single_process:
+        return _run_in_process(names, argv, args)
+    commands = [[sys.executable, "-m", f"lidarcal_ros.nodes.{name}", *argv[1:]]
+                for name in names]
+    if args.record is not None:
+        commands.append([sys.executable, "-m", "lidarcal_ros", "record", "-o",
+                         str(args.record), *(["--overwrite"] if args.overwrite else []),
+                         *(["--ros-args", *args.ros_args] if args.ros_args else [])])
+    return supervise(commands)
+
+
+def _run_in_process(names: list[str], argv: list[str], args: argparse.Namespace) -> int:
+    from lidarcal_ros.nodes.common import run_main
+
+    factories: list[Any] = []
+    if "flight_config" in names:
+        from lidarcal_ros.nodes.flight_config import FlightConfigNode
+
+        factories.append(FlightConfigNode)
+    if "calibrator" in names:
+        from lidarcal_ros.nodes.calibrator import CalibratorNode
+
+        factories.append(CalibratorNode)
+    if "corrector" in names:
+        from lidarcal_ros.nodes.corrector import CorrectorNode
+
+        factories.append(CorrectorNode)
+    if args.record is not None:
+        from lidarcal_ros.nodes.recorder import RecorderNode
+
+        out, overwrite = args.record, args.overwrite
+        factories.append(lambda context: RecorderNode(out, overwrite=overwrite,
+                                                      context=context))
+    return run_main(factories, argv, threads=args.threads)
+
+
+def supervise(commands: list[list[str]], *, grace_s: float = 15.0) -> int:
+    """Run ``commands`` as child processes until SIGINT / SIGTERM or until one ends.
+
+    A signal is passed on to every child as SIGTERM (Ctrl-C in a terminal reaches them
+    directly too); when a child ends on its own, the others are stopped. Children still running
+    ``grace_s`` after being asked to stop are killed. Returns 0 when the suite was stopped by a
+    signal and every child exited cleanly, else the first non-zero child status.
+    """
+    import signal
+    import subprocess
+    import time
+
+    from lidarcal_ros.nodes.common import Shutdown
+
+    shutdown = Shutdown().install()
+    procs = []
+    names: dict[int, str] = {}
+    try:
+        for cmd in commands:
+            procs.append(subprocess.Popen(cmd))
+            names[procs[-1].pid] = " ".join(cmd[2:4])
+        first_exit: int | None = None
+        while not shutdown.requested:
+            codes = [p.poll() for p in procs]
+            ended = [c for c in codes if c is not None]
+            if ended:
+                first_exit = next((c for c in ended if c != 0), ended[0])
+                print(f"lidarcal run: a node exited with status {ended[0]}; stopping the "
+                      "others", file=sys.stderr)
+                break
+            shutdown.event.wait(0.2)
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        status = 0 if first_exit is None else first_exit
+        for p in procs:
+            try:
+                code = p.wait(timeout=max(deadline - time.monotonic(), 0.1))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                code = p.wait()
+                print(f"lidarcal run: {names[p.pid]} did not stop in {grace_s:.0f} s; "
+                      "killed", file=sys.stderr)
+            if code not in (0, -signal.SIGTERM, -signal.SIGINT) and status == 0:
+                status = code if code > 0 else 1
+        return status
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        shutdown.restore()
+
+
+# ---------------------------------------------------------------------------- record
+def add_record_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output bag: .mcap file or rosbag2 directory")
+    p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
+                   help="topics to record (default: corrected points, estimate, calibration "
+                   "YAML, diagnostics)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="stop after this many seconds (default: until Ctrl-C / SIGTERM)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
+                   help="rclpy arguments")
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    if args.output.exists() and not args.overwrite:
+        raise ConfigError(f"{args.output}: exists (use --overwrite to replace)")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ConfigError(f"--duration must be a positive number of seconds, got "
+                          f"{args.duration}")
+    context, shutdown = _start_ros(_ros_argv(args.ros_args))
+    from lidarcal_ros.nodes.common import spin_nodes
+    from lidarcal_ros.nodes.recorder import DEFAULT_TOPICS, RecorderNode
+
+    node = None
+    timer = None
+    try:
+        node = RecorderNode(args.output, args.topics or DEFAULT_TOPICS,
+                            overwrite=args.overwrite, context=context)
+        if args.duration is not None:
+            timer = threading.Timer(args.duration, shutdown.event.set)
+            timer.daemon = True
+            timer.start()
+        spin_nodes([node], context, shutdown, threads=2)
+    finally:
+        if timer is not None:
+            timer.cancel()
+        if node is not None:
+            node.close()
+            counts = ", ".join(f"{t}: {n}" for t, n in node.counts.items())
+            print(f"recorded to {args.output} ({counts})", flush=True)
+            node.destroy_node()
+        context.try_shutdown()
+        shutdown.restore()
+    return 0

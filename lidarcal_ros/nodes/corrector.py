@@ -1,0 +1,424 @@
+"""``lidarcal_corrector``: applies the latest estimate and the radiometric model to each chunk.
+
+    ros2 run lidarcal_ros lidarcal_corrector --ros-args --params-file config/flight_config.yaml
+
+Subscribes (raw CDR) to the points (``topics.points``) and the trajectory
+(``topics.trajectory``), and to the calibrator's estimate (``/lidar/calibration/estimate``,
+transient-local); publishes each chunk corrected on ``topics.corrected`` with every input
+field, ``x, y, z`` corrected (method.md eq. [13]) and the FLOAT32 ``reflectance``, ``range``,
+``incidence``, ``scan_angle`` plus UINT8 ``correction_flags``
+(:mod:`lidarcal_ros.pipeline.correction`). Header stamp and frame are the input's.
+
+A new estimate is used from the next chunk on, without a restart; so are accepted changes of
+the flight configuration (atmosphere, radiometry, time field...). Until an estimate arrives the
+corrector uses the file named by its ``calibration`` parameter, else the configuration's
+``calibration.fixed.*`` values.
+
+Every input point comes out exactly once. A chunk is corrected once the trajectory covers it
+(a sample past its last point time) or after ``max_trajectory_wait_s``; chunks are corrected
+with their neighbours as context (``StreamCorrector``, one chunk at a time) and held at most
+until the next chunk arrives or ``flush_timeout_s`` passes. A malformed chunk (bad layout,
+missing field, wrong frame) is logged and skipped; the node keeps running.
+
+Node-specific parameters: ``calibration`` (YAML path), ``queue_depth``, ``best_effort``,
+``trajectory_type`` (``auto`` or a type), ``trajectory_buffer_s``, ``max_trajectory_wait_s``,
+``flush_timeout_s``, ``lookahead``, ``workers``, ``batch_points``. Diagnostics
+(``lidarcal: corrector``) report clouds and points in and out, skipped chunks, points not
+covered by the trajectory and the latency.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Float64MultiArray
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.io.pointcloud import resolve_time_field
+from lidarcal_ros.io.ros_messages import (
+    OK,
+    WARN,
+    StatusSpec,
+    cloud_cdr,
+    parse_cloud,
+    parse_estimate,
+)
+from lidarcal_ros.nodes.common import (
+    CORRECTOR_NODE,
+    DIAGNOSTICS_TOPIC,
+    ESTIMATE_TOPIC,
+    FlightParameters,
+    NodeParameter,
+    TrajectoryBuffer,
+    TrajectoryInput,
+    diagnostic_array,
+    latched_qos,
+    run_main,
+    stream_qos,
+)
+from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
+
+EXTRA_PARAMETERS = {
+    "calibration": NodeParameter("", "Calibration YAML used until the calibrator publishes an "
+                                 "estimate ('' = the configuration's calibration.fixed values)"),
+    "queue_depth": NodeParameter(1000, "Depth of the point-cloud subscription queue",
+                                 minimum=1, maximum=100000, read_only=True),
+    "best_effort": NodeParameter(False, "Subscribe to points with best-effort reliability",
+                                 read_only=True),
+    "trajectory_type": NodeParameter("auto", "Trajectory message type, or 'auto' (from the "
+                                     "graph)", read_only=True),
+    "trajectory_buffer_s": NodeParameter(600.0, "Seconds of trajectory kept", minimum=1.0,
+                                         maximum=1e6),
+    "max_trajectory_wait_s": NodeParameter(5.0, "Longest wall time a chunk waits for the "
+                                           "trajectory to cover it, s", minimum=0.0,
+                                           maximum=600.0),
+    "flush_timeout_s": NodeParameter(0.05, "Wall time without a new chunk after which held "
+                                     "chunks are corrected without look-ahead, s",
+                                     minimum=0.0, maximum=60.0),
+    "lookahead": NodeParameter(True, "Wait for the next chunks of a strip so that points at a "
+                               "chunk's end have their neighbours for the normal (false: "
+                               "correct each chunk at once with the earlier ones as context; "
+                               "least latency)"),
+    "workers": NodeParameter(1, "Threads correcting batches in parallel", minimum=1,
+                             maximum=64, read_only=True),
+    "batch_points": NodeParameter(0, "Chunks of one strip corrected together up to this many "
+                                  "points (0: one chunk at a time, least latency)",
+                                  minimum=0, maximum=100_000_000),
+}
+
+_TRAJECTORY_MARGIN_S = 0.02
+#: Largest batch formed to catch up with a backlog, points (bounds memory and latency).
+MAX_ADAPTIVE_BATCH_POINTS = 400_000
+
+
+@dataclass
+class _Chunk:
+    raw: bytes
+    received: float
+    stamp_ns: int = 0
+    frame_id: str = ""
+    points: Any = None
+    t_max: float = -math.inf
+
+
+@dataclass
+class CorrectorStats:
+    """Counts since start (or the last reset)."""
+
+    clouds_in: int = 0
+    points_in: int = 0
+    clouds_out: int = 0
+    points_out: int = 0
+    skipped: int = 0
+    last_error: str = ""
+    not_corrected: int = 0
+    latencies: deque[float] = field(default_factory=lambda: deque(maxlen=10000))
+    busy_s: float = 0.0
+
+
+class CorrectorNode(Node):
+    """Corrects point-cloud chunks with the latest estimate (module docstring)."""
+
+    def __init__(self, *, context: Any = None, node_name: str = CORRECTOR_NODE,
+                 **kwargs: Any) -> None:
+        super().__init__(node_name, context=context, **kwargs)
+        self.params = FlightParameters(self, extra=EXTRA_PARAMETERS)
+        cfg = self.params.config
+        self.stats = CorrectorStats()
+        self._lock = threading.Condition()
+        self._queue: deque[_Chunk] = deque()
+        self._closing = False
+        self.estimate_source = "configuration"
+        self._delta = self._initial_delta(cfg)
+        self._settings = CorrectionSettings.from_config(cfg, self._delta)
+        self._settings_changed = False
+        self.trajectory = TrajectoryBuffer(self.params["trajectory_buffer_s"])
+        self._corrector: StreamCorrector | None = None
+        self._held: dict[int, _Chunk] = {}
+        self._next_tag = 0
+        self._last_push = time.monotonic()
+
+        self.publisher = self.create_publisher(PointCloud2, cfg["topics.corrected"],
+                                               stream_qos(self.params["queue_depth"]))
+        self.diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        points_group = MutuallyExclusiveCallbackGroup()
+        other_group = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(
+            PointCloud2, cfg["topics.points"], self._on_points,
+            stream_qos(self.params["queue_depth"], best_effort=self.params["best_effort"]),
+            raw=True, callback_group=points_group)
+        self.trajectory_input = TrajectoryInput(
+            self, cfg["topics.trajectory"], self.params["trajectory_type"], self._on_pose,
+            callback_group=other_group)
+        self.create_subscription(Float64MultiArray, ESTIMATE_TOPIC, self._on_estimate,
+                                 latched_qos(), callback_group=other_group)
+        self.params.on_change(self._on_config)
+        self.params.on_extra_change(self._on_extra)
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=other_group)
+        self._worker = threading.Thread(target=self._work, name="lidarcal-corrector",
+                                        daemon=True)
+        self._worker.start()
+        self.get_logger().info(f"correcting {cfg['topics.points']} -> "
+                               f"{cfg['topics.corrected']} (biases from "
+                               f"{self.estimate_source})")
+
+    # -- configuration ---------------------------------------------------------------
+    def _initial_delta(self, cfg: FlightConfig) -> np.ndarray:
+        from lidarcal_ros.core.params import PARAMETER_NAMES
+        from lidarcal_ros.io.calibration_file import read_calibration
+
+        path = self.params["calibration"]
+        if path:
+            record = read_calibration(path)  # ConfigError: a one-line reason at start-up
+            self.estimate_source = str(path)
+            return record.delta
+        return np.array([cfg[f"calibration.fixed.{n}"] for n in PARAMETER_NAMES])
+
+    def _on_config(self, cfg: FlightConfig, changed: set[str]) -> None:
+        if self.estimate_source == "configuration":
+            from lidarcal_ros.core.params import PARAMETER_NAMES
+
+            self._delta = np.array([cfg[f"calibration.fixed.{n}"] for n in PARAMETER_NAMES])
+        with self._lock:
+            self._settings = CorrectionSettings.from_config(cfg, self._delta)
+            self._settings_changed = True
+
+    def _on_extra(self, name: str, value: Any) -> None:
+        if name == "trajectory_buffer_s":
+            self.trajectory.keep_s = float(value)
+
+    def _on_estimate(self, msg: Float64MultiArray) -> None:
+        try:
+            est = parse_estimate(msg.data, [d.label for d in msg.layout.dim])
+        except ValueError as exc:
+            self.get_logger().error(f"{ESTIMATE_TOPIC}: {exc}; ignored")
+            return
+        if not np.isfinite(est.delta).all():
+            self.get_logger().error(f"{ESTIMATE_TOPIC}: non-finite values; ignored")
+            return
+        with self._lock:
+            self._delta = est.delta
+            self.estimate_source = ESTIMATE_TOPIC
+            self._settings = CorrectionSettings.from_config(self.params.config, self._delta)
+            self._settings_changed = True
+        self.get_logger().info("new estimate: " + ", ".join(
+            f"{n}={v:.6g}" for n, v in est.values.items()))
+
+    # -- input -----------------------------------------------------------------------
+    def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str) -> None:
+        self.trajectory.add(t, xyz, frame_id)
+        with self._lock:
+            self._lock.notify()
+
+    def _on_points(self, raw: bytes) -> None:
+        chunk = _Chunk(raw, time.monotonic())
+        with self._lock:
+            self._queue.append(chunk)
+            self._lock.notify()
+
+    # -- work ------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                if self._closing:
+                    return
+                chunks = list(self._queue)
+            try:
+                progressed = self._step(chunks)
+            except Exception as exc:  # never let the worker die
+                self.get_logger().error(f"corrector: unexpected error: {exc}")
+                progressed = False
+            if not progressed:
+                with self._lock:
+                    if not self._closing:
+                        self._lock.wait(timeout=0.005)
+
+    def _parse(self, chunk: _Chunk) -> bool:
+        source = self.params["topics.points"]
+        try:
+            cloud = parse_cloud(chunk.raw, source=source)
+            traj_frame = self.trajectory.frame_id
+            if traj_frame is not None and cloud.frame_id != traj_frame:
+                raise LidarcalError(f"{source}: cloud in frame '{cloud.frame_id}' but the "
+                                    f"trajectory is in '{traj_frame}'")
+            tname = resolve_time_field(cloud.points, self._settings.time_field,
+                                       source=source)
+            t = cloud.points[tname]
+            finite = t[np.isfinite(t)]
+            chunk.t_max = float(finite.max()) if finite.size else -math.inf
+        except LidarcalError as exc:
+            self._skip(chunk, str(exc))
+            return False
+        chunk.stamp_ns, chunk.frame_id, chunk.points = cloud.stamp_ns, cloud.frame_id, cloud.points
+        return True
+
+    def _skip(self, chunk: _Chunk, reason: str) -> None:
+        self.stats.skipped += 1
+        self.stats.last_error = reason
+        self.get_logger().error(f"malformed cloud skipped: {reason}",
+                                throttle_duration_sec=2.0)
+
+    def _step(self, chunks: list[_Chunk]) -> bool:
+        """Correct the chunks that are ready, in order; returns whether anything was done.
+
+        Under a backlog the ready chunks are corrected as one batch (``StreamCorrector``
+        batches them per strip): fewer, larger numpy calls catch up faster; with one chunk
+        ready this is the one-chunk-at-a-time path.
+        """
+        now = time.monotonic()
+        wait = self.params["max_trajectory_wait_s"]
+        done = 0
+        ready: list[_Chunk] = []
+        for chunk in chunks:
+            if chunk.points is None and not self._parse(chunk):
+                done += 1
+                continue
+            if chunk.t_max + _TRAJECTORY_MARGIN_S > self.trajectory.end and \
+                    now - chunk.received < wait:
+                break  # wait for the trajectory (keeps the order)
+            ready.append(chunk)
+            done += 1
+        if ready:
+            corrector = self._ensure_corrector()
+            corrector.batch_points = max(int(self.params["batch_points"]),
+                                         min(self._batchable(corrector, ready),
+                                             MAX_ADAPTIVE_BATCH_POINTS))
+            for chunk in ready:
+                self._push(chunk)
+            if not self.params["lookahead"] and self._held:
+                self._release(corrector.flush())
+        with self._lock:
+            for _ in range(done):
+                self._queue.popleft()
+            empty = not self._queue
+        if (empty and self._held
+                and time.monotonic() - self._last_push >= self.params["flush_timeout_s"]):
+            self._release(self._ensure_corrector().flush())
+            return True
+        return done > 0
+
+    def _batchable(self, corrector: StreamCorrector, ready: list[_Chunk]) -> int:
+        """Points held or ready that already have their look-ahead: under a backlog they are
+        corrected as one batch (larger numpy calls catch up faster); without a backlog this
+        is at most one chunk, the one-chunk-at-a-time path."""
+        chunks = [*self._held.values(), *ready]
+        newest = max(c.t_max for c in chunks)
+        ctx = corrector.lookahead_seconds()
+        return sum(len(c.points) for c in chunks if c.t_max + ctx <= newest)
+
+    def _ensure_corrector(self) -> StreamCorrector:
+        with self._lock:
+            settings, changed = self._settings, self._settings_changed
+            self._settings_changed = False
+        if self._corrector is None:
+            self._corrector = StreamCorrector(self.trajectory.trajectory(), settings,
+                                              batch_points=self.params["batch_points"],
+                                              workers=self.params["workers"],
+                                              source=self.params["topics.points"])
+        elif changed:
+            self._corrector.set_settings(settings)
+        return self._corrector
+
+    def _push(self, chunk: _Chunk) -> None:
+        corrector = self._ensure_corrector()
+        self._set_trajectory(corrector)
+        tag = self._next_tag
+        self._next_tag += 1
+        self.stats.clouds_in += 1
+        self.stats.points_in += len(chunk.points)
+        started = time.perf_counter()
+        try:
+            self._held[tag] = chunk
+            out = corrector.push(chunk.points, tag)
+        except Exception as exc:  # malformed (LidarcalError) or a bug: skip, keep running
+            del self._held[tag]
+            self.stats.clouds_in -= 1
+            self.stats.points_in -= len(chunk.points)
+            reason = str(exc) if isinstance(exc, LidarcalError) else (
+                f"{type(exc).__name__}: {exc}")
+            self._skip(chunk, reason)
+            return
+        finally:
+            self.stats.busy_s += time.perf_counter() - started
+        self._last_push = time.monotonic()
+        self._release(out)
+
+    def _set_trajectory(self, corrector: StreamCorrector) -> None:
+        """Give the corrector the trajectory received so far (its recent speed sizes the
+        look-ahead)."""
+        corrector.set_trajectory(self.trajectory.trajectory())
+
+    def _release(self, out: list[tuple[Any, np.ndarray]]) -> None:
+        from lidarcal_ros.pipeline.correction import FLAG_NOT_CORRECTED
+
+        for tag, corrected in out:
+            chunk = self._held.pop(tag, None)
+            if chunk is None:
+                continue
+            started = time.perf_counter()
+            raw = cloud_cdr(chunk.stamp_ns, chunk.frame_id, corrected)
+            self.publisher.publish(raw)
+            self.stats.busy_s += time.perf_counter() - started
+            self.stats.clouds_out += 1
+            self.stats.points_out += len(corrected)
+            self.stats.not_corrected += int(np.count_nonzero(
+                corrected["correction_flags"] & FLAG_NOT_CORRECTED))
+            self.stats.latencies.append(time.monotonic() - chunk.received)
+
+    # -- diagnostics -------------------------------------------------------------------
+    def status(self) -> StatusSpec:
+        s = self.stats
+        lat = np.asarray(s.latencies, dtype=np.float64)
+        p50 = float(np.percentile(lat, 50)) if lat.size else math.nan
+        p99 = float(np.percentile(lat, 99)) if lat.size else math.nan
+        level = WARN if s.skipped or s.not_corrected else OK
+        msg = (f"{s.clouds_out} clouds ({s.points_out} points) corrected, "
+               f"latency p99 {p99 * 1000:.0f} ms")
+        if s.skipped:
+            msg += f"; {s.skipped} malformed clouds skipped (last: {s.last_error})"
+        if s.not_corrected:
+            msg += f"; {s.not_corrected} points not covered by the trajectory"
+        return StatusSpec(level, "lidarcal: corrector", msg, {
+            "clouds_in": str(s.clouds_in), "points_in": str(s.points_in),
+            "clouds_out": str(s.clouds_out), "points_out": str(s.points_out),
+            "skipped_clouds": str(s.skipped), "not_corrected_points": str(s.not_corrected),
+            "latency_p50_s": f"{p50:.4f}", "latency_p99_s": f"{p99:.4f}",
+            "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
+            "estimate_source": self.estimate_source})
+
+    def _publish_diagnostics(self) -> None:
+        self.diagnostics.publish(diagnostic_array(self, [self.status()]))
+
+    def close(self) -> None:
+        """Stop the worker (held chunks are corrected and published first)."""
+        with self._lock:
+            self._closing = True
+            self._lock.notify_all()
+        self._worker.join(timeout=5.0)
+        try:
+            if self._held and self._corrector is not None:
+                self._release(self._corrector.flush())
+        except Exception as exc:  # shutting down
+            self.get_logger().error(f"flushing held clouds failed: {exc}")
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console script ``lidarcal_corrector``."""
+    return run_main([CorrectorNode], args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

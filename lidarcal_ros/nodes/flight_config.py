@@ -1,0 +1,54 @@
+"""``lidarcal_flight_config``: the flight configuration as a ROS 2 parameter service.
+
+    ros2 run lidarcal_ros lidarcal_flight_config --ros-args --params-file config/flight_config.yaml
+
+Holds every parameter of :data:`lidarcal_ros.core.config.SCHEMA` (names with dots, e.g.
+``calibration.solve_for``, ``atmosphere.visibility_km``). ``ros2 param set`` on it is validated
+(type, range, choices, cross-checks such as dZ solved without control) and refused with the
+reason; accepted values are followed live by ``lidarcal_calibrator`` and ``lidarcal_corrector``
+(they listen to its ``/parameter_events``).
+
+It subscribes to the control-point topic (transient-local) only to know whether control points
+exist, for the cross-checks.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+
+from lidarcal_ros.nodes.common import FLIGHT_CONFIG_NODE, FlightParameters, latched_qos, run_main
+
+
+class FlightConfigNode(Node):
+    """Parameter server of the flight configuration."""
+
+    def __init__(self, *, context: Any = None, node_name: str = FLIGHT_CONFIG_NODE,
+                 **kwargs: Any) -> None:
+        super().__init__(node_name, context=context, **kwargs)
+        self._control_seen = False
+        self.params = FlightParameters(self, follow=False,
+                                       has_control=lambda: self._control_seen)
+        self.create_subscription(PointCloud2, self.params["topics.control_points"],
+                                 self._on_control, latched_qos(), raw=True)
+        self.get_logger().info("serving the flight configuration "
+                               f"({len(self.params.config.values)} parameters)")
+
+    def _on_control(self, raw: bytes) -> None:
+        self._control_seen = True
+
+    def close(self) -> None:
+        """Nothing to release (parameters die with the node)."""
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console script ``lidarcal_flight_config``."""
+    return run_main([FlightConfigNode], args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,525 @@
+"""The node suite over loopback DDS: real nodes, a real replay, the offline result as reference.
+
+One module-scoped suite (flight configuration, calibrator, corrector and a probe node in this
+process, spun by a multi-threaded executor in a background thread) receives a replay of a small
+simulated mission (``lidarcal replay`` in a child process). The tests then check, in order:
+the estimate against ``lidarcal calibrate``'s, exactly-once correction, late joiners, live
+parameters and refusals, malformed clouds. The checkpoint test runs the calibrator as a child
+process it kills with SIGKILL.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import helpers_missions
+import numpy as np
+import pytest
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.io.bag import open_bag
+from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
+from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
+
+mission_factory = helpers_missions.mission_factory
+small_mission = helpers_missions.small_mission
+
+PYTHON = sys.executable
+FAST = helpers_missions.FAST_SETTINGS
+RATE = 25.0  # the small mission (199 s) replays in 8 s
+
+
+def _wait(cond: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def _replay(bag: Path, *extra: str, timeout: float = 90.0) -> str:
+    res = subprocess.run(
+        [PYTHON, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(RATE),
+         "--wait-for-subscribers", "20", *extra],
+        env=dict(os.environ), capture_output=True, text=True, timeout=timeout)
+    assert res.returncode == 0, res.stderr
+    return res.stdout
+
+
+def _bag_points(bag: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Strip ids and times of every point on /lidar/points."""
+    sid, t = [], []
+    with open_bag(bag) as b:
+        for _topic, _type, _ns, raw in b.messages(["/lidar/points"]):
+            pts = parse_cloud(raw).points
+            sid.append(pts["strip_id"].astype(np.int64))
+            t.append(pts["t"].copy())
+    return np.concatenate(sid), np.concatenate(t)
+
+
+@dataclass
+class Probe:
+    """What the probe node received."""
+
+    corrected: list[bytes] = field(default_factory=list)
+    estimates: list[Any] = field(default_factory=list)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def corrected_points(self) -> int:
+        with self.lock:
+            return sum(len(parse_cloud(raw)) for raw in self.corrected)
+
+
+@dataclass
+class Suite:
+    context: Any
+    fc: Any
+    cal: Any
+    cor: Any
+    probe_node: Any
+    probe: Probe
+    mission: Any
+    config: FlightConfig
+
+    def call(self, service: str, timeout: float = 120.0) -> Any:
+        from std_srvs.srv import Trigger
+
+        client = self.probe_node.create_client(Trigger, service)
+        try:
+            assert client.wait_for_service(timeout_sec=10.0), f"{service} not available"
+            future = client.call_async(Trigger.Request())
+            _wait(future.done, timeout, service)
+            return future.result()
+        finally:
+            self.probe_node.destroy_client(client)
+
+    def set_parameters(self, node: str, **values: Any) -> list[Any]:
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+
+        client = AsyncParameterClient(self.probe_node, node)
+        assert client.wait_for_services(timeout_sec=10.0)
+        params = [Parameter(k.replace("__", "."), value=v) for k, v in values.items()]
+        future = client.set_parameters(params)
+        _wait(future.done, 10.0, f"set_parameters on {node}")
+        return list(future.result().results)
+
+
+class Spinner:
+    """A multi-threaded executor spinning in a background thread."""
+
+    def __init__(self, context: Any, nodes: list[Any]) -> None:
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.executor = MultiThreadedExecutor(num_threads=4, context=context)
+        for n in nodes:
+            self.executor.add_node(n)
+        self._stop = threading.Event()
+        self.errors: list[BaseException] = []
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception as exc:  # a callback failed: fail the test that looks, go on
+                self.errors.append(exc)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=10)
+        deadline = time.monotonic() + 5
+        while any(not f.done() for f in getattr(self.executor, "_futures", ())) and \
+                time.monotonic() < deadline:
+            time.sleep(0.01)
+        self.executor.shutdown(timeout_sec=5)
+
+
+@pytest.fixture(scope="module")
+def suite(ros_context: Any, small_mission: Any) -> Iterator[Suite]:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import Float64MultiArray
+
+    from lidarcal_ros.nodes.calibrator import CalibratorNode
+    from lidarcal_ros.nodes.common import latched_qos
+    from lidarcal_ros.nodes.corrector import CorrectorNode
+    from lidarcal_ros.nodes.flight_config import FlightConfigNode
+
+    workdir = small_mission.workdir
+    shared = {**FAST, "calibration.control_points_file": str(small_mission.control_csv),
+              "calibration.calibration_file": str(workdir / "suite_calibration.yaml")}
+    overrides = [Parameter(k, value=v) for k, v in shared.items()]
+    fc = FlightConfigNode(context=ros_context, parameter_overrides=overrides)
+    cal = CalibratorNode(context=ros_context, parameter_overrides=[
+        *overrides, Parameter("idle_close_s", value=0.5)])
+    cor = CorrectorNode(context=ros_context, parameter_overrides=overrides)
+    node = rclpy.create_node("suite_probe", context=ros_context)
+    probe = Probe()
+
+    def on_corrected(raw: bytes) -> None:
+        with probe.lock:
+            probe.corrected.append(raw)
+
+    def on_diag(msg: Any) -> None:
+        for s in msg.status:
+            probe.diagnostics[s.name] = (s.level[0] if isinstance(s.level, bytes) else s.level,
+                                         s.message, {kv.key: kv.value for kv in s.values})
+
+    node.create_subscription(PointCloud2, "/lidar/points_corrected", on_corrected, 1000,
+                             raw=True)
+    node.create_subscription(Float64MultiArray, "/lidar/calibration/estimate",
+                             lambda m: probe.estimates.append(m), latched_qos())
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
+    spinner = Spinner(ros_context, [fc, cal, cor, node])
+    config = FlightConfig.from_mapping(shared)
+    try:
+        yield Suite(ros_context, fc, cal, cor, node, probe, small_mission, config)
+    finally:
+        spinner.stop()
+        assert not spinner.errors, f"callbacks failed: {spinner.errors}"
+        for n in (cal, cor, fc):
+            n.close()
+        for n in (node, cal, cor, fc):
+            n.destroy_node()
+
+
+# ---------------------------------------------------------------------------- replay
+def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
+    bag = suite.mission.bag
+    n_clouds = 0
+    with open_bag(bag) as b:
+        n_clouds = b.topics["/lidar/points"].count
+    out = _replay(bag, "--min-subscribers", "2")
+    assert "done:" in out
+    _wait(lambda: len(suite.probe.corrected) >= n_clouds, 60, "every corrected cloud")
+    cal = suite.cal
+    _wait(lambda: cal.stream.strip_ids == [1, 2, 3, 4, 5, 6] and not cal.stream.open_strip_ids
+          and cal._jobs.empty(), 90, "the calibrator to close all six strips")
+    # the live estimate exists and QA was published per pair
+    _wait(lambda: "lidarcal: strips 1&2" in suite.probe.diagnostics, 30, "pair diagnostics")
+    level, message, values = suite.probe.diagnostics["lidarcal: strips 1&2"]
+    assert {"coverage", "rms_before", "rms_after", "p95_after"} <= set(values)
+    assert message.startswith("RMS ") and message.endswith(("OK", "WARN", "ERROR"))
+    assert level == 0 and float(values["rms_before"]) > float(values["rms_after"])
+    assert "lidarcal: observability" in suite.probe.diagnostics
+    assert "lidarcal: convergence" in suite.probe.diagnostics
+
+    response = suite.call("/lidarcal_calibrator/solve")
+    assert response.success, response.message
+    assert "15 strip pairs" in response.message
+    _wait(lambda: cal.solves >= 1 and len(suite.probe.estimates) >= 1, 10, "an estimate")
+    time.sleep(0.3)
+    live = parse_estimate(suite.probe.estimates[-1].data,
+                          [d.label for d in suite.probe.estimates[-1].layout.dim])
+
+    mission = load_mission(bag, suite.config)
+    offline = calibrate_mission(mission, suite.config).solution
+    for i, name in enumerate(PARAMETER_NAMES):
+        if name not in offline.estimated:
+            assert live.sigmas[name] is None
+            continue
+        sigma = float(offline.sigma[i])
+        assert abs(live.values[name] - offline.delta[i]) <= 0.1 * sigma, name
+        assert live.sigmas[name] == pytest.approx(sigma, rel=0.05), name
+    cov = live.covariance
+    assert np.allclose(cov, cov.T)
+    k = PARAMETER_NAMES.index("dX")
+    assert math.sqrt(cov[k, k]) == pytest.approx(live.sigmas["dX"])
+
+    save = suite.call("/lidarcal_calibrator/save")
+    assert save.success and "suite_calibration.yaml" in save.message
+    assert (suite.mission.workdir / "suite_calibration.yaml").is_file()
+
+
+def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
+    sid_in, t_in = _bag_points(suite.mission.bag)
+    with suite.probe.lock:
+        clouds = [parse_cloud(raw) for raw in suite.probe.corrected]
+    pts = np.concatenate([c.points for c in clouds])
+    assert {"reflectance", "range", "incidence", "scan_angle", "correction_flags"} <= set(
+        pts.dtype.names)
+    key_in = np.lexsort((t_in, sid_in))
+    sid_out, t_out = pts["strip_id"].astype(np.int64), pts["t"]
+    key_out = np.lexsort((t_out, sid_out))
+    assert len(pts) == len(t_in)
+    assert np.array_equal(sid_in[key_in], sid_out[key_out])
+    assert np.array_equal(t_in[key_in], t_out[key_out])
+    assert suite.cor.stats.points_out == len(t_in) and suite.cor.stats.skipped == 0
+    flags = pts["correction_flags"]
+    assert np.count_nonzero(flags & 1) == 0, "points not covered by the trajectory"
+    assert np.isfinite(pts["range"]).all() and (pts["range"] > 100).all()
+
+
+def test_late_subscriber_gets_the_latest_estimate(suite: Suite) -> None:
+    import rclpy
+    from std_msgs.msg import Float64MultiArray, String
+
+    from lidarcal_ros.nodes.common import latched_qos
+
+    latest = list(suite.probe.estimates[-1].data)
+    node = rclpy.create_node("late_joiner", context=suite.context)
+    got: list[Any] = []
+    text: list[str] = []
+    node.create_subscription(Float64MultiArray, "/lidar/calibration/estimate",
+                             lambda m: got.append(list(m.data)), latched_qos())
+    node.create_subscription(String, "/lidar/calibration/yaml", lambda m: text.append(m.data),
+                             latched_qos())
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=suite.context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + 10
+        while (not got or not text) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+    assert len(got) == 1 and np.array_equal(got[0], latest, equal_nan=True)
+    assert text and text[0].startswith("lidarcal_calibration:")
+
+
+# ---------------------------------------------------------------------------- parameters
+def _reflectance_of(suite: Suite, raw_in: bytes, stamp: int) -> np.ndarray:
+    """Publish one cloud on /lidar/points; return the reflectance of its corrected copy."""
+    from sensor_msgs.msg import PointCloud2
+
+    pub = suite.probe_node.create_publisher(PointCloud2, "/lidar/points", 10)
+    try:
+        _wait(lambda: pub.get_subscription_count() >= 2, 10, "point subscribers")
+        before = len(suite.probe.corrected)
+        pub.publish(raw_in)
+        _wait(lambda: len(suite.probe.corrected) > before, 20, "the corrected cloud")
+        out = parse_cloud(suite.probe.corrected[before])
+        assert out.stamp_ns == stamp
+        return np.asarray(out.points["reflectance"], dtype=np.float64)
+    finally:
+        suite.probe_node.destroy_publisher(pub)
+
+
+def test_a_parameter_set_at_run_time_changes_what_the_nodes_do(suite: Suite) -> None:
+    with open_bag(suite.mission.bag) as b:
+        raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
+    stamp = parse_cloud(raw).stamp_ns
+    before = _reflectance_of(suite, raw, stamp)
+    results = suite.set_parameters("lidarcal_flight_config", atmosphere__visibility_km=5.0)
+    assert results[0].successful, results[0].reason
+    for node in (suite.cal, suite.cor):
+        _wait(lambda n=node: n.params["atmosphere.visibility_km"] == 5.0, 10,
+              f"{node.get_name()} to follow")
+    after = _reflectance_of(suite, raw, stamp)
+    ok = np.isfinite(before) & np.isfinite(after)
+    assert ok.mean() > 0.5  # the first chunk of a strip lacks neighbours for some normals
+    # thicker haze: more attenuation to undo, so a higher reflectance for the same intensity
+    assert np.all(after[ok] > before[ok])
+
+    # QA thresholds set live change the calibrator's verdicts at the next solve
+    results = suite.set_parameters("lidarcal_flight_config", qa__rmsdz_warn_m=0.001,
+                                   qa__max_difference_m=0.002)
+    assert all(r.successful for r in results)
+    _wait(lambda: suite.cal.params["qa.max_difference_m"] == 0.002, 10, "the calibrator")
+    suite.probe.diagnostics.pop("lidarcal: strips 1&2", None)
+    assert suite.call("/lidarcal_calibrator/solve").success
+    _wait(lambda: "lidarcal: strips 1&2" in suite.probe.diagnostics, 10, "pair diagnostics")
+    level, message, _ = suite.probe.diagnostics["lidarcal: strips 1&2"]
+    assert level == 2 and message.endswith("ERROR")
+
+
+@pytest.mark.parametrize(("values", "reason"), [
+    ({"sensor__fov_deg": 500.0}, "fov_deg"),
+    ({"calibration__solve_for": ["dX", "dQ"]}, "unknown parameter(s) dQ"),
+    ({"matching__min_normal_distance_m": 5.0}, "exceeds matching.max_normal_distance_m"),
+    ({"radiometry__power_model": "quadratic"}, "not one of constant, pulse_rate"),
+    ({"topics__points": "/elsewhere"}, "read-only"),
+    ({"sensor__fov_deg": "wide"}, "type"),
+])
+def test_a_bad_value_is_refused_with_its_reason(suite: Suite, values: dict[str, Any],
+                                                reason: str) -> None:
+    name = next(iter(values)).replace("__", ".")
+    old = suite.fc.params[name]
+    results = suite.set_parameters("lidarcal_flight_config", **values)
+    assert not results[0].successful
+    assert reason in results[0].reason
+    time.sleep(0.2)
+    for node in (suite.fc, suite.cal, suite.cor):
+        assert node.params[name] == old
+
+
+def test_dz_and_dr_without_control_is_refused(suite: Suite) -> None:
+    from lidarcal_ros.nodes.flight_config import FlightConfigNode
+
+    node = FlightConfigNode(context=suite.context, node_name="fc_without_control")
+    try:
+        from rclpy.parameter import Parameter
+
+        result = node.set_parameters([Parameter("calibration.solve_for",
+                                                value=["dX", "dZ", "dr"])])[0]
+        assert not result.successful and "without" in result.reason and "control" in \
+            result.reason
+        ok = node.set_parameters([Parameter("calibration.solve_for", value=["dX", "dr"])])[0]
+        assert ok.successful
+    finally:
+        node.destroy_node()
+
+
+# ---------------------------------------------------------------------------- bad input
+def test_a_malformed_cloud_is_logged_and_skipped(suite: Suite) -> None:
+    from sensor_msgs.msg import PointCloud2
+
+    good = np.zeros(5, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("t", "<f8"),
+                              ("intensity", "<f4"), ("strip_id", "<u2")])
+    no_time = np.zeros(5, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    truncated = cloud_cdr(10**18, "map", good)[:-41]
+    messages = [cloud_cdr(10**18, "map", no_time), bytes(truncated), b"\x00\x01\x00\x00junk"]
+    skipped_cal = suite.cal.input["skipped"]
+    skipped_cor = suite.cor.stats.skipped
+    pub = suite.probe_node.create_publisher(PointCloud2, "/lidar/points", 10)
+    try:
+        _wait(lambda: pub.get_subscription_count() >= 2, 10, "point subscribers")
+        for raw in messages:
+            pub.publish(raw)
+        _wait(lambda: suite.cal.input["skipped"] >= skipped_cal + 3 and
+              suite.cor.stats.skipped >= skipped_cor + 3, 10, "the clouds to be skipped")
+    finally:
+        suite.probe_node.destroy_publisher(pub)
+    assert "lacks time field" in suite.cor.stats.last_error or \
+        "undecodable" in suite.cor.stats.last_error
+    # still running: a good cloud goes through, the diagnostics say what was skipped
+    with open_bag(suite.mission.bag) as b:
+        raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
+    refl = _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)
+    assert np.isfinite(refl).any()
+    status = suite.cor.status()
+    assert status.level == 1 and "malformed" in status.message
+    assert suite.cal.node_statuses()[1].level == 1
+
+
+def test_memory_budget_releases_the_oldest_strips_and_says_so(suite: Suite) -> None:
+    held = suite.cal.stream.n_points
+    results = suite.set_parameters("lidarcal_calibrator", memory_budget_points=held // 2)
+    assert results[0].successful, results[0].reason
+    with open_bag(suite.mission.bag) as b:
+        raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
+    _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)  # any cloud triggers the budget
+    _wait(lambda: suite.cal.stream.dropped_points > 0, 10, "strips to be released")
+    memory = suite.cal.node_statuses()[0]
+    assert memory.name == "lidarcal: memory" and memory.level == 1
+    assert suite.cal.stream.n_points <= held // 2
+    assert memory.values["dropped_strips"].startswith("1")  # the oldest first
+    assert int(memory.values["dropped_points"]) == suite.cal.stream.dropped_points
+    assert "released" in memory.message
+
+
+# ---------------------------------------------------------------------------- checkpoint
+def _checkpoint_state(path: Path) -> tuple[int, np.ndarray, list[int]]:
+    with np.load(path) as data:
+        return (int(data["neq_count"]), np.array(data["neq_n"]),
+                sorted(int(i) for i in data["closed_ids"]))
+
+
+def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
+        ros_context: Any, small_mission: Any, tmp_path: Path) -> None:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Float64MultiArray
+    from std_srvs.srv import Trigger
+
+    from lidarcal_ros.nodes.common import latched_qos
+
+    params = tmp_path / "params.yaml"
+    helpers_missions.write_params_file(params, {
+        **FAST, "calibration.control_points_file": str(small_mission.control_csv),
+        "idle_close_s": 0.5, "checkpoint_file": str(tmp_path / "ckpt.npz")},
+        section="/**")
+    ckpt = tmp_path / "ckpt.npz"
+    # Own names, so that the suite of this module (still running) does not interfere.
+    remap = ["-r", "__node:=ckpt_calibrator", "-r", "/lidar/points:=/ckpt/points",
+             "-r", "/lidar/trajectory:=/ckpt/trajectory",
+             "-r", "/lidar/control_points:=/ckpt/control_points",
+             "-r", "/lidar/calibration/estimate:=/ckpt/estimate",
+             "-r", "/lidar/calibration/yaml:=/ckpt/yaml", "-r", "/diagnostics:=/ckpt/diagnostics"]
+    cmd = [PYTHON, "-m", "lidarcal_ros.nodes.calibrator", "--ros-args", "--params-file",
+           str(params), *remap]
+    replay_remap = ["--ros-args", *remap[2:8]]
+    spans = [helpers_missions.strip_span(small_mission.mission, k) for k in (3, 4)]
+    with open_bag(small_mission.bag) as b:
+        start_s = b.start_ns / 1e9
+    cut = (spans[0][1] + spans[1][0]) / 2 - start_s  # between strips 3 and 4
+    node = rclpy.create_node("ckpt_probe", context=ros_context)
+    diag: dict[str, dict[str, str]] = {}
+    node.create_subscription(DiagnosticArray, "/ckpt/diagnostics", lambda m: diag.update(
+        {s.name: {kv.key: kv.value for kv in s.values} for s in m.status}), 100)
+    spinner = Spinner(ros_context, [node])
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        procs.append(subprocess.Popen(cmd, env=dict(os.environ), stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.PIPE, text=True))
+        _replay(small_mission.bag, "--duration", f"{cut:.3f}", *replay_remap)
+        _wait(lambda: ckpt.is_file() and _checkpoint_state(ckpt)[2] == [1, 2, 3], 60,
+              "a checkpoint with strips 1-3")
+        count, n_matrix, _ = _checkpoint_state(ckpt)
+        assert count > 0
+        procs[0].send_signal(signal.SIGKILL)
+        procs[0].wait(timeout=10)
+        diag.clear()
+        procs.append(subprocess.Popen(cmd, env=dict(os.environ), stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.PIPE, text=True))
+        _wait(lambda: "lidarcal: state" in diag, 30, "the restarted calibrator")
+        state = diag["lidarcal: state"]
+        assert state["resumed_from"] == str(ckpt)
+        assert int(state["normal_equations_count"]) == count
+        assert float(state["normal_equations_trace"]) == float(np.trace(n_matrix))
+        assert diag["lidarcal: memory"]["strips"] == "1,2,3"
+        # the rest of the mission, then the full solve: the offline estimate
+        _replay(small_mission.bag, "--start", f"{cut:.3f}", *replay_remap)
+        _wait(lambda: diag.get("lidarcal: memory", {}).get("strips") == "1,2,3,4,5,6"
+              and diag["lidarcal: memory"]["open_strips"] == "", 60, "strips 4-6")
+        _wait(lambda: _checkpoint_state(ckpt)[2] == [1, 2, 3, 4, 5, 6], 60, "the checkpoint")
+        assert _checkpoint_state(ckpt)[0] > count
+        # nothing was lost across the restart: the full solve is the offline one
+        estimates: list[Any] = []
+        node.create_subscription(Float64MultiArray, "/ckpt/estimate",
+                                 lambda m: estimates.append(list(m.data)), latched_qos())
+        client = node.create_client(Trigger, "/ckpt_calibrator/solve")
+        assert client.wait_for_service(timeout_sec=10)
+        n_before = len(estimates)
+        future = client.call_async(Trigger.Request())
+        _wait(future.done, 60, "the solve")
+        assert future.result().success, future.result().message
+        _wait(lambda: len(estimates) > n_before, 10, "the estimate")
+        live = parse_estimate(estimates[-1])
+        config = FlightConfig.from_mapping({**FAST, "calibration.control_points_file":
+                                            str(small_mission.control_csv)})
+        offline = calibrate_mission(load_mission(small_mission.bag, config), config).solution
+        for i, name in enumerate(PARAMETER_NAMES):
+            if name in offline.estimated:
+                assert abs(live.values[name] - offline.delta[i]) <= 0.1 * offline.sigma[i], name
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+                try:
+                    p.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+        spinner.stop()
+        node.destroy_node()
+    assert procs[-1].returncode == 0, procs[-1].stderr.read() if procs[-1].stderr else ""

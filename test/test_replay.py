@@ -1,0 +1,307 @@
+"""``lidarcal replay`` and ``lidarcal record``: timing without ROS, publishing over loopback DDS."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.bag import BagWriter, open_bag
+from lidarcal_ros.io.pointcloud import make_point_dtype
+from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, serialize, typestore
+from lidarcal_ros.pipeline.replay import Pacer, ReplayWindow, iter_window, replay, replay_window
+
+NS = 1_000_000_000
+PYTHON = sys.executable
+
+
+# ---------------------------------------------------------------------------- fake clock
+class FakeClock:
+    """Monotonic time that advances only when waited on."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+        self.stop_at: float | None = None
+
+    def now(self) -> float:
+        return self.t
+
+    def wait(self, seconds: float) -> bool:
+        self.t += max(seconds, 1e-9)
+        return self.stop_at is not None and self.t >= self.stop_at
+
+
+def _messages(times_s: list[float], topic: str = "/a") -> list[tuple[str, str, int, bytes]]:
+    return [(topic, "std_msgs/msg/String", round(t * NS), b"x") for t in times_s]
+
+
+def _run(msgs: list[Any], *, rate: float = 1.0, window: ReplayWindow | None = None,
+         clock_hz: float | None = None, loop: bool = False, max_passes: int | None = None,
+         latched: tuple[str, ...] = ()) -> tuple[list[tuple[float, str, int]], list[int], Any]:
+    fake = FakeClock()
+    published: list[tuple[float, str, int]] = []
+    clocks: list[int] = []
+    pacer = Pacer(rate, clock=clocks.append if clock_hz else None, clock_hz=clock_hz or 40.0,
+                  now=fake.now, wait=fake.wait)
+    win = window or ReplayWindow(msgs[0][2], msgs[-1][2])
+    stats = replay(lambda: iter(msgs), lambda topic, _m, ns, _raw: published.append(
+        (fake.t - 100.0, topic, ns)), win, pacer, loop=loop, max_passes=max_passes,
+        latched=latched)
+    return published, clocks, stats
+
+
+def test_original_timing_scaled_by_rate() -> None:
+    msgs = _messages([10.0, 10.5, 12.0, 14.0])
+    out, _, stats = _run(msgs, rate=2.0)
+    assert [round(t, 6) for t, _, _ in out] == [0.0, 0.25, 1.0, 2.0]
+    assert stats.messages == 4 and stats.passes == 1 and not stats.interrupted
+    assert stats.max_lateness_s < 1e-6
+
+
+def test_start_and_duration_cut_the_window() -> None:
+    msgs = _messages([10.0, 11.0, 12.0, 13.0, 14.0])
+    win = replay_window(msgs[0][2], msgs[-1][2], start_s=1.0, duration_s=2.0)
+    assert (win.start_ns, win.end_ns) == (11 * NS, 13 * NS)
+    out, _, _ = _run(msgs, window=win)
+    assert [ns // NS for _, _, ns in out] == [11, 12, 13]
+    assert [round(t, 6) for t, _, _ in out] == [0.0, 1.0, 2.0]
+    assert [m[2] // NS for m in iter_window(msgs, win)] == [11, 12, 13]
+
+
+def test_latched_history_before_the_window_is_published_first() -> None:
+    msgs = [("/control", "sensor_msgs/msg/PointCloud2", 10 * NS, b"c"),
+            *_messages([10.5, 11.0, 12.0])]
+    win = replay_window(10 * NS, 12 * NS, start_s=1.0)
+    out, _, _ = _run(msgs, window=win, latched=("/control",))
+    assert [(topic, ns // NS) for _, topic, ns in out] == [("/control", 10), ("/a", 11),
+                                                           ("/a", 12)]
+
+
+def test_loop_replays_again_from_the_start() -> None:
+    msgs = _messages([0.0, 1.0])
+    out, _, stats = _run(msgs, loop=True, max_passes=3)
+    assert stats.passes == 3
+    assert [round(t, 6) for t, _, _ in out] == [0.0, 1.0, 1.0, 2.0, 2.0, 3.0]
+
+
+def test_clock_follows_bag_time_at_its_rate() -> None:
+    msgs = _messages([50.0, 51.0])
+    _, clocks, stats = _run(msgs, rate=4.0, clock_hz=10.0)
+    # 0.25 s of wall time at 10 Hz: the start plus about 2-3 ticks, bag time 50.0 .. 51.0 s
+    assert clocks[0] == 50 * NS
+    assert 3 <= len(clocks) <= 5 and stats.clock_messages == len(clocks)
+    assert all(b >= a for a, b in itertools.pairwise(clocks))
+    assert all(50 * NS <= c <= 51 * NS for c in clocks)
+    steps = np.diff(clocks) / NS
+    assert np.allclose(steps, 0.4, atol=1e-6)  # 0.1 s wall x rate 4
+
+
+def test_stop_interrupts_the_wait() -> None:
+    fake = FakeClock()
+    fake.stop_at = fake.t + 0.5
+    pacer = Pacer(1.0, now=fake.now, wait=fake.wait)
+    out: list[int] = []
+    msgs = _messages([0.0, 10.0])
+    stats = replay(lambda: iter(msgs), lambda *m: out.append(m[2]),
+                   ReplayWindow(0, 10 * NS), pacer)
+    assert stats.interrupted and out == [0]
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"start_s": -1.0}, "--start"),
+    ({"start_s": 100.0}, "beyond the end"),
+    ({"duration_s": 0.0}, "--duration"),
+])
+def test_bad_window_is_refused(kwargs: dict[str, float], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        replay_window(0, 10 * NS, **kwargs)
+
+
+def test_bad_rate_is_refused() -> None:
+    with pytest.raises(ConfigError, match="--rate"):
+        Pacer(0.0)
+
+
+# ---------------------------------------------------------------------------- CDR helpers
+def test_cloud_cdr_matches_rosbags_serialisation() -> None:
+    pts = np.zeros(7, dtype=make_point_dtype(("reflectance",)))
+    pts["x"] = np.arange(7)
+    pts["t"] = 1.7e9 + np.arange(7) * 1e-3
+    for frame in ("map", "ab", "utm_33n"):
+        raw = cloud_cdr(1_700_000_000_123_456_789, frame, pts)
+        msg = typestore().deserialize_cdr(raw, "sensor_msgs/msg/PointCloud2")
+        assert serialize(msg, "sensor_msgs/msg/PointCloud2") == raw
+        cloud = parse_cloud(raw)
+        assert cloud.stamp_ns == 1_700_000_000_123_456_789 and cloud.frame_id == frame
+        assert np.array_equal(cloud.points["x"], pts["x"])
+        assert cloud.points.base is not None  # a view on the bytes, not a copy
+
+
+# ---------------------------------------------------------------------------- over DDS
+def _small_bag(path: Path) -> Path:
+    """Two topics: 20 clouds at 10 Hz, 40 poses at 20 Hz, control (latched) at the start."""
+    dtype = make_point_dtype()
+    with BagWriter(path, latched_topics=["/lidar/control_points"]) as w:
+        cp = np.zeros(1, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+        w.write_cloud("/lidar/control_points", 1 * NS, "map", cp)
+        for i in range(40):
+            w.write_pose("/lidar/trajectory", NS + i * NS // 20, "map", (i, 0.0, 1000.0))
+            if i % 2 == 0:
+                pts = np.zeros(10, dtype=dtype)
+                pts["t"] = 1.0 + i / 20
+                pts["strip_id"] = i
+                w.write_cloud("/lidar/points", NS + i * NS // 20, "map", pts)
+    return path
+
+
+def _env() -> dict[str, str]:
+    return dict(os.environ)
+
+
+def test_replay_publishes_every_message_with_its_timing(ros_context: Any, tmp_path: Path) -> None:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import PointCloud2
+
+    from lidarcal_ros.nodes.common import latched_qos, trajectory_message_classes
+
+    bag = _small_bag(tmp_path / "small.mcap")
+    node = rclpy.create_node("replay_probe", context=ros_context)
+    got: dict[str, list[Any]] = {"points": [], "poses": [], "control": [], "clock": []}
+    node.create_subscription(PointCloud2, "/lidar/points",
+                             lambda raw: got["points"].append((time.monotonic(), raw)), 100,
+                             raw=True)
+    node.create_subscription(trajectory_message_classes()["geometry_msgs/msg/PoseStamped"],
+                             "/lidar/trajectory", lambda m: got["poses"].append(m), 100)
+    node.create_subscription(PointCloud2, "/lidar/control_points",
+                             lambda raw: got["control"].append(raw), latched_qos(), raw=True)
+    node.create_subscription(Clock, "/clock", lambda m: got["clock"].append(m), 100)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    proc = subprocess.Popen(
+        [PYTHON, "-m", "lidarcal_ros", "replay", str(bag), "--rate", "2", "--clock",
+         "--wait-for-subscribers", "10"], env=_env(), stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while proc.poll() is None and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.02)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        executor.shutdown()
+        node.destroy_node()
+    assert proc.returncode == 0, err
+    assert len(got["points"]) == 20 and len(got["poses"]) == 40 and len(got["control"]) == 1
+    # clouds 0.1 s apart in bag time, 0.05 s apart at rate 2
+    stamps = [parse_cloud(raw).points["strip_id"][0] for _, raw in got["points"]]
+    assert stamps == list(range(0, 40, 2))
+    wall = np.array([t for t, _ in got["points"]])
+    assert 0.75 <= wall[-1] - wall[0] <= 1.6  # 0.95 s of bag time at rate 2 = 0.475 s + slack
+    assert got["clock"], "no /clock"
+    clock_s = [m.clock.sec + m.clock.nanosec * 1e-9 for m in got["clock"]]
+    assert all(b >= a for a, b in itertools.pairwise(clock_s))
+    assert 1.0 <= clock_s[0] and clock_s[-1] <= 2.96
+    assert "done: 61 messages" in out
+
+
+def test_replay_reports_a_missing_bag_in_one_line(tmp_path: Path) -> None:
+    res = subprocess.run([PYTHON, "-m", "lidarcal_ros", "replay", str(tmp_path / "nope")],
+                         env=_env(), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 1
+    assert res.stderr.strip().count("\n") == 0 and "nope" in res.stderr
+
+
+def test_record_writes_a_valid_bag_stopped_by_sigterm(ros_context: Any, tmp_path: Path) -> None:
+    import rclpy
+    from std_msgs.msg import String
+
+    from lidarcal_ros.nodes.common import latched_qos
+
+    out = tmp_path / "rec.mcap"
+    node = rclpy.create_node("record_source", context=ros_context)
+    latched = node.create_publisher(String, "/lidar/calibration/yaml", latched_qos())
+    latched.publish(String(data="published before the recorder started"))
+    pub = node.create_publisher(String, "/chatter", 100)
+    proc = subprocess.Popen([PYTHON, "-m", "lidarcal_ros", "record", "-o", str(out),
+                             "--topics", "/chatter", "/lidar/calibration/yaml"],
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 20
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.get_subscription_count() == 1, "recorder did not subscribe"
+        time.sleep(0.3)
+        for i in range(25):
+            pub.publish(String(data=f"m{i}"))
+            time.sleep(0.01)
+        assert pub.wait_for_all_acked(rclpy.duration.Duration(seconds=5))
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        _stdout, stderr = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        node.destroy_node()
+    assert proc.returncode == 0, stderr
+    assert "Traceback" not in stderr
+    with open_bag(out) as bag:
+        assert bag.topics["/chatter"].count == 25
+        assert bag.topics["/lidar/calibration/yaml"].count == 1
+        assert bag.topics["/lidar/calibration/yaml"].transient_local
+        texts = [bag.deserialize(raw, t).data for _, t, _, raw in bag.messages(["/chatter"])]
+    assert texts == [f"m{i}" for i in range(25)]
+
+
+def test_run_stops_cleanly_on_sigterm(ros_context: Any, tmp_path: Path) -> None:
+    """``lidarcal run`` starts the three nodes and ends with status 0 on SIGTERM."""
+    import rclpy
+
+    node = rclpy.create_node("run_probe", context=ros_context)
+    proc = subprocess.Popen([PYTHON, "-m", "lidarcal_ros", "run"], env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+    try:
+        want = {"lidarcal_calibrator", "lidarcal_corrector", "lidarcal_flight_config"}
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if want <= set(node.get_node_names()):
+                break
+            time.sleep(0.1)
+        assert want <= set(node.get_node_names())
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        node.destroy_node()
+    assert proc.returncode == 0, stderr
+    assert "Traceback" not in stderr
+
+
+def test_run_reports_a_bad_config_in_one_line(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("/**:\n  ros__parameters:\n    sensor:\n      fov_deg: 500.0\n")
+    res = subprocess.run([PYTHON, "-m", "lidarcal_ros", "run", "--config", str(cfg)],
+                         env=_env(), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 1
+    assert "sensor.fov_deg" in res.stderr and res.stderr.strip().count("\n") == 0
+
