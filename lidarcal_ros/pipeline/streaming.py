@@ -100,6 +100,8 @@ class StreamingCalibration:
         self._closed: list[Strip] = []
         self._control = control
         self._now = -np.inf
+        self._late_strips: set[int] = set()
+        self.late_points = 0
         self._calibrator = self._new_calibrator()
 
     # ------------------------------------------------------------------ inputs
@@ -143,7 +145,11 @@ class StreamingCalibration:
             sel = ids == sid
             key = int(sid)
             if key in closed_ids:
-                logger.warning("points of strip %d arrived after it was closed: ignored", key)
+                if key not in self._late_strips:  # say it once per strip, not per chunk
+                    logger.warning("points of strip %d arrived after it was closed: ignored",
+                                   key)
+                self._late_strips.add(key)
+                self.late_points += int(sel.sum())
                 continue
             self._open.setdefault(key, _OpenStrip()).add(
                 xyz[sel], t[sel], inten[sel] if inten is not None else None)
@@ -215,6 +221,9 @@ class StreamingCalibration:
         Returns the new result, or None if no strip was closed.
         """
         now = self._now if now_s is None else max(self._now, float(now_s))
+        if not self._traj_t:
+            self.waiting_for = "no trajectory received yet"
+            return None
         ready = [sid for sid, o in self._open.items()
                  if now - o.last_t >= self.strip_gap_s and self._covered(o.last_t)]
         if not ready:
@@ -241,6 +250,11 @@ class StreamingCalibration:
         self._calibrator.threshold = self._calibrator.settings.max_normal_distance_m
         return self._solve(max_iterations=None)
 
+    def resolve(self) -> CalibrationResult:
+        """Re-run the adjustment over the complete strips only (open strips stay open), from
+        the current estimate: what a restarted node republishes."""
+        return self._solve(max_iterations=None)
+
     def _solve(self, *, max_iterations: int | None) -> CalibrationResult:
         self._calibrator.dropped_non_finite = self.dropped_non_finite
         result = self._calibrator.run(max_iterations=max_iterations)
@@ -261,6 +275,8 @@ class StreamingCalibration:
         self._traj_t, self._traj_xyz, self._trajectory = [], [], None
         self._open, self._closed = {}, []
         self._now = -np.inf
+        self._late_strips = set()
+        self.late_points = 0
         self._calibrator = self._new_calibrator()
 
     def _rebuild(self) -> None:
