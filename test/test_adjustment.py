@@ -40,7 +40,8 @@ def test_recovers_known_biases_with_sigma0() -> None:
     for part in np.array_split(np.arange(rows.shape[0]), 7):
         neq.add(rows[part], y[part])
     batch = NormalEquations.from_observations(
-        Observations(rows, y, np.ones(y.size), np.zeros(y.size, np.int64)))
+        Observations(rows, y, np.ones(y.size), np.zeros(y.size, np.int64),
+                     np.zeros(y.size, np.int64)))
     np.testing.assert_allclose(neq.n, batch.n, rtol=1e-12)
     sol = solve(neq, solve_for=["dX", "dY", "domega", "dphi", "dkappa", "dr", "dS"],
                 fixed={"dZ": 0.02})
