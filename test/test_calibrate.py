@@ -70,8 +70,10 @@ def test_discrepancies_fall_to_the_noise_floor(paper_run: tuple, unbiased_run) -
     """Per pair, RMS normal discrepancy after calibration <= 1.1 x that of an unbiased mission."""
     _, result = paper_run
     floor = {(p.strip_a, p.strip_b): p.rms_after for p in unbiased_run.pairs}
+    # The biases showed (least between same-direction lines on one track, where most cancel).
+    assert np.mean([p.rms_before for p in result.pairs]) > 0.1
     for p in result.pairs:
-        assert p.rms_before > 0.05  # the biases showed
+        assert p.rms_after < p.rms_before, p
         assert p.rms_after <= 1.1 * floor[(p.strip_a, p.strip_b)], p
 
 

@@ -58,6 +58,8 @@ def paper():
 
 
 def test_biased_point_exact_matches_method_vectors():
+    if not VECTORS.exists():  # pragma: no cover - shared/ sits beside every checkout
+        pytest.skip(f"{VECTORS} not present")
     data = json.loads(VECTORS.read_text())
     biases = data["biases_used_for_pulses"]
     assert data["parameter_order"] == list(PARAMETER_NAMES)
