@@ -299,14 +299,14 @@ class CorrectorNode(Node):
             for chunk in ready:
                 self._push(chunk)
             if not self.params["lookahead"] and self._held:
-                self._release(corrector.flush())
+                self._release(self._flush(corrector))
         with self._lock:
             for _ in range(done):
                 self._queue.popleft()
             empty = not self._queue
         if (empty and self._held
                 and time.monotonic() - self._last_push >= self.params["flush_timeout_s"]):
-            self._release(self._ensure_corrector().flush())
+            self._release(self._flush(self._ensure_corrector()))
             return True
         return done > 0
 
@@ -355,6 +355,12 @@ class CorrectorNode(Node):
             self.stats.busy_s += time.perf_counter() - started
         self._last_push = time.monotonic()
         self._release(out)
+
+    def _flush(self, corrector: StreamCorrector) -> list[tuple[Any, np.ndarray]]:
+        """Correct everything held, with the trajectory received up to now: poses that came
+        after the last push (the end of a strip) must cover its last chunks."""
+        self._set_trajectory(corrector)
+        return corrector.flush()
 
     def _set_trajectory(self, corrector: StreamCorrector) -> None:
         """Give the corrector the trajectory received so far (its recent speed sizes the
@@ -410,7 +416,7 @@ class CorrectorNode(Node):
         self._worker.join(timeout=5.0)
         try:
             if self._held and self._corrector is not None:
-                self._release(self._corrector.flush())
+                self._release(self._flush(self._corrector))
         except Exception as exc:  # shutting down
             self.get_logger().error(f"flushing held clouds failed: {exc}")
 
