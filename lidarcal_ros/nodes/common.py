@@ -23,6 +23,7 @@ import math
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -605,8 +606,10 @@ class TrajectoryBuffer:
         self._pending_xyz: list[tuple[float, float, float]] = []
         self._traj = Trajectory(np.empty(0), np.empty((0, 3)))
         self._lock = threading.Lock()
+        self._rebuild_lock = threading.Lock()
         self.frame_id: str | None = None
         self.end = -math.inf  # newest sample time
+        self.last_arrival = -math.inf  # monotonic clock of the last sample received
         self.samples = 0
 
     def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None) -> None:
@@ -614,12 +617,19 @@ class TrajectoryBuffer:
             self._pending_t.append(t)
             self._pending_xyz.append(xyz)
             self.samples += 1
+            self.last_arrival = time.monotonic()
             if t > self.end:
                 self.end = t
             if frame_id is not None:
                 self.frame_id = frame_id
 
     def trajectory(self) -> Any:
+        # One rebuild at a time: two threads rebuilding from the same old trajectory would
+        # each drop the other's new samples.
+        with self._rebuild_lock:
+            return self._rebuild()
+
+    def _rebuild(self) -> Any:
         np = self._np
         with self._lock:
             if not self._pending_t:

@@ -286,9 +286,12 @@ class CorrectorNode(Node):
             if chunk.points is None and not self._parse(chunk):
                 done += 1
                 continue
-            if chunk.t_max + _TRAJECTORY_MARGIN_S > self.trajectory.end and \
-                    now - chunk.received < wait:
-                break  # wait for the trajectory (keeps the order)
+            # Wait for the trajectory to cover the chunk (keeps the order); give up only once
+            # the trajectory has stalled for max_trajectory_wait_s, not while poses still
+            # arrive late behind a backlog.
+            waited = now - max(chunk.received, self.trajectory.last_arrival)
+            if chunk.t_max + _TRAJECTORY_MARGIN_S > self.trajectory.end and waited < wait:
+                break
             ready.append(chunk)
             done += 1
         if ready:
