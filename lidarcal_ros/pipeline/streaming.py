@@ -233,7 +233,9 @@ class StreamingCalibration:
             logger.info("strip %d complete: overlaps %s", sid,
                         ", ".join(str(a) for a, _ in formed) or "no earlier strip")
         try:
-            return self._solve(max_iterations=3)
+            # Two iterations from the current estimate: the estimate carries over from strip to
+            # strip, and solve() iterates to convergence when asked.
+            return self._solve(max_iterations=2)
         except CalibrationError as exc:
             # Too little data so far (one strip, no overlap yet): keep accumulating.
             self.waiting_for = str(exc)
