@@ -444,25 +444,31 @@ def _patch_test(
     ok = cand >= 0
     ok[ok] = tin.usable[cand[ok]]
     safe = np.where(ok, cand, 0)
+    tri = tin.simplices[safe]
+    # Component arithmetic on (k,) arrays: (k, 3) reductions cost more than the maths.
     # Local origin: the query point, so differences stay small at projected magnitudes.
-    tv = vertices[tin.simplices[safe]] - points[:, None, :]  # (k, 3, 3)
-    v0 = tv[:, 0, :]
-    e1 = tv[:, 1, :] - v0
-    e2 = tv[:, 2, :] - v0
-    nrm = np.cross(e1, e2)
-    length = np.linalg.norm(nrm, axis=1)
+    v0 = vertices[tri[:, 0]] - points
+    v1 = vertices[tri[:, 1]] - points
+    v2 = vertices[tri[:, 2]] - points
+    ax, ay, az = v0[:, 0], v0[:, 1], v0[:, 2]
+    e1x, e1y, e1z = v1[:, 0] - ax, v1[:, 1] - ay, v1[:, 2] - az
+    e2x, e2y, e2z = v2[:, 0] - ax, v2[:, 1] - ay, v2[:, 2] - az
+    nx = e1y * e2z - e1z * e2y
+    ny = e1z * e2x - e1x * e2z
+    nz = e1x * e2y - e1y * e2x
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
     ok &= length > 0
     length[length == 0] = 1.0
-    nrm /= length[:, None]
-    nrm *= np.where(nrm[:, 2:3] < 0, -1.0, 1.0)
-    # Point is at the origin: distance = n . (0 - v0).
-    dist = -(nrm * v0).sum(axis=1)
-    ep = -dist[:, None] * nrm - v0  # foot of the normal, from v0
-    d00 = (e1 * e1).sum(axis=1)
-    d01 = (e1 * e2).sum(axis=1)
-    d11 = (e2 * e2).sum(axis=1)
-    d20 = (ep * e1).sum(axis=1)
-    d21 = (ep * e2).sum(axis=1)
+    length[nz < 0] *= -1.0  # upward normals
+    nx, ny, nz = nx / length, ny / length, nz / length
+    # Point is at the origin: distance = n . (0 - v0); foot = -dist * n.
+    dist = -(nx * ax + ny * ay + nz * az)
+    px, py, pz = -dist * nx - ax, -dist * ny - ay, -dist * nz - az
+    d00 = e1x * e1x + e1y * e1y + e1z * e1z
+    d01 = e1x * e2x + e1y * e2y + e1z * e2z
+    d11 = e2x * e2x + e2y * e2y + e2z * e2z
+    d20 = px * e1x + py * e1y + pz * e1z
+    d21 = px * e2x + py * e2y + pz * e2z
     denom = d00 * d11 - d01 * d01
     denom[denom == 0] = np.inf
     wv = (d11 * d20 - d01 * d21) / denom
@@ -471,4 +477,5 @@ def _patch_test(
     eps = -1e-9
     ok &= (wu >= eps) & (wv >= eps) & (ww >= eps)
     ok &= np.abs(dist) <= max_normal_distance
+    nrm = np.column_stack([nx, ny, nz])
     return ok, nrm, dist, np.stack([wu, wv, ww], axis=1)
