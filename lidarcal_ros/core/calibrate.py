@@ -171,6 +171,8 @@ class _PairWork:
     sample: np.ndarray | None = None
     before: np.ndarray | None = None
     frozen: Observations | None = None  # last observations, kept when a strip is dropped
+    frozen_delta: np.ndarray | None = None  # the estimate ``frozen`` was matched at
+    last_delta: np.ndarray | None = None  # the estimate ``last`` was matched at
     last: Observations | None = None  # observations of the latest matching
     last_triangle: np.ndarray | None = None  # patch of each sample point at the last matching
 
@@ -210,6 +212,7 @@ class Calibrator:
         self.dropped_non_finite = 0
         self.normal_equations = NormalEquations()
         self._restored = Observations.empty()
+        self._restored_delta = np.zeros(N_PARAMETERS)
         self._control_before: list[tuple[int, int, float]] | None = None
 
     @classmethod
@@ -287,14 +290,24 @@ class Calibrator:
                                 [:s.max_candidates_per_pair]])
         return _PairWork(len(self.pairs), a, b, coverage, cand)
 
+    def _kept(self) -> list[tuple[Observations, np.ndarray]]:
+        """Correspondences kept without re-matching, each with the estimate it was matched at."""
+        kept = [(self._restored, self._restored_delta)] if len(self._restored) else []
+        for p in self.pairs:
+            if p.frozen is not None and p.frozen_delta is not None:
+                kept.append((p.frozen, p.frozen_delta))
+        return kept
+
     def frozen_observations(self) -> Observations:
-        """Correspondences kept without their points (released strips, restored state)."""
-        return Observations.concatenate(
-            [self._restored] + [p.frozen for p in self.pairs if p.frozen is not None])
+        """Correspondences kept without their points (released strips, restored state),
+        expressed at the current estimate."""
+        return Observations.concatenate(_at(obs, at, self.delta) for obs, at in self._kept())
 
     def restore_frozen(self, obs: Observations) -> None:
-        """Take frozen correspondences back from a checkpoint."""
+        """Take frozen correspondences back from a checkpoint (expressed at ``self.delta``:
+        set the estimate first)."""
         self._restored = obs
+        self._restored_delta = self.delta.copy()
 
     def drop_strip(self, strip_id: int) -> int:
         """Release a strip's points (memory budget); its pairs keep their last observations.
@@ -306,6 +319,8 @@ class Calibrator:
                 k = self.strips.index(ps)
                 for pair in self.pairs:
                     if k in (pair.a, pair.b) and pair.frozen is None:
+                        pair.frozen_delta = pair.last_delta if pair.last_delta is not None \
+                            else self.delta.copy()
                         pair.frozen = pair.last if pair.last is not None else \
                             Observations.empty()
                 n = len(ps.strip)
@@ -485,18 +500,19 @@ class Calibrator:
         sol.delta = sol.delta + delta
         return sol
 
-    def run(self, *, max_iterations: int | None = None) -> CalibrationResult:
+    def run(self, *, max_iterations: int | None = None,
+            new_pairs_only: bool = False) -> CalibrationResult:
         """Iterate matching and adjustment from the current estimate to convergence.
 
         Pairs met for the first time are matched once at zero correction: that chooses their
-        sample points and gives the "before" discrepancies.
+        sample points and gives the "before" discrepancies. With ``new_pairs_only`` (a live
+        update), pairs matched before keep their last correspondences instead of being
+        re-matched; only pairs formed since are matched each iteration.
         """
         s = self.settings
         control = self.control
         live = [p for p in self.pairs if p.frozen is None]
-        frozen = [p.frozen for p in self.pairs if p.frozen is not None]
-        if len(self._restored):
-            frozen.append(self._restored)
+        frozen = self._kept()
         if not self.pairs and not frozen and (control is None or len(control) == 0):
             raise CalibrationError("no overlap between strips and no control points")
         delta = self.delta.copy()
@@ -508,6 +524,11 @@ class Calibrator:
         step = np.zeros(N_PARAMETERS)
         iteration = 0
         fresh = [p for p in live if p.sample is None]
+        if new_pairs_only:
+            kept = [p for p in live if p.last is not None and p.last_delta is not None]
+            frozen.extend((p.last, p.last_delta) for p in kept
+                          if p.last is not None and p.last_delta is not None)
+            live = [p for p in live if p not in kept]
         if fresh:
             zero = np.zeros(N_PARAMETERS)
             delivered = {k: self._corrected(k, zero) for k in self._used_strips(fresh)}
@@ -525,12 +546,14 @@ class Calibrator:
                 control, zero, delivered, s.max_normal_distance_m)[1]
         for iteration in range(1, (max_iterations or s.max_iterations) + 1):
             corrected = {k: self._corrected(k, delta) for k in self._used_strips(live)}
-            parts = list(frozen)
+            # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
+            parts = [_at(obs, at, delta) for obs, at in frozen]
             for p_i, pair in enumerate(live):
                 self._progress(f"iteration {iteration}: matching", p_i / max(len(live), 1))
                 assert pair.sample is not None
                 m = self._match_pair(pair, pair.sample, delta, corrected, threshold)
                 pair.last = self._pair_observations(pair, pair.sample, m)
+                pair.last_delta = delta.copy()
                 parts.append(pair.last)
             if control is not None and len(control):
                 corrected.update({k: self._corrected(k, delta) for k in range(len(self.strips))
@@ -622,8 +645,8 @@ class Calibrator:
         stats = []
         for pair in self.pairs:
             assert pair.sample is not None and pair.before is not None
-            if pair.frozen is not None:
-                after = pair.frozen.residuals(delta - self.delta) if len(pair.frozen) else \
+            if pair.frozen is not None and pair.frozen_delta is not None:
+                after = pair.frozen.residuals(delta - pair.frozen_delta) if len(pair.frozen) else \
                     np.empty(0)
             else:
                 m = self._match_pair(pair, pair.sample, delta, corrected,
@@ -659,6 +682,15 @@ class Calibrator:
             n_control_correspondences=n_ctrl, history=history,
             dropped_non_finite=self.dropped_non_finite,
         )
+
+
+def _at(obs: Observations, matched_at: np.ndarray, delta: np.ndarray) -> Observations:
+    """Observations matched at ``matched_at`` re-expressed at ``delta``: the discrepancy left
+    after the correction ``delta`` is ``y - a . (delta - matched_at)`` (linear in between)."""
+    if not len(obs) or not np.any(delta - matched_at):
+        return obs
+    return Observations(obs.rows, obs.residuals(delta - matched_at), obs.weights, obs.group,
+                        obs.cluster)
 
 
 def _rms(values: np.ndarray) -> float:

@@ -233,9 +233,10 @@ class StreamingCalibration:
             logger.info("strip %d complete: overlaps %s", sid,
                         ", ".join(str(a) for a, _ in formed) or "no earlier strip")
         try:
-            # Two iterations from the current estimate: the estimate carries over from strip to
-            # strip, and solve() iterates to convergence when asked.
-            return self._solve(max_iterations=2)
+            # Two iterations from the current estimate, re-matching only the new strip's pairs
+            # (the others keep their last correspondences): the estimate carries over from
+            # strip to strip, and solve() re-matches everything to convergence when asked.
+            return self._solve(max_iterations=2, new_pairs_only=True)
         except CalibrationError as exc:
             # Too little data so far (one strip, no overlap yet): keep accumulating.
             self.waiting_for = str(exc)
@@ -257,9 +258,11 @@ class StreamingCalibration:
         the current estimate: what a restarted node republishes."""
         return self._solve(max_iterations=None)
 
-    def _solve(self, *, max_iterations: int | None) -> CalibrationResult:
+    def _solve(self, *, max_iterations: int | None,
+               new_pairs_only: bool = False) -> CalibrationResult:
         self._calibrator.dropped_non_finite = self.dropped_non_finite
-        result = self._calibrator.run(max_iterations=max_iterations)
+        result = self._calibrator.run(max_iterations=max_iterations,
+                                      new_pairs_only=new_pairs_only)
         self.latest = result
         self.waiting_for = ""
         self.normal_equations = self._calibrator.normal_equations
@@ -380,8 +383,8 @@ class StreamingCalibration:
                 self._open[int(sid)] = o
             frozen = Observations(data["frozen_rows"], data["frozen_y"], data["frozen_weights"],
                                   data["frozen_group"], data["frozen_cluster"])
-            self._calibrator.restore_frozen(frozen)
             self._calibrator.delta = np.array(data["delta"])
+            self._calibrator.restore_frozen(frozen)  # expressed at the saved estimate
             self._calibrator.threshold = float(data["threshold"])
             self.normal_equations = NormalEquations(
                 np.array(data["neq_n"]), np.array(data["neq_u"]), float(data["neq_yy"]),
