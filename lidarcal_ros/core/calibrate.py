@@ -377,24 +377,35 @@ class Calibrator:
             pair.last_triangle = m.triangle
         return m
 
+    def _patch_terms(
+        self, k: int, m: PatchMatches
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For the valid matches to strip ``k``'s patches: the observed normals, ``n^T A_B``
+        interpolated at the foot of the normal (barycentric), and the observed discrepancy
+        (the patch distance along the observed normal)."""
+        ok = m.valid
+        tin = self._tin(k)
+        n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
+        w = m.weights[ok]
+        verts = tin.simplices[m.triangle[ok]]
+        geometry = self.strips[k].geometry
+        rows = np.zeros((int(ok.sum()), N_PARAMETERS))
+        for v in range(3):
+            gv = geometry.take(verts[:, v])
+            rows += w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
+        y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+        return n, rows, y
+
     def _pair_observations(
         self, pair: _PairWork, points_idx: np.ndarray, m: PatchMatches
     ) -> Observations:
-        sa, sb = self.strips[pair.a], self.strips[pair.b]
-        ok = m.valid
-        idx = points_idx[ok]
-        n = self._observed_normal(m.normal[ok], self._tin(pair.b).sloped[m.triangle[ok]])
-        w = m.weights[ok]
-        verts = self._tin(pair.b).simplices[m.triangle[ok]]
+        sa = self.strips[pair.a]
+        idx = points_idx[m.valid]
+        # eq. [11]: the discrepancy n . (X_A - X_B) left by the current estimate; the
+        # adjustment solves for the increment that removes it (Gauss-Newton).
+        n, patch_rows, y = self._patch_terms(pair.b, m)
         ga = sa.geometry.take(idx)
-        rows = normal_design_rows(n, ga.x, ga.z, ga.kappa, ga.beta)
-        for v in range(3):
-            gv = sb.geometry.take(verts[:, v])
-            rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
-        # Observed: the normal discrepancy n . (X_A - X_B) left by the current estimate; the
-        # adjustment solves for the increment that removes it (Gauss-Newton on eq. [11]).
-        # n_obs . (X_A - foot of the normal): the patch distance along the observed normal.
-        y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+        rows = normal_design_rows(n, ga.x, ga.z, ga.kappa, ga.beta) - patch_rows
         cluster = self._cluster_of(sa.strip.xyz[idx])
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster)
 
@@ -454,15 +465,9 @@ class Calibrator:
             if not m.valid.any():
                 continue
             ok = m.valid
-            n = self._observed_normal(m.normal[ok], self._tin(k).sloped[m.triangle[ok]])
-            w = m.weights[ok]
-            verts = self._tin(k).simplices[m.triangle[ok]]
-            rows = np.zeros((int(ok.sum()), N_PARAMETERS))
-            for v in range(3):
-                gv = ps.geometry.take(verts[:, v])
-                rows -= w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
             # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
-            y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+            _, patch_rows, y = self._patch_terms(k, m)
+            rows = -patch_rows
             weights = np.full(y.size, self.settings.control_weight)
             parts.append(Observations(rows, y, weights, -1 - cps[ok],
                                       self._cluster_of(control.xyz[cps[ok]])))
@@ -529,16 +534,7 @@ class Calibrator:
             frozen.extend((p.last, p.last_delta) for p in kept
                           if p.last is not None and p.last_delta is not None)
             live = [p for p in live if p not in kept]
-        if fresh:
-            zero = np.zeros(N_PARAMETERS)
-            delivered = {k: self._corrected(k, zero) for k in self._used_strips(fresh)}
-            for p_i, pair in enumerate(fresh):
-                self._progress("choosing sample points", p_i / len(fresh))
-                m = self._match_pair(pair, pair.candidates, zero, delivered,
-                                     s.max_normal_distance_m)
-                pair.sample = self._select_sample(pair, m)
-                pair.before = m.take(np.isin(pair.candidates, pair.sample)).distance
-                pair.before = pair.before[np.isfinite(pair.before)]
+        self._choose_samples(fresh)
         if control is not None and len(control) and self._control_before is None:
             zero = np.zeros(N_PARAMETERS)
             delivered = {k: self._corrected(k, zero) for k in range(len(self.strips))}
@@ -590,25 +586,32 @@ class Calibrator:
         self._allow_for_shared_errors(sol, obs, step)
         return self._finish(sol, obs, delta, iteration, converged, history)
 
+    def _choose_samples(self, pairs: Sequence[_PairWork]) -> None:
+        """Match pairs met for the first time once at zero correction: choose their sample
+        points and keep their "before" discrepancies."""
+        if not pairs:
+            return
+        s = self.settings
+        zero = np.zeros(N_PARAMETERS)
+        delivered = {k: self._corrected(k, zero) for k in self._used_strips(pairs)}
+        for p_i, pair in enumerate(pairs):
+            self._progress("choosing sample points", p_i / len(pairs))
+            m = self._match_pair(pair, pair.candidates, zero, delivered, s.max_normal_distance_m)
+            pair.sample = self._select_sample(pair, m)
+            before = m.take(np.isin(pair.candidates, pair.sample)).distance
+            pair.before = before[np.isfinite(before)]
+
     def observations_at(self, delta: np.ndarray) -> Observations:
         """The correspondences of every pair (and control) at the estimate ``delta``, with
         no adjustment: what flight planning analyses."""
         s = self.settings
-        zero = np.zeros(N_PARAMETERS)
+        live = [p for p in self.pairs if p.frozen is None]
+        self._choose_samples([p for p in live if p.sample is None])
         corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))
                      if not self.strips[k].dropped}
-        delivered = corrected if not np.any(delta) else \
-            {k: self._corrected(k, zero) for k in corrected}
         parts = []
-        for pair in self.pairs:
-            if pair.frozen is not None:
-                continue
-            if pair.sample is None:
-                m = self._match_pair(pair, pair.candidates, zero, delivered,
-                                     s.max_normal_distance_m)
-                pair.sample = self._select_sample(pair, m)
-            if np.any(delta):
-                corrected = {k: self._corrected(k, delta) for k in corrected}
+        for pair in live:
+            assert pair.sample is not None
             m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
             parts.append(self._pair_observations(pair, pair.sample, m))
         if self.control is not None and len(self.control):
