@@ -6,8 +6,10 @@ with geographic positions) and imported again: the bag must hold the same points
 LAS scale) and give the same calibration. Multiple returns are synthesised on the exact
 (biased) laser ray of a fraction of the pulses to test the trajectory estimate.
 
-Real files (public test data of laspy and lidR) are looked for in ``$LIDARCAL_REAL_LAS_DIR``
-or ``shared/data/las`` beside the repository; their tests are skipped when absent.
+Real files: laspy's sample files come from its source distribution on PyPI
+(``scripts/test-data``, run by ``scripts/test``; under CI their absence fails the tests);
+lidR's are looked for in ``$LIDARCAL_REAL_LAS_DIR`` or ``shared/data/las`` and skipped when
+absent.
 """
 
 from __future__ import annotations
@@ -409,20 +411,26 @@ def test_not_an_sbet(exported, tmp_path) -> None:
 
 
 # ---------------------------------------------------------------------------- real data
-def _real_dir() -> Path | None:
+#: Files of laspy's source distribution, fetched by scripts/test-data (run by scripts/test).
+LASPY_SAMPLES = ("simple.las", "autzen_trim.laz", "append-bug.laz",
+                 "file_with_both_wkt_and_geotiff_vlrs.las")
+
+
+def _real_dirs() -> list[Path]:
+    repo = Path(__file__).resolve().parents[1]
     env = os.environ.get("LIDARCAL_REAL_LAS_DIR")
-    for cand in ([Path(env)] if env else []) + [
-            Path(__file__).resolve().parents[2] / "shared" / "data" / "las"]:
-        if cand.is_dir():
-            return cand
-    return None
+    return ([Path(env)] if env else []) + [
+        repo.parent / "shared" / "data" / "las", repo / ".venv" / "test-data" / "laspy"]
 
 
 def _real(name: str) -> Path:
-    d = _real_dir()
-    if d is None or not (d / name).is_file():
-        pytest.skip(f"real test file {name} not available (shared/data/las)")
-    return d / name
+    for d in _real_dirs():
+        if (d / name).is_file():
+            return d / name
+    if name in LASPY_SAMPLES and os.environ.get("CI"):
+        pytest.fail(f"real test file {name} missing: scripts/test-data did not fetch it")
+    pytest.skip(f"real test file {name} not available (scripts/test-data, "
+                "$LIDARCAL_REAL_LAS_DIR or shared/data/las)")
 
 
 def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
@@ -445,9 +453,11 @@ def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
     assert report.time_rule.clock == "week"
 
 
-def _made_up_trajectory(path: Path, csv: Path, *, gap_s: float = 10.0) -> np.ndarray:
-    """An ASCII trajectory (week seconds, header) 1500 m above each pass of a real file:
-    one straight northward line per group of GPS times; returns the sorted times."""
+def _made_up_trajectory(path: Path, csv: Path, *, gap_s: float = 10.0,
+                        adjusted: bool = False) -> np.ndarray:
+    """An ASCII trajectory (GPS week seconds, header) 1500 m above each pass of a real file:
+    one straight northward line per group of GPS times; returns the sorted raw times.
+    ``adjusted``: the file's times are adjusted standard GPS time (week seconds derived)."""
     import laspy
 
     las = laspy.read(str(path))
@@ -457,12 +467,82 @@ def _made_up_trajectory(path: Path, csv: Path, *, gap_s: float = 10.0) -> np.nda
     for lo, hi in zip(t_las[np.concatenate(([0], cuts + 1))],
                       t_las[np.concatenate((cuts, [t_las.size - 1]))], strict=True):
         t = np.arange(math.floor(lo) - 2, math.ceil(hi) + 2, 0.1)
-        rows.append(np.column_stack([t, np.full(t.size, np.mean(las.x)),
+        t_written = np.mod(t + 1e9, WEEK_S) if adjusted else t
+        rows.append(np.column_stack([t_written, np.full(t.size, np.mean(las.x)),
                                      np.mean(las.y) + 60.0 * (t - t[0]),
                                      np.full(t.size, 1500.0)]))
     np.savetxt(csv, np.concatenate(rows), delimiter=",", fmt="%.4f",
                header="gps_time,easting,northing,height", comments="")
     return t_las
+
+
+def test_real_laspy_lambert93_adjusted_time_and_overlap_qa(tmp_path) -> None:
+    """laspy's append-bug.laz (LAS 1.4 format 8, adjusted standard time, RGF93 / Lambert-93,
+    ids 712, 800-802): strips from ids, the week-second trajectory met through the points'
+    absolute time, UNIX times in the bag, and the one real overlap (800 / 801, a strip of
+    tile edge) checked by the swath-to-swath QA."""
+    import laspy
+
+    from lidarcal_ros.io.trajectory_files import gps_to_unix
+
+    path = _real("append-bug.laz")
+    _made_up_trajectory(path, tmp_path / "traj.csv", adjusted=True)
+    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
+    las = laspy.read(str(path))
+    ids, counts = np.unique(np.asarray(las.point_source_id), return_counts=True)
+    mission = read_mission(tmp_path / "bag")
+    assert [s.strip_id for s in mission.strips] == ids.tolist() == [712, 800, 801, 802]
+    assert [len(s) for s in mission.strips] == counts.tolist()
+    assert report.crs_name == "RGF93 / Lambert-93" and report.unit_factors == (1.0, 1.0)
+    rule = report.time_rule
+    assert (rule.points_base, rule.trajectory_base, rule.clock) == ("adjusted", "week", "unix")
+    sel = np.asarray(las.point_source_id) == 802
+    want = np.sort(gps_to_unix(np.asarray(las.gps_time)[sel] + 1e9))
+    assert np.allclose(np.sort(mission.strips[3].t), want, rtol=0, atol=1e-6)
+    # Only 800 and 801 share ground: a 110 m sliver at x = 699000 m.
+    assert [(q.strip_a, q.strip_b) for q in report.overlaps] == [(800, 801)]
+    qa = report.overlaps[0]
+    assert qa.n_cells >= 20 and abs(qa.median_dz) < 0.05 and qa.rms_dz < 0.08
+    assert qa.level == "OK"
+
+
+def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
+    """laspy's file_with_both_wkt_and_geotiff_vlrs.las (NAD83(2011) Nebraska in US feet,
+    both a WKT and GeoTIFF keys, point source id 0, single returns): the header's week-time
+    flag contradicts times of 3.3e8 s, which are read as adjusted standard time; strips come
+    from time gaps; coordinates become metres."""
+    import laspy
+
+    path = _real("file_with_both_wkt_and_geotiff_vlrs.las")
+    # The passes span 9 days: the trajectory keeps the file's own (adjusted) times.
+    t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
+    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
+    assert report.time_rule.points_base == report.time_rule.trajectory_base == "adjusted"
+    assert report.crs_name == "NAD83_2011_Nebraska_ft"
+    assert report.unit_factors == pytest.approx((1200 / 3937, 1200 / 3937))
+    passes = 1 + int(np.sum(np.diff(t_las) > 10.0))
+    mission = read_mission(tmp_path / "bag")
+    assert passes >= 2
+    assert [s.strip_id for s in mission.strips] == list(range(1, passes + 1))
+    assert all(s.source == "split at GPS-time gaps" for s in report.strips)
+    assert sum(len(s) for s in mission.strips) == t_las.size
+    las = laspy.read(str(path))
+    z_min = min(float(s.xyz[:, 2].min()) for s in mission.strips)
+    assert z_min == pytest.approx(1200 / 3937 * float(np.min(las.z)), abs=1e-3)
+
+
+def test_real_truncated_laz_one_line(tmp_path, capsys) -> None:
+    """autzen_trim.laz cut in half: ``lidarcal import`` fails with one line naming the file."""
+    path = _real("autzen_trim.laz")
+    cut = tmp_path / "autzen_cut.laz"
+    data = path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    rc = cli_main(["import", str(cut), "-o", str(tmp_path / "bag")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0
+    assert len([line for line in err if "error" in line]) == 1
+    assert "autzen_cut.laz" in err[-1]
+    assert not (tmp_path / "bag").exists()
 
 
 def test_real_lidr_megaplot_strips_from_time_gaps(tmp_path) -> None:

@@ -888,6 +888,12 @@ def _finish(
     strip_map = _StripMap(occupancy, gap_bin, strip_gap_s)
     p0 = min(r[1] for r in per_psid.values())
     p1 = max(r[2] for r in per_psid.values())
+    if points_base == "week" and p1 > 1.5 * WEEK_S:
+        # Many producers leave the global-encoding bit at 0 while writing adjusted standard
+        # time; week seconds never reach 1.5 weeks, adjusted standard time after 2011 does.
+        logger.warning("%s: header says GPS week seconds, but times reach %.0f s; read as "
+                       "adjusted standard GPS time", paths[0], p1)
+        points_base = "adjusted"
 
     # -- time rule
     creation = [i.creation_date for i in infos if i.creation_date is not None]
