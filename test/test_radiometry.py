@@ -110,15 +110,36 @@ def test_range_normalisation_to_the_reference_range() -> None:
 
 
 def test_grazing_incidence_is_clamped_and_flagged() -> None:
-    model = RadiometricModel(min_cos_incidence=0.1)
+    model = RadiometricModel(min_cos_incidence=0.1, uncertain_incidence_max_deg=60.0)
     cos_t = np.array([1.0, 0.1, 0.05, 0.0, np.nan])
     out, grazing = model.reflectance(np.ones(5), np.full(5, 1000.0), cos_t)
     assert grazing.tolist() == [False, False, True, True, False]
     assert np.isfinite(out[:4]).all()
-    # Clamped: never divided by a cosine below 0.1.
-    assert out[2] == out[1] == out[3]
+    # Exactly at the clamp: divided by 0.1. Beyond it the normal is doubtful: the incidence
+    # term is bounded at 60 deg (factor 2), never divided by a cosine below the clamp.
     assert out[1] == pytest.approx(10.0 * out[0], rel=1e-6)
+    assert out[2] == out[3] == pytest.approx(2.0 * out[0], rel=1e-6)
     assert np.isnan(out[4])
+    # A bound at or below the clamp's angle leaves the clamp in force.
+    steep = RadiometricModel(min_cos_incidence=0.1, uncertain_incidence_max_deg=89.0)
+    out2, _ = steep.reflectance(np.ones(2), np.full(2, 1000.0), np.array([1.0, 0.0]))
+    assert out2[1] == pytest.approx(10.0 * out2[0], rel=1e-6)
+
+
+def test_uncertain_normals_bound_the_incidence_term() -> None:
+    model = RadiometricModel(uncertain_incidence_max_deg=60.0)
+    cos_t = np.array([0.9, 0.3, 0.3, np.nan])
+    uncertain = np.array([True, True, False, True])
+    out, grazing = model.reflectance(np.ones(4), np.full(4, 1000.0), cos_t,
+                                     uncertain=uncertain)
+    plain, _ = model.reflectance(np.ones(4), np.full(4, 1000.0), cos_t)
+    assert not grazing.any()
+    assert out[0] == plain[0]  # below the bound: unchanged
+    assert out[1] == pytest.approx(plain[1] * 0.3 / 0.5, rel=1e-6)  # cos 0.3 -> cos 60 deg
+    assert out[2] == plain[2]  # trusted normal: the full correction
+    assert np.isnan(out[3])
+    with pytest.raises(ConfigError, match="uncertain_incidence_max_deg"):
+        RadiometricModel(uncertain_incidence_max_deg=90.0)
 
 
 def test_pulse_rate_power_model() -> None:

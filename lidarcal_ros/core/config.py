@@ -77,6 +77,9 @@ SCHEMA: dict[str, ParameterSpec] = {
         "rate (pulse_rate)", choices=("constant", "pulse_rate")),
     "radiometry.min_cos_incidence": _f(0.1, "Clamp of cos(incidence); below it points are "
                                        "flagged grazing", 0.01, 1.0),
+    "radiometry.uncertain_incidence_max_deg": _f(
+        60.0, "Where the normal is uncertain (rough neighbourhood, or an estimate beyond the "
+        "grazing clamp) the incidence term is bounded at this angle, deg", 0.0, 89.0),
     "calibration.solve_for": ParameterSpec(list(_DEFAULT_SOLVE), "str_list",
                                            "Parameters to estimate (others held fixed)"),
     "calibration.control_points_file": ParameterSpec("", "str",

@@ -212,6 +212,11 @@ class RadiometricModel:
     min_cos_incidence : float
         Clamp of ``cos(theta)``; points below it are flagged grazing
         (``radiometry.min_cos_incidence``).
+    uncertain_incidence_max_deg : float
+        Bound of the incidence term (deg) for points whose normal is uncertain
+        (``radiometry.uncertain_incidence_max_deg``): there a wrong normal, not the surface,
+        is the likely cause of a steep incidence, and dividing by its cosine would turn one
+        bad neighbourhood into an outlier ten times too bright.
     """
 
     wavelength_nm: float = 1064.0
@@ -223,6 +228,7 @@ class RadiometricModel:
     pulse_rate_hz: float = 70000.0
     reference_pulse_rate_hz: float = 70000.0
     min_cos_incidence: float = 0.1
+    uncertain_incidence_max_deg: float = 60.0
 
     def __post_init__(self) -> None:
         if not self.reference_range_m > 0:
@@ -233,6 +239,9 @@ class RadiometricModel:
             raise ConfigError(
                 f"radiometry.min_cos_incidence must be in (0, 1], got {self.min_cos_incidence}"
             )
+        if not 0.0 <= self.uncertain_incidence_max_deg < 90.0:
+            raise ConfigError("radiometry.uncertain_incidence_max_deg must be in [0, 90) deg, "
+                              f"got {self.uncertain_incidence_max_deg}")
         power_ratio(self.power_model, self.pulse_rate_hz, self.reference_pulse_rate_hz)
         extinction_coefficient(self.visibility_km, self.wavelength_nm, self.temperature_c,
                                self.pressure_kpa)
@@ -251,6 +260,7 @@ class RadiometricModel:
             pulse_rate_hz=float(config["sensor.pulse_rate_hz"]),
             reference_pulse_rate_hz=float(config["radiometry.reference_pulse_rate_hz"]),
             min_cos_incidence=float(config["radiometry.min_cos_incidence"]),
+            uncertain_incidence_max_deg=float(config["radiometry.uncertain_incidence_max_deg"]),
         )
 
     @property
@@ -269,6 +279,8 @@ class RadiometricModel:
         intensity: np.ndarray,
         range_m: np.ndarray,
         cos_theta: np.ndarray,
+        *,
+        uncertain: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Relative reflectance of each point (module docstring) and its grazing flag.
 
@@ -280,12 +292,17 @@ class RadiometricModel:
             Firing point to point, metres.
         cos_theta : (n,) float
             ``|n . l|``, cosine of the incidence angle (NaN where unknown).
+        uncertain : (n,) bool, keyword-only, optional
+            The normal is uncertain (rough neighbourhood): the cosine used is at least
+            ``cos(uncertain_incidence_max_deg)``. Points beyond the grazing clamp are
+            uncertain too.
 
         Returns
         -------
         reflectance : (n,) float32
-            ``I (r / r_ref)^2 / max(cos theta, c_min) / exp(-2 alpha r) * P_ref / P_t``; NaN
-            where an input is NaN.
+            ``I (r / r_ref)^2 / max(cos theta, c) / exp(-2 alpha r) * P_ref / P_t`` with
+            ``c = cos(uncertain_incidence_max_deg)`` for uncertain and grazing points, else
+            ``c_min``; NaN where an input is NaN.
         grazing : (n,) bool
             ``cos theta < c_min``: the clamped value was used; never divided by a cosine
             below ``c_min``.
@@ -296,6 +313,11 @@ class RadiometricModel:
         c_min = np.float32(self.min_cos_incidence)
         grazing = cos_t < c_min  # False for NaN
         cos_eff = np.maximum(cos_t, c_min)  # NaN stays NaN
+        doubtful = grazing if uncertain is None else (grazing | np.asarray(uncertain, bool))
+        if doubtful.any():
+            c_doubt = np.float32(max(math.cos(math.radians(self.uncertain_incidence_max_deg)),
+                                     self.min_cos_incidence))
+            cos_eff[doubtful] = np.maximum(cos_eff[doubtful], c_doubt)
         scale = np.float32(self.power_factor / (self.reference_range_m
                                                 * self.reference_range_m))
         gain = np.exp(np.float32(2.0 * self.alpha_per_m) * r)

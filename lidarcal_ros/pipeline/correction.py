@@ -16,7 +16,12 @@ Per point (method.md sections 2-4 and 8):
 4. the local surface normal from a grid plane fit over the point's neighbourhood in its own
    strip (:mod:`lidarcal_ros.core.normals`), ``incidence = arccos |n . l|`` (rad);
 5. ``reflectance`` by the radar equation (:mod:`lidarcal_ros.core.radiometry`), with
-   ``cos(incidence)`` clamped at ``radiometry.min_cos_incidence``.
+   ``cos(incidence)`` clamped at ``radiometry.min_cos_incidence``; where the normal is
+   uncertain (flagged rough or grazing) the incidence term is bounded at
+   ``radiometry.uncertain_incidence_max_deg`` (60 deg): at building edges a plane mixing roof
+   and ground gives a steep incidence that the surface does not have, and dividing by its
+   cosine would make the point several times too bright (the incidence field keeps the
+   estimate; the flags say it is uncertain).
 
 Normals are fitted to the delivered (uncorrected) coordinates: the correction is a smooth field
 (its gradient is of the order of the boresight angles and ``dS``, below 1e-3), so it would turn
@@ -73,7 +78,8 @@ logger = logging.getLogger(__name__)
 #: not below it. ``x, y, z`` are the delivered ones; range, incidence, scan_angle and
 #: reflectance are NaN. (LAS: the point is also *withheld*.)
 FLAG_NOT_CORRECTED = 1
-#: ``cos(incidence)`` below ``radiometry.min_cos_incidence``: reflectance uses the clamp.
+#: ``cos(incidence)`` below ``radiometry.min_cos_incidence``: the normal is taken as uncertain
+#: and reflectance bounds the incidence term (``radiometry.uncertain_incidence_max_deg``).
 FLAG_GRAZING = 2
 #: No plane could be fitted around the point (too few neighbours): incidence and
 #: reflectance NaN.
@@ -81,7 +87,8 @@ FLAG_NO_NORMAL = 4
 #: The cloud has no ``intensity`` field: reflectance NaN.
 FLAG_NO_INTENSITY = 8
 #: The neighbourhood is not planar at the noise level (building edge, vegetation): the
-#: normal, hence incidence and reflectance, is uncertain (computed all the same).
+#: normal, hence incidence, is uncertain (computed all the same); reflectance bounds the
+#: incidence term (``radiometry.uncertain_incidence_max_deg``).
 FLAG_ROUGH = 16
 
 #: Fields added to the corrected clouds (name, numpy type).
@@ -397,13 +404,15 @@ def correct_columns(
     nn = np.zeros(n, dtype=bool)
     nn[sel] = ~has_normal
     flags[nn] |= FLAG_NO_NORMAL
+    rough = None
     if gn.rough is not None:
         flags[gn.rough[:n] & ok] |= FLAG_ROUGH
+        rough = gn.rough[:n] if everything else gn.rough[:n][sel]
     if intensity is None:
         flags |= FLAG_NO_INTENSITY
     else:
         inten = np.asarray(intensity)[sel]
-        rho, grazing = settings.radiometry.reflectance(inten, r, cos_t)
+        rho, grazing = settings.radiometry.reflectance(inten, r, cos_t, uncertain=rough)
         refl[sel] = rho
         gz = np.zeros(n, dtype=bool)
         gz[sel] = grazing
