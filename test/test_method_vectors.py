@@ -92,6 +92,34 @@ def test_local_trajectory_at_projected_magnitudes_and_gps_time() -> None:
     np.testing.assert_allclose(g.kappa, kappa, atol=1e-10)
 
 
+def test_local_trajectory_same_in_any_point_order() -> None:
+    """Time-ordered points take a linear-time path (windows as runs, running sample counts);
+    shuffled points the general one: both give the same geometry and trig, also with points
+    exactly on sample times and a curving, irregularly sampled trajectory."""
+    rng = np.random.default_rng(5)
+    t_traj = np.cumsum(rng.uniform(0.004, 0.03, 3000))
+    heading = 0.3 + 0.02 * t_traj
+    vel = 60.0 * np.column_stack([-np.sin(heading), np.cos(heading), np.zeros_like(t_traj)])
+    traj = Trajectory(t_traj, np.array([4e5, 5e6, 1100.0]) + np.cumsum(vel * 0.01, axis=0))
+    t = np.sort(np.concatenate([rng.uniform(t_traj[30], t_traj[-30], 20_000),
+                                t_traj[100:110]]))
+    xyz = (np.column_stack([np.interp(t, t_traj, traj.xyz[:, k]) for k in range(3)])
+           + np.column_stack([rng.uniform(-400, 400, (t.size, 2)), np.full(t.size, -1050.0)]))
+    ordered = laser_geometry(t, xyz, traj)
+    perm = rng.permutation(t.size)
+    shuffled = laser_geometry(t[perm], xyz[perm], traj)
+    back = np.argsort(perm)
+    for name in ("x", "z", "kappa", "beta"):
+        np.testing.assert_array_equal(getattr(shuffled, name)[back], getattr(ordered, name))
+    for a, b in zip(ordered.trig(), shuffled.take(back).trig(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    c, s, sb, cb = ordered.trig()
+    np.testing.assert_allclose(c, np.cos(ordered.kappa), atol=1e-15)
+    np.testing.assert_allclose(s, np.sin(ordered.kappa), atol=1e-15)
+    np.testing.assert_allclose(sb, np.sin(ordered.beta), atol=1e-15)
+    np.testing.assert_allclose(cb, np.cos(ordered.beta), atol=1e-15)
+
+
 def test_trajectory_gap_is_reported() -> None:
     t = np.concatenate([np.arange(0.0, 10.0, 0.1), np.arange(20.0, 30.0, 0.1)])
     xyz = np.column_stack([np.zeros_like(t), 50.0 * t, np.full_like(t, 1000.0)])

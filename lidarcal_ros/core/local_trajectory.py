@@ -16,6 +16,7 @@ import itertools
 import logging
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -46,16 +47,36 @@ class LaserGeometry:
     kappa: np.ndarray
     beta: np.ndarray
     origin: np.ndarray
+    #: ``cos kappa``, ``sin kappa`` when known (one per window, spread to the points); else
+    #: computed on first use by :meth:`trig`.
+    cos_kappa: np.ndarray | None = None
+    sin_kappa: np.ndarray | None = None
 
     @property
     def range(self) -> np.ndarray:
         """Range from the firing position, ``sqrt(x^2 + z^2)``, metres."""
         return np.hypot(self.x, self.z)
 
+    def trig(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``cos kappa, sin kappa, sin beta, cos beta`` per point.
+
+        Float64 sine and cosine cost some 10 ns a point each, more than the rest of eq. [13]
+        together, so the heading's come once per trajectory window and the mirror angle's
+        from ``beta = atan(x / z)`` algebraically: ``sin beta = -x / r``,
+        ``cos beta = -z / r`` (``z < 0``).
+        """
+        if self.cos_kappa is None or self.sin_kappa is None:
+            self.cos_kappa = np.cos(self.kappa)
+            self.sin_kappa = np.sin(self.kappa)
+        inv_r = 1.0 / np.hypot(self.x, self.z)
+        return self.cos_kappa, self.sin_kappa, -self.x * inv_r, -self.z * inv_r
+
     def take(self, index: np.ndarray) -> LaserGeometry:
         """A subset of the points (fancy or boolean index)."""
         return LaserGeometry(
-            self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index]
+            self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
+            None if self.cos_kappa is None else self.cos_kappa[index],
+            None if self.sin_kappa is None else self.sin_kappa[index],
         )
 
 
@@ -123,6 +144,25 @@ def covered_by_trajectory(
     return _bracketed(t, traj_t, start, stop, min_samples)
 
 
+def _search(sorted_t: np.ndarray, q: np.ndarray, side: Literal["left", "right"]) -> np.ndarray:
+    """``np.searchsorted(sorted_t, q, side)``, in linear time when ``q`` is sorted too.
+
+    Points come in time order and a chunk spans few trajectory samples, so instead of a
+    binary search per point the few samples inside ``[q[0], q[-1]]`` are placed among the
+    queries and the index is a running count.
+    """
+    n = q.shape[0]
+    if n < 2 or not bool(np.all(q[1:] >= q[:-1])):  # unsorted or NaN: the general search
+        return np.searchsorted(sorted_t, q, side=side)
+    lo = int(np.searchsorted(sorted_t, q[0], side=side))
+    hi = int(np.searchsorted(sorted_t, q[-1], side=side))
+    # Sample k is counted from the first query at (right) or past (left) it.
+    steps = np.searchsorted(q, sorted_t[lo:hi], side="left" if side == "right" else "right")
+    count = np.cumsum(np.bincount(steps, minlength=n + 1)[:n])
+    count += lo
+    return count
+
+
 def _bracketed(
     t: np.ndarray, traj_t: np.ndarray, start: np.ndarray, stop: np.ndarray, min_samples: int
 ) -> np.ndarray:
@@ -176,8 +216,8 @@ def laser_geometry(
             f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
         )
     traj_t = trajectory.t
-    start = np.searchsorted(traj_t, t - window_s, side="right")
-    stop = np.searchsorted(traj_t, t + window_s, side="left")
+    start = _search(traj_t, t - window_s, side="right")
+    stop = _search(traj_t, t + window_s, side="left")
     bad = ~_bracketed(t, traj_t, start, stop, min_samples)
     if bad.any():
         first = int(np.argmax(bad))
@@ -188,7 +228,15 @@ def laser_geometry(
         )
     # One fit per distinct window.
     key = start.astype(np.int64) * (len(traj_t) + 1) + stop
-    _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
+    new_window = np.empty(n, dtype=bool)
+    new_window[0] = True
+    np.not_equal(key[1:], key[:-1], out=new_window[1:])
+    if n == 1 or bool(np.all(key[1:] >= key[:-1])):
+        # Points in time order (the usual case): windows are runs, no hashing needed.
+        first_idx = np.flatnonzero(new_window)
+        inverse = np.cumsum(new_window) - 1
+    else:
+        _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
     t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, start[first_idx], stop[first_idx])
     speed_h = np.hypot(vel[:, 0], vel[:, 1])
     if np.any(speed_h <= 1e-6):
@@ -196,8 +244,8 @@ def laser_geometry(
     kappa_w = np.arctan2(-vel[:, 0], vel[:, 1])
     inv = inverse.ravel()
     origin = p_mean[inv] + vel[inv] * (t - t_mean[inv])[:, None]
-    kappa = kappa_w[inv]
-    geometry = geometry_at(xyz, origin, kappa)
+    geometry = geometry_at(xyz, origin, kappa_w[inv], cos_kappa=np.cos(kappa_w)[inv],
+                           sin_kappa=np.sin(kappa_w)[inv])
     above = geometry.z >= 0
     if np.any(above):
         k = int(np.argmax(above))
@@ -208,7 +256,14 @@ def laser_geometry(
     return geometry
 
 
-def geometry_at(xyz: np.ndarray, origin: np.ndarray, kappa: np.ndarray) -> LaserGeometry:
+def geometry_at(
+    xyz: np.ndarray,
+    origin: np.ndarray,
+    kappa: np.ndarray,
+    *,
+    cos_kappa: np.ndarray | None = None,
+    sin_kappa: np.ndarray | None = None,
+) -> LaserGeometry:
     """Laser-frame ``x, z, beta`` of points seen from known firing positions and headings.
 
     Parameters
@@ -219,10 +274,15 @@ def geometry_at(xyz: np.ndarray, origin: np.ndarray, kappa: np.ndarray) -> Laser
         Firing positions ``X_o(t)``, map frame, metres.
     kappa : (n,) float64
         Headings, radians.
+    cos_kappa, sin_kappa : (n,) float64, keyword-only, optional
+        Their cosines and sines, if already known (computed otherwise).
     """
     rel = xyz - origin
-    x = rel[:, 0] * np.cos(kappa) + rel[:, 1] * np.sin(kappa)
+    if cos_kappa is None or sin_kappa is None:
+        cos_kappa, sin_kappa = np.cos(kappa), np.sin(kappa)
+    x = rel[:, 0] * cos_kappa + rel[:, 1] * sin_kappa
     z = rel[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.arctan(x / z)
-    return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin)
+    return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
+                         cos_kappa=cos_kappa, sin_kappa=sin_kappa)

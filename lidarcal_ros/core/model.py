@@ -93,20 +93,29 @@ def normal_design_rows(
     return rows
 
 
+Trig = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 def point_offsets(
-    delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray, beta: np.ndarray
+    delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray, beta: np.ndarray,
+    *, trig: Trig | None = None,
 ) -> np.ndarray:
     """``A @ delta`` for each point: the displacement the biases cause, map frame, metres.
+
+    Parameters
+    ----------
+    trig : (cos kappa, sin kappa, sin beta, cos beta), keyword-only, optional
+        Known already (:meth:`~lidarcal_ros.core.local_trajectory.LaserGeometry.trig`);
+        computed from ``kappa`` and ``beta`` otherwise.
 
     Returns
     -------
     (n, 3) float64
     """
     d = np.asarray(delta, dtype=np.float64)
-    c = np.cos(kappa)
-    s = np.sin(kappa)
-    sb = np.sin(beta)
-    cb = np.cos(beta)
+    if trig is None:
+        trig = (np.cos(kappa), np.sin(kappa), np.sin(beta), np.cos(beta))
+    c, s, sb, cb = trig
     # Body-frame (right, forward) displacement, then rotate by kappa.
     right = d[0] + z * d[4] - sb * d[6] + z * beta * d[7]
     fwd = d[1] - z * d[3] + x * d[5]
@@ -124,6 +133,8 @@ def correct_points(
     z: np.ndarray,
     kappa: np.ndarray,
     beta: np.ndarray,
+    *,
+    trig: Trig | None = None,
 ) -> np.ndarray:
     """Method.md eq. [13]: ``X_corrected = X_biased - A @ delta_hat``.
 
@@ -133,13 +144,15 @@ def correct_points(
         Biased points, map frame, metres.
     delta : (8,) float64
         Estimated biases, SI units.
+    trig : keyword-only, optional
+        As in :func:`point_offsets`.
 
     Returns
     -------
     (n, 3) float64
         New array of corrected points.
     """
-    return xyz - point_offsets(delta, x, z, kappa, beta)
+    return xyz - point_offsets(delta, x, z, kappa, beta, trig=trig)
 
 
 def boresight_matrix(domega: float, dphi: float, dkappa: float) -> np.ndarray:

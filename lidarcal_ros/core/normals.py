@@ -371,7 +371,8 @@ def grid_normals(
     subsets: list[np.ndarray | None]
     if group is not None and n:
         g = np.asarray(group)
-        keys = np.unique(g)
+        # min == max first: a chunk of one strip (the usual case) needs no hashing.
+        keys = g[:1] if g.min() == g.max() else np.unique(g)
         if keys.size > 1:
             subsets = [np.flatnonzero(finite & (g == k)) for k in keys]
         else:

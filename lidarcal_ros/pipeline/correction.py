@@ -383,16 +383,15 @@ def correct_columns(
         return CorrectedColumns(out_xyz, rng, inc, scan, refl, stats_flags, gn.cell_m)
 
     sel = slice(None) if everything else ok
-    xc = correct_points(xyz[sel], settings.delta, geo.x, geo.z, geo.kappa, geo.beta)
+    trig = geo.trig()
+    xc = correct_points(xyz[sel], settings.delta, geo.x, geo.z, geo.kappa, geo.beta, trig=trig)
     out_xyz[sel] = xc
     rel = xc - geo.origin
     r = np.sqrt(np.einsum("ij,ij->i", rel, rel))
     inv_r = 1.0 / r
-    # Angles in float32 (the fields' type): half the cost of the transcendental functions.
-    kappa32 = geo.kappa.astype(np.float32)
-    x_right = (rel[:, 0].astype(np.float32) * np.cos(kappa32)
-               + rel[:, 1].astype(np.float32) * np.sin(kappa32))
-    scan[sel] = np.arctan(x_right / rel[:, 2].astype(np.float32))
+    x_right = rel[:, 0] * trig[0] + rel[:, 1] * trig[1]
+    # In float32 (the field's type): the transcendental function costs half as much.
+    scan[sel] = np.arctan((x_right / rel[:, 2]).astype(np.float32))
     rng[sel] = r
     nrm = normals if everything else normals[sel]
     # |n . l| with l = rel / r
