@@ -35,6 +35,7 @@ import pytest
 import yaml
 
 from lidarcal_ros.core.mission import Mission, Strip, Trajectory
+from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.io.bag import BagWriter, seconds_to_ns
 from lidarcal_ros.pipeline.calibration import write_simulation
@@ -60,6 +61,21 @@ def write_params_file(path: Path, values: dict[str, Any], *, section: str = "/**
             node = node.setdefault(p, {})
         node[leaf] = value
     path.write_text(yaml.safe_dump({section: {"ros__parameters": tree}}, sort_keys=False))
+    return path
+
+
+def write_calibration_yaml(path: Path, biases: dict[str, float], *, drop: str | None = None,
+                           override: dict[str, float] | None = None) -> Path:
+    """A calibration file of interface.md with the given bias values."""
+    values = {**biases, **(override or {})}
+    doc = {"lidarcal_calibration": {
+        "biases": {n: {"value": float(values[n]), "sigma": None, "estimated": n != "dZ"}
+                   for n in PARAMETER_NAMES if n != drop},
+        "sigma0": 0.02, "redundancy": 1000, "iterations": 1, "converged": True,
+        "correlation": {"names": [], "matrix": []},
+        "correspondences": {"strip_pairs": 0, "control": 0},
+    }}
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
 

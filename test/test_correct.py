@@ -17,8 +17,13 @@ import helpers_missions
 import laspy
 import numpy as np
 import pytest
-import yaml
-from helpers_missions import MissionFiles, strip_span, without_trajectory, write_cloud_bag
+from helpers_missions import (
+    MissionFiles,
+    strip_span,
+    without_trajectory,
+    write_calibration_yaml,
+    write_cloud_bag,
+)
 
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.params import PARAMETER_NAMES
@@ -44,21 +49,6 @@ _DATATYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4"
 
 
 # ------------------------------------------------------------------ helpers
-def write_calibration_yaml(path: Path, biases: dict[str, float], *, drop: str | None = None,
-                           override: dict[str, float] | None = None) -> Path:
-    """A calibration file of interface.md with the given bias values."""
-    values = {**biases, **(override or {})}
-    doc = {"lidarcal_calibration": {
-        "biases": {n: {"value": float(values[n]), "sigma": None, "estimated": n != "dZ"}
-                   for n in PARAMETER_NAMES if n != drop},
-        "sigma0": 0.02, "redundancy": 1000, "iterations": 1, "converged": True,
-        "correlation": {"names": [], "matrix": []},
-        "correspondences": {"strip_pairs": 0, "control": 0},
-    }}
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
-    return path
-
-
 def read_mcap_topics(path: Path) -> tuple[dict[str, int], list[np.ndarray], list[bytes]]:
     """With the mcap project's own reader: message count per topic, the corrected clouds as
     structured arrays, and the raw bytes of the input clouds passed through."""

@@ -1,0 +1,276 @@
+"""The paper's accuracy measures on a mission, before and after a calibration
+(``lidarcal evaluate``).
+
+For each overlapping strip pair, the rigid transformation that co-aligns the pair (Table 3 of
+Habib et al. 2011) with the strips as delivered and as corrected by the estimate (eq. [13],
+as ``lidarcal correct`` applies it); for check points not used in the adjustment, the
+residuals of the strips' surfaces and their RMSE (Table 4). Numerics in
+:mod:`lidarcal_ros.core.evaluation`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.calibrate import CalibrationSettings
+from lidarcal_ros.core.evaluation import (
+    RIGID_NAMES,
+    AccuracySummary,
+    RigidFit,
+    rigid_icp,
+    tin_heights,
+)
+from lidarcal_ros.core.mission import ControlPoints, Mission
+from lidarcal_ros.core.model import correct_points
+from lidarcal_ros.core.params import N_PARAMETERS
+from lidarcal_ros.core.tin import Tin, TinQuality
+from lidarcal_ros.errors import CalibrationError
+from lidarcal_ros.pipeline.correction import flagged_geometry
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class PairAlignment:
+    """Table 3 row: one strip pair's co-aligning transformation before and after."""
+
+    strip_a: int
+    strip_b: int
+    overlap_cells: int
+    before: RigidFit | None
+    after: RigidFit | None
+
+
+@dataclass
+class CheckPointResidual:
+    """Table 4 row: surface height minus surveyed height at one check point (metres)."""
+
+    point_id: str
+    strips: list[int]
+    before: float
+    after: float
+
+
+@dataclass
+class Evaluation:
+    """Everything ``lidarcal evaluate`` reports."""
+
+    pairs: list[PairAlignment]
+    check_points: list[CheckPointResidual] = field(default_factory=list)
+
+    def summary(self, which: str) -> AccuracySummary:
+        """Check-point statistics ``before`` or ``after``."""
+        return AccuracySummary.of(np.array([getattr(c, which) for c in self.check_points]))
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain types for JSON (SI units; None where undetermined)."""
+
+        def fit(f: RigidFit | None) -> dict[str, Any] | None:
+            if f is None:
+                return None
+            return {"values": f.as_dict(),
+                    "sigmas": {n: (float(s) if d else None) for n, s, d in
+                               zip(RIGID_NAMES, f.sigmas, f.determined, strict=True)},
+                    "rms_before_m": f.rms_before, "rms_after_m": f.rms_after,
+                    "matches": f.n_matches, "iterations": f.iterations,
+                    "converged": f.converged}
+
+        out: dict[str, Any] = {"pairs": [
+            {"strips": [p.strip_a, p.strip_b], "overlap_cells": p.overlap_cells,
+             "before": fit(p.before), "after": fit(p.after)} for p in self.pairs]}
+        if self.check_points:
+            out["check_points"] = {
+                "residuals": [{"id": c.point_id, "strips": c.strips,
+                               "before_m": _num(c.before), "after_m": _num(c.after)}
+                              for c in self.check_points],
+                "before": {k: _num(v) for k, v in vars(self.summary("before")).items()},
+                "after": {k: _num(v) for k, v in vars(self.summary("after")).items()},
+            }
+        return out
+
+
+def _num(v: float) -> float | None:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def corrected_strips(
+    mission: Mission, delta: np.ndarray, settings: CalibrationSettings
+) -> list[np.ndarray]:
+    """Every strip's points corrected by ``delta`` (eq. [13]), map frame, metres; points the
+    trajectory cannot serve are left out."""
+    out = []
+    for strip in mission.strips:
+        ok, geo = flagged_geometry(strip.t, strip.xyz, mission.trajectory,
+                                   window_s=settings.trajectory_window_s,
+                                   source=f"strip {strip.strip_id}")
+        xyz = strip.xyz[ok]
+        if np.any(delta):
+            xyz = correct_points(xyz, delta, geo.x, geo.z, geo.kappa, geo.beta,
+                                 trig=geo.trig())
+        out.append(xyz)
+    return out
+
+
+def _cells(xyz: np.ndarray, cell: float) -> np.ndarray:
+    ix = np.floor(xyz[:, 0] / cell).astype(np.int64)
+    iy = np.floor(xyz[:, 1] / cell).astype(np.int64)
+    return ix * (1 << 32) + (iy + (1 << 31))
+
+
+def _tin(xyz: np.ndarray, n_cells: int, settings: CalibrationSettings) -> Tin:
+    density = xyz.shape[0] / max(n_cells * settings.overlap_cell_m ** 2, 1.0)
+    spacing = 1.0 / math.sqrt(max(density, 1e-6))
+    return Tin(xyz, TinQuality(max_edge_m=settings.max_edge_factor * spacing,
+                               max_slope_deg=settings.max_slope_deg,
+                               max_bend_deg=settings.max_bend_deg,
+                               flat_slope_deg=settings.flat_slope_deg))
+
+
+def evaluate_mission(
+    mission: Mission,
+    delta: np.ndarray,
+    settings: CalibrationSettings,
+    *,
+    check_points: ControlPoints | None = None,
+    max_points_per_pair: int = 100_000,
+    seed: int = 0,
+) -> Evaluation:
+    """Tables 3 and 4 of the paper for ``mission`` before and after the estimate ``delta``.
+
+    Parameters
+    ----------
+    mission : Mission
+    delta : (8,) float64
+        Estimated biases, SI units (method.md section 1).
+    settings : CalibrationSettings
+        Overlap and TIN rules (as the calibration used them).
+    check_points : ControlPoints, optional
+        Surveyed points not used in the adjustment.
+    max_points_per_pair : int
+        Points of the first strip of a pair used by the ICP (a random subset beyond).
+    seed : int
+        Seed of that subset.
+
+    Raises
+    ------
+    CalibrationError
+        No two strips overlap and there are no check points: nothing to evaluate.
+    """
+    delta = np.asarray(delta, dtype=np.float64).reshape(N_PARAMETERS)
+    rng = np.random.default_rng(seed)
+    states = {"before": corrected_strips(mission, np.zeros(N_PARAMETERS), settings),
+              "after": corrected_strips(mission, delta, settings)}
+    cells = [np.unique(_cells(x, settings.overlap_cell_m)) for x in states["before"]]
+    tins: dict[tuple[str, int], Tin] = {}
+
+    def tin(which: str, k: int) -> Tin:
+        if (which, k) not in tins:
+            tins[(which, k)] = _tin(states[which][k], cells[k].size, settings)
+        return tins[(which, k)]
+
+    pairs: list[PairAlignment] = []
+    ids = [s.strip_id for s in mission.strips]
+    for a in range(len(ids)):
+        for b in range(a + 1, len(ids)):
+            common = np.intersect1d(cells[a], cells[b], assume_unique=True)
+            if common.size < settings.min_overlap_cells:
+                continue
+            inside = np.flatnonzero(np.isin(_cells(states["before"][a],
+                                                   settings.overlap_cell_m), common))
+            if inside.size > max_points_per_pair:
+                inside = np.sort(rng.choice(inside, max_points_per_pair, replace=False))
+            fits: dict[str, RigidFit | None] = {}
+            for which in ("before", "after"):
+                fits[which] = rigid_icp(states[which][a][inside], tin(which, b),
+                                        states[which][b],
+                                        max_normal_distance=settings.max_normal_distance_m)
+            pairs.append(PairAlignment(ids[a], ids[b], int(common.size),
+                                       fits["before"], fits["after"]))
+            logger.info("strips %d & %d: rigid fit %s -> %s", ids[a], ids[b],
+                        _short(fits["before"]), _short(fits["after"]))
+    residuals: list[CheckPointResidual] = []
+    if check_points is not None and len(check_points):
+        heights: dict[str, np.ndarray] = {}
+        for which in ("before", "after"):
+            per_strip = np.full((len(ids), len(check_points)), np.nan)
+            cp_cells = _cells(check_points.xyz, settings.overlap_cell_m)
+            for k in range(len(ids)):
+                seen = np.isin(cp_cells, cells[k])
+                if seen.any():
+                    per_strip[k, seen] = tin_heights(tin(which, k), states[which][k],
+                                                     check_points.xyz[seen, :2])
+            heights[which] = per_strip
+        for c, pid in enumerate(check_points.ids):
+            seen = np.isfinite(heights["before"][:, c]) | np.isfinite(heights["after"][:, c])
+            if not seen.any():
+                logger.warning("check point %s: no strip covers it", pid)
+            z = check_points.xyz[c, 2]
+            residuals.append(CheckPointResidual(
+                pid, [ids[k] for k in np.flatnonzero(seen)],
+                _mean(heights["before"][:, c] - z), _mean(heights["after"][:, c] - z)))
+    if not pairs and not residuals:
+        raise CalibrationError("no overlapping strips and no check points: nothing to "
+                               "evaluate")
+    return Evaluation(pairs, residuals)
+
+
+def _mean(values: np.ndarray) -> float:
+    v = values[np.isfinite(values)]
+    return float(v.mean()) if v.size else math.nan
+
+
+def _short(fit: RigidFit | None) -> str:
+    if fit is None:
+        return "none"
+    return f"RMS {100 * fit.rms_after:.1f} cm"
+
+
+def format_evaluation(ev: Evaluation) -> str:
+    """Tables 3 and 4 as text: shifts in cm, rotations in arcsec, '-' where undetermined;
+    the RMS normal discrepancy of the pair as it is and after the rigid fit."""
+    arcsec = 180.0 / math.pi * 3600.0
+    lines = ["relative accuracy: rigid transformation co-aligning each strip pair "
+             "(point-to-patch ICP)",
+             "strips  state      tx cm   ty cm   tz cm  omega \"   phi \"  kappa \""
+             "  RMS cm (fitted)  matches"]
+
+    def row(label: str, f: RigidFit | None) -> str:
+        if f is None:
+            return f"{label}  (no correspondences)"
+        cells = []
+        for i, v in enumerate(f.values):
+            if not f.determined[i] or not math.isfinite(v):
+                cells.append(f"{'-':>7}")
+            else:
+                cells.append(f"{v * (100.0 if i < 3 else arcsec):+7.1f}")
+        return (f"{label} " + " ".join(cells)
+                + f"  {100 * f.rms_before:6.1f} ({100 * f.rms_after:4.1f})  {f.n_matches:7d}")
+
+    for p in ev.pairs:
+        pair = f"{p.strip_a:>2} & {p.strip_b:<2}"
+        lines.append(row(f"{pair} before", p.before))
+        lines.append(row(f"{' ' * len(pair)} after ", p.after))
+    if ev.check_points:
+        lines.append("")
+        lines.append("absolute accuracy: check points (strip surface minus surveyed height)")
+        lines.append("point            strips            before cm   after cm")
+        for c in ev.check_points:
+            lines.append(f"{c.point_id:<16} {','.join(map(str, c.strips)) or '-':<16} "
+                         f"{_cm(c.before):>10} {_cm(c.after):>10}")
+        for which in ("before", "after"):
+            s = ev.summary(which)
+            lines.append(f"{which:<6} n={s.n}  mean {_cm(s.mean)} cm  std "
+                         f"{_cm(s.std, sign=False)} cm  RMSE {_cm(s.rmse, sign=False)} cm  "
+                         f"max |r| {_cm(s.max_abs, sign=False)} cm")
+    return "\n".join(lines)
+
+
+def _cm(v: float, *, sign: bool = True) -> str:
+    if not math.isfinite(v):
+        return "-"
+    return f"{100 * v:+.1f}" if sign else f"{100 * v:.1f}"
