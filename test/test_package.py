@@ -46,6 +46,9 @@ THIRD_PARTY: dict[str, tuple[str, str | None]] = {
     "mcap_ros2": ("python3-mcap-ros2-support-pip", "mcap-ros2-support"),
     "laspy": ("python3-laspy-pip", "laspy"),
     "lazrs": ("python3-lazrs-pip", "lazrs"),
+    "tifffile": ("python3-tifffile", "tifffile"),
+    "matplotlib": ("python3-matplotlib", "matplotlib"),
+    "PIL": ("python3-pil", "pillow"),
     "ruamel": ("python3-ruamel.yaml", "ruamel.yaml"),
     "backports": ("python3-backports-zstd-pip", "backports.zstd"),  # only backports.zstd
     "launch": ("launch", None),

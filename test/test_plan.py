@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.planning import FlightPlan, predict
-from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.core.terrain import RasterTerrain, cast_rays
+from lidarcal_ros.errors import ConfigError, InputError
+from lidarcal_ros.io.dsm_file import read_dsm
+from lidarcal_ros.io.plan_file import read_flight_plan
 
 HALF = 200.0  # metres: short lines keep the tests quick; the geometry is what matters
 
@@ -71,10 +76,145 @@ def test_flat_terrain_hides_horizontal_parameters() -> None:
 @pytest.mark.parametrize("doc, message", [
     ({}, "lines"),
     ({"lines": [{"id": 1, "start": [0, 0]}]}, "line 1"),
-    ({"lines": PAPER, "terrain": "dsm.tif"}, "DSM"),
+    ({"lines": PAPER, "terrain": "site.npy", "terrain_origin": [1, "a"]}, "terrain_origin"),
+    ({"lines": PAPER, "terrain": "site.npy", "terrain_cell_m": 0}, "terrain_cell_m"),
     ({"lines": PAPER, "sensor": {"fov_deg": -5}}, "fov_deg"),
     ({"lines": PAPER, "control": [["a", 0, 0]]}, "control point 1"),
 ])
 def test_bad_plans_are_refused_in_one_line(doc: dict, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         FlightPlan.from_mapping(doc)
+
+
+# ---------------------------------------------------------------------------- DSM terrain
+CELL = 1.0
+#: North-west corner and size of the site grid: every PAPER swath fits on it.
+WEST, NORTH, COLS, ROWS = -900.0, 800.0, 1800, 1600
+
+
+def _site(gables: bool) -> np.ndarray:
+    """A site DSM (row 0 north, 1 m cells): gently rolling ground, and with ``gables`` a
+    building every 60 m (12 x 9 m, gable roofs 8-12 m high, ridges alternately east-west
+    and north-south, so that roof planes face all four ways)."""
+    x = WEST + CELL * (np.arange(COLS) + 0.5)
+    y = NORTH - CELL * (np.arange(ROWS) + 0.5)
+    xx, yy = np.meshgrid(x, y)
+    z = 50.0 + 3.0 * np.sin(xx / 300.0) + 2.0 * np.cos(yy / 250.0)
+    if gables:
+        u = np.mod(xx + 30.0, 60.0) - 30.0
+        v = np.mod(yy + 30.0, 60.0) - 30.0
+        east_west = (np.floor((xx + 30.0) / 60.0) + np.floor((yy + 30.0) / 60.0)) % 2 == 0
+        inside = (np.abs(u) < 12.0) & (np.abs(v) < 9.0)
+        rise = np.where(east_west, 1.0 - np.abs(v) / 9.0, 1.0 - np.abs(u) / 12.0)
+        z = np.where(inside, z + 8.0 + 4.0 * rise, z)
+    return z
+
+
+def _write_npy_plan(tmp_path: Path, z: np.ndarray, **extra: object) -> Path:
+    np.save(tmp_path / "site.npy", z)
+    doc = {"terrain": "site.npy", "terrain_origin": [WEST, NORTH], "terrain_cell_m": CELL,
+           "lines": PAPER, "control": [[0, 0, 0]], **extra}
+    path = tmp_path / "plan.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_rays_meet_a_gridded_dsm_on_its_surface() -> None:
+    """Ray casting over a DSM: every hit lies on the bilinear surface; over a tilted plane
+    the hit is the analytic intersection."""
+    rng = np.random.default_rng(0)
+    n = 5000
+    origins = np.column_stack([rng.uniform(-100, 100, n), rng.uniform(-100, 100, n),
+                               np.full(n, 1000.0)])
+    theta = rng.uniform(-0.45, 0.45, n)
+    d = np.column_stack([np.sin(theta), np.zeros(n), -np.cos(theta)])
+    site = RasterTerrain(_site(True), west=WEST, north=NORTH, cell_m=CELL)
+    hits = cast_rays(site, origins, d)
+    assert np.max(np.abs(hits.xyz[:, 2] - site.height(hits.xyz[:, 0], hits.xyz[:, 1]))) < 1e-6
+    # The first crossing: no sample of the ray above it lies under the surface.
+    t_before = hits.t[:, None] * np.linspace(0.0, 0.999, 200)[None, :]
+    p = origins[:, None, :] + t_before[..., None] * d[:, None, :]
+    assert np.all(p[..., 2] >= site.height(p[..., 0], p[..., 1]) - 1e-9)
+    xx, yy = np.meshgrid(WEST + CELL * (np.arange(COLS) + 0.5),
+                         NORTH - CELL * (np.arange(ROWS) + 0.5))
+    tilted = RasterTerrain(20.0 + 0.1 * xx - 0.05 * yy, west=WEST, north=NORTH, cell_m=CELL)
+    hits = cast_rays(tilted, origins, d)
+    # o_z + t d_z = 20 + 0.1 (o_x + t d_x) - 0.05 o_y
+    t_exact = (origins[:, 2] - 20.0 - 0.1 * origins[:, 0] + 0.05 * origins[:, 1]) / (
+        0.1 * d[:, 0] - d[:, 2])
+    np.testing.assert_allclose(hits.t, t_exact, atol=1e-6)
+
+
+def test_plan_over_a_site_dsm_with_gable_roofs(tmp_path: Path, capsys) -> None:
+    """The paper's plan over a site DSM (.npy, georeferenced in the plan): buildings give the
+    overlaps sloped planes, so with one control point the seven parameters are estimable."""
+    path = _write_npy_plan(tmp_path, _site(True))
+    assert main(["plan", str(path), "--json"]) == 0
+    params = json.loads(capsys.readouterr().out)["parameters"]
+    assert SEVEN <= {n for n, p in params.items() if p["estimable"]}
+
+
+def test_plan_over_a_bare_site_dsm_hides_horizontal_parameters(tmp_path: Path) -> None:
+    """The same site without buildings: the rolling ground's slopes (< 2 deg) are too gentle
+    for the horizontal parameters, and the advice says why."""
+    report = predict(read_flight_plan(_write_npy_plan(tmp_path, _site(False))))
+    blind = {n for n, p in report.parameters.items() if not p.estimable}
+    assert {"dX", "dY", "domega", "dkappa"} <= blind
+    assert report.parameters["dphi"].estimable
+    assert any("sloped features" in a for a in report.advice)
+
+
+def test_geotiff_dsm_matches_the_npy_grid(tmp_path: Path) -> None:
+    """A GeoTIFF (ModelPixelScale + ModelTiepoint, PixelIsArea, GDAL no-data) reads as the
+    same grid as the .npy placed by the plan; a no-data cell takes its neighbour's height."""
+    import tifffile
+
+    z = _site(True).astype(np.float32)[:200, :300]
+    z_nodata = z.copy()
+    z_nodata[10, 10] = -9999.0
+    extratags = [
+        (33550, "d", 3, (CELL, CELL, 0.0), False),
+        (33922, "d", 6, (0.0, 0.0, 0.0, WEST, NORTH, 0.0), False),
+        (34735, "H", 8, (1, 1, 0, 1, 1025, 0, 1, 1), False),
+        (42113, "s", 0, "-9999", False),
+    ]
+    tifffile.imwrite(tmp_path / "site.tif", z_nodata, extratags=extratags)
+    np.save(tmp_path / "site.npy", z)
+    tif = read_dsm(tmp_path / "site.tif")
+    npy = read_dsm(tmp_path / "site.npy", cell_m=CELL, north_west=(WEST, NORTH))
+    assert tif.extent == npy.extent == (WEST, WEST + 300 * CELL, NORTH - 200 * CELL, NORTH)
+    x = WEST + CELL * (np.arange(300) + 0.5)
+    y = np.full(300, NORTH - CELL * 20.5)
+    np.testing.assert_allclose(tif.height(x, y), npy.height(x, y), atol=1e-4)
+    at_gap = tif.height(WEST + 10.5 * CELL, NORTH - 10.5 * CELL)
+    assert abs(float(at_gap) - float(z[10, 10])) < 15.0 and float(at_gap) > 0
+
+
+def test_bad_dsm_one_line(tmp_path: Path, capsys) -> None:
+    # A DSM too small for the swaths.
+    np.save(tmp_path / "small.npy", np.zeros((50, 50)))
+    small = tmp_path / "small.yaml"
+    small.write_text(yaml.safe_dump({"terrain": "small.npy", "lines": PAPER}))
+    # A missing file, a file that is not a grid, a TIFF without georeference.
+    missing = tmp_path / "missing.yaml"
+    missing.write_text(yaml.safe_dump({"terrain": "nowhere.tif", "lines": PAPER}))
+    (tmp_path / "junk.npy").write_bytes(b"not numpy")
+    junk = tmp_path / "junk.yaml"
+    junk.write_text(yaml.safe_dump({"terrain": "junk.npy", "lines": PAPER}))
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "plain.tif", np.zeros((10, 10), dtype=np.float32))
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(yaml.safe_dump({"terrain": "plain.tif", "lines": PAPER}))
+    for path, words in ((small, "beyond the DSM"), (missing, "not found"),
+                        (junk, "NumPy"), (plain, "georeference")):
+        assert main(["plan", str(path)]) != 0
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and words in err, err
+    with pytest.raises(InputError, match="2-D"):
+        np.save(tmp_path / "flat.npy", np.zeros(10))
+        read_dsm(tmp_path / "flat.npy")
+    with pytest.raises(ConfigError, match="not been read"):
+        predict(FlightPlan.from_mapping({"terrain": "site.npy", "lines": PAPER}))
+    assert math.isfinite(RasterTerrain(np.array([[np.nan, 1.0], [2.0, np.nan]]), west=0,
+                                       north=0, cell_m=1).height(0.5, -0.5))

@@ -247,6 +247,49 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- report
+def _add_report(sub: Any) -> None:
+    p = sub.add_parser("report", help="self-contained HTML report of a calibration",
+                       description="One HTML file, figures embedded, readable offline: the "
+                       "biases with sigmas, their correlations, per strip pair the normal "
+                       "discrepancies before and after (maps, histograms), control residuals, "
+                       "the variance-to-mean ratio of intensity against slope before and after "
+                       "radiometric correction, and a reflectance map.")
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--calibration", required=True, type=Path,
+                   help="calibration YAML (lidarcal calibrate)")
+    p.add_argument("-o", "--output", required=True, type=Path, help="output HTML file")
+    p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file; "
+                   "the calibration's, for the same sample points)")
+    p.add_argument("--control", type=Path, help="control points CSV id,x,y,z")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_report)
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.io.config_file import load_flight_config
+    from lidarcal_ros.io.html_report import write_html_report
+    from lidarcal_ros.pipeline.report import build_report
+
+    _check_output_file(args.output)
+    if (args.output.exists() or args.output.is_symlink()) and not args.overwrite:
+        raise ConfigError(f"{args.output}: exists (use --overwrite to replace it)")
+    config = load_flight_config(args.config)
+    started = time.perf_counter()
+    progress, close = _progress_bar(True)
+    try:
+        content = build_report(args.bag, args.calibration, config, control_csv=args.control,
+                               config_source=args.config, progress=progress)
+    finally:
+        close()
+    path = write_html_report(args.output, content, overwrite=args.overwrite)
+    print(f"report written to {path}: {len(content.pairs)} strip pairs, "
+          f"{len(content.control)} control residuals "
+          f"({time.perf_counter() - started:.1f} s)")
+    return 0
+
+
 # ---------------------------------------------------------------------------- replay / run / record
 def _add_replay(sub: Any) -> None:
     from lidarcal_ros.cli.ros_commands import add_replay_arguments
@@ -315,11 +358,10 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     import json
 
     from lidarcal_ros.core.params import display_value
-    from lidarcal_ros.core.planning import FlightPlan, predict
-    from lidarcal_ros.io.yaml_file import read_yaml
+    from lidarcal_ros.core.planning import predict
+    from lidarcal_ros.io.plan_file import read_flight_plan
 
-    doc = read_yaml(args.plan, what="flight plan")
-    report = predict(FlightPlan.from_mapping(doc, source=str(args.plan)), seed=args.seed)
+    report = predict(read_flight_plan(args.plan), seed=args.seed)
     if args.json:
         print(json.dumps(report.to_json_dict(), indent=1))
         return 0
@@ -334,6 +376,49 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             print(f"  {name:<7} NOT estimable: {pred.reason}")
     for line in report.advice:
         print(f"advice: {line}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- evaluate
+def _add_evaluate(sub: Any) -> None:
+    p = sub.add_parser("evaluate", help="relative and absolute accuracy before and after a "
+                       "calibration",
+                       description="The paper's accuracy measures: per overlapping strip pair "
+                       "the rigid transformation (3 shifts, 3 rotations) that co-aligns the "
+                       "pair, by point-to-patch ICP, with the strips as delivered and as "
+                       "corrected (Table 3); residuals and RMSE at check points not used in "
+                       "the adjustment (Table 4).")
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--calibration", required=True, type=Path,
+                   help="calibration YAML (lidarcal calibrate)")
+    p.add_argument("--check-points", type=Path,
+                   help="CSV id,x,y,z of surveyed check points (not the control used)")
+    p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
+    p.add_argument("--max-points", type=int, default=100_000,
+                   help="points per pair used by the ICP (default 100000)")
+    p.add_argument("--json", action="store_true", help="print JSON (SI units)")
+    p.set_defaults(func=_cmd_evaluate)
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.io.calibration_file import read_calibration
+    from lidarcal_ros.io.config_file import load_flight_config
+    from lidarcal_ros.io.control import read_control_csv
+    from lidarcal_ros.pipeline.calibration import load_mission
+    from lidarcal_ros.pipeline.evaluation import evaluate_mission, format_evaluation
+
+    if args.max_points < 100:
+        raise ConfigError(f"--max-points must be at least 100, got {args.max_points}")
+    config = load_flight_config(args.config)
+    calibration = read_calibration(args.calibration)
+    check = read_control_csv(args.check_points) if args.check_points else None
+    mission = load_mission(args.bag, config)
+    ev = evaluate_mission(mission, calibration.delta, config.calibration_settings(),
+                          check_points=check, max_points_per_pair=args.max_points)
+    print(json.dumps(ev.as_dict(), indent=1) if args.json else format_evaluation(ev))
     return 0
 
 
@@ -422,10 +507,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_calibrate(sub)
     _add_correct(sub)
+    _add_report(sub)
     _add_replay(sub)
     _add_run(sub)
     _add_record(sub)
     _add_plan(sub)
+    _add_evaluate(sub)
     _add_import(sub)
     return parser
 

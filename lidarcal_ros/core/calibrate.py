@@ -112,6 +112,40 @@ class PairStats:
 
 
 @dataclass
+class PairDiscrepancies:
+    """Normal discrepancies of one strip pair's sample points at one estimate (the QA of
+    :class:`PairStats`, point by point).
+
+    Attributes
+    ----------
+    points_strip, tin_strip : int
+        Id of the strip whose points are matched, and of the strip whose TIN patches they are
+        matched to.
+    xy : (k, 2) float64
+        Map-frame position of each matched point as delivered, metres.
+    distance : (k,) float64
+        Signed normal distance of each point from its patch, point minus patch along the
+        patch's upward normal, after correcting both strips by the estimate; metres.
+    rms, p95 : float
+        RMS and 95th percentile of ``|distance|`` without gross mismatches, metres (the
+        statistics of :class:`PairStats`).
+    """
+
+    points_strip: int
+    tin_strip: int
+    xy: np.ndarray
+    distance: np.ndarray
+    rms: float
+    p95: float
+
+    @property
+    def strips(self) -> tuple[int, int]:
+        """The two strip ids, smaller first (as in :class:`PairStats`)."""
+        a, b = sorted((self.points_strip, self.tin_strip))
+        return a, b
+
+
+@dataclass
 class ControlResidual:
     """Normal discrepancy of one control point against one strip, before and after (metres)."""
 
@@ -535,11 +569,7 @@ class Calibrator:
                           if p.last is not None and p.last_delta is not None)
             live = [p for p in live if p not in kept]
         self._choose_samples(fresh)
-        if control is not None and len(control) and self._control_before is None:
-            zero = np.zeros(N_PARAMETERS)
-            delivered = {k: self._corrected(k, zero) for k in range(len(self.strips))}
-            self._control_before = self._control_observations(
-                control, zero, delivered, s.max_normal_distance_m)[1]
+        self._control_matches_before()
         for iteration in range(1, (max_iterations or s.max_iterations) + 1):
             corrected = {k: self._corrected(k, delta) for k in self._used_strips(live)}
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
@@ -601,23 +631,99 @@ class Calibrator:
             before = m.take(np.isin(pair.candidates, pair.sample)).distance
             pair.before = before[np.isfinite(before)]
 
+    def _match_samples(
+        self, delta: np.ndarray
+    ) -> tuple[list[tuple[_PairWork, PatchMatches]], dict[int, tuple[np.ndarray, np.ndarray]]]:
+        """Match the sample points of every pair holding its points at the estimate ``delta``
+        (first threshold), choosing the samples of pairs met for the first time.
+
+        Returns the matches of each pair and the corrected strips (see :meth:`_corrected`).
+        """
+        s = self.settings
+        live = [p for p in self.pairs if p.frozen is None]
+        # Samples first: choosing them leaves every strip's geometry at the delivered points.
+        self._choose_samples([p for p in live if p.sample is None])
+        corrected = self._corrected_all(delta)
+        matched = []
+        for pair in live:
+            assert pair.sample is not None
+            matched.append((pair, self._match_pair(pair, pair.sample, delta, corrected,
+                                                   s.max_normal_distance_m)))
+        return matched, corrected
+
+    def _corrected_all(self, delta: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`_corrected` of every strip that holds its points."""
+        return {k: self._corrected(k, delta) for k in range(len(self.strips))
+                if not self.strips[k].dropped}
+
     def observations_at(self, delta: np.ndarray) -> Observations:
         """The correspondences of every pair (and control) at the estimate ``delta``, with
         no adjustment: what flight planning analyses."""
-        s = self.settings
-        live = [p for p in self.pairs if p.frozen is None]
-        self._choose_samples([p for p in live if p.sample is None])
-        corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))
-                     if not self.strips[k].dropped}
-        parts = []
-        for pair in live:
-            assert pair.sample is not None
-            m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
-            parts.append(self._pair_observations(pair, pair.sample, m))
+        matched, corrected = self._match_samples(delta)
+        parts = [self._pair_observations(pair, pair.sample, m) for pair, m in matched
+                 if pair.sample is not None]
         if self.control is not None and len(self.control):
             parts.append(self._control_observations(self.control, delta, corrected,
-                                                    s.max_normal_distance_m)[0])
+                                                    self.settings.max_normal_distance_m)[0])
         return Observations.concatenate(parts)
+
+    def pair_discrepancies(self, delta: np.ndarray) -> list[PairDiscrepancies]:
+        """Per strip pair holding its points, the normal discrepancy of every matched sample
+        point after correcting both strips by ``delta`` (8 biases, SI, method.md order):
+        at zero the discrepancies "before" calibration, at the estimate those "after".
+
+        The points and the matching threshold are those of the QA of :meth:`run`, so the
+        statistics reproduce :class:`PairStats` (``rms_before`` at zero, ``rms_after`` at
+        the estimate). Pairs sorted by strip ids.
+        """
+        floor = self.settings.min_normal_distance_m
+        out = []
+        for pair, m in self._match_samples(np.asarray(delta, dtype=np.float64))[0]:
+            assert pair.sample is not None
+            idx = pair.sample[m.valid]
+            distance = m.distance[m.valid]
+            rms, p95 = _robust_qa(distance, floor)
+            out.append(PairDiscrepancies(
+                points_strip=self.strips[pair.a].strip_id,
+                tin_strip=self.strips[pair.b].strip_id,
+                xy=self.strips[pair.a].strip.xyz[idx, :2].copy(), distance=distance,
+                rms=rms, p95=p95))
+        out.sort(key=lambda d: d.strips)
+        return out
+
+    def control_residuals(
+        self, delta: np.ndarray,
+        corrected: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    ) -> list[ControlResidual]:
+        """Normal discrepancy of every control point against every strip that sees it, as
+        delivered and after correcting the strips by ``delta`` (metres; NaN where the point
+        no longer finds a patch). ``corrected``: the strips already corrected by ``delta``.
+        """
+        control = self.control
+        if control is None or not len(control):
+            return []
+        before = self._control_matches_before()  # before ``corrected``: it resets geometries
+        if corrected is None:
+            corrected = self._corrected_all(delta)
+        _, found_after = self._control_observations(
+            control, delta, corrected, self.settings.max_normal_distance_m)
+        after_map = {(c, k): d for c, k, d in found_after}
+        return [ControlResidual(control.ids[c], self.strips[k].strip_id, d,
+                                after_map.get((c, k), float("nan")))
+                for c, k, d in before]
+
+    def _control_matches_before(self) -> list[tuple[int, int, float]]:
+        """(control index, strip index, normal distance) of every control point against the
+        delivered strips; computed once."""
+        if self._control_before is None:
+            control = self.control
+            if control is None or not len(control):
+                return []
+            zero = np.zeros(N_PARAMETERS)
+            delivered = {k: self._corrected(k, zero) for k in range(len(self.strips))}
+            self._control_before = self._control_observations(
+                control, zero, delivered, self.settings.max_normal_distance_m)[1]
+        return self._control_before
 
     def _used_strips(self, pairs: Sequence[_PairWork]) -> set[int]:
         return {k for p in pairs for k in (p.a, p.b)}
@@ -643,8 +749,7 @@ class Calibrator:
     ) -> CalibrationResult:
         """QA: re-match the samples with the final estimate at the first threshold."""
         s = self.settings
-        corrected = {k: self._corrected(k, delta) for k in range(len(self.strips))
-                     if not self.strips[k].dropped}
+        corrected = self._corrected_all(delta)
         stats = []
         for pair in self.pairs:
             assert pair.sample is not None and pair.before is not None
@@ -667,16 +772,7 @@ class Calibrator:
                 n_before=int(pair.before.size), n_after=int(after.size),
             ))
         stats.sort(key=lambda p: (p.strip_a, p.strip_b))
-        residuals: list[ControlResidual] = []
-        control = self.control
-        if control is not None and len(control):
-            _, found_after = self._control_observations(
-                control, delta, corrected, s.max_normal_distance_m)
-            after_map = {(c, k): d for c, k, d in found_after}
-            for c, k, d in self._control_before or []:
-                residuals.append(ControlResidual(
-                    control.ids[c], self.strips[k].strip_id, d,
-                    after_map.get((c, k), float("nan"))))
+        residuals = self.control_residuals(delta, corrected)
         n_ctrl = int(np.count_nonzero((obs.group < 0) & (obs.weights > 0)))
         return CalibrationResult(
             solution=sol, iterations=iterations, converged=converged, pairs=stats,
@@ -728,6 +824,6 @@ def calibrate(
 
 
 __all__: Sequence[str] = (
-    "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual", "PairStats",
-    "calibrate",
+    "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual",
+    "PairDiscrepancies", "PairStats", "calibrate",
 )

@@ -22,6 +22,7 @@ from lidarcal_ros.core.adjustment import NormalEquations, ObservabilityLimits, s
 from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import simulate_mission, swath_width
+from lidarcal_ros.core.terrain import RasterTerrain
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)
@@ -42,6 +43,22 @@ class FlightPlan:
     density: float = 1.0
     speed_mps: float = 60.0
     control: list[tuple[float, float, float]] = field(default_factory=list)
+    #: ``terrain`` names a DSM file: its grid, once read (:func:`lidarcal_ros.io.plan_file.
+    #: read_flight_plan`), and the ``.npy`` georeference options of the plan.
+    dsm: RasterTerrain | None = None
+    terrain_cell_m: float | None = None
+    terrain_origin: tuple[float, float] | None = None
+
+    @property
+    def uses_dsm(self) -> bool:
+        """``terrain`` is a DSM file rather than ``built-up`` or ``flat``."""
+        return self.terrain not in TERRAINS
+
+    def centre(self) -> tuple[float, float]:
+        """Centre of the planned lines' bounding box, map frame, metres."""
+        pts = np.array([p for ln in self.lines for p in (ln["start"], ln["end"])])
+        return (float(pts[:, 0].min() + pts[:, 0].max()) / 2,
+                float(pts[:, 1].min() + pts[:, 1].max()) / 2)
 
     @classmethod
     def from_mapping(cls, doc: Any, *, source: str = "plan") -> FlightPlan:
@@ -72,11 +89,18 @@ class FlightPlan:
         density = number(sensor, "density", 1.0, 0.0, 100.0)
         speed = number(sensor, "speed_mps", 60.0, 0.0, 500.0)
         terrain = doc.get("terrain", "built-up")
-        if not isinstance(terrain, str):
+        if not isinstance(terrain, str) or not terrain.strip():
             raise ConfigError(f"{source}: terrain must be built-up, flat or a DSM path")
-        if terrain not in TERRAINS:
-            raise ConfigError(f"{source}: terrain '{terrain}': DSM files are not supported yet; "
-                              "use built-up or flat")
+        cell_m = doc.get("terrain_cell_m")
+        if cell_m is not None:
+            cell_m = number(doc, "terrain_cell_m", 1.0, 0.0, 1000.0)
+        origin = doc.get("terrain_origin")
+        if origin is not None:
+            try:
+                origin = (float(origin[0]), float(origin[1]))
+            except (TypeError, ValueError, IndexError, KeyError):
+                raise ConfigError(f"{source}: terrain_origin must be [west, north] in metres, "
+                                  f"got {origin!r}") from None
         raw_lines = doc.get("lines")
         if not isinstance(raw_lines, Sequence) or isinstance(raw_lines, str) or not raw_lines:
             raise ConfigError(f"{source}: 'lines' must be a non-empty list")
@@ -99,7 +123,8 @@ class FlightPlan:
             except (TypeError, ValueError, IndexError):
                 raise ConfigError(f"{source}: control point {i + 1} must be [x, y, z]") from None
             control.append((x, y, z))
-        return cls(lines, terrain, fov, noise, density, speed, control)
+        return cls(lines, terrain, fov, noise, density, speed, control,
+                   terrain_cell_m=cell_m, terrain_origin=origin)
 
 
 @dataclass
@@ -140,8 +165,14 @@ class PlanReport:
 def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     """Predict which parameters ``plan`` can calibrate (all eight are asked for)."""
     simulated_density = min(plan.density, MAX_SIMULATED_DENSITY)
+    if plan.uses_dsm:
+        if plan.dsm is None:
+            raise ConfigError(f"terrain '{plan.terrain}': the DSM has not been read "
+                              "(read the plan with lidarcal_ros.io.plan_file.read_flight_plan)")
+        _check_dsm_covers(plan, plan.dsm)
     sim = simulate_mission(
-        lines=plan.lines, terrain_kind=plan.terrain, fov_deg=plan.fov_deg,
+        lines=plan.lines, terrain_kind=None if plan.uses_dsm else plan.terrain,
+        terrain=plan.dsm if plan.uses_dsm else None, fov_deg=plan.fov_deg,
         density=simulated_density, speed_mps=plan.speed_mps, range_noise_m=0.0, biases={},
         intensity_noise=0.0, seed=seed, n_control=0,
         control_xy=[(c[0], c[1]) for c in plan.control] if plan.control else None,
@@ -179,6 +210,21 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs))
 
 
+def _check_dsm_covers(plan: FlightPlan, dsm: RasterTerrain) -> None:
+    """Every line's swath (at the DSM's lowest height) must lie on the DSM."""
+    xmin, xmax, ymin, ymax = dsm.extent
+    for ln in plan.lines:
+        half = 0.5 * swath_width(ln["height"] - dsm.height_range[0], plan.fov_deg)
+        xs = [ln["start"][0], ln["end"][0]]
+        ys = [ln["start"][1], ln["end"][1]]
+        if (min(xs) - half < xmin or max(xs) + half > xmax or min(ys) - half < ymin
+                or max(ys) + half > ymax):
+            raise ConfigError(
+                f"terrain '{plan.terrain}': line {ln['id']}'s swath reaches beyond the DSM "
+                f"(x {xmin:.0f}..{xmax:.0f}, y {ymin:.0f}..{ymax:.0f} m); a larger DSM, or "
+                "terrain_origin to place it")
+
+
 def _advice(plan: FlightPlan, parameters: dict[str, ParameterPrediction]) -> list[str]:
     """Words on what line or control would fix what the plan cannot see."""
     blind = {n for n, p in parameters.items() if not p.estimable}
@@ -202,6 +248,10 @@ def _advice(plan: FlightPlan, parameters: dict[str, ParameterPrediction]) -> lis
     if horizontal and plan.terrain == "flat":
         advice.append(f"{', '.join(sorted(horizontal))}: the terrain is flat; horizontal "
                       "biases need sloped features (buildings, gable roofs) in the overlaps")
+    elif horizontal and plan.uses_dsm:
+        advice.append(f"{', '.join(sorted(horizontal))}: the site's surface offers too few "
+                      "sloped features in the overlaps; move the overlaps over buildings or "
+                      "relief")
     elif {"dY", "domega"} <= blind:
         advice.append("dY, domega: they act alike at one flying height; fly the opposite pair "
                       "at two heights")

@@ -354,6 +354,7 @@ def simulate_mission(
     terrain_kind: str | None = None,
     noise_seed: int | None = None,
     control_xy: Sequence[Sequence[float]] | None = None,
+    terrain: Terrain | None = None,
 ) -> SimulatedMission:
     """Simulate a linear-scanner mission with known biases (module docstring for the model).
 
@@ -382,6 +383,9 @@ def simulate_mission(
         for Monte Carlo runs over one terrain.
     control_xy : explicit control point locations (local X, Y), instead of ``n_control``
         placed automatically; kept clear of buildings and trees, Z from the terrain.
+    terrain : Terrain, optional
+        The surface to scan (e.g. a :class:`~lidarcal_ros.core.terrain.RasterTerrain` of the
+        site), instead of one generated from ``seed`` and ``terrain_kind``.
 
     Returns
     -------
@@ -416,8 +420,12 @@ def simulate_mission(
         ctrl_xy = np.asarray(control_xy, dtype=np.float64).reshape(-1, 2)
     else:
         ctrl_xy = _control_locations(plan, fov_deg, n_control, extent)
-    terrain = Terrain(extent, seed=seed, kind=kind, keep_clear=ctrl_xy, clear_radius=15.0,
-                      origin=(ox, oy))
+    if terrain is None:
+        terrain = Terrain(extent, seed=seed, kind=kind, keep_clear=ctrl_xy, clear_radius=15.0,
+                          origin=(ox, oy))
+    elif (ox, oy) != terrain.origin:
+        raise ConfigError(f"origin {(ox, oy)} differs from the given terrain's "
+                          f"{terrain.origin}")
     delta = as_vector(bias)
 
     noise_key = int(seed if noise_seed is None else noise_seed)
