@@ -68,7 +68,7 @@ class LaserGeometry:
         if self.cos_kappa is None or self.sin_kappa is None:
             self.cos_kappa = np.cos(self.kappa)
             self.sin_kappa = np.sin(self.kappa)
-        inv_r = 1.0 / np.hypot(self.x, self.z)
+        inv_r = 1.0 / np.sqrt(self.x * self.x + self.z * self.z)
         return self.cos_kappa, self.sin_kappa, -self.x * inv_r, -self.z * inv_r
 
     def take(self, index: np.ndarray) -> LaserGeometry:
@@ -234,18 +234,21 @@ def laser_geometry(
     if n == 1 or bool(np.all(key[1:] >= key[:-1])):
         # Points in time order (the usual case): windows are runs, no hashing needed.
         first_idx = np.flatnonzero(new_window)
-        inverse = np.cumsum(new_window) - 1
+        inv = np.cumsum(new_window) - 1
     else:
         _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
+        inv = inverse.ravel()
     t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, start[first_idx], stop[first_idx])
     speed_h = np.hypot(vel[:, 0], vel[:, 1])
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa_w = np.arctan2(-vel[:, 0], vel[:, 1])
-    inv = inverse.ravel()
-    origin = p_mean[inv] + vel[inv] * (t - t_mean[inv])[:, None]
-    geometry = geometry_at(xyz, origin, kappa_w[inv], cos_kappa=np.cos(kappa_w)[inv],
-                           sin_kappa=np.sin(kappa_w)[inv])
+    # (np.take gathers several times faster than fancy indexing)
+    origin = np.take(p_mean, inv, axis=0)
+    origin += np.take(vel, inv, axis=0) * (t - np.take(t_mean, inv))[:, None]
+    geometry = geometry_at(xyz, origin, np.take(kappa_w, inv),
+                           cos_kappa=np.take(np.cos(kappa_w), inv),
+                           sin_kappa=np.take(np.sin(kappa_w), inv))
     above = geometry.z >= 0
     if np.any(above):
         k = int(np.argmax(above))
