@@ -176,6 +176,13 @@ def _check_output_file(path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------- correct
+def _add_bag_and_calibration(p: Any) -> None:
+    """The arguments of the commands that read a mission bag with a calibration."""
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--calibration", required=True, type=Path,
+                   help="calibration YAML (lidarcal calibrate)")
+
+
 def _add_correct(sub: Any) -> None:
     p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
                        description="Move every point by the estimated biases (method.md eq. "
@@ -190,9 +197,7 @@ def _add_correct(sub: Any) -> None:
                        "intensity (reflectance NaN), 16 rough surface (edge, vegetation: "
                        "incidence uncertain). LAS: extra bytes reflectance, range, incidence, "
                        "correction_flags; flag 1 also sets 'withheld'.")
-    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--calibration", required=True, type=Path,
-                   help="calibration YAML (lidarcal calibrate)")
+    _add_bag_and_calibration(p)
     p.add_argument("-o", "--output", required=True, type=Path,
                    help="output: .mcap or a directory (rosbag2), or .las/.laz")
     p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
@@ -255,9 +260,7 @@ def _add_report(sub: Any) -> None:
                        "discrepancies before and after (maps, histograms), control residuals, "
                        "the variance-to-mean ratio of intensity against slope before and after "
                        "radiometric correction, and a reflectance map.")
-    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--calibration", required=True, type=Path,
-                   help="calibration YAML (lidarcal calibrate)")
+    _add_bag_and_calibration(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output HTML file")
     p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file; "
                    "the calibration's, for the same sample points)")
@@ -388,9 +391,7 @@ def _add_evaluate(sub: Any) -> None:
                        "pair, by point-to-patch ICP, with the strips as delivered and as "
                        "corrected (Table 3); residuals and RMSE at check points not used in "
                        "the adjustment (Table 4).")
-    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--calibration", required=True, type=Path,
-                   help="calibration YAML (lidarcal calibrate)")
+    _add_bag_and_calibration(p)
     p.add_argument("--check-points", type=Path,
                    help="CSV id,x,y,z of surveyed check points (not the control used)")
     p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
