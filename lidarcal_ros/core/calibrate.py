@@ -73,6 +73,14 @@ class CalibrationSettings:
     def __post_init__(self) -> None:
         self.solve_for = tuple(n for n in PARAMETER_NAMES if n in self.solve_for)
 
+    def tin_quality(self, density: float) -> TinQuality:
+        """Patch rules for a strip of ``density`` points per m^2 (edges up to
+        ``max_edge_factor`` point spacings)."""
+        spacing = 1.0 / np.sqrt(max(density, 1e-6))
+        return TinQuality(max_edge_m=self.max_edge_factor * spacing,
+                          max_slope_deg=self.max_slope_deg, max_bend_deg=self.max_bend_deg,
+                          flat_slope_deg=self.flat_slope_deg)
+
 
 @dataclass
 class PreparedStrip:
@@ -170,6 +178,15 @@ class CalibrationResult:
     dropped_non_finite: int = 0
 
 
+def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
+    """Key (int64) of the square ``cell``-metre cell holding each map position (columns x, y;
+    further columns ignored), absolute in the map frame so that any two strips share one
+    grid."""
+    ix = np.floor(xy[:, 0] / cell).astype(np.int64)
+    iy = np.floor(xy[:, 1] / cell).astype(np.int64)
+    return ix * (1 << 32) + (iy + (1 << 31))
+
+
 @dataclass(frozen=True)
 class _Footprint:
     """Sparse footprint cells (overlap detection), keyed in absolute map coordinates so that
@@ -178,9 +195,7 @@ class _Footprint:
     cell: float
 
     def keys(self, xy: np.ndarray) -> np.ndarray:
-        ix = np.floor(xy[:, 0] / self.cell).astype(np.int64)
-        iy = np.floor(xy[:, 1] / self.cell).astype(np.int64)
-        return ix * (1 << 32) + (iy + (1 << 31))
+        return footprint_keys(xy, self.cell)
 
     @staticmethod
     def interior(cells: np.ndarray) -> np.ndarray:
@@ -371,12 +386,7 @@ class Calibrator:
     def _tin(self, k: int) -> Tin:
         ps = self.strips[k]
         if ps.tin is None:
-            s = self.settings
-            spacing = 1.0 / np.sqrt(max(ps.density, 1e-6))
-            quality = TinQuality(max_edge_m=s.max_edge_factor * spacing,
-                                 max_slope_deg=s.max_slope_deg, max_bend_deg=s.max_bend_deg,
-                                 flat_slope_deg=s.flat_slope_deg)
-            ps.tin = Tin(ps.strip.xyz, quality)
+            ps.tin = Tin(ps.strip.xyz, self.settings.tin_quality(ps.density))
         return ps.tin
 
     # ------------------------------------------------------------------ matching
@@ -825,5 +835,5 @@ def calibrate(
 
 __all__: Sequence[str] = (
     "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual",
-    "PairDiscrepancies", "PairStats", "calibrate",
+    "PairDiscrepancies", "PairStats", "calibrate", "footprint_keys",
 )

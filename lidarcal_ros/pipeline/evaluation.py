@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import CalibrationSettings
+from lidarcal_ros.core.calibrate import CalibrationSettings, footprint_keys
 from lidarcal_ros.core.evaluation import (
     RIGID_NAMES,
     AccuracySummary,
@@ -28,7 +28,7 @@ from lidarcal_ros.core.evaluation import (
 from lidarcal_ros.core.mission import ControlPoints, Mission
 from lidarcal_ros.core.model import correct_points
 from lidarcal_ros.core.params import N_PARAMETERS
-from lidarcal_ros.core.tin import Tin, TinQuality
+from lidarcal_ros.core.tin import Tin
 from lidarcal_ros.errors import CalibrationError
 from lidarcal_ros.pipeline.correction import flagged_geometry
 
@@ -116,19 +116,9 @@ def corrected_strips(
     return out
 
 
-def _cells(xyz: np.ndarray, cell: float) -> np.ndarray:
-    ix = np.floor(xyz[:, 0] / cell).astype(np.int64)
-    iy = np.floor(xyz[:, 1] / cell).astype(np.int64)
-    return ix * (1 << 32) + (iy + (1 << 31))
-
-
 def _tin(xyz: np.ndarray, n_cells: int, settings: CalibrationSettings) -> Tin:
     density = xyz.shape[0] / max(n_cells * settings.overlap_cell_m ** 2, 1.0)
-    spacing = 1.0 / math.sqrt(max(density, 1e-6))
-    return Tin(xyz, TinQuality(max_edge_m=settings.max_edge_factor * spacing,
-                               max_slope_deg=settings.max_slope_deg,
-                               max_bend_deg=settings.max_bend_deg,
-                               flat_slope_deg=settings.flat_slope_deg))
+    return Tin(xyz, settings.tin_quality(density))
 
 
 def evaluate_mission(
@@ -165,7 +155,7 @@ def evaluate_mission(
     rng = np.random.default_rng(seed)
     states = {"before": corrected_strips(mission, np.zeros(N_PARAMETERS), settings),
               "after": corrected_strips(mission, delta, settings)}
-    cells = [np.unique(_cells(x, settings.overlap_cell_m)) for x in states["before"]]
+    cells = [np.unique(footprint_keys(x, settings.overlap_cell_m)) for x in states["before"]]
     tins: dict[tuple[str, int], Tin] = {}
 
     def tin(which: str, k: int) -> Tin:
@@ -180,7 +170,7 @@ def evaluate_mission(
             common = np.intersect1d(cells[a], cells[b], assume_unique=True)
             if common.size < settings.min_overlap_cells:
                 continue
-            inside = np.flatnonzero(np.isin(_cells(states["before"][a],
+            inside = np.flatnonzero(np.isin(footprint_keys(states["before"][a],
                                                    settings.overlap_cell_m), common))
             if inside.size > max_points_per_pair:
                 inside = np.sort(rng.choice(inside, max_points_per_pair, replace=False))
@@ -198,7 +188,7 @@ def evaluate_mission(
         heights: dict[str, np.ndarray] = {}
         for which in ("before", "after"):
             per_strip = np.full((len(ids), len(check_points)), np.nan)
-            cp_cells = _cells(check_points.xyz, settings.overlap_cell_m)
+            cp_cells = footprint_keys(check_points.xyz, settings.overlap_cell_m)
             for k in range(len(ids)):
                 seen = np.isin(cp_cells, cells[k])
                 if seen.any():
