@@ -139,8 +139,7 @@ def covered_by_trajectory(
         if (min_samples <= 2 and 0 <= i0 < i1 < len(traj_t)
                 and float(np.max(np.diff(traj_t[i0:i1 + 1]))) < window_s):
             return np.ones(t.shape, dtype=bool)
-    start = np.searchsorted(traj_t, t - window_s, side="right")
-    stop = np.searchsorted(traj_t, t + window_s, side="left")
+    start, stop = _windows(traj_t, t, window_s)
     return _bracketed(t, traj_t, start, stop, min_samples)
 
 
@@ -161,6 +160,13 @@ def _search(sorted_t: np.ndarray, q: np.ndarray, side: Literal["left", "right"])
     count = np.cumsum(np.bincount(steps, minlength=n + 1)[:n])
     count += lo
     return count
+
+
+def _windows(traj_t: np.ndarray, t: np.ndarray, window_s: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """First and one-past-last trajectory sample inside ``(t - window_s, t + window_s)``."""
+    return (_search(traj_t, t - window_s, side="right"),
+            _search(traj_t, t + window_s, side="left"))
 
 
 def _bracketed(
@@ -216,8 +222,7 @@ def laser_geometry(
             f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
         )
     traj_t = trajectory.t
-    start = _search(traj_t, t - window_s, side="right")
-    stop = _search(traj_t, t + window_s, side="left")
+    start, stop = _windows(traj_t, t, window_s)
     bad = ~_bracketed(t, traj_t, start, stop, min_samples)
     if bad.any():
         first = int(np.argmax(bad))
