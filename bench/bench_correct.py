@@ -15,11 +15,10 @@ Figures
   (``correct_points``), range and scan angle, grid normals with the look-ahead context,
   incidence, atmosphere and radar equation, and the corrected structured arrays -- i.e.
   :class:`lidarcal_ros.pipeline.correction.StreamCorrector` in one thread, with 2 worker
-  threads (what ``lidarcal correct`` uses by default, ``--workers 2``), and with 2 worker
-  processes (``executor="process"``: the batches and results are copied to and from them,
-  which is counted; the processes' start, about half a second once per run, is not). Median
-  of ``--repeats`` runs after a warm-up, with the allocator tuning of ``lidarcal correct``
-  (``tune_allocator``).
+  threads (what ``lidarcal correct`` uses by default, ``--workers 2``), and as the corrector
+  node runs it: one cloud at a time (``batch_points=0``), with and without look-ahead, one
+  thread. Median of ``--repeats`` runs after a warm-up, with the allocator tuning of
+  ``lidarcal correct`` (``tune_allocator``).
 - **baseline**: the same steps done the obvious way: per strip, ``laser_geometry`` +
   ``correct_points`` (the same), normals by ``scipy.spatial.cKDTree`` k-nearest neighbours
   (k = 10, ``workers=-1``: both cores) and PCA (``numpy.linalg.eigh`` on the 3x3
@@ -199,6 +198,7 @@ def throughput_worker(density: float, line_length: float, repeats: int,
     from lidarcal_ros.core.simulate import simulate_mission
     from lidarcal_ros.io.bag import _chunk_bounds, _strip_points
     from lidarcal_ros.pipeline.correction import (
+        DEFAULT_BATCH_POINTS,
         CorrectionSettings,
         StreamCorrector,
         tune_allocator,
@@ -216,13 +216,11 @@ def throughput_worker(density: float, line_length: float, repeats: int,
         clouds.extend((k, lo, pts[lo:hi]) for lo, hi in itertools.pairwise(b))
     n = mission.n_points
 
-    def run_lidarcal(workers: int, executor: str = "thread"
-                     ) -> tuple[float, dict[int, np.ndarray]]:
+    def run_lidarcal(workers: int, batch_points: int = DEFAULT_BATCH_POINTS,
+                     lookahead: bool = True) -> tuple[float, dict[int, np.ndarray]]:
         corr = StreamCorrector(mission.trajectory, settings, workers=workers,
-                               executor=executor)
+                               batch_points=batch_points, lookahead=lookahead)
         corr.start()
-        if executor == "process":
-            time.sleep(3.0)  # let the worker processes start (a once-per-run cost)
         started = time.perf_counter()
         out = []
         for k, lo, c in clouds:
@@ -236,17 +234,19 @@ def throughput_worker(density: float, line_length: float, repeats: int,
 
     result: dict[str, Any] = {"n_points": n, "n_clouds": len(clouds)}
     run_lidarcal(1)  # warm-up
-    for workers, executor in ((1, "thread"), (2, "thread"), (2, "process")):
+    for name, workers, batch, lookahead in (
+            ("lidarcal_1", 1, DEFAULT_BATCH_POINTS, True),
+            ("lidarcal_2", 2, DEFAULT_BATCH_POINTS, True),
+            ("node_mode", 1, 0, True),
+            ("node_mode_no_lookahead", 1, 0, False)):
         walls = []
         refl: dict[int, np.ndarray] = {}
         for _ in range(repeats):
-            wall, refl = run_lidarcal(workers, executor)
+            wall, refl = run_lidarcal(workers, batch, lookahead)
             walls.append(wall)
-        name = f"lidarcal_{workers}" + ("_process" if executor == "process" else "")
         result[name] = {"wall_s": statistics.median(walls), "walls": walls,
                         "points_per_s": n / statistics.median(walls)}
-        if workers == 1:
-            result["lidarcal_error"] = reflectance_error(sim, refl, range(len(mission.strips)))
+        result[name]["error"] = reflectance_error(sim, refl, range(len(mission.strips)))
 
     # Baseline on whole strips up to baseline_points.
     strips = []
@@ -379,19 +379,18 @@ def throughput(args: argparse.Namespace, density: float, line: float, work: Path
         raise SystemExit(f"throughput worker failed:\n{tail(log)}")
     tp = json.loads(log.read_text().strip().splitlines()[-1])
     rows = [
-        ("correction, 1 thread", tp["lidarcal_1"]["points_per_s"], tp["lidarcal_error"]),
-        ("correction, 2 worker threads", tp["lidarcal_2"]["points_per_s"],
-         tp["lidarcal_error"]),
-        ("correction, 2 worker processes", tp["lidarcal_2_process"]["points_per_s"],
-         tp["lidarcal_error"]),
+        (label, tp[key]["points_per_s"], tp[key]["error"]) for label, key in (
+            ("correction, 1 thread", "lidarcal_1"),
+            ("correction, 2 worker threads", "lidarcal_2"),
+            ("one cloud at a time (node), 1 thread", "node_mode"),
+            ("one cloud at a time, no look-ahead", "node_mode_no_lookahead"))] + [
         (f"baseline (cKDTree k=10 + PCA), {tp['baseline']['points'] / 1e6:.2f}M points",
          tp["baseline"]["points_per_s"], tp["baseline_error"]),
     ]
     print(f"\n{'':48s} {'M points/s':>10s} {'refl. error':>11s}")
     for name, rate, err in rows:
         print(f"{name:48s} {rate / 1e6:10.2f} {100 * err:10.2f}%")
-    best = max(tp[k]["points_per_s"] for k in ("lidarcal_1", "lidarcal_2",
-                                               "lidarcal_2_process"))
+    best = max(tp[k]["points_per_s"] for k in ("lidarcal_1", "lidarcal_2"))
     met = "met" if best >= GOAL_POINTS_PER_S else "NOT met"
     print(f"ratio lidarcal / baseline: {best / tp['baseline']['points_per_s']:.1f}x; goal "
           f"{GOAL_POINTS_PER_S / 1e6:.0f}M points/s: {met} "

@@ -3,6 +3,7 @@ the small pieces of the correction pipeline that do not need a mission."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -10,7 +11,13 @@ import pytest
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.core.normals import cell_size, grid_normals, smallest_eigen
+from lidarcal_ros.core.normals import (
+    GridNormals,
+    StripNormals,
+    cell_size,
+    grid_normals,
+    smallest_eigen,
+)
 from lidarcal_ros.core.radiometry import (
     RadiometricModel,
     atmospheric_alpha,
@@ -313,3 +320,102 @@ def test_las_gps_time_conversion() -> None:
         1.27e9 - 315964800 + 15 - 1e9)
     t = np.array([1.0e9, 1.5e9, 1.7e9 + 0.123456])
     np.testing.assert_allclose(adjusted_gps_to_unix(unix_to_adjusted_gps(t)), t, atol=1e-6)
+
+
+# ------------------------------------------------------------------ streaming normals
+def _gable_strip(seed: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A zig-zag strip over a gable roof (ridge along track at x = 0): points, times and
+    the true normals."""
+    xy, t = _scan_pattern(n_sweeps=120, per_sweep=300, swath=200.0, spacing_along=1.0)
+    x = xy[:, 0]
+    z = 10.0 - 0.5 * np.abs(x) + np.random.default_rng(seed).normal(0, 0.02, len(t))
+    truth = np.column_stack([0.5 * np.sign(x), np.zeros_like(x), np.ones_like(x)])
+    return np.column_stack([xy, z]), t, truth / math.sqrt(1.25)
+
+
+def _p99_error(g: GridNormals, xyz: np.ndarray, truth: np.ndarray) -> float:
+    """99th percentile of the normals' error (deg) away from the ridge."""
+    err = np.degrees(np.arccos(np.clip(np.sum(g.normals * truth, axis=1), -1, 1)))
+    far = (np.abs(xyz[:, 0]) > 2.0 * max(g.cell_m)) & g.valid
+    return float(np.percentile(err[far], 99))
+
+
+def _stream(xyz: np.ndarray, t: np.ndarray, cuts: list[int], *, lookahead: bool = True
+            ) -> tuple[GridNormals, StripNormals, list[int]]:
+    """Feed a strip to StripNormals in parts; the normals in order, and after which add
+    each part came out."""
+    sn = StripNormals(lambda _t: 0.0, lookahead=lookahead)
+    out: dict[int, GridNormals] = {}
+    released_after: list[int] = []
+    for k, (a, b) in enumerate(itertools.pairwise([0, *cuts, len(t)])):
+        sn.add(k, xyz[a:b], t[a:b])
+        for key, g in sn.pop_ready():
+            out[int(key)] = g  # type: ignore[call-overload]
+            released_after.append(k)
+    for key, g in sn.pop_ready(final=True):
+        out[int(key)] = g  # type: ignore[call-overload]
+        released_after.append(len(cuts))
+    assert sorted(out) == list(range(len(cuts) + 1))
+    parts = [out[k] for k in range(len(cuts) + 1)]
+    rough = [p.rough for p in parts]
+    assert all(r is not None for r in rough)
+    return (GridNormals(np.concatenate([p.normals for p in parts]),
+                        np.concatenate([p.valid for p in parts]), parts[0].cell_m,
+                        np.concatenate(rough)),  # type: ignore[arg-type]
+            sn, released_after)
+
+
+def test_stream_normals_do_not_depend_on_the_cut() -> None:
+    """With look-ahead, parts of any size give the normals of the whole strip at once."""
+    xyz, t, truth = _gable_strip()
+    whole, _, _ = _stream(xyz, t, [])
+    rng = np.random.default_rng(0)
+    cuts = sorted(rng.choice(np.arange(1, len(t)), size=40, replace=False).tolist())
+    parts, sn, released = _stream(xyz, t, cuts)
+    assert sn.late_points == 0
+    both = whole.valid & parts.valid
+    assert whole.valid.mean() > 0.99 and (parts.valid == whole.valid).all()
+    # (up to the order in which the moment sums were added)
+    np.testing.assert_allclose(parts.normals[both], whole.normals[both], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(parts.rough, whole.rough)
+    # As accurate as grid_normals over the whole strip at once.
+    assert _p99_error(parts, xyz, truth) < _p99_error(grid_normals(xyz, 0.0, t=t), xyz,
+                                                      truth) + 0.1
+    # Parts wait for the strip's first points (they fix the grid), then only for a few
+    # rows of look-ahead, not for the end of the strip.
+    assert released[0] < 15 and sum(r < len(cuts) for r in released) > 30
+
+
+def test_stream_normals_without_lookahead_release_every_part_at_once() -> None:
+    xyz, t, truth = _gable_strip()
+    cuts = list(range(12_000, len(t), 3000))
+    g, _, released = _stream(xyz, t, cuts, lookahead=False)
+    # Every part after the grid started comes out with its own add.
+    assert released[4:] == list(range(4, len(cuts) + 1))
+    assert g.valid.mean() > 0.99
+    # The leading rows of each part see the neighbours behind them only.
+    assert _p99_error(g, xyz, truth) < _p99_error(grid_normals(xyz, 0.0, t=t), xyz,
+                                                  truth) + 1.0
+
+
+def test_stream_normals_outliers_and_late_points_get_no_normal() -> None:
+    xyz, t, _ = _gable_strip()
+    xyz = xyz.copy()
+    xyz[20_000] = [50.0, 1e6, 10.0]  # 1000 km ahead: must not grow the grid to there
+    xyz[20_001] = np.nan
+    g, sn, _ = _stream(xyz, t, list(range(5000, len(t), 5000)))
+    assert not g.valid[20_000] and not g.valid[20_001]
+    assert sn._moments.nbytes < 50e6
+    assert g.valid.mean() > 0.99
+    # A point far behind the rows kept arrives late: no normal, counted.
+    xy, t = _scan_pattern(n_sweeps=400, per_sweep=100, swath=100.0, spacing_along=1.0)
+    xyz = np.column_stack([xy, np.zeros(len(t))])
+    late = StripNormals(lambda _t: 0.0)
+    for a in range(0, len(t) - 2000, 2000):
+        late.add(a, xyz[a:a + 2000], t[a:a + 2000])
+        late.pop_ready()
+    late.add("late", xyz[:1], t[:1])
+    late.add("last", xyz[-2000:], t[-2000:])
+    out = dict(late.pop_ready(final=True))
+    assert late.late_points == 1 and not out["late"].valid[0]
+    assert out["last"].valid.mean() > 0.95

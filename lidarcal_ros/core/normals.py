@@ -9,8 +9,8 @@ points do not spread in both horizontal directions, e.g. walls). Each cell takes
 the most planar of the four blocks that contain it (smallest residual variance), so a cell
 beside a roof ridge or a building edge takes the block lying on its own side where there is
 one; a cell whose four blocks are all degenerate (fewer than ``min_points`` points, or all on
-one scan line) falls back to the 3x3 block centred on it, and failing that gets no normal
-(NaN).
+one scan line) falls back to the 3x3 block centred on it, then to the 5x5 one, and failing
+that gets no normal (NaN).
 
 Every point takes the plane of its cell, unless it lies off that plane (further than three
 times the typical residual, at least 5 cm) or the plane fits its block badly: then it takes,
@@ -38,6 +38,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -406,16 +408,76 @@ def _fit_group(
     v -= v.min()
     iu = (u * (1.0 / cu)).astype(np.int64)
     iv = (v * (1.0 / cv)).astype(np.int64)
-    weights = (None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)
-    min_spread = (0.3 * min(cu, cv)) ** 2 / 3.0
+    min_spread = _min_spread(cell)
     nu = int(iu.max()) + 1
     nv = int(iv.max()) + 1
     if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
-        return _fit_sparse(weights, iu, iv, heading, min_points, min_spread)
+        return _fit_sparse(u, v, z, iu, iv, heading, min_points, min_spread)
+    moments = _bin_moments(u, v, z, iu * nv + iv, nu * nv).reshape(10, nu, nv)
+    nrm, ok, rough = _grid_planes(moments, iu, iv, u, v, z, min_points, min_spread)
+    return _to_map(nrm, heading), ok, rough
+
+
+def _min_spread(cell: tuple[float, float]) -> float:
+    """Least horizontal variance (m^2) of a block's points for a height-plane fit."""
+    return (0.3 * min(cell)) ** 2 / 3.0
+
+
+def _bin_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, key: np.ndarray,
+                 size: int) -> np.ndarray:
+    """The ten moment sums ``n, u, v, z, uu, uv, uz, vv, vz, zz`` of the points per cell
+    ``key`` (flat index below ``size``), shape (10, size)."""
+    out = np.empty((10, size))
+    for k, w in enumerate((None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)):
+        out[k] = np.bincount(key, weights=w, minlength=size)
+    return out
+
+
+def _median_noise(lam: np.ndarray, ok: np.ndarray) -> float:
+    """Typical residual (m) of the blocks' plane fits: root of the median variance."""
+    good = lam[::7][ok[::7]]  # a regular sample is enough for the median
+    return math.sqrt(float(np.median(good))) if good.size else 0.0
+
+
+def _centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
+    """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
+    cell indices ``cells`` of a (10, nu, nv) grid (zero beyond it)."""
+    _, nu, nv = moments.shape
+    ni, nj = np.divmod(cells, nv)
+    sums = np.zeros((10, cells.size))
+    for di in range(-radius, radius + 1):
+        ii = ni + di
+        row_in = (ii >= 0) & (ii < nu)
+        for dj in range(-radius, radius + 1):
+            jj = nj + dj
+            inside = row_in & (jj >= 0) & (jj < nv)
+            sums[:, inside] += moments[:, ii[inside], jj[inside]]
+    return sums
+
+
+def _grid_planes(
+    moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
+    z: np.ndarray, min_points: int, min_spread: float, noise: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals (flight frame), validity and roughness of points from the moment sums of a
+    dense grid of cells (module docstring).
+
+    Parameters
+    ----------
+    moments : (10, nu, nv) float64
+        Moment sums per cell (:func:`_bin_moments`), in the frame of ``u, v, z``; cells beyond
+        the grid count as empty.
+    iu, iv : (n,) int64
+        Cell of each point in the grid.
+    u, v, z : (n,) float64
+        The points, same frame as the moments, m.
+    noise : float, optional
+        Typical residual of a plane fit (m) that sets the edge tolerance; default the
+        median over the grid's blocks.
+    """
+    _, nu, nv = moments.shape
     key = iu * nv + iv
     size = nu * nv
-    moments = np.stack([np.bincount(key, weights=w, minlength=size) for w in weights])
-    moments = moments.reshape(10, nu, nv)
     lam2, vec2, ok2, cen2 = _fit_sums(_box_sums(moments, 2).reshape(10, -1), min_points,
                                       min_spread)
     # Each cell: the best of the four 2x2 blocks containing it, anchored at (i-1..i, j-1..j).
@@ -437,18 +499,18 @@ def _fit_group(
     plane[:, :3] = np.take(vec2, anchor, axis=0)
     plane[:, 3] = np.einsum("ij,ij->i", plane[:, :3], np.take(cen2, anchor, axis=0))
     plane[:, 4] = cell_lam
-    need = (moments[0] > 0).reshape(-1) & ~cell_ok
-    if need.any():
-        # 3x3 blocks centred on the occupied cells that still lack a plane.
-        ni, nj = np.divmod(np.flatnonzero(need), nv)
-        sums3 = np.zeros((10, ni.size))
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                ii, jj = ni + di, nj + dj
-                inside = (ii >= 0) & (ii < nu) & (jj >= 0) & (jj < nv)
-                sums3[:, inside] += moments[:, ii[inside], jj[inside]]
-        lam3, vec3, ok3, cen3 = _fit_sums(sums3, min_points, min_spread)
-        fill = np.flatnonzero(need)[ok3]
+    # The cells of the points (not every occupied cell: a grid may reach beyond them).
+    wanted = np.zeros(size, dtype=bool)
+    wanted[key] = True
+    for radius in (1, 2):
+        # (2r+1)^2 blocks centred on the cells that still lack a plane: 3x3 first, then
+        # 5x5 (e.g. the newest scan line when nothing beyond it has arrived yet).
+        need = np.flatnonzero(wanted & ~cell_ok)
+        if not need.size:
+            break
+        lam3, vec3, ok3, cen3 = _fit_sums(_centred_sums(moments, need, radius), min_points,
+                                          min_spread)
+        fill = need[ok3]
         plane[fill, :3] = vec3[ok3]
         plane[fill, 3] = np.einsum("ij,ij->i", vec3[ok3], cen3[ok3])
         plane[fill, 4] = lam3[ok3]
@@ -460,8 +522,8 @@ def _fit_group(
     nrm = np.ascontiguousarray(pp[:, :3])
     d = nrm[:, 0] * u + nrm[:, 1] * v + nrm[:, 2] * z - pp[:, 3]
     lam_p = pp[:, 4]
-    good_lam = lam2[::7][ok2[::7]]  # a regular sample is enough for the median
-    noise = math.sqrt(float(np.median(good_lam))) if good_lam.size else 0.0
+    if noise is None:
+        noise = _median_noise(lam2, ok2)
     tol = max(3.0 * noise, _EDGE_TOLERANCE_M)
     ok = np.take(cell_ok, key)
     rough = np.zeros(len(u), dtype=bool)
@@ -491,12 +553,12 @@ def _fit_group(
         rough[idx] = np.minimum(best_score, own) > tol * tol
     if not ok.all():
         nrm[~ok] = np.nan
-    return _to_map(nrm, heading), ok, rough & ok
+    return nrm, ok, rough & ok
 
 
 def _fit_sparse(
-    weights: tuple[np.ndarray | None, ...], iu: np.ndarray, iv: np.ndarray, heading: float,
-    min_points: int, min_spread: float,
+    u: np.ndarray, v: np.ndarray, z: np.ndarray, iu: np.ndarray, iv: np.ndarray,
+    heading: float, min_points: int, min_spread: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Like the dense path, for point sets whose grid would be mostly empty: the occupied
     cells are compacted first (``np.unique``) and neighbours found by binary search."""
@@ -505,7 +567,7 @@ def _fit_sparse(
     cells, inverse = np.unique(key, return_inverse=True)
     inverse = inverse.reshape(-1)
     m = cells.size
-    sums = np.stack([np.bincount(inverse, weights=w, minlength=m) for w in weights])
+    sums = _bin_moments(u, v, z, inverse, m)
 
     def block(offsets: list[tuple[int, int]]) -> np.ndarray:
         acc = np.zeros_like(sums)
@@ -537,3 +599,371 @@ def _fit_sparse(
     rough = (best > tol * tol) & cell_ok
     return (_to_map(np.take(best_vec, inverse, axis=0), heading), np.take(cell_ok, inverse),
             np.take(rough, inverse))
+
+
+# ---------------------------------------------------------------------------- streaming
+#: A strip's grid (cell size, heading, origin) is fixed by its first points: as many as it
+#: takes to reach both this count and this time span (the same points however the stream is
+#: cut into parts; the parts before are held until then).
+STREAM_START_POINTS = 10_000
+STREAM_START_SECONDS = 0.02
+#: Rows kept behind the oldest points not yet evaluated, so that points arriving a little
+#: late (behind the watermark) still land in the grid.
+_LATE_ROWS = 2
+#: A part whose points spread over more rows (or columns) than this has outliers: only the
+#: points between its 0.1st and 99.9th percentiles plus this margin are binned.
+_MAX_PART_SPAN = 4096
+#: Most grid columns (across-track cells) of a strip: bounds memory when points scatter.
+_MAX_COLUMNS = 65536
+
+
+@dataclass
+class _Part:
+    """Points of one strip added under one key, in the strip's grid frame."""
+
+    key: object
+    n: int
+    index: np.ndarray | None  # positions of the binned points among the n (None: all)
+    u: np.ndarray
+    v: np.ndarray
+    z: np.ndarray
+    iu: np.ndarray
+    iv: np.ndarray
+    row_min: int
+    row_max: int
+
+
+class StripNormals:
+    """Grid normals (:func:`grid_normals`) of one strip computed as its points arrive.
+
+    Every point is binned into the strip's grid once and evaluated once: the grid (cell,
+    heading, origin) is fixed by the strip's first :data:`STREAM_START_POINTS` points and the
+    moment sums of its cells are kept from the oldest points not yet evaluated on. A point in
+    grid row ``i`` (along track) depends on the cells of rows ``i - 2 .. i + 2`` only, so its
+    normal is final once no later point can land in those rows.
+
+    The edge tolerance comes from the typical plane-fit residual of the strip's first points.
+    With ``lookahead`` the points of a part are evaluated once the *watermark*, the lowest
+    row of the newest part, is three rows beyond the part's highest row (a scanner's points
+    advance along track; the newest part's lowest row bounds where later points land), which
+    gives exactly the normals of :func:`grid_normals` over the whole strip in the same grid.
+    Without ``lookahead`` each part is evaluated as soon as it is added, against the points
+    that came before it (least latency; the normals at a part's leading edge see neighbours
+    behind them only).
+
+    Parameters
+    ----------
+    heading_at : callable(t) -> float
+        Heading ``kappa`` of the flight line (rad) at a time (s): the grid is aligned with
+        it at the median time of the strip's first points.
+    lookahead : bool
+        See above.
+    min_points : int
+        Fewest points a block needs for a plane.
+
+    Notes
+    -----
+    Points that arrive behind rows already dropped, or far outside the part's own extent
+    (outliers), are not binned and get no normal (``valid`` False); ``late_points`` counts
+    them.
+    """
+
+    def __init__(self, heading_at: Callable[[float], float], *, lookahead: bool = True,
+                 min_points: int = MIN_BLOCK_POINTS) -> None:
+        self._heading_at = heading_at
+        self.heading = math.nan
+        self.lookahead = lookahead
+        self.min_points = min_points
+        self.cell: tuple[float, float] = (math.nan, math.nan)
+        self.late_points = 0
+        self._origin = (0.0, 0.0, 0.0)
+        self._noise = 0.0
+        self._start: list[tuple[object, np.ndarray, np.ndarray | None]] = []
+        self._start_points = 0
+        self._moments = np.zeros((10, 0, 0))
+        self._row0 = 0
+        self._col0 = 0
+        self._parts: deque[_Part] = deque()
+        self._watermark = -(2**62)
+
+    @property
+    def started(self) -> bool:
+        """Whether the grid exists (the first points fixed the cell)."""
+        return math.isfinite(self.cell[0])
+
+    def pending_points(self) -> int:
+        """Points added and not yet evaluated."""
+        return self._start_points + sum(p.n for p in self._parts)
+
+    def add(self, key: object, xyz: np.ndarray, t: np.ndarray | None = None) -> None:
+        """Add the points of one part (a cloud's points of this strip).
+
+        Parameters
+        ----------
+        key : object
+            Returned with the part's normals by :meth:`pop_ready`.
+        xyz : (n, 3) float64
+            Delivered points, map frame, m (non-finite rows get no normal).
+        t : (n,) float64, optional
+            Firing times (s), for the cell size of the strip's first points.
+        """
+        xyz = np.asarray(xyz, dtype=np.float64)
+        if not self.started:
+            self._start.append((key, xyz, t))
+            self._start_points += xyz.shape[0]
+            if self._start_points >= STREAM_START_POINTS:
+                self._begin(final=False)
+            return
+        self._bin(key, xyz)
+
+    def _begin(self, *, final: bool) -> bool:
+        """Fix the grid from the strip's first points and bin the parts held; False if
+        there are not enough points yet (or, with ``final``, at all)."""
+        xyz = np.concatenate([p[1] for p in self._start])
+        n = xyz.shape[0]
+        t = np.full(n, np.nan)
+        a = 0
+        for _key, part_xyz, part_t in self._start:
+            if part_t is not None:
+                t[a:a + part_xyz.shape[0]] = part_t
+            a += part_xyz.shape[0]
+        finite = finite_rows(xyz)
+        idx = np.flatnonzero(finite)
+        # The first points: STREAM_START_POINTS finite ones spanning STREAM_START_SECONDS.
+        timed = np.isfinite(t[idx])
+        if idx.size >= STREAM_START_POINTS and timed.all():
+            t_first = t[idx]
+            span = np.maximum.accumulate(t_first) - np.minimum.accumulate(t_first)
+            reach = np.flatnonzero(span[STREAM_START_POINTS - 1:] >= STREAM_START_SECONDS)
+            if reach.size:
+                idx = idx[:STREAM_START_POINTS + int(reach[0])]
+            elif not final:
+                return False
+        elif not final and idx.size < STREAM_START_POINTS:
+            return False
+        first_t = t[idx] if np.isfinite(t[idx]).all() else None
+        mid = float(np.median(first_t)) if first_t is not None and first_t.size else math.nan
+        heading = self._heading_at(mid) if math.isfinite(mid) else 0.0
+        cell = cell_size(xyz[idx], heading, first_t)
+        if not all(math.isfinite(c) and c > 0 for c in cell):
+            return False
+        self.heading, self.cell = heading, cell
+        first = xyz[idx[0]]
+        self._origin = (float(first[0]), float(first[1]), float(first[2]))
+        self._noise = self._first_noise(xyz[idx])
+        start, self._start, self._start_points = self._start, [], 0
+        for key, part_xyz, _t in start:
+            self._bin(key, part_xyz)
+        return True
+
+    def _first_noise(self, xyz: np.ndarray) -> float:
+        """Typical plane-fit residual (m) of the strip's first points: the edge tolerance
+        of the whole strip (fixed, so that the normals do not depend on the cut)."""
+        u, v, z = self._frame(xyz)
+        iu = np.floor((u - u.min()) * (1.0 / self.cell[0])).astype(np.int64)
+        iv = np.floor((v - v.min()) * (1.0 / self.cell[1])).astype(np.int64)
+        nu, nv = int(iu.max()) + 1, int(iv.max()) + 1
+        if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
+            return 0.0
+        moments = _bin_moments(u, v, z, iu * nv + iv, nu * nv).reshape(10, nu, nv)
+        lam, _, ok, _ = _fit_sums(_box_sums(moments, 2).reshape(10, -1), self.min_points,
+                                  _min_spread(self.cell))
+        return _median_noise(lam, ok)
+
+    def _frame(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x0, y0, z0 = self._origin
+        u, v = _flight_frame(xyz, self.heading, x0, y0)
+        return u, v, xyz[:, 2] - z0
+
+    def _bin(self, key: object, xyz: np.ndarray) -> None:
+        n = xyz.shape[0]
+        finite = finite_rows(xyz)
+        index = None if bool(finite.all()) else np.flatnonzero(finite)
+        sub = xyz if index is None else xyz[index]
+        u, v, z = self._frame(sub)
+        iu = np.floor(u * (1.0 / self.cell[0])).astype(np.int64)
+        iv = np.floor(v * (1.0 / self.cell[1])).astype(np.int64)
+        keep = self._inliers(iu, iv)
+        if keep is not None:
+            index = np.flatnonzero(finite)[keep] if index is not None else np.flatnonzero(keep)
+            u, v, z, iu, iv = u[keep], v[keep], z[keep], iu[keep], iv[keep]
+        if iu.size == 0:
+            self._parts.append(_Part(key, n, index, u, v, z, iu, iv, 0, -1))
+            return
+        r_lo, r_hi = int(iu.min()), int(iu.max())
+        c_lo, c_hi = int(iv.min()), int(iv.max())
+        self._fit_grid(r_lo, r_hi, c_lo, c_hi)
+        rows = r_hi - r_lo + 1
+        ncols = self._moments.shape[2]
+        flat = (iu - r_lo) * ncols + (iv - self._col0)
+        block = self._moments[:, r_lo - self._row0:r_hi - self._row0 + 1, :]
+        block += _bin_moments(u, v, z, flat, rows * ncols).reshape(10, rows, ncols)
+        self._parts.append(_Part(key, n, index, u, v, z, iu, iv, r_lo, r_hi))
+        self._watermark = r_lo
+
+    def _inliers(self, iu: np.ndarray, iv: np.ndarray) -> np.ndarray | None:
+        """Points to bin (None: all): not behind the rows kept, not outliers."""
+        keep: np.ndarray | None = None
+        if iu.size == 0:
+            return None
+        for idx, lo_bound in ((iu, self._row0 if self._moments.shape[1] else None), (iv, None)):
+            lo, hi = int(idx.min()), int(idx.max())
+            if hi - lo > _MAX_PART_SPAN:
+                q_lo, q_hi = np.percentile(idx, [0.1, 99.9])
+                ok = (idx >= q_lo - 64) & (idx <= q_hi + 64)
+                keep = ok if keep is None else keep & ok
+            if lo_bound is not None and lo < lo_bound:
+                ok = idx >= lo_bound
+                keep = ok if keep is None else keep & ok
+        if keep is not None:
+            self.late_points += int(keep.size - np.count_nonzero(keep))
+        return keep
+
+    def _fit_grid(self, r_lo: int, r_hi: int, c_lo: int, c_hi: int) -> None:
+        """Make the grid cover rows ``r_lo..r_hi`` and columns ``c_lo..c_hi`` (dropping the
+        rows no longer needed first)."""
+        m = self._moments
+        if m.shape[1] == 0:
+            pad_c = 16
+            self._row0, self._col0 = r_lo - 1, c_lo - pad_c
+            self._moments = np.zeros((10, r_hi - r_lo + 64, c_hi - c_lo + 1 + 2 * pad_c))
+            return
+        _, nrows, ncols = m.shape
+        new_c0, new_c1 = self._col0, self._col0 + ncols
+        if c_lo < new_c0 or c_hi >= new_c1:
+            grow = max(16, ncols // 8)
+            new_c0 = min(new_c0, c_lo - grow)
+            new_c1 = max(new_c1, c_hi + 1 + grow)
+            if new_c1 - new_c0 > _MAX_COLUMNS:  # only via outliers: keep the present range
+                new_c0, new_c1 = min(self._col0, c_lo), max(self._col0 + ncols, c_hi + 1)
+        keep_from = self._keep_from()
+        row_end = self._row0 + nrows
+        if r_hi < row_end and (new_c0, new_c1) == (self._col0, self._col0 + ncols):
+            return
+        new_r0 = max(self._row0, min(keep_from, r_lo - 1))
+        new_r1 = max(row_end, r_hi + 1 + max(64, (r_hi + 1 - new_r0) // 2))
+        grown = np.zeros((10, new_r1 - new_r0, new_c1 - new_c0))
+        keep_rows = slice(new_r0 - self._row0, nrows)
+        grown[:, :nrows - (new_r0 - self._row0),
+              self._col0 - new_c0:self._col0 - new_c0 + ncols] = m[:, keep_rows, :]
+        self._moments, self._row0, self._col0 = grown, new_r0, new_c0
+
+    def _keep_from(self) -> int:
+        """Lowest row still needed: by the points not yet evaluated and by late points."""
+        low = min((p.row_min for p in self._parts if p.row_max >= p.row_min),
+                  default=self._watermark)
+        return min(low, self._watermark) - 2 - _LATE_ROWS
+
+    def pop_ready(self, *, final: bool = False, min_points: int = 0
+                  ) -> list[tuple[object, GridNormals]]:
+        """Normals of the parts that are final, in the order added (:meth:`take_ready`,
+        evaluated at once)."""
+        task = self.take_ready(final=final, min_points=min_points)
+        return task.run() if task is not None else []
+
+    def take_ready(self, *, final: bool = False, min_points: int = 0) -> NormalsTask | None:
+        """The evaluation of the parts that are final, in the order added, as a task that
+        may run in another thread (it holds a copy of the grid rows it reads).
+
+        Parameters
+        ----------
+        final : bool
+            Evaluate every part now (the end of the strip, or a time-out); the grid is kept,
+            so later parts still have these points as neighbours.
+        min_points : int
+            Evaluate only once at least this many points are ready (fewer, larger
+            evaluations; ignored with ``final``).
+
+        Returns
+        -------
+        NormalsTask or None
+            None when no part is ready.
+        """
+        if not self.started:
+            if not (final and self._start):
+                return None
+            if not self._begin(final=True):  # too few points for a grid: no normals
+                start, self._start, self._start_points = self._start, [], 0
+                none = np.empty(0, dtype=np.int64)
+                parts = [_Part(key, xyz.shape[0], None, none, none, none, none, none, 0, -1)
+                         for key, xyz, _ in start]
+                return NormalsTask(parts, np.zeros((10, 0, 0)), 0, 0, self.cell,
+                                   self.heading, self._noise, self.min_points)
+        ready: list[_Part] = []
+        count = 0
+        for part in self._parts:
+            if not (final or not self.lookahead or part.iu.size == 0
+                    or part.row_max + 3 <= self._watermark):
+                break
+            ready.append(part)
+            count += part.n
+        if not ready or (count < min_points and not final):
+            return None
+        for _ in ready:
+            self._parts.popleft()
+        binned = [p for p in ready if p.iu.size]
+        lo = hi = self._row0
+        if binned:
+            lo = max(min(p.row_min for p in binned) - 2, self._row0)
+            hi = min(max(p.row_max for p in binned) + 3, self._row0 + self._moments.shape[1])
+        rows = self._moments[:, lo - self._row0:hi - self._row0, :].copy()
+        return NormalsTask(ready, rows, lo, self._col0, self.cell, self.heading, self._noise,
+                           self.min_points)
+
+
+@dataclass
+class NormalsTask:
+    """The normals of some parts of a strip (:meth:`StripNormals.take_ready`): everything
+    their evaluation reads, so that :meth:`run` may run in another thread."""
+
+    parts: list[_Part]
+    moments: np.ndarray  # (10, rows, ncols) copy of the grid rows around the parts
+    row0: int
+    col0: int
+    cell: tuple[float, float]
+    heading: float
+    noise: float
+    min_points: int
+
+    @property
+    def keys(self) -> list[object]:
+        """The keys of the parts, in the order added."""
+        return [p.key for p in self.parts]
+
+    def run(self) -> list[tuple[object, GridNormals]]:
+        """``(key, normals)`` of each part, in the order added."""
+        binned = [p for p in self.parts if p.iu.size]
+        out_n: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        if binned:
+            u, v, z, iu, iv = (np.concatenate([getattr(p, f) for p in binned])
+                               if len(binned) > 1 else getattr(binned[0], f)
+                               for f in ("u", "v", "z", "iu", "iv"))
+            nrm, ok, rough = _grid_planes(self.moments, iu - self.row0, iv - self.col0, u, v,
+                                          z, self.min_points, _min_spread(self.cell),
+                                          noise=self.noise)
+            nrm = _to_map(nrm, self.heading)
+            a = 0
+            for p in binned:
+                b = a + p.iu.size
+                out_n.append((nrm[a:b], ok[a:b], rough[a:b]))
+                a = b
+        results: list[tuple[object, GridNormals]] = []
+        it = iter(out_n)
+        for p in self.parts:
+            if not p.iu.size:
+                results.append((p.key, _no_normals(p.n, self.cell)))
+                continue
+            nrm_p, ok_p, rough_p = next(it)
+            if p.index is None:
+                results.append((p.key, GridNormals(nrm_p, ok_p, self.cell, rough_p)))
+                continue
+            g = _no_normals(p.n, self.cell)
+            assert g.rough is not None
+            g.normals[p.index], g.valid[p.index], g.rough[p.index] = nrm_p, ok_p, rough_p
+            results.append((p.key, g))
+        return results
+
+
+def _no_normals(n: int, cell: tuple[float, float]) -> GridNormals:
+    return GridNormals(np.full((n, 3), np.nan), np.zeros(n, dtype=bool), cell,
+                       np.zeros(n, dtype=bool))

@@ -23,7 +23,6 @@ import math
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -424,10 +423,17 @@ class Shutdown:
 def spin_nodes(
     nodes: Sequence[Node], context: Any, shutdown: Shutdown, *, threads: int = 4
 ) -> None:
-    """Spin ``nodes`` on a multi-threaded executor until ``shutdown`` is requested."""
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    """Spin ``nodes`` until ``shutdown`` is requested: on a multi-threaded executor, or a
+    single-threaded one with ``threads=1`` (each callback runs in the spinning thread: no
+    hand-over to a pool thread, which costs interpreter-lock switches)."""
+    from rclpy.executors import (
+        ExternalShutdownException,
+        MultiThreadedExecutor,
+        SingleThreadedExecutor,
+    )
 
-    executor = MultiThreadedExecutor(num_threads=threads, context=context)
+    executor: Any = (SingleThreadedExecutor(context=context) if threads == 1 else
+                     MultiThreadedExecutor(num_threads=threads, context=context))
     for n in nodes:
         executor.add_node(n)
     log = nodes[0].get_logger() if nodes else None
@@ -583,77 +589,3 @@ class TrajectoryInput:
                                          f"({exc})", throttle_duration_sec=5.0)
             return
         self.on_sample(t, xyz, str(msg.header.frame_id))
-
-
-class TrajectoryBuffer:
-    """Rolling buffer of trajectory samples (thread-safe); samples may arrive out of order.
-
-    ``keep_s`` seconds before the newest sample are kept. :meth:`trajectory` returns a
-    :class:`~lidarcal_ros.core.mission.Trajectory` of the buffer (sorted, duplicates dropped),
-    updated only when samples were added since the last call (appending in the common
-    in-order case, re-sorting otherwise).
-    """
-
-    def __init__(self, keep_s: float = 600.0) -> None:
-        import numpy as np
-
-        from lidarcal_ros.core.mission import Trajectory
-
-        self._np = np
-        self._Trajectory = Trajectory
-        self.keep_s = float(keep_s)
-        self._pending_t: list[float] = []
-        self._pending_xyz: list[tuple[float, float, float]] = []
-        self._traj = Trajectory(np.empty(0), np.empty((0, 3)))
-        self._lock = threading.Lock()
-        self._rebuild_lock = threading.Lock()
-        self.frame_id: str | None = None
-        self.end = -math.inf  # newest sample time
-        self.last_arrival = -math.inf  # monotonic clock of the last sample received
-        self.samples = 0
-
-    def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None) -> None:
-        with self._lock:
-            self._pending_t.append(t)
-            self._pending_xyz.append(xyz)
-            self.samples += 1
-            self.last_arrival = time.monotonic()
-            if t > self.end:
-                self.end = t
-            if frame_id is not None:
-                self.frame_id = frame_id
-
-    def trajectory(self) -> Any:
-        # One rebuild at a time: two threads rebuilding from the same old trajectory would
-        # each drop the other's new samples.
-        with self._rebuild_lock:
-            return self._rebuild()
-
-    def _rebuild(self) -> Any:
-        np = self._np
-        with self._lock:
-            if not self._pending_t:
-                return self._traj
-            t_new = np.asarray(self._pending_t, dtype=np.float64)
-            x_new = np.asarray(self._pending_xyz, dtype=np.float64).reshape(-1, 3)
-            self._pending_t, self._pending_xyz = [], []
-        old = self._traj
-        if (np.isfinite(t_new).all() and np.isfinite(x_new).all()
-                and bool(np.all(np.diff(t_new) > 0))
-                and (len(old) == 0 or t_new[0] > old.t[-1])):
-            t = np.concatenate([old.t, t_new])
-            xyz = np.concatenate([old.xyz, x_new])
-            traj = self._Trajectory(t, xyz)
-        else:
-            traj = self._Trajectory.from_samples(np.concatenate([old.t, t_new]),
-                                                 np.concatenate([old.xyz, x_new]))
-        if len(traj) and self.keep_s > 0 and traj.t[-1] - traj.t[0] > self.keep_s:
-            start = int(np.searchsorted(traj.t, traj.t[-1] - self.keep_s))
-            traj = self._Trajectory(traj.t[start:], traj.xyz[start:])
-        with self._lock:
-            self._traj = traj
-        return traj
-
-    def __len__(self) -> int:
-        with self._lock:
-            return len(self._traj) + len(self._pending_t)

@@ -14,17 +14,27 @@ the flight configuration (atmosphere, radiometry, time field...). Until an estim
 corrector uses the file named by its ``calibration`` parameter, else the configuration's
 ``calibration.fixed.*`` values.
 
-Every input point comes out exactly once. A chunk is corrected once the trajectory covers it
-(a sample past its last point time) or after ``max_trajectory_wait_s``; chunks are corrected
-with their neighbours as context (``StreamCorrector``, one chunk at a time) and held at most
-until the next chunk arrives or ``flush_timeout_s`` passes. A malformed chunk (bad layout,
-missing field, wrong frame) is logged and skipped; the node keeps running.
+Every input point comes out exactly once, in the order received. A chunk is corrected once
+the trajectory covers it (a sample past its last point time) or after
+``max_trajectory_wait_s``. The normals come from one grid per strip that every chunk's points
+join (:class:`~lidarcal_ros.core.normals.StripNormals`): by default (``lookahead`` false) a
+chunk is corrected at once, its points seeing the earlier chunks as neighbours; with
+``lookahead`` true it waits until the next chunks cover the grid rows beyond it (about three
+rows, a few chunks), which gives exactly the normals of ``lidarcal correct`` at that cost in
+latency. Held chunks are corrected without look-ahead once no chunk came for
+``flush_timeout_s``. A malformed chunk (bad layout, missing field, wrong frame) is logged and
+skipped; the node keeps running.
+
+The numerics run in a child process (``separate_process``, :mod:`~lidarcal_ros.pipeline.
+correction_service`): this process only takes messages off DDS and publishes, so that its
+callbacks (hundreds of trajectory samples a second) never wait for the interpreter lock of
+the numerics.
 
 Node-specific parameters: ``calibration`` (YAML path), ``queue_depth``, ``best_effort``,
 ``trajectory_type`` (``auto`` or a type), ``trajectory_buffer_s``, ``max_trajectory_wait_s``,
-``flush_timeout_s``, ``lookahead``, ``workers``, ``batch_points``. Diagnostics
-(``lidarcal: corrector``) report clouds and points in and out, skipped chunks, points not
-covered by the trajectory and the latency.
+``flush_timeout_s``, ``lookahead``, ``workers``, ``batch_points``, ``separate_process``.
+Diagnostics (``lidarcal: corrector``) report clouds and points in and out, skipped chunks,
+points not covered by the trajectory and the latency.
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import math
 import sys
 import threading
 import time
+import warnings
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -46,13 +57,13 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import resolve_time_field
 from lidarcal_ros.io.ros_messages import (
     OK,
     WARN,
     StatusSpec,
-    cloud_cdr,
     parse_cloud,
     parse_estimate,
 )
@@ -62,14 +73,18 @@ from lidarcal_ros.nodes.common import (
     ESTIMATE_TOPIC,
     FlightParameters,
     NodeParameter,
-    TrajectoryBuffer,
     TrajectoryInput,
     diagnostic_array,
     latched_qos,
     run_main,
     stream_qos,
 )
-from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
+from lidarcal_ros.pipeline.correction import CorrectionSettings
+from lidarcal_ros.pipeline.correction_service import (
+    CorrectionProcess,
+    LocalCorrection,
+    ServiceOptions,
+)
 
 EXTRA_PARAMETERS = {
     "calibration": NodeParameter("", "Calibration YAML used until the calibrator publishes an "
@@ -88,29 +103,31 @@ EXTRA_PARAMETERS = {
     "flush_timeout_s": NodeParameter(0.05, "Wall time without a new chunk after which held "
                                      "chunks are corrected without look-ahead, s",
                                      minimum=0.0, maximum=60.0),
-    "lookahead": NodeParameter(True, "Wait for the next chunks of a strip so that points at a "
-                               "chunk's end have their neighbours for the normal (false: "
-                               "correct each chunk at once with the earlier ones as context; "
-                               "least latency)"),
+    "lookahead": NodeParameter(False, "Wait for the next chunks of a strip so that points at "
+                               "a chunk's leading edge have neighbours on both sides for the "
+                               "normal: the normals of `lidarcal correct`, a few chunks later "
+                               "(false: correct each chunk at once with the earlier ones as "
+                               "neighbours; least latency)"),
     "workers": NodeParameter(1, "Threads correcting batches in parallel", minimum=1,
                              maximum=64, read_only=True),
     "batch_points": NodeParameter(0, "Chunks of one strip corrected together up to this many "
                                   "points (0: one chunk at a time, least latency)",
-                                  minimum=0, maximum=100_000_000),
+                                  minimum=0, maximum=100_000_000, read_only=True),
+    "separate_process": NodeParameter(True, "Correct in a child process with its own "
+                                      "interpreter lock, so that the node's callbacks never "
+                                      "wait for the numerics (false: in a thread of the node)",
+                                      read_only=True),
 }
 
 _TRAJECTORY_MARGIN_S = 0.02
-#: Largest batch formed to catch up with a backlog, points (bounds memory and latency).
-MAX_ADAPTIVE_BATCH_POINTS = 400_000
 
 
 @dataclass
 class _Chunk:
     raw: bytes
     received: float
-    stamp_ns: int = 0
-    frame_id: str = ""
-    points: Any = None
+    parsed: bool = False
+    n_points: int = 0
     t_max: float = -math.inf
 
 
@@ -145,11 +162,15 @@ class CorrectorNode(Node):
         self._delta = self._initial_delta(cfg)
         self._settings = CorrectionSettings.from_config(cfg, self._delta)
         self._settings_changed = False
+        self._lookahead_changed = False
         self.trajectory = TrajectoryBuffer(self.params["trajectory_buffer_s"])
-        self._corrector: StreamCorrector | None = None
-        self._held: dict[int, _Chunk] = {}
+        self._poses_t: list[float] = []  # samples not yet given to the correction
+        self._poses_xyz: list[tuple[float, float, float]] = []
+        self._held: dict[int, _Chunk] = {}  # pushed, not yet reported back
         self._next_tag = 0
         self._last_push = time.monotonic()
+        self._released_tag = -1  # the newest tag at the last time-out release
+        self._service = self._start_service()
 
         self.publisher = self.create_publisher(PointCloud2, cfg["topics.corrected"],
                                                stream_qos(self.params["queue_depth"]))
@@ -199,6 +220,9 @@ class CorrectorNode(Node):
     def _on_extra(self, name: str, value: Any) -> None:
         if name == "trajectory_buffer_s":
             self.trajectory.keep_s = float(value)
+        elif name == "lookahead":
+            with self._lock:
+                self._lookahead_changed = True
 
     def _on_estimate(self, msg: Float64MultiArray) -> None:
         try:
@@ -221,6 +245,8 @@ class CorrectorNode(Node):
     def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str) -> None:
         self.trajectory.add(t, xyz, frame_id)
         with self._lock:
+            self._poses_t.append(t)
+            self._poses_xyz.append(xyz)
             self._lock.notify()
 
     def _on_points(self, raw: bytes) -> None:
@@ -230,6 +256,21 @@ class CorrectorNode(Node):
             self._lock.notify()
 
     # -- work ------------------------------------------------------------------------
+    def _start_service(self) -> CorrectionProcess | LocalCorrection:
+        options = ServiceOptions(batch_points=self.params["batch_points"],
+                                 workers=self.params["workers"],
+                                 lookahead=self.params["lookahead"],
+                                 source=self.params["topics.points"],
+                                 trajectory_keep_s=self.params["trajectory_buffer_s"])
+        if not self.params["separate_process"]:
+            return LocalCorrection(self._settings, options, on_result=self._on_result,
+                                   on_error=self._on_error)
+        return CorrectionProcess(self._settings, options, on_result=self._on_result,
+                                 on_error=self._on_error, on_failure=self._on_failure)
+
+    def _on_failure(self, reason: str) -> None:
+        self.get_logger().error(f"corrector: {reason}; restarting it")
+
     def _work(self) -> None:
         while True:
             with self._lock:
@@ -257,12 +298,14 @@ class CorrectorNode(Node):
             tname = resolve_time_field(cloud.points, self._settings.time_field,
                                        source=source)
             t = cloud.points[tname]
-            finite = t[np.isfinite(t)]
-            chunk.t_max = float(finite.max()) if finite.size else -math.inf
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN times
+                t_max = float(np.nanmax(t)) if t.size else math.nan
+            chunk.t_max = t_max if math.isfinite(t_max) else -math.inf
         except LidarcalError as exc:
             self._skip(chunk, str(exc))
             return False
-        chunk.stamp_ns, chunk.frame_id, chunk.points = cloud.stamp_ns, cloud.frame_id, cloud.points
+        chunk.parsed, chunk.n_points = True, len(cloud.points)
         return True
 
     def _skip(self, chunk: _Chunk, reason: str) -> None:
@@ -272,10 +315,11 @@ class CorrectorNode(Node):
                                 throttle_duration_sec=2.0)
 
     def _step(self, chunks: list[_Chunk]) -> bool:
-        """Correct the chunks that are ready, in order; returns whether anything was done.
+        """Hand the chunks that the trajectory covers to the correction, in order; returns
+        whether anything was done.
 
-        Under a backlog the ready chunks are corrected as one batch (``StreamCorrector``
-        batches them per strip): fewer, larger numpy calls catch up faster; with one chunk
+        All the chunks ready at once go together: under a backlog their normals are
+        evaluated in one pass (fewer, larger numpy calls catch up faster); with one chunk
         ready this is the one-chunk-at-a-time path.
         """
         now = time.monotonic()
@@ -283,7 +327,7 @@ class CorrectorNode(Node):
         done = 0
         ready: list[_Chunk] = []
         for chunk in chunks:
-            if chunk.points is None and not self._parse(chunk):
+            if not chunk.parsed and not self._parse(chunk):
                 done += 1
                 continue
             # Wait for the trajectory to cover the chunk (keeps the order); give up only once
@@ -295,97 +339,89 @@ class CorrectorNode(Node):
             ready.append(chunk)
             done += 1
         if ready:
-            corrector = self._ensure_corrector()
-            corrector.batch_points = max(int(self.params["batch_points"]),
-                                         min(self._batchable(corrector, ready),
-                                             MAX_ADAPTIVE_BATCH_POINTS))
-            for chunk in ready:
-                self._push(chunk)
-            if not self.params["lookahead"] and self._held:
-                self._release(self._flush(corrector))
+            self._push(ready)
         with self._lock:
             for _ in range(done):
                 self._queue.popleft()
             empty = not self._queue
-        if (empty and self._held
+        if (empty and self._held and self._released_tag != self._next_tag
                 and time.monotonic() - self._last_push >= self.params["flush_timeout_s"]):
-            self._release(self._flush(self._ensure_corrector()))
+            # No new chunk for a while (a pause, the end of a strip): correct what is held
+            # without waiting for look-ahead, with the trajectory received up to now.
+            self._released_tag = self._next_tag
+            self._sync()
+            self._service.release()
             return True
         return done > 0
 
-    def _batchable(self, corrector: StreamCorrector, ready: list[_Chunk]) -> int:
-        """Points held or ready that already have their look-ahead: under a backlog they are
-        corrected as one batch (larger numpy calls catch up faster); without a backlog this
-        is at most one chunk, the one-chunk-at-a-time path."""
-        chunks = [*self._held.values(), *ready]
-        newest = max(c.t_max for c in chunks)
-        ctx = corrector.lookahead_seconds()
-        return sum(len(c.points) for c in chunks if c.t_max + ctx <= newest)
-
-    def _ensure_corrector(self) -> StreamCorrector:
+    def _sync(self) -> None:
+        """Give the correction the new trajectory samples, settings and switches, in the
+        order they came (a new estimate applies from the next chunk on)."""
         with self._lock:
-            settings, changed = self._settings, self._settings_changed
-            self._settings_changed = False
-        if self._corrector is None:
-            self._corrector = StreamCorrector(self.trajectory.trajectory(), settings,
-                                              batch_points=self.params["batch_points"],
-                                              workers=self.params["workers"],
-                                              source=self.params["topics.points"])
-        elif changed:
-            self._corrector.set_settings(settings)
-        return self._corrector
+            t, xyz = self._poses_t, self._poses_xyz
+            self._poses_t, self._poses_xyz = [], []
+            settings = self._settings if self._settings_changed else None
+            lookahead_changed = self._lookahead_changed
+            self._settings_changed = self._lookahead_changed = False
+        if self._service_failed():  # it died (reported by _on_failure): a new one
+            self._service = self._start_service()
+            whole = self.trajectory.trajectory()
+            self._service.poses(whole.t, whole.xyz)
+        elif t:
+            self._service.poses(np.asarray(t, dtype=np.float64),
+                                np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+        if settings is not None:
+            self._service.set_settings(settings)
+        if lookahead_changed:
+            self._service.set_lookahead(self.params["lookahead"])
 
-    def _push(self, chunk: _Chunk) -> None:
-        corrector = self._ensure_corrector()
-        self._set_trajectory(corrector)
-        tag = self._next_tag
-        self._next_tag += 1
-        self.stats.clouds_in += 1
-        self.stats.points_in += len(chunk.points)
+    def _service_failed(self) -> bool:
+        return isinstance(self._service, CorrectionProcess) and not self._service.alive
+
+    def _push(self, chunks: list[_Chunk]) -> None:
         started = time.perf_counter()
-        try:
-            self._held[tag] = chunk
-            out = corrector.push(chunk.points, tag)
-        except Exception as exc:  # malformed (LidarcalError) or a bug: skip, keep running
-            del self._held[tag]
-            self.stats.clouds_in -= 1
-            self.stats.points_in -= len(chunk.points)
-            reason = str(exc) if isinstance(exc, LidarcalError) else (
-                f"{type(exc).__name__}: {exc}")
-            self._skip(chunk, reason)
-            return
-        finally:
-            self.stats.busy_s += time.perf_counter() - started
+        self._sync()
+        clouds: list[tuple[int, bytes]] = []
+        with self._lock:
+            for chunk in chunks:
+                tag = self._next_tag
+                self._next_tag += 1
+                self._held[tag] = chunk
+                clouds.append((tag, chunk.raw))
+                chunk.raw = b""  # the correction has it now
+                self.stats.clouds_in += 1
+                self.stats.points_in += chunk.n_points
+        self._service.push(clouds)
         self._last_push = time.monotonic()
-        self._release(out)
+        self.stats.busy_s += time.perf_counter() - started
 
-    def _flush(self, corrector: StreamCorrector) -> list[tuple[Any, np.ndarray]]:
-        """Correct everything held, with the trajectory received up to now: poses that came
-        after the last push (the end of a strip) must cover its last chunks."""
-        self._set_trajectory(corrector)
-        return corrector.flush()
-
-    def _set_trajectory(self, corrector: StreamCorrector) -> None:
-        """Give the corrector the trajectory received so far (its recent speed sizes the
-        look-ahead)."""
-        corrector.set_trajectory(self.trajectory.trajectory())
-
-    def _release(self, out: list[tuple[Any, np.ndarray]]) -> None:
-        from lidarcal_ros.pipeline.correction import FLAG_NOT_CORRECTED
-
-        for tag, corrected in out:
+    def _on_result(self, tag: int, cdr: bytes, points: int, not_corrected: int,
+                   _seconds: float) -> None:
+        """A corrected chunk (from the correction's reader thread, or inline): publish."""
+        with self._lock:
             chunk = self._held.pop(tag, None)
-            if chunk is None:
-                continue
-            started = time.perf_counter()
-            raw = cloud_cdr(chunk.stamp_ns, chunk.frame_id, corrected)
-            self.publisher.publish(raw)
-            self.stats.busy_s += time.perf_counter() - started
-            self.stats.clouds_out += 1
-            self.stats.points_out += len(corrected)
-            self.stats.not_corrected += int(np.count_nonzero(
-                corrected["correction_flags"] & FLAG_NOT_CORRECTED))
-            self.stats.latencies.append(time.monotonic() - chunk.received)
+        if chunk is None:
+            return
+        started = time.perf_counter()
+        self._publish(cdr)
+        self.stats.busy_s += time.perf_counter() - started
+        self.stats.clouds_out += 1
+        self.stats.points_out += points
+        self.stats.not_corrected += not_corrected
+        self.stats.latencies.append(time.monotonic() - chunk.received)
+
+    def _publish(self, cdr: bytes) -> None:
+        self.publisher.publish(cdr)
+
+    def _on_error(self, tag: int, reason: str) -> None:
+        """A chunk the correction refused (malformed) or lost: logged and skipped."""
+        with self._lock:
+            chunk = self._held.pop(tag, None)
+        if chunk is None:
+            return
+        self.stats.clouds_in -= 1
+        self.stats.points_in -= chunk.n_points
+        self._skip(chunk, reason)
 
     # -- diagnostics -------------------------------------------------------------------
     def status(self) -> StatusSpec:
@@ -412,21 +448,23 @@ class CorrectorNode(Node):
         self.diagnostics.publish(diagnostic_array(self, [self.status()]))
 
     def close(self) -> None:
-        """Stop the worker (held chunks are corrected and published first)."""
+        """Stop the worker; held chunks are corrected and published first."""
         with self._lock:
             self._closing = True
             self._lock.notify_all()
         self._worker.join(timeout=5.0)
         try:
-            if self._held and self._corrector is not None:
-                self._release(self._flush(self._corrector))
+            self._sync()
+            self._service.close()
         except Exception as exc:  # shutting down
             self.get_logger().error(f"flushing held clouds failed: {exc}")
 
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console script ``lidarcal_corrector``."""
-    return run_main([CorrectorNode], args)
+    # The node's callbacks are light (the numerics run in the correction's own process):
+    # one executor thread, no hand-over of each callback to a pool.
+    return run_main([CorrectorNode], args, threads=1)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -33,22 +33,24 @@ Output: every input field, ``x, y, z`` corrected (in their own type), and the FL
 (bits below). Nothing is silently wrong: a point that cannot be corrected keeps its delivered
 coordinates, gets NaN in the four derived fields and a flag, and is counted.
 
-Streaming: :class:`StreamCorrector` takes clouds one at a time, gathers them into batches
-(``batch_points``; 0 = one cloud at a time, as the node does) and releases a batch once the
-clouds after it reach a short time beyond it, so that points at a batch edge have their
-neighbours for the normal. Memory holds one batch plus that look-ahead, whatever the mission
-length.
+Streaming: :class:`StreamCorrector` takes clouds one at a time. The points of each strip
+join one grid of cells (:class:`~lidarcal_ros.core.normals.StripNormals`), each point binned
+and evaluated once, so the normals do not depend on how the stream is cut into clouds: a
+cloud is released once the clouds after it cover the grid rows its normals read (the
+look-ahead), or at once without look-ahead. Clouds are corrected in batches
+(``batch_points``; 0 = each cloud as soon as it can be, as the node does). Memory holds the
+clouds waiting for their look-ahead and a few grid rows, whatever the mission length.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import heapq
-import itertools
 import logging
 import math
 import sys
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -66,11 +68,29 @@ from lidarcal_ros.core.local_trajectory import (
 )
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.model import correct_points
-from lidarcal_ros.core.normals import cell_size, finite_rows, grid_normals
+from lidarcal_ros.core.normals import (
+    GridNormals,
+    NormalsTask,
+    StripNormals,
+    cell_size,
+    finite_rows,
+    grid_normals,
+)
 from lidarcal_ros.core.radiometry import RadiometricModel, describe_alpha
-from lidarcal_ros.errors import BagError, ConfigError, InputError, TrajectoryError
+from lidarcal_ros.errors import (
+    BagError,
+    ConfigError,
+    InputError,
+    LidarcalError,
+    TrajectoryError,
+)
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
-from lidarcal_ros.io.pointcloud import cloud_to_array, extract_columns, resolve_time_field
+from lidarcal_ros.io.pointcloud import (
+    CloudColumns,
+    cloud_to_array,
+    extract_columns,
+    resolve_time_field,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -101,9 +121,13 @@ ADDED_FIELDS: tuple[tuple[str, str], ...] = (
 )
 #: Default batch of the offline correction, points.
 DEFAULT_BATCH_POINTS = 200_000
-#: Most points held as look-ahead (or kept as context) beyond a batch: bounds memory when
-#: firing times stall (a cloud whose times never advance would otherwise wait forever).
+#: Most points of a strip held for their look-ahead beyond a batch: bounds memory when the
+#: points stop advancing along track (they would otherwise wait for ever).
 _MAX_LOOKAHEAD_POINTS = 500_000
+#: A strip's normals grid is restarted after a turn of more than this (rad) or a gap in time
+#: of more than this (s): the grid is aligned with the flight line.
+_MAX_GRID_TURN_RAD = math.radians(15.0)
+_MAX_GRID_GAP_S = 2.0
 #: Points per LAS write (corrected clouds are gathered into runs of this size).
 _LAS_RUN_POINTS = 100_000
 #: Points closer than this below the trajectory are refused (m): no real return comes from
@@ -299,6 +323,33 @@ def trajectory_speed(trajectory: Trajectory) -> float:
     return float(np.median(dxy[good] / dt[good]))
 
 
+def _fitted_normals(
+    xyz: np.ndarray, t: np.ndarray, trajectory: Trajectory, *, group: np.ndarray | None,
+    context_xyz: np.ndarray | None, context_group: np.ndarray | None,
+    heading: float | None, cell_m: tuple[float, float] | None,
+) -> GridNormals:
+    """Grid normals of points fitted with their context (:func:`correct_columns`)."""
+    n = xyz.shape[0]
+    if heading is None:
+        heading = trajectory_heading(trajectory, float(np.nanmedian(t)))
+    # Normals from the delivered coordinates of the points and their context.
+    if context_xyz is not None and len(context_xyz):
+        all_xyz = np.concatenate([xyz, context_xyz])
+        all_group = None
+        if group is not None or context_group is not None:
+            g0 = group if group is not None else np.zeros(n, dtype=np.int64)
+            g1 = (context_group if context_group is not None
+                  else np.zeros(len(context_xyz), dtype=np.int64))
+            all_group = np.concatenate([np.asarray(g0, dtype=np.int64),
+                                        np.asarray(g1, dtype=np.int64)])
+    else:
+        all_xyz, all_group = xyz, group
+    if cell_m is None:
+        finite = finite_rows(xyz) & np.isfinite(t)
+        cell_m = cell_size(xyz[finite], heading, t[finite])
+    return grid_normals(all_xyz, heading, cell_m=cell_m, group=all_group)
+
+
 def correct_columns(
     xyz: np.ndarray,
     t: np.ndarray,
@@ -311,6 +362,7 @@ def correct_columns(
     context_group: np.ndarray | None = None,
     heading: float | None = None,
     cell_m: tuple[float, float] | None = None,
+    normals: GridNormals | None = None,
     source: str = "cloud",
 ) -> CorrectedColumns:
     """Correct the geometry and compute reflectance of a set of points (module docstring).
@@ -335,6 +387,10 @@ def correct_columns(
     cell_m : (float, float), optional
         Grid cell ``(along, across)`` of the normals (m); default
         :func:`~lidarcal_ros.core.normals.cell_size` of ``xyz``.
+    normals : GridNormals, optional
+        The points' normals when already known (:class:`StreamCorrector` fits them per
+        strip as the clouds arrive); then ``group``, ``context_*``, ``heading`` and
+        ``cell_m`` are not used.
     source : str
         Named in log messages.
 
@@ -357,25 +413,10 @@ def correct_columns(
     everything = bool(ok.all())
     flags[~ok] |= FLAG_NOT_CORRECTED
     out_xyz = xyz.copy()
-    if heading is None:
-        heading = trajectory_heading(trajectory, float(np.nanmedian(t)))
-    # Normals from the delivered coordinates of the points and their context.
-    if context_xyz is not None and len(context_xyz):
-        all_xyz = np.concatenate([xyz, context_xyz])
-        all_group = None
-        if group is not None or context_group is not None:
-            g0 = group if group is not None else np.zeros(n, dtype=np.int64)
-            g1 = (context_group if context_group is not None
-                  else np.zeros(len(context_xyz), dtype=np.int64))
-            all_group = np.concatenate([np.asarray(g0, dtype=np.int64),
-                                        np.asarray(g1, dtype=np.int64)])
-    else:
-        all_xyz, all_group = xyz, group
-    if cell_m is None:
-        finite = finite_rows(xyz) & np.isfinite(t)
-        cell_m = cell_size(xyz[finite], heading, t[finite])
-    gn = grid_normals(all_xyz, heading, cell_m=cell_m, group=all_group)
-    normals = gn.normals[:n]
+    gn = normals if normals is not None else _fitted_normals(
+        xyz, t, trajectory, group=group, context_xyz=context_xyz, context_group=context_group,
+        heading=heading, cell_m=cell_m)
+    point_normals = gn.normals[:n]
     if not ok.any():
         stats_flags = flags
         if intensity is None:
@@ -393,7 +434,7 @@ def correct_columns(
     # In float32 (the field's type): the transcendental function costs half as much.
     scan[sel] = np.arctan((x_right / rel[:, 2]).astype(np.float32))
     rng[sel] = r
-    nrm = normals if everything else normals[sel]
+    nrm = point_normals if everything else point_normals[sel]
     # |n . l| with l = rel / r
     cos_t = np.abs((nrm[:, 0] * rel[:, 0] + nrm[:, 1] * rel[:, 1] + nrm[:, 2] * rel[:, 2])
                    * inv_r).astype(np.float32)
@@ -507,160 +548,117 @@ def correct_cloud(
 
 @dataclass
 class _Message:
-    """A cloud waiting in :class:`StreamCorrector` (its points are not yet decoded)."""
+    """A cloud in :class:`StreamCorrector` waiting for the normals of its points."""
 
     tag: Any
     points: np.ndarray
-    t_min: float
-    t_max: float
-    strip: int
+    columns: CloudColumns
+    normals: GridNormals
+    parts: int = 0  # strips among its points
+    scheduled: int = 0  # parts whose normals are being (or have been) evaluated
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
 
 @dataclass
+class _Strip:
+    """The normals of one strip as its clouds arrive, and where the strip stands."""
+
+    normals: StripNormals
+    t_last: float
+
+
+@dataclass
 class _Job:
-    """A batch ready to be corrected, with its context: the clouds of the batch and the
-    neighbouring clouds whose points within ``context_s`` of the batch's time span are
-    neighbours for the normals. Self-contained (picklable) so that it can run in another
-    process."""
+    """Clouds to be corrected together, and the evaluation of their normals."""
 
-    batch: list[np.ndarray]
-    before: list[np.ndarray]
-    after: list[np.ndarray]
-    t_start: float
-    t_end: float
-    context_s: float
-    heading: float
+    tasks: list[NormalsTask]
+    messages: list[_Message]
+    trajectory: Trajectory
+    settings: CorrectionSettings
 
 
-#: Trajectory and settings of a worker process (set once by :func:`_init_worker`).
-_WORKER: dict[str, Any] = {}
+def _deliver(results: list[tuple[Any, GridNormals]]) -> None:
+    """Put normals evaluated per strip into the clouds they belong to."""
+    for key, g in results:
+        m: _Message
+        idx: np.ndarray | None
+        m, idx = key
+        if idx is None:
+            m.normals = g
+        else:
+            assert m.normals.rough is not None and g.rough is not None
+            m.normals.normals[idx] = g.normals
+            m.normals.valid[idx] = g.valid
+            m.normals.rough[idx] = g.rough
+            m.normals.cell_m = g.cell_m
 
 
-def _init_worker(trajectory: Trajectory, settings: CorrectionSettings, source: str) -> None:
-    tune_allocator()
-    _WORKER.update(trajectory=trajectory, settings=settings, source=source)
-    try:
-        _warm_up(trajectory, settings)
-    except Exception:  # only a warm-up
-        logger.debug("worker warm-up failed", exc_info=True)
-
-
-def _warm_up(trajectory: Trajectory, settings: CorrectionSettings, n: int = 50_000) -> None:
-    """Run the correction once on a synthetic flat strip under the trajectory, so that the
-    first real batch of a worker does not pay for its first allocations and calls."""
-    if len(trajectory) < 2:
-        return
-    i = len(trajectory) // 2
-    t0 = float(trajectory.t[i])
-    t = t0 + np.linspace(-0.2, 0.2, n)
-    rng = np.random.default_rng(0)
-    pos = np.column_stack([np.interp(t, trajectory.t, trajectory.xyz[:, j]) for j in range(3)])
-    dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), (settings.time_field, "<f8"),
-                      ("intensity", "<f4"), ("strip_id", "<u2")])
-    pts = np.zeros(n, dtype=dtype)
-    pts["x"] = pos[:, 0] + rng.uniform(-200.0, 200.0, n)
-    pts["y"] = pos[:, 1] + rng.uniform(-5.0, 5.0, n)
-    pts["z"] = pos[:, 2] - 500.0
-    pts[settings.time_field] = t
-    pts["intensity"] = 100.0
-    job = _Job([pts], [], [], float(t[0]), float(t[-1]), 0.1,
-               trajectory_heading(trajectory, t0))
-    _run_job(job, trajectory, settings, "warm-up")
-
-
-def _noop() -> None:
-    return None
-
-
-def _run_in_worker(job: _Job) -> tuple[list[np.ndarray], np.ndarray, float, float]:
-    return _run_job(job, _WORKER["trajectory"], _WORKER["settings"], _WORKER["source"])
-
-
-def _columns(clouds: list[np.ndarray], settings: CorrectionSettings, source: str
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """xyz, t, intensity (NaN for clouds without) and strip id (0 where absent) of clouds."""
-    cols = [extract_columns(c, time_field=settings.time_field, source=source) for c in clouds]
-    if len(cols) == 1:
-        c = cols[0]
-        return c.xyz, c.t, c.intensity, c.strip_id
-    xyz = np.concatenate([c.xyz for c in cols]) if cols else np.empty((0, 3))
-    t = np.concatenate([c.t for c in cols]) if cols else np.empty(0)
-    inten: np.ndarray | None = None
-    if any(c.intensity is not None for c in cols):
-        inten = np.concatenate([c.intensity if c.intensity is not None
-                                else np.full(len(c), np.nan, np.float32) for c in cols])
-    group: np.ndarray | None = None
-    if any(c.strip_id is not None for c in cols):
-        group = np.concatenate([c.strip_id if c.strip_id is not None
-                                else np.zeros(len(c), np.uint32) for c in cols])
-    return xyz, t, inten, group
-
-
-def _run_job(job: _Job, trajectory: Trajectory, settings: CorrectionSettings, source: str
-             ) -> tuple[list[np.ndarray], np.ndarray, float, float]:
-    """Correct one batch: the corrected clouds, the flags, seconds spent, the cell (m)."""
+def _run_job(job: _Job, source: str) -> tuple[list[np.ndarray], np.ndarray, float]:
+    """Correct one batch of clouds: the corrected clouds, the flags, seconds spent."""
     started = time.perf_counter()
-    xyz, t, inten, group = _columns(job.batch, settings, source)
-    ctx_xyz: list[np.ndarray] = []
-    ctx_group: list[np.ndarray] = []
-    for clouds, keep_of in ((job.before, lambda tt: tt >= job.t_start - job.context_s),
-                            (job.after, lambda tt: tt <= job.t_end + job.context_s)):
-        if clouds:
-            cx, ct, _ci, cg = _columns(clouds, settings, source)
-            keep = keep_of(ct)
-            ctx_xyz.append(cx[keep])
-            ctx_group.append(cg[keep].astype(np.int64) if cg is not None
-                             else np.zeros(int(keep.sum()), np.int64))
-    finite = finite_rows(xyz) & np.isfinite(t)
-    every = bool(finite.all())
-    cell = cell_size(xyz if every else xyz[finite], job.heading, t if every else t[finite])
-    res = correct_columns(
-        xyz, t, inten, trajectory, settings, group=group,
-        context_xyz=np.concatenate(ctx_xyz) if ctx_xyz else None,
-        context_group=np.concatenate(ctx_group) if ctx_group else None,
-        heading=job.heading, cell_m=cell, source=source)
+    for task in job.tasks:
+        _deliver(task.run())
+    msgs = job.messages
+    if len(msgs) == 1:
+        c, g = msgs[0].columns, msgs[0].normals
+        xyz, t, inten, gn = c.xyz, c.t, c.intensity, g
+    else:
+        xyz = np.concatenate([m.columns.xyz for m in msgs])
+        t = np.concatenate([m.columns.t for m in msgs])
+        inten = None
+        if any(m.columns.intensity is not None for m in msgs):
+            inten = np.concatenate([m.columns.intensity if m.columns.intensity is not None
+                                    else np.full(len(m), np.nan, np.float32) for m in msgs])
+        rough = [m.normals.rough for m in msgs]
+        gn = GridNormals(np.concatenate([m.normals.normals for m in msgs]),
+                         np.concatenate([m.normals.valid for m in msgs]),
+                         msgs[-1].normals.cell_m,
+                         np.concatenate([r if r is not None else np.zeros(len(m), bool)
+                                         for r, m in zip(rough, msgs, strict=True)]))
+    res = correct_columns(xyz, t, inten, job.trajectory, job.settings, normals=gn,
+                          source=source)
     out: list[np.ndarray] = []
     a = 0
-    for points in job.batch:
-        b = a + len(points)
-        out.append(build_corrected(points, res, a, b))
+    for m in msgs:
+        b = a + len(m)
+        out.append(build_corrected(m.points, res, a, b))
         a = b
-    return out, res.flags, time.perf_counter() - started, max(cell)
+    return out, res.flags, time.perf_counter() - started
 
 
 class StreamCorrector:
-    """Correct a stream of clouds with neighbours across cloud boundaries (module docstring).
+    """Correct a stream of clouds, with neighbours across cloud boundaries (module docstring).
 
     Parameters
     ----------
     trajectory : Trajectory
-        The whole trajectory of the mission (or at least up to the clouds pushed).
+        The trajectory of the mission (at least up to the clouds pushed).
     settings : CorrectionSettings
     batch_points : int
-        Clouds of one strip are corrected together until a batch holds this many points; 0
-        corrects each cloud on its own (least latency).
+        Clouds are corrected in batches of at least this many points (fewer, larger numpy
+        calls); 0 corrects each cloud as soon as its normals are final (least latency).
     workers : int
-        Batches corrected in parallel; 1 corrects in the calling thread.
-    executor : ``"process"`` or ``"thread"``
-        With ``workers > 1``: worker processes (no contention for the global interpreter
-        lock; batches and results are copied to and from them; each starts in about half a
-        second and warms up on a synthetic strip) or threads (lighter; numpy releases the
-        lock in most, not all, of the work). Either way the output does not depend on the
-        executor, the number of workers or timing.
+        Batches corrected in parallel threads; 1 corrects in the calling thread.
+    lookahead : bool
+        Wait until the points after a cloud are there before fitting its normals, so that
+        points at a cloud's leading edge have neighbours on both sides: the normals do not
+        depend on how the stream is cut into clouds. False fits them at once against the
+        points before (least latency).
     source : str
         Topic named in messages.
 
     Notes
     -----
-    :meth:`push` returns the corrected clouds that became ready, as ``(tag, array)`` in the
-    order pushed; :meth:`flush` returns the rest (and stops the workers). ``stats`` counts
-    everything released. Batches are independent given their context (the delivered
-    coordinates of the neighbouring clouds), which is what lets them run in parallel. Held in
-    memory: the batch being formed and its look-ahead, ``workers + 1`` batches in flight, and
-    the last clouds of the previous batch (the context before the next).
+    The normals of each strip come from one grid per strip (:class:`StripNormals`): every
+    point is binned and evaluated once, whatever the clouds' size. :meth:`push` returns the
+    corrected clouds that became ready, as ``(tag, array)`` in the order pushed;
+    :meth:`release` corrects everything held now (a time-out: later clouds still see these
+    points as neighbours); :meth:`flush` ends the stream (and stops the workers). Held in
+    memory: the clouds waiting for their look-ahead (a few grid rows), the moment sums of the
+    grid rows around them and ``workers + 1`` batches in flight. The output does not depend
+    on the number of workers or on timing.
     """
 
     def __init__(
@@ -670,85 +668,47 @@ class StreamCorrector:
         *,
         batch_points: int = DEFAULT_BATCH_POINTS,
         workers: int = 1,
-        executor: str = "thread",
+        lookahead: bool = True,
         source: str = "cloud",
     ) -> None:
-        if executor not in ("thread", "process"):
-            raise ConfigError(f"executor must be 'thread' or 'process', got {executor!r}")
         self.trajectory = trajectory
         self.settings = settings
         self.batch_points = max(int(batch_points), 0)
         self.workers = max(int(workers), 1)
-        self.executor = executor
+        self.lookahead = lookahead
         self.source = source
         self.stats = CorrectionStats()
-        self._pending: deque[_Message] = deque()
-        self._previous: deque[_Message] = deque()  # clouds of earlier batches, for context
-        self._cell_cache: dict[int, float] = {}
-        speed = trajectory_speed(trajectory)
-        self._speed = speed if math.isfinite(speed) and speed > 1.0 else 1.0
+        self._queue: deque[_Message] = deque()
+        self._strips: dict[int, _Strip] = {}
         self._warned_intensity = False
-        self._pool: Any = None
-        self._inflight: deque[tuple[list[Any], int, Future[Any]]] = deque()
+        self._pool: ThreadPoolExecutor | None = None
+        self._inflight: deque[tuple[list[Any], Future[Any]]] = deque()
+        self._late_done = 0
+        self._tasks: list[NormalsTask] = []
 
-    def context_seconds(self, cell_m: float) -> float:
-        """Time before and after a batch whose points are neighbours of its edge, s."""
-        if not math.isfinite(cell_m):
-            cell_m = 10.0
-        return min((2.5 * cell_m + 2.0) / self._speed, 5.0)
+    @property
+    def held_points(self) -> int:
+        """Points pushed and not yet released."""
+        return sum(len(m) for m in self._queue)
 
-    def lookahead_seconds(self) -> float:
-        """The look-ahead a cloud currently waits for, s (largest cell seen so far)."""
-        cells = [c for c in self._cell_cache.values() if math.isfinite(c)]
-        return self.context_seconds(max(cells) if cells else math.nan)
+    @property
+    def late_points(self) -> int:
+        """Points that arrived behind their strip's grid (no normal), so far."""
+        return sum(s.normals.late_points for s in self._strips.values()) + self._late_done
 
     def set_trajectory(self, trajectory: Trajectory) -> None:
-        """Use a newer trajectory (e.g. grown while streaming); the look-ahead follows its
-        recent speed. Worker processes restart with it at the next batch."""
-        if trajectory is self.trajectory:
-            return
+        """Use a newer trajectory (e.g. grown while streaming) from the next batch on."""
         self.trajectory = trajectory
-        tail = trajectory if len(trajectory) <= 500 else Trajectory(trajectory.t[-500:],
-                                                                    trajectory.xyz[-500:])
-        speed = trajectory_speed(tail)
-        if math.isfinite(speed) and speed > 1.0:
-            self._speed = speed
-        if self.executor == "process":
-            self._restart()
 
     def set_settings(self, settings: CorrectionSettings) -> None:
         """Use new settings (calibration, radiometry) from the next batch on."""
         self.settings = settings
-        if self.executor == "process":
-            self._restart()
-
-    def _restart(self) -> None:
-        """Let the worker processes finish what they have and stop; new ones start with the
-        current trajectory and settings at the next batch."""
-        if self._pool is not None:
-            pool, self._pool = self._pool, None
-            pool.shutdown(wait=False)
 
     def start(self) -> None:
-        """Start the workers now (they otherwise start with the first batch)."""
-        if self.workers == 1 or self._pool is not None:
-            return
-        if self.executor == "thread":
+        """Start the worker threads now (they otherwise start with the first batch)."""
+        if self.workers > 1 and self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=self.workers,
                                             thread_name_prefix="lidarcal-correct")
-        else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            # forkserver: workers fork from a clean server process, never from this one
-            # (which may run threads); they import this module once.
-            ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload([__name__])
-            self._pool = ProcessPoolExecutor(
-                max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
-                initargs=(self.trajectory, self.settings, self.source))
-            for _ in range(self.workers):  # start them now, not at the first batch
-                self._pool.submit(_noop)
 
     def close(self) -> None:
         """Stop the workers (also done by :meth:`flush`)."""
@@ -762,136 +722,189 @@ class StreamCorrector:
         Raises
         ------
         CloudFormatError
-            The cloud lacks ``x, y, z`` or its time field, or has unsupported types.
+            The cloud lacks ``x, y, z`` or its time field, or has unsupported types (nothing
+            is added).
         """
-        names = points.dtype.names or ()
-        tname = resolve_time_field(points, self.settings.time_field, source=self.source)
-        if len(points) and "intensity" not in names and not self._warned_intensity:
-            logger.warning("%s: clouds without an 'intensity' field: geometry is corrected, "
-                           "reflectance is NaN (flag %d)", self.source, FLAG_NO_INTENSITY)
-            self._warned_intensity = True
-        t = points[tname]
-        t_min, t_max = math.inf, -math.inf
-        if len(points):
-            with np.errstate(invalid="ignore"):
-                t_min, t_max = float(np.nanmin(t)), float(np.nanmax(t))
-            if not math.isfinite(t_max):
-                t_min, t_max = math.inf, -math.inf
-        sid_name = "strip_id" if "strip_id" in names else (
-            "point_source_id" if "point_source_id" in names else None)
-        strip = int(points[sid_name][0]) if sid_name is not None and len(points) else -1
-        if strip not in self._cell_cache and len(points) and math.isfinite(t_max):
-            # First cloud of a strip: an estimate of the cell, to size the look-ahead of
-            # the strip's batches.
-            cols = extract_columns(points, time_field=self.settings.time_field,
-                                   source=self.source)
-            finite = finite_rows(cols.xyz) & np.isfinite(cols.t)
-            heading = trajectory_heading(self.trajectory, 0.5 * (t_min + t_max))
-            cell = max(cell_size(cols.xyz[finite], heading, cols.t[finite]))
-            if math.isfinite(cell):
-                self._cell_cache[strip] = cell
-        self._pending.append(_Message(tag, points, t_min, t_max, strip))
+        return self.push_many([(points, tag)])
+
+    def push_many(
+        self, clouds: list[tuple[np.ndarray, Any]], *,
+        on_error: Callable[[Any, LidarcalError], None] | None = None,
+    ) -> list[tuple[Any, np.ndarray]]:
+        """Add several clouds at once (one evaluation of the normals for all: a backlog
+        catches up faster); returns the corrected clouds now ready.
+
+        Parameters
+        ----------
+        clouds : list of (structured array, tag)
+        on_error : callable(tag, error), optional
+            Called for each malformed cloud, which is then skipped; without it the first
+            malformed cloud raises before anything is added.
+        """
+        msgs: list[_Message] = []
+        for points, tag in clouds:
+            try:
+                msgs.append(self._message(points, tag))
+            except LidarcalError as exc:
+                if on_error is None:
+                    raise
+                on_error(tag, exc)
+        for m in msgs:
+            self._add(m)
         return self._drain(final=False)
 
+    def set_lookahead(self, lookahead: bool) -> None:
+        """Wait for look-ahead (or not) from the next cloud on."""
+        self.lookahead = lookahead
+        for s in self._strips.values():
+            s.normals.lookahead = lookahead
+
+    def release(self) -> list[tuple[Any, np.ndarray]]:
+        """Correct everything held now, without waiting for look-ahead (the strips' grids
+        are kept: later clouds still have these points as neighbours)."""
+        return self._drain(final=True)
+
     def flush(self) -> list[tuple[Any, np.ndarray]]:
-        """Correct everything still held; stop the workers."""
+        """Correct everything held (the end of the stream); stop the workers."""
         try:
             out = self._drain(final=True)
             out.extend(self._collect(wait_all=True))
+            for s in self._strips.values():
+                self._late_done += s.normals.late_points
+            self._strips.clear()
         finally:
             self.close()
         return out
 
     # -- internals -------------------------------------------------------------------
 
+    def _message(self, points: np.ndarray, tag: Any) -> _Message:
+        cols = extract_columns(points, time_field=self.settings.time_field, source=self.source)
+        if len(points) and cols.intensity is None and not self._warned_intensity:
+            logger.warning("%s: clouds without an 'intensity' field: geometry is corrected, "
+                           "reflectance is NaN (flag %d)", self.source, FLAG_NO_INTENSITY)
+            self._warned_intensity = True
+        n = len(points)
+        empty = GridNormals(np.full((n, 3), np.nan), np.zeros(n, dtype=bool),
+                            (math.nan, math.nan), np.zeros(n, dtype=bool))
+        return _Message(tag, points, cols, empty)
+
+    def _add(self, m: _Message) -> None:
+        """Give the points of a cloud to the grids of their strips."""
+        cols = m.columns
+        self._queue.append(m)
+        if not len(m):
+            return
+        g = cols.strip_id
+        if g is None or g.min() == g.max():
+            parts: list[tuple[int, np.ndarray | None]] = [
+                (-1 if g is None else int(g[0]), None)]
+        else:
+            parts = [(int(k), np.flatnonzero(g == k)) for k in np.unique(g)]
+        for strip_id, idx in parts:
+            xyz = cols.xyz if idx is None else cols.xyz[idx]
+            t = cols.t if idx is None else cols.t[idx]
+            with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN times
+                t_lo = float(np.nanmin(t)) if t.size else math.nan
+                t_hi = float(np.nanmax(t)) if t.size else math.nan
+            heading = trajectory_heading(self.trajectory, 0.5 * (t_lo + t_hi))
+            strip = self._strips.get(strip_id)
+            if strip is not None and self._strip_ended(strip, heading, t_lo):
+                self._finish_strip(strip_id)
+                strip = None
+            if strip is None:
+                strip = _Strip(StripNormals(self._heading_at, lookahead=self.lookahead),
+                               t_hi)
+                self._strips[strip_id] = strip
+            if math.isfinite(t_hi):
+                strip.t_last = max(strip.t_last, t_hi) if math.isfinite(strip.t_last) else t_hi
+            strip.normals.add((m, idx), xyz, t)
+            m.parts += 1
+
+    def _heading_at(self, t: float) -> float:
+        return trajectory_heading(self.trajectory, t)
+
+    @staticmethod
+    def _strip_ended(strip: _Strip, heading: float, t_lo: float) -> bool:
+        """A gap in time or a turn: the strip's grid no longer fits the new points."""
+        turn = abs(math.remainder(heading - strip.normals.heading, 2.0 * math.pi))
+        if not math.isfinite(turn):  # (grid not started yet)
+            turn = 0.0
+        gap = t_lo - strip.t_last if math.isfinite(t_lo + strip.t_last) else 0.0
+        return turn > _MAX_GRID_TURN_RAD or gap > _MAX_GRID_GAP_S
+
+    def _finish_strip(self, strip_id: int) -> None:
+        strip = self._strips.pop(strip_id)
+        self._schedule(strip.normals.take_ready(final=True))
+        self._late_done += strip.normals.late_points
+
+    def _schedule(self, task: NormalsTask | None) -> None:
+        if task is None:
+            return
+        self._tasks.append(task)
+        for key in task.keys:
+            message: _Message = key[0]  # type: ignore[index]
+            message.scheduled += 1
+
     def _drain(self, *, final: bool) -> list[tuple[Any, np.ndarray]]:
+        # Strips that ended long before the newest point: finish them (their last clouds
+        # would otherwise wait for a look-ahead that never comes, and hold up the output).
+        newest = max((s.t_last for s in self._strips.values()), default=math.nan)
+        for strip_id, s in list(self._strips.items()):
+            if newest - s.t_last > _MAX_GRID_GAP_S:
+                self._finish_strip(strip_id)
+        for s in self._strips.values():
+            # A strip whose points stop advancing along track (hovering, stalled times)
+            # would hold its clouds for ever: bounded.
+            stalled = s.normals.pending_points() > _MAX_LOOKAHEAD_POINTS + self.batch_points
+            self._schedule(s.normals.take_ready(final=final or stalled,
+                                                min_points=self.batch_points))
+        done: list[_Message] = []
+        while self._queue and self._queue[0].scheduled == self._queue[0].parts:
+            done.append(self._queue.popleft())
         out: list[tuple[Any, np.ndarray]] = []
-        while True:
-            got = self._next_job(final=final)
-            if got is None:
-                break
-            tags, strip, job = got
-            if self.workers == 1:
-                result = _run_job(job, self.trajectory, self.settings, self.source)
-                self._account(tags, strip, result, out)
-                continue
-            self.start()
-            fn = _run_in_worker if self.executor == "process" else (
-                lambda j: _run_job(j, self.trajectory, self.settings, self.source))
-            self._inflight.append((tags, strip, self._pool.submit(fn, job)))
-            out.extend(self._collect(wait_all=False))
+        if not done:
+            return out
+        # The evaluations go with the clouds they complete, into a worker; one that also
+        # serves a cloud still waiting (for another strip's normals) runs here, now.
+        in_job = {id(m) for m in done}
+        tasks, self._tasks = self._tasks, []
+        job_tasks: list[NormalsTask] = []
+        for task in tasks:
+            if all(id(key[0]) in in_job for key in task.keys):  # type: ignore[index]
+                job_tasks.append(task)
+            else:
+                _deliver(task.run())
+        self._submit(_Job(job_tasks, done, self.trajectory, self.settings), out)
         return out
+
+    def _submit(self, job: _Job, out: list[tuple[Any, np.ndarray]]) -> None:
+        tags = [m.tag for m in job.messages]
+        if self.workers == 1:
+            self._account(tags, _run_job(job, self.source), out)
+            return
+        self.start()
+        assert self._pool is not None
+        self._inflight.append((tags, self._pool.submit(_run_job, job, self.source)))
+        out.extend(self._collect(wait_all=False))
 
     def _collect(self, *, wait_all: bool) -> list[tuple[Any, np.ndarray]]:
         """Results of finished batches, in order; waits while too many are in flight."""
         out: list[tuple[Any, np.ndarray]] = []
-        while self._inflight and (wait_all or self._inflight[0][2].done()
+        while self._inflight and (wait_all or self._inflight[0][1].done()
                                   or len(self._inflight) > self.workers):
-            tags, strip, future = self._inflight.popleft()
-            self._account(tags, strip, future.result(), out)
+            tags, future = self._inflight.popleft()
+            self._account(tags, future.result(), out)
         return out
 
-    def _account(self, tags: list[Any], strip: int,
-                 result: tuple[list[np.ndarray], np.ndarray, float, float],
+    def _account(self, tags: list[Any], result: tuple[list[np.ndarray], np.ndarray, float],
                  out: list[tuple[Any, np.ndarray]]) -> None:
-        # (The cell of the batch is not fed back into the look-ahead: the batches' context
-        # must not depend on when results come back, or output would depend on timing.)
-        clouds, flags, seconds, _cell = result
+        clouds, flags, seconds = result
         self.stats.clouds += len(clouds)
         self.stats.seconds += seconds
         self.stats.add(flags)
-        out.extend(zip(tags, clouds))
-
-    def _slice(self, m: _Message, *, lo: float = -math.inf, hi: float = math.inf
-               ) -> np.ndarray:
-        """The points of a cloud with times in ``[lo, hi]`` (all of it if inside)."""
-        if m.t_min >= lo and m.t_max <= hi:
-            return m.points
-        tname = resolve_time_field(m.points, self.settings.time_field, source=self.source)
-        t = m.points[tname]
-        return m.points[(t >= lo) & (t <= hi)]
-
-    def _next_job(self, *, final: bool) -> tuple[list[Any], int, _Job] | None:
-        if not self._pending:
-            return None
-        # The next batch: clouds of one strip up to batch_points points.
-        first = self._pending[0]
-        k, total = 0, 0
-        closed = False
-        for m in self._pending:
-            if k and (m.strip != first.strip or total >= self.batch_points):
-                closed = True
-                break
-            total += len(m)
-            k += 1
-        closed = closed or total >= self.batch_points
-        if not (closed or final):
-            return None
-        batch = list(itertools.islice(self._pending, 0, k))
-        ctx_s = self.context_seconds(self._cell_cache.get(first.strip, math.nan))
-        t_end = max(m.t_max for m in batch)
-        t_start = min(m.t_min for m in batch)
-        later = list(itertools.islice(self._pending, k, None))
-        if (not final and not any(m.t_max >= t_end + ctx_s for m in later)
-                and sum(len(m) for m in later) < _MAX_LOOKAHEAD_POINTS):
-            return None  # wait for the look-ahead (unless times stall: then go without)
-        # Context: only the points within ctx_s of the batch (a cloud may be long).
-        after = [self._slice(m, hi=t_end + ctx_s) for m in later
-                 if m.t_min <= t_end + ctx_s and len(m)]
-        before = [self._slice(m, lo=t_start - ctx_s) for m in self._previous
-                  if m.t_max >= t_start - ctx_s and len(m)]
-        mid = 0.5 * (t_start + t_end) if math.isfinite(t_start + t_end) else math.nan
-        job = _Job([m.points for m in batch], before, after, t_start, t_end, ctx_s,
-                   trajectory_heading(self.trajectory, mid))
-        for _ in range(k):
-            self._previous.append(self._pending.popleft())
-        # Keep only the clouds that may still be context of a later batch.
-        while self._previous and self._previous[0].t_max < t_end - 2.0 * ctx_s - 1.0:
-            self._previous.popleft()
-        while len(self._previous) > 1 and sum(
-                len(m) for m in self._previous) > _MAX_LOOKAHEAD_POINTS:
-            self._previous.popleft()
-        return [m.tag for m in batch], first.strip, job
+        out.extend(zip(tags, clouds, strict=True))
 
 
 # ---------------------------------------------------------------------------- bags
@@ -962,7 +975,6 @@ def correct_bag(
     overwrite: bool = False,
     batch_points: int = DEFAULT_BATCH_POINTS,
     workers: int = 1,
-    executor: str = "thread",
     progress: Callable[[str, float], None] | None = None,
 ) -> CorrectionReport:
     """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
@@ -989,8 +1001,6 @@ def correct_bag(
         Batches corrected in parallel (reading and writing stay in the calling thread:
         they are mostly Python code, and threads of their own only contend for the
         interpreter lock).
-    executor : ``"process"`` or ``"thread"``
-        Where the parallel batches run (:class:`StreamCorrector`).
     progress : callable(stage, fraction), optional
 
     Returns
@@ -1044,7 +1054,7 @@ def correct_bag(
                              f"{sorted(traj_frames)}")
         frame = next(iter(traj_frames))
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
-                                    workers=workers, executor=executor, source=points_topic)
+                                    workers=workers, source=points_topic)
         n_clouds = max(bag.topics[points_topic].count, 1)
         report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
                                   atmosphere=describe_alpha(settings.radiometry),
@@ -1090,7 +1100,6 @@ def _correct_to_las(
     progress: Callable[[str, float], None] | None, report: CorrectionReport,
 ) -> None:
     from lidarcal_ros.io.las import LasChunkWriter
-    from lidarcal_ros.io.pointcloud import resolve_time_field
 
     seen = 0
     time_field: str | None = None

@@ -1,0 +1,422 @@
+"""The correction behind the live corrector node: clouds in and out as CDR bytes.
+
+The corrector node does two kinds of work: the ROS side (taking messages off DDS, hundreds
+of trajectory samples a second, parameters, publishing) and the numerics (a
+:class:`~lidarcal_ros.pipeline.correction.StreamCorrector`). In one Python process they
+share one interpreter lock, and a numerics thread that holds it between its numpy calls
+delays every callback of the executor by up to the interpreter's switch interval: at a few
+hundred trajectory samples a second the trajectory then falls seconds behind the points,
+and the points wait for it. :class:`CorrectionProcess` therefore runs the numerics in a
+child process (spawned, not forked: the node process runs threads) and exchanges CDR bytes
+with it through pipes; :class:`LocalCorrection` runs the same engine in the calling thread
+(tests, and hosts where a child process is not wanted).
+
+Both take the trajectory samples (:meth:`poses`), clouds (:meth:`push`), a time-out
+(:meth:`release`: correct what is held without waiting for look-ahead), settings and the
+look-ahead switch, and report every cloud exactly once, in the order pushed, to
+``on_result(tag, cdr, points, not_corrected, seconds)`` or ``on_error(tag, reason)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing
+import os
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
+from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
+from lidarcal_ros.pipeline.correction import (
+    FLAG_NOT_CORRECTED,
+    CorrectionSettings,
+    StreamCorrector,
+    tune_allocator,
+)
+
+logger = logging.getLogger(__name__)
+
+#: ``on_result(tag, cdr, points, not_corrected, seconds)``: a corrected cloud, serialised.
+ResultHandler = Callable[[Any, bytes, int, int, float], None]
+#: ``on_error(tag, reason)``: a cloud that could not be corrected (malformed), skipped.
+ErrorHandler = Callable[[Any, str], None]
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    """How the correction runs (the node's parameters).
+
+    Attributes
+    ----------
+    batch_points : int
+        :class:`StreamCorrector` ``batch_points`` (0: each cloud as soon as it can be).
+    workers : int
+        Threads correcting batches.
+    lookahead : bool
+        Wait for the points after a cloud before fitting its normals.
+    source : str
+        Topic named in messages.
+    trajectory_keep_s : float
+        Seconds of trajectory kept.
+    """
+
+    batch_points: int = 0
+    workers: int = 1
+    lookahead: bool = True
+    source: str = "cloud"
+    trajectory_keep_s: float = 600.0
+
+
+class _Engine:
+    """Trajectory buffer, stream corrector and CDR in and out: what both runners run."""
+
+    def __init__(self, settings: CorrectionSettings, options: ServiceOptions) -> None:
+        self.options = options
+        self.trajectory = TrajectoryBuffer(options.trajectory_keep_s)
+        self.corrector = StreamCorrector(self.trajectory.trajectory(), settings,
+                                         batch_points=options.batch_points,
+                                         workers=options.workers,
+                                         lookahead=options.lookahead, source=options.source)
+        self._headers: dict[Any, tuple[int, str, float]] = {}
+
+    def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        for k in range(t.shape[0]):
+            self.trajectory.add(float(t[k]), (float(xyz[k, 0]), float(xyz[k, 1]),
+                                              float(xyz[k, 2])))
+
+    def push(self, clouds: list[tuple[Any, bytes]], on_error: ErrorHandler
+             ) -> list[tuple[Any, bytes, int, int, float]]:
+        started = time.perf_counter()
+        parsed: list[tuple[np.ndarray, Any]] = []
+        for tag, raw in clouds:
+            try:
+                cloud = parse_cloud(raw, source=self.options.source)
+            except LidarcalError as exc:
+                on_error(tag, str(exc))
+                continue
+            self._headers[tag] = (cloud.stamp_ns, cloud.frame_id, started)
+            parsed.append((cloud.points, tag))
+
+        def malformed(tag: Any, exc: LidarcalError) -> None:
+            self._headers.pop(tag, None)
+            on_error(tag, str(exc))
+
+        self.corrector.set_trajectory(self.trajectory.trajectory())
+        return self._encode(self.corrector.push_many(parsed, on_error=malformed))
+
+    def release(self) -> list[tuple[Any, bytes, int, int, float]]:
+        self.corrector.set_trajectory(self.trajectory.trajectory())
+        return self._encode(self.corrector.release())
+
+    def flush(self) -> list[tuple[Any, bytes, int, int, float]]:
+        self.corrector.set_trajectory(self.trajectory.trajectory())
+        return self._encode(self.corrector.flush())
+
+    def _encode(self, out: list[tuple[Any, np.ndarray]]
+                ) -> list[tuple[Any, bytes, int, int, float]]:
+        encoded = []
+        for tag, corrected in out:
+            stamp, frame, started = self._headers.pop(tag)
+            cdr = cloud_cdr(stamp, frame, corrected)
+            bad = int(np.count_nonzero(corrected["correction_flags"] & FLAG_NOT_CORRECTED))
+            encoded.append((tag, cdr, len(corrected), bad, time.perf_counter() - started))
+        return encoded
+
+
+class LocalCorrection:
+    """The correction in the calling thread (same interface as :class:`CorrectionProcess`)."""
+
+    def __init__(self, settings: CorrectionSettings, options: ServiceOptions, *,
+                 on_result: ResultHandler, on_error: ErrorHandler) -> None:
+        self._engine = _Engine(settings, options)
+        self._on_result = on_result
+        self._on_error = on_error
+
+    def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        """Add trajectory samples (s; map frame, m)."""
+        self._engine.poses(t, xyz)
+
+    def push(self, clouds: list[tuple[Any, bytes]]) -> None:
+        """Correct clouds (tag, CDR bytes); results come through the handlers."""
+        self._emit(self._engine.push(clouds, self._on_error))
+
+    def release(self) -> None:
+        """Correct what is held now, without waiting for look-ahead."""
+        self._emit(self._engine.release())
+
+    def set_settings(self, settings: CorrectionSettings) -> None:
+        self._engine.corrector.set_settings(settings)
+
+    def set_lookahead(self, lookahead: bool) -> None:
+        self._engine.corrector.set_lookahead(lookahead)
+
+    def close(self) -> None:
+        """Correct and report everything held."""
+        self._emit(self._engine.flush())
+
+    def _emit(self, results: list[tuple[Any, bytes, int, int, float]]) -> None:
+        for r in results:
+            self._on_result(*r)
+
+
+#: Pipe capacity asked for (bytes): a cloud crosses in a few system calls instead of one per
+#: 64 kB, and each of those calls gives the interpreter lock up and waits to take it back.
+_PIPE_BYTES = 1 << 20
+
+
+def _widen(conn: Any) -> None:
+    """Ask for a larger pipe buffer (Linux; elsewhere a no-op)."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(conn.fileno(), fcntl.F_SETPIPE_SZ, _PIPE_BYTES)
+    except (ImportError, AttributeError, OSError):
+        pass
+
+
+def _send_payload(conn: Any, data: bytes) -> None:
+    """Write ``data`` framed as :meth:`multiprocessing.connection.Connection.send_bytes`
+    does (4-byte big-endian length), in as few system calls as the pipe allows."""
+    fd = conn.fileno()
+    os.write(fd, struct.pack("!i", len(data)))
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _recv_payload(conn: Any) -> bytes:
+    """Read one payload written by :func:`_send_payload` (or ``send_bytes``)."""
+    fd = conn.fileno()
+    size = struct.unpack("!i", _read_exactly(fd, 4))[0]
+    return _read_exactly(fd, size)
+
+
+def _read_exactly(fd: int, size: int) -> bytes:
+    parts = []
+    remaining = size
+    while remaining:
+        part = os.read(fd, remaining)
+        if not part:
+            raise EOFError
+        parts.append(part)
+        remaining -= len(part)
+    return parts[0] if len(parts) == 1 else b"".join(parts)
+
+
+def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
+    """Run the engine once over a small synthetic strip (level flight at 1000 m over flat
+    ground), so that the first real clouds do not pay for first calls (imports done lazily,
+    first allocations): without it the first chunks of a live stream come out late."""
+    from lidarcal_ros.io.pointcloud import make_point_dtype
+
+    engine = _Engine(dataclasses.replace(settings, time_field="t"),
+                     dataclasses.replace(options, workers=1, source="warm-up"))
+    t_traj = np.arange(0.0, 2.0, 0.01)
+    engine.poses(t_traj, np.column_stack([np.zeros_like(t_traj), 60.0 * t_traj,
+                                          np.full_like(t_traj, 1000.0)]))
+    rng = np.random.default_rng(0)
+    clouds = []
+    for k in range(3):
+        n = 20_000
+        pts = np.zeros(n, dtype=make_point_dtype())
+        pts["t"] = 0.5 + k * 0.1 + np.sort(rng.random(n)) * 0.1
+        t = pts["t"]
+        pts["x"] = 300.0 * np.sin(2.0 * np.pi * 50.0 * t)
+        pts["y"] = 60.0 * t
+        pts["z"] = rng.normal(0.0, 0.05, n)
+        pts["intensity"] = 100.0
+        pts["strip_id"] = 1
+        clouds.append((k, cloud_cdr(0, "map", pts)))
+    engine.push(clouds, lambda _tag, _reason: None)
+    engine.flush()
+
+
+def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
+                options: ServiceOptions) -> None:
+    """The child process: requests from ``inbox``, results to ``outbox`` (module docstring)."""
+    tune_allocator()
+    try:
+        warm_up(settings, options)
+    except Exception:  # only a warm-up
+        logger.debug("warm-up failed", exc_info=True)
+    _widen(inbox)
+    _widen(outbox)
+    engine = _Engine(settings, options)
+
+    def send_results(results: list[tuple[Any, bytes, int, int, float]]) -> None:
+        for tag, cdr, n, bad, seconds in results:
+            outbox.send(("out", tag, n, bad, seconds))
+            _send_payload(outbox, cdr)
+
+    def on_error(tag: Any, reason: str) -> None:
+        outbox.send(("error", tag, reason))
+
+    while True:
+        try:
+            request = inbox.recv()
+        except (EOFError, OSError):  # the node process is gone
+            return
+        kind = request[0]
+        tags: list[Any] = []
+        try:
+            if kind == "poses":
+                engine.poses(request[1], request[2])
+            elif kind == "push":
+                tags = request[1]
+                clouds = [(tag, _recv_payload(inbox)) for tag in tags]
+                send_results(engine.push(clouds, on_error))
+            elif kind == "release":
+                send_results(engine.release())
+            elif kind == "settings":
+                engine.corrector.set_settings(request[1])
+            elif kind == "lookahead":
+                engine.corrector.set_lookahead(request[1])
+            elif kind == "flush":
+                send_results(engine.flush())
+                outbox.send(("flushed",))
+                return
+        except (EOFError, OSError):
+            return
+        except Exception as exc:  # a bug: report the clouds of this request, keep serving
+            reason = f"internal error: {type(exc).__name__}: {exc}"
+            logger.exception("correction process")
+            for tag in tags:
+                on_error(tag, reason)
+
+
+class CorrectionProcess:
+    """The correction in a child process with its own interpreter lock (module docstring).
+
+    Parameters
+    ----------
+    settings : CorrectionSettings
+    options : ServiceOptions
+    on_result, on_error : callables
+        Called from a reader thread of this process, in the order the clouds were pushed.
+    on_failure : callable(reason), optional
+        The child process died; the clouds it held are reported to ``on_error`` first.
+    """
+
+    def __init__(self, settings: CorrectionSettings, options: ServiceOptions, *,
+                 on_result: ResultHandler, on_error: ErrorHandler,
+                 on_failure: Callable[[str], None] | None = None) -> None:
+        self._on_result = on_result
+        self._on_error = on_error
+        self._on_failure = on_failure
+        ctx = multiprocessing.get_context("spawn")  # never fork a process that runs threads
+        child_in, self._inbox = ctx.Pipe(duplex=False)
+        self._outbox, child_out = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_child_main, name="lidarcal-correction",
+                                    args=(child_in, child_out, settings, options), daemon=True)
+        self._process.start()
+        child_in.close()
+        child_out.close()
+        _widen(self._inbox)
+        _widen(self._outbox)
+        self._send_lock = threading.Lock()
+        self._pending: dict[Any, None] = {}  # tags pushed and not yet reported, in order
+        self._pending_lock = threading.Lock()
+        self._flushed = threading.Event()
+        self._closing = False
+        self._reader = threading.Thread(target=self._read, name="lidarcal-correction-reader",
+                                        daemon=True)
+        self._reader.start()
+
+    @property
+    def alive(self) -> bool:
+        """Whether the child process runs."""
+        return self._process.is_alive()
+
+    def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
+        """Add trajectory samples (s; map frame, m)."""
+        self._send(("poses", np.asarray(t, dtype=np.float64),
+                    np.asarray(xyz, dtype=np.float64)))
+
+    def push(self, clouds: list[tuple[Any, bytes]]) -> None:
+        """Correct clouds (tag, CDR bytes); results come through the handlers."""
+        if not clouds:
+            return
+        with self._pending_lock:
+            for tag, _raw in clouds:
+                self._pending[tag] = None
+        with self._send_lock:
+            try:
+                self._inbox.send(("push", [tag for tag, _ in clouds]))
+                for _tag, raw in clouds:
+                    _send_payload(self._inbox, raw)
+            except (OSError, ValueError):
+                self._fail("the correction process is not running")
+
+    def release(self) -> None:
+        """Correct what is held now, without waiting for look-ahead."""
+        self._send(("release",))
+
+    def set_settings(self, settings: CorrectionSettings) -> None:
+        self._send(("settings", settings))
+
+    def set_lookahead(self, lookahead: bool) -> None:
+        self._send(("lookahead", bool(lookahead)))
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Correct and report everything held, then stop the child process."""
+        self._closing = True
+        self._send(("flush",))
+        self._flushed.wait(timeout)
+        self._reader.join(timeout=1.0)
+        self._process.join(timeout=2.0)
+        if self._process.is_alive():
+            self._process.kill()
+        self._inbox.close()
+
+    def _send(self, request: tuple[Any, ...]) -> None:
+        with self._send_lock:
+            try:
+                self._inbox.send(request)
+            except (OSError, ValueError):
+                self._fail("the correction process is not running")
+
+    def _read(self) -> None:
+        while True:
+            try:
+                reply = self._outbox.recv()
+                if reply[0] == "out":
+                    _kind, tag, n, bad, seconds = reply
+                    cdr = _recv_payload(self._outbox)
+                    self._done(tag)
+                    self._on_result(tag, cdr, n, bad, seconds)
+                elif reply[0] == "error":
+                    self._done(reply[1])
+                    self._on_error(reply[1], reply[2])
+                elif reply[0] == "flushed":
+                    self._flushed.set()
+                    return
+            except (EOFError, OSError):
+                self._fail("the correction process ended")
+                return
+            except Exception:  # a handler failed: keep reading
+                logger.exception("correction result handler")
+
+    def _done(self, tag: Any) -> None:
+        with self._pending_lock:
+            self._pending.pop(tag, None)
+
+    def _fail(self, reason: str) -> None:
+        """Report the clouds the child held as lost, once."""
+        with self._pending_lock:
+            lost, self._pending = list(self._pending), {}
+        if self._closing and not lost:
+            self._flushed.set()
+            return
+        for tag in lost:
+            self._on_error(tag, reason)
+        self._flushed.set()
+        if self._on_failure is not None and not self._closing:
+            self._on_failure(reason)

@@ -1,0 +1,131 @@
+"""The correction behind the corrector node: a child process and the in-thread engine give
+the same bytes, report every cloud once and in order, skip malformed clouds with a reason,
+and report the clouds a dead child held instead of losing them silently."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from typing import Any
+
+import helpers_missions
+import numpy as np
+import pytest
+from helpers_missions import MissionFiles
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.io.bag import _strip_points
+from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
+from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
+from lidarcal_ros.pipeline.correction_service import (
+    CorrectionProcess,
+    LocalCorrection,
+    ServiceOptions,
+)
+
+mission_factory = helpers_missions.mission_factory
+small_mission = helpers_missions.small_mission
+
+
+class Collector:
+    """Results and errors as the service reports them (from any thread)."""
+
+    def __init__(self) -> None:
+        self.events: list[tuple[str, Any, Any]] = []
+        self.lock = threading.Lock()
+
+    def result(self, tag: Any, cdr: bytes, n: int, bad: int, _seconds: float) -> None:
+        with self.lock:
+            self.events.append(("out", tag, cdr))
+
+    def error(self, tag: Any, reason: str) -> None:
+        with self.lock:
+            self.events.append(("error", tag, reason))
+
+    def wait(self, count: int, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while len(self.events) < count and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+
+def _stream(small_mission: MissionFiles) -> tuple[CorrectionSettings, Any, list[bytes]]:
+    sim = small_mission.sim
+    settings = CorrectionSettings.from_config(
+        FlightConfig(), np.array([sim.biases[n] for n in PARAMETER_NAMES]))
+    pts = _strip_points(sim.mission.strips[0], {}, "test")
+    cuts = [*range(0, len(pts), 3000), len(pts)]
+    clouds = [cloud_cdr(1_000_000_000 + k, "map", pts[a:b])
+              for k, (a, b) in enumerate(itertools.pairwise(cuts))]
+    return settings, sim.mission.trajectory, clouds
+
+
+@pytest.mark.parametrize("lookahead", [True, False])
+def test_child_process_gives_the_bytes_of_the_stream_corrector(
+        small_mission: MissionFiles, lookahead: bool) -> None:
+    settings, trajectory, clouds = _stream(small_mission)
+    options = ServiceOptions(lookahead=lookahead)
+    # The reference: the stream corrector on the same clouds, serialised the same way (three
+    # clouds a request, as under a backlog: without look-ahead a cloud's points then also
+    # have the other two as neighbours).
+    ref = StreamCorrector(trajectory, settings, batch_points=0, lookahead=lookahead)
+    expected: dict[int, bytes] = {}
+    for k in range(0, len(clouds), 3):
+        group = [(parse_cloud(clouds[j]).points, j) for j in range(k, min(k + 3, len(clouds)))]
+        for tag, arr in ref.push_many(group):
+            expected[tag] = cloud_cdr(1_000_000_000 + tag, "map", arr)
+    for tag, arr in ref.flush():
+        expected[tag] = cloud_cdr(1_000_000_000 + tag, "map", arr)
+
+    outputs = {}
+    for kind in (LocalCorrection, CorrectionProcess):
+        got = Collector()
+        service = kind(settings, options, on_result=got.result, on_error=got.error)
+        service.poses(trajectory.t, trajectory.xyz)
+        for k in range(0, len(clouds), 3):
+            service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
+        service.close()
+        assert [e[0] for e in got.events] == ["out"] * len(clouds)
+        assert [e[1] for e in got.events] == list(range(len(clouds)))  # once, in order
+        outputs[kind.__name__] = {e[1]: e[2] for e in got.events}
+    assert outputs["LocalCorrection"] == expected
+    assert outputs["CorrectionProcess"] == expected
+
+
+def test_malformed_cloud_is_reported_and_the_rest_corrected(
+        small_mission: MissionFiles) -> None:
+    settings, trajectory, clouds = _stream(small_mission)
+    got = Collector()
+    service = CorrectionProcess(settings, ServiceOptions(lookahead=False),
+                                on_result=got.result, on_error=got.error)
+    service.poses(trajectory.t, trajectory.xyz)
+    no_time = np.zeros(10, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    service.push([(0, clouds[0]), (1, b"\x00\x01garbage"), (2, cloud_cdr(0, "map", no_time)),
+                  (3, clouds[1])])
+    service.close()
+    kinds = {e[1]: e for e in got.events}
+    assert sorted(kinds) == [0, 1, 2, 3]
+    assert kinds[0][0] == kinds[3][0] == "out"
+    assert kinds[1][0] == "error" and "\n" not in kinds[1][2]
+    assert kinds[2][0] == "error" and "time" in kinds[2][2]
+
+
+def test_a_dead_child_reports_the_clouds_it_held(small_mission: MissionFiles) -> None:
+    settings, trajectory, clouds = _stream(small_mission)
+    got = Collector()
+    failures: list[str] = []
+    service = CorrectionProcess(settings, ServiceOptions(lookahead=True),
+                                on_result=got.result, on_error=got.error,
+                                on_failure=failures.append)
+    service.poses(trajectory.t, trajectory.xyz)
+    service.push([(k, clouds[k]) for k in range(4)])  # held for look-ahead
+    time.sleep(0.5)
+    service._process.kill()
+    got.wait(4)
+    assert not service.alive
+    assert sorted(e[1] for e in got.events) == [0, 1, 2, 3]
+    lost = [e for e in got.events if e[0] == "error"]
+    assert lost and all("ended" in e[2] for e in lost)
+    assert failures and "ended" in failures[0]
+    service.close(timeout=1.0)
