@@ -716,6 +716,16 @@ class StripNormals:
             return
         self._bin(key, xyz)
 
+    def add_many(self, parts: list[tuple[object, np.ndarray, np.ndarray | None]]) -> None:
+        """:meth:`add` several parts ``(key, xyz, t)`` in the order given, binned in one
+        pass once the grid exists (fewer, larger numpy calls for small clouds)."""
+        if not self.started or len(parts) < 2:
+            for key, xyz, t in parts:
+                self.add(key, xyz, t)
+            return
+        xyz = np.concatenate([np.asarray(p[1], dtype=np.float64) for p in parts])
+        self._bin_parts([(p[0], p[1].shape[0]) for p in parts], xyz)
+
     def _begin(self, *, final: bool) -> bool:
         """Fix the grid from the strip's first points and bin the parts held; False if
         there are not enough points yet (or, with ``final``, at all)."""
@@ -776,7 +786,11 @@ class StripNormals:
         return u, v, xyz[:, 2] - z0
 
     def _bin(self, key: object, xyz: np.ndarray) -> None:
-        n = xyz.shape[0]
+        self._bin_parts([(key, xyz.shape[0])], xyz)
+
+    def _bin_parts(self, parts: list[tuple[object, int]], xyz: np.ndarray) -> None:
+        """Bin the points of consecutive parts (``(key, count)``, their points one after the
+        other in ``xyz``) in one pass."""
         finite = finite_rows(xyz)
         index = None if bool(finite.all()) else np.flatnonzero(finite)
         sub = xyz if index is None else xyz[index]
@@ -787,19 +801,32 @@ class StripNormals:
         if keep is not None:
             index = np.flatnonzero(finite)[keep] if index is not None else np.flatnonzero(keep)
             u, v, z, iu, iv = u[keep], v[keep], z[keep], iu[keep], iv[keep]
-        if iu.size == 0:
-            self._parts.append(_Part(key, n, index, u, v, z, iu, iv, 0, -1))
-            return
-        r_lo, r_hi = int(iu.min()), int(iu.max())
-        c_lo, c_hi = int(iv.min()), int(iv.max())
-        self._fit_grid(r_lo, r_hi, c_lo, c_hi)
-        rows = r_hi - r_lo + 1
-        ncols = self._moments.shape[2]
-        flat = (iu - r_lo) * ncols + (iv - self._col0)
-        block = self._moments[:, r_lo - self._row0:r_hi - self._row0 + 1, :]
-        block += _bin_moments(u, v, z, flat, rows * ncols).reshape(10, rows, ncols)
-        self._parts.append(_Part(key, n, index, u, v, z, iu, iv, r_lo, r_hi))
-        self._watermark = r_lo
+        if iu.size:
+            r_lo, r_hi = int(iu.min()), int(iu.max())
+            c_lo, c_hi = int(iv.min()), int(iv.max())
+            self._fit_grid(r_lo, r_hi, c_lo, c_hi)
+            rows = r_hi - r_lo + 1
+            ncols = self._moments.shape[2]
+            flat = (iu - r_lo) * ncols + (iv - self._col0)
+            block = self._moments[:, r_lo - self._row0:r_hi - self._row0 + 1, :]
+            block += _bin_moments(u, v, z, flat, rows * ncols).reshape(10, rows, ncols)
+        start = 0
+        for key, n in parts:
+            # The binned points of this part: a slice (``index`` is sorted).
+            if index is None:
+                lo, hi, part_index = start, start + n, None
+            else:
+                lo, hi = np.searchsorted(index, [start, start + n])
+                part_index = index[lo:hi] - start
+                if part_index.size == n:
+                    part_index = None
+            piu = iu[lo:hi]
+            r_min, r_max = (int(piu.min()), int(piu.max())) if piu.size else (0, -1)
+            self._parts.append(_Part(key, n, part_index, u[lo:hi], v[lo:hi], z[lo:hi], piu,
+                                     iv[lo:hi], r_min, r_max))
+            if piu.size:
+                self._watermark = r_min
+            start += n
 
     def _inliers(self, iu: np.ndarray, iv: np.ndarray) -> np.ndarray | None:
         """Points to bin (None: all): not behind the rows kept, not outliers."""

@@ -554,6 +554,7 @@ class _Message:
     points: np.ndarray
     columns: CloudColumns
     normals: GridNormals
+    strip_parts: list[tuple[int, np.ndarray | None]] = field(default_factory=list)
     parts: int = 0  # strips among its points
     scheduled: int = 0  # parts whose normals are being (or have been) evaluated
 
@@ -685,6 +686,8 @@ class StreamCorrector:
         self._inflight: deque[tuple[list[Any], Future[Any]]] = deque()
         self._late_done = 0
         self._tasks: list[NormalsTask] = []
+        self._unbinned: list[_Message] = []  # queued, not yet given to the strips' grids
+        self._unbinned_points = 0
 
     @property
     def held_points(self) -> int:
@@ -750,7 +753,9 @@ class StreamCorrector:
                     raise
                 on_error(tag, exc)
         for m in msgs:
-            self._add(m)
+            self._enqueue(m)
+        if self._unbinned_points >= self.batch_points:
+            self._bin_pending()
         return self._drain(final=False)
 
     def set_lookahead(self, lookahead: bool) -> None:
@@ -789,38 +794,56 @@ class StreamCorrector:
                             (math.nan, math.nan), np.zeros(n, dtype=bool))
         return _Message(tag, points, cols, empty)
 
-    def _add(self, m: _Message) -> None:
-        """Give the points of a cloud to the grids of their strips."""
-        cols = m.columns
+    def _enqueue(self, m: _Message) -> None:
+        """Queue a cloud and note the strips among its points (binned later, in batches)."""
         self._queue.append(m)
         if not len(m):
             return
-        g = cols.strip_id
+        g = m.columns.strip_id
         if g is None or g.min() == g.max():
-            parts: list[tuple[int, np.ndarray | None]] = [
-                (-1 if g is None else int(g[0]), None)]
+            m.strip_parts = [(-1 if g is None else int(g[0]), None)]
         else:
-            parts = [(int(k), np.flatnonzero(g == k)) for k in np.unique(g)]
-        for strip_id, idx in parts:
-            xyz = cols.xyz if idx is None else cols.xyz[idx]
-            t = cols.t if idx is None else cols.t[idx]
-            with np.errstate(invalid="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN times
-                t_lo = float(np.nanmin(t)) if t.size else math.nan
-                t_hi = float(np.nanmax(t)) if t.size else math.nan
-            heading = trajectory_heading(self.trajectory, 0.5 * (t_lo + t_hi))
-            strip = self._strips.get(strip_id)
-            if strip is not None and self._strip_ended(strip, heading, t_lo):
-                self._finish_strip(strip_id)
-                strip = None
-            if strip is None:
-                strip = _Strip(StripNormals(self._heading_at, lookahead=self.lookahead),
-                               t_hi)
-                self._strips[strip_id] = strip
-            if math.isfinite(t_hi):
-                strip.t_last = max(strip.t_last, t_hi) if math.isfinite(strip.t_last) else t_hi
-            strip.normals.add((m, idx), xyz, t)
-            m.parts += 1
+            m.strip_parts = [(int(k), np.flatnonzero(g == k)) for k in np.unique(g)]
+        m.parts = len(m.strip_parts)
+        self._unbinned.append(m)
+        self._unbinned_points += len(m)
+
+    def _bin_pending(self) -> None:
+        """Give the points of the queued clouds to the grids of their strips, in order; the
+        clouds of a strip are binned together (fewer, larger numpy calls)."""
+        batches: dict[int, list[tuple[object, np.ndarray, np.ndarray | None]]] = {}
+
+        def bin_strip(strip_id: int) -> None:
+            parts = batches.pop(strip_id, None)
+            if parts:
+                self._strips[strip_id].normals.add_many(parts)
+
+        for m in self._unbinned:
+            cols = m.columns
+            for strip_id, idx in m.strip_parts:
+                xyz = cols.xyz if idx is None else cols.xyz[idx]
+                t = cols.t if idx is None else cols.t[idx]
+                with np.errstate(invalid="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN times
+                    t_lo = float(np.nanmin(t)) if t.size else math.nan
+                    t_hi = float(np.nanmax(t)) if t.size else math.nan
+                heading = trajectory_heading(self.trajectory, 0.5 * (t_lo + t_hi))
+                strip = self._strips.get(strip_id)
+                if strip is not None and self._strip_ended(strip, heading, t_lo):
+                    bin_strip(strip_id)
+                    self._finish_strip(strip_id)
+                    strip = None
+                if strip is None:
+                    strip = _Strip(StripNormals(self._heading_at, lookahead=self.lookahead),
+                                   t_hi)
+                    self._strips[strip_id] = strip
+                if math.isfinite(t_hi):
+                    strip.t_last = (max(strip.t_last, t_hi) if math.isfinite(strip.t_last)
+                                    else t_hi)
+                batches.setdefault(strip_id, []).append(((m, idx), xyz, t))
+        for strip_id in list(batches):
+            bin_strip(strip_id)
+        self._unbinned, self._unbinned_points = [], 0
 
     def _heading_at(self, t: float) -> float:
         return trajectory_heading(self.trajectory, t)
@@ -848,6 +871,8 @@ class StreamCorrector:
             message.scheduled += 1
 
     def _drain(self, *, final: bool) -> list[tuple[Any, np.ndarray]]:
+        if final and self._unbinned:
+            self._bin_pending()
         # Strips that ended long before the newest point: finish them (their last clouds
         # would otherwise wait for a look-ahead that never comes, and hold up the output).
         newest = max((s.t_last for s in self._strips.values()), default=math.nan)
