@@ -21,8 +21,9 @@ corrector  sustained throughput of ``lidarcal_corrector`` through DDS: a source 
 calibrator ``lidarcal run`` (separate processes) fed ``lidarcal replay bags/paper_sample --rate
            10``: when each strip's estimate appears relative to the end of the strip in the
            replay, and the lag of the last estimate behind the end of the replay.
-memory     resident memory of the calibrator and corrector processes over a looped replay of
-           the sample mission (``--loop``), sampled every second.
+memory     resident memory of the calibrator and corrector processes (with their child
+           processes) over a looped replay of the sample mission (``--loop``), sampled every
+           second.
 """
 
 from __future__ import annotations
@@ -201,13 +202,24 @@ def _stop(proc: subprocess.Popen[Any], timeout: float = 20.0) -> int:
 
 
 def _rss_mib(pid: int) -> float:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return math.nan
+    """Resident memory (MiB) of a process and its descendants (the corrector's correction
+    runs in a child process)."""
+    total = 0.0
+    todo = [pid]
+    seen = False
+    while todo:
+        p = todo.pop()
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += int(line.split()[1]) / 1024.0
+                    seen = True
+            for task in Path(f"/proc/{p}/task").iterdir():
+                children = (task / "children").read_text().split()
+                todo.extend(int(c) for c in children)
+        except OSError:
+            pass
+    return total if seen else math.nan
 
 
 class Receiver:

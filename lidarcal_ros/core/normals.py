@@ -719,12 +719,16 @@ class StripNormals:
     def add_many(self, parts: list[tuple[object, np.ndarray, np.ndarray | None]]) -> None:
         """:meth:`add` several parts ``(key, xyz, t)`` in the order given, binned in one
         pass once the grid exists (fewer, larger numpy calls for small clouds)."""
-        if not self.started or len(parts) < 2:
-            for key, xyz, t in parts:
-                self.add(key, xyz, t)
-            return
-        xyz = np.concatenate([np.asarray(p[1], dtype=np.float64) for p in parts])
-        self._bin_parts([(p[0], p[1].shape[0]) for p in parts], xyz)
+        k = 0
+        while k < len(parts) and not self.started:  # the strip's first points fix the grid
+            self.add(*parts[k])
+            k += 1
+        rest = parts[k:]
+        if len(rest) == 1:
+            self._bin(rest[0][0], np.asarray(rest[0][1], dtype=np.float64))
+        elif rest:
+            xyz = np.concatenate([np.asarray(p[1], dtype=np.float64) for p in rest])
+            self._bin_parts([(p[0], p[1].shape[0]) for p in rest], xyz)
 
     def _begin(self, *, final: bool) -> bool:
         """Fix the grid from the strip's first points and bin the parts held; False if
@@ -762,8 +766,7 @@ class StripNormals:
         self._origin = (float(first[0]), float(first[1]), float(first[2]))
         self._noise = self._first_noise(xyz[idx])
         start, self._start, self._start_points = self._start, [], 0
-        for key, part_xyz, _t in start:
-            self._bin(key, part_xyz)
+        self._bin_parts([(key, part_xyz.shape[0]) for key, part_xyz, _t in start], xyz)
         return True
 
     def _first_noise(self, xyz: np.ndarray) -> float:
@@ -962,13 +965,7 @@ class NormalsTask:
         binned = [p for p in self.parts if p.iu.size]
         out_n: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         if binned:
-            u, v, z, iu, iv = (np.concatenate([getattr(p, f) for p in binned])
-                               if len(binned) > 1 else getattr(binned[0], f)
-                               for f in ("u", "v", "z", "iu", "iv"))
-            nrm, ok, rough = _grid_planes(self.moments, iu - self.row0, iv - self.col0, u, v,
-                                          z, self.min_points, _min_spread(self.cell),
-                                          noise=self.noise)
-            nrm = _to_map(nrm, self.heading)
+            nrm, ok, rough = self._evaluate(binned)
             a = 0
             for p in binned:
                 b = a + p.iu.size
@@ -989,6 +986,23 @@ class NormalsTask:
             g.normals[p.index], g.valid[p.index], g.rough[p.index] = nrm_p, ok_p, rough_p
             results.append((p.key, g))
         return results
+
+    def run_whole(self) -> GridNormals | None:
+        """The normals of all the parts one after the other, without splitting them per part
+        (no copies), when every point of every part was binned; else None (use :meth:`run`)."""
+        if not self.parts or any(p.index is not None or p.iu.size != p.n for p in self.parts):
+            return None
+        nrm, ok, rough = self._evaluate(self.parts)
+        return GridNormals(nrm, ok, self.cell, rough)
+
+    def _evaluate(self, binned: list[_Part]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        u, v, z, iu, iv = (np.concatenate([getattr(p, f) for p in binned])
+                           if len(binned) > 1 else getattr(binned[0], f)
+                           for f in ("u", "v", "z", "iu", "iv"))
+        nrm, ok, rough = _grid_planes(self.moments, iu - self.row0, iv - self.col0, u, v, z,
+                                      self.min_points, _min_spread(self.cell),
+                                      noise=self.noise)
+        return _to_map(nrm, self.heading), ok, rough
 
 
 def _no_normals(n: int, cell: tuple[float, float]) -> GridNormals:

@@ -553,7 +553,7 @@ class _Message:
     tag: Any
     points: np.ndarray
     columns: CloudColumns
-    normals: GridNormals
+    normals: GridNormals | None = None  # filled as its strips' evaluations come
     strip_parts: list[tuple[int, np.ndarray | None]] = field(default_factory=list)
     parts: int = 0  # strips among its points
     scheduled: int = 0  # parts whose normals are being (or have been) evaluated
@@ -589,6 +589,8 @@ def _deliver(results: list[tuple[Any, GridNormals]]) -> None:
         if idx is None:
             m.normals = g
         else:
+            if m.normals is None:
+                m.normals = _no_normals(len(m))
             assert m.normals.rough is not None and g.rough is not None
             m.normals.normals[idx] = g.normals
             m.normals.valid[idx] = g.valid
@@ -596,26 +598,59 @@ def _deliver(results: list[tuple[Any, GridNormals]]) -> None:
             m.normals.cell_m = g.cell_m
 
 
+def _no_normals(n: int) -> GridNormals:
+    return GridNormals(np.full((n, 3), np.nan), np.zeros(n, dtype=bool), (math.nan, math.nan),
+                       np.zeros(n, dtype=bool))
+
+
+def _whole_normals(job: _Job) -> GridNormals | None:
+    """The job's normals in one piece when one evaluation covers exactly its clouds, each
+    of one strip (the usual case: no per-cloud copies); else None."""
+    if len(job.tasks) != 1:
+        return None
+    keys = job.tasks[0].keys
+    if len(keys) != len(job.messages) or any(
+            key[1] is not None or key[0] is not m  # type: ignore[index]
+            for key, m in zip(keys, job.messages, strict=True)):
+        return None
+    return job.tasks[0].run_whole()
+
+
+def _job_columns(msgs: list[_Message]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """xyz, t and intensity (NaN for clouds without) of the clouds of a job, concatenated."""
+    if len(msgs) == 1:
+        c = msgs[0].columns
+        return c.xyz, c.t, c.intensity
+    xyz = np.concatenate([m.columns.xyz for m in msgs])
+    t = np.concatenate([m.columns.t for m in msgs])
+    inten = None
+    if any(m.columns.intensity is not None for m in msgs):
+        inten = np.concatenate([m.columns.intensity if m.columns.intensity is not None
+                                else np.full(len(m), np.nan, np.float32) for m in msgs])
+    return xyz, t, inten
+
+
 def _run_job(job: _Job, source: str) -> tuple[list[np.ndarray], np.ndarray, float]:
     """Correct one batch of clouds: the corrected clouds, the flags, seconds spent."""
     started = time.perf_counter()
-    for task in job.tasks:
-        _deliver(task.run())
     msgs = job.messages
-    if len(msgs) == 1:
-        c, g = msgs[0].columns, msgs[0].normals
+    whole = _whole_normals(job)
+    for task in job.tasks if whole is None else ():
+        _deliver(task.run())
+    if whole is not None:
+        xyz, t, inten = _job_columns(msgs)
+        gn = whole
+    elif len(msgs) == 1:
+        c, g = msgs[0].columns, msgs[0].normals or _no_normals(len(msgs[0]))
         xyz, t, inten, gn = c.xyz, c.t, c.intensity, g
     else:
-        xyz = np.concatenate([m.columns.xyz for m in msgs])
-        t = np.concatenate([m.columns.t for m in msgs])
-        inten = None
-        if any(m.columns.intensity is not None for m in msgs):
-            inten = np.concatenate([m.columns.intensity if m.columns.intensity is not None
-                                    else np.full(len(m), np.nan, np.float32) for m in msgs])
-        rough = [m.normals.rough for m in msgs]
-        gn = GridNormals(np.concatenate([m.normals.normals for m in msgs]),
-                         np.concatenate([m.normals.valid for m in msgs]),
-                         msgs[-1].normals.cell_m,
+        xyz, t, inten = _job_columns(msgs)
+        normals = [m.normals or _no_normals(len(m)) for m in msgs]
+        rough = [g.rough for g in normals]
+        gn = GridNormals(np.concatenate([g.normals for g in normals]),
+                         np.concatenate([g.valid for g in normals]),
+                         normals[-1].cell_m,
                          np.concatenate([r if r is not None else np.zeros(len(m), bool)
                                          for r, m in zip(rough, msgs, strict=True)]))
     res = correct_columns(xyz, t, inten, job.trajectory, job.settings, normals=gn,
@@ -789,10 +824,7 @@ class StreamCorrector:
             logger.warning("%s: clouds without an 'intensity' field: geometry is corrected, "
                            "reflectance is NaN (flag %d)", self.source, FLAG_NO_INTENSITY)
             self._warned_intensity = True
-        n = len(points)
-        empty = GridNormals(np.full((n, 3), np.nan), np.zeros(n, dtype=bool),
-                            (math.nan, math.nan), np.zeros(n, dtype=bool))
-        return _Message(tag, points, cols, empty)
+        return _Message(tag, points, cols)
 
     def _enqueue(self, m: _Message) -> None:
         """Queue a cloud and note the strips among its points (binned later, in batches)."""
