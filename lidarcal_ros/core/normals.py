@@ -996,13 +996,35 @@ class NormalsTask:
         return GridNormals(nrm, ok, self.cell, rough)
 
     def _evaluate(self, binned: list[_Part]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        u, v, z, iu, iv = (np.concatenate([getattr(p, f) for p in binned])
-                           if len(binned) > 1 else getattr(binned[0], f)
+        u, v, z, iu, iv = (_joined([getattr(p, f) for p in binned])
                            for f in ("u", "v", "z", "iu", "iv"))
         nrm, ok, rough = _grid_planes(self.moments, iu - self.row0, iv - self.col0, u, v, z,
                                       self.min_points, _min_spread(self.cell),
                                       noise=self.noise)
         return _to_map(nrm, self.heading), ok, rough
+
+
+def _joined(arrays: list[np.ndarray]) -> np.ndarray:
+    """The 1-D arrays one after the other: a view when they are consecutive slices of one
+    array (parts binned together), else a concatenated copy."""
+    if len(arrays) == 1:
+        return arrays[0]
+    base = arrays[0].base
+    if base is not None and all(a.base is base and a.strides == arrays[0].strides
+                                for a in arrays):
+        start = arrays[0].__array_interface__["data"][0]
+        item = arrays[0].itemsize
+        pos = start
+        for a in arrays:
+            if a.__array_interface__["data"][0] != pos:
+                break
+            pos += a.size * item
+        else:
+            offset = (start - base.__array_interface__["data"][0]) // item
+            if (base.ndim == 1 and base.dtype == arrays[0].dtype
+                    and arrays[0].strides == (item,)):
+                return base[offset:offset + (pos - start) // item]
+    return np.concatenate(arrays)
 
 
 def _no_normals(n: int, cell: tuple[float, float]) -> GridNormals:
