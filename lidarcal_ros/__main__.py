@@ -4,4 +4,5 @@ import sys
 
 from lidarcal_ros.cli.main import main
 
-sys.exit(main())
+if __name__ == "__main__":  # (not when a spawned child process imports the main module)
+    sys.exit(main())
