@@ -379,7 +379,7 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             "latency_p99_steady_s": p99_steady, "first_chunk_latency_s": first,
         })
         keeps_up = (len(s) == sent["chunks"] and out_rate >= 0.95 * rate
-                    and abs(growth) < 0.05)
+                    and growth < 0.05)
         print(f"  {variant:15} offered {rate / 1e6:5.2f} M/s ({points} pts/chunk): "
               f"out {out_rate / 1e6:5.2f} M/s, {len(s)}/{sent['chunks']} chunks, "
               f"p50 {p50 * 1000:7.1f} ms, p99 {p99 * 1000:7.1f} ms (after 1 s "

@@ -120,6 +120,9 @@ EXTRA_PARAMETERS = {
 }
 
 _TRAJECTORY_MARGIN_S = 0.02
+#: Most points handed to the correction at once when a backlog has built up: larger batches
+#: only cost cache and memory, and the corrector would fall further behind.
+MAX_PUSH_POINTS = 400_000
 
 
 @dataclass
@@ -338,6 +341,8 @@ class CorrectorNode(Node):
                 break
             ready.append(chunk)
             done += 1
+            if sum(c.n_points for c in ready) >= MAX_PUSH_POINTS:
+                break  # under a backlog: batches of bounded size keep the numerics efficient
         if ready:
             self._push(ready)
         with self._lock:
