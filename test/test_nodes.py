@@ -69,11 +69,15 @@ def _bag_points(bag: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(sid), np.concatenate(t)
 
 
+IN_THREAD_TOPIC = "/suite/points_corrected_in_thread"
+
+
 @dataclass
 class Probe:
     """What the probe node received."""
 
     corrected: list[bytes] = field(default_factory=list)
+    corrected_in_thread: list[bytes] = field(default_factory=list)  # separate_process false
     estimates: list[Any] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -89,6 +93,7 @@ class Suite:
     fc: Any
     cal: Any
     cor: Any
+    cor_in_thread: Any
     probe_node: Any
     probe: Probe
     mission: Any
@@ -170,6 +175,11 @@ def suite(ros_context: Any, small_mission: Any) -> Iterator[Suite]:
     cal = CalibratorNode(context=ros_context, parameter_overrides=[
         *overrides, Parameter("idle_close_s", value=0.5)])
     cor = CorrectorNode(context=ros_context, parameter_overrides=overrides)
+    # The same correction in a thread of the node instead of a child process.
+    cor_in_thread = CorrectorNode(
+        context=ros_context, node_name="lidarcal_corrector_in_thread", parameter_overrides=[
+            *overrides, Parameter("separate_process", value=False),
+            Parameter("topics.corrected", value=IN_THREAD_TOPIC)])
     node = rclpy.create_node("suite_probe", context=ros_context)
     probe = Probe()
 
@@ -182,21 +192,27 @@ def suite(ros_context: Any, small_mission: Any) -> Iterator[Suite]:
             probe.diagnostics[s.name] = (s.level[0] if isinstance(s.level, bytes) else s.level,
                                          s.message, {kv.key: kv.value for kv in s.values})
 
+    def on_corrected_in_thread(raw: bytes) -> None:
+        with probe.lock:
+            probe.corrected_in_thread.append(raw)
+
     node.create_subscription(PointCloud2, "/lidar/points_corrected", on_corrected, 1000,
+                             raw=True)
+    node.create_subscription(PointCloud2, IN_THREAD_TOPIC, on_corrected_in_thread, 1000,
                              raw=True)
     node.create_subscription(Float64MultiArray, "/lidar/calibration/estimate",
                              lambda m: probe.estimates.append(m), latched_qos())
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
-    spinner = Spinner(ros_context, [fc, cal, cor, node])
+    spinner = Spinner(ros_context, [fc, cal, cor, cor_in_thread, node])
     config = FlightConfig.from_mapping(shared)
     try:
-        yield Suite(ros_context, fc, cal, cor, node, probe, small_mission, config)
+        yield Suite(ros_context, fc, cal, cor, cor_in_thread, node, probe, small_mission, config)
     finally:
         spinner.stop()
         assert not spinner.errors, f"callbacks failed: {spinner.errors}"
-        for n in (cal, cor, fc):
+        for n in (cal, cor, cor_in_thread, fc):
             n.close()
-        for n in (node, cal, cor, fc):
+        for n in (node, cal, cor, cor_in_thread, fc):
             n.destroy_node()
 
 
@@ -209,6 +225,8 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
     out = _replay(bag, "--min-subscribers", "2")
     assert "done:" in out
     _wait(lambda: len(suite.probe.corrected) >= n_clouds, 60, "every corrected cloud")
+    _wait(lambda: len(suite.probe.corrected_in_thread) >= n_clouds, 60,
+          "every cloud corrected in a thread")
     cal = suite.cal
     _wait(lambda: cal.stream.strip_ids == [1, 2, 3, 4, 5, 6] and not cal.stream.open_strip_ids
           and cal._jobs.empty(), 90, "the calibrator to close all six strips")
@@ -249,25 +267,29 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
 
 
 def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
+    """Both ways of running the correction: in a child process (as shipped) and in a thread
+    of the node (``separate_process`` false)."""
     sid_in, t_in = _bag_points(suite.mission.bag)
-    with suite.probe.lock:
-        clouds = [parse_cloud(raw) for raw in suite.probe.corrected]
-    pts = np.concatenate([c.points for c in clouds])
-    assert {"reflectance", "range", "incidence", "scan_angle", "correction_flags"} <= set(
-        pts.dtype.names)
     key_in = np.lexsort((t_in, sid_in))
-    sid_out, t_out = pts["strip_id"].astype(np.int64), pts["t"]
-    key_out = np.lexsort((t_out, sid_out))
-    assert len(pts) == len(t_in)
-    assert np.array_equal(sid_in[key_in], sid_out[key_out])
-    assert np.array_equal(t_in[key_in], t_out[key_out])
-    assert suite.cor.stats.points_out == len(t_in) and suite.cor.stats.skipped == 0
-    flags = pts["correction_flags"]
-    bad = (flags & 1) != 0
-    assert not bad.any(), (
-        f"{int(bad.sum())} points not covered by the trajectory, strips "
-        f"{np.unique(pts['strip_id'][bad]).tolist()}")
-    assert np.isfinite(pts["range"]).all() and (pts["range"] > 100).all()
+    for node, received in ((suite.cor, suite.probe.corrected),
+                           (suite.cor_in_thread, suite.probe.corrected_in_thread)):
+        with suite.probe.lock:
+            clouds = [parse_cloud(raw) for raw in received]
+        pts = np.concatenate([c.points for c in clouds])
+        assert {"reflectance", "range", "incidence", "scan_angle", "correction_flags"} <= set(
+            pts.dtype.names)
+        sid_out, t_out = pts["strip_id"].astype(np.int64), pts["t"]
+        key_out = np.lexsort((t_out, sid_out))
+        assert len(pts) == len(t_in)
+        assert np.array_equal(sid_in[key_in], sid_out[key_out])
+        assert np.array_equal(t_in[key_in], t_out[key_out])
+        assert node.stats.points_out == len(t_in) and node.stats.skipped == 0
+        flags = pts["correction_flags"]
+        bad = (flags & 1) != 0
+        assert not bad.any(), (
+            f"{int(bad.sum())} points not covered by the trajectory, strips "
+            f"{np.unique(pts['strip_id'][bad]).tolist()}")
+        assert np.isfinite(pts["range"]).all() and (pts["range"] > 100).all()
 
 
 def test_late_subscriber_gets_the_latest_estimate(suite: Suite) -> None:

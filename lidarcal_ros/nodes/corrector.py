@@ -265,11 +265,15 @@ class CorrectorNode(Node):
                                  lookahead=self.params["lookahead"],
                                  source=self.params["topics.points"],
                                  trajectory_keep_s=self.params["trajectory_buffer_s"])
-        if not self.params["separate_process"]:
-            return LocalCorrection(self._settings, options, on_result=self._on_result,
-                                   on_error=self._on_error)
-        return CorrectionProcess(self._settings, options, on_result=self._on_result,
-                                 on_error=self._on_error, on_failure=self._on_failure)
+        if self.params["separate_process"]:
+            try:
+                return CorrectionProcess(self._settings, options, on_result=self._on_result,
+                                         on_error=self._on_error, on_failure=self._on_failure)
+            except OSError as exc:  # no process can be started here: correct in a thread
+                self.get_logger().warning(f"correction process not started ({exc}); "
+                                          "correcting in a thread of this node")
+        return LocalCorrection(self._settings, options, on_result=self._on_result,
+                               on_error=self._on_error)
 
     def _on_failure(self, reason: str) -> None:
         self.get_logger().error(f"corrector: {reason}; restarting it")
