@@ -129,3 +129,23 @@ def test_a_dead_child_reports_the_clouds_it_held(small_mission: MissionFiles) ->
     assert lost and all("ended" in e[2] for e in lost)
     assert failures and "ended" in failures[0]
     service.close(timeout=1.0)
+
+
+@pytest.mark.parametrize("kind", [LocalCorrection, CorrectionProcess])
+def test_look_ahead_switched_off_at_run_time_releases_what_waits(
+        small_mission: MissionFiles, kind: Any) -> None:
+    settings, trajectory, clouds = _stream(small_mission)
+    got = Collector()
+    service = kind(settings, ServiceOptions(lookahead=True), on_result=got.result,
+                   on_error=got.error)
+    service.poses(trajectory.t, trajectory.xyz)
+    service.set_trajectory_keep(60.0)
+    service.push([(k, clouds[k]) for k in range(6)])
+    time.sleep(1.0)
+    waiting = 6 - len(got.events)
+    assert waiting >= 1  # the last clouds wait for the rows after them
+    service.set_lookahead(False)
+    service.push([(6, clouds[6])])
+    got.wait(7, timeout=10.0)
+    assert [e[1] for e in got.events] == list(range(7))  # all out, in order, before the end
+    service.close()

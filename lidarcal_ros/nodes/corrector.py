@@ -166,6 +166,7 @@ class CorrectorNode(Node):
         self._settings = CorrectionSettings.from_config(cfg, self._delta)
         self._settings_changed = False
         self._lookahead_changed = False
+        self._keep_changed = False
         self.trajectory = TrajectoryBuffer(self.params["trajectory_buffer_s"])
         self._poses_t: list[float] = []  # samples not yet given to the correction
         self._poses_xyz: list[tuple[float, float, float]] = []
@@ -223,6 +224,8 @@ class CorrectorNode(Node):
     def _on_extra(self, name: str, value: Any) -> None:
         if name == "trajectory_buffer_s":
             self.trajectory.keep_s = float(value)
+            with self._lock:
+                self._keep_changed = True
         elif name == "lookahead":
             with self._lock:
                 self._lookahead_changed = True
@@ -370,8 +373,8 @@ class CorrectorNode(Node):
             t, xyz = self._poses_t, self._poses_xyz
             self._poses_t, self._poses_xyz = [], []
             settings = self._settings if self._settings_changed else None
-            lookahead_changed = self._lookahead_changed
-            self._settings_changed = self._lookahead_changed = False
+            lookahead_changed, keep_changed = self._lookahead_changed, self._keep_changed
+            self._settings_changed = self._lookahead_changed = self._keep_changed = False
         if self._service_failed():  # it died (reported by _on_failure): a new one
             self._service = self._start_service()
             whole = self.trajectory.trajectory()
@@ -383,6 +386,8 @@ class CorrectorNode(Node):
             self._service.set_settings(settings)
         if lookahead_changed:
             self._service.set_lookahead(self.params["lookahead"])
+        if keep_changed:
+            self._service.set_trajectory_keep(self.params["trajectory_buffer_s"])
 
     def _service_failed(self) -> bool:
         return isinstance(self._service, CorrectionProcess) and not self._service.alive

@@ -158,6 +158,10 @@ class LocalCorrection:
     def set_lookahead(self, lookahead: bool) -> None:
         self._engine.corrector.set_lookahead(lookahead)
 
+    def set_trajectory_keep(self, seconds: float) -> None:
+        """Keep this many seconds of trajectory."""
+        self._engine.trajectory.keep_s = float(seconds)
+
     def close(self) -> None:
         """Correct and report everything held."""
         self._emit(self._engine.flush())
@@ -279,6 +283,8 @@ def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
                 engine.corrector.set_settings(request[1])
             elif kind == "lookahead":
                 engine.corrector.set_lookahead(request[1])
+            elif kind == "keep":
+                engine.trajectory.keep_s = float(request[1])
             elif kind == "flush":
                 send_results(engine.flush())
                 outbox.send(("flushed",))
@@ -365,6 +371,10 @@ class CorrectionProcess:
     def set_lookahead(self, lookahead: bool) -> None:
         self._send(("lookahead", bool(lookahead)))
 
+    def set_trajectory_keep(self, seconds: float) -> None:
+        """Keep this many seconds of trajectory."""
+        self._send(("keep", float(seconds)))
+
     def close(self, timeout: float = 10.0) -> None:
         """Correct and report everything held, then stop the child process."""
         self._closing = True
@@ -375,6 +385,8 @@ class CorrectionProcess:
         if self._process.is_alive():
             self._process.kill()
         self._inbox.close()
+        if not self._reader.is_alive():
+            self._outbox.close()
 
     def _send(self, request: tuple[Any, ...]) -> None:
         with self._send_lock:
