@@ -212,7 +212,11 @@ def test_replay_publishes_every_message_with_its_timing(ros_context: Any, tmp_pa
     stamps = [parse_cloud(raw).points["strip_id"][0] for _, raw in got["points"]]
     assert stamps == list(range(0, 40, 2))
     wall = np.array([t for t, _ in got["points"]])
-    assert 0.75 <= wall[-1] - wall[0] <= 1.6  # 0.95 s of bag time at rate 2 = 0.475 s + slack
+    # 1.9 s of bag time between the first and last cloud: 0.95 s at rate 2. The first delivery
+    # of a new publisher may come late (discovery, first shared-memory use), so the timing is
+    # judged from the second cloud on: 18 steps of 0.05 s.
+    assert 0.035 <= float(np.median(np.diff(wall[1:]))) <= 0.075
+    assert 0.7 <= wall[-1] - wall[1] <= 1.5
     assert got["clock"], "no /clock"
     clock_s = [m.clock.sec + m.clock.nanosec * 1e-9 for m in got["clock"]]
     assert all(b >= a for a, b in itertools.pairwise(clock_s))
