@@ -95,6 +95,39 @@ def loopback_profile_path() -> Path:
     )
 
 
+#: Fast DDS's shared-memory segment when a profile does not set one, bytes.
+FASTDDS_DEFAULT_SEGMENT_BYTES = 512 * 1024
+
+
+def shared_memory_segment_bytes(profile: str | Path | None = None) -> int | None:
+    """The shared-memory segment size (bytes) of a Fast DDS profile (default: the one in
+    ``FASTDDS_DEFAULT_PROFILES_FILE``): the largest ``segment_size`` of its SHM transports,
+    Fast DDS's default where none is set; None when the profile cannot be read or has no SHM
+    transport. Messages larger than about half of it travel as UDP fragments instead."""
+    import xml.etree.ElementTree as ET
+
+    path = profile if profile is not None else os.environ.get(PROFILE_ENV, "")
+    if not path:
+        return None
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError):
+        return None
+    sizes = []
+    for descriptor in root.iter():
+        if not descriptor.tag.endswith("transport_descriptor"):
+            continue
+        kind = next((c.text or "" for c in descriptor if c.tag.endswith("type")), "").strip()
+        if kind != "SHM":
+            continue
+        size = next((c.text for c in descriptor if c.tag.endswith("segment_size")), None)
+        try:
+            sizes.append(int(size) if size else FASTDDS_DEFAULT_SEGMENT_BYTES)
+        except ValueError:
+            sizes.append(FASTDDS_DEFAULT_SEGMENT_BYTES)
+    return max(sizes) if sizes else None
+
+
 def _check_domain_id(value: int | str, origin: str) -> int:
     try:
         domain = int(value)

@@ -493,3 +493,18 @@ def test_plain_pip_install_ships_the_profile(tmp_path: Path) -> None:
     assert Path(found["module"]).is_relative_to(target)
     assert Path(found["profile"]) == target / PACKAGE / "_resources" / "loopback.xml"
     _assert_loopback_only(Path(found["profile"]))
+
+
+def test_project_profile_has_a_shared_memory_segment_for_large_clouds(tmp_path: Path) -> None:
+    """Clouds of several MB must go through shared memory: with Fast DDS's default 512 KiB
+    segment they travel as UDP fragments and the trajectory queues behind them."""
+    from lidarcal_ros.rosenv import FASTDDS_DEFAULT_SEGMENT_BYTES, shared_memory_segment_bytes
+
+    assert shared_memory_segment_bytes(ROOT / "config" / "loopback.xml") >= 64 * 2**20
+    default = tmp_path / "default.xml"
+    default.write_text(
+        '<dds xmlns="http://www.eprosima.com"><profiles><transport_descriptors>'
+        "<transport_descriptor><transport_id>shm</transport_id><type>SHM</type>"
+        "</transport_descriptor></transport_descriptors></profiles></dds>")
+    assert shared_memory_segment_bytes(default) == FASTDDS_DEFAULT_SEGMENT_BYTES
+    assert shared_memory_segment_bytes(tmp_path / "missing.xml") is None

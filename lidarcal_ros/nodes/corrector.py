@@ -167,6 +167,7 @@ class CorrectorNode(Node):
         self._settings_changed = False
         self._lookahead_changed = False
         self._keep_changed = False
+        self._segment_checked = False
         self.trajectory = TrajectoryBuffer(self.params["trajectory_buffer_s"])
         self._poses_t: list[float] = []  # samples not yet given to the correction
         self._poses_xyz: list[tuple[float, float, float]] = []
@@ -257,9 +258,24 @@ class CorrectorNode(Node):
 
     def _on_points(self, raw: bytes) -> None:
         chunk = _Chunk(raw, time.monotonic())
+        if not self._segment_checked and len(raw) > 256 * 1024:
+            self._warn_small_segment(len(raw))
         with self._lock:
             self._queue.append(chunk)
             self._lock.notify()
+
+    def _warn_small_segment(self, size: int) -> None:
+        """Say once when clouds outgrow the DDS profile's shared-memory segment: they then
+        travel as UDP fragments, and the trajectory queues behind them (seconds late)."""
+        from lidarcal_ros.rosenv import shared_memory_segment_bytes
+
+        self._segment_checked = True
+        segment = shared_memory_segment_bytes()
+        if segment is not None and size > segment // 2:
+            self.get_logger().warning(
+                f"clouds of {size / 2**20:.1f} MiB but the DDS profile's shared-memory "
+                f"segment is {segment / 2**20:.1f} MiB: they go as UDP fragments and delay the "
+                "trajectory; use the project's config/loopback.xml (128 MiB)")
 
     # -- work ------------------------------------------------------------------------
     def _start_service(self) -> CorrectionProcess | LocalCorrection:
