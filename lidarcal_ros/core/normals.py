@@ -975,13 +975,13 @@ class NormalsTask:
         it = iter(out_n)
         for p in self.parts:
             if not p.iu.size:
-                results.append((p.key, _no_normals(p.n, self.cell)))
+                results.append((p.key, no_normals(p.n, self.cell)))
                 continue
             nrm_p, ok_p, rough_p = next(it)
             if p.index is None:
                 results.append((p.key, GridNormals(nrm_p, ok_p, self.cell, rough_p)))
                 continue
-            g = _no_normals(p.n, self.cell)
+            g = no_normals(p.n, self.cell)
             assert g.rough is not None
             g.normals[p.index], g.valid[p.index], g.rough[p.index] = nrm_p, ok_p, rough_p
             results.append((p.key, g))
@@ -1027,6 +1027,7 @@ def _joined(arrays: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(arrays)
 
 
-def _no_normals(n: int, cell: tuple[float, float]) -> GridNormals:
+def no_normals(n: int, cell: tuple[float, float] = (math.nan, math.nan)) -> GridNormals:
+    """``n`` points without a normal (NaN, not valid, not rough)."""
     return GridNormals(np.full((n, 3), np.nan), np.zeros(n, dtype=bool), cell,
                        np.zeros(n, dtype=bool))

@@ -48,6 +48,22 @@ class TrajectoryBuffer:
             if frame_id is not None:
                 self.frame_id = frame_id
 
+    def add_many(self, t: Any, xyz: Any) -> None:
+        """Add samples given as arrays: times (n,), s, and positions (n, 3), m."""
+        np = self._np
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        if not t.size:
+            return
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        finite = t[np.isfinite(t)]
+        with self._lock:
+            self._pending_t.extend(t.tolist())
+            self._pending_xyz.extend(xyz.tolist())
+            self.samples += int(t.size)
+            self.last_arrival = time.monotonic()
+            if finite.size and float(finite.max()) > self.end:
+                self.end = float(finite.max())
+
     def trajectory(self) -> Any:
         # One rebuild at a time: two threads rebuilding from the same old trajectory would
         # each drop the other's new samples.

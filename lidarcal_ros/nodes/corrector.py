@@ -352,6 +352,7 @@ class CorrectorNode(Node):
         wait = self.params["max_trajectory_wait_s"]
         done = 0
         ready: list[_Chunk] = []
+        ready_points = 0
         for chunk in chunks:
             if not chunk.parsed and not self._parse(chunk):
                 done += 1
@@ -364,7 +365,8 @@ class CorrectorNode(Node):
                 break
             ready.append(chunk)
             done += 1
-            if sum(c.n_points for c in ready) >= MAX_PUSH_POINTS:
+            ready_points += chunk.n_points
+            if ready_points >= MAX_PUSH_POINTS:
                 break  # under a backlog: batches of bounded size keep the numerics efficient
         if ready:
             self._push(ready)

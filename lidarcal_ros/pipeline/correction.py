@@ -75,6 +75,7 @@ from lidarcal_ros.core.normals import (
     cell_size,
     finite_rows,
     grid_normals,
+    no_normals,
 )
 from lidarcal_ros.core.radiometry import RadiometricModel, describe_alpha
 from lidarcal_ros.errors import (
@@ -309,18 +310,6 @@ def trajectory_heading(trajectory: Trajectory, t: float) -> float:
     if math.hypot(d[0], d[1]) <= 0:
         return 0.0
     return math.atan2(-d[0], d[1])
-
-
-def trajectory_speed(trajectory: Trajectory) -> float:
-    """Median horizontal speed of the trajectory, m/s (NaN for fewer than 2 samples)."""
-    if len(trajectory) < 2:
-        return math.nan
-    dt = np.diff(trajectory.t)
-    dxy = np.hypot(*np.diff(trajectory.xyz[:, :2], axis=0).T)
-    good = dt > 0
-    if not good.any():
-        return math.nan
-    return float(np.median(dxy[good] / dt[good]))
 
 
 def _fitted_normals(
@@ -590,17 +579,12 @@ def _deliver(results: list[tuple[Any, GridNormals]]) -> None:
             m.normals = g
         else:
             if m.normals is None:
-                m.normals = _no_normals(len(m))
+                m.normals = no_normals(len(m))
             assert m.normals.rough is not None and g.rough is not None
             m.normals.normals[idx] = g.normals
             m.normals.valid[idx] = g.valid
             m.normals.rough[idx] = g.rough
             m.normals.cell_m = g.cell_m
-
-
-def _no_normals(n: int) -> GridNormals:
-    return GridNormals(np.full((n, 3), np.nan), np.zeros(n, dtype=bool), (math.nan, math.nan),
-                       np.zeros(n, dtype=bool))
 
 
 def _whole_normals(job: _Job) -> GridNormals | None:
@@ -642,11 +626,11 @@ def _run_job(job: _Job, source: str) -> tuple[list[np.ndarray], np.ndarray, floa
         xyz, t, inten = _job_columns(msgs)
         gn = whole
     elif len(msgs) == 1:
-        c, g = msgs[0].columns, msgs[0].normals or _no_normals(len(msgs[0]))
+        c, g = msgs[0].columns, msgs[0].normals or no_normals(len(msgs[0]))
         xyz, t, inten, gn = c.xyz, c.t, c.intensity, g
     else:
         xyz, t, inten = _job_columns(msgs)
-        normals = [m.normals or _no_normals(len(m)) for m in msgs]
+        normals = [m.normals or no_normals(len(m)) for m in msgs]
         rough = [g.rough for g in normals]
         gn = GridNormals(np.concatenate([g.normals for g in normals]),
                          np.concatenate([g.valid for g in normals]),

@@ -88,9 +88,7 @@ class _Engine:
         self._headers: dict[Any, tuple[int, str, float]] = {}
 
     def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
-        for k in range(t.shape[0]):
-            self.trajectory.add(float(t[k]), (float(xyz[k, 0]), float(xyz[k, 1]),
-                                              float(xyz[k, 2])))
+        self.trajectory.add_many(t, xyz)
 
     def push(self, clouds: list[tuple[Any, bytes]], on_error: ErrorHandler
              ) -> list[tuple[Any, bytes, int, int, float]]:
