@@ -222,7 +222,9 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
     n_clouds = 0
     with open_bag(bag) as b:
         n_clouds = b.topics["/lidar/points"].count
-    out = _replay(bag, "--min-subscribers", "2")
+    # Points and trajectory each have three subscribers: the calibrator and both correctors.
+    # Starting before all three are there loses the first poses for the late one.
+    out = _replay(bag, "--min-subscribers", "3")
     assert "done:" in out
     _wait(lambda: len(suite.probe.corrected) >= n_clouds, 60, "every corrected cloud")
     _wait(lambda: len(suite.probe.corrected_in_thread) >= n_clouds, 60,
