@@ -76,6 +76,7 @@ setup(
         "setuptools",
         "numpy",
         "scipy",
+        "numba",
         "PyYAML",
         "tqdm",
         "triangle",

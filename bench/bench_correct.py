@@ -193,6 +193,7 @@ def throughput_worker(density: float, line_length: float, repeats: int,
     Prints one JSON line."""
     import numpy as np
 
+    from lidarcal_ros.allocator import tune_allocator
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
     from lidarcal_ros.core.simulate import simulate_mission
@@ -201,7 +202,6 @@ def throughput_worker(density: float, line_length: float, repeats: int,
         DEFAULT_BATCH_POINTS,
         CorrectionSettings,
         StreamCorrector,
-        tune_allocator,
     )
 
     tune_allocator()  # as `lidarcal correct` does

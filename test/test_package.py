@@ -37,6 +37,7 @@ FASTDDS_NS = "{http://www.eprosima.com}"
 THIRD_PARTY: dict[str, tuple[str, str | None]] = {
     "numpy": ("python3-numpy", "numpy"),
     "scipy": ("python3-scipy", "scipy"),
+    "numba": ("python3-numba", "numba"),
     "yaml": ("python3-yaml", "PyYAML"),
     "tqdm": ("python3-tqdm", "tqdm"),
     "triangle": ("python3-triangle-pip", "triangle"),

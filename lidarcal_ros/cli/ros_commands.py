@@ -28,16 +28,9 @@ def _start_ros(argv: list[str]) -> tuple[Any, Any]:
     from lidarcal_ros.rosenv import configure_ros_environment
 
     configure_ros_environment()
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.signals import SignalHandlerOptions
+    from lidarcal_ros.nodes.common import start_ros
 
-    from lidarcal_ros.nodes.common import Shutdown
-
-    shutdown = Shutdown().install()
-    context = Context()
-    rclpy.init(args=argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
-    return context, shutdown
+    return start_ros(argv)
 
 
 # ---------------------------------------------------------------------------- replay

@@ -44,6 +44,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lidarcal_ros.core import kernels
+
 logger = logging.getLogger(__name__)
 
 #: Cell size in mean point spacings.
@@ -205,60 +207,9 @@ def smallest_eigen(
     ok : (m,) bool
         False where the vector is undefined (isotropic or zero matrix).
     """
-    p1 = cxy * cxy + cxz * cxz + cyz * cyz
-    q = (cxx + cyy + czz) * (1.0 / 3.0)
-    a = cxx - q
-    b = cyy - q
-    c = czz - q
-    p = np.sqrt((a * a + b * b + c * c + 2.0 * p1) * (1.0 / 6.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # det((C - qI) / p) / 2, clipped into the arccos domain.
-        det = a * (b * c - cyz * cyz) - cxy * (cxy * c - cyz * cxz) + cxz * (cxy * cyz - b * cxz)
-        r = det * (0.5 / (p * p * p))
-        np.clip(r, -1.0, 1.0, out=r)
-        phi = np.arccos(r)
-        phi *= 1.0 / 3.0
-        lam_max = q + 2.0 * p * np.cos(phi)
-        lam_min = q + 2.0 * p * np.cos(phi + 2.0 * math.pi / 3.0)
-        lam_mid = 3.0 * q - lam_max - lam_min
-        # Eigenvector of lam_min: the largest cross product of two rows of (C - lam_min I),
-        # rows r0 = (d0, cxy, cxz), r1 = (cxy, d1, cyz), r2 = (cxz, cyz, d2).
-        d0 = cxx - lam_min
-        d1 = cyy - lam_min
-        d2 = czz - lam_min
-        vec = np.empty((cxx.shape[0], 3))
-        vx = cxy * cyz - cxz * d1  # r0 x r1
-        vy = cxz * cxy - d0 * cyz
-        vz = d0 * d1 - cxy * cxy
-        best_n = vx * vx + vy * vy + vz * vz
-        vec[:, 0], vec[:, 1], vec[:, 2] = vx, vy, vz
-        for wx, wy, wz in (
-            (cxy * d2 - cxz * cyz, cxz * cxz - d0 * d2, d0 * cyz - cxy * cxz),  # r0 x r2
-            (d1 * d2 - cyz * cyz, cyz * cxz - cxy * d2, cxy * cyz - d1 * cxz),  # r1 x r2
-        ):
-            nn = wx * wx + wy * wy + wz * wz
-            take = nn > best_n
-            vec[take, 0], vec[take, 1], vec[take, 2] = wx[take], wy[take], wz[take]
-            best_n = np.where(take, nn, best_n)
-        norm = np.sqrt(best_n)
-        ok = (norm > 0) & (p > 0) & np.isfinite(norm)
-        scale = 1.0 / norm
-        scale[vec[:, 2] < 0] *= -1.0
-        vec *= scale[:, None]
+    arrays = [np.ascontiguousarray(c, dtype=np.float64) for c in (cxx, cxy, cxz, cyy, cyz, czz)]
+    lam_min, lam_mid, vec, ok = kernels.smallest_eigen_many(*arrays)
     return lam_min, lam_mid, vec, ok
-
-
-def _box_sums(moments: np.ndarray, size: int) -> np.ndarray:
-    """Sums over ``size x size`` blocks of a (k, nu, nv) stack of cell grids, anchored at each
-    cell (block ``[i:i+size, j:j+size]``; zero beyond the grid). Separable: one pass per axis
-    and offset."""
-    rows = moments.copy()
-    for d in range(1, size):
-        rows[:, :-d, :] += moments[:, d:, :]
-    out = rows.copy()
-    for d in range(1, size):
-        out[:, :, :-d] += rows[:, :, d:]
-    return out
 
 
 def _fit_sums(
@@ -281,45 +232,8 @@ def _fit_sums(
     centroid : (m, 3) float64
         Mean point of each block, frame of the sums.
     """
-    n, su, sv, sz, suu, suv, suz, svv, svz, szz = sums
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / n
-        mu, mv, mz = su * inv, sv * inv, sz * inv
-        cuu = suu * inv - mu * mu
-        cuv = suv * inv - mu * mv
-        cvv = svv * inv - mv * mv
-        cuz = suz * inv - mu * mz
-        cvz = svz * inv - mv * mz
-        czz = szz * inv - mz * mz
-        det = cuu * cvv - cuv * cuv
-        half_tr = 0.5 * (cuu + cvv)
-        lam_h = half_tr - np.sqrt(np.maximum(half_tr * half_tr - det, 0.0))
-        enough = n >= min_points
-        ls = enough & (lam_h >= min_spread)
-        inv_det = 1.0 / det
-        b = (cvv * cuz - cuv * cvz) * inv_det
-        c = (cuu * cvz - cuv * cuz) * inv_det
-        norm2 = 1.0 + b * b + c * c
-        residual = (czz - b * cuz - c * cvz) / norm2
-        scale = 1.0 / np.sqrt(norm2)
-        normals = np.empty((n.shape[0], 3))
-        normals[:, 0] = -b * scale
-        normals[:, 1] = -c * scale
-        normals[:, 2] = scale
-    residual = np.where(ls, np.maximum(residual, 0.0), np.inf)
-    valid = ls.copy()
-    rest = np.flatnonzero(enough & ~ls)
-    if rest.size:
-        lam_min, lam_mid, vec, good = smallest_eigen(
-            cuu[rest], cuv[rest], cuz[rest], cvv[rest], cvz[rest], czz[rest])
-        good &= lam_mid >= min_spread
-        sel = rest[good]
-        residual[sel] = np.maximum(lam_min[good], 0.0)
-        normals[sel] = vec[good]
-        valid[sel] = True
-    normals[~valid] = np.nan
-    centroid = np.empty((n.shape[0], 3))
-    centroid[:, 0], centroid[:, 1], centroid[:, 2] = mu, mv, mz
+    residual, normals, valid, centroid = kernels.fit_sums(
+        np.ascontiguousarray(sums, dtype=np.float64), min_points, min_spread)
     return residual, normals, valid, centroid
 
 
@@ -413,7 +327,8 @@ def _fit_group(
     nv = int(iv.max()) + 1
     if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
         return _fit_sparse(u, v, z, iu, iv, heading, min_points, min_spread)
-    moments = _bin_moments(u, v, z, iu * nv + iv, nu * nv).reshape(10, nu, nv)
+    moments = np.zeros((10, nu, nv))
+    kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
     nrm, ok, rough = _grid_planes(moments, iu, iv, u, v, z, min_points, min_spread)
     return _to_map(nrm, heading), ok, rough
 
@@ -427,10 +342,10 @@ def _bin_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, key: np.ndarray,
                  size: int) -> np.ndarray:
     """The ten moment sums ``n, u, v, z, uu, uv, uz, vv, vz, zz`` of the points per cell
     ``key`` (flat index below ``size``), shape (10, size)."""
-    out = np.empty((10, size))
-    for k, w in enumerate((None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)):
-        out[k] = np.bincount(key, weights=w, minlength=size)
-    return out
+    out = np.zeros((10, 1, size))
+    kernels.accumulate_moments(out, 0, 0, np.zeros(key.shape[0], dtype=np.int64),
+                               np.asarray(key, dtype=np.int64), u, v, z)
+    return out.reshape(10, size)
 
 
 def _median_noise(lam: np.ndarray, ok: np.ndarray) -> float:
@@ -476,32 +391,13 @@ def _grid_planes(
         median over the grid's blocks.
     """
     _, nu, nv = moments.shape
-    key = iu * nv + iv
     size = nu * nv
-    lam2, vec2, ok2, cen2 = _fit_sums(_box_sums(moments, 2).reshape(10, -1), min_points,
-                                      min_spread)
-    # Each cell: the best of the four 2x2 blocks containing it, anchored at (i-1..i, j-1..j).
-    grid_lam = lam2.reshape(nu, nv)
-    best = grid_lam.copy()
-    shift = np.zeros((nu, nv), dtype=np.int64)  # flat offset from the cell to its block
-    for off_flat, (di, dj) in ((nv, (1, 0)), (1, (0, 1)), (nv + 1, (1, 1))):
-        cand = grid_lam[:nu - di, :nv - dj]
-        view = best[di:, dj:]
-        take = cand < view
-        np.minimum(view, cand, out=view)
-        shift[di:, dj:][take] = off_flat
-    cell_lam = best.reshape(-1)
-    cell_ok = np.isfinite(cell_lam)
-    anchor = np.arange(size) - shift.reshape(-1)
-    # The plane of each cell, packed for one gather per point: normal (3), offset n.c, residual.
-    plane = np.empty((size, 5))
-    # (np.take along axis 0 gathers rows several times faster than fancy indexing)
-    plane[:, :3] = np.take(vec2, anchor, axis=0)
-    plane[:, 3] = np.einsum("ij,ij->i", plane[:, :3], np.take(cen2, anchor, axis=0))
-    plane[:, 4] = cell_lam
+    lam2, vec2, ok2, cen2 = kernels.fit_blocks2(moments, min_points, min_spread)
+    # Each cell: the best of the four 2x2 blocks containing it.
+    plane, cell_ok = kernels.cell_planes(lam2, vec2, cen2, nu, nv)
     # The cells of the points (not every occupied cell: a grid may reach beyond them).
     wanted = np.zeros(size, dtype=bool)
-    wanted[key] = True
+    wanted[iu * nv + iv] = True
     for radius in (1, 2):
         # (2r+1)^2 blocks centred on the cells that still lack a plane: 3x3 first, then
         # 5x5 (e.g. the newest scan line when nothing beyond it has arrived yet).
@@ -515,45 +411,14 @@ def _grid_planes(
         plane[fill, 3] = np.einsum("ij,ij->i", vec3[ok3], cen3[ok3])
         plane[fill, 4] = lam3[ok3]
         cell_ok[fill] = True
-    # Per point: the plane of its cell, unless the point lies off it, or the plane fits its
-    # block badly (a cell across an edge); then the nearest of the planes of the nine 2x2
-    # blocks around its cell (score: squared distance plus the block's residual variance).
-    pp = np.take(plane, key, axis=0)
-    nrm = np.ascontiguousarray(pp[:, :3])
-    d = nrm[:, 0] * u + nrm[:, 1] * v + nrm[:, 2] * z - pp[:, 3]
-    lam_p = pp[:, 4]
+    # Per point: the plane of its cell, unless the point lies off it or the plane fits its
+    # block badly (a cell across an edge): then the nearest of the nine 2x2 blocks' planes.
     if noise is None:
         noise = _median_noise(lam2, ok2)
     tol = max(3.0 * noise, _EDGE_TOLERANCE_M)
-    ok = np.take(cell_ok, key)
-    rough = np.zeros(len(u), dtype=bool)
-    off = ((np.abs(d) > tol) | (lam_p > tol * tol)) & ok
-    if off.any():
-        idx = np.flatnonzero(off)
-        block_plane = np.empty((size, 5))
-        block_plane[:, :3] = vec2
-        block_plane[:, 3] = np.einsum("ij,ij->i", vec2, cen2)
-        block_plane[:, 4] = lam2
-        block_plane[~ok2, :4] = 0.0  # no plane: infinite score, never NaN
-        pi, pj = iu[idx], iv[idx]
-        oi = np.repeat(np.array([-1, 0, 1]), 3)[:, None]
-        oj = np.tile(np.array([-1, 0, 1]), 3)[:, None]
-        ii, jj = pi[None, :] + oi, pj[None, :] + oj
-        inside = (ii >= 0) & (ii < nu) & (jj >= 0) & (jj < nv)
-        blk = np.where(inside, ii * nv + jj, 0)
-        bp = np.take(block_plane, blk.reshape(-1), axis=0).reshape(9, -1, 5)
-        dk = (bp[..., 0] * u[idx] + bp[..., 1] * v[idx] + bp[..., 2] * z[idx] - bp[..., 3])
-        score = np.where(inside, dk * dk + bp[..., 4], np.inf)
-        pick = np.argmin(score, axis=0)
-        cols = np.arange(idx.size)
-        best_score = score[pick, cols]
-        own = d[idx] ** 2 + lam_p[idx]
-        better = best_score < own
-        nrm[idx[better]] = bp[pick[better], cols[better], :3]
-        rough[idx] = np.minimum(best_score, own) > tol * tol
-    if not ok.all():
-        nrm[~ok] = np.nan
-    return nrm, ok, rough & ok
+    nrm, ok, rough = kernels.point_normals(plane, cell_ok, lam2, vec2, cen2, ok2, nu, nv,
+                                           iu, iv, u, v, z, tol)
+    return nrm, ok, rough
 
 
 def _fit_sparse(
@@ -778,9 +643,9 @@ class StripNormals:
         nu, nv = int(iu.max()) + 1, int(iv.max()) + 1
         if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
             return 0.0
-        moments = _bin_moments(u, v, z, iu * nv + iv, nu * nv).reshape(10, nu, nv)
-        lam, _, ok, _ = _fit_sums(_box_sums(moments, 2).reshape(10, -1), self.min_points,
-                                  _min_spread(self.cell))
+        moments = np.zeros((10, nu, nv))
+        kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
+        lam, _, ok, _ = kernels.fit_blocks2(moments, self.min_points, _min_spread(self.cell))
         return _median_noise(lam, ok)
 
     def _frame(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -808,11 +673,7 @@ class StripNormals:
             r_lo, r_hi = int(iu.min()), int(iu.max())
             c_lo, c_hi = int(iv.min()), int(iv.max())
             self._fit_grid(r_lo, r_hi, c_lo, c_hi)
-            rows = r_hi - r_lo + 1
-            ncols = self._moments.shape[2]
-            flat = (iu - r_lo) * ncols + (iv - self._col0)
-            block = self._moments[:, r_lo - self._row0:r_hi - self._row0 + 1, :]
-            block += _bin_moments(u, v, z, flat, rows * ncols).reshape(10, rows, ncols)
+            kernels.accumulate_moments(self._moments, self._row0, self._col0, iu, iv, u, v, z)
         start = 0
         for key, n in parts:
             # The binned points of this part: a slice (``index`` is sorted).

@@ -48,7 +48,6 @@ import dataclasses
 import heapq
 import logging
 import math
-import sys
 import time
 import warnings
 from collections import deque
@@ -134,36 +133,6 @@ _LAS_RUN_POINTS = 100_000
 #: Points closer than this below the trajectory are refused (m): no real return comes from
 #: within a metre of the sensor, and laser_geometry needs them below.
 _MIN_DEPTH_M = 1.0
-
-
-def tune_allocator() -> bool:
-    """Keep freed memory in the process (glibc ``mallopt``): no ``mmap``/``munmap`` and page
-    faults for every large numpy temporary.
-
-    The correction makes a few dozen temporaries per batch of 10^5 points; with glibc's
-    defaults each is mapped, touched page by page and unmapped again, which costs about a
-    quarter of the run. Memory stays bounded by the batch size either way; it is just not
-    returned to the system between batches. One malloc arena for all threads keeps the
-    worker threads from each holding a high-water mark of their own (without it the peak
-    of a threaded run creeps up with the mission's length). Process-wide: ``lidarcal correct``
-    calls it; the corrector node should. Returns whether the settings were applied
-    (Linux/glibc only).
-    """
-    import ctypes
-    import ctypes.util
-
-    name = ctypes.util.find_library("c")
-    if not name or sys.platform != "linux":
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        m_trim_threshold, m_mmap_threshold, m_arena_max = -1, -3, -8
-        ok = libc.mallopt(m_mmap_threshold, 256 << 20) == 1
-        ok &= libc.mallopt(m_trim_threshold, 512 << 20) == 1
-        ok &= libc.mallopt(m_arena_max, 1) == 1
-    except (OSError, AttributeError):
-        return False
-    return bool(ok)
 
 
 # ---------------------------------------------------------------------------- settings

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.allocator import tune_allocator
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
@@ -39,7 +40,6 @@ from lidarcal_ros.pipeline.correction import (
     FLAG_NOT_CORRECTED,
     CorrectionSettings,
     StreamCorrector,
-    tune_allocator,
 )
 
 logger = logging.getLogger(__name__)

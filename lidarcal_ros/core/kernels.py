@@ -1,0 +1,339 @@
+"""Compiled per-point and per-cell loops of the grid normals (:mod:`lidarcal_ros.core.normals`).
+
+numpy spends most of the normals' time streaming temporaries through memory: ten weighted
+``bincount`` passes per binning, a (10, nu, nv) copy per block sum, a handful of gathers and
+masks per point. These loops do the same arithmetic in one pass each, compiled by numba
+(``nopython``, ``nogil``: threads of the correction run them in parallel), cached on disk
+next to this module (or in numba's user cache where that is read-only).
+
+Every function states the numpy expression it replaces; the arithmetic is done in the same
+order, so results agree with it to the last bits or close (transcendental functions come from
+libm rather than numpy's SIMD loops).
+
+Frames: ``u`` along track, ``v`` across track (right), ``z`` up, metres, relative to the
+grid's origin; moment arrays are ``(10, ...)`` stacks of ``n, u, v, z, uu, uv, uz, vv, vz,
+zz`` sums.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_jit = njit(cache=True, nogil=True, error_model="numpy")
+_THIRD_TURN = 2.0 * math.pi / 3.0
+
+
+@_jit
+def accumulate_moments(out: np.ndarray, row0: int, col0: int, iu: np.ndarray, iv: np.ndarray,
+                       u: np.ndarray, v: np.ndarray, z: np.ndarray) -> None:
+    """Add each point's moments to its cell: ``out[:, iu - row0, iv - col0] += (1, u, v, z,
+    uu, uv, uz, vv, vz, zz)``, in the order of the points.
+
+    Parameters
+    ----------
+    out : (10, rows, cols) float64
+        Moment sums per cell (modified in place).
+    row0, col0 : int
+        Grid row and column of ``out[:, 0, 0]``.
+    iu, iv : (n,) int64
+        Cell row and column of each point (inside ``out``).
+    u, v, z : (n,) float64
+    """
+    for i in range(iu.shape[0]):
+        r = iu[i] - row0
+        c = iv[i] - col0
+        pu, pv, pz = u[i], v[i], z[i]
+        out[0, r, c] += 1.0
+        out[1, r, c] += pu
+        out[2, r, c] += pv
+        out[3, r, c] += pz
+        out[4, r, c] += pu * pu
+        out[5, r, c] += pu * pv
+        out[6, r, c] += pu * pz
+        out[7, r, c] += pv * pv
+        out[8, r, c] += pv * pz
+        out[9, r, c] += pz * pz
+
+
+@_jit
+def _eigen_smallest(cxx: float, cxy: float, cxz: float, cyy: float, cyz: float, czz: float
+                    ) -> tuple[float, float, float, float, float, bool]:
+    """Smallest and middle eigenvalue and the smallest eigenvector (``z >= 0``) of one
+    symmetric 3x3 matrix; ``ok`` False where the vector is undefined."""
+    p1 = cxy * cxy + cxz * cxz + cyz * cyz
+    q = (cxx + cyy + czz) * (1.0 / 3.0)
+    a = cxx - q
+    b = cyy - q
+    c = czz - q
+    p = math.sqrt((a * a + b * b + c * c + 2.0 * p1) * (1.0 / 6.0))
+    det = a * (b * c - cyz * cyz) - cxy * (cxy * c - cyz * cxz) + cxz * (cxy * cyz - b * cxz)
+    r = det * (0.5 / (p * p * p))
+    if r < -1.0:
+        r = -1.0
+    elif r > 1.0:
+        r = 1.0
+    phi = math.acos(r) * (1.0 / 3.0)
+    lam_max = q + 2.0 * p * math.cos(phi)
+    lam_min = q + 2.0 * p * math.cos(phi + _THIRD_TURN)
+    lam_mid = 3.0 * q - lam_max - lam_min
+    # The largest cross product of two rows of (C - lam_min I).
+    d0 = cxx - lam_min
+    d1 = cyy - lam_min
+    d2 = czz - lam_min
+    vx = cxy * cyz - cxz * d1  # r0 x r1
+    vy = cxz * cxy - d0 * cyz
+    vz = d0 * d1 - cxy * cxy
+    best = vx * vx + vy * vy + vz * vz
+    wx = cxy * d2 - cxz * cyz  # r0 x r2
+    wy = cxz * cxz - d0 * d2
+    wz = d0 * cyz - cxy * cxz
+    nn = wx * wx + wy * wy + wz * wz
+    if nn > best:
+        vx, vy, vz, best = wx, wy, wz, nn
+    wx = d1 * d2 - cyz * cyz  # r1 x r2
+    wy = cyz * cxz - cxy * d2
+    wz = cxy * cyz - d1 * cxz
+    nn = wx * wx + wy * wy + wz * wz
+    if nn > best:
+        vx, vy, vz, best = wx, wy, wz, nn
+    norm = math.sqrt(best)
+    ok = norm > 0.0 and p > 0.0 and math.isfinite(norm)
+    scale = 1.0 / norm
+    if vz < 0.0:
+        scale = -scale
+    return lam_min, lam_mid, vx * scale, vy * scale, vz * scale, ok
+
+
+@_jit
+def smallest_eigen_many(cxx: np.ndarray, cxy: np.ndarray, cxz: np.ndarray, cyy: np.ndarray,
+                        cyz: np.ndarray, czz: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_eigen_smallest` of each of m matrices given as six (m,) arrays."""
+    m = cxx.shape[0]
+    lam_min = np.empty(m)
+    lam_mid = np.empty(m)
+    vec = np.empty((m, 3))
+    ok = np.empty(m, dtype=np.bool_)
+    for k in range(m):
+        lo, mid, x, y, zz, good = _eigen_smallest(cxx[k], cxy[k], cxz[k], cyy[k], cyz[k],
+                                                  czz[k])
+        lam_min[k], lam_mid[k] = lo, mid
+        vec[k, 0], vec[k, 1], vec[k, 2] = x, y, zz
+        ok[k] = good
+    return lam_min, lam_mid, vec, ok
+
+
+@_jit
+def _fit_one(n: float, su: float, sv: float, sz: float, suu: float, suv: float, suz: float,
+             svv: float, svz: float, szz: float, min_points: int, min_spread: float,
+             residual: np.ndarray, normals: np.ndarray, valid: np.ndarray,
+             centroid: np.ndarray, k: int) -> None:
+    """Plane fit of one block from its ten moment sums into row ``k`` of the outputs
+    (``normals._fit_sums`` has the method)."""
+    inv = 1.0 / n
+    mu, mv, mz = su * inv, sv * inv, sz * inv
+    cuu = suu * inv - mu * mu
+    cuv = suv * inv - mu * mv
+    cvv = svv * inv - mv * mv
+    cuz = suz * inv - mu * mz
+    cvz = svz * inv - mv * mz
+    czz = szz * inv - mz * mz
+    centroid[k, 0], centroid[k, 1], centroid[k, 2] = mu, mv, mz
+    det = cuu * cvv - cuv * cuv
+    half_tr = 0.5 * (cuu + cvv)
+    lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
+    enough = n >= min_points
+    if enough and lam_h >= min_spread:
+        inv_det = 1.0 / det
+        b = (cvv * cuz - cuv * cvz) * inv_det
+        c = (cuu * cvz - cuv * cuz) * inv_det
+        norm2 = 1.0 + b * b + c * c
+        scale = 1.0 / math.sqrt(norm2)
+        residual[k] = max((czz - b * cuz - c * cvz) / norm2, 0.0)
+        normals[k, 0], normals[k, 1], normals[k, 2] = -b * scale, -c * scale, scale
+        valid[k] = True
+        return
+    if enough:  # a wall or a single scan line: the principal-component plane
+        lam_min, lam_mid, x, y, zz, good = _eigen_smallest(cuu, cuv, cuz, cvv, cvz, czz)
+        if good and lam_mid >= min_spread:
+            residual[k] = max(lam_min, 0.0)
+            normals[k, 0], normals[k, 1], normals[k, 2] = x, y, zz
+            valid[k] = True
+            return
+    residual[k] = np.inf
+    normals[k, 0] = normals[k, 1] = normals[k, 2] = np.nan
+    valid[k] = False
+
+
+@_jit
+def fit_sums(sums: np.ndarray, min_points: int, min_spread: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Plane fits of m blocks from their moment sums (10, m): residual variance (m,),
+    normals (m, 3), valid (m,), centroid (m, 3) (``normals._fit_sums``)."""
+    m = sums.shape[1]
+    residual = np.empty(m)
+    normals = np.empty((m, 3))
+    valid = np.empty(m, dtype=np.bool_)
+    centroid = np.empty((m, 3))
+    for k in range(m):
+        _fit_one(sums[0, k], sums[1, k], sums[2, k], sums[3, k], sums[4, k], sums[5, k],
+                 sums[6, k], sums[7, k], sums[8, k], sums[9, k], min_points, min_spread,
+                 residual, normals, valid, centroid, k)
+    return residual, normals, valid, centroid
+
+
+@_jit
+def fit_blocks2(moments: np.ndarray, min_points: int, min_spread: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Plane fits of the 2x2 blocks anchored at every cell of a (10, nu, nv) grid (cells
+    ``[i:i+2, j:j+2]``, zero beyond the grid), flat over the cells: residual variance,
+    normals, valid, centroid as :func:`fit_sums` (``_fit_sums(_box_sums(moments, 2))``),
+    except that the centroid of a block with fewer than ``min_points`` points is NaN (most
+    cells of a grid are empty or nearly: they are skipped after one sum)."""
+    _, nu, nv = moments.shape
+    size = nu * nv
+    residual = np.empty(size)
+    normals = np.empty((size, 3))
+    valid = np.empty(size, dtype=np.bool_)
+    centroid = np.empty((size, 3))
+    s = np.empty(10)
+    for i in range(nu):
+        down = i + 1 < nu
+        for j in range(nv):
+            right = j + 1 < nv
+            count = moments[0, i, j] + moments[0, i + 1, j] if down else moments[0, i, j]
+            if right:
+                count = count + (moments[0, i, j + 1] + moments[0, i + 1, j + 1] if down
+                                 else moments[0, i, j + 1])
+            if not count >= min_points:
+                k = i * nv + j
+                residual[k] = np.inf
+                normals[k, 0] = normals[k, 1] = normals[k, 2] = np.nan
+                centroid[k, 0] = centroid[k, 1] = centroid[k, 2] = np.nan
+                valid[k] = False
+                continue
+            for q in range(10):
+                # (m[i,j] + m[i+1,j]) + (m[i,j+1] + m[i+1,j+1]), as the separable sum
+                col0 = moments[q, i, j] + moments[q, i + 1, j] if down else moments[q, i, j]
+                if right:
+                    col1 = (moments[q, i, j + 1] + moments[q, i + 1, j + 1] if down
+                            else moments[q, i, j + 1])
+                    col0 = col0 + col1
+                s[q] = col0
+            _fit_one(s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], min_points,
+                     min_spread, residual, normals, valid, centroid, i * nv + j)
+    return residual, normals, valid, centroid
+
+
+@_jit
+def cell_planes(residual: np.ndarray, normals: np.ndarray, centroid: np.ndarray, nu: int,
+                nv: int) -> tuple[np.ndarray, np.ndarray]:
+    """The plane of each cell: that of the best-fitting (least residual) of the four 2x2
+    blocks containing it, anchored at ``(i-1..i, j-1..j)``; ties go to the block anchored at
+    the cell, then ``(i-1, j)``, ``(i, j-1)``, ``(i-1, j-1)``.
+
+    Returns
+    -------
+    plane : (nu * nv, 5) float64
+        Normal (3), offset ``normal . centroid`` and residual variance of each cell's plane.
+    ok : (nu * nv,) bool
+        Whether the cell has a plane (finite residual).
+    """
+    plane = np.empty((nu * nv, 5))
+    ok = np.empty(nu * nv, dtype=np.bool_)
+    for i in range(nu):
+        for j in range(nv):
+            k = i * nv + j
+            best = residual[k]
+            a = k
+            if i >= 1 and residual[k - nv] < best:
+                best, a = residual[k - nv], k - nv
+            if j >= 1 and residual[k - 1] < best:
+                best, a = residual[k - 1], k - 1
+            if i >= 1 and j >= 1 and residual[k - nv - 1] < best:
+                best, a = residual[k - nv - 1], k - nv - 1
+            nx, ny, nz = normals[a, 0], normals[a, 1], normals[a, 2]
+            plane[k, 0], plane[k, 1], plane[k, 2] = nx, ny, nz
+            plane[k, 3] = nx * centroid[a, 0] + ny * centroid[a, 1] + nz * centroid[a, 2]
+            plane[k, 4] = best
+            ok[k] = math.isfinite(best)
+    return plane, ok
+
+
+@_jit
+def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
+                  normals: np.ndarray, centroid: np.ndarray, valid: np.ndarray, nu: int,
+                  nv: int, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
+                  z: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normal, validity and roughness of each point from the planes of the grid's cells.
+
+    A point takes the plane of its cell unless it lies off it (distance above ``tol``) or
+    the plane fits its block badly (residual variance above ``tol^2``, a cell across an
+    edge); then the nearest of the planes of the nine 2x2 blocks around its cell (score:
+    squared distance plus the block's residual variance; ties to the first in row order)
+    if that scores better. Rough: the best score is still above ``tol^2``.
+
+    Parameters
+    ----------
+    plane, cell_ok : from :func:`cell_planes`
+    residual, normals, centroid, valid : the 2x2 block fits (:func:`fit_blocks2`)
+    nu, nv : int
+        Grid shape.
+    iu, iv : (n,) int64
+        Cell of each point in the grid.
+    u, v, z : (n,) float64
+    tol : float
+        Edge tolerance, m.
+
+    Returns
+    -------
+    nrm : (n, 3) float64
+        Unit normals (grid frame), NaN where the cell has no plane.
+    ok : (n,) bool
+    rough : (n,) bool
+    """
+    n = iu.shape[0]
+    nrm = np.empty((n, 3))
+    ok = np.empty(n, dtype=np.bool_)
+    rough = np.zeros(n, dtype=np.bool_)
+    tol2 = tol * tol
+    for p in range(n):
+        i, j = iu[p], iv[p]
+        k = i * nv + j
+        if not cell_ok[k]:
+            ok[p] = False
+            nrm[p, 0] = nrm[p, 1] = nrm[p, 2] = np.nan
+            continue
+        ok[p] = True
+        nx, ny, nz = plane[k, 0], plane[k, 1], plane[k, 2]
+        d = nx * u[p] + ny * v[p] + nz * z[p] - plane[k, 3]
+        lam = plane[k, 4]
+        if abs(d) > tol or lam > tol2:
+            own = d * d + lam
+            best = np.inf
+            bx = by = bz = 0.0
+            for di in range(-1, 2):
+                ii = i + di
+                if ii < 0 or ii >= nu:
+                    continue
+                for dj in range(-1, 2):
+                    jj = j + dj
+                    if jj < 0 or jj >= nv:
+                        continue
+                    b = ii * nv + jj
+                    if not valid[b]:
+                        continue
+                    cx, cy, cz = normals[b, 0], normals[b, 1], normals[b, 2]
+                    dk = (cx * u[p] + cy * v[p] + cz * z[p]
+                          - (cx * centroid[b, 0] + cy * centroid[b, 1] + cz * centroid[b, 2]))
+                    score = dk * dk + residual[b]
+                    if score < best:
+                        best, bx, by, bz = score, cx, cy, cz
+            if best < own:
+                nx, ny, nz = bx, by, bz
+            rough[p] = min(best, own) > tol2
+        nrm[p, 0], nrm[p, 1], nrm[p, 2] = nx, ny, nz
+    return nrm, ok, rough

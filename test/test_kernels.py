@@ -1,0 +1,146 @@
+"""The compiled loops of the grid normals (lidarcal_ros.core.kernels) against independent
+numpy computations on the points themselves."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lidarcal_ros.core import kernels
+
+MIN_POINTS = 4
+MIN_SPREAD = 0.01
+
+
+def _points(n: int, seed: int = 3, step_v: float = 3.0) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0.0, 6.0, n)
+    v = rng.uniform(0.0, 5.0, n)
+    # a tilted plane with noise, and a step (an edge) of 2 m at v = step_v
+    z = 0.2 * u - 0.1 * v + rng.normal(0.0, 0.02, n) + np.where(v > step_v, 2.0, 0.0)
+    iu = np.floor(u).astype(np.int64)
+    iv = np.floor(v).astype(np.int64)
+    return u, v, z, iu, iv
+
+
+def _grid(u: np.ndarray, v: np.ndarray, z: np.ndarray, iu: np.ndarray, iv: np.ndarray
+          ) -> np.ndarray:
+    moments = np.zeros((10, int(iu.max()) + 1, int(iv.max()) + 1))
+    kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
+    return moments
+
+
+def test_accumulate_moments_matches_bincount_and_honours_the_grid_offset() -> None:
+    u, v, z, iu, iv = _points(3000)
+    nu, nv = int(iu.max()) + 1, int(iv.max()) + 1
+    key = iu * nv + iv
+    expected = np.stack([np.bincount(key, weights=w, minlength=nu * nv) for w in (
+        None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)]).reshape(10, nu, nv)
+    np.testing.assert_allclose(_grid(u, v, z, iu, iv), expected, rtol=1e-12, atol=1e-9)
+    # Rows and columns numbered from (row0, col0) = (-5, 7): the same sums, moved.
+    shifted = np.zeros((10, nu + 2, nv + 3))
+    kernels.accumulate_moments(shifted, -5 - 1, 7 - 2, iu - 5, iv + 7, u, v, z)
+    np.testing.assert_allclose(shifted[:, 1:1 + nu, 2:2 + nv], expected, rtol=1e-12,
+                               atol=1e-9)
+    assert shifted[0].sum() == u.size
+
+
+def test_block_fits_match_least_squares_and_pca_on_the_points() -> None:
+    u, v, z, iu, iv = _points(3000)
+    moments = _grid(u, v, z, iu, iv)
+    _, nu, nv = moments.shape
+    residual, normals, valid, centroid = kernels.fit_blocks2(moments, MIN_POINTS, MIN_SPREAD)
+    checked = 0
+    for i in range(nu):
+        for j in range(nv):
+            k = i * nv + j
+            sel = (iu >= i) & (iu <= i + 1) & (iv >= j) & (iv <= j + 1)
+            if sel.sum() < MIN_POINTS:
+                assert not valid[k] and math.isinf(residual[k])
+                continue
+            pts = np.c_[u[sel], v[sel], z[sel]]
+            cov = np.cov(pts.T, bias=True)
+            # Horizontal spread in both directions: the height plane z = a + b u + c v.
+            a_mat = np.c_[np.ones(sel.sum()), u[sel], v[sel]]
+            coef, *_ = np.linalg.lstsq(a_mat, z[sel], rcond=None)
+            expected_n = np.array([-coef[1], -coef[2], 1.0]) / math.hypot(1.0, *coef[1:])
+            res_var = np.mean((z[sel] - a_mat @ coef) ** 2) / (1.0 + coef[1] ** 2 + coef[2] ** 2)
+            assert np.linalg.eigvalsh(cov[:2, :2])[0] >= MIN_SPREAD
+            assert valid[k]
+            np.testing.assert_allclose(normals[k], expected_n, atol=1e-9)
+            assert residual[k] == pytest.approx(res_var, rel=1e-6, abs=1e-12)
+            np.testing.assert_allclose(centroid[k], pts.mean(axis=0), atol=1e-12)
+            checked += 1
+    assert checked > 10
+    # The generic fit of the same sums gives the same planes.
+    box = np.zeros((10, nu * nv))
+    for i in range(nu):
+        for j in range(nv):
+            box[:, i * nv + j] = moments[:, i:i + 2, j:j + 2].sum(axis=(1, 2))
+    r2, n2, ok2, _ = kernels.fit_sums(box, MIN_POINTS, MIN_SPREAD)
+    np.testing.assert_array_equal(ok2, valid)
+    np.testing.assert_allclose(n2[valid], normals[valid], atol=1e-12)
+    np.testing.assert_allclose(r2[valid], residual[valid], rtol=1e-9, atol=1e-15)
+
+
+def test_a_wall_gets_the_principal_component_plane() -> None:
+    rng = np.random.default_rng(5)
+    n = 200
+    # A vertical wall along u: no horizontal spread across it, so no height plane.
+    u = rng.uniform(0.0, 1.9, n)
+    v = 1.0 + rng.normal(0.0, 1e-4, n)
+    z = rng.uniform(0.0, 3.0, n)
+    sums = np.array([[float(n)], [u.sum()], [v.sum()], [z.sum()], [(u * u).sum()],
+                     [(u * v).sum()], [(u * z).sum()], [(v * v).sum()], [(v * z).sum()],
+                     [(z * z).sum()]])
+    residual, normals, valid, _ = kernels.fit_sums(sums, MIN_POINTS, MIN_SPREAD)
+    assert valid[0]
+    assert abs(normals[0, 1]) == pytest.approx(1.0, abs=1e-3)  # horizontal, across the wall
+    assert normals[0, 2] >= 0.0
+    assert residual[0] < 1e-6
+
+
+def test_cell_planes_take_the_best_of_the_four_blocks_with_ties_to_the_own_block() -> None:
+    nu, nv = 3, 3
+    residual = np.full(nu * nv, np.inf)
+    normals = np.full((nu * nv, 3), np.nan)
+    centroid = np.zeros((nu * nv, 3))
+    for k, lam in ((0, 0.5), (1, 0.2), (3, 0.2), (4, 0.2)):
+        residual[k] = lam
+        normals[k] = (0.0, 0.0, 1.0)
+        centroid[k] = (0.0, 0.0, float(k))
+    plane, ok = kernels.cell_planes(residual, normals, centroid, nu, nv)
+    # The block each cell's plane comes from (its centroid's z is the block's index): own
+    # block first, then (i-1, j), (i, j-1), (i-1, j-1), a later one only if strictly better.
+    np.testing.assert_array_equal(plane[:, 3], [0, 1, 1, 3, 4, 4, 3, 4, 4])
+    np.testing.assert_array_equal(plane[:, 4], [0.5, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2])
+    assert ok.all()
+
+
+@pytest.mark.parametrize("step_v", [3.0, 2.5])
+def test_points_near_an_edge_take_the_plane_of_their_side(step_v: float) -> None:
+    u, v, z, iu, iv = _points(6000, seed=11, step_v=step_v)
+    moments = _grid(u, v, z, iu, iv)
+    _, nu, nv = moments.shape
+    residual, normals, valid, centroid = kernels.fit_blocks2(moments, MIN_POINTS, MIN_SPREAD)
+    plane, cell_ok = kernels.cell_planes(residual, normals, centroid, nu, nv)
+    nrm, ok, rough = kernels.point_normals(plane, cell_ok, residual, normals, centroid, valid,
+                                           nu, nv, iu, iv, u, v, z, 0.1)
+    truth = np.array([-0.2, 0.1, 1.0]) / math.sqrt(1.05)
+    assert ok.all()
+    good = ~rough
+    np.testing.assert_allclose(nrm[good], np.broadcast_to(truth, nrm[good].shape), atol=0.02)
+    if step_v == 3.0:
+        # The step lies on a cell boundary: each side's cells have clean blocks of their own.
+        assert not rough.any()
+    else:
+        # The step halves cell column 2: every block holding that cell straddles the step.
+        k = iu * nv + iv
+        assert (plane[k[iv == 2], 4] > 0.1).all()
+        # Its points above the step find the clean blocks beyond it (column 3 on) ...
+        upper = (iv == 2) & (v > step_v + 0.05)
+        assert upper.any() and not rough[upper].any()
+        # ... and only points of that column can be left rough.
+        assert not rough[iv != 2].any()
