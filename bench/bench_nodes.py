@@ -36,6 +36,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -233,16 +234,54 @@ def _rss_mib(pid: int) -> float:
     return total if seen else math.nan
 
 
-def _cpu_s(pid: int) -> float:
-    """CPU time (user + system, s) used so far by a process and its live descendants."""
-    total = 0.0
+def _cpu_s(pid: int) -> tuple[float, float]:
+    """CPU time (user + system, s) used so far by a process, and by its live descendants."""
+    own = others = 0.0
     for p in _process_tree(pid):
         try:
             fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+            used = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
         except (OSError, IndexError, ValueError):
-            pass
-    return total
+            continue
+        if p == pid:
+            own += used
+        else:
+            others += used
+    return own, others
+
+
+class CpuSampler:
+    """Samples the CPU time of a process and its descendants every ``period`` s (wall time,
+    own, descendants), so that the steady state can be told from start-up."""
+
+    def __init__(self, pid: int, period: float = 0.2) -> None:
+        self.pid = pid
+        self.samples: list[tuple[float, float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
+        self._thread.start()
+
+    def _run(self, period: float) -> None:
+        while not self._stop.is_set():
+            self.samples.append((time.time(), *_cpu_s(self.pid)))
+            self._stop.wait(period)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def usage(self, t0: float, t1: float) -> tuple[float, float, float]:
+        """CPU seconds of the process and of its descendants between the samples nearest
+        ``t0`` and ``t1``, and the wall time between those samples."""
+        if len(self.samples) < 2:
+            return math.nan, math.nan, math.nan
+        times = np.array([x[0] for x in self.samples])
+        a = int(np.argmin(np.abs(times - t0)))
+        b = int(np.argmin(np.abs(times - t1)))
+        if b <= a:
+            return math.nan, math.nan, math.nan
+        return (self.samples[b][1] - self.samples[a][1], self.samples[b][2] - self.samples[a][2],
+                self.samples[b][0] - self.samples[a][0])
 
 
 class Receiver:
@@ -352,15 +391,22 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
            [PYTHON, "-m", "lidarcal_ros.nodes.corrector"])
     if variant == "raw-lookahead":
         cmd += ["--ros-args", "-p", "lookahead:=true"]
+    elif variant == "raw-thread":
+        cmd += ["--ros-args", "-p", "separate_process:=false"]
+    elif variant == "raw-thread2":
+        cmd += ["--ros-args", "-p", "separate_process:=false", "-p", "workers:=2"]
+    elif variant == "raw-workers2":
+        cmd += ["--ros-args", "-p", "workers:=2"]
     for rate in rates:
         points = max(int(rate * chunk_s), 100)
-        corrector = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True)
+        log_path = Path(tempfile.gettempdir()) / f"bench_corrector_{os.getpid()}.log"
+        log = open(log_path, "wb")
+        corrector = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
         receiver = Receiver(context)
         stop, th, ex = _spin_in_thread(context, [receiver.node])
         try:
             time.sleep(2.0)
-            cpu_before = _cpu_s(corrector.pid)
+            sampler = CpuSampler(corrector.pid)
             source = subprocess.run(
                 [PYTHON, str(Path(__file__)), "_source", str(rate), str(points), str(seconds),
                  "/lidar/points"], env=env, capture_output=True, text=True,
@@ -371,7 +417,7 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             deadline = time.monotonic() + 30
             while len(receiver.samples) < sent["chunks"] and time.monotonic() < deadline:
                 time.sleep(0.1)
-            cpu = _cpu_s(corrector.pid) - cpu_before
+            sampler.stop()
             rss = _rss_mib(corrector.pid)
         finally:
             stop.set()
@@ -379,6 +425,13 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             ex.shutdown()
             receiver.node.destroy_node()
             _stop(corrector)
+            log.close()
+        if len(receiver.samples) != sent["chunks"]:
+            errors = [line for line in log_path.read_text(errors="replace").splitlines()
+                      if "ERROR" in line or "WARN" in line]
+            print(f"  ({len(errors)} warnings/errors from the corrector; the last: "
+                  f"{errors[-3:]})", flush=True)
+        log_path.unlink(missing_ok=True)
         s = receiver.samples
         if len(s) >= 3:
             recv = np.array([x[0] for x in s])
@@ -393,26 +446,37 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             # once for the first grid rows, first allocations and discovery).
             steady = lat[recv - recv[0] > 1.0]
             p99_steady = float(np.percentile(steady, 99)) if steady.size else math.nan
+            # Once any start-up backlog is worked off: the second half of the output.
+            p99_late = float(np.percentile(lat[len(lat) // 2:], 99))
             first = float(lat[0])
+            # CPU of the corrector (node process, correction process) in the steady state:
+            # from one second after the first corrected chunk to the last.
+            node_cpu, child_cpu, wall = sampler.usage(recv[0] + 1.0, recv[-1])
+            steady_points = int(n_pts[(recv > recv[0] + 1.0)].sum())
         else:
-            out_rate = growth = p50 = p99 = p99_steady = first = math.nan
+            out_rate = growth = p50 = p99 = p99_steady = p99_late = first = math.nan
+            node_cpu = child_cpu = wall = math.nan
+            steady_points = 0
         results.append({
             "path": variant, "offered_pts_s": rate, "chunk_points": points,
             "chunks_sent": sent["chunks"], "chunks_received": len(s),
             "out_pts_s": out_rate, "latency_p50_s": p50, "latency_p99_s": p99,
             "latency_growth_s": growth, "corrector_rss_mib": rss,
-            "latency_p99_steady_s": p99_steady, "first_chunk_latency_s": first,
-            "corrector_cpu_s": cpu,
-            "corrector_cpu_us_per_point": 1e6 * cpu / max(int(sum(x[2] for x in s)), 1),
+            "latency_p99_steady_s": p99_steady, "latency_p99_second_half_s": p99_late,
+            "first_chunk_latency_s": first,
+            "node_cpu_share": node_cpu / wall, "correction_cpu_share": child_cpu / wall,
+            "corrector_ns_per_point": 1e9 * (node_cpu + child_cpu) / max(steady_points, 1),
         })
         keeps_up = (len(s) == sent["chunks"] and out_rate >= 0.95 * rate
                     and growth < 0.05)
         print(f"  {variant:15} offered {rate / 1e6:5.2f} M/s ({points} pts/chunk): "
               f"out {out_rate / 1e6:5.2f} M/s, {len(s)}/{sent['chunks']} chunks, "
               f"p50 {p50 * 1000:7.1f} ms, p99 {p99 * 1000:7.1f} ms (after 1 s "
-              f"{p99_steady * 1000:7.1f} ms; first chunk {first * 1000:5.0f} ms), "
-              f"growth {growth * 1000:+7.1f} ms, corrector CPU "
-              f"{results[-1]['corrector_cpu_us_per_point'] * 1000:.0f} ns/point: "
+              f"{p99_steady * 1000:7.1f} ms, second half {p99_late * 1000:7.1f} ms; first chunk "
+              f"{first * 1000:5.0f} ms), "
+              f"growth {growth * 1000:+7.1f} ms; CPU node {node_cpu / wall:4.0%} + "
+              f"correction {child_cpu / wall:4.0%} = "
+              f"{results[-1]['corrector_ns_per_point']:.0f} ns/point: "
               f"{'keeps up' if keeps_up else 'falls behind'}"
               f"{', p99 goal met' if keeps_up and p99_steady <= GOAL_P99_S else ''}",
               flush=True)

@@ -190,41 +190,73 @@ def fit_blocks2(moments: np.ndarray, min_points: int, min_spread: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Plane fits of the 2x2 blocks anchored at every cell of a (10, nu, nv) grid (cells
     ``[i:i+2, j:j+2]``, zero beyond the grid), flat over the cells: residual variance,
-    normals, valid, centroid as :func:`fit_sums` (``_fit_sums(_box_sums(moments, 2))``),
-    except that the centroid of a block with fewer than ``min_points`` points is NaN (most
-    cells of a grid are empty or nearly: they are skipped after one sum)."""
+    normals, valid, centroid as :func:`fit_sums` (``_fit_sums(_box_sums(moments, 2))``).
+
+    Row by row, in loops without branches (the compiler vectorises them): the block sums,
+    then the height-plane fit of every block; the principal-component fallback only for the
+    few blocks that need it.
+    """
     _, nu, nv = moments.shape
     size = nu * nv
     residual = np.empty(size)
     normals = np.empty((size, 3))
     valid = np.empty(size, dtype=np.bool_)
     centroid = np.empty((size, 3))
-    s = np.empty(10)
+    col = np.zeros((10, nv + 1))  # column sums of rows i, i+1; zero beyond the grid
+    box = np.empty((10, nv))
     for i in range(nu):
-        down = i + 1 < nu
-        for j in range(nv):
-            right = j + 1 < nv
-            count = moments[0, i, j] + moments[0, i + 1, j] if down else moments[0, i, j]
-            if right:
-                count = count + (moments[0, i, j + 1] + moments[0, i + 1, j + 1] if down
-                                 else moments[0, i, j + 1])
-            if not count >= min_points:
-                k = i * nv + j
-                residual[k] = np.inf
-                normals[k, 0] = normals[k, 1] = normals[k, 2] = np.nan
-                centroid[k, 0] = centroid[k, 1] = centroid[k, 2] = np.nan
-                valid[k] = False
-                continue
+        if i + 1 < nu:
             for q in range(10):
-                # (m[i,j] + m[i+1,j]) + (m[i,j+1] + m[i+1,j+1]), as the separable sum
-                col0 = moments[q, i, j] + moments[q, i + 1, j] if down else moments[q, i, j]
-                if right:
-                    col1 = (moments[q, i, j + 1] + moments[q, i + 1, j + 1] if down
-                            else moments[q, i, j + 1])
-                    col0 = col0 + col1
-                s[q] = col0
-            _fit_one(s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], min_points,
-                     min_spread, residual, normals, valid, centroid, i * nv + j)
+                for j in range(nv):
+                    col[q, j] = moments[q, i, j] + moments[q, i + 1, j]
+        else:
+            for q in range(10):
+                for j in range(nv):
+                    col[q, j] = moments[q, i, j]
+        for q in range(10):
+            for j in range(nv - 1):
+                box[q, j] = col[q, j] + col[q, j + 1]
+            box[q, nv - 1] = col[q, nv - 1]
+        base = i * nv
+        for j in range(nv):
+            n = box[0, j]
+            inv = 1.0 / n
+            mu = box[1, j] * inv
+            mv = box[2, j] * inv
+            mz = box[3, j] * inv
+            cuu = box[4, j] * inv - mu * mu
+            cuv = box[5, j] * inv - mu * mv
+            cuz = box[6, j] * inv - mu * mz
+            cvv = box[7, j] * inv - mv * mv
+            cvz = box[8, j] * inv - mv * mz
+            czz = box[9, j] * inv - mz * mz
+            det = cuu * cvv - cuv * cuv
+            half_tr = 0.5 * (cuu + cvv)
+            lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
+            ls = (n >= min_points) & (lam_h >= min_spread)
+            inv_det = 1.0 / det
+            b = (cvv * cuz - cuv * cvz) * inv_det
+            c = (cuu * cvz - cuv * cuz) * inv_det
+            norm2 = 1.0 + b * b + c * c
+            scale = 1.0 / math.sqrt(norm2)
+            res = max((czz - b * cuz - c * cvz) / norm2, 0.0)
+            k = base + j
+            residual[k] = res if ls else np.inf
+            normals[k, 0] = -b * scale if ls else np.nan
+            normals[k, 1] = -c * scale if ls else np.nan
+            normals[k, 2] = scale if ls else np.nan
+            valid[k] = ls
+            centroid[k, 0] = mu
+            centroid[k, 1] = mv
+            centroid[k, 2] = mz
+        for j in range(nv):
+            k = base + j
+            if valid[k] or not box[0, j] >= min_points:
+                continue
+            # a wall or a single scan line: the principal-component plane
+            _fit_one(box[0, j], box[1, j], box[2, j], box[3, j], box[4, j], box[5, j],
+                     box[6, j], box[7, j], box[8, j], box[9, j], min_points, min_spread,
+                     residual, normals, valid, centroid, k)
     return residual, normals, valid, centroid
 
 

@@ -52,7 +52,7 @@ import time
 import warnings
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -754,8 +754,24 @@ class StreamCorrector:
 
     def release(self) -> list[tuple[Any, np.ndarray]]:
         """Correct everything held now, without waiting for look-ahead (the strips' grids
-        are kept: later clouds still have these points as neighbours)."""
-        return self._drain(final=True)
+        are kept: later clouds still have these points as neighbours); with worker threads,
+        waits for the batches in flight."""
+        out = self._drain(final=True)
+        out.extend(self._collect(wait_all=True))
+        return out
+
+    @property
+    def in_flight(self) -> int:
+        """Batches handed to the worker threads and not yet returned."""
+        return len(self._inflight)
+
+    def collect_ready(self, timeout: float = 0.0) -> list[tuple[Any, np.ndarray]]:
+        """The corrected clouds of batches the worker threads have finished (in order),
+        waiting up to ``timeout`` seconds for the oldest one. Without it the results of
+        the last batches before a pause would wait for the next :meth:`push`."""
+        if self._inflight and timeout > 0:
+            wait([self._inflight[0][1]], timeout=timeout)
+        return self._collect(wait_all=False)
 
     def flush(self) -> list[tuple[Any, np.ndarray]]:
         """Correct everything held (the end of the stream); stop the workers."""

@@ -118,6 +118,11 @@ class _Engine:
         self.corrector.set_trajectory(self.trajectory.trajectory())
         return self._encode(self.corrector.flush())
 
+    def collect(self, timeout: float = 0.0) -> list[tuple[Any, bytes, int, int, float]]:
+        """Clouds the worker threads have finished since the last call (waiting up to
+        ``timeout`` s for the oldest batch in flight)."""
+        return self._encode(self.corrector.collect_ready(timeout))
+
     def _encode(self, out: list[tuple[Any, np.ndarray]]
                 ) -> list[tuple[Any, bytes, int, int, float]]:
         encoded = []
@@ -149,6 +154,11 @@ class LocalCorrection:
     def release(self) -> None:
         """Correct what is held now, without waiting for look-ahead."""
         self._emit(self._engine.release())
+
+    def poll(self) -> None:
+        """Report the clouds worker threads have finished (``workers`` > 1)."""
+        if self._engine.corrector.in_flight:
+            self._emit(self._engine.collect())
 
     def set_settings(self, settings: CorrectionSettings) -> None:
         self._engine.corrector.set_settings(settings)
@@ -213,10 +223,17 @@ def _read_exactly(fd: int, size: int) -> bytes:
     return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
+#: Points per cloud of the warm-up: a 50 ms chunk of a 4 MHz sensor, so that the heap has
+#: grown to what such clouds need before the first real one comes.
+_WARM_UP_CLOUD_POINTS = 200_000
+
+
 def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
-    """Run the engine once over a small synthetic strip (level flight at 1000 m over flat
-    ground), so that the first real clouds do not pay for first calls (imports done lazily,
-    first allocations): without it the first chunks of a live stream come out late."""
+    """Run the engine once over a synthetic strip (level flight at 1000 m over flat ground),
+    so that the first real clouds do not pay for first calls (imports done lazily, compiled
+    loops loaded) or first allocations (the heap grown page by page): without it the first
+    chunks of a live stream come out late, and at a high point rate the backlog they leave
+    takes seconds to work off."""
     from lidarcal_ros.io.pointcloud import make_point_dtype
 
     engine = _Engine(dataclasses.replace(settings, time_field="t"),
@@ -227,9 +244,9 @@ def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
     rng = np.random.default_rng(0)
     clouds = []
     for k in range(3):
-        n = 20_000
+        n = _WARM_UP_CLOUD_POINTS
         pts = np.zeros(n, dtype=make_point_dtype())
-        pts["t"] = 0.5 + k * 0.1 + np.sort(rng.random(n)) * 0.1
+        pts["t"] = 0.5 + k * 0.05 + np.sort(rng.random(n)) * 0.05
         t = pts["t"]
         pts["x"] = 300.0 * np.sin(2.0 * np.pi * 50.0 * t)
         pts["y"] = 60.0 * t
@@ -239,6 +256,10 @@ def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
         clouds.append((k, cloud_cdr(0, "map", pts)))
     engine.push(clouds, lambda _tag, _reason: None)
     engine.flush()
+
+
+#: How long the child waits for a batch of a worker thread before it looks for requests.
+_RESULT_POLL_S = 0.002
 
 
 def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
@@ -263,6 +284,10 @@ def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
 
     while True:
         try:
+            # With batches in the worker threads, their results go out as they finish,
+            # not with the next request.
+            while engine.corrector.in_flight and not inbox.poll():
+                send_results(engine.collect(timeout=_RESULT_POLL_S))
             request = inbox.recv()
         except (EOFError, OSError):  # the node process is gone
             return
@@ -362,6 +387,9 @@ class CorrectionProcess:
     def release(self) -> None:
         """Correct what is held now, without waiting for look-ahead."""
         self._send(("release",))
+
+    def poll(self) -> None:
+        """Nothing to do: the child sends the results of its worker threads by itself."""
 
     def set_settings(self, settings: CorrectionSettings) -> None:
         self._send(("settings", settings))
