@@ -391,12 +391,10 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
            [PYTHON, "-m", "lidarcal_ros.nodes.corrector"])
     if variant == "raw-lookahead":
         cmd += ["--ros-args", "-p", "lookahead:=true"]
+    elif variant == "raw-1worker":
+        cmd += ["--ros-args", "-p", "workers:=1"]
     elif variant == "raw-thread":
         cmd += ["--ros-args", "-p", "separate_process:=false"]
-    elif variant == "raw-thread2":
-        cmd += ["--ros-args", "-p", "separate_process:=false", "-p", "workers:=2"]
-    elif variant == "raw-workers2":
-        cmd += ["--ros-args", "-p", "workers:=2"]
     for rate in rates:
         points = max(int(rate * chunk_s), 100)
         log_path = Path(tempfile.gettempdir()) / f"bench_corrector_{os.getpid()}.log"
@@ -646,8 +644,10 @@ def main() -> int:
     parser.add_argument("--chunk-s", type=float, default=0.05,
                         help="mission time per chunk, s (points per chunk = rate x this)")
     parser.add_argument("--variants", default="raw,raw-lookahead,typed",
-                        help="corrector variants: raw (the node), raw-nolookahead "
-                        "(lookahead:=false), typed (typed-rclpy PointCloud2 in and out)")
+                        help="corrector variants: raw (the node as shipped), raw-lookahead "
+                        "(lookahead:=true), raw-1worker (workers:=1), raw-thread "
+                        "(separate_process:=false: numerics in a thread of the node), typed "
+                        "(typed-rclpy PointCloud2 in and out)")
     parser.add_argument("--calibrator-rate", type=float, default=10.0)
     parser.add_argument("--memory-rate", type=float, default=20.0)
     parser.add_argument("--memory-passes", type=int, default=4)
