@@ -144,3 +144,25 @@ def test_points_near_an_edge_take_the_plane_of_their_side(step_v: float) -> None
         assert upper.any() and not rough[upper].any()
         # ... and only points of that column can be left rough.
         assert not rough[iv != 2].any()
+
+
+def test_the_loops_work_where_no_cache_directory_is_writable() -> None:
+    # numba finds no place for its cache (a read-only install and home): the module still
+    # imports and its loops compile in the process.
+    import subprocess
+    import sys
+
+    code = (
+        "from numba.core import caching\n"
+        "caching.CacheImpl._locator_classes = []\n"
+        "import numpy as np\n"
+        "from lidarcal_ros.core import kernels\n"
+        "m = np.zeros((10, 1, 3))\n"
+        "kernels.accumulate_moments(m, 0, 0, np.zeros(2, np.int64), np.array([0, 2]),\n"
+        "                           np.ones(2), np.ones(2), np.ones(2))\n"
+        "assert m[0].sum() == 2.0, m[0]\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

@@ -17,12 +17,28 @@ zz`` sums.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
 
 import numpy as np
 from numba import njit
 
-_jit = njit(cache=True, nogil=True, error_model="numpy")
+_log = logging.getLogger(__name__)
+_OPTIONS: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _jit(func: _F) -> _F:
+    """Compile ``func`` (nopython, without the interpreter lock), cached on disk; where no
+    cache directory is writable (a read-only install and home), compiled afresh in each
+    process instead of failing the import."""
+    try:
+        return cast(_F, njit(cache=True, **_OPTIONS)(func))
+    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
+        _log.debug("no cache for the compiled loops (%s): compiling in this process", exc)
+        return cast(_F, njit(cache=False, **_OPTIONS)(func))
 _THIRD_TURN = 2.0 * math.pi / 3.0
 
 
