@@ -476,8 +476,9 @@ STREAM_START_SECONDS = 0.02
 #: late (behind the watermark) still land in the grid.
 _LATE_ROWS = 2
 #: A part whose points spread over more rows (or columns) than this has outliers: only the
-#: points between its 0.1st and 99.9th percentiles plus this margin are binned.
-_MAX_PART_SPAN = 4096
+#: points between its 0.1st and 99.9th percentiles plus a margin are binned. (A swath of 2 km
+#: in cells of 0.15 m spans some 13000 columns: a lower bound would sort every cloud.)
+_MAX_PART_SPAN = 16384
 #: Most grid columns (across-track cells) of a strip: bounds memory when points scatter.
 _MAX_COLUMNS = 65536
 
