@@ -554,3 +554,45 @@ def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
         spinner.stop()
         node.destroy_node()
     assert procs[-1].returncode == 0, procs[-1].stderr.read() if procs[-1].stderr else ""
+
+
+def test_a_flight_config_change_shows_only_once_the_node_has_applied_it(
+        ros_context: Any) -> None:
+    # Whoever sees the new value (another thread; the node following the flight-config node)
+    # may rely on its effect: a listener still applying it must not be overtaken.
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.nodes.common import FlightParameters
+
+    node = rclpy.create_node("apply_order_probe", context=ros_context)
+    try:
+        params = FlightParameters(node, follow=False)
+        applied: list[float] = []
+        seen_before_applied: list[float] = []
+
+        def slow_listener(cfg: Any, changed: set[str]) -> None:
+            time.sleep(0.3)
+            applied.append(cfg["atmosphere.visibility_km"])
+
+        params.on_change(slow_listener)
+
+        def watch() -> None:
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline:
+                if params["atmosphere.visibility_km"] == 7.0:
+                    if not applied:
+                        seen_before_applied.append(7.0)
+                    return
+                time.sleep(0.001)
+
+        watcher = threading.Thread(target=watch)
+        watcher.start()
+        result = node.set_parameters([Parameter("atmosphere.visibility_km", value=7.0)])
+        watcher.join()
+        assert result[0].successful
+        assert applied == [7.0]
+        assert params["atmosphere.visibility_km"] == 7.0
+        assert not seen_before_applied
+    finally:
+        node.destroy_node()

@@ -293,16 +293,21 @@ class FlightParameters:
         with self._lock:
             values, extra = self.check(params)
             changed = {n for n, v in values.items() if self.config.values.get(n) != v}
-            self.config = FlightConfig(values)
-            self.extra_values.update(extra)
+            config = FlightConfig(values)
         if changed:
             self.node.get_logger().info("flight configuration changed: " + ", ".join(
                 f"{n}={values[n]}" for n in sorted(changed)))
             for listener in self._listeners:
                 try:
-                    listener(self.config, changed)
+                    listener(config, changed)
                 except Exception as exc:  # a listener must not break parameter setting
                     self.node.get_logger().error(f"applying {sorted(changed)} failed: {exc}")
+        # The new flight configuration shows only once the listeners have applied it: whoever
+        # sees it (another thread, a test waiting for the node to follow) may rely on its
+        # effect. Node-specific values show before their listeners run: those read them back.
+        with self._lock:
+            self.config = config
+            self.extra_values.update(extra)
         for name, value in extra.items():
             for extra_listener in self._extra_listeners:
                 extra_listener(name, value)
