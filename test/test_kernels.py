@@ -166,3 +166,42 @@ def test_the_loops_work_where_no_cache_directory_is_writable() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_eq13_in_one_pass_is_the_design_matrix_and_refuses_mismatched_points() -> None:
+    from lidarcal_ros.core.model import correct_points, design_matrix, point_offsets
+
+    rng = np.random.default_rng(2)
+    n = 50
+    x = rng.uniform(-400.0, 400.0, n)
+    z = rng.uniform(-1200.0, -900.0, n)
+    kappa = rng.uniform(-math.pi, math.pi, n)
+    beta = np.arctan(x / z)
+    delta = rng.normal(0.0, 1e-3, 8)
+    xyz = rng.uniform(-1e3, 1e3, (n, 3)) + np.array([5e5, 4e6, 100.0])
+    expected = np.einsum("nij,j->ni", design_matrix(x, z, kappa, beta), delta)
+    np.testing.assert_allclose(point_offsets(delta, x, z, kappa, beta), expected, atol=1e-12)
+    np.testing.assert_allclose(correct_points(xyz, delta, x, z, kappa, beta), xyz - expected,
+                               rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="xyz of shape"):
+        correct_points(xyz[:-1], delta, x, z, kappa, beta)
+
+
+def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> None:
+    from lidarcal_ros.core.local_trajectory import geometry_at, laser_geometry
+    from lidarcal_ros.core.mission import Trajectory
+
+    tt = np.arange(0.0, 10.0, 0.005)
+    traj = Trajectory(tt, np.column_stack([30.0 * np.sin(0.1 * tt), 60.0 * tt,
+                                           1000.0 + 2.0 * np.cos(0.3 * tt)]))
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(1.0, 9.0, 5000))
+    xyz = np.column_stack([rng.uniform(-300, 300, t.size), 60.0 * t + rng.normal(0, 5, t.size),
+                           rng.normal(0.0, 3.0, t.size)])
+    g = laser_geometry(t, xyz, traj)
+    ref = geometry_at(xyz, g.origin, g.kappa)
+    for name in ("x", "z", "beta"):
+        np.testing.assert_allclose(getattr(g, name), getattr(ref, name), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(g.cos_kappa, np.cos(g.kappa), atol=1e-15)
+    # The firing positions lie on the trajectory (a smooth line: within centimetres).
+    np.testing.assert_allclose(g.origin[:, 1], 60.0 * t, atol=0.05)

@@ -1,8 +1,12 @@
-"""Compiled per-point and per-cell loops of the grid normals (:mod:`lidarcal_ros.core.normals`).
+"""Compiled per-point and per-cell loops of the core: the grid normals
+(:mod:`lidarcal_ros.core.normals`), the laser geometry of each point
+(:func:`lidarcal_ros.core.local_trajectory.laser_geometry`) and eq. [13]
+(:func:`lidarcal_ros.core.model.point_offsets`).
 
-numpy spends most of the normals' time streaming temporaries through memory: ten weighted
-``bincount`` passes per binning, a (10, nu, nv) copy per block sum, a handful of gathers and
-masks per point. These loops do the same arithmetic in one pass each, compiled by numba
+numpy spends most of their time streaming temporaries through memory: ten weighted
+``bincount`` passes per binning, a (10, nu, nv) copy per block sum, a handful of gathers,
+(n, 3) intermediates and masks per point. These loops do the same arithmetic in one pass each,
+compiled by numba
 (``nopython``, ``nogil``: threads of the correction run them in parallel), cached on disk
 next to this module (or in numba's user cache where that is read-only).
 
@@ -385,3 +389,88 @@ def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
             rough[p] = min(best, own) > tol2
         nrm[p, 0], nrm[p, 1], nrm[p, 2] = nx, ny, nz
     return nrm, ok, rough
+
+
+@_jit
+def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
+                 cos_kappa: np.ndarray, sin_kappa: np.ndarray, sin_beta: np.ndarray,
+                 cos_beta: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """``A @ delta`` of each point (method.md eq. [8], map frame, m), or ``base - A @ delta``
+    (eq. [13]) when ``base`` has a row per point (an empty ``base``: the offsets).
+
+    The body-frame displacement (right, forward, up) rotated by kappa, as
+    :func:`lidarcal_ros.core.model.point_offsets` documents.
+    """
+    n = x.shape[0]
+    out = np.empty((n, 3))
+    d0, d1, d2, d3, d4, d5, d6, d7 = (delta[0], delta[1], delta[2], delta[3], delta[4],
+                                      delta[5], delta[6], delta[7])
+    corrected = base.shape[0] == n and n > 0
+    for i in range(n):
+        xi, zi, bi = x[i], z[i], beta[i]
+        c, s = cos_kappa[i], sin_kappa[i]
+        right = d0 + zi * d4 - sin_beta[i] * d6 + zi * bi * d7
+        fwd = d1 - zi * d3 + xi * d5
+        ox = c * right - s * fwd
+        oy = s * right + c * fwd
+        oz = d2 - xi * d4 - cos_beta[i] * d6 - xi * bi * d7
+        if corrected:
+            out[i, 0] = base[i, 0] - ox
+            out[i, 1] = base[i, 1] - oy
+            out[i, 2] = base[i, 2] - oz
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = ox, oy, oz
+    return out
+
+
+@_jit
+def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: np.ndarray,
+                    p_mean: np.ndarray, velocity: np.ndarray, kappa_w: np.ndarray,
+                    cos_w: np.ndarray, sin_w: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                               np.ndarray]:
+    """Firing position and laser-frame geometry of each point from the line fitted to its
+    trajectory window (method.md section 4).
+
+    Parameters
+    ----------
+    t : (n,) float64
+        Firing times, s.
+    xyz : (n, 3) float64
+        Points, map frame, m.
+    window : (n,) int64
+        The window of each point.
+    t_mean, p_mean, velocity : (k,), (k, 3), (k, 3) float64
+        Each window's line: mean time (s), mean position (m), velocity (m/s).
+    kappa_w, cos_w, sin_w : (k,) float64
+        Each window's heading (rad), its cosine and sine.
+
+    Returns
+    -------
+    origin : (n, 3) ``p_mean + velocity (t - t_mean)``, m
+    x, z : (n,) ``(xyz - origin) . (cos kappa, sin kappa, 0)`` and the height difference, m
+    kappa, cos_kappa, sin_kappa : (n,) the window's heading, its cosine and sine
+
+    (The mirror angle ``atan(x / z)`` is left to numpy, whose SIMD arctangent is several
+    times faster than a scalar one.)
+    """
+    n = t.shape[0]
+    origin = np.empty((n, 3))
+    x = np.empty(n)
+    z = np.empty(n)
+    kappa = np.empty(n)
+    cos_kappa = np.empty(n)
+    sin_kappa = np.empty(n)
+    for i in range(n):
+        w = window[i]
+        dt = t[i] - t_mean[w]
+        ox = p_mean[w, 0] + velocity[w, 0] * dt
+        oy = p_mean[w, 1] + velocity[w, 1] * dt
+        oz = p_mean[w, 2] + velocity[w, 2] * dt
+        origin[i, 0], origin[i, 1], origin[i, 2] = ox, oy, oz
+        c, s = cos_w[w], sin_w[w]
+        xi = (xyz[i, 0] - ox) * c + (xyz[i, 1] - oy) * s
+        zi = xyz[i, 2] - oz
+        x[i], z[i] = xi, zi
+        kappa[i], cos_kappa[i], sin_kappa[i] = kappa_w[w], c, s
+    return origin, x, z, kappa, cos_kappa, sin_kappa

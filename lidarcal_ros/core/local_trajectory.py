@@ -20,6 +20,7 @@ from typing import Literal
 
 import numpy as np
 
+from lidarcal_ros.core import kernels
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.errors import TrajectoryError
 
@@ -248,12 +249,15 @@ def laser_geometry(
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa_w = np.arctan2(-vel[:, 0], vel[:, 1])
-    # (np.take gathers several times faster than fancy indexing)
-    origin = np.take(p_mean, inv, axis=0)
-    origin += np.take(vel, inv, axis=0) * (t - np.take(t_mean, inv))[:, None]
-    geometry = geometry_at(xyz, origin, np.take(kappa_w, inv),
-                           cos_kappa=np.take(np.cos(kappa_w), inv),
-                           sin_kappa=np.take(np.sin(kappa_w), inv))
+    # Per point, in one pass: the firing position on its window's line, then what
+    # geometry_at computes from it.
+    origin, x, z, kappa, cos_kappa, sin_kappa = kernels.window_geometry(
+        t, xyz, np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa_w,
+        np.cos(kappa_w), np.sin(kappa_w))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.arctan(x / z)
+    geometry = LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
+                             cos_kappa=cos_kappa, sin_kappa=sin_kappa)
     above = geometry.z >= 0
     if np.any(above):
         k = int(np.argmax(above))

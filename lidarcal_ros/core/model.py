@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lidarcal_ros.core import kernels
 from lidarcal_ros.core.params import N_PARAMETERS
 
 
@@ -112,18 +113,23 @@ def point_offsets(
     -------
     (n, 3) float64
     """
-    d = np.asarray(delta, dtype=np.float64)
+    return _offsets(delta, x, z, kappa, beta, trig, np.empty((0, 3)))
+
+
+def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
+             beta: np.ndarray, trig: Trig | None, base: np.ndarray) -> np.ndarray:
+    """:func:`point_offsets`, or ``base - `` them (one pass: :func:`kernels.bias_offsets`).
+
+    Body frame: the displacement to the right is ``dX + z dphi - sin(beta) dr + z beta dS``,
+    forward ``dY - z domega + x dkappa``, up ``dZ - x dphi - cos(beta) dr - x beta dS``; the
+    horizontal part is rotated by kappa into the map frame.
+    """
     if trig is None:
         trig = (np.cos(kappa), np.sin(kappa), np.sin(beta), np.cos(beta))
-    c, s, sb, cb = trig
-    # Body-frame (right, forward) displacement, then rotate by kappa.
-    right = d[0] + z * d[4] - sb * d[6] + z * beta * d[7]
-    fwd = d[1] - z * d[3] + x * d[5]
-    out = np.empty((np.shape(x)[0], 3))
-    out[:, 0] = c * right - s * fwd
-    out[:, 1] = s * right + c * fwd
-    out[:, 2] = d[2] - x * d[4] - cb * d[6] - x * beta * d[7]
-    return out
+    c, s, sb, cb = (np.asarray(a, dtype=np.float64) for a in trig)
+    return kernels.bias_offsets(np.asarray(delta, dtype=np.float64),
+                                np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64),
+                                np.asarray(beta, dtype=np.float64), c, s, sb, cb, base)
 
 
 def correct_points(
@@ -152,7 +158,10 @@ def correct_points(
     (n, 3) float64
         New array of corrected points.
     """
-    return xyz - point_offsets(delta, x, z, kappa, beta, trig=trig)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.shape != (np.shape(x)[0], 3):
+        raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(x)[0]} points")
+    return _offsets(delta, x, z, kappa, beta, trig, xyz)
 
 
 def boresight_matrix(domega: float, dphi: float, dkappa: float) -> np.ndarray:
