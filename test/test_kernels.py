@@ -205,3 +205,26 @@ def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> Non
     np.testing.assert_allclose(g.cos_kappa, np.cos(g.kappa), atol=1e-15)
     # The firing positions lie on the trajectory (a smooth line: within centimetres).
     np.testing.assert_allclose(g.origin[:, 1], 60.0 * t, atol=0.05)
+
+
+def test_beam_geometry_range_scan_and_incidence() -> None:
+    rng = np.random.default_rng(8)
+    n = 200
+    origin = np.column_stack([rng.normal(0, 1, n), 60.0 * np.arange(n) / n,
+                              np.full(n, 1000.0)])
+    kappa = np.full(n, 0.3)
+    across = rng.uniform(-400.0, 400.0, n)
+    xc = origin + np.column_stack([across * np.cos(0.3), across * np.sin(0.3),
+                                   np.full(n, -1000.0)])
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    normals[5] = np.nan
+    normals[6] = xc[6] - origin[6]  # pointing along the beam, not unit: |cos| > 1 clipped
+    r, tan_scan, cos_inc = kernels.beam_geometry(xc, origin, np.cos(kappa), np.sin(kappa),
+                                                 normals)
+    np.testing.assert_allclose(r, np.hypot(across, 1000.0), rtol=1e-12)
+    assert tan_scan.dtype == np.float32 and cos_inc.dtype == np.float32
+    np.testing.assert_allclose(np.arctan(tan_scan), np.arctan(across / -1000.0), atol=1e-6)
+    level = np.ones(n, dtype=bool)
+    level[[5, 6]] = False
+    np.testing.assert_allclose(cos_inc[level], 1000.0 / r[level], rtol=1e-6)
+    assert np.isnan(cos_inc[5]) and cos_inc[6] == 1.0

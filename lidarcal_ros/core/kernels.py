@@ -474,3 +474,48 @@ def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: 
         x[i], z[i] = xi, zi
         kappa[i], cos_kappa[i], sin_kappa[i] = kappa_w[w], c, s
     return origin, x, z, kappa, cos_kappa, sin_kappa
+
+
+@_jit
+def beam_geometry(xc: np.ndarray, origin: np.ndarray, cos_kappa: np.ndarray,
+                  sin_kappa: np.ndarray, normals: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range, scan-angle tangent and incidence cosine of each return.
+
+    Parameters
+    ----------
+    xc : (n, 3) float64
+        Corrected points, map frame, m.
+    origin : (n, 3) float64
+        Firing positions, map frame, m.
+    cos_kappa, sin_kappa : (n,) float64
+        Heading of the flight line at each firing.
+    normals : (n, 3) float64
+        Unit surface normals (NaN: none).
+
+    Returns
+    -------
+    range : (n,) float64
+        ``|xc - origin|``, m.
+    tan_scan : (n,) float32
+        ``x_right / z`` of the beam (``x_right`` across track, to the right), whose
+        arctangent is the scan angle.
+    cos_incidence : (n,) float32
+        ``|n . l|`` with ``l`` the unit beam direction, at most 1; NaN without a normal.
+    """
+    n = xc.shape[0]
+    rng = np.empty(n)
+    tan_scan = np.empty(n, dtype=np.float32)
+    cos_inc = np.empty(n, dtype=np.float32)
+    for i in range(n):
+        rx = xc[i, 0] - origin[i, 0]
+        ry = xc[i, 1] - origin[i, 1]
+        rz = xc[i, 2] - origin[i, 2]
+        r = math.sqrt(rx * rx + ry * ry + rz * rz)
+        rng[i] = r
+        tan_scan[i] = (rx * cos_kappa[i] + ry * sin_kappa[i]) / rz
+        c = abs((normals[i, 0] * rx + normals[i, 1] * ry + normals[i, 2] * rz) * (1.0 / r))
+        if c > 1.0:  # (NaN stays NaN)
+            c = 1.0
+        cos_inc[i] = c
+    return rng, tan_scan, cos_inc

@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core import kernels
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.local_trajectory import (
     LaserGeometry,
@@ -370,7 +371,6 @@ def correct_columns(
                                min_samples=settings.min_samples, source=source)
     everything = bool(ok.all())
     flags[~ok] |= FLAG_NOT_CORRECTED
-    out_xyz = xyz.copy()
     gn = normals if normals is not None else _fitted_normals(
         xyz, t, trajectory, group=group, context_xyz=context_xyz, context_group=context_group,
         heading=heading, cell_m=cell_m)
@@ -379,24 +379,22 @@ def correct_columns(
         stats_flags = flags
         if intensity is None:
             stats_flags |= FLAG_NO_INTENSITY
-        return CorrectedColumns(out_xyz, rng, inc, scan, refl, stats_flags, gn.cell_m)
+        return CorrectedColumns(xyz.copy(), rng, inc, scan, refl, stats_flags, gn.cell_m)
 
     sel = slice(None) if everything else ok
     trig = geo.trig()
     xc = correct_points(xyz[sel], settings.delta, geo.x, geo.z, geo.kappa, geo.beta, trig=trig)
-    out_xyz[sel] = xc
-    rel = xc - geo.origin
-    r = np.sqrt(np.einsum("ij,ij->i", rel, rel))
-    inv_r = 1.0 / r
-    x_right = rel[:, 0] * trig[0] + rel[:, 1] * trig[1]
-    # In float32 (the field's type): the transcendental function costs half as much.
-    scan[sel] = np.arctan((x_right / rel[:, 2]).astype(np.float32))
-    rng[sel] = r
+    if everything:  # (a new array already: no copy of the input needed)
+        out_xyz = xc
+    else:
+        out_xyz = xyz.copy()
+        out_xyz[sel] = xc
     nrm = point_normals if everything else point_normals[sel]
-    # |n . l| with l = rel / r
-    cos_t = np.abs((nrm[:, 0] * rel[:, 0] + nrm[:, 1] * rel[:, 1] + nrm[:, 2] * rel[:, 2])
-                   * inv_r).astype(np.float32)
-    np.minimum(cos_t, np.float32(1.0), out=cos_t)
+    r, tan_scan, cos_t = kernels.beam_geometry(xc, geo.origin, trig[0], trig[1],
+                                               np.asarray(nrm, dtype=np.float64))
+    # In float32 (the field's type): the transcendental function costs half as much.
+    scan[sel] = np.arctan(tan_scan)
+    rng[sel] = r
     has_normal = np.isfinite(cos_t)
     inc[sel] = np.arccos(cos_t)
     nn = np.zeros(n, dtype=bool)
