@@ -26,9 +26,12 @@ _M_ARENA_MAX = -8
 MMAP_THRESHOLD_BYTES = 256 << 20
 #: Free memory at the top of the heap is returned to the system above this (bytes).
 TRIM_THRESHOLD_BYTES = 512 << 20
+#: The same for the processes of the nodes (bytes): a few clouds' worth.
+NODE_TRIM_THRESHOLD_BYTES = 64 << 20
 
 
-def tune_allocator(*, single_arena: bool = True) -> bool:
+def tune_allocator(*, single_arena: bool = True,
+                   trim_threshold_bytes: int = TRIM_THRESHOLD_BYTES) -> bool:
     """Keep freed memory in the process: no ``mmap``/``munmap`` and page faults per buffer.
 
     Memory stays bounded by the largest batch in flight either way; it is just not returned
@@ -41,6 +44,10 @@ def tune_allocator(*, single_arena: bool = True) -> bool:
         each keep a high-water mark of their own (without it the peak of a threaded
         correction creeps up with the mission's length). The nodes keep glibc's default:
         DDS's own threads allocate there too.
+    trim_threshold_bytes : int
+        Free memory at the top of the heap beyond this goes back to the system. The nodes
+        use less than the default: they run for hours, and a burst (a backlog of clouds)
+        should not stay resident.
 
     Returns
     -------
@@ -53,7 +60,7 @@ def tune_allocator(*, single_arena: bool = True) -> bool:
     try:
         libc = ctypes.CDLL(name)
         ok = libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1
-        ok &= libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1
+        ok &= libc.mallopt(_M_TRIM_THRESHOLD, int(trim_threshold_bytes)) == 1
         if single_arena:
             ok &= libc.mallopt(_M_ARENA_MAX, 1) == 1
     except (OSError, AttributeError):

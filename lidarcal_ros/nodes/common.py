@@ -46,7 +46,7 @@ from rclpy.qos import (
     qos_profile_parameter_events,
 )
 
-from lidarcal_ros.allocator import tune_allocator
+from lidarcal_ros.allocator import NODE_TRIM_THRESHOLD_BYTES, tune_allocator
 from lidarcal_ros.core.config import SCHEMA, FlightConfig, ParameterSpec, coerce, cross_check
 from lidarcal_ros.errors import ConfigError, LidarcalError
 from lidarcal_ros.io.ros_messages import StatusSpec
@@ -478,7 +478,7 @@ def start_ros(argv: list[str]) -> tuple[Any, Shutdown]:
     from rclpy.context import Context
     from rclpy.signals import SignalHandlerOptions
 
-    tune_allocator(single_arena=False)
+    tune_allocator(single_arena=False, trim_threshold_bytes=NODE_TRIM_THRESHOLD_BYTES)
     shutdown = Shutdown().install()
     context = Context()
     rclpy.init(args=argv, context=context, signal_handler_options=SignalHandlerOptions.NO)

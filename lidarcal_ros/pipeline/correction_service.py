@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.allocator import tune_allocator
+from lidarcal_ros.allocator import NODE_TRIM_THRESHOLD_BYTES, tune_allocator
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
@@ -254,7 +254,8 @@ def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
         pts["intensity"] = 100.0
         pts["strip_id"] = 1
         clouds.append((k, cloud_cdr(0, "map", pts)))
-    engine.push(clouds, lambda _tag, _reason: None)
+    for cloud in clouds:  # one at a time, as they come when the node keeps up
+        engine.push([cloud], lambda _tag, _reason: None)
     engine.flush()
 
 
@@ -265,7 +266,7 @@ _RESULT_POLL_S = 0.002
 def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
                 options: ServiceOptions) -> None:
     """The child process: requests from ``inbox``, results to ``outbox`` (module docstring)."""
-    tune_allocator()
+    tune_allocator(trim_threshold_bytes=NODE_TRIM_THRESHOLD_BYTES)
     try:
         warm_up(settings, options)
     except Exception:  # only a warm-up
