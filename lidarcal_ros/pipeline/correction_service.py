@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.allocator import NODE_TRIM_THRESHOLD_BYTES, tune_allocator
+from lidarcal_ros.allocator import tune_allocator
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
@@ -266,7 +266,10 @@ _RESULT_POLL_S = 0.002
 def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
                 options: ServiceOptions) -> None:
     """The child process: requests from ``inbox``, results to ``outbox`` (module docstring)."""
-    tune_allocator(trim_threshold_bytes=NODE_TRIM_THRESHOLD_BYTES)
+    # glibc's threshold for giving back free heap stays high here: a lower one returned the
+    # heap the warm-up grew, and at 4M points/s the first chunks then faulted it in again
+    # (a start-up backlog that took seconds, not one, to drain).
+    tune_allocator()
     try:
         warm_up(settings, options)
     except Exception:  # only a warm-up
