@@ -79,6 +79,13 @@ def accumulate_moments(out: np.ndarray, row0: int, col0: int, iu: np.ndarray, iv
 
 
 @_jit
+def _cross(a: tuple[float, float, float], b: tuple[float, float, float]
+           ) -> tuple[float, float, float]:
+    """``a x b``."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@_jit
 def _eigen_smallest(cxx: float, cxy: float, cxz: float, cyy: float, cyz: float, czz: float
                     ) -> tuple[float, float, float, float, float, bool]:
     """Smallest and middle eigenvalue and the smallest eigenvector (``z >= 0``) of one
@@ -100,25 +107,16 @@ def _eigen_smallest(cxx: float, cxy: float, cxz: float, cyy: float, cyz: float, 
     lam_min = q + 2.0 * p * math.cos(phi + _THIRD_TURN)
     lam_mid = 3.0 * q - lam_max - lam_min
     # The largest cross product of two rows of (C - lam_min I).
-    d0 = cxx - lam_min
-    d1 = cyy - lam_min
-    d2 = czz - lam_min
-    vx = cxy * cyz - cxz * d1  # r0 x r1
-    vy = cxz * cxy - d0 * cyz
-    vz = d0 * d1 - cxy * cxy
+    r0 = (cxx - lam_min, cxy, cxz)
+    r1 = (cxy, cyy - lam_min, cyz)
+    r2 = (cxz, cyz, czz - lam_min)
+    vx, vy, vz = _cross(r0, r1)
     best = vx * vx + vy * vy + vz * vz
-    wx = cxy * d2 - cxz * cyz  # r0 x r2
-    wy = cxz * cxz - d0 * d2
-    wz = d0 * cyz - cxy * cxz
-    nn = wx * wx + wy * wy + wz * wz
-    if nn > best:
-        vx, vy, vz, best = wx, wy, wz, nn
-    wx = d1 * d2 - cyz * cyz  # r1 x r2
-    wy = cyz * cxz - cxy * d2
-    wz = cxy * cyz - d1 * cxz
-    nn = wx * wx + wy * wy + wz * wz
-    if nn > best:
-        vx, vy, vz, best = wx, wy, wz, nn
+    for ra, rb in ((r0, r2), (r1, r2)):
+        wx, wy, wz = _cross(ra, rb)
+        nn = wx * wx + wy * wy + wz * wz
+        if nn > best:
+            vx, vy, vz, best = wx, wy, wz, nn
     norm = math.sqrt(best)
     ok = norm > 0.0 and p > 0.0 and math.isfinite(norm)
     scale = 1.0 / norm
