@@ -313,24 +313,34 @@ def grid_normals(
 def _fit_group(
     xyz: np.ndarray, heading: float, cell: tuple[float, float], min_points: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    cu, cv = cell
     x0, y0 = float(xyz[0, 0]), float(xyz[0, 1])
     u, v = _flight_frame(xyz, heading, x0, y0)
     z = xyz[:, 2] - float(xyz[0, 2])
-    # Grid origin at the lowest coordinates: moments stay small, indices non-negative.
-    u -= u.min()
-    v -= v.min()
-    iu = (u * (1.0 / cu)).astype(np.int64)
-    iv = (v * (1.0 / cv)).astype(np.int64)
     min_spread = _min_spread(cell)
-    nu = int(iu.max()) + 1
-    nv = int(iv.max()) + 1
-    if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
+    moments, iu, iv = _dense_moments(u, v, z, cell)
+    if moments is None:
         return _fit_sparse(u, v, z, iu, iv, heading, min_points, min_spread)
-    moments = np.zeros((10, nu, nv))
-    kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
     nrm, ok, rough = _grid_planes(moments, iu, iv, u, v, z, min_points, min_spread)
     return _to_map(nrm, heading), ok, rough
+
+
+def _dense_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, cell: tuple[float, float]
+                   ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """A grid of cells over points, anchored at their lowest coordinates (``u`` and ``v`` are
+    shifted there, in place: moments stay small, indices non-negative): each point's cell
+    ``iu, iv`` and the (10, nu, nv) moment sums of the cells, None where the grid would be
+    mostly empty (use :func:`_fit_sparse`)."""
+    u -= u.min()
+    v -= v.min()
+    iu = (u * (1.0 / cell[0])).astype(np.int64)
+    iv = (v * (1.0 / cell[1])).astype(np.int64)
+    nu = int(iu.max()) + 1
+    nv = int(iv.max()) + 1
+    if nu * nv > _MAX_CELLS_PER_POINT * u.shape[0] + 1024:
+        return None, iu, iv
+    moments = np.zeros((10, nu, nv))
+    kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
+    return moments, iu, iv
 
 
 def _min_spread(cell: tuple[float, float]) -> float:
@@ -638,14 +648,9 @@ class StripNormals:
     def _first_noise(self, xyz: np.ndarray) -> float:
         """Typical plane-fit residual (m) of the strip's first points: the edge tolerance
         of the whole strip (fixed, so that the normals do not depend on the cut)."""
-        u, v, z = self._frame(xyz)
-        iu = np.floor((u - u.min()) * (1.0 / self.cell[0])).astype(np.int64)
-        iv = np.floor((v - v.min()) * (1.0 / self.cell[1])).astype(np.int64)
-        nu, nv = int(iu.max()) + 1, int(iv.max()) + 1
-        if nu * nv > _MAX_CELLS_PER_POINT * xyz.shape[0] + 1024:
+        moments, _, _ = _dense_moments(*self._frame(xyz), self.cell)
+        if moments is None:
             return 0.0
-        moments = np.zeros((10, nu, nv))
-        kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
         lam, _, ok, _ = kernels.fit_blocks2(moments, self.min_points, _min_spread(self.cell))
         return _median_noise(lam, ok)
 
