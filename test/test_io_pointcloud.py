@@ -236,3 +236,16 @@ def test_make_point_dtype():
     assert "intensity" not in (make_point_dtype(intensity=False).names or ())
     with pytest.raises(CloudFormatError, match="'t' clashes"):
         make_point_dtype(("t",))
+
+
+def test_time_span_skips_nan_and_says_nan_when_there_is_no_time() -> None:
+    import math
+    import warnings
+
+    from lidarcal_ros.io.pointcloud import time_span
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning for all-NaN times either
+        assert time_span(np.array([3.0, np.nan, 1.0, 2.0])) == (1.0, 3.0)
+        assert all(math.isnan(v) for v in time_span(np.array([np.nan, np.nan])))
+        assert all(math.isnan(v) for v in time_span(np.empty(0)))

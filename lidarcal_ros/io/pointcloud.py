@@ -370,6 +370,15 @@ def resolve_time_field(arr: np.ndarray, time_field: str = "t", *, source: str = 
     )
 
 
+def time_span(t: np.ndarray) -> tuple[float, float]:
+    """Earliest and latest time among ``t`` ignoring NaN (s); ``(nan, nan)`` when there is
+    none (an empty cloud, or times all NaN)."""
+    if t.size == 0:
+        return float("nan"), float("nan")
+    # fmin/fmax skip NaN, and give NaN (without a warning) only when all are.
+    return float(np.fmin.reduce(t)), float(np.fmax.reduce(t))
+
+
 def extract_columns(
     arr: np.ndarray, *, time_field: str = "t", source: str = "cloud"
 ) -> CloudColumns:

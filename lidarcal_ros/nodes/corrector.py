@@ -43,7 +43,6 @@ import math
 import sys
 import threading
 import time
-import warnings
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -59,7 +58,7 @@ from std_msgs.msg import Float64MultiArray
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.pointcloud import resolve_time_field
+from lidarcal_ros.io.pointcloud import resolve_time_field, time_span
 from lidarcal_ros.io.ros_messages import (
     OK,
     WARN,
@@ -326,10 +325,7 @@ class CorrectorNode(Node):
                                     f"trajectory is in '{traj_frame}'")
             tname = resolve_time_field(cloud.points, self._settings.time_field,
                                        source=source)
-            t = cloud.points[tname]
-            with np.errstate(invalid="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN times
-                t_max = float(np.nanmax(t)) if t.size else math.nan
+            _, t_max = time_span(cloud.points[tname])
             chunk.t_max = t_max if math.isfinite(t_max) else -math.inf
         except LidarcalError as exc:
             self._skip(chunk, str(exc))

@@ -49,7 +49,6 @@ import heapq
 import logging
 import math
 import time
-import warnings
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor, wait
@@ -91,6 +90,7 @@ from lidarcal_ros.io.pointcloud import (
     cloud_to_array,
     extract_columns,
     resolve_time_field,
+    time_span,
 )
 
 logger = logging.getLogger(__name__)
@@ -774,8 +774,7 @@ class StreamCorrector:
     def flush(self) -> list[tuple[Any, np.ndarray]]:
         """Correct everything held (the end of the stream); stop the workers."""
         try:
-            out = self._drain(final=True)
-            out.extend(self._collect(wait_all=True))
+            out = self.release()
             for s in self._strips.values():
                 self._late_done += s.normals.late_points
             self._strips.clear()
@@ -822,10 +821,7 @@ class StreamCorrector:
             for strip_id, idx in m.strip_parts:
                 xyz = cols.xyz if idx is None else cols.xyz[idx]
                 t = cols.t if idx is None else cols.t[idx]
-                with np.errstate(invalid="ignore"), warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN times
-                    t_lo = float(np.nanmin(t)) if t.size else math.nan
-                    t_hi = float(np.nanmax(t)) if t.size else math.nan
+                t_lo, t_hi = time_span(t)
                 heading = trajectory_heading(self.trajectory, 0.5 * (t_lo + t_hi))
                 strip = self._strips.get(strip_id)
                 if strip is not None and self._strip_ended(strip, heading, t_lo):
