@@ -250,38 +250,49 @@ def _cpu_s(pid: int) -> tuple[float, float]:
     return own, others
 
 
+def _machine_busy_s() -> float:
+    """CPU seconds all cores of the machine have spent busy so far (``/proc/stat``: every
+    column but idle and iowait), or NaN where that file is not."""
+    try:
+        fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    except (OSError, ValueError):
+        return math.nan
+    return (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")
+
+
 class CpuSampler:
     """Samples the CPU time of a process and its descendants every ``period`` s (wall time,
-    own, descendants), so that the steady state can be told from start-up."""
+    own, descendants, the whole machine's busy time), so that the steady state can be told
+    from start-up."""
 
     def __init__(self, pid: int, period: float = 0.2) -> None:
         self.pid = pid
-        self.samples: list[tuple[float, float, float]] = []
+        self.samples: list[tuple[float, float, float, float]] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(period,), daemon=True)
         self._thread.start()
 
     def _run(self, period: float) -> None:
         while not self._stop.is_set():
-            self.samples.append((time.time(), *_cpu_s(self.pid)))
+            self.samples.append((time.time(), *_cpu_s(self.pid), _machine_busy_s()))
             self._stop.wait(period)
 
     def stop(self) -> None:
         self._stop.set()
         self._thread.join()
 
-    def usage(self, t0: float, t1: float) -> tuple[float, float, float]:
-        """CPU seconds of the process and of its descendants between the samples nearest
-        ``t0`` and ``t1``, and the wall time between those samples."""
+    def usage(self, t0: float, t1: float) -> tuple[float, float, float, float]:
+        """CPU seconds of the process, of its descendants and of the whole machine between
+        the samples nearest ``t0`` and ``t1``, and the wall time between those samples."""
         if len(self.samples) < 2:
-            return math.nan, math.nan, math.nan
+            return math.nan, math.nan, math.nan, math.nan
         times = np.array([x[0] for x in self.samples])
         a = int(np.argmin(np.abs(times - t0)))
         b = int(np.argmin(np.abs(times - t1)))
         if b <= a:
-            return math.nan, math.nan, math.nan
-        return (self.samples[b][1] - self.samples[a][1], self.samples[b][2] - self.samples[a][2],
-                self.samples[b][0] - self.samples[a][0])
+            return math.nan, math.nan, math.nan, math.nan
+        first, last = self.samples[a], self.samples[b]
+        return last[1] - first[1], last[2] - first[2], last[3] - first[3], last[0] - first[0]
 
 
 class Receiver:
@@ -449,11 +460,11 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             first = float(lat[0])
             # CPU of the corrector (node process, correction process) in the steady state:
             # from one second after the first corrected chunk to the last.
-            node_cpu, child_cpu, wall = sampler.usage(recv[0] + 1.0, recv[-1])
+            node_cpu, child_cpu, machine_cpu, wall = sampler.usage(recv[0] + 1.0, recv[-1])
             steady_points = int(n_pts[(recv > recv[0] + 1.0)].sum())
         else:
             out_rate = growth = p50 = p99 = p99_steady = p99_late = first = math.nan
-            node_cpu = child_cpu = wall = math.nan
+            node_cpu = child_cpu = machine_cpu = wall = math.nan
             steady_points = 0
         results.append({
             "path": variant, "offered_pts_s": rate, "chunk_points": points,
@@ -462,7 +473,9 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             "latency_growth_s": growth, "corrector_rss_mib": rss,
             "latency_p99_steady_s": p99_steady, "latency_p99_second_half_s": p99_late,
             "first_chunk_latency_s": first,
+            "latencies_s": [round(x[1], 4) for x in s],  # per chunk, in order received
             "node_cpu_share": node_cpu / wall, "correction_cpu_share": child_cpu / wall,
+            "machine_busy_share": machine_cpu / wall / (os.cpu_count() or 1),
             "corrector_ns_per_point": 1e9 * (node_cpu + child_cpu) / max(steady_points, 1),
         })
         keeps_up = (len(s) == sent["chunks"] and out_rate >= 0.95 * rate
@@ -474,7 +487,8 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
               f"{first * 1000:5.0f} ms), "
               f"growth {growth * 1000:+7.1f} ms; CPU node {node_cpu / wall:4.0%} + "
               f"correction {child_cpu / wall:4.0%} = "
-              f"{results[-1]['corrector_ns_per_point']:.0f} ns/point: "
+              f"{results[-1]['corrector_ns_per_point']:.0f} ns/point, machine "
+              f"{results[-1]['machine_busy_share']:.0%} busy: "
               f"{'keeps up' if keeps_up else 'falls behind'}"
               f"{', p99 goal met' if keeps_up and p99_steady <= GOAL_P99_S else ''}",
               flush=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import helpers_missions
@@ -18,6 +19,8 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.io.bag import _strip_points
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
+from lidarcal_ros.io.shared_ring import SharedRing
+from lidarcal_ros.pipeline import correction_service
 from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
 from lidarcal_ros.pipeline.correction_service import (
     CorrectionProcess,
@@ -78,19 +81,69 @@ def test_child_process_gives_the_bytes_of_the_stream_corrector(
     for tag, arr in ref.flush():
         expected[tag] = cloud_cdr(1_000_000_000 + tag, "map", arr)
 
-    outputs = {}
-    for kind in (LocalCorrection, CorrectionProcess):
-        got = Collector()
-        service = kind(settings, options, on_result=got.result, on_error=got.error)
-        service.poses(trajectory.t, trajectory.xyz)
-        for k in range(0, len(clouds), 3):
-            service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
-        service.close()
-        assert [e[0] for e in got.events] == ["out"] * len(clouds)
-        assert [e[1] for e in got.events] == list(range(len(clouds)))  # once, in order
-        outputs[kind.__name__] = {e[1]: e[2] for e in got.events}
-    assert outputs["LocalCorrection"] == expected
-    assert outputs["CorrectionProcess"] == expected
+    got = Collector()
+    local = LocalCorrection(settings, options, on_result=got.result, on_error=got.error)
+    local.poses(trajectory.t, trajectory.xyz)
+    for k in range(0, len(clouds), 3):
+        local.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
+    local.close()
+    assert [e[0] for e in got.events] == ["out"] * len(clouds)
+    assert [e[1] for e in got.events] == list(range(len(clouds)))  # once, in order
+    assert {e[1]: e[2] for e in got.events} == expected
+    assert _run_process(settings, options, trajectory, clouds) == expected
+
+
+def _run_process(settings: CorrectionSettings, options: ServiceOptions, trajectory: Any,
+                 clouds: list[bytes], *, shared_memory: bool = True,
+                 carried: dict[str, int] | None = None) -> dict[int, bytes]:
+    """The clouds through a CorrectionProcess, three a request: what came out, by tag (and
+    in ``carried``, how many went which way)."""
+    got = Collector()
+    service = CorrectionProcess(settings, options, on_result=got.result, on_error=got.error)
+    deadline = time.monotonic() + 60
+    while shared_memory and not service.shared_memory and time.monotonic() < deadline:
+        time.sleep(0.01)  # the rings are used once the child has mapped them
+    assert service.shared_memory == shared_memory
+    service.poses(trajectory.t, trajectory.xyz)
+    for k in range(0, len(clouds), 3):
+        service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
+    service.close()
+    assert [e[0] for e in got.events] == ["out"] * len(clouds)
+    assert [e[1] for e in got.events] == list(range(len(clouds)))  # once, in order
+    for ring in (service._inbound, service._outbound):
+        assert ring is None or not Path(ring.path).exists()  # no file left behind
+    if carried is not None:
+        carried.update(service.carried)
+    return {e[1]: e[2] for e in got.events}
+
+
+@pytest.mark.parametrize("transport", ["small rings", "pipes"])
+def test_clouds_that_find_no_room_in_shared_memory_go_through_the_pipe(
+        small_mission: MissionFiles, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture, transport: str) -> None:
+    """With rings of about two clouds (look-ahead holds several), clouds go by ring and by
+    pipe, in and out, and come out the same; with no shared memory at all, by pipe."""
+    settings, trajectory, clouds = _stream(small_mission)
+    options = ServiceOptions(lookahead=True)
+    carried: dict[str, int] = {}
+    expected = _run_process(settings, options, trajectory, clouds, carried=carried)
+    assert carried["ring in"] == carried["ring out"] == len(clouds)  # all by the rings
+    if transport == "small rings":
+        monkeypatch.setattr(correction_service, "RING_BYTES", 2 * max(map(len, clouds)) + 64)
+    else:
+        def refuse(size: int, **_kw: Any) -> SharedRing:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(SharedRing, "create", refuse)
+    got = _run_process(settings, options, trajectory, clouds,
+                       shared_memory=transport != "pipes", carried=carried)
+    assert got == expected
+    if transport == "pipes":
+        assert "through pipes" in caplog.text and "No space" in caplog.text
+        assert carried["ring in"] == carried["ring out"] == 0
+    else:
+        assert carried["ring in"] > 0 and carried["pipe in"] > 0, carried
+        assert carried["ring out"] > 0, carried
 
 
 def test_malformed_cloud_is_reported_and_the_rest_corrected(

@@ -189,13 +189,22 @@ def cloud_cdr(
         CDR (little-endian) bytes, identical to rosbags' and rclpy's serialisation; the point
         bytes are copied once, straight into the result.
     """
+    return b"".join(cloud_cdr_parts(stamp, frame_id, points, is_dense=is_dense))
+
+
+def cloud_cdr_parts(
+    stamp: int, frame_id: str, points: np.ndarray, *, is_dense: bool | None = None
+) -> tuple[bytes, memoryview, bytes]:
+    """The CDR bytes of :func:`cloud_cdr` in three parts, the point bytes not copied: the
+    header up to the length of ``data``, the point bytes, and ``is_dense``. Joined, they are
+    the message; a caller can also copy them straight into a buffer of its own."""
     fields, point_step, data = array_to_cloud_parts(points)
     n = data.size // point_step if point_step else 0
     if is_dense is None:
         names = points.dtype.names or ()
         is_dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
     head = cloud_header_cdr(stamp, frame_id, fields, point_step, n)
-    return b"".join((head, data.data, b"\x01" if is_dense else b"\x00"))
+    return head, data.data, b"\x01" if is_dense else b"\x00"
 
 
 # ---------------------------------------------------------------------------- estimate

@@ -293,7 +293,7 @@ class CorrectorNode(Node):
                 self.get_logger().warning(f"correction process not started ({exc}); "
                                           "correcting in a thread of this node")
         return LocalCorrection(self._settings, options, on_result=self._on_result,
-                               on_error=self._on_error)
+                               on_error=self._on_error, warm=True)
 
     def _on_failure(self, reason: str) -> None:
         self.get_logger().error(f"corrector: {reason}; restarting it")

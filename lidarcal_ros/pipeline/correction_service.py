@@ -26,7 +26,7 @@ import os
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +35,8 @@ import numpy as np
 from lidarcal_ros.allocator import tune_allocator
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
+from lidarcal_ros.io.ros_messages import cloud_cdr, cloud_cdr_parts, parse_cloud
+from lidarcal_ros.io.shared_ring import SharedRing
 from lidarcal_ros.pipeline.correction import (
     FLAG_NOT_CORRECTED,
     CorrectionSettings,
@@ -75,8 +76,25 @@ class ServiceOptions:
     trajectory_keep_s: float = 600.0
 
 
+@dataclass(frozen=True)
+class _Corrected:
+    """A corrected cloud, not yet serialised (each runner serialises it its own way)."""
+
+    tag: Any
+    stamp_ns: int
+    frame_id: str
+    points: np.ndarray
+    not_corrected: int
+    seconds: float
+
+    def cdr_parts(self) -> tuple[bytes, memoryview, bytes]:
+        """The message's CDR bytes in parts (:func:`~lidarcal_ros.io.ros_messages.
+        cloud_cdr_parts`)."""
+        return cloud_cdr_parts(self.stamp_ns, self.frame_id, self.points)
+
+
 class _Engine:
-    """Trajectory buffer, stream corrector and CDR in and out: what both runners run."""
+    """Trajectory buffer, stream corrector and CDR in: what both runners run."""
 
     def __init__(self, settings: CorrectionSettings, options: ServiceOptions) -> None:
         self.options = options
@@ -90,8 +108,8 @@ class _Engine:
     def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
         self.trajectory.add_many(t, xyz)
 
-    def push(self, clouds: list[tuple[Any, bytes]], on_error: ErrorHandler
-             ) -> list[tuple[Any, bytes, int, int, float]]:
+    def push(self, clouds: Sequence[tuple[Any, bytes | memoryview]], on_error: ErrorHandler
+             ) -> list[_Corrected]:
         started = time.perf_counter()
         parsed: list[tuple[np.ndarray, Any]] = []
         for tag, raw in clouds:
@@ -108,37 +126,39 @@ class _Engine:
             on_error(tag, str(exc))
 
         self.corrector.set_trajectory(self.trajectory.trajectory())
-        return self._encode(self.corrector.push_many(parsed, on_error=malformed))
+        return self._finish(self.corrector.push_many(parsed, on_error=malformed))
 
-    def release(self) -> list[tuple[Any, bytes, int, int, float]]:
+    def release(self) -> list[_Corrected]:
         self.corrector.set_trajectory(self.trajectory.trajectory())
-        return self._encode(self.corrector.release())
+        return self._finish(self.corrector.release())
 
-    def flush(self) -> list[tuple[Any, bytes, int, int, float]]:
+    def flush(self) -> list[_Corrected]:
         self.corrector.set_trajectory(self.trajectory.trajectory())
-        return self._encode(self.corrector.flush())
+        return self._finish(self.corrector.flush())
 
-    def collect(self, timeout: float = 0.0) -> list[tuple[Any, bytes, int, int, float]]:
+    def collect(self, timeout: float = 0.0) -> list[_Corrected]:
         """Clouds the worker threads have finished since the last call (waiting up to
         ``timeout`` s for the oldest batch in flight)."""
-        return self._encode(self.corrector.collect_ready(timeout))
+        return self._finish(self.corrector.collect_ready(timeout))
 
-    def _encode(self, out: list[tuple[Any, np.ndarray]]
-                ) -> list[tuple[Any, bytes, int, int, float]]:
-        encoded = []
+    def _finish(self, out: list[tuple[Any, np.ndarray]]) -> list[_Corrected]:
+        done = []
         for tag, corrected in out:
             stamp, frame, started = self._headers.pop(tag)
-            cdr = cloud_cdr(stamp, frame, corrected)
             bad = int(np.count_nonzero(corrected["correction_flags"] & FLAG_NOT_CORRECTED))
-            encoded.append((tag, cdr, len(corrected), bad, time.perf_counter() - started))
-        return encoded
+            done.append(_Corrected(tag, stamp, frame, corrected, bad,
+                                   time.perf_counter() - started))
+        return done
 
 
 class LocalCorrection:
     """The correction in the calling thread (same interface as :class:`CorrectionProcess`)."""
 
     def __init__(self, settings: CorrectionSettings, options: ServiceOptions, *,
-                 on_result: ResultHandler, on_error: ErrorHandler) -> None:
+                 on_result: ResultHandler, on_error: ErrorHandler,
+                 warm: bool = False) -> None:
+        if warm:
+            warm_up(settings, options)
         self._engine = _Engine(settings, options)
         self._on_result = on_result
         self._on_error = on_error
@@ -174,9 +194,10 @@ class LocalCorrection:
         """Correct and report everything held."""
         self._emit(self._engine.flush())
 
-    def _emit(self, results: list[tuple[Any, bytes, int, int, float]]) -> None:
+    def _emit(self, results: list[_Corrected]) -> None:
         for r in results:
-            self._on_result(*r)
+            self._on_result(r.tag, b"".join(r.cdr_parts()), len(r.points), r.not_corrected,
+                            r.seconds)
 
 
 #: Pipe capacity asked for (bytes): a cloud crosses in a few system calls instead of one per
@@ -194,14 +215,16 @@ def _widen(conn: Any) -> None:
         pass
 
 
-def _send_payload(conn: Any, data: bytes) -> None:
-    """Write ``data`` framed as :meth:`multiprocessing.connection.Connection.send_bytes`
-    does (4-byte big-endian length), in as few system calls as the pipe allows."""
+def _send_payload(conn: Any, parts: list[bytes | memoryview]) -> None:
+    """Write the bytes of ``parts`` one after the other, framed as :meth:`multiprocessing.
+    connection.Connection.send_bytes` does (4-byte big-endian length), in as few system
+    calls as the pipe allows."""
     fd = conn.fileno()
-    os.write(fd, struct.pack("!i", len(data)))
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
+    views = [memoryview(part).cast("B") for part in parts]
+    os.write(fd, struct.pack("!i", sum(len(v) for v in views)))
+    for view in views:
+        while view:
+            view = view[os.write(fd, view):]
 
 
 def _recv_payload(conn: Any) -> bytes:
@@ -261,11 +284,37 @@ def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
 
 #: How long the child waits for a batch of a worker thread before it looks for requests.
 _RESULT_POLL_S = 0.002
+#: Bytes of the shared-memory rings (:mod:`~lidarcal_ros.io.shared_ring`) that carry the
+#: clouds to the correction process and back: each holds several 50 ms chunks of a 4 MHz
+#: sensor (10 MB in, 15 MB out). A cloud that does not fit goes through the pipe.
+RING_BYTES = 96 << 20
 
 
-def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
-                options: ServiceOptions) -> None:
-    """The child process: requests from ``inbox``, results to ``outbox`` (module docstring)."""
+@dataclass(frozen=True)
+class _Rings:
+    """Where the rings' files are (the child maps them)."""
+
+    inbound: str | None
+    outbound: str | None
+    size: int
+
+
+def _attach(rings: _Rings) -> tuple[SharedRing | None, SharedRing | None]:
+    try:
+        inbound = SharedRing.attach(rings.inbound, rings.size) if rings.inbound else None
+        outbound = SharedRing.attach(rings.outbound, rings.size) if rings.outbound else None
+    except (OSError, ValueError) as exc:
+        logger.warning("correction process: shared memory not mapped (%s); using pipes", exc)
+        return None, None
+    return inbound, outbound
+
+
+def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSettings,
+                options: ServiceOptions, rings: _Rings) -> None:
+    """The child process: requests from ``inbox``, results to ``outbox``, the outbound
+    regions the node process is done with from ``freed`` (module docstring)."""
+    inbound, outbound = _attach(rings)
+    outbox.send(("mapped", inbound is not None))
     # glibc's threshold for giving back free heap stays high here: a lower one returned the
     # heap the warm-up grew, and at 4M points/s the first chunks then faulted it in again
     # (a start-up backlog that took seconds, not one, to drain).
@@ -278,13 +327,40 @@ def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
     _widen(outbox)
     engine = _Engine(settings, options)
 
-    def send_results(results: list[tuple[Any, bytes, int, int, float]]) -> None:
-        for tag, cdr, n, bad, seconds in results:
-            outbox.send(("out", tag, n, bad, seconds))
-            _send_payload(outbox, cdr)
+    def take_freed() -> None:
+        assert outbound is not None
+        while freed.poll():
+            outbound.free(freed.recv())
+
+    def send_results(results: list[_Corrected]) -> None:
+        for r in results:
+            parts = r.cdr_parts()
+            size = sum(len(memoryview(p).cast("B")) for p in parts)
+            offset = None
+            if outbound is not None:
+                take_freed()
+                offset = outbound.allocate(size)
+            if offset is not None:
+                assert outbound is not None
+                outbound.write(offset, list(parts))
+            outbox.send(("out", r.tag, len(r.points), r.not_corrected, r.seconds, offset,
+                         size))
+            if offset is None:
+                _send_payload(outbox, list(parts))
 
     def on_error(tag: Any, reason: str) -> None:
         outbox.send(("error", tag, reason))
+
+    def payloads(entries: list[tuple[Any, int | None, int]]
+                 ) -> list[tuple[Any, bytes | memoryview]]:
+        out: list[tuple[Any, bytes | memoryview]] = []
+        for tag, offset, size in entries:
+            if offset is None:
+                out.append((tag, _recv_payload(inbox)))
+            else:
+                assert inbound is not None
+                out.append((tag, inbound.view(offset, size)))  # read in place
+        return out
 
     while True:
         try:
@@ -301,9 +377,8 @@ def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
             if kind == "poses":
                 engine.poses(request[1], request[2])
             elif kind == "push":
-                tags = request[1]
-                clouds = [(tag, _recv_payload(inbox)) for tag in tags]
-                send_results(engine.push(clouds, on_error))
+                tags = [tag for tag, _, _ in request[1]]
+                send_results(engine.push(payloads(request[1]), on_error))
             elif kind == "release":
                 send_results(engine.release())
             elif kind == "settings":
@@ -325,8 +400,29 @@ def _child_main(inbox: Any, outbox: Any, settings: CorrectionSettings,
                 on_error(tag, reason)
 
 
+def _create_rings() -> tuple[SharedRing | None, SharedRing | None]:
+    """The two rings, or none where shared memory cannot be had (then pipes carry all)."""
+    inbound = outbound = None
+    try:
+        inbound = SharedRing.create(RING_BYTES)
+        outbound = SharedRing.create(RING_BYTES)
+    except OSError as exc:
+        logger.warning("no shared memory for the correction process (%s): clouds go "
+                       "through pipes", exc)
+        if inbound is not None:
+            inbound.unlink()
+            inbound.close()
+        return None, None
+    return inbound, outbound
+
+
 class CorrectionProcess:
     """The correction in a child process with its own interpreter lock (module docstring).
+
+    Clouds go to the child and back through two shared-memory rings
+    (:mod:`~lidarcal_ros.io.shared_ring`): one copy into the ring, read in place, and only
+    their place on the pipe. A cloud that finds no room, or a host without shared memory,
+    uses the pipe itself.
 
     Parameters
     ----------
@@ -344,21 +440,38 @@ class CorrectionProcess:
         self._on_result = on_result
         self._on_error = on_error
         self._on_failure = on_failure
+        self._inbound, self._outbound = _create_rings()
+        rings = _Rings(self._inbound.path if self._inbound else None,
+                       self._outbound.path if self._outbound else None, RING_BYTES)
+        self._inbound_ready = False  # the child has mapped the inbound ring
         ctx = multiprocessing.get_context("spawn")  # never fork a process that runs threads
         child_in, self._inbox = ctx.Pipe(duplex=False)
         self._outbox, child_out = ctx.Pipe(duplex=False)
+        # The outbound regions this process is done with go back on a pipe of their own: on
+        # the request pipe, the reader thread could wait behind a cloud that the worker
+        # thread sends while the child waits for the reader to take a result (a deadlock).
+        child_freed, self._freed = ctx.Pipe(duplex=False)
         self._process = ctx.Process(target=_child_main, name="lidarcal-correction",
-                                    args=(child_in, child_out, settings, options), daemon=True)
-        self._process.start()
+                                    args=(child_in, child_out, child_freed, settings, options,
+                                          rings), daemon=True)
+        try:
+            self._process.start()
+        except BaseException:
+            self._drop_rings()
+            raise
         child_in.close()
         child_out.close()
+        child_freed.close()
         _widen(self._inbox)
         _widen(self._outbox)
         self._send_lock = threading.Lock()
-        self._pending: dict[Any, None] = {}  # tags pushed and not yet reported, in order
+        # Tags pushed and not yet reported, in order, with the offset of their inbound region.
+        self._pending: dict[Any, int | None] = {}
         self._pending_lock = threading.Lock()
         self._flushed = threading.Event()
         self._closing = False
+        #: Clouds carried so far, by way: ``ring in``, ``pipe in``, ``ring out``, ``pipe out``.
+        self.carried = dict.fromkeys(("ring in", "pipe in", "ring out", "pipe out"), 0)
         self._reader = threading.Thread(target=self._read, name="lidarcal-correction-reader",
                                         daemon=True)
         self._reader.start()
@@ -367,6 +480,12 @@ class CorrectionProcess:
     def alive(self) -> bool:
         """Whether the child process runs."""
         return self._process.is_alive()
+
+    @property
+    def shared_memory(self) -> bool:
+        """Whether clouds go through the shared-memory rings (once the child has mapped
+        them)."""
+        return self._inbound_ready
 
     def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
         """Add trajectory samples (s; map frame, m)."""
@@ -377,14 +496,27 @@ class CorrectionProcess:
         """Correct clouds (tag, CDR bytes); results come through the handlers."""
         if not clouds:
             return
+        entries: list[tuple[Any, int | None, int]] = []
+        by_pipe: list[bytes] = []
+        ring = self._inbound if self._inbound_ready else None
         with self._pending_lock:
-            for tag, _raw in clouds:
-                self._pending[tag] = None
+            for tag, raw in clouds:
+                offset = ring.allocate(len(raw)) if ring is not None else None
+                self._pending[tag] = offset
+                entries.append((tag, offset, len(raw)))
+        for (_tag, offset, _size), (_, raw) in zip(entries, clouds, strict=True):
+            if offset is None:
+                by_pipe.append(raw)
+            else:
+                assert ring is not None
+                ring.write(offset, [raw])
+        self.carried["pipe in"] += len(by_pipe)
+        self.carried["ring in"] += len(entries) - len(by_pipe)
         with self._send_lock:
             try:
-                self._inbox.send(("push", [tag for tag, _ in clouds]))
-                for _tag, raw in clouds:
-                    _send_payload(self._inbox, raw)
+                self._inbox.send(("push", entries))
+                for raw in by_pipe:
+                    _send_payload(self._inbox, [raw])
             except (OSError, ValueError):
                 self._fail("the correction process is not running")
 
@@ -415,8 +547,16 @@ class CorrectionProcess:
         if self._process.is_alive():
             self._process.kill()
         self._inbox.close()
+        self._freed.close()
         if not self._reader.is_alive():
             self._outbox.close()
+        self._drop_rings()
+
+    def _drop_rings(self) -> None:
+        for ring in (self._inbound, self._outbound):
+            if ring is not None:
+                ring.unlink()
+                ring.close()
 
     def _send(self, request: tuple[Any, ...]) -> None:
         with self._send_lock:
@@ -430,13 +570,25 @@ class CorrectionProcess:
             try:
                 reply = self._outbox.recv()
                 if reply[0] == "out":
-                    _kind, tag, n, bad, seconds = reply
-                    cdr = _recv_payload(self._outbox)
+                    _kind, tag, n, bad, seconds, offset, size = reply
+                    self.carried["pipe out" if offset is None else "ring out"] += 1
+                    if offset is None:
+                        cdr = _recv_payload(self._outbox)
+                    else:
+                        assert self._outbound is not None
+                        cdr = bytes(self._outbound.view(offset, size))
+                        self._freed.send(offset)  # a few bytes: never waits
                     self._done(tag)
                     self._on_result(tag, cdr, n, bad, seconds)
                 elif reply[0] == "error":
                     self._done(reply[1])
                     self._on_error(reply[1], reply[2])
+                elif reply[0] == "mapped":
+                    # Both sides have the rings mapped: their files can go.
+                    for ring in (self._inbound, self._outbound):
+                        if ring is not None:
+                            ring.unlink()
+                    self._inbound_ready = bool(reply[1]) and self._inbound is not None
                 elif reply[0] == "flushed":
                     self._flushed.set()
                     return
@@ -448,12 +600,17 @@ class CorrectionProcess:
 
     def _done(self, tag: Any) -> None:
         with self._pending_lock:
-            self._pending.pop(tag, None)
+            offset = self._pending.pop(tag, None)
+        if offset is not None and self._inbound is not None:
+            self._inbound.free(offset)
 
     def _fail(self, reason: str) -> None:
         """Report the clouds the child held as lost, once."""
         with self._pending_lock:
             lost, self._pending = list(self._pending), {}
+            self._inbound_ready = False
+        if self._inbound is not None:
+            self._inbound.clear()
         if self._closing and not lost:
             self._flushed.set()
             return

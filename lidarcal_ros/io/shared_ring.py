@@ -1,0 +1,182 @@
+"""Byte regions handed between two processes through one shared-memory file.
+
+The corrector node passes each point cloud to its correction process and takes the corrected
+cloud back. Through a pipe, every cloud of several MB is copied into the kernel and out again,
+in 1 MB turns that each wake the other process; through a :class:`SharedRing` the writer
+copies it once into shared memory and sends only where it lies, and the reader uses it in
+place.
+
+One process creates the ring (:meth:`SharedRing.create`) and writes; the other maps it
+(:meth:`SharedRing.attach`) and reads. The writer alone keeps the book of what is in use: it
+allocates a region (:meth:`~SharedRing.allocate`), fills it, names ``(offset, size)`` to the
+reader by its own channel, and frees the region (:meth:`~SharedRing.free`) when the reader
+says it is done with it. Regions are handed out in ring order and their space comes back once
+every older region is freed too, so allocation is a comparison of two offsets. When the ring
+has no room, :meth:`~SharedRing.allocate` returns None and the caller sends the bytes its
+usual way: a full ring slows nothing down, and it never blocks.
+
+The file lives in ``/dev/shm`` (memory) where it exists. Its space is reserved when it is
+created (``posix_fallocate``), so that a full ``/dev/shm`` refuses the ring at start with an
+``OSError`` rather than killing a process with SIGBUS at its first write; the file is unlinked
+as soon as both sides have mapped it (:meth:`~SharedRing.unlink`).
+"""
+
+from __future__ import annotations
+
+import errno
+import mmap
+import os
+import tempfile
+import threading
+from collections import deque
+from pathlib import Path
+
+#: Where the ring's file is created: memory-backed where the system has it.
+_SHM_DIR = Path("/dev/shm")
+#: What ``posix_fallocate`` says on file systems that cannot reserve space (the ring then
+#: only gets its size).
+_NO_FALLOCATE = {errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL}
+
+
+class SharedRing:
+    """A shared-memory byte ring (module docstring). Use :meth:`create` or :meth:`attach`.
+
+    Parameters
+    ----------
+    path : str
+        The ring's file.
+    size : int
+        Bytes.
+    """
+
+    def __init__(self, path: str, size: int) -> None:
+        self.path = path
+        self.size = int(size)
+        fd = os.open(path, os.O_RDWR)
+        try:
+            self._map = mmap.mmap(fd, self.size)
+        finally:
+            os.close(fd)
+        self._view = memoryview(self._map)
+        self._lock = threading.Lock()
+        # Regions in the order allocated: [start, end, freed].
+        self._regions: deque[list[int]] = deque()
+        self._by_start: dict[int, list[int]] = {}
+
+    @classmethod
+    def create(cls, size: int, *, prefix: str = "lidarcal-ring-") -> SharedRing:
+        """A new ring of ``size`` bytes, its space reserved.
+
+        Raises
+        ------
+        OSError
+            No room for it (a small ``/dev/shm``), or the file cannot be created.
+        """
+        directory = str(_SHM_DIR) if _SHM_DIR.is_dir() else tempfile.gettempdir()
+        fd, path = tempfile.mkstemp(prefix=prefix, dir=directory)
+        try:
+            try:
+                os.posix_fallocate(fd, 0, int(size))
+            except OSError as exc:
+                if exc.errno not in _NO_FALLOCATE:
+                    raise
+                os.ftruncate(fd, int(size))  # the file system cannot reserve: size only
+        except BaseException:
+            os.close(fd)
+            os.unlink(path)
+            raise
+        os.close(fd)
+        try:
+            return cls(path, size)
+        except BaseException:
+            os.unlink(path)
+            raise
+
+    @classmethod
+    def attach(cls, path: str, size: int) -> SharedRing:
+        """Map a ring another process created."""
+        return cls(path, size)
+
+    def unlink(self) -> None:
+        """Remove the ring's file (both sides keep their mapping); idempotent."""
+        try:
+            os.unlink(self.path)
+        except FileNotFoundError:
+            pass
+
+    # -- the writer's book -------------------------------------------------------------
+    def allocate(self, size: int) -> int | None:
+        """Offset of a free region of ``size`` bytes, now in use; None when there is no
+        room (the caller sends the bytes another way)."""
+        size = int(size)
+        with self._lock:
+            if size <= 0 or size > self.size:
+                return None
+            if not self._regions:
+                start = 0
+            else:
+                first, last = self._regions[0][0], self._regions[-1]
+                if last[0] >= first:  # not wrapped: room after the last, or before the first
+                    if last[1] + size <= self.size:
+                        start = last[1]
+                    elif size <= first:
+                        start = 0
+                    else:
+                        return None
+                elif last[1] + size <= first:  # wrapped: room between the last and the first
+                    start = last[1]
+                else:
+                    return None
+            region = [start, start + size, 0]
+            self._regions.append(region)
+            self._by_start[start] = region
+            return start
+
+    def free(self, offset: int) -> None:
+        """The reader is done with the region at ``offset`` (in any order)."""
+        with self._lock:
+            region = self._by_start.pop(offset, None)
+            if region is None:
+                return
+            region[2] = 1
+            while self._regions and self._regions[0][2]:
+                self._regions.popleft()
+
+    def clear(self) -> None:
+        """Forget every region (the reader is gone)."""
+        with self._lock:
+            self._regions.clear()
+            self._by_start.clear()
+
+    @property
+    def regions_in_use(self) -> int:
+        """Regions allocated and not yet freed."""
+        with self._lock:
+            return len(self._by_start)
+
+    # -- both sides --------------------------------------------------------------------
+    def view(self, offset: int, size: int) -> memoryview:
+        """The bytes of a region, in place."""
+        if offset < 0 or offset + size > self.size:
+            raise ValueError(f"region {offset}+{size} outside a ring of {self.size} bytes")
+        return self._view[offset:offset + size]
+
+    def write(self, offset: int, parts: list[bytes | memoryview]) -> int:
+        """Copy ``parts`` one after the other into the ring from ``offset``; returns the
+        bytes written."""
+        at = offset
+        for part in parts:
+            n = len(memoryview(part).cast("B"))
+            self._view[at:at + n] = memoryview(part).cast("B")
+            at += n
+        return at - offset
+
+    def close(self) -> None:
+        """Unmap (only once no view of it is left; otherwise the mapping stays until the
+        process ends)."""
+        try:
+            self._view.release()
+            self._map.close()
+        except BufferError:
+            pass
+
