@@ -419,3 +419,31 @@ def test_stream_normals_outliers_and_late_points_get_no_normal() -> None:
     out = dict(late.pop_ready(final=True))
     assert late.late_points == 1 and not out["late"].valid[0]
     assert out["last"].valid.mean() > 0.95
+
+
+def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole() -> None:
+    """Over a strip many grids long the grid moves its rows down in the same array (no new
+    array per advance) and zeroes rows before reuse: the normals stay those of the strip
+    given at once, so no stale sums survive a move."""
+    xy, t = _scan_pattern(n_sweeps=900, per_sweep=150, swath=150.0, spacing_along=0.5)
+    x = xy[:, 0]
+    z = 10.0 - 0.5 * np.abs(x) + np.random.default_rng(8).normal(0, 0.02, len(t))
+    xyz = np.column_stack([xy, z])
+    whole, _, _ = _stream(xyz, t, [])
+    sn = StripNormals(lambda _t: 0.0)
+    arrays: set[int] = set()
+    out: dict[int, GridNormals] = {}
+    cuts = [0, *range(3000, len(t), 3000), len(t)]
+    for k, (a, b) in enumerate(itertools.pairwise(cuts)):
+        sn.add(k, xyz[a:b], t[a:b])
+        arrays.add(id(sn._moments))
+        out.update(sn.pop_ready())  # type: ignore[arg-type]
+    out.update(sn.pop_ready(final=True))  # type: ignore[arg-type]
+    rows_along = int(np.ptp(xy[:, 1]) / sn.cell[0])
+    assert rows_along > 4 * sn._moments.shape[1]  # the strip is several grids long
+    assert len(arrays) <= 3  # the first grid and its growth to the strip's needs only
+    parts = [out[k] for k in range(len(cuts) - 1)]
+    normals = np.concatenate([p.normals for p in parts])
+    valid = np.concatenate([p.valid for p in parts])
+    assert whole.valid.mean() > 0.99 and (valid == whole.valid).all()
+    np.testing.assert_allclose(normals[valid], whole.normals[valid], rtol=0, atol=1e-9)

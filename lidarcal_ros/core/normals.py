@@ -485,6 +485,9 @@ STREAM_START_SECONDS = 0.02
 #: Rows kept behind the oldest points not yet evaluated, so that points arriving a little
 #: late (behind the watermark) still land in the grid.
 _LATE_ROWS = 2
+#: Rows zeroed ahead of the points at a time, and the least room left ahead when the grid
+#: advances in place (:meth:`StripNormals._fit_grid`).
+_SPARE_ROWS = 16
 #: A part whose points spread over more rows (or columns) than this has outliers: only the
 #: points between its 0.1st and 99.9th percentiles plus a margin are binned. (A swath of 2 km
 #: in cells of 0.15 m spans some 13000 columns: a lower bound would sort every cloud.)
@@ -507,6 +510,16 @@ class _Part:
     iv: np.ndarray
     row_min: int
     row_max: int
+
+
+def _move_rows_down(moments: np.ndarray, by: int, rows: int) -> None:
+    """``moments[:, i] = moments[:, i + by]`` for ``i < rows``, in blocks that do not
+    overlap (numpy would otherwise copy the whole overlapping source first)."""
+    if by <= 0 or rows <= 0:
+        return
+    for a in range(0, rows, by):
+        b = min(a + by, rows)
+        moments[:, a:b] = moments[:, a + by:b + by]
 
 
 class StripNormals:
@@ -559,6 +572,7 @@ class StripNormals:
         self._moments = np.zeros((10, 0, 0))
         self._row0 = 0
         self._col0 = 0
+        self._clean_to = 0  # rows from here on hold stale sums (zeroed before use)
         self._parts: deque[_Part] = deque()
         self._watermark = -(2**62)
 
@@ -718,12 +732,21 @@ class StripNormals:
 
     def _fit_grid(self, r_lo: int, r_hi: int, c_lo: int, c_hi: int) -> None:
         """Make the grid cover rows ``r_lo..r_hi`` and columns ``c_lo..c_hi`` (dropping the
-        rows no longer needed first)."""
+        rows no longer needed first).
+
+        The grid advances along track in place: the rows still needed move to the front of
+        the same array, and rows are zeroed just before points first land in them
+        (``_clean_to``). A new, larger array is only made while the strip's rows still
+        outgrow it, or when it must widen: a fresh array of some 50 MB for a wide swath in
+        fine cells cost about 90 ms in page faults at each regrowth, and as much again in its
+        first filling, where a strip's first seconds now pay this once.
+        """
         m = self._moments
         if m.shape[1] == 0:
             pad_c = 16
             self._row0, self._col0 = r_lo - 1, c_lo - pad_c
             self._moments = np.zeros((10, r_hi - r_lo + 64, c_hi - c_lo + 1 + 2 * pad_c))
+            self._clean_to = self._row0 + self._moments.shape[1]
             return
         _, nrows, ncols = m.shape
         new_c0, new_c1 = self._col0, self._col0 + ncols
@@ -733,17 +756,33 @@ class StripNormals:
             new_c1 = max(new_c1, c_hi + 1 + grow)
             if new_c1 - new_c0 > _MAX_COLUMNS:  # only via outliers: keep the present range
                 new_c0, new_c1 = min(self._col0, c_lo), max(self._col0 + ncols, c_hi + 1)
-        keep_from = self._keep_from()
-        row_end = self._row0 + nrows
-        if r_hi < row_end and (new_c0, new_c1) == (self._col0, self._col0 + ncols):
+        same_columns = (new_c0, new_c1) == (self._col0, self._col0 + ncols)
+        if r_hi < self._row0 + nrows and same_columns:
+            self._clean_ahead(r_hi)
             return
-        new_r0 = max(self._row0, min(keep_from, r_lo - 1))
-        new_r1 = max(row_end, r_hi + 1 + max(64, (r_hi + 1 - new_r0) // 2))
+        new_r0 = max(self._row0, min(self._keep_from(), r_lo - 1))
+        live = max(self._clean_to - new_r0, 0)  # rows from new_r0 on that may hold sums
+        if same_columns and r_hi + 1 - new_r0 + _SPARE_ROWS <= nrows:
+            _move_rows_down(m, new_r0 - self._row0, live)
+            self._row0, self._clean_to = new_r0, new_r0 + live
+            self._clean_ahead(r_hi)
+            return
+        new_r1 = max(self._row0 + nrows, r_hi + 1 + max(64, (r_hi + 1 - new_r0) // 2))
         grown = np.zeros((10, new_r1 - new_r0, new_c1 - new_c0))
-        keep_rows = slice(new_r0 - self._row0, nrows)
-        grown[:, :nrows - (new_r0 - self._row0),
-              self._col0 - new_c0:self._col0 - new_c0 + ncols] = m[:, keep_rows, :]
+        grown[:, :live, self._col0 - new_c0:self._col0 - new_c0 + ncols] = \
+            m[:, new_r0 - self._row0:new_r0 - self._row0 + live, :]
         self._moments, self._row0, self._col0 = grown, new_r0, new_c0
+        self._clean_to = new_r1
+
+    def _clean_ahead(self, r_hi: int) -> None:
+        """Zero the rows up to a few past ``r_hi`` that were not zeroed since they were
+        last used (an evaluation reads up to 3 rows past its points)."""
+        end = self._row0 + self._moments.shape[1]
+        if r_hi + 4 <= self._clean_to or self._clean_to >= end:
+            return
+        stop = min(end, r_hi + 4 + _SPARE_ROWS)
+        self._moments[:, self._clean_to - self._row0:stop - self._row0, :] = 0.0
+        self._clean_to = stop
 
     def _keep_from(self) -> int:
         """Lowest row still needed: by the points not yet evaluated and by late points."""
@@ -802,7 +841,8 @@ class StripNormals:
         lo = hi = self._row0
         if binned:
             lo = max(min(p.row_min for p in binned) - 2, self._row0)
-            hi = min(max(p.row_max for p in binned) + 3, self._row0 + self._moments.shape[1])
+            hi = min(max(p.row_max for p in binned) + 3, self._row0 + self._moments.shape[1],
+                     self._clean_to)
         rows = self._moments[:, lo - self._row0:hi - self._row0, :].copy()
         return NormalsTask(ready, rows, lo, self._col0, self.cell, self.heading, self._noise,
                            self.min_points)
