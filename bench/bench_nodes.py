@@ -220,8 +220,25 @@ def _process_tree(pid: int) -> list[int]:
     return tree
 
 
+def _pss_mib(pid: int) -> float:
+    """Proportional set size (MiB) of a process and its descendants: resident memory with
+    pages shared between them counted once (shared memory, libraries), unlike the sum of
+    their resident sets."""
+    total, seen = 0.0, False
+    for p in _process_tree(pid):
+        try:
+            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Pss:"):
+                    total += int(line.split()[1]) / 1024.0
+                    seen = True
+        except OSError:
+            pass
+    return total if seen else math.nan
+
+
 def _rss_mib(pid: int) -> float:
-    """Resident memory (MiB) of a process and its descendants."""
+    """Resident memory (MiB) of a process and its descendants (the sum of their resident
+    sets: pages they share count once per process)."""
     total, seen = 0.0, False
     for p in _process_tree(pid):
         try:
@@ -521,7 +538,8 @@ def bench_transport(rate: float, seconds: float, chunk_s: float,
     p50, p99 = (float(v) for v in np.percentile(lat, [50, 99])) if len(s) else (math.nan,) * 2
     return {"offered_pts_s": rate, "chunk_points": points, "chunks_sent": sent["chunks"],
             "chunks_received": len(s), "out_pts_s": float(n_pts[1:].sum() / span),
-            "latency_p50_s": p50, "latency_p99_s": p99}
+            "latency_p50_s": p50, "latency_p99_s": p99,
+            "first_chunk_latency_s": float(lat[0]) if len(s) else math.nan}
 
 
 # ---------------------------------------------------------------------------- calibrator
@@ -618,7 +636,7 @@ def bench_memory(rate: float, passes: int) -> dict[str, Any]:
          f"calibration.control_points_file:={SAMPLE_CONTROL}", "-p", "idle_close_s:=1.0"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         for name in ("calibrator", "corrector")}
-    samples: list[tuple[float, float, float]] = []
+    samples: list[tuple[float, float, float, float]] = []
     try:
         time.sleep(3.0)
         length = bag_duration(SAMPLE_BAG) / rate
@@ -629,7 +647,7 @@ def bench_memory(rate: float, passes: int) -> dict[str, Any]:
         t0 = time.monotonic()
         while time.monotonic() - t0 < passes * length + 5:
             samples.append((time.monotonic() - t0, _rss_mib(procs["calibrator"].pid),
-                            _rss_mib(procs["corrector"].pid)))
+                            _rss_mib(procs["corrector"].pid), _pss_mib(procs["corrector"].pid)))
             time.sleep(1.0)
         _stop(replay)
     finally:
@@ -640,7 +658,8 @@ def bench_memory(rate: float, passes: int) -> dict[str, Any]:
         sel = [s for s in samples if k * length <= s[0] < (k + 1) * length]
         if sel:
             per_pass.append({"pass": k + 1, "calibrator_max_mib": max(s[1] for s in sel),
-                             "corrector_max_mib": max(s[2] for s in sel)})
+                             "corrector_max_mib": max(s[2] for s in sel),
+                             "corrector_max_pss_mib": max(s[3] for s in sel)})
     return {"rate": rate, "passes": passes, "pass_wall_s": length, "per_pass": per_pass}
 
 
@@ -718,7 +737,8 @@ def main() -> int:
                 print(f"  offered {rate / 1e6:5.2f} M/s: out {r['out_pts_s'] / 1e6:5.2f} M/s, "
                       f"{r['chunks_received']}/{r['chunks_sent']} chunks, p50 "
                       f"{r['latency_p50_s'] * 1000:6.1f} ms, p99 "
-                      f"{r['latency_p99_s'] * 1000:6.1f} ms", flush=True)
+                      f"{r['latency_p99_s'] * 1000:6.1f} ms (first chunk "
+                      f"{r['first_chunk_latency_s'] * 1000:5.0f} ms)", flush=True)
         if "corrector" in only:
             rates = [float(r) * 1e6 for r in args.rates.split(",")]
             print(f"corrector through DDS ({args.seconds:g} s per load, chunks of "
@@ -744,7 +764,8 @@ def main() -> int:
             results["memory"] = r
             for p in r["per_pass"]:
                 print(f"  pass {p['pass']}: calibrator {p['calibrator_max_mib']:.0f} MiB, "
-                      f"corrector {p['corrector_max_mib']:.0f} MiB", flush=True)
+                      f"corrector {p['corrector_max_mib']:.0f} MiB (PSS, shared pages once: "
+                      f"{p['corrector_max_pss_mib']:.0f} MiB)", flush=True)
     finally:
         context.try_shutdown()
     results["load_avg_at_end"] = os.getloadavg()

@@ -296,6 +296,11 @@ def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
             f"{int(bad.sum())} points not covered by the trajectory, strips "
             f"{np.unique(pts['strip_id'][bad]).tolist()}")
         assert np.isfinite(pts["range"]).all() and (pts["range"] > 100).all()
+    # The child process got and gave back the clouds through shared memory.
+    assert suite.cor.status().values["transport"] == "shared memory"
+    assert suite.cor_in_thread.status().values["transport"] == "thread"
+    carried = suite.cor._service.carried  # type: ignore[union-attr]
+    assert carried["ring in"] > 0 and carried["ring out"] > 0, carried
 
 
 def test_late_subscriber_gets_the_latest_estimate(suite: Suite) -> None:

@@ -28,7 +28,8 @@ skipped; the node keeps running.
 The numerics run in a child process (``separate_process``, :mod:`~lidarcal_ros.pipeline.
 correction_service`): this process only takes messages off DDS and publishes, so that its
 callbacks (hundreds of trajectory samples a second) never wait for the interpreter lock of
-the numerics.
+the numerics. The clouds go there and back through shared memory (pipes where a host has
+none: diagnostics key ``transport``).
 
 Node-specific parameters: ``calibration`` (YAML path), ``queue_depth``, ``best_effort``,
 ``trajectory_type`` (``auto`` or a type), ``trajectory_buffer_s``, ``max_trajectory_wait_s``,
@@ -473,7 +474,14 @@ class CorrectorNode(Node):
             "skipped_clouds": str(s.skipped), "not_corrected_points": str(s.not_corrected),
             "latency_p50_s": f"{p50:.4f}", "latency_p99_s": f"{p99:.4f}",
             "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
-            "estimate_source": self.estimate_source})
+            "estimate_source": self.estimate_source, "transport": self._transport()})
+
+    def _transport(self) -> str:
+        """How clouds reach the numerics: ``thread``, ``shared memory`` or ``pipes``."""
+        service = self._service
+        if not isinstance(service, CorrectionProcess):
+            return "thread"
+        return "shared memory" if service.shared_memory else "pipes"
 
     def _publish_diagnostics(self) -> None:
         self.diagnostics.publish(diagnostic_array(self, [self.status()]))

@@ -7,9 +7,11 @@ share one interpreter lock, and a numerics thread that holds it between its nump
 delays every callback of the executor by up to the interpreter's switch interval: at a few
 hundred trajectory samples a second the trajectory then falls seconds behind the points,
 and the points wait for it. :class:`CorrectionProcess` therefore runs the numerics in a
-child process (spawned, not forked: the node process runs threads) and exchanges CDR bytes
-with it through pipes; :class:`LocalCorrection` runs the same engine in the calling thread
-(tests, and hosts where a child process is not wanted).
+child process (spawned, not forked: the node process runs threads). The clouds travel to it
+and back through two shared-memory rings (:mod:`~lidarcal_ros.io.shared_ring`): one copy in,
+read in place, and only their place on the request pipe; a cloud that finds no room, or a
+host without shared memory, goes through the pipe itself. :class:`LocalCorrection` runs the
+same engine in the calling thread (tests, and hosts where a child process is not wanted).
 
 Both take the trajectory samples (:meth:`poses`), clouds (:meth:`push`), a time-out
 (:meth:`release`: correct what is held without waiting for look-ahead), settings and the
