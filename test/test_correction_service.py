@@ -181,6 +181,8 @@ def test_a_dead_child_reports_the_clouds_it_held(small_mission: MissionFiles) ->
     lost = [e for e in got.events if e[0] == "error"]
     assert lost and all("ended" in e[2] for e in lost)
     assert failures and "ended" in failures[0]
+    for ring in (service._inbound, service._outbound):
+        assert ring is None or not Path(ring.path).exists()
     service.close(timeout=1.0)
 
 

@@ -122,3 +122,26 @@ def test_no_room_for_the_ring_is_an_error_at_creation_and_leaves_no_file(
     with pytest.raises(OSError, match="No space"):
         SharedRing.create(1 << 20)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_files_of_processes_that_died_before_unlinking_are_removed(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(shared_ring, "_SHM_DIR", tmp_path)
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    orphan = tmp_path / f"lidarcal-ring-{int(dead.stdout)}-abc"
+    alive = tmp_path / f"lidarcal-ring-{os.getpid()}-def"
+    other = tmp_path / "unrelated-file"
+    for path in (orphan, alive, other):
+        path.write_bytes(b"x")
+    ring = SharedRing.create(4096)
+    try:
+        assert not orphan.exists()
+        assert alive.exists() and other.exists() and Path(ring.path).exists()
+        assert Path(ring.path).name.startswith(f"lidarcal-ring-{os.getpid()}-")
+    finally:
+        ring.unlink()
+        ring.close()

@@ -75,8 +75,9 @@ class SharedRing:
         OSError
             No room for it (a small ``/dev/shm``), or the file cannot be created.
         """
-        directory = str(_SHM_DIR) if _SHM_DIR.is_dir() else tempfile.gettempdir()
-        fd, path = tempfile.mkstemp(prefix=prefix, dir=directory)
+        directory = Path(_SHM_DIR if _SHM_DIR.is_dir() else tempfile.gettempdir())
+        _remove_orphans(directory, prefix)
+        fd, path = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}-", dir=directory)
         try:
             try:
                 os.posix_fallocate(fd, 0, int(size))
@@ -183,3 +184,18 @@ class SharedRing:
         except BufferError:
             pass
 
+
+def _remove_orphans(directory: Path, prefix: str) -> None:
+    """Remove the ring files of processes that no longer run (killed before the other side
+    had mapped the ring, when the file is normally removed): their memory is otherwise kept
+    until the next reboot."""
+    for path in directory.glob(f"{prefix}*-*"):
+        pid_text = path.name[len(prefix):].split("-", 1)[0]
+        if not pid_text.isdigit():
+            continue
+        try:
+            os.kill(int(pid_text), 0)
+        except ProcessLookupError:
+            path.unlink(missing_ok=True)
+        except (PermissionError, OSError):
+            pass  # another user's process, or alive

@@ -611,8 +611,10 @@ class CorrectionProcess:
         with self._pending_lock:
             lost, self._pending = list(self._pending), {}
             self._inbound_ready = False
-        if self._inbound is not None:
-            self._inbound.clear()
+        for ring in (self._inbound, self._outbound):
+            if ring is not None:
+                ring.clear()
+                ring.unlink()  # (if the child died before it mapped them)
         if self._closing and not lost:
             self._flushed.set()
             return
