@@ -220,15 +220,14 @@ def _process_tree(pid: int) -> list[int]:
     return tree
 
 
-def _pss_mib(pid: int) -> float:
-    """Proportional set size (MiB) of a process and its descendants: resident memory with
-    pages shared between them counted once (shared memory, libraries), unlike the sum of
-    their resident sets."""
+def _proc_sum_mib(pid: int, name: str, key: str) -> float:
+    """A memory figure (``key``, kB) of ``/proc/PID/name`` summed over a process and its
+    descendants, in MiB (NaN if none could be read)."""
     total, seen = 0.0, False
     for p in _process_tree(pid):
         try:
-            for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
-                if line.startswith("Pss:"):
+            for line in Path(f"/proc/{p}/{name}").read_text().splitlines():
+                if line.startswith(key):
                     total += int(line.split()[1]) / 1024.0
                     seen = True
         except OSError:
@@ -239,16 +238,14 @@ def _pss_mib(pid: int) -> float:
 def _rss_mib(pid: int) -> float:
     """Resident memory (MiB) of a process and its descendants (the sum of their resident
     sets: pages they share count once per process)."""
-    total, seen = 0.0, False
-    for p in _process_tree(pid):
-        try:
-            for line in Path(f"/proc/{p}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1]) / 1024.0
-                    seen = True
-        except OSError:
-            pass
-    return total if seen else math.nan
+    return _proc_sum_mib(pid, "status", "VmRSS:")
+
+
+def _pss_mib(pid: int) -> float:
+    """Proportional set size (MiB) of a process and its descendants: resident memory with
+    pages shared between them counted once (shared memory, libraries), unlike the sum of
+    their resident sets."""
+    return _proc_sum_mib(pid, "smaps_rollup", "Pss:")
 
 
 def _cpu_s(pid: int) -> tuple[float, float]:

@@ -83,14 +83,21 @@ def test_child_process_gives_the_bytes_of_the_stream_corrector(
 
     got = Collector()
     local = LocalCorrection(settings, options, on_result=got.result, on_error=got.error)
-    local.poses(trajectory.t, trajectory.xyz)
+    assert _feed(local, got, trajectory, clouds) == expected
+    assert _run_process(settings, options, trajectory, clouds) == expected
+
+
+def _feed(service: Any, got: Collector, trajectory: Any, clouds: list[bytes]
+          ) -> dict[int, bytes]:
+    """The trajectory, then the clouds three a request, then close: each cloud must come
+    out once, in order; what came out, by tag."""
+    service.poses(trajectory.t, trajectory.xyz)
     for k in range(0, len(clouds), 3):
-        local.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
-    local.close()
+        service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
+    service.close()
     assert [e[0] for e in got.events] == ["out"] * len(clouds)
     assert [e[1] for e in got.events] == list(range(len(clouds)))  # once, in order
-    assert {e[1]: e[2] for e in got.events} == expected
-    assert _run_process(settings, options, trajectory, clouds) == expected
+    return {e[1]: e[2] for e in got.events}
 
 
 def _run_process(settings: CorrectionSettings, options: ServiceOptions, trajectory: Any,
@@ -104,17 +111,12 @@ def _run_process(settings: CorrectionSettings, options: ServiceOptions, trajecto
     while shared_memory and not service.shared_memory and time.monotonic() < deadline:
         time.sleep(0.01)  # the rings are used once the child has mapped them
     assert service.shared_memory == shared_memory
-    service.poses(trajectory.t, trajectory.xyz)
-    for k in range(0, len(clouds), 3):
-        service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
-    service.close()
-    assert [e[0] for e in got.events] == ["out"] * len(clouds)
-    assert [e[1] for e in got.events] == list(range(len(clouds)))  # once, in order
+    out = _feed(service, got, trajectory, clouds)
     for ring in (service._inbound, service._outbound):
         assert ring is None or not Path(ring.path).exists()  # no file left behind
     if carried is not None:
         carried.update(service.carried)
-    return {e[1]: e[2] for e in got.events}
+    return out
 
 
 @pytest.mark.parametrize("transport", ["small rings", "pipes"])
