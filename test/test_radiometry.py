@@ -32,6 +32,8 @@ from lidarcal_ros.errors import ConfigError, TrajectoryError
 from lidarcal_ros.io.las import adjusted_gps_to_unix, unix_to_adjusted_gps
 from lidarcal_ros.pipeline.correction import (
     ADDED_FIELDS,
+    CorrectedColumns,
+    build_corrected,
     corrected_dtype,
     covered_by_trajectory,
 )
@@ -309,6 +311,34 @@ def test_corrected_dtype_keeps_input_layout() -> None:
     assert out.fields["x"][1] == 0 and out.fields["t"][1] == 16
     assert out.fields["reflectance"][0] == np.dtype("<f4")
     assert out.fields["reflectance"][1] >= 48
+
+
+def test_a_corrected_cloud_built_in_a_used_buffer_has_the_bytes_of_a_new_one() -> None:
+    """Building into a buffer that held other bytes (a shared-memory ring) writes every
+    byte: the input's, the added fields' and zeros in the gaps between them."""
+    dt = np.dtype({"names": ["x", "y", "z", "t", "intensity"],
+                   "formats": ["<f8", "<f8", "<f8", "<f8", "u1"],
+                   "offsets": [0, 8, 16, 24, 33], "itemsize": 35})  # odd size and a hole
+    n = 50
+    rng = np.random.default_rng(1)
+    raw = rng.integers(0, 256, n * dt.itemsize, dtype=np.uint8)  # holes hold bytes too
+    pts = raw.view(dt)
+    res = CorrectedColumns(rng.normal(size=(n, 3)), *(rng.random(n).astype(np.float32)
+                                                       for _ in range(4)),
+                           rng.integers(0, 4, n).astype(np.uint8))
+    fresh = build_corrected(pts, res)
+    used = np.full(n * fresh.dtype.itemsize, 0xAB, dtype=np.uint8).view(fresh.dtype)
+    built = build_corrected(pts, res, out=used)
+    assert built is used
+    assert used.tobytes() == fresh.tobytes()
+    rows = fresh.view(np.uint8).reshape(n, -1)
+    # the input row past x, y, z (replaced), holes included
+    assert (rows[:, 24:35] == raw.reshape(n, 35)[:, 24:]).all()
+    assert (rows[:, 35] == 0).all()  # before the first added field (4-byte aligned)
+    np.testing.assert_array_equal(fresh["x"], res.xyz[:, 0])
+    np.testing.assert_array_equal(fresh["correction_flags"], res.flags)
+    with pytest.raises(ValueError, match="output"):
+        build_corrected(pts, res, out=used[:-1])
 
 
 def test_las_gps_time_conversion() -> None:
