@@ -214,6 +214,28 @@ def cloud_to_array(msg: Any, *, source: str = "cloud") -> np.ndarray:
     return rows.reshape(n)
 
 
+def point_fields(dtype: np.dtype[Any]) -> list[FieldTuple]:
+    """The PointFields ``(name, offset, datatype, count)`` of a structured point dtype.
+
+    Raises
+    ------
+    CloudFormatError
+        ``dtype`` is not structured or a field has no PointField type.
+    """
+    if dtype.fields is None:
+        raise CloudFormatError(f"array of dtype {dtype} is not a structured point array")
+    fields: list[FieldTuple] = []
+    for name, (fdt, offset, *_rest) in dtype.fields.items():
+        base, shape = fdt.base, fdt.shape
+        if len(shape) > 1 or base.fields is not None:
+            raise CloudFormatError(f"field '{name}' has unsupported nested type {fdt}")
+        code = NUMPY_TO_DATATYPE.get(f"{base.kind}{base.itemsize}")
+        if code is None:
+            raise CloudFormatError(f"field '{name}' has dtype {base}; no PointField type")
+        fields.append((str(name), int(offset), code, int(shape[0]) if shape else 1))
+    return fields
+
+
 def array_to_cloud_parts(arr: np.ndarray) -> tuple[list[FieldTuple], int, np.ndarray]:
     """PointCloud2 parts for a structured array.
 
@@ -238,20 +260,9 @@ def array_to_cloud_parts(arr: np.ndarray) -> tuple[list[FieldTuple], int, np.nda
         ``arr`` is not structured or a field has an unsupported type.
     """
     dtype = arr.dtype
-    if dtype.fields is None:
-        raise CloudFormatError(f"array of dtype {dtype} is not a structured point array")
-    fields: list[FieldTuple] = []
-    swap = False
-    for name, (fdt, offset, *_rest) in dtype.fields.items():
-        base, shape = fdt.base, fdt.shape
-        if len(shape) > 1 or base.fields is not None:
-            raise CloudFormatError(f"field '{name}' has unsupported nested type {fdt}")
-        code = NUMPY_TO_DATATYPE.get(f"{base.kind}{base.itemsize}")
-        if code is None:
-            raise CloudFormatError(f"field '{name}' has dtype {base}; no PointField type")
-        if base.byteorder == ">" or (base.byteorder == "=" and np.little_endian is False):
-            swap = True
-        fields.append((str(name), int(offset), code, int(shape[0]) if shape else 1))
+    fields = point_fields(dtype)
+    swap = any(base.byteorder == ">" or (base.byteorder == "=" and not np.little_endian)
+               for base in (fdt.base for fdt, *_rest in (dtype.fields or {}).values()))
     flat = np.ascontiguousarray(arr).reshape(-1)
     if swap:
         logger.debug("converting big-endian point array to little-endian")

@@ -537,6 +537,11 @@ def correct_cloud(
     return build_corrected(points, res), res
 
 
+#: ``place(tag, n, dtype)``: an array of ``n`` rows of ``dtype`` to build a corrected cloud
+#: in, or None (:class:`StreamCorrector`'s ``place``).
+OutputPlacer = Callable[[Any, int, np.dtype], "np.ndarray | None"]
+
+
 @dataclass
 class _Message:
     """A cloud in :class:`StreamCorrector` waiting for the normals of its points."""
@@ -569,6 +574,7 @@ class _Job:
     messages: list[_Message]
     trajectory: Trajectory
     settings: CorrectionSettings
+    place: OutputPlacer | None = None
 
 
 def _deliver(results: list[tuple[Any, GridNormals]]) -> None:
@@ -645,7 +651,9 @@ def _run_job(job: _Job, source: str) -> tuple[list[np.ndarray], np.ndarray, floa
     a = 0
     for m in msgs:
         b = a + len(m)
-        out.append(build_corrected(m.points, res, a, b))
+        where = (job.place(m.tag, len(m), corrected_dtype(m.points.dtype))
+                 if job.place is not None else None)
+        out.append(build_corrected(m.points, res, a, b, out=where))
         a = b
     return out, res.flags, time.perf_counter() - started
 
@@ -670,6 +678,10 @@ class StreamCorrector:
         points before (least latency).
     source : str
         Topic named in messages.
+    place : callable(tag, n, dtype), optional
+        Where to build each corrected cloud: an array of ``n`` rows of ``dtype`` (for
+        instance inside the buffer it will be sent from), or None for a new array. Called
+        from the worker threads.
 
     Notes
     -----
@@ -692,8 +704,10 @@ class StreamCorrector:
         workers: int = 1,
         lookahead: bool = True,
         source: str = "cloud",
+        place: OutputPlacer | None = None,
     ) -> None:
         self.trajectory = trajectory
+        self.place = place
         self.settings = settings
         self.batch_points = max(int(batch_points), 0)
         self.workers = max(int(workers), 1)
@@ -931,7 +945,7 @@ class StreamCorrector:
                 job_tasks.append(task)
             else:
                 _deliver(task.run())
-        self._submit(_Job(job_tasks, done, self.trajectory, self.settings), out)
+        self._submit(_Job(job_tasks, done, self.trajectory, self.settings, self.place), out)
         return out
 
     def _submit(self, job: _Job, out: list[tuple[Any, np.ndarray]]) -> None:

@@ -37,7 +37,13 @@ import numpy as np
 from lidarcal_ros.allocator import tune_allocator
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.ros_messages import cloud_cdr, cloud_cdr_parts, parse_cloud
+from lidarcal_ros.io.pointcloud import point_fields
+from lidarcal_ros.io.ros_messages import (
+    cloud_cdr,
+    cloud_cdr_parts,
+    cloud_header_cdr,
+    parse_cloud,
+)
 from lidarcal_ros.io.shared_ring import SharedRing
 from lidarcal_ros.pipeline.correction import (
     FLAG_NOT_CORRECTED,
@@ -95,17 +101,30 @@ class _Corrected:
         return cloud_cdr_parts(self.stamp_ns, self.frame_id, self.points)
 
 
+#: ``placer(tag, stamp_ns, frame_id, n, dtype)``: where to build a corrected cloud (the
+#: points of its message, in the buffer it is sent from), or None.
+_Placer = Callable[[Any, int, str, int, "np.dtype[Any]"], "np.ndarray | None"]
+
+
 class _Engine:
     """Trajectory buffer, stream corrector and CDR in: what both runners run."""
 
-    def __init__(self, settings: CorrectionSettings, options: ServiceOptions) -> None:
+    def __init__(self, settings: CorrectionSettings, options: ServiceOptions, *,
+                 placer: _Placer | None = None) -> None:
         self.options = options
         self.trajectory = TrajectoryBuffer(options.trajectory_keep_s)
+        self._placer = placer
         self.corrector = StreamCorrector(self.trajectory.trajectory(), settings,
                                          batch_points=options.batch_points,
                                          workers=options.workers,
-                                         lookahead=options.lookahead, source=options.source)
+                                         lookahead=options.lookahead, source=options.source,
+                                         place=self._place if placer is not None else None)
         self._headers: dict[Any, tuple[int, str, float]] = {}
+
+    def _place(self, tag: Any, n: int, dtype: np.dtype[Any]) -> np.ndarray | None:
+        assert self._placer is not None
+        stamp, frame, _started = self._headers[tag]
+        return self._placer(tag, stamp, frame, n, dtype)
 
     def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
         self.trajectory.add_many(t, xyz)
@@ -327,28 +346,10 @@ def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSetting
         logger.debug("warm-up failed", exc_info=True)
     _widen(inbox)
     _widen(outbox)
-    engine = _Engine(settings, options)
-
-    def take_freed() -> None:
-        assert outbound is not None
-        while freed.poll():
-            outbound.free(freed.recv())
-
-    def send_results(results: list[_Corrected]) -> None:
-        for r in results:
-            parts = r.cdr_parts()
-            size = sum(len(memoryview(p).cast("B")) for p in parts)
-            offset = None
-            if outbound is not None:
-                take_freed()
-                offset = outbound.allocate(size)
-            if offset is not None:
-                assert outbound is not None
-                outbound.write(offset, list(parts))
-            outbox.send(("out", r.tag, len(r.points), r.not_corrected, r.seconds, offset,
-                         size))
-            if offset is None:
-                _send_payload(outbox, list(parts))
+    results_out = _ResultSender(outbox, outbound, freed)
+    engine = _Engine(settings, options,
+                     placer=results_out.place if outbound is not None else None)
+    send_results = results_out.send
 
     def on_error(tag: Any, reason: str) -> None:
         outbox.send(("error", tag, reason))
@@ -399,7 +400,88 @@ def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSetting
             reason = f"internal error: {type(exc).__name__}: {exc}"
             logger.exception("correction process")
             for tag in tags:
+                results_out.discard(tag)
                 on_error(tag, reason)
+
+
+class _ResultSender:
+    """The child's side of the results: each corrected cloud is built straight into the
+    outbound ring, behind its message header (:meth:`place`, from the worker threads), so
+    that sending it (:meth:`send`) copies nothing; a cloud that found no room is serialised
+    and goes into the ring afterwards, or through the pipe."""
+
+    def __init__(self, outbox: Any, ring: SharedRing | None, freed: Any) -> None:
+        self._outbox = outbox
+        self._ring = ring
+        self._freed = freed
+        self._lock = threading.Lock()
+        # tag -> (region offset, message offset, message bytes)
+        self._placed: dict[Any, tuple[int, int, int]] = {}
+
+    def _take_freed(self) -> None:
+        """Give back the regions the node process is done with."""
+        assert self._ring is not None
+        with self._lock:
+            while self._freed.poll():
+                self._ring.free(self._freed.recv())
+
+    def place(self, tag: Any, stamp: int, frame_id: str, n: int, dtype: np.dtype[Any]
+              ) -> np.ndarray | None:
+        """The rows to build a corrected cloud in, inside the ring, or None (no room)."""
+        ring = self._ring
+        assert ring is not None
+        head = cloud_header_cdr(stamp, frame_id, point_fields(dtype), dtype.itemsize, n)
+        data = n * dtype.itemsize
+        size = len(head) + data + 1  # + is_dense
+        self._take_freed()
+        offset = ring.allocate(size + 7)
+        if offset is None:
+            return None
+        start = offset + (-(offset + len(head))) % 8  # the points 8-byte aligned
+        ring.write(start, [head])
+        self._placed[tag] = (offset, start, size)
+        return np.frombuffer(ring.view(start + len(head), data), dtype=dtype, count=n)
+
+    def discard(self, tag: Any) -> None:
+        """A cloud placed but never sent (an internal error): its region is free again."""
+        placed = self._placed.pop(tag, None)
+        if placed is not None and self._ring is not None:
+            self._ring.free(placed[0])
+
+    def send(self, results: list[_Corrected]) -> None:
+        for r in results:
+            placed = self._placed.pop(r.tag, None)
+            offset: int | None
+            if placed is not None:
+                assert self._ring is not None
+                offset, start, size = placed
+                self._ring.write(start + size - 1, [_is_dense_byte(r.points)])
+            else:
+                offset, start, size = self._serialise(r)
+            self._outbox.send(("out", r.tag, len(r.points), r.not_corrected, r.seconds,
+                               offset, start, size))
+            if offset is None:
+                _send_payload(self._outbox, list(r.cdr_parts()))
+
+    def _serialise(self, r: _Corrected) -> tuple[int | None, int, int]:
+        """A cloud built outside the ring: copied into it if it has room now."""
+        parts = r.cdr_parts()
+        size = sum(len(memoryview(p).cast("B")) for p in parts)
+        if self._ring is None:
+            return None, 0, size
+        self._take_freed()
+        offset = self._ring.allocate(size)
+        if offset is not None:
+            self._ring.write(offset, list(parts))
+        return offset, offset or 0, size
+
+
+def _is_dense_byte(points: np.ndarray) -> bytes:
+    """PointCloud2's ``is_dense`` of a cloud, as :func:`~lidarcal_ros.io.ros_messages.
+    cloud_cdr` sets it: whether every ``x, y, z`` is finite."""
+    names = points.dtype.names or ()
+    dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
+    return b"\x01" if dense else b"\x00"
 
 
 def _create_rings() -> tuple[SharedRing | None, SharedRing | None]:
@@ -572,13 +654,13 @@ class CorrectionProcess:
             try:
                 reply = self._outbox.recv()
                 if reply[0] == "out":
-                    _kind, tag, n, bad, seconds, offset, size = reply
+                    _kind, tag, n, bad, seconds, offset, start, size = reply
                     self.carried["pipe out" if offset is None else "ring out"] += 1
                     if offset is None:
                         cdr = _recv_payload(self._outbox)
                     else:
                         assert self._outbound is not None
-                        cdr = bytes(self._outbound.view(offset, size))
+                        cdr = bytes(self._outbound.view(start, size))
                         self._freed.send(offset)  # a few bytes: never waits
                     self._done(tag)
                     self._on_result(tag, cdr, n, bad, seconds)
