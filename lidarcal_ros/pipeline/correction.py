@@ -45,7 +45,6 @@ clouds waiting for their look-ahead and a few grid rows, whatever the mission le
 from __future__ import annotations
 
 import dataclasses
-import functools
 import heapq
 import logging
 import math
@@ -458,22 +457,26 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
         Where to build it: ``len(points)`` rows of ``corrected_dtype(points.dtype)`` (for
         instance in the buffer a message is serialised into); by default a new array.
         Every byte of it is written: the input's bytes, the added fields and zeros between
-        them, so the bytes do not depend on what the buffer held.
+        them, so the bytes do not depend on what the buffer held. Its rows must be
+        contiguous.
     """
     n = len(points)
     b = a + n if b is None else b
     dtype = corrected_dtype(points.dtype)
     if out is None:
-        out = np.empty(n, dtype=dtype)
+        out = np.zeros(n, dtype=dtype)  # (cheaper than zeroing the gaps between fields)
     elif out.dtype != dtype or out.shape != (n,):
         raise ValueError(f"output of {out.shape} {out.dtype} for {n} points of {dtype}")
+    elif n:
+        # A used buffer: zero the added part of each row (whole 8-byte words; the row size
+        # is a multiple of 8) before the input's bytes go in front of it.
+        words = out.view(np.uint64).reshape(n, dtype.itemsize // 8)
+        words[:, points.dtype.itemsize // 8:] = 0
     if n == 0:
         return out
     rows = out.view(np.uint8).reshape(n, dtype.itemsize)
     rows[:, :points.dtype.itemsize] = \
         np.ascontiguousarray(points).view(np.uint8).reshape(n, points.dtype.itemsize)
-    for lo, hi in _padding(dtype, points.dtype.itemsize):
-        rows[:, lo:hi] = 0
     out["x"] = res.xyz[a:b, 0]
     out["y"] = res.xyz[a:b, 1]
     out["z"] = res.xyz[a:b, 2]
@@ -483,25 +486,6 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
     out["scan_angle"] = res.scan_angle[a:b]
     out["correction_flags"] = res.flags[a:b]
     return out
-
-
-@functools.lru_cache(maxsize=64)
-def _padding(dtype: np.dtype[Any], copied: int) -> tuple[tuple[int, int], ...]:
-    """Byte ranges of a corrected row that neither the input's ``copied`` bytes nor an added
-    field cover (alignment and the row's tail)."""
-    covered = np.zeros(dtype.itemsize, dtype=bool)
-    covered[:copied] = True
-    fields: Mapping[str, Any] = dtype.fields or {}
-    for name, _kind in ADDED_FIELDS:
-        fdt, off, *_rest = fields[name]
-        covered[off:off + fdt.itemsize] = True
-    gaps: list[tuple[int, int]] = []
-    for k in np.flatnonzero(~covered):
-        if gaps and gaps[-1][1] == k:
-            gaps[-1] = (gaps[-1][0], int(k) + 1)
-        else:
-            gaps.append((int(k), int(k) + 1))
-    return tuple(gaps)
 
 
 def correct_cloud(
