@@ -4,6 +4,7 @@ and report the clouds a dead child held instead of losing them silently."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import threading
 import time
@@ -20,7 +21,6 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.io.bag import _strip_points
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.shared_ring import SharedRing
-from lidarcal_ros.pipeline import correction_service
 from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
 from lidarcal_ros.pipeline.correction_service import (
     CorrectionProcess,
@@ -119,31 +119,35 @@ def _run_process(settings: CorrectionSettings, options: ServiceOptions, trajecto
     return out
 
 
-@pytest.mark.parametrize("transport", ["small rings", "pipes"])
+@pytest.mark.parametrize("transport", ["small rings", "pipes", "no rings wanted"])
 def test_clouds_that_find_no_room_in_shared_memory_go_through_the_pipe(
         small_mission: MissionFiles, monkeypatch: pytest.MonkeyPatch,
         caplog: pytest.LogCaptureFixture, transport: str) -> None:
     """With rings of about two clouds (look-ahead holds several), clouds go by ring and by
-    pipe, in and out, and come out the same; with no shared memory at all, by pipe."""
+    pipe, in and out, and come out the same; with no shared memory to be had, or none
+    wanted (``ring_bytes`` 0), by pipe."""
     settings, trajectory, clouds = _stream(small_mission)
     options = ServiceOptions(lookahead=True)
     carried: dict[str, int] = {}
     expected = _run_process(settings, options, trajectory, clouds, carried=carried)
     assert carried["ring in"] == carried["ring out"] == len(clouds)  # all by the rings
     if transport == "small rings":
-        monkeypatch.setattr(correction_service, "RING_BYTES", 2 * max(map(len, clouds)) + 64)
+        options = dataclasses.replace(options, ring_bytes=2 * max(map(len, clouds)) + 64)
+    elif transport == "no rings wanted":
+        options = dataclasses.replace(options, ring_bytes=0)
     else:
         def refuse(size: int, **_kw: Any) -> SharedRing:
             raise OSError(28, "No space left on device")
 
         monkeypatch.setattr(SharedRing, "create", refuse)
     got = _run_process(settings, options, trajectory, clouds,
-                       shared_memory=transport != "pipes", carried=carried)
+                       shared_memory=transport == "small rings", carried=carried)
     assert got == expected
+    if transport != "small rings":
+        assert carried["ring in"] == carried["ring out"] == 0
     if transport == "pipes":
         assert "through pipes" in caplog.text and "No space" in caplog.text
-        assert carried["ring in"] == carried["ring out"] == 0
-    else:
+    elif transport == "small rings":
         assert carried["ring in"] > 0 and carried["pipe in"] > 0, carried
         assert carried["ring out"] > 0, carried
 

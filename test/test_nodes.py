@@ -601,3 +601,26 @@ def test_a_flight_config_change_shows_only_once_the_node_has_applied_it(
         assert not seen_before_applied
     finally:
         node.destroy_node()
+
+
+def test_shared_memory_can_be_turned_off_or_refused_with_a_reason(ros_context: Any) -> None:
+    """``shared_memory_mib:=0`` sends clouds through pipes (diagnostics say so); a negative
+    size is refused at start with the parameter's name."""
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.errors import ConfigError
+    from lidarcal_ros.nodes.corrector import CorrectorNode
+    from lidarcal_ros.pipeline.correction_service import CorrectionProcess
+
+    node = CorrectorNode(context=ros_context, node_name="lidarcal_corrector_pipes",
+                         parameter_overrides=[Parameter("shared_memory_mib", value=0)])
+    try:
+        assert isinstance(node._service, CorrectionProcess)
+        assert node.status().values["transport"] == "pipes"
+        assert node._service._inbound is None and node._service._outbound is None
+    finally:
+        node.close()
+        node.destroy_node()
+    with pytest.raises((ConfigError, ValueError), match="shared_memory_mib"):
+        CorrectorNode(context=ros_context, node_name="lidarcal_corrector_bad",
+                      parameter_overrides=[Parameter("shared_memory_mib", value=-1)])

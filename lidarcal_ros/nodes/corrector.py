@@ -28,12 +28,13 @@ skipped; the node keeps running.
 The numerics run in a child process (``separate_process``, :mod:`~lidarcal_ros.pipeline.
 correction_service`): this process only takes messages off DDS and publishes, so that its
 callbacks (hundreds of trajectory samples a second) never wait for the interpreter lock of
-the numerics. The clouds go there and back through shared memory (pipes where a host has
-none: diagnostics key ``transport``).
+the numerics. The clouds go there and back through shared memory (``shared_memory_mib``;
+pipes where a host has none: diagnostics key ``transport``).
 
 Node-specific parameters: ``calibration`` (YAML path), ``queue_depth``, ``best_effort``,
 ``trajectory_type`` (``auto`` or a type), ``trajectory_buffer_s``, ``max_trajectory_wait_s``,
-``flush_timeout_s``, ``lookahead``, ``workers``, ``batch_points``, ``separate_process``.
+``flush_timeout_s``, ``lookahead``, ``workers``, ``batch_points``, ``separate_process``,
+``shared_memory_mib``.
 Diagnostics (``lidarcal: corrector``) report clouds and points in and out, skipped chunks,
 points not covered by the trajectory and the latency.
 """
@@ -81,6 +82,7 @@ from lidarcal_ros.nodes.common import (
 )
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.correction_service import (
+    RING_BYTES,
     CorrectionProcess,
     LocalCorrection,
     ServiceOptions,
@@ -119,6 +121,11 @@ EXTRA_PARAMETERS = {
                                       "interpreter lock, so that the node's callbacks never "
                                       "wait for the numerics (false: in a thread of the node)",
                                       read_only=True),
+    "shared_memory_mib": NodeParameter(RING_BYTES >> 20, "Shared memory (MiB) of each of the "
+                                       "two rings that carry clouds to the child process and "
+                                       "back; a cloud that does not fit goes through a pipe "
+                                       "(0: pipes only)", minimum=0, maximum=65536,
+                                       read_only=True),
 }
 
 _TRAJECTORY_MARGIN_S = 0.02
@@ -285,7 +292,8 @@ class CorrectorNode(Node):
                                  workers=self.params["workers"],
                                  lookahead=self.params["lookahead"],
                                  source=self.params["topics.points"],
-                                 trajectory_keep_s=self.params["trajectory_buffer_s"])
+                                 trajectory_keep_s=self.params["trajectory_buffer_s"],
+                                 ring_bytes=self.params["shared_memory_mib"] << 20)
         if self.params["separate_process"]:
             try:
                 return CorrectionProcess(self._settings, options, on_result=self._on_result,

@@ -59,6 +59,13 @@ ResultHandler = Callable[[Any, bytes, int, int, float], None]
 ErrorHandler = Callable[[Any, str], None]
 
 
+#: Default bytes of each shared-memory ring (:mod:`~lidarcal_ros.io.shared_ring`) that
+#: carries the clouds to the correction process and back: about nine 50 ms chunks of a 4 MHz
+#: sensor in (10 MB each), six out (15 MB), room for a start-up queue. A cloud that does not
+#: fit goes through the pipe.
+RING_BYTES = 96 << 20
+
+
 @dataclass(frozen=True)
 class ServiceOptions:
     """How the correction runs (the node's parameters).
@@ -75,6 +82,9 @@ class ServiceOptions:
         Topic named in messages.
     trajectory_keep_s : float
         Seconds of trajectory kept.
+    ring_bytes : int
+        Bytes of each of the two shared-memory rings of :class:`CorrectionProcess` (0: pipes
+        only).
     """
 
     batch_points: int = 0
@@ -82,6 +92,7 @@ class ServiceOptions:
     lookahead: bool = True
     source: str = "cloud"
     trajectory_keep_s: float = 600.0
+    ring_bytes: int = RING_BYTES
 
 
 @dataclass(frozen=True)
@@ -305,10 +316,6 @@ def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
 
 #: How long the child waits for a batch of a worker thread before it looks for requests.
 _RESULT_POLL_S = 0.002
-#: Bytes of the shared-memory rings (:mod:`~lidarcal_ros.io.shared_ring`) that carry the
-#: clouds to the correction process and back: each holds several 50 ms chunks of a 4 MHz
-#: sensor (10 MB in, 15 MB out). A cloud that does not fit goes through the pipe.
-RING_BYTES = 96 << 20
 
 
 @dataclass(frozen=True)
@@ -484,12 +491,15 @@ def _is_dense_byte(points: np.ndarray) -> bytes:
     return b"\x01" if dense else b"\x00"
 
 
-def _create_rings() -> tuple[SharedRing | None, SharedRing | None]:
-    """The two rings, or none where shared memory cannot be had (then pipes carry all)."""
+def _create_rings(size: int) -> tuple[SharedRing | None, SharedRing | None]:
+    """The two rings of ``size`` bytes, or none where shared memory cannot be had or is not
+    wanted (``size`` 0): then pipes carry all."""
+    if size <= 0:
+        return None, None
     inbound = outbound = None
     try:
-        inbound = SharedRing.create(RING_BYTES)
-        outbound = SharedRing.create(RING_BYTES)
+        inbound = SharedRing.create(size)
+        outbound = SharedRing.create(size)
     except OSError as exc:
         logger.warning("no shared memory for the correction process (%s): clouds go "
                        "through pipes", exc)
@@ -524,9 +534,10 @@ class CorrectionProcess:
         self._on_result = on_result
         self._on_error = on_error
         self._on_failure = on_failure
-        self._inbound, self._outbound = _create_rings()
+        size = options.ring_bytes
+        self._inbound, self._outbound = _create_rings(size)
         rings = _Rings(self._inbound.path if self._inbound else None,
-                       self._outbound.path if self._outbound else None, RING_BYTES)
+                       self._outbound.path if self._outbound else None, size)
         self._inbound_ready = False  # the child has mapped the inbound ring
         ctx = multiprocessing.get_context("spawn")  # never fork a process that runs threads
         child_in, self._inbox = ctx.Pipe(duplex=False)
