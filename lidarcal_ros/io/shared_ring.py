@@ -18,7 +18,9 @@ usual way: a full ring slows nothing down, and it never blocks.
 The file lives in ``/dev/shm`` (memory) where it exists. Its space is reserved when it is
 created (``posix_fallocate``), so that a full ``/dev/shm`` refuses the ring at start with an
 ``OSError`` rather than killing a process with SIGBUS at its first write; the file is unlinked
-as soon as both sides have mapped it (:meth:`~SharedRing.unlink`).
+as soon as both sides have mapped it (:meth:`~SharedRing.unlink`). Its name carries the
+creating process's id, so that the file of a process killed before that point is removed when
+the next ring is created.
 """
 
 from __future__ import annotations
@@ -81,6 +83,8 @@ class SharedRing:
         try:
             try:
                 os.posix_fallocate(fd, 0, int(size))
+            except AttributeError:  # not on this system (macOS): size only
+                os.ftruncate(fd, int(size))
             except OSError as exc:
                 if exc.errno not in _NO_FALLOCATE:
                     raise
