@@ -228,3 +228,23 @@ def test_beam_geometry_range_scan_and_incidence() -> None:
     level[[5, 6]] = False
     np.testing.assert_allclose(cos_inc[level], 1000.0 / r[level], rtol=1e-6)
     assert np.isnan(cos_inc[5]) and cos_inc[6] == 1.0
+
+
+def test_byte_counts_is_bincount() -> None:
+    values = np.random.default_rng(4).integers(0, 256, 10_001).astype(np.uint8)
+    values[:300] = 255
+    np.testing.assert_array_equal(kernels.byte_counts(values),
+                                  np.bincount(values, minlength=256))
+    assert kernels.byte_counts(np.empty(0, np.uint8)).sum() == 0
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2])
+def test_centred_sums_add_the_block_around_each_cell_inside_the_grid(radius: int) -> None:
+    rng = np.random.default_rng(5)
+    moments = rng.random((10, 7, 9))
+    cells = np.array([0, 8, 9 * 3 + 4, 9 * 6 + 8, 9 * 6, 5], dtype=np.int64)  # corners, edges
+    got = kernels.centred_sums(moments, cells, radius)
+    for k, cell in enumerate(cells):
+        i, j = divmod(int(cell), 9)
+        block = moments[:, max(i - radius, 0):i + radius + 1, max(j - radius, 0):j + radius + 1]
+        np.testing.assert_allclose(got[:, k], block.sum(axis=(1, 2)), rtol=1e-12)

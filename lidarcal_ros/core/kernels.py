@@ -517,3 +517,55 @@ def beam_geometry(xc: np.ndarray, origin: np.ndarray, cos_kappa: np.ndarray,
             c = 1.0
         cos_inc[i] = c
     return rng, tan_scan, cos_inc
+
+
+@_jit
+def byte_counts(values: np.ndarray) -> np.ndarray:
+    """How many times each byte value occurs: ``np.bincount(values, minlength=256)`` for a
+    uint8 array, in one pass and without the interpreter lock (bincount first widens the
+    array to 8-byte integers).
+
+    Parameters
+    ----------
+    values : (n,) uint8
+
+    Returns
+    -------
+    (256,) int64
+    """
+    counts = np.zeros(256, dtype=np.int64)
+    for i in range(values.shape[0]):
+        counts[values[i]] += 1
+    return counts
+
+
+@_jit
+def centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
+    """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
+    cell indices ``cells`` of a (10, nu, nv) grid (zero beyond it), the block's cells added
+    row by row, column by column.
+
+    Parameters
+    ----------
+    moments : (10, nu, nv) float64
+    cells : (m,) int64
+        Flat indices ``row * nv + column``.
+    radius : int
+    """
+    nu, nv = moments.shape[1], moments.shape[2]
+    m = cells.shape[0]
+    sums = np.zeros((10, m))
+    for k in range(m):
+        ci = cells[k] // nv
+        cj = cells[k] - ci * nv
+        for di in range(-radius, radius + 1):
+            ii = ci + di
+            if ii < 0 or ii >= nu:
+                continue
+            for dj in range(-radius, radius + 1):
+                jj = cj + dj
+                if jj < 0 or jj >= nv:
+                    continue
+                for q in range(10):
+                    sums[q, k] += moments[q, ii, jj]
+    return sums

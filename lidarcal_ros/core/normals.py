@@ -367,17 +367,8 @@ def _median_noise(lam: np.ndarray, ok: np.ndarray) -> float:
 def _centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
     """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
     cell indices ``cells`` of a (10, nu, nv) grid (zero beyond it)."""
-    _, nu, nv = moments.shape
-    ni, nj = np.divmod(cells, nv)
-    sums = np.zeros((10, cells.size))
-    for di in range(-radius, radius + 1):
-        ii = ni + di
-        row_in = (ii >= 0) & (ii < nu)
-        for dj in range(-radius, radius + 1):
-            jj = nj + dj
-            inside = row_in & (jj >= 0) & (jj < nv)
-            sums[:, inside] += moments[:, ii[inside], jj[inside]]
-    return sums
+    return kernels.centred_sums(np.ascontiguousarray(moments, dtype=np.float64),
+                                np.ascontiguousarray(cells, dtype=np.int64), int(radius))
 
 
 def _grid_planes(

@@ -122,7 +122,9 @@ def parse_cloud(raw: bytes | memoryview, *, source: str = "cloud") -> CloudMessa
         naming ``source``).
     """
     try:
-        msg = deserialize(raw, POINTCLOUD2)
+        # Through a memoryview: rosbags slices off the encapsulation header, which for bytes
+        # would copy the whole message (10 MB for 200k points) while holding the GIL.
+        msg = deserialize(memoryview(raw), POINTCLOUD2)
     except Exception as err:  # truncated or garbage bytes
         text = " ".join(str(err).split()) or type(err).__name__
         raise CloudFormatError(f"{source}: undecodable PointCloud2 ({text})") from None

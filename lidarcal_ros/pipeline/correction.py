@@ -193,7 +193,7 @@ class CorrectionStats:
     def add(self, flags: np.ndarray) -> None:
         self.points += int(flags.size)
         if flags.size:
-            counts = np.bincount(flags, minlength=32)
+            counts = kernels.byte_counts(np.ascontiguousarray(flags, dtype=np.uint8))
             bits = np.arange(counts.size)
             self.not_corrected += int(counts[(bits & FLAG_NOT_CORRECTED) != 0].sum())
             self.grazing += int(counts[(bits & FLAG_GRAZING) != 0].sum())
