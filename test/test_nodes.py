@@ -447,6 +447,25 @@ def test_a_malformed_cloud_is_logged_and_skipped(suite: Suite) -> None:
     assert suite.cal.node_statuses()[1].level == 1
 
 
+def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(
+        suite: Suite) -> None:
+    """The correction process killed between clouds: the node starts a new one (with its own
+    shared memory, the old rings' files gone) and corrects the next cloud."""
+    old = suite.cor._service
+    rings = [r for r in (old._inbound, old._outbound) if r is not None]
+    old._process.kill()
+    _wait(lambda: not old.alive, 10, "the correction process to die")
+    with open_bag(suite.mission.bag) as b:
+        raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
+    refl = _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)
+    assert np.isfinite(refl).any()
+    new = suite.cor._service
+    assert new is not old and new.alive
+    assert all(not Path(r.path).exists() for r in rings)
+    _wait(lambda: new.shared_memory, 30, "the new process to map its rings")
+    assert suite.cor.status().values["transport"] == "shared memory"
+
+
 def test_memory_budget_releases_the_oldest_strips_and_says_so(suite: Suite) -> None:
     held = suite.cal.stream.n_points
     results = suite.set_parameters("lidarcal_calibrator", memory_budget_points=held // 2)
