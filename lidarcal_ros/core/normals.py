@@ -728,9 +728,9 @@ class StripNormals:
         The grid advances along track in place: the rows still needed move to the front of
         the same array, and rows are zeroed just before points first land in them
         (``_clean_to``). A new, larger array is only made while the strip's rows still
-        outgrow it, or when it must widen: a fresh array of some 50 MB for a wide swath in
-        fine cells cost about 90 ms in page faults at each regrowth, and as much again in its
-        first filling, where a strip's first seconds now pay this once.
+        outgrow it, or when it must widen. (A fresh array of some 50 MB, for a wide swath in
+        fine cells, cost about 90 ms in page faults at each regrowth and about as much again
+        while the next chunks filled it; now only a strip's first arrays pay that.)
         """
         m = self._moments
         if m.shape[1] == 0:
