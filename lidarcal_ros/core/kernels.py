@@ -43,6 +43,8 @@ def _jit(func: _F) -> _F:
     except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
         _log.debug("no cache for the compiled loops (%s): compiling in this process", exc)
         return cast(_F, njit(cache=False, **_OPTIONS)(func))
+
+
 _THIRD_TURN = 2.0 * math.pi / 3.0
 
 

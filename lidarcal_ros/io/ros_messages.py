@@ -202,11 +202,16 @@ def cloud_cdr_parts(
     the message; a caller can also copy them straight into a buffer of its own."""
     fields, point_step, data = array_to_cloud_parts(points)
     n = data.size // point_step if point_step else 0
-    if is_dense is None:
-        names = points.dtype.names or ()
-        is_dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
     head = cloud_header_cdr(stamp, frame_id, fields, point_step, n)
-    return head, data.data, b"\x01" if is_dense else b"\x00"
+    return head, data.data, is_dense_byte(points) if is_dense is None else bytes([is_dense])
+
+
+def is_dense_byte(points: np.ndarray) -> bytes:
+    """PointCloud2's ``is_dense`` as it is serialised: ``b"\\x01"`` when every ``x, y, z``
+    of ``points`` (those present) is finite, else ``b"\\x00"``."""
+    names = points.dtype.names or ()
+    dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
+    return b"\x01" if dense else b"\x00"
 
 
 # ---------------------------------------------------------------------------- estimate

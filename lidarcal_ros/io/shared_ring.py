@@ -174,9 +174,9 @@ class SharedRing:
         bytes written."""
         at = offset
         for part in parts:
-            n = len(memoryview(part).cast("B"))
-            self._view[at:at + n] = memoryview(part).cast("B")
-            at += n
+            data = memoryview(part).cast("B")
+            self._view[at:at + len(data)] = data
+            at += len(data)
         return at - offset
 
     def close(self) -> None:

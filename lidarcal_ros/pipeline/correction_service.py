@@ -42,6 +42,7 @@ from lidarcal_ros.io.ros_messages import (
     cloud_cdr,
     cloud_cdr_parts,
     cloud_header_cdr,
+    is_dense_byte,
     parse_cloud,
 )
 from lidarcal_ros.io.shared_ring import SharedRing
@@ -459,36 +460,30 @@ class _ResultSender:
         for r in results:
             placed = self._placed.pop(r.tag, None)
             offset: int | None
+            parts: list[bytes | memoryview] = []
             if placed is not None:
                 assert self._ring is not None
                 offset, start, size = placed
-                self._ring.write(start + size - 1, [_is_dense_byte(r.points)])
+                self._ring.write(start + size - 1, [is_dense_byte(r.points)])
             else:
-                offset, start, size = self._serialise(r)
+                parts = list(r.cdr_parts())
+                offset, start, size = self._copy_into_ring(parts)
             self._outbox.send(("out", r.tag, len(r.points), r.not_corrected, r.seconds,
                                offset, start, size))
             if offset is None:
-                _send_payload(self._outbox, list(r.cdr_parts()))
+                _send_payload(self._outbox, parts)
 
-    def _serialise(self, r: _Corrected) -> tuple[int | None, int, int]:
-        """A cloud built outside the ring: copied into it if it has room now."""
-        parts = r.cdr_parts()
-        size = sum(len(memoryview(p).cast("B")) for p in parts)
+    def _copy_into_ring(self, parts: list[bytes | memoryview]) -> tuple[int | None, int, int]:
+        """A cloud built outside the ring, serialised as ``parts``: copied into the ring if
+        it has room now (its region offset, message offset and size; offset None: not)."""
+        size = sum(memoryview(p).nbytes for p in parts)
         if self._ring is None:
             return None, 0, size
         self._take_freed()
         offset = self._ring.allocate(size)
         if offset is not None:
-            self._ring.write(offset, list(parts))
+            self._ring.write(offset, parts)
         return offset, offset or 0, size
-
-
-def _is_dense_byte(points: np.ndarray) -> bytes:
-    """PointCloud2's ``is_dense`` of a cloud, as :func:`~lidarcal_ros.io.ros_messages.
-    cloud_cdr` sets it: whether every ``x, y, z`` is finite."""
-    names = points.dtype.names or ()
-    dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
-    return b"\x01" if dense else b"\x00"
 
 
 def _create_rings(size: int) -> tuple[SharedRing | None, SharedRing | None]:
@@ -536,6 +531,7 @@ class CorrectionProcess:
         self._on_failure = on_failure
         size = options.ring_bytes
         self._inbound, self._outbound = _create_rings(size)
+        self._rings = [r for r in (self._inbound, self._outbound) if r is not None]
         rings = _Rings(self._inbound.path if self._inbound else None,
                        self._outbound.path if self._outbound else None, size)
         self._inbound_ready = False  # the child has mapped the inbound ring
@@ -648,10 +644,9 @@ class CorrectionProcess:
         self._drop_rings()
 
     def _drop_rings(self) -> None:
-        for ring in (self._inbound, self._outbound):
-            if ring is not None:
-                ring.unlink()
-                ring.close()
+        for ring in self._rings:
+            ring.unlink()
+            ring.close()
 
     def _send(self, request: tuple[Any, ...]) -> None:
         with self._send_lock:
@@ -680,9 +675,8 @@ class CorrectionProcess:
                     self._on_error(reply[1], reply[2])
                 elif reply[0] == "mapped":
                     # Both sides have the rings mapped: their files can go.
-                    for ring in (self._inbound, self._outbound):
-                        if ring is not None:
-                            ring.unlink()
+                    for ring in self._rings:
+                        ring.unlink()
                     self._inbound_ready = bool(reply[1]) and self._inbound is not None
                 elif reply[0] == "flushed":
                     self._flushed.set()
@@ -704,10 +698,9 @@ class CorrectionProcess:
         with self._pending_lock:
             lost, self._pending = list(self._pending), {}
             self._inbound_ready = False
-        for ring in (self._inbound, self._outbound):
-            if ring is not None:
-                ring.clear()
-                ring.unlink()  # (if the child died before it mapped them)
+        for ring in self._rings:
+            ring.clear()
+            ring.unlink()  # (if the child died before it mapped them)
         if self._closing and not lost:
             self._flushed.set()
             return
