@@ -203,8 +203,76 @@ def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> Non
     for name in ("x", "z", "beta"):
         np.testing.assert_allclose(getattr(g, name), getattr(ref, name), rtol=0, atol=1e-9)
     np.testing.assert_allclose(g.cos_kappa, np.cos(g.kappa), atol=1e-15)
+    _, _, sin_beta, cos_beta = g.trig()
+    np.testing.assert_allclose(sin_beta, np.sin(g.beta), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cos_beta, np.cos(g.beta), rtol=0, atol=1e-12)
     # The firing positions lie on the trajectory (a smooth line: within centimetres).
     np.testing.assert_allclose(g.origin[:, 1], 60.0 * t, atol=0.05)
+    # Out of time order (the general search): each point keeps its own geometry.
+    shuffle = rng.permutation(t.size)
+    g2 = laser_geometry(t[shuffle], xyz[shuffle], traj)
+    for name in ("x", "z", "beta", "kappa"):
+        np.testing.assert_array_equal(getattr(g2, name), getattr(g, name)[shuffle])
+    np.testing.assert_array_equal(g2.trig()[2], sin_beta[shuffle])
+
+
+def test_time_windows_in_one_pass_are_those_of_the_binary_search() -> None:
+    from lidarcal_ros.core.local_trajectory import _bracketed
+
+    window_s = 0.5
+    traj_t = np.concatenate([np.arange(100.0, 103.0, 0.25), np.arange(104.5, 106.0, 0.25)])
+    rng = np.random.default_rng(6)
+    # before the start, across the 1.5 s gap, past the end; ties with samples +- window
+    t = np.sort(np.concatenate([rng.uniform(99.0, 107.0, 3000), traj_t[:5] + window_s,
+                                traj_t[3:9] - window_s, traj_t[2:4], [101.0] * 4]))
+    for min_samples in (2, 4):
+        in_order, start, stop, window, n_bad, first_bad = kernels.sorted_time_windows(
+            traj_t, t, window_s, min_samples)
+        assert in_order
+        want_start = np.searchsorted(traj_t, t - window_s, side="right")
+        want_stop = np.searchsorted(traj_t, t + window_s, side="left")
+        np.testing.assert_array_equal(start[window], want_start)
+        np.testing.assert_array_equal(stop[window], want_stop)
+        assert np.all(np.diff(window) >= 0) and np.all(np.diff(window) <= 1)
+        assert len(set(zip(start.tolist(), stop.tolist(), strict=True))) == start.size
+        bad = ~_bracketed(t, traj_t, want_start, want_stop, min_samples)
+        assert 0 < n_bad == int(bad.sum()) and first_bad == int(np.argmax(bad))
+    shuffled = t[::-1].copy()
+    assert not kernels.sorted_time_windows(traj_t, shuffled, window_s, 2)[0]
+    with_nan = t.copy()
+    with_nan[10] = np.nan
+    assert not kernels.sorted_time_windows(traj_t, with_nan, window_s, 2)[0]
+
+
+def test_flight_cells_are_the_flight_frame_and_cells_of_the_finite_points() -> None:
+    rng = np.random.default_rng(7)
+    xyz = rng.uniform(-50.0, 50.0, (500, 3)) + np.array([5e5, 4e6, 300.0])
+    xyz[[3, 77]] = np.nan
+    xyz[200, 2] = np.inf
+    heading, x0, y0, z0 = 0.7, 5e5 - 1.0, 4e6 + 2.0, 290.0
+    c, s = math.cos(heading), math.sin(heading)
+    u, v, z, iu, iv, index, bounds = kernels.flight_cells(xyz, c, s, x0, y0, z0, 1 / 0.6,
+                                                          1 / 0.075)
+    keep = np.isfinite(xyz).all(axis=1)
+    np.testing.assert_array_equal(index, np.flatnonzero(keep))
+    dx, dy = xyz[keep, 0] - x0, xyz[keep, 1] - y0
+    np.testing.assert_array_equal(u, -s * dx + c * dy)
+    np.testing.assert_array_equal(v, c * dx + s * dy)
+    np.testing.assert_array_equal(z, xyz[keep, 2] - z0)
+    np.testing.assert_array_equal(iu, np.floor(u * (1 / 0.6)).astype(np.int64))
+    np.testing.assert_array_equal(iv, np.floor(v * (1 / 0.075)).astype(np.int64))
+    assert bounds.tolist() == [iu.min(), iu.max(), iv.min(), iv.max()]
+    assert kernels.flight_cells(xyz[:0], c, s, x0, y0, z0, 1.0, 1.0)[0].size == 0
+
+
+def test_flight_to_map_rotates_by_the_heading() -> None:
+    heading = 2.1
+    n_uvz = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, -1.0], [np.nan, 0.2, 0.3]])
+    out = kernels.flight_to_map(n_uvz, math.cos(heading), math.sin(heading))
+    # forward along the heading kappa = atan2(-dx, dy); right is forward turned clockwise
+    np.testing.assert_allclose(out[0], [-math.sin(heading), math.cos(heading), 0.5])
+    np.testing.assert_allclose(out[1], [math.cos(heading), math.sin(heading), -1.0])
+    assert np.isnan(out[2, :2]).all() and out[2, 2] == 0.3
 
 
 def test_beam_geometry_range_scan_and_incidence() -> None:
@@ -248,3 +316,24 @@ def test_centred_sums_add_the_block_around_each_cell_inside_the_grid(radius: int
         i, j = divmod(int(cell), 9)
         block = moments[:, max(i - radius, 0):i + radius + 1, max(j - radius, 0):j + radius + 1]
         np.testing.assert_allclose(got[:, k], block.sum(axis=(1, 2)), rtol=1e-12)
+
+
+def test_below_line_decides_as_numpy_interp() -> None:
+    rng = np.random.default_rng(8)
+    line_t = np.cumsum(rng.uniform(0.001, 0.01, 400)) + 50.0
+    line_z = 1000.0 + np.cumsum(rng.normal(0.0, 0.3, 400))
+    t = np.sort(np.concatenate([rng.uniform(49.0, 54.0, 20_000), line_t[::7], [np.nan]]))
+    # heights straddling the threshold to the last bit, some exactly on it
+    threshold = np.interp(t, line_t, line_z) - 1.0
+    z = threshold + rng.choice([-1e-9, 0.0, 1e-9, -3.0, 3.0], t.size)
+    z[::11] = np.nextafter(threshold[::11], -np.inf)
+    expected = z < threshold
+    np.testing.assert_array_equal(kernels.below_line(t, z, line_t, line_z, 1.0), expected)
+    shuffle = rng.permutation(t.size)
+    np.testing.assert_array_equal(kernels.below_line(t[shuffle], z[shuffle], line_t, line_z,
+                                                     1.0), expected[shuffle])
+    # a single sample: its height everywhere
+    h = line_z[0]
+    one = kernels.below_line(np.array([0.0, 99.0]), np.array([h - 1.5, h - 0.5]), line_t[:1],
+                             line_z[:1], 1.0)
+    assert one.tolist() == [True, False]

@@ -313,30 +313,53 @@ def test_corrected_dtype_keeps_input_layout() -> None:
     assert out.fields["reflectance"][1] >= 48
 
 
-def test_a_corrected_cloud_built_in_a_used_buffer_has_the_bytes_of_a_new_one() -> None:
+_ODD_LAYOUT = np.dtype({"names": ["x", "y", "z", "t", "intensity"],
+                        "formats": ["<f8", "<f8", "<f8", "<f8", "u1"],
+                        "offsets": [0, 8, 16, 24, 33], "itemsize": 35})  # odd size, a hole
+_FLOAT32_LAYOUT = np.dtype({"names": ["x", "y", "z", "t", "range", "intensity"],
+                            "formats": ["<f4", "<f4", "<f4", "<f8", "<f8", "<u2"],
+                            "offsets": [0, 4, 8, 16, 24, 34], "itemsize": 44})
+_PACKED_LAYOUT = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("t", "<f8"),
+                           ("intensity", "<f4"), ("strip_id", "<u2")], align=True)
+
+
+@pytest.mark.parametrize("layout", [_ODD_LAYOUT, _FLOAT32_LAYOUT, _PACKED_LAYOUT],
+                         ids=["odd-size", "float32-xyz-and-old-range", "sensor-layout"])
+def test_a_corrected_cloud_built_in_a_used_buffer_has_the_bytes_of_a_new_one(
+        layout: np.dtype) -> None:
     """Building into a buffer that held other bytes (a shared-memory ring) writes every
-    byte: the input's, the added fields' and zeros in the gaps between them."""
-    dt = np.dtype({"names": ["x", "y", "z", "t", "intensity"],
-                   "formats": ["<f8", "<f8", "<f8", "<f8", "u1"],
-                   "offsets": [0, 8, 16, 24, 33], "itemsize": 35})  # odd size and a hole
+    byte: the input's, the added fields' and zeros in the gaps between them; the row-wise
+    compiled pass (4-byte rows) and numpy's field passes (other rows) give the same."""
     n = 50
     rng = np.random.default_rng(1)
-    raw = rng.integers(0, 256, n * dt.itemsize, dtype=np.uint8)  # holes hold bytes too
-    pts = raw.view(dt)
+    raw = rng.integers(0, 256, n * layout.itemsize, dtype=np.uint8)  # holes hold bytes too
+    pts = raw.view(layout)
     res = CorrectedColumns(rng.normal(size=(n, 3)), *(rng.random(n).astype(np.float32)
                                                        for _ in range(4)),
                            rng.integers(0, 4, n).astype(np.uint8))
+    # The expected bytes, spelt out: input row, zeros, then each field written.
+    dt = corrected_dtype(layout)
+    expected = np.zeros(n * dt.itemsize, dtype=np.uint8).reshape(n, dt.itemsize)
+    expected[:, :layout.itemsize] = raw.reshape(n, layout.itemsize)
+    ex = expected.reshape(-1).view(dt)
+    for i, axis in enumerate("xyz"):
+        ex[axis] = res.xyz[:, i]
+    for name, column in (("reflectance", res.reflectance), ("range", res.range),
+                         ("incidence", res.incidence), ("scan_angle", res.scan_angle),
+                         ("correction_flags", res.flags)):
+        ex[name] = column
     fresh = build_corrected(pts, res)
-    used = np.full(n * fresh.dtype.itemsize, 0xAB, dtype=np.uint8).view(fresh.dtype)
+    assert fresh.tobytes() == expected.tobytes()
+    used = np.full(n * dt.itemsize, 0xAB, dtype=np.uint8).view(dt)
     built = build_corrected(pts, res, out=used)
     assert built is used
-    assert used.tobytes() == fresh.tobytes()
-    rows = fresh.view(np.uint8).reshape(n, -1)
-    # the input row past x, y, z (replaced), holes included
-    assert (rows[:, 24:35] == raw.reshape(n, 35)[:, 24:]).all()
-    assert (rows[:, 35] == 0).all()  # before the first added field (4-byte aligned)
-    np.testing.assert_array_equal(fresh["x"], res.xyz[:, 0])
-    np.testing.assert_array_equal(fresh["correction_flags"], res.flags)
+    assert used.tobytes() == expected.tobytes()
+    # Rows 10:40 of the columns, as the stream corrector builds a cloud of a batch.
+    part = build_corrected(pts[:30], res, 10, 40)
+    np.testing.assert_array_equal(part["x"], res.xyz[10:40, 0].astype(dt.fields["x"][0]))
+    np.testing.assert_array_equal(part["range"], res.range[10:40])
+    np.testing.assert_array_equal(part["t"], pts["t"][:30])
+    np.testing.assert_array_equal(part["correction_flags"], res.flags[10:40])
     with pytest.raises(ValueError, match="output"):
         build_corrected(pts, res, out=used[:-1])
 

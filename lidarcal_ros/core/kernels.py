@@ -1,7 +1,8 @@
 """Compiled per-point and per-cell loops of the core: the grid normals
-(:mod:`lidarcal_ros.core.normals`), the laser geometry of each point
-(:func:`lidarcal_ros.core.local_trajectory.laser_geometry`) and eq. [13]
-(:func:`lidarcal_ros.core.model.point_offsets`).
+(:mod:`lidarcal_ros.core.normals`), the trajectory windows and laser geometry of each point
+(:func:`lidarcal_ros.core.local_trajectory.laser_geometry`), eq. [13]
+(:func:`lidarcal_ros.core.model.point_offsets`) and the rows of a corrected cloud
+(:func:`lidarcal_ros.pipeline.correction.build_corrected`).
 
 numpy spends most of their time streaming temporaries through memory: ten weighted
 ``bincount`` passes per binning, a (10, nu, nv) copy per block sum, a handful of gathers,
@@ -424,11 +425,127 @@ def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarr
 
 
 @_jit
+def below_line(t: np.ndarray, z: np.ndarray, line_t: np.ndarray, line_z: np.ndarray,
+               depth: float) -> np.ndarray:
+    """``z < np.interp(t, line_t, line_z) - depth`` in one pass (points at least ``depth``
+    below a piecewise-linear height, e.g. the trajectory's).
+
+    The interpolation is numpy's, operation for operation (the value at a sample, the
+    first or last height beyond the ends, ``slope (t - t_j) + z_j`` between), so the
+    comparison decides alike. The previous point's interval is tried first: points come
+    in time order.
+
+    Parameters
+    ----------
+    t, z : (n,) float64
+        Times (s) and heights (m) of the points.
+    line_t, line_z : (m,) float64, m >= 1
+        Sample times, increasing, and heights of the line.
+    depth : float
+        Least depth below the line, m.
+    """
+    n = t.shape[0]
+    m = line_t.shape[0]
+    out = np.empty(n, dtype=np.bool_)
+    j = 0
+    for i in range(n):
+        x = t[i]
+        if math.isnan(x):
+            out[i] = False
+            continue
+        # j: the last sample at or before x (-1 before the first)
+        if not (0 <= j < m - 1 and line_t[j] <= x < line_t[j + 1]):
+            j = np.searchsorted(line_t, x, side="right") - 1
+        if j < 0:
+            h = line_z[0]
+        elif j >= m - 1:
+            h = line_z[m - 1]
+        elif line_t[j] == x:
+            h = line_z[j]
+        else:
+            slope = (line_z[j + 1] - line_z[j]) / (line_t[j + 1] - line_t[j])
+            h = slope * (x - line_t[j]) + line_z[j]
+            if math.isnan(h):
+                h = slope * (x - line_t[j + 1]) + line_z[j + 1]
+                if math.isnan(h) and line_z[j] == line_z[j + 1]:
+                    h = line_z[j]
+        out[i] = z[i] < h - depth
+    return out
+
+
+@_jit
+def sorted_time_windows(traj_t: np.ndarray, t: np.ndarray, window_s: float, min_samples: int
+                        ) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """The trajectory window of each point of a time-ordered chunk, in one merging pass.
+
+    The window of time ``t`` holds the samples inside ``(t - window_s, t + window_s)``: from
+    ``start = searchsorted(traj_t, t - window_s, "right")`` to
+    ``stop = searchsorted(traj_t, t + window_s, "left")``. It serves the point when it holds
+    ``min_samples`` samples and brackets ``t``
+    (:func:`~lidarcal_ros.core.local_trajectory._bracketed`). Consecutive points sharing a
+    window share its line fit.
+
+    Parameters
+    ----------
+    traj_t : (m,) float64
+        Trajectory sample times, s, increasing.
+    t : (n,) float64, n >= 1
+        Firing times, s.
+
+    Returns
+    -------
+    in_order : bool
+        False when ``t`` is not non-decreasing (or holds NaN); then nothing else is
+        meaningful (use the general search).
+    start, stop : (k,) int64
+        The distinct windows, in order.
+    window : (n,) int64
+        The window of each point.
+    n_bad : int
+        Points whose window does not serve them.
+    first_bad : int
+        The first of them (-1 if none).
+    """
+    n = t.shape[0]
+    m = traj_t.shape[0]
+    window = np.empty(n, dtype=np.int64)
+    start = np.empty(n, dtype=np.int64)
+    stop = np.empty(n, dtype=np.int64)
+    last = m - 1
+    a = np.searchsorted(traj_t, t[0] - window_s, side="right")
+    b = np.searchsorted(traj_t, t[0] + window_s, side="left")
+    k = -1
+    n_bad = 0
+    first_bad = -1
+    for i in range(n):
+        ti = t[i]
+        if not (i == 0 or ti >= t[i - 1]):  # (NaN fails too)
+            return False, start[:0], stop[:0], window, 0, -1
+        lo = ti - window_s
+        hi = ti + window_s
+        while a < m and traj_t[a] <= lo:
+            a += 1
+        while b < m and traj_t[b] < hi:
+            b += 1
+        if k < 0 or a != start[k] or b != stop[k]:
+            k += 1
+            start[k], stop[k] = a, b
+        window[i] = k
+        served = (a < b and traj_t[min(a, last)] <= ti and traj_t[max(b - 1, 0)] >= ti
+                  and b - a >= min_samples)
+        if not served:
+            if n_bad == 0:
+                first_bad = i
+            n_bad += 1
+    return True, start[:k + 1], stop[:k + 1], window, n_bad, first_bad
+
+
+@_jit
 def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: np.ndarray,
                     p_mean: np.ndarray, velocity: np.ndarray, kappa_w: np.ndarray,
                     cos_w: np.ndarray, sin_w: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                               np.ndarray]:
+                               np.ndarray, np.ndarray, np.ndarray]:
     """Firing position and laser-frame geometry of each point from the line fitted to its
     trajectory window (method.md section 4).
 
@@ -450,6 +567,8 @@ def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: 
     origin : (n, 3) ``p_mean + velocity (t - t_mean)``, m
     x, z : (n,) ``(xyz - origin) . (cos kappa, sin kappa, 0)`` and the height difference, m
     kappa, cos_kappa, sin_kappa : (n,) the window's heading, its cosine and sine
+    sin_beta, cos_beta : (n,) ``-x / r`` and ``-z / r`` with ``r = sqrt(x^2 + z^2)``: the
+        mirror angle's sine and cosine (``z < 0``)
 
     (The mirror angle ``atan(x / z)`` is left to numpy, whose SIMD arctangent is several
     times faster than a scalar one.)
@@ -461,6 +580,8 @@ def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: 
     kappa = np.empty(n)
     cos_kappa = np.empty(n)
     sin_kappa = np.empty(n)
+    sin_beta = np.empty(n)
+    cos_beta = np.empty(n)
     for i in range(n):
         w = window[i]
         dt = t[i] - t_mean[w]
@@ -473,7 +594,9 @@ def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: 
         zi = xyz[i, 2] - oz
         x[i], z[i] = xi, zi
         kappa[i], cos_kappa[i], sin_kappa[i] = kappa_w[w], c, s
-    return origin, x, z, kappa, cos_kappa, sin_kappa
+        inv_r = 1.0 / math.sqrt(xi * xi + zi * zi)
+        sin_beta[i], cos_beta[i] = -xi * inv_r, -zi * inv_r
+    return origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta
 
 
 @_jit
@@ -519,6 +642,124 @@ def beam_geometry(xc: np.ndarray, origin: np.ndarray, cos_kappa: np.ndarray,
             c = 1.0
         cos_inc[i] = c
     return rng, tan_scan, cos_inc
+
+
+@_jit
+def flight_to_map(n_uvz: np.ndarray, cos_h: float, sin_h: float) -> np.ndarray:
+    """Vectors from the flight frame (``u`` forward, ``v`` right, ``z`` up) to the map frame:
+    ``u (-sin_h, cos_h) + v (cos_h, sin_h)``, ``z`` unchanged; (n, 3) in, new (n, 3) out."""
+    n = n_uvz.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        a, b = n_uvz[i, 0], n_uvz[i, 1]
+        out[i, 0] = -sin_h * a + cos_h * b
+        out[i, 1] = cos_h * a + sin_h * b
+        out[i, 2] = n_uvz[i, 2]
+    return out
+
+
+@_jit
+def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: float, z0: float,
+                 inv_cell_u: float, inv_cell_v: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                            np.ndarray, np.ndarray]:
+    """Flight-frame coordinates and grid cell of each finite point, in one pass
+    (``finite = isfinite(x + y + z)``; ``u = -sin_h dx + cos_h dy``,
+    ``v = cos_h dx + sin_h dy``, ``z - z0``; ``floor(u inv_cell_u)``,
+    ``floor(v inv_cell_v)`` as int64, for the finite rows).
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64
+        Points, map frame, m.
+    cos_h, sin_h : float
+        Cosine and sine of the heading.
+    x0, y0, z0 : float
+        The frame's origin, map frame, m.
+    inv_cell_u, inv_cell_v : float
+        Inverse cell size along and across track, 1/m.
+
+    Returns
+    -------
+    u, v, z : (m,) float64
+        The ``m`` finite points, in order, m.
+    iu, iv : (m,) int64
+        Their cells.
+    index : (m,) int64
+        Their rows in ``xyz``.
+    bounds : (4,) int64
+        ``iu.min(), iu.max(), iv.min(), iv.max()`` (meaningless when ``m == 0``).
+    """
+    n = xyz.shape[0]
+    u = np.empty(n)
+    v = np.empty(n)
+    z = np.empty(n)
+    iu = np.empty(n, dtype=np.int64)
+    iv = np.empty(n, dtype=np.int64)
+    index = np.empty(n, dtype=np.int64)
+    r_lo, r_hi = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+    c_lo, c_hi = r_lo, r_hi
+    m = 0
+    for i in range(n):
+        px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        if not math.isfinite(px + py + pz):
+            continue
+        dx = px - x0
+        dy = py - y0
+        pu = -sin_h * dx + cos_h * dy
+        pv = cos_h * dx + sin_h * dy
+        cu = int(math.floor(pu * inv_cell_u))
+        cv = int(math.floor(pv * inv_cell_v))
+        u[m], v[m], z[m] = pu, pv, pz - z0
+        iu[m], iv[m], index[m] = cu, cv, i
+        r_lo, r_hi = min(r_lo, cu), max(r_hi, cu)
+        c_lo, c_hi = min(c_lo, cv), max(c_hi, cv)
+        m += 1
+    bounds = np.array([r_lo, r_hi, c_lo, c_hi], dtype=np.int64)
+    return u[:m], v[:m], z[:m], iu[:m], iv[:m], index[:m], bounds
+
+
+@_jit
+def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarray,
+                        y: np.ndarray, z: np.ndarray, xyz: np.ndarray, reflectance: np.ndarray,
+                        range_m: np.ndarray, incidence: np.ndarray, scan_angle: np.ndarray,
+                        flags: np.ndarray, reflectance_in: np.ndarray, range_in: np.ndarray,
+                        incidence_in: np.ndarray, scan_angle_in: np.ndarray,
+                        flags_in: np.ndarray) -> None:
+    """Write corrected rows, one row at a time: the input row's words, zeros after them,
+    then the corrected coordinates and the added fields (``rows[:, :k] = input rows;
+    rows[:, k:] = 0; out[name] = column`` for each field, as numpy does it in nine passes
+    over the output).
+
+    Parameters
+    ----------
+    out_words : (n, m) uint32
+        The output rows as 4-byte words (written whole).
+    in_words : (n, k) uint32, k <= m
+        The input rows as 4-byte words.
+    x, y, z, reflectance, range_m, incidence, scan_angle, flags : (n,)
+        Views of the output's fields (into ``out_words``' memory), written after the words
+        of their row.
+    xyz : (n, 3) float64
+        Corrected coordinates, m.
+    reflectance_in, range_in, incidence_in, scan_angle_in, flags_in : (n,)
+        The added fields' values.
+    """
+    n, m = out_words.shape
+    k = in_words.shape[1]
+    for i in range(n):
+        for j in range(k):
+            out_words[i, j] = in_words[i, j]
+        for j in range(k, m):
+            out_words[i, j] = 0
+        x[i] = xyz[i, 0]
+        y[i] = xyz[i, 1]
+        z[i] = xyz[i, 2]
+        reflectance[i] = reflectance_in[i]
+        range_m[i] = range_in[i]
+        incidence[i] = incidence_in[i]
+        scan_angle[i] = scan_angle_in[i]
+        flags[i] = flags_in[i]
 
 
 @_jit

@@ -52,6 +52,10 @@ class LaserGeometry:
     #: computed on first use by :meth:`trig`.
     cos_kappa: np.ndarray | None = None
     sin_kappa: np.ndarray | None = None
+    #: ``sin beta``, ``cos beta`` when known (from :func:`laser_geometry`'s pass over the
+    #: points); else computed on first use by :meth:`trig`.
+    sin_beta: np.ndarray | None = None
+    cos_beta: np.ndarray | None = None
 
     @property
     def range(self) -> np.ndarray:
@@ -69,15 +73,17 @@ class LaserGeometry:
         if self.cos_kappa is None or self.sin_kappa is None:
             self.cos_kappa = np.cos(self.kappa)
             self.sin_kappa = np.sin(self.kappa)
-        inv_r = 1.0 / np.sqrt(self.x * self.x + self.z * self.z)
-        return self.cos_kappa, self.sin_kappa, -self.x * inv_r, -self.z * inv_r
+        if self.sin_beta is None or self.cos_beta is None:
+            inv_r = 1.0 / np.sqrt(self.x * self.x + self.z * self.z)
+            self.sin_beta, self.cos_beta = -self.x * inv_r, -self.z * inv_r
+        return self.cos_kappa, self.sin_kappa, self.sin_beta, self.cos_beta
 
     def take(self, index: np.ndarray) -> LaserGeometry:
         """A subset of the points (fancy or boolean index)."""
         return LaserGeometry(
             self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
-            None if self.cos_kappa is None else self.cos_kappa[index],
-            None if self.sin_kappa is None else self.sin_kappa[index],
+            *(None if a is None else a[index]
+              for a in (self.cos_kappa, self.sin_kappa, self.sin_beta, self.cos_beta)),
         )
 
 
@@ -223,41 +229,38 @@ def laser_geometry(
             f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
         )
     traj_t = trajectory.t
-    start, stop = _windows(traj_t, t, window_s)
-    bad = ~_bracketed(t, traj_t, start, stop, min_samples)
-    if bad.any():
-        first = int(np.argmax(bad))
+    # Points in time order (the usual case): windows are runs, found in one pass.
+    in_order, win_start, win_stop, inv, n_bad, first = kernels.sorted_time_windows(
+        traj_t, t, float(window_s), int(min_samples))
+    if not in_order:
+        start, stop = _windows(traj_t, t, window_s)
+        bad = ~_bracketed(t, traj_t, start, stop, min_samples)
+        n_bad, first = int(bad.sum()), int(np.argmax(bad))
+        # One fit per distinct window.
+        key = start.astype(np.int64) * (len(traj_t) + 1) + stop
+        _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
+        win_start, win_stop, inv = start[first_idx], stop[first_idx], inverse.ravel()
+    if n_bad:
         raise TrajectoryError(
             f"{source}: trajectory gap at t={t[first]:.3f} s "
-            f"({int(bad.sum())} of {n} points not covered by >= {min_samples} samples "
+            f"({n_bad} of {n} points not covered by >= {min_samples} samples "
             f"within +-{window_s:g} s)"
         )
-    # One fit per distinct window.
-    key = start.astype(np.int64) * (len(traj_t) + 1) + stop
-    new_window = np.empty(n, dtype=bool)
-    new_window[0] = True
-    np.not_equal(key[1:], key[:-1], out=new_window[1:])
-    if n == 1 or bool(np.all(key[1:] >= key[:-1])):
-        # Points in time order (the usual case): windows are runs, no hashing needed.
-        first_idx = np.flatnonzero(new_window)
-        inv = np.cumsum(new_window) - 1
-    else:
-        _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
-        inv = inverse.ravel()
-    t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, start[first_idx], stop[first_idx])
+    t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, win_start, win_stop)
     speed_h = np.hypot(vel[:, 0], vel[:, 1])
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa_w = np.arctan2(-vel[:, 0], vel[:, 1])
     # Per point, in one pass: the firing position on its window's line, then what
     # geometry_at computes from it.
-    origin, x, z, kappa, cos_kappa, sin_kappa = kernels.window_geometry(
+    origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta = kernels.window_geometry(
         t, xyz, np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa_w,
         np.cos(kappa_w), np.sin(kappa_w))
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.arctan(x / z)
     geometry = LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
-                             cos_kappa=cos_kappa, sin_kappa=sin_kappa)
+                             cos_kappa=cos_kappa, sin_kappa=sin_kappa, sin_beta=sin_beta,
+                             cos_beta=cos_beta)
     above = geometry.z >= 0
     if np.any(above):
         k = int(np.argmax(above))

@@ -181,13 +181,8 @@ def _flight_frame(
 
 def _to_map(n_uvz: np.ndarray, heading: float) -> np.ndarray:
     """Normals from the flight frame (u forward, v right, z up) to the map frame."""
-    c, s = math.cos(heading), math.sin(heading)
-    out = np.empty_like(n_uvz)
-    # map = u * (-s, c) + v * (c, s)
-    out[:, 0] = -s * n_uvz[:, 0] + c * n_uvz[:, 1]
-    out[:, 1] = c * n_uvz[:, 0] + s * n_uvz[:, 1]
-    out[:, 2] = n_uvz[:, 2]
-    return out
+    return kernels.flight_to_map(np.asarray(n_uvz, dtype=np.float64), math.cos(heading),
+                                 math.sin(heading))
 
 
 def smallest_eigen(
@@ -670,19 +665,20 @@ class StripNormals:
     def _bin_parts(self, parts: list[tuple[object, int]], xyz: np.ndarray) -> None:
         """Bin the points of consecutive parts (``(key, count)``, their points one after the
         other in ``xyz``) in one pass."""
-        finite = finite_rows(xyz)
-        index = None if bool(finite.all()) else np.flatnonzero(finite)
-        sub = xyz if index is None else xyz[index]
-        u, v, z = self._frame(sub)
-        iu = np.floor(u * (1.0 / self.cell[0])).astype(np.int64)
-        iv = np.floor(v * (1.0 / self.cell[1])).astype(np.int64)
-        keep = self._inliers(iu, iv)
+        x0, y0, z0 = self._origin
+        u, v, z, iu, iv, finite_index, bounds = kernels.flight_cells(
+            np.ascontiguousarray(xyz, dtype=np.float64), math.cos(self.heading),
+            math.sin(self.heading), x0, y0, z0, 1.0 / self.cell[0], 1.0 / self.cell[1])
+        index = None if finite_index.size == xyz.shape[0] else finite_index
+        r_lo, r_hi, c_lo, c_hi = (int(b) for b in bounds)
+        keep = self._inliers(iu, iv, r_lo, r_hi, c_lo, c_hi)
         if keep is not None:
-            index = np.flatnonzero(finite)[keep] if index is not None else np.flatnonzero(keep)
+            index = finite_index[keep]
             u, v, z, iu, iv = u[keep], v[keep], z[keep], iu[keep], iv[keep]
+            if iu.size:
+                r_lo, r_hi = int(iu.min()), int(iu.max())
+                c_lo, c_hi = int(iv.min()), int(iv.max())
         if iu.size:
-            r_lo, r_hi = int(iu.min()), int(iu.max())
-            c_lo, c_hi = int(iv.min()), int(iv.max())
             self._fit_grid(r_lo, r_hi, c_lo, c_hi)
             kernels.accumulate_moments(self._moments, self._row0, self._col0, iu, iv, u, v, z)
         start = 0
@@ -703,13 +699,16 @@ class StripNormals:
                 self._watermark = r_min
             start += n
 
-    def _inliers(self, iu: np.ndarray, iv: np.ndarray) -> np.ndarray | None:
-        """Points to bin (None: all): not behind the rows kept, not outliers."""
+    def _inliers(self, iu: np.ndarray, iv: np.ndarray, r_lo: int, r_hi: int, c_lo: int,
+                 c_hi: int) -> np.ndarray | None:
+        """Points to bin (None: all): not behind the rows kept, not outliers. ``r_lo..r_hi``
+        and ``c_lo..c_hi`` are the span of ``iu`` and ``iv``."""
         keep: np.ndarray | None = None
         if iu.size == 0:
             return None
-        for idx, lo_bound in ((iu, self._row0 if self._moments.shape[1] else None), (iv, None)):
-            lo, hi = int(idx.min()), int(idx.max())
+        for idx, lo, hi, lo_bound in (
+                (iu, r_lo, r_hi, self._row0 if self._moments.shape[1] else None),
+                (iv, c_lo, c_hi, None)):
             if hi - lo > _MAX_PART_SPAN:
                 q_lo, q_hi = np.percentile(idx, [0.1, 99.9])
                 ok = (idx >= q_lo - 64) & (idx <= q_hi + 64)

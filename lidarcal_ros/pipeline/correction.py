@@ -253,8 +253,8 @@ def flagged_geometry(
     ok = np.isfinite(t) & finite_rows(xyz)
     ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
     if ok.any():
-        z_traj = np.interp(t, trajectory.t, trajectory.xyz[:, 2])
-        ok &= xyz[:, 2] < z_traj - _MIN_DEPTH_M
+        ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,
+                                 np.ascontiguousarray(trajectory.xyz[:, 2]), _MIN_DEPTH_M)
     everything = bool(ok.all())
     try:
         geo = laser_geometry(t if everything else t[ok], xyz if everything else xyz[ok],
@@ -463,20 +463,31 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
     n = len(points)
     b = a + n if b is None else b
     dtype = corrected_dtype(points.dtype)
+    fresh = out is None
     if out is None:
         out = np.zeros(n, dtype=dtype)  # (cheaper than zeroing the gaps between fields)
     elif out.dtype != dtype or out.shape != (n,):
         raise ValueError(f"output of {out.shape} {out.dtype} for {n} points of {dtype}")
-    elif n:
+    if n == 0:
+        return out
+    points = np.ascontiguousarray(points)
+    if points.dtype.itemsize % 4 == 0:
+        # The usual layout: one compiled pass row by row instead of nine over the output.
+        kernels.fill_corrected_rows(
+            out.view(np.uint32).reshape(n, dtype.itemsize // 4),
+            points.view(np.uint32).reshape(n, points.dtype.itemsize // 4),
+            out["x"], out["y"], out["z"], res.xyz[a:b], out["reflectance"], out["range"],
+            out["incidence"], out["scan_angle"], out["correction_flags"],
+            res.reflectance[a:b], res.range[a:b], res.incidence[a:b], res.scan_angle[a:b],
+            res.flags[a:b])
+        return out
+    if not fresh:
         # A used buffer: zero the added part of each row (whole 8-byte words; the row size
         # is a multiple of 8) before the input's bytes go in front of it.
         words = out.view(np.uint64).reshape(n, dtype.itemsize // 8)
         words[:, points.dtype.itemsize // 8:] = 0
-    if n == 0:
-        return out
     rows = out.view(np.uint8).reshape(n, dtype.itemsize)
-    rows[:, :points.dtype.itemsize] = \
-        np.ascontiguousarray(points).view(np.uint8).reshape(n, points.dtype.itemsize)
+    rows[:, :points.dtype.itemsize] = points.view(np.uint8).reshape(n, points.dtype.itemsize)
     out["x"] = res.xyz[a:b, 0]
     out["y"] = res.xyz[a:b, 1]
     out["z"] = res.xyz[a:b, 2]
