@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from lidarcal_ros.core import normals as normals_module
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import (
@@ -474,11 +475,18 @@ def test_stream_normals_outliers_and_late_points_get_no_normal() -> None:
     assert out["last"].valid.mean() > 0.95
 
 
-def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole() -> None:
+@pytest.mark.parametrize("widening", [False, True], ids=["steady-swath", "widening-swath"])
+def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole(
+        monkeypatch: pytest.MonkeyPatch, widening: bool) -> None:
     """Over a strip many grids long the grid moves its rows down in the same array (no new
     array per advance) and zeroes rows before reuse: the normals stay those of the strip
-    given at once, so no stale sums survive a move."""
+    given at once, so no stale sums survive a move. New grids start as garbage (NaN here):
+    a row read before it was zeroed would show, also where a widening swath (terrain
+    rising towards the aircraft, say) makes the grid grow sideways."""
+    monkeypatch.setattr(normals_module, "_new_grid", lambda shape: np.full(shape, np.nan))
     xy, t = _scan_pattern(n_sweeps=900, per_sweep=150, swath=150.0, spacing_along=0.5)
+    if widening:
+        xy[:, 0] *= 1.0 + 1.5 * t / t[-1]
     x = xy[:, 0]
     z = 10.0 - 0.5 * np.abs(x) + np.random.default_rng(8).normal(0, 0.02, len(t))
     xyz = np.column_stack([xy, z])
@@ -487,14 +495,19 @@ def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole()
     arrays: set[int] = set()
     out: dict[int, GridNormals] = {}
     cuts = [0, *range(3000, len(t), 3000), len(t)]
+    columns = []
     for k, (a, b) in enumerate(itertools.pairwise(cuts)):
         sn.add(k, xyz[a:b], t[a:b])
         arrays.add(id(sn._moments))
+        columns.append(sn._moments.shape[2])
         out.update(sn.pop_ready())  # type: ignore[arg-type]
     out.update(sn.pop_ready(final=True))  # type: ignore[arg-type]
     rows_along = int(np.ptp(xy[:, 1]) / sn.cell[0])
     assert rows_along > 4 * sn._moments.shape[1]  # the strip is several grids long
-    assert len(arrays) <= 3  # the first grid and its growth to the strip's needs only
+    if widening:
+        assert len(set(columns)) >= 3  # the grid widened more than once
+    else:
+        assert len(arrays) <= 3  # the first grid and its growth to the strip's needs only
     parts = [out[k] for k in range(len(cuts) - 1)]
     normals = np.concatenate([p.normals for p in parts])
     valid = np.concatenate([p.valid for p in parts])
