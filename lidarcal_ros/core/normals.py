@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lidarcal_ros.allocator import populate_in_background
 from lidarcal_ros.core import kernels
 
 logger = logging.getLogger(__name__)
@@ -908,8 +909,12 @@ def _new_grid(shape: tuple[int, int, int]) -> np.ndarray:
     """A moment grid, uninitialised: :class:`StripNormals` zeroes its rows as the strip
     reaches them. (``np.zeros`` would get memory that a warm-up or an earlier strip freed,
     where calloc must clear every byte: some 60 ms of page faults for the 60 MB grid of a
-    wide swath, in one chunk, for rows most of which are used only later.)"""
-    return np.empty(shape)
+    wide swath, in one chunk, for rows most of which are used only later.) Its pages are
+    faulted in by another thread meanwhile
+    (:func:`~lidarcal_ros.allocator.populate_in_background`)."""
+    grid = np.empty(shape)
+    populate_in_background(grid)
+    return grid
 
 
 def _joined(arrays: list[np.ndarray]) -> np.ndarray:

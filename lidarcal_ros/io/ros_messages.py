@@ -169,6 +169,16 @@ def cloud_header_cdr(
     return bytes(out)
 
 
+def warm_up_cloud_codec() -> None:
+    """Write and parse one tiny PointCloud2, so that rosbags generates its (de)serialisers
+    now: done by the first real cloud, that is some 70 ms in its path (a node calls this
+    before it subscribes)."""
+    from lidarcal_ros.io.pointcloud import make_point_dtype
+
+    parse_cloud(cloud_cdr(0, "warm-up", np.zeros(1, dtype=make_point_dtype())),
+                source="warm-up")
+
+
 def cloud_cdr(
     stamp: int, frame_id: str, points: np.ndarray, *, is_dense: bool | None = None
 ) -> bytes:

@@ -76,6 +76,7 @@ from lidarcal_ros.io.ros_messages import (
     estimate_matrix,
     parse_cloud,
     qa_statuses,
+    warm_up_cloud_codec,
 )
 from lidarcal_ros.nodes.common import (
     CALIBRATOR_NODE,
@@ -146,6 +147,7 @@ class CalibratorNode(Node):
         self.checkpoints = 0
         self.resumed_from = ""
         self.stream = self._start_stream(cfg)
+        warm_up_cloud_codec()
 
         self.estimate_pub = self.create_publisher(Float64MultiArray, ESTIMATE_TOPIC,
                                                   latched_qos())

@@ -67,6 +67,7 @@ from lidarcal_ros.io.ros_messages import (
     StatusSpec,
     parse_cloud,
     parse_estimate,
+    warm_up_cloud_codec,
 )
 from lidarcal_ros.nodes.common import (
     CORRECTOR_NODE,
@@ -185,6 +186,7 @@ class CorrectorNode(Node):
         self._last_push = time.monotonic()
         self._released_tag = -1  # the newest tag at the last time-out release
         self._service = self._start_service()
+        warm_up_cloud_codec()
 
         self.publisher = self.create_publisher(PointCloud2, cfg["topics.corrected"],
                                                stream_qos(self.params["queue_depth"]))
