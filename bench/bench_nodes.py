@@ -188,6 +188,18 @@ def _typed_corrector_main(argv: list[str]) -> int:
 
 
 # ---------------------------------------------------------------------------- helpers
+def _goal_verdict(keeps_up: bool, p99: float, p99_steady: float) -> str:
+    """How a run stands against the p99 goal: over the whole run, start included, or only
+    from the first second on (the start of a stream left a queue)."""
+    if not keeps_up:
+        return ""
+    if p99 <= GOAL_P99_S:
+        return ", p99 goal met (whole run)"
+    if p99_steady <= GOAL_P99_S:
+        return ", p99 goal met after the first second"
+    return ", p99 goal missed"
+
+
 def _env() -> dict[str, str]:
     from lidarcal_ros.rosenv import configure_ros_environment
 
@@ -504,7 +516,7 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
               f"{results[-1]['corrector_ns_per_point']:.0f} ns/point, machine "
               f"{results[-1]['machine_busy_share']:.0%} busy: "
               f"{'keeps up' if keeps_up else 'falls behind'}"
-              f"{', p99 goal met' if keeps_up and p99_steady <= GOAL_P99_S else ''}",
+              f"{_goal_verdict(keeps_up, p99, p99_steady)}",
               flush=True)
     return results
 
