@@ -21,6 +21,7 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.io.bag import _strip_points
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.shared_ring import SharedRing
+from lidarcal_ros.pipeline import correction as correction_module
 from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
 from lidarcal_ros.pipeline.correction_service import (
     CorrectionProcess,
@@ -152,11 +153,12 @@ def test_clouds_that_find_no_room_in_shared_memory_go_through_the_pipe(
         assert carried["ring out"] > 0, carried
 
 
+@pytest.mark.parametrize("lookahead", [True, False])
 def test_malformed_cloud_is_reported_and_the_rest_corrected(
-        small_mission: MissionFiles) -> None:
+        small_mission: MissionFiles, lookahead: bool) -> None:
     settings, trajectory, clouds = _stream(small_mission)
     got = Collector()
-    service = CorrectionProcess(settings, ServiceOptions(lookahead=False),
+    service = CorrectionProcess(settings, ServiceOptions(lookahead=lookahead),
                                 on_result=got.result, on_error=got.error)
     service.poses(trajectory.t, trajectory.xyz)
     no_time = np.zeros(10, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
@@ -168,6 +170,40 @@ def test_malformed_cloud_is_reported_and_the_rest_corrected(
     assert kinds[0][0] == kinds[3][0] == "out"
     assert kinds[1][0] == "error" and "\n" not in kinds[1][2]
     assert kinds[2][0] == "error" and "time" in kinds[2][2]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_batch_that_raises_reports_its_own_clouds_and_the_stream_goes_on(
+        small_mission: MissionFiles, monkeypatch: pytest.MonkeyPatch, workers: int) -> None:
+    """A bug in the correction of one batch (in a worker thread or not) is reported for the
+    clouds of that batch, not for those of whatever request is being handled when it
+    surfaces; the other clouds come out corrected, each once."""
+    settings, trajectory, clouds = _stream(small_mission)
+    real_run_job = correction_module._run_job
+    failing: list[Any] = []
+
+    def run_job(job: Any, source: str) -> Any:
+        tags = [m.tag for m in job.messages]
+        if 6 in tags:
+            failing.extend(tags)
+            raise RuntimeError("injected")
+        return real_run_job(job, source)
+
+    monkeypatch.setattr(correction_module, "_run_job", run_job)
+    got = Collector()
+    service = LocalCorrection(settings, ServiceOptions(workers=workers, lookahead=False,
+                                                       batch_points=0),
+                              on_result=got.result, on_error=got.error)
+    service.poses(trajectory.t, trajectory.xyz)
+    for k, cloud in enumerate(clouds[:8]):
+        service.push([(k, cloud)])
+        service.poll()
+    service.close()
+    assert sorted(e[1] for e in got.events) == list(range(8))  # each cloud once
+    errors = {e[1]: e[2] for e in got.events if e[0] == "error"}
+    assert sorted(errors) == sorted(failing) and 0 < len(failing) < 6
+    assert set(errors.values()) == {"internal error: RuntimeError: injected"}
+    assert all(parse_cloud(e[2]).points.size for e in got.events if e[0] == "out")
 
 
 def test_a_dead_child_reports_the_clouds_it_held(small_mission: MissionFiles) -> None:

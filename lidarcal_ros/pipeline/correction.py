@@ -677,6 +677,10 @@ class StreamCorrector:
         Where to build each corrected cloud: an array of ``n`` rows of ``dtype`` (for
         instance inside the buffer it will be sent from), or None for a new array. Called
         from the worker threads.
+    on_failed : callable(tag, exception), optional
+        Called for each cloud of a batch whose correction raised (a bug, not bad input:
+        malformed clouds are refused by :meth:`push`); the stream goes on with the next
+        batch. Without it the exception propagates, and the clouds of that batch are lost.
 
     Notes
     -----
@@ -700,9 +704,11 @@ class StreamCorrector:
         lookahead: bool = True,
         source: str = "cloud",
         place: OutputPlacer | None = None,
+        on_failed: Callable[[Any, Exception], None] | None = None,
     ) -> None:
         self.trajectory = trajectory
         self.place = place
+        self.on_failed = on_failed
         self.settings = settings
         self.batch_points = max(int(batch_points), 0)
         self.workers = max(int(workers), 1)
@@ -946,7 +952,12 @@ class StreamCorrector:
     def _submit(self, job: _Job, out: list[tuple[Any, np.ndarray]]) -> None:
         tags = [m.tag for m in job.messages]
         if self.workers == 1:
-            self._account(tags, _run_job(job, self.source), out)
+            try:
+                result = _run_job(job, self.source)
+            except Exception as exc:
+                self._failed(tags, exc)
+                return
+            self._account(tags, result, out)
             return
         self.start()
         assert self._pool is not None
@@ -959,8 +970,22 @@ class StreamCorrector:
         while self._inflight and (wait_all or self._inflight[0][1].done()
                                   or len(self._inflight) > self.workers):
             tags, future = self._inflight.popleft()
-            self._account(tags, future.result(), out)
+            try:
+                result = future.result()
+            except Exception as exc:
+                self._failed(tags, exc)
+                continue
+            self._account(tags, result, out)
         return out
+
+    def _failed(self, tags: list[Any], exc: Exception) -> None:
+        """A batch raised: its clouds go to ``on_failed`` (or the exception on up)."""
+        if self.on_failed is None:
+            raise exc
+        logger.error("%s: correction of %d cloud(s) failed: %s: %s", self.source, len(tags),
+                     type(exc).__name__, exc, exc_info=exc)
+        for tag in tags:
+            self.on_failed(tag, exc)
 
     def _account(self, tags: list[Any], result: tuple[list[np.ndarray], np.ndarray, float],
                  out: list[tuple[Any, np.ndarray]]) -> None:

@@ -122,16 +122,24 @@ class _Engine:
     """Trajectory buffer, stream corrector and CDR in: what both runners run."""
 
     def __init__(self, settings: CorrectionSettings, options: ServiceOptions, *,
-                 placer: _Placer | None = None) -> None:
+                 placer: _Placer | None = None, on_failed: ErrorHandler | None = None
+                 ) -> None:
         self.options = options
         self.trajectory = TrajectoryBuffer(options.trajectory_keep_s)
         self._placer = placer
-        self.corrector = StreamCorrector(self.trajectory.trajectory(), settings,
-                                         batch_points=options.batch_points,
-                                         workers=options.workers,
-                                         lookahead=options.lookahead, source=options.source,
-                                         place=self._place if placer is not None else None)
+        self._on_failed = on_failed
+        self.corrector = StreamCorrector(
+            self.trajectory.trajectory(), settings, batch_points=options.batch_points,
+            workers=options.workers, lookahead=options.lookahead, source=options.source,
+            place=self._place if placer is not None else None,
+            on_failed=self._failed if on_failed is not None else None)
         self._headers: dict[Any, tuple[int, str, float]] = {}
+
+    def _failed(self, tag: Any, exc: Exception) -> None:
+        """A cloud whose batch raised in a worker (a bug): reported as an error, not lost."""
+        assert self._on_failed is not None
+        self._headers.pop(tag, None)
+        self._on_failed(tag, f"internal error: {type(exc).__name__}: {exc}")
 
     def _place(self, tag: Any, n: int, dtype: np.dtype[Any]) -> np.ndarray | None:
         assert self._placer is not None
@@ -192,7 +200,7 @@ class LocalCorrection:
                  warm: bool = False) -> None:
         if warm:
             warm_up(settings, options)
-        self._engine = _Engine(settings, options)
+        self._engine = _Engine(settings, options, on_failed=on_error)
         self._on_result = on_result
         self._on_error = on_error
 
@@ -355,12 +363,18 @@ def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSetting
     _widen(inbox)
     _widen(outbox)
     results_out = _ResultSender(outbox, outbound, freed)
-    engine = _Engine(settings, options,
-                     placer=results_out.place if outbound is not None else None)
-    send_results = results_out.send
 
     def on_error(tag: Any, reason: str) -> None:
         outbox.send(("error", tag, reason))
+
+    def on_failed(tag: Any, reason: str) -> None:  # its corrected cloud may hold ring space
+        results_out.discard(tag)
+        on_error(tag, reason)
+
+    engine = _Engine(settings, options,
+                     placer=results_out.place if outbound is not None else None,
+                     on_failed=on_failed)
+    send_results = results_out.send
 
     def payloads(entries: list[tuple[Any, int | None, int]]
                  ) -> list[tuple[Any, bytes | memoryview]]:
