@@ -622,6 +622,54 @@ def test_a_flight_config_change_shows_only_once_the_node_has_applied_it(
         node.destroy_node()
 
 
+def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
+        ros_context: Any, small_mission: Any) -> None:
+    """Clouds that cannot be corrected yet (here: no trajectory) wait, but not without
+    bound: above ``max_backlog_mib`` the oldest are dropped and counted, the diagnostics
+    warn, and the newest are corrected once the trajectory comes."""
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.nodes.corrector import CorrectorNode
+
+    with open_bag(small_mission.bag) as b:
+        clouds = [raw for _t, _m, _ns, raw in b.messages(["/lidar/points"])]
+    sent, total = [], 0
+    for raw in clouds:
+        sent.append(raw)
+        total += len(raw)
+        if total > 3 << 20:
+            break
+    assert total > 3 << 20, "the mission is too small for this test"
+    node = CorrectorNode(context=ros_context, node_name="lidarcal_corrector_backlog",
+                         parameter_overrides=[Parameter("max_backlog_mib", value=1),
+                                              Parameter("separate_process", value=False),
+                                              Parameter("max_trajectory_wait_s", value=600.0)])
+    published: list[bytes] = []
+    node._publish = published.append  # type: ignore[method-assign]
+    try:
+        for raw in sent:
+            node._on_points(raw)
+        _wait(lambda: node.stats.dropped > 0 and (node._queued_bytes <= 1 << 20
+                                                  or len(node._queue) == 1),
+              10, "the backlog to be trimmed")
+        kept = len(node._queue)
+        assert node.stats.dropped == len(sent) - kept > 0
+        assert node.stats.dropped_bytes == sum(len(r) for r in sent[:node.stats.dropped])
+        status = node.status()
+        assert status.level == 1 and "dropped" in status.message
+        assert status.values["dropped_clouds"] == str(node.stats.dropped)
+        trajectory = small_mission.sim.mission.trajectory
+        frame = parse_cloud(sent[0]).frame_id
+        for t, xyz in zip(trajectory.t, trajectory.xyz, strict=True):  # it comes at last
+            node._on_pose(float(t), (float(xyz[0]), float(xyz[1]), float(xyz[2])), frame)
+        _wait(lambda: len(published) == kept, 30, "the kept clouds to be corrected")
+    finally:
+        node.close()
+        node.destroy_node()
+    newest = [parse_cloud(raw).stamp_ns for raw in sent[len(sent) - kept:]]
+    assert [parse_cloud(raw).stamp_ns for raw in published] == newest
+
+
 def test_shared_memory_can_be_turned_off_or_refused_with_a_reason(ros_context: Any) -> None:
     """``shared_memory_mib:=0`` sends clouds through pipes (diagnostics say so); a negative
     size is refused at start with the parameter's name."""

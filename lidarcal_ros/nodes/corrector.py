@@ -122,6 +122,11 @@ EXTRA_PARAMETERS = {
                                       "interpreter lock, so that the node's callbacks never "
                                       "wait for the numerics (false: in a thread of the node)",
                                       read_only=True),
+    "max_backlog_mib": NodeParameter(512, "Most received clouds (MiB) waiting for the "
+                                     "correction; beyond it the oldest waiting ones are dropped "
+                                     "and counted, so that an overload (or a trajectory that "
+                                     "stopped) cannot exhaust memory (0: no limit)",
+                                     minimum=0, maximum=1 << 20),
     "shared_memory_mib": NodeParameter(RING_BYTES >> 20, "Shared memory (MiB) of each of the "
                                        "two rings that carry clouds to the child process and "
                                        "back; a cloud that does not fit goes through a pipe "
@@ -139,6 +144,7 @@ MAX_PUSH_POINTS = 400_000
 class _Chunk:
     raw: bytes
     received: float
+    size: int = 0  # bytes received (``raw`` is emptied once pushed)
     parsed: bool = False
     n_points: int = 0
     t_max: float = -math.inf
@@ -153,6 +159,8 @@ class CorrectorStats:
     clouds_out: int = 0
     points_out: int = 0
     skipped: int = 0
+    dropped: int = 0  # clouds dropped from a backlog above max_backlog_mib
+    dropped_bytes: int = 0
     last_error: str = ""
     not_corrected: int = 0
     latencies: deque[float] = field(default_factory=lambda: deque(maxlen=10000))
@@ -170,6 +178,7 @@ class CorrectorNode(Node):
         self.stats = CorrectorStats()
         self._lock = threading.Condition()
         self._queue: deque[_Chunk] = deque()
+        self._queued_bytes = 0
         self._closing = False
         self.estimate_source = "configuration"
         self._delta = self._initial_delta(cfg)
@@ -268,12 +277,33 @@ class CorrectorNode(Node):
             self._lock.notify()
 
     def _on_points(self, raw: bytes) -> None:
-        chunk = _Chunk(raw, time.monotonic())
+        chunk = _Chunk(raw, time.monotonic(), len(raw))
         if not self._segment_checked and len(raw) > 256 * 1024:
             self._warn_small_segment(len(raw))
         with self._lock:
             self._queue.append(chunk)
+            self._queued_bytes += chunk.size
             self._lock.notify()
+
+    def _drop_over_backlog(self) -> None:
+        """Drop the oldest waiting clouds while more than ``max_backlog_mib`` wait (called
+        by the worker, the only one to take from the queue, with the lock held). The newest
+        are kept: for QA in flight the present matters more than the past."""
+        limit = int(self.params["max_backlog_mib"]) << 20
+        if not limit or self._queued_bytes <= limit:
+            return
+        dropped = dropped_bytes = 0
+        while len(self._queue) > 1 and self._queued_bytes > limit:
+            chunk = self._queue.popleft()
+            self._queued_bytes -= chunk.size
+            dropped += 1
+            dropped_bytes += chunk.size
+        self.stats.dropped += dropped
+        self.stats.dropped_bytes += dropped_bytes
+        self.get_logger().warning(
+            f"backlog above max_backlog_mib ({limit >> 20} MiB): dropped the {dropped} oldest "
+            f"waiting clouds ({dropped_bytes / 2**20:.0f} MiB; {self.stats.dropped} so far)",
+            throttle_duration_sec=2.0)
 
     def _warn_small_segment(self, size: int) -> None:
         """Say once when clouds outgrow the DDS profile's shared-memory segment: they then
@@ -314,6 +344,7 @@ class CorrectorNode(Node):
             with self._lock:
                 if self._closing:
                     return
+                self._drop_over_backlog()
                 chunks = list(self._queue)
             try:
                 self._service.poll()
@@ -382,7 +413,7 @@ class CorrectorNode(Node):
             self._push(ready)
         with self._lock:
             for _ in range(done):
-                self._queue.popleft()
+                self._queued_bytes -= self._queue.popleft().size
             empty = not self._queue
         if (empty and self._held and self._released_tag != self._next_tag
                 and time.monotonic() - self._last_push >= self.params["flush_timeout_s"]):
@@ -471,9 +502,12 @@ class CorrectorNode(Node):
         lat = np.asarray(s.latencies, dtype=np.float64)
         p50 = float(np.percentile(lat, 50)) if lat.size else math.nan
         p99 = float(np.percentile(lat, 99)) if lat.size else math.nan
-        level = WARN if s.skipped or s.not_corrected else OK
+        level = WARN if s.skipped or s.not_corrected or s.dropped else OK
         msg = (f"{s.clouds_out} clouds ({s.points_out} points) corrected, "
                f"latency p99 {p99 * 1000:.0f} ms")
+        if s.dropped:
+            msg += (f"; {s.dropped} clouds dropped ({s.dropped_bytes / 2**20:.0f} MiB): "
+                    "backlog above max_backlog_mib")
         if s.skipped:
             msg += f"; {s.skipped} malformed clouds skipped (last: {s.last_error})"
         if s.not_corrected:
@@ -482,6 +516,7 @@ class CorrectorNode(Node):
             "clouds_in": str(s.clouds_in), "points_in": str(s.points_in),
             "clouds_out": str(s.clouds_out), "points_out": str(s.points_out),
             "skipped_clouds": str(s.skipped), "not_corrected_points": str(s.not_corrected),
+            "dropped_clouds": str(s.dropped), "queued_mib": f"{self._queued_bytes / 2**20:.1f}",
             "latency_p50_s": f"{p50:.4f}", "latency_p99_s": f"{p99:.4f}",
             "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
             "estimate_source": self.estimate_source, "transport": self._transport()})
