@@ -670,6 +670,33 @@ def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
     assert [parse_cloud(raw).stamp_ns for raw in published] == newest
 
 
+def test_a_trajectory_without_clouds_is_handed_on_not_hoarded(ros_context: Any) -> None:
+    """Poses that come for long without clouds (transit to the site) go on to the
+    correction in batches; the node does not keep them all, nor does its own buffer."""
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.nodes import corrector as corrector_module
+
+    node = corrector_module.CorrectorNode(
+        context=ros_context, node_name="lidarcal_corrector_transit",
+        parameter_overrides=[Parameter("separate_process", value=False),
+                             Parameter("trajectory_buffer_s", value=30.0)])
+    fed = 60_000  # 5 minutes at 200 Hz
+    try:
+        for k in range(fed):
+            t = 1000.0 + k * 0.005
+            node._on_pose(t, (0.0, 60.0 * t, 1000.0), "map")
+        engine = node._service._engine  # type: ignore[union-attr]
+        _wait(lambda: len(node._poses_t) <= corrector_module._POSES_PER_HANDOVER, 10,
+              "the poses to be handed on")
+        assert engine.trajectory.samples + len(node._poses_t) == fed
+        assert engine.trajectory.samples >= fed - corrector_module._POSES_PER_HANDOVER
+        assert len(node.trajectory) < fed / 2  # its own buffer keeps ~30 s, not everything
+    finally:
+        node.close()
+        node.destroy_node()
+
+
 def test_shared_memory_can_be_turned_off_or_refused_with_a_reason(ros_context: Any) -> None:
     """``shared_memory_mib:=0`` sends clouds through pipes (diagnostics say so); a negative
     size is refused at start with the parameter's name."""

@@ -9,6 +9,11 @@ from typing import Any
 
 __all__ = ["TrajectoryBuffer"]
 
+#: Samples added and not yet merged beyond which :meth:`TrajectoryBuffer.add` merges them
+#: itself: a reader that rarely asks for the trajectory (the corrector node, which hands its
+#: samples on and only reads the flags) must not keep them all as Python objects.
+_MAX_PENDING = 20_000
+
 
 class TrajectoryBuffer:
     """Rolling buffer of trajectory samples (thread-safe); samples may arrive out of order.
@@ -16,7 +21,8 @@ class TrajectoryBuffer:
     ``keep_s`` seconds before the newest sample are kept. :meth:`trajectory` returns a
     :class:`~lidarcal_ros.core.mission.Trajectory` of the buffer (sorted, duplicates dropped),
     updated only when samples were added since the last call (appending in the common
-    in-order case, re-sorting otherwise).
+    in-order case, re-sorting otherwise). Samples are merged, and old ones dropped, at the
+    latest every ``_MAX_PENDING`` samples, whether or not anyone reads the trajectory.
     """
 
     def __init__(self, keep_s: float = 600.0) -> None:
@@ -47,6 +53,9 @@ class TrajectoryBuffer:
                 self.end = t
             if frame_id is not None:
                 self.frame_id = frame_id
+            merge = len(self._pending_t) > _MAX_PENDING
+        if merge:
+            self.trajectory()
 
     def add_many(self, t: Any, xyz: Any) -> None:
         """Add samples given as arrays: times (n,), s, and positions (n, 3), m."""
@@ -63,6 +72,9 @@ class TrajectoryBuffer:
             self.last_arrival = time.monotonic()
             if finite.size and float(finite.max()) > self.end:
                 self.end = float(finite.max())
+            merge = len(self._pending_t) > _MAX_PENDING
+        if merge:
+            self.trajectory()
 
     def trajectory(self) -> Any:
         # One rebuild at a time: two threads rebuilding from the same old trajectory would

@@ -135,6 +135,10 @@ EXTRA_PARAMETERS = {
 }
 
 _TRAJECTORY_MARGIN_S = 0.02
+#: Trajectory samples the node holds for the correction at most: they go with the next
+#: cloud, or on their own beyond this (a trajectory without clouds, e.g. on transit to the
+#: site, is not kept as Python objects for hours).
+_POSES_PER_HANDOVER = 2000
 #: Most points handed to the correction at once when a backlog has built up: larger batches
 #: only cost cache and memory, and the corrector would fall further behind.
 MAX_PUSH_POINTS = 400_000
@@ -346,8 +350,11 @@ class CorrectorNode(Node):
                     return
                 self._drop_over_backlog()
                 chunks = list(self._queue)
+                poses_waiting = len(self._poses_t)
             try:
                 self._service.poll()
+                if poses_waiting > _POSES_PER_HANDOVER:  # (no clouds for a while)
+                    self._sync()
                 progressed = self._step(chunks)
             except Exception as exc:  # never let the worker die
                 self.get_logger().error(f"corrector: unexpected error: {exc}")
