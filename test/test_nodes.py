@@ -687,9 +687,12 @@ def test_a_trajectory_without_clouds_is_handed_on_not_hoarded(ros_context: Any) 
             t = 1000.0 + k * 0.005
             node._on_pose(t, (0.0, 60.0 * t, 1000.0), "map")
         engine = node._service._engine  # type: ignore[union-attr]
-        _wait(lambda: len(node._poses_t) <= corrector_module._POSES_PER_HANDOVER, 10,
+        # The worker takes the node's poses under its lock, then adds them to the engine
+        # outside it: wait for the hand-over to be complete, not merely begun. (Reading the
+        # engine's count first can only undercount in that window, never reach ``fed``.)
+        _wait(lambda: engine.trajectory.samples + len(node._poses_t) == fed
+              and len(node._poses_t) <= corrector_module._POSES_PER_HANDOVER, 10,
               "the poses to be handed on")
-        assert engine.trajectory.samples + len(node._poses_t) == fed
         assert engine.trajectory.samples >= fed - corrector_module._POSES_PER_HANDOVER
         assert len(node.trajectory) < fed / 2  # its own buffer keeps ~30 s, not everything
     finally:
