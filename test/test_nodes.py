@@ -482,6 +482,32 @@ def test_memory_budget_releases_the_oldest_strips_and_says_so(suite: Suite) -> N
     assert "released" in memory.message
 
 
+def test_reset_forgets_everything_and_its_checkpoint(suite: Suite, tmp_path: Path) -> None:
+    """``~/reset`` (the last test of the suite: it empties the calibrator) leaves nothing to
+    solve, save or resume from; the latest estimate stays latched."""
+    ckpt = tmp_path / "reset_ckpt.npz"
+    results = suite.set_parameters("lidarcal_calibrator", checkpoint_file=str(ckpt))
+    assert results[0].successful, results[0].reason
+    try:
+        solved = suite.call("/lidarcal_calibrator/solve")  # the checkpoint is written
+        assert solved.success, solved.message
+        assert ckpt.is_file() and _checkpoint_state(ckpt)[0] > 0
+        estimates = len(suite.probe.estimates)
+        response = suite.call("/lidarcal_calibrator/reset")
+        assert response.success and "forgotten" in response.message
+        assert str(ckpt) in response.message and not ckpt.exists()
+        stream = suite.cal.stream
+        assert stream.strip_ids == [] and stream.n_points == 0
+        assert stream.normal_equations.count == 0 and stream.latest is None
+        solve = suite.call("/lidarcal_calibrator/solve")
+        assert not solve.success and solve.message
+        save = suite.call("/lidarcal_calibrator/save")
+        assert not save.success and save.message.startswith("no estimate yet")
+        assert len(suite.probe.estimates) == estimates  # nothing new was published
+    finally:
+        suite.set_parameters("lidarcal_calibrator", checkpoint_file="")
+
+
 # ---------------------------------------------------------------------------- checkpoint
 def _checkpoint_state(path: Path) -> tuple[int, np.ndarray, list[int]]:
     with np.load(path) as data:

@@ -28,7 +28,8 @@ Publishes
 
 Services (``std_srvs/Trigger``)
     ``~/solve``: full solve over everything accumulated (what ``lidarcal calibrate`` computes on
-    the same data), published as above. ``~/reset``: forget everything. ``~/save``: write the
+    the same data), published as above. ``~/reset``: forget everything, the checkpoint file
+    too (the latest estimate stays latched until the next solve). ``~/save``: write the
     calibration file to ``calibration.calibration_file``; the message names the path.
 
 Node-specific parameters: ``memory_budget_points`` (points held; past it the oldest complete
@@ -316,11 +317,7 @@ class CalibratorNode(Node):
         if kind == "solve":
             return self._solve()
         if kind == "reset":
-            self.stream.reset()
-            self._point_end = self._traj_end = -math.inf
-            with self._status_lock:
-                self._statuses = []
-            return "reset: everything accumulated was forgotten"
+            return self._reset()
         if kind == "save":
             return self._save()
         if kind == "control":
@@ -375,6 +372,24 @@ class CalibratorNode(Node):
                                    f"{', '.join(pairs) or 'none yet'}")
         if result is not None:
             self._publish_result(result, time.perf_counter() - started)
+
+    def _reset(self) -> str:
+        self.stream.reset()
+        self._point_end = self._traj_end = -math.inf
+        with self._status_lock:
+            self._statuses = []
+        message = "reset: everything accumulated was forgotten"
+        path = self.params["checkpoint_file"]
+        if path:
+            # A restart must not bring back what was reset (the next checkpoint is written
+            # only by the next solve): the checkpoint goes with the rest.
+            try:
+                Path(path).unlink(missing_ok=True)
+            except OSError as exc:
+                raise LidarcalError(f"reset, but checkpoint {path} not removed: {exc}") \
+                    from None
+            message += f"; checkpoint {path} removed"
+        return message
 
     def _solve(self) -> str:
         started = time.perf_counter()
