@@ -15,7 +15,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import shutil
 import signal
 import statistics
@@ -387,25 +386,16 @@ def show_param(name: str, value: float | None) -> str:
 
 
 def machine() -> str:
-    import numpy
-    import scipy
+    """The machine line of :mod:`machine`, and whether Triangle builds the TINs."""
+    import machine as bench_machine
 
-    cpu = platform.processor() or "?"
-    try:
-        for ln in Path("/proc/cpuinfo").read_text().splitlines():
-            if ln.startswith("model name"):
-                cpu = ln.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     try:
         import triangle  # noqa: F401
 
         tri = "yes"
     except ImportError:
         tri = "no"
-    return (f"{cpu}, {os.cpu_count()} cores; Python {platform.python_version()}, numpy "
-            f"{numpy.__version__}, scipy {scipy.__version__}, triangle installed: {tri}")
+    return f"{bench_machine.describe()}; triangle installed: {tri}"
 
 
 def main(argv: list[str] | None = None) -> int:

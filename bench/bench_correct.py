@@ -52,7 +52,6 @@ import itertools
 import json
 import math
 import os
-import platform
 import shutil
 import signal
 import statistics
@@ -61,6 +60,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import machine  # bench/machine.py: this script's folder is on sys.path
 
 BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
@@ -353,8 +354,7 @@ def main() -> None:
     mem_lines = (250.0, 1000.0)
     work = CACHE / "correct_work"
     work.mkdir(parents=True, exist_ok=True)
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"load average {os.getloadavg()[0]:.1f}", flush=True)
+    print(f"machine: {machine.describe()}", flush=True)
 
     if not args.no_throughput:
         throughput(args, density, line, work)

@@ -719,11 +719,14 @@ def main() -> int:
     tune_allocator(single_arena=False)
     context = Context()
     rclpy.init(context=context)
-    results: dict[str, Any] = {"cpus": os.cpu_count(),
+    import machine  # bench/machine.py: this script's folder is on sys.path
+
+    results: dict[str, Any] = {"cpus": os.cpu_count(), "cpu_model": machine.cpu_model(),
                                "dds_profile": os.environ["FASTDDS_DEFAULT_PROFILES_FILE"],
-                               "load_avg_at_start": os.getloadavg()}
-    print(f"bench_nodes: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, "
-          f"ROS_DOMAIN_ID {os.environ['ROS_DOMAIN_ID']}, DDS profile "
+                               "load_avg_at_start": os.getloadavg(),
+                               "machine_speed": machine.memory_speed()}
+    print(f"machine: {machine.describe(results['machine_speed'])}", flush=True)
+    print(f"bench_nodes: ROS_DOMAIN_ID {os.environ['ROS_DOMAIN_ID']}, DDS profile "
           f"{os.environ['FASTDDS_DEFAULT_PROFILES_FILE']}", flush=True)
     try:
         if "codec" in only:
