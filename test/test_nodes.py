@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.io.bag import open_bag
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
@@ -262,6 +262,19 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
         sigma = float(offline.sigma[i])
         assert abs(live.values[name] - offline.delta[i]) <= 0.1 * sigma, name
         assert live.sigmas[name] == pytest.approx(sigma, rel=0.05), name
+    # the same estimate for people on /diagnostics, in arcsec and cm
+    def shown(name: str) -> str:
+        sigma = live.sigmas[name]
+        if sigma is None:
+            return f"fixed at {format_value(name, live.values[name])}"
+        return (f"{format_value(name, live.values[name])} +- "
+                f"{format_value(name, sigma, sign=False)}")
+
+    _wait(lambda: suite.probe.diagnostics.get("lidarcal: estimate", (0, "", {}))[2] == {
+        name: shown(name) for name in PARAMETER_NAMES}, 10, "the estimate on /diagnostics")
+    level, message, values = suite.probe.diagnostics["lidarcal: estimate"]
+    assert level == 0 and message.startswith("dX ") and " arcsec" in values["dphi"]
+    assert f"dphi {shown('dphi')}" in message and "dZ" not in message  # dZ is held fixed
     cov = live.covariance
     assert np.allclose(cov, cov.T)
     k = PARAMETER_NAMES.index("dX")

@@ -52,6 +52,16 @@ def display_value(name: str, value: float) -> tuple[float, str]:
     return value, ""
 
 
+def format_value(name: str, value: float, *, sign: bool = True, width: int = 0) -> str:
+    """A parameter value as people read it: ``"-90.98 arcsec"``, ``"+5.06 cm"``, ``"+1.00e-04"``
+    (``sign`` False: no plus sign, for standard deviations, dS with one decimal; ``width``:
+    least width of the number, for tables)."""
+    shown, unit = display_value(name, value)
+    if name == "dS":
+        return f"{shown:+{width}.2e}" if sign else f"{shown:{width}.1e}"
+    return f"{shown:+{width}.2f} {unit}" if sign else f"{shown:{width}.2f} {unit}"
+
+
 def parse_parameter_list(text: str) -> tuple[str, ...]:
     """Parse a comma-separated parameter list such as ``"dX,dY,domega"``.
 

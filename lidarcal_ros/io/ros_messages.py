@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, format_value
 from lidarcal_ros.errors import CloudFormatError
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
 
@@ -307,6 +307,32 @@ def _num(value: Any) -> str:
     return str(value)
 
 
+def _percent(fraction: float) -> str:
+    return "n/a" if not math.isfinite(fraction) else f"{fraction * 100:.0f}%"
+
+
+def estimate_status(solution: Any) -> StatusSpec:
+    """The biases as a crew reads them (``lidarcal: estimate``): the message lists the
+    estimated ones with their standard deviations (``dphi -90.98 +- 0.04 arcsec``); the values
+    give every parameter, fixed and not estimable ones with what was used or why."""
+    values: dict[str, str] = {}
+    estimated: list[str] = []
+    for i, name in enumerate(PARAMETER_NAMES):
+        status = solution.status[name]
+        value = float(solution.delta[i])
+        if status.state == "estimated":
+            text = (f"{format_value(name, value)} +- "
+                    f"{format_value(name, float(solution.sigma[i]), sign=False)}")
+            estimated.append(f"{name} {text}")
+        elif status.state == "fixed":
+            text = f"fixed at {format_value(name, value)}"
+        else:
+            text = f"not estimable: {status.reason}"
+        values[name] = text
+    return StatusSpec(OK, "lidarcal: estimate", ", ".join(estimated) or "nothing estimated",
+                      values)
+
+
 def pair_level(rms_after: float, p95_after: float, *, warn_m: float, error_m: float) -> int:
     """QA level of a strip pair: ERROR when the RMS after calibration exceeds ``error_m`` (or
     is unknown), WARN when it exceeds ``warn_m`` or when the 95th percentile of the
@@ -321,13 +347,15 @@ def pair_level(rms_after: float, p95_after: float, *, warn_m: float, error_m: fl
 def qa_statuses(
     result: Any, *, warn_m: float, error_m: float, solve_for: Iterable[str] = (),
 ) -> list[StatusSpec]:
-    """The per-pair, convergence and observability statuses of a CalibrationResult."""
-    out: list[StatusSpec] = []
+    """The estimate, per-pair, convergence and observability statuses of a
+    CalibrationResult."""
+    out = [estimate_status(result.solution)]
     for p in result.pairs:
         level = pair_level(p.rms_after, p.p95_after, warn_m=warn_m, error_m=error_m)
         out.append(StatusSpec(
             level, f"lidarcal: strips {p.strip_a}&{p.strip_b}",
-            f"RMS {_cm(p.rms_after)}: {LEVEL_NAMES[level]}",
+            f"RMS {_cm(p.rms_after)} (before {_cm(p.rms_before)}), coverage "
+            f"{_percent(p.coverage)}: {LEVEL_NAMES[level]}",
             {"coverage": _num(float(p.coverage)), "rms_before": _num(float(p.rms_before)),
              "rms_after": _num(float(p.rms_after)), "p95_after": _num(float(p.p95_after)),
              "correspondences": str(int(p.correspondences)),

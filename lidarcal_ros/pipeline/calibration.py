@@ -20,7 +20,7 @@ import yaml
 from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.mission import Mission
-from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
+from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.control import read_control_csv
@@ -88,10 +88,7 @@ class Truth:
 
 
 def _fmt(name: str, value: float, sign: bool = True) -> str:
-    v, unit = display_value(name, value)
-    if name == "dS":
-        return f"{v:+.2e}" if sign else f"{v:.1e}"
-    return f"{v:+8.2f} {unit}" if sign else f"{v:.2f} {unit}"
+    return format_value(name, value, sign=sign, width=8 if sign and name != "dS" else 0)
 
 
 def format_report(
