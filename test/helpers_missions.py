@@ -235,7 +235,7 @@ def cloud_chunks(strip: Strip, chunk_seconds: float = 0.1) -> Iterator[slice]:
         start = stop
 
 
-def strip_points(strip: Strip, dtype: np.dtype | Sequence[tuple[str, str]] | None = None,
+def strip_points(strip: Strip, dtype: np.dtype | list[tuple[str, str]] | None = None,
                  *, rename: dict[str, str] | None = None) -> np.ndarray:
     """A strip as a structured array; fields are filled by name from x, y, z, t, intensity,
     strip_id (after ``rename``, e.g. ``{"t": "gps_time"}``); others are zero."""
@@ -258,7 +258,7 @@ def write_cloud_bag(
     path: Path,
     mission: Mission,
     *,
-    dtype: np.dtype | Sequence[tuple[str, str]] | None = None,
+    dtype: np.dtype | list[tuple[str, str]] | None = None,
     rename: dict[str, str] | None = None,
     cloud_frame: str | None = None,
     trajectory_frame: str | None = None,

@@ -266,7 +266,9 @@ def test_bag_passes_every_input_topic_through(corrected: dict[str, Any]) -> None
 
     counts = corrected["counts"]
     with corrected["files"].bag.joinpath("mission.mcap").open("rb") as f:
-        stats = make_reader(f).get_summary().statistics
+        summary = make_reader(f).get_summary()
+        assert summary is not None  # lidarcal's bags are written with a summary section
+        stats = summary.statistics
         assert stats is not None
     inputs: dict[str, int] = {}
     with corrected["files"].bag.joinpath("mission.mcap").open("rb") as f:
@@ -340,7 +342,7 @@ def test_streaming_batches_do_not_change_results(corrected: dict[str, Any]) -> N
         corr = StreamCorrector(sim.mission.trajectory, settings, batch_points=batch,
                                workers=workers, lookahead=lookahead)
         bounds = [*range(0, len(pts), step), len(pts)]
-        res = []
+        res: list[np.ndarray] = []
         for a, b in itertools.pairwise(bounds):
             res.extend(o for _t, o in corr.push(pts[a:b]))
             # Bounded: the batch being gathered, the one waiting for its look-ahead.
@@ -462,7 +464,7 @@ def test_node_mode_one_cloud_at_a_time_with_empty_clouds(small_mission: MissionF
     corr = StreamCorrector(sim.mission.trajectory, settings, batch_points=0)
     pts = _strip_points(sim.mission.strips[0], {}, "test")
     empty = pts[:0]
-    released = []
+    released: list[tuple[str, int]] = []
     cuts = [*range(0, len(pts), 1500), len(pts)]
     for i, (a, b) in enumerate(itertools.pairwise(cuts)):
         released.extend(tag for tag, _ in corr.push(pts[a:b], ("cloud", i)))

@@ -37,7 +37,7 @@ from lidarcal_ros.pipeline.importer import import_mission, reconcile_times
 
 CRS = "EPSG:32633"
 ORIGIN = (500_000.0, 5_000_000.0)
-FAST = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
+FAST: dict[str, Any] = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
 #: Twice the tolerances of the calibration issue (1 arcsec, 1 cm, 1e-5).
 TWICE = {"dX": 0.02, "dY": 0.02, "dZ": 0.02, "dr": 0.02, "dS": 2e-5,
          "domega": arcsec_to_rad(2), "dphi": arcsec_to_rad(2), "dkappa": arcsec_to_rad(2)}
@@ -60,6 +60,7 @@ def add_first_returns(
     traj = sim.mission.trajectory
     out = []
     for k, strip in enumerate(sim.mission.strips):
+        assert strip.intensity is not None  # simulated strips always carry intensity
         n = len(strip)
         xo = np.column_stack([np.interp(strip.t, traj.t, traj.xyz[:, i]) for i in range(3)])
         kappa = sim.lines[k]["kappa"]
@@ -87,11 +88,14 @@ def add_first_returns(
 
 
 def _plain_strips(sim: SimulatedMission) -> list[dict[str, np.ndarray]]:
-    return [{"xyz": s.xyz, "t": s.t, "intensity": s.intensity,
-             "return_number": np.ones(len(s), np.uint8),
-             "number_of_returns": np.ones(len(s), np.uint8),
-             "strip_id": np.full(len(s), s.strip_id, dtype=np.uint16)}
-            for s in sim.mission.strips]
+    out = []
+    for s in sim.mission.strips:
+        assert s.intensity is not None  # simulated strips always carry intensity
+        out.append({"xyz": s.xyz, "t": s.t, "intensity": s.intensity,
+                    "return_number": np.ones(len(s), np.uint8),
+                    "number_of_returns": np.ones(len(s), np.uint8),
+                    "strip_id": np.full(len(s), s.strip_id, dtype=np.uint16)})
+    return out
 
 
 def write_las_tiles(

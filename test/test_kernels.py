@@ -202,6 +202,7 @@ def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> Non
     ref = geometry_at(xyz, g.origin, g.kappa)
     for name in ("x", "z", "beta"):
         np.testing.assert_allclose(getattr(g, name), getattr(ref, name), rtol=0, atol=1e-9)
+    assert g.cos_kappa is not None  # laser_geometry sets it for a non-empty cloud
     np.testing.assert_allclose(g.cos_kappa, np.cos(g.kappa), atol=1e-15)
     _, _, sin_beta, cos_beta = g.trig()
     np.testing.assert_allclose(sin_beta, np.sin(g.beta), rtol=0, atol=1e-12)

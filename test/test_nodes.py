@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import helpers_missions
 import numpy as np
@@ -31,6 +31,9 @@ from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.io.bag import open_bag
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
+
+if TYPE_CHECKING:
+    from rclpy.client import Client
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission
@@ -120,7 +123,9 @@ class Suite:
         params = [Parameter(k.replace("__", "."), value=v) for k, v in values.items()]
         future = client.set_parameters(params)
         _wait(future.done, 10.0, f"set_parameters on {node}")
-        return list(future.result().results)
+        response = future.result()
+        assert response is not None  # done and not failed: the service's response
+        return list(response.results)
 
 
 class Spinner:
@@ -216,8 +221,8 @@ def suite(ros_context: Any, small_mission: Any) -> Iterator[Suite]:
         assert not spinner.errors, f"callbacks failed: {spinner.errors}"
         for n in (cal, cor, cor_in_thread, fc):
             n.close()
-        for n in (node, cal, cor, cor_in_thread, fc):
-            n.destroy_node()
+        for ros_node in (node, cal, cor, cor_in_thread, fc):
+            ros_node.destroy_node()
 
 
 # ---------------------------------------------------------------------------- replay
@@ -295,6 +300,7 @@ def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
         with suite.probe.lock:
             clouds = [parse_cloud(raw) for raw in received]
         pts = np.concatenate([c.points for c in clouds])
+        assert pts.dtype.names is not None  # a structured array (a point cloud)
         assert {"reflectance", "range", "incidence", "scan_angle", "correction_flags"} <= set(
             pts.dtype.names)
         sid_out, t_out = pts["strip_id"].astype(np.int64), pts["t"]
@@ -312,7 +318,7 @@ def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
     # The child process got and gave back the clouds through shared memory.
     assert suite.cor.status().values["transport"] == "shared memory"
     assert suite.cor_in_thread.status().values["transport"] == "thread"
-    carried = suite.cor._service.carried  # type: ignore[union-attr]
+    carried = suite.cor._service.carried
     assert carried["ring in"] > 0 and carried["ring out"] > 0, carried
 
 
@@ -371,8 +377,10 @@ def test_a_parameter_set_at_run_time_changes_what_the_nodes_do(suite: Suite) -> 
     results = suite.set_parameters("lidarcal_flight_config", atmosphere__visibility_km=5.0)
     assert results[0].successful, results[0].reason
     for node in (suite.cal, suite.cor):
-        _wait(lambda n=node: n.params["atmosphere.visibility_km"] == 5.0, 10,
-              f"{node.get_name()} to follow")
+        def follows(n: Any = node) -> bool:
+            return n.params["atmosphere.visibility_km"] == 5.0
+
+        _wait(follows, 10, f"{node.get_name()} to follow")
     after = _reflectance_of(suite, raw, stamp)
     ok = np.isfinite(before) & np.isfinite(after)
     assert ok.mean() > 0.5  # the first chunk of a strip lacks neighbours for some normals
@@ -591,12 +599,14 @@ def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
         estimates: list[Any] = []
         node.create_subscription(Float64MultiArray, "/ckpt/estimate",
                                  lambda m: estimates.append(list(m.data)), latched_qos())
-        client = node.create_client(Trigger, "/ckpt_calibrator/solve")
+        client: Client[Any, Any] = node.create_client(Trigger, "/ckpt_calibrator/solve")
         assert client.wait_for_service(timeout_sec=10)
         n_before = len(estimates)
         future = client.call_async(Trigger.Request())
         _wait(future.done, 60, "the solve")
-        assert future.result().success, future.result().message
+        response = future.result()
+        assert response is not None  # done and not failed: the service's response
+        assert response.success, response.message
         _wait(lambda: len(estimates) > n_before, 10, "the estimate")
         live = parse_estimate(estimates[-1])
         config = FlightConfig.from_mapping({**FAST, "calibration.control_points_file":
@@ -684,7 +694,9 @@ def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
                                               Parameter("separate_process", value=False),
                                               Parameter("max_trajectory_wait_s", value=600.0)])
     published: list[bytes] = []
-    node._publish = published.append  # type: ignore[method-assign]
+    # Monkeypatched on the instance: record what the node would publish (list.append's
+    # parameter is positional-only, the method's is named; the node passes it by position).
+    node._publish = published.append  # type: ignore[method-assign, assignment]
     try:
         for raw in sent:
             node._on_points(raw)

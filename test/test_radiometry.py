@@ -112,7 +112,8 @@ def test_range_normalisation_to_the_reference_range() -> None:
     model = RadiometricModel(reference_range_m=1000.0, visibility_km=500.0)
     # A target at the reference range, normal incidence: reflectance = intensity / eta(r_ref).
     out, _ = model.reflectance(np.array([1000.0]), np.array([1000.0]), np.array([1.0]))
-    assert out[0] == pytest.approx(1000.0 / two_way_transmittance(1000.0, model.alpha_per_m))
+    eta_ref = two_way_transmittance(np.asarray(1000.0), model.alpha_per_m)
+    assert out[0] == pytest.approx(1000.0 / eta_ref)
     # Twice as far: four times the normalisation.
     far, _ = model.reflectance(np.array([1000.0]), np.array([2000.0]), np.array([1.0]))
     ratio = far[0] / out[0]
@@ -335,11 +336,14 @@ def test_a_corrected_cloud_built_in_a_used_buffer_has_the_bytes_of_a_new_one(
     rng = np.random.default_rng(1)
     raw = rng.integers(0, 256, n * layout.itemsize, dtype=np.uint8)  # holes hold bytes too
     pts = raw.view(layout)
-    res = CorrectedColumns(rng.normal(size=(n, 3)), *(rng.random(n).astype(np.float32)
-                                                       for _ in range(4)),
+    xyz = rng.normal(size=(n, 3))
+    range_, incidence, scan_angle, reflectance = (rng.random(n).astype(np.float32)
+                                                  for _ in range(4))
+    res = CorrectedColumns(xyz, range_, incidence, scan_angle, reflectance,
                            rng.integers(0, 4, n).astype(np.uint8))
     # The expected bytes, spelt out: input row, zeros, then each field written.
     dt = corrected_dtype(layout)
+    assert dt.fields is not None  # a structured dtype
     expected = np.zeros(n * dt.itemsize, dtype=np.uint8).reshape(n, dt.itemsize)
     expected[:, :layout.itemsize] = raw.reshape(n, layout.itemsize)
     ex = expected.reshape(-1).view(dt)

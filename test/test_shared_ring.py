@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import multiprocessing
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from lidarcal_ros.io.shared_ring import SharedRing
 
 
 @pytest.fixture
-def ring() -> SharedRing:
+def ring() -> Iterator[SharedRing]:
     r = SharedRing.create(1000)
     yield r
     r.unlink()
@@ -48,9 +49,9 @@ def test_random_traffic_never_overlaps_and_always_fits_an_empty_ring(ring: Share
     live: dict[int, int] = {}  # offset -> size, as the test sees it
     for _ in range(5000):
         if live and rng.random() < 0.45:
-            offset = list(live)[int(rng.integers(len(live)))]
-            del live[offset]
-            ring.free(offset)
+            freed = list(live)[int(rng.integers(len(live)))]
+            del live[freed]
+            ring.free(freed)
             continue
         size = int(rng.integers(1, 400))
         offset = ring.allocate(size)

@@ -26,6 +26,7 @@ def _chunks(sim: SimulatedMission, seconds: float = 0.5):
     traj = sim.mission.trajectory
     events = []
     for strip in sim.mission.strips:
+        assert strip.intensity is not None  # simulated strips always carry intensity
         edges = np.arange(strip.t[0], strip.t[-1] + seconds, seconds)
         for a, b in itertools.pairwise(edges):
             sel = (strip.t >= a) & (strip.t < b)
