@@ -114,3 +114,29 @@ def test_frame_mismatch_and_missing_strip_id(sim: SimulatedMission) -> None:
     cols = CloudColumns(strip.xyz[:10], strip.t[:10], None, np.ones(10, np.uint32))
     with pytest.raises(InputError, match="frame 'odom'"):
         stream.add_cloud(cols, "odom")
+
+
+@pytest.mark.parametrize("joined", ["mid_strip", "after_strip"])
+def test_a_trajectory_joined_late_costs_only_the_points_it_misses(
+        sim: SimulatedMission, joined: str) -> None:
+    """Live, the trajectory may start after the first strip did (a subscriber that joined
+    late): the points it does not cover are left out and counted, the rest calibrates."""
+    first = sim.mission.strips[0]
+    t0 = float(np.median(first.t)) if joined == "mid_strip" else float(first.t[-1]) + 1.0
+    events = [e for e in _chunks(sim) if e[1] == "cloud" or e[0] >= t0]
+    stream = StreamingCalibration(FlightConfig(), control=sim.mission.control)
+    _feed(stream, events)
+    result = stream.solve()
+    ids = [s.strip_id for s in sim.mission.strips]
+    before = int((first.t < t0).sum())  # cannot be bracketed by a sample before them
+    window = FlightConfig()["matching.trajectory_window_s"]
+    near = int((first.t < t0 + window).sum())
+    assert before <= stream.uncovered_points <= near
+    if joined == "mid_strip":
+        assert stream.uncovered_strips == [] and stream.strip_ids == ids
+        assert any(1 in (p.strip_a, p.strip_b) for p in result.pairs)
+    else:
+        assert stream.uncovered_points == len(first)
+        assert stream.uncovered_strips == [1] and stream.strip_ids == ids[1:]
+        assert all(1 not in (p.strip_a, p.strip_b) for p in result.pairs)
+    assert result.pairs and result.solution.sigma0 > 0

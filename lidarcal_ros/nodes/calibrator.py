@@ -83,6 +83,7 @@ from lidarcal_ros.nodes.common import (
     CALIBRATOR_NODE,
     DIAGNOSTICS_TOPIC,
     ESTIMATE_TOPIC,
+    TRAJECTORY_TYPE_PARAMETER,
     YAML_TOPIC,
     FlightParameters,
     NodeParameter,
@@ -106,8 +107,7 @@ EXTRA_PARAMETERS = {
                                      "start ('' = none)"),
     "queue_depth": NodeParameter(1000, "Depth of the point-cloud subscription queue",
                                  minimum=1, maximum=100000, read_only=True),
-    "trajectory_type": NodeParameter("auto", "Trajectory message type, or 'auto'",
-                                     read_only=True),
+    "trajectory_type": TRAJECTORY_TYPE_PARAMETER,
 }
 
 #: Least wall time between two looks for complete strips, s.
@@ -478,14 +478,21 @@ class CalibratorNode(Node):
             "strips": ",".join(str(i) for i in s.strip_ids),
             "open_strips": ",".join(str(i) for i in s.open_strip_ids)})]
         inp = self.input
-        level = WARN if inp["skipped"] else OK
+        uncovered = int(getattr(s, "uncovered_points", 0))
+        left_out = list(getattr(s, "uncovered_strips", []))
+        level = WARN if inp["skipped"] or uncovered else OK
         msg = f"{inp['clouds']} clouds, {inp['points']} points, {inp['poses']} poses"
         if inp["skipped"]:
             msg += f"; {inp['skipped']} malformed clouds skipped (last: {inp['last_error']})"
+        if uncovered:
+            msg += f"; {uncovered} points without trajectory left out" + (
+                f" (strips {', '.join(str(i) for i in left_out)} wholly)" if left_out else "")
         out.append(StatusSpec(level, "lidarcal: input", msg, {
             "clouds": str(inp["clouds"]), "points": str(inp["points"]),
             "poses": str(inp["poses"]), "skipped_clouds": str(inp["skipped"]),
-            "last_error": str(inp["last_error"]), "queued_jobs": str(self._jobs.qsize())}))
+            "last_error": str(inp["last_error"]), "queued_jobs": str(self._jobs.qsize()),
+            "uncovered_points": str(uncovered),
+            "uncovered_strips": ",".join(str(i) for i in left_out)}))
         neq = s.normal_equations
         out.append(StatusSpec(OK, "lidarcal: state", (
             f"{self.solves} solves (last {self.last_solve_s:.2f} s), {self.checkpoints} "

@@ -535,12 +535,24 @@ def trajectory_message_classes() -> dict[str, Any]:
     }
 
 
+#: The ``trajectory_type`` parameter of the nodes that read the trajectory.
+TRAJECTORY_TYPE_PARAMETER = NodeParameter(
+    "auto", "Trajectory message type, or 'auto': PoseStamped until a publisher of another "
+    "accepted type (Odometry, PoseWithCovarianceStamped, PointStamped) is seen, then that one. "
+    "Give the type when a node of the same process publishes another type on the topic (one "
+    "DDS participant holds a topic with one type only)", read_only=True)
+
+
 class TrajectoryInput:
-    """Subscribes to the trajectory topic, of a given type or the one found on the graph.
+    """Subscribes to the trajectory topic, of a given type or the one its publishers use.
 
     Calls ``on_sample(t_seconds, (x, y, z), frame_id)`` for each sample (raw CDR decoded with
-    rosbags). ``msgtype`` ``auto`` looks the topic's type up every 0.5 s until a publisher
-    appears.
+    rosbags). With ``msgtype`` ``auto`` the subscription is made at once for the contract's
+    type (``geometry_msgs/msg/PoseStamped``), and the publishers on the topic are looked up
+    every 0.5 s until one appears: if they use another accepted type, the subscription
+    switches to it. Waiting for a publisher before subscribing at all would lose the first
+    samples of every stream that starts after the node (up to a second of them, and at a
+    replay's 10x rate the trajectory of a whole strip).
     """
 
     def __init__(self, node: Node, topic: str, msgtype: str,
@@ -555,55 +567,70 @@ class TrajectoryInput:
         self.subscription: Any = None
         self.errors = 0
         self._timer: Any = None
-        from lidarcal_ros.io.bag import TRAJECTORY_TYPES, normalize_msgtype
+        from lidarcal_ros.io.bag import POSE_STAMPED, TRAJECTORY_TYPES, normalize_msgtype
 
         self._getters = TRAJECTORY_TYPES
         if msgtype and msgtype != "auto":
             self._subscribe(normalize_msgtype(msgtype))
-        else:
-            self._timer = node.create_timer(0.5, self._discover, callback_group=callback_group)
-            self._discover()
+            return
+        self._subscribe(POSE_STAMPED, confirmed=False)
+        self._timer = node.create_timer(0.5, self._discover, callback_group=callback_group)
+        self._discover()
 
     def _discover(self) -> None:
-        if self.subscription is not None:
-            return
+        """Follow the type of the topic's publishers (``auto``), once they appear."""
         resolved = self.node.resolve_topic_name(self.topic)  # remappings applied
-        for name, types in self.node.get_topic_names_and_types():
-            if name != resolved:
-                continue
-            for t in types:
-                if t in self._getters:
-                    self._subscribe(t)
-                    return
-            self.node.get_logger().error(
-                f"{self.topic} has type(s) {', '.join(types)}; expected one of "
-                f"{', '.join(self._getters)}", throttle_duration_sec=30.0)
+        types = sorted({info.topic_type
+                        for info in self.node.get_publishers_info_by_topic(resolved)})
+        if not types:
+            return  # no publisher yet: keep the subscription of the contract's type
+        if self.msgtype in types:
+            self._subscribe(self.msgtype)  # confirmed: the subscription stays
+            return
+        accepted = [t for t in types if t in self._getters]
+        if accepted:
+            self._subscribe(accepted[0])
+            return
+        self.node.get_logger().error(
+            f"{self.topic} has type(s) {', '.join(types)}; expected one of "
+            f"{', '.join(self._getters)}", throttle_duration_sec=30.0)
 
-    def _subscribe(self, msgtype: str) -> None:
+    def _subscribe(self, msgtype: str, *, confirmed: bool = True) -> None:
+        """Subscribe for ``msgtype`` (replacing a subscription of another type); once
+        ``confirmed`` (a given type, or the publishers' own), stop looking."""
         classes = trajectory_message_classes()
         if msgtype not in classes:
             raise ConfigError(f"trajectory type {msgtype} is not one of {', '.join(classes)}")
-        self.msgtype = msgtype
-        if self._timer is not None:
+        if confirmed and self._timer is not None:
             self._timer.cancel()
+            self._timer = None
+        if msgtype == self.msgtype:
+            if confirmed:
+                self.node.get_logger().info(f"trajectory: {self.topic} ({msgtype})")
+            return
+        if self.subscription is not None:
+            self.node.destroy_subscription(self.subscription)
+        self.msgtype = msgtype
+        # Each subscription decodes its own type (a message of the one replaced may still be
+        # in a callback when the type changes).
         self.subscription = self.node.create_subscription(
-            classes[msgtype], self.topic, self._on_raw, stream_qos(self.depth), raw=True,
-            callback_group=self.group)
-        self.node.get_logger().info(f"trajectory: {self.topic} ({msgtype})")
+            classes[msgtype], self.topic, lambda raw: self._on_raw(raw, msgtype),
+            stream_qos(self.depth), raw=True, callback_group=self.group)
+        if confirmed:
+            self.node.get_logger().info(f"trajectory: {self.topic} ({msgtype})")
 
-    def _on_raw(self, raw: bytes) -> None:
+    def _on_raw(self, raw: bytes, msgtype: str) -> None:
         from lidarcal_ros.io.ros_messages import deserialize
 
-        assert self.msgtype is not None
         try:
-            msg = deserialize(raw, self.msgtype)
-            pos = self._getters[self.msgtype](msg)
+            msg = deserialize(raw, msgtype)
+            pos = self._getters[msgtype](msg)
             stamp = msg.header.stamp
             t = float(stamp.sec) + int(stamp.nanosec) * 1e-9
             xyz = (float(pos.x), float(pos.y), float(pos.z))
         except Exception as exc:  # malformed message: log, skip, keep running
             self.errors += 1
-            self.node.get_logger().error(f"{self.topic}: malformed {self.msgtype} skipped "
+            self.node.get_logger().error(f"{self.topic}: malformed {msgtype} skipped "
                                          f"({exc})", throttle_duration_sec=5.0)
             return
         self.on_sample(t, xyz, str(msg.header.frame_id))

@@ -73,6 +73,7 @@ from lidarcal_ros.nodes.common import (
     CORRECTOR_NODE,
     DIAGNOSTICS_TOPIC,
     ESTIMATE_TOPIC,
+    TRAJECTORY_TYPE_PARAMETER,
     FlightParameters,
     NodeParameter,
     TrajectoryInput,
@@ -96,8 +97,7 @@ EXTRA_PARAMETERS = {
                                  minimum=1, maximum=100000, read_only=True),
     "best_effort": NodeParameter(False, "Subscribe to points with best-effort reliability",
                                  read_only=True),
-    "trajectory_type": NodeParameter("auto", "Trajectory message type, or 'auto' (from the "
-                                     "graph)", read_only=True),
+    "trajectory_type": TRAJECTORY_TYPE_PARAMETER,
     "trajectory_buffer_s": NodeParameter(600.0, "Seconds of trajectory kept", minimum=1.0,
                                          maximum=1e6),
     "max_trajectory_wait_s": NodeParameter(5.0, "Longest wall time a chunk waits for the "

@@ -23,6 +23,7 @@ import numpy as np
 from lidarcal_ros.core.adjustment import NormalEquations, Observations
 from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.errors import CalibrationError, InputError
 from lidarcal_ros.io.pointcloud import CloudColumns
@@ -102,6 +103,10 @@ class StreamingCalibration:
         self._now = -np.inf
         self._late_strips: set[int] = set()
         self.late_points = 0
+        #: Points of complete strips the trajectory did not cover (left out), and the strips
+        #: left out whole for that reason.
+        self.uncovered_points = 0
+        self.uncovered_strips: list[int] = []
         self._calibrator = self._new_calibrator()
 
     # ------------------------------------------------------------------ inputs
@@ -205,9 +210,30 @@ class StreamingCalibration:
                            "last correspondences", oldest, n)
 
     def _close(self, strip_id: int) -> list[tuple[int, int]]:
+        """Hand a complete strip to the calibration; returns the pairs it forms.
+
+        Points the trajectory does not cover (it started after the strip did, or has a gap)
+        are left out and counted, not the strip: live, a trajectory joined late must not
+        cost the whole strip (offline, ``lidarcal calibrate`` refuses such a mission).
+        """
         strip = self._open.pop(strip_id).to_strip(strip_id)
+        covered = covered_by_trajectory(
+            strip.t, self.trajectory, window_s=self._calibrator.settings.trajectory_window_s)
+        if not covered.all():
+            n_out = int((~covered).sum())
+            self.uncovered_points += n_out
+            if not covered.any():
+                self.uncovered_strips.append(strip_id)
+                logger.warning("strip %d left out: the trajectory covers none of its %d "
+                               "points", strip_id, n_out)
+                return []
+            logger.warning("strip %d: %d of %d points not covered by the trajectory, left "
+                           "out", strip_id, n_out, len(strip))
+            strip = Strip(strip_id, strip.xyz[covered], strip.t[covered],
+                          None if strip.intensity is None else strip.intensity[covered])
+        formed = self._calibrator.add_strip(strip, self.trajectory)
         self._closed.append(strip)
-        return self._calibrator.add_strip(strip, self.trajectory)
+        return formed
 
     def _covered(self, t_end: float) -> bool:
         traj = self.trajectory
@@ -282,6 +308,8 @@ class StreamingCalibration:
         self._now = -np.inf
         self._late_strips = set()
         self.late_points = 0
+        self.uncovered_points = 0
+        self.uncovered_strips = []
         self._calibrator = self._new_calibrator()
 
     def _rebuild(self) -> None:
@@ -302,6 +330,8 @@ class StreamingCalibration:
             "delta": self._calibrator.delta,
             "threshold": np.array(self._calibrator.threshold),
             "counters": np.array([self.dropped_points, self.dropped_non_finite]),
+            "uncovered_points": np.array(self.uncovered_points),
+            "uncovered_strips": np.array(self.uncovered_strips, dtype=np.int64),
             "dropped_strips": np.array(self.dropped_strips, dtype=np.int64),
             "neq_n": self.normal_equations.n, "neq_u": self.normal_equations.u,
             "neq_yy": np.array(self.normal_equations.yy),
@@ -368,6 +398,9 @@ class StreamingCalibration:
                 self._traj_t = [data["traj_t"]]
                 self._traj_xyz = [data["traj_xyz"]]
             self.dropped_points, self.dropped_non_finite = (int(v) for v in data["counters"])
+            if "uncovered_points" in data:  # (checkpoints of earlier versions lack them)
+                self.uncovered_points = int(data["uncovered_points"])
+                self.uncovered_strips = [int(v) for v in data["uncovered_strips"]]
             self.dropped_strips = [int(v) for v in data["dropped_strips"]]
             for sid in data["closed_ids"]:
                 key = f"closed_{int(sid)}"
