@@ -58,6 +58,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.params import format_value
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import resolve_time_field, time_span
@@ -270,7 +271,7 @@ class CorrectorNode(Node):
             self._settings = CorrectionSettings.from_config(self.params.config, self._delta)
             self._settings_changed = True
         self.get_logger().info("new estimate: " + ", ".join(
-            f"{n}={v:.6g}" for n, v in est.values.items()))
+            f"{n} {format_value(n, v)}" for n, v in est.values.items()))
 
     # -- input -----------------------------------------------------------------------
     def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str) -> None:
