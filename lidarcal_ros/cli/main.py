@@ -495,6 +495,38 @@ def _cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- recover
+def _add_recover(sub: Any) -> None:
+    p = sub.add_parser("recover", help="a damaged bag's readable messages into a new bag",
+                       description="Read a bag whose recording was cut (no MCAP summary or "
+                       "footer, no metadata.yaml) from the start, and write every message "
+                       "readable before the damage to a new, complete bag.")
+    p.add_argument("bag", type=Path, help="damaged rosbag2 directory or .mcap file")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="new rosbag2 directory (or a bare .mcap file)")
+    p.add_argument("--points", default="/lidar/points",
+                   help="points topic: clouds past the last readable trajectory sample are "
+                   "left out (default /lidar/points)")
+    p.add_argument("--trajectory", default="/lidar/trajectory",
+                   help="trajectory topic (default /lidar/trajectory)")
+    p.add_argument("--time-field", default="t",
+                   help="time field of the clouds (default t, or its alias time, timestamp, "
+                   "gps_time)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=_cmd_recover)
+
+
+def _cmd_recover(args: argparse.Namespace) -> int:
+    from lidarcal_ros.io.bag_recovery import recover_bag
+
+    recovered = recover_bag(args.bag, args.output, overwrite=args.overwrite,
+                            points_topic=args.points, trajectory_topic=args.trajectory,
+                            time_field=args.time_field)
+    for line in recovered.lines():
+        print(line)
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -516,6 +548,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_plan(sub)
     _add_evaluate(sub)
     _add_import(sub)
+    _add_recover(sub)
     return parser
 
 

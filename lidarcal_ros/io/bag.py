@@ -189,6 +189,12 @@ def _count_readable_messages(path: Path) -> int:
     return count
 
 
+def _damage_message(path: Path, what: str) -> str:
+    count = _count_readable_messages(path)
+    return (f"{path}: truncated or corrupt MCAP ({what}); {count} messages were readable "
+            "before the damage (lidarcal recover BAG -o NEW keeps them)")
+
+
 class BagReader:
     """An open rosbag2 bag (MCAP storage) or bare MCAP file; use as a context manager.
 
@@ -311,17 +317,9 @@ class BagReader:
             text = _one_line(err)
             if "Profile is not ros2" in text:
                 raise BagError(f"{path}: MCAP profile is not 'ros2'; not a ROS 2 bag") from None
-            count = _count_readable_messages(path)
-            raise BagError(
-                f"{path}: truncated or corrupt MCAP ({text}); {count} messages were "
-                "readable before the damage"
-            ) from None
+            raise BagError(_damage_message(path, text)) from None
         except Exception as err:  # any parse failure means damage
-            count = _count_readable_messages(path)
-            raise BagError(
-                f"{path}: truncated or corrupt MCAP ({_one_line(err)}); {count} messages "
-                "were readable before the damage"
-            ) from None
+            raise BagError(_damage_message(path, _one_line(err))) from None
         self._files.append(_File(path, reader, list(reader.connections)))
 
     def _collect_topics(self, meta_qos: dict[str, list[Qos]]) -> None:
