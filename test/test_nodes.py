@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
+from lidarcal_ros.core.params import PARAMETER_NAMES, format_estimate, format_value
 from lidarcal_ros.io.bag import open_bag
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
@@ -272,8 +272,7 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
         sigma = live.sigmas[name]
         if sigma is None:
             return f"fixed at {format_value(name, live.values[name])}"
-        return (f"{format_value(name, live.values[name])} +- "
-                f"{format_value(name, sigma, sign=False)}")
+        return format_estimate(name, live.values[name], sigma)
 
     _wait(lambda: suite.probe.diagnostics.get("lidarcal: estimate", (0, "", {}))[2] == {
         name: shown(name) for name in PARAMETER_NAMES}, 10, "the estimate on /diagnostics")

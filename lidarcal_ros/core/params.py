@@ -62,6 +62,15 @@ def format_value(name: str, value: float, *, sign: bool = True, width: int = 0) 
     return f"{shown:+{width}.2f} {unit}" if sign else f"{shown:{width}.2f} {unit}"
 
 
+def format_estimate(name: str, value: float, sigma: float) -> str:
+    """An estimate with its standard deviation, the unit once: ``"-90.98 +- 0.04 arcsec"``."""
+    shown, unit = display_value(name, value)
+    spread, _ = display_value(name, sigma)
+    if name == "dS":
+        return f"{shown:+.2e} +- {spread:.1e}"
+    return f"{shown:+.2f} +- {spread:.2f} {unit}"
+
+
 def parse_parameter_list(text: str) -> tuple[str, ...]:
     """Parse a comma-separated parameter list such as ``"dX,dY,domega"``.
 

@@ -41,7 +41,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, format_value
+from lidarcal_ros.core.params import (
+    N_PARAMETERS,
+    PARAMETER_NAMES,
+    format_estimate,
+    format_value,
+)
 from lidarcal_ros.errors import CloudFormatError
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
 
@@ -321,8 +326,7 @@ def estimate_status(solution: Any) -> StatusSpec:
         status = solution.status[name]
         value = float(solution.delta[i])
         if status.state == "estimated":
-            text = (f"{format_value(name, value)} +- "
-                    f"{format_value(name, float(solution.sigma[i]), sign=False)}")
+            text = format_estimate(name, value, float(solution.sigma[i]))
             estimated.append(f"{name} {text}")
         elif status.state == "fixed":
             text = f"fixed at {format_value(name, value)}"
@@ -387,6 +391,24 @@ def qa_statuses(
                               f"all {len(sol.estimated)} parameters asked for are estimable",
                               values))
     return out
+
+
+def qa_summary(statuses: Sequence[StatusSpec]) -> str:
+    """One line for a log from :func:`qa_statuses`: the estimate and the worst strip pair,
+    e.g. ``dphi -90.98 +- 0.04 arcsec, ...; strips 5&6: RMS 9.0 cm (before 26.4 cm),
+    coverage 44%: WARN (worst of 15 pairs)``."""
+    estimate = next((s.message for s in statuses if s.name == "lidarcal: estimate"), "")
+    pairs = [s for s in statuses if s.name.startswith("lidarcal: strips ")]
+    if not pairs:
+        return estimate or "no estimate"
+
+    def severity(s: StatusSpec) -> tuple[int, float]:
+        rms = float(s.values.get("rms_after", "nan"))
+        return s.level, rms if math.isfinite(rms) else math.inf
+
+    worst = max(pairs, key=severity)
+    where = worst.name.removeprefix("lidarcal: ")
+    return f"{estimate}; {where}: {worst.message} (worst of {len(pairs)} pairs)"
 
 
 def worst_level(statuses: Iterable[StatusSpec]) -> int:

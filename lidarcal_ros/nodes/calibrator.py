@@ -77,7 +77,9 @@ from lidarcal_ros.io.ros_messages import (
     estimate_matrix,
     parse_cloud,
     qa_statuses,
+    qa_summary,
     warm_up_cloud_codec,
+    worst_level,
 )
 from lidarcal_ros.nodes.common import (
     CALIBRATOR_NODE,
@@ -427,6 +429,13 @@ class CalibratorNode(Node):
         with self._status_lock:
             self._statuses = statuses
         self._publish_diagnostics()
+        # The same for whoever watches the console (the crew running ``lidarcal run``).
+        # (rclpy refuses one call site logging at two severities: two calls.)
+        summary = qa_summary(statuses)
+        if worst_level(s for s in statuses if s.name.startswith("lidarcal: strips ")) >= WARN:
+            self.get_logger().warning(summary)
+        else:
+            self.get_logger().info(summary)
         path = self.params["checkpoint_file"]
         if path:
             self._checkpoint(path)
