@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lidarcal_ros.core import kernels
+
 logger = logging.getLogger(__name__)
 
 try:  # Shewchuk's Triangle: ~10x faster than qhull on scan patterns; optional.
@@ -220,7 +222,7 @@ class GridLocator:
         self.inv[:, 0, 1] = -m[:, 0, 1] / det
         self.inv[:, 1, 0] = -m[:, 1, 0] / det
         self.inv[:, 1, 1] = m[:, 0, 0] / det
-        self.a = a
+        self.a = np.ascontiguousarray(a)
 
     def locate(self, q: np.ndarray, neighbors: np.ndarray | None = None,
                start: np.ndarray | None = None) -> np.ndarray:
@@ -243,25 +245,12 @@ class GridLocator:
         tri = np.where(has, self.entries[np.minimum(self.starts[cell], self.entries.size - 1)], -1)
         if start is not None:
             tri = np.where((start >= 0) & inside, start, tri)
-        active = np.flatnonzero(tri >= 0)
-        t = tri[active]
-        eps = -1e-12
-        for _ in range(self.MAX_WALK):
-            if not active.size:
-                break
-            d = q[active] - self.a[t]
-            inv = self.inv[t]
-            l1 = inv[:, 0, 0] * d[:, 0] + inv[:, 0, 1] * d[:, 1]
-            l2 = inv[:, 1, 0] * d[:, 0] + inv[:, 1, 1] * d[:, 1]
-            lam = np.stack([1.0 - l1 - l2, l1, l2], axis=1)
-            worst = np.argmin(lam, axis=1)
-            hit = lam[np.arange(t.size), worst] >= eps
-            out[active[hit]] = t[hit]
-            step = neighbors[t, worst]
-            going = ~hit & (step >= 0)  # stepping out of the hull: outside, stays -1
-            active, t = active[going], step[going]
-        if active.size:  # rare: degenerate walks; settle them by scanning their cells
-            out[active] = self._scan(q[active], np.arange(active.size))
+        unsettled = kernels.walk_to_triangles(
+            np.ascontiguousarray(q, dtype=np.float64), tri.astype(np.int64, copy=False),
+            self.a, self.inv, np.ascontiguousarray(neighbors, dtype=np.int64), self.MAX_WALK,
+            out)
+        if unsettled.size:  # rare: degenerate walks; settle them by scanning their cells
+            out[unsettled] = self._scan(q[unsettled], np.arange(unsettled.size))
         return out
 
     #: Most walking steps before falling back to a scan.
