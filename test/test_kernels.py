@@ -372,7 +372,7 @@ def test_walk_to_triangles_is_the_numpy_walk(max_steps: int) -> None:
     locator = GridLocator(xy, simplices)
     # inside, outside the hull, on vertices (ties of the coordinates), far starts, no start
     q = np.vstack([rng.uniform(-10.0, 110.0, (5000, 2)), xy[:200]])
-    start = rng.integers(-1, simplices.shape[0], q.shape[0])
+    start = np.asarray(rng.integers(-1, simplices.shape[0], q.shape[0]), dtype=np.int64)
     expected, unsettled_expected = _walk_numpy(q, start, locator.a, locator.inv, neighbors,
                                                max_steps)
     out = np.full(q.shape[0], -1, dtype=np.int64)
