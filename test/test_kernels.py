@@ -381,3 +381,78 @@ def test_walk_to_triangles_is_the_numpy_walk(max_steps: int) -> None:
     np.testing.assert_array_equal(out, expected)
     np.testing.assert_array_equal(np.sort(unsettled), np.sort(unsettled_expected))
     assert (out >= 0).sum() > (1500 if max_steps > 3 else 0) and unsettled.size > 100
+
+
+def _best_patches_numpy(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
+                        neighbors: np.ndarray, usable: np.ndarray, vertices: np.ndarray,
+                        max_d: float) -> tuple[np.ndarray, ...]:
+    """The candidate tests in numpy, a candidate at a time for all points (what
+    tin._match_block and tin._patch_test did)."""
+    n = points.shape[0]
+    best_tri = np.full(n, -1, dtype=np.int64)
+    best_abs = np.full(n, np.inf)
+    best_nrm, best_w, best_d = np.zeros((n, 3)), np.zeros((n, 3)), np.full(n, np.nan)
+
+    def consider(rows: np.ndarray, cand: np.ndarray) -> None:
+        ok = cand >= 0
+        ok[ok] = usable[cand[ok]]
+        t = simplices[np.where(ok, cand, 0)]
+        p = points[rows]
+        v0, v1, v2 = (vertices[t[:, j]] - p for j in range(3))
+        ax, ay, az = v0[:, 0], v0[:, 1], v0[:, 2]
+        e1x, e1y, e1z = v1[:, 0] - ax, v1[:, 1] - ay, v1[:, 2] - az
+        e2x, e2y, e2z = v2[:, 0] - ax, v2[:, 1] - ay, v2[:, 2] - az
+        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
+        ok &= length > 0
+        length[length == 0] = 1.0
+        length[nz < 0] *= -1.0
+        nx, ny, nz = nx / length, ny / length, nz / length
+        dist = -(nx * ax + ny * ay + nz * az)
+        px, py, pz = -dist * nx - ax, -dist * ny - ay, -dist * nz - az
+        d00 = e1x * e1x + e1y * e1y + e1z * e1z
+        d01 = e1x * e2x + e1y * e2y + e1z * e2z
+        d11 = e2x * e2x + e2y * e2y + e2z * e2z
+        d20, d21 = px * e1x + py * e1y + pz * e1z, px * e2x + py * e2y + pz * e2z
+        denom = d00 * d11 - d01 * d01
+        denom[denom == 0] = np.inf
+        wv, ww = (d11 * d20 - d01 * d21) / denom, (d00 * d21 - d01 * d20) / denom
+        wu = 1.0 - wv - ww
+        ok &= (wu >= -1e-9) & (wv >= -1e-9) & (ww >= -1e-9) & (np.abs(dist) <= max_d)
+        better = ok & (np.abs(dist) < best_abs[rows])
+        r = rows[better]
+        best_tri[r], best_abs[r], best_d[r] = cand[better], np.abs(dist[better]), dist[better]
+        best_nrm[r] = np.column_stack([nx, ny, nz])[better]
+        best_w[r] = np.stack([wu, wv, ww], axis=1)[better]
+
+    rows = np.flatnonzero(tri >= 0)
+    consider(rows, tri[rows])
+    rest = rows[best_tri[rows] < 0]
+    for k in range(3):
+        consider(rest, neighbors[tri[rest], k])
+    return best_tri, best_d, best_nrm, best_w
+
+
+def test_best_patches_is_the_numpy_matching() -> None:
+    from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.tin import Tin, TinQuality
+
+    strips = simulate_mission(density=0.1, line_length_m=150.0, seed=3).mission.strips
+    tin = Tin(strips[0].xyz, TinQuality())
+    rng = np.random.default_rng(2)
+    vertices = strips[0].xyz + rng.normal(0.0, 0.01, strips[0].xyz.shape)  # "corrected"
+    points = strips[1].xyz
+    tri = tin.locate(points[:, :2])
+    assert (tri >= 0).mean() > 0.5
+    expected = _best_patches_numpy(points, tri, tin.simplices, tin.neighbors, tin.usable,
+                                   vertices, 0.5)
+    n = points.shape[0]
+    got = (np.full(n, -1, dtype=np.int64), np.full(n, np.nan), np.zeros((n, 3)),
+           np.zeros((n, 3)))
+    kernels.best_patches(points, tri, tin.simplices, tin.neighbors, tin.usable, vertices, 0.5,
+                         *got)
+    for a, b in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+    found = got[0] >= 0
+    assert 0.3 < found.mean() < 1.0  # some settled by a neighbour, some by none
+    assert (got[0][found] != tri[found]).any()

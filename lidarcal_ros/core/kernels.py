@@ -874,3 +874,90 @@ def walk_to_triangles(q: np.ndarray, start: np.ndarray, a: np.ndarray, inv: np.n
             unsettled[k] = i
             k += 1
     return unsettled[:k]
+
+
+@_jit
+def best_patches(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
+                 neighbors: np.ndarray, usable: np.ndarray, vertices: np.ndarray,
+                 max_normal_distance: float, best_tri: np.ndarray, best_d: np.ndarray,
+                 best_nrm: np.ndarray, best_w: np.ndarray) -> None:
+    """Point-to-patch matching of :func:`lidarcal_ros.core.tin.match_to_tin`: per point, the
+    triangle ``tri`` containing its XY, and only where that one does not qualify its three
+    neighbours; of the qualifying candidates (usable, not degenerate, foot of the normal
+    inside with barycentric weights of at least ``-1e-9``, ``|distance| <=
+    max_normal_distance``) the first with the smallest ``|distance|`` wins.
+
+    Each candidate's arithmetic is that of the numpy formulation it replaces, operation for
+    operation, about the query point as origin: edges ``e1 = v1 - v0``, ``e2 = v2 - v0``;
+    upward unit normal ``n = e1 x e2 / |e1 x e2|``; signed distance ``-(n . v0)``; foot
+    ``-dist n``; barycentric weights of the foot from the Gram matrix of the edges.
+
+    Parameters
+    ----------
+    points : (k, 3) float64
+        Queries, current coordinates, m.
+    tri : (k,) int64
+        Triangle containing each query's XY in the delivered geometry, -1: none.
+    simplices : (m, 3) int64; neighbors : (m, 3) int64; usable : (m,) bool
+        The TIN.
+    vertices : (n, 3) float64
+        Its vertices, current coordinates, m.
+    max_normal_distance : float
+    best_tri, best_d, best_nrm, best_w : (k,), (k,), (k, 3), (k, 3)
+        Receive the winning triangle (-1: none), signed distance (m), unit normal and the
+        foot's barycentric weights; left as given where no candidate qualifies.
+    """
+    for i in range(points.shape[0]):
+        first = tri[i]
+        if first < 0:
+            continue
+        best_abs = math.inf
+        for c in range(4):
+            cand = first if c == 0 else neighbors[first, c - 1]
+            if c == 1 and best_tri[i] >= 0:
+                break  # the containing patch qualified: its neighbours are not tried
+            if cand < 0 or not usable[cand]:
+                continue
+            a0 = simplices[cand, 0]
+            a1 = simplices[cand, 1]
+            a2 = simplices[cand, 2]
+            ax = vertices[a0, 0] - points[i, 0]
+            ay = vertices[a0, 1] - points[i, 1]
+            az = vertices[a0, 2] - points[i, 2]
+            e1x = (vertices[a1, 0] - points[i, 0]) - ax
+            e1y = (vertices[a1, 1] - points[i, 1]) - ay
+            e1z = (vertices[a1, 2] - points[i, 2]) - az
+            e2x = (vertices[a2, 0] - points[i, 0]) - ax
+            e2y = (vertices[a2, 1] - points[i, 1]) - ay
+            e2z = (vertices[a2, 2] - points[i, 2]) - az
+            nx = e1y * e2z - e1z * e2y
+            ny = e1z * e2x - e1x * e2z
+            nz = e1x * e2y - e1y * e2x
+            length = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if not length > 0:
+                continue
+            if nz < 0:
+                length *= -1.0  # upward normals
+            nx, ny, nz = nx / length, ny / length, nz / length
+            dist = -(nx * ax + ny * ay + nz * az)
+            px, py, pz = -dist * nx - ax, -dist * ny - ay, -dist * nz - az
+            d00 = e1x * e1x + e1y * e1y + e1z * e1z
+            d01 = e1x * e2x + e1y * e2y + e1z * e2z
+            d11 = e2x * e2x + e2y * e2y + e2z * e2z
+            d20 = px * e1x + py * e1y + pz * e1z
+            d21 = px * e2x + py * e2y + pz * e2z
+            denom = d00 * d11 - d01 * d01
+            if denom == 0:
+                denom = math.inf
+            wv = (d11 * d20 - d01 * d21) / denom
+            ww = (d00 * d21 - d01 * d20) / denom
+            wu = 1.0 - wv - ww
+            if not (wu >= -1e-9 and wv >= -1e-9 and ww >= -1e-9):
+                continue
+            if not abs(dist) <= max_normal_distance or not abs(dist) < best_abs:
+                continue
+            best_abs = abs(dist)
+            best_tri[i] = cand
+            best_d[i] = dist
+            best_nrm[i, 0], best_nrm[i, 1], best_nrm[i, 2] = nx, ny, nz
+            best_w[i, 0], best_w[i, 1], best_w[i, 2] = wu, wv, ww

@@ -27,9 +27,7 @@ try:  # Shewchuk's Triangle: ~10x faster than qhull on scan patterns; optional.
 except ImportError:  # pragma: no cover - exercised where the wheel is missing
     _triangle = None
 
-#: Candidate triangles tested per query point: the one containing its XY and its 3 neighbours.
-_CANDIDATES = 4
-#: Query points processed per block (bounds the (k, 4, 3, 3) temporaries).
+#: Query points processed per block (bounds the temporaries of the point location).
 _MATCH_BLOCK = 262_144
 
 
@@ -391,80 +389,18 @@ def _match_block(
         tri = tin.locate(xy2, guess)
     n = points.shape[0]
     best_tri = np.full(n, -1, dtype=np.int64)
-    best_abs = np.full(n, np.inf)
     best_nrm = np.zeros((n, 3))
     best_w = np.zeros((n, 3))
     best_d = np.full(n, np.nan)
-
-    def consider(rows: np.ndarray, cand: np.ndarray) -> None:
-        ok, nrm, dist, w = _patch_test(points[rows], cand, tin, vertices, max_normal_distance)
-        better = ok & (np.abs(dist) < best_abs[rows])
-        r = rows[better]
-        best_tri[r] = cand[better]
-        best_abs[r] = np.abs(dist[better])
-        best_nrm[r] = nrm[better]
-        best_w[r] = w[better]
-        best_d[r] = dist[better]
-
     # The patch containing the point's XY settles almost every point; its three neighbours
     # are tried only where it does not qualify (foot of the normal outside it, or unusable).
-    rows = np.flatnonzero(tri >= 0)
-    consider(rows, tri[rows])
-    rest = rows[best_tri[rows] < 0]
-    for k in range(_CANDIDATES - 1):
-        cand = tin.neighbors[tri[rest], k]
-        consider(rest, cand)
+    kernels.best_patches(np.ascontiguousarray(points, dtype=np.float64), tri, tin.simplices,
+                         tin.neighbors, tin.usable,
+                         np.ascontiguousarray(vertices, dtype=np.float64),
+                         float(max_normal_distance), best_tri, best_d, best_nrm, best_w)
     valid = best_tri >= 0
     out.valid[where] = valid
     out.triangle[where] = best_tri
     out.normal[where] = best_nrm
     out.weights[where] = best_w
     out.distance[where] = best_d
-
-
-def _patch_test(
-    points: np.ndarray, cand: np.ndarray, tin: Tin, vertices: np.ndarray,
-    max_normal_distance: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Whether each point's patch ``cand`` qualifies: usable, foot of the normal inside, close.
-
-    Returns ``(ok, normal, signed distance, barycentric weights of the foot)``.
-    """
-    ok = cand >= 0
-    ok[ok] = tin.usable[cand[ok]]
-    safe = np.where(ok, cand, 0)
-    tri = tin.simplices[safe]
-    # Component arithmetic on (k,) arrays: (k, 3) reductions cost more than the maths.
-    # Local origin: the query point, so differences stay small at projected magnitudes.
-    v0 = vertices[tri[:, 0]] - points
-    v1 = vertices[tri[:, 1]] - points
-    v2 = vertices[tri[:, 2]] - points
-    ax, ay, az = v0[:, 0], v0[:, 1], v0[:, 2]
-    e1x, e1y, e1z = v1[:, 0] - ax, v1[:, 1] - ay, v1[:, 2] - az
-    e2x, e2y, e2z = v2[:, 0] - ax, v2[:, 1] - ay, v2[:, 2] - az
-    nx = e1y * e2z - e1z * e2y
-    ny = e1z * e2x - e1x * e2z
-    nz = e1x * e2y - e1y * e2x
-    length = np.sqrt(nx * nx + ny * ny + nz * nz)
-    ok &= length > 0
-    length[length == 0] = 1.0
-    length[nz < 0] *= -1.0  # upward normals
-    nx, ny, nz = nx / length, ny / length, nz / length
-    # Point is at the origin: distance = n . (0 - v0); foot = -dist * n.
-    dist = -(nx * ax + ny * ay + nz * az)
-    px, py, pz = -dist * nx - ax, -dist * ny - ay, -dist * nz - az
-    d00 = e1x * e1x + e1y * e1y + e1z * e1z
-    d01 = e1x * e2x + e1y * e2y + e1z * e2z
-    d11 = e2x * e2x + e2y * e2y + e2z * e2z
-    d20 = px * e1x + py * e1y + pz * e1z
-    d21 = px * e2x + py * e2y + pz * e2z
-    denom = d00 * d11 - d01 * d01
-    denom[denom == 0] = np.inf
-    wv = (d11 * d20 - d01 * d21) / denom
-    ww = (d00 * d21 - d01 * d20) / denom
-    wu = 1.0 - wv - ww
-    eps = -1e-9
-    ok &= (wu >= eps) & (wv >= eps) & (ww >= eps)
-    ok &= np.abs(dist) <= max_normal_distance
-    nrm = np.column_stack([nx, ny, nz])
-    return ok, nrm, dist, np.stack([wu, wv, ww], axis=1)
