@@ -249,3 +249,17 @@ def test_time_span_skips_nan_and_says_nan_when_there_is_no_time() -> None:
         assert time_span(np.array([3.0, np.nan, 1.0, 2.0])) == (1.0, 3.0)
         assert all(math.isnan(v) for v in time_span(np.array([np.nan, np.nan])))
         assert all(math.isnan(v) for v in time_span(np.empty(0)))
+
+
+def test_big_endian_fields_are_read_and_judged_like_little_endian_ones() -> None:
+    """(The compiled loops take native byte order; other clouds go the numpy way.)"""
+    from lidarcal_ros.io.pointcloud import extract_xyz
+    from lidarcal_ros.io.ros_messages import is_dense_byte
+
+    little = np.zeros(50, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f4")])
+    little["x"], little["y"], little["z"] = np.arange(50), -np.arange(50), 0.5
+    big = little.astype([("x", ">f8"), ("y", ">f8"), ("z", ">f4")])
+    np.testing.assert_array_equal(extract_xyz(big), extract_xyz(little))
+    assert is_dense_byte(big) == is_dense_byte(little) == b"\x01"
+    big["y"][7] = np.nan
+    assert is_dense_byte(big) == b"\x00"

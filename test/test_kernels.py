@@ -456,3 +456,21 @@ def test_best_patches_is_the_numpy_matching() -> None:
     found = got[0] >= 0
     assert 0.3 < found.mean() < 1.0  # some settled by a neighbour, some by none
     assert (got[0][found] != tri[found]).any()
+
+
+@pytest.mark.parametrize("field_type", ["<f8", "<f4"])
+def test_gather_xyz_and_all_finite3_on_the_fields_of_a_cloud(field_type: str) -> None:
+    rng = np.random.default_rng(4)
+    cloud = np.zeros(1000, dtype=[("x", field_type), ("t", "<f8"), ("y", field_type),
+                                  ("i", "<u2"), ("z", field_type)])
+    for c in "xyz":
+        cloud[c] = rng.normal(0.0, 1e3, 1000)
+    out = np.empty((1000, 3))
+    kernels.gather_xyz(cloud["x"], cloud["y"], cloud["z"], out)
+    np.testing.assert_array_equal(out, np.column_stack([cloud[c].astype(np.float64)
+                                                        for c in "xyz"]))
+    assert kernels.all_finite3(cloud["x"], cloud["y"], cloud["z"])
+    for bad, c, row in ((np.nan, "z", 999), (np.inf, "x", 0), (-np.inf, "y", 500)):
+        spoilt = cloud.copy()
+        spoilt[c][row] = bad
+        assert not kernels.all_finite3(spoilt["x"], spoilt["y"], spoilt["z"])

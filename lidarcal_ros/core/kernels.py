@@ -961,3 +961,24 @@ def best_patches(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
             best_d[i] = dist
             best_nrm[i, 0], best_nrm[i, 1], best_nrm[i, 2] = nx, ny, nz
             best_w[i, 0], best_w[i, 1], best_w[i, 2] = wu, wv, ww
+
+
+@_jit
+def all_finite3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> bool:
+    """``np.isfinite(x).all() and np.isfinite(y).all() and np.isfinite(z).all()`` in one pass
+    over the rows (the fields of a structured cloud, strided), stopping at the first
+    non-finite value."""
+    for i in range(x.shape[0]):
+        if not (math.isfinite(x[i]) and math.isfinite(y[i]) and math.isfinite(z[i])):
+            return False
+    return True
+
+
+@_jit
+def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
+    """``out[:, 0], out[:, 1], out[:, 2] = x, y, z`` (float64; FLOAT32 fields widened
+    exactly) in one pass over the rows of a structured cloud."""
+    for i in range(x.shape[0]):
+        out[i, 0] = x[i]
+        out[i, 1] = y[i]
+        out[i, 2] = z[i]

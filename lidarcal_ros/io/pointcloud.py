@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from lidarcal_ros.core import kernels
 from lidarcal_ros.errors import CloudFormatError
 
 logger = logging.getLogger(__name__)
@@ -342,13 +343,18 @@ def extract_xyz(arr: np.ndarray, *, source: str = "cloud") -> np.ndarray:
             f"{source}: cloud lacks field(s) {', '.join(missing)}; fields present: "
             f"{_present(arr)}"
         )
-    xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
-    for i, c in enumerate(("x", "y", "z")):
+    for c in ("x", "y", "z"):
         if _code_of(arr, c) not in (FLOAT64, FLOAT32):
             raise CloudFormatError(
                 f"{source}: field '{c}' is {_type_name(arr, c)}; expected FLOAT64/FLOAT32"
             )
-        xyz[:, i] = arr[c]
+    xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
+    fields = [arr[c] for c in ("x", "y", "z")]
+    if all(f.dtype.isnative for f in fields):
+        kernels.gather_xyz(fields[0], fields[1], fields[2], xyz)  # one pass over the rows
+    else:  # a big-endian cloud (the compiled loop takes native byte order only)
+        for i, f in enumerate(fields):
+            xyz[:, i] = f
     return xyz
 
 
