@@ -17,7 +17,6 @@ from typing import Any, Literal
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
 from lidarcal_ros.errors import CloudFormatError
 
 logger = logging.getLogger(__name__)
@@ -351,6 +350,10 @@ def extract_xyz(arr: np.ndarray, *, source: str = "cloud") -> np.ndarray:
     xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
     fields = [arr[c] for c in ("x", "y", "z")]
     if all(f.dtype.isnative for f in fields):
+        # Imported here: the processes that only pass clouds on (the nodes' ROS side, a
+        # replay) need not load numba.
+        from lidarcal_ros.core import kernels
+
         kernels.gather_xyz(fields[0], fields[1], fields[2], xyz)  # one pass over the rows
     else:  # a big-endian cloud (the compiled loop takes native byte order only)
         for i, f in enumerate(fields):

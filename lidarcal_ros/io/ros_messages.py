@@ -41,7 +41,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core import kernels
 from lidarcal_ros.core.params import (
     N_PARAMETERS,
     PARAMETER_NAMES,
@@ -228,6 +227,8 @@ def is_dense_byte(points: np.ndarray) -> bytes:
     names = points.dtype.names or ()
     present = [points[c] for c in "xyz" if c in names]
     if len(present) == 3 and all(p.dtype.kind == "f" and p.dtype.isnative for p in present):
+        from lidarcal_ros.core import kernels  # (here: see io.pointcloud.extract_xyz)
+
         dense = kernels.all_finite3(*present)  # one pass over the rows
     else:
         dense = all(bool(np.isfinite(p).all()) for p in present)
