@@ -309,3 +309,46 @@ def test_run_reports_a_bad_config_in_one_line(tmp_path: Path) -> None:
     assert res.returncode == 1
     assert "sensor.fov_deg" in res.stderr and res.stderr.strip().count("\n") == 0
 
+
+
+def test_the_replay_waits_for_every_subscriber_of_a_suite(ros_context: Any,
+                                                          tmp_path: Path) -> None:
+    """Nodes started before a replay are matched one by one: the replay waits until no new
+    subscriber came for the settle time, not only for the first one."""
+    import threading
+
+    import rclpy
+    from sensor_msgs.msg import PointCloud2
+
+    from lidarcal_ros.nodes.player import PlayerNode
+
+    with open_bag(_small_bag(tmp_path / "small.mcap")) as bag:
+        player = PlayerNode(bag, topics=["/lidar/points"], context=ros_context,
+                            node_name="settle_player")
+        first = rclpy.create_node("settle_first", context=ros_context)
+        second = rclpy.create_node("settle_second", context=ros_context)
+        try:
+            first.create_subscription(PointCloud2, "/lidar/points", lambda raw: None, 10,
+                                      raw=True)
+            late = threading.Timer(0.6, lambda: second.create_subscription(
+                PointCloud2, "/lidar/points", lambda raw: None, 10, raw=True))
+            started = time.monotonic()
+            late.start()
+            missing = player.wait_for_subscribers(10.0, minimum=1, settle_s=1.0)
+            waited = time.monotonic() - started
+            late.join()
+            assert missing == []
+            assert player.publishers_by_topic["/lidar/points"].get_subscription_count() >= 2
+            assert 1.6 <= waited < 5.0  # the second match, then a second without a new one
+            # nobody there: the time-out ends the wait and names the topic
+            nobody = PlayerNode(bag, topics=["/lidar/trajectory"], context=ros_context,
+                                node_name="settle_alone")
+            try:
+                started = time.monotonic()
+                assert nobody.wait_for_subscribers(0.5, minimum=1) == ["/lidar/trajectory"]
+                assert time.monotonic() - started < 2.0
+            finally:
+                nobody.destroy_node()
+        finally:
+            for node in (player, first, second):
+                node.destroy_node()

@@ -51,8 +51,10 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="replay only these topics (default: all)")
     p.add_argument("--queue", type=int, default=100,
                    help="keep-last depth of the publishers (default 100)")
-    p.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
-                   help="first wait up to this long until every topic has --min-subscribers")
+    p.add_argument("--wait-for-subscribers", type=float, default=5.0, metavar="SECONDS",
+                   help="first wait up to this long until every topic has --min-subscribers "
+                   "and no new subscriber came for 1 s, so that nodes started before the "
+                   "replay miss none of its first messages (default 5; 0: start at once)")
     p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
                    help="subscribers each topic needs before --wait-for-subscribers ends "
                    "(default 1)")

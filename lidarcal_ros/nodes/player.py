@@ -107,13 +107,23 @@ class PlayerNode(Node):
         return ok
 
     def wait_for_subscribers(self, timeout_s: float, *, minimum: int = 1,
-                             stop: Any = None) -> list[str]:
-        """Wait until each non-latched topic has ``minimum`` subscribers; returns the topics
-        still short of them."""
+                             settle_s: float = 1.0, stop: Any = None) -> list[str]:
+        """Wait until each non-latched topic has ``minimum`` subscribers and the counts have
+        not changed for ``settle_s`` (the nodes of a suite are matched one by one: the first
+        match alone would start the replay while the others' subscriptions are still being
+        matched, and their first messages would be lost); returns the topics still short of
+        ``minimum`` when ``timeout_s`` runs out."""
         deadline = time.monotonic() + timeout_s
+        counts: dict[str, int] = {}
+        steady_since = time.monotonic()
         while True:
-            missing = [t for t, p in self.publishers_by_topic.items()
-                       if t not in self.latched and p.get_subscription_count() < minimum]
-            if not missing or time.monotonic() >= deadline or (stop is not None and stop()):
+            now = time.monotonic()
+            seen = {t: p.get_subscription_count() for t, p in self.publishers_by_topic.items()
+                    if t not in self.latched}
+            if seen != counts:
+                counts, steady_since = seen, now
+            missing = [t for t, n in counts.items() if n < minimum]
+            settled = not missing and now - steady_since >= settle_s
+            if settled or now >= deadline or (stop is not None and stop()):
                 return missing
             time.sleep(0.05)
