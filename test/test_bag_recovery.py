@@ -19,7 +19,7 @@ from helpers_missions import truncate
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.errors import BagError
-from lidarcal_ros.io.bag import open_bag
+from lidarcal_ros.io.bag import open_bag, stamp_seconds
 from lidarcal_ros.io.bag_recovery import recover_bag
 from lidarcal_ros.io.pointcloud import time_span
 from lidarcal_ros.io.ros_messages import deserialize, parse_cloud
@@ -57,7 +57,7 @@ def test_a_cut_bag_gives_back_its_readable_prefix(small_mission: Any, tmp_path: 
     assert result.start_ns == original["/lidar/trajectory"][0][0]
     # The clouds that reach past the last readable pose are left out, and only those.
     poses = recovered["/lidar/trajectory"]
-    last_pose = max(_seconds(deserialize(raw, "geometry_msgs/msg/PoseStamped").header.stamp)
+    last_pose = max(stamp_seconds(deserialize(raw, "geometry_msgs/msg/PoseStamped").header.stamp)
                     for _, raw in poses)
     latest = [time_span(parse_cloud(raw).points["t"])[1]
               for _, raw in recovered["/lidar/points"]]
@@ -70,10 +70,6 @@ def test_a_cut_bag_gives_back_its_readable_prefix(small_mission: Any, tmp_path: 
     mission = load_mission(tmp_path / "recovered", config)
     assert 2 <= len(mission.strips) < len(small_mission.sim.mission.strips)
     assert math.isfinite(calibrate_mission(mission, config).solution.sigma0)
-
-
-def _seconds(stamp: Any) -> float:
-    return float(stamp.sec) + int(stamp.nanosec) * 1e-9
 
 
 def test_an_intact_bag_is_copied_whole(small_mission: Any, tmp_path: Path) -> None:

@@ -120,7 +120,8 @@ def ns_to_seconds(ns: int) -> float:
     return float(sec) + nsec * 1e-9
 
 
-def _stamp_seconds(stamp: Any) -> float:
+def stamp_seconds(stamp: Any) -> float:
+    """A builtin_interfaces/Time as float seconds (the trajectory's times)."""
     return float(stamp.sec) + int(stamp.nanosec) * 1e-9
 
 
@@ -173,24 +174,48 @@ def _zstd_decompress(data: bytes) -> bytes:
     return bytes(zstd.decompress(data))
 
 
-def _count_readable_messages(path: Path) -> int:
-    """Messages that can be read from the start of a damaged MCAP file."""
-    from mcap.records import Message as McapMessage
-    from mcap.stream_reader import StreamReader
+class ReadableMcap:
+    """The messages of one MCAP file, read from the start up to its first damaged record
+    (what stopped the reading is kept in ``damage``; empty for an intact file). The
+    ``mcap`` library's stream reader needs no summary or footer, so this reads a file whose
+    recording was cut."""
 
-    count = 0
-    try:
-        with path.open("rb") as stream:
-            for record in StreamReader(stream, record_size_limit=2**31).records:
-                if isinstance(record, McapMessage):
-                    count += 1
-    except Exception:  # the damage itself ends the scan
-        pass
-    return count
+    #: Records larger than this are taken as damage, not read (bytes).
+    RECORD_LIMIT = 2**31
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.damage = ""
+
+    def messages(self) -> Iterator[tuple[Any, Any, Any]]:
+        """``(channel, schema or None, message)`` records in file order."""
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+
+        schemas: dict[int, Any] = {}
+        channels: dict[int, Any] = {}
+        with self.path.open("rb") as stream:
+            records = iter(StreamReader(stream, record_size_limit=self.RECORD_LIMIT).records)
+            while True:
+                # Only the reader's own failures are damage, not those of the consumer.
+                try:
+                    record = next(records)
+                except StopIteration:
+                    return
+                except Exception as exc:
+                    self.damage = _one_line(exc)
+                    return
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    channel = channels[record.channel_id]
+                    yield channel, schemas.get(channel.schema_id), record
 
 
 def _damage_message(path: Path, what: str) -> str:
-    count = _count_readable_messages(path)
+    count = sum(1 for _ in ReadableMcap(path).messages())
     return (f"{path}: truncated or corrupt MCAP ({what}); {count} messages were readable "
             "before the damage (lidarcal recover BAG -o NEW keeps them)")
 
@@ -584,7 +609,7 @@ def read_mission(
                 acc.add(msg)
             elif getter is not None:
                 pos = getter(msg)
-                traj_t.append(_stamp_seconds(msg.header.stamp))
+                traj_t.append(stamp_seconds(msg.header.stamp))
                 traj_xyz.append((pos.x, pos.y, pos.z))
                 traj_frames.add(msg.header.frame_id)
             else:

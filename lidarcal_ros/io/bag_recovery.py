@@ -14,19 +14,14 @@ import logging
 import math
 import os
 import re
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from lidarcal_ros.errors import BagError
-from lidarcal_ros.io.bag import BagWriter, normalize_msgtype
+from lidarcal_ros.io.bag import BagWriter, ReadableMcap, normalize_msgtype, stamp_seconds
 
 logger = logging.getLogger(__name__)
-
-#: Records larger than this are taken as damage, not read (bytes).
-_RECORD_LIMIT = 2**31
-
 
 @dataclass
 class RecoveredBag:
@@ -132,7 +127,7 @@ def recover_bag(source: str | os.PathLike[str], output: str | os.PathLike[str], 
     source, output = Path(source), Path(output)
     if output.resolve() == source.resolve():
         raise BagError(f"{output}: the output must not be the damaged bag itself")
-    files = [_ReadableFile(path) for path in bag_files(source)]
+    files = [ReadableMcap(path) for path in bag_files(source)]
     # First pass: where the readable trajectory ends (and which files are damaged).
     trajectory_end = -math.inf
     for file in files:
@@ -171,48 +166,12 @@ def recover_bag(source: str | os.PathLike[str], output: str | os.PathLike[str], 
     return result
 
 
-class _ReadableFile:
-    """The messages of one MCAP file, read from the start up to its first damaged record
-    (what stopped the reading is kept in ``damage``; empty for an intact file)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.damage = ""
-
-    def messages(self) -> Iterator[tuple[Any, Any, Any]]:
-        """``(channel, schema or None, message)`` records in file order."""
-        from mcap.records import Channel, Message, Schema
-        from mcap.stream_reader import StreamReader
-
-        schemas: dict[int, Any] = {}
-        channels: dict[int, Any] = {}
-        with self.path.open("rb") as stream:
-            records = iter(StreamReader(stream, record_size_limit=_RECORD_LIMIT).records)
-            while True:
-                # Only the reader's own failures are damage, not those of the consumer.
-                try:
-                    record = next(records)
-                except StopIteration:
-                    return
-                except Exception as exc:
-                    self.damage = " ".join(str(exc).split()) or type(exc).__name__
-                    return
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    channel = channels[record.channel_id]
-                    yield channel, schemas.get(channel.schema_id), record
-
-
 def _header_seconds(data: bytes, schema: Any) -> float:
     """``header.stamp`` of a trajectory message, s (-inf if it cannot be read)."""
     from lidarcal_ros.io.ros_messages import deserialize
 
     try:
-        stamp = deserialize(data, normalize_msgtype(schema.name)).header.stamp
-        return float(stamp.sec) + int(stamp.nanosec) * 1e-9
+        return stamp_seconds(deserialize(data, normalize_msgtype(schema.name)).header.stamp)
     except Exception:  # not a stamped message: it does not bound the points
         return -math.inf
 

@@ -620,13 +620,13 @@ class TrajectoryInput:
             self.node.get_logger().info(f"trajectory: {self.topic} ({msgtype})")
 
     def _on_raw(self, raw: bytes, msgtype: str) -> None:
+        from lidarcal_ros.io.bag import stamp_seconds
         from lidarcal_ros.io.ros_messages import deserialize
 
         try:
             msg = deserialize(raw, msgtype)
             pos = self._getters[msgtype](msg)
-            stamp = msg.header.stamp
-            t = float(stamp.sec) + int(stamp.nanosec) * 1e-9
+            t = stamp_seconds(msg.header.stamp)
             xyz = (float(pos.x), float(pos.y), float(pos.z))
         except Exception as exc:  # malformed message: log, skip, keep running
             self.errors += 1

@@ -1034,7 +1034,7 @@ def output_kind(path: str | Path) -> str:
 
 def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
     """First pass: every trajectory sample of an open bag, and the frames they are in."""
-    from lidarcal_ros.io.bag import TRAJECTORY_TYPES
+    from lidarcal_ros.io.bag import TRAJECTORY_TYPES, stamp_seconds
 
     t: list[float] = []
     xyz: list[tuple[float, float, float]] = []
@@ -1045,8 +1045,7 @@ def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
             raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
         msg = bag.deserialize(raw, msgtype, topic=topic)
         pos = getter(msg)
-        stamp = msg.header.stamp
-        t.append(float(stamp.sec) + int(stamp.nanosec) * 1e-9)
+        t.append(stamp_seconds(msg.header.stamp))
         xyz.append((pos.x, pos.y, pos.z))
         frames.add(msg.header.frame_id)
     if not t:
