@@ -4,6 +4,7 @@ numpy computations on the points themselves."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -276,27 +277,116 @@ def test_flight_to_map_rotates_by_the_heading() -> None:
     assert np.isnan(out[2, :2]).all() and out[2, 2] == 0.3
 
 
-def test_beam_geometry_range_scan_and_incidence() -> None:
-    rng = np.random.default_rng(8)
-    n = 200
-    origin = np.column_stack([rng.normal(0, 1, n), 60.0 * np.arange(n) / n,
-                              np.full(n, 1000.0)])
-    kappa = np.full(n, 0.3)
+def _returns_case(n: int = 400, seed: int = 8) -> tuple[Any, ...]:
+    """A level flight along a heading of 0.3 rad over tilted ground, with the cases the
+    compiled correction flags: a point not served, one above its firing point, a NaN
+    normal, a normal along the beam (|cos| > 1 before clipping), grazing and rough ones,
+    a NaN intensity."""
+    from lidarcal_ros.core.local_trajectory import window_lines
+    from lidarcal_ros.core.mission import Trajectory
+
+    rng = np.random.default_rng(seed)
+    tt = np.arange(0.0, 4.0, 0.01)
+    heading = np.array([-math.sin(0.3), math.cos(0.3), 0.0])
+    traj = Trajectory(tt, np.outer(60.0 * tt, heading) + np.array([500.0, 200.0, 1000.0]))
+    t = np.sort(rng.uniform(1.0, 3.0, n))
     across = rng.uniform(-400.0, 400.0, n)
-    xc = origin + np.column_stack([across * np.cos(0.3), across * np.sin(0.3),
-                                   np.full(n, -1000.0)])
-    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    right = np.array([math.cos(0.3), math.sin(0.3), 0.0])
+    xyz = (traj.xyz[0] + np.outer(60.0 * t, heading) + np.outer(across, right)
+           + np.column_stack([np.zeros(n), np.zeros(n), -1000.0 + 0.1 * across]))
+    xyz[7, 2] = 1500.0  # above the aircraft
+    ok = np.ones(n, dtype=bool)
+    ok[3] = False
+    lines = window_lines(t[ok], traj)
+    normals = rng.normal(0.0, 0.1, (n, 3))
+    normals[:, 2] = 1.0
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
     normals[5] = np.nan
-    normals[6] = xc[6] - origin[6]  # pointing along the beam, not unit: |cos| > 1 clipped
-    r, tan_scan, cos_inc = kernels.beam_geometry(xc, origin, np.cos(kappa), np.sin(kappa),
-                                                 normals)
-    np.testing.assert_allclose(r, np.hypot(across, 1000.0), rtol=1e-12)
-    assert tan_scan.dtype == np.float32 and cos_inc.dtype == np.float32
-    np.testing.assert_allclose(np.arctan(tan_scan), np.arctan(across / -1000.0), atol=1e-6)
-    level = np.ones(n, dtype=bool)
-    level[[5, 6]] = False
-    np.testing.assert_allclose(cos_inc[level], 1000.0 / r[level], rtol=1e-6)
-    assert np.isnan(cos_inc[5]) and cos_inc[6] == 1.0
+    normals[6] = 2.0 * (xyz[6] - traj.xyz[100])  # about along the beam, not unit
+    normals[10:20] = heading  # walls facing along track: the beams graze them
+    rough = rng.random(n) < 0.2
+    intensity = rng.uniform(10.0, 200.0, n).astype(np.float32)
+    intensity[9] = np.nan
+    delta = np.array([0.05, -0.03, 0.02, 4e-4, -3e-4, 5e-4, 0.03, 2e-4])
+    return t, xyz, ok, lines, traj, normals, rough, intensity, delta
+
+
+def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: Any,
+                         normals: np.ndarray, rough: np.ndarray, intensity: np.ndarray,
+                         delta: np.ndarray, model: Any) -> tuple[np.ndarray, ...]:
+    n = t.shape[0]
+    out: tuple[np.ndarray, ...] = (np.empty((n, 3)),
+                                   *(np.empty(n, np.float32) for _ in range(4)),
+                                   np.empty(n, np.uint8))
+    kernels.correct_returns(t, xyz, ok, lines.window, lines.t_mean, lines.p_mean,
+                            lines.velocity, lines.cos_kappa, lines.sin_kappa, delta, normals,
+                            rough, intensity, *model.kernel_constants(), *out)
+    return out
+
+
+def test_polynomial_arctangent_and_arc_cosine_match_numpy() -> None:
+    q = np.concatenate([np.linspace(-30.0, 30.0, 600_001), [0.0, -0.0, 1e-300, 1e300,
+                                                            np.tan(np.pi / 8)]])
+    got = np.array([kernels.atan_poly(v) for v in q[::7]])
+    np.testing.assert_allclose(got, np.arctan(q[::7]), rtol=0, atol=5e-11)
+    assert kernels.atan_poly(math.inf) == pytest.approx(math.pi / 2, abs=1e-15)
+    assert kernels.atan_poly(-math.inf) == pytest.approx(-math.pi / 2, abs=1e-15)
+    assert math.isnan(kernels.atan_poly(math.nan))
+    c = np.concatenate([np.linspace(0.0, 1.0, 200_001), 1.0 - np.logspace(-16, -1, 200)])
+    got = np.array([kernels.acos_poly(v) for v in c])
+    np.testing.assert_allclose(got, np.arccos(c), rtol=0, atol=1e-10)
+    assert kernels.acos_poly(1.0) == 0.0 and math.isnan(kernels.acos_poly(math.nan))
+
+
+def test_correct_returns_matches_the_numpy_stages() -> None:
+    from lidarcal_ros.core.flags import (
+        FLAG_GRAZING,
+        FLAG_NO_INTENSITY,
+        FLAG_NO_NORMAL,
+        FLAG_NOT_CORRECTED,
+        FLAG_ROUGH,
+    )
+    from lidarcal_ros.core.local_trajectory import laser_geometry
+    from lidarcal_ros.core.model import correct_points
+    from lidarcal_ros.core.radiometry import RadiometricModel
+
+    t, xyz, ok, lines, traj, normals, rough, intensity, delta = _returns_case()
+    model = RadiometricModel(visibility_km=20.0)
+    xc, rng_m, inc, scan, refl, flags = _run_correct_returns(
+        t, xyz, ok, lines, normals, rough, intensity, delta, model)
+    served = ok.copy()
+    served[7] = False  # above its firing point
+    geo = laser_geometry(t[served], xyz[served], traj)
+    # the numpy stages, one after the other
+    want_xc = correct_points(xyz[served], delta, geo.x, geo.z, geo.kappa, geo.beta)
+    beam = want_xc - geo.origin
+    want_r = np.linalg.norm(beam, axis=1)
+    want_scan = np.arctan((beam[:, 0] * np.cos(geo.kappa) + beam[:, 1] * np.sin(geo.kappa))
+                          / beam[:, 2])
+    cos_t = np.minimum(np.abs(np.einsum("ij,ij->i", normals[served], beam)) / want_r, 1.0)
+    want_refl, want_grazing = model.reflectance(intensity[served], want_r, cos_t,
+                                                uncertain=rough[served])
+    np.testing.assert_allclose(xc[served], want_xc, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(rng_m[served], want_r.astype(np.float32), rtol=1e-7)
+    np.testing.assert_allclose(scan[served], want_scan, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(inc[served], np.arccos(cos_t), rtol=0, atol=2e-7)
+    np.testing.assert_allclose(refl[served], want_refl, rtol=2e-6)
+    # the flags, bit by bit
+    assert np.array_equal(xc[~served], xyz[~served])
+    assert flags[3] == flags[7] == FLAG_NOT_CORRECTED
+    assert np.isnan(np.column_stack([rng_m, inc, scan, refl])[~served]).all()
+    sub = flags[served]
+    assert np.array_equal((sub & FLAG_NO_NORMAL) != 0, np.isnan(cos_t))
+    assert np.array_equal((sub & FLAG_ROUGH) != 0, rough[served])
+    assert np.array_equal((sub & FLAG_GRAZING) != 0, want_grazing)
+    assert want_grazing[8:18].all() and 0.0 <= inc[6] < 0.05  # (|cos| clipped at 1)
+    assert np.array_equal((sub & FLAG_NO_INTENSITY) != 0, ~np.isfinite(intensity[served]))
+    assert not (sub & FLAG_NOT_CORRECTED).any()
+    # without intensity: every point says so, no reflectance
+    _, _, _, _, refl2, flags2 = _run_correct_returns(
+        t, xyz, ok, lines, normals, np.zeros(0, bool), np.zeros(0, np.float32), delta, model)
+    assert np.isnan(refl2).all() and ((flags2 & FLAG_NO_INTENSITY) != 0).all()
+    assert not ((flags2 & (FLAG_ROUGH | FLAG_GRAZING)) != 0).any()
 
 
 def test_byte_counts_is_bincount() -> None:

@@ -187,6 +187,85 @@ def _bracketed(
     return before & lo_ok & hi_ok & ((stop - start) >= min_samples)
 
 
+@dataclass(frozen=True)
+class WindowLines:
+    """The local trajectory of each point: the line fitted to its window (method.md section 4).
+
+    Points sharing the same trajectory samples share a window, so there are a few windows
+    per chunk of points, not one per point.
+
+    Attributes
+    ----------
+    window : (n,) int64
+        The window of each point.
+    t_mean : (k,) float64
+        Each window's mean time, s.
+    p_mean : (k, 3) float64
+        Its mean position, map frame, m.
+    velocity : (k, 3) float64
+        Its velocity, m/s: the firing position at ``t`` is ``p_mean + velocity (t - t_mean)``.
+    kappa, cos_kappa, sin_kappa : (k,) float64
+        Its heading ``atan2(-v_x, v_y)`` (rad), cosine and sine.
+    """
+
+    window: np.ndarray
+    t_mean: np.ndarray
+    p_mean: np.ndarray
+    velocity: np.ndarray
+    kappa: np.ndarray
+    cos_kappa: np.ndarray
+    sin_kappa: np.ndarray
+
+
+def window_lines(
+    t: np.ndarray,
+    trajectory: Trajectory,
+    *,
+    window_s: float = 0.5,
+    min_samples: int = 2,
+    source: str = "points",
+) -> WindowLines:
+    """The local-trajectory line of each firing time (the first half of
+    :func:`laser_geometry`, whose parameters these are).
+
+    Raises
+    ------
+    TrajectoryError
+        If the trajectory does not cover a point's time (a gap, or outside its span), or is
+        stationary there.
+    """
+    n = t.shape[0]
+    if len(trajectory) < min_samples:
+        raise TrajectoryError(
+            f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
+        )
+    traj_t = trajectory.t
+    # Points in time order (the usual case): windows are runs, found in one pass.
+    in_order, win_start, win_stop, inv, n_bad, first = kernels.sorted_time_windows(
+        traj_t, t, float(window_s), int(min_samples))
+    if not in_order:
+        start, stop = _windows(traj_t, t, window_s)
+        bad = ~_bracketed(t, traj_t, start, stop, min_samples)
+        n_bad, first = int(bad.sum()), int(np.argmax(bad))
+        # One fit per distinct window.
+        key = start.astype(np.int64) * (len(traj_t) + 1) + stop
+        _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
+        win_start, win_stop, inv = start[first_idx], stop[first_idx], inverse.ravel()
+    if n_bad:
+        raise TrajectoryError(
+            f"{source}: trajectory gap at t={t[first]:.3f} s "
+            f"({n_bad} of {n} points not covered by >= {min_samples} samples "
+            f"within +-{window_s:g} s)"
+        )
+    t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, win_start, win_stop)
+    speed_h = np.hypot(vel[:, 0], vel[:, 1])
+    if np.any(speed_h <= 1e-6):
+        raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
+    kappa = np.arctan2(-vel[:, 0], vel[:, 1])
+    return WindowLines(np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa,
+                       np.cos(kappa), np.sin(kappa))
+
+
 def laser_geometry(
     t: np.ndarray,
     xyz: np.ndarray,
@@ -220,42 +299,16 @@ def laser_geometry(
     """
     t = np.asarray(t, dtype=np.float64)
     xyz = np.asarray(xyz, dtype=np.float64)
-    n = t.shape[0]
-    if n == 0:
+    if t.shape[0] == 0:
         empty = np.empty(0)
         return LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
-    if len(trajectory) < min_samples:
-        raise TrajectoryError(
-            f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
-        )
-    traj_t = trajectory.t
-    # Points in time order (the usual case): windows are runs, found in one pass.
-    in_order, win_start, win_stop, inv, n_bad, first = kernels.sorted_time_windows(
-        traj_t, t, float(window_s), int(min_samples))
-    if not in_order:
-        start, stop = _windows(traj_t, t, window_s)
-        bad = ~_bracketed(t, traj_t, start, stop, min_samples)
-        n_bad, first = int(bad.sum()), int(np.argmax(bad))
-        # One fit per distinct window.
-        key = start.astype(np.int64) * (len(traj_t) + 1) + stop
-        _, first_idx, inverse = np.unique(key, return_index=True, return_inverse=True)
-        win_start, win_stop, inv = start[first_idx], stop[first_idx], inverse.ravel()
-    if n_bad:
-        raise TrajectoryError(
-            f"{source}: trajectory gap at t={t[first]:.3f} s "
-            f"({n_bad} of {n} points not covered by >= {min_samples} samples "
-            f"within +-{window_s:g} s)"
-        )
-    t_mean, p_mean, vel = _fit_windows(traj_t, trajectory.xyz, win_start, win_stop)
-    speed_h = np.hypot(vel[:, 0], vel[:, 1])
-    if np.any(speed_h <= 1e-6):
-        raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
-    kappa_w = np.arctan2(-vel[:, 0], vel[:, 1])
+    lines = window_lines(t, trajectory, window_s=window_s, min_samples=min_samples,
+                         source=source)
     # Per point, in one pass: the firing position on its window's line, then what
     # geometry_at computes from it.
     origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta = kernels.window_geometry(
-        t, xyz, np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa_w,
-        np.cos(kappa_w), np.sin(kappa_w))
+        t, xyz, lines.window, lines.t_mean, lines.p_mean, lines.velocity, lines.kappa,
+        lines.cos_kappa, lines.sin_kappa)
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.arctan(x / z)
     geometry = LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,

@@ -308,25 +308,43 @@ class RadiometricModel:
             below ``c_min``.
         """
         # float32 throughout (the result's type; relative precision 1e-7).
+        c_min, c_doubt, scale, two_alpha = self.kernel_constants()
         r = np.asarray(range_m, dtype=np.float32)
         cos_t = np.asarray(cos_theta, dtype=np.float32)
-        c_min = np.float32(self.min_cos_incidence)
         grazing = cos_t < c_min  # False for NaN
         cos_eff = np.maximum(cos_t, c_min)  # NaN stays NaN
         doubtful = grazing if uncertain is None else (grazing | np.asarray(uncertain, bool))
         if doubtful.any():
-            c_doubt = np.float32(max(math.cos(math.radians(self.uncertain_incidence_max_deg)),
-                                     self.min_cos_incidence))
             cos_eff[doubtful] = np.maximum(cos_eff[doubtful], c_doubt)
-        scale = np.float32(self.power_factor / (self.reference_range_m
-                                                * self.reference_range_m))
-        gain = np.exp(np.float32(2.0 * self.alpha_per_m) * r)
+        gain = np.exp(two_alpha * r)
         gain *= r
         gain *= r
         gain *= scale
         gain /= cos_eff
         gain *= np.asarray(intensity, dtype=np.float32)
         return gain, grazing
+
+    def kernel_constants(self) -> tuple[np.float32, np.float32, np.float32, np.float32]:
+        """The float32 constants of :meth:`reflectance` (and of the compiled correction,
+        :func:`lidarcal_ros.core.kernels.correct_returns`, which repeats its arithmetic).
+
+        Returns
+        -------
+        c_min : float32
+            ``min_cos_incidence``.
+        c_doubt : float32
+            ``cos(uncertain_incidence_max_deg)``, at least ``c_min``.
+        scale : float32
+            ``P_ref / P_t / r_ref^2``, 1/m^2.
+        two_alpha : float32
+            ``2 alpha``, 1/m (two-way extinction).
+        """
+        c_doubt = max(math.cos(math.radians(self.uncertain_incidence_max_deg)),
+                      self.min_cos_incidence)
+        return (np.float32(self.min_cos_incidence), np.float32(c_doubt),
+                np.float32(self.power_factor / (self.reference_range_m
+                                                * self.reference_range_m)),
+                np.float32(2.0 * self.alpha_per_m))
 
 
 def describe_alpha(model: RadiometricModel) -> str:

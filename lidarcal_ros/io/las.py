@@ -38,6 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import ConfigError, InputError
 
@@ -69,7 +70,6 @@ EXTRA_DIMENSIONS: tuple[tuple[str, str, str], ...] = (
     ("incidence", "f4", "incidence angle, rad"),
     ("correction_flags", "u1", "lidarcal correction flags"),
 )
-_FLAG_NOT_CORRECTED = 1
 
 
 def leap_seconds(unix_time: np.ndarray) -> np.ndarray:
@@ -303,7 +303,7 @@ class LasChunkWriter:
                 rec[name] = np.full(n, np.nan, dtype=kind)
         flags = _field(points, "correction_flags")
         if flags is not None:
-            withheld = (np.asarray(flags) & _FLAG_NOT_CORRECTED) != 0
+            withheld = (np.asarray(flags) & FLAG_NOT_CORRECTED) != 0
             rec.withheld = withheld.astype(np.uint8)
             self.stats.withheld += int(withheld.sum())
         self._writer.write_points(rec)

@@ -60,13 +60,21 @@ import numpy as np
 
 from lidarcal_ros.core import kernels
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.flags import (
+    FLAG_GRAZING,
+    FLAG_NO_INTENSITY,
+    FLAG_NO_NORMAL,
+    FLAG_NOT_CORRECTED,
+    FLAG_ROUGH,
+)
 from lidarcal_ros.core.local_trajectory import (
     LaserGeometry,
+    WindowLines,
     covered_by_trajectory,
     laser_geometry,
+    window_lines,
 )
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.core.model import correct_points
 from lidarcal_ros.core.normals import (
     GridNormals,
     NormalsTask,
@@ -94,23 +102,6 @@ from lidarcal_ros.io.pointcloud import (
 )
 
 logger = logging.getLogger(__name__)
-
-#: Geometry not corrected: non-finite input, time not covered by the trajectory, or point
-#: not below it. ``x, y, z`` are the delivered ones; range, incidence, scan_angle and
-#: reflectance are NaN. (LAS: the point is also *withheld*.)
-FLAG_NOT_CORRECTED = 1
-#: ``cos(incidence)`` below ``radiometry.min_cos_incidence``: the normal is taken as uncertain
-#: and reflectance bounds the incidence term (``radiometry.uncertain_incidence_max_deg``).
-FLAG_GRAZING = 2
-#: No plane could be fitted around the point (too few neighbours): incidence and
-#: reflectance NaN.
-FLAG_NO_NORMAL = 4
-#: The cloud has no ``intensity`` field: reflectance NaN.
-FLAG_NO_INTENSITY = 8
-#: The neighbourhood is not planar at the noise level (building edge, vegetation): the
-#: normal, hence incidence, is uncertain (computed all the same); reflectance bounds the
-#: incidence term (``radiometry.uncertain_incidence_max_deg``).
-FLAG_ROUGH = 16
 
 #: Fields added to the corrected clouds (name, numpy type).
 ADDED_FIELDS: tuple[tuple[str, str], ...] = (
@@ -231,6 +222,17 @@ class CorrectedColumns:
         return int(self.flags.shape[0])
 
 
+def _servable(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *, window_s: float,
+              min_samples: int) -> np.ndarray:
+    """Finite points and times, covered by the trajectory, at least 1 m below it."""
+    ok = np.isfinite(t) & finite_rows(xyz)
+    ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
+    if ok.any():
+        ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,
+                                 np.ascontiguousarray(trajectory.xyz[:, 2]), _MIN_DEPTH_M)
+    return ok
+
+
 def flagged_geometry(
     t: np.ndarray,
     xyz: np.ndarray,
@@ -250,11 +252,7 @@ def flagged_geometry(
     geometry : LaserGeometry
         For the points ``ok`` (in order).
     """
-    ok = np.isfinite(t) & finite_rows(xyz)
-    ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
-    if ok.any():
-        ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,
-                                 np.ascontiguousarray(trajectory.xyz[:, 2]), _MIN_DEPTH_M)
+    ok = _servable(t, xyz, trajectory, window_s=window_s, min_samples=min_samples)
     everything = bool(ok.all())
     try:
         geo = laser_geometry(t if everything else t[ok], xyz if everything else xyz[ok],
@@ -266,6 +264,30 @@ def flagged_geometry(
         empty = np.empty(0)
         geo = LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
     return ok, geo
+
+
+def served_windows(
+    t: np.ndarray,
+    xyz: np.ndarray,
+    trajectory: Trajectory,
+    *,
+    window_s: float = 0.5,
+    min_samples: int = 2,
+    source: str = "cloud",
+) -> tuple[np.ndarray, WindowLines | None]:
+    """The points the trajectory can serve (as :func:`flagged_geometry`) and the
+    local-trajectory lines of those points (None when there are none)."""
+    ok = _servable(t, xyz, trajectory, window_s=window_s, min_samples=min_samples)
+    if not ok.any():
+        return ok, None
+    try:
+        lines = window_lines(t if ok.all() else t[ok], trajectory, window_s=window_s,
+                             min_samples=min_samples, source=source)
+    except TrajectoryError as exc:
+        logger.warning("%s: %s; %d points left uncorrected", source, exc, int(ok.sum()))
+        ok[:] = False
+        return ok, None
+    return ok, lines
 
 
 def trajectory_heading(trajectory: Trajectory, t: float) -> float:
@@ -357,66 +379,40 @@ def correct_columns(
     -------
     CorrectedColumns
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    t = np.ascontiguousarray(t, dtype=np.float64)
     n = t.shape[0]
-    flags = np.zeros(n, dtype=np.uint8)
-    rng = np.full(n, np.nan, dtype=np.float32)
-    inc = np.full(n, np.nan, dtype=np.float32)
-    scan = np.full(n, np.nan, dtype=np.float32)
-    refl = np.full(n, np.nan, dtype=np.float32)
+    flags = np.empty(n, dtype=np.uint8)
+    rng = np.empty(n, dtype=np.float32)
+    inc = np.empty(n, dtype=np.float32)
+    scan = np.empty(n, dtype=np.float32)
+    refl = np.empty(n, dtype=np.float32)
+    out_xyz = np.empty((n, 3))
     if n == 0:
-        return CorrectedColumns(xyz.copy(), rng, inc, scan, refl, flags)
-    ok, geo = flagged_geometry(t, xyz, trajectory, window_s=settings.window_s,
+        return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags)
+    ok, lines = served_windows(t, xyz, trajectory, window_s=settings.window_s,
                                min_samples=settings.min_samples, source=source)
-    everything = bool(ok.all())
-    flags[~ok] |= FLAG_NOT_CORRECTED
     gn = normals if normals is not None else _fitted_normals(
         xyz, t, trajectory, group=group, context_xyz=context_xyz, context_group=context_group,
         heading=heading, cell_m=cell_m)
-    point_normals = gn.normals[:n]
-    if not ok.any():
-        stats_flags = flags
-        if intensity is None:
-            stats_flags |= FLAG_NO_INTENSITY
-        return CorrectedColumns(xyz.copy(), rng, inc, scan, refl, stats_flags, gn.cell_m)
-
-    sel = slice(None) if everything else ok
-    trig = geo.trig()
-    xc = correct_points(xyz[sel], settings.delta, geo.x, geo.z, geo.kappa, geo.beta, trig=trig)
-    if everything:  # (a new array already: no copy of the input needed)
-        out_xyz = xc
-    else:
-        out_xyz = xyz.copy()
-        out_xyz[sel] = xc
-    nrm = point_normals if everything else point_normals[sel]
-    r, tan_scan, cos_t = kernels.beam_geometry(xc, geo.origin, trig[0], trig[1],
-                                               np.asarray(nrm, dtype=np.float64))
-    # In float32 (the field's type): the transcendental function costs half as much.
-    scan[sel] = np.arctan(tan_scan)
-    rng[sel] = r
-    has_normal = np.isfinite(cos_t)
-    inc[sel] = np.arccos(cos_t)
-    nn = np.zeros(n, dtype=bool)
-    nn[sel] = ~has_normal
-    flags[nn] |= FLAG_NO_NORMAL
-    rough = None
-    if gn.rough is not None:
-        flags[gn.rough[:n] & ok] |= FLAG_ROUGH
-        rough = gn.rough[:n] if everything else gn.rough[:n][sel]
-    if intensity is None:
-        flags |= FLAG_NO_INTENSITY
-    else:
-        inten = np.asarray(intensity)[sel]
-        rho, grazing = settings.radiometry.reflectance(inten, r, cos_t, uncertain=rough)
-        refl[sel] = rho
-        gz = np.zeros(n, dtype=bool)
-        gz[sel] = grazing
-        flags[gz] |= FLAG_GRAZING
-        missing = np.zeros(n, dtype=bool)
-        missing[sel] = ~np.isfinite(np.asarray(inten, dtype=np.float64))
-        flags[missing] |= FLAG_NO_INTENSITY
+    if lines is None:  # (nothing served: every point is flagged by the pass below)
+        no_window = np.zeros(1)
+        lines = WindowLines(np.zeros(0, dtype=np.int64), no_window, np.zeros((1, 3)),
+                            np.zeros((1, 3)), no_window, no_window, no_window)
+    kernels.correct_returns(
+        t, xyz, ok, lines.window, lines.t_mean, lines.p_mean, lines.velocity,
+        lines.cos_kappa, lines.sin_kappa, np.asarray(settings.delta, dtype=np.float64),
+        np.ascontiguousarray(gn.normals[:n], dtype=np.float64),
+        _NO_ROUGH if gn.rough is None else np.ascontiguousarray(gn.rough[:n]),
+        _NO_INTENSITY if intensity is None else np.ascontiguousarray(intensity,
+                                                                      dtype=np.float32),
+        *settings.radiometry.kernel_constants(), out_xyz, rng, inc, scan, refl, flags)
     return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags, gn.cell_m)
+
+
+#: "None" of the compiled correction's optional columns.
+_NO_ROUGH = np.zeros(0, dtype=bool)
+_NO_INTENSITY = np.zeros(0, dtype=np.float32)
 
 
 # ---------------------------------------------------------------------------- clouds
