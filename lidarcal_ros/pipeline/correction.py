@@ -1,7 +1,8 @@
 """Apply a calibration and the radiometric model to clouds: `lidarcal correct` and the
 corrector node share this module.
 
-Per point (method.md sections 2-4 and 8):
+Per point (method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
+(:func:`lidarcal_ros.core.kernels.correct_returns`):
 
 1. the local trajectory gives ``x, z, kappa, beta`` and the firing position ``X_o(t)``
    (:func:`lidarcal_ros.core.local_trajectory.laser_geometry`);
