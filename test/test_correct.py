@@ -26,6 +26,7 @@ from helpers_missions import (
 )
 
 from lidarcal_ros.cli.main import main
+from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.terrain import ASPHALT, GRASS, SOIL
 from lidarcal_ros.io.las import adjusted_gps_to_unix
@@ -36,7 +37,6 @@ from lidarcal_ros.pipeline.correction import (
     FLAG_ROUGH,
     CorrectionSettings,
     StreamCorrector,
-    covered_by_trajectory,
 )
 
 mission_factory = helpers_missions.mission_factory

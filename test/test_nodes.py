@@ -464,7 +464,11 @@ def test_a_malformed_cloud_is_logged_and_skipped(suite: Suite) -> None:
     assert np.isfinite(refl).any()
     status = suite.cor.status()
     assert status.level == 1 and "malformed" in status.message
-    assert suite.cal.node_statuses()[1].level == 1
+    inputs = suite.cal.node_statuses()[1]
+    assert inputs.level == 1
+    # the good cloud belongs to strip 1, complete since the mission's replay: ignored, said
+    assert int(inputs.values["late_points"]) >= len(parse_cloud(raw).points)
+    assert "already closed" in inputs.message
 
 
 def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(

@@ -11,6 +11,7 @@ import pytest
 
 from lidarcal_ros.core import normals as normals_module
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import (
     GridNormals,
@@ -36,7 +37,6 @@ from lidarcal_ros.pipeline.correction import (
     CorrectedColumns,
     build_corrected,
     corrected_dtype,
-    covered_by_trajectory,
 )
 
 # ---------------------------------------------------------------------- atmosphere

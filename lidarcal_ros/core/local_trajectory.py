@@ -22,6 +22,7 @@ import numpy as np
 
 from lidarcal_ros.core import kernels
 from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import TrajectoryError
 
 logger = logging.getLogger(__name__)
@@ -148,6 +149,40 @@ def covered_by_trajectory(
             return np.ones(t.shape, dtype=bool)
     start, stop = _windows(traj_t, t, window_s)
     return _bracketed(t, traj_t, start, stop, min_samples)
+
+
+#: Least depth (m) below the trajectory of a point it serves: no real return comes from
+#: within a metre of the sensor, and :func:`laser_geometry` needs the points below it.
+MIN_DEPTH_M = 1.0
+
+
+def served_by_trajectory(
+    t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5,
+    min_samples: int = 2, min_depth_m: float = MIN_DEPTH_M,
+) -> np.ndarray:
+    """Which points the local trajectory can serve: finite point and time, covered
+    (:func:`covered_by_trajectory`), and at least ``min_depth_m`` below the trajectory's
+    height at their time (linear interpolation of the samples). A point above the aircraft
+    (a spurious return, a wrong time base) would make :func:`laser_geometry` refuse all the
+    points given with it.
+
+    Parameters
+    ----------
+    t : (n,) float64
+        Firing times, s.
+    xyz : (n, 3) float64
+        Points, map frame, m.
+
+    Returns
+    -------
+    (n,) bool
+    """
+    ok = np.isfinite(t) & finite_rows(xyz)
+    ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
+    if ok.any():
+        ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,
+                                 np.ascontiguousarray(trajectory.xyz[:, 2]), min_depth_m)
+    return ok
 
 
 def _search(sorted_t: np.ndarray, q: np.ndarray, side: Literal["left", "right"]) -> np.ndarray:

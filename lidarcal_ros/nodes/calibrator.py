@@ -489,19 +489,30 @@ class CalibratorNode(Node):
         inp = self.input
         uncovered = int(getattr(s, "uncovered_points", 0))
         left_out = list(getattr(s, "uncovered_strips", []))
-        level = WARN if inp["skipped"] or uncovered else OK
+        rejected: list[tuple[int, str]] = list(getattr(s, "rejected_strips", []))
+        late = int(getattr(s, "late_points", 0))
+        level = WARN if inp["skipped"] or uncovered or rejected or late else OK
         msg = f"{inp['clouds']} clouds, {inp['points']} points, {inp['poses']} poses"
         if inp["skipped"]:
             msg += f"; {inp['skipped']} malformed clouds skipped (last: {inp['last_error']})"
         if uncovered:
             msg += f"; {uncovered} points without trajectory left out" + (
                 f" (strips {', '.join(str(i) for i in left_out)} wholly)" if left_out else "")
+        if late:
+            msg += (f"; {late} points of strips already closed ignored (a pause longer than "
+                    "strip_gap_s?)")
+        if rejected:
+            msg += (f"; {len(rejected)} strip(s) refused by the calibration, left out "
+                    f"(last: {rejected[-1][1]})")
         out.append(StatusSpec(level, "lidarcal: input", msg, {
             "clouds": str(inp["clouds"]), "points": str(inp["points"]),
             "poses": str(inp["poses"]), "skipped_clouds": str(inp["skipped"]),
             "last_error": str(inp["last_error"]), "queued_jobs": str(self._jobs.qsize()),
             "uncovered_points": str(uncovered),
-            "uncovered_strips": ",".join(str(i) for i in left_out)}))
+            "uncovered_strips": ",".join(str(i) for i in left_out),
+            "late_points": str(late),
+            "rejected_strips": ",".join(str(i) for i, _ in rejected),
+            "last_rejection": rejected[-1][1] if rejected else ""}))
         neq = s.normal_equations
         out.append(StatusSpec(OK, "lidarcal: state", (
             f"{self.solves} solves (last {self.last_solve_s:.2f} s), {self.checkpoints} "

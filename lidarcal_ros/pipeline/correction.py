@@ -71,8 +71,8 @@ from lidarcal_ros.core.flags import (
 from lidarcal_ros.core.local_trajectory import (
     LaserGeometry,
     WindowLines,
-    covered_by_trajectory,
     laser_geometry,
+    served_by_trajectory,
     window_lines,
 )
 from lidarcal_ros.core.mission import Trajectory
@@ -123,10 +123,6 @@ _MAX_GRID_TURN_RAD = math.radians(15.0)
 _MAX_GRID_GAP_S = 2.0
 #: Points per LAS write (corrected clouds are gathered into runs of this size).
 _LAS_RUN_POINTS = 100_000
-#: Points closer than this below the trajectory are refused (m): no real return comes from
-#: within a metre of the sensor, and laser_geometry needs them below.
-_MIN_DEPTH_M = 1.0
-
 
 # ---------------------------------------------------------------------------- settings
 @dataclass(frozen=True)
@@ -223,17 +219,6 @@ class CorrectedColumns:
         return int(self.flags.shape[0])
 
 
-def _servable(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *, window_s: float,
-              min_samples: int) -> np.ndarray:
-    """Finite points and times, covered by the trajectory, at least 1 m below it."""
-    ok = np.isfinite(t) & finite_rows(xyz)
-    ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
-    if ok.any():
-        ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,
-                                 np.ascontiguousarray(trajectory.xyz[:, 2]), _MIN_DEPTH_M)
-    return ok
-
-
 def flagged_geometry(
     t: np.ndarray,
     xyz: np.ndarray,
@@ -253,7 +238,8 @@ def flagged_geometry(
     geometry : LaserGeometry
         For the points ``ok`` (in order).
     """
-    ok = _servable(t, xyz, trajectory, window_s=window_s, min_samples=min_samples)
+    ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
+                              min_samples=min_samples)
     everything = bool(ok.all())
     try:
         geo = laser_geometry(t if everything else t[ok], xyz if everything else xyz[ok],
@@ -278,7 +264,8 @@ def served_windows(
 ) -> tuple[np.ndarray, WindowLines | None]:
     """The points the trajectory can serve (as :func:`flagged_geometry`) and the
     local-trajectory lines of those points (None when there are none)."""
-    ok = _servable(t, xyz, trajectory, window_s=window_s, min_samples=min_samples)
+    ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
+                              min_samples=min_samples)
     if not ok.any():
         return ok, None
     try:

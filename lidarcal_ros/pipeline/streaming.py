@@ -23,9 +23,9 @@ import numpy as np
 from lidarcal_ros.core.adjustment import NormalEquations, Observations
 from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.local_trajectory import covered_by_trajectory
+from lidarcal_ros.core.local_trajectory import served_by_trajectory
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
-from lidarcal_ros.errors import CalibrationError, InputError
+from lidarcal_ros.errors import CalibrationError, InputError, TrajectoryError
 from lidarcal_ros.io.pointcloud import CloudColumns
 
 logger = logging.getLogger(__name__)
@@ -103,10 +103,12 @@ class StreamingCalibration:
         self._now = -np.inf
         self._late_strips: set[int] = set()
         self.late_points = 0
-        #: Points of complete strips the trajectory did not cover (left out), and the strips
+        #: Points of complete strips the trajectory did not serve (left out), and the strips
         #: left out whole for that reason.
         self.uncovered_points = 0
         self.uncovered_strips: list[int] = []
+        #: Complete strips the calibration refused, with the reason (left out).
+        self.rejected_strips: list[tuple[int, str]] = []
         self._calibrator = self._new_calibrator()
 
     # ------------------------------------------------------------------ inputs
@@ -212,28 +214,44 @@ class StreamingCalibration:
     def _close(self, strip_id: int) -> list[tuple[int, int]]:
         """Hand a complete strip to the calibration; returns the pairs it forms.
 
-        Points the trajectory does not cover (it started after the strip did, or has a gap)
-        are left out and counted, not the strip: live, a trajectory joined late must not
-        cost the whole strip (offline, ``lidarcal calibrate`` refuses such a mission).
+        Points the trajectory does not serve (it started after the strip did, has a gap, or
+        a point lies above it) are left out and counted, not the strip: live, a trajectory
+        joined late or one spurious return must not cost the whole strip (offline,
+        ``lidarcal calibrate`` refuses such a mission). A strip the calibration still
+        refuses is left out with its reason (:attr:`rejected_strips`), and the others go on.
         """
         strip = self._open.pop(strip_id).to_strip(strip_id)
-        covered = covered_by_trajectory(
-            strip.t, self.trajectory, window_s=self._calibrator.settings.trajectory_window_s)
-        if not covered.all():
-            n_out = int((~covered).sum())
+        served = served_by_trajectory(
+            strip.t, strip.xyz, self.trajectory,
+            window_s=self._calibrator.settings.trajectory_window_s)
+        if not served.all():
+            n_out = int((~served).sum())
             self.uncovered_points += n_out
-            if not covered.any():
+            if not served.any():
                 self.uncovered_strips.append(strip_id)
-                logger.warning("strip %d left out: the trajectory covers none of its %d "
+                logger.warning("strip %d left out: the trajectory serves none of its %d "
                                "points", strip_id, n_out)
                 return []
-            logger.warning("strip %d: %d of %d points not covered by the trajectory, left "
-                           "out", strip_id, n_out, len(strip))
-            strip = Strip(strip_id, strip.xyz[covered], strip.t[covered],
-                          None if strip.intensity is None else strip.intensity[covered])
-        formed = self._calibrator.add_strip(strip, self.trajectory)
+            logger.warning("strip %d: %d of %d points not served by the trajectory (outside "
+                           "it, in a gap, or not below it), left out", strip_id, n_out,
+                           len(strip))
+            strip = Strip(strip_id, strip.xyz[served], strip.t[served],
+                          None if strip.intensity is None else strip.intensity[served])
+        if any(ps.strip_id == strip_id for ps in self._calibrator.strips):
+            return self._reject(strip, f"strip {strip_id} continued after it was closed (no "
+                                f"point of it for strip_gap_s = {self.strip_gap_s:g} s); "
+                                "its later points are left out")
+        try:
+            formed = self._calibrator.add_strip(strip, self.trajectory)
+        except (TrajectoryError, CalibrationError) as exc:
+            return self._reject(strip, str(exc))
         self._closed.append(strip)
         return formed
+
+    def _reject(self, strip: Strip, reason: str) -> list[tuple[int, int]]:
+        self.rejected_strips.append((strip.strip_id, reason))
+        logger.error("strip %d left out (%d points): %s", strip.strip_id, len(strip), reason)
+        return []
 
     def _covered(self, t_end: float) -> bool:
         traj = self.trajectory
@@ -310,6 +328,7 @@ class StreamingCalibration:
         self.late_points = 0
         self.uncovered_points = 0
         self.uncovered_strips = []
+        self.rejected_strips = []
         self._calibrator = self._new_calibrator()
 
     def _rebuild(self) -> None:
@@ -332,6 +351,8 @@ class StreamingCalibration:
             "counters": np.array([self.dropped_points, self.dropped_non_finite]),
             "uncovered_points": np.array(self.uncovered_points),
             "uncovered_strips": np.array(self.uncovered_strips, dtype=np.int64),
+            "rejected_ids": np.array([i for i, _ in self.rejected_strips], dtype=np.int64),
+            "rejected_reasons": np.array([r for _, r in self.rejected_strips], dtype=np.str_),
             "dropped_strips": np.array(self.dropped_strips, dtype=np.int64),
             "neq_n": self.normal_equations.n, "neq_u": self.normal_equations.u,
             "neq_yy": np.array(self.normal_equations.yy),
@@ -401,6 +422,10 @@ class StreamingCalibration:
             if "uncovered_points" in data:  # (checkpoints of earlier versions lack them)
                 self.uncovered_points = int(data["uncovered_points"])
                 self.uncovered_strips = [int(v) for v in data["uncovered_strips"]]
+            if "rejected_ids" in data:
+                self.rejected_strips = [(int(i), str(r)) for i, r in
+                                        zip(data["rejected_ids"], data["rejected_reasons"],
+                                            strict=True)]
             self.dropped_strips = [int(v) for v in data["dropped_strips"]]
             for sid in data["closed_ids"]:
                 key = f"closed_{int(sid)}"
