@@ -389,6 +389,21 @@ def test_correct_returns_matches_the_numpy_stages() -> None:
     assert not ((flags2 & (FLAG_ROUGH | FLAG_GRAZING)) != 0).any()
 
 
+def test_finite_range_and_count_bits_on_strided_fields() -> None:
+    rows = np.zeros(1000, dtype=[("t", "<f8"), ("flags", "u1"), ("pad", "u1", 7)])
+    rng = np.random.default_rng(6)
+    rows["t"] = rng.normal(1.7e9, 100.0, 1000)
+    rows["t"][[0, 17, 999]] = np.nan
+    rows["flags"] = rng.integers(0, 32, 1000)
+    t, flags = rows["t"], rows["flags"]  # strided views
+    assert kernels.finite_range(t) == (np.fmin.reduce(t), np.fmax.reduce(t))
+    lo, hi = kernels.finite_range(np.full(3, np.nan))
+    assert math.isnan(lo) and math.isnan(hi)
+    assert all(math.isnan(v) for v in kernels.finite_range(np.empty(0)))
+    for mask in (1, 2, 16, 31):
+        assert kernels.count_bits(flags, mask) == np.count_nonzero(flags & mask)
+
+
 def test_byte_counts_is_bincount() -> None:
     values = np.random.default_rng(4).integers(0, 256, 10_001).astype(np.uint8)
     values[:300] = 255

@@ -1148,6 +1148,38 @@ def all_finite3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> bool:
 
 
 @_jit
+def finite_range(values: np.ndarray) -> tuple[float, float]:
+    """``(np.fmin.reduce(values), np.fmax.reduce(values))`` in one pass (a field of a
+    structured cloud, strided): the least and greatest values ignoring NaN, ``(nan, nan)``
+    when all are NaN or there are none."""
+    lo = math.inf
+    hi = -math.inf
+    seen = False
+    for i in range(values.shape[0]):
+        v = values[i]
+        if v == v:  # (not NaN)
+            seen = True
+            if v < lo:
+                lo = v
+            if v > hi:
+                hi = v
+    if not seen:
+        return math.nan, math.nan
+    return float(lo), float(hi)
+
+
+@_jit
+def count_bits(values: np.ndarray, mask: int) -> int:
+    """``np.count_nonzero(values & mask)`` in one pass without a temporary (a UINT8 field of
+    a structured cloud, strided)."""
+    count = 0
+    for i in range(values.shape[0]):
+        if values[i] & mask:
+            count += 1
+    return count
+
+
+@_jit
 def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     """``out[:, 0], out[:, 1], out[:, 2] = x, y, z`` (float64; FLOAT32 fields widened
     exactly) in one pass over the rows of a structured cloud."""

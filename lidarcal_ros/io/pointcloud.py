@@ -395,6 +395,10 @@ def time_span(t: np.ndarray) -> tuple[float, float]:
     none (an empty cloud, or times all NaN)."""
     if t.size == 0:
         return float("nan"), float("nan")
+    if t.ndim == 1 and t.dtype.kind == "f" and t.dtype.isnative:
+        from lidarcal_ros.core import kernels  # (here: see extract_xyz)
+
+        return kernels.finite_range(t)  # one pass (the field is strided in the cloud's rows)
     # fmin/fmax skip NaN, and give NaN (without a warning) only when all are.
     return float(np.fmin.reduce(t)), float(np.fmax.reduce(t))
 

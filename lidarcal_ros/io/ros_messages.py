@@ -175,13 +175,15 @@ def cloud_header_cdr(
 
 
 def warm_up_cloud_codec() -> None:
-    """Write and parse one tiny PointCloud2, so that rosbags generates its (de)serialisers
-    now: done by the first real cloud, that is some 70 ms in its path (a node calls this
-    before it subscribes)."""
-    from lidarcal_ros.io.pointcloud import make_point_dtype
+    """Write and parse one tiny PointCloud2 and take its time span, so that rosbags
+    generates its (de)serialisers and the compiled loops of the codec load now: done by the
+    first real cloud, that is some 70 ms in its path (a node calls this before it
+    subscribes)."""
+    from lidarcal_ros.io.pointcloud import make_point_dtype, time_span
 
-    parse_cloud(cloud_cdr(0, "warm-up", np.zeros(1, dtype=make_point_dtype())),
-                source="warm-up")
+    cloud = parse_cloud(cloud_cdr(0, "warm-up", np.zeros(1, dtype=make_point_dtype())),
+                        source="warm-up")
+    time_span(cloud.points["t"])
 
 
 def cloud_cdr(

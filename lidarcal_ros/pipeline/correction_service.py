@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.allocator import tune_allocator
+from lidarcal_ros.core import kernels
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import point_fields
@@ -186,7 +187,7 @@ class _Engine:
         done = []
         for tag, corrected in out:
             stamp, frame, started = self._headers.pop(tag)
-            bad = int(np.count_nonzero(corrected["correction_flags"] & FLAG_NOT_CORRECTED))
+            bad = kernels.count_bits(corrected["correction_flags"], FLAG_NOT_CORRECTED)
             done.append(_Corrected(tag, stamp, frame, corrected, bad,
                                    time.perf_counter() - started))
         return done
