@@ -1180,6 +1180,28 @@ def count_bits(values: np.ndarray, mask: int) -> int:
 
 
 @_jit
+def gather_columns(x: np.ndarray, y: np.ndarray, z: np.ndarray, t: np.ndarray,
+                   intensity: np.ndarray, strip_id: np.ndarray, xyz_out: np.ndarray,
+                   t_out: np.ndarray, intensity_out: np.ndarray, strip_id_out: np.ndarray
+                   ) -> None:
+    """:func:`gather_xyz` plus ``t_out[:] = t``, ``intensity_out[:] = intensity`` and
+    ``strip_id_out[:] = strip_id`` (each converted to the output's type), in one pass over
+    the rows of a structured cloud instead of one per field. An empty ``intensity`` or
+    ``strip_id`` (the cloud has none) is skipped."""
+    has_intensity = intensity.shape[0] == x.shape[0]
+    has_strip_id = strip_id.shape[0] == x.shape[0]
+    for i in range(x.shape[0]):
+        xyz_out[i, 0] = x[i]
+        xyz_out[i, 1] = y[i]
+        xyz_out[i, 2] = z[i]
+        t_out[i] = t[i]
+        if has_intensity:
+            intensity_out[i] = intensity[i]
+        if has_strip_id:
+            strip_id_out[i] = strip_id[i]
+
+
+@_jit
 def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     """``out[:, 0], out[:, 1], out[:, 2] = x, y, z`` (float64; FLOAT32 fields widened
     exactly) in one pass over the rows of a structured cloud."""

@@ -316,15 +316,32 @@ def _present(arr: np.ndarray) -> str:
     return ", ".join(arr.dtype.names or ()) or "none"
 
 
-def _column(
-    arr: np.ndarray, name: str, accepted: Sequence[int], out: type[np.generic], source: str
-) -> np.ndarray:
+def _field(arr: np.ndarray, name: str, accepted: Sequence[int], source: str) -> np.ndarray:
+    """The view of field ``name``, whose type must be one of ``accepted``."""
     if _code_of(arr, name) not in accepted:
         want = "/".join(DATATYPE_NAMES[c] for c in accepted)
         raise CloudFormatError(
             f"{source}: field '{name}' is {_type_name(arr, name)}; expected {want}"
         )
-    return arr[name].astype(out)
+    return arr[name]
+
+
+def _column(
+    arr: np.ndarray, name: str, accepted: Sequence[int], out: type[np.generic], source: str
+) -> np.ndarray:
+    return _field(arr, name, accepted, source).astype(out)
+
+
+def _xyz_fields(arr: np.ndarray, source: str) -> list[np.ndarray]:
+    """The views of ``x, y, z``, which must be present and FLOAT64 or FLOAT32."""
+    names = arr.dtype.names or ()
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise CloudFormatError(
+            f"{source}: cloud lacks field(s) {', '.join(missing)}; fields present: "
+            f"{_present(arr)}"
+        )
+    return [_field(arr, c, (FLOAT64, FLOAT32), source) for c in ("x", "y", "z")]
 
 
 def extract_xyz(arr: np.ndarray, *, source: str = "cloud") -> np.ndarray:
@@ -335,20 +352,8 @@ def extract_xyz(arr: np.ndarray, *, source: str = "cloud") -> np.ndarray:
     CloudFormatError
         A coordinate field is missing or not floating point.
     """
-    names = arr.dtype.names or ()
-    missing = [c for c in ("x", "y", "z") if c not in names]
-    if missing:
-        raise CloudFormatError(
-            f"{source}: cloud lacks field(s) {', '.join(missing)}; fields present: "
-            f"{_present(arr)}"
-        )
-    for c in ("x", "y", "z"):
-        if _code_of(arr, c) not in (FLOAT64, FLOAT32):
-            raise CloudFormatError(
-                f"{source}: field '{c}' is {_type_name(arr, c)}; expected FLOAT64/FLOAT32"
-            )
+    fields = _xyz_fields(arr, source)
     xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
-    fields = [arr[c] for c in ("x", "y", "z")]
     if all(f.dtype.isnative for f in fields):
         # Imported here: the processes that only pass clouds on (the nodes' ROS side, a
         # replay) need not load numba.
@@ -430,24 +435,42 @@ def extract_columns(
         Missing ``x``, ``y``, ``z`` or time field, or a field of an unsupported type.
     """
     names = arr.dtype.names or ()
-    xyz = extract_xyz(arr, source=source)
+    fields = _xyz_fields(arr, source)
     tname = resolve_time_field(arr, time_field, source=source)
-    t = _column(arr, tname, (FLOAT64,), np.float64, source)
-    intensity = None
-    if "intensity" in names:
-        intensity = _column(arr, "intensity", (FLOAT32, UINT16, UINT8), np.float32, source)
-    strip_id = None
+    t_field = _field(arr, tname, (FLOAT64,), source)
+    intensity_field = (_field(arr, "intensity", (FLOAT32, UINT16, UINT8), source)
+                       if "intensity" in names else None)
     sid_name = "strip_id" if "strip_id" in names else (
         "point_source_id" if "point_source_id" in names else None
     )
-    if sid_name is not None:
-        strip_id = _column(arr, sid_name, (UINT16, UINT32, UINT8), np.uint32, source)
+    sid_field = (_field(arr, sid_name, (UINT16, UINT32, UINT8), source)
+                 if sid_name is not None else None)
+    wanted = [*fields, t_field, intensity_field, sid_field]
+    n = arr.shape[0]
+    if all(f is None or f.dtype.isnative for f in wanted):
+        from lidarcal_ros.core import kernels  # (here: see extract_xyz)
+
+        xyz, t = np.empty((n, 3)), np.empty(n)
+        intensity = np.empty(n if intensity_field is not None else 0, dtype=np.float32)
+        strip_id = np.empty(n if sid_field is not None else 0, dtype=np.uint32)
+        kernels.gather_columns(  # one pass over the rows
+            fields[0], fields[1], fields[2], t_field,
+            intensity_field if intensity_field is not None else intensity,
+            sid_field if sid_field is not None else strip_id, xyz, t, intensity, strip_id)
+    else:  # a big-endian cloud (the compiled loop takes native byte order only)
+        xyz = extract_xyz(arr, source=source)
+        t = t_field.astype(np.float64)
+        intensity = (intensity_field.astype(np.float32) if intensity_field is not None
+                     else np.empty(0, dtype=np.float32))
+        strip_id = (sid_field.astype(np.uint32) if sid_field is not None
+                    else np.empty(0, dtype=np.uint32))
     rn = nr = None
     if "return_number" in names:
         rn = _column(arr, "return_number", (UINT8, UINT16), np.uint8, source)
     if "number_of_returns" in names:
         nr = _column(arr, "number_of_returns", (UINT8, UINT16), np.uint8, source)
-    return CloudColumns(xyz, t, intensity, strip_id, rn, nr, tname)
+    return CloudColumns(xyz, t, intensity if intensity_field is not None else None,
+                        strip_id if sid_field is not None else None, rn, nr, tname)
 
 
 def make_point_dtype(
