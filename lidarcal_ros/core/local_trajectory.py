@@ -339,6 +339,19 @@ def laser_geometry(
         return LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
     lines = window_lines(t, trajectory, window_s=window_s, min_samples=min_samples,
                          source=source)
+    return geometry_on_lines(t, xyz, lines, source=source)
+
+
+def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
+                      source: str = "points") -> LaserGeometry:
+    """The second half of :func:`laser_geometry`: ``x, z, kappa, beta`` and the firing
+    position of each point from its local-trajectory line (:func:`window_lines` of ``t``).
+
+    Raises
+    ------
+    TrajectoryError
+        If a point is not below its firing position.
+    """
     # Per point, in one pass: the firing position on its window's line, then what
     # geometry_at computes from it.
     origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta = kernels.window_geometry(

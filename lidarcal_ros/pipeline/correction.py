@@ -71,7 +71,7 @@ from lidarcal_ros.core.flags import (
 from lidarcal_ros.core.local_trajectory import (
     LaserGeometry,
     WindowLines,
-    laser_geometry,
+    geometry_on_lines,
     served_by_trajectory,
     window_lines,
 )
@@ -219,40 +219,6 @@ class CorrectedColumns:
         return int(self.flags.shape[0])
 
 
-def flagged_geometry(
-    t: np.ndarray,
-    xyz: np.ndarray,
-    trajectory: Trajectory,
-    *,
-    window_s: float = 0.5,
-    min_samples: int = 2,
-    source: str = "cloud",
-) -> tuple[np.ndarray, LaserGeometry]:
-    """:func:`~lidarcal_ros.core.local_trajectory.laser_geometry` for the points it can serve,
-    flagging the others instead of raising.
-
-    Returns
-    -------
-    ok : (n,) bool
-        Finite point and time, covered by the trajectory, at least 1 m below it.
-    geometry : LaserGeometry
-        For the points ``ok`` (in order).
-    """
-    ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
-                              min_samples=min_samples)
-    everything = bool(ok.all())
-    try:
-        geo = laser_geometry(t if everything else t[ok], xyz if everything else xyz[ok],
-                             trajectory, window_s=window_s, min_samples=min_samples,
-                             source=source)
-    except TrajectoryError as exc:
-        logger.warning("%s: %s; %d points left uncorrected", source, exc, int(ok.sum()))
-        ok[:] = False
-        empty = np.empty(0)
-        geo = LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
-    return ok, geo
-
-
 def served_windows(
     t: np.ndarray,
     xyz: np.ndarray,
@@ -262,8 +228,18 @@ def served_windows(
     min_samples: int = 2,
     source: str = "cloud",
 ) -> tuple[np.ndarray, WindowLines | None]:
-    """The points the trajectory can serve (as :func:`flagged_geometry`) and the
-    local-trajectory lines of those points (None when there are none)."""
+    """The points the trajectory can serve
+    (:func:`~lidarcal_ros.core.local_trajectory.served_by_trajectory`) and their
+    local-trajectory lines (None when there are none), flagging the others instead of
+    raising.
+
+    Returns
+    -------
+    ok : (n,) bool
+        Finite point and time, covered by the trajectory, at least 1 m below it.
+    lines : WindowLines or None
+        For the points ``ok`` (in order).
+    """
     ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
                               min_samples=min_samples)
     if not ok.any():
@@ -272,10 +248,38 @@ def served_windows(
         lines = window_lines(t if ok.all() else t[ok], trajectory, window_s=window_s,
                              min_samples=min_samples, source=source)
     except TrajectoryError as exc:
-        logger.warning("%s: %s; %d points left uncorrected", source, exc, int(ok.sum()))
-        ok[:] = False
+        _left_uncorrected(ok, source, exc)
         return ok, None
     return ok, lines
+
+
+def flagged_geometry(
+    t: np.ndarray,
+    xyz: np.ndarray,
+    trajectory: Trajectory,
+    *,
+    window_s: float = 0.5,
+    min_samples: int = 2,
+    source: str = "cloud",
+) -> tuple[np.ndarray, LaserGeometry]:
+    """:func:`~lidarcal_ros.core.local_trajectory.laser_geometry` for the points
+    :func:`served_windows` serves (the geometry in order, for the points ``ok``), flagging
+    the others instead of raising."""
+    ok, lines = served_windows(t, xyz, trajectory, window_s=window_s, min_samples=min_samples,
+                               source=source)
+    if lines is not None:
+        sel = slice(None) if ok.all() else ok
+        try:
+            return ok, geometry_on_lines(t[sel], xyz[sel], lines, source=source)
+        except TrajectoryError as exc:
+            _left_uncorrected(ok, source, exc)
+    empty = np.empty(0)
+    return ok, LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
+
+
+def _left_uncorrected(ok: np.ndarray, source: str, exc: TrajectoryError) -> None:
+    logger.warning("%s: %s; %d points left uncorrected", source, exc, int(ok.sum()))
+    ok[:] = False
 
 
 def trajectory_heading(trajectory: Trajectory, t: float) -> float:
