@@ -624,9 +624,9 @@ _TAN_3PI_8 = math.tan(3.0 * math.pi / 8.0)
 @njit(inline="always", **_OPTIONS)
 def atan_poly(q: float) -> float:
     """``atan(q)`` (rad) to 4e-11 from a polynomial after the classic range reduction
-    (``atan(a) = pi/4 + atan((a - 1) / (a + 1)) = pi/2 + atan(-1 / a)``). glibc's scalar
-    arctangent costs some 12 ns a call on a modest machine and, being a call, keeps the
-    loop around it from being vectorised; this is a few multiply-adds. NaN gives NaN."""
+    (``atan(a) = pi/4 + atan((a - 1) / (a + 1)) = pi/2 + atan(-1 / a)``): a few
+    multiply-adds, where glibc's scalar arctangent costs some 12 ns a call on a 2 GHz
+    machine. NaN gives NaN."""
     a = abs(q)
     base = 0.0
     x = a
@@ -667,23 +667,22 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
                     two_alpha: np.float32, out_xyz: np.ndarray, range_m: np.ndarray,
                     incidence: np.ndarray, scan_angle: np.ndarray, reflectance: np.ndarray,
                     flags: np.ndarray) -> None:
-    """Correct each return and derive its beam quantities and reflectance, in one pass
-    (:func:`lidarcal_ros.pipeline.correction.correct_columns`, whose module docstring gives
+    """Correct each return and derive its beam quantities and reflectance, in one compiled
+    call (:func:`lidarcal_ros.pipeline.correction.correct_columns`, whose module docstring gives
     the steps): :func:`window_geometry`, ``beta = atan(x / z)``, eq. [13] as
     :func:`bias_offsets`, then range, scan angle, incidence and
     :meth:`lidarcal_ros.core.radiometry.RadiometricModel.reflectance` (in float32, operation
     for operation) and the ``correction_flags`` bits (:mod:`lidarcal_ros.core.flags`).
 
-    Each stage as a numpy pass streamed a dozen (n,) and (n, 3) temporaries through memory,
-    which is most of the correction's time on a machine of modest memory bandwidth; and the
-    three libm calls per point (arctangent, arc cosine, exponential) cost more than all the
-    arithmetic. So ``beta`` and the incidence come from :func:`atan_poly` and
-    :func:`acos_poly` (within 1e-10 rad; the incidence from the float64 cosine, where a
-    float32 one would lose up to 3e-4 rad near normal incidence), and the scan angle
-    ``atan(x_c / z_c)`` of the corrected return from ``beta`` of the delivered one: their
-    tangents differ by ``d``, of the order of the biases (below 1e-3), and
-    ``atan(q + d) = atan(q) + d / (1 + q^2) - q d^2 / (1 + q^2)^2`` up to a ``d^3`` term
-    below 1e-9 rad.
+    As numpy passes these stages streamed a dozen (n,) and (n, 3) temporaries through
+    memory; but the arithmetic costs more than that traffic (bench/README.md, session 8),
+    and the libm arctangent and arc cosine of each point more than the rest of it. So
+    ``beta`` and the incidence come from :func:`atan_poly` and :func:`acos_poly` (within
+    1e-10 rad; the incidence from the float64 cosine, where a float32 one would lose up to
+    3e-4 rad near normal incidence), and the scan angle ``atan(x_c / z_c)`` of the corrected
+    return from ``beta`` of the delivered one: their tangents differ by ``d``, of the order
+    of the biases (below 1e-3), and ``atan(q + d) = atan(q) + d / (1 + q^2) - q d^2 /
+    (1 + q^2)^2`` up to a ``d^3`` term below 1e-9 rad.
 
     Parameters
     ----------
@@ -722,7 +721,8 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
                                       delta[5], delta[6], delta[7])
     # Three loops, not one: a point's work is one long chain of dependent operations
     # (arctangent, correction, beam, arc cosine, exponential), too long for the processor
-    # to overlap the next point's with it; in three short loops it does (2x faster here).
+    # to overlap the next point's with it; in three shorter loops it does more of that
+    # (80 against 92 ns a point on the 2 GHz machine of bench/README.md, session 8).
     # 1. The firing point, x, z and beta of each served point (NaN: not served).
     beta = np.empty(n)
     j = 0
