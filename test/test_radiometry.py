@@ -301,6 +301,27 @@ def test_coverage_rule_matches_laser_geometry() -> None:
     assert covered_by_trajectory(inner, traj).all()
 
 
+def test_served_points_are_covered_finite_and_a_metre_below_the_trajectory() -> None:
+    from lidarcal_ros.core.local_trajectory import laser_geometry, served_by_trajectory
+
+    tt = np.arange(0.0, 10.0, 0.02)
+    climb = 1000.0 + 10.0 * tt  # climbing at 10 m/s
+    traj = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt, climb]))
+    t = np.linspace(1.0, 9.0, 9)
+    z = np.zeros_like(t)
+    z[1] = 1000.0 + 10.0 * t[1] - 0.5  # half a metre below the aircraft
+    z[2] = 1000.0 + 10.0 * t[2] + 30.0  # above it
+    z[3] = np.nan
+    z[4] = 1000.0 + 10.0 * t[4] - 1.5
+    xyz = np.column_stack([np.full_like(t, 100.0), 60.0 * t, z])
+    t[5] = np.nan
+    served = served_by_trajectory(t, xyz, traj)
+    assert served.tolist() == [True, False, False, False, True, False, True, True, True]
+    laser_geometry(t[served], xyz[served], traj)  # does not raise
+    with pytest.raises(TrajectoryError, match="not below"):
+        laser_geometry(t[2:3], xyz[2:3], traj)
+
+
 def test_corrected_dtype_keeps_input_layout() -> None:
     dt = np.dtype({"names": ["x", "y", "z", "t", "intensity", "reflectance"],
                    "formats": ["<f4", "<f4", "<f4", "<f8", "<u2", "<f8"],
