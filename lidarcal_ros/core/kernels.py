@@ -400,6 +400,33 @@ def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
     return nrm, ok, rough
 
 
+@njit(inline="always", **_OPTIONS)
+def _laser_frame(ti: float, px: float, py: float, pz: float, w: int, t_mean: np.ndarray,
+                 p_mean: np.ndarray, velocity: np.ndarray, c: float, s: float
+                 ) -> tuple[float, float, float, float, float]:
+    """The firing position ``p_mean + velocity (t - t_mean)`` of window ``w`` at time ``ti``
+    and the point's ``x`` (across track, heading ``(c, s)``) and ``z`` from it (method.md
+    section 4): ``ox, oy, oz, x, z``, m."""
+    dt = ti - t_mean[w]
+    ox = p_mean[w, 0] + velocity[w, 0] * dt
+    oy = p_mean[w, 1] + velocity[w, 1] * dt
+    oz = p_mean[w, 2] + velocity[w, 2] * dt
+    return ox, oy, oz, (px - ox) * c + (py - oy) * s, pz - oz
+
+
+@njit(inline="always", **_OPTIONS)
+def _bias_offset(d: tuple[float, float, float, float, float, float, float, float], x: float,
+                 z: float, beta: float, sin_beta: float, cos_beta: float, c: float, s: float
+                 ) -> tuple[float, float, float]:
+    """``A @ delta`` of one point (method.md eq. [8], map frame, m): the body-frame
+    displacement (right, forward, up) rotated by the heading ``(c, s)``, as
+    :func:`lidarcal_ros.core.model.point_offsets` documents."""
+    right = d[0] + z * d[4] - sin_beta * d[6] + z * beta * d[7]
+    fwd = d[1] - z * d[3] + x * d[5]
+    up = d[2] - x * d[4] - cos_beta * d[6] - x * beta * d[7]
+    return c * right - s * fwd, s * right + c * fwd, up
+
+
 @_jit
 def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
                  cos_kappa: np.ndarray, sin_kappa: np.ndarray, sin_beta: np.ndarray,
@@ -412,17 +439,11 @@ def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarr
     """
     n = x.shape[0]
     out = np.empty((n, 3))
-    d0, d1, d2, d3, d4, d5, d6, d7 = (delta[0], delta[1], delta[2], delta[3], delta[4],
-                                      delta[5], delta[6], delta[7])
+    d = (delta[0], delta[1], delta[2], delta[3], delta[4], delta[5], delta[6], delta[7])
     corrected = base.shape[0] == n and n > 0
     for i in range(n):
-        xi, zi, bi = x[i], z[i], beta[i]
-        c, s = cos_kappa[i], sin_kappa[i]
-        right = d0 + zi * d4 - sin_beta[i] * d6 + zi * bi * d7
-        fwd = d1 - zi * d3 + xi * d5
-        ox = c * right - s * fwd
-        oy = s * right + c * fwd
-        oz = d2 - xi * d4 - cos_beta[i] * d6 - xi * bi * d7
+        ox, oy, oz = _bias_offset(d, x[i], z[i], beta[i], sin_beta[i], cos_beta[i],
+                                  cos_kappa[i], sin_kappa[i])
         if corrected:
             out[i, 0] = base[i, 0] - ox
             out[i, 1] = base[i, 1] - oy
@@ -592,14 +613,10 @@ def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: 
     cos_beta = np.empty(n)
     for i in range(n):
         w = window[i]
-        dt = t[i] - t_mean[w]
-        ox = p_mean[w, 0] + velocity[w, 0] * dt
-        oy = p_mean[w, 1] + velocity[w, 1] * dt
-        oz = p_mean[w, 2] + velocity[w, 2] * dt
-        origin[i, 0], origin[i, 1], origin[i, 2] = ox, oy, oz
         c, s = cos_w[w], sin_w[w]
-        xi = (xyz[i, 0] - ox) * c + (xyz[i, 1] - oy) * s
-        zi = xyz[i, 2] - oz
+        ox, oy, oz, xi, zi = _laser_frame(t[i], xyz[i, 0], xyz[i, 1], xyz[i, 2], w, t_mean,
+                                          p_mean, velocity, c, s)
+        origin[i, 0], origin[i, 1], origin[i, 2] = ox, oy, oz
         x[i], z[i] = xi, zi
         kappa[i], cos_kappa[i], sin_kappa[i] = kappa_w[w], c, s
         inv_r = 1.0 / math.sqrt(xi * xi + zi * zi)
@@ -717,8 +734,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     has_rough = rough.shape[0] == n
     has_intensity = intensity.shape[0] == n
     no_intensity = np.uint8(0 if has_intensity else FLAG_NO_INTENSITY)
-    d0, d1, d2, d3, d4, d5, d6, d7 = (delta[0], delta[1], delta[2], delta[3], delta[4],
-                                      delta[5], delta[6], delta[7])
+    d = (delta[0], delta[1], delta[2], delta[3], delta[4], delta[5], delta[6], delta[7])
     # Three loops, not one: a point's work is one long chain of dependent operations
     # (arctangent, correction, beam, arc cosine, exponential), too long for the processor
     # to overlap the next point's with it; in three shorter loops it does more of that
@@ -731,10 +747,8 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         if ok[i]:
             w = window[j]
             j += 1
-            dt = t[i] - t_mean[w]
-            x = ((xyz[i, 0] - (p_mean[w, 0] + velocity[w, 0] * dt)) * cos_w[w]
-                 + (xyz[i, 1] - (p_mean[w, 1] + velocity[w, 1] * dt)) * sin_w[w])
-            z = xyz[i, 2] - (p_mean[w, 2] + velocity[w, 2] * dt)
+            _, _, _, x, z = _laser_frame(t[i], xyz[i, 0], xyz[i, 1], xyz[i, 2], w, t_mean,
+                                         p_mean, velocity, cos_w[w], sin_w[w])
             if z < 0.0:
                 beta[i] = atan_poly(x / z)
     # 2. Eq. [13], range, scan angle and the incidence cosine (kept in ``cos_inc``).
@@ -752,29 +766,20 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             cos_inc[i] = np.nan
             flags[i] = FLAG_NOT_CORRECTED | no_intensity
             continue
-        dt = t[i] - t_mean[w]
-        ox = p_mean[w, 0] + velocity[w, 0] * dt
-        oy = p_mean[w, 1] + velocity[w, 1] * dt
-        oz = p_mean[w, 2] + velocity[w, 2] * dt
         c, s = cos_w[w], sin_w[w]
-        x = (px - ox) * c + (py - oy) * s
-        z = pz - oz
+        ox, oy, oz, x, z = _laser_frame(t[i], px, py, pz, w, t_mean, p_mean, velocity, c, s)
         q = x / z
         inv_r = 1.0 / math.sqrt(x * x + z * z)
-        sin_beta, cos_beta = -x * inv_r, -z * inv_r
-        right = d0 + z * d4 - sin_beta * d6 + z * b * d7
-        fwd = d1 - z * d3 + x * d5
-        cx = px - (c * right - s * fwd)
-        cy = py - (s * right + c * fwd)
-        cz = pz - (d2 - x * d4 - cos_beta * d6 - x * b * d7)
+        dx, dy, dz = _bias_offset(d, x, z, b, -x * inv_r, -z * inv_r, c, s)  # eq. [13]
+        cx, cy, cz = px - dx, py - dy, pz - dz
         out_xyz[i, 0], out_xyz[i, 1], out_xyz[i, 2] = cx, cy, cz
         # The beam from the firing point to the corrected return.
         rx, ry, rz = cx - ox, cy - oy, cz - oz
         r = math.sqrt(rx * rx + ry * ry + rz * rz)
         range_m[i] = r
-        d = (rx * c + ry * s) / rz - q
+        dtan = (rx * c + ry * s) / rz - q  # the tangent's change, ``d`` in the docstring
         g = 1.0 / (1.0 + q * q)
-        scan_angle[i] = b + d * g - q * d * d * g * g
+        scan_angle[i] = b + dtan * g - q * dtan * dtan * g * g
         cos_t = abs((normals[i, 0] * rx + normals[i, 1] * ry + normals[i, 2] * rz) * (1.0 / r))
         cos_inc[i] = 1.0 if cos_t > 1.0 else cos_t  # (NaN stays NaN)
         flags[i] = no_intensity
