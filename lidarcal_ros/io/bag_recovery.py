@@ -23,6 +23,7 @@ from lidarcal_ros.io.bag import BagWriter, ReadableMcap, normalize_msgtype, stam
 
 logger = logging.getLogger(__name__)
 
+
 @dataclass
 class RecoveredBag:
     """What :func:`recover_bag` kept.
@@ -206,6 +207,13 @@ def _declare(channel: Any, schema: Any, writer: BagWriter,
 
 def _latched(metadata: dict[str, str]) -> bool:
     """Whether rosbag2 recorded the topic as offered with transient-local durability (as
-    the control points are), from the channel's ``offered_qos_profiles``."""
-    text = metadata.get("offered_qos_profiles", "")
-    return bool(re.search(r"durability:\s*(1|transient_local)\b", text))
+    the control points are), from the channel's ``offered_qos_profiles`` (parsed by rosbags,
+    as :class:`~lidarcal_ros.io.bag.BagReader` parses them)."""
+    from rosbags.interfaces import QosDurability
+    from rosbags.rosbag2.metadata import parse_qos
+
+    try:
+        profiles = parse_qos(metadata.get("offered_qos_profiles", ""))
+    except Exception:  # unreadable QoS: informative only, as for BagReader
+        return False
+    return any(q.durability == QosDurability.TRANSIENT_LOCAL for q in profiles)
