@@ -352,8 +352,12 @@ def extract_xyz(arr: np.ndarray, *, source: str = "cloud") -> np.ndarray:
     CloudFormatError
         A coordinate field is missing or not floating point.
     """
-    fields = _xyz_fields(arr, source)
-    xyz = np.empty((arr.shape[0], 3), dtype=np.float64)
+    return _stacked_xyz(_xyz_fields(arr, source))
+
+
+def _stacked_xyz(fields: list[np.ndarray]) -> np.ndarray:
+    """``(n, 3)`` float64 from the views of ``x, y, z``."""
+    xyz = np.empty((fields[0].shape[0], 3), dtype=np.float64)
     if all(f.dtype.isnative for f in fields):
         # Imported here: the processes that only pass clouds on (the nodes' ROS side, a
         # replay) need not load numba.
@@ -458,7 +462,7 @@ def extract_columns(
             intensity_field if intensity_field is not None else intensity,
             sid_field if sid_field is not None else strip_id, xyz, t, intensity, strip_id)
     else:  # a big-endian cloud (the compiled loop takes native byte order only)
-        xyz = extract_xyz(arr, source=source)
+        xyz = _stacked_xyz(fields)
         t = t_field.astype(np.float64)
         intensity = (intensity_field.astype(np.float32) if intensity_field is not None
                      else np.empty(0, dtype=np.float32))
