@@ -474,7 +474,7 @@ class CalibratorNode(Node):
     def node_statuses(self) -> list[StatusSpec]:
         """Memory, input and checkpoint statuses (the QA statuses come with each solve)."""
         s = self.stream
-        dropped = int(getattr(s, "dropped_points", 0))
+        dropped = s.dropped_points
         mem_level = WARN if dropped else OK
         mem_msg = f"{s.n_points} points held of a budget of {s.max_points}"
         if dropped:
@@ -483,14 +483,12 @@ class CalibratorNode(Node):
         out = [StatusSpec(mem_level, "lidarcal: memory", mem_msg, {
             "points_held": str(s.n_points), "budget_points": str(s.max_points),
             "dropped_points": str(dropped),
-            "dropped_strips": ",".join(str(i) for i in getattr(s, "dropped_strips", [])),
+            "dropped_strips": ",".join(str(i) for i in s.dropped_strips),
             "strips": ",".join(str(i) for i in s.strip_ids),
             "open_strips": ",".join(str(i) for i in s.open_strip_ids)})]
         inp = self.input
-        uncovered = int(getattr(s, "uncovered_points", 0))
-        left_out = list(getattr(s, "uncovered_strips", []))
-        rejected: list[tuple[int, str]] = list(getattr(s, "rejected_strips", []))
-        late = int(getattr(s, "late_points", 0))
+        uncovered, left_out = s.uncovered_points, s.uncovered_strips
+        rejected, late = s.rejected_strips, s.late_points
         level = WARN if inp["skipped"] or uncovered or rejected or late else OK
         msg = f"{inp['clouds']} clouds, {inp['points']} points, {inp['poses']} poses"
         if inp["skipped"]:
