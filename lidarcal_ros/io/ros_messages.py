@@ -181,7 +181,9 @@ def warm_up_cloud_codec() -> None:
     subscribes)."""
     from lidarcal_ros.io.pointcloud import make_point_dtype, time_span
 
-    cloud = parse_cloud(cloud_cdr(0, "warm-up", np.zeros(1, dtype=make_point_dtype())),
+    # Two points, not one: the field views of a one-point cloud are contiguous, a type the
+    # compiled loops then load for nothing (every real cloud's fields are strided).
+    cloud = parse_cloud(cloud_cdr(0, "warm-up", np.zeros(2, dtype=make_point_dtype())),
                         source="warm-up")
     time_span(cloud.points["t"])
 
