@@ -226,9 +226,26 @@ def suite(ros_context: Any, small_mission: Any) -> Iterator[Suite]:
 
 
 # ---------------------------------------------------------------------------- replay
-def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
+@dataclass
+class Replayed:
+    """The suite after the replay of its mission (the :func:`replayed` fixture): every cloud
+    corrected by both correctors, all six strips closed, one solve asked for; what had
+    arrived by then (later tests publish more clouds and change the nodes)."""
+
+    suite: Suite
+    corrected: list[bytes]
+    corrected_in_thread: list[bytes]
+    points_out: dict[str, int]
+    skipped: dict[str, int]
+    solve: Any
+
+
+@pytest.fixture(scope="module")
+def replayed(suite: Suite) -> Replayed:
+    """The mission replayed through the suite, once per module, whichever tests run: the
+    tests that need an estimate or closed strips take this, so that each also runs alone
+    (``-k``)."""
     bag = suite.mission.bag
-    n_clouds = 0
     with open_bag(bag) as b:
         n_clouds = b.topics["/lidar/points"].count
     # Points and trajectory each have three subscribers: the calibrator and both correctors.
@@ -241,8 +258,25 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
     cal = suite.cal
     _wait(lambda: cal.stream.strip_ids == [1, 2, 3, 4, 5, 6] and not cal.stream.open_strip_ids
           and cal._jobs.empty(), 90, "the calibrator to close all six strips")
-    # the live estimate exists and QA was published per pair
     _wait(lambda: "lidarcal: strips 1&2" in suite.probe.diagnostics, 30, "pair diagnostics")
+    with suite.probe.lock:
+        corrected = list(suite.probe.corrected)
+        corrected_in_thread = list(suite.probe.corrected_in_thread)
+    nodes = {"process": suite.cor, "thread": suite.cor_in_thread}
+    points_out = {k: n.stats.points_out for k, n in nodes.items()}
+    skipped = {k: n.stats.skipped for k, n in nodes.items()}
+    solve = suite.call("/lidarcal_calibrator/solve")
+    assert solve.success, solve.message
+    _wait(lambda: cal.solves >= 1 and len(suite.probe.estimates) >= 1, 10, "an estimate")
+    time.sleep(0.3)
+    return Replayed(suite, corrected, corrected_in_thread, points_out, skipped, solve)
+
+
+def test_replayed_mission_gives_the_offline_estimate(replayed: Replayed) -> None:
+    suite = replayed.suite
+    bag = suite.mission.bag
+    cal = suite.cal
+    # the live estimate exists and QA was published per pair
     level, message, values = suite.probe.diagnostics["lidarcal: strips 1&2"]
     assert {"coverage", "rms_before", "rms_after", "p95_after"} <= set(values)
     assert message.startswith("RMS ") and message.endswith(("OK", "WARN", "ERROR"))
@@ -250,11 +284,8 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
     assert "lidarcal: observability" in suite.probe.diagnostics
     assert "lidarcal: convergence" in suite.probe.diagnostics
 
-    response = suite.call("/lidarcal_calibrator/solve")
-    assert response.success, response.message
-    assert "15 strip pairs" in response.message
-    _wait(lambda: cal.solves >= 1 and len(suite.probe.estimates) >= 1, 10, "an estimate")
-    time.sleep(0.3)
+    assert "15 strip pairs" in replayed.solve.message
+    assert cal.solves >= 1
     live = parse_estimate(suite.probe.estimates[-1].data,
                           [d.label for d in suite.probe.estimates[-1].layout.dim])
 
@@ -289,15 +320,15 @@ def test_replayed_mission_gives_the_offline_estimate(suite: Suite) -> None:
     assert (suite.mission.workdir / "suite_calibration.yaml").is_file()
 
 
-def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
+def test_every_input_point_is_corrected_exactly_once(replayed: Replayed) -> None:
     """Both ways of running the correction: in a child process (as shipped) and in a thread
     of the node (``separate_process`` false)."""
+    suite = replayed.suite
     sid_in, t_in = _bag_points(suite.mission.bag)
     key_in = np.lexsort((t_in, sid_in))
-    for node, received in ((suite.cor, suite.probe.corrected),
-                           (suite.cor_in_thread, suite.probe.corrected_in_thread)):
-        with suite.probe.lock:
-            clouds = [parse_cloud(raw) for raw in received]
+    for how, received in (("process", replayed.corrected),
+                          ("thread", replayed.corrected_in_thread)):
+        clouds = [parse_cloud(raw) for raw in received]
         pts = np.concatenate([c.points for c in clouds])
         assert pts.dtype.names is not None  # a structured array (a point cloud)
         assert {"reflectance", "range", "incidence", "scan_angle", "correction_flags"} <= set(
@@ -307,7 +338,7 @@ def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
         assert len(pts) == len(t_in)
         assert np.array_equal(sid_in[key_in], sid_out[key_out])
         assert np.array_equal(t_in[key_in], t_out[key_out])
-        assert node.stats.points_out == len(t_in) and node.stats.skipped == 0
+        assert replayed.points_out[how] == len(t_in) and replayed.skipped[how] == 0
         flags = pts["correction_flags"]
         bad = (flags & 1) != 0
         assert not bad.any(), (
@@ -321,12 +352,13 @@ def test_every_input_point_is_corrected_exactly_once(suite: Suite) -> None:
     assert carried["ring in"] > 0 and carried["ring out"] > 0, carried
 
 
-def test_late_subscriber_gets_the_latest_estimate(suite: Suite) -> None:
+def test_late_subscriber_gets_the_latest_estimate(replayed: Replayed) -> None:
     import rclpy
     from std_msgs.msg import Float64MultiArray, String
 
     from lidarcal_ros.nodes.common import latched_qos
 
+    suite = replayed.suite
     latest = list(suite.probe.estimates[-1].data)
     node = rclpy.create_node("late_joiner", context=suite.context)
     got: list[Any] = []
@@ -368,7 +400,8 @@ def _reflectance_of(suite: Suite, raw_in: bytes, stamp: int) -> np.ndarray:
         suite.probe_node.destroy_publisher(pub)
 
 
-def test_a_parameter_set_at_run_time_changes_what_the_nodes_do(suite: Suite) -> None:
+def test_a_parameter_set_at_run_time_changes_what_the_nodes_do(replayed: Replayed) -> None:
+    suite = replayed.suite
     with open_bag(suite.mission.bag) as b:
         raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
     stamp = parse_cloud(raw).stamp_ns
@@ -436,9 +469,10 @@ def test_dz_and_dr_without_control_is_refused(suite: Suite) -> None:
 
 
 # ---------------------------------------------------------------------------- bad input
-def test_a_malformed_cloud_is_logged_and_skipped(suite: Suite) -> None:
+def test_a_malformed_cloud_is_logged_and_skipped(replayed: Replayed) -> None:
     from sensor_msgs.msg import PointCloud2
 
+    suite = replayed.suite
     good = np.zeros(5, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("t", "<f8"),
                               ("intensity", "<f4"), ("strip_id", "<u2")])
     no_time = np.zeros(5, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
@@ -472,9 +506,10 @@ def test_a_malformed_cloud_is_logged_and_skipped(suite: Suite) -> None:
 
 
 def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(
-        suite: Suite) -> None:
+        replayed: Replayed) -> None:
     """The correction process killed between clouds: the node starts a new one (with its own
     shared memory, the old rings' files gone) and corrects the next cloud."""
+    suite = replayed.suite
     old = suite.cor._service
     rings = [r for r in (old._inbound, old._outbound) if r is not None]
     old._process.kill()
@@ -490,7 +525,8 @@ def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(
     assert suite.cor.status().values["transport"] == "shared memory"
 
 
-def test_memory_budget_releases_the_oldest_strips_and_says_so(suite: Suite) -> None:
+def test_memory_budget_releases_the_oldest_strips_and_says_so(replayed: Replayed) -> None:
+    suite = replayed.suite
     held = suite.cal.stream.n_points
     results = suite.set_parameters("lidarcal_calibrator", memory_budget_points=held // 2)
     assert results[0].successful, results[0].reason
@@ -506,9 +542,11 @@ def test_memory_budget_releases_the_oldest_strips_and_says_so(suite: Suite) -> N
     assert "released" in memory.message
 
 
-def test_reset_forgets_everything_and_its_checkpoint(suite: Suite, tmp_path: Path) -> None:
+def test_reset_forgets_everything_and_its_checkpoint(replayed: Replayed,
+                                                     tmp_path: Path) -> None:
     """``~/reset`` (the last test of the suite: it empties the calibrator) leaves nothing to
     solve, save or resume from; the latest estimate stays latched."""
+    suite = replayed.suite
     ckpt = tmp_path / "reset_ckpt.npz"
     results = suite.set_parameters("lidarcal_calibrator", checkpoint_file=str(ckpt))
     assert results[0].successful, results[0].reason
