@@ -251,6 +251,26 @@ def test_time_span_skips_nan_and_says_nan_when_there_is_no_time() -> None:
         assert all(math.isnan(v) for v in time_span(np.empty(0)))
 
 
+def test_extracted_columns_carry_their_time_span_and_whether_all_is_finite() -> None:
+    """(Found in the extraction's pass, so that the correction need not look again.)"""
+    from lidarcal_ros.io.pointcloud import time_span
+
+    pts = np.zeros(40, dtype=make_point_dtype())
+    pts["t"] = 100.0 + np.arange(40) * 0.01
+    pts["x"] = np.arange(40)
+    cols = extract_columns(pts)
+    assert cols.t_span == (100.0, 100.39) and cols.all_finite
+    for field, row, value in (("t", 0, np.nan), ("x", 5, np.inf), ("z", 39, np.nan)):
+        bad = pts.copy()
+        bad[field][row] = value
+        cols = extract_columns(bad)
+        assert cols.t_span == time_span(bad["t"]) and cols.all_finite is False
+    nat = pts.copy()
+    nat["t"] = np.nan
+    lo, hi = extract_columns(nat).t_span or (0.0, 0.0)
+    assert np.isnan(lo) and np.isnan(hi)
+
+
 def test_big_endian_fields_are_read_and_judged_like_little_endian_ones() -> None:
     """(The compiled loops take native byte order; other clouds go the numpy way.)"""
     from lidarcal_ros.io.pointcloud import extract_xyz

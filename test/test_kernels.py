@@ -389,19 +389,16 @@ def test_correct_returns_matches_the_numpy_stages() -> None:
     assert not ((flags2 & (FLAG_ROUGH | FLAG_GRAZING)) != 0).any()
 
 
-def test_finite_range_and_count_bits_on_strided_fields() -> None:
+def test_finite_range_on_a_strided_field() -> None:
     rows = np.zeros(1000, dtype=[("t", "<f8"), ("flags", "u1"), ("pad", "u1", 7)])
     rng = np.random.default_rng(6)
     rows["t"] = rng.normal(1.7e9, 100.0, 1000)
     rows["t"][[0, 17, 999]] = np.nan
-    rows["flags"] = rng.integers(0, 32, 1000)
-    t, flags = rows["t"], rows["flags"]  # strided views
+    t = rows["t"]  # a strided view
     assert kernels.finite_range(t) == (np.fmin.reduce(t), np.fmax.reduce(t))
     lo, hi = kernels.finite_range(np.full(3, np.nan))
     assert math.isnan(lo) and math.isnan(hi)
     assert all(math.isnan(v) for v in kernels.finite_range(np.empty(0)))
-    for mask in (1, 2, 16, 31):
-        assert kernels.count_bits(flags, mask) == np.count_nonzero(flags & mask)
 
 
 def test_byte_counts_is_bincount() -> None:
@@ -579,3 +576,16 @@ def test_gather_xyz_and_all_finite3_on_the_fields_of_a_cloud(field_type: str) ->
         spoilt = cloud.copy()
         spoilt[c][row] = bad
         assert not kernels.all_finite3(spoilt["x"], spoilt["y"], spoilt["z"])
+
+
+def test_cells_without_plane_is_the_numpy_expression() -> None:
+    rng = np.random.default_rng(12)
+    nu, nv = 9, 31
+    iu = rng.integers(0, nu, 500)
+    iv = rng.integers(0, nv, 500)
+    cell_ok = rng.random(nu * nv) < 0.7
+    wanted = np.zeros(nu * nv, dtype=bool)
+    wanted[iu * nv + iv] = True
+    np.testing.assert_array_equal(kernels.cells_without_plane(iu, iv, nv, cell_ok),
+                                  np.flatnonzero(wanted & ~cell_ok))
+    assert kernels.cells_without_plane(iu[:0], iv[:0], nv, cell_ok).size == 0

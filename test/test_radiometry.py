@@ -34,6 +34,7 @@ from lidarcal_ros.errors import ConfigError, TrajectoryError
 from lidarcal_ros.io.las import adjusted_gps_to_unix, unix_to_adjusted_gps
 from lidarcal_ros.pipeline.correction import (
     ADDED_FIELDS,
+    CloudTally,
     CorrectedColumns,
     build_corrected,
     corrected_dtype,
@@ -360,8 +361,9 @@ def test_a_corrected_cloud_built_in_a_used_buffer_has_the_bytes_of_a_new_one(
     xyz = rng.normal(size=(n, 3))
     range_, incidence, scan_angle, reflectance = (rng.random(n).astype(np.float32)
                                                   for _ in range(4))
+    xyz[[3, 7], 1] = np.nan  # (not corrected: kept as delivered)
     res = CorrectedColumns(xyz, range_, incidence, scan_angle, reflectance,
-                           rng.integers(0, 4, n).astype(np.uint8))
+                           rng.integers(0, 32, n).astype(np.uint8))
     # The expected bytes, spelt out: input row, zeros, then each field written.
     dt = corrected_dtype(layout)
     assert dt.fields is not None  # a structured dtype
@@ -377,11 +379,20 @@ def test_a_corrected_cloud_built_in_a_used_buffer_has_the_bytes_of_a_new_one(
     fresh = build_corrected(pts, res)
     assert fresh.tobytes() == expected.tobytes()
     used = np.full(n * dt.itemsize, 0xAB, dtype=np.uint8).view(dt)
-    built = build_corrected(pts, res, out=used)
+    tally = CloudTally.empty()
+    built = build_corrected(pts, res, out=used, tally=tally)
     assert built is used
     assert used.tobytes() == expected.tobytes()
+    # counted on the way: the flag bytes, and the two points that make it not dense
+    np.testing.assert_array_equal(tally.counts[:256], np.bincount(res.flags, minlength=256))
+    assert tally.points == n and tally.counts[256] == 2 and not tally.dense
+    for mask in (1, 2, 16, 31):
+        assert tally.flagged(mask) == np.count_nonzero(res.flags & mask)
     # Rows 10:40 of the columns, as the stream corrector builds a cloud of a batch.
-    part = build_corrected(pts[:30], res, 10, 40)
+    part_tally = CloudTally.empty()
+    part = build_corrected(pts[:30], res, 10, 40, tally=part_tally)
+    assert part_tally.points == 30 and part_tally.dense
+    assert (part_tally + tally).points == n + 30
     np.testing.assert_array_equal(part["x"], res.xyz[10:40, 0].astype(dt.fields["x"][0]))
     np.testing.assert_array_equal(part["range"], res.range[10:40])
     np.testing.assert_array_equal(part["t"], pts["t"][:30])

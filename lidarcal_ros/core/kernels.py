@@ -325,6 +325,37 @@ def cell_planes(residual: np.ndarray, normals: np.ndarray, centroid: np.ndarray,
 
 
 @_jit
+def cells_without_plane(iu: np.ndarray, iv: np.ndarray, nv: int, cell_ok: np.ndarray
+                        ) -> np.ndarray:
+    """The flat indices (ascending, once each) of the cells holding points that have no
+    plane: ``np.flatnonzero(wanted & ~cell_ok)`` where ``wanted[iu * nv + iv] = True``,
+    without the index temporaries.
+
+    Parameters
+    ----------
+    iu, iv : (n,) int64
+        Cell of each point in a grid of ``nv`` columns.
+    cell_ok : (nu * nv,) bool
+        The cells with a plane.
+    """
+    size = cell_ok.shape[0]
+    mark = np.zeros(size, dtype=np.bool_)
+    count = 0
+    for i in range(iu.shape[0]):
+        k = iu[i] * nv + iv[i]
+        if not cell_ok[k] and not mark[k]:
+            mark[k] = True
+            count += 1
+    out = np.empty(count, dtype=np.int64)
+    j = 0
+    for k in range(size):
+        if mark[k]:
+            out[j] = k
+            j += 1
+    return out
+
+
+@_jit
 def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
                   normals: np.ndarray, centroid: np.ndarray, valid: np.ndarray, nu: int,
                   nv: int, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
@@ -903,11 +934,13 @@ def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarr
                         range_m: np.ndarray, incidence: np.ndarray, scan_angle: np.ndarray,
                         flags: np.ndarray, reflectance_in: np.ndarray, range_in: np.ndarray,
                         incidence_in: np.ndarray, scan_angle_in: np.ndarray,
-                        flags_in: np.ndarray) -> None:
+                        flags_in: np.ndarray, tally: np.ndarray) -> None:
     """Write corrected rows, one row at a time: the input row's words, zeros after them,
     then the corrected coordinates and the added fields (``rows[:, :k] = input rows;
     rows[:, k:] = 0; out[name] = column`` for each field, as numpy does it in nine passes
-    over the output).
+    over the output); and count, in the same pass, what the cloud's users ask of it
+    (how many points are flagged, whether it is dense), which would otherwise take a pass
+    each over the written rows.
 
     Parameters
     ----------
@@ -922,10 +955,19 @@ def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarr
         Corrected coordinates, m.
     reflectance_in, range_in, incidence_in, scan_angle_in, flags_in : (n,)
         The added fields' values.
+    tally : (257,) int64
+        Added to: ``tally[f]``, the rows whose flags byte is ``f``
+        (``np.bincount(flags_in, minlength=256)``); ``tally[256]``, the rows with a
+        non-finite corrected coordinate.
     """
     n, m = out_words.shape
     k = in_words.shape[1]
     for i in range(n):
+        f = flags_in[i]
+        tally[f] += 1
+        if not (math.isfinite(xyz[i, 0]) and math.isfinite(xyz[i, 1])
+                and math.isfinite(xyz[i, 2])):
+            tally[256] += 1
         for j in range(k):
             out_words[i, j] = in_words[i, j]
         for j in range(k, m):
@@ -937,7 +979,7 @@ def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarr
         range_m[i] = range_in[i]
         incidence[i] = incidence_in[i]
         scan_angle[i] = scan_angle_in[i]
-        flags[i] = flags_in[i]
+        flags[i] = f
 
 
 @_jit
@@ -1174,36 +1216,49 @@ def finite_range(values: np.ndarray) -> tuple[float, float]:
 
 
 @_jit
-def count_bits(values: np.ndarray, mask: int) -> int:
-    """``np.count_nonzero(values & mask)`` in one pass without a temporary (a UINT8 field of
-    a structured cloud, strided)."""
-    count = 0
-    for i in range(values.shape[0]):
-        if values[i] & mask:
-            count += 1
-    return count
-
-
-@_jit
 def gather_columns(x: np.ndarray, y: np.ndarray, z: np.ndarray, t: np.ndarray,
                    intensity: np.ndarray, strip_id: np.ndarray, xyz_out: np.ndarray,
                    t_out: np.ndarray, intensity_out: np.ndarray, strip_id_out: np.ndarray
-                   ) -> None:
+                   ) -> tuple[float, float, int]:
     """:func:`gather_xyz` plus ``t_out[:] = t``, ``intensity_out[:] = intensity`` and
     ``strip_id_out[:] = strip_id`` (each converted to the output's type), in one pass over
     the rows of a structured cloud instead of one per field. An empty ``intensity`` or
-    ``strip_id`` (the cloud has none) is skipped."""
+    ``strip_id`` (the cloud has none) is skipped.
+
+    Returns
+    -------
+    t_lo, t_hi : float
+        :func:`finite_range` of ``t``, found in the same pass.
+    non_finite : int
+        Rows with a non-finite ``x``, ``y``, ``z`` or ``t`` (none: the checks for them can
+        be skipped).
+    """
     has_intensity = intensity.shape[0] == x.shape[0]
     has_strip_id = strip_id.shape[0] == x.shape[0]
+    lo = math.inf
+    hi = -math.inf
+    seen = False
+    non_finite = 0
     for i in range(x.shape[0]):
-        xyz_out[i, 0] = x[i]
-        xyz_out[i, 1] = y[i]
-        xyz_out[i, 2] = z[i]
-        t_out[i] = t[i]
+        xi, yi, zi, ti = x[i], y[i], z[i], t[i]
+        xyz_out[i, 0] = xi
+        xyz_out[i, 1] = yi
+        xyz_out[i, 2] = zi
+        t_out[i] = ti
         if has_intensity:
             intensity_out[i] = intensity[i]
         if has_strip_id:
             strip_id_out[i] = strip_id[i]
+        if ti == ti:  # (not NaN)
+            seen = True
+            lo = min(lo, ti)
+            hi = max(hi, ti)
+        if not (math.isfinite(xi) and math.isfinite(yi) and math.isfinite(zi)
+                and math.isfinite(ti)):
+            non_finite += 1
+    if not seen:
+        return math.nan, math.nan, non_finite
+    return float(lo), float(hi), non_finite
 
 
 @_jit

@@ -158,7 +158,7 @@ MIN_DEPTH_M = 1.0
 
 def served_by_trajectory(
     t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5,
-    min_samples: int = 2, min_depth_m: float = MIN_DEPTH_M,
+    min_samples: int = 2, min_depth_m: float = MIN_DEPTH_M, all_finite: bool = False,
 ) -> np.ndarray:
     """Which points the local trajectory can serve: finite point and time, covered
     (:func:`covered_by_trajectory`), and at least ``min_depth_m`` below the trajectory's
@@ -172,12 +172,15 @@ def served_by_trajectory(
         Firing times, s.
     xyz : (n, 3) float64
         Points, map frame, m.
+    all_finite : bool
+        Every point and time is known to be finite (as the caller found while extracting
+        them): not checked again.
 
     Returns
     -------
     (n,) bool
     """
-    ok = np.isfinite(t) & finite_rows(xyz)
+    ok = np.ones(t.shape[0], dtype=bool) if all_finite else np.isfinite(t) & finite_rows(xyz)
     ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
     if ok.any():
         ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,

@@ -388,17 +388,17 @@ def _grid_planes(
         median over the grid's blocks.
     """
     _, nu, nv = moments.shape
-    size = nu * nv
     lam2, vec2, ok2, cen2 = kernels.fit_blocks2(moments, min_points, min_spread)
     # Each cell: the best of the four 2x2 blocks containing it.
     plane, cell_ok = kernels.cell_planes(lam2, vec2, cen2, nu, nv)
-    # The cells of the points (not every occupied cell: a grid may reach beyond them).
-    wanted = np.zeros(size, dtype=bool)
-    wanted[iu * nv + iv] = True
+    # The cells of the points that lack a plane (not every occupied cell: a grid may reach
+    # beyond the points).
+    need = kernels.cells_without_plane(iu, iv, nv, cell_ok)
     for radius in (1, 2):
         # (2r+1)^2 blocks centred on the cells that still lack a plane: 3x3 first, then
         # 5x5 (e.g. the newest scan line when nothing beyond it has arrived yet).
-        need = np.flatnonzero(wanted & ~cell_ok)
+        if radius > 1:
+            need = need[~cell_ok[need]]
         if not need.size:
             break
         lam3, vec3, ok3, cen3 = _fit_sums(_centred_sums(moments, need, radius), min_points,

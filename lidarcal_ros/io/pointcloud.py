@@ -286,6 +286,10 @@ class CloudColumns:
     return_number, number_of_returns : (n,) uint8 or None
     time_field : str
         Name of the field ``t`` came from.
+    t_span : (float, float) or None
+        :func:`time_span` of ``t`` when known (found while the columns were extracted).
+    all_finite : bool or None
+        Every ``x, y, z, t`` finite, when known.
     """
 
     xyz: np.ndarray
@@ -295,6 +299,8 @@ class CloudColumns:
     return_number: np.ndarray | None = None
     number_of_returns: np.ndarray | None = None
     time_field: str = "t"
+    t_span: tuple[float, float] | None = None
+    all_finite: bool | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -451,16 +457,19 @@ def extract_columns(
                  if sid_name is not None else None)
     wanted = [*fields, t_field, intensity_field, sid_field]
     n = arr.shape[0]
+    t_span: tuple[float, float] | None = None
+    all_finite: bool | None = None
     if all(f is None or f.dtype.isnative for f in wanted):
         from lidarcal_ros.core import kernels  # (here: see extract_xyz)
 
         xyz, t = np.empty((n, 3)), np.empty(n)
         intensity = np.empty(n if intensity_field is not None else 0, dtype=np.float32)
         strip_id = np.empty(n if sid_field is not None else 0, dtype=np.uint32)
-        kernels.gather_columns(  # one pass over the rows
+        t_lo, t_hi, non_finite = kernels.gather_columns(  # one pass over the rows
             fields[0], fields[1], fields[2], t_field,
             intensity_field if intensity_field is not None else intensity,
             sid_field if sid_field is not None else strip_id, xyz, t, intensity, strip_id)
+        t_span, all_finite = (t_lo, t_hi), non_finite == 0
     else:  # a big-endian cloud (the compiled loop takes native byte order only)
         xyz = _stacked_xyz(fields)
         t = t_field.astype(np.float64)
@@ -474,7 +483,8 @@ def extract_columns(
     if "number_of_returns" in names:
         nr = _column(arr, "number_of_returns", (UINT8, UINT16), np.uint8, source)
     return CloudColumns(xyz, t, intensity if intensity_field is not None else None,
-                        strip_id if sid_field is not None else None, rn, nr, tname)
+                        strip_id if sid_field is not None else None, rn, nr, tname,
+                        t_span=t_span, all_finite=all_finite)
 
 
 def make_point_dtype(

@@ -46,6 +46,7 @@ clouds waiting for their look-ahead and a few grid rows, whatever the mission le
 from __future__ import annotations
 
 import dataclasses
+import functools
 import heapq
 import logging
 import math
@@ -178,16 +179,53 @@ class CorrectionStats:
     rough: int = 0
     seconds: float = 0.0
 
-    def add(self, flags: np.ndarray) -> None:
-        self.points += int(flags.size)
-        if flags.size:
-            counts = kernels.byte_counts(np.ascontiguousarray(flags, dtype=np.uint8))
-            bits = np.arange(counts.size)
-            self.not_corrected += int(counts[(bits & FLAG_NOT_CORRECTED) != 0].sum())
-            self.grazing += int(counts[(bits & FLAG_GRAZING) != 0].sum())
-            self.no_normal += int(counts[(bits & FLAG_NO_NORMAL) != 0].sum())
-            self.no_intensity += int(counts[(bits & FLAG_NO_INTENSITY) != 0].sum())
-            self.rough += int(counts[(bits & FLAG_ROUGH) != 0].sum())
+    def add(self, tally: CloudTally) -> None:
+        """Count a corrected cloud (or several: tallies add up)."""
+        self.points += tally.points
+        self.not_corrected += tally.flagged(FLAG_NOT_CORRECTED)
+        self.grazing += tally.flagged(FLAG_GRAZING)
+        self.no_normal += tally.flagged(FLAG_NO_NORMAL)
+        self.no_intensity += tally.flagged(FLAG_NO_INTENSITY)
+        self.rough += tally.flagged(FLAG_ROUGH)
+
+
+#: Each possible ``correction_flags`` byte, the index of :attr:`CloudTally.counts`.
+_FLAG_BYTES = np.arange(256)
+
+
+@dataclass(frozen=True)
+class CloudTally:
+    """What a corrected cloud holds, counted while it was built (:func:`build_corrected`).
+
+    Attributes
+    ----------
+    counts : (257,) int64
+        ``counts[f]``: the points whose ``correction_flags`` byte is ``f``; ``counts[256]``:
+        the points with a non-finite coordinate (kept from the input: such a point cannot
+        be corrected).
+    """
+
+    counts: np.ndarray
+
+    @classmethod
+    def empty(cls) -> CloudTally:
+        return cls(np.zeros(257, dtype=np.int64))
+
+    @property
+    def points(self) -> int:
+        return int(self.counts[:256].sum())
+
+    @property
+    def dense(self) -> bool:
+        """Every coordinate finite (PointCloud2's ``is_dense``)."""
+        return int(self.counts[256]) == 0
+
+    def flagged(self, mask: int) -> int:
+        """Points with any of the bits of ``mask`` set."""
+        return int(self.counts[:256][(_FLAG_BYTES & mask) != 0].sum())
+
+    def __add__(self, other: CloudTally) -> CloudTally:
+        return CloudTally(self.counts + other.counts)
 
 
 # ---------------------------------------------------------------------------- core
@@ -227,11 +265,12 @@ def served_windows(
     window_s: float = 0.5,
     min_samples: int = 2,
     source: str = "cloud",
+    all_finite: bool = False,
 ) -> tuple[np.ndarray, WindowLines | None]:
     """The points the trajectory can serve
-    (:func:`~lidarcal_ros.core.local_trajectory.served_by_trajectory`) and their
-    local-trajectory lines (None when there are none), flagging the others instead of
-    raising.
+    (:func:`~lidarcal_ros.core.local_trajectory.served_by_trajectory`; ``all_finite``: the
+    caller knows every point and time to be finite) and their local-trajectory lines (None
+    when there are none), flagging the others instead of raising.
 
     Returns
     -------
@@ -241,7 +280,7 @@ def served_windows(
         For the points ``ok`` (in order).
     """
     ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
-                              min_samples=min_samples)
+                              min_samples=min_samples, all_finite=all_finite)
     if not ok.any():
         return ok, None
     try:
@@ -337,6 +376,7 @@ def correct_columns(
     cell_m: tuple[float, float] | None = None,
     normals: GridNormals | None = None,
     source: str = "cloud",
+    all_finite: bool = False,
 ) -> CorrectedColumns:
     """Correct the geometry and compute reflectance of a set of points (module docstring).
 
@@ -366,6 +406,8 @@ def correct_columns(
         ``cell_m`` are not used.
     source : str
         Named in log messages.
+    all_finite : bool
+        Every point and time is known to be finite (the check is skipped).
 
     Returns
     -------
@@ -383,7 +425,8 @@ def correct_columns(
     if n == 0:
         return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags)
     ok, lines = served_windows(t, xyz, trajectory, window_s=settings.window_s,
-                               min_samples=settings.min_samples, source=source)
+                               min_samples=settings.min_samples, source=source,
+                               all_finite=all_finite)
     gn = normals if normals is not None else _fitted_normals(
         xyz, t, trajectory, group=group, context_xyz=context_xyz, context_group=context_group,
         heading=heading, cell_m=cell_m)
@@ -408,6 +451,7 @@ _NO_INTENSITY = np.zeros(0, dtype=np.float32)
 
 
 # ---------------------------------------------------------------------------- clouds
+@functools.lru_cache(maxsize=64)  # (a stream has one or two layouts; each cloud asks)
 def corrected_dtype(dtype: np.dtype[Any]) -> np.dtype[Any]:
     """The layout of a corrected cloud: the input fields at their offsets (minus any named
     like an added one), then :data:`ADDED_FIELDS` (4-byte aligned)."""
@@ -436,7 +480,8 @@ def corrected_dtype(dtype: np.dtype[Any]) -> np.dtype[Any]:
 
 
 def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
-                    b: int | None = None, *, out: np.ndarray | None = None) -> np.ndarray:
+                    b: int | None = None, *, out: np.ndarray | None = None,
+                    tally: CloudTally | None = None) -> np.ndarray:
     """The corrected cloud of ``points`` from rows ``a:b`` of ``res``.
 
     Parameters
@@ -447,6 +492,9 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
         Every byte of it is written: the input's bytes, the added fields and zeros between
         them, so the bytes do not depend on what the buffer held. Its rows must be
         contiguous.
+    tally : CloudTally, optional
+        Counts of the cloud's flags and non-finite points to add to (in the same pass as
+        the rows are written).
     """
     n = len(points)
     b = a + n if b is None else b
@@ -459,6 +507,7 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
     if n == 0:
         return out
     points = np.ascontiguousarray(points)
+    counts = tally.counts if tally is not None else np.zeros(257, dtype=np.int64)
     if points.dtype.itemsize % 4 == 0:
         # The usual layout: one compiled pass row by row instead of nine over the output.
         kernels.fill_corrected_rows(
@@ -467,8 +516,11 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
             out["x"], out["y"], out["z"], res.xyz[a:b], out["reflectance"], out["range"],
             out["incidence"], out["scan_angle"], out["correction_flags"],
             res.reflectance[a:b], res.range[a:b], res.incidence[a:b], res.scan_angle[a:b],
-            res.flags[a:b])
+            res.flags[a:b], counts)
         return out
+    if tally is not None:
+        counts[:256] += kernels.byte_counts(np.ascontiguousarray(res.flags[a:b]))
+        counts[256] += int(np.count_nonzero(~np.isfinite(res.xyz[a:b]).all(axis=1)))
     if not fresh:
         # A used buffer: zero the added part of each row (whole 8-byte words; the row size
         # is a multiple of 8) before the input's bytes go in front of it.
@@ -606,8 +658,9 @@ def _job_columns(msgs: list[_Message]
     return xyz, t, inten
 
 
-def _run_job(job: _Job, source: str) -> tuple[list[np.ndarray], np.ndarray, float]:
-    """Correct one batch of clouds: the corrected clouds, the flags, seconds spent."""
+def _run_job(job: _Job, source: str
+             ) -> tuple[list[np.ndarray], list[CloudTally], float]:
+    """Correct one batch of clouds: the corrected clouds, their tallies, seconds spent."""
     started = time.perf_counter()
     msgs = job.messages
     whole = _whole_normals(job)
@@ -629,16 +682,19 @@ def _run_job(job: _Job, source: str) -> tuple[list[np.ndarray], np.ndarray, floa
                          np.concatenate([r if r is not None else np.zeros(len(m), bool)
                                          for r, m in zip(rough, msgs, strict=True)]))
     res = correct_columns(xyz, t, inten, job.trajectory, job.settings, normals=gn,
-                          source=source)
+                          source=source,
+                          all_finite=all(m.columns.all_finite for m in msgs))
     out: list[np.ndarray] = []
+    tallies: list[CloudTally] = []
     a = 0
     for m in msgs:
         b = a + len(m)
         where = (job.place(m.tag, len(m), corrected_dtype(m.points.dtype))
                  if job.place is not None else None)
-        out.append(build_corrected(m.points, res, a, b, out=where))
+        tallies.append(CloudTally.empty())
+        out.append(build_corrected(m.points, res, a, b, out=where, tally=tallies[-1]))
         a = b
-    return out, res.flags, time.perf_counter() - started
+    return out, tallies, time.perf_counter() - started
 
 
 class StreamCorrector:
@@ -669,6 +725,9 @@ class StreamCorrector:
         Called for each cloud of a batch whose correction raised (a bug, not bad input:
         malformed clouds are refused by :meth:`push`); the stream goes on with the next
         batch. Without it the exception propagates, and the clouds of that batch are lost.
+    keep_tallies : bool
+        Keep the :class:`CloudTally` of each corrected cloud in :attr:`tallies`, by tag,
+        for the caller to take (tags must then be unique).
 
     Notes
     -----
@@ -693,8 +752,11 @@ class StreamCorrector:
         source: str = "cloud",
         place: OutputPlacer | None = None,
         on_failed: Callable[[Any, Exception], None] | None = None,
+        keep_tallies: bool = False,
     ) -> None:
         self.trajectory = trajectory
+        self.keep_tallies = keep_tallies
+        self.tallies: dict[Any, CloudTally] = {}
         self.place = place
         self.on_failed = on_failed
         self.settings = settings
@@ -859,7 +921,8 @@ class StreamCorrector:
             for strip_id, idx in m.strip_parts:
                 xyz = cols.xyz if idx is None else cols.xyz[idx]
                 t = cols.t if idx is None else cols.t[idx]
-                t_lo, t_hi = time_span(t)
+                t_lo, t_hi = (cols.t_span if idx is None and cols.t_span is not None
+                              else time_span(t))
                 heading = trajectory_heading(self.trajectory, 0.5 * (t_lo + t_hi))
                 strip = self._strips.get(strip_id)
                 if strip is not None and self._strip_ended(strip, heading, t_lo):
@@ -975,12 +1038,16 @@ class StreamCorrector:
         for tag in tags:
             self.on_failed(tag, exc)
 
-    def _account(self, tags: list[Any], result: tuple[list[np.ndarray], np.ndarray, float],
+    def _account(self, tags: list[Any],
+                 result: tuple[list[np.ndarray], list[CloudTally], float],
                  out: list[tuple[Any, np.ndarray]]) -> None:
-        clouds, flags, seconds = result
+        clouds, tallies, seconds = result
         self.stats.clouds += len(clouds)
         self.stats.seconds += seconds
-        self.stats.add(flags)
+        for tag, tally in zip(tags, tallies, strict=True):
+            self.stats.add(tally)
+            if self.keep_tallies:
+                self.tallies[tag] = tally
         out.extend(zip(tags, clouds, strict=True))
 
 

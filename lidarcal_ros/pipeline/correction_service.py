@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.allocator import tune_allocator
-from lidarcal_ros.core import kernels
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import point_fields
@@ -43,7 +42,6 @@ from lidarcal_ros.io.ros_messages import (
     cloud_cdr,
     cloud_cdr_parts,
     cloud_header_cdr,
-    is_dense_byte,
     parse_cloud,
 )
 from lidarcal_ros.io.shared_ring import SharedRing
@@ -106,12 +104,14 @@ class _Corrected:
     frame_id: str
     points: np.ndarray
     not_corrected: int
+    dense: bool  # every coordinate finite
     seconds: float
 
     def cdr_parts(self) -> tuple[bytes, memoryview, bytes]:
         """The message's CDR bytes in parts (:func:`~lidarcal_ros.io.ros_messages.
         cloud_cdr_parts`)."""
-        return cloud_cdr_parts(self.stamp_ns, self.frame_id, self.points)
+        return cloud_cdr_parts(self.stamp_ns, self.frame_id, self.points,
+                               is_dense=self.dense)
 
 
 #: ``placer(tag, stamp_ns, frame_id, n, dtype)``: where to build a corrected cloud (the
@@ -133,7 +133,7 @@ class _Engine:
             self.trajectory.trajectory(), settings, batch_points=options.batch_points,
             workers=options.workers, lookahead=options.lookahead, source=options.source,
             place=self._place if placer is not None else None,
-            on_failed=self._failed if on_failed is not None else None)
+            on_failed=self._failed if on_failed is not None else None, keep_tallies=True)
         self._headers: dict[Any, tuple[int, str, float]] = {}
 
     def _failed(self, tag: Any, exc: Exception) -> None:
@@ -185,10 +185,12 @@ class _Engine:
 
     def _finish(self, out: list[tuple[Any, np.ndarray]]) -> list[_Corrected]:
         done = []
+        tallies = self.corrector.tallies
         for tag, corrected in out:
             stamp, frame, started = self._headers.pop(tag)
-            bad = kernels.count_bits(corrected["correction_flags"], FLAG_NOT_CORRECTED)
-            done.append(_Corrected(tag, stamp, frame, corrected, bad,
+            tally = tallies.pop(tag)
+            done.append(_Corrected(tag, stamp, frame, corrected,
+                                   tally.flagged(FLAG_NOT_CORRECTED), tally.dense,
                                    time.perf_counter() - started))
         return done
 
@@ -479,7 +481,7 @@ class _ResultSender:
             if placed is not None:
                 assert self._ring is not None
                 offset, start, size = placed
-                self._ring.write(start + size - 1, [is_dense_byte(r.points)])
+                self._ring.write(start + size - 1, [b"\x01" if r.dense else b"\x00"])
             else:
                 parts = list(r.cdr_parts())
                 offset, start, size = self._copy_into_ring(parts)
