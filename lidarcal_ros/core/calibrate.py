@@ -176,6 +176,7 @@ class CalibrationResult:
     n_control_correspondences: int
     history: list[np.ndarray]
     dropped_non_finite: int = 0
+    thinned_points: int = 0  # left out by calibration.thinning_cell_m
 
 
 def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -259,6 +260,7 @@ class Calibrator:
         self.delta = np.zeros(N_PARAMETERS)
         self.threshold = settings.max_normal_distance_m
         self.dropped_non_finite = 0
+        self.thinned_points = 0
         self.normal_equations = NormalEquations()
         self._restored = Observations.empty()
         self._restored_delta = np.zeros(N_PARAMETERS)
@@ -274,6 +276,7 @@ class Calibrator:
             raise CalibrationError("mission has no strips")
         cal = cls(settings, control=mission.control, progress=progress)
         cal.dropped_non_finite = mission.dropped_non_finite
+        cal.thinned_points = mission.thinned_points
         for k, strip in enumerate(mission.strips):
             cal.add_strip(strip, mission.trajectory)
             cal._progress("local trajectories", (k + 1) / len(mission.strips))
@@ -789,7 +792,7 @@ class Calibrator:
             control=residuals, n_pair_correspondences=int(np.count_nonzero(
                 (obs.group >= 0) & (obs.weights > 0))),
             n_control_correspondences=n_ctrl, history=history,
-            dropped_non_finite=self.dropped_non_finite,
+            dropped_non_finite=self.dropped_non_finite, thinned_points=self.thinned_points,
         )
 
 

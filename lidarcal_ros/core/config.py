@@ -92,6 +92,10 @@ SCHEMA: dict[str, ParameterSpec] = {
                                      "strip-pair one", 0.0, 1e6),
     "calibration.max_correlation": _f(0.999, "Above this |correlation| two parameters are "
                                       "reported as not separable", 0.5, 1.0),
+    "calibration.thinning_cell_m": _f(
+        0.0, "Keep one point per square cell of this size (m) of the map per strip and cloud "
+        "before calibrating (bounds memory and work for dense sensors; about 0.5 for tens of "
+        "points per square metre); 0 keeps every point", 0.0, 100.0),
     "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
                                                   "Where ~/save writes the calibration"),
     "matching.trajectory_window_s": _f(0.5, "Half-width of the local-trajectory window, s",

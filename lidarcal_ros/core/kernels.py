@@ -1269,3 +1269,123 @@ def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> 
         out[i, 0] = x[i]
         out[i, 1] = y[i]
         out[i, 2] = z[i]
+
+
+@njit(inline="always", **_OPTIONS)
+def _cell_slot(u: int, v: int, g: int, mask: int) -> int:
+    """Home slot of cell ``(u, v)`` of group ``g`` in a table of ``mask + 1`` slots."""
+    h = (u * np.int64(-7046029254386353131) + v * np.int64(3266489917)
+         + g * np.int64(668265263))
+    return int((h ^ (h >> 29)) & mask)
+
+
+@_jit
+def first_in_cells(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: float,
+                   valid: np.ndarray) -> np.ndarray:
+    """Which points are the first (in order) of their ``(group, floor(x / cell),
+    floor(y / cell))`` cell among the ``valid`` ones: an open-addressing hash table of the
+    cells met (grown as they come, so that it stays the size of the cells, which fit in
+    cache, not of the points), whatever their extent (``np.unique`` of the keys, with
+    ``return_index``, sorts them instead).
+
+    Parameters
+    ----------
+    x, y : (n,) float64
+        Map coordinates, m.
+    group : (n,) integer
+        Points of different groups (strips) never share a cell.
+    inv_cell : float
+        ``1 / cell``, 1/m.
+    valid : (n,) bool
+        Points that may be kept (invalid ones are neither kept nor occupy a cell).
+
+    Returns
+    -------
+    (n,) bool
+    """
+    n = x.shape[0]
+    size = 1024
+    mask = size - 1
+    used = np.zeros(size, dtype=np.bool_)
+    keys = np.empty((size, 3), dtype=np.int64)
+    count = 0
+    keep = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        if not valid[i]:
+            continue
+        u = np.int64(math.floor(x[i] * inv_cell))
+        v = np.int64(math.floor(y[i] * inv_cell))
+        g = np.int64(group[i])
+        slot = _cell_slot(u, v, g, mask)
+        while used[slot] and not (keys[slot, 0] == u and keys[slot, 1] == v
+                                  and keys[slot, 2] == g):
+            slot = (slot + 1) & mask
+        if used[slot]:
+            continue
+        used[slot] = True
+        keys[slot, 0], keys[slot, 1], keys[slot, 2] = u, v, g
+        keep[i] = True
+        count += 1
+        if 2 * count > size:  # half full: twice the slots, every cell placed again
+            old_used, old_keys = used, keys
+            size *= 2
+            mask = size - 1
+            used = np.zeros(size, dtype=np.bool_)
+            keys = np.empty((size, 3), dtype=np.int64)
+            for k in range(old_used.shape[0]):
+                if old_used[k]:
+                    su, sv, sg = old_keys[k, 0], old_keys[k, 1], old_keys[k, 2]
+                    slot = _cell_slot(su, sv, sg, mask)
+                    while used[slot]:
+                        slot = (slot + 1) & mask
+                    used[slot] = True
+                    keys[slot, 0], keys[slot, 1], keys[slot, 2] = su, sv, sg
+    return keep
+
+
+@_jit
+def first_in_grid(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: float,
+                  valid: np.ndarray, max_cells: int) -> tuple[bool, np.ndarray]:
+    """:func:`first_in_cells` for the usual cloud: one group, over few enough cells (at
+    most ``max_cells`` in the box of its points) for a flag per cell of that box, set in
+    scan order, where the hash table costs a scattered lookup per point.
+
+    Returns
+    -------
+    done : bool
+        False when the cloud is not such a cloud (several groups, too wide a box, nothing
+        valid): use :func:`first_in_cells`.
+    keep : (n,) bool
+    """
+    n = x.shape[0]
+    keep = np.zeros(n, dtype=np.bool_)
+    u_lo = v_lo = np.int64(2 ** 62)
+    u_hi = v_hi = -np.int64(2 ** 62)
+    g0 = np.int64(0)
+    seen = False
+    for i in range(n):
+        if not valid[i]:
+            continue
+        g = np.int64(group[i])
+        if not seen:
+            g0 = g
+            seen = True
+        elif g != g0:
+            return False, keep
+        u = np.int64(math.floor(x[i] * inv_cell))
+        v = np.int64(math.floor(y[i] * inv_cell))
+        u_lo, u_hi = min(u_lo, u), max(u_hi, u)
+        v_lo, v_hi = min(v_lo, v), max(v_hi, v)
+    if not seen or (u_hi - u_lo + 1) > max_cells // (v_hi - v_lo + 1):
+        return False, keep
+    nv = v_hi - v_lo + 1
+    taken = np.zeros((u_hi - u_lo + 1) * nv, dtype=np.bool_)
+    for i in range(n):
+        if not valid[i]:
+            continue
+        k = ((np.int64(math.floor(x[i] * inv_cell)) - u_lo) * nv
+             + np.int64(math.floor(y[i] * inv_cell)) - v_lo)
+        if not taken[k]:
+            taken[k] = True
+            keep[i] = True
+    return True, keep

@@ -106,6 +106,8 @@ class Mission:
     control: ControlPoints | None = None
     frame_id: str = "map"
     dropped_non_finite: int = 0
+    #: Points left out by the thinning of ``calibration.thinning_cell_m``.
+    thinned_points: int = 0
 
     @property
     def n_points(self) -> int:

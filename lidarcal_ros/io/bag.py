@@ -11,6 +11,7 @@ seconds on the same clock. Coordinates are metres in the map frame (``header.fra
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import itertools
 import logging
@@ -44,8 +45,10 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.store import Typestore
 
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
+from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError
 from lidarcal_ros.io.pointcloud import (
+    CloudColumns,
     array_to_cloud_parts,
     cloud_to_array,
     extract_columns,
@@ -544,6 +547,7 @@ def read_mission(
     trajectory_topic: str = "/lidar/trajectory",
     control_topic: str | None = "/lidar/control_points",
     time_field: str = "t",
+    thinning_cell_m: float = 0.0,
 ) -> Mission:
     """Read a mission bag into memory.
 
@@ -562,6 +566,10 @@ def read_mission(
         when absent from the bag or None.
     time_field : str, keyword-only
         Time field of the clouds (see :func:`~lidarcal_ros.io.pointcloud.extract_columns`).
+    thinning_cell_m : float, keyword-only
+        Keep only the first point of each square cell of this size (m) per strip in each
+        cloud (:mod:`lidarcal_ros.core.thinning`; counted in ``thinned_points``); 0 keeps
+        every point.
 
     Returns
     -------
@@ -594,7 +602,7 @@ def read_mission(
             _expect_type(bag, control_topic, (POINTCLOUD2,))
         wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
 
-        acc = _CloudAccumulator(points_topic, time_field)
+        acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m)
         traj_t: list[float] = []
         traj_xyz: list[tuple[float, float, float]] = []
         traj_frames: set[str] = set()
@@ -627,7 +635,7 @@ def read_mission(
     if dropped:
         logger.warning("%s: dropped %d points with non-finite x, y, z or t", path, dropped)
     trajectory = Trajectory.from_samples(np.asarray(traj_t), np.asarray(traj_xyz))
-    return Mission(trajectory, strips, control, frame, dropped)
+    return Mission(trajectory, strips, control, frame, dropped, acc.thinned)
 
 
 def _expect_type(bag: BagReader, topic: str, types: Sequence[str]) -> None:
@@ -683,9 +691,11 @@ class _CloudAccumulator:
     strip keeps such a column only if every one of its points had it.
     """
 
-    def __init__(self, topic: str, time_field: str) -> None:
+    def __init__(self, topic: str, time_field: str, thinning_cell_m: float = 0.0) -> None:
         self.topic = topic
         self.time_field = time_field
+        self.thinning_cell_m = float(thinning_cell_m)
+        self.thinned = 0
         self.frames: set[str] = set()
         self.xyz: list[np.ndarray] = []
         self.t: list[np.ndarray] = []
@@ -704,9 +714,13 @@ class _CloudAccumulator:
                 f"{self.topic}: cloud lacks field 'strip_id' (or 'point_source_id'); "
                 f"fields present: {', '.join(arr.dtype.names or ())}"
             )
+        if self.thinning_cell_m > 0:
+            cols, arr = self._thinned(cols, arr)
+        strip_id = cols.strip_id
+        assert strip_id is not None  # (checked above; thinning keeps it)
         self.xyz.append(cols.xyz)
         self.t.append(cols.t)
-        self.sid.append(cols.strip_id)
+        self.sid.append(strip_id)
         if cols.intensity is not None:
             self.optional.setdefault("intensity", {})[index] = cols.intensity
         names = arr.dtype.names or ()
@@ -719,6 +733,28 @@ class _CloudAccumulator:
             self.optional.setdefault("extra:" + name, {})[index] = col.astype(
                 col.dtype.newbyteorder("=")
             )
+
+    def _thinned(self, cols: CloudColumns, arr: np.ndarray
+                 ) -> tuple[CloudColumns, np.ndarray]:
+        """The cloud's points thinned (:func:`~lidarcal_ros.core.thinning.first_per_cell`
+        among the finite ones, as the calibrator node does); the non-finite ones stay, to be
+        dropped and counted with the others."""
+        assert cols.strip_id is not None
+        finite = np.isfinite(cols.xyz).all(axis=1) & np.isfinite(cols.t)
+        keep = first_per_cell(cols.xyz, cols.strip_id, self.thinning_cell_m, valid=finite)
+        keep |= ~finite
+        left_out = int(keep.size - np.count_nonzero(keep))
+        if not left_out:
+            return cols, arr
+        self.thinned += left_out
+        return dataclasses.replace(
+            cols, xyz=cols.xyz[keep], t=cols.t[keep], strip_id=cols.strip_id[keep],
+            intensity=cols.intensity[keep] if cols.intensity is not None else None,
+            return_number=(cols.return_number[keep] if cols.return_number is not None
+                           else None),
+            number_of_returns=(cols.number_of_returns[keep]
+                               if cols.number_of_returns is not None else None),
+            t_span=None, all_finite=None), arr[keep]
 
     def _optional_column(
         self, name: str, parts: dict[int, np.ndarray]

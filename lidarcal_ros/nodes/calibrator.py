@@ -477,11 +477,17 @@ class CalibratorNode(Node):
         dropped = s.dropped_points
         mem_level = WARN if dropped else OK
         mem_msg = f"{s.n_points} points held of a budget of {s.max_points}"
+        cell = float(self.params["calibration.thinning_cell_m"])
+        if s.thinned_points:
+            mem_msg += f" ({s.thinned_points} left out by thinning)"
         if dropped:
             mem_msg += (f"; released {dropped} points (strips "
                         f"{', '.join(str(i) for i in s.dropped_strips)}), oldest first")
+            if cell <= 0:
+                mem_msg += "; calibration.thinning_cell_m would keep more strips"
         out = [StatusSpec(mem_level, "lidarcal: memory", mem_msg, {
             "points_held": str(s.n_points), "budget_points": str(s.max_points),
+            "thinned_points": str(s.thinned_points), "thinning_cell_m": f"{cell:g}",
             "dropped_points": str(dropped),
             "dropped_strips": ",".join(str(i) for i in s.dropped_strips),
             "strips": ",".join(str(i) for i in s.strip_ids),

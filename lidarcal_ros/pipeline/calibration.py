@@ -43,6 +43,7 @@ def load_mission(
         trajectory_topic=config["topics.trajectory"],
         control_topic=config["topics.control_points"],
         time_field=config["time_field"],
+        thinning_cell_m=config["calibration.thinning_cell_m"],
     )
     csv = control_csv or config["calibration.control_points_file"] or None
     if csv:
@@ -137,6 +138,10 @@ def format_report(
         lines.append(f"warning: {w}")
     if result.dropped_non_finite:
         lines.append(f"dropped {result.dropped_non_finite} points with non-finite values")
+    if result.thinned_points:
+        cell = config["calibration.thinning_cell_m"]
+        lines.append(f"thinned to one point per {cell:g} m cell per strip and cloud: "
+                     f"{result.thinned_points} points left out")
     warn = config["qa.rmsdz_warn_m"]
     error = config["qa.max_difference_m"]
     lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS before':>11} "

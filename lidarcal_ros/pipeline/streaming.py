@@ -25,6 +25,7 @@ from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.local_trajectory import served_by_trajectory
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
+from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import CalibrationError, InputError, TrajectoryError
 from lidarcal_ros.io.pointcloud import CloudColumns
 
@@ -91,6 +92,8 @@ class StreamingCalibration:
         self.dropped_points = 0
         self.dropped_strips: list[int] = []
         self.dropped_non_finite = 0
+        #: Points left out by the thinning of ``calibration.thinning_cell_m``.
+        self.thinned_points = 0
         self.latest: CalibrationResult | None = None
         self.waiting_for = "no strip complete yet"
         self.normal_equations = NormalEquations()
@@ -144,6 +147,11 @@ class StreamingCalibration:
         self.dropped_non_finite += int((~ok).sum())
         if not ok.any():
             return
+        cell = float(self.config["calibration.thinning_cell_m"])
+        if cell > 0:  # (among the finite points, in order: as lidarcal calibrate reads a bag)
+            thin = first_per_cell(columns.xyz[ok], columns.strip_id[ok], cell)
+            self.thinned_points += int(thin.size - np.count_nonzero(thin))
+            ok[ok] = thin
         ids = columns.strip_id[ok]
         xyz, t = columns.xyz[ok], columns.t[ok]
         inten = columns.intensity[ok] if columns.intensity is not None else None
@@ -305,6 +313,7 @@ class StreamingCalibration:
     def _solve(self, *, max_iterations: int | None,
                new_pairs_only: bool = False) -> CalibrationResult:
         self._calibrator.dropped_non_finite = self.dropped_non_finite
+        self._calibrator.thinned_points = self.thinned_points
         result = self._calibrator.run(max_iterations=max_iterations,
                                       new_pairs_only=new_pairs_only)
         self.latest = result
@@ -319,6 +328,7 @@ class StreamingCalibration:
         self.dropped_points = 0
         self.dropped_strips = []
         self.dropped_non_finite = 0
+        self.thinned_points = 0
         self.latest = None
         self.normal_equations = NormalEquations()
         self._traj_t, self._traj_xyz, self._trajectory = [], [], None
@@ -348,7 +358,8 @@ class StreamingCalibration:
             "traj_xyz": np.concatenate(self._traj_xyz) if self._traj_xyz else np.empty((0, 3)),
             "delta": self._calibrator.delta,
             "threshold": np.array(self._calibrator.threshold),
-            "counters": np.array([self.dropped_points, self.dropped_non_finite]),
+            "counters": np.array([self.dropped_points, self.dropped_non_finite,
+                                  self.thinned_points]),
             "uncovered_points": np.array(self.uncovered_points),
             "uncovered_strips": np.array(self.uncovered_strips, dtype=np.int64),
             "rejected_ids": np.array([i for i, _ in self.rejected_strips], dtype=np.int64),
@@ -418,7 +429,10 @@ class StreamingCalibration:
             if data["traj_t"].size:
                 self._traj_t = [data["traj_t"]]
                 self._traj_xyz = [data["traj_xyz"]]
-            self.dropped_points, self.dropped_non_finite = (int(v) for v in data["counters"])
+            counters = [int(v) for v in data["counters"]]
+            self.dropped_points, self.dropped_non_finite = counters[:2]
+            if len(counters) > 2:  # (checkpoints of earlier versions lack it)
+                self.thinned_points = counters[2]
             if "uncovered_points" in data:  # (checkpoints of earlier versions lack them)
                 self.uncovered_points = int(data["uncovered_points"])
                 self.uncovered_strips = [int(v) for v in data["uncovered_strips"]]
