@@ -43,7 +43,7 @@ def calibrate(bag: str, cell: float, work: Path) -> dict[str, Any]:
     out = work / f"calibration_{cell:g}.yaml"
     log = work / f"calibrate_{cell:g}.log"
     res = run_child([PYTHON, "-m", "lidarcal_ros", "calibrate", bag, "--config", str(config),
-                     "-o", str(out), "--overwrite"], log=log)
+                     "-o", str(out)], log=log)
     if res["rc"] != 0:
         raise SystemExit(f"lidarcal calibrate (cell {cell:g} m) failed:\n{tail(log)}")
     text = log.read_text(errors="replace")
