@@ -234,6 +234,25 @@ def test_clouds_without_intensity_report_no_radiometry(reported: Reported) -> No
     assert 'id="fig-vmr-slope"' not in text and 'id="fig-reflectance-map"' not in text
 
 
+def test_a_thinned_report_uses_and_says_the_calibration_s_thinning(reported: Reported
+                                                                     ) -> None:
+    """With ``calibration.thinning_cell_m`` the report reads the points as the calibration
+    does (the same sample points) and says how many were left out."""
+    from lidarcal_ros.pipeline.calibration import load_mission
+
+    files = reported.mission
+    config = load_flight_config(files.fast_config).with_values(
+        calibration__thinning_cell_m=2.0)
+    thinned = load_mission(files.bag, config)
+    assert 0 < thinned.thinned_points < files.mission.n_points
+    content = build_report(files.bag, reported.calibration, config,
+                           control_csv=files.control_csv)
+    facts = dict(content.facts)
+    assert facts["points thinned"].startswith(f"{thinned.thinned_points} left out")
+    assert f"{thinned.n_points} points" in facts["mission"]
+    assert "points thinned" not in dict(reported.content.facts)
+
+
 # ------------------------------------------------------------------ the HTML file
 def test_html_is_one_self_contained_file(reported: Reported) -> None:
     text = reported.html.read_text(encoding="utf-8")

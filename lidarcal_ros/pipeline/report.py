@@ -419,6 +419,11 @@ def report_mission(
     if mission.dropped_non_finite:
         summary.append(("points dropped", f"{mission.dropped_non_finite} with non-finite "
                                           "values"))
+    if mission.thinned_points:
+        summary.append(("points thinned", (
+            f"{mission.thinned_points} left out: one point per "
+            f"{config['calibration.thinning_cell_m']:g} m cell per strip and cloud, as the "
+            "calibration")))
     starts = [np.nanmin(s.xyz[:, :2], axis=0) for s in mission.strips if len(s)]
     corner = np.nanmin(starts, axis=0) if starts else np.zeros(2)
     origin = (float(np.floor(corner[0] / 100.0) * 100.0),
