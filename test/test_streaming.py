@@ -11,7 +11,7 @@ import pytest
 from lidarcal_ros.core.calibrate import calibrate
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
-from lidarcal_ros.errors import InputError
+from lidarcal_ros.errors import CalibrationError, InputError
 from lidarcal_ros.io.pointcloud import CloudColumns
 from lidarcal_ros.pipeline.streaming import StreamingCalibration
 
@@ -188,3 +188,14 @@ def test_a_trajectory_joined_late_costs_only_the_points_it_misses(
         assert stream.uncovered_strips == [1] and stream.strip_ids == ids[1:]
         assert all(1 not in (p.strip_a, p.strip_b) for p in result.pairs)
     assert result.pairs and result.solution.sigma0 > 0
+
+
+def test_the_default_memory_budget_is_half_the_machine_s_memory() -> None:
+    from lidarcal_ros.pipeline.streaming import BYTES_PER_HELD_POINT, default_point_budget
+
+    assert default_point_budget(16 << 30) == int(0.5 * (16 << 30) / BYTES_PER_HELD_POINT)
+    stream = StreamingCalibration(FlightConfig())
+    assert stream.max_points == default_point_budget() > 1_000_000
+    assert StreamingCalibration(FlightConfig(), max_points=5).max_points == 5
+    with pytest.raises(CalibrationError, match="positive"):
+        StreamingCalibration(FlightConfig(), max_points=0)

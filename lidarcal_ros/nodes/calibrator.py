@@ -33,7 +33,8 @@ Services (``std_srvs/Trigger``)
     calibration file to ``calibration.calibration_file``; the message names the path.
 
 Node-specific parameters: ``memory_budget_points`` (points held; past it the oldest complete
-strip is released first and reported), ``strip_gap_s``, ``idle_close_s``, ``checkpoint_file``
+strip is released first and reported; 0, the default, sizes it to about half of the machine's
+memory), ``strip_gap_s``, ``idle_close_s``, ``checkpoint_file``
 (written after every solve and on shutdown; read at start, so a restarted calibrator resumes
 with its accumulated normal equations), ``queue_depth``, ``trajectory_type``.
 
@@ -97,9 +98,10 @@ from lidarcal_ros.nodes.common import (
 )
 
 EXTRA_PARAMETERS = {
-    "memory_budget_points": NodeParameter(50_000_000, "Points held for the calibration; past "
-                                          "it the oldest complete strip is released first",
-                                          minimum=1, maximum=2**40),
+    "memory_budget_points": NodeParameter(0, "Points held for the calibration; past it the "
+                                          "oldest complete strip is released first (0: about "
+                                          "half of this machine's memory, at some 700 bytes "
+                                          "a point)", minimum=0, maximum=2**40),
     "strip_gap_s": NodeParameter(2.0, "Seconds of point time without a point of a strip after "
                                  "which the strip is complete", minimum=0.0, maximum=3600.0),
     "idle_close_s": NodeParameter(2.0, "Wall seconds without any input after which every "
@@ -122,6 +124,13 @@ def streaming_class() -> Any:
     from lidarcal_ros.pipeline.streaming import StreamingCalibration
 
     return StreamingCalibration
+
+
+def _point_budget(value: Any) -> int:
+    """``memory_budget_points`` as points (0: this machine's default)."""
+    from lidarcal_ros.pipeline.streaming import default_point_budget
+
+    return int(value) if int(value) > 0 else default_point_budget()
 
 
 class CalibratorNode(Node):
@@ -182,7 +191,7 @@ class CalibratorNode(Node):
     # -- state -------------------------------------------------------------------------
     def _start_stream(self, cfg: FlightConfig) -> Any:
         cls = streaming_class()
-        kwargs = {"max_points": int(self.params["memory_budget_points"]),
+        kwargs = {"max_points": _point_budget(self.params["memory_budget_points"]),
                   "strip_gap_s": float(self.params["strip_gap_s"])}
         path = self.params["checkpoint_file"]
         if path and Path(path).is_file():
@@ -344,7 +353,7 @@ class CalibratorNode(Node):
         if kind == "extra":
             name, value = payload
             if name == "memory_budget_points":
-                self.stream.max_points = int(value)
+                self.stream.max_points = _point_budget(value)
             elif name == "strip_gap_s":
                 self.stream.strip_gap_s = float(value)
             return None
