@@ -382,6 +382,28 @@ def test_simulate_writes_and_refuses_overwrite(capsys, tmp_path):
     assert rc == 0, err
 
 
+@pytest.mark.parametrize(("wind", "reason"), [
+    ("5,x", "--wind: expected E,N in m/s, got '5,x'"),
+    ("1,2,3", "--wind: expected E,N in m/s"),
+    ("40,0", "crosswind of 40.0 m/s is too strong"),
+])
+def test_simulate_bad_wind_is_one_line(capsys, tmp_path, wind, reason):
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "sim", "--scenario", "one_track",
+                     "--density", "0.05", "--line-length", "100", "--wind", wind)
+    assert reason in one_line_error(rc, err, command="simulate")
+    assert not (tmp_path / "sim").exists()
+
+
+def test_simulate_with_wind_says_the_crab_in_its_truth(capsys, tmp_path):
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "sim", "--scenario", "one_track",
+                     "--density", "0.05", "--line-length", "100", "--wind", "3,0")
+    assert rc == 0, err
+    simulation = yaml.safe_load((tmp_path / "sim_truth.yaml").read_text())["simulation"]
+    assert simulation["wind_mps"] == [3.0, 0.0]
+    crab = math.degrees(math.asin(3.0 / 60.0))  # north-south lines: all of it is crosswind
+    assert sorted(simulation["crab_deg"].values()) == pytest.approx([-crab, -crab, crab, crab])
+
+
 def test_simulate_refuses_existing_bag_subprocess(tmp_path):
     (tmp_path / "sim").mkdir()
     proc = run_process("simulate", "-o", "sim", "--scenario", "one_track", "--density", "0.05",

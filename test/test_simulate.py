@@ -299,6 +299,32 @@ def test_trajectory_noise_only_on_samples():
     np.testing.assert_allclose(np.diff(a.mission.trajectory.t), 1 / 50.0, atol=1e-6)
 
 
+def test_a_crosswind_crabs_the_sensor_into_the_wind_and_the_points_stay_true() -> None:
+    """The heading of the sensor is the track's plus the crab, opposite on opposite lines;
+    the system georeferences with it, so without biases the points are still the true
+    points, while the trajectory keeps flying the track."""
+    lines = [{"id": 1, "start": (0.0, -100.0), "end": (0.0, 100.0), "height": 1150.0},
+             {"id": 2, "start": (0.0, 100.0), "end": (0.0, -100.0), "height": 1150.0}]
+    sim = simulate_mission(lines=lines, biases=ZERO, range_noise_m=0.0, density=0.2,
+                           n_control=0, seed=1, wind_mps=(5.0, 0.0))
+    crab = math.degrees(math.asin(5.0 / 60.0))
+    # flying north with the air moving east: the nose turns west (left, a larger kappa)
+    assert [ln["crab_deg"] for ln in sim.lines] == pytest.approx([crab, -crab])
+    for strip, true in zip(sim.mission.strips, sim.true_xyz, strict=True):
+        np.testing.assert_allclose(strip.xyz, true, rtol=0, atol=1e-6)
+    # the scan line is turned with the nose: each return lies on a beam from the firing
+    # point (on the track, x = 0, flying north at 60 m/s) whose horizontal part points along
+    # the sensor's right axis, (cos kappa, sin kappa): y - y_o = x tan(crab)
+    x, y = sim.true_xyz[0][:, 0], sim.true_xyz[0][:, 1]
+    t = sim.mission.strips[0].t
+    along = y - 60.0 * (t - t[0])
+    assert np.ptp(along - x * math.tan(math.radians(crab))) < 1e-4  # (t near 1.7e9 s)
+    assert np.ptp(along) > 50.0  # (what no crab would give: 0)
+    np.testing.assert_allclose(sim.mission.trajectory.xyz[:, 0], 0.0, atol=1e-9)
+    with pytest.raises(ConfigError, match="crosswind"):
+        simulate_mission(lines=lines, density=0.2, wind_mps=(40.0, 0.0))
+
+
 def test_bad_options_raise():
     with pytest.raises(ConfigError):
         simulate_mission(scenario="nope")

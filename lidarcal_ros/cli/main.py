@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from lidarcal_ros import __version__
-from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.errors import ConfigError, LidarcalError
 
 logger = logging.getLogger("lidarcal")
 
@@ -58,21 +58,30 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--control", type=int, default=1, help="number of control points")
     p.add_argument("--origin", default="0,0",
                    help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")
+    p.add_argument("--wind", default="0,0",
+                   help="E,N m/s where the air moves: the sensor flies crabbed into the "
+                   "crosswind, a heading the trajectory does not show (default 0,0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_simulate)
 
 
+def _two_numbers(text: str, option: str, what: str) -> tuple[float, float]:
+    """``A,B`` of an option as two floats (ConfigError naming the option otherwise)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"{option}: expected {what}, got '{text}'") from None
+    if len(values) != 2:
+        raise ConfigError(f"{option}: expected {what}, got '{text}'")
+    return values[0], values[1]
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from lidarcal_ros.core.simulate import simulate_mission
-    from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.pipeline.calibration import parse_biases, write_simulation
 
-    try:
-        origin = tuple(float(v) for v in args.origin.split(","))
-    except ValueError:
-        raise ConfigError(f"--origin: expected X,Y, got '{args.origin}'") from None
-    if len(origin) != 2:
-        raise ConfigError(f"--origin: expected X,Y, got '{args.origin}'")
+    origin = _two_numbers(args.origin, "--origin", "X,Y")
+    wind = _two_numbers(args.wind, "--wind", "E,N in m/s")
     if not args.density > 0:
         raise ConfigError(f"--density must be positive, got {args.density}")
     kwargs: dict[str, Any] = {}
@@ -81,7 +90,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     sim = simulate_mission(scenario=args.scenario, seed=args.seed, density=args.density,
                            line_length_m=args.line_length, range_noise_m=args.range_noise,
-                           n_control=args.control, origin=origin, **kwargs)
+                           n_control=args.control, origin=origin, wind_mps=wind, **kwargs)
     paths = write_simulation(args.output, sim, overwrite=args.overwrite)
     print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
           f"({time.perf_counter() - started:.1f} s)")
@@ -111,7 +120,6 @@ def _add_calibrate(sub: Any) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from lidarcal_ros.core.params import parse_parameter_list
-    from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.pipeline.calibration import (
@@ -164,7 +172,6 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _check_output_file(path: Path) -> None:
     """Refuse an output path that cannot be written, before hours of work."""
-    from lidarcal_ros.errors import ConfigError
 
     if path.is_dir():
         raise ConfigError(f"{path}: is a directory; -o/--output takes a file name")
@@ -216,7 +223,6 @@ def _add_correct(sub: Any) -> None:
 
 def _cmd_correct(args: argparse.Namespace) -> int:
     from lidarcal_ros.allocator import tune_allocator
-    from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.las import parse_crs
@@ -271,7 +277,6 @@ def _add_report(sub: Any) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.html_report import write_html_report
     from lidarcal_ros.pipeline.report import build_report
@@ -405,7 +410,6 @@ def _add_evaluate(sub: Any) -> None:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.control import read_control_csv

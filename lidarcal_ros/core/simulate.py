@@ -355,6 +355,7 @@ def simulate_mission(
     noise_seed: int | None = None,
     control_xy: Sequence[Sequence[float]] | None = None,
     terrain: Terrain | None = None,
+    wind_mps: Sequence[float] = (0.0, 0.0),
 ) -> SimulatedMission:
     """Simulate a linear-scanner mission with known biases (module docstring for the model).
 
@@ -386,6 +387,14 @@ def simulate_mission(
     terrain : Terrain, optional
         The surface to scan (e.g. a :class:`~lidarcal_ros.core.terrain.RasterTerrain` of the
         site), instead of one generated from ``seed`` and ``terrain_kind``.
+    wind_mps : (east, north)
+        Where the air moves, m/s. To hold its track the aircraft turns its nose into the
+        crosswind: on each line the sensor's heading is the track's plus the crab angle
+        ``asin(w_right / speed_mps)`` (``w_right`` the wind's component to the right of the
+        track), opposite on lines flown the other way. The points are georeferenced with that
+        heading, as the system's IMU gives it; the trajectory (positions) does not show it,
+        and the quasi-rigorous method takes the heading from the track (method.md section 4),
+        so a crab it cannot see is what this simulates.
 
     Returns
     -------
@@ -404,6 +413,9 @@ def simulate_mission(
         raise ConfigError("noise levels must be non-negative")
     if n_control < 0:
         raise ConfigError(f"n_control must be >= 0, got {n_control}")
+    wind = np.asarray(wind_mps, dtype=np.float64).reshape(-1)
+    if wind.shape != (2,) or not np.isfinite(wind).all():
+        raise ConfigError(f"wind_mps must be two finite numbers (east, north), got {wind_mps}")
     bias = _check_biases(biases)
     kind = terrain_kind or ("flat" if scenario == "flat" else "built-up")
     plan = _normalise_lines(
@@ -443,7 +455,12 @@ def simulate_mission(
     line_info: list[dict[str, Any]] = []
     t_line = float(t0)
     for ln in plan:
-        a, u, length, kappa = _line_frame(ln)
+        a, u, length, kappa_track = _line_frame(ln)
+        crosswind = float(wind[0] * math.cos(kappa_track) + wind[1] * math.sin(kappa_track))
+        if abs(crosswind) >= 0.5 * speed_mps:
+            raise ConfigError(f"line {ln['id']}: a crosswind of {crosswind:.1f} m/s is too "
+                              f"strong for {speed_mps:g} m/s")
+        kappa = kappa_track + math.asin(crosswind / speed_mps)  # the sensor's heading
         c, s = math.cos(kappa), math.sin(kappa)
         height = ln["height"]
         duration = length / speed_mps
@@ -525,7 +542,8 @@ def simulate_mission(
             "end": (float(ln["end"][0] + ox), float(ln["end"][1] + oy)),
             "height": float(height),
             "direction": (float(u[0]), float(u[1])),
-            "kappa": float(kappa),
+            "kappa": float(kappa_track),
+            "crab_deg": math.degrees(kappa - kappa_track),
             "length_m": float(length),
             "swath_width_m": swath_width(height, fov_deg),
             "t_first": float(t_abs[0]),
@@ -554,6 +572,8 @@ def simulate_mission(
         "t0": float(t0), "origin": [ox, oy], "visibility_km": float(visibility_km),
         "intensity_noise": float(intensity_noise), "terrain_kind": kind,
         "lines_given": lines is not None,
+        "wind_mps": [float(wind[0]), float(wind[1])],
+        "crab_deg": {int(li["id"]): li["crab_deg"] for li in line_info},
         "prf_hz": prf, "scan_rate_hz": scan_hz, "density_reference_height_m": ref_height,
         "wavelength_nm": WAVELENGTH_NM, "atmospheric_alpha_per_m": alpha,
         "intensity_k": INTENSITY_K, "turn_s": TURN_S, "lead_s": LEAD_S,
