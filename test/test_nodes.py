@@ -28,7 +28,9 @@ import pytest
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_estimate, format_value
+from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.io.bag import open_bag
+from lidarcal_ros.io.pointcloud import extract_columns
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
 
@@ -540,6 +542,35 @@ def test_memory_budget_releases_the_oldest_strips_and_says_so(replayed: Replayed
     assert memory.values["dropped_strips"].startswith("1")  # the oldest first
     assert int(memory.values["dropped_points"]) == suite.cal.stream.dropped_points
     assert "released" in memory.message
+
+
+def test_thinning_set_at_run_time_thins_the_next_clouds_and_says_so(replayed: Replayed
+                                                                      ) -> None:
+    """``calibration.thinning_cell_m`` set on the flight configuration reaches the
+    calibrator, which thins the clouds after it (as ``lidarcal calibrate`` reads a bag) and
+    counts what it left out in its memory status."""
+    suite = replayed.suite
+    before = suite.cal.stream.thinned_points
+    results = suite.set_parameters("lidarcal_flight_config", calibration__thinning_cell_m=5.0)
+    assert results[0].successful, results[0].reason
+    try:
+        _wait(lambda: suite.cal.stream.config["calibration.thinning_cell_m"] == 5.0, 10,
+              "the calibrator to follow")
+        with open_bag(suite.mission.bag) as b:
+            raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
+        cols = extract_columns(parse_cloud(raw).points)
+        assert cols.strip_id is not None
+        expected = int((~first_per_cell(cols.xyz, cols.strip_id, 5.0)).sum())
+        assert expected > 0
+        _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)
+        _wait(lambda: suite.cal.stream.thinned_points == before + expected, 10,
+              "the cloud to be thinned")
+        memory = suite.cal.node_statuses()[0]
+        assert memory.values["thinning_cell_m"] == "5"
+        assert int(memory.values["thinned_points"]) == before + expected
+        assert "left out by thinning" in memory.message
+    finally:
+        suite.set_parameters("lidarcal_flight_config", calibration__thinning_cell_m=0.0)
 
 
 def test_reset_forgets_everything_and_its_checkpoint(replayed: Replayed,
