@@ -54,6 +54,12 @@ def test_the_first_point_of_each_cell_is_kept(width_m: float, groups: int) -> No
     np.testing.assert_array_equal(first_per_cell(xyz, group, 0.5),
                                   _first_per_cell_by_sorting(xyz, group, 0.5, finite))
     assert not first_per_cell(xyz[:0], group[:0], 0.5).size
+    # a wild but finite coordinate: no overflow, the others thinned as before
+    wild = xyz.copy()
+    wild[0, :2] = (1e300, -1e300)
+    keep_wild = first_per_cell(wild, group, 0.5)
+    assert keep_wild[0] and np.array_equal(keep_wild[1:], first_per_cell(xyz[1:], group[1:],
+                                                                         0.5))
     with pytest.raises(ValueError, match="positive"):
         first_per_cell(xyz, group, 0.0)
 

@@ -1272,6 +1272,13 @@ def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> 
 
 
 @njit(inline="always", **_OPTIONS)
+def _cell_index(q: float) -> int:
+    """``floor(q)`` as an integer, held within +-2^62 (a wild coordinate shares the cell at
+    the limit instead of converting out of range)."""
+    return int(np.int64(min(max(math.floor(q), -4.0e18), 4.0e18)))
+
+
+@njit(inline="always", **_OPTIONS)
 def _cell_slot(u: int, v: int, g: int, mask: int) -> int:
     """Home slot of cell ``(u, v)`` of group ``g`` in a table of ``mask + 1`` slots."""
     h = (u * np.int64(-7046029254386353131) + v * np.int64(3266489917)
@@ -1313,8 +1320,8 @@ def first_in_cells(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: fl
     for i in range(n):
         if not valid[i]:
             continue
-        u = np.int64(math.floor(x[i] * inv_cell))
-        v = np.int64(math.floor(y[i] * inv_cell))
+        u = _cell_index(x[i] * inv_cell)
+        v = _cell_index(y[i] * inv_cell)
         g = np.int64(group[i])
         slot = _cell_slot(u, v, g, mask)
         while used[slot] and not (keys[slot, 0] == u and keys[slot, 1] == v
@@ -1359,8 +1366,9 @@ def first_in_grid(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: flo
     """
     n = x.shape[0]
     keep = np.zeros(n, dtype=np.bool_)
-    u_lo = v_lo = np.int64(2 ** 62)
-    u_hi = v_hi = -np.int64(2 ** 62)
+    # The box in cells, as floats: a wild coordinate (1e300 m) must not overflow an integer.
+    fu_lo = fv_lo = math.inf
+    fu_hi = fv_hi = -math.inf
     g0 = np.int64(0)
     seen = False
     for i in range(n):
@@ -1372,12 +1380,14 @@ def first_in_grid(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: flo
             seen = True
         elif g != g0:
             return False, keep
-        u = np.int64(math.floor(x[i] * inv_cell))
-        v = np.int64(math.floor(y[i] * inv_cell))
-        u_lo, u_hi = min(u_lo, u), max(u_hi, u)
-        v_lo, v_hi = min(v_lo, v), max(v_hi, v)
-    if not seen or (u_hi - u_lo + 1) > max_cells // (v_hi - v_lo + 1):
+        fu = math.floor(x[i] * inv_cell)
+        fv = math.floor(y[i] * inv_cell)
+        fu_lo, fu_hi = min(fu_lo, fu), max(fu_hi, fu)
+        fv_lo, fv_hi = min(fv_lo, fv), max(fv_hi, fv)
+    if not seen or (fu_hi - fu_lo + 1.0) * (fv_hi - fv_lo + 1.0) > max_cells:
         return False, keep
+    u_lo, u_hi = np.int64(fu_lo), np.int64(fu_hi)
+    v_lo, v_hi = np.int64(fv_lo), np.int64(fv_hi)
     nv = v_hi - v_lo + 1
     taken = np.zeros((u_hi - u_lo + 1) * nv, dtype=np.bool_)
     for i in range(n):
