@@ -265,6 +265,14 @@ def test_extracted_columns_carry_their_time_span_and_whether_all_is_finite() -> 
         bad[field][row] = value
         cols = extract_columns(bad)
         assert cols.t_span == time_span(bad["t"]) and cols.all_finite is False
+        finite = cols.finite()
+        assert not finite[row] and finite.sum() == 39
+        kept = cols.take(finite)
+        assert len(kept) == 39 and kept.strip_id is not None and len(kept.strip_id) == 39
+        np.testing.assert_array_equal(kept.xyz, cols.xyz[finite])
+        assert kept.all_finite is None and kept.t_span is None
+    cols = extract_columns(pts)
+    assert cols.finite().all() and cols.take(np.arange(5)).all_finite
     nat = pts.copy()
     nat["t"] = np.nan
     lo, hi = extract_columns(nat).t_span or (0.0, 0.0)

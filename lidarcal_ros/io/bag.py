@@ -11,7 +11,6 @@ seconds on the same clock. Coordinates are metres in the map frame (``header.fra
 
 from __future__ import annotations
 
-import dataclasses
 import heapq
 import itertools
 import logging
@@ -740,21 +739,14 @@ class _CloudAccumulator:
         among the finite ones, as the calibrator node does); the non-finite ones stay, to be
         dropped and counted with the others."""
         assert cols.strip_id is not None
-        finite = np.isfinite(cols.xyz).all(axis=1) & np.isfinite(cols.t)
+        finite = cols.finite()
         keep = first_per_cell(cols.xyz, cols.strip_id, self.thinning_cell_m, valid=finite)
         keep |= ~finite
         left_out = int(keep.size - np.count_nonzero(keep))
         if not left_out:
             return cols, arr
         self.thinned += left_out
-        return dataclasses.replace(
-            cols, xyz=cols.xyz[keep], t=cols.t[keep], strip_id=cols.strip_id[keep],
-            intensity=cols.intensity[keep] if cols.intensity is not None else None,
-            return_number=(cols.return_number[keep] if cols.return_number is not None
-                           else None),
-            number_of_returns=(cols.number_of_returns[keep]
-                               if cols.number_of_returns is not None else None),
-            t_span=None, all_finite=None), arr[keep]
+        return cols.take(keep), arr[keep]
 
     def _optional_column(
         self, name: str, parts: dict[int, np.ndarray]

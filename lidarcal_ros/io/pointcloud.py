@@ -12,7 +12,7 @@ import functools
 import itertools
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -304,6 +304,24 @@ class CloudColumns:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+    def finite(self) -> np.ndarray:
+        """(n,) bool: the points whose ``x, y, z`` and ``t`` are all finite (without a pass
+        over them when the extraction found every one so)."""
+        if self.all_finite:
+            return np.ones(len(self), dtype=bool)
+        return np.isfinite(self.xyz).all(axis=1) & np.isfinite(self.t)
+
+    def take(self, keep: np.ndarray) -> CloudColumns:
+        """The columns of the points ``keep`` (a mask or indices), each per-point column
+        taken alike."""
+        def part(column: np.ndarray | None) -> np.ndarray | None:
+            return None if column is None else column[keep]
+
+        return replace(self, xyz=self.xyz[keep], t=self.t[keep], intensity=part(self.intensity),
+                       strip_id=part(self.strip_id), return_number=part(self.return_number),
+                       number_of_returns=part(self.number_of_returns), t_span=None,
+                       all_finite=True if self.all_finite else None)
 
 
 def _code_of(arr: np.ndarray, name: str) -> int:

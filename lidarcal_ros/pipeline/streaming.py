@@ -164,7 +164,7 @@ class StreamingCalibration:
         self._check_frame(frame_id, "cloud")
         if columns.strip_id is None:
             raise InputError("cloud has no strip_id / point_source_id field")
-        ok = np.isfinite(columns.xyz).all(axis=1) & np.isfinite(columns.t)
+        ok = columns.finite()
         self.dropped_non_finite += int((~ok).sum())
         if not ok.any():
             return
