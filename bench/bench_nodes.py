@@ -199,6 +199,53 @@ def _typed_corrector_main(argv: list[str]) -> int:
     return run_main([TypedCorrector], ["bench_typed_corrector"], threads=1)
 
 
+def _relay_main(argv: list[str]) -> int:
+    """Child process: the corrector's DDS traffic without the correction. Takes each cloud
+    raw off ``/lidar/points`` (and the trajectory, as the node does) and publishes, with the
+    cloud's header stamp, a message of the corrected layout and the same width: the floor
+    that taking and publishing alone set under the corrector on this machine."""
+    from lidarcal_ros.rosenv import configure_ros_environment
+
+    configure_ros_environment()
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.node import Node
+    from sensor_msgs.msg import PointCloud2
+
+    from lidarcal_ros.allocator import tune_allocator
+    from lidarcal_ros.io.pointcloud import make_point_dtype
+    from lidarcal_ros.io.ros_messages import cloud_cdr
+    from lidarcal_ros.nodes.common import run_main, stream_qos
+    from lidarcal_ros.pipeline.correction import corrected_dtype
+
+    tune_allocator(single_arena=False)  # as the corrector's node process
+    layout = corrected_dtype(make_point_dtype())
+
+    class Relay(Node):
+        def __init__(self, *, context: Any = None) -> None:
+            super().__init__("bench_relay", context=context)
+            self.templates: dict[int, bytearray] = {}
+            self.pub = self.create_publisher(PointCloud2, "/lidar/points_corrected",
+                                             stream_qos(1000))
+            self.create_subscription(PointCloud2, "/lidar/points", self._on_cloud,
+                                     stream_qos(1000), raw=True)
+            self.create_subscription(PoseStamped, "/lidar/trajectory", lambda raw: None,
+                                     stream_qos(10000), raw=True)
+
+        def _on_cloud(self, raw: bytes) -> None:
+            flen = struct.unpack_from("<I", raw, 12)[0]
+            off = 16 + flen
+            off += (-(off - 4)) % 4
+            width = struct.unpack_from("<I", raw, off + 4)[0]
+            out = self.templates.get(width)
+            if out is None:
+                out = self.templates[width] = bytearray(
+                    cloud_cdr(0, "map", np.zeros(width, dtype=layout)))
+            out[4:12] = raw[4:12]  # the input's stamp: the latency is measured from it
+            self.pub.publish(bytes(out))  # one copy, as the node's out of its ring
+
+    return run_main([Relay], ["bench_relay"], threads=1)
+
+
 # ---------------------------------------------------------------------------- helpers
 def _goal_verdict(keeps_up: bool, p99: float, p99_steady: float) -> str:
     """How a run stands against the p99 goal: over the whole run, start included, or only
@@ -438,7 +485,9 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
     typed = variant == "typed"
     cmd = ([PYTHON, str(Path(__file__)), "_typed_corrector"] if typed else
            [PYTHON, "-m", "lidarcal_ros.nodes.corrector"])
-    if variant == "raw-lookahead":
+    if variant == "relay":
+        cmd = [PYTHON, str(Path(__file__)), "_relay"]
+    elif variant == "raw-lookahead":
         cmd += ["--ros-args", "-p", "lookahead:=true"]
     elif variant == "raw-1worker":
         cmd += ["--ros-args", "-p", "workers:=1"]
@@ -690,6 +739,8 @@ def main() -> int:
         return _source_main(sys.argv[2:])
     if len(sys.argv) > 1 and sys.argv[1] == "_typed_corrector":
         return _typed_corrector_main(sys.argv[2:])
+    if len(sys.argv) > 1 and sys.argv[1] == "_relay":
+        return _relay_main(sys.argv[2:])
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", default="codec,transport,corrector,calibrator,memory")
     parser.add_argument("--rates", default="0.25,0.5,1,2,4",
@@ -701,7 +752,9 @@ def main() -> int:
                         help="corrector variants: raw (the node as shipped), raw-lookahead "
                         "(lookahead:=true), raw-1worker (workers:=1), raw-thread "
                         "(separate_process:=false: numerics in a thread of the node), typed "
-                        "(typed-rclpy PointCloud2 in and out)")
+                        "(typed-rclpy PointCloud2 in and out), relay (the node's DDS "
+                        "traffic alone: take each cloud, publish one of the corrected "
+                        "layout, no correction)")
     parser.add_argument("--calibrator-rate", type=float, default=10.0)
     parser.add_argument("--memory-rate", type=float, default=20.0)
     parser.add_argument("--memory-passes", type=int, default=4)

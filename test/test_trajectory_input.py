@@ -8,6 +8,7 @@ the calibrator then cannot use). It follows another accepted type when the publi
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -77,6 +78,9 @@ def _odometry(k: int) -> Any:
     msg.header.stamp.sec = 2000 + k
     msg.pose.pose.position.x, msg.pose.pose.position.y = 2.0, -5.0 * k
     msg.pose.pose.position.z = 800.0
+    # Flying south (-y), crabbed 4 degrees: yaw -94 degrees (REP-103: from east, x forward).
+    yaw = math.radians(-94.0)
+    msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
     return msg
 
 
@@ -88,8 +92,13 @@ def test_auto_listens_before_any_publisher_and_misses_no_sample(probe: tuple[Any
 
     node, executor = probe
     samples: list[tuple[float, tuple[float, float, float], str]] = []
-    traj = TrajectoryInput(node, "/trajectory_input/poses", "auto",
-                           lambda t, xyz, frame: samples.append((t, xyz, frame)))
+    headings: list[float] = []
+
+    def on_sample(t: float, xyz: tuple[float, float, float], frame: str, kappa: float) -> None:
+        samples.append((t, xyz, frame))
+        headings.append(kappa)
+
+    traj = TrajectoryInput(node, "/trajectory_input/poses", "auto", on_sample)
     # subscribed at once, with the contract's type, though nobody publishes yet
     assert traj.subscription is not None and traj.msgtype == POSE_STAMPED
     pub = node.create_publisher(PoseStamped, "/trajectory_input/poses", 100)
@@ -102,6 +111,8 @@ def test_auto_listens_before_any_publisher_and_misses_no_sample(probe: tuple[Any
         _spin_until(executor, lambda: len(samples) == 40, 10, "40 samples")
         assert samples[0] == (1000.0, (1.0, 0.0, 1000.0), "map")
         assert [t for t, _, _ in samples] == [1000.0 + k for k in range(40)]
+        # identity orientation: no heading
+        assert all(math.isnan(k) for k in headings)
         # the publishers' type is the one subscribed: looking stops
         _spin_until(executor, lambda: traj._timer is None, 5, "the type to be confirmed")
         assert traj.msgtype == POSE_STAMPED and traj.errors == 0
@@ -116,9 +127,9 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
     from lidarcal_ros.nodes.common import TrajectoryInput
 
     node, executor = probe
-    samples: list[tuple[float, tuple[float, float, float], str]] = []
+    samples: list[tuple[float, tuple[float, float, float], str, float]] = []
     traj = TrajectoryInput(node, "/trajectory_input/odometry", "auto",
-                           lambda t, xyz, frame: samples.append((t, xyz, frame)))
+                           lambda t, xyz, frame, kappa: samples.append((t, xyz, frame, kappa)))
     first = traj.subscription
     pub = publisher_node.create_publisher(Odometry, "/trajectory_input/odometry", 100)
     try:
@@ -128,7 +139,9 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
         for k in range(5):
             pub.publish(_odometry(k))
         _spin_until(executor, lambda: len(samples) == 5, 10, "5 samples")
-        assert samples[-1] == (2004.0, (2.0, -20.0, 800.0), "map")
+        assert samples[-1][:3] == (2004.0, (2.0, -20.0, 800.0), "map")
+        # the orientation's heading: method.md's kappa = yaw - 90 degrees
+        assert math.degrees(samples[-1][3]) == pytest.approx(-184.0 + 360.0)
         assert traj.errors == 0
     finally:
         publisher_node.destroy_publisher(pub)
@@ -140,8 +153,8 @@ def test_a_given_type_is_subscribed_at_once_without_looking(probe: tuple[Any, An
 
     node, _executor = probe
     traj = TrajectoryInput(node, "/trajectory_input/given", "nav_msgs/Odometry",
-                           lambda t, xyz, frame: None)
+                           lambda t, xyz, frame, kappa: None)
     assert traj.msgtype == ODOMETRY and traj.subscription is not None and traj._timer is None
     with pytest.raises(ConfigError, match="sensor_msgs/msg/Imu"):
         TrajectoryInput(node, "/trajectory_input/bad", "sensor_msgs/msg/Imu",
-                        lambda t, xyz, frame: None)
+                        lambda t, xyz, frame, kappa: None)

@@ -60,7 +60,11 @@ def _add_simulate(sub: Any) -> None:
                    help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")
     p.add_argument("--wind", default="0,0",
                    help="E,N m/s where the air moves: the sensor flies crabbed into the "
-                   "crosswind, a heading the trajectory does not show (default 0,0)")
+                   "crosswind, a heading the trajectory's positions do not show "
+                   "(default 0,0)")
+    p.add_argument("--attitude", action="store_true",
+                   help="write the sensor's heading as the trajectory's orientation, as an "
+                   "IMU would (default: identity orientation, positions only)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_simulate)
 
@@ -90,7 +94,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     sim = simulate_mission(scenario=args.scenario, seed=args.seed, density=args.density,
                            line_length_m=args.line_length, range_noise_m=args.range_noise,
-                           n_control=args.control, origin=origin, wind_mps=wind, **kwargs)
+                           n_control=args.control, origin=origin, wind_mps=wind,
+                           attitude=args.attitude, **kwargs)
     paths = write_simulation(args.output, sim, overwrite=args.overwrite)
     print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
           f"({time.perf_counter() - started:.1f} s)")

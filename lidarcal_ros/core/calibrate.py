@@ -51,6 +51,7 @@ class CalibrationSettings:
     solve_for: tuple[str, ...] = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
     fixed: dict[str, float] = field(default_factory=dict)
     trajectory_window_s: float = 0.5
+    heading_source: str = "auto"
     max_normal_distance_m: float = 2.0
     min_normal_distance_m: float = 0.15
     max_edge_factor: float = 4.0
@@ -305,7 +306,8 @@ class Calibrator:
         if any(ps.strip_id == strip.strip_id for ps in self.strips):
             raise CalibrationError(f"strip {strip.strip_id} added twice")
         geom = laser_geometry(strip.t, strip.xyz, trajectory, window_s=s.trajectory_window_s,
-                              source=f"strip {strip.strip_id}")
+                              source=f"strip {strip.strip_id}",
+                              heading_source=s.heading_source)
         keys = self.footprint.keys(strip.xyz[:, :2])
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)

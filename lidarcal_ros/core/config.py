@@ -100,6 +100,11 @@ SCHEMA: dict[str, ParameterSpec] = {
                                                   "Where ~/save writes the calibration"),
     "matching.trajectory_window_s": _f(0.5, "Half-width of the local-trajectory window, s",
                                        0.01, 60.0),
+    "matching.heading_source": ParameterSpec(
+        "auto", "str", "Heading of the local trajectory: 'track' (method.md: the direction of "
+        "the fitted line), 'attitude' (the trajectory's orientation: a crabbing aircraft), "
+        "'auto' (the orientation where the trajectory has one that agrees with the track "
+        "within 20 degrees, else the track)", choices=("auto", "track", "attitude")),
     "matching.max_normal_distance_m": _f(2.0, "Largest point-to-patch distance accepted at "
                                          "the first iteration, metres", 0.01, 50.0),
     "matching.min_normal_distance_m": _f(0.15, "Smallest matching threshold later "
@@ -251,6 +256,7 @@ class FlightConfig:
             solve_for=tuple(v["calibration.solve_for"]),
             fixed=fixed,
             trajectory_window_s=v["matching.trajectory_window_s"],
+            heading_source=v["matching.heading_source"],
             max_normal_distance_m=v["matching.max_normal_distance_m"],
             min_normal_distance_m=v["matching.min_normal_distance_m"],
             max_edge_factor=v["matching.max_edge_factor"],

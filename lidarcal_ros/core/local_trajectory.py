@@ -8,6 +8,10 @@ height above ``X_o(t)`` is ``z`` (negative); ``beta = atan(x / z)``.
 
 Points sharing the same set of trajectory samples share one line fit, so the fits are computed
 once per distinct window, not once per point.
+
+Where the trajectory carries the IMU's orientation, ``kappa`` may come from it instead of the
+track, which is what a crabbing aircraft needs (``heading_source``;
+:mod:`lidarcal_ros.core.heading`).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from typing import Literal
 import numpy as np
 
 from lidarcal_ros.core import kernels
+from lidarcal_ros.core.heading import choose_heading, window_headings
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import TrajectoryError
@@ -243,7 +248,8 @@ class WindowLines:
     velocity : (k, 3) float64
         Its velocity, m/s: the firing position at ``t`` is ``p_mean + velocity (t - t_mean)``.
     kappa, cos_kappa, sin_kappa : (k,) float64
-        Its heading ``atan2(-v_x, v_y)`` (rad), cosine and sine.
+        Its heading (rad), cosine and sine: ``atan2(-v_x, v_y)``, or the orientation's
+        (:mod:`lidarcal_ros.core.heading`).
     """
 
     window: np.ndarray
@@ -262,6 +268,7 @@ def window_lines(
     window_s: float = 0.5,
     min_samples: int = 2,
     source: str = "points",
+    heading_source: str = "auto",
 ) -> WindowLines:
     """The local-trajectory line of each firing time (the first half of
     :func:`laser_geometry`, whose parameters these are).
@@ -300,6 +307,10 @@ def window_lines(
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa = np.arctan2(-vel[:, 0], vel[:, 1])
+    if heading_source != "track":
+        attitude = (None if trajectory.heading is None
+                    else window_headings(trajectory.heading, win_start, win_stop))
+        kappa = choose_heading(kappa, attitude, heading_source, source=source)
     return WindowLines(np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa,
                        np.cos(kappa), np.sin(kappa))
 
@@ -312,6 +323,7 @@ def laser_geometry(
     window_s: float = 0.5,
     min_samples: int = 2,
     source: str = "points",
+    heading_source: str = "auto",
 ) -> LaserGeometry:
     """Recover ``x, z, kappa, beta`` for each point (method.md section 4).
 
@@ -329,6 +341,9 @@ def laser_geometry(
         Fewest samples a window may hold; fewer means a trajectory gap at that time.
     source : str
         Name used in error messages (e.g. ``"strip 3"``).
+    heading_source : str
+        Where ``kappa`` comes from: ``track`` (method.md), ``attitude`` (the trajectory's
+        orientation) or ``auto`` (:mod:`lidarcal_ros.core.heading`).
 
     Raises
     ------
@@ -341,7 +356,7 @@ def laser_geometry(
         empty = np.empty(0)
         return LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
     lines = window_lines(t, trajectory, window_s=window_s, min_samples=min_samples,
-                         source=source)
+                         source=source, heading_source=heading_source)
     return geometry_on_lines(t, xyz, lines, source=source)
 
 

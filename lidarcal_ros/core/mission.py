@@ -15,7 +15,7 @@ from lidarcal_ros.errors import TrajectoryError
 
 @dataclass
 class Trajectory:
-    """Positions of the IMU origin over time.
+    """Positions of the IMU origin over time, and its heading where known.
 
     Attributes
     ----------
@@ -23,10 +23,15 @@ class Trajectory:
         Sample times, seconds, strictly increasing.
     xyz : (n, 3) float64
         Positions in the map frame, metres.
+    heading : (n,) float64 or None
+        The body's heading ``kappa`` at each sample (rad, method.md's convention; from the
+        orientation, :mod:`lidarcal_ros.core.heading`), NaN where a sample has none; None
+        when no sample has one (positions only, as the quasi-rigorous method needs).
     """
 
     t: np.ndarray
     xyz: np.ndarray
+    heading: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.t = np.ascontiguousarray(self.t, dtype=np.float64)
@@ -35,20 +40,34 @@ class Trajectory:
             raise TrajectoryError(
                 f"trajectory has {self.t.shape[0]} stamps but {self.xyz.shape[0]} positions"
             )
+        if self.heading is not None:
+            self.heading = np.ascontiguousarray(self.heading, dtype=np.float64).reshape(-1)
+            if self.heading.shape[0] != self.t.shape[0]:
+                raise TrajectoryError(f"trajectory has {self.t.shape[0]} stamps but "
+                                      f"{self.heading.shape[0]} headings")
+            if not self.heading.size or np.isnan(self.heading).all():
+                self.heading = None
 
     @classmethod
-    def from_samples(cls, t: np.ndarray, xyz: np.ndarray) -> Trajectory:
-        """Build from unordered samples: sorts by time, drops non-finite and duplicate stamps."""
+    def from_samples(cls, t: np.ndarray, xyz: np.ndarray,
+                     heading: np.ndarray | None = None) -> Trajectory:
+        """Build from unordered samples: sorts by time, drops non-finite and duplicate stamps
+        (a sample's heading may be NaN: it has none)."""
         t = np.asarray(t, dtype=np.float64)
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        h = None if heading is None else np.asarray(heading, dtype=np.float64).reshape(-1)
         ok = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
-        t, xyz = t[ok], xyz[ok]
-        order = np.argsort(t, kind="stable")
-        t, xyz = t[order], xyz[order]
-        if t.size:
-            keep = np.concatenate(([True], np.diff(t) > 0))
-            t, xyz = t[keep], xyz[keep]
-        return cls(t, xyz)
+        order = np.flatnonzero(ok)
+        order = order[np.argsort(t[order], kind="stable")]
+        if order.size:
+            ts = t[order]
+            order = order[np.concatenate(([True], np.diff(ts) > 0))]
+        return cls(t[order], xyz[order], None if h is None else h[order])
+
+    def take(self, index: np.ndarray | slice) -> Trajectory:
+        """The samples at ``index`` (a slice, or indices in time order)."""
+        return Trajectory(self.t[index], self.xyz[index],
+                          None if self.heading is None else self.heading[index])
 
     def __len__(self) -> int:
         return int(self.t.shape[0])

@@ -356,6 +356,7 @@ def simulate_mission(
     control_xy: Sequence[Sequence[float]] | None = None,
     terrain: Terrain | None = None,
     wind_mps: Sequence[float] = (0.0, 0.0),
+    attitude: bool = False,
 ) -> SimulatedMission:
     """Simulate a linear-scanner mission with known biases (module docstring for the model).
 
@@ -392,9 +393,13 @@ def simulate_mission(
         crosswind: on each line the sensor's heading is the track's plus the crab angle
         ``asin(w_right / speed_mps)`` (``w_right`` the wind's component to the right of the
         track), opposite on lines flown the other way. The points are georeferenced with that
-        heading, as the system's IMU gives it; the trajectory (positions) does not show it,
+        heading, as the system's IMU gives it; the trajectory's positions do not show it,
         and the quasi-rigorous method takes the heading from the track (method.md section 4),
-        so a crab it cannot see is what this simulates.
+        so without ``attitude`` a crab it cannot see is what this simulates.
+    attitude : bool
+        Give the trajectory the sensor's heading at each sample (``Trajectory.heading``,
+        written to a bag as the orientation), as an IMU would; by default positions only
+        (the contract's identity orientation).
 
     Returns
     -------
@@ -452,6 +457,7 @@ def simulate_mission(
     walls: list[np.ndarray] = []
     traj_t: list[np.ndarray] = []
     traj_xyz: list[np.ndarray] = []
+    traj_heading: list[np.ndarray] = []
     line_info: list[dict[str, Any]] = []
     t_line = float(t0)
     for ln in plan:
@@ -536,6 +542,7 @@ def simulate_mission(
             pos += rng_noise.normal(0.0, trajectory_noise_m, pos.shape)
         traj_t.append(t_line + tr)
         traj_xyz.append(pos)
+        traj_heading.append(np.full(len(tr), kappa))
         line_info.append({
             "id": int(ln["id"]),
             "start": (float(a[0] + ox), float(a[1] + oy)),
@@ -552,7 +559,8 @@ def simulate_mission(
         })
         t_line = float(t_line + tr[-1] + TURN_S)
 
-    trajectory = Trajectory(np.concatenate(traj_t), np.concatenate(traj_xyz))
+    trajectory = Trajectory(np.concatenate(traj_t), np.concatenate(traj_xyz),
+                            np.concatenate(traj_heading) if attitude else None)
     control = None
     if ctrl_xy.shape[0]:
         cz = terrain._height_local(ctrl_xy[:, 0], ctrl_xy[:, 1])
@@ -573,6 +581,7 @@ def simulate_mission(
         "intensity_noise": float(intensity_noise), "terrain_kind": kind,
         "lines_given": lines is not None,
         "wind_mps": [float(wind[0]), float(wind[1])],
+        "attitude": bool(attitude),
         "crab_deg": {int(li["id"]): li["crab_deg"] for li in line_info},
         "prf_hz": prf, "scan_rate_hz": scan_hz, "density_reference_height_m": ref_height,
         "wavelength_nm": WAVELENGTH_NM, "atmospheric_alpha_per_m": alpha,

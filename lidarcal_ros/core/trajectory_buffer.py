@@ -35,6 +35,7 @@ class TrajectoryBuffer:
         self.keep_s = float(keep_s)
         self._pending_t: list[float] = []
         self._pending_xyz: list[tuple[float, float, float]] = []
+        self._pending_heading: list[float] = []  # kappa, rad; NaN where not given
         self._traj = Trajectory(np.empty(0), np.empty((0, 3)))
         self._lock = threading.Lock()
         self._rebuild_lock = threading.Lock()
@@ -43,10 +44,14 @@ class TrajectoryBuffer:
         self.last_arrival = -math.inf  # monotonic clock of the last sample received
         self.samples = 0
 
-    def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None) -> None:
+    def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None,
+            heading: float = math.nan) -> None:
+        """Add one sample: time (s), position (m), and the heading ``kappa`` of its
+        orientation (rad; NaN: none)."""
         with self._lock:
             self._pending_t.append(t)
             self._pending_xyz.append(xyz)
+            self._pending_heading.append(heading)
             self.samples += 1
             self.last_arrival = time.monotonic()
             if t > self.end:
@@ -57,8 +62,9 @@ class TrajectoryBuffer:
         if merge:
             self.trajectory()
 
-    def add_many(self, t: Any, xyz: Any) -> None:
-        """Add samples given as arrays: times (n,), s, and positions (n, 3), m."""
+    def add_many(self, t: Any, xyz: Any, heading: Any = None) -> None:
+        """Add samples given as arrays: times (n,), s, positions (n, 3), m, and optionally
+        headings (n,), rad (NaN or None: none)."""
         np = self._np
         t = np.asarray(t, dtype=np.float64).reshape(-1)
         if not t.size:
@@ -68,6 +74,9 @@ class TrajectoryBuffer:
         with self._lock:
             self._pending_t.extend(t.tolist())
             self._pending_xyz.extend(xyz.tolist())
+            self._pending_heading.extend(
+                [math.nan] * int(t.size) if heading is None
+                else np.asarray(heading, dtype=np.float64).reshape(-1).tolist())
             self.samples += int(t.size)
             self.last_arrival = time.monotonic()
             if finite.size and float(finite.max()) > self.end:
@@ -89,20 +98,24 @@ class TrajectoryBuffer:
                 return self._traj
             t_new = np.asarray(self._pending_t, dtype=np.float64)
             x_new = np.asarray(self._pending_xyz, dtype=np.float64).reshape(-1, 3)
-            self._pending_t, self._pending_xyz = [], []
+            h_new = np.asarray(self._pending_heading, dtype=np.float64)
+            self._pending_t, self._pending_xyz, self._pending_heading = [], [], []
         old = self._traj
+        t = np.concatenate([old.t, t_new])
+        xyz = np.concatenate([old.xyz, x_new])
+        heading = None
+        if old.heading is not None or not np.isnan(h_new).all():
+            heading = np.concatenate([old.heading if old.heading is not None
+                                      else np.full(len(old), np.nan), h_new])
         if (np.isfinite(t_new).all() and np.isfinite(x_new).all()
                 and bool(np.all(np.diff(t_new) > 0))
                 and (len(old) == 0 or t_new[0] > old.t[-1])):
-            t = np.concatenate([old.t, t_new])
-            xyz = np.concatenate([old.xyz, x_new])
-            traj = self._Trajectory(t, xyz)
+            traj = self._Trajectory(t, xyz, heading)
         else:
-            traj = self._Trajectory.from_samples(np.concatenate([old.t, t_new]),
-                                                 np.concatenate([old.xyz, x_new]))
+            traj = self._Trajectory.from_samples(t, xyz, heading)
         if len(traj) and self.keep_s > 0 and traj.t[-1] - traj.t[0] > self.keep_s:
             start = int(np.searchsorted(traj.t, traj.t[-1] - self.keep_s))
-            traj = self._Trajectory(traj.t[start:], traj.xyz[start:])
+            traj = traj.take(slice(start, None))
         with self._lock:
             self._traj = traj
         return traj

@@ -14,6 +14,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import math
 import os
 import shutil
 import sys
@@ -43,6 +44,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from lidarcal_ros.core.heading import heading_from_quaternion, quaternion_from_heading
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError
@@ -61,13 +63,51 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 
-#: Trajectory message types read_mission accepts, with how to get the position.
-TRAJECTORY_TYPES: dict[str, Callable[[Any], Any]] = {
-    POSE_STAMPED: lambda m: m.pose.position,
-    ODOMETRY: lambda m: m.pose.pose.position,
-    "geometry_msgs/msg/PoseWithCovarianceStamped": lambda m: m.pose.pose.position,
-    "geometry_msgs/msg/PointStamped": lambda m: m.point,
+#: Trajectory message types read_mission accepts, with how to get the position and the
+#: orientation (None: the type has none).
+TRAJECTORY_TYPES: dict[str, Callable[[Any], tuple[Any, Any]]] = {
+    POSE_STAMPED: lambda m: (m.pose.position, m.pose.orientation),
+    ODOMETRY: lambda m: (m.pose.pose.position, m.pose.pose.orientation),
+    "geometry_msgs/msg/PoseWithCovarianceStamped":
+        lambda m: (m.pose.pose.position, m.pose.pose.orientation),
+    "geometry_msgs/msg/PointStamped": lambda m: (m.point, None),
 }
+
+
+def trajectory_sample(msgtype: str, msg: Any) -> tuple[float, tuple[float, float, float], float]:
+    """A trajectory message of one of :data:`TRAJECTORY_TYPES` as ``(t, (x, y, z), kappa)``:
+    header stamp (s), position (m) and the heading of its orientation
+    (:func:`~lidarcal_ros.core.heading.heading_from_quaternion`, rad; NaN where it has none
+    or it is the identity)."""
+    pos, q = TRAJECTORY_TYPES[msgtype](msg)
+    kappa = math.nan if q is None else heading_from_quaternion(q.x, q.y, q.z, q.w)
+    return (stamp_seconds(msg.header.stamp), (float(pos.x), float(pos.y), float(pos.z)),
+            kappa)
+
+
+class TrajectorySamples:
+    """Trajectory messages gathered into a :class:`~lidarcal_ros.core.mission.Trajectory`
+    (in any order), with the frames they are in."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.xyz: list[tuple[float, float, float]] = []
+        self.heading: list[float] = []
+        self.frames: set[str] = set()
+
+    def add(self, msgtype: str, msg: Any) -> None:
+        t, xyz, kappa = trajectory_sample(msgtype, msg)
+        self.t.append(t)
+        self.xyz.append(xyz)
+        self.heading.append(kappa)
+        self.frames.add(str(msg.header.frame_id))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def trajectory(self) -> Trajectory:
+        return Trajectory.from_samples(np.asarray(self.t), np.asarray(self.xyz),
+                                       np.asarray(self.heading))
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -602,30 +642,26 @@ def read_mission(
         wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
 
         acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m)
-        traj_t: list[float] = []
-        traj_xyz: list[tuple[float, float, float]] = []
-        traj_frames: set[str] = set()
+        samples = TrajectorySamples()
         control_msg: Any = None
         for topic, msgtype, _log_ns, raw in bag.messages([t for t in wanted if t]):
-            getter = TRAJECTORY_TYPES.get(msgtype) if topic == trajectory_topic else None
-            ok_type = getter is not None if topic == trajectory_topic else msgtype == POINTCLOUD2
+            is_pose = topic == trajectory_topic
+            ok_type = msgtype in TRAJECTORY_TYPES if is_pose else msgtype == POINTCLOUD2
             if not ok_type:
                 raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
             msg = bag.deserialize(raw, msgtype, topic=topic)
             if topic == points_topic:
                 acc.add(msg)
-            elif getter is not None:
-                pos = getter(msg)
-                traj_t.append(stamp_seconds(msg.header.stamp))
-                traj_xyz.append((pos.x, pos.y, pos.z))
-                traj_frames.add(msg.header.frame_id)
+            elif is_pose:
+                samples.add(msgtype, msg)
             else:
                 control_msg = msg
         if not acc.n_messages:
             raise BagError(f"{bag.path}: topic {points_topic} has no messages")
-        if not traj_t:
+        if not samples:
             raise BagError(f"{bag.path}: topic {trajectory_topic} has no messages")
-        frame = _check_frames(bag.path, points_topic, acc.frames, trajectory_topic, traj_frames)
+        frame = _check_frames(bag.path, points_topic, acc.frames, trajectory_topic,
+                              samples.frames)
         control = None
         if control_msg is not None:
             assert control_topic is not None
@@ -633,8 +669,7 @@ def read_mission(
         strips, dropped = acc.strips()
     if dropped:
         logger.warning("%s: dropped %d points with non-finite x, y, z or t", path, dropped)
-    trajectory = Trajectory.from_samples(np.asarray(traj_t), np.asarray(traj_xyz))
-    return Mission(trajectory, strips, control, frame, dropped, acc.thinned)
+    return Mission(samples.trajectory(), strips, control, frame, dropped, acc.thinned)
 
 
 def _expect_type(bag: BagReader, topic: str, types: Sequence[str]) -> None:
@@ -1231,7 +1266,9 @@ def write_mission_bag(
     Each strip becomes time-ordered chunks with fields ``x, y, z, t`` FLOAT64,
     ``intensity`` FLOAT32 (if present), ``strip_id`` UINT16 and the extras, stamped with the
     chunk's first point time, in ``mission.frame_id``. The trajectory is written as
-    PoseStamped (identity orientation), the control points as one transient-local
+    PoseStamped, its orientation the level one of the trajectory's heading where it has one
+    (:func:`~lidarcal_ros.core.heading.quaternion_from_heading`), else the identity; the
+    control points as one transient-local
     PointCloud2 (x, y, z) at the start. All messages are in log-time order.
     """
     if not chunk_seconds > 0:
@@ -1284,7 +1321,10 @@ def write_mission_bag(
             if kind == 1:
                 writer.write_cloud(points_topic, stamp, frame, clouds[key])
             else:
-                writer.write_pose(trajectory_topic, stamp, frame, traj.xyz[key])
+                kappa = math.nan if traj.heading is None else float(traj.heading[key])
+                writer.write_pose(trajectory_topic, stamp, frame, traj.xyz[key],
+                                  quaternion_xyzw=(0.0, 0.0, 0.0, 1.0) if math.isnan(kappa)
+                                  else quaternion_from_heading(kappa))
     logger.info(
         "%s: wrote %d strips (%d chunks), %d poses", path, len(mission.strips),
         len(clouds), len(traj),

@@ -235,9 +235,10 @@ class CalibratorNode(Node):
         self.input["last_error"] = reason
         self.get_logger().error(f"malformed cloud skipped: {reason}", throttle_duration_sec=2.0)
 
-    def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str) -> None:
+    def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str,
+                 kappa: float) -> None:
         self.input["poses"] += 1
-        self._submit("pose", (t, xyz, frame_id))
+        self._submit("pose", (t, xyz, frame_id, kappa))
 
     def _on_control(self, raw: bytes) -> None:
         source = self.params["topics.control_points"]
@@ -267,7 +268,7 @@ class CalibratorNode(Node):
 
     # -- worker ---------------------------------------------------------------------------
     def _work(self) -> None:
-        poses: list[tuple[float, tuple[float, float, float]]] = []
+        poses: list[tuple[float, tuple[float, float, float], float]] = []
         pose_frame = ""
         while not self._closing.is_set():
             try:
@@ -276,8 +277,8 @@ class CalibratorNode(Node):
                 kind, payload, future = "idle", None, None
             try:
                 if kind == "pose":
-                    t, xyz, pose_frame = payload
-                    poses.append((t, xyz))
+                    t, xyz, pose_frame, kappa = payload
+                    poses.append((t, xyz, kappa))
                     self._last_input = time.monotonic()
                     continue
                 if poses and (kind != "pose"):
@@ -297,11 +298,11 @@ class CalibratorNode(Node):
                         self.input["skipped"] += 1
                         self.input["last_error"] = text
 
-    def _flush_poses(self, poses: list[tuple[float, tuple[float, float, float]]],
+    def _flush_poses(self, poses: list[tuple[float, tuple[float, float, float], float]],
                      frame: str) -> None:
         t = np.array([p[0] for p in poses])
         xyz = np.array([p[1] for p in poses])
-        self.stream.add_trajectory(t, xyz, frame)
+        self.stream.add_trajectory(t, xyz, frame, np.array([p[2] for p in poses]))
         self._traj_end = max(self._traj_end, float(t.max()))
 
     def _handle(self, kind: str, payload: Any) -> Any:

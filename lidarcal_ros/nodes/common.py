@@ -546,8 +546,10 @@ TRAJECTORY_TYPE_PARAMETER = NodeParameter(
 class TrajectoryInput:
     """Subscribes to the trajectory topic, of a given type or the one its publishers use.
 
-    Calls ``on_sample(t_seconds, (x, y, z), frame_id)`` for each sample (raw CDR decoded with
-    rosbags). With ``msgtype`` ``auto`` the subscription is made at once for the contract's
+    Calls ``on_sample(t_seconds, (x, y, z), frame_id, kappa)`` for each sample (raw CDR
+    decoded with rosbags; ``kappa`` the heading of its orientation, rad, NaN where it has none
+    or it is the identity: :func:`~lidarcal_ros.io.bag.trajectory_sample`). With
+    ``msgtype`` ``auto`` the subscription is made at once for the contract's
     type (``geometry_msgs/msg/PoseStamped``), and the publishers on the topic are looked up
     every 0.5 s until one appears: if they use another accepted type, the subscription
     switches to it. Waiting for a publisher before subscribing at all would lose the first
@@ -556,7 +558,7 @@ class TrajectoryInput:
     """
 
     def __init__(self, node: Node, topic: str, msgtype: str,
-                 on_sample: Callable[[float, tuple[float, float, float], str], None],
+                 on_sample: Callable[[float, tuple[float, float, float], str, float], None],
                  *, depth: int = 10000, callback_group: Any = None) -> None:
         self.node = node
         self.topic = topic
@@ -620,17 +622,15 @@ class TrajectoryInput:
             self.node.get_logger().info(f"trajectory: {self.topic} ({msgtype})")
 
     def _on_raw(self, raw: bytes, msgtype: str) -> None:
-        from lidarcal_ros.io.bag import stamp_seconds
+        from lidarcal_ros.io.bag import trajectory_sample
         from lidarcal_ros.io.ros_messages import deserialize
 
         try:
             msg = deserialize(raw, msgtype)
-            pos = self._getters[msgtype](msg)
-            t = stamp_seconds(msg.header.stamp)
-            xyz = (float(pos.x), float(pos.y), float(pos.z))
+            t, xyz, kappa = trajectory_sample(msgtype, msg)
         except Exception as exc:  # malformed message: log, skip, keep running
             self.errors += 1
             self.node.get_logger().error(f"{self.topic}: malformed {msgtype} skipped "
                                          f"({exc})", throttle_duration_sec=5.0)
             return
-        self.on_sample(t, xyz, str(msg.header.frame_id))
+        self.on_sample(t, xyz, str(msg.header.frame_id), kappa)

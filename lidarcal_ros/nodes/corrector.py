@@ -195,6 +195,7 @@ class CorrectorNode(Node):
         self.trajectory = TrajectoryBuffer(self.params["trajectory_buffer_s"])
         self._poses_t: list[float] = []  # samples not yet given to the correction
         self._poses_xyz: list[tuple[float, float, float]] = []
+        self._poses_heading: list[float] = []
         self._held: dict[int, _Chunk] = {}  # pushed, not yet reported back
         self._next_tag = 0
         self._last_push = time.monotonic()
@@ -274,11 +275,13 @@ class CorrectorNode(Node):
             f"{n} {format_value(n, v)}" for n, v in est.values.items()))
 
     # -- input -----------------------------------------------------------------------
-    def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str) -> None:
-        self.trajectory.add(t, xyz, frame_id)
+    def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str,
+                 kappa: float) -> None:
+        self.trajectory.add(t, xyz, frame_id, kappa)
         with self._lock:
             self._poses_t.append(t)
             self._poses_xyz.append(xyz)
+            self._poses_heading.append(kappa)
             self._lock.notify()
 
     def _on_points(self, raw: bytes) -> None:
@@ -437,18 +440,19 @@ class CorrectorNode(Node):
         """Give the correction the new trajectory samples, settings and switches, in the
         order they came (a new estimate applies from the next chunk on)."""
         with self._lock:
-            t, xyz = self._poses_t, self._poses_xyz
-            self._poses_t, self._poses_xyz = [], []
+            t, xyz, heading = self._poses_t, self._poses_xyz, self._poses_heading
+            self._poses_t, self._poses_xyz, self._poses_heading = [], [], []
             settings = self._settings if self._settings_changed else None
             lookahead_changed, keep_changed = self._lookahead_changed, self._keep_changed
             self._settings_changed = self._lookahead_changed = self._keep_changed = False
         if self._service_failed():  # it died (reported by _on_failure): a new one
             self._service = self._start_service()
             whole = self.trajectory.trajectory()
-            self._service.poses(whole.t, whole.xyz)
+            self._service.poses(whole.t, whole.xyz, whole.heading)
         elif t:
             self._service.poses(np.asarray(t, dtype=np.float64),
-                                np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+                                np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
+                                np.asarray(heading, dtype=np.float64))
         if settings is not None:
             self._service.set_settings(settings)
         if lookahead_changed:

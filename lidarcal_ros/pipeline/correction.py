@@ -139,6 +139,8 @@ class CorrectionSettings:
         Half-width of the local-trajectory window, s (``matching.trajectory_window_s``).
     min_samples : int
         Fewest trajectory samples in a window.
+    heading_source : str
+        ``matching.heading_source`` (:mod:`lidarcal_ros.core.heading`).
     time_field : str
         Cloud field holding the firing time (``time_field``; aliases accepted).
     """
@@ -147,6 +149,7 @@ class CorrectionSettings:
     radiometry: RadiometricModel = field(default_factory=RadiometricModel)
     window_s: float = 0.5
     min_samples: int = 2
+    heading_source: str = "auto"
     time_field: str = "t"
 
     @classmethod
@@ -162,6 +165,7 @@ class CorrectionSettings:
             delta=np.asarray(delta, dtype=np.float64),
             radiometry=RadiometricModel.from_config(config),
             window_s=float(config["matching.trajectory_window_s"]),
+            heading_source=str(config["matching.heading_source"]),
             time_field=str(config["time_field"]),
         )
 
@@ -266,11 +270,14 @@ def served_windows(
     min_samples: int = 2,
     source: str = "cloud",
     all_finite: bool = False,
+    heading_source: str = "auto",
 ) -> tuple[np.ndarray, WindowLines | None]:
     """The points the trajectory can serve
     (:func:`~lidarcal_ros.core.local_trajectory.served_by_trajectory`; ``all_finite``: the
     caller knows every point and time to be finite) and their local-trajectory lines (None
-    when there are none), flagging the others instead of raising.
+    when there are none; ``heading_source`` as
+    :func:`~lidarcal_ros.core.local_trajectory.window_lines`), flagging the others instead
+    of raising.
 
     Returns
     -------
@@ -285,7 +292,8 @@ def served_windows(
         return ok, None
     try:
         lines = window_lines(t if ok.all() else t[ok], trajectory, window_s=window_s,
-                             min_samples=min_samples, source=source)
+                             min_samples=min_samples, source=source,
+                             heading_source=heading_source)
     except TrajectoryError as exc:
         _left_uncorrected(ok, source, exc)
         return ok, None
@@ -300,12 +308,13 @@ def flagged_geometry(
     window_s: float = 0.5,
     min_samples: int = 2,
     source: str = "cloud",
+    heading_source: str = "auto",
 ) -> tuple[np.ndarray, LaserGeometry]:
     """:func:`~lidarcal_ros.core.local_trajectory.laser_geometry` for the points
     :func:`served_windows` serves (the geometry in order, for the points ``ok``), flagging
     the others instead of raising."""
     ok, lines = served_windows(t, xyz, trajectory, window_s=window_s, min_samples=min_samples,
-                               source=source)
+                               source=source, heading_source=heading_source)
     if lines is not None:
         sel = slice(None) if ok.all() else ok
         try:
@@ -426,7 +435,7 @@ def correct_columns(
         return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags)
     ok, lines = served_windows(t, xyz, trajectory, window_s=settings.window_s,
                                min_samples=settings.min_samples, source=source,
-                               all_finite=all_finite)
+                               all_finite=all_finite, heading_source=settings.heading_source)
     gn = normals if normals is not None else _fitted_normals(
         xyz, t, trajectory, group=group, context_xyz=context_xyz, context_group=context_group,
         heading=heading, cell_m=cell_m)
@@ -1089,23 +1098,16 @@ def output_kind(path: str | Path) -> str:
 
 def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
     """First pass: every trajectory sample of an open bag, and the frames they are in."""
-    from lidarcal_ros.io.bag import TRAJECTORY_TYPES, stamp_seconds
+    from lidarcal_ros.io.bag import TRAJECTORY_TYPES, TrajectorySamples
 
-    t: list[float] = []
-    xyz: list[tuple[float, float, float]] = []
-    frames: set[str] = set()
+    samples = TrajectorySamples()
     for _topic, msgtype, _ns, raw in bag.messages([topic]):
-        getter = TRAJECTORY_TYPES.get(msgtype)
-        if getter is None:
+        if msgtype not in TRAJECTORY_TYPES:
             raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
-        msg = bag.deserialize(raw, msgtype, topic=topic)
-        pos = getter(msg)
-        t.append(stamp_seconds(msg.header.stamp))
-        xyz.append((pos.x, pos.y, pos.z))
-        frames.add(msg.header.frame_id)
-    if not t:
+        samples.add(msgtype, bag.deserialize(raw, msgtype, topic=topic))
+    if not samples:
         raise BagError(f"{bag.path}: topic {topic} has no messages")
-    return Trajectory.from_samples(np.asarray(t), np.asarray(xyz)), frames
+    return samples.trajectory(), samples.frames
 
 
 def correct_bag(
@@ -1196,6 +1198,10 @@ def correct_bag(
             raise InputError(f"{bag.path}: poses on {traj_topic} are in several frames: "
                              f"{sorted(traj_frames)}")
         frame = next(iter(traj_frames))
+        if settings.heading_source == "attitude" and trajectory.heading is None:
+            raise ConfigError(f"{bag.path}: matching.heading_source is 'attitude' but the poses "
+                              f"on {traj_topic} carry no orientation (identity); use 'track' "
+                              "or 'auto'")
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
                                     workers=workers, source=points_topic)
         n_clouds = max(bag.topics[points_topic].count, 1)

@@ -147,8 +147,9 @@ class _Engine:
         stamp, frame, _started = self._headers[tag]
         return self._placer(tag, stamp, frame, n, dtype)
 
-    def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
-        self.trajectory.add_many(t, xyz)
+    def poses(self, t: np.ndarray, xyz: np.ndarray, heading: np.ndarray | None = None
+              ) -> None:
+        self.trajectory.add_many(t, xyz, heading)
 
     def push(self, clouds: Sequence[tuple[Any, bytes | memoryview]], on_error: ErrorHandler
              ) -> list[_Corrected]:
@@ -207,9 +208,10 @@ class LocalCorrection:
         self._on_result = on_result
         self._on_error = on_error
 
-    def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
-        """Add trajectory samples (s; map frame, m)."""
-        self._engine.poses(t, xyz)
+    def poses(self, t: np.ndarray, xyz: np.ndarray, heading: np.ndarray | None = None
+              ) -> None:
+        """Add trajectory samples (s; map frame, m; headings, rad, NaN or None: none)."""
+        self._engine.poses(t, xyz, heading)
 
     def push(self, clouds: list[tuple[Any, bytes]]) -> None:
         """Correct clouds (tag, CDR bytes); results come through the handlers."""
@@ -403,7 +405,7 @@ def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSetting
         tags: list[Any] = []
         try:
             if kind == "poses":
-                engine.poses(request[1], request[2])
+                engine.poses(request[1], request[2], request[3])
             elif kind == "push":
                 tags = [tag for tag, _, _ in request[1]]
                 send_results(engine.push(payloads(request[1]), on_error))
@@ -595,10 +597,12 @@ class CorrectionProcess:
         them)."""
         return self._inbound_ready
 
-    def poses(self, t: np.ndarray, xyz: np.ndarray) -> None:
-        """Add trajectory samples (s; map frame, m)."""
+    def poses(self, t: np.ndarray, xyz: np.ndarray, heading: np.ndarray | None = None
+              ) -> None:
+        """Add trajectory samples (s; map frame, m; headings, rad, NaN or None: none)."""
         self._send(("poses", np.asarray(t, dtype=np.float64),
-                    np.asarray(xyz, dtype=np.float64)))
+                    np.asarray(xyz, dtype=np.float64),
+                    None if heading is None else np.asarray(heading, dtype=np.float64)))
 
     def push(self, clouds: list[tuple[Any, bytes]]) -> None:
         """Correct clouds (tag, CDR bytes); results come through the handlers."""

@@ -107,7 +107,8 @@ def corrected_strips(
     for strip in mission.strips:
         ok, geo = flagged_geometry(strip.t, strip.xyz, mission.trajectory,
                                    window_s=settings.trajectory_window_s,
-                                   source=f"strip {strip.strip_id}")
+                                   source=f"strip {strip.strip_id}",
+                                   heading_source=settings.heading_source)
         xyz = strip.xyz[ok]
         if np.any(delta):
             xyz = correct_points(xyz, delta, geo.x, geo.z, geo.kappa, geo.beta,

@@ -120,6 +120,7 @@ class StreamingCalibration:
         self.normal_equations = NormalEquations()
         self._traj_t: list[np.ndarray] = []
         self._traj_xyz: list[np.ndarray] = []
+        self._traj_heading: list[np.ndarray] = []  # kappa, rad; NaN where not given
         self._trajectory: Trajectory | None = None
         self._open: dict[int, _OpenStrip] = {}
         self._closed: list[Strip] = []
@@ -146,11 +147,16 @@ class StreamingCalibration:
             raise InputError(f"{what} in frame '{frame_id}' but the mission is in "
                              f"'{self.frame_id}'")
 
-    def add_trajectory(self, t: np.ndarray, xyz: np.ndarray, frame_id: str) -> None:
-        """Add trajectory samples (seconds; IMU origin, map frame, metres)."""
+    def add_trajectory(self, t: np.ndarray, xyz: np.ndarray, frame_id: str,
+                       heading: np.ndarray | None = None) -> None:
+        """Add trajectory samples (seconds; IMU origin, map frame, metres; the heading
+        ``kappa`` from the orientation, rad, NaN or None where not given)."""
         self._check_frame(frame_id, "trajectory")
-        self._traj_t.append(np.atleast_1d(np.asarray(t, dtype=np.float64)))
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        self._traj_t.append(t)
         self._traj_xyz.append(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+        self._traj_heading.append(np.full(t.shape, np.nan) if heading is None
+                                  else np.asarray(heading, dtype=np.float64).reshape(-1))
         self._trajectory = None
 
     def add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
@@ -210,7 +216,8 @@ class StreamingCalibration:
             if not self._traj_t:
                 raise InputError("no trajectory received yet")
             self._trajectory = Trajectory.from_samples(np.concatenate(self._traj_t),
-                                                       np.concatenate(self._traj_xyz))
+                                                       np.concatenate(self._traj_xyz),
+                                                       np.concatenate(self._traj_heading))
         return self._trajectory
 
     @property
@@ -352,7 +359,8 @@ class StreamingCalibration:
         self.thinned_points = 0
         self.latest = None
         self.normal_equations = NormalEquations()
-        self._traj_t, self._traj_xyz, self._trajectory = [], [], None
+        self._traj_t, self._traj_xyz, self._traj_heading = [], [], []
+        self._trajectory = None
         self._open, self._closed = {}, []
         self._now = -np.inf
         self._late_strips = set()
@@ -377,6 +385,8 @@ class StreamingCalibration:
             "version": np.array(CHECKPOINT_VERSION),
             "traj_t": np.concatenate(self._traj_t) if self._traj_t else np.empty(0),
             "traj_xyz": np.concatenate(self._traj_xyz) if self._traj_xyz else np.empty((0, 3)),
+            "traj_heading": (np.concatenate(self._traj_heading) if self._traj_heading
+                             else np.empty(0)),
             "delta": self._calibrator.delta,
             "threshold": np.array(self._calibrator.threshold),
             "counters": np.array([self.dropped_points, self.dropped_non_finite,
@@ -450,6 +460,8 @@ class StreamingCalibration:
             if data["traj_t"].size:
                 self._traj_t = [data["traj_t"]]
                 self._traj_xyz = [data["traj_xyz"]]
+                self._traj_heading = [data["traj_heading"] if "traj_heading" in data
+                                      else np.full(data["traj_t"].shape, np.nan)]
             counters = [int(v) for v in data["counters"]]
             self.dropped_points, self.dropped_non_finite = counters[:2]
             if len(counters) > 2:  # (checkpoints of earlier versions lack it)

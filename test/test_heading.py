@@ -1,0 +1,203 @@
+"""The heading of the local trajectory from the IMU's orientation (``core.heading``): its
+convention, how it reaches the calibration and the correction from bags and streams, and
+that it removes what a crab the track cannot show does to both."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers_missions import MissionFiles, mission_factory  # noqa: F401  (fixture)
+
+from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
+from lidarcal_ros.core.heading import (
+    choose_heading,
+    heading_from_quaternion,
+    quaternion_from_heading,
+    window_headings,
+)
+from lidarcal_ros.core.local_trajectory import window_lines
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
+from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
+from lidarcal_ros.errors import TrajectoryError
+from lidarcal_ros.io.bag import read_mission, write_mission_bag
+from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
+
+WIND = (5.0, 0.0)  # m/s east: 4.8 degrees of crab at 60 m/s on north-south lines
+
+
+# ---------------------------------------------------------------- convention
+def _quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll), REP-103."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+def test_kappa_is_the_yaw_less_a_quarter_turn_whatever_the_roll_and_pitch() -> None:
+    # Body x forward (REP-103): yaw 90 degrees flies north, method.md's kappa 0; yaw 0 flies
+    # east, kappa -90 degrees (forward = (-sin kappa, cos kappa)).
+    assert heading_from_quaternion(*_quaternion(0, 0, math.pi / 2)) == pytest.approx(0.0)
+    assert heading_from_quaternion(*_quaternion(0, 0, 0.3)) == pytest.approx(0.3 - math.pi / 2)
+    assert heading_from_quaternion(*_quaternion(0, 0, -math.pi / 2)) == pytest.approx(math.pi)
+    # roll and pitch of a turn do not move the heading of the forward axis
+    for roll, pitch in ((0.2, 0.0), (-0.3, 0.1), (0.0, -0.15)):
+        got = heading_from_quaternion(*_quaternion(roll, pitch, 1.1))
+        assert got == pytest.approx(1.1 - math.pi / 2, abs=1e-12)
+    # not normalised: the same heading
+    x, y, z, w = _quaternion(0.1, 0.05, 2.0)
+    assert heading_from_quaternion(3 * x, 3 * y, 3 * z, 3 * w) == pytest.approx(
+        heading_from_quaternion(x, y, z, w), abs=1e-14)
+
+
+@pytest.mark.parametrize("q", [(0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0, -1.0),
+                               (0.0, 0.0, 0.0, 0.0), (math.nan, 0.0, 0.3, 0.9),
+                               (0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5))])
+def test_identity_zero_non_finite_or_vertical_orientations_give_no_heading(
+        q: tuple[float, float, float, float]) -> None:
+    assert math.isnan(heading_from_quaternion(*q))
+
+
+def test_level_quaternion_of_a_heading_round_trips() -> None:
+    for kappa in np.linspace(-math.pi + 1e-9, math.pi, 37):
+        assert heading_from_quaternion(*quaternion_from_heading(kappa)) == pytest.approx(
+            kappa, abs=1e-12)
+
+
+def test_window_heading_is_a_circular_mean_and_needs_every_sample() -> None:
+    deg = np.radians([179.0, -179.0, 178.0, -178.0, 10.0, 20.0, np.nan, 30.0])
+    got = window_headings(deg, np.array([0, 2, 4, 5]), np.array([2, 4, 6, 8]))
+    assert abs(math.remainder(got[0] - math.pi, 2 * math.pi)) < 1e-12  # across +-180
+    assert abs(math.remainder(got[1] - math.pi, 2 * math.pi)) < 1e-12
+    assert math.degrees(got[2]) == pytest.approx(15.0)
+    assert math.isnan(got[3])  # a sample without orientation
+
+
+def test_auto_takes_an_agreeing_attitude_and_refuses_another_convention(
+        caplog: pytest.LogCaptureFixture) -> None:
+    track = np.radians([0.0, 180.0, 0.5])
+    crabbed = track + np.radians([4.8, -4.8, 4.8])
+    assert np.array_equal(choose_heading(track, crabbed, "auto"), crabbed)
+    assert np.array_equal(choose_heading(track, crabbed, "track"), track)
+    assert np.array_equal(choose_heading(track, None, "auto"), track)
+    assert np.array_equal(choose_heading(track, np.array([0.1, np.nan, 0.2]), "auto"), track)
+    # a body frame of another convention (y forward): 90 degrees off the track
+    with caplog.at_level(logging.WARNING, logger="lidarcal_ros.core.heading"):
+        assert np.array_equal(choose_heading(track, track + math.pi / 2, "auto"), track)
+    assert "disagrees with the track by 90 degrees" in caplog.text
+    # forced: used as given
+    assert np.array_equal(choose_heading(track, track + math.pi / 2, "attitude"),
+                          track + math.pi / 2)
+    with pytest.raises(TrajectoryError, match="'attitude' but the trajectory has no "
+                       "orientation"):
+        choose_heading(track, None, "attitude", source="strip 3")
+
+
+def test_window_lines_take_the_heading_the_mode_asks_for() -> None:
+    t = np.arange(0.0, 10.0, 0.01)
+    xyz = np.column_stack([np.zeros_like(t), 60.0 * t, np.full_like(t, 1000.0)])  # north
+    crab = math.radians(4.0)
+    traj = Trajectory(t, xyz, np.full(t.size, crab))
+    pts = np.linspace(1.0, 9.0, 50)
+    assert np.allclose(window_lines(pts, traj, heading_source="auto").kappa, crab)
+    assert np.allclose(window_lines(pts, traj, heading_source="track").kappa, 0.0, atol=1e-9)
+    bare = Trajectory(t, xyz)
+    assert np.allclose(window_lines(pts, bare).kappa, 0.0, atol=1e-9)
+    with pytest.raises(TrajectoryError, match="strip 9: matching.heading_source"):
+        window_lines(pts, bare, heading_source="attitude", source="strip 9")
+
+
+# ---------------------------------------------------------------- carried through
+def test_trajectory_keeps_each_samples_heading_through_sorting_and_slicing() -> None:
+    t = np.array([3.0, 1.0, 2.0, 2.0, np.nan])
+    xyz = np.arange(15.0).reshape(5, 3)
+    h = np.array([0.3, 0.1, 0.2, 0.9, 0.5])
+    traj = Trajectory.from_samples(t, xyz, h)
+    assert traj.t.tolist() == [1.0, 2.0, 3.0]
+    assert traj.heading is not None and traj.heading.tolist() == [0.1, 0.2, 0.3]
+    assert traj.take(slice(1, None)).heading.tolist() == [0.2, 0.3]  # type: ignore[union-attr]
+    assert Trajectory.from_samples(t, xyz, np.full(5, np.nan)).heading is None
+    with pytest.raises(TrajectoryError, match="3 stamps but 2 headings"):
+        Trajectory(t[:3], xyz[:3], h[:2])
+
+
+def test_live_trajectory_buffer_keeps_the_headings_in_order_and_window() -> None:
+    buf = TrajectoryBuffer(keep_s=5.0)
+    for k in [0, 1, 2, 4, 3, *range(5, 12)]:  # one out of order
+        buf.add(float(k), (0.0, float(k), 100.0), "map", heading=0.01 * k)
+    traj = buf.trajectory()
+    assert traj.t.tolist() == [float(k) for k in range(6, 12)]  # the last 5 s
+    assert np.allclose(traj.heading, 0.01 * traj.t)
+    buf.add_many(np.array([12.0, 13.0]), np.zeros((2, 3)))  # without orientation
+    traj = buf.trajectory()
+    assert traj.heading is not None and np.isnan(traj.heading[-2:]).all()
+    assert np.allclose(traj.heading[:-2], 0.01 * traj.t[:-2])
+
+
+def test_bag_round_trip_writes_and_reads_the_orientation(tmp_path: Path) -> None:
+    from lidarcal_ros.core.mission import Mission, Strip
+
+    t = np.arange(0.0, 4.0, 0.01)
+    heading = np.radians(3.0) + 0.001 * t
+    traj = Trajectory(t, np.column_stack([0 * t, 60 * t, 1000 + 0 * t]), heading)
+    strip = Strip(1, np.array([[1.0, 60.0, 0.0], [2.0, 120.0, 0.0]]), np.array([1.0, 2.0]))
+    path = write_mission_bag(tmp_path / "att", Mission(traj, [strip]))
+    back = read_mission(path).trajectory
+    assert back.heading is not None
+    assert np.allclose(back.heading, heading, atol=1e-12)
+    bare = write_mission_bag(tmp_path / "bare", Mission(Trajectory(traj.t, traj.xyz), [strip]))
+    assert read_mission(bare).trajectory.heading is None
+
+
+# ---------------------------------------------------------------- what it is for
+def _errors_in_sigmas(result: object, biases: dict[str, float]) -> dict[str, float]:
+    sol = result.solution  # type: ignore[attr-defined]
+    return {n: abs(sol.delta[i] - biases[n]) / sol.sigma[i]
+            for i, n in enumerate(PARAMETER_NAMES)
+            if n in biases and math.isfinite(sol.sigma[i]) and sol.sigma[i] > 0}
+
+
+def test_calibration_of_a_crabbed_mission_is_unbiased_with_the_attitude(
+        mission_factory: Callable[..., MissionFiles]) -> None:  # noqa: F811
+    """4.8 degrees of crab: with the heading from the track the boresight and lever arm
+    come out tens of sigmas off (bench/README.md, "Crab"); with the IMU's heading, read back
+    from the bag, every estimate is within three sigmas of the truth."""
+    crabbed = mission_factory(density=0.2, line_length_m=220.0, seed=41, wind_mps=WIND,
+                              attitude=True)
+    mission = read_mission(crabbed.bag)
+    assert mission.trajectory.heading is not None
+    assert {round(abs(ln["crab_deg"]), 1) for ln in crabbed.sim.lines} == {4.8}
+    by_attitude = calibrate(mission, CalibrationSettings())  # auto
+    by_track = calibrate(mission, CalibrationSettings(heading_source="track"))
+    attitude_errors = _errors_in_sigmas(by_attitude, crabbed.sim.biases)
+    track_errors = _errors_in_sigmas(by_track, crabbed.sim.biases)
+    assert max(attitude_errors.values()) < 3.0, attitude_errors
+    assert max(track_errors.values()) > 8.0, track_errors
+    assert by_attitude.converged
+
+
+def test_correction_of_a_crabbed_mission_lands_on_the_truth_with_the_attitude(
+        mission_factory: Callable[..., MissionFiles]) -> None:  # noqa: F811
+    """Without range noise, the true biases removed with the IMU's heading put each point
+    back on the surface to a fraction of a millimetre (the linearisation); with the track's
+    heading the offsets come out turned by the crab and leave centimetres."""
+    crabbed = mission_factory(density=0.2, line_length_m=220.0, seed=41, wind_mps=WIND,
+                              attitude=True, range_noise_m=0.0)
+    sim = crabbed.sim
+    delta = np.array([sim.biases[n] for n in PARAMETER_NAMES])
+    strip, truth = sim.mission.strips[0], sim.true_xyz[0]
+    worst = {}
+    for mode in ("auto", "track"):
+        settings = CorrectionSettings(delta=delta, heading_source=mode)
+        res = correct_columns(strip.xyz, strip.t, strip.intensity, sim.mission.trajectory,
+                              settings)
+        worst[mode] = float(np.percentile(np.linalg.norm(res.xyz - truth, axis=1), 99))
+    assert worst["auto"] < 0.001, worst
+    assert worst["track"] > 0.03, worst
