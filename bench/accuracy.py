@@ -9,10 +9,13 @@ without biases.
 
     .venv/bin/python bench/accuracy.py [--seeds 101 102] [--density 0.3] [--line-length 1000]
     .venv/bin/python bench/accuracy.py --wind 5,0     # a crosswind: the sensor flies crabbed
+    .venv/bin/python bench/accuracy.py --wind 5,0 --attitude   # ... and its IMU heading given
 
 With ``--wind E,N`` (m/s, where the air moves) the sensor flies crabbed into the wind on every
 line (``simulate_mission(wind_mps=...)``), which the method, taking its heading from the
-track, cannot see: the checks above then say how far that carries the estimate.
+track, cannot see: the checks above then say how far that carries the estimate. With
+``--attitude`` the trajectory also carries the sensor's heading, as an IMU gives it, and the
+calibration takes it (``matching.heading_source`` ``auto``).
 """
 
 from __future__ import annotations
@@ -50,13 +53,16 @@ def main() -> int:
                     help="white noise on the trajectory samples, metres")
     ap.add_argument("--wind", default="0,0",
                     help="east,north m/s where the air moves (the sensor flies crabbed)")
+    ap.add_argument("--attitude", action="store_true",
+                    help="the trajectory carries the sensor's heading (an IMU's)")
     args = ap.parse_args()
     wind = tuple(float(v) for v in args.wind.split(","))
     failures = 0
     for seed in args.seeds:
         biases = random_biases(np.random.default_rng(seed + 7919))
         opts = {"density": args.density, "line_length_m": args.line_length, "seed": seed,
-                "trajectory_noise_m": args.trajectory_noise, "wind_mps": wind}
+                "trajectory_noise_m": args.trajectory_noise, "wind_mps": wind,
+                "attitude": args.attitude}
         t0 = time.perf_counter()
         sim = simulate_mission(biases=biases, **opts)
         t1 = time.perf_counter()
