@@ -29,6 +29,7 @@ from helpers_missions import (
     with_non_finite,
     without_control,
     without_trajectory,
+    write_calibration_yaml,
     write_cloud_bag,
     write_mcap_ros2_bag,
     write_params_file,
@@ -402,6 +403,44 @@ def test_simulate_with_wind_says_the_crab_in_its_truth(capsys, tmp_path):
     assert simulation["wind_mps"] == [3.0, 0.0]
     crab = math.degrees(math.asin(3.0 / 60.0))  # north-south lines: all of it is crosswind
     assert sorted(simulation["crab_deg"].values()) == pytest.approx([-crab, -crab, crab, crab])
+
+
+def test_simulate_with_attitude_writes_the_crabbed_heading_as_the_orientation(capsys,
+                                                                               tmp_path):
+    """``--attitude``: each pose's orientation is the sensor's heading, the track's turned
+    by the line's crab; without it the orientation is the identity."""
+    from lidarcal_ros.io.bag import read_mission
+
+    for attitude in (True, False):
+        out = tmp_path / f"sim_{attitude}"
+        rc, _, err = run(capsys, "simulate", "-o", out, "--scenario", "one_track",
+                         "--density", "0.05", "--line-length", "100", "--wind", "3,0",
+                         *(["--attitude"] if attitude else []))
+        assert rc == 0, err
+        mission = read_mission(out)
+        trajectory = mission.trajectory
+        if not attitude:
+            assert trajectory.heading is None
+            continue
+        simulation = yaml.safe_load((tmp_path / f"sim_{attitude}_truth.yaml").read_text())[
+            "simulation"]
+        assert simulation["attitude"] is True and trajectory.heading is not None
+        for strip in mission.strips:
+            on = np.flatnonzero((trajectory.t >= strip.t.min()) & (trajectory.t <= strip.t.max()))
+            dx, dy = trajectory.xyz[on[-1], :2] - trajectory.xyz[on[0], :2]
+            crab = trajectory.heading[on] - math.atan2(-dx, dy)
+            want = math.radians(simulation["crab_deg"][strip.strip_id])
+            assert abs(want) > 0.04 and np.allclose(np.sin(crab - want), 0.0, atol=1e-9)
+
+
+def test_correct_asked_for_the_attitude_of_a_bag_without_one_is_one_line(
+        capsys, tmp_path, small_mission):
+    cfg = write_params_file(tmp_path / "attitude.yaml", {"matching.heading_source": "attitude"})
+    cal = write_calibration_yaml(tmp_path / "cal.yaml", small_mission.sim.biases)
+    rc, _, err = run(capsys, "correct", small_mission.bag, "--calibration", cal,
+                     "--config", cfg, "-o", tmp_path / "out.las")
+    assert "carry no orientation" in one_line_error(rc, err, command="correct")
+    assert not (tmp_path / "out.las").exists()
 
 
 def test_simulate_refuses_existing_bag_subprocess(tmp_path):

@@ -88,11 +88,38 @@ def test_child_process_gives_the_bytes_of_the_stream_corrector(
     assert _run_process(settings, options, trajectory, clouds) == expected
 
 
+def test_the_imu_heading_reaches_the_correction_process(
+        mission_factory: Any) -> None:
+    """A crabbed mission whose poses carry the IMU's heading: the child process, given the
+    samples with their headings, gives the bytes of the stream corrector on that trajectory,
+    which are not those of the positions alone."""
+    crabbed = mission_factory(wind_mps=(4.0, 0.0), attitude=True)
+    settings, trajectory, clouds = _stream(crabbed)
+    assert trajectory.heading is not None
+    options = ServiceOptions(lookahead=False)
+
+    def reference(traj: Any) -> dict[int, bytes]:
+        ref = StreamCorrector(traj, settings, batch_points=0, lookahead=False)
+        out: dict[int, bytes] = {}
+        for k in range(0, len(clouds), 3):
+            group = [(parse_cloud(clouds[j]).points, j)
+                     for j in range(k, min(k + 3, len(clouds)))]
+            out.update((tag, cloud_cdr(1_000_000_000 + tag, "map", arr))
+                       for tag, arr in ref.push_many(group))
+        out.update((tag, cloud_cdr(1_000_000_000 + tag, "map", arr)) for tag, arr in ref.flush())
+        return out
+
+    expected = reference(trajectory)
+    assert _run_process(settings, options, trajectory, clouds) == expected
+    positions_only = reference(dataclasses.replace(trajectory, heading=None))
+    assert all(positions_only[k] != expected[k] for k in expected)
+
+
 def _feed(service: Any, got: Collector, trajectory: Any, clouds: list[bytes]
           ) -> dict[int, bytes]:
     """The trajectory, then the clouds three a request, then close: each cloud must come
     out once, in order; what came out, by tag."""
-    service.poses(trajectory.t, trajectory.xyz)
+    service.poses(trajectory.t, trajectory.xyz, trajectory.heading)
     for k in range(0, len(clouds), 3):
         service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
     service.close()

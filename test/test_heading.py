@@ -22,7 +22,7 @@ from lidarcal_ros.core.heading import (
 )
 from lidarcal_ros.core.local_trajectory import window_lines
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
+from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import TrajectoryError
 from lidarcal_ros.io.bag import read_mission, write_mission_bag
@@ -110,7 +110,7 @@ def test_window_lines_take_the_heading_the_mode_asks_for() -> None:
     assert np.allclose(window_lines(pts, traj, heading_source="track").kappa, 0.0, atol=1e-9)
     bare = Trajectory(t, xyz)
     assert np.allclose(window_lines(pts, bare).kappa, 0.0, atol=1e-9)
-    with pytest.raises(TrajectoryError, match="strip 9: matching.heading_source"):
+    with pytest.raises(TrajectoryError, match=r"strip 9: matching\.heading_source"):
         window_lines(pts, bare, heading_source="attitude", source="strip 9")
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,13 +19,16 @@ from lidarcal_ros.pipeline.streaming import StreamingCalibration
 
 @pytest.fixture(scope="module")
 def sim() -> SimulatedMission:
-    return simulate_mission(density=0.2, line_length_m=220.0, seed=41)
+    """Flown crabbed (4.8 deg) with the IMU's heading on the poses: a stream that lost the
+    heading would take the track's and land sigmas away from the offline estimate."""
+    return simulate_mission(density=0.2, line_length_m=220.0, seed=41, wind_mps=(5.0, 0.0),
+                            attitude=True)
 
 
 def _chunks(sim: SimulatedMission, seconds: float = 0.5):
     """The mission as a bag would carry it: time-ordered chunks and trajectory samples."""
     traj = sim.mission.trajectory
-    events = []
+    events: list[tuple[float, str, Any]] = []
     for strip in sim.mission.strips:
         assert strip.intensity is not None  # simulated strips always carry intensity
         edges = np.arange(strip.t[0], strip.t[-1] + seconds, seconds)
@@ -34,8 +38,9 @@ def _chunks(sim: SimulatedMission, seconds: float = 0.5):
                 cols = CloudColumns(strip.xyz[sel], strip.t[sel], strip.intensity[sel],
                                     np.full(int(sel.sum()), strip.strip_id, np.uint32))
                 events.append((float(strip.t[sel][0]), "cloud", cols))
-    for t, xyz in zip(traj.t, traj.xyz):
-        events.append((float(t), "pose", xyz))
+    assert traj.heading is not None
+    for t, xyz, kappa in zip(traj.t, traj.xyz, traj.heading, strict=True):
+        events.append((float(t), "pose", (xyz, kappa)))
     events.sort(key=lambda e: e[0])
     return events
 
@@ -44,7 +49,8 @@ def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> i
     updates = 0
     for t, kind, payload in events[:stop]:
         if kind == "pose":
-            stream.add_trajectory(np.array([t]), payload[None, :], "map")
+            stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
+                                  np.array([payload[1]]))
         else:
             stream.add_cloud(payload, "map")
             if stream.update() is not None:
@@ -75,17 +81,13 @@ def test_checkpoint_resume_keeps_normal_equations(sim: SimulatedMission, tmp_pat
     assert stream.latest is not None
     path = stream.save_checkpoint(tmp_path / "cal.npz")
     resumed = StreamingCalibration.load_checkpoint(path, config)
+    np.testing.assert_array_equal(resumed.trajectory.heading, stream.trajectory.heading)
     np.testing.assert_array_equal(resumed.normal_equations.n, stream.normal_equations.n)
     np.testing.assert_array_equal(resumed._calibrator.delta, stream._calibrator.delta)
     assert resumed.strip_ids == stream.strip_ids
     assert resumed.n_points == stream.n_points
     # Carry on from where it stopped: the end result equals the uninterrupted run.
-    for t, kind, payload in events[half:]:
-        if kind == "pose":
-            resumed.add_trajectory(np.array([t]), payload[None, :], "map")
-        else:
-            resumed.add_cloud(payload, "map")
-            resumed.update()
+    _feed(resumed, events[half:])
     _feed(stream, events[half:])
     a = resumed.solve().solution
     b = stream.solve().solution
