@@ -17,7 +17,9 @@ corrector  sustained throughput of ``lidarcal_corrector`` through DDS: a source 
            rate: points/s out, latency per chunk (source publish -> corrected chunk received;
            header stamps carry the publish wall time) p50/p99, and the latency trend (last third
            minus first third: growth = backlog). Once with the node's raw path, once with a
-           typed-rclpy variant of the same node (typed subscription and publisher).
+           typed-rclpy variant of the same node (typed subscription and publisher); the
+           ``relay`` variant, a bare node that takes each cloud and publishes one of the
+           corrected layout without correcting, measures the floor DDS sets under it.
 calibrator ``lidarcal run`` (separate processes) fed ``lidarcal replay bags/paper_sample --rate
            10``: when each strip's estimate appears relative to the end of the strip in the
            replay, and the lag of the last estimate behind the end of the replay.
