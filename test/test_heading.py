@@ -16,6 +16,8 @@ from helpers_missions import MissionFiles, mission_factory  # noqa: F401  (fixtu
 from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.heading import (
     choose_heading,
+    describe_heading_policy,
+    describe_heading_use,
     heading_from_quaternion,
     quaternion_from_heading,
     window_headings,
@@ -114,6 +116,15 @@ def test_window_lines_take_the_heading_the_mode_asks_for() -> None:
         window_lines(pts, bare, heading_source="attitude", source="strip 9")
 
 
+def test_the_words_for_which_heading_was_used() -> None:
+    assert describe_heading_use({1: "attitude", 2: "track", 3: "attitude"}) == (
+        "heading from the poses' orientation (IMU) for strips 1, 3; from the track for 2")
+    assert describe_heading_policy("auto", False) == (
+        "from the track (the poses carry no orientation)")
+    assert describe_heading_policy("track", True).endswith("(matching.heading_source track)")
+    assert "within 20 deg" in describe_heading_policy("auto", True)
+
+
 # ---------------------------------------------------------------- carried through
 def test_trajectory_keeps_each_samples_heading_through_sorting_and_slicing() -> None:
     t = np.array([3.0, 1.0, 2.0, 2.0, np.nan])
@@ -181,6 +192,12 @@ def test_calibration_of_a_crabbed_mission_is_unbiased_with_the_attitude(
     assert max(attitude_errors.values()) < 3.0, attitude_errors
     assert max(track_errors.values()) > 8.0, track_errors
     assert by_attitude.converged
+    # and each says which heading it took, strip by strip
+    assert set(by_attitude.heading_from.values()) == {"attitude"}
+    assert set(by_track.heading_from.values()) == {"track"}
+    assert describe_heading_use(by_attitude.heading_from) == (
+        "heading from the poses' orientation (IMU) for every strip")
+    assert describe_heading_use(by_track.heading_from) is None
 
 
 def test_correction_of_a_crabbed_mission_lands_on_the_truth_with_the_attitude(

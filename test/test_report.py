@@ -253,6 +253,12 @@ def test_a_thinned_report_uses_and_says_the_calibration_s_thinning(reported: Rep
     assert "points thinned" not in dict(reported.content.facts)
 
 
+def test_the_report_says_where_the_heading_comes_from(reported: Reported) -> None:
+    # the small mission's poses carry identity orientations: the track, as method.md
+    assert dict(reported.content.facts)["heading"] == (
+        "from the track (the poses carry no orientation)")
+
+
 # ------------------------------------------------------------------ the HTML file
 def test_html_is_one_self_contained_file(reported: Reported) -> None:
     text = reported.html.read_text(encoding="utf-8")

@@ -124,6 +124,11 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
     source : str
         Named in messages.
 
+    Returns
+    -------
+    (k,) float64
+        ``track`` or ``attitude`` itself (``is`` tells which was taken).
+
     Raises
     ------
     TrajectoryError
@@ -153,6 +158,31 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
                   "(its body frame must be x forward, y left, z up)")
         return track
     return attitude
+
+
+def describe_heading_use(heading_from: dict[int, str]) -> str | None:
+    """One line on where the strips' headings came from (strip id -> ``track`` or
+    ``attitude``), or None where every one came from the track (method.md as written)."""
+    attitude = sorted(k for k, v in heading_from.items() if v == "attitude")
+    if not attitude:
+        return None
+    track = sorted(k for k, v in heading_from.items() if v != "attitude")
+    if not track:
+        return "heading from the poses' orientation (IMU) for every strip"
+    return (f"heading from the poses' orientation (IMU) for strips "
+            f"{', '.join(map(str, attitude))}; from the track for {', '.join(map(str, track))}")
+
+
+def describe_heading_policy(mode: str, has_orientation: bool) -> str:
+    """What ``matching.heading_source`` makes of a trajectory with or without orientation."""
+    if mode == "track":
+        return "from the track (matching.heading_source track)"
+    if not has_orientation:
+        return "from the track (the poses carry no orientation)"
+    if mode == "attitude":
+        return "from the poses' orientation (matching.heading_source attitude)"
+    return (f"from the poses' orientation where it agrees with the track within "
+            f"{MAX_CRAB_DEG:g} deg, else from the track (matching.heading_source auto)")
 
 
 def _log_once(message: str) -> None:

@@ -62,6 +62,8 @@ class LaserGeometry:
     #: points); else computed on first use by :meth:`trig`.
     sin_beta: np.ndarray | None = None
     cos_beta: np.ndarray | None = None
+    #: Where ``kappa`` came from: ``track`` or ``attitude`` (:mod:`lidarcal_ros.core.heading`).
+    heading_from: str = "track"
 
     @property
     def range(self) -> np.ndarray:
@@ -86,10 +88,14 @@ class LaserGeometry:
 
     def take(self, index: np.ndarray) -> LaserGeometry:
         """A subset of the points (fancy or boolean index)."""
+        def part(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[index]
+
         return LaserGeometry(
             self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
-            *(None if a is None else a[index]
-              for a in (self.cos_kappa, self.sin_kappa, self.sin_beta, self.cos_beta)),
+            cos_kappa=part(self.cos_kappa), sin_kappa=part(self.sin_kappa),
+            sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
+            heading_from=self.heading_from,
         )
 
 
@@ -250,6 +256,8 @@ class WindowLines:
     kappa, cos_kappa, sin_kappa : (k,) float64
         Its heading (rad), cosine and sine: ``atan2(-v_x, v_y)``, or the orientation's
         (:mod:`lidarcal_ros.core.heading`).
+    heading_from : str
+        Which: ``track`` or ``attitude``.
     """
 
     window: np.ndarray
@@ -259,6 +267,7 @@ class WindowLines:
     kappa: np.ndarray
     cos_kappa: np.ndarray
     sin_kappa: np.ndarray
+    heading_from: str = "track"
 
 
 def window_lines(
@@ -307,12 +316,15 @@ def window_lines(
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa = np.arctan2(-vel[:, 0], vel[:, 1])
+    heading_from = "track"
     if heading_source != "track":
         attitude = (None if trajectory.heading is None
                     else window_headings(trajectory.heading, win_start, win_stop))
         kappa = choose_heading(kappa, attitude, heading_source, source=source)
+        if kappa is attitude:
+            heading_from = "attitude"
     return WindowLines(np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa,
-                       np.cos(kappa), np.sin(kappa))
+                       np.cos(kappa), np.sin(kappa), heading_from)
 
 
 def laser_geometry(
@@ -379,7 +391,7 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
         beta = np.arctan(x / z)
     geometry = LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
                              cos_kappa=cos_kappa, sin_kappa=sin_kappa, sin_beta=sin_beta,
-                             cos_beta=cos_beta)
+                             cos_beta=cos_beta, heading_from=lines.heading_from)
     above = geometry.z >= 0
     if np.any(above):
         k = int(np.argmax(above))

@@ -19,6 +19,7 @@ import yaml
 
 from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.heading import describe_heading_use
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.errors import ConfigError
@@ -142,6 +143,9 @@ def format_report(
         cell = config["calibration.thinning_cell_m"]
         lines.append(f"thinned to one point per {cell:g} m cell per strip and cloud: "
                      f"{result.thinned_points} points left out")
+    heading = describe_heading_use(result.heading_from)
+    if heading:
+        lines.append(heading)
     warn = config["qa.rmsdz_warn_m"]
     error = config["qa.max_difference_m"]
     lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS before':>11} "
