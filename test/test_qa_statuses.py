@@ -38,6 +38,11 @@ def test_the_estimate_reads_in_arcsec_and_cm() -> None:
     assert status.values["dZ"] == "fixed at +0.00 cm"
     assert status.values["dkappa"] == "not estimable: lines along one track"
     assert list(status.values) == list(PARAMETER_NAMES)
+    # where the headings came from, when the result says
+    with_heading = estimate_status(_solution(), {1: "attitude", 2: "attitude"})
+    assert with_heading.values["heading"] == (
+        "heading from the poses' orientation (IMU) for every strip")
+    assert estimate_status(_solution(), {1: "track"}).values["heading"] == "from the track"
 
 
 def _pair(a: int, b: int, level: int, rms: float) -> StatusSpec:

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lidarcal_ros.core.heading import describe_heading_use
 from lidarcal_ros.core.params import (
     N_PARAMETERS,
     PARAMETER_NAMES,
@@ -326,10 +327,13 @@ def _percent(fraction: float) -> str:
     return "n/a" if not math.isfinite(fraction) else f"{fraction * 100:.0f}%"
 
 
-def estimate_status(solution: Any) -> StatusSpec:
+def estimate_status(solution: Any, heading_from: dict[int, str] | None = None
+                    ) -> StatusSpec:
     """The biases as a crew reads them (``lidarcal: estimate``): the message lists the
     estimated ones with their standard deviations (``dphi -90.98 +- 0.04 arcsec``); the values
-    give every parameter, fixed and not estimable ones with what was used or why."""
+    give every parameter, fixed and not estimable ones with what was used or why, and (given
+    ``heading_from``, strip id -> ``track`` or ``attitude``) under ``heading`` where the
+    strips' headings came from."""
     values: dict[str, str] = {}
     estimated: list[str] = []
     for i, name in enumerate(PARAMETER_NAMES):
@@ -343,6 +347,8 @@ def estimate_status(solution: Any) -> StatusSpec:
         else:
             text = f"not estimable: {status.reason}"
         values[name] = text
+    if heading_from is not None:
+        values["heading"] = describe_heading_use(heading_from) or "from the track"
     return StatusSpec(OK, "lidarcal: estimate", ", ".join(estimated) or "nothing estimated",
                       values)
 
@@ -363,7 +369,7 @@ def qa_statuses(
 ) -> list[StatusSpec]:
     """The estimate, per-pair, convergence and observability statuses of a
     CalibrationResult."""
-    out = [estimate_status(result.solution)]
+    out = [estimate_status(result.solution, result.heading_from)]
     for p in result.pairs:
         level = pair_level(p.rms_after, p.p95_after, warn_m=warn_m, error_m=error_m)
         out.append(StatusSpec(
