@@ -148,16 +148,26 @@ def write_las_tiles(
     return paths
 
 
-def write_mission_sbet(mission: Mission, path: Path, *, crs: str = CRS) -> Path:
+def write_mission_sbet(mission: Mission, path: Path, *, crs: str = CRS,
+                       wander_rad: float = 0.0) -> Path:
     """The mission's trajectory as an SBET: GPS week seconds, lat/lon (rad), ellipsoidal
-    height (the map heights, taken as ellipsoidal)."""
+    height (the map heights, taken as ellipsoidal); where the trajectory has headings, the
+    platform heading and wander angle of an SBET (true heading = platform heading - wander,
+    clockwise from true north: the map's grid heading ``-kappa`` turned by PROJ's meridian
+    convergence, the angle from true north to grid north)."""
     import pyproj
 
     to_geo = pyproj.Transformer.from_crs(pyproj.CRS(crs).to_3d(), "EPSG:4979", always_xy=True)
     traj = mission.trajectory
     lon, lat, h = to_geo.transform(traj.xyz[:, 0], traj.xyz[:, 1], traj.xyz[:, 2])
     sow = np.mod(unix_to_adjusted_gps(traj.t) + ADJUSTED_GPS_OFFSET, WEEK_S)
-    return write_sbet(path, sow, np.radians(lat), np.radians(lon), h)
+    attitude = {}
+    if traj.heading is not None:
+        convergence = np.radians(pyproj.Proj(crs).get_factors(lon, lat).meridian_convergence)
+        true_heading = -traj.heading + convergence
+        attitude = {"heading": true_heading + wander_rad,
+                    "wander_angle": np.full(len(traj), wander_rad)}
+    return write_sbet(path, sow, np.radians(lat), np.radians(lon), h, **attitude)
 
 
 def _solution_diff(a: Any, b: Any) -> dict[str, float]:
@@ -201,6 +211,56 @@ def multi_return(sim: SimulatedMission, tmp_path_factory: pytest.TempPathFactory
     bag = work / "estimated"
     report = import_mission(tiles, bag, trajectory="estimate", returns="last")
     return {"tiles": tiles, "bag": bag, "report": report}
+
+
+# ---------------------------------------------------------------------------- attitude
+def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> None:
+    """A crabbed mission 200 km east of its UTM zone's central meridian (2 deg of meridian
+    convergence, as much as the crab): the SBET's true heading, less its wander angle and
+    turned to grid north, comes back as the heading of every pose of the imported bag, which
+    the calibration then takes (``matching.heading_source`` auto)."""
+    from lidarcal_ros.core.local_trajectory import window_lines
+
+    crabbed = simulate_mission(density=0.05, line_length_m=150.0, seed=5,
+                               origin=(700_000.0, 5_300_000.0), wind_mps=(4.0, 0.0),
+                               attitude=True)
+    truth = crabbed.mission.trajectory
+    assert truth.heading is not None
+    tiles = write_las_tiles(_plain_strips(crabbed), tmp_path, laz=())
+    sbet = write_mission_sbet(crabbed.mission, tmp_path / "crab.out", wander_rad=0.7)
+    assert read_sbet(sbet).heading_deg is not None
+    bag = tmp_path / "imported"
+    report = import_mission(tiles, bag, trajectory=sbet)
+    assert report.trajectory_kind == "SBET crab.out, with heading"
+    got = read_mission(bag).trajectory
+    assert got.heading is not None
+    nearest = np.clip(np.searchsorted(truth.t, got.t), 0, len(truth) - 1)
+    assert np.allclose(np.abs(truth.t[nearest] - got.t), 0.0, atol=1e-5)
+    error = np.abs(np.remainder(got.heading - truth.heading[nearest] + math.pi, 2 * math.pi)
+                   - math.pi)
+    assert error.max() < 1e-6  # rad; ignoring the convergence would leave 2 deg
+    lines = window_lines(np.array([float(crabbed.mission.strips[0].t[0])]), got)
+    assert lines.heading_from == "attitude"
+
+
+def test_sbet_without_attitude_and_ascii_heading_column(tmp_path: Path) -> None:
+    """All-zero heading and wander (converters that fill only positions) mean no heading; an
+    ASCII ``heading`` column is grid north for projected positions, degrees."""
+    from lidarcal_ros.io.trajectory_files import map_heading, read_ascii_trajectory
+
+    sbet = write_sbet(tmp_path / "bare.out", np.array([1.0, 2.0]), np.radians([48.0, 48.0]),
+                      np.radians([17.0, 17.0]), np.array([900.0, 900.0]))
+    assert read_sbet(sbet).heading_deg is None
+    text = "time,x,y,z,heading\n1,0,0,900,30\n2,0,60,900,-30\n"
+    (tmp_path / "traj.csv").write_text(text)
+    traj = read_ascii_trajectory(tmp_path / "traj.csv")
+    kappa = map_heading(traj, None, None)
+    assert kappa is not None and np.allclose(np.degrees(kappa), [-30.0, 30.0])
+    (tmp_path / "plain.csv").write_text("1,0,0,900,0.1,0.2,90\n2,0,60,900,0.1,0.2,90\n")
+    plain = read_ascii_trajectory(tmp_path / "plain.csv")  # time,x,y,z,roll,pitch,heading
+    assert plain.heading_deg is not None and plain.heading_deg.tolist() == [90.0, 90.0]
+    (tmp_path / "short.csv").write_text("1,0,0,900\n2,0,60,900\n")
+    assert read_ascii_trajectory(tmp_path / "short.csv").heading_deg is None
 
 
 # ---------------------------------------------------------------------------- round trip

@@ -1134,6 +1134,16 @@ class BagWriter:
         )
         self.write_message(topic, POSE_STAMPED, stamp_ns, msg)
 
+    def write_trajectory_pose(self, topic: str, stamp_ns: int, frame_id: str,
+                              trajectory: Trajectory, index: int) -> None:
+        """Write sample ``index`` of ``trajectory`` as a PoseStamped: its position, and the
+        level orientation of its heading where it has one
+        (:func:`~lidarcal_ros.core.heading.quaternion_from_heading`), else the identity."""
+        kappa = math.nan if trajectory.heading is None else float(trajectory.heading[index])
+        self.write_pose(topic, stamp_ns, frame_id, trajectory.xyz[index],
+                        quaternion_xyzw=(0.0, 0.0, 0.0, 1.0) if math.isnan(kappa)
+                        else quaternion_from_heading(kappa))
+
     def close(self) -> None:
         """Finish the bag (index, metadata.yaml)."""
         writer, self._writer = self._writer, None
@@ -1321,10 +1331,7 @@ def write_mission_bag(
             if kind == 1:
                 writer.write_cloud(points_topic, stamp, frame, clouds[key])
             else:
-                kappa = math.nan if traj.heading is None else float(traj.heading[key])
-                writer.write_pose(trajectory_topic, stamp, frame, traj.xyz[key],
-                                  quaternion_xyzw=(0.0, 0.0, 0.0, 1.0) if math.isnan(kappa)
-                                  else quaternion_from_heading(kappa))
+                writer.write_trajectory_pose(trajectory_topic, stamp, frame, traj, key)
     logger.info(
         "%s: wrote %d strips (%d chunks), %d poses", path, len(mission.strips),
         len(clouds), len(traj),

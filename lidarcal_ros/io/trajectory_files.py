@@ -5,8 +5,10 @@ SBET
 Binary, little-endian, 17 float64 per record (136 bytes): time (GPS seconds of the week),
 latitude (rad), longitude (rad), altitude (m, ellipsoidal), x/y/z velocity (m/s), roll,
 pitch, platform heading (rad), wander angle (rad), x/y/z acceleration (m/s^2), x/y/z angular
-rate (rad/s). Only time, latitude, longitude and altitude are used. Positions are geographic
-on the ellipsoid of the GNSS processing (WGS 84 / ITRF by default: EPSG:4979).
+rate (rad/s). Time, latitude, longitude, altitude and the true heading (platform heading less
+wander angle, clockwise from true north) are used; a file whose headings and wander angles are
+all zero has none. Positions are geographic on the ellipsoid of the GNSS processing (WGS 84 /
+ITRF by default: EPSG:4979).
 
 ASCII
 -----
@@ -15,7 +17,9 @@ whitespace separated; blank lines and lines starting with ``#`` or ``%`` are ski
 optional header line names the columns (case-insensitive): ``time``/``t``/``gps_time``/
 ``timestamp``/``sow``; ``x``/``easting``, ``y``/``northing``, ``z``/``height``/``h``/``alt``/
 ``altitude``/``elevation``; or ``lat``/``latitude`` and ``lon``/``long``/``longitude``
-(degrees: geographic). Without a header the first four columns are time, x, y, z.
+(degrees: geographic); ``heading`` (degrees clockwise from north: true north for geographic
+positions, grid north for projected ones) if present. Without a header the first four
+columns are time, x, y, z, and a seventh (after roll and pitch) the heading.
 
 Time bases
 ----------
@@ -63,6 +67,9 @@ _Y_NAMES = {"y", "northing", "north", "n"}
 _Z_NAMES = {"z", "height", "h", "alt", "altitude", "elevation", "ellipsoidal_height", "up"}
 _LAT_NAMES = {"lat", "latitude", "phi"}
 _LON_NAMES = {"lon", "long", "longitude", "lambda"}
+_HEADING_NAMES = {"heading", "heading_deg", "true_heading", "hdg"}
+#: Column of the heading in a trajectory without a header: ``time,x,y,z,roll,pitch,heading``.
+_HEADING_COLUMN = 6
 
 
 class TrajectoryFileError(TrajectoryError):
@@ -83,6 +90,9 @@ class TrajectoryFile:
         Geographic: longitude (deg), latitude (deg), ellipsoidal height (m).
         Projected: x, y, z in the file's CRS and unit.
     geographic : bool
+    heading_deg : (n,) float64 or None
+        Heading of the platform, degrees clockwise from north (true north for geographic
+        positions, grid north for projected ones); None when the file has none.
     """
 
     path: Path
@@ -92,6 +102,7 @@ class TrajectoryFile:
     b: np.ndarray
     c: np.ndarray
     geographic: bool
+    heading_deg: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -99,7 +110,8 @@ class TrajectoryFile:
     def take(self, index: np.ndarray | slice) -> TrajectoryFile:
         """A subset of the samples."""
         return TrajectoryFile(self.path, self.kind, self.t[index], self.a[index],
-                              self.b[index], self.c[index], self.geographic)
+                              self.b[index], self.c[index], self.geographic,
+                              None if self.heading_deg is None else self.heading_deg[index])
 
 
 # ---------------------------------------------------------------------------- time bases
@@ -169,6 +181,8 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     lat = np.array(records["latitude"])
     lon = np.array(records["longitude"])
     alt = np.array(records["altitude"])
+    platform_heading = np.array(records["heading"])
+    wander = np.array(records["wander_angle"])
     del records
     bad = ~(np.isfinite(t) & np.isfinite(alt) & (np.abs(lat) <= math.pi / 2 + 1e-9)
             & (np.abs(lon) <= 2 * math.pi + 1e-9))
@@ -180,7 +194,11 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
         )
     lon_deg = np.degrees(lon)
     lon_deg = np.where(lon_deg > 180.0, lon_deg - 360.0, lon_deg)
-    return TrajectoryFile(p, "sbet", t, lon_deg, np.degrees(lat), alt, True)
+    heading = None
+    if np.any(platform_heading != 0.0) or np.any(wander != 0.0):
+        heading = np.degrees(platform_heading - wander)  # true heading (Applanix)
+        heading[~np.isfinite(heading)] = np.nan
+    return TrajectoryFile(p, "sbet", t, lon_deg, np.degrees(lat), alt, True, heading)
 
 
 def write_sbet(
@@ -282,6 +300,7 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
                 f"{p}: line {header_no}: header lacks column(s) {', '.join(missing)} "
                 f"(found: {', '.join(names)})"
             )
+        col_heading = _find(names, _HEADING_NAMES)
         cols = (col_t, col_a, col_b, col_z)
         width = len(names)
     else:
@@ -291,6 +310,7 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
             raise TrajectoryFileError(
                 f"{p}: line {rows[0][0]}: {width} columns; expected time,x,y,z[,...]"
             )
+        col_heading = _HEADING_COLUMN if width > _HEADING_COLUMN else None
     if not rows:
         raise TrajectoryFileError(f"{p}: no samples after the header line")
     body = "\n".join(",".join(_split(line)) for _, line in rows)
@@ -299,12 +319,30 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
                           usecols=[c for c in cols if c is not None])
     except ValueError as exc:
         raise TrajectoryFileError(f"{p}: {_locate_bad_row(rows, cols, width) or exc}") from None
-    out = TrajectoryFile(p, "ascii", data[:, 0], data[:, 1], data[:, 2], data[:, 3], geographic)
     bad = ~np.isfinite(data).all(axis=1)
     if bad.any():
         k = int(np.argmax(bad))
         raise TrajectoryFileError(f"{p}: line {rows[k][0]}: non-finite value")
-    return out
+    heading = None
+    if col_heading is not None:
+        heading = _heading_column(p, rows, col_heading)
+    return TrajectoryFile(p, "ascii", data[:, 0], data[:, 1], data[:, 2], data[:, 3],
+                          geographic, heading)
+
+
+def _heading_column(p: Path, rows: list[tuple[int, str]], col: int) -> np.ndarray | None:
+    """The heading column (degrees) of an ASCII trajectory; None where it is all zero (a
+    placeholder) or not numbers (a column of another meaning): the positions still serve."""
+    try:
+        values = np.array([float(_split(line)[col]) for _, line in rows])
+    except (ValueError, IndexError):
+        logger.warning("%s: heading column %d is not numeric: headings from the track", p,
+                       col + 1)
+        return None
+    if not np.any(values != 0.0):
+        return None
+    values[~np.isfinite(values)] = np.nan
+    return values
 
 
 def _find(names: list[str], wanted: set[str]) -> int | None:
@@ -414,3 +452,25 @@ def project(
             f"to {target_crs.name}; wrong CRS?"
         )
     return out
+
+
+def map_heading(traj: TrajectoryFile, source_crs: Any, target_crs: Any) -> np.ndarray | None:
+    """Method.md's ``kappa`` (rad) of each sample in the map (``target_crs``; None: the
+    file's own), from the file's heading; None when it has none.
+
+    A heading clockwise from north is ``-kappa`` (the body's forward axis points along
+    ``(-sin kappa, cos kappa)``). Samples in another CRS than the map's are turned from its
+    north (true north for geographic ones) to the map's grid north by the convergence at each
+    sample, found by transforming a point a little north of it (11 m): up to a few degrees
+    in a UTM zone, as much as the crab the heading is there to see.
+    """
+    if traj.heading_deg is None:
+        return None
+    heading = np.radians(traj.heading_deg)
+    if target_crs is not None and source_crs is not None:
+        transformer = make_transformer(source_crs, target_crs, where=str(traj.path))
+        step = 1e-4 if traj.geographic else 10.0  # degrees of latitude, or units north
+        x0, y0, _ = transformer.transform(traj.a, traj.b, traj.c)
+        x1, y1, _ = transformer.transform(traj.a, traj.b + step, traj.c)
+        heading = heading + np.arctan2(np.asarray(x1) - x0, np.asarray(y1) - y0)
+    return np.mod(-heading + math.pi, 2.0 * math.pi) - math.pi

@@ -81,6 +81,7 @@ from lidarcal_ros.io.trajectory_files import (
     TrajectoryFile,
     gps_to_unix,
     gps_week_of_unix,
+    map_heading,
     project,
     read_trajectory_file,
     to_gps_seconds,
@@ -778,10 +779,12 @@ def import_mission(
     # -- trajectory file (read before the points: a bad file fails fast)
     traj_file: TrajectoryFile | None = None
     traj_xyz: np.ndarray | None = None
+    traj_kappa: np.ndarray | None = None
     if not estimate:
         traj_file = read_trajectory_file(Path(str(trajectory)))
-        traj_xyz = _trajectory_in_map(traj_file, points_crs,
-                                      _trajectory_crs(trajectory_crs, traj_file), factors)
+        traj_crs = _trajectory_crs(trajectory_crs, traj_file)
+        traj_xyz = _trajectory_in_map(traj_file, points_crs, traj_crs, factors)
+        traj_kappa = map_heading(traj_file, traj_crs, points_crs if traj_crs else None)
 
     # -- read pass: spill points, gather strip statistics (and rays)
     store = _RunStore(memory_points, out.parent)
@@ -843,7 +846,8 @@ def import_mission(
         return _finish(
             out, paths, infos, store, occupancy, per_psid, collector, n_read, n_kept,
             gap_bin=gap_bin, strip_gap_s=strip_gap_s, points_base=points_base,
-            traj_file=traj_file, traj_xyz=traj_xyz, trajectory_time=trajectory_time,
+            traj_file=traj_file, traj_xyz=traj_xyz, traj_kappa=traj_kappa,
+            trajectory_time=trajectory_time,
             gps_week=gps_week, estimate_options=estimate_options, points_crs=points_crs,
             factors=factors, frame_id=frame_id, chunk_seconds=chunk_seconds,
             points_topic=points_topic, trajectory_topic=trajectory_topic,
@@ -870,6 +874,7 @@ def _finish(
     points_base: str,
     traj_file: TrajectoryFile | None,
     traj_xyz: np.ndarray | None,
+    traj_kappa: np.ndarray | None,
     trajectory_time: str,
     gps_week: int | None,
     estimate_options: dict[str, Any] | None,
@@ -958,8 +963,10 @@ def _finish(
         order = np.flatnonzero(sel)
         order = order[np.argsort(t_clock[order], kind="stable")]
         keep = order[_decimate(t_clock[order], trajectory_rate_hz)]
-        traj = Trajectory.from_samples(t_clock[keep], traj_xyz[keep])
-        kind = f"{traj_file.kind.upper()} {traj_file.path.name}"
+        traj = Trajectory.from_samples(t_clock[keep], traj_xyz[keep],
+                                       None if traj_kappa is None else traj_kappa[keep])
+        kind = f"{traj_file.kind.upper()} {traj_file.path.name}" + (
+            ", with heading" if traj.heading is not None else ", positions only")
         # fail fast: strip spans known to the gap-bin resolution (exact check while writing)
         inner = []
         for sid, (lo, hi) in spans_raw.items():
@@ -1085,14 +1092,15 @@ def _write_bag(
                 s.t_first, s.t_last = min(s.t_first, t_lo), max(s.t_last, t_hi)
                 stamp = seconds_to_ns(t0)
                 while pose_i < len(pose_ns) and pose_ns[pose_i] <= stamp:
-                    writer.write_pose(trajectory_topic, pose_ns[pose_i], frame_id,
-                                      traj.xyz[pose_i])
+                    writer.write_trajectory_pose(trajectory_topic, pose_ns[pose_i],
+                                                 frame_id, traj, pose_i)
                     pose_i += 1
                 writer.write_cloud(points_topic, stamp, frame_id, part)
                 written += b - a
             progress("writing", written / max(n_total, 1))
         while pose_i < len(pose_ns):
-            writer.write_pose(trajectory_topic, pose_ns[pose_i], frame_id, traj.xyz[pose_i])
+            writer.write_trajectory_pose(trajectory_topic, pose_ns[pose_i], frame_id, traj,
+                                         pose_i)
             pose_i += 1
         _check_coverage(traj, [s for s in strips.values() if s.n_points], coverage_where)
     return written, len(pose_ns)
