@@ -20,6 +20,10 @@ corrector  sustained throughput of ``lidarcal_corrector`` through DDS: a source 
            typed-rclpy variant of the same node (typed subscription and publisher); the
            ``relay`` variant, a bare node that takes each cloud and publishes one of the
            corrected layout without correcting, measures the floor DDS sets under it.
+calibrator-rate (only when asked for) ``lidarcal_calibrator`` alone fed the corrector's
+           synthetic stream at each offered rate with ``calibration.thinning_cell_m``
+           (``--calibrator-thinning``): whether its intake keeps up (the queue of clouds
+           waiting for its worker, from ``/diagnostics``), its CPU and what it holds.
 calibrator ``lidarcal run`` (separate processes) fed ``lidarcal replay bags/paper_sample --rate
            10``: when each strip's estimate appears relative to the end of the strip in the
            replay, and the lag of the last estimate behind the end of the replay.
@@ -693,6 +697,74 @@ def bench_calibrator(rate: float, context: Any) -> dict[str, Any]:
     return out
 
 
+def bench_calibrator_rate(rate: float, seconds: float, chunk_s: float, thinning_cell_m: float,
+                          context: Any) -> dict[str, Any]:
+    """``lidarcal_calibrator`` alone fed the synthetic stream at ``rate`` points/s (one long
+    strip, the trajectory ahead of it): whether its intake keeps up (the queue of decoded
+    clouds its worker has not yet taken, sampled from ``/diagnostics``), its CPU, the points
+    it holds and thins, and how long after the source stops it has taken every cloud."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    points = max(int(rate * chunk_s), 100)
+    samples: list[tuple[float, dict[str, str], dict[str, str]]] = []
+    import rclpy
+
+    node = rclpy.create_node("bench_cal_rate_probe", context=context)
+
+    def on_diag(msg: Any) -> None:
+        status = {st.name: {kv.key: kv.value for kv in st.values} for st in msg.status}
+        if "lidarcal: input" in status and "lidarcal: memory" in status:
+            samples.append((time.monotonic(), status["lidarcal: input"],
+                            status["lidarcal: memory"]))
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
+    stop, th, ex = _spin_in_thread(context, [node])
+    calibrator = subprocess.Popen(
+        [PYTHON, "-m", "lidarcal_ros.nodes.calibrator", "--ros-args",
+         "-p", f"calibration.thinning_cell_m:={thinning_cell_m}"],
+        env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(2.0)
+        sampler = CpuSampler(calibrator.pid)
+        t0, wall0 = time.monotonic(), time.time()
+        source = subprocess.run(
+            [PYTHON, str(Path(__file__)), "_source", str(rate), str(points), str(seconds),
+             "/lidar/points"], env=_env(), capture_output=True, text=True,
+            timeout=seconds + 120)
+        t_end, wall_end = time.monotonic(), time.time()
+        sent = json.loads(source.stdout.strip().splitlines()[-1])
+        deadline = time.monotonic() + 60
+        drained = math.nan
+        while time.monotonic() < deadline:
+            if samples and int(samples[-1][1]["clouds"]) >= sent["chunks"] and \
+                    samples[-1][1]["queued_jobs"] == "0":
+                drained = max(samples[-1][0] - t_end, 0.0)  # (0: before the source quit)
+                break
+            time.sleep(0.05)
+        sampler.stop()
+        rss = _rss_mib(calibrator.pid)
+    finally:
+        stop.set()
+        th.join()
+        ex.shutdown()
+        node.destroy_node()
+        _stop(calibrator)
+    during = [x for x in samples if t0 + 2.0 <= x[0] <= t_end]
+    queued = [int(x[1]["queued_jobs"]) for x in during]
+    own, children, machine_busy, wall = sampler.usage(wall0 + 2.0, wall_end)
+    last = samples[-1] if samples else (0.0, {}, {})
+    return {"offered_pts_s": rate, "chunk_points": points, "chunks_sent": sent["chunks"],
+            "clouds_taken": int(last[1].get("clouds", 0)),
+            "thinning_cell_m": thinning_cell_m,
+            "queued_max": max(queued, default=-1), "queued_median":
+            float(np.median(queued)) if queued else math.nan,
+            "drained_after_end_s": drained, "cpu_share": (own + children) / wall,
+            "machine_busy_share": machine_busy / wall / (os.cpu_count() or 1),
+            "points_held": int(last[2].get("points_held", 0)),
+            "thinned_points": int(last[2].get("thinned_points", 0)),
+            "dropped_points": int(last[2].get("dropped_points", 0)), "rss_mib": rss}
+
+
 def bag_duration(path: Path) -> float:
     from lidarcal_ros.io.bag import open_bag
 
@@ -758,6 +830,8 @@ def main() -> int:
                         "traffic alone: take each cloud, publish one of the corrected "
                         "layout, no correction)")
     parser.add_argument("--calibrator-rate", type=float, default=10.0)
+    parser.add_argument("--calibrator-thinning", type=float, default=1.0,
+                        help="calibration.thinning_cell_m of the calibrator-rate section, m")
     parser.add_argument("--memory-rate", type=float, default=20.0)
     parser.add_argument("--memory-passes", type=int, default=4)
     parser.add_argument("--dds-profile", type=Path,
@@ -826,6 +900,25 @@ def main() -> int:
             for variant in args.variants.split(","):
                 results["corrector"] += bench_corrector(rates, args.seconds, args.chunk_s,
                                                         variant, context)
+        if "calibrator-rate" in only:
+            print(f"calibrator fed the synthetic stream ({args.seconds:g} s per load, "
+                  f"thinning {args.calibrator_thinning:g} m):", flush=True)
+            results["calibrator_rate"] = []
+            for rate in [float(r) * 1e6 for r in args.rates.split(",")]:
+                r = bench_calibrator_rate(rate, args.seconds, args.chunk_s,
+                                          args.calibrator_thinning, context)
+                results["calibrator_rate"].append(r)
+                keeps_up = (r["clouds_taken"] == r["chunks_sent"]
+                            and r["drained_after_end_s"] < 2.0)
+                print(f"  offered {rate / 1e6:5.2f} M/s: {r['clouds_taken']}/"
+                      f"{r['chunks_sent']} clouds taken, queue median "
+                      f"{r['queued_median']:.0f} max {r['queued_max']}, drained "
+                      f"{r['drained_after_end_s']:.1f} s after the end; CPU "
+                      f"{r['cpu_share']:.0%} of a core, machine "
+                      f"{r['machine_busy_share']:.0%} busy; holds {r['points_held']} points "
+                      f"({r['thinned_points']} thinned, {r['dropped_points']} dropped), "
+                      f"{r['rss_mib']:.0f} MiB: {'keeps up' if keeps_up else 'falls behind'}",
+                      flush=True)
         if "calibrator" in only:
             print(f"calibrator: sample mission replayed at {args.calibrator_rate:g}x:",
                   flush=True)
