@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 from typing import Any
 
@@ -152,6 +153,49 @@ def test_memory_budget_releases_oldest_strip(sim: SimulatedMission) -> None:
     assert stream.n_points <= int(3.5 * n_strip)
     result = stream.solve()  # frozen correspondences still take part
     assert result.solution.sigma0 > 0
+
+
+def test_strips_being_flown_that_outgrow_the_budget_are_thinned_not_kept_whole(
+        sim: SimulatedMission, tmp_path: Path) -> None:
+    """No thinning set and a budget below one strip: the open strip is thinned, each cloud's
+    part as ``calibration.thinning_cell_m`` would at the cell chosen (coarsened by doubling
+    from 0.25 m), the budget holds after every cloud, later clouds come thinned, a checkpoint
+    keeps the cell, and the calibration goes on."""
+    from lidarcal_ros.core.thinning import first_per_cell
+
+    n_strip = len(sim.mission.strips[0])
+    budget = n_strip // 3
+    stream = StreamingCalibration(FlightConfig(), control=sim.mission.control,
+                                  max_points=budget)
+    fed: list[CloudColumns] = []  # clouds of strip 1 fed while it is open
+    for t, kind, payload in _chunks(sim):
+        if kind == "pose":
+            stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
+                                  np.array([payload[1]]))
+            continue
+        stream.add_cloud(payload, "map")
+        stream.update()
+        assert stream.n_points <= budget
+        if 1 in stream.open_strip_ids:
+            fed.append(payload)
+        elif fed and stream.auto_thinning_cell_m:
+            break
+    cell = stream.auto_thinning_cell_m
+    assert cell > 0 and math.log2(cell / 0.25) == round(math.log2(cell / 0.25))
+    assert stream.thinned_points > n_strip // 2
+    # strip 1 as held when it closed: every cloud thinned at the final cell
+    held = next(st for st in stream._closed if st.strip_id == 1)
+    parts = []
+    for c in fed:
+        ids = np.asarray(c.strip_id)
+        parts.append(c.xyz[first_per_cell(c.xyz, ids, cell) & (ids == 1)])
+    want = np.concatenate(parts)
+    order = np.lexsort(want.T[::-1])
+    got = held.xyz[np.lexsort(held.xyz.T[::-1])]
+    np.testing.assert_array_equal(got, want[order])
+    path = stream.save_checkpoint(tmp_path / "thin.npz")
+    assert StreamingCalibration.load_checkpoint(path, FlightConfig(),
+                                                max_points=budget).auto_thinning_cell_m == cell
 
 
 def test_frame_mismatch_and_missing_strip_id(sim: SimulatedMission) -> None:

@@ -485,11 +485,14 @@ class CalibratorNode(Node):
         """Memory, input and checkpoint statuses (the QA statuses come with each solve)."""
         s = self.stream
         dropped = s.dropped_points
-        mem_level = WARN if dropped else OK
+        mem_level = WARN if dropped or s.auto_thinning_cell_m else OK
         mem_msg = f"{s.n_points} points held of a budget of {s.max_points}"
         cell = float(self.params["calibration.thinning_cell_m"])
         if s.thinned_points:
             mem_msg += f" ({s.thinned_points} left out by thinning)"
+        if s.auto_thinning_cell_m:
+            mem_msg += (f"; the strips being flown outgrew the budget: thinning at "
+                        f"{s.thinning_cell_m:g} m")
         if dropped:
             mem_msg += (f"; released {dropped} points (strips "
                         f"{', '.join(str(i) for i in s.dropped_strips)}), oldest first")
@@ -498,6 +501,7 @@ class CalibratorNode(Node):
         out = [StatusSpec(mem_level, "lidarcal: memory", mem_msg, {
             "points_held": str(s.n_points), "budget_points": str(s.max_points),
             "thinned_points": str(s.thinned_points), "thinning_cell_m": f"{cell:g}",
+            "auto_thinning_cell_m": f"{s.auto_thinning_cell_m:g}",
             "dropped_points": str(dropped),
             "dropped_strips": ",".join(str(i) for i in s.dropped_strips),
             "strips": ",".join(str(i) for i in s.strip_ids),

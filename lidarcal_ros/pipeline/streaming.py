@@ -9,7 +9,12 @@ full adjustment exactly as ``lidarcal calibrate`` does on the same data, so a re
 the offline estimate.
 
 Memory: points are held under a budget; past it the oldest complete strip is released first,
-its strip pairs keeping their last correspondences (frozen), and the count is reported.
+its strip pairs keeping their last correspondences (frozen), and the count is reported. Where
+the strips still being flown hold more than the budget on their own (a dense sensor on a long
+line, without ``calibration.thinning_cell_m``), their points are thinned as that setting
+does, at the coarsest of twice the cell in force until they hold at most half the budget, and
+every later cloud at that cell: the calibration goes on with fewer points instead of running
+out of memory (:attr:`StreamingCalibration.auto_thinning_cell_m`, reported).
 """
 
 from __future__ import annotations
@@ -38,6 +43,11 @@ CHECKPOINT_VERSION = 1
 BYTES_PER_HELD_POINT = 700
 #: Share of the machine's memory :func:`default_point_budget` gives the calibration.
 _MEMORY_SHARE = 0.5
+#: The first cell of the automatic thinning where no thinning was set, m (then doubled):
+#: about the point spacing of a dense sensor.
+_FIRST_AUTO_CELL_M = 0.25
+#: Coarsest automatic thinning cell, m: beyond it a strip hardly has patches left to match.
+_MAX_AUTO_CELL_M = 32.0
 
 
 def default_point_budget(memory_bytes: int | None = None) -> int:
@@ -72,6 +82,22 @@ class _OpenStrip:
             self.intensity.append(np.asarray(intensity, dtype=np.float32))
         self.last_t = max(self.last_t, float(t.max()))
         self.n += int(t.shape[0])
+
+    def thin(self, strip_id: int, cell_m: float) -> int:
+        """Keep the first point of each ``cell_m`` cell of every cloud's part held (as
+        ``calibration.thinning_cell_m`` thins each cloud); returns the points let go."""
+        removed = 0
+        for k, xyz in enumerate(self.xyz):
+            keep = first_per_cell(xyz, np.full(xyz.shape[0], strip_id, dtype=np.int64), cell_m)
+            gone = int(keep.size - np.count_nonzero(keep))
+            if not gone:
+                continue
+            removed += gone
+            self.xyz[k], self.t[k] = xyz[keep], self.t[k][keep]
+            if self.has_intensity:
+                self.intensity[k] = self.intensity[k][keep]
+        self.n -= removed
+        return removed
 
     def to_strip(self, strip_id: int) -> Strip:
         t = np.concatenate(self.t)
@@ -113,8 +139,12 @@ class StreamingCalibration:
         self.dropped_points = 0
         self.dropped_strips: list[int] = []
         self.dropped_non_finite = 0
-        #: Points left out by the thinning of ``calibration.thinning_cell_m``.
+        #: Points left out by the thinning of ``calibration.thinning_cell_m`` (and the
+        #: automatic one).
         self.thinned_points = 0
+        #: Thinning cell (m) the budget forced because the open strips alone held more than
+        #: it (module docstring); 0 while it did not.
+        self.auto_thinning_cell_m = 0.0
         self.latest: CalibrationResult | None = None
         self.waiting_for = "no strip complete yet"
         self.normal_equations = NormalEquations()
@@ -174,7 +204,7 @@ class StreamingCalibration:
         self.dropped_non_finite += int((~ok).sum())
         if not ok.any():
             return
-        cell = float(self.config["calibration.thinning_cell_m"])
+        cell = self.thinning_cell_m
         if cell > 0:  # (among the finite points, in order: as lidarcal calibrate reads a bag)
             thin = first_per_cell(columns.xyz[ok], columns.strip_id[ok], cell)
             self.thinned_points += int(thin.size - np.count_nonzero(thin))
@@ -232,12 +262,17 @@ class StreamingCalibration:
     def open_strip_ids(self) -> list[int]:
         return sorted(self._open)
 
+    @property
+    def thinning_cell_m(self) -> float:
+        """The thinning in force, m: ``calibration.thinning_cell_m`` or the automatic one,
+        the coarser (0: none)."""
+        return max(float(self.config["calibration.thinning_cell_m"]), self.auto_thinning_cell_m)
+
     def _enforce_budget(self) -> None:
         while self.n_points > self.max_points:
             held = [ps for ps in self._calibrator.strips if not ps.dropped]
             if not held:
-                logger.warning("memory budget of %d points exceeded by open strips alone",
-                               self.max_points)
+                self._thin_open_strips()
                 return
             oldest = held[0].strip_id
             n = self._calibrator.drop_strip(oldest)
@@ -246,6 +281,21 @@ class StreamingCalibration:
             self._closed = [s for s in self._closed if s.strip_id != oldest]
             logger.warning("memory budget: released strip %d (%d points); its pairs keep their "
                            "last correspondences", oldest, n)
+
+    def _thin_open_strips(self) -> None:
+        """The open strips alone hold more than the budget: thin them, and what comes later,
+        at twice the cell in force until they hold at most half of it (module docstring)."""
+        target = self.max_points // 2
+        cell = self.thinning_cell_m or _FIRST_AUTO_CELL_M / 2.0
+        before = self.n_points
+        while self.n_points > target and cell < _MAX_AUTO_CELL_M:
+            cell *= 2.0
+            for key, strip in self._open.items():
+                self.thinned_points += strip.thin(key, cell)
+        self.auto_thinning_cell_m = cell
+        logger.warning("memory budget: the strips being flown held %d points of a budget of %d;"
+                       " thinned to one point per %g m cell per strip and cloud (%d held)",
+                       before, self.max_points, cell, self.n_points)
 
     def _close(self, strip_id: int) -> list[tuple[int, int]]:
         """Hand a complete strip to the calibration; returns the pairs it forms.
@@ -357,6 +407,7 @@ class StreamingCalibration:
         self.dropped_strips = []
         self.dropped_non_finite = 0
         self.thinned_points = 0
+        self.auto_thinning_cell_m = 0.0
         self.latest = None
         self.normal_equations = NormalEquations()
         self._traj_t, self._traj_xyz, self._traj_heading = [], [], []
@@ -391,6 +442,7 @@ class StreamingCalibration:
             "threshold": np.array(self._calibrator.threshold),
             "counters": np.array([self.dropped_points, self.dropped_non_finite,
                                   self.thinned_points]),
+            "auto_thinning_cell_m": np.array(self.auto_thinning_cell_m),
             "uncovered_points": np.array(self.uncovered_points),
             "uncovered_strips": np.array(self.uncovered_strips, dtype=np.int64),
             "rejected_ids": np.array([i for i, _ in self.rejected_strips], dtype=np.int64),
@@ -466,6 +518,8 @@ class StreamingCalibration:
             self.dropped_points, self.dropped_non_finite = counters[:2]
             if len(counters) > 2:  # (checkpoints of earlier versions lack it)
                 self.thinned_points = counters[2]
+            if "auto_thinning_cell_m" in data:  # (nor this)
+                self.auto_thinning_cell_m = float(data["auto_thinning_cell_m"])
             if "uncovered_points" in data:  # (checkpoints of earlier versions lack them)
                 self.uncovered_points = int(data["uncovered_points"])
                 self.uncovered_strips = [int(v) for v in data["uncovered_strips"]]
