@@ -29,7 +29,6 @@ from helpers_missions import (
     with_non_finite,
     without_control,
     without_trajectory,
-    write_calibration_yaml,
     write_cloud_bag,
     write_mcap_ros2_bag,
     write_params_file,
@@ -433,14 +432,21 @@ def test_simulate_with_attitude_writes_the_crabbed_heading_as_the_orientation(ca
             assert abs(want) > 0.04 and np.allclose(np.sin(crab - want), 0.0, atol=1e-9)
 
 
-def test_correct_asked_for_the_attitude_of_a_bag_without_one_is_one_line(
-        capsys, tmp_path, small_mission):
+@pytest.mark.parametrize("command", ["calibrate", "correct", "report", "evaluate"])
+def test_the_attitude_asked_of_a_bag_without_one_is_one_line(capsys, tmp_path, small_mission,
+                                                              rosbags_calibration, command):
     cfg = write_params_file(tmp_path / "attitude.yaml", {"matching.heading_source": "attitude"})
-    cal = write_calibration_yaml(tmp_path / "cal.yaml", small_mission.sim.biases)
-    rc, _, err = run(capsys, "correct", small_mission.bag, "--calibration", cal,
-                     "--config", cfg, "-o", tmp_path / "out.las")
-    assert "carry no orientation" in one_line_error(rc, err, command="correct")
-    assert not (tmp_path / "out.las").exists()
+    cal = rosbags_calibration[0]
+    out = {"calibrate": "cal_out.yaml", "correct": "out.las", "report": "report.html"}
+    args = [command, small_mission.bag, "--config", cfg]
+    if command != "calibrate":
+        args += ["--calibration", cal]
+    if command in out:
+        args += ["-o", tmp_path / out[command]]
+    rc, _, err = run(capsys, *args)
+    reason = one_line_error(rc, err, command=command)
+    assert "'attitude' but the trajectory's poses carry no orientation" in reason
+    assert not any((tmp_path / name).exists() for name in out.values())
 
 
 def test_simulate_refuses_existing_bag_subprocess(tmp_path):

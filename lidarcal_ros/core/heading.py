@@ -35,7 +35,8 @@ import math
 
 import numpy as np
 
-from lidarcal_ros.errors import TrajectoryError
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.errors import ConfigError, TrajectoryError
 
 logger = logging.getLogger(__name__)
 
@@ -158,6 +159,14 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
                   "(its body frame must be x forward, y left, z up)")
         return track
     return attitude
+
+
+def check_orientation(mode: str, trajectory: Trajectory, where: str) -> None:
+    """Refuse at once what ``attitude`` would refuse strip by strip: a trajectory without
+    orientation (ConfigError naming ``where``)."""
+    if mode == "attitude" and trajectory.heading is None:
+        raise ConfigError(f"{where}: matching.heading_source is 'attitude' but the trajectory's "
+                          "poses carry no orientation (identity); use 'track' or 'auto'")
 
 
 def describe_heading_use(heading_from: dict[int, str]) -> str | None:

@@ -19,7 +19,7 @@ import yaml
 
 from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.heading import describe_heading_use
+from lidarcal_ros.core.heading import check_orientation, describe_heading_use
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.errors import ConfigError
@@ -36,7 +36,9 @@ def load_mission(
     """Read a mission bag with the topics and time field of ``config``.
 
     Control points come from ``control_csv`` if given, else from the configuration's
-    ``calibration.control_points_file`` if set, else from the bag's control topic.
+    ``calibration.control_points_file`` if set, else from the bag's control topic. A
+    ``matching.heading_source`` of ``attitude`` with poses that carry no orientation is
+    refused here (ConfigError).
     """
     mission = read_mission(
         bag,
@@ -46,6 +48,7 @@ def load_mission(
         time_field=config["time_field"],
         thinning_cell_m=config["calibration.thinning_cell_m"],
     )
+    check_orientation(config["matching.heading_source"], mission.trajectory, str(bag))
     csv = control_csv or config["calibration.control_points_file"] or None
     if csv:
         mission.control = read_control_csv(csv)

@@ -69,6 +69,7 @@ from lidarcal_ros.core.flags import (
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
 )
+from lidarcal_ros.core.heading import check_orientation
 from lidarcal_ros.core.local_trajectory import (
     LaserGeometry,
     WindowLines,
@@ -1198,10 +1199,7 @@ def correct_bag(
             raise InputError(f"{bag.path}: poses on {traj_topic} are in several frames: "
                              f"{sorted(traj_frames)}")
         frame = next(iter(traj_frames))
-        if settings.heading_source == "attitude" and trajectory.heading is None:
-            raise ConfigError(f"{bag.path}: matching.heading_source is 'attitude' but the poses "
-                              f"on {traj_topic} carry no orientation (identity); use 'track' "
-                              "or 'auto'")
+        check_orientation(settings.heading_source, trajectory, f"{bag.path}: {traj_topic}")
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
                                     workers=workers, source=points_topic)
         n_clouds = max(bag.topics[points_topic].count, 1)
