@@ -218,3 +218,31 @@ def test_correction_of_a_crabbed_mission_lands_on_the_truth_with_the_attitude(
         worst[mode] = float(np.percentile(np.linalg.norm(res.xyz - truth, axis=1), 99))
     assert worst["auto"] < 0.001, worst
     assert worst["track"] > 0.03, worst
+
+
+def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Live, 'attitude' with poses that carry none leaves each cloud uncorrected (flagged):
+    one warning, then silence for a while, then one that counts the clouds in between."""
+    from lidarcal_ros.pipeline import correction
+
+    t = np.arange(0.0, 10.0, 0.01)
+    bare = Trajectory(t, np.column_stack([0 * t, 60 * t, 1000 + 0 * t]))
+    pts_t = np.linspace(1.0, 2.0, 50)
+    xyz = np.column_stack([np.full(50, 100.0), 60 * pts_t, np.zeros(50)])
+    source = "/test/attitude_without_orientation"
+    with caplog.at_level(logging.WARNING, logger="lidarcal_ros.pipeline.correction"):
+        for _ in range(5):
+            ok, lines = correction.served_windows(pts_t, xyz, bare, source=source,
+                                                  heading_source="attitude")
+            assert lines is None and not ok.any()
+        assert len(caplog.records) == 1
+        assert "'attitude' but the trajectory has no orientation" in caplog.text
+        last, since = correction._uncorrected_warned[source]
+        assert since == 4
+        # as if the quiet time had passed
+        correction._uncorrected_warned[source] = (last - correction.UNCORRECTED_WARNING_S,
+                                                  since)
+        correction.served_windows(pts_t, xyz, bare, source=source, heading_source="attitude")
+    assert len(caplog.records) == 2
+    assert "(and 4 more clouds since the last warning)" in caplog.records[-1].getMessage()

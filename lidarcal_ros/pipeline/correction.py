@@ -326,8 +326,25 @@ def flagged_geometry(
     return ok, LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
 
 
+#: Least wall time between two warnings of clouds left uncorrected from one source, s: a
+#: stream of 20 clouds a second through a trajectory gap (or with 'attitude' asked of poses
+#: without orientation) would otherwise log every cloud; the flags and counts say the rest.
+UNCORRECTED_WARNING_S = 10.0
+#: Per source: when it last warned (monotonic s) and the clouds left uncorrected since.
+_uncorrected_warned: dict[str, tuple[float, int]] = {}
+
+
 def _left_uncorrected(ok: np.ndarray, source: str, exc: TrajectoryError) -> None:
-    logger.warning("%s: %s; %d points left uncorrected", source, exc, int(ok.sum()))
+    """Flag every point ``ok`` of a cloud as not served, and say why (at most every
+    :data:`UNCORRECTED_WARNING_S` per source, with the clouds passed over in silence)."""
+    now = time.monotonic()
+    last, since = _uncorrected_warned.get(source, (-math.inf, 0))
+    if now - last >= UNCORRECTED_WARNING_S:
+        more = f" (and {since} more clouds since the last warning)" if since else ""
+        logger.warning("%s: %s; %d points left uncorrected%s", source, exc, int(ok.sum()), more)
+        _uncorrected_warned[source] = (now, 0)
+    else:
+        _uncorrected_warned[source] = (last, since + 1)
     ok[:] = False
 
 
