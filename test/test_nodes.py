@@ -370,6 +370,8 @@ def test_every_input_point_is_corrected_exactly_once(replayed: Replayed) -> None
     # The child process got and gave back the clouds through shared memory.
     assert suite.cor.status().values["transport"] == "shared memory"
     assert suite.cor_in_thread.status().values["transport"] == "thread"
+    # the crabbed mission's poses carry the IMU's heading, and the corrector says it uses it
+    assert suite.cor.status().values["heading"].startswith("from the poses' orientation")
     carried = suite.cor._service.carried
     assert carried["ring in"] > 0 and carried["ring out"] > 0, carried
 

@@ -43,6 +43,7 @@ class TrajectoryBuffer:
         self.end = -math.inf  # newest sample time
         self.last_arrival = -math.inf  # monotonic clock of the last sample received
         self.samples = 0
+        self.headed_samples = 0  # of them with a heading (an orientation)
 
     def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None,
             heading: float = math.nan) -> None:
@@ -52,6 +53,8 @@ class TrajectoryBuffer:
             self._pending_t.append(t)
             self._pending_xyz.append(xyz)
             self._pending_heading.append(heading)
+            if not math.isnan(heading):
+                self.headed_samples += 1
             self.samples += 1
             self.last_arrival = time.monotonic()
             if t > self.end:
@@ -74,9 +77,12 @@ class TrajectoryBuffer:
         with self._lock:
             self._pending_t.extend(t.tolist())
             self._pending_xyz.extend(xyz.tolist())
-            self._pending_heading.extend(
-                [math.nan] * int(t.size) if heading is None
-                else np.asarray(heading, dtype=np.float64).reshape(-1).tolist())
+            if heading is None:
+                self._pending_heading.extend([math.nan] * int(t.size))
+            else:
+                h = np.asarray(heading, dtype=np.float64).reshape(-1)
+                self._pending_heading.extend(h.tolist())
+                self.headed_samples += int(np.count_nonzero(~np.isnan(h)))
             self.samples += int(t.size)
             self.last_arrival = time.monotonic()
             if finite.size and float(finite.max()) > self.end:

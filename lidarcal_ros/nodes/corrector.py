@@ -58,6 +58,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.params import format_value
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
@@ -531,7 +532,9 @@ class CorrectorNode(Node):
             "dropped_clouds": str(s.dropped), "queued_mib": f"{self._queued_bytes / 2**20:.1f}",
             "latency_p50_s": f"{p50:.4f}", "latency_p99_s": f"{p99:.4f}",
             "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
-            "estimate_source": self.estimate_source, "transport": self._transport()})
+            "estimate_source": self.estimate_source, "transport": self._transport(),
+            "heading": describe_heading_policy(str(self.params["matching.heading_source"]),
+                                               self.trajectory.headed_samples > 0)})
 
     def _transport(self) -> str:
         """How clouds reach the numerics: ``thread``, ``shared memory`` or ``pipes``."""
