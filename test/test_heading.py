@@ -199,6 +199,11 @@ def test_calibration_of_a_crabbed_mission_is_unbiased_with_the_attitude(
     assert set(by_track.heading_from.values()) == {"track"}
     assert describe_heading_use(by_attitude.heading_from) == (
         "heading from the poses' orientation (IMU) for every strip")
+    # the crab each strip was flown with, seen as the attitude less the track
+    want = {ln["id"]: ln["crab_deg"] for ln in crabbed.sim.lines}
+    assert by_attitude.crab_deg == pytest.approx(want, abs=0.05)
+    assert describe_heading_use(by_attitude.heading_from, by_attitude.crab_deg) == (
+        "heading from the poses' orientation (IMU) for every strip (crab -4.8 to +4.8 deg)")
     assert describe_heading_use(by_track.heading_from) is None
 
 

@@ -178,8 +178,10 @@ class CalibrationResult:
     history: list[np.ndarray]
     dropped_non_finite: int = 0
     thinned_points: int = 0  # left out by calibration.thinning_cell_m
-    #: Where each strip's heading came from (``track`` or ``attitude``), by strip id.
+    #: Where each strip's heading came from (``track`` or ``attitude``), and its median crab
+    #: (attitude less track, deg; NaN without attitude), by strip id.
     heading_from: dict[int, str] = field(default_factory=dict)
+    crab_deg: dict[int, float] = field(default_factory=dict)
 
 
 def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -798,6 +800,7 @@ class Calibrator:
             n_control_correspondences=n_ctrl, history=history,
             dropped_non_finite=self.dropped_non_finite, thinned_points=self.thinned_points,
             heading_from={ps.strip.strip_id: ps.geometry0.heading_from for ps in self.strips},
+            crab_deg={ps.strip.strip_id: ps.geometry0.crab_deg for ps in self.strips},
         )
 
 

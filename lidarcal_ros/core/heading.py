@@ -109,6 +109,14 @@ def window_headings(heading: np.ndarray, start: np.ndarray, stop: np.ndarray) ->
     return np.where(gaps[b] - gaps[a] > 0, np.nan, mean)
 
 
+def median_crab_deg(track: np.ndarray, attitude: np.ndarray | None) -> float:
+    """The median of ``attitude - track`` over windows (deg, signed: positive
+    counter-clockwise, the nose left of the track); NaN without a full attitude."""
+    if attitude is None or not attitude.size or bool(np.isnan(attitude).any()):
+        return math.nan
+    return float(np.degrees(np.median(wrap_angle(attitude - track))))
+
+
 def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
                    source: str = "points") -> np.ndarray:
     """The heading of each window (rad) by ``matching.heading_source`` (module docstring).
@@ -151,7 +159,7 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
     if missing:
         return track
     assert attitude is not None
-    crab = float(np.degrees(np.median(np.abs(wrap_angle(attitude - track)))))
+    crab = abs(median_crab_deg(track, attitude))
     if crab > MAX_CRAB_DEG:
         _log_once(f"trajectory orientation disagrees with the track by {round(crab):.0f} "
                   f"degrees (median; more than the {MAX_CRAB_DEG:g} a crab reaches): heading "
@@ -169,17 +177,22 @@ def check_orientation(mode: str, trajectory: Trajectory, where: str) -> None:
                           "poses carry no orientation (identity); use 'track' or 'auto'")
 
 
-def describe_heading_use(heading_from: dict[int, str]) -> str | None:
+def describe_heading_use(heading_from: dict[int, str],
+                         crab_deg: dict[int, float] | None = None) -> str | None:
     """One line on where the strips' headings came from (strip id -> ``track`` or
-    ``attitude``), or None where every one came from the track (method.md as written)."""
+    ``attitude``) and the range of their crab (strip id -> deg, NaN: unknown), or None where
+    every one came from the track (method.md as written)."""
     attitude = sorted(k for k, v in heading_from.items() if v == "attitude")
     if not attitude:
         return None
     track = sorted(k for k, v in heading_from.items() if v != "attitude")
-    if not track:
-        return "heading from the poses' orientation (IMU) for every strip"
-    return (f"heading from the poses' orientation (IMU) for strips "
+    text = ("heading from the poses' orientation (IMU) for every strip" if not track else
+            f"heading from the poses' orientation (IMU) for strips "
             f"{', '.join(map(str, attitude))}; from the track for {', '.join(map(str, track))}")
+    crabs = [c for k, c in (crab_deg or {}).items() if k in attitude and math.isfinite(c)]
+    if crabs:
+        text += f" (crab {min(crabs):+.1f} to {max(crabs):+.1f} deg)"
+    return text
 
 
 def describe_heading_policy(mode: str, has_orientation: bool) -> str:

@@ -25,7 +25,7 @@ from typing import Literal
 import numpy as np
 
 from lidarcal_ros.core import kernels
-from lidarcal_ros.core.heading import choose_heading, window_headings
+from lidarcal_ros.core.heading import choose_heading, median_crab_deg, window_headings
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import TrajectoryError
@@ -62,8 +62,10 @@ class LaserGeometry:
     #: points); else computed on first use by :meth:`trig`.
     sin_beta: np.ndarray | None = None
     cos_beta: np.ndarray | None = None
-    #: Where ``kappa`` came from: ``track`` or ``attitude`` (:mod:`lidarcal_ros.core.heading`).
+    #: Where ``kappa`` came from: ``track`` or ``attitude`` (:mod:`lidarcal_ros.core.heading`),
+    #: and the median crab of the windows, deg (NaN: no attitude to compare the track with).
     heading_from: str = "track"
+    crab_deg: float = math.nan
 
     @property
     def range(self) -> np.ndarray:
@@ -95,7 +97,7 @@ class LaserGeometry:
             self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
             cos_kappa=part(self.cos_kappa), sin_kappa=part(self.sin_kappa),
             sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
-            heading_from=self.heading_from,
+            heading_from=self.heading_from, crab_deg=self.crab_deg,
         )
 
 
@@ -258,6 +260,8 @@ class WindowLines:
         (:mod:`lidarcal_ros.core.heading`).
     heading_from : str
         Which: ``track`` or ``attitude``.
+    crab_deg : float
+        The median of the attitude's heading less the track's, deg (NaN: no attitude).
     """
 
     window: np.ndarray
@@ -268,6 +272,7 @@ class WindowLines:
     cos_kappa: np.ndarray
     sin_kappa: np.ndarray
     heading_from: str = "track"
+    crab_deg: float = math.nan
 
 
 def window_lines(
@@ -316,15 +321,17 @@ def window_lines(
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa = np.arctan2(-vel[:, 0], vel[:, 1])
-    heading_from = "track"
-    if heading_source != "track":
-        attitude = (None if trajectory.heading is None
-                    else window_headings(trajectory.heading, win_start, win_stop))
+    heading_from, crab = "track", math.nan
+    if heading_source != "track" and trajectory.heading is not None:
+        attitude = window_headings(trajectory.heading, win_start, win_stop)
+        crab = median_crab_deg(kappa, attitude)
         kappa = choose_heading(kappa, attitude, heading_source, source=source)
         if kappa is attitude:
             heading_from = "attitude"
+    elif heading_source == "attitude":
+        choose_heading(kappa, None, heading_source, source=source)  # (raises: none there)
     return WindowLines(np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa,
-                       np.cos(kappa), np.sin(kappa), heading_from)
+                       np.cos(kappa), np.sin(kappa), heading_from, crab)
 
 
 def laser_geometry(
@@ -391,7 +398,8 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
         beta = np.arctan(x / z)
     geometry = LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
                              cos_kappa=cos_kappa, sin_kappa=sin_kappa, sin_beta=sin_beta,
-                             cos_beta=cos_beta, heading_from=lines.heading_from)
+                             cos_beta=cos_beta, heading_from=lines.heading_from,
+                             crab_deg=lines.crab_deg)
     above = geometry.z >= 0
     if np.any(above):
         k = int(np.argmax(above))

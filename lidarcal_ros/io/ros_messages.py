@@ -327,8 +327,8 @@ def _percent(fraction: float) -> str:
     return "n/a" if not math.isfinite(fraction) else f"{fraction * 100:.0f}%"
 
 
-def estimate_status(solution: Any, heading_from: dict[int, str] | None = None
-                    ) -> StatusSpec:
+def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
+                    crab_deg: dict[int, float] | None = None) -> StatusSpec:
     """The biases as a crew reads them (``lidarcal: estimate``): the message lists the
     estimated ones with their standard deviations (``dphi -90.98 +- 0.04 arcsec``); the values
     give every parameter, fixed and not estimable ones with what was used or why, and (given
@@ -348,7 +348,7 @@ def estimate_status(solution: Any, heading_from: dict[int, str] | None = None
             text = f"not estimable: {status.reason}"
         values[name] = text
     if heading_from is not None:
-        values["heading"] = describe_heading_use(heading_from) or "from the track"
+        values["heading"] = describe_heading_use(heading_from, crab_deg) or "from the track"
     return StatusSpec(OK, "lidarcal: estimate", ", ".join(estimated) or "nothing estimated",
                       values)
 
@@ -369,7 +369,7 @@ def qa_statuses(
 ) -> list[StatusSpec]:
     """The estimate, per-pair, convergence and observability statuses of a
     CalibrationResult."""
-    out = [estimate_status(result.solution, result.heading_from)]
+    out = [estimate_status(result.solution, result.heading_from, result.crab_deg)]
     for p in result.pairs:
         level = pair_level(p.rms_after, p.p95_after, warn_m=warn_m, error_m=error_m)
         out.append(StatusSpec(

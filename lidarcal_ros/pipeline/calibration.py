@@ -146,7 +146,7 @@ def format_report(
         cell = config["calibration.thinning_cell_m"]
         lines.append(f"thinned to one point per {cell:g} m cell per strip and cloud: "
                      f"{result.thinned_points} points left out")
-    heading = describe_heading_use(result.heading_from)
+    heading = describe_heading_use(result.heading_from, result.crab_deg)
     if heading:
         lines.append(heading)
     warn = config["qa.rmsdz_warn_m"]
