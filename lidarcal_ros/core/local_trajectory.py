@@ -322,14 +322,13 @@ def window_lines(
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa = np.arctan2(-vel[:, 0], vel[:, 1])
     heading_from, crab = "track", math.nan
-    if heading_source != "track" and trajectory.heading is not None:
-        attitude = window_headings(trajectory.heading, win_start, win_stop)
+    if heading_source != "track":
+        attitude = (None if trajectory.heading is None
+                    else window_headings(trajectory.heading, win_start, win_stop))
         crab = median_crab_deg(kappa, attitude)
         kappa = choose_heading(kappa, attitude, heading_source, source=source)
         if kappa is attitude:
             heading_from = "attitude"
-    elif heading_source == "attitude":
-        choose_heading(kappa, None, heading_source, source=source)  # (raises: none there)
     return WindowLines(np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa,
                        np.cos(kappa), np.sin(kappa), heading_from, crab)
 

@@ -109,6 +109,7 @@ class TrajectorySamples:
         return Trajectory.from_samples(np.asarray(self.t), np.asarray(self.xyz),
                                        np.asarray(self.heading))
 
+
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _NS = 1_000_000_000

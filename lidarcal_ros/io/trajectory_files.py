@@ -325,16 +325,17 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
         raise TrajectoryFileError(f"{p}: line {rows[k][0]}: non-finite value")
     heading = None
     if col_heading is not None:
-        heading = _heading_column(p, rows, col_heading)
+        heading = _heading_column(p, body, col_heading)
     return TrajectoryFile(p, "ascii", data[:, 0], data[:, 1], data[:, 2], data[:, 3],
                           geographic, heading)
 
 
-def _heading_column(p: Path, rows: list[tuple[int, str]], col: int) -> np.ndarray | None:
-    """The heading column (degrees) of an ASCII trajectory; None where it is all zero (a
-    placeholder) or not numbers (a column of another meaning): the positions still serve."""
+def _heading_column(p: Path, body: str, col: int) -> np.ndarray | None:
+    """The heading column (degrees) of an ASCII trajectory (``body``: its sample lines,
+    comma-separated); None where it is all zero (a placeholder) or not numbers (a column of
+    another meaning): the positions still serve."""
     try:
-        values = np.array([float(_split(line)[col]) for _, line in rows])
+        values = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=1, usecols=[col])
     except (ValueError, IndexError):
         logger.warning("%s: heading column %d is not numeric: headings from the track", p,
                        col + 1)
