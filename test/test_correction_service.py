@@ -111,7 +111,7 @@ def test_the_imu_heading_reaches_the_correction_process(
 
     expected = reference(trajectory)
     assert _run_process(settings, options, trajectory, clouds) == expected
-    positions_only = reference(dataclasses.replace(trajectory, heading=None))
+    positions_only = reference(dataclasses.replace(trajectory, orientation=None))
     assert all(positions_only[k] != expected[k] for k in expected)
 
 
@@ -119,7 +119,7 @@ def _feed(service: Any, got: Collector, trajectory: Any, clouds: list[bytes]
           ) -> dict[int, bytes]:
     """The trajectory, then the clouds three a request, then close: each cloud must come
     out once, in order; what came out, by tag."""
-    service.poses(trajectory.t, trajectory.xyz, trajectory.heading)
+    service.poses(trajectory.t, trajectory.xyz, trajectory.orientation)
     for k in range(0, len(clouds), 3):
         service.push([(j, clouds[j]) for j in range(k, min(k + 3, len(clouds)))])
     service.close()

@@ -13,13 +13,16 @@ import numpy as np
 import pytest
 from helpers_missions import MissionFiles, mission_factory  # noqa: F401  (fixture)
 
+from lidarcal_ros.core.attitude import (
+    headings_from_quaternions,
+    normalise_quaternions,
+    quaternions_from_headings,
+)
 from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.heading import (
     choose_heading,
     describe_heading_policy,
     describe_heading_use,
-    heading_from_quaternion,
-    quaternion_from_heading,
     window_headings,
 )
 from lidarcal_ros.core.local_trajectory import window_lines
@@ -34,6 +37,11 @@ WIND = (5.0, 0.0)  # m/s east: 4.8 degrees of crab at 60 m/s on north-south line
 
 
 # ---------------------------------------------------------------- convention
+def heading_from_quaternion(*q: float) -> float:
+    """The heading a trajectory gives a pose of orientation ``q`` (identity: none)."""
+    return float(headings_from_quaternions(normalise_quaternions(np.array(q)))[0])
+
+
 def _quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
     """(x, y, z, w) of R = Rz(yaw) Ry(pitch) Rx(roll), REP-103."""
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
@@ -69,8 +77,8 @@ def test_identity_zero_non_finite_or_vertical_orientations_give_no_heading(
 
 def test_level_quaternion_of_a_heading_round_trips() -> None:
     for kappa in np.linspace(-math.pi + 1e-9, math.pi, 37):
-        assert heading_from_quaternion(*quaternion_from_heading(kappa)) == pytest.approx(
-            kappa, abs=1e-12)
+        got = heading_from_quaternion(*quaternions_from_headings(np.array([kappa]))[0])
+        assert math.remainder(got - kappa, 2 * math.pi) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_window_heading_is_a_circular_mean_and_needs_every_sample() -> None:
@@ -106,7 +114,7 @@ def test_window_lines_take_the_heading_the_mode_asks_for() -> None:
     t = np.arange(0.0, 10.0, 0.01)
     xyz = np.column_stack([np.zeros_like(t), 60.0 * t, np.full_like(t, 1000.0)])  # north
     crab = math.radians(4.0)
-    traj = Trajectory(t, xyz, np.full(t.size, crab))
+    traj = Trajectory(t, xyz, quaternions_from_headings(np.full(t.size, crab)))
     pts = np.linspace(1.0, 9.0, 50)
     assert np.allclose(window_lines(pts, traj, heading_source="auto").kappa, crab)
     assert np.allclose(window_lines(pts, traj, heading_source="track").kappa, 0.0, atol=1e-9)
@@ -130,25 +138,28 @@ def test_trajectory_keeps_each_samples_heading_through_sorting_and_slicing() -> 
     t = np.array([3.0, 1.0, 2.0, 2.0, np.nan])
     xyz = np.arange(15.0).reshape(5, 3)
     h = np.array([0.3, 0.1, 0.2, 0.9, 0.5])
-    traj = Trajectory.from_samples(t, xyz, h)
+    traj = Trajectory.from_samples(t, xyz, quaternions_from_headings(h))
     assert traj.t.tolist() == [1.0, 2.0, 3.0]
-    assert traj.heading is not None and traj.heading.tolist() == [0.1, 0.2, 0.3]
-    assert traj.take(slice(1, None)).heading.tolist() == [0.2, 0.3]  # type: ignore[union-attr]
-    assert Trajectory.from_samples(t, xyz, np.full(5, np.nan)).heading is None
-    with pytest.raises(TrajectoryError, match="3 stamps but 2 headings"):
-        Trajectory(t[:3], xyz[:3], h[:2])
+    assert traj.heading is not None and np.allclose(traj.heading, [0.1, 0.2, 0.3])
+    assert np.allclose(traj.take(slice(1, None)).heading, [0.2, 0.3])  # type: ignore[arg-type]
+    assert Trajectory.from_samples(t, xyz, np.full((5, 4), np.nan)).heading is None
+    identity = np.tile([0.0, 0.0, 0.0, 1.0], (5, 1))
+    assert Trajectory.from_samples(t, xyz, identity).heading is None  # identity: none
+    with pytest.raises(TrajectoryError, match="3 stamps but 2 orientations"):
+        Trajectory(t[:3], xyz[:3], quaternions_from_headings(h[:2]))
 
 
 def test_live_trajectory_buffer_keeps_the_headings_in_order_and_window() -> None:
     buf = TrajectoryBuffer(keep_s=5.0)
     for k in [0, 1, 2, 4, 3, *range(5, 12)]:  # one out of order
-        buf.add(float(k), (0.0, float(k), 100.0), "map", heading=0.01 * k)
+        q = quaternions_from_headings(np.array([0.01 * k]))[0]
+        buf.add(float(k), (0.0, float(k), 100.0), "map", tuple(q))
     traj = buf.trajectory()
     assert traj.t.tolist() == [float(k) for k in range(6, 12)]  # the last 5 s
     assert np.allclose(traj.heading, 0.01 * traj.t)
-    assert buf.headed_samples == 12
+    assert buf.oriented_samples == 12
     buf.add_many(np.array([12.0, 13.0]), np.zeros((2, 3)))  # without orientation
-    assert buf.headed_samples == 12
+    assert buf.oriented_samples == 12
     traj = buf.trajectory()
     assert traj.heading is not None and np.isnan(traj.heading[-2:]).all()
     assert np.allclose(traj.heading[:-2], 0.01 * traj.t[:-2])
@@ -159,7 +170,8 @@ def test_bag_round_trip_writes_and_reads_the_orientation(tmp_path: Path) -> None
 
     t = np.arange(0.0, 4.0, 0.01)
     heading = np.radians(3.0) + 0.001 * t
-    traj = Trajectory(t, np.column_stack([0 * t, 60 * t, 1000 + 0 * t]), heading)
+    traj = Trajectory(t, np.column_stack([0 * t, 60 * t, 1000 + 0 * t]),
+                      quaternions_from_headings(heading))
     strip = Strip(1, np.array([[1.0, 60.0, 0.0], [2.0, 120.0, 0.0]]), np.array([1.0, 2.0]))
     path = write_mission_bag(tmp_path / "att", Mission(traj, [strip]))
     back = read_mission(path).trajectory

@@ -808,7 +808,7 @@ def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
         frame = parse_cloud(sent[0]).frame_id
         for t, xyz in zip(trajectory.t, trajectory.xyz, strict=True):  # it comes at last
             node._on_pose(float(t), (float(xyz[0]), float(xyz[1]), float(xyz[2])), frame,
-                          math.nan)
+                          (math.nan,) * 4)
         _wait(lambda: len(published) == kept, 30, "the kept clouds to be corrected")
     finally:
         node.close()
@@ -832,7 +832,7 @@ def test_a_trajectory_without_clouds_is_handed_on_not_hoarded(ros_context: Any) 
     try:
         for k in range(fed):
             t = 1000.0 + k * 0.005
-            node._on_pose(t, (0.0, 60.0 * t, 1000.0), "map", math.nan)
+            node._on_pose(t, (0.0, 60.0 * t, 1000.0), "map", (math.nan,) * 4)
         engine = node._service._engine  # type: ignore[union-attr]
         # The worker takes the node's poses under its lock, then adds them to the engine
         # outside it: wait for the hand-over to be complete, not merely begun. (Reading the

@@ -39,9 +39,9 @@ def _chunks(sim: SimulatedMission, seconds: float = 0.5):
                 cols = CloudColumns(strip.xyz[sel], strip.t[sel], strip.intensity[sel],
                                     np.full(int(sel.sum()), strip.strip_id, np.uint32))
                 events.append((float(strip.t[sel][0]), "cloud", cols))
-    assert traj.heading is not None
-    for t, xyz, kappa in zip(traj.t, traj.xyz, traj.heading, strict=True):
-        events.append((float(t), "pose", (xyz, kappa)))
+    assert traj.orientation is not None
+    for t, xyz, q in zip(traj.t, traj.xyz, traj.orientation, strict=True):
+        events.append((float(t), "pose", (xyz, q)))
     events.sort(key=lambda e: e[0])
     return events
 
@@ -51,7 +51,7 @@ def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> i
     for t, kind, payload in events[:stop]:
         if kind == "pose":
             stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
-                                  np.array([payload[1]]))
+                                  payload[1][None, :])
         else:
             stream.add_cloud(payload, "map")
             if stream.update() is not None:
@@ -82,7 +82,8 @@ def test_checkpoint_resume_keeps_normal_equations(sim: SimulatedMission, tmp_pat
     assert stream.latest is not None
     path = stream.save_checkpoint(tmp_path / "cal.npz")
     resumed = StreamingCalibration.load_checkpoint(path, config)
-    np.testing.assert_array_equal(resumed.trajectory.heading, stream.trajectory.heading)
+    np.testing.assert_array_equal(resumed.trajectory.orientation,
+                                  stream.trajectory.orientation)
     np.testing.assert_array_equal(resumed.normal_equations.n, stream.normal_equations.n)
     np.testing.assert_array_equal(resumed._calibrator.delta, stream._calibrator.delta)
     assert resumed.strip_ids == stream.strip_ids
@@ -171,7 +172,7 @@ def test_strips_being_flown_that_outgrow_the_budget_are_thinned_not_kept_whole(
     for t, kind, payload in _chunks(sim):
         if kind == "pose":
             stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
-                                  np.array([payload[1]]))
+                                  payload[1][None, :])
             continue
         stream.add_cloud(payload, "map")
         stream.update()

@@ -13,8 +13,10 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 import pytest
 
+from lidarcal_ros.core.attitude import headings_from_quaternions
 from lidarcal_ros.io.bag import ODOMETRY, POSE_STAMPED
 
 
@@ -92,11 +94,12 @@ def test_auto_listens_before_any_publisher_and_misses_no_sample(probe: tuple[Any
 
     node, executor = probe
     samples: list[tuple[float, tuple[float, float, float], str]] = []
-    headings: list[float] = []
+    orientations: list[tuple[float, ...]] = []
 
-    def on_sample(t: float, xyz: tuple[float, float, float], frame: str, kappa: float) -> None:
+    def on_sample(t: float, xyz: tuple[float, float, float], frame: str,
+                  q: tuple[float, ...]) -> None:
         samples.append((t, xyz, frame))
-        headings.append(kappa)
+        orientations.append(q)
 
     traj = TrajectoryInput(node, "/trajectory_input/poses", "auto", on_sample)
     # subscribed at once, with the contract's type, though nobody publishes yet
@@ -111,8 +114,8 @@ def test_auto_listens_before_any_publisher_and_misses_no_sample(probe: tuple[Any
         _spin_until(executor, lambda: len(samples) == 40, 10, "40 samples")
         assert samples[0] == (1000.0, (1.0, 0.0, 1000.0), "map")
         assert [t for t, _, _ in samples] == [1000.0 + k for k in range(40)]
-        # identity orientation: no heading
-        assert all(math.isnan(k) for k in headings)
+        # the orientation as published (the identity: none, for the Trajectory)
+        assert all(q == (0.0, 0.0, 0.0, 1.0) for q in orientations)
         # the publishers' type is the one subscribed: looking stops
         _spin_until(executor, lambda: traj._timer is None, 5, "the type to be confirmed")
         assert traj.msgtype == POSE_STAMPED and traj.errors == 0
@@ -127,9 +130,9 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
     from lidarcal_ros.nodes.common import TrajectoryInput
 
     node, executor = probe
-    samples: list[tuple[float, tuple[float, float, float], str, float]] = []
+    samples: list[tuple[float, tuple[float, float, float], str, tuple[float, ...]]] = []
     traj = TrajectoryInput(node, "/trajectory_input/odometry", "auto",
-                           lambda t, xyz, frame, kappa: samples.append((t, xyz, frame, kappa)))
+                           lambda t, xyz, frame, q: samples.append((t, xyz, frame, q)))
     first = traj.subscription
     pub = publisher_node.create_publisher(Odometry, "/trajectory_input/odometry", 100)
     try:
@@ -140,8 +143,9 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
             pub.publish(_odometry(k))
         _spin_until(executor, lambda: len(samples) == 5, 10, "5 samples")
         assert samples[-1][:3] == (2004.0, (2.0, -20.0, 800.0), "map")
-        # the orientation's heading: method.md's kappa = yaw - 90 degrees
-        assert math.degrees(samples[-1][3]) == pytest.approx(-184.0 + 360.0)
+        # the orientation as published (its heading: method.md's kappa = yaw - 90 degrees)
+        kappa = headings_from_quaternions(np.array(samples[-1][3]))[0]
+        assert math.degrees(kappa) == pytest.approx(-184.0 + 360.0)
         assert traj.errors == 0
     finally:
         publisher_node.destroy_publisher(pub)

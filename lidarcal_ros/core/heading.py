@@ -51,32 +51,6 @@ MAX_CRAB_DEG = 20.0
 _LOGGED: set[str] = set()
 
 
-def heading_from_quaternion(qx: float, qy: float, qz: float, qw: float) -> float:
-    """``kappa`` (rad, in ``(-pi, pi]``) of an orientation quaternion (REP-103 body frame;
-    module docstring); NaN for the identity (an orientation not given), a zero or a
-    non-finite quaternion, or a body pointing straight up or down.
-
-    The yaw is that of the body's forward axis projected on the horizontal, whatever the
-    roll and pitch; the quaternion need not be normalised.
-    """
-    if qx == 0.0 and qy == 0.0 and qz == 0.0:
-        return math.nan  # identity (or zero): "may be identity" in the contract
-    # The forward axis R (1, 0, 0), horizontal components, times |q|^2.
-    fx = qw * qw + qx * qx - qy * qy - qz * qz
-    fy = 2.0 * (qx * qy + qw * qz)
-    if not (math.isfinite(fx) and math.isfinite(fy)) or (fx == 0.0 and fy == 0.0):
-        return math.nan
-    kappa = math.atan2(fy, fx) - 0.5 * math.pi
-    return kappa + 2.0 * math.pi if kappa <= -math.pi else kappa
-
-
-def quaternion_from_heading(kappa: float) -> tuple[float, float, float, float]:
-    """The level orientation ``(x, y, z, w)`` (REP-103) of a body with heading ``kappa``
-    (rad): a rotation about the vertical by ``kappa + pi/2``."""
-    half = 0.5 * (float(kappa) + 0.5 * math.pi)
-    return 0.0, 0.0, math.sin(half), math.cos(half)
-
-
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles (rad) wrapped into ``[-pi, pi)``."""
     return np.mod(np.asarray(a, dtype=np.float64) + math.pi, 2.0 * math.pi) - math.pi

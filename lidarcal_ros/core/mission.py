@@ -10,12 +10,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lidarcal_ros.core.attitude import headings_from_quaternions, normalise_quaternions
 from lidarcal_ros.errors import TrajectoryError
 
 
 @dataclass
 class Trajectory:
-    """Positions of the IMU origin over time, and its heading where known.
+    """Positions of the IMU origin over time, and its attitude where known.
 
     Attributes
     ----------
@@ -23,15 +24,24 @@ class Trajectory:
         Sample times, seconds, strictly increasing.
     xyz : (n, 3) float64
         Positions in the map frame, metres.
-    heading : (n,) float64 or None
-        The body's heading ``kappa`` at each sample (rad, method.md's convention; from the
-        orientation, :mod:`lidarcal_ros.core.heading`), NaN where a sample has none; None
-        when no sample has one (positions only, as the quasi-rigorous method needs).
+    orientation : (n, 4) float64 or None
+        The INS attitude at each sample: unit quaternions ``(x, y, z, w)`` rotating REP-103's
+        body frame (x forward, y left, z up) into the map frame
+        (:mod:`lidarcal_ros.core.attitude`), a row of NaN where a sample has none (identity,
+        zero or not finite); None when no sample has one (positions only, as the
+        quasi-rigorous method needs). Normalised on construction, consecutive rows in one
+        hemisphere.
+    full_attitude : bool
+        The orientation carries roll and pitch as measured (an INS); False where only a
+        heading was known and the poses were levelled (an ASCII trajectory's heading column):
+        the rigorous model (method.md section 10) then has nothing to add.
     """
 
     t: np.ndarray
     xyz: np.ndarray
-    heading: np.ndarray | None = None
+    orientation: np.ndarray | None = None
+    full_attitude: bool = True
+    _heading: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.t = np.ascontiguousarray(self.t, dtype=np.float64)
@@ -40,34 +50,49 @@ class Trajectory:
             raise TrajectoryError(
                 f"trajectory has {self.t.shape[0]} stamps but {self.xyz.shape[0]} positions"
             )
-        if self.heading is not None:
-            self.heading = np.ascontiguousarray(self.heading, dtype=np.float64).reshape(-1)
-            if self.heading.shape[0] != self.t.shape[0]:
+        if self.orientation is not None:
+            q = np.asarray(self.orientation, dtype=np.float64)
+            if q.size != 4 * self.t.shape[0]:
                 raise TrajectoryError(f"trajectory has {self.t.shape[0]} stamps but "
-                                      f"{self.heading.shape[0]} headings")
-            if not self.heading.size or np.isnan(self.heading).all():
-                self.heading = None
+                                      f"{q.size / 4:g} orientations")
+            q = normalise_quaternions(q)
+            self.orientation = None if not q.size or np.isnan(q).all() else q
+
+    @property
+    def heading(self) -> np.ndarray | None:
+        """The body's heading ``kappa`` at each sample (rad, method.md's convention: the yaw
+        of the forward axis, :func:`~lidarcal_ros.core.attitude.headings_from_quaternions`),
+        NaN where a sample has no orientation; None without orientation."""
+        if self.orientation is None:
+            return None
+        if self._heading is None:
+            self._heading = headings_from_quaternions(self.orientation)
+        return self._heading
 
     @classmethod
     def from_samples(cls, t: np.ndarray, xyz: np.ndarray,
-                     heading: np.ndarray | None = None) -> Trajectory:
+                     orientation: np.ndarray | None = None, *,
+                     full_attitude: bool = True) -> Trajectory:
         """Build from unordered samples: sorts by time, drops non-finite and duplicate stamps
-        (a sample's heading may be NaN: it has none)."""
+        (a sample's orientation may be NaN: it has none)."""
         t = np.asarray(t, dtype=np.float64)
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        h = None if heading is None else np.asarray(heading, dtype=np.float64).reshape(-1)
+        q = None if orientation is None else np.asarray(orientation,
+                                                        dtype=np.float64).reshape(-1, 4)
         ok = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
         order = np.flatnonzero(ok)
         order = order[np.argsort(t[order], kind="stable")]
         if order.size:
             ts = t[order]
             order = order[np.concatenate(([True], np.diff(ts) > 0))]
-        return cls(t[order], xyz[order], None if h is None else h[order])
+        return cls(t[order], xyz[order], None if q is None else q[order],
+                   full_attitude=full_attitude)
 
     def take(self, index: np.ndarray | slice) -> Trajectory:
         """The samples at ``index`` (a slice, or indices in time order)."""
         return Trajectory(self.t[index], self.xyz[index],
-                          None if self.heading is None else self.heading[index])
+                          None if self.orientation is None else self.orientation[index],
+                          full_attitude=self.full_attitude)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core.attitude import quaternions_from_headings
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
@@ -559,8 +560,9 @@ def simulate_mission(
         })
         t_line = float(t_line + tr[-1] + TURN_S)
 
-    trajectory = Trajectory(np.concatenate(traj_t), np.concatenate(traj_xyz),
-                            np.concatenate(traj_heading) if attitude else None)
+    trajectory = Trajectory(
+        np.concatenate(traj_t), np.concatenate(traj_xyz),
+        quaternions_from_headings(np.concatenate(traj_heading)) if attitude else None)
     control = None
     if ctrl_xy.shape[0]:
         cz = terrain._height_local(ctrl_xy[:, 0], ctrl_xy[:, 1])

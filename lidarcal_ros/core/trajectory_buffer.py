@@ -9,6 +9,14 @@ from typing import Any
 
 __all__ = ["TrajectoryBuffer"]
 
+_NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
+
+
+def _has_orientation(q: tuple[float, ...]) -> bool:
+    """A quaternion that is finite and not the identity (module of
+    :mod:`lidarcal_ros.core.attitude`: the identity means "not given")."""
+    return all(math.isfinite(v) for v in q) and any(v != 0.0 for v in q[:3])
+
 #: Samples added and not yet merged beyond which :meth:`TrajectoryBuffer.add` merges them
 #: itself: a reader that rarely asks for the trajectory (the corrector node, which hands its
 #: samples on and only reads the flags) must not keep them all as Python objects.
@@ -35,7 +43,8 @@ class TrajectoryBuffer:
         self.keep_s = float(keep_s)
         self._pending_t: list[float] = []
         self._pending_xyz: list[tuple[float, float, float]] = []
-        self._pending_heading: list[float] = []  # kappa, rad; NaN where not given
+        # Orientation quaternions (x, y, z, w); NaN where not given.
+        self._pending_q: list[tuple[float, ...]] = []
         self._traj = Trajectory(np.empty(0), np.empty((0, 3)))
         self._lock = threading.Lock()
         self._rebuild_lock = threading.Lock()
@@ -43,18 +52,18 @@ class TrajectoryBuffer:
         self.end = -math.inf  # newest sample time
         self.last_arrival = -math.inf  # monotonic clock of the last sample received
         self.samples = 0
-        self.headed_samples = 0  # of them with a heading (an orientation)
+        self.oriented_samples = 0  # of them with an orientation (not the identity)
 
     def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None,
-            heading: float = math.nan) -> None:
-        """Add one sample: time (s), position (m), and the heading ``kappa`` of its
-        orientation (rad; NaN: none)."""
+            orientation: tuple[float, ...] = _NO_ORIENTATION) -> None:
+        """Add one sample: time (s), position (m), and its orientation quaternion
+        ``(x, y, z, w)`` (NaN or the identity: none)."""
         with self._lock:
             self._pending_t.append(t)
             self._pending_xyz.append(xyz)
-            self._pending_heading.append(heading)
-            if not math.isnan(heading):
-                self.headed_samples += 1
+            self._pending_q.append(orientation)
+            if _has_orientation(orientation):
+                self.oriented_samples += 1
             self.samples += 1
             self.last_arrival = time.monotonic()
             if t > self.end:
@@ -65,9 +74,9 @@ class TrajectoryBuffer:
         if merge:
             self.trajectory()
 
-    def add_many(self, t: Any, xyz: Any, heading: Any = None) -> None:
+    def add_many(self, t: Any, xyz: Any, orientation: Any = None) -> None:
         """Add samples given as arrays: times (n,), s, positions (n, 3), m, and optionally
-        headings (n,), rad (NaN or None: none)."""
+        orientation quaternions (n, 4) xyzw (NaN rows, the identity or None: none)."""
         np = self._np
         t = np.asarray(t, dtype=np.float64).reshape(-1)
         if not t.size:
@@ -77,12 +86,13 @@ class TrajectoryBuffer:
         with self._lock:
             self._pending_t.extend(t.tolist())
             self._pending_xyz.extend(xyz.tolist())
-            if heading is None:
-                self._pending_heading.extend([math.nan] * int(t.size))
+            if orientation is None:
+                self._pending_q.extend([_NO_ORIENTATION] * int(t.size))
             else:
-                h = np.asarray(heading, dtype=np.float64).reshape(-1)
-                self._pending_heading.extend(h.tolist())
-                self.headed_samples += int(np.count_nonzero(~np.isnan(h)))
+                q = np.asarray(orientation, dtype=np.float64).reshape(-1, 4)
+                self._pending_q.extend(map(tuple, q.tolist()))
+                self.oriented_samples += int(np.count_nonzero(
+                    np.isfinite(q).all(axis=1) & np.any(q[:, :3] != 0.0, axis=1)))
             self.samples += int(t.size)
             self.last_arrival = time.monotonic()
             if finite.size and float(finite.max()) > self.end:
@@ -104,21 +114,21 @@ class TrajectoryBuffer:
                 return self._traj
             t_new = np.asarray(self._pending_t, dtype=np.float64)
             x_new = np.asarray(self._pending_xyz, dtype=np.float64).reshape(-1, 3)
-            h_new = np.asarray(self._pending_heading, dtype=np.float64)
-            self._pending_t, self._pending_xyz, self._pending_heading = [], [], []
+            q_new = np.asarray(self._pending_q, dtype=np.float64).reshape(-1, 4)
+            self._pending_t, self._pending_xyz, self._pending_q = [], [], []
         old = self._traj
         t = np.concatenate([old.t, t_new])
         xyz = np.concatenate([old.xyz, x_new])
-        heading = None
-        if old.heading is not None or not np.isnan(h_new).all():
-            heading = np.concatenate([old.heading if old.heading is not None
-                                      else np.full(len(old), np.nan), h_new])
+        orientation = None
+        if old.orientation is not None or not np.isnan(q_new).all():
+            orientation = np.concatenate([old.orientation if old.orientation is not None
+                                          else np.full((len(old), 4), np.nan), q_new])
         if (np.isfinite(t_new).all() and np.isfinite(x_new).all()
                 and bool(np.all(np.diff(t_new) > 0))
                 and (len(old) == 0 or t_new[0] > old.t[-1])):
-            traj = self._Trajectory(t, xyz, heading)
+            traj = self._Trajectory(t, xyz, orientation)
         else:
-            traj = self._Trajectory.from_samples(t, xyz, heading)
+            traj = self._Trajectory.from_samples(t, xyz, orientation)
         if len(traj) and self.keep_s > 0 and traj.t[-1] - traj.t[0] > self.keep_s:
             start = int(np.searchsorted(traj.t, traj.t[-1] - self.keep_s))
             traj = traj.take(slice(start, None))

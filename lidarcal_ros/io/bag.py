@@ -44,7 +44,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from lidarcal_ros.core.heading import heading_from_quaternion, quaternion_from_heading
+from lidarcal_ros.core.attitude import IDENTITY_XYZW
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError
@@ -74,15 +74,19 @@ TRAJECTORY_TYPES: dict[str, Callable[[Any], tuple[Any, Any]]] = {
 }
 
 
-def trajectory_sample(msgtype: str, msg: Any) -> tuple[float, tuple[float, float, float], float]:
-    """A trajectory message of one of :data:`TRAJECTORY_TYPES` as ``(t, (x, y, z), kappa)``:
-    header stamp (s), position (m) and the heading of its orientation
-    (:func:`~lidarcal_ros.core.heading.heading_from_quaternion`, rad; NaN where it has none
-    or it is the identity)."""
+def trajectory_sample(msgtype: str, msg: Any
+                      ) -> tuple[float, tuple[float, float, float], tuple[float, ...]]:
+    """A trajectory message of one of :data:`TRAJECTORY_TYPES` as ``(t, (x, y, z), q)``:
+    header stamp (s), position (m) and its orientation quaternion ``(x, y, z, w)`` (NaN
+    where the type has none; the identity is kept, and read as none by
+    :class:`~lidarcal_ros.core.mission.Trajectory`)."""
     pos, q = TRAJECTORY_TYPES[msgtype](msg)
-    kappa = math.nan if q is None else heading_from_quaternion(q.x, q.y, q.z, q.w)
+    quat = _NO_ORIENTATION if q is None else (float(q.x), float(q.y), float(q.z), float(q.w))
     return (stamp_seconds(msg.header.stamp), (float(pos.x), float(pos.y), float(pos.z)),
-            kappa)
+            quat)
+
+
+_NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
 
 
 class TrajectorySamples:
@@ -92,14 +96,14 @@ class TrajectorySamples:
     def __init__(self) -> None:
         self.t: list[float] = []
         self.xyz: list[tuple[float, float, float]] = []
-        self.heading: list[float] = []
+        self.orientation: list[tuple[float, ...]] = []
         self.frames: set[str] = set()
 
     def add(self, msgtype: str, msg: Any) -> None:
-        t, xyz, kappa = trajectory_sample(msgtype, msg)
+        t, xyz, q = trajectory_sample(msgtype, msg)
         self.t.append(t)
         self.xyz.append(xyz)
-        self.heading.append(kappa)
+        self.orientation.append(q)
         self.frames.add(str(msg.header.frame_id))
 
     def __len__(self) -> int:
@@ -107,7 +111,7 @@ class TrajectorySamples:
 
     def trajectory(self) -> Trajectory:
         return Trajectory.from_samples(np.asarray(self.t), np.asarray(self.xyz),
-                                       np.asarray(self.heading))
+                                       np.asarray(self.orientation).reshape(-1, 4))
 
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -1137,13 +1141,12 @@ class BagWriter:
 
     def write_trajectory_pose(self, topic: str, stamp_ns: int, frame_id: str,
                               trajectory: Trajectory, index: int) -> None:
-        """Write sample ``index`` of ``trajectory`` as a PoseStamped: its position, and the
-        level orientation of its heading where it has one
-        (:func:`~lidarcal_ros.core.heading.quaternion_from_heading`), else the identity."""
-        kappa = math.nan if trajectory.heading is None else float(trajectory.heading[index])
+        """Write sample ``index`` of ``trajectory`` as a PoseStamped: its position, and its
+        orientation where it has one, else the identity."""
+        q = None if trajectory.orientation is None else trajectory.orientation[index]
         self.write_pose(topic, stamp_ns, frame_id, trajectory.xyz[index],
-                        quaternion_xyzw=(0.0, 0.0, 0.0, 1.0) if math.isnan(kappa)
-                        else quaternion_from_heading(kappa))
+                        quaternion_xyzw=IDENTITY_XYZW if q is None or np.isnan(q).any()
+                        else tuple(float(v) for v in q))
 
     def close(self) -> None:
         """Finish the bag (index, metadata.yaml)."""
@@ -1277,8 +1280,7 @@ def write_mission_bag(
     Each strip becomes time-ordered chunks with fields ``x, y, z, t`` FLOAT64,
     ``intensity`` FLOAT32 (if present), ``strip_id`` UINT16 and the extras, stamped with the
     chunk's first point time, in ``mission.frame_id``. The trajectory is written as
-    PoseStamped, its orientation the level one of the trajectory's heading where it has one
-    (:func:`~lidarcal_ros.core.heading.quaternion_from_heading`), else the identity; the
+    PoseStamped, with its orientation where it has one, else the identity; the
     control points as one transient-local
     PointCloud2 (x, y, z) at the start. All messages are in log-time order.
     """

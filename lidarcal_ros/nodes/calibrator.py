@@ -236,9 +236,9 @@ class CalibratorNode(Node):
         self.get_logger().error(f"malformed cloud skipped: {reason}", throttle_duration_sec=2.0)
 
     def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str,
-                 kappa: float) -> None:
+                 orientation: tuple[float, ...]) -> None:
         self.input["poses"] += 1
-        self._submit("pose", (t, xyz, frame_id, kappa))
+        self._submit("pose", (t, xyz, frame_id, orientation))
 
     def _on_control(self, raw: bytes) -> None:
         source = self.params["topics.control_points"]
@@ -268,7 +268,7 @@ class CalibratorNode(Node):
 
     # -- worker ---------------------------------------------------------------------------
     def _work(self) -> None:
-        poses: list[tuple[float, tuple[float, float, float], float]] = []
+        poses: list[tuple[float, tuple[float, float, float], tuple[float, ...]]] = []
         pose_frame = ""
         while not self._closing.is_set():
             try:
@@ -277,8 +277,8 @@ class CalibratorNode(Node):
                 kind, payload, future = "idle", None, None
             try:
                 if kind == "pose":
-                    t, xyz, pose_frame, kappa = payload
-                    poses.append((t, xyz, kappa))
+                    t, xyz, pose_frame, orientation = payload
+                    poses.append((t, xyz, orientation))
                     self._last_input = time.monotonic()
                     continue
                 if poses and (kind != "pose"):
@@ -298,7 +298,8 @@ class CalibratorNode(Node):
                         self.input["skipped"] += 1
                         self.input["last_error"] = text
 
-    def _flush_poses(self, poses: list[tuple[float, tuple[float, float, float], float]],
+    def _flush_poses(self, poses: list[tuple[float, tuple[float, float, float],
+                                             tuple[float, ...]]],
                      frame: str) -> None:
         t = np.array([p[0] for p in poses])
         xyz = np.array([p[1] for p in poses])

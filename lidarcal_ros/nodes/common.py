@@ -546,9 +546,9 @@ TRAJECTORY_TYPE_PARAMETER = NodeParameter(
 class TrajectoryInput:
     """Subscribes to the trajectory topic, of a given type or the one its publishers use.
 
-    Calls ``on_sample(t_seconds, (x, y, z), frame_id, kappa)`` for each sample (raw CDR
-    decoded with rosbags; ``kappa`` the heading of its orientation, rad, NaN where it has none
-    or it is the identity: :func:`~lidarcal_ros.io.bag.trajectory_sample`). With
+    Calls ``on_sample(t_seconds, (x, y, z), frame_id, orientation)`` for each sample (raw CDR
+    decoded with rosbags; ``orientation`` its quaternion ``(x, y, z, w)``, NaN where the type
+    has none: :func:`~lidarcal_ros.io.bag.trajectory_sample`). With
     ``msgtype`` ``auto`` the subscription is made at once for the contract's
     type (``geometry_msgs/msg/PoseStamped``), and the publishers on the topic are looked up
     every 0.5 s until one appears: if they use another accepted type, the subscription
@@ -558,7 +558,8 @@ class TrajectoryInput:
     """
 
     def __init__(self, node: Node, topic: str, msgtype: str,
-                 on_sample: Callable[[float, tuple[float, float, float], str, float], None],
+                 on_sample: Callable[[float, tuple[float, float, float], str,
+                                      tuple[float, ...]], None],
                  *, depth: int = 10000, callback_group: Any = None) -> None:
         self.node = node
         self.topic = topic
@@ -627,10 +628,10 @@ class TrajectoryInput:
 
         try:
             msg = deserialize(raw, msgtype)
-            t, xyz, kappa = trajectory_sample(msgtype, msg)
+            t, xyz, orientation = trajectory_sample(msgtype, msg)
         except Exception as exc:  # malformed message: log, skip, keep running
             self.errors += 1
             self.node.get_logger().error(f"{self.topic}: malformed {msgtype} skipped "
                                          f"({exc})", throttle_duration_sec=5.0)
             return
-        self.on_sample(t, xyz, str(msg.header.frame_id), kappa)
+        self.on_sample(t, xyz, str(msg.header.frame_id), orientation)

@@ -196,7 +196,7 @@ class CorrectorNode(Node):
         self.trajectory = TrajectoryBuffer(self.params["trajectory_buffer_s"])
         self._poses_t: list[float] = []  # samples not yet given to the correction
         self._poses_xyz: list[tuple[float, float, float]] = []
-        self._poses_heading: list[float] = []
+        self._poses_q: list[tuple[float, ...]] = []
         self._held: dict[int, _Chunk] = {}  # pushed, not yet reported back
         self._next_tag = 0
         self._last_push = time.monotonic()
@@ -277,12 +277,12 @@ class CorrectorNode(Node):
 
     # -- input -----------------------------------------------------------------------
     def _on_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str,
-                 kappa: float) -> None:
-        self.trajectory.add(t, xyz, frame_id, kappa)
+                 orientation: tuple[float, ...]) -> None:
+        self.trajectory.add(t, xyz, frame_id, orientation)
         with self._lock:
             self._poses_t.append(t)
             self._poses_xyz.append(xyz)
-            self._poses_heading.append(kappa)
+            self._poses_q.append(orientation)
             self._lock.notify()
 
     def _on_points(self, raw: bytes) -> None:
@@ -441,19 +441,19 @@ class CorrectorNode(Node):
         """Give the correction the new trajectory samples, settings and switches, in the
         order they came (a new estimate applies from the next chunk on)."""
         with self._lock:
-            t, xyz, heading = self._poses_t, self._poses_xyz, self._poses_heading
-            self._poses_t, self._poses_xyz, self._poses_heading = [], [], []
+            t, xyz, orientation = self._poses_t, self._poses_xyz, self._poses_q
+            self._poses_t, self._poses_xyz, self._poses_q = [], [], []
             settings = self._settings if self._settings_changed else None
             lookahead_changed, keep_changed = self._lookahead_changed, self._keep_changed
             self._settings_changed = self._lookahead_changed = self._keep_changed = False
         if self._service_failed():  # it died (reported by _on_failure): a new one
             self._service = self._start_service()
             whole = self.trajectory.trajectory()
-            self._service.poses(whole.t, whole.xyz, whole.heading)
+            self._service.poses(whole.t, whole.xyz, whole.orientation)
         elif t:
             self._service.poses(np.asarray(t, dtype=np.float64),
                                 np.asarray(xyz, dtype=np.float64).reshape(-1, 3),
-                                np.asarray(heading, dtype=np.float64))
+                                np.asarray(orientation, dtype=np.float64).reshape(-1, 4))
         if settings is not None:
             self._service.set_settings(settings)
         if lookahead_changed:
@@ -534,7 +534,7 @@ class CorrectorNode(Node):
             "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
             "estimate_source": self.estimate_source, "transport": self._transport(),
             "heading": describe_heading_policy(str(self.params["matching.heading_source"]),
-                                               self.trajectory.headed_samples > 0)})
+                                               self.trajectory.oriented_samples > 0)})
 
     def _transport(self) -> str:
         """How clouds reach the numerics: ``thread``, ``shared memory`` or ``pipes``."""

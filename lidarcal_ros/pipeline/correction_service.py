@@ -147,9 +147,9 @@ class _Engine:
         stamp, frame, _started = self._headers[tag]
         return self._placer(tag, stamp, frame, n, dtype)
 
-    def poses(self, t: np.ndarray, xyz: np.ndarray, heading: np.ndarray | None = None
+    def poses(self, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None = None
               ) -> None:
-        self.trajectory.add_many(t, xyz, heading)
+        self.trajectory.add_many(t, xyz, orientation)
 
     def push(self, clouds: Sequence[tuple[Any, bytes | memoryview]], on_error: ErrorHandler
              ) -> list[_Corrected]:
@@ -208,10 +208,11 @@ class LocalCorrection:
         self._on_result = on_result
         self._on_error = on_error
 
-    def poses(self, t: np.ndarray, xyz: np.ndarray, heading: np.ndarray | None = None
+    def poses(self, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None = None
               ) -> None:
-        """Add trajectory samples (s; map frame, m; headings, rad, NaN or None: none)."""
-        self._engine.poses(t, xyz, heading)
+        """Add trajectory samples (s; map frame, m; orientation quaternions (n, 4) xyzw, NaN
+        rows or None: none)."""
+        self._engine.poses(t, xyz, orientation)
 
     def push(self, clouds: list[tuple[Any, bytes]]) -> None:
         """Correct clouds (tag, CDR bytes); results come through the handlers."""
@@ -597,12 +598,14 @@ class CorrectionProcess:
         them)."""
         return self._inbound_ready
 
-    def poses(self, t: np.ndarray, xyz: np.ndarray, heading: np.ndarray | None = None
+    def poses(self, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None = None
               ) -> None:
-        """Add trajectory samples (s; map frame, m; headings, rad, NaN or None: none)."""
+        """Add trajectory samples (s; map frame, m; orientation quaternions (n, 4) xyzw, NaN
+        rows or None: none)."""
         self._send(("poses", np.asarray(t, dtype=np.float64),
                     np.asarray(xyz, dtype=np.float64),
-                    None if heading is None else np.asarray(heading, dtype=np.float64)))
+                    None if orientation is None
+                    else np.asarray(orientation, dtype=np.float64).reshape(-1, 4)))
 
     def push(self, clouds: list[tuple[Any, bytes]]) -> None:
         """Correct clouds (tag, CDR bytes); results come through the handlers."""

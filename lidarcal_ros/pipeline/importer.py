@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core.attitude import quaternions_from_headings
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.trajectory_estimation import (
     EstimatedTrajectory,
@@ -963,8 +964,10 @@ def _finish(
         order = np.flatnonzero(sel)
         order = order[np.argsort(t_clock[order], kind="stable")]
         keep = order[_decimate(t_clock[order], trajectory_rate_hz)]
-        traj = Trajectory.from_samples(t_clock[keep], traj_xyz[keep],
-                                       None if traj_kappa is None else traj_kappa[keep])
+        traj = Trajectory.from_samples(
+            t_clock[keep], traj_xyz[keep],
+            None if traj_kappa is None else quaternions_from_headings(traj_kappa[keep]),
+            full_attitude=False)
         kind = f"{traj_file.kind.upper()} {traj_file.path.name}" + (
             ", with heading" if traj.heading is not None else ", positions only")
         # fail fast: strip spans known to the gap-bin resolution (exact check while writing)

@@ -37,7 +37,7 @@ from lidarcal_ros.io.pointcloud import CloudColumns
 
 logger = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 #: What a point held by the calibration costs in memory once its strip is complete (its
 #: triangles, their planes and neighbours; measured: 643 bytes on a 3.2M-point mission).
 BYTES_PER_HELD_POINT = 700
@@ -150,7 +150,7 @@ class StreamingCalibration:
         self.normal_equations = NormalEquations()
         self._traj_t: list[np.ndarray] = []
         self._traj_xyz: list[np.ndarray] = []
-        self._traj_heading: list[np.ndarray] = []  # kappa, rad; NaN where not given
+        self._traj_q: list[np.ndarray] = []  # orientation quaternions xyzw; NaN: none
         self._trajectory: Trajectory | None = None
         self._open: dict[int, _OpenStrip] = {}
         self._closed: list[Strip] = []
@@ -178,15 +178,15 @@ class StreamingCalibration:
                              f"'{self.frame_id}'")
 
     def add_trajectory(self, t: np.ndarray, xyz: np.ndarray, frame_id: str,
-                       heading: np.ndarray | None = None) -> None:
-        """Add trajectory samples (seconds; IMU origin, map frame, metres; the heading
-        ``kappa`` from the orientation, rad, NaN or None where not given)."""
+                       orientation: np.ndarray | None = None) -> None:
+        """Add trajectory samples (seconds; IMU origin, map frame, metres; the orientation
+        quaternions (n, 4) xyzw, NaN rows, the identity or None where not given)."""
         self._check_frame(frame_id, "trajectory")
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         self._traj_t.append(t)
         self._traj_xyz.append(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
-        self._traj_heading.append(np.full(t.shape, np.nan) if heading is None
-                                  else np.asarray(heading, dtype=np.float64).reshape(-1))
+        self._traj_q.append(np.full((t.shape[0], 4), np.nan) if orientation is None
+                            else np.asarray(orientation, dtype=np.float64).reshape(-1, 4))
         self._trajectory = None
 
     def add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
@@ -247,7 +247,7 @@ class StreamingCalibration:
                 raise InputError("no trajectory received yet")
             self._trajectory = Trajectory.from_samples(np.concatenate(self._traj_t),
                                                        np.concatenate(self._traj_xyz),
-                                                       np.concatenate(self._traj_heading))
+                                                       np.concatenate(self._traj_q))
         return self._trajectory
 
     @property
@@ -410,7 +410,7 @@ class StreamingCalibration:
         self.auto_thinning_cell_m = 0.0
         self.latest = None
         self.normal_equations = NormalEquations()
-        self._traj_t, self._traj_xyz, self._traj_heading = [], [], []
+        self._traj_t, self._traj_xyz, self._traj_q = [], [], []
         self._trajectory = None
         self._open, self._closed = {}, []
         self._now = -np.inf
@@ -436,8 +436,8 @@ class StreamingCalibration:
             "version": np.array(CHECKPOINT_VERSION),
             "traj_t": np.concatenate(self._traj_t) if self._traj_t else np.empty(0),
             "traj_xyz": np.concatenate(self._traj_xyz) if self._traj_xyz else np.empty((0, 3)),
-            "traj_heading": (np.concatenate(self._traj_heading) if self._traj_heading
-                             else np.empty(0)),
+            "traj_orientation": (np.concatenate(self._traj_q) if self._traj_q
+                                 else np.empty((0, 4))),
             "delta": self._calibrator.delta,
             "threshold": np.array(self._calibrator.threshold),
             "counters": np.array([self.dropped_points, self.dropped_non_finite,
@@ -512,8 +512,7 @@ class StreamingCalibration:
             if data["traj_t"].size:
                 self._traj_t = [data["traj_t"]]
                 self._traj_xyz = [data["traj_xyz"]]
-                self._traj_heading = [data["traj_heading"] if "traj_heading" in data
-                                      else np.full(data["traj_t"].shape, np.nan)]
+                self._traj_q = [data["traj_orientation"]]
             counters = [int(v) for v in data["counters"]]
             self.dropped_points, self.dropped_non_finite = counters[:2]
             if len(counters) > 2:  # (checkpoints of earlier versions lack it)
