@@ -15,6 +15,7 @@ absent.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import os
 from collections.abc import Sequence
@@ -32,7 +33,14 @@ from lidarcal_ros.core.simulate import SimulatedMission, biased_from_pulse, simu
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
-from lidarcal_ros.io.trajectory_files import WEEK_S, read_sbet, write_sbet
+from lidarcal_ros.io.trajectory_files import (
+    WEEK_S,
+    map_orientation,
+    read_ascii_trajectory,
+    read_sbet,
+    read_trajectory_file,
+    write_sbet,
+)
 from lidarcal_ros.pipeline.importer import import_mission, reconcile_times
 
 CRS = "EPSG:32633"
@@ -231,7 +239,8 @@ def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> No
     assert read_sbet(sbet).heading_deg is not None
     bag = tmp_path / "imported"
     report = import_mission(tiles, bag, trajectory=sbet)
-    assert report.trajectory_kind == "SBET crab.out, with heading"
+    assert report.trajectory_kind == "SBET crab.out, with heading only"
+    assert report.attitude_range_deg == {}
     got = read_mission(bag).trajectory
     assert got.heading is not None
     nearest = np.clip(np.searchsorted(truth.t, got.t), 0, len(truth) - 1)
@@ -246,7 +255,7 @@ def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> No
 def test_sbet_without_attitude_and_ascii_heading_column(tmp_path: Path) -> None:
     """All-zero heading and wander (converters that fill only positions) mean no heading; an
     ASCII ``heading`` column is grid north for projected positions, degrees."""
-    from lidarcal_ros.io.trajectory_files import map_heading, read_ascii_trajectory
+    from lidarcal_ros.io.trajectory_files import map_heading
 
     sbet = write_sbet(tmp_path / "bare.out", np.array([1.0, 2.0]), np.radians([48.0, 48.0]),
                       np.radians([17.0, 17.0]), np.array([900.0, 900.0]))
@@ -259,14 +268,225 @@ def test_sbet_without_attitude_and_ascii_heading_column(tmp_path: Path) -> None:
     (tmp_path / "plain.csv").write_text("1,0,0,900,0.1,0.2,90\n2,0,60,900,0.1,0.2,90\n")
     plain = read_ascii_trajectory(tmp_path / "plain.csv")  # time,x,y,z,roll,pitch,heading
     assert plain.heading_deg is not None and plain.heading_deg.tolist() == [90.0, 90.0]
+    assert plain.attitude == "roll, pitch, heading"
+    assert plain.roll_deg is not None and plain.roll_deg.tolist() == [0.1, 0.1]
+    assert plain.pitch_deg is not None and plain.pitch_deg.tolist() == [0.2, 0.2]
     (tmp_path / "short.csv").write_text("1,0,0,900\n2,0,60,900\n")
     assert read_ascii_trajectory(tmp_path / "short.csv").heading_deg is None
+
+
+#: ENU from NED (east, north, up from north, east, down) and REP-103's body (forward, left,
+#: up) from the SBET's (forward, right, down), written out by hand.
+ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+FRD_FROM_FLU = np.diag([1.0, -1.0, -1.0])
+
+
+def rotations_from_ned_euler(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray,
+                             turn: np.ndarray | float = 0.0) -> Any:
+    """scipy Rotations of REP-103 body -> ENU of NED Euler angles (rad; Applanix:
+    ``C_b^n = Rz(heading) Ry(pitch) Rx(roll)``), then turned counterclockwise about the
+    vertical by ``turn`` (rad: true north to a map's grid north). Independent of
+    :mod:`lidarcal_ros.core.attitude`."""
+    from scipy.spatial.transform import Rotation
+
+    c_bn = Rotation.from_euler("ZYX", np.column_stack([heading, pitch, roll])).as_matrix()
+    turn_m = Rotation.from_euler("z", np.broadcast_to(turn, np.shape(roll))[:, None]
+                                 ).as_matrix()
+    return Rotation.from_matrix(turn_m @ ENU_FROM_NED @ c_bn @ FRD_FROM_FLU)
+
+
+def rotation_errors(truth: Any, q_xyzw: np.ndarray) -> np.ndarray:
+    """Angles (rad) between scipy Rotations and quaternions xyzw."""
+    from scipy.spatial.transform import Rotation
+
+    return np.asarray((truth.inv() * Rotation.from_quat(q_xyzw)).magnitude())
+
+
+def test_sbet_euler_angles_become_rep103_quaternions(tmp_path: Path) -> None:
+    """Random SBET attitudes (roll and pitch up to 30 deg, any heading, a wander angle): the
+    orientation read back is scipy's rotation of the NED Euler angles, converted to ENU and
+    REP-103's forward-left-up by hand, within 1e-9 rad; swapping the roll's sign or leaving
+    out the pitch would not be."""
+    rng = np.random.default_rng(3)
+    n = 200
+    roll, pitch = rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n)
+    heading, wander = rng.uniform(-math.pi, math.pi, n), rng.uniform(-math.pi, math.pi, n)
+    sbet = write_sbet(tmp_path / "att.out", np.arange(n, dtype=float), np.full(n, 0.8),
+                      np.full(n, 0.3), np.full(n, 900.0), roll=roll, pitch=pitch,
+                      heading=heading + wander, wander_angle=wander)
+    traj = read_sbet(sbet)
+    assert traj.attitude == "roll, pitch, heading"
+    q, full = map_orientation(traj, None, None)  # no map: true north
+    assert full and q is not None
+    truth = rotations_from_ned_euler(roll, pitch, heading)
+    assert rotation_errors(truth, q).max() < 1e-9
+    wrong_roll = rotations_from_ned_euler(-roll, pitch, heading)
+    assert np.median(rotation_errors(wrong_roll, q)) > 0.1
+    level = rotations_from_ned_euler(roll, 0.0 * pitch, heading)
+    assert np.median(rotation_errors(level, q)) > 0.1
+
+
+#: A flight 200 km east of UTM 33's central meridian (2 deg of meridian convergence).
+ATTITUDE_ORIGIN = (700_000.0, 5_300_000.0)
+
+
+def _attitude_flight(t0_unix: float = 1.7e9) -> dict[str, Any]:
+    """40 s of flight at 20 Hz, northward at 60 m/s, 1000 m up, with sinusoidal roll
+    (+-4 deg), pitch (2 +- 3 deg) and true heading (178 +- 5 deg: across 180), and the
+    true body -> grid ENU rotation of each sample (PROJ's meridian convergence)."""
+    import pyproj
+
+    dt = np.arange(0.0, 40.0, 0.05)
+    t = t0_unix + dt
+    east = np.full(dt.size, ATTITUDE_ORIGIN[0]) + 20.0 * np.sin(dt / 5.0)
+    north = ATTITUDE_ORIGIN[1] + 60.0 * dt
+    height = np.full(dt.size, 1000.0)
+    roll = np.radians(4.0 * np.sin(2 * math.pi * dt / 9.0))
+    pitch = np.radians(2.0 + 3.0 * np.sin(2 * math.pi * dt / 13.0 + 1.0))
+    heading = np.radians(178.0 + 5.0 * np.sin(2 * math.pi * dt / 11.0))
+    to_geo = pyproj.Transformer.from_crs(pyproj.CRS(CRS).to_3d(), "EPSG:4979", always_xy=True)
+    lon, lat, h = to_geo.transform(east, north, height)
+    convergence = np.radians(pyproj.Proj(CRS).get_factors(lon, lat).meridian_convergence)
+    assert 1.9 < np.degrees(convergence).min() < np.degrees(convergence).max() < 2.1
+    return {
+        "t": t, "xyz": np.column_stack([east, north, height]), "lon": lon, "lat": lat,
+        "h": h, "roll": roll, "pitch": pitch, "heading": heading,
+        "grid_heading": heading - convergence,
+        # grid azimuth = true azimuth - convergence: a counterclockwise turn by it
+        "truth": rotations_from_ned_euler(roll, pitch, heading, convergence),
+    }
+
+
+def _strip_under(flight: dict[str, Any], n: int = 300) -> dict[str, np.ndarray]:
+    """One strip of points on the ground under the flight, inside its time span."""
+    rng = np.random.default_rng(8)
+    t = np.sort(rng.uniform(flight["t"][0] + 1.0, flight["t"][-1] - 1.0, n))
+    at = np.column_stack([np.interp(t, flight["t"], flight["xyz"][:, i]) for i in range(3)])
+    xyz = at + np.column_stack([rng.uniform(-300.0, 300.0, n), rng.normal(0.0, 5.0, n),
+                                np.full(n, -1000.0) + rng.normal(0.0, 2.0, n)])
+    return {"xyz": xyz, "t": t, "intensity": rng.uniform(10.0, 200.0, n),
+            "return_number": np.ones(n, np.uint8), "number_of_returns": np.ones(n, np.uint8),
+            "strip_id": np.full(n, 3, dtype=np.uint16)}
+
+
+def _check_imported_attitude(flight: dict[str, Any], bag: Path) -> np.ndarray:
+    """Angles (rad) between the imported poses and the truth at the same times."""
+    got = read_mission(bag).trajectory
+    assert got.orientation is not None
+    k = np.clip(np.searchsorted(flight["t"], got.t - 1e-4), 0, flight["t"].size - 1)
+    assert np.abs(flight["t"][k] - got.t).max() < 1e-5
+    assert len(got) >= 700  # every sample of the strip's span and 5 s either side
+    return rotation_errors(flight["truth"][k], got.orientation)
+
+
+def test_import_carries_the_full_attitude(tmp_path: Path, capsys) -> None:
+    """The same flight with varying roll, pitch and heading as an SBET (wander angle 0.7
+    rad), as an ASCII trajectory with named lat/lon columns (true north) and as a headerless
+    ``time,x,y,z,roll,pitch,heading`` in the map's grid: every imported pose is the true
+    rotation within 1e-6 rad. Dropping the meridian convergence would leave 2 deg, the roll
+    or the pitch up to 4 or 5 deg."""
+    flight = _attitude_flight()
+    tiles = write_las_tiles([_strip_under(flight)], tmp_path, tiles=(1, 1), laz=())
+    sow = np.mod(unix_to_adjusted_gps(flight["t"]) + ADJUSTED_GPS_OFFSET, WEEK_S)
+    wander = 0.7
+    sbet = write_sbet(tmp_path / "flight.out", sow, np.radians(flight["lat"]),
+                      np.radians(flight["lon"]), flight["h"], roll=flight["roll"],
+                      pitch=flight["pitch"], heading=flight["heading"] + wander,
+                      wander_angle=np.full(sow.size, wander))
+    deg = {k: np.degrees(flight[k]) for k in ("roll", "pitch", "heading", "grid_heading")}
+    geographic = tmp_path / "flight_geo.csv"
+    np.savetxt(geographic, np.column_stack([
+        sow, deg["pitch"], flight["lat"], flight["lon"], flight["h"], deg["heading"],
+        deg["roll"]]), delimiter=",", fmt="%.10f", comments="",
+        header="gps_time,pitch (deg),latitude,longitude,height,heading,roll")
+    grid = tmp_path / "flight_grid.txt"
+    np.savetxt(grid, np.column_stack([sow, flight["xyz"], deg["roll"], deg["pitch"],
+                                      np.mod(deg["grid_heading"], 360.0)]), fmt="%.10f")
+
+    bag = tmp_path / "from_sbet"
+    assert _cli(*tiles, "--trajectory", sbet, "-o", bag) == 0
+    out = capsys.readouterr().out
+    assert "SBET flight.out, with attitude (roll, pitch, heading)" in out
+    assert f"roll {deg['roll'].min():+.1f}..{deg['roll'].max():+.1f} deg" in out
+    assert f"pitch {deg['pitch'].min():+.1f}..{deg['pitch'].max():+.1f} deg" in out
+    errors = {"sbet": _check_imported_attitude(flight, bag)}
+
+    for name, path in (("ascii lat/lon", geographic), ("ascii grid", grid)):
+        bag = tmp_path / path.stem
+        report = import_mission(tiles, bag, trajectory=path)
+        assert report.trajectory_kind.endswith(", with attitude (roll, pitch, heading)")
+        lo, hi = report.attitude_range_deg["roll"]
+        assert lo == pytest.approx(deg["roll"].min(), abs=1e-6)
+        assert hi == pytest.approx(deg["roll"].max(), abs=1e-6)
+        errors[name] = _check_imported_attitude(flight, bag)
+    for name, err in errors.items():
+        assert err.max() < 1e-6, (name, err.max())
+
+
+@pytest.mark.parametrize(("text", "attitude", "warning"), [
+    ("time,x,y,z,roll,pitch,heading\n1,0,0,900,n/a,1,30\n2,0,60,900,n/a,1,31\n",
+     "heading", "roll column 5 is not numeric: heading only"),
+    ("time,x,y,z,roll,pitch,heading\n1,0,0,900,2,1,30\n2,0,60,900,2,nan,31\n",
+     "heading", "pitch column 6 has 1 of 2 values not finite: heading only"),
+    ("time,x,y,z,roll [deg],heading\n1,0,0,900,2,30\n2,0,60,900,2,31\n",
+     "heading", "roll column 5 but no pitch column: heading only"),
+    ("time,x,y,z,roll,pitch\n1,0,0,900,2,1\n2,0,60,900,2,1\n",
+     "none", "roll column 5 and pitch column 6 but no heading: positions only"),
+    ("1,0,0,900,2,1\n2,0,60,900,2,1\n",
+     "none", "roll column 5 and pitch column 6 but no heading: positions only"),
+    ("time,x,y,z,roll,pitch,heading\n1,0,0,900,0,0,30\n2,0,60,900,0,0,31\n",
+     "heading", None),
+])
+def test_bad_roll_and_pitch_columns_fall_back(tmp_path, caplog, text, attitude,
+                                               warning) -> None:
+    """Roll or pitch not numbers, not finite or without its partner: one warning naming the
+    file and column, and the heading alone; without a heading, positions only; all zero (a
+    placeholder): the heading alone, silently."""
+    path = tmp_path / "traj.csv"
+    path.write_text(text)
+    with caplog.at_level(logging.WARNING, logger="lidarcal_ros"):
+        traj = read_trajectory_file(path)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    if warning is None:
+        assert warnings == []
+    else:
+        assert len(warnings) == 1 and warnings[0] == f"{path}: {warning}"
+    assert traj.attitude == attitude
+    q, full = map_orientation(traj, None, None)
+    assert not full
+    assert (q is None) == (attitude == "none")
+    if q is not None:  # level poses along the heading (30 deg east of north: kappa -30 deg)
+        assert np.allclose(q[0], rotations_from_ned_euler(
+            np.zeros(1), np.zeros(1), np.radians([30.0])).as_quat()[0], atol=1e-12)
+
+
+def test_sbet_roll_and_pitch_fallbacks(tmp_path, caplog) -> None:
+    """An SBET with a heading but all-zero roll and pitch has a heading only; one with a
+    non-finite roll warns and keeps the heading; one with roll and pitch but no heading
+    warns and has positions only."""
+    n = 3
+    t, lat, lon, h = np.arange(n, dtype=float), np.full(n, 0.8), np.full(n, 0.3), np.full(n, 9.0)
+    cases = [({"heading": np.full(n, 0.5)}, "heading", None),
+             ({"heading": np.full(n, 0.5), "roll": np.array([0.01, np.nan, 0.02]),
+               "pitch": np.full(n, 0.01)},
+              "heading", "roll field has 1 of 3 values not finite: heading only"),
+             ({"roll": np.full(n, 0.01), "pitch": np.full(n, 0.02)},
+              "none", "roll field and pitch field but no heading: positions only")]
+    for k, (fields, attitude, warning) in enumerate(cases):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="lidarcal_ros"):
+            traj = read_sbet(write_sbet(tmp_path / f"s{k}.out", t, lat, lon, h, **fields))
+        assert traj.attitude == attitude
+        assert [r.getMessage() for r in caplog.records] == (
+            [] if warning is None else [f"{tmp_path / f's{k}.out'}: {warning}"])
+        assert map_orientation(traj, None, None)[1] is False
 
 
 # ---------------------------------------------------------------------------- round trip
 def test_sbet_round_trip_gives_the_same_points(sim, exported, tmp_path) -> None:
     bag = tmp_path / "imported"
     report = import_mission(exported["tiles"], bag, trajectory=exported["sbet"])
+    assert report.trajectory_kind == "SBET mission.out, positions only"
     assert report.time_rule.clock == "unix"
     assert report.time_rule.trajectory_base == "week"
     mission = read_mission(bag)

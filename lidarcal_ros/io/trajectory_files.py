@@ -5,10 +5,13 @@ SBET
 Binary, little-endian, 17 float64 per record (136 bytes): time (GPS seconds of the week),
 latitude (rad), longitude (rad), altitude (m, ellipsoidal), x/y/z velocity (m/s), roll,
 pitch, platform heading (rad), wander angle (rad), x/y/z acceleration (m/s^2), x/y/z angular
-rate (rad/s). Time, latitude, longitude, altitude and the true heading (platform heading less
-wander angle, clockwise from true north) are used; a file whose headings and wander angles are
-all zero has none. Positions are geographic on the ellipsoid of the GNSS processing (WGS 84 /
-ITRF by default: EPSG:4979).
+rate (rad/s). Time, latitude, longitude, altitude and the attitude are used: roll, pitch and
+the true heading (platform heading less wander angle, clockwise from true north) of the NED
+body frame (x forward, y right, z down), ``C_b^n = Rz(heading) Ry(pitch) Rx(roll)``: roll right
+wing down positive, pitch nose up positive. A file whose headings and wander angles are all
+zero has no attitude, one whose rolls and pitches are all zero (converters that fill only the
+heading) a heading only. Positions are geographic on the ellipsoid of the GNSS processing
+(WGS 84 / ITRF by default: EPSG:4979).
 
 ASCII
 -----
@@ -18,8 +21,12 @@ optional header line names the columns (case-insensitive): ``time``/``t``/``gps_
 ``timestamp``/``sow``; ``x``/``easting``, ``y``/``northing``, ``z``/``height``/``h``/``alt``/
 ``altitude``/``elevation``; or ``lat``/``latitude`` and ``lon``/``long``/``longitude``
 (degrees: geographic); ``heading`` (degrees clockwise from north: true north for geographic
-positions, grid north for projected ones) if present. Without a header the first four
-columns are time, x, y, z, and a seventh (after roll and pitch) the heading.
+positions, grid north for projected ones), ``roll`` and ``pitch`` (degrees, as an SBET's: right
+wing down and nose up positive) if present; a unit ``(deg)`` or ``[deg]`` after a name is
+allowed. Without a header the first four columns are time, x, y, z, the fifth to seventh
+roll, pitch and heading. Roll and pitch join the heading into the full attitude; a roll or
+pitch column that is not numbers, not finite or lacks its partner leaves the heading alone
+(a warning says so), and roll and pitch without a heading give positions only.
 
 Time bases
 ----------
@@ -34,12 +41,14 @@ import io
 import logging
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
+from lidarcal_ros.core.attitude import quaternions_from_attitude, quaternions_from_headings
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, GPS_EPOCH_UNIX, adjusted_gps_to_unix
 
@@ -68,8 +77,13 @@ _Z_NAMES = {"z", "height", "h", "alt", "altitude", "elevation", "ellipsoidal_hei
 _LAT_NAMES = {"lat", "latitude", "phi"}
 _LON_NAMES = {"lon", "long", "longitude", "lambda"}
 _HEADING_NAMES = {"heading", "heading_deg", "true_heading", "hdg"}
-#: Column of the heading in a trajectory without a header: ``time,x,y,z,roll,pitch,heading``.
-_HEADING_COLUMN = 6
+_ROLL_NAMES = {"roll", "roll_deg", "roll_angle", "bank"}
+_PITCH_NAMES = {"pitch", "pitch_deg", "pitch_angle"}
+#: Columns of roll, pitch and heading in a trajectory without a header:
+#: ``time,x,y,z,roll,pitch,heading``.
+_ROLL_COLUMN, _PITCH_COLUMN, _HEADING_COLUMN = 4, 5, 6
+#: A unit of degrees after a header name: ``roll (deg)``, ``pitch[deg]``.
+_DEGREE_UNIT = re.compile(r"\s*[\[(]\s*(deg|degrees|\u00b0)\s*[\])]$")
 
 
 class TrajectoryFileError(TrajectoryError):
@@ -93,6 +107,9 @@ class TrajectoryFile:
     heading_deg : (n,) float64 or None
         Heading of the platform, degrees clockwise from north (true north for geographic
         positions, grid north for projected ones); None when the file has none.
+    roll_deg, pitch_deg : (n,) float64 or None
+        Roll (right wing down positive) and pitch (nose up positive), degrees; both None when
+        the file has no heading or no usable roll and pitch (the heading alone then serves).
     """
 
     path: Path
@@ -103,15 +120,27 @@ class TrajectoryFile:
     c: np.ndarray
     geographic: bool
     heading_deg: np.ndarray | None = None
+    roll_deg: np.ndarray | None = None
+    pitch_deg: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
+    @property
+    def attitude(self) -> str:
+        """What the file carries: ``"roll, pitch, heading"``, ``"heading"`` or ``"none"``."""
+        if self.heading_deg is None:
+            return "none"
+        return "heading" if self.roll_deg is None else "roll, pitch, heading"
+
     def take(self, index: np.ndarray | slice) -> TrajectoryFile:
         """A subset of the samples."""
+        def sub(values: np.ndarray | None) -> np.ndarray | None:
+            return None if values is None else values[index]
+
         return TrajectoryFile(self.path, self.kind, self.t[index], self.a[index],
                               self.b[index], self.c[index], self.geographic,
-                              None if self.heading_deg is None else self.heading_deg[index])
+                              sub(self.heading_deg), sub(self.roll_deg), sub(self.pitch_deg))
 
 
 # ---------------------------------------------------------------------------- time bases
@@ -183,6 +212,8 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     alt = np.array(records["altitude"])
     platform_heading = np.array(records["heading"])
     wander = np.array(records["wander_angle"])
+    roll = np.degrees(records["roll"])
+    pitch = np.degrees(records["pitch"])
     del records
     bad = ~(np.isfinite(t) & np.isfinite(alt) & (np.abs(lat) <= math.pi / 2 + 1e-9)
             & (np.abs(lon) <= 2 * math.pi + 1e-9))
@@ -198,7 +229,9 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     if np.any(platform_heading != 0.0) or np.any(wander != 0.0):
         heading = np.degrees(platform_heading - wander)  # true heading (Applanix)
         heading[~np.isfinite(heading)] = np.nan
-    return TrajectoryFile(p, "sbet", t, lon_deg, np.degrees(lat), alt, True, heading)
+    roll_pitch = _roll_and_pitch(p, heading, roll, pitch, ("roll field", "pitch field"))
+    return TrajectoryFile(p, "sbet", t, lon_deg, np.degrees(lat), alt, True, heading,
+                          *roll_pitch)
 
 
 def write_sbet(
@@ -281,7 +314,7 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
     cols: tuple[int | None, ...]
     if not all(_is_number(c) for c in first):
         header_no = rows[0][0]
-        names = [c.strip().strip('"').lower() for c in first]
+        names = [_DEGREE_UNIT.sub("", c.strip().strip('"').lower()) for c in first]
         rows = rows[1:]
         col_t = _find(names, _TIME_NAMES)
         col_lat, col_lon = _find(names, _LAT_NAMES), _find(names, _LON_NAMES)
@@ -301,6 +334,7 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
                 f"(found: {', '.join(names)})"
             )
         col_heading = _find(names, _HEADING_NAMES)
+        col_roll, col_pitch = _find(names, _ROLL_NAMES), _find(names, _PITCH_NAMES)
         cols = (col_t, col_a, col_b, col_z)
         width = len(names)
     else:
@@ -311,6 +345,8 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
                 f"{p}: line {rows[0][0]}: {width} columns; expected time,x,y,z[,...]"
             )
         col_heading = _HEADING_COLUMN if width > _HEADING_COLUMN else None
+        col_roll, col_pitch = ((_ROLL_COLUMN, _PITCH_COLUMN) if width > _PITCH_COLUMN
+                               else (None, None))
     if not rows:
         raise TrajectoryFileError(f"{p}: no samples after the header line")
     body = "\n".join(",".join(_split(line)) for _, line in rows)
@@ -325,25 +361,64 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
         raise TrajectoryFileError(f"{p}: line {rows[k][0]}: non-finite value")
     heading = None
     if col_heading is not None:
-        heading = _heading_column(p, body, col_heading)
+        heading = _angle_column(p, body, col_heading, _column_label("heading", col_heading),
+                                "headings from the track")
+        if heading is not None and not np.any(heading != 0.0):
+            heading = None  # a placeholder
+        elif heading is not None:
+            heading[~np.isfinite(heading)] = np.nan
+    labels = (_column_label("roll", col_roll), _column_label("pitch", col_pitch))
+    roll = pitch = None
+    if col_roll is not None and col_pitch is not None:
+        fallback = "heading only" if heading is not None else "positions only"
+        roll = _angle_column(p, body, col_roll, labels[0], fallback)
+        pitch = _angle_column(p, body, col_pitch, labels[1], fallback)
+    elif heading is not None and (col_roll, col_pitch) != (None, None):
+        logger.warning("%s: %s but %s: heading only", p, *labels)
     return TrajectoryFile(p, "ascii", data[:, 0], data[:, 1], data[:, 2], data[:, 3],
-                          geographic, heading)
+                          geographic, heading, *_roll_and_pitch(p, heading, roll, pitch, labels))
 
 
-def _heading_column(p: Path, body: str, col: int) -> np.ndarray | None:
-    """The heading column (degrees) of an ASCII trajectory (``body``: its sample lines,
-    comma-separated); None where it is all zero (a placeholder) or not numbers (a column of
-    another meaning): the positions still serve."""
+def _column_label(name: str, col: int | None) -> str:
+    return f"{name} column {col + 1}" if col is not None else f"no {name} column"
+
+
+def _angle_column(p: Path, body: str, col: int, label: str, fallback: str
+                  ) -> np.ndarray | None:
+    """A column of angles (degrees) of an ASCII trajectory (``body``: its sample lines,
+    comma-separated); None, with a warning naming the ``label`` and the ``fallback``, where it
+    is not numbers (a column of another meaning): the rest still serves."""
     try:
-        values = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=1, usecols=[col])
+        return np.loadtxt(io.StringIO(body), delimiter=",", ndmin=1, usecols=[col])
     except (ValueError, IndexError):
-        logger.warning("%s: heading column %d is not numeric: headings from the track", p,
-                       col + 1)
+        logger.warning("%s: %s is not numeric: %s", p, label, fallback)
         return None
-    if not np.any(values != 0.0):
-        return None
-    values[~np.isfinite(values)] = np.nan
-    return values
+
+
+def _roll_and_pitch(p: Path, heading: np.ndarray | None, roll: np.ndarray | None,
+                    pitch: np.ndarray | None, labels: tuple[str, str]
+                    ) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+    """Roll and pitch (degrees) worth joining the heading, else ``(None, None)``.
+
+    All zero: a converter that filled the heading only (the poses stay level, no warning).
+    Any value not finite: the whole file keeps the heading alone (one trajectory is either
+    levelled or measured, never both), with a warning naming the column. Without a heading
+    roll and pitch cannot place the body: positions only, with a warning.
+    """
+    if roll is None or pitch is None:
+        return None, None
+    if not (np.any(roll != 0.0) or np.any(pitch != 0.0)):
+        return None, None
+    if heading is None:
+        logger.warning("%s: %s and %s but no heading: positions only", p, *labels)
+        return None, None
+    for values, label in ((roll, labels[0]), (pitch, labels[1])):
+        bad = int(np.count_nonzero(~np.isfinite(values)))
+        if bad:
+            logger.warning("%s: %s has %d of %d values not finite: heading only", p, label,
+                           bad, values.size)
+            return None, None
+    return roll, pitch
 
 
 def _find(names: list[str], wanted: set[str]) -> int | None:
@@ -475,3 +550,40 @@ def map_heading(traj: TrajectoryFile, source_crs: Any, target_crs: Any) -> np.nd
         x1, y1, _ = transformer.transform(traj.a, traj.b + step, traj.c)
         heading = heading + np.arctan2(np.asarray(x1) - x0, np.asarray(y1) - y0)
     return np.mod(-heading + math.pi, 2.0 * math.pi) - math.pi
+
+
+def map_orientation(traj: TrajectoryFile, source_crs: Any, target_crs: Any
+                    ) -> tuple[np.ndarray | None, bool]:
+    """The INS orientation of each sample in the map (``target_crs``; None: the file's own).
+
+    Returns
+    -------
+    orientation : (n, 4) float64 or None
+        REP-103 quaternions xyzw (:mod:`lidarcal_ros.core.attitude`): the file's roll, pitch
+        and heading (``kappa`` from :func:`map_heading`, in grid north), NaN rows where a
+        sample's heading is not finite; level poses where the file has a heading only; None
+        without a heading.
+    full_attitude : bool
+        The orientation carries the file's roll and pitch.
+
+    Notes
+    -----
+    An SBET's ``C_b^n = Rz(heading) Ry(pitch) Rx(roll)`` (NED: north, east, down; body
+    forward, right, down) is ``R(q) = T_n C_b^n T_b`` in ENU and REP-103's FLU, with
+    ``T_b = diag(1, -1, -1)`` and ``T_n`` swapping north and east and flipping down. As
+    ``T_b`` is a half turn about the forward axis, ``T_b Rz(h) Ry(p) Rx(r) T_b =
+    Rz(-h) Ry(-p) Rx(r)`` and ``T_n T_b = Rz(pi/2)``: ``R(q) = Rz(pi/2 - heading) Ry(-pitch)
+    Rx(roll)``, which is :func:`~lidarcal_ros.core.attitude.quaternions_from_attitude` of
+    ``(roll, pitch, kappa = -heading)``. The map's grid north is true north turned about the
+    vertical by the meridian convergence: a rotation about the map's up axis, the outermost
+    factor, so it adds to ``kappa`` exactly and leaves roll and pitch as they are (a conformal
+    projection turns the local level frame without tilting it).
+    """
+    kappa = map_heading(traj, source_crs, target_crs)
+    if kappa is None:
+        return None, False
+    if traj.roll_deg is None or traj.pitch_deg is None:
+        return quaternions_from_headings(kappa), False
+    q = quaternions_from_attitude(np.radians(traj.roll_deg), np.radians(traj.pitch_deg), kappa)
+    q[~np.isfinite(kappa)] = np.nan
+    return q, True

@@ -5,7 +5,8 @@ no trajectory at all) becomes a bag of the lidarcal contract (shared/interface.m
 ``sensor_msgs/PointCloud2`` chunks on ``/lidar/points`` with ``x, y, z, t`` FLOAT64,
 ``intensity`` FLOAT32, ``strip_id`` UINT16, ``return_number``, ``number_of_returns`` and
 ``classification`` UINT8, and the trajectory as ``geometry_msgs/PoseStamped`` on
-``/lidar/trajectory`` (identity orientation), all in one map frame.
+``/lidar/trajectory`` (the INS attitude where the file has one, else identity), all in one
+map frame.
 
 Rules
 -----
@@ -29,6 +30,12 @@ Trajectory positions
     compound CRS (``--crs EPSG:32633+5773``) converts them properly when PROJ has the geoid
     model (else: a one-line error). ASCII x, y, z are taken to be in the points' CRS unless
     ``trajectory_crs`` says otherwise.
+Trajectory attitude
+    An SBET's roll, pitch and true heading, or an ASCII trajectory's roll, pitch and heading
+    columns, become the poses' orientation (REP-103 quaternions, method.md section 10), the
+    heading turned from true to the map's grid north by the meridian convergence; with a
+    heading only the poses are level (``full_attitude`` False); without one they carry none
+    (identity). :func:`lidarcal_ros.io.trajectory_files.map_orientation` has the conventions.
 GPS time
     LAS global-encoding bit 0 set: Adjusted Standard GPS Time (GPS seconds - 1e9); clear: GPS
     seconds of the week. SBET times are week seconds. ASCII times are read as whichever of
@@ -66,7 +73,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.attitude import quaternions_from_headings
+from lidarcal_ros.core.attitude import attitude_from_quaternions
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.trajectory_estimation import (
     EstimatedTrajectory,
@@ -82,7 +89,7 @@ from lidarcal_ros.io.trajectory_files import (
     TrajectoryFile,
     gps_to_unix,
     gps_week_of_unix,
-    map_heading,
+    map_orientation,
     project,
     read_trajectory_file,
     to_gps_seconds,
@@ -287,6 +294,8 @@ class ImportReport:
     dropped_strips: list[int] = field(default_factory=list)
     spilled_runs: int = 0
     overlaps: list[PairQA] = field(default_factory=list)
+    #: Range (min, max) of the poses' roll and pitch, degrees, when they carry the attitude.
+    attitude_range_deg: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """A readable summary."""
@@ -298,6 +307,10 @@ class ImportReport:
                    f"{self.unit_factors[1]:g} to metres)"
                    if self.unit_factors != (1.0, 1.0) else ""),
                f"  time: {self.time_rule.note}"]
+        if self.attitude_range_deg:
+            out.append("  attitude: " + ", ".join(
+                f"{name} {lo:+.1f}..{hi:+.1f} deg"
+                for name, (lo, hi) in self.attitude_range_deg.items()))
         for s in self.strips:
             out.append(f"  strip {s.strip_id:>5}: {s.n_points:>9} points, "
                        f"{s.t_last - s.t_first:7.1f} s, {s.source}, "
@@ -780,12 +793,14 @@ def import_mission(
     # -- trajectory file (read before the points: a bad file fails fast)
     traj_file: TrajectoryFile | None = None
     traj_xyz: np.ndarray | None = None
-    traj_kappa: np.ndarray | None = None
+    traj_orientation: np.ndarray | None = None
+    full_attitude = False
     if not estimate:
         traj_file = read_trajectory_file(Path(str(trajectory)))
         traj_crs = _trajectory_crs(trajectory_crs, traj_file)
         traj_xyz = _trajectory_in_map(traj_file, points_crs, traj_crs, factors)
-        traj_kappa = map_heading(traj_file, traj_crs, points_crs if traj_crs else None)
+        traj_orientation, full_attitude = map_orientation(
+            traj_file, traj_crs, points_crs if traj_crs else None)
 
     # -- read pass: spill points, gather strip statistics (and rays)
     store = _RunStore(memory_points, out.parent)
@@ -847,7 +862,8 @@ def import_mission(
         return _finish(
             out, paths, infos, store, occupancy, per_psid, collector, n_read, n_kept,
             gap_bin=gap_bin, strip_gap_s=strip_gap_s, points_base=points_base,
-            traj_file=traj_file, traj_xyz=traj_xyz, traj_kappa=traj_kappa,
+            traj_file=traj_file, traj_xyz=traj_xyz, traj_orientation=traj_orientation,
+            full_attitude=full_attitude,
             trajectory_time=trajectory_time,
             gps_week=gps_week, estimate_options=estimate_options, points_crs=points_crs,
             factors=factors, frame_id=frame_id, chunk_seconds=chunk_seconds,
@@ -875,7 +891,8 @@ def _finish(
     points_base: str,
     traj_file: TrajectoryFile | None,
     traj_xyz: np.ndarray | None,
-    traj_kappa: np.ndarray | None,
+    traj_orientation: np.ndarray | None,
+    full_attitude: bool,
     trajectory_time: str,
     gps_week: int | None,
     estimate_options: dict[str, Any] | None,
@@ -956,6 +973,7 @@ def _finish(
     # -- trajectory on the bag's clock
     estimated: EstimatedTrajectory | None = None
     dropped: list[int] = []
+    attitude_range: dict[str, tuple[float, float]] = {}
     if traj_file is not None:
         assert traj_t_raw is not None and traj_xyz is not None
         t_clock = rule.trajectory(traj_t_raw)
@@ -966,10 +984,9 @@ def _finish(
         keep = order[_decimate(t_clock[order], trajectory_rate_hz)]
         traj = Trajectory.from_samples(
             t_clock[keep], traj_xyz[keep],
-            None if traj_kappa is None else quaternions_from_headings(traj_kappa[keep]),
-            full_attitude=False)
-        kind = f"{traj_file.kind.upper()} {traj_file.path.name}" + (
-            ", with heading" if traj.heading is not None else ", positions only")
+            None if traj_orientation is None else traj_orientation[keep],
+            full_attitude=full_attitude)
+        kind, attitude_range = _trajectory_kind(traj, traj_file)
         # fail fast: strip spans known to the gap-bin resolution (exact check while writing)
         inner = []
         for sid, (lo, hi) in spans_raw.items():
@@ -1021,7 +1038,23 @@ def _finish(
         trajectory_kind=kind, n_poses=n_poses, time_rule=rule, crs_name=crs_name,
         unit_factors=factors, estimate=estimated, dropped_strips=dropped,
         spilled_runs=len(store.runs), overlaps=grid.pairs() if grid is not None else [],
+        attitude_range_deg=attitude_range,
     )
+
+
+def _trajectory_kind(traj: Trajectory, traj_file: TrajectoryFile
+                     ) -> tuple[str, dict[str, tuple[float, float]]]:
+    """What the imported poses carry, in words, and the range of their roll and pitch
+    (degrees, from the quaternions written: what the calibration will see)."""
+    name = f"{traj_file.kind.upper()} {traj_file.path.name}"
+    if traj.orientation is None:
+        return f"{name}, positions only", {}
+    if not traj.full_attitude:
+        return f"{name}, with heading only", {}
+    roll, pitch, _ = attitude_from_quaternions(traj.orientation)
+    ranges = {label: (float(np.degrees(np.nanmin(v))), float(np.degrees(np.nanmax(v))))
+              for label, v in (("roll", roll), ("pitch", pitch))}
+    return f"{name}, with attitude (roll, pitch, heading)", ranges
 
 
 def _write_bag(
