@@ -42,7 +42,8 @@ from scipy.spatial import Delaunay
 
 from lidarcal_ros.core.adjustment import NormalEquations, Observations, Solution, solve
 from lidarcal_ros.core.calibrate import CalibrationSettings
-from lidarcal_ros.core.local_trajectory import LaserGeometry, laser_geometry
+from lidarcal_ros.core.geometry import LaserGeometry
+from lidarcal_ros.core.local_trajectory import laser_geometry
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
@@ -263,7 +264,7 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
     def corrected(delta: np.ndarray) -> list[np.ndarray]:
         out = []
         for st, g0 in zip(strips, geometry0):
-            xyz = correct_points_exact(st.xyz, g0.origin, g0.kappa, delta)
+            xyz = correct_points_exact(st.xyz, g0, delta)
             st.geometry = _geometry_at(xyz, g0)
             out.append(xyz)
         return out

@@ -252,8 +252,8 @@ def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
     source = "/test/attitude_without_orientation"
     with caplog.at_level(logging.WARNING, logger="lidarcal_ros.pipeline.correction"):
         for _ in range(5):
-            ok, lines = correction.served_windows(pts_t, xyz, bare, source=source,
-                                                  heading_source="attitude")
+            ok, lines = correction.served_frames(pts_t, xyz, bare, source=source,
+                                                 heading_source="attitude")
             assert lines is None and not ok.any()
         assert len(caplog.records) == 1
         assert "'attitude' but the trajectory has no orientation" in caplog.text
@@ -262,6 +262,6 @@ def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
         # as if the quiet time had passed
         correction._uncorrected_warned[source] = (last - correction.UNCORRECTED_WARNING_S,
                                                   since)
-        correction.served_windows(pts_t, xyz, bare, source=source, heading_source="attitude")
+        correction.served_frames(pts_t, xyz, bare, source=source, heading_source="attitude")
     assert len(caplog.records) == 2
     assert "(and 4 more clouds since the last warning)" in caplog.records[-1].getMessage()

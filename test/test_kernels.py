@@ -189,7 +189,8 @@ def test_eq13_in_one_pass_is_the_design_matrix_and_refuses_mismatched_points() -
 
 
 def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> None:
-    from lidarcal_ros.core.local_trajectory import geometry_at, laser_geometry
+    from lidarcal_ros.core.geometry import LaserGeometry, geometry_at
+    from lidarcal_ros.core.local_trajectory import laser_geometry
     from lidarcal_ros.core.mission import Trajectory
 
     tt = np.arange(0.0, 10.0, 0.005)
@@ -200,7 +201,7 @@ def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> Non
     xyz = np.column_stack([rng.uniform(-300, 300, t.size), 60.0 * t + rng.normal(0, 5, t.size),
                            rng.normal(0.0, 3.0, t.size)])
     g = laser_geometry(t, xyz, traj)
-    ref = geometry_at(xyz, g.origin, g.kappa)
+    ref = geometry_at(xyz, LaserGeometry(g.x, g.z, g.kappa, g.beta, g.origin))
     for name in ("x", "z", "beta"):
         np.testing.assert_allclose(getattr(g, name), getattr(ref, name), rtol=0, atol=1e-9)
     assert g.cos_kappa is not None  # laser_geometry sets it for a non-empty cloud
@@ -315,12 +316,12 @@ def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: 
                          normals: np.ndarray, rough: np.ndarray, intensity: np.ndarray,
                          delta: np.ndarray, model: Any) -> tuple[np.ndarray, ...]:
     n = t.shape[0]
-    out: tuple[np.ndarray, ...] = (np.empty((n, 3)),
-                                   *(np.empty(n, np.float32) for _ in range(4)),
-                                   np.empty(n, np.uint8))
-    kernels.correct_returns(t, xyz, ok, lines.window, lines.t_mean, lines.p_mean,
-                            lines.velocity, lines.cos_kappa, lines.sin_kappa, delta, normals,
-                            rough, intensity, *model.kernel_constants(), *out)
+    out = (np.empty((n, 3)), np.empty(n, np.float32), np.empty(n, np.float32),
+           np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.uint8))
+    kernels.correct_returns(t, xyz, ok, lines.window, False,
+                            (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa,
+                             lines.sin_kappa), (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))),
+                            delta, normals, rough, intensity, model.kernel_constants(), out)
     return out
 
 

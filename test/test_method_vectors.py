@@ -132,13 +132,15 @@ def test_trajectory_gap_is_reported() -> None:
 
 
 def test_exact_correction_inverts_the_biased_pulses(vectors: dict) -> None:
+    from lidarcal_ros.core.geometry import LaserGeometry
     from lidarcal_ros.core.model import correct_points_exact
 
     delta = as_vector(vectors["biases_used_for_pulses"])
     for pulse in vectors["pulses"]:
         xo = np.array([pulse["trajectory_position"]])
-        corrected = correct_points_exact(np.array([pulse["biased_point"]]), xo,
-                                         np.array([pulse["kappa"]]), delta)[0]
+        x, z, kappa, beta = (np.array([pulse[k]]) for k in ("x", "z", "kappa", "beta"))
+        frame = LaserGeometry(x, z, kappa, beta, xo)
+        corrected = correct_points_exact(np.array([pulse["biased_point"]]), frame, delta)[0]
         np.testing.assert_allclose(corrected, pulse["true_point"], atol=1e-8)
         # And differs from the linear eq. [13] only at second order.
         args = [np.array([pulse[k]]) for k in ("x", "z", "kappa", "beta")]

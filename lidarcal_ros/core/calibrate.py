@@ -28,9 +28,15 @@ from lidarcal_ros.core.adjustment import (
     cluster_robust_sigma,
     solve,
 )
-from lidarcal_ros.core.local_trajectory import LaserGeometry, geometry_at, laser_geometry
+from lidarcal_ros.core.geometry import LaserGeometry, geometry_at
+from lidarcal_ros.core.georeferencing import (
+    LaserVectorQA,
+    ModelChoice,
+    laser_vector_qa,
+    strip_geometry,
+)
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
-from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
+from lidarcal_ros.core.model import correct_points_exact, geometry_normal_rows
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import PatchMatches, Tin, TinQuality, match_to_tin
 from lidarcal_ros.errors import CalibrationError
@@ -52,6 +58,11 @@ class CalibrationSettings:
     fixed: dict[str, float] = field(default_factory=dict)
     trajectory_window_s: float = 0.5
     heading_source: str = "auto"
+    #: ``matching.model``: ``auto``, ``level`` or ``rigorous``
+    #: (:mod:`lidarcal_ros.core.georeferencing`).
+    model: str = "auto"
+    #: The scanner's full field of view, deg (``sensor.fov_deg``): the laser-vector QA.
+    fov_deg: float = 50.0
     max_normal_distance_m: float = 2.0
     min_normal_distance_m: float = 0.15
     max_edge_factor: float = 4.0
@@ -93,6 +104,8 @@ class PreparedStrip:
     point_cells: np.ndarray  # footprint cell key of every point (int64)
     cells: np.ndarray  # sorted unique footprint cells
     priority: np.ndarray  # random rank of every point for sampling, fixed per strip
+    choice: ModelChoice  # the point-positioning model it got, and why
+    laser_qa: LaserVectorQA  # what its laser vectors say
     tin: Tin | None = None
     geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
     dropped: bool = False  # points released (memory budget); its pairs are frozen
@@ -182,6 +195,10 @@ class CalibrationResult:
     #: (attitude less track, deg; NaN without attitude), by strip id.
     heading_from: dict[int, str] = field(default_factory=dict)
     crab_deg: dict[int, float] = field(default_factory=dict)
+    #: The point-positioning model of each strip and why (:mod:`~lidarcal_ros.core.
+    #: georeferencing`), and the QA of its laser vectors, by strip id.
+    models: dict[int, ModelChoice] = field(default_factory=dict)
+    laser_qa: dict[int, LaserVectorQA] = field(default_factory=dict)
 
 
 def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -309,14 +326,20 @@ class Calibrator:
         s = self.settings
         if any(ps.strip_id == strip.strip_id for ps in self.strips):
             raise CalibrationError(f"strip {strip.strip_id} added twice")
-        geom = laser_geometry(strip.t, strip.xyz, trajectory, window_s=s.trajectory_window_s,
-                              source=f"strip {strip.strip_id}",
-                              heading_source=s.heading_source)
+        geom, choice = strip_geometry(strip.t, strip.xyz, trajectory,
+                                      window_s=s.trajectory_window_s,
+                                      source=f"strip {strip.strip_id}",
+                                      heading_source=s.heading_source, model=s.model)
+        qa = laser_vector_qa(geom, fov_deg=s.fov_deg,
+                             speed_mps=_ground_speed(trajectory, strip.t))
+        for line in qa.warnings:
+            logger.warning("strip %d: %s", strip.strip_id, line)
         keys = self.footprint.keys(strip.xyz[:, :2])
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
-        self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority))
+        self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority, choice,
+                                         qa))
         new = len(self.strips) - 1
         formed = []
         for other in range(new):
@@ -410,8 +433,8 @@ class Calibrator:
         ps = self.strips[k]
         g0 = ps.geometry0
         xyz = ps.strip.xyz
-        corrected = correct_points_exact(xyz, g0.origin, g0.kappa, delta)
-        ps.geometry = geometry_at(corrected, g0.origin, g0.kappa)
+        corrected = correct_points_exact(xyz, g0, delta)
+        ps.geometry = geometry_at(corrected, g0)
         return corrected, xyz - corrected
 
     def _match_pair(
@@ -445,7 +468,7 @@ class Calibrator:
         rows = np.zeros((int(ok.sum()), N_PARAMETERS))
         for v in range(3):
             gv = geometry.take(verts[:, v])
-            rows += w[:, v:v + 1] * normal_design_rows(n, gv.x, gv.z, gv.kappa, gv.beta)
+            rows += w[:, v:v + 1] * geometry_normal_rows(n, gv)
         y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
         return n, rows, y
 
@@ -458,7 +481,7 @@ class Calibrator:
         # adjustment solves for the increment that removes it (Gauss-Newton).
         n, patch_rows, y = self._patch_terms(pair.b, m)
         ga = sa.geometry.take(idx)
-        rows = normal_design_rows(n, ga.x, ga.z, ga.kappa, ga.beta) - patch_rows
+        rows = geometry_normal_rows(n, ga) - patch_rows
         cluster = self._cluster_of(sa.strip.xyz[idx])
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster)
 
@@ -801,6 +824,8 @@ class Calibrator:
             dropped_non_finite=self.dropped_non_finite, thinned_points=self.thinned_points,
             heading_from={ps.strip.strip_id: ps.geometry0.heading_from for ps in self.strips},
             crab_deg={ps.strip.strip_id: ps.geometry0.crab_deg for ps in self.strips},
+            models={ps.strip.strip_id: ps.choice for ps in self.strips},
+            laser_qa={ps.strip.strip_id: ps.laser_qa for ps in self.strips},
         )
 
 
@@ -811,6 +836,21 @@ def _at(obs: Observations, matched_at: np.ndarray, delta: np.ndarray) -> Observa
         return obs
     return Observations(obs.rows, obs.residuals(delta - matched_at), obs.weights, obs.group,
                         obs.cluster)
+
+
+def _ground_speed(trajectory: Trajectory, t: np.ndarray) -> float:
+    """Median horizontal speed of the trajectory over the times ``t`` (m/s; NaN if
+    unknown)."""
+    if len(trajectory) < 2 or not t.size:
+        return float("nan")
+    i0 = int(np.searchsorted(trajectory.t, float(np.min(t))))
+    i1 = int(np.searchsorted(trajectory.t, float(np.max(t)), side="right"))
+    i0, i1 = max(i0 - 1, 0), min(i1 + 1, len(trajectory))
+    if i1 - i0 < 2:
+        return float("nan")
+    step = np.diff(trajectory.xyz[i0:i1, :2], axis=0)
+    dt = np.diff(trajectory.t[i0:i1])
+    return float(np.median(np.hypot(step[:, 0], step[:, 1]) / dt))
 
 
 def _rms(values: np.ndarray) -> float:

@@ -105,6 +105,11 @@ SCHEMA: dict[str, ParameterSpec] = {
         "the fitted line), 'attitude' (the trajectory's orientation: a crabbing aircraft), "
         "'auto' (the orientation where the trajectory has one that agrees with the track "
         "within 20 degrees, else the track)", choices=("auto", "track", "attitude")),
+    "matching.model": ParameterSpec(
+        "auto", "str", "Point-positioning model: 'level' (method.md sections 2-4: a level "
+        "platform), 'rigorous' (section 10: the poses' full INS attitude, roll, pitch and "
+        "heading, interpolated to each firing time), 'auto' (rigorous where the poses carry "
+        "a usable attitude at 10 Hz or more, else level)", choices=("auto", "level", "rigorous")),
     "matching.max_normal_distance_m": _f(2.0, "Largest point-to-patch distance accepted at "
                                          "the first iteration, metres", 0.01, 50.0),
     "matching.min_normal_distance_m": _f(0.15, "Smallest matching threshold later "
@@ -257,6 +262,8 @@ class FlightConfig:
             fixed=fixed,
             trajectory_window_s=v["matching.trajectory_window_s"],
             heading_source=v["matching.heading_source"],
+            model=v["matching.model"],
+            fov_deg=v["sensor.fov_deg"],
             max_normal_distance_m=v["matching.max_normal_distance_m"],
             min_normal_distance_m=v["matching.min_normal_distance_m"],
             max_edge_factor=v["matching.max_edge_factor"],

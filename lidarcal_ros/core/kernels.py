@@ -22,14 +22,11 @@ zz`` sums.
 
 from __future__ import annotations
 
-import logging
 import math
-from collections.abc import Callable
-from typing import Any, TypeVar, cast
 
 import numpy as np
-from numba import njit
 
+from lidarcal_ros.core.attitude import pose_on_segment, segment_spline
 from lidarcal_ros.core.flags import (
     FLAG_GRAZING,
     FLAG_NO_INTENSITY,
@@ -37,27 +34,12 @@ from lidarcal_ros.core.flags import (
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
 )
-
-_log = logging.getLogger(__name__)
-_OPTIONS: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
-_F = TypeVar("_F", bound=Callable[..., Any])
-
-
-def _jit(func: _F) -> _F:
-    """Compile ``func`` (nopython, without the interpreter lock), cached on disk; where no
-    cache directory is writable (a read-only install and home), compiled afresh in each
-    process instead of failing the import."""
-    try:
-        return cast(_F, njit(cache=True, **_OPTIONS)(func))
-    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
-        _log.debug("no cache for the compiled loops (%s): compiling in this process", exc)
-        return cast(_F, njit(cache=False, **_OPTIONS)(func))
-
+from lidarcal_ros.core.jit import compiled, inlined
 
 _THIRD_TURN = 2.0 * math.pi / 3.0
 
 
-@_jit
+@compiled
 def accumulate_moments(out: np.ndarray, row0: int, col0: int, iu: np.ndarray, iv: np.ndarray,
                        u: np.ndarray, v: np.ndarray, z: np.ndarray) -> None:
     """Add each point's moments to its cell: ``out[:, iu - row0, iv - col0] += (1, u, v, z,
@@ -89,14 +71,14 @@ def accumulate_moments(out: np.ndarray, row0: int, col0: int, iu: np.ndarray, iv
         out[9, r, c] += pz * pz
 
 
-@_jit
+@compiled
 def _cross(a: tuple[float, float, float], b: tuple[float, float, float]
            ) -> tuple[float, float, float]:
     """``a x b``."""
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-@_jit
+@compiled
 def _eigen_smallest(cxx: float, cxy: float, cxz: float, cyy: float, cyz: float, czz: float
                     ) -> tuple[float, float, float, float, float, bool]:
     """Smallest and middle eigenvalue and the smallest eigenvector (``z >= 0``) of one
@@ -136,7 +118,7 @@ def _eigen_smallest(cxx: float, cxy: float, cxz: float, cyy: float, cyz: float, 
     return lam_min, lam_mid, vx * scale, vy * scale, vz * scale, ok
 
 
-@_jit
+@compiled
 def smallest_eigen_many(cxx: np.ndarray, cxy: np.ndarray, cxz: np.ndarray, cyy: np.ndarray,
                         cyz: np.ndarray, czz: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -155,7 +137,7 @@ def smallest_eigen_many(cxx: np.ndarray, cxy: np.ndarray, cxz: np.ndarray, cyy: 
     return lam_min, lam_mid, vec, ok
 
 
-@_jit
+@compiled
 def _fit_one(n: float, su: float, sv: float, sz: float, suu: float, suv: float, suz: float,
              svv: float, svz: float, szz: float, min_points: int, min_spread: float,
              residual: np.ndarray, normals: np.ndarray, valid: np.ndarray,
@@ -197,7 +179,7 @@ def _fit_one(n: float, su: float, sv: float, sz: float, suu: float, suv: float, 
     valid[k] = False
 
 
-@_jit
+@compiled
 def fit_sums(sums: np.ndarray, min_points: int, min_spread: float
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Plane fits of m blocks from their moment sums (10, m): residual variance (m,),
@@ -214,7 +196,7 @@ def fit_sums(sums: np.ndarray, min_points: int, min_spread: float
     return residual, normals, valid, centroid
 
 
-@_jit
+@compiled
 def fit_blocks2(moments: np.ndarray, min_points: int, min_spread: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Plane fits of the 2x2 blocks anchored at every cell of a (10, nu, nv) grid (cells
@@ -289,7 +271,7 @@ def fit_blocks2(moments: np.ndarray, min_points: int, min_spread: float
     return residual, normals, valid, centroid
 
 
-@_jit
+@compiled
 def cell_planes(residual: np.ndarray, normals: np.ndarray, centroid: np.ndarray, nu: int,
                 nv: int) -> tuple[np.ndarray, np.ndarray]:
     """The plane of each cell: that of the best-fitting (least residual) of the four 2x2
@@ -324,7 +306,7 @@ def cell_planes(residual: np.ndarray, normals: np.ndarray, centroid: np.ndarray,
     return plane, ok
 
 
-@_jit
+@compiled
 def cells_without_plane(iu: np.ndarray, iv: np.ndarray, nv: int, cell_ok: np.ndarray
                         ) -> np.ndarray:
     """The flat indices (ascending, once each) of the cells holding points that have no
@@ -355,7 +337,7 @@ def cells_without_plane(iu: np.ndarray, iv: np.ndarray, nv: int, cell_ok: np.nda
     return out
 
 
-@_jit
+@compiled
 def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
                   normals: np.ndarray, centroid: np.ndarray, valid: np.ndarray, nu: int,
                   nv: int, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
@@ -431,7 +413,7 @@ def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
     return nrm, ok, rough
 
 
-@njit(inline="always", **_OPTIONS)
+@inlined
 def _laser_frame(ti: float, px: float, py: float, pz: float, w: int, t_mean: np.ndarray,
                  p_mean: np.ndarray, velocity: np.ndarray, c: float, s: float
                  ) -> tuple[float, float, float, float, float]:
@@ -445,36 +427,55 @@ def _laser_frame(ti: float, px: float, py: float, pz: float, w: int, t_mean: np.
     return ox, oy, oz, (px - ox) * c + (py - oy) * s, pz - oz
 
 
-@njit(inline="always", **_OPTIONS)
-def _bias_offset(d: tuple[float, float, float, float, float, float, float, float], x: float,
-                 z: float, beta: float, sin_beta: float, cos_beta: float, c: float, s: float
+@inlined
+def _body_offset(d: tuple[float, float, float, float, float, float, float, float], x: float,
+                 z: float, beta: float, sin_beta: float, cos_beta: float
                  ) -> tuple[float, float, float]:
-    """``A @ delta`` of one point (method.md eq. [8], map frame, m): the body-frame
-    displacement (right, forward, up) rotated by the heading ``(c, s)``, as
+    """``C @ delta`` of one point: the displacement the biases cause in the body frame
+    (right, forward, up), m; the columns ``C`` of method.md section 10, as
     :func:`lidarcal_ros.core.model.point_offsets` documents."""
     right = d[0] + z * d[4] - sin_beta * d[6] + z * beta * d[7]
     fwd = d[1] - z * d[3] + x * d[5]
     up = d[2] - x * d[4] - cos_beta * d[6] - x * beta * d[7]
+    return right, fwd, up
+
+
+@inlined
+def _bias_offset(d: tuple[float, float, float, float, float, float, float, float], x: float,
+                 z: float, beta: float, sin_beta: float, cos_beta: float, c: float, s: float
+                 ) -> tuple[float, float, float]:
+    """``A @ delta`` of one point (method.md eq. [8], map frame, m): the body-frame
+    displacement rotated by the heading ``(c, s)``."""
+    right, fwd, up = _body_offset(d, x, z, beta, sin_beta, cos_beta)
     return c * right - s * fwd, s * right + c * fwd, up
 
 
-@_jit
+@compiled
 def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
                  cos_kappa: np.ndarray, sin_kappa: np.ndarray, sin_beta: np.ndarray,
-                 cos_beta: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """``A @ delta`` of each point (method.md eq. [8], map frame, m), or ``base - A @ delta``
-    (eq. [13]) when ``base`` has a row per point (an empty ``base``: the offsets).
+                 cos_beta: np.ndarray, base: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``A @ delta`` of each point (map frame, m), or ``base - A @ delta`` (eq. [13]) when
+    ``base`` has a row per point (an empty ``base``: the offsets).
 
-    The body-frame displacement (right, forward, up) rotated by kappa, as
+    The body-frame displacement (right, forward, up), rotated by kappa (method.md eq. [8]),
+    or by each point's ``rotation`` (n, 3, 3; section 10) when it has a row per point, as
     :func:`lidarcal_ros.core.model.point_offsets` documents.
     """
     n = x.shape[0]
     out = np.empty((n, 3))
     d = (delta[0], delta[1], delta[2], delta[3], delta[4], delta[5], delta[6], delta[7])
     corrected = base.shape[0] == n and n > 0
+    rigorous = rotation.shape[0] == n and n > 0
     for i in range(n):
-        ox, oy, oz = _bias_offset(d, x[i], z[i], beta[i], sin_beta[i], cos_beta[i],
-                                  cos_kappa[i], sin_kappa[i])
+        if rigorous:
+            right, fwd, up = _body_offset(d, x[i], z[i], beta[i], sin_beta[i], cos_beta[i])
+            r = rotation[i]
+            ox = r[0, 0] * right + r[0, 1] * fwd + r[0, 2] * up
+            oy = r[1, 0] * right + r[1, 1] * fwd + r[1, 2] * up
+            oz = r[2, 0] * right + r[2, 1] * fwd + r[2, 2] * up
+        else:
+            ox, oy, oz = _bias_offset(d, x[i], z[i], beta[i], sin_beta[i], cos_beta[i],
+                                      cos_kappa[i], sin_kappa[i])
         if corrected:
             out[i, 0] = base[i, 0] - ox
             out[i, 1] = base[i, 1] - oy
@@ -484,7 +485,7 @@ def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarr
     return out
 
 
-@_jit
+@compiled
 def below_line(t: np.ndarray, z: np.ndarray, line_t: np.ndarray, line_z: np.ndarray,
                depth: float) -> np.ndarray:
     """``z < np.interp(t, line_t, line_z) - depth`` in one pass (points at least ``depth``
@@ -533,7 +534,7 @@ def below_line(t: np.ndarray, z: np.ndarray, line_t: np.ndarray, line_z: np.ndar
     return out
 
 
-@_jit
+@compiled
 def sorted_time_windows(traj_t: np.ndarray, t: np.ndarray, window_s: float, min_samples: int
                         ) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray, int, int]:
     """The trajectory window of each point of a time-ordered chunk, in one merging pass.
@@ -600,7 +601,7 @@ def sorted_time_windows(traj_t: np.ndarray, t: np.ndarray, window_s: float, min_
     return True, start[:k + 1], stop[:k + 1], window, n_bad, first_bad
 
 
-@_jit
+@compiled
 def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: np.ndarray,
                     p_mean: np.ndarray, velocity: np.ndarray, kappa_w: np.ndarray,
                     cos_w: np.ndarray, sin_w: np.ndarray
@@ -669,7 +670,7 @@ _TAN_PI_8 = math.tan(math.pi / 8.0)
 _TAN_3PI_8 = math.tan(3.0 * math.pi / 8.0)
 
 
-@njit(inline="always", **_OPTIONS)
+@inlined
 def atan_poly(q: float) -> float:
     """``atan(q)`` (rad) to 4e-11 from a polynomial after the classic range reduction
     (``atan(a) = pi/4 + atan((a - 1) / (a + 1)) = pi/2 + atan(-1 / a)``): a few
@@ -688,7 +689,7 @@ def atan_poly(q: float) -> float:
     return math.copysign(base + (x + x * z * poly), q)
 
 
-@njit(inline="always", **_OPTIONS)
+@inlined
 def _asin_half(x: float) -> float:
     """``asin(x)`` for ``0 <= x <= 1/2`` (:data:`_ASIN_COEFFS`)."""
     z = x * x
@@ -697,7 +698,7 @@ def _asin_half(x: float) -> float:
     return x + x * z * poly
 
 
-@njit(inline="always", **_OPTIONS)
+@inlined
 def acos_poly(c: float) -> float:
     """``acos(c)`` (rad) for ``0 <= c <= 1`` to 1e-10 (``acos c = 2 asin(sqrt((1 - c) / 2))``
     above 1/2, ``pi/2 - asin c`` below; :func:`atan_poly` says why). NaN gives NaN."""
@@ -706,31 +707,49 @@ def acos_poly(c: float) -> float:
     return 0.5 * math.pi - _asin_half(c)
 
 
-@_jit
+@inlined
+def _level_frame(ti: float, w: int, lines: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                 np.ndarray]
+                 ) -> tuple[float, float, float, float, float, float, float, float, float,
+                            float, float, float]:
+    """The firing position on window ``w``'s line at time ``ti`` and ``R_kappa`` (row by
+    row), in the form of :func:`lidarcal_ros.core.attitude.pose_on_segment`'s: the level
+    model of method.md section 4 as a rotation like the rigorous one's."""
+    t_mean, p_mean, velocity, cos_w, sin_w = lines
+    dt = ti - t_mean[w]
+    c, s = cos_w[w], sin_w[w]
+    return (p_mean[w, 0] + velocity[w, 0] * dt, p_mean[w, 1] + velocity[w, 1] * dt,
+            p_mean[w, 2] + velocity[w, 2] * dt, c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
+
+
+@compiled
 def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.ndarray,
-                    t_mean: np.ndarray, p_mean: np.ndarray, velocity: np.ndarray,
-                    cos_w: np.ndarray, sin_w: np.ndarray, delta: np.ndarray,
-                    normals: np.ndarray, rough: np.ndarray, intensity: np.ndarray,
-                    c_min: np.float32, c_doubt: np.float32, scale: np.float32,
-                    two_alpha: np.float32, out_xyz: np.ndarray, range_m: np.ndarray,
-                    incidence: np.ndarray, scan_angle: np.ndarray, reflectance: np.ndarray,
-                    flags: np.ndarray) -> None:
+                    rigorous: bool,
+                    lines: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                    poses: tuple[np.ndarray, np.ndarray, np.ndarray],
+                    delta: np.ndarray, normals: np.ndarray, rough: np.ndarray,
+                    intensity: np.ndarray,
+                    radiometry: tuple[np.float32, np.float32, np.float32, np.float32],
+                    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                               np.ndarray]) -> None:
     """Correct each return and derive its beam quantities and reflectance, in one compiled
     call (:func:`lidarcal_ros.pipeline.correction.correct_columns`, whose module docstring gives
-    the steps): :func:`window_geometry`, ``beta = atan(x / z)``, eq. [13] as
-    :func:`bias_offsets`, then range, scan angle, incidence and
+    the steps): the firing position and body frame of each point (a window's line and
+    heading, method.md section 4, or the INS attitude interpolated between samples, section
+    10, :func:`lidarcal_ros.core.attitude.interpolated_frames`), ``beta = atan(x / z)``,
+    eq. [13] as :func:`bias_offsets`, then range, scan angle, incidence and
     :meth:`lidarcal_ros.core.radiometry.RadiometricModel.reflectance` (in float32, operation
     for operation) and the ``correction_flags`` bits (:mod:`lidarcal_ros.core.flags`).
 
     As numpy passes these stages streamed a dozen (n,) and (n, 3) temporaries through
-    memory; but the arithmetic costs more than that traffic (bench/README.md, session 8),
-    and the libm arctangent and arc cosine of each point more than the rest of it. So
-    ``beta`` and the incidence come from :func:`atan_poly` and :func:`acos_poly` (within
-    1e-10 rad; the incidence from the float64 cosine, where a float32 one would lose up to
-    3e-4 rad near normal incidence), and the scan angle ``atan(x_c / z_c)`` of the corrected
-    return from ``beta`` of the delivered one: their tangents differ by ``d``, of the order
-    of the biases (below 1e-3), and ``atan(q + d) = atan(q) + d / (1 + q^2) - q d^2 /
-    (1 + q^2)^2`` up to a ``d^3`` term below 1e-9 rad.
+    memory; but the arithmetic costs more than that traffic (bench/README.md), and the libm
+    arctangent and arc cosine of each point more than the rest of it. So ``beta`` and the
+    incidence come from :func:`atan_poly` and :func:`acos_poly` (within 1e-10 rad; the
+    incidence from the float64 cosine, where a float32 one would lose up to 3e-4 rad near
+    normal incidence), and the scan angle ``atan(x_c / z_c)`` of the corrected return from
+    ``beta`` of the delivered one: their tangents differ by ``d``, of the order of the biases
+    (below 1e-3), and ``atan(q + d) = atan(q) + d / (1 + q^2) - q d^2 / (1 + q^2)^2`` up to a
+    ``d^3`` term below 1e-9 rad.
 
     Parameters
     ----------
@@ -738,11 +757,18 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         Firing times (s) and delivered points (map frame, m).
     ok : (n,) bool
         Points the trajectory serves (covered, finite, below it); the others, and any whose
-        window puts it at or above the firing point, are flagged not corrected.
+        frame puts it at or above the firing point, are flagged not corrected.
     window : (m,) int64
-        The window of each ``ok`` point, in order (``m = ok.sum()``).
-    t_mean, p_mean, velocity, cos_w, sin_w : (k,), (k, 3), (k, 3), (k,), (k,) float64
-        The windows' lines (:class:`~lidarcal_ros.core.local_trajectory.WindowLines`).
+        For each ``ok`` point in order (``m = ok.sum()``): its window (level) or the sample
+        starting its trajectory segment (rigorous).
+    rigorous : bool
+        Which model: ``poses`` (section 10) or ``lines`` (section 4) give the frames.
+    lines : (t_mean, p_mean, velocity, cos_w, sin_w)
+        The windows' lines (:class:`~lidarcal_ros.core.local_trajectory.WindowLines`):
+        (k,), (k, 3), (k, 3), (k,), (k,) float64.
+    poses : (traj_t, traj_xyz, traj_q)
+        The trajectory's samples: (s,), (s, 3), (s, 4) float64 (unit quaternions in one
+        hemisphere, :class:`~lidarcal_ros.core.mission.Trajectory`).
     delta : (8,) float64
         Biases to remove (method.md order, SI).
     normals : (n, 3) float64
@@ -751,15 +777,16 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         Uncertain normals (none when empty).
     intensity : (n,) float32, or empty
         Recorded intensity (the cloud has none when empty).
-    c_min, c_doubt, scale, two_alpha : float32
+    radiometry : (c_min, c_doubt, scale, two_alpha) float32
         :meth:`~lidarcal_ros.core.radiometry.RadiometricModel.kernel_constants`.
-    out_xyz : (n, 3) float64
-        Corrected points (the delivered ones where not corrected), m.
-    range_m, incidence, scan_angle, reflectance : (n,) float32
-        m, rad, rad, intensity unit (NaN where unknown).
-    flags : (n,) uint8
-        The ``correction_flags`` bits.
+    out : (out_xyz, range_m, incidence, scan_angle, reflectance, flags)
+        Written: corrected points (n, 3) float64 (the delivered ones where not corrected),
+        m; range, incidence, scan angle, reflectance (n,) float32 (m, rad, rad, the
+        reflectance's unit; NaN where unknown); the ``correction_flags`` bits (n,) uint8.
     """
+    out_xyz, range_m, incidence, scan_angle, reflectance, flags = out
+    c_min, c_doubt, scale, two_alpha = radiometry
+    traj_t, traj_xyz, traj_q = poses
     n = t.shape[0]
     nan32 = np.float32(np.nan)
     has_rough = rough.shape[0] == n
@@ -769,21 +796,32 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     # Three loops, not one: a point's work is one long chain of dependent operations
     # (arctangent, correction, beam, arc cosine, exponential), too long for the processor
     # to overlap the next point's with it; in three shorter loops it does more of that
-    # (80 against 92 ns a point on the 2 GHz machine of bench/README.md, session 8).
+    # (80 against 92 ns a point on the 2 GHz machine of bench/README.md).
     # 1. The firing point, x, z and beta of each served point (NaN: not served).
     beta = np.empty(n)
+    current = -1
+    spline = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     j = 0
     for i in range(n):
         beta[i] = np.nan
         if ok[i]:
             w = window[j]
             j += 1
-            _, _, _, x, z = _laser_frame(t[i], xyz[i, 0], xyz[i, 1], xyz[i, 2], w, t_mean,
-                                         p_mean, velocity, cos_w[w], sin_w[w])
+            if rigorous:
+                if w != current:  # points come in time order: a segment serves thousands
+                    spline = segment_spline(w, traj_t, traj_q)
+                    current = w
+                f = pose_on_segment(t[i], w, spline, traj_t, traj_xyz, traj_q)
+            else:
+                f = _level_frame(t[i], w, lines)
+            dx, dy, dz = xyz[i, 0] - f[0], xyz[i, 1] - f[1], xyz[i, 2] - f[2]
+            x = f[3] * dx + f[6] * dy + f[9] * dz
+            z = f[5] * dx + f[8] * dy + f[11] * dz
             if z < 0.0:
                 beta[i] = atan_poly(x / z)
     # 2. Eq. [13], range, scan angle and the incidence cosine (kept in ``cos_inc``).
     cos_inc = np.empty(n)
+    current = -1
     j = 0
     for i in range(n):
         px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
@@ -797,18 +835,36 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             cos_inc[i] = np.nan
             flags[i] = FLAG_NOT_CORRECTED | no_intensity
             continue
-        c, s = cos_w[w], sin_w[w]
-        ox, oy, oz, x, z = _laser_frame(t[i], px, py, pz, w, t_mean, p_mean, velocity, c, s)
+        if rigorous:
+            if w != current:
+                spline = segment_spline(w, traj_t, traj_q)
+                current = w
+            f = pose_on_segment(t[i], w, spline, traj_t, traj_xyz, traj_q)
+        else:
+            f = _level_frame(t[i], w, lines)
+        ox, oy, oz = f[0], f[1], f[2]
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = (f[3], f[4], f[5], f[6], f[7], f[8],
+                                                       f[9], f[10], f[11])
+        dx, dy, dz = px - ox, py - oy, pz - oz
+        x = r00 * dx + r10 * dy + r20 * dz
+        z = r02 * dx + r12 * dy + r22 * dz
+        r2 = x * x + z * z
+        if rigorous:  # section 10's r = |rho_hat|; section 4 recovers no along-track part
+            y = r01 * dx + r11 * dy + r21 * dz
+            r2 += y * y
         q = x / z
-        inv_r = 1.0 / math.sqrt(x * x + z * z)
-        dx, dy, dz = _bias_offset(d, x, z, b, -x * inv_r, -z * inv_r, c, s)  # eq. [13]
-        cx, cy, cz = px - dx, py - dy, pz - dz
+        inv_r = 1.0 / math.sqrt(r2)
+        right, fwd, up = _body_offset(d, x, z, b, -x * inv_r, -z * inv_r)
+        cx = px - (r00 * right + r01 * fwd + r02 * up)  # eq. [13]
+        cy = py - (r10 * right + r11 * fwd + r12 * up)
+        cz = pz - (r20 * right + r21 * fwd + r22 * up)
         out_xyz[i, 0], out_xyz[i, 1], out_xyz[i, 2] = cx, cy, cz
         # The beam from the firing point to the corrected return.
         rx, ry, rz = cx - ox, cy - oy, cz - oz
         r = math.sqrt(rx * rx + ry * ry + rz * rz)
         range_m[i] = r
-        dtan = (rx * c + ry * s) / rz - q  # the tangent's change, ``d`` in the docstring
+        # the tangent's change, ``d`` in the docstring
+        dtan = (r00 * rx + r10 * ry + r20 * rz) / (r02 * rx + r12 * ry + r22 * rz) - q
         g = 1.0 / (1.0 + q * q)
         scan_angle[i] = b + dtan * g - q * dtan * dtan * g * g
         cos_t = abs((normals[i, 0] * rx + normals[i, 1] * ry + normals[i, 2] * rz) * (1.0 / r))
@@ -818,24 +874,24 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     for i in range(n):
         if math.isnan(beta[i]):
             continue
-        f = flags[i]
+        fl = flags[i]
         cos_t = cos_inc[i]
         if math.isnan(cos_t):
-            f |= FLAG_NO_NORMAL
+            fl |= FLAG_NO_NORMAL
         incidence[i] = acos_poly(cos_t)
         uncertain = has_rough and rough[i]
         if uncertain:
-            f |= FLAG_ROUGH
+            fl |= FLAG_ROUGH
         if has_intensity:
             level = intensity[i]
             if not math.isfinite(level):
-                f |= FLAG_NO_INTENSITY
+                fl |= FLAG_NO_INTENSITY
             # RadiometricModel.reflectance: the clamped cosine (NaN stays NaN), bounded
             # further where the normal is uncertain, then the radar equation.
             cos32 = np.float32(cos_t)
             cos_eff = cos32
             if cos32 < c_min:
-                f |= FLAG_GRAZING
+                fl |= FLAG_GRAZING
                 uncertain = True
                 cos_eff = c_min
             if uncertain and cos_eff < c_doubt:
@@ -850,10 +906,10 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             reflectance[i] = gain
         else:
             reflectance[i] = nan32
-        flags[i] = f
+        flags[i] = fl
 
 
-@_jit
+@compiled
 def flight_to_map(n_uvz: np.ndarray, cos_h: float, sin_h: float) -> np.ndarray:
     """Vectors from the flight frame (``u`` forward, ``v`` right, ``z`` up) to the map frame:
     ``u (-sin_h, cos_h) + v (cos_h, sin_h)``, ``z`` unchanged; (n, 3) in, new (n, 3) out."""
@@ -867,7 +923,7 @@ def flight_to_map(n_uvz: np.ndarray, cos_h: float, sin_h: float) -> np.ndarray:
     return out
 
 
-@_jit
+@compiled
 def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: float, z0: float,
                  inv_cell_u: float, inv_cell_v: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -928,7 +984,7 @@ def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: flo
     return u[:m], v[:m], z[:m], iu[:m], iv[:m], index[:m], bounds
 
 
-@_jit
+@compiled
 def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarray,
                         y: np.ndarray, z: np.ndarray, xyz: np.ndarray, reflectance: np.ndarray,
                         range_m: np.ndarray, incidence: np.ndarray, scan_angle: np.ndarray,
@@ -982,7 +1038,7 @@ def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarr
         flags[i] = f
 
 
-@_jit
+@compiled
 def byte_counts(values: np.ndarray) -> np.ndarray:
     """How many times each byte value occurs: ``np.bincount(values, minlength=256)`` for a
     uint8 array, in one pass and without the interpreter lock (bincount first widens the
@@ -1002,7 +1058,7 @@ def byte_counts(values: np.ndarray) -> np.ndarray:
     return counts
 
 
-@_jit
+@compiled
 def centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
     """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
     cell indices ``cells`` of a (10, nu, nv) grid (zero beyond it), the block's cells added
@@ -1034,7 +1090,7 @@ def centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndar
     return sums
 
 
-@_jit
+@compiled
 def walk_to_triangles(q: np.ndarray, start: np.ndarray, a: np.ndarray, inv: np.ndarray,
                       neighbors: np.ndarray, max_steps: int, out: np.ndarray) -> np.ndarray:
     """Walk each query from its start triangle to the one containing it
@@ -1096,7 +1152,7 @@ def walk_to_triangles(q: np.ndarray, start: np.ndarray, a: np.ndarray, inv: np.n
     return unsettled[:k]
 
 
-@_jit
+@compiled
 def best_patches(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
                  neighbors: np.ndarray, usable: np.ndarray, vertices: np.ndarray,
                  max_normal_distance: float, best_tri: np.ndarray, best_d: np.ndarray,
@@ -1183,7 +1239,7 @@ def best_patches(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
             best_w[i, 0], best_w[i, 1], best_w[i, 2] = wu, wv, ww
 
 
-@_jit
+@compiled
 def all_finite3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> bool:
     """``np.isfinite(x).all() and np.isfinite(y).all() and np.isfinite(z).all()`` in one pass
     over the rows (the fields of a structured cloud, strided), stopping at the first
@@ -1194,7 +1250,7 @@ def all_finite3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> bool:
     return True
 
 
-@_jit
+@compiled
 def finite_range(values: np.ndarray) -> tuple[float, float]:
     """``(np.fmin.reduce(values), np.fmax.reduce(values))`` in one pass (a field of a
     structured cloud, strided): the least and greatest values ignoring NaN, ``(nan, nan)``
@@ -1215,7 +1271,7 @@ def finite_range(values: np.ndarray) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-@_jit
+@compiled
 def gather_columns(x: np.ndarray, y: np.ndarray, z: np.ndarray, t: np.ndarray,
                    intensity: np.ndarray, strip_id: np.ndarray, xyz_out: np.ndarray,
                    t_out: np.ndarray, intensity_out: np.ndarray, strip_id_out: np.ndarray
@@ -1261,7 +1317,7 @@ def gather_columns(x: np.ndarray, y: np.ndarray, z: np.ndarray, t: np.ndarray,
     return float(lo), float(hi), non_finite
 
 
-@_jit
+@compiled
 def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     """``out[:, 0], out[:, 1], out[:, 2] = x, y, z`` (float64; FLOAT32 fields widened
     exactly) in one pass over the rows of a structured cloud."""
@@ -1271,22 +1327,22 @@ def gather_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, out: np.ndarray) -> 
         out[i, 2] = z[i]
 
 
-@njit(inline="always", **_OPTIONS)
+@inlined
 def _cell_index(q: float) -> int:
     """``floor(q)`` as an integer, held within +-2^62 (a wild coordinate shares the cell at
     the limit instead of converting out of range)."""
     return int(np.int64(min(max(math.floor(q), -4.0e18), 4.0e18)))
 
 
-@njit(inline="always", **_OPTIONS)
-def _cell_slot(u: int, v: int, g: int, mask: int) -> int:
+@inlined
+def _cell_slot(u: int, v: int, g: int | np.int64, mask: int) -> int:
     """Home slot of cell ``(u, v)`` of group ``g`` in a table of ``mask + 1`` slots."""
     h = (u * np.int64(-7046029254386353131) + v * np.int64(3266489917)
          + g * np.int64(668265263))
     return int((h ^ (h >> 29)) & mask)
 
 
-@_jit
+@compiled
 def first_in_cells(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: float,
                    valid: np.ndarray) -> np.ndarray:
     """Which points are the first (in order) of their ``(group, floor(x / cell),
@@ -1350,7 +1406,7 @@ def first_in_cells(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: fl
     return keep
 
 
-@_jit
+@compiled
 def first_in_grid(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: float,
                   valid: np.ndarray, max_cells: int) -> tuple[bool, np.ndarray]:
     """:func:`first_in_cells` for the usual cloud: one group, over few enough cells (at

@@ -25,6 +25,7 @@ from typing import Literal
 import numpy as np
 
 from lidarcal_ros.core import kernels
+from lidarcal_ros.core.geometry import LaserGeometry
 from lidarcal_ros.core.heading import choose_heading, median_crab_deg, window_headings
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import finite_rows
@@ -34,71 +35,6 @@ logger = logging.getLogger(__name__)
 
 #: Windows processed per block when fitting lines (bounds the memory of the ragged gather).
 _FIT_BLOCK_SAMPLES = 4_000_000
-
-
-@dataclass
-class LaserGeometry:
-    """Per-point quantities of method.md section 4 (all (n,) float64).
-
-    Attributes
-    ----------
-    x : lateral laser-frame coordinate, metres, positive right of the flight direction.
-    z : vertical laser-frame coordinate, metres (negative: ground below the sensor).
-    kappa : heading of the local trajectory, radians, ``atan2(-d_x, d_y)``.
-    beta : mirror angle, radians, ``atan(x / z)``.
-    origin : (n, 3) firing position ``X_o(t)`` in the map frame, metres.
-    """
-
-    x: np.ndarray
-    z: np.ndarray
-    kappa: np.ndarray
-    beta: np.ndarray
-    origin: np.ndarray
-    #: ``cos kappa``, ``sin kappa`` when known (one per window, spread to the points); else
-    #: computed on first use by :meth:`trig`.
-    cos_kappa: np.ndarray | None = None
-    sin_kappa: np.ndarray | None = None
-    #: ``sin beta``, ``cos beta`` when known (from :func:`laser_geometry`'s pass over the
-    #: points); else computed on first use by :meth:`trig`.
-    sin_beta: np.ndarray | None = None
-    cos_beta: np.ndarray | None = None
-    #: Where ``kappa`` came from: ``track`` or ``attitude`` (:mod:`lidarcal_ros.core.heading`),
-    #: and the median crab of the windows, deg (NaN: no attitude to compare the track with).
-    heading_from: str = "track"
-    crab_deg: float = math.nan
-
-    @property
-    def range(self) -> np.ndarray:
-        """Range from the firing position, ``sqrt(x^2 + z^2)``, metres."""
-        return np.hypot(self.x, self.z)
-
-    def trig(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``cos kappa, sin kappa, sin beta, cos beta`` per point.
-
-        Float64 sine and cosine cost some 10 ns a point each, more than the rest of eq. [13]
-        together, so the heading's come once per trajectory window and the mirror angle's
-        from ``beta = atan(x / z)`` algebraically: ``sin beta = -x / r``,
-        ``cos beta = -z / r`` (``z < 0``).
-        """
-        if self.cos_kappa is None or self.sin_kappa is None:
-            self.cos_kappa = np.cos(self.kappa)
-            self.sin_kappa = np.sin(self.kappa)
-        if self.sin_beta is None or self.cos_beta is None:
-            inv_r = 1.0 / np.sqrt(self.x * self.x + self.z * self.z)
-            self.sin_beta, self.cos_beta = -self.x * inv_r, -self.z * inv_r
-        return self.cos_kappa, self.sin_kappa, self.sin_beta, self.cos_beta
-
-    def take(self, index: np.ndarray) -> LaserGeometry:
-        """A subset of the points (fancy or boolean index)."""
-        def part(a: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None else a[index]
-
-        return LaserGeometry(
-            self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
-            cos_kappa=part(self.cos_kappa), sin_kappa=part(self.sin_kappa),
-            sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
-            heading_from=self.heading_from, crab_deg=self.crab_deg,
-        )
 
 
 def _fit_windows(
@@ -371,8 +307,7 @@ def laser_geometry(
     t = np.asarray(t, dtype=np.float64)
     xyz = np.asarray(xyz, dtype=np.float64)
     if t.shape[0] == 0:
-        empty = np.empty(0)
-        return LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
+        return LaserGeometry.empty()
     lines = window_lines(t, trajectory, window_s=window_s, min_samples=min_samples,
                          source=source, heading_source=heading_source)
     return geometry_on_lines(t, xyz, lines, source=source)
@@ -389,7 +324,7 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
         If a point is not below its firing position.
     """
     # Per point, in one pass: the firing position on its window's line, then what
-    # geometry_at computes from it.
+    # geometry.geometry_at computes from it.
     origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta = kernels.window_geometry(
         t, xyz, lines.window, lines.t_mean, lines.p_mean, lines.velocity, lines.kappa,
         lines.cos_kappa, lines.sin_kappa)
@@ -407,35 +342,3 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
             f"(z={geometry.z[k]:.2f} m); wrong trajectory or time base?"
         )
     return geometry
-
-
-def geometry_at(
-    xyz: np.ndarray,
-    origin: np.ndarray,
-    kappa: np.ndarray,
-    *,
-    cos_kappa: np.ndarray | None = None,
-    sin_kappa: np.ndarray | None = None,
-) -> LaserGeometry:
-    """Laser-frame ``x, z, beta`` of points seen from known firing positions and headings.
-
-    Parameters
-    ----------
-    xyz : (n, 3) float64
-        Points, map frame, metres.
-    origin : (n, 3) float64
-        Firing positions ``X_o(t)``, map frame, metres.
-    kappa : (n,) float64
-        Headings, radians.
-    cos_kappa, sin_kappa : (n,) float64, keyword-only, optional
-        Their cosines and sines, if already known (computed otherwise).
-    """
-    rel = xyz - origin
-    if cos_kappa is None or sin_kappa is None:
-        cos_kappa, sin_kappa = np.cos(kappa), np.sin(kappa)
-    x = rel[:, 0] * cos_kappa + rel[:, 1] * sin_kappa
-    z = rel[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        beta = np.arctan(x / z)
-    return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
-                         cos_kappa=cos_kappa, sin_kappa=sin_kappa)

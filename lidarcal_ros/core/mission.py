@@ -34,7 +34,9 @@ class Trajectory:
     full_attitude : bool
         The orientation carries roll and pitch as measured (an INS); False where only a
         heading was known and the poses were levelled (an ASCII trajectory's heading column):
-        the rigorous model (method.md section 10) then has nothing to add.
+        the rigorous model (method.md section 10) then has nothing to add. Set False on
+        construction, whatever was given, where every orientation is level to 1e-9 rad (no
+        INS flies that level; a bag keeps no word of how its poses were made).
     """
 
     t: np.ndarray
@@ -57,6 +59,14 @@ class Trajectory:
                                       f"{q.size / 4:g} orientations")
             q = normalise_quaternions(q)
             self.orientation = None if not q.size or np.isnan(q).all() else q
+        if self.orientation is not None and self.full_attitude:
+            # R(q)[2, 0], R(q)[2, 1]: the vertical components of the forward and left axes
+            # (0: level), and R(q)[2, 2], the up axis's (1: upright)
+            x, y, z, w = self.orientation.T
+            tilt = np.abs(np.concatenate([x * z - y * w, y * z + x * w]))
+            upright = 1.0 - 2.0 * (x * x + y * y)
+            self.full_attitude = not bool(np.nanmax(tilt) < 0.5e-9
+                                          and np.nanmin(upright) > 0.0)
 
     @property
     def heading(self) -> np.ndarray | None:

@@ -1,9 +1,14 @@
-"""The bias model of method.md sections 2-3: design matrix and point correction.
+"""The bias model of method.md sections 2-3 and 10: design matrix and point correction.
 
 All functions are vectorised over points. ``x`` and ``z`` are the point's lateral and vertical
 coordinates in the laser frame (metres; ``z`` negative), ``kappa`` the heading (radians, map
 frame, ``kappa = atan2(-d_x, d_y)``), ``beta`` the mirror angle (radians). The parameter order is
 :data:`lidarcal_ros.core.params.PARAMETER_NAMES`.
+
+The functions of ``x, z, kappa, beta`` are the level model of sections 2-4 (the shared test
+vectors pin them); those of a :class:`~lidarcal_ros.core.geometry.LaserGeometry` serve either
+model: the body-frame columns of section 10 turned into the map frame by the point's rotation
+(``R_kappa`` level, ``R_ins`` rigorous).
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from lidarcal_ros.core import kernels
+from lidarcal_ros.core.geometry import LaserGeometry
 from lidarcal_ros.core.params import N_PARAMETERS
 
 
@@ -61,7 +67,7 @@ def normal_design_rows(
     normal: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray, beta: np.ndarray
 ) -> np.ndarray:
     """``n^T A`` for each point: the design row of a point-to-patch observation, without
-    materialising the (n, 3, 8) matrix.
+    materialising the (n, 3, 8) matrix (level model).
 
     Parameters
     ----------
@@ -74,24 +80,80 @@ def normal_design_rows(
     -------
     (n, 8) float64
     """
-    nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
+    nx, ny = normal[:, 0], normal[:, 1]
     c = np.cos(kappa)
     s = np.sin(kappa)
-    sb = np.sin(beta)
-    cb = np.cos(beta)
-    # Horizontal normal component along the body's right (c, s) and forward (-s, c) axes.
-    n_right = nx * c + ny * s
-    n_fwd = -nx * s + ny * c
-    rows = np.empty((normal.shape[0], N_PARAMETERS))
+    # The normal along the body's right (c, s) and forward (-s, c) axes, and up.
+    body = np.column_stack([nx * c + ny * s, -nx * s + ny * c, normal[:, 2]])
+    return body_normal_rows(body, x, z, beta, np.sin(beta), np.cos(beta))
+
+
+def body_normal_rows(normal_body: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
+                     sin_beta: np.ndarray, cos_beta: np.ndarray) -> np.ndarray:
+    """``n_b^T C`` for each point, ``C`` the (3, 8) columns of method.md section 10 in the
+    body frame and ``n_b = R^T n`` the patch normal in it: the design row of a point-to-patch
+    observation in either model (``A = R C``, so ``n^T A = (R^T n)^T C``).
+
+    Parameters
+    ----------
+    normal_body : (n, 3) float64
+        Unit normals in the body frame (right, forward, up).
+    x, z, beta : (n,) float64
+        Body-frame lateral and vertical coordinates (m) and mirror angle (rad).
+    sin_beta, cos_beta : (n,) float64
+        ``sb``, ``cb`` of the ``dr`` column (section 10: ``-x / r``, ``-z / r``).
+
+    Returns
+    -------
+    (n, 8) float64
+    """
+    n_right, n_fwd, n_up = normal_body[:, 0], normal_body[:, 1], normal_body[:, 2]
+    rows = np.empty((normal_body.shape[0], N_PARAMETERS))
     rows[:, 0] = n_right
     rows[:, 1] = n_fwd
-    rows[:, 2] = nz
+    rows[:, 2] = n_up
     rows[:, 3] = -z * n_fwd
-    rows[:, 4] = z * n_right - x * nz
+    rows[:, 4] = z * n_right - x * n_up
     rows[:, 5] = x * n_fwd
-    rows[:, 6] = -sb * n_right - cb * nz
-    rows[:, 7] = beta * (z * n_right - x * nz)
+    rows[:, 6] = -sin_beta * n_right - cos_beta * n_up
+    rows[:, 7] = beta * (z * n_right - x * n_up)
     return rows
+
+
+def body_columns(x: np.ndarray, z: np.ndarray, beta: np.ndarray, sin_beta: np.ndarray,
+                 cos_beta: np.ndarray) -> np.ndarray:
+    """The derivative of a point with respect to the biases in the body frame (right,
+    forward, up), method.md section 10: (n, 3, 8), ``A = R @ columns``."""
+    n = np.shape(x)[0]
+    cols = np.zeros((n, 3, N_PARAMETERS))
+    cols[:, 0, 0] = cols[:, 1, 1] = cols[:, 2, 2] = 1.0
+    cols[:, 1, 3] = -z
+    cols[:, 0, 4] = z
+    cols[:, 2, 4] = -x
+    cols[:, 1, 5] = x
+    cols[:, 0, 6] = -sin_beta
+    cols[:, 2, 6] = -cos_beta
+    cols[:, 0, 7] = beta * z
+    cols[:, 2, 7] = -beta * x
+    return cols
+
+
+def geometry_design_matrix(geometry: LaserGeometry) -> np.ndarray:
+    """``A`` (n, 3, 8) of each point of ``geometry`` in either model: ``R`` times the body
+    columns (:func:`body_columns`)."""
+    _, _, sb, cb = geometry.trig()
+    cols = body_columns(geometry.x, geometry.z, geometry.beta, sb, cb)
+    if geometry.rotation is None:  # R_kappa: the rows of eq. [8]
+        return design_matrix(geometry.x, geometry.z, geometry.kappa, geometry.beta)
+    return np.einsum("nij,njk->nik", geometry.rotation, cols)
+
+
+def geometry_normal_rows(normal: np.ndarray, geometry: LaserGeometry) -> np.ndarray:
+    """``n^T A`` of each point of ``geometry`` (either model) and its patch normal ``normal``
+    (n, 3, map frame): :func:`body_normal_rows` of the normal turned into the body frame."""
+    _, _, sb, cb = geometry.trig()
+    return body_normal_rows(geometry.to_body(normal), geometry.x, geometry.z, geometry.beta,
+                            sb, cb)
 
 
 Trig = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -117,19 +179,41 @@ def point_offsets(
 
 
 def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
-             beta: np.ndarray, trig: Trig | None, base: np.ndarray) -> np.ndarray:
+             beta: np.ndarray, trig: Trig | None, base: np.ndarray,
+             rotation: np.ndarray | None = None) -> np.ndarray:
     """:func:`point_offsets`, or ``base - `` them (one pass: :func:`kernels.bias_offsets`).
 
     Body frame: the displacement to the right is ``dX + z dphi - sin(beta) dr + z beta dS``,
-    forward ``dY - z domega + x dkappa``, up ``dZ - x dphi - cos(beta) dr - x beta dS``; the
-    horizontal part is rotated by kappa into the map frame.
+    forward ``dY - z domega + x dkappa``, up ``dZ - x dphi - cos(beta) dr - x beta dS``;
+    rotated into the map frame by the heading kappa (level) or ``rotation`` (rigorous).
     """
     if trig is None:
         trig = (np.cos(kappa), np.sin(kappa), np.sin(beta), np.cos(beta))
     c, s, sb, cb = (np.asarray(a, dtype=np.float64) for a in trig)
+    rot = _NO_ROTATION if rotation is None else np.ascontiguousarray(rotation,
+                                                                     dtype=np.float64)
     return kernels.bias_offsets(np.asarray(delta, dtype=np.float64),
                                 np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64),
-                                np.asarray(beta, dtype=np.float64), c, s, sb, cb, base)
+                                np.asarray(beta, dtype=np.float64), c, s, sb, cb, base, rot)
+
+
+_NO_ROTATION = np.zeros((0, 3, 3))
+
+
+def geometry_offsets(delta: np.ndarray, geometry: LaserGeometry) -> np.ndarray:
+    """``A @ delta`` (n, 3, map frame, m) of each point of ``geometry``, either model."""
+    return _offsets(delta, geometry.x, geometry.z, geometry.kappa, geometry.beta,
+                    geometry.trig(), np.empty((0, 3)), geometry.rotation)
+
+
+def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
+                     ) -> np.ndarray:
+    """Eq. [13] in either model: ``X_corrected = X_biased - A @ delta_hat`` (n, 3, m)."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.shape != (np.shape(geometry.x)[0], 3):
+        raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(geometry.x)[0]} points")
+    return _offsets(delta, geometry.x, geometry.z, geometry.kappa, geometry.beta,
+                    geometry.trig(), xyz, geometry.rotation)
 
 
 def correct_points(
@@ -180,51 +264,43 @@ def boresight_matrix(domega: float, dphi: float, dkappa: float) -> np.ndarray:
 
 
 def correct_points_exact(
-    xyz: np.ndarray, origin: np.ndarray, kappa: np.ndarray, delta: np.ndarray
+    xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray
 ) -> np.ndarray:
-    """Remove the biases exactly: invert the biased georeferencing of method.md eq. [1]-[2].
+    """Remove the biases exactly: invert the biased georeferencing of method.md eq. [1]-[2]
+    (section 10's form in the rigorous model).
 
-    The delivered point is ``X_b = X_o + R_kappa d + R_kappa R_B rho_b`` with the recorded range
-    and mirror angle inside ``rho_b = -r [sin beta, 0, cos beta]``; the system used the biased
-    (nominal) values ``d = (dX, dY, dZ)``, ``R_B(domega, dphi, dkappa)``, range offset ``dr`` and
-    mirror scale ``1 + dS``. Undoing them: ``rho_b = R_B^T (R_kappa^T (X_b - X_o) - d)``,
+    The delivered point is ``X_b = X_o + R d + R R_B rho_b`` with the recorded range and
+    mirror angle inside ``rho_b = -r [sin beta, 0, cos beta]``, ``R`` the body frame
+    (``R_kappa`` level, ``R_ins`` rigorous); the system used the biased (nominal) values
+    ``d = (dX, dY, dZ)``, ``R_B(domega, dphi, dkappa)``, range offset ``dr`` and mirror scale
+    ``1 + dS``. Undoing them: ``rho_b = R_B^T (R^T (X_b - X_o) - d)``,
     ``r_true = |rho_b| - dr``, ``theta = beta / (1 + dS)``, and the true point is
-    ``X_o + R_kappa (-r_true) [sin theta, 0, cos theta]``, keeping the (small) along-track
-    component of ``rho_b`` that the local trajectory leaves.
+    ``X_o + R (-r_true) [sin theta, 0, cos theta]``, keeping the (small) along-track
+    component of ``rho_b``.
 
-    Agrees with :func:`correct_points` (eq. [13]) to second order in the biases; used while
-    iterating so that large biases (150 arcsec, 0.2 m) leave no linearisation error.
+    Agrees with eq. [13] to second order in the biases; used while iterating so that large
+    biases (150 arcsec, 0.2 m) leave no linearisation error.
 
     Parameters
     ----------
     xyz : (n, 3) float64
         Delivered points, map frame, metres.
-    origin : (n, 3) float64
-        Firing positions ``X_o(t)`` from the local trajectory, map frame, metres.
-    kappa : (n,) float64
-        Headings, radians.
+    frame : LaserGeometry
+        The firing positions and body frames of the points (their geometry as delivered).
     delta : (8,) float64
         Biases, SI.
     """
     d = np.asarray(delta, dtype=np.float64)
-    c = np.cos(kappa)
-    s = np.sin(kappa)
-    rel = xyz - origin
     # Body frame (right, forward, up) minus the lever arm.
-    q = np.empty_like(rel)
-    q[:, 0] = c * rel[:, 0] + s * rel[:, 1] - d[0]
-    q[:, 1] = -s * rel[:, 0] + c * rel[:, 1] - d[1]
-    q[:, 2] = rel[:, 2] - d[2]
+    q = frame.to_body(np.asarray(xyz, dtype=np.float64) - frame.origin)
+    q -= d[:3]
     rho = q @ boresight_matrix(d[3], d[4], d[5])  # R_B^T q, row-wise
     r_rec = np.hypot(rho[:, 0], rho[:, 2])
     beta = np.arctan2(-rho[:, 0], -rho[:, 2])
     r_true = r_rec - d[6]
     theta = beta / (1.0 + d[7])
-    bx = -r_true * np.sin(theta)
-    by = rho[:, 1]
-    bz = -r_true * np.cos(theta)
-    out = np.empty_like(rel)
-    out[:, 0] = origin[:, 0] + c * bx - s * by
-    out[:, 1] = origin[:, 1] + s * bx + c * by
-    out[:, 2] = origin[:, 2] + bz
-    return out
+    body = np.empty_like(rho)
+    body[:, 0] = -r_true * np.sin(theta)
+    body[:, 1] = rho[:, 1]
+    body[:, 2] = -r_true * np.cos(theta)
+    return frame.origin + frame.to_map(body)

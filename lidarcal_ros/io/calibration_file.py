@@ -13,6 +13,8 @@ import numpy as np
 import yaml
 
 from lidarcal_ros.core.calibrate import CalibrationResult
+from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
+from lidarcal_ros.core.georeferencing import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.yaml_file import read_yaml
@@ -28,6 +30,9 @@ class CalibrationRecord:
     sigmas: dict[str, float | None]
     estimated: dict[str, bool]
     sigma0: float | None = None
+    #: The point-positioning model the biases were estimated with: ``level``, ``rigorous``,
+    #: ``mixed`` (strips of both), or None where the file does not say.
+    model: str | None = None
 
     @property
     def delta(self) -> np.ndarray:
@@ -62,6 +67,8 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         },
         "iterations": int(result.iterations),
         "converged": bool(result.converged),
+        "model": models_summary(result.models) if result.models else LEVEL,
+        "model_detail": describe_models(result.models) if result.models else LEVEL,
         "correspondences": {
             "strip_pairs": int(result.n_pair_correspondences),
             "control": int(result.n_control_correspondences),
@@ -74,6 +81,7 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
              "p95_after_m": _num(p.p95_after)}
             for p in result.pairs
         ],
+        "strips": [_strip_entry(sid, result) for sid in sorted(result.models)],
         "control_residuals": [
             {"id": c.control_id, "strip": c.strip_id, "before_m": _num(c.before),
              "after_m": _num(c.after)} for c in result.control
@@ -84,6 +92,23 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
     if sol.warnings:
         doc["warnings"] = list(sol.warnings)
     return {ROOT_KEY: doc}
+
+
+def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
+    """A strip's model, the reason for it, and its laser-vector QA."""
+    choice = result.models[strip_id]
+    entry: dict[str, Any] = {"id": int(strip_id), "model": choice.model,
+                             "model_reason": choice.reason}
+    qa = result.laser_qa.get(strip_id)
+    if qa is not None:
+        entry.update({
+            "along_track_median_m": _num(qa.along_median_m),
+            "along_track_spread_m": _num(qa.along_spread_m),
+            "scan_angle_deg": [_num(qa.scan_min_deg), _num(qa.scan_max_deg)],
+        })
+        if qa.warnings:
+            entry["warnings"] = list(qa.warnings)
+    return entry
 
 
 def write_calibration(path: str | Path, result: CalibrationResult) -> Path:
@@ -137,8 +162,12 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
         sigmas[name] = float(sigma) if isinstance(sigma, (int, float)) else None
         estimated[name] = bool(entry.get("estimated", False))
     sigma0 = body.get("sigma0")
+    model = body.get("model")
+    if model is not None and model not in (LEVEL, RIGOROUS, "mixed"):
+        raise ConfigError(f"{path}: model {model!r} is not one of level, rigorous, mixed")
     return CalibrationRecord(values, sigmas, estimated,
-                             float(sigma0) if isinstance(sigma0, (int, float)) else None)
+                             float(sigma0) if isinstance(sigma0, (int, float)) else None,
+                             model)
 
 
 #: Plausibility bounds (SI) that catch values written in other units (arcsec, cm, ppm).

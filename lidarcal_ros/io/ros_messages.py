@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lidarcal_ros.core.georeferencing import describe_models
 from lidarcal_ros.core.heading import describe_heading_use
 from lidarcal_ros.core.params import (
     N_PARAMETERS,
@@ -328,12 +329,15 @@ def _percent(fraction: float) -> str:
 
 
 def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
-                    crab_deg: dict[int, float] | None = None) -> StatusSpec:
+                    crab_deg: dict[int, float] | None = None,
+                    models: dict[int, Any] | None = None) -> StatusSpec:
     """The biases as a crew reads them (``lidarcal: estimate``): the message lists the
     estimated ones with their standard deviations (``dphi -90.98 +- 0.04 arcsec``); the values
     give every parameter, fixed and not estimable ones with what was used or why, and (given
     ``heading_from``, strip id -> ``track`` or ``attitude``) under ``heading`` where the
-    strips' headings came from."""
+    strips' headings came from, and (given ``models``, strip id ->
+    :class:`~lidarcal_ros.core.georeferencing.ModelChoice`) under ``model`` the
+    point-positioning model of the strips and why."""
     values: dict[str, str] = {}
     estimated: list[str] = []
     for i, name in enumerate(PARAMETER_NAMES):
@@ -349,8 +353,27 @@ def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
         values[name] = text
     if heading_from is not None:
         values["heading"] = describe_heading_use(heading_from, crab_deg) or "from the track"
+    if models:
+        values["model"] = describe_models(models)
     return StatusSpec(OK, "lidarcal: estimate", ", ".join(estimated) or "nothing estimated",
                       values)
+
+
+def geometry_status(models: dict[int, Any], laser_qa: dict[int, Any]) -> StatusSpec:
+    """``lidarcal: geometry``: the point-positioning model of the strips and what their
+    laser vectors say (:class:`~lidarcal_ros.core.georeferencing.LaserVectorQA`): WARN with
+    the first warning where one strip has one."""
+    warnings = [f"strip {sid}: {w}" for sid, qa in sorted(laser_qa.items())
+                for w in qa.warnings]
+    values = {"model": describe_models(models)}
+    for sid, qa in sorted(laser_qa.items()):
+        values[f"strip {sid}"] = (
+            f"along track {_num(qa.along_median_m)} m (+-{_num(qa.along_spread_m)}), scan "
+            f"{_num(qa.scan_min_deg)}..{_num(qa.scan_max_deg)} deg")
+    message = warnings[0] if warnings else describe_models(models)
+    if len(warnings) > 1:
+        message += f" (and {len(warnings) - 1} more)"
+    return StatusSpec(WARN if warnings else OK, "lidarcal: geometry", message, values)
 
 
 def pair_level(rms_after: float, p95_after: float, *, warn_m: float, error_m: float) -> int:
@@ -369,7 +392,10 @@ def qa_statuses(
 ) -> list[StatusSpec]:
     """The estimate, per-pair, convergence and observability statuses of a
     CalibrationResult."""
-    out = [estimate_status(result.solution, result.heading_from, result.crab_deg)]
+    out = [estimate_status(result.solution, result.heading_from, result.crab_deg,
+                           result.models)]
+    if result.laser_qa:
+        out.append(geometry_status(result.models, result.laser_qa))
     for p in result.pairs:
         level = pair_level(p.rms_after, p.p95_after, warn_m=warn_m, error_m=error_m)
         out.append(StatusSpec(

@@ -19,6 +19,8 @@ import yaml
 
 from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.geometry import RIGOROUS
+from lidarcal_ros.core.georeferencing import check_model_setting, describe_models
 from lidarcal_ros.core.heading import check_orientation, describe_heading_use
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
@@ -49,6 +51,7 @@ def load_mission(
         thinning_cell_m=config["calibration.thinning_cell_m"],
     )
     check_orientation(config["matching.heading_source"], mission.trajectory, str(bag))
+    check_model_setting(config["matching.model"], mission.trajectory, str(bag))
     csv = control_csv or config["calibration.control_points_file"] or None
     if csv:
         mission.control = read_control_csv(csv)
@@ -146,9 +149,14 @@ def format_report(
         cell = config["calibration.thinning_cell_m"]
         lines.append(f"thinned to one point per {cell:g} m cell per strip and cloud: "
                      f"{result.thinned_points} points left out")
-    heading = describe_heading_use(result.heading_from, result.crab_deg)
-    if heading:
-        lines.append(heading)
+    if result.models:
+        lines.append("model: " + describe_models(result.models))
+    if not result.models or any(c.model != RIGOROUS for c in result.models.values()):
+        heading = describe_heading_use(result.heading_from, result.crab_deg)
+        if heading:
+            lines.append(heading)
+    for sid, qa in sorted(result.laser_qa.items()):
+        lines.extend(f"warning: strip {sid}: {w}" for w in qa.warnings)
     warn = config["qa.rmsdz_warn_m"]
     error = config["qa.max_difference_m"]
     lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS before':>11} "

@@ -69,9 +69,16 @@ from lidarcal_ros.core.flags import (
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
 )
+from lidarcal_ros.core.geometry import LEVEL, RIGOROUS, LaserGeometry
+from lidarcal_ros.core.georeferencing import (
+    ModelChoice,
+    attitude_segments,
+    check_model_setting,
+    choose_model,
+    rigorous_geometry,
+)
 from lidarcal_ros.core.heading import check_orientation
 from lidarcal_ros.core.local_trajectory import (
-    LaserGeometry,
     WindowLines,
     geometry_on_lines,
     served_by_trajectory,
@@ -142,6 +149,10 @@ class CorrectionSettings:
         Fewest trajectory samples in a window.
     heading_source : str
         ``matching.heading_source`` (:mod:`lidarcal_ros.core.heading`).
+    model : str
+        ``matching.model``: ``auto``, ``level`` or ``rigorous``
+        (:mod:`lidarcal_ros.core.georeferencing`); a calibration file that says which model
+        estimated its biases decides it (:meth:`from_config`).
     time_field : str
         Cloud field holding the firing time (``time_field``; aliases accepted).
     """
@@ -151,15 +162,25 @@ class CorrectionSettings:
     window_s: float = 0.5
     min_samples: int = 2
     heading_source: str = "auto"
+    model: str = "auto"
     time_field: str = "t"
 
     @classmethod
     def from_config(
         cls, config: FlightConfig, calibration: CalibrationRecord | np.ndarray
     ) -> CorrectionSettings:
-        """From a flight configuration and a calibration (record or bias vector)."""
+        """From a flight configuration and a calibration (record or bias vector).
+
+        The biases are those of the model that estimated them: a calibration whose every
+        strip was ``level`` or ``rigorous`` (its ``model``) is applied with that model, a
+        ``mixed`` one, or one that does not say, with ``matching.model``.
+        """
         delta = (calibration.delta if isinstance(calibration, CalibrationRecord)
                  else np.asarray(calibration, dtype=np.float64))
+        model = str(config["matching.model"])
+        if isinstance(calibration, CalibrationRecord) and calibration.model in (LEVEL,
+                                                                              RIGOROUS):
+            model = calibration.model
         if delta.shape != (8,) or not np.isfinite(delta).all():
             raise ConfigError(f"calibration: expected 8 finite biases, got {delta}")
         return cls(
@@ -167,6 +188,7 @@ class CorrectionSettings:
             radiometry=RadiometricModel.from_config(config),
             window_s=float(config["matching.trajectory_window_s"]),
             heading_source=str(config["matching.heading_source"]),
+            model=model,
             time_field=str(config["time_field"]),
         )
 
@@ -262,7 +284,31 @@ class CorrectedColumns:
         return int(self.flags.shape[0])
 
 
-def served_windows(
+@dataclass(frozen=True)
+class ServedFrames:
+    """Where the served points of a cloud get their firing position and body frame.
+
+    Attributes
+    ----------
+    window : (m,) int64
+        For each served point in order: its window of ``lines`` (level), or the trajectory
+        sample starting its segment (rigorous).
+    lines : WindowLines or None
+        The local-trajectory lines (level model; None for the rigorous one).
+    choice : ModelChoice
+        The model the points got, and why.
+    """
+
+    window: np.ndarray
+    lines: WindowLines | None
+    choice: ModelChoice
+
+    @property
+    def rigorous(self) -> bool:
+        return self.lines is None
+
+
+def served_frames(
     t: np.ndarray,
     xyz: np.ndarray,
     trajectory: Trajectory,
@@ -272,33 +318,39 @@ def served_windows(
     source: str = "cloud",
     all_finite: bool = False,
     heading_source: str = "auto",
-) -> tuple[np.ndarray, WindowLines | None]:
+    model: str = "auto",
+) -> tuple[np.ndarray, ServedFrames | None]:
     """The points the trajectory can serve
     (:func:`~lidarcal_ros.core.local_trajectory.served_by_trajectory`; ``all_finite``: the
-    caller knows every point and time to be finite) and their local-trajectory lines (None
-    when there are none; ``heading_source`` as
-    :func:`~lidarcal_ros.core.local_trajectory.window_lines`), flagging the others instead
-    of raising.
+    caller knows every point and time to be finite) and how they get their frames, by the
+    model ``matching.model`` chooses (:func:`~lidarcal_ros.core.georeferencing.choose_model`;
+    ``heading_source`` as :func:`~lidarcal_ros.core.local_trajectory.window_lines`),
+    flagging the others instead of raising.
 
     Returns
     -------
     ok : (n,) bool
         Finite point and time, covered by the trajectory, at least 1 m below it.
-    lines : WindowLines or None
-        For the points ``ok`` (in order).
+    frames : ServedFrames or None
+        For the points ``ok`` (in order); None when there are none.
     """
     ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
                               min_samples=min_samples, all_finite=all_finite)
     if not ok.any():
         return ok, None
+    ts = t if ok.all() else t[ok]
     try:
-        lines = window_lines(t if ok.all() else t[ok], trajectory, window_s=window_s,
-                             min_samples=min_samples, source=source,
-                             heading_source=heading_source)
+        choice = choose_model(trajectory, float(ts[0]), float(ts[-1]), mode=model,
+                              heading_source=heading_source, source=source)
+        if choice.model == RIGOROUS:
+            segment = attitude_segments(ts, trajectory, source=source)
+            return ok, ServedFrames(segment, None, choice)
+        lines = window_lines(ts, trajectory, window_s=window_s, min_samples=min_samples,
+                             source=source, heading_source=heading_source)
     except TrajectoryError as exc:
         _left_uncorrected(ok, source, exc)
         return ok, None
-    return ok, lines
+    return ok, ServedFrames(lines.window, lines, choice)
 
 
 def flagged_geometry(
@@ -310,20 +362,25 @@ def flagged_geometry(
     min_samples: int = 2,
     source: str = "cloud",
     heading_source: str = "auto",
+    model: str = "auto",
 ) -> tuple[np.ndarray, LaserGeometry]:
-    """:func:`~lidarcal_ros.core.local_trajectory.laser_geometry` for the points
-    :func:`served_windows` serves (the geometry in order, for the points ``ok``), flagging
-    the others instead of raising."""
-    ok, lines = served_windows(t, xyz, trajectory, window_s=window_s, min_samples=min_samples,
-                               source=source, heading_source=heading_source)
-    if lines is not None:
+    """The laser geometry of the points :func:`served_frames` serves (in order, for the
+    points ``ok``; :func:`~lidarcal_ros.core.georeferencing.rigorous_geometry` or
+    :func:`~lidarcal_ros.core.local_trajectory.geometry_on_lines`), flagging the others
+    instead of raising."""
+    ok, frames = served_frames(t, xyz, trajectory, window_s=window_s,
+                               min_samples=min_samples, source=source,
+                               heading_source=heading_source, model=model)
+    if frames is not None:
         sel = slice(None) if ok.all() else ok
         try:
-            return ok, geometry_on_lines(t[sel], xyz[sel], lines, source=source)
+            if frames.lines is None:
+                return ok, rigorous_geometry(t[sel], xyz[sel], trajectory, window_s=window_s,
+                                             min_samples=min_samples, source=source)
+            return ok, geometry_on_lines(t[sel], xyz[sel], frames.lines, source=source)
         except TrajectoryError as exc:
             _left_uncorrected(ok, source, exc)
-    empty = np.empty(0)
-    return ok, LaserGeometry(empty, empty, empty, empty, np.empty((0, 3)))
+    return ok, LaserGeometry.empty()
 
 
 #: Least wall time between two warnings of clouds left uncorrected from one source, s: a
@@ -451,30 +508,36 @@ def correct_columns(
     out_xyz = np.empty((n, 3))
     if n == 0:
         return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags)
-    ok, lines = served_windows(t, xyz, trajectory, window_s=settings.window_s,
+    ok, frames = served_frames(t, xyz, trajectory, window_s=settings.window_s,
                                min_samples=settings.min_samples, source=source,
-                               all_finite=all_finite, heading_source=settings.heading_source)
+                               all_finite=all_finite, heading_source=settings.heading_source,
+                               model=settings.model)
     gn = normals if normals is not None else _fitted_normals(
         xyz, t, trajectory, group=group, context_xyz=context_xyz, context_group=context_group,
         heading=heading, cell_m=cell_m)
-    if lines is None:  # (nothing served: every point is flagged by the pass below)
-        no_window = np.zeros(1)
-        lines = WindowLines(np.zeros(0, dtype=np.int64), no_window, np.zeros((1, 3)),
-                            np.zeros((1, 3)), no_window, no_window, no_window)
+    lines = _NO_LINES if frames is None or frames.lines is None else frames.lines
+    rigorous = frames is not None and frames.rigorous
+    q = trajectory.orientation
     kernels.correct_returns(
-        t, xyz, ok, lines.window, lines.t_mean, lines.p_mean, lines.velocity,
-        lines.cos_kappa, lines.sin_kappa, np.asarray(settings.delta, dtype=np.float64),
+        t, xyz, ok, _NO_WINDOW if frames is None else frames.window, rigorous,
+        (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
+        (trajectory.t, trajectory.xyz, q if rigorous and q is not None else _NO_QUATERNIONS),
+        np.asarray(settings.delta, dtype=np.float64),
         np.ascontiguousarray(gn.normals[:n], dtype=np.float64),
         _NO_ROUGH if gn.rough is None else np.ascontiguousarray(gn.rough[:n]),
         _NO_INTENSITY if intensity is None else np.ascontiguousarray(intensity,
                                                                       dtype=np.float32),
-        *settings.radiometry.kernel_constants(), out_xyz, rng, inc, scan, refl, flags)
+        settings.radiometry.kernel_constants(), (out_xyz, rng, inc, scan, refl, flags))
     return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags, gn.cell_m)
 
 
 #: "None" of the compiled correction's optional columns.
 _NO_ROUGH = np.zeros(0, dtype=bool)
 _NO_INTENSITY = np.zeros(0, dtype=np.float32)
+_NO_WINDOW = np.zeros(0, dtype=np.int64)
+_NO_QUATERNIONS = np.zeros((0, 4))
+_NO_LINES = WindowLines(_NO_WINDOW, np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)),
+                        np.zeros(1), np.zeros(1), np.zeros(1))
 
 
 # ---------------------------------------------------------------------------- clouds
@@ -1217,6 +1280,7 @@ def correct_bag(
                              f"{sorted(traj_frames)}")
         frame = next(iter(traj_frames))
         check_orientation(settings.heading_source, trajectory, f"{bag.path}: {traj_topic}")
+        check_model_setting(settings.model, trajectory, f"{bag.path}: {traj_topic}")
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
                                     workers=workers, source=points_topic)
         n_clouds = max(bag.topics[points_topic].count, 1)

@@ -26,7 +26,7 @@ from lidarcal_ros.core.evaluation import (
     tin_heights,
 )
 from lidarcal_ros.core.mission import ControlPoints, Mission
-from lidarcal_ros.core.model import correct_points
+from lidarcal_ros.core.model import correct_geometry
 from lidarcal_ros.core.params import N_PARAMETERS
 from lidarcal_ros.core.tin import Tin
 from lidarcal_ros.errors import CalibrationError
@@ -108,11 +108,11 @@ def corrected_strips(
         ok, geo = flagged_geometry(strip.t, strip.xyz, mission.trajectory,
                                    window_s=settings.trajectory_window_s,
                                    source=f"strip {strip.strip_id}",
-                                   heading_source=settings.heading_source)
+                                   heading_source=settings.heading_source,
+                                   model=settings.model)
         xyz = strip.xyz[ok]
         if np.any(delta):
-            xyz = correct_points(xyz, delta, geo.x, geo.z, geo.kappa, geo.beta,
-                                 trig=geo.trig())
+            xyz = correct_geometry(xyz, delta, geo)
         out.append(xyz)
     return out
 
