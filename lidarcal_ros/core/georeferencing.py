@@ -414,6 +414,21 @@ def describe_models(choices: dict[int, ModelChoice]) -> str:
                      f"{', '.join(map(str, ids))}" for (model, reason), ids in groups.items())
 
 
+def describe_model_policy(mode: str, trajectory: Trajectory, *,
+                          heading_source: str = "auto") -> str:
+    """What ``matching.model`` makes of the newest second of ``trajectory`` (a live node's
+    status), e.g. ``"rigorous (INS attitude at 50 Hz)"``."""
+    if len(trajectory) < 2:
+        return f"{mode} (no trajectory yet)"
+    end = float(trajectory.t[-1])
+    try:
+        c = choose_model(trajectory, end - 1.0, end, mode=mode, heading_source=heading_source,
+                         source="trajectory")
+    except (TrajectoryError, ConfigError) as exc:
+        return f"refused: {exc}"
+    return f"{c.model} ({c.reason})"
+
+
 def models_summary(choices: dict[int, ModelChoice]) -> str:
     """``level``, ``rigorous`` or ``mixed``: the model of a calibration as a whole."""
     models = {c.model for c in choices.values()}
@@ -430,6 +445,7 @@ def _log_once(message: str) -> None:
 
 __all__ = [
     "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "LaserVectorQA", "ModelChoice",
-    "attitude_segments", "check_model_setting", "choose_model", "describe_models",
+    "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
+    "describe_models",
     "laser_vector_qa", "models_summary", "rigorous_geometry", "strip_geometry",
 ]

@@ -58,6 +58,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.georeferencing import describe_model_policy
 from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.params import format_value
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
@@ -534,7 +535,10 @@ class CorrectorNode(Node):
             "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
             "estimate_source": self.estimate_source, "transport": self._transport(),
             "heading": describe_heading_policy(str(self.params["matching.heading_source"]),
-                                               self.trajectory.oriented_samples > 0)})
+                                               self.trajectory.oriented_samples > 0),
+            "model": describe_model_policy(
+                self._settings.model, self.trajectory.trajectory(),
+                heading_source=str(self.params["matching.heading_source"]))})
 
     def _transport(self) -> str:
         """How clouds reach the numerics: ``thread``, ``shared memory`` or ``pipes``."""

@@ -205,6 +205,25 @@ class CorrectionStats:
     no_intensity: int = 0
     rough: int = 0
     seconds: float = 0.0
+    #: Points corrected by each point-positioning model, and the latest reason each was
+    #: chosen (:mod:`lidarcal_ros.core.georeferencing`).
+    model_points: dict[str, int] = field(default_factory=dict)
+    model_reason: dict[str, str] = field(default_factory=dict)
+
+    def add_model(self, model: str, reason: str, points: int) -> None:
+        """Count ``points`` corrected by ``model`` (chosen for ``reason``)."""
+        self.model_points[model] = self.model_points.get(model, 0) + points
+        self.model_reason[model] = reason
+
+    def describe_models(self) -> str:
+        """One line on the models the points got, e.g. ``"rigorous (INS attitude at 50 Hz)
+        for 100% of the points"``."""
+        total = sum(self.model_points.values())
+        if not total:
+            return "no point corrected"
+        return "; ".join(f"{m} ({self.model_reason[m]}) for "
+                         f"{100.0 * k / total:.0f}% of the points"
+                         for m, k in sorted(self.model_points.items(), key=lambda kv: -kv[1]))
 
     def add(self, tally: CloudTally) -> None:
         """Count a corrected cloud (or several: tallies add up)."""
@@ -279,6 +298,9 @@ class CorrectedColumns:
     reflectance: np.ndarray
     flags: np.ndarray
     cell_m: tuple[float, float] = (math.nan, math.nan)
+    #: The point-positioning model of the served points, and why
+    #: (:func:`~lidarcal_ros.core.georeferencing.choose_model`); None where none was served.
+    choice: ModelChoice | None = None
 
     def __len__(self) -> int:
         return int(self.flags.shape[0])
@@ -528,7 +550,8 @@ def correct_columns(
         _NO_INTENSITY if intensity is None else np.ascontiguousarray(intensity,
                                                                       dtype=np.float32),
         settings.radiometry.kernel_constants(), (out_xyz, rng, inc, scan, refl, flags))
-    return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags, gn.cell_m)
+    return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags, gn.cell_m,
+                            None if frames is None else frames.choice)
 
 
 #: "None" of the compiled correction's optional columns.
@@ -749,8 +772,9 @@ def _job_columns(msgs: list[_Message]
 
 
 def _run_job(job: _Job, source: str
-             ) -> tuple[list[np.ndarray], list[CloudTally], float]:
-    """Correct one batch of clouds: the corrected clouds, their tallies, seconds spent."""
+             ) -> tuple[list[np.ndarray], list[CloudTally], float, ModelChoice | None]:
+    """Correct one batch of clouds: the corrected clouds, their tallies, seconds spent, and
+    the model their points got."""
     started = time.perf_counter()
     msgs = job.messages
     whole = _whole_normals(job)
@@ -784,7 +808,7 @@ def _run_job(job: _Job, source: str
         tallies.append(CloudTally.empty())
         out.append(build_corrected(m.points, res, a, b, out=where, tally=tallies[-1]))
         a = b
-    return out, tallies, time.perf_counter() - started
+    return out, tallies, time.perf_counter() - started, res.choice
 
 
 class StreamCorrector:
@@ -1129,11 +1153,14 @@ class StreamCorrector:
             self.on_failed(tag, exc)
 
     def _account(self, tags: list[Any],
-                 result: tuple[list[np.ndarray], list[CloudTally], float],
+                 result: tuple[list[np.ndarray], list[CloudTally], float, ModelChoice | None],
                  out: list[tuple[Any, np.ndarray]]) -> None:
-        clouds, tallies, seconds = result
+        clouds, tallies, seconds, choice = result
         self.stats.clouds += len(clouds)
         self.stats.seconds += seconds
+        if choice is not None:
+            self.stats.add_model(choice.model, choice.reason,
+                                 sum(t.points - t.flagged(FLAG_NOT_CORRECTED) for t in tallies))
         for tag, tally in zip(tags, tallies, strict=True):
             self.stats.add(tally)
             if self.keep_tallies:
@@ -1165,6 +1192,7 @@ class CorrectionReport:
         if self.kind == "bag":
             out.append(f"passed through {self.passthrough_messages} other messages")
         out.append(self.atmosphere)
+        out.append("model: " + s.describe_models())
         out.append(f"grazing incidence (clamped): {s.grazing}; rough surface: {s.rough}; "
                    f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
                    f"without intensity: {s.no_intensity}")

@@ -74,6 +74,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.attitude import attitude_from_quaternions
+from lidarcal_ros.core.georeferencing import choose_model
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.trajectory_estimation import (
     EstimatedTrajectory,
@@ -296,6 +297,8 @@ class ImportReport:
     overlaps: list[PairQA] = field(default_factory=list)
     #: Range (min, max) of the poses' roll and pitch, degrees, when they carry the attitude.
     attitude_range_deg: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: The point-positioning model ``matching.model auto`` will give the mission, and why.
+    model: str = ""
 
     def lines(self) -> list[str]:
         """A readable summary."""
@@ -311,6 +314,8 @@ class ImportReport:
             out.append("  attitude: " + ", ".join(
                 f"{name} {lo:+.1f}..{hi:+.1f} deg"
                 for name, (lo, hi) in self.attitude_range_deg.items()))
+        if self.model:
+            out.append(f"  model (matching.model auto): {self.model}")
         for s in self.strips:
             out.append(f"  strip {s.strip_id:>5}: {s.n_points:>9} points, "
                        f"{s.t_last - s.t_first:7.1f} s, {s.source}, "
@@ -1039,7 +1044,16 @@ def _finish(
         unit_factors=factors, estimate=estimated, dropped_strips=dropped,
         spilled_runs=len(store.runs), overlaps=grid.pairs() if grid is not None else [],
         attitude_range_deg=attitude_range,
+        model=_model_note(traj),
     )
+
+
+def _model_note(traj: Trajectory) -> str:
+    """The model ``matching.model auto`` gives the whole trajectory, and why."""
+    if len(traj) < 2:
+        return ""
+    choice = choose_model(traj, float(traj.t[0]), float(traj.t[-1]))
+    return f"{choice.model} ({choice.reason})"
 
 
 def _trajectory_kind(traj: Trajectory, traj_file: TrajectoryFile
