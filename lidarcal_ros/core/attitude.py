@@ -109,6 +109,31 @@ def quaternions_from_attitude(roll: np.ndarray | float, pitch: np.ndarray | floa
     return q
 
 
+def body_rotations_from_attitude(roll: np.ndarray | float, pitch: np.ndarray | float,
+                                 kappa: np.ndarray | float) -> np.ndarray:
+    """``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (n, 3, 3) straight from the angles (radians,
+    broadcast against each other; module docstring): the rotation of the poses of
+    :func:`quaternions_from_attitude`, without the round trip through a quaternion, so that a
+    level pose (roll = pitch = 0) gives exactly method.md's ``R_kappa``."""
+    roll, pitch, kappa = np.broadcast_arrays(
+        *(np.asarray(a, dtype=np.float64).reshape(-1) for a in (roll, pitch, kappa)))
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    ck, sk = np.cos(kappa), np.sin(kappa)
+    # Rx(pitch) Ry(roll) = [[cr, 0, sr], [sp sr, cp, -sp cr], [-cp sr, sp, cp cr]], then Rz.
+    r = np.empty((roll.shape[0], 3, 3))
+    r[:, 0, 0] = ck * cr - sk * sp * sr
+    r[:, 0, 1] = -sk * cp
+    r[:, 0, 2] = ck * sr + sk * sp * cr
+    r[:, 1, 0] = sk * cr + ck * sp * sr
+    r[:, 1, 1] = ck * cp
+    r[:, 1, 2] = sk * sr - ck * sp * cr
+    r[:, 2, 0] = -cp * sr
+    r[:, 2, 1] = sp
+    r[:, 2, 2] = cp * cr
+    return r
+
+
 def quaternions_from_headings(kappa: np.ndarray) -> np.ndarray:
     """Level quaternions ``(n, 4)`` xyzw of headings ``kappa`` (rad); NaN rows for NaN."""
     kappa = np.asarray(kappa, dtype=np.float64).reshape(-1)
@@ -354,6 +379,7 @@ __all__ = [
     "P_BODY",
     "attitude_from_quaternions",
     "body_rotations",
+    "body_rotations_from_attitude",
     "headings_from_quaternions",
     "interpolated_frames",
     "normalise_quaternions",
