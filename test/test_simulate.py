@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -10,10 +11,19 @@ from typing import Any
 import numpy as np
 import pytest
 
+from lidarcal_ros.core.attitude import (
+    attitude_from_quaternions,
+    body_rotations,
+    body_rotations_from_attitude,
+    slerp,
+)
+from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG, RoughAir, crosswind_for_crab
+from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import PARAMETER_NAMES, as_vector
 from lidarcal_ros.core.simulate import (
     DEFAULT_BIASES,
     biased_point_exact,
+    georeference,
     pulse_and_scan_rates,
     simulate_mission,
     swath_width,
@@ -332,6 +342,328 @@ def test_bad_options_raise():
         simulate_mission(biases={"dQ": 1.0})
     with pytest.raises(ConfigError):
         simulate_mission(density=0.0)
+
+
+# ---------------------------------------------------------------------- rough air, turns, banks
+
+
+def mission_digest(sim) -> str:
+    """sha256 of every array a simulated mission delivers or keeps as truth."""
+    h = hashlib.sha256()
+    arrays = []
+    for i, st in enumerate(sim.mission.strips):
+        arrays += [st.xyz, st.t, st.intensity, sim.true_xyz[i], sim.surface_class[i],
+                   sim.incidence_true[i], sim.reflectance_true[i], sim.range_true[i],
+                   sim.scan_angle_true[i], sim.on_wall[i]]
+    tr = sim.mission.trajectory
+    arrays += [tr.t, tr.xyz]
+    if tr.orientation is not None:
+        arrays.append(tr.orientation)
+    if sim.mission.control is not None:
+        arrays.append(sim.mission.control.xyz)
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize(("options", "digest"), [
+    ({"density": 0.05, "line_length_m": 150.0, "seed": 5, "n_control": 2},
+     "275fb5b413806df679561574de55b081a9bca7b875bc1640a41d12c23c52a1e7"),
+    ({"scenario": "one_track", "density": 0.05, "line_length_m": 150.0, "seed": 6,
+      "wind_mps": (3.0, -1.0), "attitude": True, "trajectory_noise_m": 0.05},
+     "f10a4389352350c948b96417d127f4bafef90eabca4b67e567686104970bec3e"),
+])
+def test_calm_level_missions_are_bit_identical_to_the_level_simulator(options, digest):
+    """Straight, level lines in calm air (crabbed or not) come out bit for bit as from the
+    simulator before it knew roll and pitch (the digests were taken from it, with this
+    environment's numpy): every test and the bundled sample built on them stay valid."""
+    assert mission_digest(simulate_mission(**options)) == digest
+
+
+def angle_between(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) of ``r1^T r2``, (n, 3, 3) each, precise for small angles."""
+    m = np.einsum("nji,njk->nik", r1, r2)
+    skew = 0.5 * np.column_stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0],
+                                  m[:, 1, 0] - m[:, 0, 1]])
+    return np.arcsin(np.clip(np.linalg.norm(skew, axis=1), 0.0, 1.0))
+
+
+def laser_vectors(sim, i: int, xyz: np.ndarray) -> np.ndarray:
+    """``R_ins(t)^T (X - X_o(t))`` of strip ``i``'s points at their firing times, with the
+    flight's exact pose."""
+    xo, r_ins = sim.pose(i, sim.mission.strips[i].t)
+    return np.einsum("nji,nj->ni", r_ins, xyz - xo)
+
+
+ROUGH: dict[str, Any] = {
+    "scenario": "one_track", "density": 0.05, "line_length_m": 400.0, "seed": 3, "t0": 1000.0,
+    "range_noise_m": 0.0, "rough_air": RoughAir(),
+    "wind_mps": crosswind_for_crab(REPORTED_CRAB_DEG, 60.0)}
+
+
+@pytest.fixture(scope="module")
+def rough():
+    """Four lines flown in the reported rough air, 5 deg of crab, paper-like biases."""
+    return simulate_mission(**ROUGH)
+
+
+def test_rough_air_points_lie_on_beams_turned_by_the_attitude(rough):
+    """Each true point lies on the beam ``R_ins(t) [-sin theta, 0, -cos theta]`` from the
+    IMU origin at its firing time (the exact pose), at its true range; the biased point of
+    the exact model: ``R_B^T (R_ins^T (X_b - X_o) - dL)`` is the recorded laser vector,
+    ``-(r_true + dr) [sin((1 + dS) theta), 0, cos((1 + dS) theta)]``."""
+    delta = as_vector(rough.biases)
+    rb = boresight_matrix(*delta[3:6])
+    for i, strip in enumerate(rough.mission.strips):
+        theta = rough.scan_angle_true[i].astype(np.float64)
+        r = rough.range_true[i]
+        rho = laser_vectors(rough, i, rough.true_xyz[i])
+        beam = np.column_stack([-np.sin(theta), np.zeros_like(theta), -np.cos(theta)])
+        # scan_angle_true is float32: theta to ~3e-8 rad
+        assert np.abs(rho - r[:, None] * beam).max() < 1e-4
+        assert np.abs(rho[:, 1]).max() < 1e-9
+        np.testing.assert_allclose(np.linalg.norm(rho, axis=1), r, rtol=0, atol=1e-9)
+        recorded = (laser_vectors(rough, i, strip.xyz) - delta[:3]) @ rb  # R_B^T (...)
+        np.testing.assert_allclose(np.linalg.norm(recorded, axis=1), r + delta[6], atol=1e-9)
+        assert np.abs(recorded[:, 1]).max() < 1e-9
+        beta = np.arctan2(-recorded[:, 0], -recorded[:, 2])
+        assert np.abs(beta - (1.0 + delta[7]) * theta).max() < 1e-7
+    # the attitude matters: the heading alone (R_kappa) leaves the pitch in the forward
+    # component, metres of it
+    xo, r_ins = rough.pose(0, rough.mission.strips[0].t)
+    level = body_rotations_from_attitude(0.0, 0.0, attitude_from_rotations(r_ins)[2])
+    forward = np.einsum("nj,nj->n", level[:, :, 1], rough.true_xyz[0] - xo)
+    assert np.abs(forward).max() > 10.0
+
+
+def attitude_from_rotations(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """roll, pitch, kappa of ``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (n, 3, 3)."""
+    pitch = np.arcsin(r[:, 2, 1])
+    return np.arctan2(-r[:, 2, 0], r[:, 2, 2]), pitch, np.arctan2(-r[:, 0, 1], r[:, 1, 1])
+
+
+def test_without_boresight_the_forward_component_is_the_lever_arm_alone():
+    """Lever arm, range and scale biases but no boresight: ``R_ins^T (X_b - X_o)`` less the
+    lever arm has no forward component at all and the biased range."""
+    biases = {"dX": 0.05, "dY": -0.04, "dZ": 0.03, "dr": 0.118, "dS": 1e-4}
+    sim = simulate_mission(**{**ROUGH, "biases": biases})
+    for i in range(len(sim.mission.strips)):
+        rho = laser_vectors(sim, i, sim.mission.strips[i].xyz)
+        assert np.abs(rho[:, 1] - biases["dY"]).max() < 1e-9
+        rho -= [biases["dX"], biases["dY"], biases["dZ"]]
+        np.testing.assert_allclose(np.linalg.norm(rho, axis=1),
+                                   sim.range_true[i] + biases["dr"], rtol=0, atol=1e-9)
+
+
+def test_rough_air_peaks_at_its_amplitudes_and_the_trajectory_carries_it(rough):
+    """The INS at 50 Hz: positions and REP-103 orientations of the exact flight; roll, pitch
+    and heading wobble peak at the reported 4, 2.5 and 1 deg, about a 5 deg crab; the IMU
+    origin heaves and sways by up to 0.5 m."""
+    tr = rough.mission.trajectory
+    assert tr.orientation is not None and tr.full_attitude
+    assert rough.config["attitude"] is True
+    assert rough.config["trajectory_rate_hz"] == 50.0
+    roll, pitch, kappa = attitude_from_quaternions(tr.orientation)
+    assert np.degrees(np.abs(roll).max()) == pytest.approx(4.0, abs=1e-9)
+    assert np.degrees(np.abs(pitch).max()) == pytest.approx(2.5, abs=1e-9)
+    wobbles, heaves, sways = [], [], []
+    for ln in rough.lines:
+        on = (tr.t >= ln["t_first"] - 2.0) & (tr.t <= ln["t_last"] + 2.0)
+        assert np.allclose(np.diff(tr.t[on]), 0.02, atol=1e-9)
+        track = ln["kappa"]  # straight lines
+        crab = math.radians(ln["crab_deg"])
+        assert abs(ln["crab_deg"]) == pytest.approx(REPORTED_CRAB_DEG, abs=1e-9)
+        wobbles.append(np.arcsin(np.sin(kappa[on] - track - crab)))
+        x0, y0 = ln["start"]
+        ux, uy = ln["direction"]
+        d = tr.xyz[on, :2] - [x0, y0]
+        sways.append(d[:, 0] * uy - d[:, 1] * ux)
+        heaves.append(tr.xyz[on, 2] - ln["height"])
+        stats = rough.config["line_attitude"][ln["id"]]
+        inside = on & (tr.t >= ln["t_first"]) & (tr.t <= ln["t_last"])
+        assert stats["roll_deg"] == pytest.approx(np.degrees([roll[inside].min(),
+                                                              roll[inside].max()]), abs=1e-9)
+    assert np.degrees(np.abs(np.concatenate(wobbles)).max()) == pytest.approx(1.0, abs=1e-6)
+    assert np.abs(np.concatenate(heaves)).max() == pytest.approx(0.5, abs=1e-9)
+    assert np.abs(np.concatenate(sways)).max() == pytest.approx(0.5, abs=1e-9)
+    # smooth: no sample-to-sample jump beyond what 2 s periods allow
+    assert np.degrees(np.abs(np.diff(roll[on])).max()) < 0.5
+
+
+def test_slerp_of_the_trajectory_reproduces_the_exact_attitude_at_50_hz(rough):
+    """Interpolating the 50 Hz samples to the firing times (slerp, positions linearly) gives
+    the exact attitude within 5e-6 rad (about 3.5e-6 rad measured, 1 arcsec: the 2-30 s
+    spectrum's angular acceleration times dt^2 / 8) and the position within 0.1 mm."""
+    tr = rough.mission.trajectory
+    worst_angle, worst_position = 0.0, 0.0
+    for i, strip in enumerate(rough.mission.strips):
+        xo, r_ins = rough.pose(i, strip.t)
+        r_slerp = body_rotations(slerp(tr.t, tr.orientation, strip.t))
+        worst_angle = max(worst_angle, float(angle_between(r_ins, r_slerp).max()))
+        xo_lin = np.column_stack([np.interp(strip.t, tr.t, tr.xyz[:, j]) for j in range(3)])
+        worst_position = max(worst_position, float(np.abs(xo_lin - xo).max()))
+    assert 1e-8 < worst_angle < 5e-6
+    assert worst_position < 1e-4
+
+
+def test_rough_air_is_seeded_and_attitude_false_keeps_positions_only(rough):
+    again = simulate_mission(**{**ROUGH, "attitude": False})
+    assert again.mission.trajectory.orientation is None
+    assert again.config["attitude"] is False
+    for a, b in zip(rough.mission.strips, again.mission.strips, strict=True):
+        assert np.array_equal(a.xyz, b.xyz)
+    assert np.array_equal(rough.mission.trajectory.xyz, again.mission.trajectory.xyz)
+    other = simulate_mission(**{**ROUGH, "rough_air": RoughAir(seed=99)})
+    assert not np.array_equal(other.mission.strips[0].xyz, rough.mission.strips[0].xyz)
+    assert other.config["rough_air"]["seed"] == 99 and rough.config["rough_air"]["seed"] == 3
+
+
+def test_the_truth_reconstructs_the_rough_air(rough):
+    """The truth's sinusoids give the roll recorded on the trajectory (less the bank)."""
+    doc = rough.config["rough_air"]
+    assert {k: doc[k] for k in ("roll_deg", "pitch_deg", "yaw_deg", "ins_rate_hz")} == {
+        "roll_deg": 4.0, "pitch_deg": 2.5, "yaw_deg": 1.0, "ins_rate_hz": 50.0}
+    roll_sines = doc["disturbances"]["roll"]
+    assert len(roll_sines["periods_s"]) == 4
+    assert 2.0 <= min(roll_sines["periods_s"]) and max(roll_sines["periods_s"]) <= 30.0
+    tr = rough.mission.trajectory
+    mission_time = tr.t - ROUGH["t0"]
+    roll = sum(a * np.sin(2 * math.pi * mission_time / p + f) for a, p, f in zip(
+        roll_sines["amplitudes"], roll_sines["periods_s"], roll_sines["phases_rad"],
+        strict=True))
+    np.testing.assert_allclose(attitude_from_quaternions(tr.orientation)[0], roll, atol=1e-9)
+
+
+@pytest.mark.parametrize(("manoeuvre", "right_turn"), [({"bank_deg": 15.0}, True),
+                                                      ({"turn_deg_s": 3.0}, False)])
+def test_a_turning_line_curves_with_the_bank_of_a_coordinated_turn(manoeuvre, right_turn):
+    """A turn flown from start to end: the trajectory's samples lie on a circle of radius
+    ``v^2 / (g tan bank)``, the track's heading turns at ``v / R`` (a positive bank, right wing
+    down, turns right), and the orientation carries the bank."""
+    line = {"id": 1, "start": (0.0, -300.0), "end": (0.0, 300.0), "height": 700.0, **manoeuvre}
+    sim = simulate_mission(lines=[line], biases=ZERO, range_noise_m=0.0, density=0.05,
+                           n_control=0, seed=2, t0=1000.0)
+    tr = sim.mission.trajectory
+    assert tr.orientation is not None and sim.config["attitude"] is True
+    x, y = tr.xyz[:, 0], tr.xyz[:, 1]
+    # circle through the samples, least squares: x^2 + y^2 + D x + E y + F = 0
+    (d, e, f), *_ = np.linalg.lstsq(np.column_stack([x, y, np.ones_like(x)]), -(x**2 + y**2),
+                                    rcond=None)
+    centre = np.array([-d / 2, -e / 2])
+    radius = math.sqrt(centre @ centre - f)
+    assert np.abs(np.hypot(x - centre[0], y - centre[1]) - radius).max() < 1e-6
+    roll, pitch, kappa = attitude_from_quaternions(tr.orientation)
+    bank = roll.mean()
+    assert np.ptp(roll) < 1e-12 and np.abs(pitch).max() < 1e-12
+    assert radius == pytest.approx(60.0**2 / (9.80665 * math.tan(abs(bank))), rel=1e-9)
+    assert (bank > 0) == right_turn and (centre[0] > 0) == right_turn
+    if "bank_deg" in manoeuvre:
+        assert math.degrees(bank) == pytest.approx(15.0, abs=1e-9)
+    else:
+        assert math.degrees(60.0 / radius) == pytest.approx(3.0, rel=1e-9)
+    # the heading follows the track (no wind), turning at v / R
+    track = np.arctan2(-np.gradient(x), np.gradient(y))
+    assert np.abs(np.sin(kappa[1:-1] - track[1:-1])).max() < 1e-4
+    rate = np.diff(np.unwrap(kappa)) / np.diff(tr.t)
+    assert rate == pytest.approx(np.full(rate.shape, (-1 if right_turn else 1) * 60 / radius))
+    # from start to end, and the summary says what was flown
+    xo, _ = sim.pose(0, np.array([sim.lines[0]["t_first"]]))
+    np.testing.assert_allclose(xo[0], [0.0, -300.0, 700.0], atol=1e-9)
+    ln = sim.lines[0]
+    assert ln["radius_m"] == pytest.approx(radius, rel=1e-9)
+    assert ln["bank_deg"] == pytest.approx(math.degrees(bank), abs=1e-9)
+    assert ln["length_m"] > 600.0
+    assert abs(ln["heading_change_deg"]) == pytest.approx(
+        math.degrees(2 * math.asin(300.0 / radius)), rel=1e-9)
+    np.testing.assert_allclose(sim.mission.strips[0].xyz, sim.true_xyz[0], atol=1e-6)
+
+
+def test_a_banked_straight_line_looks_sideways():
+    """Constant roll on a straight line: each return lies ``(h - z) tan(theta + roll)`` to the
+    left of the track (right wing down looks left), abeam of the firing point."""
+    line = {"id": 1, "start": (0.0, -200.0), "end": (0.0, 200.0), "height": 600.0,
+            "roll_deg": 5.0}
+    sim = simulate_mission(lines=[line], biases=ZERO, range_noise_m=0.0, density=0.1,
+                           n_control=0, seed=2, t0=1000.0, terrain_kind="flat")
+    p = sim.true_xyz[0]
+    theta = sim.scan_angle_true[0].astype(np.float64)
+    tau = sim.mission.strips[0].t - sim.lines[0]["t_first"]
+    np.testing.assert_allclose(p[:, 0], -(600.0 - p[:, 2]) * np.tan(theta + math.radians(5)),
+                               atol=1e-4)  # theta in float32
+    np.testing.assert_allclose(p[:, 1], -200.0 + 60.0 * tau, atol=1e-9)
+    orientation = sim.mission.trajectory.orientation
+    assert orientation is not None  # a banked line puts the attitude on the trajectory
+    roll = attitude_from_quaternions(orientation)[0]
+    assert np.degrees(roll) == pytest.approx(np.full(roll.shape, 5.0), abs=1e-9)
+    assert sim.config["line_attitude"][1]["roll_deg"] == pytest.approx([5.0, 5.0])
+    assert np.abs(sim.mission.trajectory.xyz[:, 0]).max() == 0.0
+
+
+def test_control_points_are_seen_by_turning_banked_lines_in_rough_air():
+    """The control points are placed where every strip surely scans, whatever the roll, the
+    turn or the bank: each has returns of every strip all around it within 8 m."""
+    lines = [{"id": 1, "start": (0.0, -500.0), "end": (0.0, 500.0), "height": 1000.0},
+             {"id": 2, "start": (-500.0, 0.0), "end": (500.0, 0.0), "height": 1000.0,
+              "roll_deg": -6.0},
+             {"id": 3, "start": (-400.0, -400.0), "end": (400.0, 400.0), "height": 1000.0,
+              "bank_deg": 12.0}]
+    sim = simulate_mission(lines=lines, density=0.1, n_control=3, seed=4,
+                           rough_air=RoughAir(), wind_mps=(3.0, 2.0))
+    assert sim.mission.control is not None and len(sim.mission.control) == 3
+    for strip in sim.mission.strips:
+        for x, y, _ in sim.mission.control.xyz:
+            dx, dy = strip.xyz[:, 0] - x, strip.xyz[:, 1] - y
+            near = np.hypot(dx, dy) < 8.0
+            quadrants = {(bool(a), bool(b)) for a, b in zip(dx[near] > 0, dy[near] > 0,
+                                                            strict=True)}
+            assert len(quadrants) == 4, (strip.strip_id, x, y)
+
+
+@pytest.mark.parametrize(("options", "reason"), [
+    ({"rough_air": RoughAir(), "trajectory_rate_hz": 100.0}, "differs from the rough air"),
+    ({"rough_air": "rough"}, "rough_air must be a RoughAir"),
+    ({"lines": [{"id": 1, "start": (0, -300), "end": (0, 300), "height": 600,
+                 "turn_deg_s": 20.0}]}, "cannot join start and end"),
+    ({"lines": [{"id": 2, "start": (0, -300), "end": (0, 300), "height": 600,
+                 "turn_deg_s": 1.0, "bank_deg": 5.0}]}, "not both"),
+    ({"lines": [{"id": 3, "start": (0, -300), "end": (0, 300), "height": 600,
+                 "roll_deg": 32.0}], "rough_air": RoughAir()}, "from the vertical"),
+    ({"lines": [{"id": 4, "start": (0, -300), "end": (0, 300), "height": 600,
+                 "roll_deg": "steep"}]}, "roll_deg must be a finite number"),
+    ({"lines": [{"id": 5, "start": (0, -300), "end": (0, 300), "height": 600,
+                 "bank_deg": 70.0}]}, "bank_deg 70.0 must be within"),
+    ({"lines": ["north"]}, "line 0: needs id"),
+])
+def test_bad_flight_options_raise_one_line(options, reason):
+    with pytest.raises(ConfigError, match=reason) as info:
+        simulate_mission(density=0.05, **options)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("roll_deg", -1.0), ("pitch_deg", math.nan), ("components", 0), ("components", 2.5),
+    ("min_period_s", 0.0), ("max_period_s", 1.0), ("ins_rate_hz", 0.0)])
+def test_bad_rough_air_is_refused(field, value):
+    with pytest.raises(ConfigError, match="rough air: "):
+        RoughAir(**{field: value})
+
+
+def test_georeference_reproduces_the_rigorous_vectors():
+    """The simulator's exact model (one code path, level or not) gives the rigorous vectors'
+    biased points from their poses, true ranges and mirror angles."""
+    path = VECTORS.with_name("rigorous_vectors.json")
+    if not path.exists():  # pragma: no cover - shared/ sits beside every checkout
+        pytest.skip(f"{path} not present")
+    data = json.loads(path.read_text())
+    for pulse in data["pulses"]:
+        r_ins = body_rotations(np.array(pulse["orientation_xyzw"]))
+        r_angles = body_rotations_from_attitude(pulse["roll"], pulse["pitch"],
+                                                pulse["heading_kappa"])
+        np.testing.assert_allclose(r_angles, r_ins, atol=1e-15)
+        xb = georeference(np.array(pulse["position"]), r_ins, pulse["range_true"],
+                          pulse["beta_true"], data["biases"])
+        assert xb.shape == (3,)
+        np.testing.assert_allclose(xb, pulse["X_biased"], rtol=0, atol=1e-8)
 
 
 # ---------------------------------------------------------------------- terrain and ray casting
