@@ -432,6 +432,97 @@ def test_simulate_with_attitude_writes_the_crabbed_heading_as_the_orientation(ca
             assert abs(want) > 0.04 and np.allclose(np.sin(crab - want), 0.0, atol=1e-9)
 
 
+def test_simulate_rough_air_writes_the_ins_attitude_and_its_truth(capsys, tmp_path):
+    """``--rough-air`` alone: the reported rough air (roll +-4 deg, pitch +-2.5 deg, 1 deg of
+    heading wobble, 5 deg of crab), the orientation on the trajectory at 50 Hz; the truth
+    says the settings and each line's attitude; ``--no-attitude`` keeps positions only."""
+    from lidarcal_ros.core.attitude import attitude_from_quaternions
+    from lidarcal_ros.io.bag import read_mission
+
+    base = ["--scenario", "one_track", "--density", "0.05", "--line-length", "200",
+            "--rough-air"]
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "rough", *base)
+    assert rc == 0, err
+    trajectory = read_mission(tmp_path / "rough").trajectory
+    assert trajectory.orientation is not None
+    assert np.median(np.diff(trajectory.t)) == pytest.approx(0.02, abs=1e-6)
+    roll, pitch, _ = attitude_from_quaternions(trajectory.orientation)
+    assert np.degrees(np.abs(roll).max()) == pytest.approx(4.0, abs=1e-6)
+    assert np.degrees(np.abs(pitch).max()) == pytest.approx(2.5, abs=1e-6)
+    simulation = yaml.safe_load((tmp_path / "rough_truth.yaml").read_text())["simulation"]
+    assert simulation["attitude"] is True
+    assert sorted(simulation["crab_deg"].values()) == pytest.approx([-5, -5, 5, 5])
+    settings = simulation["rough_air"]
+    assert (settings["roll_deg"], settings["pitch_deg"], settings["yaw_deg"],
+            settings["ins_rate_hz"]) == (4.0, 2.5, 1.0, 50.0)
+    assert set(settings["disturbances"]) == {"roll", "pitch", "yaw", "heave", "sway"}
+    for stats in simulation["line_attitude"].values():
+        assert -4.0 - 1e-9 <= stats["roll_deg"][0] <= stats["roll_deg"][1] <= 4.0 + 1e-9
+        assert abs(stats["crab_deg"][0]) == pytest.approx(5.0)
+        assert stats["turn_deg_s"] == 0.0
+
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "bare", *base, "--no-attitude",
+                     "--wind", "0,0")
+    assert rc == 0, err
+    assert read_mission(tmp_path / "bare").trajectory.orientation is None
+    simulation = yaml.safe_load((tmp_path / "bare_truth.yaml").read_text())["simulation"]
+    assert simulation["attitude"] is False and simulation["wind_mps"] == [0.0, 0.0]
+
+
+def test_simulate_rough_air_changes_and_turning_lines(capsys, tmp_path):
+    """``--rough-air KEY=VALUE,...`` changes the reported rough air; ``--lines`` flies a
+    banked turn, which puts the orientation on the trajectory by itself."""
+    lines = tmp_path / "lines.yaml"
+    lines.write_text("lines:\n"
+                     "  - {id: 1, start: [0, -300], end: [0, 300], height: 700}\n"
+                     "  - {id: 2, start: [-300, 0], end: [300, 0], height: 700, "
+                     "bank_deg: 12}\n")
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "turn", "--lines", lines,
+                     "--density", "0.05", "--rough-air", "roll=2,yaw=0,rate=100,seed=7")
+    assert rc == 0, err
+    simulation = yaml.safe_load((tmp_path / "turn_truth.yaml").read_text())["simulation"]
+    settings = simulation["rough_air"]
+    assert (settings["roll_deg"], settings["yaw_deg"], settings["pitch_deg"],
+            settings["ins_rate_hz"], settings["seed"]) == (2.0, 0.0, 2.5, 100.0, 7)
+    assert simulation["trajectory_rate_hz"] == 100.0
+    turn = simulation["line_attitude"][2]
+    assert turn["bank_deg"] == pytest.approx(12.0)
+    assert turn["roll_deg"][0] >= 10.0 - 1e-9 and turn["roll_deg"][1] <= 14.0 + 1e-9
+    assert turn["radius_m"] == pytest.approx(60.0**2 / (9.80665 * math.tan(math.radians(12))))
+    # the crab of --rough-air: 5 deg across the first line
+    assert simulation["crab_deg"][1] == pytest.approx(5.0)
+
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "calm_turn", "--lines", lines,
+                     "--density", "0.05")
+    assert rc == 0, err
+    simulation = yaml.safe_load((tmp_path / "calm_turn_truth.yaml").read_text())["simulation"]
+    assert simulation["attitude"] is True and simulation["rough_air"] is None
+
+
+@pytest.mark.parametrize(("option", "value", "reason"), [
+    ("--rough-air", "roll=x", "--rough-air: roll 'x' is not a number"),
+    ("--rough-air", "roll=40", "--rough-air: roll must be in [0, 30], got 40.0"),
+    ("--rough-air", "gusts=3", "--rough-air: expected KEY=VALUE with KEY one of roll"),
+    ("--rough-air", "components=2.5", "--rough-air: components '2.5' is not an integer"),
+    ("--rough-air", "min-period=5,max-period=2",
+     "--rough-air: periods must satisfy 0 < min-period <= max-period"),
+    ("--lines", "missing.yaml", "missing.yaml: cannot read flight lines"),
+    ("--lines", "{id: 1}", "lines.yaml: expected a list of lines"),
+    ("--lines", "[{id: 1, start: [0, 0], end: [0, 500], height: 600, turn_deg_s: x}]",
+     "lines.yaml: line 1: turn_deg_s must be a finite number, got 'x'"),
+    ("--lines", "[{id: 1, start: [0, 0], end: [0, 500], height: 600, turn_deg_s: 30}]",
+     "line 1: a turn of 30 deg/s at 60 m/s (radius 115 m) cannot join start and end"),
+])
+def test_simulate_bad_flight_options_are_one_line(capsys, tmp_path, option, value, reason):
+    if option == "--lines" and value != "missing.yaml":
+        (tmp_path / "lines.yaml").write_text(value)
+        value = str(tmp_path / "lines.yaml")
+    rc, _, err = run(capsys, "simulate", "-o", tmp_path / "sim", "--scenario", "one_track",
+                     "--density", "0.05", "--line-length", "100", option, value)
+    assert reason in one_line_error(rc, err, command="simulate")
+    assert not (tmp_path / "sim").exists()
+
+
 @pytest.mark.parametrize("command", ["calibrate", "correct", "report", "evaluate"])
 def test_the_attitude_asked_of_a_bag_without_one_is_one_line(capsys, tmp_path, small_mission,
                                                               rosbags_calibration, command):

@@ -58,13 +58,26 @@ def _add_simulate(sub: Any) -> None:
     p.add_argument("--control", type=int, default=1, help="number of control points")
     p.add_argument("--origin", default="0,0",
                    help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")
-    p.add_argument("--wind", default="0,0",
+    p.add_argument("--wind", default=None,
                    help="E,N m/s where the air moves: the sensor flies crabbed into the "
                    "crosswind, a heading the trajectory's positions do not show "
-                   "(default 0,0)")
-    p.add_argument("--attitude", action="store_true",
-                   help="write the sensor's heading as the trajectory's orientation, as an "
-                   "IMU would (default: identity orientation, positions only)")
+                   "(default 0,0; with --rough-air, 5 deg of crab across the first line)")
+    p.add_argument("--rough-air", nargs="?", const="", default=None, metavar="SPEC",
+                   help="fly in turbulence, as an INS records it: alone, the reported "
+                   "roll +-4 deg, pitch +-2.5 deg, 1 deg heading wobble, heave and sway "
+                   "+-0.5 m, periods 2-30 s, the orientation at 50 Hz, 5 deg of crab; or "
+                   "changes to it, e.g. 'roll=6,pitch=3,yaw=0.5,heave=1,sway=0,"
+                   "min-period=3,max-period=20,components=5,rate=100,seed=4'")
+    p.add_argument("--lines", type=Path, default=None, metavar="YAML",
+                   help="explicit flight lines instead of the scenario's: a YAML list of "
+                   "{id, start: [x, y], end: [x, y], height} in metres about the area's "
+                   "centre, each optionally turning (turn_deg_s: heading rate, positive "
+                   "left; or bank_deg: a coordinated turn's bank, right wing down positive) "
+                   "or banked straight (roll_deg)")
+    p.add_argument("--attitude", action=argparse.BooleanOptionalAction, default=None,
+                   help="write the sensor's orientation (roll, pitch, heading) as the "
+                   "trajectory's, as an INS would (default: with --rough-air or banked or "
+                   "turning lines; otherwise identity orientation, positions only)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_simulate)
 
@@ -80,22 +93,84 @@ def _two_numbers(text: str, option: str, what: str) -> tuple[float, float]:
     return values[0], values[1]
 
 
+#: ``--rough-air`` keys: the RoughAir field each sets, and its type.
+_ROUGH_AIR_KEYS: dict[str, tuple[str, type]] = {
+    "roll": ("roll_deg", float), "pitch": ("pitch_deg", float), "yaw": ("yaw_deg", float),
+    "heave": ("heave_m", float), "sway": ("sway_m", float),
+    "min-period": ("min_period_s", float), "max-period": ("max_period_s", float),
+    "components": ("components", int), "rate": ("ins_rate_hz", float), "seed": ("seed", int),
+}
+
+
+def _rough_air(text: str) -> Any:
+    """The RoughAir of ``--rough-air [SPEC]``: the reported one with SPEC's changes."""
+    from dataclasses import replace
+
+    from lidarcal_ros.core.flight_path import REPORTED_ROUGH_AIR
+
+    changes: dict[str, Any] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, eq, value = part.partition("=")
+        key = key.strip()
+        if not eq or key not in _ROUGH_AIR_KEYS:
+            raise ConfigError(f"--rough-air: expected KEY=VALUE with KEY one of "
+                              f"{', '.join(_ROUGH_AIR_KEYS)}, got '{part}'")
+        name, kind = _ROUGH_AIR_KEYS[key]
+        try:
+            changes[name] = kind(value.strip())
+        except ValueError:
+            raise ConfigError(f"--rough-air: {key} '{value.strip()}' is not "
+                              f"{'an integer' if kind is int else 'a number'}") from None
+    try:
+        return replace(REPORTED_ROUGH_AIR, **changes)
+    except ConfigError as exc:
+        reason = str(exc).removeprefix("rough air: ")
+        for key, (name, _) in _ROUGH_AIR_KEYS.items():  # in the option's own words
+            reason = reason.replace(name, key)
+        raise ConfigError(f"--rough-air: {reason}") from None
+
+
+def _flight_lines(path: Path) -> list[dict[str, Any]]:
+    """The validated lines of ``--lines YAML`` (a list, or a mapping with ``lines``)."""
+    from lidarcal_ros.core.simulate import normalise_lines
+    from lidarcal_ros.io.yaml_file import read_yaml
+
+    doc = read_yaml(path, what="flight lines")
+    if isinstance(doc, dict):
+        doc = doc.get("lines")
+    if not isinstance(doc, list):
+        raise ConfigError(f"{path}: expected a list of lines (or a mapping with 'lines')")
+    try:
+        return normalise_lines(doc)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG
+    from lidarcal_ros.core.simulate import FOV_DEG, crab_wind, scenario_lines, simulate_mission
     from lidarcal_ros.pipeline.calibration import parse_biases, write_simulation
 
     origin = _two_numbers(args.origin, "--origin", "X,Y")
-    wind = _two_numbers(args.wind, "--wind", "E,N in m/s")
     if not args.density > 0:
         raise ConfigError(f"--density must be positive, got {args.density}")
     kwargs: dict[str, Any] = {}
     if args.biases is not None:
         kwargs["biases"] = parse_biases(args.biases)
+    rough_air = None if args.rough_air is None else _rough_air(args.rough_air)
+    lines = None if args.lines is None else _flight_lines(args.lines)
+    if args.wind is not None:
+        wind = _two_numbers(args.wind, "--wind", "E,N in m/s")
+    elif rough_air is not None:
+        wind = crab_wind(REPORTED_CRAB_DEG,
+                         lines or scenario_lines(args.scenario, args.line_length, FOV_DEG))
+    else:
+        wind = (0.0, 0.0)
     started = time.perf_counter()
     sim = simulate_mission(scenario=args.scenario, seed=args.seed, density=args.density,
                            line_length_m=args.line_length, range_noise_m=args.range_noise,
                            n_control=args.control, origin=origin, wind_mps=wind,
-                           attitude=args.attitude, **kwargs)
+                           attitude=args.attitude, rough_air=rough_air, lines=lines, **kwargs)
     paths = write_simulation(args.output, sim, overwrite=args.overwrite)
     print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
           f"({time.perf_counter() - started:.1f} s)")
