@@ -83,7 +83,14 @@ class SimulatedMission:
     """A simulated mission and its truth.
 
     Per-strip lists are in the order of ``mission.strips``; local truths are in map
-    coordinates (``origin`` added) like the mission.
+    coordinates (``origin`` added) like the mission. ``lines`` says what each line flew:
+    ``start``, ``end`` (map), ``height``, ``direction`` (unit, start to end), ``kappa`` (the
+    track's heading at the first pulse), ``crab_deg`` (mid-line), ``length_m``, ``t_first``,
+    ``t_last``, ``n_pulses``, ``turn_deg_s``, ``bank_deg`` (the coordinated turn's),
+    ``roll_offset_deg``, ``radius_m`` (None on a straight line), ``heading_change_deg`` and
+    ``attitude``: the least and greatest roll, pitch, heading wobble and crab over its pulses
+    (deg, from the trajectory's samples). ``flight_lines`` are the flights themselves
+    (:meth:`pose`).
     """
 
     mission: Mission
