@@ -2,7 +2,9 @@
 
 Every subcommand exits 0 on success; on bad input it prints one line naming the file, topic,
 field or parameter at fault and exits 1 (2 for usage errors). An unexpected exception (a bug)
-is also reported in one line, with exit status 3; ``-vv`` adds its traceback.
+is also reported in one line, with exit status 3; ``-vv`` adds its traceback. ``calibrate
+--write-identity`` that could estimate nothing exits 5, having written a calibration that moves
+no point.
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ from lidarcal_ros import __version__
 from lidarcal_ros.errors import ConfigError, LidarcalError
 
 logger = logging.getLogger("lidarcal")
+
+#: ``calibrate --write-identity`` estimated nothing and wrote a calibration moving no point.
+EXIT_NOTHING_ESTIMATED = 5
 
 
 def _progress_bar(enabled: bool) -> tuple[Any, Any]:
@@ -195,16 +200,24 @@ def _add_calibrate(sub: Any) -> None:
     p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
     p.add_argument("--truth", type=Path, help="truth YAML of a simulation, shown beside")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--write-identity", action="store_true",
+                   help="when nothing can be estimated (one strip, no overlap, no usable "
+                   "patches, nothing observable), still write -o: a calibration that moves "
+                   "no point (every bias at its fixed value, 0 unless configured; none "
+                   "estimated; converged false) with the strips' agreement as delivered, "
+                   "which lidarcal correct accepts; exit status 5 instead of 1")
     p.set_defaults(func=_cmd_calibrate)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from lidarcal_ros.core.calibrate import NothingEstimated
     from lidarcal_ros.core.params import parse_parameter_list
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.pipeline.calibration import (
         Truth,
         calibrate_mission,
+        format_agreement,
         format_report,
         load_mission,
     )
@@ -228,26 +241,37 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     truth = Truth.read(args.truth) if args.truth else None
     started = time.perf_counter()
     progress, close = _progress_bar(True)
+    unestimated: NothingEstimated | None = None
     try:
         mission = load_mission(args.bag, config, control_csv=args.control)
         result = calibrate_mission(mission, config, solve_for=solve_for, progress=progress)
+    except NothingEstimated as exc:
+        unestimated, result = exc, exc.result
     finally:
         close()
-    path = write_calibration(args.output, result)
+    path = write_calibration(args.output, result) \
+        if unestimated is None or args.write_identity else None
     elapsed = time.perf_counter() - started
+    n_ctrl = len(mission.control) if mission.control is not None else 0
+    title = (f"{args.bag}: {len(mission.strips)} strips, {mission.n_points} points, "
+             f"{len(result.pairs)} overlapping pairs, "
+             f"{n_ctrl} control point{'' if n_ctrl == 1 else 's'} ({elapsed:.1f} s)")
     if args.json:
         import json
 
         print(json.dumps(calibration_document(result), indent=1))
+    elif unestimated is not None:
+        print(format_agreement(result, config, title=title, identity_written=path))
     else:
-        n_ctrl = len(mission.control) if mission.control is not None else 0
-        title = (f"{args.bag}: {len(mission.strips)} strips, {mission.n_points} points, "
-                 f"{len(result.pairs)} overlapping pairs, "
-                 f"{n_ctrl} control point{'' if n_ctrl == 1 else 's'} "
-                 f"({elapsed:.1f} s)")
         print(format_report(result, config, title=title, truth=truth))
         print(f"calibration written to {path}")
-    return 0
+    if unestimated is None:
+        return 0
+    if path is None:
+        raise unestimated
+    print(f"lidarcal calibrate: warning: nothing could be estimated ({unestimated.reason}); "
+          f"{path} moves no point", file=sys.stderr)
+    return EXIT_NOTHING_ESTIMATED
 
 
 def _check_output_file(path: Path) -> None:

@@ -24,6 +24,7 @@ from lidarcal_ros.core.adjustment import (
     NormalEquations,
     ObservabilityLimits,
     Observations,
+    ParameterStatus,
     Solution,
     cluster_robust_sigma,
     solve,
@@ -37,6 +38,7 @@ from lidarcal_ros.core.georeferencing import (
 )
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.model import correct_points_exact, geometry_normal_rows
+from lidarcal_ros.core.overlap_grid import OverlapGrid, PairQA
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import PatchMatches, Tin, TinQuality, match_to_tin
 from lidarcal_ros.errors import CalibrationError
@@ -199,6 +201,30 @@ class CalibrationResult:
     #: georeferencing`), and the QA of its laser vectors, by strip id.
     models: dict[int, ModelChoice] = field(default_factory=dict)
     laser_qa: dict[int, LaserVectorQA] = field(default_factory=dict)
+    #: Why nothing was estimated (:meth:`Calibrator.unestimated_result`), empty otherwise.
+    nothing_estimated: str = ""
+    #: Where nothing was estimated: the strip pairs' height agreement on smooth cells, which
+    #: needs no patch (:mod:`lidarcal_ros.core.overlap_grid`).
+    height_agreement: list[PairQA] = field(default_factory=list)
+
+
+class NothingEstimated(CalibrationError):
+    """The adjustment could estimate nothing; :attr:`result` still says how well the strips
+    agree as delivered.
+
+    Attributes
+    ----------
+    reason : str
+        Why nothing could be estimated (the message of the adjustment's refusal).
+    result : CalibrationResult
+        The calibration that moves no point (:meth:`Calibrator.unestimated_result`): every
+        bias at its fixed value, none estimated, not converged, with the strip pairs' QA.
+    """
+
+    def __init__(self, reason: str, result: CalibrationResult) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.result = result
 
 
 def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -658,6 +684,49 @@ class Calibrator:
         self._allow_for_shared_errors(sol, obs, step)
         return self._finish(sol, obs, delta, iteration, converged, history)
 
+    def unestimated_result(self, reason: str) -> CalibrationResult:
+        """The result of a calibration that estimated nothing (``reason``): every bias at
+        its fixed value (``settings.fixed``, 0 unless given), no sigma, not converged, and
+        the QA of every strip pair as delivered (the sample points of :meth:`run`, matched
+        at that value; ``correspondences`` counts the points matched, none of which was
+        adjusted) and of the control points.
+        """
+        s = self.settings
+        delta = np.array([float(s.fixed.get(name, 0.0)) for name in PARAMETER_NAMES])
+        self._choose_samples([p for p in self.pairs if p.frozen is None and p.sample is None])
+        status = {name: ParameterStatus("not_estimable", reason) if name in s.solve_for
+                  else ParameterStatus("fixed") for name in PARAMETER_NAMES}
+        sol = Solution(delta=delta, sigma=np.full(N_PARAMETERS, np.nan), estimated=(),
+                       covariance=np.zeros((0, 0)), correlation=np.zeros((0, 0)),
+                       sigma0=float("nan"), redundancy=0, status=status)
+        result = self._finish(sol, Observations.empty(), delta, 0, False, [])
+        for p in result.pairs:
+            p.correspondences = p.n_after
+        result.nothing_estimated = reason
+        result.height_agreement = self._height_agreement()
+        return result
+
+    def _height_agreement(self, *, points_per_cell: float = 4.0, min_cells: int = 10
+                          ) -> list[PairQA]:
+        """The strip pairs' height agreement on a grid (last returns where the strips say
+        which they are), at cells of 2 m or wider, so that the sparsest strip holds about
+        ``points_per_cell`` points a cell; pairs sharing ``min_cells`` smooth cells."""
+        held = [ps for ps in self.strips if not ps.dropped and len(ps.strip)]
+        if len(held) < 2:
+            return []
+        cell = max(2.0, max(float(np.sqrt(points_per_cell / max(ps.density, 1e-6)))
+                            for ps in held))
+        origin = held[0].strip.xyz[0, :2]
+        grid = OverlapGrid(cell, (float(origin[0]), float(origin[1])))
+        for ps in held:
+            extra = ps.strip.extra
+            rn, nr = extra.get("return_number"), extra.get("number_of_returns")
+            last = slice(None) if rn is None or nr is None else \
+                (np.asarray(rn) >= np.asarray(nr)) | (np.asarray(nr) <= 1)
+            xyz = ps.strip.xyz[last]
+            grid.add(np.full(len(xyz), ps.strip_id, dtype=np.int64), xyz)
+        return grid.pairs(min_cells=min_cells)
+
     def _choose_samples(self, pairs: Sequence[_PairWork]) -> None:
         """Match pairs met for the first time once at zero correction: choose their sample
         points and keep their "before" discrepancies."""
@@ -879,12 +948,25 @@ def calibrate(
     *,
     progress: Progress | None = None,
 ) -> CalibrationResult:
-    """Calibrate a mission: see :class:`Calibrator`."""
+    """Calibrate a mission: see :class:`Calibrator`.
+
+    Raises
+    ------
+    NothingEstimated
+        The mission holds strips but the adjustment could estimate nothing (a single strip,
+        no overlap, no usable patches, nothing observable); it carries the QA of the strips
+        as delivered.
+    """
     cal = Calibrator.from_mission(mission, settings or CalibrationSettings(), progress=progress)
-    return cal.run()
+    try:
+        return cal.run()
+    except NothingEstimated:
+        raise
+    except CalibrationError as exc:
+        raise NothingEstimated(str(exc), cal.unestimated_result(str(exc))) from None
 
 
 __all__: Sequence[str] = (
     "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual",
-    "PairDiscrepancies", "PairStats", "calibrate", "footprint_keys",
+    "NothingEstimated", "PairDiscrepancies", "PairStats", "calibrate", "footprint_keys",
 )

@@ -59,7 +59,7 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         biases[name] = entry
     doc: dict[str, Any] = {
         "biases": biases,
-        "sigma0": float(sol.sigma0),
+        "sigma0": _num(float(sol.sigma0)),
         "redundancy": int(sol.redundancy),
         "correlation": {
             "names": list(sol.estimated),
@@ -87,6 +87,13 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
              "after_m": _num(c.after)} for c in result.control
         ],
     }
+    if result.nothing_estimated:
+        doc["nothing_estimated"] = result.nothing_estimated
+        doc["height_agreement"] = [
+            {"strips": [int(q.strip_a), int(q.strip_b)], "coverage": round(float(q.coverage), 4),
+             "cells": int(q.n_cells), "median_m": _num(q.median_dz), "rms_m": _num(q.rms_dz)}
+            for q in result.height_agreement
+        ]
     if result.dropped_non_finite:
         doc["dropped_non_finite_points"] = int(result.dropped_non_finite)
     if sol.warnings:

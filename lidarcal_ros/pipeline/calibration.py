@@ -157,23 +157,80 @@ def format_report(
             lines.append(heading)
     for sid, qa in sorted(result.laser_qa.items()):
         lines.extend(f"warning: strip {sid}: {w}" for w in qa.warnings)
+    lines.extend(_pair_lines(result, config))
+    return "\n".join(lines)
+
+
+def format_agreement(result: CalibrationResult, config: FlightConfig, *, title: str = "",
+                     identity_written: Path | None = None) -> str:
+    """What ``lidarcal calibrate`` prints when nothing could be estimated
+    (:class:`~lidarcal_ros.core.calibrate.NothingEstimated`): how well the strips agree as
+    delivered (per strip pair the coverage, the sample points matched to a patch, RMS and
+    95th percentile of their normal discrepancy, the QA level), the control residuals, and
+    what became of the calibration file."""
+    lines = [title] if title else []
+    lines.append(f"nothing estimated: {result.nothing_estimated}")
+    if result.dropped_non_finite:
+        lines.append(f"dropped {result.dropped_non_finite} points with non-finite values")
+    if result.pairs:
+        lines.append("how well the strips agree as delivered:")
+    else:
+        lines.append("no strip pair overlaps: there is no agreement between strips to report")
+    lines.extend(_pair_lines(result, config, delivered=True))
+    if result.height_agreement:
+        warn, error = config["qa.rmsdz_warn_m"], config["qa.max_difference_m"]
+        lines.append("heights of last returns on smooth cells both strips cover (median and "
+                     "robust RMS of A - B):")
+        for q in result.height_agreement:
+            level = qa_level(q.rms_dz, warn_m=warn, error_m=error)
+            lines.append(f"{q.strip_a:>3} & {q.strip_b:<3} {q.coverage * 100:>7.0f}% "
+                         f"{q.n_cells:>6} cells, median {q.median_dz * 100:+6.1f} cm, RMS "
+                         f"{q.rms_dz * 100:5.1f} cm  {level}")
+    if identity_written is not None:
+        lines.append(f"calibration that moves no point (every bias at its fixed value, none "
+                     f"estimated) written to {identity_written}: lidarcal correct still gives "
+                     "reflectance")
+    else:
+        lines.append("no calibration written (--write-identity writes one that moves no "
+                     "point, for lidarcal correct)")
+    return "\n".join(lines)
+
+
+def _pair_lines(result: CalibrationResult, config: FlightConfig, *,
+                delivered: bool = False) -> list[str]:
+    """The strip-pair QA table and the control residuals; ``delivered``: of the strips as
+    delivered (one set of figures, matches counting the sample points matched)."""
     warn = config["qa.rmsdz_warn_m"]
     error = config["qa.max_difference_m"]
-    lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS before':>11} "
-                 f"{'RMS after':>10} {'95% after':>10}  QA (RMS: WARN > {warn * 100:.0f} cm, "
-                 f"ERROR > {error * 100:.0f} cm)")
+    rule = f"QA (RMS: WARN > {warn * 100:.0f} cm, ERROR > {error * 100:.0f} cm)"
+    lines = []
+    if result.pairs and delivered:
+        lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS':>8} "
+                     f"{'95%':>8}  {rule}")
+    elif result.pairs:
+        lines.append(f"{'strips':<8} {'coverage':>8} {'matches':>8} {'RMS before':>11} "
+                     f"{'RMS after':>10} {'95% after':>10}  {rule}")
     for p in result.pairs:
+        head = f"{p.strip_a:>3} & {p.strip_b:<3} {p.coverage * 100:>7.0f}% {p.correspondences:>8}"
+        if delivered and not p.n_after:
+            lines.append(f"{head} {'n/a':>8} {'n/a':>8}  no point matched a usable patch "
+                         "(a smooth, plane surface: ground, roofs)")
+            continue
         level = qa_level(p.rms_after, warn_m=warn, error_m=error)
-        lines.append(f"{p.strip_a:>3} & {p.strip_b:<3} {p.coverage * 100:>7.0f}% "
-                     f"{p.correspondences:>8} {p.rms_before * 100:>8.1f} cm "
-                     f"{p.rms_after * 100:>7.1f} cm {p.p95_after * 100:>7.1f} cm  {level}")
+        if delivered:
+            lines.append(f"{head} {p.rms_after * 100:>5.1f} cm {p.p95_after * 100:>5.1f} cm  "
+                         f"{level}")
+        else:
+            lines.append(f"{head} {p.rms_before * 100:>8.1f} cm {p.rms_after * 100:>7.1f} cm "
+                         f"{p.p95_after * 100:>7.1f} cm  {level}")
     if result.control:
-        lines.append("control residuals (normal distance, before -> after):")
+        lines.append("control residuals (normal distance, before -> after):" if not delivered
+                     else "control residuals (normal distance):")
         for c in result.control:
             after = "n/a" if math.isnan(c.after) else f"{c.after * 100:+.1f} cm"
-            lines.append(f"  {c.control_id} in strip {c.strip_id}: {c.before * 100:+.1f} cm "
-                         f"-> {after}")
-    return "\n".join(lines)
+            lines.append(f"  {c.control_id} in strip {c.strip_id}: {c.before * 100:+.1f} cm"
+                         + ("" if delivered else f" -> {after}"))
+    return lines
 
 
 def qa_level(rms_m: float, *, warn_m: float, error_m: float) -> str:

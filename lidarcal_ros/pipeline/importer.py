@@ -76,6 +76,7 @@ import numpy as np
 from lidarcal_ros.core.attitude import attitude_from_quaternions
 from lidarcal_ros.core.georeferencing import choose_model
 from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.overlap_grid import OverlapGrid, PairQA
 from lidarcal_ros.core.trajectory_estimation import (
     EstimatedTrajectory,
     RayCollector,
@@ -109,6 +110,8 @@ POINT_DTYPE = np.dtype(
 )
 RETURNS = ("all", "first", "last")
 _GAP_BIN_MAX_S = 0.5
+#: Keys of ``estimate_options`` that go to the :class:`RayCollector`, not the estimate.
+_COLLECTOR_OPTIONS = ("bin_s", "per_bin", "max_per_bin", "max_rays")
 
 
 # ---------------------------------------------------------------------------- time bases
@@ -321,13 +324,16 @@ class ImportReport:
                        f"{s.t_last - s.t_first:7.1f} s, {s.source}, "
                        f"{len(s.files)} file(s)")
         if self.estimate is not None:
+            out.append("  trajectory estimate per strip:")
+            out.extend(f"    {s.summary}" for s in self.estimate.strips)
             out.append("  trajectory estimate per segment (rays, RMS ray distance, position "
                        "sigma, height, level):")
             for q in self.estimate.segments:
                 out.append(f"    strip {q.strip_id:>5} {q.t_end - q.t_start:6.1f} s: "
                            f"{q.n_rays:>6} rays, RMS {q.rms_m:6.2f} m, sigma {q.sigma_m:6.2f} m,"
                            f" height {q.height_m:7.1f} m, {q.level}"
-                           + (f" ({q.message})" if q.message else ""))
+                           + (f" ({q.message})" if q.message else "")
+                           + (f"; {q.fallback}" if q.fallback else ""))
         if self.overlaps:
             out.append("  overlap QA (last returns, smooth cells; median and robust RMS of "
                        "A - B heights):")
@@ -480,101 +486,6 @@ class _StripMap:
         return out
 
 
-# ---------------------------------------------------------------------------- overlap QA
-@dataclass
-class PairQA:
-    """Swath-to-swath discrepancy of two overlapping strips on a grid.
-
-    Attributes
-    ----------
-    strip_a, strip_b : int
-    coverage : float
-        Shared cells / cells of the smaller strip.
-    n_cells : int
-        Shared smooth cells compared.
-    median_dz, rms_dz : float
-        Median and robust RMS (1.4826 MAD about 0, i.e. without the median removed) of the
-        mean-height differences A - B of the compared cells, metres.
-    level : ``"OK"``, ``"WARN"`` or ``"ERROR"``
-        RMS against 8 / 16 cm (USGS LBS QL2 swath-to-swath limits).
-    """
-
-    strip_a: int
-    strip_b: int
-    coverage: float
-    n_cells: int
-    median_dz: float
-    rms_dz: float
-    level: str
-
-
-class _OverlapGrid:
-    """Per strip and cell: count, sum and sum of squares of last-return heights."""
-
-    def __init__(self, cell_m: float, origin: tuple[float, float]) -> None:
-        self.cell = float(cell_m)
-        self.origin = origin
-        self.parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-        self.sizes: dict[int, int] = {}
-
-    def add(self, sid: np.ndarray, xyz: np.ndarray) -> None:
-        ix = np.floor((xyz[:, 0] - self.origin[0]) / self.cell).astype(np.int64)
-        iy = np.floor((xyz[:, 1] - self.origin[1]) / self.cell).astype(np.int64)
-        key = (ix << 32) + (iy & 0xFFFFFFFF)
-        for value in np.unique(sid):
-            sel = sid == value
-            k, inv = np.unique(key[sel], return_inverse=True)
-            z = xyz[sel, 2]
-            stats = np.zeros((k.size, 3))
-            np.add.at(stats, inv, np.column_stack([np.ones_like(z), z, z * z]))
-            lst = self.parts.setdefault(int(value), [])
-            lst.append((k, stats))
-            self.sizes[int(value)] = self.sizes.get(int(value), 0) + k.size
-            if len(lst) > 16:
-                self.parts[int(value)] = [self._reduce(lst)]
-
-    @staticmethod
-    def _reduce(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-        keys = np.concatenate([p[0] for p in parts])
-        stats = np.concatenate([p[1] for p in parts])
-        k, inv = np.unique(keys, return_inverse=True)
-        out = np.zeros((k.size, 3))
-        np.add.at(out, inv, stats)
-        return k, out
-
-    def pairs(self, *, max_std_m: float = 0.15, min_cells: int = 20, warn_m: float = 0.08,
-              error_m: float = 0.16) -> list[PairQA]:
-        """QA of every pair of strips sharing at least ``min_cells`` smooth cells."""
-        grids = {}
-        for sid, parts in self.parts.items():
-            k, st = self._reduce(parts)
-            n = st[:, 0]
-            mean = st[:, 1] / n
-            var = np.maximum(st[:, 2] / n - mean**2, 0.0)
-            smooth = (n >= 2) & (np.sqrt(var) <= max_std_m)
-            grids[sid] = (k, mean, smooth)
-        out = []
-        ids = sorted(grids)
-        for i, a in enumerate(ids):
-            ka, ma, sa = grids[a]
-            for b in ids[i + 1:]:
-                kb, mb, sb = grids[b]
-                common, ia, ib = np.intersect1d(ka, kb, assume_unique=True,
-                                                return_indices=True)
-                if common.size < min_cells:
-                    continue
-                use = sa[ia] & sb[ib]
-                if use.sum() < min_cells:
-                    continue
-                dz = ma[ia][use] - mb[ib][use]
-                rms = float(1.4826 * np.median(np.abs(dz)))
-                level = "ERROR" if rms > error_m else ("WARN" if rms > warn_m else "OK")
-                out.append(PairQA(a, b, common.size / min(ka.size, kb.size), int(use.sum()),
-                                  float(np.median(dz)), rms, level))
-        return out
-
-
-# ---------------------------------------------------------------------------- main
 def _resolve_crs(infos: list[LasFileInfo], crs: str | None) -> Any:
     from lidarcal_ros.io.las import parse_crs
 
@@ -813,7 +724,7 @@ def import_mission(
     occupancy: dict[int, set[int]] = {}
     per_psid: dict[int, list[Any]] = {}  # psid -> [count, tmin, tmax, files]
     collector = RayCollector(**({} if not estimate else {
-        k: v for k, v in (estimate_options or {}).items() if k in ("bin_s", "per_bin")}))
+        k: v for k, v in (estimate_options or {}).items() if k in _COLLECTOR_OPTIONS}))
     n_read = 0
     n_kept = 0
     try:
@@ -1007,7 +918,7 @@ def _finish(
         spans = {sid: tuple(float(v) for v in rule.points(np.array(s)))
                  for sid, s in spans_raw.items()}
         opts = {k: v for k, v in (estimate_options or {}).items()
-                if k not in ("bin_s", "per_bin")}
+                if k not in _COLLECTOR_OPTIONS}
         estimated = estimate_trajectory(rays, spans, **opts)  # type: ignore[arg-type]
         dropped = sorted(estimated.failed_strips)
         if len(dropped) == len(spans):
@@ -1017,8 +928,9 @@ def _finish(
                 f"{paths[0]}: no strip's trajectory could be rebuilt from multiple returns"
                 f"{why}; give a trajectory file with --trajectory"
             )
-        for sid in dropped:
-            logger.warning("strip %d: no trajectory could be rebuilt; left out", sid)
+        for outcome in estimated.strips:
+            if not outcome.kept or outcome.fallback:
+                logger.warning("trajectory estimate, %s", outcome.summary)
         traj = estimated.trajectory
         kind = "estimated from multiple returns"
 
@@ -1027,7 +939,7 @@ def _finish(
     kept_strips = {sid: s for sid, s in strips.items() if sid not in dropped}
     grid = None
     if qa_cell_m > 0:
-        grid = _OverlapGrid(qa_cell_m, (float(infos[0].mins[0] * factors[0]),
+        grid = OverlapGrid(qa_cell_m, (float(infos[0].mins[0] * factors[0]),
                                         float(infos[0].mins[1] * factors[0])))
     n_points, n_poses = _write_bag(
         out, store, strip_map, rule, traj, kept_strips, t_start=t_start, grid=grid,
@@ -1080,7 +992,7 @@ def _write_bag(
     strips: dict[int, StripSummary],
     *,
     t_start: float,
-    grid: _OverlapGrid | None,
+    grid: OverlapGrid | None,
     frame_id: str,
     chunk_seconds: float,
     points_topic: str,
