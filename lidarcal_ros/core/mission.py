@@ -6,12 +6,15 @@ the trajectory's clock.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from lidarcal_ros.core.attitude import headings_from_quaternions, normalise_quaternions
 from lidarcal_ros.errors import TrajectoryError
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -82,9 +85,20 @@ class Trajectory:
     @classmethod
     def from_samples(cls, t: np.ndarray, xyz: np.ndarray,
                      orientation: np.ndarray | None = None, *,
-                     full_attitude: bool = True) -> Trajectory:
+                     full_attitude: bool = True, source: str | None = None) -> Trajectory:
         """Build from unordered samples: sorts by time, drops non-finite and duplicate stamps
-        (a sample's orientation may be NaN: it has none)."""
+        (the first sample of a stamp, in the given order, is kept; a sample's orientation may
+        be NaN: it has none).
+
+        ``source`` (e.g. ``"BAG: trajectory /lidar/trajectory"``): a reader's name for the
+        samples. With it, what was dropped is logged as one warning line with the counts
+        (:class:`SampleScreening`), and samples that all carry one stamp are refused.
+
+        Raises
+        ------
+        TrajectoryError
+            With ``source``: two or more samples, all at one stamp (no trajectory).
+        """
         t = np.asarray(t, dtype=np.float64)
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         q = None if orientation is None else np.asarray(orientation,
@@ -92,9 +106,20 @@ class Trajectory:
         ok = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
         order = np.flatnonzero(ok)
         order = order[np.argsort(t[order], kind="stable")]
+        first = np.ones(order.size, dtype=bool)
         if order.size:
-            ts = t[order]
-            order = order[np.concatenate(([True], np.diff(ts) > 0))]
+            first[1:] = np.diff(t[order]) > 0
+        if source is not None:
+            screening = SampleScreening.of(t, xyz, order, first)
+            if screening.one_stamp:
+                raise TrajectoryError(
+                    f"{source}: all {t.size} poses carry the same stamp "
+                    f"({t[order[0]]:.3f} s), so they trace no path (is the driver stamping "
+                    "its poses?)")
+            text = screening.warning()
+            if text:
+                logger.warning("%s: %s", source, text)
+        order = order[first]
         return cls(t[order], xyz[order], None if q is None else q[order],
                    full_attitude=full_attitude)
 
@@ -106,6 +131,75 @@ class Trajectory:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+
+@dataclass
+class SampleScreening:
+    """What :meth:`Trajectory.from_samples` leaves out of a reader's samples.
+
+    Attributes
+    ----------
+    n_samples : int
+        Samples given.
+    non_finite_stamps, non_finite_positions : int
+        Samples left out for a stamp, or else a position, that is not finite.
+    repeated : int
+        Samples at a stamp met before (after sorting; the first of each stamp is kept).
+    conflicting : int
+        Stamps repeated at positions more than 1 mm from the one kept.
+    max_conflict_m : float
+        Largest distance of a repeat from the position kept at its stamp, metres.
+    one_stamp : bool
+        Two or more finite samples, all at one stamp.
+    """
+
+    n_samples: int
+    non_finite_stamps: int
+    non_finite_positions: int
+    repeated: int
+    conflicting: int
+    max_conflict_m: float
+    one_stamp: bool
+
+    @classmethod
+    def of(cls, t: np.ndarray, xyz: np.ndarray, order: np.ndarray,
+           first: np.ndarray) -> SampleScreening:
+        """Screening of samples ``t, xyz`` of which ``order`` (finite, sorted by stamp) are
+        kept where ``first`` (the first at their stamp)."""
+        bad_t = int(np.count_nonzero(~np.isfinite(t)))
+        bad_xyz = int(t.size - order.size - bad_t)
+        kept_at = np.cumsum(first) - 1  # index among the kept of each sorted sample's stamp
+        kept_xyz = xyz[order[first]]
+        gap = np.linalg.norm(xyz[order] - kept_xyz[kept_at], axis=1)[~first]
+        stamps_conflicting = np.unique(kept_at[~first][gap > 1e-3])
+        return cls(n_samples=int(t.size), non_finite_stamps=bad_t, non_finite_positions=bad_xyz,
+                   repeated=int(np.count_nonzero(~first)),
+                   conflicting=int(stamps_conflicting.size),
+                   max_conflict_m=float(gap.max()) if gap.size else 0.0,
+                   one_stamp=bool(order.size >= 2 and np.count_nonzero(first) == 1))
+
+    def warning(self) -> str:
+        """One line with the counts of what was left out and why; empty when nothing was
+        (exact repeats, a message recorded twice, are harmless and not mentioned alone)."""
+        parts = []
+        if self.non_finite_stamps:
+            parts.append(f"{_poses(self.non_finite_stamps)} with non-finite stamps left out")
+        if self.non_finite_positions:
+            parts.append(f"{_poses(self.non_finite_positions)} with non-finite positions left "
+                         "out")
+        if self.conflicting:
+            parts.append(f"{self.conflicting} stamp{'' if self.conflicting == 1 else 's'} "
+                         "repeated at positions up to "
+                         f"{self.max_conflict_m:.3g} m apart: the first kept")
+        if parts:
+            used = (self.n_samples - self.non_finite_stamps - self.non_finite_positions
+                    - self.repeated)
+            parts.append(f"{used} of {self.n_samples} poses used")
+        return "; ".join(parts)
+
+
+def _poses(n: int) -> str:
+    return f"{n} pose{'' if n == 1 else 's'}"
 
 
 @dataclass

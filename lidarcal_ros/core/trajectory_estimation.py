@@ -663,6 +663,8 @@ def _implausible(q: SegmentQuality) -> list[str]:
 def _why_weak(q: SegmentQuality, need: int) -> str:
     """Why the rays alone rebuild a segment poorly, in words (from its first fit, ERROR;
     ``need``: the rays that fit needs)."""
+    if q.n_rays == 0:
+        return "no pulse with a first and a last return"
     if q.n_rays < need:
         return f"few multiple returns, {q.n_rays} rays"
     if not math.isfinite(q.sigma_m):  # not fitted: singular
@@ -707,7 +709,7 @@ def _level_fallback(seg: _SegmentFit, good: list[SegmentQuality], options: dict[
     (:func:`estimate_trajectory`)."""
     why = _why_weak(seg.q, need)
     if len(seg.rays) < min_rays:
-        seg.q.message = f"{why}; the level fallback needs {min_rays}"
+        seg.q.message = f"{why}; the level fallback needs {min_rays}" if len(seg.rays) else why
         return
     own = _SegmentFit(seg.rays, seg.first, seg.last, copy.copy(seg.q))
     _fit_into(own, options, level=True)

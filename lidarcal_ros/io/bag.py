@@ -91,9 +91,12 @@ _NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
 
 class TrajectorySamples:
     """Trajectory messages gathered into a :class:`~lidarcal_ros.core.mission.Trajectory`
-    (in any order), with the frames they are in."""
+    (in any order), with the frames they are in. ``source`` (a file reader's name for them):
+    poses left out are counted in a warning line, and poses all at one stamp refused
+    (:meth:`~lidarcal_ros.core.mission.Trajectory.from_samples`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, source: str | None = None) -> None:
+        self.source = source
         self.t: list[float] = []
         self.xyz: list[tuple[float, float, float]] = []
         self.orientation: list[tuple[float, ...]] = []
@@ -111,7 +114,8 @@ class TrajectorySamples:
 
     def trajectory(self) -> Trajectory:
         return Trajectory.from_samples(np.asarray(self.t), np.asarray(self.xyz),
-                                       np.asarray(self.orientation).reshape(-1, 4))
+                                       np.asarray(self.orientation).reshape(-1, 4),
+                                       source=self.source)
 
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -647,7 +651,7 @@ def read_mission(
         wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
 
         acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m)
-        samples = TrajectorySamples()
+        samples = TrajectorySamples(f"{bag.path}: trajectory {trajectory_topic}")
         control_msg: Any = None
         for topic, msgtype, _log_ns, raw in bag.messages([t for t in wanted if t]):
             is_pose = topic == trajectory_topic

@@ -727,6 +727,7 @@ def import_mission(
         k: v for k, v in (estimate_options or {}).items() if k in _COLLECTOR_OPTIONS}))
     n_read = 0
     n_kept = 0
+    returns_seen = [0, 0]  # first and last returns of multi-return pulses
     try:
         for info in infos:
             if info.point_count == 0:
@@ -742,6 +743,10 @@ def import_mission(
                 if estimate:
                     collector.add(rays_from_returns(
                         xyz, t, psid, chunk.return_number, chunk.number_of_returns))
+                    multi = chunk.number_of_returns >= 2
+                    returns_seen[0] += int(np.count_nonzero(multi & (chunk.return_number == 1)))
+                    returns_seen[1] += int(np.count_nonzero(
+                        multi & (chunk.return_number == chunk.number_of_returns)))
                 rn = chunk.return_number.astype(np.int16)
                 nr = chunk.number_of_returns.astype(np.int16)
                 if returns == "first":
@@ -778,6 +783,7 @@ def import_mission(
         return _finish(
             out, paths, infos, store, occupancy, per_psid, collector, n_read, n_kept,
             gap_bin=gap_bin, strip_gap_s=strip_gap_s, points_base=points_base,
+            returns_seen=(returns_seen[0], returns_seen[1]),
             traj_file=traj_file, traj_xyz=traj_xyz, traj_orientation=traj_orientation,
             full_attitude=full_attitude,
             trajectory_time=trajectory_time,
@@ -805,6 +811,7 @@ def _finish(
     gap_bin: float,
     strip_gap_s: float,
     points_base: str,
+    returns_seen: tuple[int, int],
     traj_file: TrajectoryFile | None,
     traj_xyz: np.ndarray | None,
     traj_orientation: np.ndarray | None,
@@ -919,6 +926,14 @@ def _finish(
                  for sid, s in spans_raw.items()}
         opts = {k: v for k, v in (estimate_options or {}).items()
                 if k not in _COLLECTOR_OPTIONS}
+        if not len(rays):
+            raise TrajectoryError(
+                f"{paths[0]}: no trajectory can be rebuilt from multiple returns: "
+                + (f"{returns_seen[0]} first and {returns_seen[1]} last returns of multi-return "
+                   "pulses, but no pulse holds both (thinned to one return per pulse?)"
+                   if any(returns_seen) else "no point belongs to a pulse with several returns")
+                + "; give a trajectory file with --trajectory"
+            )
         estimated = estimate_trajectory(rays, spans, **opts)  # type: ignore[arg-type]
         dropped = sorted(estimated.failed_strips)
         if len(dropped) == len(spans):
