@@ -55,9 +55,12 @@ TWICE = {"dX": 0.02, "dY": 0.02, "dZ": 0.02, "dr": 0.02, "dS": 2e-5,
 def add_first_returns(
     sim: SimulatedMission, *, fraction: float = 0.3, seed: int = 0,
     separation: tuple[float, float] = (3.0, 30.0), noise_m: float = 0.02,
+    scan_band_deg: dict[int, tuple[float, float]] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Per strip: the mission's points as last returns plus, for ``fraction`` of the pulses, a
     first return on the same (biased) laser ray, ``separation`` metres before the last.
+    ``scan_band_deg``: strip id -> the mirror angles (deg) outside which its pulses have no
+    first return (a tile holding one edge of that strip's swath).
 
     The ray of a pulse is exact: ``X_o + R_kappa dL + R_kappa R_B rho(r)`` is linear in the
     range ``r``, so the earlier return is the last one moved along the unit vector between
@@ -78,6 +81,9 @@ def add_first_returns(
               - biased_from_pulse(xo, kappa, r_true, theta, sim.biases))
         up /= np.linalg.norm(up, axis=1)[:, None]
         multi = rng.random(n) < fraction
+        if scan_band_deg is not None and strip.strip_id in scan_band_deg:
+            lo, hi = np.radians(scan_band_deg[strip.strip_id])
+            multi &= (theta >= lo) & (theta <= hi)
         sep = rng.uniform(*separation, n)
         first = strip.xyz + sep[:, None] * up + rng.normal(0.0, noise_m, (n, 3))
         rn = np.where(multi, 2, 1).astype(np.uint8)

@@ -226,8 +226,13 @@ class SegmentQuality:
     n_rejected : int
     rms_m : float
         RMS perpendicular distance from the rays to the fitted sensor position, metres.
+    sigma0 : float
+        The same in units of what each ray's noise model expects (its weight): about 1
+        where the rays meet as a point noise of ``point_sigma_m`` says they should.
     sigma_m : float
         Largest a-posteriori standard deviation of a position coordinate over the segment, m.
+    horizontal_sigma_m : float
+        The same of the horizontal coordinates alone, metres.
     condition : float
         Condition number of the (column-scaled) normal matrix.
     height_m : float
@@ -262,7 +267,9 @@ class SegmentQuality:
     n_rays: int
     n_rejected: int = 0
     rms_m: float = math.nan
+    sigma0: float = math.nan
     sigma_m: float = math.nan
+    horizontal_sigma_m: float = math.nan
     condition: float = math.nan
     height_m: float = math.nan
     speed_mps: float = math.nan
@@ -432,10 +439,10 @@ def _fit_segment(
     condition = float(np.linalg.cond(normal / np.outer(scale_n, scale_n)))
     # position covariance at the ends and the middle; keep the worst coordinate
     probe = _legendre(np.array([-1.0, 0.0, 1.0]), degree)
-    sig = 0.0
+    sig_xyz = np.zeros(3)
     for b in probe:
         jac = np.kron(b, np.eye(3))  # (3, m) for coefficient order (k, a)
-        sig = max(sig, float(np.sqrt(np.max(np.diag(jac @ cov @ jac.T)))))
+        sig_xyz = np.maximum(sig_xyz, np.sqrt(np.diag(jac @ cov @ jac.T)))
     coef = coef.copy()
     coef[0] += ref
     vel = coef[1] / half if degree >= 1 else np.zeros(3)
@@ -452,7 +459,9 @@ def _fit_segment(
         n_rays=n_used,
         n_rejected=int(len(rays) - n_used),
         rms_m=float(np.sqrt(np.mean(dist[use] ** 2))) if n_used else math.nan,
-        sigma_m=sig,
+        sigma0=math.sqrt(sigma0_sq),
+        sigma_m=float(sig_xyz.max()),
+        horizontal_sigma_m=float(sig_xyz[:2].max()),
         condition=condition,
         height_m=float(coef[0, 2] - np.median(rays.anchor[use, 2])) if n_used else math.nan,
         speed_mps=float(np.hypot(vel[0], vel[1])),
@@ -643,7 +652,9 @@ def _grade(q: SegmentQuality, *, max_sigma_m: float) -> None:
         problems.append(f"position sigma {q.sigma_m:.1f} m > {max_sigma_m:g} m")
     if problems:
         q.level, q.message = "ERROR", "; ".join(problems)
-    elif q.sigma_m > 1.0 or q.rms_m > 2.0 or q.condition > 1e8:
+    elif q.sigma_m > 1.0 or q.condition > 1e8:
+        # (not the RMS in metres: rays of short separation, kept by the thousand where the
+        # flight is short, miss the sensor by metres as their noise says; sigma weighs them)
         q.level = "WARN"
         q.message = "weak ray geometry"
     else:
@@ -713,25 +724,40 @@ def _level_fallback(seg: _SegmentFit, good: list[SegmentQuality], options: dict[
         return
     own = _SegmentFit(seg.rays, seg.first, seg.last, copy.copy(seg.q))
     _fit_into(own, options, level=True)
+    own_ok = own.coef is not None and math.isfinite(own.q.altitude_sigma_m) \
+        and not _implausible(own.q)
+    own_alt, own_sigma = own.q.altitude_m, own.q.altitude_sigma_m
     prior = _altitude_prior(seg.q.strip_id, good, altitude_fraction)
+    given: tuple[float, float] | None = None
+    ids: tuple[int, ...] = ()
     if prior is None:
-        chosen, how = own, "level flight at the height of its own rays"
+        chosen, how = own, f"level flight at the altitude of its own rays, {own_alt:.0f} +- " \
+                           f"{own_sigma:.0f} m"
     else:
         altitude, sigma, ids = prior
-        how = f"level flight at the altitude of {_strip_names(ids)}"
-        if own.coef is not None and math.isfinite(own.q.altitude_sigma_m):
-            gap = abs(own.q.altitude_m - altitude)
-            if gap > 3.0 * math.hypot(own.q.altitude_sigma_m, sigma):
-                how += f" (its own rays: {own.q.altitude_m:.0f} m"
-                # a wide fan fixes its own height: the disagreement is then uncertainty
-                if own.q.fan_deg >= _MIN_FAN_DEG:
-                    sigma = max(sigma, gap)
-                    how += ", the difference taken as uncertainty"
-                how += ")"
-        how += f", {altitude:.0f} +- {sigma:.0f} m"
+        names = _strip_names(ids)
+        agree = own_ok and abs(own_alt - altitude) <= 3.0 * math.hypot(own_sigma, sigma)
+        if own_ok and own.q.fan_deg >= _MIN_FAN_DEG:
+            # a wide fan fixes its own height: the other strips' only adds to it
+            if agree:
+                weight = 1.0 / own_sigma**2 + 1.0 / sigma**2
+                given = ((own_alt / own_sigma**2 + altitude / sigma**2) / weight,
+                         weight**-0.5)
+                how = (f"level flight at the altitude of its own rays and of {names}, "
+                       f"{given[0]:.0f} +- {given[1]:.0f} m")
+            else:
+                chosen, ids = own, ()
+                how = (f"level flight at the altitude of its own rays, {own_alt:.0f} +- "
+                       f"{own_sigma:.0f} m ({names} at {altitude:.0f} m: another altitude)")
+        else:
+            given = (altitude, sigma)
+            how = f"level flight at the altitude of {names}, {altitude:.0f} +- {sigma:.0f} m"
+            if own_ok and not agree:
+                how += f" (its own rays, across a narrow fan: {own_alt:.0f} m)"
+    if given is not None:
         chosen = _SegmentFit(seg.rays, seg.first, seg.last, copy.copy(seg.q))
-        _fit_into(chosen, options, level=True, altitude=(altitude, sigma))
-        chosen.q.altitude_from = ids
+        _fit_into(chosen, options, level=True, altitude=given)
+    chosen.q.altitude_from = ids
     q = chosen.q
     if chosen.coef is None:
         seg.q.message = f"{why}; level fallback: {q.message}"
@@ -765,6 +791,7 @@ def _strip_outcome(strip_id: int, segments: list[SegmentQuality]) -> StripEstima
     weak = "weak: " if any(f.weak for f in fallback) else ""
     part = "" if len(fallback) == len(segments) else \
         f" in {len(fallback)} of its {len(segments)} segments"
+    horizontal = max(f.horizontal_sigma_m for f in segments)
     return StripEstimate(strip_id, True, sigma, True,
-                         f"strip {strip_id}: position sigma {sigma:.1f} m ({weak}{q.message});"
-                         f" kept{part}, {q.fallback}")
+                         f"strip {strip_id}: position sigma {sigma:.1f} m ({horizontal:.1f} m "
+                         f"horizontally; {weak}{q.message}); kept{part}, {q.fallback}")
