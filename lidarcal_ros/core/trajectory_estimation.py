@@ -27,6 +27,15 @@ fixes the height about twice less well than the across-track position.
 Quality per segment: rays used, RMS ray-to-sensor distance (m), condition number of the
 normal matrix, a-posteriori standard deviation of the position (m, the largest over the
 segment), and the sensor's height above the returns.
+
+Weak segments: where the rays alone rebuild a segment poorly (few of them, or a fan only a
+few degrees wide, as where a tile holds one edge of a line's swath: the rays then cross
+nowhere in particular), the segment is fitted again as level flight, its height taken from
+the segments rebuilt well (of its own line first, else of the other lines) and carried into
+the stated sigma as a considered parameter; where its own fan is wide enough to fix its
+height and that disagrees with theirs, its own is kept (a line flown at another altitude).
+The quasi-rigorous method needs positions to metres only, so such a line, flagged, serves
+better than its points left out (:func:`estimate_trajectory`).
 """
 
 from __future__ import annotations

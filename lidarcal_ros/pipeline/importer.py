@@ -52,7 +52,10 @@ GPS time
 Trajectory estimate
     Without a trajectory file, rays from the first and last returns of multi-return pulses
     rebuild the sensor path per strip (:mod:`lidarcal_ros.core.trajectory_estimation`), with a
-    quality figure per segment. Strips that cannot be rebuilt are left out, with a warning.
+    quality figure per segment. A strip its rays rebuild poorly is kept, flown level at the
+    altitude of the strips rebuilt well, with its sigma stated; the report says per strip
+    what happened, and only a strip that even that cannot place is left out, with a warning
+    saying why.
 Memory
     Points are read in chunks and, past ``memory_points``, spilled to sorted run files
     beside the output and merged by time (an external sort), so memory does not grow with
