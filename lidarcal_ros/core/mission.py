@@ -113,7 +113,7 @@ class Trajectory:
             screening = SampleScreening.of(t, xyz, order, first)
             if screening.one_stamp:
                 raise TrajectoryError(
-                    f"{source}: all {t.size} poses carry the same stamp "
+                    f"{source}: all {order.size} poses carry the same stamp "
                     f"({t[order[0]]:.3f} s), so they trace no path (is the driver stamping "
                     "its poses?)")
             text = screening.warning()
