@@ -17,6 +17,7 @@ available (``$LIDARCAL_REAL_LAS_DIR`` or ``shared/data/las``).
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -193,6 +194,12 @@ def test_strips_apart_report_no_overlap(capsys, tmp_path, small_mission) -> None
     assert rc == EXIT_NOTHING_ESTIMATED
     assert "no strip pair overlaps" in out
     assert calibration_body(cal)["strip_pairs"] == []
+    rc, out, _ = run(capsys, "calibrate", bag, "-o", cal, "--config", small_mission.fast_config,
+                     "--write-identity", "--json")
+    assert rc == EXIT_NOTHING_ESTIMATED
+    doc = json.loads(out)["lidarcal_calibration"]
+    assert doc["nothing_estimated"].startswith("no overlap between strips")
+    assert doc == calibration_body(cal)
 
 
 def test_nothing_observable_still_reports_the_agreement(capsys, tmp_path,
