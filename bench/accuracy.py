@@ -135,7 +135,9 @@ def main() -> int:
             sol = res.solution
             used = sorted({c.model for c in res.models.values()})
             print(f" model {model} ({'/'.join(used)}): calibrate {t2 - t1:.1f} s, "
-                  f"{res.iterations} iterations, sigma0 {sol.sigma0 * 100:.2f} cm")
+                  f"{res.iterations} iterations "
+                  f"({'converged' if res.converged else 'NOT converged'}), sigma0 "
+                  f"{sol.sigma0 * 100:.2f} cm")
             failures += check_estimate(res, biases)
             ratios = [p.rms_after / base[(p.strip_a, p.strip_b)] for p in res.pairs]
             worst = max(ratios)

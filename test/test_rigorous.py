@@ -254,7 +254,8 @@ def test_laser_vector_qa_sees_a_timing_offset_and_a_wrong_field_of_view() -> Non
     assert late.along_median_m == pytest.approx(-1.2, abs=0.01)
     assert any("timing offset of -20 ms" in w for w in late.warnings)
     narrow = laser_vector_qa(rigorous_geometry(tp, pts, traj), fov_deg=30.0, speed_mps=60.0)
-    assert any("beyond the field of view" in w for w in narrow.warnings)
+    assert any("beyond the field of view" in w and "body convention" in w
+               for w in narrow.warnings)
 
 
 def test_strip_geometry_dispatches_by_model() -> None:

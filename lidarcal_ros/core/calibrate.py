@@ -107,7 +107,10 @@ class PreparedStrip:
     cells: np.ndarray  # sorted unique footprint cells
     priority: np.ndarray  # random rank of every point for sampling, fixed per strip
     choice: ModelChoice  # the point-positioning model it got, and why
-    laser_qa: LaserVectorQA  # what its laser vectors say
+    #: What its laser vectors say (as delivered; at the estimate once calibrated: what the
+    #: biases do not explain).
+    laser_qa: LaserVectorQA
+    speed_mps: float  # ground speed over the strip, m/s
     tin: Tin | None = None
     geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
     dropped: bool = False  # points released (memory budget); its pairs are frozen
@@ -356,16 +359,14 @@ class Calibrator:
                                       window_s=s.trajectory_window_s,
                                       source=f"strip {strip.strip_id}",
                                       heading_source=s.heading_source, model=s.model)
-        qa = laser_vector_qa(geom, fov_deg=s.fov_deg,
-                             speed_mps=_ground_speed(trajectory, strip.t))
-        for line in qa.warnings:
-            logger.warning("strip %d: %s", strip.strip_id, line)
+        speed = _ground_speed(trajectory, strip.t)
+        qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
         keys = self.footprint.keys(strip.xyz[:, :2])
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
         self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority, choice,
-                                         qa))
+                                         qa, speed))
         new = len(self.strips) - 1
         formed = []
         for other in range(new):
@@ -672,8 +673,9 @@ class Calibrator:
             scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2))) if inl.any() else 0.0
             threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m,
                                       threshold))
-            if iteration > 1 and np.all(
-                np.abs(step[est]) <= s.convergence_fraction * sol.sigma[est]
+            if iteration > 1 and (
+                np.all(np.abs(step[est]) <= s.convergence_fraction * sol.sigma[est])
+                or _matching_cycle(history, sol.sigma, est, s.convergence_fraction)
             ):
                 converged = True
                 break
@@ -858,9 +860,14 @@ class Calibrator:
         self, sol: Solution, obs: Observations, delta: np.ndarray, iterations: int,
         converged: bool, history: list[np.ndarray],
     ) -> CalibrationResult:
-        """QA: re-match the samples with the final estimate at the first threshold."""
+        """QA: re-match the samples with the final estimate at the first threshold; the
+        laser vectors of the points corrected by it."""
         s = self.settings
         corrected = self._corrected_all(delta)
+        for ps in self.strips:
+            if not ps.dropped:
+                ps.laser_qa = laser_vector_qa(ps.geometry, fov_deg=s.fov_deg,
+                                              speed_mps=ps.speed_mps)
         stats = []
         for pair in self.pairs:
             assert pair.sample is not None and pair.before is not None
@@ -905,6 +912,29 @@ def _at(obs: Observations, matched_at: np.ndarray, delta: np.ndarray) -> Observa
         return obs
     return Observations(obs.rows, obs.residuals(delta - matched_at), obs.weights, obs.group,
                         obs.cluster)
+
+
+#: Largest step (in sigmas, times ``convergence_fraction``) of a cycle of the matching taken
+#: for convergence: a correspondence entering and leaving the matched set at each iteration
+#: moves the estimate back and forth by a few hundredths of its sigmas, for ever.
+_CYCLE_FACTOR = 10.0
+
+
+def _matching_cycle(history: list[np.ndarray], sigma: np.ndarray, est: np.ndarray,
+                    fraction: float) -> bool:
+    """The estimates of the last iterations repeat with a period of two or three (to 1e-6
+    sigma), and their steps are below ``_CYCLE_FACTOR * fraction`` sigma: the iteration has
+    settled into a cycle of the discrete matching, not drifting."""
+    if len(history) < 4:
+        return False
+    last = history[-1][est]
+    width = sigma[est]
+    for period in (2, 3):
+        if len(history) > period and np.all(
+                np.abs(last - history[-1 - period][est]) <= 1e-6 * width):
+            spread = np.ptp(np.stack([h[est] for h in history[-period - 1:]]), axis=0)
+            return bool(np.all(spread <= _CYCLE_FACTOR * fraction * width))
+    return False
 
 
 def _ground_speed(trajectory: Trajectory, t: np.ndarray) -> float:

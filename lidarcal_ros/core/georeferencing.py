@@ -361,10 +361,14 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
                     ) -> LaserVectorQA:
     """The QA of a strip's laser vectors (:class:`LaserVectorQA`).
 
+    Boresight and lever-arm biases lean the laser vectors by decimetres (``-z domega + x
+    dkappa + dY`` along track), so the warnings mean most for the points corrected by the
+    calibration's estimate: what the biases do not explain.
+
     Parameters
     ----------
     geometry : LaserGeometry
-        The strip's points as delivered.
+        The strip's points (as delivered, or corrected by the estimate).
     fov_deg : float
         The scanner's full field of view, deg (``sensor.fov_deg``).
     speed_mps : float
@@ -392,10 +396,13 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
                 f"laser vectors spread +-{spread:.2f} m along track (5-95 %): the poses' "
                 "orientation is not the scanner's (body convention, time base)?")
     if outside > MAX_OUTSIDE_FOV:
-        warnings.append(
-            f"{100.0 * outside:.1f}% of the laser vectors point beyond the field of view "
-            f"(+-{half:g} deg; scan angles {lo:+.1f} to {hi:+.1f} deg): sensor.fov_deg, or "
-            "the body convention?")
+        reach = (f"{100.0 * outside:.1f}% of the scan angles lie beyond the field of view "
+                 f"(+-{half:g} deg; {lo:+.1f} to {hi:+.1f} deg)")
+        if geometry.model == RIGOROUS:
+            warnings.append(f"{reach}: sensor.fov_deg, or the body convention?")
+        else:
+            warnings.append(f"{reach}: the platform rolls, and the level model reads its roll "
+                            "as scan angle (sensor.fov_deg?)")
     return LaserVectorQA(median, spread, lo, hi, outside, warnings)
 
 
