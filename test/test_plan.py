@@ -218,3 +218,24 @@ def test_bad_dsm_one_line(tmp_path: Path, capsys) -> None:
         predict(FlightPlan.from_mapping({"terrain": "site.npy", "lines": PAPER}))
     assert math.isfinite(RasterTerrain(np.array([[np.nan, 1.0], [2.0, np.nan]]), west=0,
                                        north=0, cell_m=1).height(0.5, -0.5))
+
+
+def test_a_banked_turn_over_one_track_shows_dkappa() -> None:
+    """Lines all on one track cannot see dkappa (method.md section 7, remark 6); a banked
+    turn across them can, by the rigorous model's normal matrix (the poses' INS attitude,
+    section 10), better than by the level model's; the report names the model."""
+    turn = {"id": 7, "start": [-150, -HALF], "end": [150, HALF], "height": 1150,
+            "bank_deg": 20}
+    base = {"lines": PAPER[:4], "control": [[0, 0, 0]]}
+    rigorous = predict(FlightPlan.from_mapping({**base, "lines": PAPER[:4] + [turn]}))
+    assert rigorous.model == "rigorous (INS attitude at 50 Hz) for every strip"
+    assert rigorous.parameters["dkappa"].estimable
+    level = predict(FlightPlan.from_mapping({**base, "lines": PAPER[:4] + [turn],
+                                             "model": "level"}))
+    assert level.model == "level (matching.model level) for every strip"
+    sigma_r, sigma_l = rigorous.parameters["dkappa"].sigma, level.parameters["dkappa"].sigma
+    assert sigma_r is not None and sigma_l is not None and sigma_r < sigma_l
+    with pytest.raises(ConfigError, match="model must be one of"):
+        FlightPlan.from_mapping({**base, "model": "exact"})
+    with pytest.raises(ConfigError, match="line 7"):
+        FlightPlan.from_mapping({**base, "lines": PAPER[:4] + [{**turn, "bank_deg": "x"}]})

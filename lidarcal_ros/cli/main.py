@@ -479,7 +479,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         print(json.dumps(report.to_json_dict(), indent=1))
         return 0
     print(f"{args.plan}: {report.strip_pairs} overlapping strip pairs, "
-          f"{report.correspondences} correspondences")
+          f"{report.correspondences} correspondences; model: {report.model}")
     for name, pred in report.parameters.items():
         if pred.estimable and pred.sigma is not None:
             value, unit = display_value(name, pred.sigma)

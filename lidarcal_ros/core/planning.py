@@ -20,8 +20,10 @@ import numpy as np
 
 from lidarcal_ros.core.adjustment import NormalEquations, ObservabilityLimits, solve
 from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator
+from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
+from lidarcal_ros.core.georeferencing import MODELS, describe_models
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.simulate import simulate_mission, swath_width
+from lidarcal_ros.core.simulate import normalise_lines, simulate_mission, swath_width
 from lidarcal_ros.core.terrain import RasterTerrain
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
@@ -48,6 +50,12 @@ class FlightPlan:
     dsm: RasterTerrain | None = None
     terrain_cell_m: float | None = None
     terrain_origin: tuple[float, float] | None = None
+    #: ``matching.model`` the calibration will run with (:mod:`lidarcal_ros.core.
+    #: georeferencing`): ``auto`` (the default) and ``rigorous`` plan for poses that carry
+    #: the INS attitude the lines are flown with (a real INS never records an exactly level
+    #: flight, so ``auto`` will run the rigorous model on every strip), ``level`` for
+    #: positions only.
+    model: str = "auto"
 
     @property
     def uses_dsm(self) -> bool:
@@ -104,17 +112,19 @@ class FlightPlan:
         raw_lines = doc.get("lines")
         if not isinstance(raw_lines, Sequence) or isinstance(raw_lines, str) or not raw_lines:
             raise ConfigError(f"{source}: 'lines' must be a non-empty list")
-        lines = []
         for i, ln in enumerate(raw_lines):
-            try:
-                lid = int(ln.get("id", i + 1))
-                start = (float(ln["start"][0]), float(ln["start"][1]))
-                end = (float(ln["end"][0]), float(ln["end"][1]))
-                height = float(ln["height"])
-            except (AttributeError, KeyError, TypeError, ValueError, IndexError):
+            if not isinstance(ln, Mapping) or not all(k in ln for k in ("start", "end",
+                                                                         "height")):
                 raise ConfigError(f"{source}: line {i + 1} needs id, start [x, y], end [x, y] "
-                                  "and height") from None
-            lines.append({"id": lid, "start": start, "end": end, "height": height})
+                                  "and height (optional: turn_deg_s, bank_deg, roll_deg)")
+        try:
+            lines = normalise_lines([dict(ln) for ln in raw_lines])
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+        model = doc.get("model", "auto")
+        if model not in MODELS:
+            raise ConfigError(f"{source}: model must be one of {', '.join(MODELS)}, "
+                              f"got {model!r}")
         control = []
         for i, c in enumerate(doc.get("control", []) or []):
             try:
@@ -124,7 +134,7 @@ class FlightPlan:
                 raise ConfigError(f"{source}: control point {i + 1} must be [x, y, z]") from None
             control.append((x, y, z))
         return cls(lines, terrain, fov, noise, density, speed, control,
-                   terrain_cell_m=cell_m, terrain_origin=origin)
+                   terrain_cell_m=cell_m, terrain_origin=origin, model=str(model))
 
 
 @dataclass
@@ -146,6 +156,8 @@ class PlanReport:
     advice: list[str]
     strip_pairs: int
     correspondences: int
+    #: The model the predictions are of, and why (``describe_models`` of the strips).
+    model: str = ""
 
     def to_json_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"parameters": {}, "advice": list(self.advice)}
@@ -159,6 +171,7 @@ class PlanReport:
             out["parameters"][name] = entry
         out["strip_pairs"] = self.strip_pairs
         out["correspondences"] = self.correspondences
+        out["model"] = self.model
         return out
 
 
@@ -176,9 +189,13 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         density=simulated_density, speed_mps=plan.speed_mps, range_noise_m=0.0, biases={},
         intensity_noise=0.0, seed=seed, n_control=0,
         control_xy=[(c[0], c[1]) for c in plan.control] if plan.control else None,
+        attitude=plan.model != LEVEL,
     )
-    settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits())
+    settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
+                                   model=LEVEL if plan.model == LEVEL else RIGOROUS,
+                                   fov_deg=plan.fov_deg)
     cal = Calibrator.from_mission(sim.mission, settings)
+    model = describe_models({ps.strip_id: ps.choice for ps in cal.strips})
     obs = cal.observations_at(np.zeros(len(PARAMETER_NAMES)))
     neq = NormalEquations.from_observations(obs)
     # A correspondence compares a point with a patch interpolated from three noisy vertices;
@@ -193,7 +210,8 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         reason = str(exc)
         parameters = {n: ParameterPrediction(False, None, None, None, reason)
                       for n in PARAMETER_NAMES}
-        return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs))
+        return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs),
+                          model)
     est = list(sol.estimated)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
@@ -207,7 +225,7 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         parameters[name] = ParameterPrediction(
             True, float(sol.sigma[i]),
             round(float(corr[k]), 3) if k >= 0 else None, est[k] if k >= 0 else None)
-    return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs))
+    return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs), model)
 
 
 def _check_dsm_covers(plan: FlightPlan, dsm: RasterTerrain) -> None:
