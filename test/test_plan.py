@@ -227,10 +227,10 @@ def test_a_banked_turn_over_one_track_shows_dkappa() -> None:
     turn = {"id": 7, "start": [-150, -HALF], "end": [150, HALF], "height": 1150,
             "bank_deg": 20}
     base = {"lines": PAPER[:4], "control": [[0, 0, 0]]}
-    rigorous = predict(FlightPlan.from_mapping({**base, "lines": PAPER[:4] + [turn]}))
+    rigorous = predict(FlightPlan.from_mapping({**base, "lines": [*PAPER[:4], turn]}))
     assert rigorous.model == "rigorous (INS attitude at 50 Hz) for every strip"
     assert rigorous.parameters["dkappa"].estimable
-    level = predict(FlightPlan.from_mapping({**base, "lines": PAPER[:4] + [turn],
+    level = predict(FlightPlan.from_mapping({**base, "lines": [*PAPER[:4], turn],
                                              "model": "level"}))
     assert level.model == "level (matching.model level) for every strip"
     sigma_r, sigma_l = rigorous.parameters["dkappa"].sigma, level.parameters["dkappa"].sigma
@@ -238,4 +238,4 @@ def test_a_banked_turn_over_one_track_shows_dkappa() -> None:
     with pytest.raises(ConfigError, match="model must be one of"):
         FlightPlan.from_mapping({**base, "model": "exact"})
     with pytest.raises(ConfigError, match="line 7"):
-        FlightPlan.from_mapping({**base, "lines": PAPER[:4] + [{**turn, "bank_deg": "x"}]})
+        FlightPlan.from_mapping({**base, "lines": [*PAPER[:4], {**turn, "bank_deg": "x"}]})
