@@ -25,7 +25,9 @@ Conventions. ``kappa`` is method.md's: ``R_kappa`` maps the body frame (right, f
 to the map (east, north, up), so the body's forward axis points along ``(-sin kappa, cos
 kappa)``. An orientation quaternion is REP-103's: it rotates the body frame (x forward, y left,
 z up) into the map frame, so its yaw ``psi`` is the angle from east to the forward axis and
-``kappa = psi - pi/2``. Roll and pitch are not used (method.md assumes a level platform).
+``kappa = psi - pi/2``. This module serves the level model (method.md sections 2-4), which
+uses the heading alone; the rigorous model (:mod:`lidarcal_ros.core.georeferencing`) uses the
+whole attitude.
 """
 
 from __future__ import annotations
