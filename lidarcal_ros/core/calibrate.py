@@ -15,7 +15,7 @@ the horizontal parameters.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -228,6 +228,32 @@ class NothingEstimated(CalibrationError):
         super().__init__(reason)
         self.reason = reason
         self.result = result
+
+
+@dataclass
+class Iteration:
+    """One match-and-adjust iteration of :meth:`Calibrator.iterate`.
+
+    Attributes
+    ----------
+    number : int
+        1 for the first iteration from the estimate the calibrator held.
+    solution : Solution
+        The adjustment (formal sigmas); ``solution.delta`` is the new estimate (SI).
+    observations : Observations
+        The correspondences adjusted, with their robust weights.
+    step : (8,) float64
+        Change of the estimate in this iteration (SI).
+    converged : bool
+        From the second iteration on: no estimated parameter moved by more than
+        ``convergence_fraction`` of its sigma.
+    """
+
+    number: int
+    solution: Solution
+    observations: Observations
+    step: np.ndarray
+    converged: bool
 
 
 def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -610,12 +636,41 @@ class Calibrator:
 
     def run(self, *, max_iterations: int | None = None,
             new_pairs_only: bool = False) -> CalibrationResult:
-        """Iterate matching and adjustment from the current estimate to convergence.
+        """Iterate matching and adjustment from the current estimate to convergence (at most
+        ``max_iterations``, default the settings'): :meth:`iterate` until an iteration
+        converges, then :meth:`conclude`.
 
         Pairs met for the first time are matched once at zero correction: that chooses their
         sample points and gives the "before" discrepancies. With ``new_pairs_only`` (a live
         update), pairs matched before keep their last correspondences instead of being
         re-matched; only pairs formed since are matched each iteration.
+        """
+        limit = max_iterations or self.settings.max_iterations
+        iterations = self.iterate(new_pairs_only=new_pairs_only)
+        history: list[np.ndarray] = []
+        while True:
+            done = next(iterations)
+            if done is None:
+                continue
+            history.append(done.solution.delta.copy())
+            if done.converged or done.number >= limit:
+                return self.conclude(done, history)
+
+    def iterate(self, *, new_pairs_only: bool = False) -> Iterator[Iteration | None]:
+        """Match and adjust from the current estimate, iteration after iteration, for as long
+        as the caller takes items (:meth:`run`'s options).
+
+        Yields None after each strip pair matched (where the caller may pause, or stop:
+        nothing is committed until the iteration's adjustment) and an :class:`Iteration`
+        after each adjustment, whose estimate and matching threshold are from then on the
+        calibrator's (:attr:`delta`, :attr:`threshold`). Strips, pairs and control points must
+        not change while the iterations are under way; :meth:`conclude` turns the last one
+        into a result.
+
+        Raises
+        ------
+        CalibrationError
+            Nothing to match (at the first item).
         """
         s = self.settings
         control = self.control
@@ -623,14 +678,6 @@ class Calibrator:
         frozen = self._kept()
         if not self.pairs and not frozen and (control is None or len(control) == 0):
             raise CalibrationError("no overlap between strips and no control points")
-        delta = self.delta.copy()
-        threshold = self.threshold
-        history: list[np.ndarray] = []
-        converged = False
-        sol: Solution | None = None
-        obs = Observations.empty()
-        step = np.zeros(N_PARAMETERS)
-        iteration = 0
         fresh = [p for p in live if p.sample is None]
         if new_pairs_only:
             kept = [p for p in live if p.last is not None and p.last_delta is not None]
@@ -639,17 +686,25 @@ class Calibrator:
             live = [p for p in live if p not in kept]
         self._choose_samples(fresh)
         self._control_matches_before()
-        for iteration in range(1, (max_iterations or s.max_iterations) + 1):
-            corrected = {k: self._corrected(k, delta) for k in self._used_strips(live)}
+        iteration = 0
+        history: list[np.ndarray] = []
+        while True:
+            iteration += 1
+            delta = self.delta.copy()
+            corrected: dict[int, tuple[np.ndarray, np.ndarray]] = {}
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
             parts = [_at(obs, at, delta) for obs, at in frozen]
             for p_i, pair in enumerate(live):
                 self._progress(f"iteration {iteration}: matching", p_i / max(len(live), 1))
                 assert pair.sample is not None
-                m = self._match_pair(pair, pair.sample, delta, corrected, threshold)
+                for k in (pair.a, pair.b):
+                    if k not in corrected:
+                        corrected[k] = self._corrected(k, delta)
+                m = self._match_pair(pair, pair.sample, delta, corrected, self.threshold)
                 pair.last = self._pair_observations(pair, pair.sample, m)
                 pair.last_delta = delta.copy()
                 parts.append(pair.last)
+                yield None
             if control is not None and len(control):
                 corrected.update({k: self._corrected(k, delta) for k in range(len(self.strips))
                                   if k not in corrected and not self.strips[k].dropped})
@@ -663,28 +718,29 @@ class Calibrator:
             self._progress(f"iteration {iteration}: adjusting", 1.0)
             sol = self._robust_solve(obs, delta)
             step = sol.delta - delta
-            delta = sol.delta.copy()
-            history.append(delta.copy())
             est = np.isfinite(sol.sigma)
             logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
                         iteration, sol.sigma0, len(obs),
                         float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
             inl = (obs.weights > 0) & (obs.group >= 0)
             scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2))) if inl.any() else 0.0
-            threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m,
-                                      threshold))
-            if iteration > 1 and (
+            self.threshold = float(np.clip(2.0 * s.robust_k * scale, s.min_normal_distance_m,
+                                           self.threshold))
+            self.delta = sol.delta.copy()
+            history.append(self.delta.copy())
+            converged = iteration > 1 and bool(
                 np.all(np.abs(step[est]) <= s.convergence_fraction * sol.sigma[est])
-                or _matching_cycle(history, sol.sigma, est, s.convergence_fraction)
-            ):
-                converged = True
-                break
-        assert sol is not None
-        self.delta = delta
-        self.threshold = threshold
-        self.normal_equations = NormalEquations.from_observations(obs)
-        self._allow_for_shared_errors(sol, obs, step)
-        return self._finish(sol, obs, delta, iteration, converged, history)
+                or _matching_cycle(history, sol.sigma, est, s.convergence_fraction))
+            yield Iteration(iteration, sol, obs, step, converged)
+
+    def conclude(self, last: Iteration, history: list[np.ndarray]) -> CalibrationResult:
+        """The result of the iterations of :meth:`iterate` that ended with ``last`` (their
+        estimates in ``history``): sigmas allowing for shared errors, and the QA of every pair
+        at the estimate. Call once per iteration (it widens ``last``'s sigmas)."""
+        self.normal_equations = NormalEquations.from_observations(last.observations)
+        self._allow_for_shared_errors(last.solution, last.observations, last.step)
+        return self._finish(last.solution, last.observations, last.solution.delta, last.number,
+                            last.converged, history)
 
     def unestimated_result(self, reason: str) -> CalibrationResult:
         """The result of a calibration that estimated nothing (``reason``): every bias at
@@ -997,6 +1053,6 @@ def calibrate(
 
 
 __all__: Sequence[str] = (
-    "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual",
+    "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual", "Iteration",
     "NothingEstimated", "PairDiscrepancies", "PairStats", "calibrate", "footprint_keys",
 )
