@@ -73,6 +73,83 @@ def test_replay_equals_offline(sim: SimulatedMission) -> None:
     assert len(live.pairs) == len(offline.pairs)
 
 
+def _within(result: Any, reference: Any, fraction: float) -> np.ndarray:
+    """Differences from ``reference`` in its sigmas, asserting each within ``fraction``."""
+    est = np.isfinite(reference.solution.sigma)
+    assert np.array_equal(np.isfinite(result.solution.sigma), est)
+    diff = np.abs(result.solution.delta - reference.solution.delta)[est] / \
+        reference.solution.sigma[est]
+    assert np.all(diff <= fraction), diff
+    return diff
+
+
+def test_the_stream_converges_by_itself_to_the_offline_estimate(
+        sim: SimulatedMission, tmp_path: Path) -> None:
+    """Never asked to solve: stepped whenever it has nothing else to do (here, a few steps
+    after each cloud and at the end), the refinement converges after the strips' quick updates,
+    a new strip makes the estimate not converged again, and the last one converged is the
+    offline estimate. A checkpoint keeps whether it was converged and the matching threshold;
+    resumed, it converges again to the same estimate."""
+    config = FlightConfig()
+    offline = calibrate(sim.mission, config.calibration_settings())
+    stream = StreamingCalibration(config, control=sim.mission.control)
+    converged_on: list[list[int]] = []  # strips closed when a refinement converged
+    quick: list[Any] = []
+    for t, kind, payload in _chunks(sim):
+        if kind == "pose":
+            stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
+                                  payload[1][None, :])
+            continue
+        stream.add_cloud(payload, "map")
+        if (update := stream.update()) is not None:
+            quick.append(update)
+            assert not update.converged and not stream.converged
+            assert stream.refinement_pending
+        for _ in range(8):  # the spare time between two clouds
+            if (refined := stream.refine_step()) is not None:
+                # (or given up after calibration.max_iterations, as on the first two strips
+                # alone, where one point's matching flips between two iterations)
+                assert refined.converged == stream.converged and stream.latest is refined
+                assert not stream.refinement_pending
+                if refined.converged:
+                    converged_on.append([i for i in stream.strip_ids
+                                         if i not in stream.open_strip_ids])
+    assert len(quick) >= 3
+    # converged between strips, and not converged any more once the next strip came
+    assert converged_on and len(converged_on[0]) < len(sim.mission.strips)
+    assert stream.update(np.inf) is not None and not stream.converged
+    last_quick = stream.latest
+    assert last_quick is not None and not last_quick.converged
+    for _ in range(5):  # under way when the checkpoint is written
+        assert stream.refine_step() is None
+    assert stream.refinement_pending
+    midway = StreamingCalibration.load_checkpoint(
+        stream.save_checkpoint(tmp_path / "midway.npz"), config)
+    assert not midway.converged and midway.refinement_pending
+    assert midway._calibrator.threshold == stream._calibrator.threshold
+    result = stream.converge()
+    assert result is not None and result.converged and stream.converged
+    assert stream.latest is result and not stream.refinement_pending
+    assert stream.converge() is None  # nothing left to do
+    # The offline estimate, to far better than the 0.1 sigma asked (the same fixed point);
+    # the quick update of the last strip was not.
+    _within(result, offline, 0.01)
+    assert result.solution.sigma == pytest.approx(offline.solution.sigma, rel=0.05,
+                                                  nan_ok=True)
+    assert len(result.pairs) == len(offline.pairs)
+    with pytest.raises(AssertionError):
+        _within(last_quick, offline, 0.01)
+    # resumed, midway or converged: the same estimate, and said whether converged
+    done = StreamingCalibration.load_checkpoint(
+        stream.save_checkpoint(tmp_path / "done.npz"), config)
+    assert done.converged and done.refinement_pending and done.latest is None
+    assert done._calibrator.threshold == stream._calibrator.threshold
+    for resumed in (midway, done):
+        again = resumed.converge()
+        assert again is not None and again.converged and resumed.converged
+        _within(again, result, 0.01)
+
+
 def test_checkpoint_resume_keeps_normal_equations(sim: SimulatedMission, tmp_path: Path) -> None:
     config = FlightConfig()
     events = _chunks(sim)

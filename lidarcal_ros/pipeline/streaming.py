@@ -4,9 +4,22 @@ Clouds arrive as chunks; a strip is complete once no point of it has arrived for
 ``strip_gap_s`` seconds of point time (and the trajectory covers its end). Each completed strip
 is prepared once (local trajectory, footprint), paired with the strips before it, and the
 adjustment is re-run from the current estimate: the new correspondences join the normal
-equations without re-preparing anything older. :meth:`StreamingCalibration.solve` runs the
-full adjustment exactly as ``lidarcal calibrate`` does on the same data, so a replayed bag gives
-the offline estimate.
+equations without re-preparing anything older. That quick update re-matches only the new
+strip's pairs, two iterations, so its estimate is not converged.
+
+Convergence goes on in the background (:meth:`StreamingCalibration.refine_step`, called
+whenever the caller has nothing else to do): from the current estimate and matching threshold,
+every pair is re-matched and the adjustment re-solved, iteration after iteration, until an
+iteration moves no parameter by more than ``calibration.convergence_fraction`` of its sigma
+(from the second on, as ``lidarcal calibrate`` decides) or ``calibration.max_iterations`` pass.
+Each step is one strip pair's matching or one adjustment, so the caller can take input between
+them. Whatever changes the data (a strip closed, a strip released under the memory budget,
+control points, the configuration) makes the estimate not converged and starts the refinement
+afresh from the estimate reached. The converged estimate is the one ``lidarcal calibrate``
+gives on the same strips: the same sample points, thresholds and control, converged to the same
+fixed point. :meth:`StreamingCalibration.solve` runs the full adjustment from zero exactly as
+``lidarcal calibrate`` does. Checkpoints keep whether the estimate was converged and the
+matching threshold; a calibration resumed from one converges again before its first result.
 
 Memory: points are held under a budget; past it the oldest complete strip is released first,
 its strip pairs keeping their last correspondences (frozen), and the count is reported. Where
@@ -21,13 +34,15 @@ from __future__ import annotations
 
 import logging
 import os
+import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from lidarcal_ros.core.adjustment import NormalEquations, Observations
-from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator
+from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator, Iteration
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.local_trajectory import served_by_trajectory
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
@@ -106,6 +121,15 @@ class _OpenStrip:
         return Strip(strip_id, np.concatenate(self.xyz)[order], t[order], inten)
 
 
+@dataclass
+class _Refinement:
+    """A background convergence under way (module docstring)."""
+
+    iterations: Iterator[Iteration | None]
+    history: list[np.ndarray] = field(default_factory=list)
+    seconds: float = 0.0  # spent in its steps, s
+
+
 class StreamingCalibration:
     """Accumulate clouds, trajectory and control; calibrate strip by strip.
 
@@ -146,6 +170,12 @@ class StreamingCalibration:
         #: it (module docstring); 0 while it did not.
         self.auto_thinning_cell_m = 0.0
         self.latest: CalibrationResult | None = None
+        #: Whether the estimate held is converged on the strips held (module docstring).
+        self.converged = False
+        #: Seconds the last refinement concluded took in its steps (NaN: none yet).
+        self.refinement_seconds = float("nan")
+        self._refinement: _Refinement | None = None
+        self._refinement_wanted = False
         self.waiting_for = "no strip complete yet"
         self.normal_equations = NormalEquations()
         self._traj_t: list[np.ndarray] = []
@@ -233,6 +263,7 @@ class StreamingCalibration:
         self._control = control
         self._calibrator.control = control
         self._calibrator._control_before = None
+        self._data_changed()
 
     def update_config(self, config: FlightConfig) -> None:
         """New configuration: the strips are re-prepared with it at the next update."""
@@ -279,6 +310,7 @@ class StreamingCalibration:
             self.dropped_points += n
             self.dropped_strips.append(oldest)
             self._closed = [s for s in self._closed if s.strip_id != oldest]
+            self._data_changed()
             logger.warning("memory budget: released strip %d (%d points); its pairs keep their "
                            "last correspondences", oldest, n)
 
@@ -362,16 +394,20 @@ class StreamingCalibration:
             formed = self._close(sid)
             logger.info("strip %d complete: overlaps %s", sid,
                         ", ".join(str(a) for a, _ in formed) or "no earlier strip")
+        self._data_changed(refine=False)
         try:
             # Two iterations from the current estimate, re-matching only the new strip's pairs
             # (the others keep their last correspondences): the estimate carries over from
-            # strip to strip, and solve() re-matches everything to convergence when asked.
-            return self._solve(max_iterations=2, new_pairs_only=True)
+            # strip to strip, and the refinement re-matches everything to convergence.
+            result = self._solve(max_iterations=2, new_pairs_only=True)
         except CalibrationError as exc:
             # Too little data so far (one strip, no overlap yet): keep accumulating.
             self.waiting_for = str(exc)
             logger.info("not solved yet: %s", exc)
             return None
+        result.converged = self.converged = False  # (the pairs kept were not re-matched)
+        self._refinement_wanted = True
+        return result
 
     def solve(self) -> CalibrationResult:
         """Close every open strip the trajectory covers and run the full adjustment, as
@@ -379,25 +415,100 @@ class StreamingCalibration:
         for sid in sorted(self._open, key=lambda k: self._open[k].last_t):
             if self._covered(self._open[sid].last_t):
                 self._close(sid)
+        self._data_changed(refine=False)
         self._calibrator.delta = np.zeros_like(self._calibrator.delta)
         self._calibrator.threshold = self._calibrator.settings.max_normal_distance_m
-        return self._solve(max_iterations=None)
-
-    def resolve(self) -> CalibrationResult:
-        """Re-run the adjustment over the complete strips only (open strips stay open), from
-        the current estimate: what a restarted node republishes."""
-        return self._solve(max_iterations=None)
+        result = self._solve(max_iterations=None)
+        # Not converged within calibration.max_iterations: the refinement may go on.
+        self.converged = result.converged
+        self._refinement_wanted = not result.converged
+        return result
 
     def _solve(self, *, max_iterations: int | None,
                new_pairs_only: bool = False) -> CalibrationResult:
+        self._pass_counters()
+        return self._adopt(self._calibrator.run(max_iterations=max_iterations,
+                                                new_pairs_only=new_pairs_only))
+
+    def _pass_counters(self) -> None:
+        """The input counters the calibration's results report."""
         self._calibrator.dropped_non_finite = self.dropped_non_finite
         self._calibrator.thinned_points = self.thinned_points
-        result = self._calibrator.run(max_iterations=max_iterations,
-                                      new_pairs_only=new_pairs_only)
+
+    def _adopt(self, result: CalibrationResult) -> CalibrationResult:
         self.latest = result
         self.waiting_for = ""
         self.normal_equations = self._calibrator.normal_equations
         return result
+
+    # ------------------------------------------------------------------ refinement
+    @property
+    def refinement_pending(self) -> bool:
+        """Whether :meth:`refine_step` has work: an estimate not yet converged on the strips
+        held (and not given up after ``calibration.max_iterations``)."""
+        return self._refinement_wanted
+
+    @property
+    def refinement_iteration(self) -> int:
+        """Iterations the refinement under way has completed (0: none under way)."""
+        return len(self._refinement.history) if self._refinement is not None else 0
+
+    def _data_changed(self, *, refine: bool | None = None) -> None:
+        """The strips, pairs or control points held changed: the estimate is no longer known
+        to be converged, and a refinement under way (on the data before) is dropped. The
+        refinement starts afresh if ``refine`` (default: if there is an estimate)."""
+        self.converged = False
+        self._refinement = None
+        self._refinement_wanted = self.latest is not None if refine is None else refine
+
+    def refine_step(self) -> CalibrationResult | None:
+        """Take the background convergence one step further (module docstring): one strip
+        pair's matching or one adjustment, from the estimate reached.
+
+        Returns the result once an iteration converged (:attr:`converged` then True) or
+        ``calibration.max_iterations`` passed without (False); None while under way or with
+        nothing to do (:attr:`refinement_pending`). Too little data to solve ends it quietly
+        (:attr:`waiting_for` says why).
+        """
+        if not self._refinement_wanted:
+            return None
+        started = time.perf_counter()
+        refinement = self._refinement
+        if refinement is None:
+            refinement = self._refinement = _Refinement(self._calibrator.iterate())
+        try:
+            done = next(refinement.iterations)
+        except CalibrationError as exc:
+            self._data_changed(refine=False)
+            self.waiting_for = str(exc)
+            logger.info("not refined: %s", exc)
+            return None
+        if done is not None:
+            refinement.history.append(done.solution.delta.copy())
+        if done is None or not (done.converged or
+                                done.number >= self._calibrator.settings.max_iterations):
+            refinement.seconds += time.perf_counter() - started
+            return None
+        self._pass_counters()
+        result = self._adopt(self._calibrator.conclude(done, refinement.history))
+        self.converged = done.converged
+        self._refinement, self._refinement_wanted = None, False
+        self.refinement_seconds = refinement.seconds + time.perf_counter() - started
+        logger.info("refined: %s after %d iterations (%.2f s)",
+                    "converged" if done.converged else "NOT converged", done.number,
+                    self.refinement_seconds)
+        return result
+
+    def converge(self, timeout_s: float = np.inf) -> CalibrationResult | None:
+        """:meth:`refine_step` until the refinement ends or ``timeout_s`` seconds passed;
+        returns its result, None if it did not end (:attr:`refinement_pending` says whether
+        it was cut short) or there was nothing to refine."""
+        deadline = time.monotonic() + timeout_s
+        while self._refinement_wanted and time.monotonic() < deadline:
+            result = self.refine_step()
+            if result is not None:
+                return result
+        return None
 
     def reset(self) -> None:
         """Forget everything accumulated (data, estimate, correspondences); keep the
@@ -409,6 +520,7 @@ class StreamingCalibration:
         self.thinned_points = 0
         self.auto_thinning_cell_m = 0.0
         self.latest = None
+        self._data_changed(refine=False)
         self.normal_equations = NormalEquations()
         self._traj_t, self._traj_xyz, self._traj_q = [], [], []
         self._trajectory = None
@@ -427,6 +539,7 @@ class StreamingCalibration:
             cal.add_strip(strip, self.trajectory)
         cal.delta = self._calibrator.delta
         self._calibrator = cal
+        self._data_changed()
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path: str | Path) -> Path:
@@ -440,6 +553,7 @@ class StreamingCalibration:
                                  else np.empty((0, 4))),
             "delta": self._calibrator.delta,
             "threshold": np.array(self._calibrator.threshold),
+            "converged": np.array(self.converged),
             "counters": np.array([self.dropped_points, self.dropped_non_finite,
                                   self.thinned_points]),
             "auto_thinning_cell_m": np.array(self.auto_thinning_cell_m),
@@ -544,6 +658,11 @@ class StreamingCalibration:
             self._calibrator.delta = np.array(data["delta"])
             self._calibrator.restore_frozen(frozen)  # expressed at the saved estimate
             self._calibrator.threshold = float(data["threshold"])
+            # (checkpoints of earlier versions lack it: not known to be converged)
+            self.converged = bool(data["converged"]) if "converged" in data else False
+            # No result survives a restart: converge again (at once where it was converged)
+            # for one to publish.
+            self._refinement_wanted = bool(self._closed) or len(frozen) > 0
             self.normal_equations = NormalEquations(
                 np.array(data["neq_n"]), np.array(data["neq_u"]), float(data["neq_yy"]),
                 int(data["neq_count"]))
