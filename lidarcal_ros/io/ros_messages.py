@@ -10,7 +10,8 @@ The estimate message
 ``std_msgs/Float64MultiArray`` on ``/lidar/calibration/estimate`` (transient-local, depth 1),
 a 10 x 8 row-major matrix (:data:`ESTIMATE_ROWS` x :data:`PARAMETER_NAMES`):
 
-* ``layout.dim[0]``: label ``"value,sigma,covariance[dX..dS]"``, size 10, stride 80;
+* ``layout.dim[0]``: label ``"value,sigma,covariance[dX..dS];converged=true"`` (``false``
+  for an estimate not converged: :func:`estimate_row_label`), size 10, stride 80;
 * ``layout.dim[1]``: label ``"dX,dY,dZ,domega,dphi,dkappa,dr,dS"``, size 8, stride 8;
 * row 0: the values (SI: m, rad, 1; the fixed value for parameters not estimated);
 * row 1: the standard deviations (NaN for parameters not estimated);
@@ -61,6 +62,7 @@ LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
 #: Rows of the estimate matrix.
 ESTIMATE_ROWS = ("value", "sigma", *(f"covariance_{n}" for n in PARAMETER_NAMES))
 ESTIMATE_ROW_LABEL = "value,sigma,covariance[" + ",".join(PARAMETER_NAMES) + "]"
+_CONVERGED_TAG = ";converged="
 ESTIMATE_COLUMN_LABEL = ",".join(PARAMETER_NAMES)
 
 _NS = 1_000_000_000
@@ -257,6 +259,12 @@ def estimate_matrix(result: Any) -> np.ndarray:
     return out
 
 
+def estimate_row_label(converged: bool) -> str:
+    """The label of the estimate's rows (``layout.dim[0]``), which also says whether the
+    estimate is converged (the shape and the other fields stay as they are)."""
+    return f"{ESTIMATE_ROW_LABEL}{_CONVERGED_TAG}{'true' if converged else 'false'}"
+
+
 @dataclass
 class Estimate:
     """The estimate message read back (SI units)."""
@@ -264,6 +272,8 @@ class Estimate:
     values: dict[str, float]
     sigmas: dict[str, float | None]
     covariance: np.ndarray  # (8, 8), zero for parameters not estimated
+    #: Whether the estimate is converged (the row label's flag); None where not said.
+    converged: bool | None = None
 
     @property
     def delta(self) -> np.ndarray:
@@ -275,7 +285,8 @@ class Estimate:
 
 
 def parse_estimate(data: Sequence[float] | np.ndarray, labels: Sequence[str] = ()) -> Estimate:
-    """Read the estimate matrix (``Float64MultiArray.data``, and optionally the dim labels).
+    """Read the estimate matrix (``Float64MultiArray.data``, and optionally the dim labels,
+    whose first says whether the estimate is converged).
 
     Raises
     ------
@@ -293,7 +304,11 @@ def parse_estimate(data: Sequence[float] | np.ndarray, labels: Sequence[str] = (
     values = {n: float(m[0, i]) for i, n in enumerate(PARAMETER_NAMES)}
     sigmas = {n: (float(m[1, i]) if math.isfinite(m[1, i]) else None)
               for i, n in enumerate(PARAMETER_NAMES)}
-    return Estimate(values, sigmas, m[2:].copy())
+    converged = None
+    if labels:
+        _, tagged, flag = labels[0].partition(_CONVERGED_TAG)
+        converged = flag == "true" if tagged else None
+    return Estimate(values, sigmas, m[2:].copy(), converged)
 
 
 def calibration_yaml(result: Any) -> str:

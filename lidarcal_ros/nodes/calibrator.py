@@ -9,19 +9,25 @@ and the control points (``topics.control_points``, transient-local; or the CSV o
 of it arrived for ``strip_gap_s`` seconds of point (or trajectory) time, or once no input at
 all arrived for ``idle_close_s`` wall seconds (the end of a mission or a replay). Each complete
 strip is paired with the earlier strips it overlaps, its correspondences join the normal
-equations and the estimate is re-solved.
+equations and the estimate is re-solved quickly (two iterations, the new pairs re-matched:
+published, not converged). Whenever no input is waiting, the worker then takes the estimate to
+convergence a step at a time (every pair re-matched; one pair's matching or one adjustment per
+step, input taken in between) and publishes it once converged: with no service call, the
+estimate latched after the last strip is what ``lidarcal calibrate`` gives on the same bag.
 
 Publishes
 ---------
 ``/lidar/calibration/estimate`` (``std_msgs/Float64MultiArray``, transient-local, depth 1)
     10 x 8 matrix: values, sigmas, covariance of ``dX, dY, dZ, domega, dphi, dkappa, dr, dS``
-    (SI units; layout in :mod:`lidarcal_ros.io.ros_messages`).
+    (SI units; layout in :mod:`lidarcal_ros.io.ros_messages`); the label of ``layout.dim[0]``
+    ends in ``;converged=true`` or ``;converged=false``.
 ``/lidar/calibration/yaml`` (``std_msgs/String``, transient-local, depth 1)
-    The calibration file of interface.md.
+    The calibration file of interface.md (``converged`` says whether it is).
 ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every second and after each solve)
     ``lidarcal: strips A&B`` per overlapping pair (RMS discrepancy after calibration against
     ``qa.rmsdz_warn_m`` / ``qa.max_difference_m``, USGS LBS QL2 8 cm / 16 cm: OK, WARN, ERROR;
-    values coverage, rms_before, rms_after, p95_after), ``lidarcal: convergence``,
+    values coverage, rms_before, rms_after, p95_after), ``lidarcal: convergence`` (WARN
+    while not converged; ``refining`` says whether the background convergence is under way),
     ``lidarcal: observability`` (parameters not estimable, with the reason),
     ``lidarcal: memory`` (points held, points and strips released under the budget) and
     ``lidarcal: input`` (clouds, malformed clouds skipped and why, queue).
@@ -29,14 +35,16 @@ Publishes
 Services (``std_srvs/Trigger``)
     ``~/solve``: full solve over everything accumulated (what ``lidarcal calibrate`` computes on
     the same data), published as above. ``~/reset``: forget everything, the checkpoint file
-    too (the latest estimate stays latched until the next solve). ``~/save``: write the
-    calibration file to ``calibration.calibration_file``; the message names the path.
+    too (the latest estimate stays latched until the next solve). ``~/save``: converge first
+    (at most ``SAVE_CONVERGE_S``; the message says if cut short), then write the calibration
+    file to ``calibration.calibration_file``; the message names the path.
 
 Node-specific parameters: ``memory_budget_points`` (points held; past it the oldest complete
 strip is released first and reported; 0, the default, sizes it to about half of the machine's
 memory), ``strip_gap_s``, ``idle_close_s``, ``checkpoint_file``
-(written after every solve and on shutdown; read at start, so a restarted calibrator resumes
-with its accumulated normal equations), ``queue_depth``, ``trajectory_type``.
+(written after every estimate published and on shutdown, which converges first for at most
+``SHUTDOWN_CONVERGE_S``; read at start, so a restarted calibrator resumes with its accumulated
+normal equations, converges again and publishes), ``queue_depth``, ``trajectory_type``.
 
 All work on the calibration happens in one worker thread; the subscription callbacks only
 decode and queue, so input keeps flowing while a solve runs.
@@ -51,6 +59,7 @@ import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -69,13 +78,13 @@ from lidarcal_ros.io.pointcloud import extract_columns, extract_xyz
 from lidarcal_ros.io.ros_messages import (
     ERROR,
     ESTIMATE_COLUMN_LABEL,
-    ESTIMATE_ROW_LABEL,
     ESTIMATE_ROWS,
     OK,
     WARN,
     StatusSpec,
     calibration_yaml,
     estimate_matrix,
+    estimate_row_label,
     parse_cloud,
     qa_statuses,
     qa_summary,
@@ -118,6 +127,9 @@ EXTRA_PARAMETERS = {
 UPDATE_PERIOD_S = 0.2
 #: How long a service waits for the worker (a full solve of a large mission takes minutes).
 SERVICE_TIMEOUT_S = 600.0
+#: Longest wall time ``~/save`` and shutdown spend converging the estimate first, s.
+SAVE_CONVERGE_S = 300.0
+SHUTDOWN_CONVERGE_S = 5.0
 
 
 def streaming_class() -> Any:
@@ -272,7 +284,10 @@ class CalibratorNode(Node):
         pose_frame = ""
         while not self._closing.is_set():
             try:
-                kind, payload, future = self._jobs.get(timeout=0.05)
+                if self.stream.refinement_pending:  # spare time goes to the refinement
+                    kind, payload, future = self._jobs.get_nowait()
+                else:
+                    kind, payload, future = self._jobs.get(timeout=0.05)
             except queue.Empty:
                 kind, payload, future = "idle", None, None
             try:
@@ -326,6 +341,8 @@ class CalibratorNode(Node):
                 self._update(math.inf)
             elif self._jobs.empty():
                 self._update(None)
+            if self._jobs.empty():
+                self._refine()
             return None
         if kind == "solve":
             return self._solve()
@@ -386,6 +403,28 @@ class CalibratorNode(Node):
         if result is not None:
             self._publish_result(result, time.perf_counter() - started)
 
+    def _refine(self) -> None:
+        """One step of the background convergence; publish the estimate once it ends."""
+        result = self.stream.refine_step()
+        if result is not None:
+            self._publish_result(result, self.stream.refinement_seconds)
+
+    def _converge(self, timeout_s: float) -> str:
+        """Finish converging (at most ``timeout_s``) and publish; returns what to tell of it
+        ('' when the estimate is converged)."""
+        started = time.monotonic()
+        result = self.stream.converge(timeout_s)
+        if result is not None:
+            self._publish_result(result, self.stream.refinement_seconds)
+        if self.stream.converged:
+            return ""
+        if self.stream.refinement_pending:
+            return (f"NOT converged: convergence cut short after "
+                    f"{time.monotonic() - started:.0f} s")
+        latest = self.stream.latest
+        iterations = latest.iterations if latest is not None else 0
+        return f"NOT converged after {iterations} iterations"
+
     def _reset(self) -> str:
         self.stream.reset()
         self._point_end = self._traj_end = -math.inf
@@ -416,11 +455,13 @@ class CalibratorNode(Node):
     def _save(self) -> str:
         from lidarcal_ros.io.calibration_file import write_calibration
 
+        convergence = self._converge(SAVE_CONVERGE_S)
         result = self.stream.latest
         if result is None:
             raise LidarcalError("no estimate yet: " + (self.stream.waiting_for or "no data"))
         path = write_calibration(self.params["calibration.calibration_file"], result)
-        return f"calibration written to {Path(path).resolve()}"
+        return f"calibration written to {Path(path).resolve()}" + (
+            f" ({convergence})" if convergence else "")
 
     def _publish_result(self, result: Any, seconds: float) -> None:
         self.solves += 1
@@ -428,7 +469,8 @@ class CalibratorNode(Node):
         msg = Float64MultiArray()
         n_rows, n_cols = len(ESTIMATE_ROWS), 8
         msg.layout.dim = [
-            MultiArrayDimension(label=ESTIMATE_ROW_LABEL, size=n_rows, stride=n_rows * n_cols),
+            MultiArrayDimension(label=estimate_row_label(result.converged), size=n_rows,
+                                stride=n_rows * n_cols),
             MultiArrayDimension(label=ESTIMATE_COLUMN_LABEL, size=n_cols, stride=n_cols)]
         msg.data = estimate_matrix(result).ravel().tolist()
         self.estimate_pub.publish(msg)
@@ -547,9 +589,20 @@ class CalibratorNode(Node):
                                   "no estimate yet: " + (s.waiting_for or "no data")))
         return out
 
+    def _refinement_status(self, status: StatusSpec) -> StatusSpec:
+        """The convergence status of the latest estimate, saying whether the background
+        convergence is under way."""
+        s = self.stream
+        if not s.refinement_pending:
+            return replace(status, values={**status.values, "refining": "false"})
+        return replace(status, message=f"{status.message}; converging (iteration "
+                       f"{s.refinement_iteration + 1})", values={**status.values,
+                                                                 "refining": "true"})
+
     def _publish_diagnostics(self) -> None:
         with self._status_lock:
-            statuses = list(self._statuses)
+            statuses = [self._refinement_status(s) if s.name == "lidarcal: convergence" else s
+                        for s in self._statuses]
         try:
             statuses += self.node_statuses()
         except Exception as exc:  # diagnostics must not take the node down
@@ -558,11 +611,18 @@ class CalibratorNode(Node):
 
     # -- shutdown -------------------------------------------------------------------------
     def close(self) -> None:
-        """Stop the worker and write a last checkpoint."""
+        """Stop the worker, converge (at most ``SHUTDOWN_CONVERGE_S``) and write a last
+        checkpoint."""
         self._closing.set()
         self._worker.join(timeout=10.0)
+        written = self.checkpoints
+        if not self._worker.is_alive() and self.stream.refinement_pending:
+            convergence = self._converge(SHUTDOWN_CONVERGE_S)
+            if convergence:
+                self.get_logger().warning(f"shutdown: the estimate is {convergence} (a "
+                                          "restart from the checkpoint converges it)")
         path = self.params["checkpoint_file"]
-        if path and self.stream.strip_ids:
+        if path and self.stream.strip_ids and self.checkpoints == written:
             self._checkpoint(path)
 
 

@@ -266,9 +266,12 @@ class StreamingCalibration:
         self._data_changed()
 
     def update_config(self, config: FlightConfig) -> None:
-        """New configuration: the strips are re-prepared with it at the next update."""
+        """New configuration: where it changes the calibration's settings, the strips are
+        re-prepared with it and the estimate converged again."""
+        changed = config.calibration_settings() != self.config.calibration_settings()
         self.config = config
-        self._rebuild()
+        if changed:
+            self._rebuild()
 
     # ------------------------------------------------------------------ state
     @property
