@@ -217,13 +217,12 @@ def test_bad_solve_for_subprocess(tmp_path, small_mission):
 
 
 @pytest.mark.parametrize(("values", "expected"), [
-    ({"matching.foo": 1.0}, "unknown parameter 'matching.foo'"),
     ({"matching.max_slope_deg": "steep"}, "matching.max_slope_deg: expected a number, got"),
     ({"calibration.max_iterations": 2.5}, "calibration.max_iterations: expected an integer"),
     ({"calibration.robust_k": 0.5}, "calibration.robust_k: 0.5 is below the minimum 1.5"),
     ({"sensor.fov_deg": 500.0}, "sensor.fov_deg: 500.0 is above the maximum"),
     ({"calibration.solve_for": ["dX", "dQ"]}, "calibration.solve_for: unknown parameter(s) dQ"),
-], ids=["unknown", "type", "int", "below", "above", "solve_for"])
+], ids=["type", "int", "below", "above", "solve_for"])
 def test_bad_config(capsys, tmp_path, small_mission, values, expected):
     cfg = write_params_file(tmp_path / "flight.yaml", values)
     rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "c.yaml",
@@ -231,6 +230,29 @@ def test_bad_config(capsys, tmp_path, small_mission, values, expected):
     reason = one_line_error(rc, err)
     assert reason.startswith(f"{cfg}: ")
     assert expected in reason
+
+
+def test_keys_no_node_declares_are_named_in_one_warning(tmp_path, small_mission):
+    """The parameters file of ``lidarcal run --ros-args --params-file`` serves ``--config``
+    too: the nodes' own parameters are passed over in silence, a misspelt key (which would
+    leave its parameter at the default) and a key in the section of a node that does not
+    declare it are named in one warning line, and the calibration goes on."""
+    cfg = write_params_file(tmp_path / "flight.yaml", {
+        **helpers_missions.FAST_SETTINGS, "idle_close_s": 0.5, "lookahead": True,
+        "matching.max_slope": 60.0})
+    text = cfg.read_text() + yaml.safe_dump({"/lidarcal_calibrator": {"ros__parameters": {
+        "strip_gap_s": 3.0, "max_backlog_mib": 64}}})
+    cfg.write_text(text)
+    proc = run_process("calibrate", small_mission.bag, "-o", "c.yaml", "--config", cfg,
+                       cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if "WARNING" in ln]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].endswith("(misspelt?): matching.max_slope, max_backlog_mib "
+                             "(lidarcal_calibrator)"), lines[0]
+    assert str(cfg) in lines[0] and "2 parameter(s)" in lines[0]
+    assert (tmp_path / "c.yaml").is_file()
 
 
 @pytest.mark.parametrize(("text", "expected"), [

@@ -9,6 +9,7 @@ traceback) and passes ``--ros-args ...`` through to rclpy (remappings, ``-p``,
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import sys
 import threading
@@ -141,6 +142,23 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="rclpy arguments passed to every node (-p, -r, --params-file, ...)")
 
 
+def check_ros_parameters(ros_args: list[str]) -> None:
+    """Read the parameters ``--ros-args`` gives the nodes as ``--config`` reads its file,
+    before anything starts: a bad value ends with one line naming it; parameters that no
+    node declares (which the nodes would ignore: a misspelt key keeps its default) are named
+    in one warning line per file, and one for the ``-p`` ones."""
+    from lidarcal_ros.core.config import undeclared
+    from lidarcal_ros.io.config_file import load_flight_config, warn_undeclared
+
+    given: list[str] = []
+    for option, value in itertools.pairwise(ros_args):
+        if option == "--params-file":
+            load_flight_config(value)
+        elif option in ("-p", "--param") and ":=" in value:
+            given.append(value.split(":=", 1)[0])
+    warn_undeclared("--ros-args -p", undeclared(given))
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.config_file import load_flight_config
 
@@ -153,6 +171,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.config is not None:
         load_flight_config(args.config)  # one-line reason before anything starts
         extra += ["--params-file", str(args.config)]
+    check_ros_parameters(args.ros_args)
     if args.control is not None:
         from lidarcal_ros.io.control import read_control_csv
 

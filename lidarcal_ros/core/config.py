@@ -9,7 +9,7 @@ is refused offline with the same reason.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -133,6 +133,31 @@ SCHEMA: dict[str, ParameterSpec] = {
 for _name in PARAMETER_NAMES:
     SCHEMA[f"calibration.fixed.{_name}"] = _f(
         0.0, f"Value of {_name} when not estimated (surveyed), SI units")
+
+
+#: Parameters the nodes declare beside :data:`SCHEMA`, by node name (defined with their
+#: types and ranges by the nodes themselves; ``test_nodes`` checks that the two agree), and
+#: those every ROS 2 node declares. A parameters file may hold them; the CLI passes them over.
+NODE_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "lidarcal_flight_config": (),
+    "lidarcal_calibrator": ("memory_budget_points", "strip_gap_s", "idle_close_s",
+                            "checkpoint_file", "queue_depth", "trajectory_type"),
+    "lidarcal_corrector": ("calibration", "queue_depth", "best_effort", "trajectory_type",
+                           "trajectory_buffer_s", "max_trajectory_wait_s", "flush_timeout_s",
+                           "lookahead", "workers", "batch_points", "separate_process",
+                           "max_backlog_mib", "shared_memory_mib"),
+}
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def undeclared(names: Iterable[str], node: str | None = None) -> list[str]:
+    """Of ``names``, those that ``node`` (default: any lidarcal node) does not declare: in
+    a parameters file, misspelt or misplaced keys, which a node would ignore."""
+    known = set(SCHEMA) | set(ROS_PARAMETERS)
+    for name, own in NODE_PARAMETERS.items():
+        if node is None or name == node:
+            known.update(own)
+    return [n for n in names if n not in known]
 
 
 def coerce(name: str, value: Any) -> Any:
