@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import helpers_missions
 import numpy as np
 import pytest
+import yaml
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_estimate, format_value
@@ -624,21 +625,186 @@ def test_reset_forgets_everything_and_its_checkpoint(replayed: Replayed,
         suite.set_parameters("lidarcal_calibrator", checkpoint_file="")
 
 
-# ---------------------------------------------------------------------------- checkpoint
-def _checkpoint_state(path: Path) -> tuple[int, np.ndarray, list[int]]:
+# ---------------------------------------------------------------------------- convergence
+@dataclass
+class Outputs:
+    """What a calibrator of its own topics publishes, as a probe subscribed before it
+    started receives it (:meth:`subscribe`)."""
+
+    estimates: list[Any] = field(default_factory=list)
+    yamls: list[tuple[float, str]] = field(default_factory=list)  # (wall time, text)
+    diagnostics: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def subscribe(self, node: Any, prefix: str) -> None:
+        """Estimate, YAML and diagnostics on ``{prefix}/estimate``, ``/yaml``,
+        ``/diagnostics``."""
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_msgs.msg import Float64MultiArray, String
+
+        from lidarcal_ros.nodes.common import latched_qos
+
+        node.create_subscription(Float64MultiArray, f"{prefix}/estimate",
+                                 self.estimates.append, latched_qos())
+        node.create_subscription(String, f"{prefix}/yaml", lambda m: self.yamls.append(
+            (time.monotonic(), m.data)), latched_qos())
+        node.create_subscription(DiagnosticArray, f"{prefix}/diagnostics",
+                                 lambda m: self.diagnostics.update(
+                                     {s.name: {kv.key: kv.value for kv in s.values}
+                                      for s in m.status}), 100)
+
+    def latest(self) -> dict[str, Any] | None:
+        """The latest calibration received (the YAML's document), None before any."""
+        if not self.yamls:
+            return None
+        return dict(yaml.safe_load(self.yamls[-1][1])["lidarcal_calibration"])
+
+    def converged_over(self, pairs: set[tuple[int, int]]) -> bool:
+        """Whether the latest calibration is converged over exactly the strip ``pairs``."""
+        doc = self.latest()
+        return doc is not None and bool(doc["converged"]) and {
+            (int(a), int(b)) for a, b in (p["strips"] for p in doc["strip_pairs"])} == pairs
+
+
+def _remapped(prefix: str) -> list[str]:
+    """``-r`` rules that move a calibrator's topics under ``prefix``, away from the suite's
+    (the input ones first)."""
+    topics = {"/lidar/points": "points", "/lidar/trajectory": "trajectory",
+              "/lidar/control_points": "control_points",
+              "/lidar/calibration/estimate": "estimate", "/lidar/calibration/yaml": "yaml",
+              "/diagnostics": "diagnostics"}
+    return [arg for topic, name in topics.items() for arg in ("-r", f"{topic}:={prefix}/{name}")]
+
+
+def _check_offline(values: dict[str, float], offline: Any, what: str) -> None:
+    """Every estimated parameter of ``values`` within 0.1 sigma of the ``offline`` solution."""
+    for i, name in enumerate(PARAMETER_NAMES):
+        if name in offline.estimated:
+            off = abs(values[name] - offline.delta[i]) / offline.sigma[i]
+            assert off <= 0.1, f"{what}: {name} {off:.2f} sigma from lidarcal calibrate"
+
+
+def _pairs(result: Any) -> set[tuple[int, int]]:
+    return {(p.strip_a, p.strip_b) for p in result.pairs}
+
+
+def _checkpoint_state(path: Path) -> tuple[int, bool, list[int]]:
+    """Normal-equation count, converged, strips closed, of a checkpoint file."""
     with np.load(path) as data:
-        return (int(data["neq_count"]), np.array(data["neq_n"]),
+        return (int(data["neq_count"]), bool(data["converged"]),
                 sorted(int(i) for i in data["closed_ids"]))
+
+
+def _stop(procs: list[subprocess.Popen[str]]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def test_lidarcal_run_fed_by_a_replay_converges_without_a_service_call(
+        ros_context: Any, mission_factory: Any, tmp_path: Path) -> None:
+    """The issue's new user: ``lidarcal run`` (flight configuration and calibrator, its
+    parameters file as ``--ros-args --params-file``) fed by ``lidarcal replay`` of a mission
+    of another seed than the suite's, never asked to solve. After the last strip the latched
+    estimate and YAML say converged and are ``lidarcal calibrate``'s on the same bag within
+    0.1 sigma, and so is the calibration ``~/save`` writes. A misspelt key of the file is
+    named in one warning line, the nodes' own keys are not."""
+    import rclpy
+
+    from lidarcal_ros.io.calibration_file import read_calibration
+
+    mission = mission_factory(**CRABBED, seed=11)
+    saved = tmp_path / "saved.yaml"
+    params = helpers_missions.write_params_file(tmp_path / "params.yaml", {
+        **FAST, "calibration.control_points_file": str(mission.control_csv),
+        "calibration.calibration_file": str(saved), "idle_close_s": 0.5, "lookahead": False,
+        "qa.rmsdz_warn": 0.05})  # (misspelt: qa.rmsdz_warn_m)
+    config = FlightConfig.from_mapping({**FAST, "calibration.control_points_file":
+                                        str(mission.control_csv)})
+    offline = calibrate_mission(load_mission(mission.bag, config), config)
+    assert offline.converged
+    prefix = "/converged"
+    remap = _remapped(prefix)
+    node = rclpy.create_node("converge_probe", context=ros_context)
+    outputs = Outputs()
+    outputs.subscribe(node, prefix)
+    spinner = Spinner(ros_context, [node])
+    log = tmp_path / "run.log"
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        with log.open("w") as err:  # (a file: a pipe nobody reads would fill and block it)
+            # Its own namespace: the calibrator follows the flight configuration started
+            # with it, not the suite's.
+            procs.append(subprocess.Popen(
+                [PYTHON, "-m", "lidarcal_ros", "run", "--nodes", "flight_config,calibrator",
+                 "--ros-args", "--params-file", str(params), "-r", "__ns:=/converged",
+                 *remap], env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=err,
+                text=True))
+        _replay(mission.bag, "--ros-args", *remap[:6])
+        replayed_at = time.monotonic()
+        _wait(lambda: outputs.converged_over(_pairs(offline)), 120,
+              "a converged estimate over every strip pair")
+        converged_at = outputs.yamls[-1][0]
+        doc = outputs.latest()
+        assert doc is not None
+        # The quick update of the last strip came first, not converged.
+        first = next(yaml.safe_load(text)["lidarcal_calibration"] for _, text in outputs.yamls
+                     if len(yaml.safe_load(text)["lidarcal_calibration"]["strip_pairs"])
+                     == len(offline.pairs))
+        assert not first["converged"]
+        print(f"converged latched estimate {converged_at - replayed_at:.1f} s after the "
+              f"replay ended ({doc['iterations']} iterations)")
+        values = {n: float(doc["biases"][n]["value"]) for n in PARAMETER_NAMES}
+        _check_offline(values, offline.solution, "latched YAML")
+        _wait(lambda: bool(outputs.estimates) and parse_estimate(
+            outputs.estimates[-1].data, [d.label for d in outputs.estimates[-1].layout.dim]
+        ).values == values, 10, "the estimate message of the same calibration")
+        latched = outputs.estimates[-1]
+        estimate = parse_estimate(latched.data, [d.label for d in latched.layout.dim])
+        assert estimate.converged is True
+        for i, name in enumerate(PARAMETER_NAMES):
+            if name in offline.solution.estimated:
+                sigma = estimate.sigmas[name]
+                assert sigma == pytest.approx(offline.solution.sigma[i], rel=0.05), name
+        _wait(lambda: outputs.diagnostics.get("lidarcal: convergence", {}).get("refining")
+              == "false", 10, "the convergence status")
+        assert outputs.diagnostics["lidarcal: convergence"]["converged"] == "True"
+        # ~/save: the same calibration, converged, in the file
+        from std_srvs.srv import Trigger
+
+        client: Client[Any, Any] = node.create_client(Trigger,
+                                                      f"{prefix}/lidarcal_calibrator/save")
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        _wait(future.done, 60, "~/save")
+        response = future.result()
+        assert response is not None and response.success, response
+        assert str(saved) in response.message and "NOT converged" not in response.message
+        record = read_calibration(saved)
+        assert yaml.safe_load(saved.read_text())["lidarcal_calibration"]["converged"] is True
+        assert record.values == values
+        _check_offline(record.values, offline.solution, "saved calibration")
+        assert outputs.yamls[-1][0] == converged_at  # nothing published since
+    finally:
+        _stop(procs)
+        spinner.stop()
+        node.destroy_node()
+    assert procs[0].returncode == 0, log.read_text()[-2000:]
+    warnings = [ln for ln in log.read_text().splitlines() if "(misspelt?)" in ln]
+    assert len(warnings) == 1 and warnings[0].endswith("(misspelt?): qa.rmsdz_warn"), warnings
 
 
 def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
         ros_context: Any, small_mission: Any, tmp_path: Path) -> None:
+    """Killed (SIGKILL) after three strips, the calibrator restarted from its checkpoint
+    holds them, converges again without being asked and publishes ``lidarcal calibrate``'s
+    estimate of those strips; fed the rest of the mission, the whole mission's, and its
+    checkpoints say whether converged."""
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from std_msgs.msg import Float64MultiArray
-    from std_srvs.srv import Trigger
-
-    from lidarcal_ros.nodes.common import latched_qos
 
     params = tmp_path / "params.yaml"
     helpers_missions.write_params_file(params, {
@@ -647,11 +813,7 @@ def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
         section="/**")
     ckpt = tmp_path / "ckpt.npz"
     # Own names, so that the suite of this module (still running) does not interfere.
-    remap = ["-r", "__node:=ckpt_calibrator", "-r", "/lidar/points:=/ckpt/points",
-             "-r", "/lidar/trajectory:=/ckpt/trajectory",
-             "-r", "/lidar/control_points:=/ckpt/control_points",
-             "-r", "/lidar/calibration/estimate:=/ckpt/estimate",
-             "-r", "/lidar/calibration/yaml:=/ckpt/yaml", "-r", "/diagnostics:=/ckpt/diagnostics"]
+    remap = ["-r", "__node:=ckpt_calibrator", *_remapped("/ckpt")]
     cmd = [PYTHON, "-m", "lidarcal_ros.nodes.calibrator", "--ros-args", "--params-file",
            str(params), *remap]
     replay_remap = ["--ros-args", *remap[2:8]]
@@ -659,10 +821,15 @@ def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
     with open_bag(small_mission.bag) as b:
         start_s = b.start_ns / 1e9
     cut = (spans[0][1] + spans[1][0]) / 2 - start_s  # between strips 3 and 4
+    config = FlightConfig.from_mapping({**FAST, "calibration.control_points_file":
+                                        str(small_mission.control_csv)})
+    mission = load_mission(small_mission.bag, config)
+    first_three = calibrate_mission(helpers_missions.subset(mission, [1, 2, 3]), config)
+    whole = calibrate_mission(mission, config)
     node = rclpy.create_node("ckpt_probe", context=ros_context)
-    diag: dict[str, dict[str, str]] = {}
-    node.create_subscription(DiagnosticArray, "/ckpt/diagnostics", lambda m: diag.update(
-        {s.name: {kv.key: kv.value for kv in s.values} for s in m.status}), 100)
+    outputs = Outputs()
+    outputs.subscribe(node, "/ckpt")
+    diag = outputs.diagnostics
     spinner = Spinner(ros_context, [node])
     procs: list[subprocess.Popen[str]] = []
     try:
@@ -671,54 +838,40 @@ def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
         _replay(small_mission.bag, "--duration", f"{cut:.3f}", *replay_remap)
         _wait(lambda: ckpt.is_file() and _checkpoint_state(ckpt)[2] == [1, 2, 3], 60,
               "a checkpoint with strips 1-3")
-        count, n_matrix, _ = _checkpoint_state(ckpt)
+        count = _checkpoint_state(ckpt)[0]
         assert count > 0
         procs[0].send_signal(signal.SIGKILL)
         procs[0].wait(timeout=10)
         diag.clear()
+        outputs.yamls.clear()
         procs.append(subprocess.Popen(cmd, env=dict(os.environ), stdout=subprocess.DEVNULL,
                                       stderr=subprocess.PIPE, text=True))
         _wait(lambda: "lidarcal: state" in diag, 30, "the restarted calibrator")
-        state = diag["lidarcal: state"]
-        assert state["resumed_from"] == str(ckpt)
-        assert int(state["normal_equations_count"]) == count
-        assert float(state["normal_equations_trace"]) == float(np.trace(n_matrix))
+        assert diag["lidarcal: state"]["resumed_from"] == str(ckpt)
         assert diag["lidarcal: memory"]["strips"] == "1,2,3"
-        # the rest of the mission, then the full solve: the offline estimate
+        # converged again from the checkpoint, without a service call: the estimate of
+        # strips 1-3, and the checkpoint says converged
+        _wait(lambda: outputs.converged_over(_pairs(first_three)), 60,
+              "the restarted calibrator's converged estimate")
+        doc = outputs.latest()
+        assert doc is not None
+        _check_offline({n: float(doc["biases"][n]["value"]) for n in PARAMETER_NAMES},
+                       first_three.solution, "resumed, strips 1-3")
+        _wait(lambda: _checkpoint_state(ckpt)[1:] == (True, [1, 2, 3]), 30,
+              "a converged checkpoint")
+        # the rest of the mission: the whole mission's estimate, without a service call
         _replay(small_mission.bag, "--start", f"{cut:.3f}", *replay_remap)
-        _wait(lambda: diag.get("lidarcal: memory", {}).get("strips") == "1,2,3,4,5,6"
-              and diag["lidarcal: memory"]["open_strips"] == "", 60, "strips 4-6")
-        _wait(lambda: _checkpoint_state(ckpt)[2] == [1, 2, 3, 4, 5, 6], 60, "the checkpoint")
+        _wait(lambda: outputs.converged_over(_pairs(whole)), 120,
+              "the converged estimate of strips 1-6")
+        doc = outputs.latest()
+        assert doc is not None
+        _check_offline({n: float(doc["biases"][n]["value"]) for n in PARAMETER_NAMES},
+                       whole.solution, "resumed, strips 1-6")
+        _wait(lambda: _checkpoint_state(ckpt)[1:] == (True, [1, 2, 3, 4, 5, 6]), 30,
+              "the checkpoint")
         assert _checkpoint_state(ckpt)[0] > count
-        # nothing was lost across the restart: the full solve is the offline one
-        estimates: list[Any] = []
-        node.create_subscription(Float64MultiArray, "/ckpt/estimate",
-                                 lambda m: estimates.append(list(m.data)), latched_qos())
-        client: Client[Any, Any] = node.create_client(Trigger, "/ckpt_calibrator/solve")
-        assert client.wait_for_service(timeout_sec=10)
-        n_before = len(estimates)
-        future = client.call_async(Trigger.Request())
-        _wait(future.done, 60, "the solve")
-        response = future.result()
-        assert response is not None  # done and not failed: the service's response
-        assert response.success, response.message
-        _wait(lambda: len(estimates) > n_before, 10, "the estimate")
-        live = parse_estimate(estimates[-1])
-        config = FlightConfig.from_mapping({**FAST, "calibration.control_points_file":
-                                            str(small_mission.control_csv)})
-        offline = calibrate_mission(load_mission(small_mission.bag, config), config).solution
-        for i, name in enumerate(PARAMETER_NAMES):
-            if name in offline.estimated:
-                assert abs(live.values[name] - offline.delta[i]) <= 0.1 * offline.sigma[i], name
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-                try:
-                    p.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        _stop(procs)
         spinner.stop()
         node.destroy_node()
     assert procs[-1].returncode == 0, procs[-1].stderr.read() if procs[-1].stderr else ""

@@ -259,7 +259,12 @@ class StreamingCalibration:
         self._enforce_budget()
 
     def set_control(self, control: ControlPoints) -> None:
-        """Control points for the next solves."""
+        """Control points for the next solves (the same again changes nothing: a restart
+        reads its control file again after the checkpoint)."""
+        held = self._control
+        if held is not None and held.ids == control.ids and np.array_equal(held.xyz,
+                                                                            control.xyz):
+            return
         self._control = control
         self._calibrator.control = control
         self._calibrator._control_before = None
@@ -459,10 +464,13 @@ class StreamingCalibration:
     def _data_changed(self, *, refine: bool | None = None) -> None:
         """The strips, pairs or control points held changed: the estimate is no longer known
         to be converged, and a refinement under way (on the data before) is dropped. The
-        refinement starts afresh if ``refine`` (default: if there is an estimate)."""
+        refinement starts afresh if ``refine`` (default: if one was wanted or there is an
+        estimate)."""
+        if refine is None:
+            refine = self._refinement_wanted or self.latest is not None
         self.converged = False
         self._refinement = None
-        self._refinement_wanted = self.latest is not None if refine is None else refine
+        self._refinement_wanted = refine
 
     def refine_step(self) -> CalibrationResult | None:
         """Take the background convergence one step further (module docstring): one strip
