@@ -477,6 +477,26 @@ def test_a_bad_value_is_refused_with_its_reason(suite: Suite, values: dict[str, 
         assert node.params[name] == old
 
 
+def test_the_cli_knows_every_parameter_the_nodes_declare(ros_context: Any) -> None:
+    """The commands tell a misspelt key from a node's own parameter by the names of
+    ``core.config``: they must be those the nodes declare."""
+    from lidarcal_ros.core.config import NODE_PARAMETERS, ROS_PARAMETERS, SCHEMA
+    from lidarcal_ros.nodes import calibrator, corrector
+    from lidarcal_ros.nodes.common import CALIBRATOR_NODE, CORRECTOR_NODE, FLIGHT_CONFIG_NODE
+    from lidarcal_ros.nodes.flight_config import FlightConfigNode
+
+    assert set(NODE_PARAMETERS) == {CALIBRATOR_NODE, CORRECTOR_NODE, FLIGHT_CONFIG_NODE}
+    assert set(NODE_PARAMETERS[CALIBRATOR_NODE]) == set(calibrator.EXTRA_PARAMETERS)
+    assert set(NODE_PARAMETERS[CORRECTOR_NODE]) == set(corrector.EXTRA_PARAMETERS)
+    node = FlightConfigNode(context=ros_context, node_name="fc_declared")
+    try:
+        declared = set(node.list_parameters([], 0).names)
+    finally:
+        node.destroy_node()
+    assert declared == set(SCHEMA) | set(ROS_PARAMETERS) | set(
+        NODE_PARAMETERS[FLIGHT_CONFIG_NODE])
+
+
 def test_dz_and_dr_without_control_is_refused(suite: Suite) -> None:
     from lidarcal_ros.nodes.flight_config import FlightConfigNode
 
