@@ -590,14 +590,15 @@ class CalibratorNode(Node):
         return out
 
     def _refinement_status(self, status: StatusSpec) -> StatusSpec:
-        """The convergence status of the latest estimate, saying whether the background
-        convergence is under way."""
+        """The convergence status of the latest estimate published, saying whether the
+        estimate is being converged on the strips now held."""
         s = self.stream
         if not s.refinement_pending:
             return replace(status, values={**status.values, "refining": "false"})
-        return replace(status, message=f"{status.message}; converging (iteration "
-                       f"{s.refinement_iteration + 1})", values={**status.values,
-                                                                 "refining": "true"})
+        return replace(status, level=max(status.level, WARN), message=(
+            f"converging: iteration {s.refinement_iteration + 1} on the strips held (latest "
+            f"estimate: {status.message})"), values={
+                **status.values, "converged": "False", "refining": "true"})
 
     def _publish_diagnostics(self) -> None:
         with self._status_lock:

@@ -398,11 +398,12 @@ class StreamingCalibration:
                  if now - o.last_t >= self.strip_gap_s and self._covered(o.last_t)]
         if not ready:
             return None
+        # Not converged from the moment a strip joins (whoever looks meanwhile: diagnostics).
+        self._data_changed(refine=True)
         for sid in sorted(ready, key=lambda k: self._open[k].last_t):
             formed = self._close(sid)
             logger.info("strip %d complete: overlaps %s", sid,
                         ", ".join(str(a) for a, _ in formed) or "no earlier strip")
-        self._data_changed(refine=False)
         try:
             # Two iterations from the current estimate, re-matching only the new strip's pairs
             # (the others keep their last correspondences): the estimate carries over from
@@ -410,11 +411,11 @@ class StreamingCalibration:
             result = self._solve(max_iterations=2, new_pairs_only=True)
         except CalibrationError as exc:
             # Too little data so far (one strip, no overlap yet): keep accumulating.
+            self._data_changed(refine=False)
             self.waiting_for = str(exc)
             logger.info("not solved yet: %s", exc)
             return None
-        result.converged = self.converged = False  # (the pairs kept were not re-matched)
-        self._refinement_wanted = True
+        result.converged = False  # (the pairs kept were not re-matched)
         return result
 
     def solve(self) -> CalibrationResult:
