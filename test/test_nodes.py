@@ -330,7 +330,9 @@ def test_replayed_mission_gives_the_offline_estimate(replayed: Replayed) -> None
         **{name: shown(name) for name in PARAMETER_NAMES},
         # 4 m/s across 60 m/s: asin(4 / 60) = 3.8 deg of crab, opposite on opposite lines
         "heading": "heading from the poses' orientation (IMU) for every strip (crab -3.8 to "
-                   "+3.8 deg)"}, 10, "the estimate on /diagnostics")
+                   "+3.8 deg)",
+        "model": "level (the poses carry a heading only (no roll or pitch)) for every strip"},
+        10, "the estimate on /diagnostics")
     level, message, values = suite.probe.diagnostics["lidarcal: estimate"]
     assert level == 0 and message.startswith("dX ") and " arcsec" in values["dphi"]
     assert f"dphi {shown('dphi')}" in message and "dZ" not in message  # dZ is held fixed
