@@ -247,6 +247,8 @@ class Iteration:
     converged : bool
         From the second iteration on: no estimated parameter moved by more than
         ``convergence_fraction`` of its sigma.
+    history : list of (8,) float64
+        The estimate after each iteration so far from the same start, this one's last.
     """
 
     number: int
@@ -254,6 +256,7 @@ class Iteration:
     observations: Observations
     step: np.ndarray
     converged: bool
+    history: list[np.ndarray]
 
 
 def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -647,14 +650,10 @@ class Calibrator:
         """
         limit = max_iterations or self.settings.max_iterations
         iterations = self.iterate(new_pairs_only=new_pairs_only)
-        history: list[np.ndarray] = []
         while True:
             done = next(iterations)
-            if done is None:
-                continue
-            history.append(done.solution.delta.copy())
-            if done.converged or done.number >= limit:
-                return self.conclude(done, history)
+            if done is not None and (done.converged or done.number >= limit):
+                return self.conclude(done)
 
     def iterate(self, *, new_pairs_only: bool = False) -> Iterator[Iteration | None]:
         """Match and adjust from the current estimate, iteration after iteration, for as long
@@ -731,16 +730,16 @@ class Calibrator:
             converged = iteration > 1 and bool(
                 np.all(np.abs(step[est]) <= s.convergence_fraction * sol.sigma[est])
                 or _matching_cycle(history, sol.sigma, est, s.convergence_fraction))
-            yield Iteration(iteration, sol, obs, step, converged)
+            yield Iteration(iteration, sol, obs, step, converged, list(history))
 
-    def conclude(self, last: Iteration, history: list[np.ndarray]) -> CalibrationResult:
-        """The result of the iterations of :meth:`iterate` that ended with ``last`` (their
-        estimates in ``history``): sigmas allowing for shared errors, and the QA of every pair
-        at the estimate. Call once per iteration (it widens ``last``'s sigmas)."""
+    def conclude(self, last: Iteration) -> CalibrationResult:
+        """The result of the iterations of :meth:`iterate` that ended with ``last``: sigmas
+        allowing for shared errors, and the QA of every pair at the estimate. Call once per
+        iteration (it widens ``last``'s sigmas)."""
         self.normal_equations = NormalEquations.from_observations(last.observations)
         self._allow_for_shared_errors(last.solution, last.observations, last.step)
         return self._finish(last.solution, last.observations, last.solution.delta, last.number,
-                            last.converged, history)
+                            last.converged, last.history)
 
     def unestimated_result(self, reason: str) -> CalibrationResult:
         """The result of a calibration that estimated nothing (``reason``): every bias at

@@ -126,7 +126,7 @@ class _Refinement:
     """A background convergence under way (module docstring)."""
 
     iterations: Iterator[Iteration | None]
-    history: list[np.ndarray] = field(default_factory=list)
+    completed: int = 0  # iterations
     seconds: float = 0.0  # spent in its steps, s
 
 
@@ -460,7 +460,7 @@ class StreamingCalibration:
     @property
     def refinement_iteration(self) -> int:
         """Iterations the refinement under way has completed (0: none under way)."""
-        return len(self._refinement.history) if self._refinement is not None else 0
+        return self._refinement.completed if self._refinement is not None else 0
 
     def _data_changed(self, *, refine: bool | None = None) -> None:
         """The strips, pairs or control points held changed: the estimate is no longer known
@@ -496,13 +496,13 @@ class StreamingCalibration:
             logger.info("not refined: %s", exc)
             return None
         if done is not None:
-            refinement.history.append(done.solution.delta.copy())
+            refinement.completed = done.number
         if done is None or not (done.converged or
                                 done.number >= self._calibrator.settings.max_iterations):
             refinement.seconds += time.perf_counter() - started
             return None
         self._pass_counters()
-        result = self._adopt(self._calibrator.conclude(done, refinement.history))
+        result = self._adopt(self._calibrator.conclude(done))
         self.converged = done.converged
         self._refinement, self._refinement_wanted = None, False
         self.refinement_seconds = refinement.seconds + time.perf_counter() - started
