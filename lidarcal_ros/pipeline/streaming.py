@@ -495,6 +495,9 @@ class StreamingCalibration:
             self.waiting_for = str(exc)
             logger.info("not refined: %s", exc)
             return None
+        except Exception:  # (a failure is reported once, not at every step after)
+            self._data_changed(refine=False)
+            raise
         if done is not None:
             refinement.completed = done.number
         if done is None or not (done.converged or
