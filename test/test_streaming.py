@@ -127,6 +127,7 @@ def test_the_stream_converges_by_itself_to_the_offline_estimate(
         stream.save_checkpoint(tmp_path / "midway.npz"), config)
     assert not midway.converged and midway.refinement_pending
     assert midway._calibrator.threshold == stream._calibrator.threshold
+    assert stream.converge(timeout_s=0.0) is None and stream.refinement_pending  # cut short
     result = stream.converge()
     assert result is not None and result.converged and stream.converged
     assert stream.latest is result and not stream.refinement_pending
