@@ -727,6 +727,46 @@ def _stop(procs: list[subprocess.Popen[str]]) -> None:
                 p.wait()
 
 
+class _LiveCalibrator:
+    """``lidarcal run --nodes flight_config,calibrator`` in a child process, under its own
+    namespace and topics (``prefix``), with a probe node of this process subscribed to its
+    outputs (:class:`Outputs`) before it starts; on leaving, stopped, and its exit status
+    checked (its log written to ``log``)."""
+
+    def __init__(self, ros_context: Any, params: Path, prefix: str, log: Path) -> None:
+        self.ros_context, self.params, self.prefix, self.log = ros_context, params, prefix, log
+        self.remap = _remapped(prefix)
+        self.outputs = Outputs()
+        self.procs: list[subprocess.Popen[str]] = []
+
+    def __enter__(self) -> _LiveCalibrator:
+        import rclpy
+
+        self.node = rclpy.create_node(f"{self.prefix.strip('/')}_probe",
+                                      context=self.ros_context)
+        self.outputs.subscribe(self.node, self.prefix)
+        self.spinner = Spinner(self.ros_context, [self.node])
+        with self.log.open("w") as err:  # (a file: a pipe nobody reads would fill and block)
+            # Its own namespace: the calibrator follows the flight configuration started
+            # with it, not the suite's.
+            self.procs.append(subprocess.Popen(
+                [PYTHON, "-m", "lidarcal_ros", "run", "--nodes", "flight_config,calibrator",
+                 "--ros-args", "--params-file", str(self.params), "-r",
+                 f"__ns:={self.prefix}", *self.remap], env=dict(os.environ),
+                stdout=subprocess.DEVNULL, stderr=err, text=True))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        _stop(self.procs)
+        self.spinner.stop()
+        self.node.destroy_node()
+        if exc[0] is None:
+            assert self.procs[0].returncode == 0, self.log_text()[-2000:]
+
+    def log_text(self) -> str:
+        return self.log.read_text()
+
+
 def test_lidarcal_run_fed_by_a_replay_converges_without_a_service_call(
         ros_context: Any, mission_factory: Any, tmp_path: Path) -> None:
     """The issue's new user: ``lidarcal run`` (flight configuration and calibrator, its
@@ -735,8 +775,6 @@ def test_lidarcal_run_fed_by_a_replay_converges_without_a_service_call(
     estimate and YAML say converged and are ``lidarcal calibrate``'s on the same bag within
     0.1 sigma, and so is the calibration ``~/save`` writes. A misspelt key of the file is
     named in one warning line, the nodes' own keys are not."""
-    import rclpy
-
     from lidarcal_ros.io.calibration_file import read_calibration
 
     mission = mission_factory(**CRABBED, seed=11)
@@ -750,23 +788,9 @@ def test_lidarcal_run_fed_by_a_replay_converges_without_a_service_call(
     offline = calibrate_mission(load_mission(mission.bag, config), config)
     assert offline.converged
     prefix = "/converged"
-    remap = _remapped(prefix)
-    node = rclpy.create_node("converge_probe", context=ros_context)
-    outputs = Outputs()
-    outputs.subscribe(node, prefix)
-    spinner = Spinner(ros_context, [node])
-    log = tmp_path / "run.log"
-    procs: list[subprocess.Popen[str]] = []
-    try:
-        with log.open("w") as err:  # (a file: a pipe nobody reads would fill and block it)
-            # Its own namespace: the calibrator follows the flight configuration started
-            # with it, not the suite's.
-            procs.append(subprocess.Popen(
-                [PYTHON, "-m", "lidarcal_ros", "run", "--nodes", "flight_config,calibrator",
-                 "--ros-args", "--params-file", str(params), "-r", "__ns:=/converged",
-                 *remap], env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=err,
-                text=True))
-        _replay(mission.bag, "--ros-args", *remap[:6])
+    with _LiveCalibrator(ros_context, params, prefix, tmp_path / "run.log") as live:
+        outputs, node = live.outputs, live.node
+        _replay(mission.bag, "--ros-args", *live.remap[:6])
         replayed_at = time.monotonic()
         _wait(lambda: outputs.converged_over(_pairs(offline)), 120,
               "a converged estimate over every strip pair")
@@ -813,13 +837,40 @@ def test_lidarcal_run_fed_by_a_replay_converges_without_a_service_call(
         assert record.values == values
         _check_offline(record.values, offline.solution, "saved calibration")
         assert outputs.yamls[-1][0] == converged_at  # nothing published since
-    finally:
-        _stop(procs)
-        spinner.stop()
-        node.destroy_node()
-    assert procs[0].returncode == 0, log.read_text()[-2000:]
-    warnings = [ln for ln in log.read_text().splitlines() if "(misspelt?)" in ln]
+    warnings = [ln for ln in live.log_text().splitlines() if "(misspelt?)" in ln]
     assert len(warnings) == 1 and warnings[0].endswith("(misspelt?): qa.rmsdz_warn"), warnings
+
+
+def test_the_live_calibrator_runs_the_rigorous_model_from_the_poses_attitude(
+        ros_context: Any, mission_factory: Any, tmp_path: Path) -> None:
+    """A mission flown in rough air (roll, pitch, heading wobble and crab, the INS attitude
+    on the PoseStamped poses at 50 Hz), replayed into ``lidarcal run``: every strip gets
+    the rigorous model from the orientations on the topic, says so on ``/diagnostics`` and
+    in the latched calibration, and the converged estimate is ``lidarcal calibrate``'s on
+    the same bag within 0.1 sigma."""
+    from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
+
+    mission = mission_factory(seed=13, rough_air=RoughAir(),
+                              wind_mps=crosswind_for_crab(5.0, 60.0))
+    params = helpers_missions.write_params_file(tmp_path / "params.yaml", {
+        **FAST, "calibration.control_points_file": str(mission.control_csv),
+        "calibration.calibration_file": str(tmp_path / "rigorous.yaml"), "idle_close_s": 0.5})
+    config = FlightConfig.from_mapping({**FAST, "calibration.control_points_file":
+                                        str(mission.control_csv)})
+    offline = calibrate_mission(load_mission(mission.bag, config), config)
+    assert {c.model for c in offline.models.values()} == {"rigorous"}
+    with _LiveCalibrator(ros_context, params, "/rigorous", tmp_path / "run.log") as live:
+        _replay(mission.bag, "--ros-args", *live.remap[:6])
+        _wait(lambda: live.outputs.converged_over(_pairs(offline)), 120,
+              "a converged estimate over every strip pair")
+        doc = live.outputs.latest()
+        assert doc is not None and doc["model"] == "rigorous"
+        assert {s["model"] for s in doc["strips"]} == {"rigorous"}
+        _check_offline({n: float(doc["biases"][n]["value"]) for n in PARAMETER_NAMES},
+                       offline.solution, "latched YAML")
+        _wait(lambda: live.outputs.diagnostics.get("lidarcal: geometry", {}).get("model")
+              == "rigorous (INS attitude at 50 Hz) for every strip", 10,
+              "the model on /diagnostics")
 
 
 def test_calibrator_killed_mid_replay_resumes_from_its_checkpoint(
