@@ -256,6 +256,12 @@ def test_laser_vector_qa_sees_a_timing_offset_and_a_wrong_field_of_view() -> Non
     narrow = laser_vector_qa(rigorous_geometry(tp, pts, traj), fov_deg=30.0, speed_mps=60.0)
     assert any("beyond the field of view" in w and "body convention" in w
                for w in narrow.warnings)
+    # a body frame turned by a quarter turn (y forward read as x forward): the scan lines
+    # run along track
+    turned = Trajectory(traj.t, traj.xyz, quaternions_from_attitude(
+        np.radians(4.0) * np.sin(0.9 * traj.t), 0.0, math.pi / 2))
+    wrong = laser_vector_qa(rigorous_geometry(tp, pts, turned), fov_deg=50.0, speed_mps=60.0)
+    assert any("spread" in w and "not the scanner's" in w for w in wrong.warnings)
 
 
 def test_strip_geometry_dispatches_by_model() -> None:
