@@ -2,7 +2,8 @@
 independent read-back of the outputs (the mcap project's reader, laspy), and bad input.
 
 The mission (six strips, 1150 m and 540 m, 0.8 M points) is corrected once with its *true*
-biases, to a bag and to LAZ, through the command line; every check then reads those files.
+biases and the simulator's radiometric constant as the calibration constant (so reflectance is
+absolute), to a bag and to LAZ, through the command line; every check then reads those files.
 """
 
 from __future__ import annotations
@@ -23,11 +24,13 @@ from helpers_missions import (
     without_trajectory,
     write_calibration_yaml,
     write_cloud_bag,
+    write_params_file,
 )
 
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.simulate import INTENSITY_K
 from lidarcal_ros.core.terrain import ASPHALT, GRASS, SOIL
 from lidarcal_ros.io.las import adjusted_gps_to_unix
 from lidarcal_ros.pipeline.correction import (
@@ -46,6 +49,9 @@ small_mission = helpers_missions.small_mission
 MISSION = {"scenario": "paper", "density": 0.5, "line_length_m": 250.0, "seed": 3}
 CORRECTED = "/lidar/points_corrected"
 _DATATYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+#: The simulator's intensity of a reflectance-1 Lambertian target at the default reference
+#: range (1000 m), normal incidence and clear air: I = INTENSITY_K rho cos(inc) eta / r^2.
+SIMULATOR_CONSTANT = INTENSITY_K / 1000.0**2
 
 
 # ------------------------------------------------------------------ helpers
@@ -85,10 +91,13 @@ def corrected(mission_factory: Any, tmp_path_factory: pytest.TempPathFactory) ->
     files: MissionFiles = mission_factory(**MISSION)
     work = tmp_path_factory.mktemp("correct")
     cal = write_calibration_yaml(work / "cal.yaml", files.sim.biases)
+    config = write_params_file(work / "absolute.yaml",
+                               {"radiometry.calibration_constant": SIMULATOR_CONSTANT})
     bag_out = work / "corrected.mcap"
     laz_out = work / "corrected.laz"
-    assert main(["correct", str(files.bag), "--calibration", str(cal), "-o", str(bag_out)]) == 0
-    assert main(["correct", str(files.bag), "--calibration", str(cal), "-o", str(laz_out),
+    common = ["--calibration", str(cal), "--config", str(config)]
+    assert main(["correct", str(files.bag), *common, "-o", str(bag_out)]) == 0
+    assert main(["correct", str(files.bag), *common, "-o", str(laz_out),
                  "--crs", "EPSG:32633"]) == 0
     counts, clouds, raw = read_mcap_topics(bag_out)
     points = np.concatenate(clouds)
@@ -151,22 +160,88 @@ def test_range_and_scan_angle(corrected: dict[str, Any]) -> None:
 
 # ------------------------------------------------------------------ reflectance
 def test_reflectance_matches_the_truth(corrected: dict[str, Any]) -> None:
+    """With the sensor's calibration constant the reflectance is the Lambertian reflectance
+    the simulator gave each surface, without any further scale (method.md section 8; the
+    meaning pinned in lidarcal_ros.core.radiometry)."""
     p, tr = corrected["points"], corrected["truth"]
     sel = (tr["incidence"] < math.radians(60)) & np.isfinite(p["reflectance"])
     assert sel.mean() > 0.95
+    ratio = p["reflectance"][sel] / tr["reflectance"][sel]
+    absolute = np.abs(ratio - 1.0)
     g = _reflectance_scale(p, tr, sel)
-    err = np.abs(g * p["reflectance"][sel] / tr["reflectance"][sel] - 1.0)
+    err = np.abs(g * ratio - 1.0)
     names = ("soil", "grass", "asphalt", "roof", "tree")
     per_class = {names[c]: float(np.median(err[tr["class"][sel] == c])) for c in range(5)}
-    print(f"median |relative error| of reflectance (incidence < 60 deg): {np.median(err):.4f}; "
-          "per class " + ", ".join(f"{k} {v:.3f}" for k, v in per_class.items()))
-    assert np.median(err) < 0.05
+    print(f"median reflectance / truth {np.median(ratio):.4f}; median |relative error| "
+          f"(incidence < 60 deg) {np.median(absolute):.4f} as it is, {np.median(err):.4f} after "
+          "one scale; per class " + ", ".join(f"{k} {v:.3f}" for k, v in per_class.items()))
+    assert abs(np.median(ratio) - 1.0) < 0.01
+    assert np.median(absolute) < 0.03
+    assert np.median(err) < 0.03
     for name in ("soil", "grass", "asphalt", "roof"):
         assert per_class[name] < 0.05
+    # Dimensionless, 0-1: the simulated surfaces reflect 0.12 (asphalt) to 0.5 (trees).
+    assert 0.08 < np.percentile(p["reflectance"][sel], 1) < np.percentile(
+        p["reflectance"][sel], 99) < 0.6
     # Raw intensity is far from it (range, atmosphere, incidence).
     raw = np.asarray(p["intensity"], dtype=np.float64)[sel]
     g_raw = float(np.median(tr["reflectance"][sel] / raw))
     assert np.median(np.abs(g_raw * raw / tr["reflectance"][sel] - 1.0)) > 5 * np.median(err)
+
+
+def uniform_box(sim: Any, surface: int, size_m: float = 30.0
+                ) -> tuple[tuple[float, float, float, float], float]:
+    """A ``size_m`` box (map frame, 1 m in from its cell's sides) whose true surface is of
+    class ``surface`` only, the one of that kind most points fall on, and the median true
+    reflectance of the points in it (what a field spectrometer would have measured: the
+    simulated surfaces vary about their class's value)."""
+    xyz = np.concatenate(sim.true_xyz)
+    classes = np.concatenate(sim.surface_class)
+    cell = np.floor(xyz[:, :2] / size_m).astype(np.int64)
+    key = cell[:, 0] * 1_000_000 + cell[:, 1]
+    cells, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+    same = np.bincount(inverse, weights=classes == surface, minlength=cells.size)
+    best = int(np.argmax(np.where(same == count, count, 0)))
+    assert same[best] == count[best] > 100, "no uniform box in the mission"
+    ix, iy = divmod(int(cells[best]), 1_000_000)
+    truth = np.concatenate(sim.reflectance_true)[inverse == best]
+    return ((ix * size_m + 1.0, iy * size_m + 1.0, (ix + 1) * size_m - 1.0,
+             (iy + 1) * size_m - 1.0), float(np.median(truth)))
+
+
+def test_reference_target_makes_reflectance_absolute(small_mission: MissionFiles,
+                                                     tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]
+                                                     ) -> None:
+    """A box over grass of known reflectance instead of a calibration constant: ``correct``
+    measures it, says so, and the reflectance of every surface is then absolute within a few
+    per cent."""
+    sim = small_mission.sim
+    box, grass = uniform_box(sim, GRASS)
+    assert grass == pytest.approx(sim.config["class_reflectance"]["grass"], rel=0.2)
+    config = write_params_file(tmp_path / "target.yaml", {
+        "radiometry.reference_target": ",".join(f"{v:.1f}" for v in box),
+        "radiometry.reference_target_reflectance": round(grass, 3)})
+    cal = write_calibration_yaml(tmp_path / "cal.yaml", sim.biases)
+    out = tmp_path / "target.las"
+    capsys.readouterr()
+    assert main(["correct", str(small_mission.bag), "--calibration", str(cal),
+                 "--config", str(config), "-o", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    line = next(li for li in stdout.splitlines() if li.startswith("reflectance: "))
+    assert "Lambertian reflectance" in line and "reference target" in line
+    constant = float(line.split("calibration constant ")[1].split()[0])
+    assert constant == pytest.approx(SIMULATOR_CONSTANT, rel=0.03)
+    las = laspy.read(out)
+    described = {d.name: d.description for d in las.point_format.extra_dimensions}
+    assert described["reflectance"] == "Lambertian reflectance, 0-1"
+    order = by_strip_and_time({"strip_id": np.asarray(las.point_source_id),  # type: ignore[arg-type]
+                               "t": np.asarray(las.gps_time)})
+    rho = np.asarray(las.reflectance, dtype=np.float64)[order]
+    truth = np.concatenate(sim.reflectance_true).astype(np.float64)
+    incidence = np.concatenate(sim.incidence_true)
+    sel = np.isfinite(rho) & (incidence < math.radians(60))
+    assert abs(np.median(rho[sel] / truth[sel]) - 1.0) < 0.03
 
 
 def _cell_means(p: np.ndarray, tr: dict[str, Any], strip: int, cell: float
@@ -304,6 +379,8 @@ def test_laz_reads_back_with_laspy(corrected: dict[str, Any]) -> None:
     assert list(las.header.scales) == [0.001, 0.001, 0.001]
     assert las.header.parse_crs() == pyproj.CRS.from_epsg(32633)
     assert {"reflectance", "range", "incidence"} <= set(las.point_format.extra_dimension_names)
+    described = {d.name: d.description for d in las.point_format.extra_dimensions}
+    assert described["reflectance"] == "Lambertian reflectance, 0-1"
     order = by_strip_and_time({"strip_id": np.asarray(las.point_source_id),  # type: ignore[arg-type]
                                "t": np.asarray(las.gps_time)})
     for c in "xyz":

@@ -23,6 +23,7 @@ from lidarcal_ros.core.normals import (
 from lidarcal_ros.core.radiometry import (
     RadiometricModel,
     atmospheric_alpha,
+    constant_from_target,
     cos_incidence,
     extinction_coefficient,
     kim_q,
@@ -119,6 +120,67 @@ def test_range_normalisation_to_the_reference_range() -> None:
     far, _ = model.reflectance(np.array([1000.0]), np.array([2000.0]), np.array([1.0]))
     ratio = far[0] / out[0]
     assert ratio == pytest.approx(4.0 * math.exp(2 * model.alpha_per_m * 1000.0), rel=1e-6)
+
+
+def test_the_calibration_constant_makes_reflectance_the_lambertian_one() -> None:
+    """``C``: the intensity of a reflectance-1 Lambertian target at the reference range,
+    normal incidence, clear air. A radar-equation intensity of known reflectance then reads
+    back as that reflectance, whatever the range and incidence; without ``C`` the same
+    points read as the intensity at the reference range (intensity units)."""
+    k = 1e10  # I = k rho cos(theta) eta(r) / r^2
+    relative = RadiometricModel(reference_range_m=800.0)
+    absolute = relative.with_constant(k / 800.0**2)
+    rng = np.random.default_rng(5)
+    rho = rng.uniform(0.05, 0.9, 500)
+    r = rng.uniform(300.0, 2500.0, 500)
+    cos_t = rng.uniform(0.3, 1.0, 500)
+    intensity = k * rho * cos_t * np.exp(-2 * relative.alpha_per_m * r) / r**2
+    np.testing.assert_allclose(absolute.reflectance(intensity, r, cos_t)[0], rho, rtol=1e-5)
+    np.testing.assert_allclose(relative.reflectance(intensity, r, cos_t)[0],
+                               rho * k / 800.0**2, rtol=1e-5)
+    assert absolute.absolute and not relative.absolute
+    assert absolute.unit == "1" and relative.unit == "intensity units"
+    assert "Lambertian reflectance" in absolute.meaning and "15625" in absolute.meaning
+    assert "relative" in relative.meaning and "800 m" in relative.meaning
+    for model in (relative, absolute, RadiometricModel(reference_range_m=1e5)):
+        assert len(model.las_description) <= 32
+    assert relative.las_description == "I at 800 m, 0 deg incidence"
+    with pytest.raises(ConfigError, match="calibration_constant"):
+        RadiometricModel(calibration_constant=-1.0)
+    cfg = FlightConfig().with_values(radiometry__calibration_constant=2500.0)
+    assert RadiometricModel.from_config(cfg).calibration_constant == 2500.0
+
+
+def test_constant_from_a_reference_target() -> None:
+    """The median of the target's relative reflectance over its known reflectance: a few
+    points of another surface (its edge) do not move it."""
+    rng = np.random.default_rng(6)
+    target = 0.3 * 12_000.0 * (1.0 + 0.02 * rng.standard_normal(1000))
+    edge = np.full(100, 0.9 * 12_000.0)
+    values = np.concatenate([target, edge, [np.nan, -1.0]])
+    assert constant_from_target(values, 0.3) == pytest.approx(12_000.0, rel=0.01)
+    with pytest.raises(ConfigError, match="no point"):
+        constant_from_target(np.array([np.nan]), 0.3)
+    with pytest.raises(ConfigError, match="reference_target_reflectance"):
+        constant_from_target(values, 0.0)
+
+
+def test_reference_target_configuration() -> None:
+    from lidarcal_ros.core.config import parse_target_box
+
+    assert parse_target_box("10, 20.5,30,40") == (10.0, 20.5, 30.0, 40.0)
+    for bad, reason in (("1,2,3", "xmin,ymin,xmax,ymax"), ("a,b,c,d", "xmin,ymin,xmax,ymax"),
+                        ("3,2,1,4", "empty box")):
+        with pytest.raises(ConfigError, match=reason):
+            parse_target_box(bad)
+    with pytest.raises(ConfigError, match="go together"):
+        FlightConfig.from_mapping({"radiometry.reference_target": "0,0,10,10"})
+    with pytest.raises(ConfigError, match="empty box"):
+        FlightConfig.from_mapping({"radiometry.reference_target": "0,0,0,10",
+                                   "radiometry.reference_target_reflectance": 0.4})
+    ok = FlightConfig.from_mapping({"radiometry.reference_target": "0,0,10,10",
+                                    "radiometry.reference_target_reflectance": 0.4})
+    assert ok["radiometry.reference_target_reflectance"] == 0.4
 
 
 def test_grazing_incidence_is_clamped_and_flagged() -> None:

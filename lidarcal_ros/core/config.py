@@ -70,6 +70,17 @@ SCHEMA: dict[str, ParameterSpec] = {
     "atmosphere.pressure_kpa": _f(101.81, "Air pressure, kPa", 50.0, 110.0),
     "radiometry.reference_range_m": _f(1000.0, "Range reflectance is normalised to, metres",
                                        1.0, 1e5),
+    "radiometry.calibration_constant": _f(
+        0.0, "Intensity of a Lambertian target of reflectance 1 at the reference range, normal "
+        "incidence, clear air and reference power: with it reflectance is the Lambertian "
+        "reflectance (0-1); 0 = not known (reflectance relative, in intensity units)",
+        0.0, 1e12),
+    "radiometry.reference_target": ParameterSpec(
+        "", "str", "Box 'xmin,ymin,xmax,ymax' (map frame, m) over a surface of known "
+        "reflectance: lidarcal report and correct derive the calibration constant from it "
+        "when none is given; '' = none"),
+    "radiometry.reference_target_reflectance": _f(
+        0.0, "Lambertian reflectance of the reference target (0 = no target)", 0.0, 1.5),
     "radiometry.reference_pulse_rate_hz": _f(70000.0, "Pulse rate of the reference power, Hz",
                                              1.0, 1e7),
     "radiometry.power_model": ParameterSpec(
@@ -212,6 +223,27 @@ def coerce(name: str, value: Any) -> Any:
     return out
 
 
+def parse_target_box(text: str) -> tuple[float, float, float, float]:
+    """``radiometry.reference_target``: ``'xmin,ymin,xmax,ymax'`` (map frame, m) as floats.
+
+    Raises
+    ------
+    ConfigError
+        Not four finite numbers with ``xmin < xmax`` and ``ymin < ymax``.
+    """
+    name = "radiometry.reference_target"
+    try:
+        values = tuple(float(v) for v in str(text).split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{name}: expected 'xmin,ymin,xmax,ymax' in metres, got {text!r}")
+    x0, y0, x1, y1 = values
+    if not (x0 < x1 and y0 < y1):
+        raise ConfigError(f"{name}: an empty box {text!r} (need xmin < xmax and ymin < ymax)")
+    return x0, y0, x1, y1
+
+
 def cross_check(values: Mapping[str, Any], *, has_control: bool | None = None) -> str | None:
     """Checks across parameters; returns the reason a configuration is refused, or None.
 
@@ -231,6 +263,16 @@ def cross_check(values: Mapping[str, Any], *, has_control: bool | None = None) -
     if lo > hi:
         return (f"matching.min_normal_distance_m ({lo}) exceeds "
                 f"matching.max_normal_distance_m ({hi})")
+    box = values.get("radiometry.reference_target", "")
+    known = values.get("radiometry.reference_target_reflectance", 0.0)
+    if bool(box) != bool(known):
+        return ("radiometry.reference_target and radiometry.reference_target_reflectance go "
+                "together: give both (the box and the reflectance of its surface) or neither")
+    if box:
+        try:
+            parse_target_box(box)
+        except ConfigError as exc:
+            return str(exc)
     warn = values.get("qa.rmsdz_warn_m", 0.08)
     err = values.get("qa.max_difference_m", 0.16)
     if warn > err:

@@ -1,19 +1,28 @@
-"""Radiometric correction: recorded intensity to relative reflectance (method.md section 8).
+"""Radiometric correction: recorded intensity to reflectance (method.md section 8).
 
 For an extended Lambertian target filling the footprint the radar equation reduces to
-``I ~ P_t * rho * cos(theta) * eta_atm(r) / r^2``, so the reflectance is recovered, up to one
-constant per mission, as
+``I ~ P_t * rho * cos(theta) * eta_atm(r) / r^2``, so the *normalised intensity*
 
-``rho = I * (r / r_ref)^2 / cos(theta) / eta_atm(r) * (P_ref / P_t)``
+``I_n = I * (r / r_ref)^2 / cos(theta) / eta_atm(r) * (P_ref / P_t)``
 
-with ``r`` the range (m) from the firing point to the (corrected) point, ``theta`` the
-incidence angle between the laser direction and the local surface normal, ``eta_atm(r) =
-exp(-2 alpha r)`` the two-way transmittance and ``P_ref / P_t`` the transmitted-power
-normalisation. The result is in the unit of the intensity: the value the sensor would have
-recorded for the same target at the reference range, at normal incidence, through a clear
-atmosphere, at the reference power ("intensity normalised to ``r_ref``"). An absolute
-reflectance needs one more factor (a target of known reflectance), which is a single global
-scale.
+is the intensity the sensor would have recorded from the same surface at the reference range
+``r_ref``, at normal incidence, through a clear atmosphere (``eta_atm = 1``) and at the
+reference power. Here ``r`` is the range (m) from the firing point to the (corrected) point,
+``theta`` the incidence angle between the laser direction and the local surface normal,
+``eta_atm(r) = exp(-2 alpha r)`` the two-way transmittance and ``P_ref / P_t`` the
+transmitted-power normalisation.
+
+What the ``reflectance`` field holds
+------------------------------------
+``reflectance = I_n / C``, with ``C`` the calibration constant: the intensity the sensor
+records from a Lambertian target of reflectance 1 at ``r_ref``, normal incidence, clear air
+and reference power (``radiometry.calibration_constant``, intensity units). With ``C`` known
+(from the sensor's radiometric calibration, or measured on a reference target of known
+reflectance: :func:`constant_from_target`) the field is the *Lambertian reflectance* of the
+surface, dimensionless (0-1 for natural surfaces; above 1 for retro-reflectors and
+specular returns). Without it ``C`` is taken as 1 and the field is ``I_n`` itself, a
+*relative* reflectance in intensity units, proportional to the true one by an unknown factor
+the same for the whole mission (:attr:`RadiometricModel.meaning` says which in words).
 
 Atmosphere
 ----------
@@ -31,6 +40,7 @@ All functions are vectorised over points and pure numpy.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -205,6 +215,11 @@ class RadiometricModel:
         Atmosphere of the day (``atmosphere.*``): km, deg C, kPa.
     reference_range_m : float
         Range the reflectance is normalised to, m (``radiometry.reference_range_m``).
+    calibration_constant : float
+        ``C`` of the module docstring: the intensity of a Lambertian target of reflectance 1
+        at ``reference_range_m``, normal incidence, clear air and reference power
+        (``radiometry.calibration_constant``, intensity units); 0 when not known (the
+        reflectance is then relative, in intensity units).
     power_model : str
         ``constant`` or ``pulse_rate`` (``radiometry.power_model``).
     pulse_rate_hz, reference_pulse_rate_hz : float
@@ -224,6 +239,7 @@ class RadiometricModel:
     temperature_c: float = 29.8
     pressure_kpa: float = 101.81
     reference_range_m: float = 1000.0
+    calibration_constant: float = 0.0
     power_model: str = "constant"
     pulse_rate_hz: float = 70000.0
     reference_pulse_rate_hz: float = 70000.0
@@ -235,6 +251,9 @@ class RadiometricModel:
             raise ConfigError(
                 f"radiometry.reference_range_m must be positive, got {self.reference_range_m}"
             )
+        if not (math.isfinite(self.calibration_constant) and self.calibration_constant >= 0):
+            raise ConfigError("radiometry.calibration_constant must be 0 (not known) or "
+                              f"positive, got {self.calibration_constant}")
         if not 0.0 < self.min_cos_incidence <= 1.0:
             raise ConfigError(
                 f"radiometry.min_cos_incidence must be in (0, 1], got {self.min_cos_incidence}"
@@ -256,6 +275,7 @@ class RadiometricModel:
             temperature_c=float(config["atmosphere.temperature_c"]),
             pressure_kpa=float(config["atmosphere.pressure_kpa"]),
             reference_range_m=float(config["radiometry.reference_range_m"]),
+            calibration_constant=float(config["radiometry.calibration_constant"]),
             power_model=str(config["radiometry.power_model"]),
             pulse_rate_hz=float(config["sensor.pulse_rate_hz"]),
             reference_pulse_rate_hz=float(config["radiometry.reference_pulse_rate_hz"]),
@@ -274,6 +294,41 @@ class RadiometricModel:
         """``P_ref / P_t`` (:func:`power_ratio`)."""
         return power_ratio(self.power_model, self.pulse_rate_hz, self.reference_pulse_rate_hz)
 
+    @property
+    def absolute(self) -> bool:
+        """Whether the reflectance is absolute (a calibration constant is known)."""
+        return self.calibration_constant > 0
+
+    @property
+    def unit(self) -> str:
+        """Unit of the reflectance: ``1`` (absolute) or ``intensity units`` (relative)."""
+        return "1" if self.absolute else "intensity units"
+
+    @property
+    def meaning(self) -> str:
+        """What the reflectance is, in one sentence (for reports and logs)."""
+        reference = (f"{self.reference_range_m:g} m range, normal incidence, clear air and "
+                     "reference power")
+        if self.absolute:
+            return (f"Lambertian reflectance (dimensionless, 0-1 for natural surfaces): the "
+                    f"intensity normalised to {reference}, divided by the calibration "
+                    f"constant {self.calibration_constant:.6g} (the intensity of a "
+                    "reflectance-1 target there).")
+        return (f"relative reflectance in intensity units: the intensity the sensor would "
+                f"record from the same surface at {reference} (no calibration constant: "
+                "proportional to the Lambertian reflectance by one unknown factor).")
+
+    @property
+    def las_description(self) -> str:
+        """The reflectance's meaning in the 32 characters of a LAS extra-bytes description."""
+        if self.absolute:
+            return "Lambertian reflectance, 0-1"
+        return f"I at {self.reference_range_m:g} m, 0 deg incidence"[:32]
+
+    def with_constant(self, calibration_constant: float) -> RadiometricModel:
+        """The same model with another calibration constant (intensity units; 0: none)."""
+        return dataclasses.replace(self, calibration_constant=float(calibration_constant))
+
     def reflectance(
         self,
         intensity: np.ndarray,
@@ -282,12 +337,12 @@ class RadiometricModel:
         *,
         uncertain: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Relative reflectance of each point (module docstring) and its grazing flag.
+        """Reflectance of each point (module docstring) and its grazing flag.
 
         Parameters
         ----------
         intensity : (n,) float
-            Recorded intensity (any unit; the result has the same unit).
+            Recorded intensity (any unit).
         range_m : (n,) float
             Firing point to point, metres.
         cos_theta : (n,) float
@@ -300,9 +355,11 @@ class RadiometricModel:
         Returns
         -------
         reflectance : (n,) float32
-            ``I (r / r_ref)^2 / max(cos theta, c) / exp(-2 alpha r) * P_ref / P_t`` with
+            ``I (r / r_ref)^2 / max(cos theta, c) / exp(-2 alpha r) * P_ref / P_t / C`` with
             ``c = cos(uncertain_incidence_max_deg)`` for uncertain and grazing points, else
-            ``c_min``; NaN where an input is NaN.
+            ``c_min``, and ``C`` the calibration constant (1 when not known); NaN where an
+            input is NaN. Dimensionless with a calibration constant, else in the unit of the
+            intensity.
         grazing : (n,) bool
             ``cos theta < c_min``: the clamped value was used; never divided by a cosine
             below ``c_min``.
@@ -335,7 +392,8 @@ class RadiometricModel:
         c_doubt : float32
             ``cos(uncertain_incidence_max_deg)``, at least ``c_min``.
         scale : float32
-            ``P_ref / P_t / r_ref^2``, 1/m^2.
+            ``P_ref / P_t / r_ref^2 / C``, 1/m^2 per intensity unit (``C`` = 1 when the
+            calibration constant is not known).
         two_alpha : float32
             ``2 alpha``, 1/m (two-way extinction).
         """
@@ -343,7 +401,8 @@ class RadiometricModel:
                       self.min_cos_incidence)
         return (np.float32(self.min_cos_incidence), np.float32(c_doubt),
                 np.float32(self.power_factor / (self.reference_range_m
-                                                * self.reference_range_m)),
+                                                * self.reference_range_m)
+                           / (self.calibration_constant if self.absolute else 1.0)),
                 np.float32(2.0 * self.alpha_per_m))
 
 
@@ -354,3 +413,37 @@ def describe_alpha(model: RadiometricModel) -> str:
             f"{model.visibility_km:g} km, q {kim_q(model.visibility_km):.2f}, "
             f"{model.temperature_c:g} C, {model.pressure_kpa:g} kPa); two-way transmittance "
             f"{math.exp(-2 * a * model.reference_range_m):.4f} at {model.reference_range_m:g} m")
+
+
+def constant_from_target(relative: np.ndarray, known_reflectance: float) -> float:
+    """The calibration constant that makes a reference target read its known reflectance.
+
+    Parameters
+    ----------
+    relative : (n,) float
+        Relative reflectance (calibration constant 1: intensity units) of the target's
+        points whose incidence and normal are trusted.
+    known_reflectance : float
+        The target's Lambertian reflectance, in (0, 1.5].
+
+    Returns
+    -------
+    float
+        ``median(relative) / known_reflectance``, intensity units (the median: a few points
+        of another surface on the target's edge do not move it).
+
+    Raises
+    ------
+    ConfigError
+        No finite positive value, or a known reflectance out of range.
+    """
+    if not 0.0 < float(known_reflectance) <= 1.5:
+        raise ConfigError("radiometry.reference_target_reflectance must be in (0, 1.5], got "
+                          f"{known_reflectance}")
+    values = np.asarray(relative, dtype=np.float64)
+    values = values[np.isfinite(values) & (values > 0)]
+    if not values.size:
+        raise ConfigError("radiometry.reference_target: no point of the target has a "
+                          "reflectance (none inside it, or all rough, grazing or without "
+                          "intensity)")
+    return float(np.median(values)) / float(known_reflectance)

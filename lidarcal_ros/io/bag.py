@@ -596,6 +596,7 @@ def read_mission(
     control_topic: str | None = "/lidar/control_points",
     time_field: str = "t",
     thinning_cell_m: float = 0.0,
+    box: tuple[float, float, float, float] | None = None,
 ) -> Mission:
     """Read a mission bag into memory.
 
@@ -618,6 +619,9 @@ def read_mission(
         Keep only the first point of each square cell of this size (m) per strip in each
         cloud (:mod:`lidarcal_ros.core.thinning`; counted in ``thinned_points``); 0 keeps
         every point.
+    box : (xmin, ymin, xmax, ymax), keyword-only, optional
+        Keep only the points inside this box of the map frame (m): a part of a mission
+        read without holding the rest.
 
     Returns
     -------
@@ -650,7 +654,7 @@ def read_mission(
             _expect_type(bag, control_topic, (POINTCLOUD2,))
         wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
 
-        acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m)
+        acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m, box)
         samples = TrajectorySamples(f"{bag.path}: trajectory {trajectory_topic}")
         control_msg: Any = None
         for topic, msgtype, _log_ns, raw in bag.messages([t for t in wanted if t]):
@@ -734,8 +738,10 @@ class _CloudAccumulator:
     strip keeps such a column only if every one of its points had it.
     """
 
-    def __init__(self, topic: str, time_field: str, thinning_cell_m: float = 0.0) -> None:
+    def __init__(self, topic: str, time_field: str, thinning_cell_m: float = 0.0,
+                 box: tuple[float, float, float, float] | None = None) -> None:
         self.topic = topic
+        self.box = box
         self.time_field = time_field
         self.thinning_cell_m = float(thinning_cell_m)
         self.thinned = 0
@@ -757,6 +763,11 @@ class _CloudAccumulator:
                 f"{self.topic}: cloud lacks field 'strip_id' (or 'point_source_id'); "
                 f"fields present: {', '.join(arr.dtype.names or ())}"
             )
+        if self.box is not None:
+            x0, y0, x1, y1 = self.box
+            x, y = cols.xyz[:, 0], cols.xyz[:, 1]
+            inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+            cols, arr = cols.take(inside), arr[inside]
         if self.thinning_cell_m > 0:
             cols, arr = self._thinned(cols, arr)
         strip_id = cols.strip_id

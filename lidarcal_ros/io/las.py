@@ -3,7 +3,9 @@
 Each point record holds X, Y, Z (scale 0.001 m, offsets chosen from the first chunk: X and Y
 rounded down to a kilometre, Z 0), the intensity, return number and count, the scan angle, the
 point source id (strip), the GPS time, and extra-bytes dimensions (LAS 1.4 "extra bytes" VLR)
-``reflectance`` (float32, unit of the intensity normalised to the reference range),
+``reflectance`` (float32; :mod:`lidarcal_ros.core.radiometry` defines it: the Lambertian
+reflectance when a calibration constant is known, else the intensity normalised to the
+reference range, normal incidence and clear air; its description says which),
 ``range`` (float32, m), ``incidence`` (float32, rad) and ``correction_flags`` (uint8, the bits
 of :mod:`lidarcal_ros.pipeline.correction`). Points whose geometry could not be corrected are
 written with the LAS *withheld* flag set. The CRS, when known, goes into an OGC WKT VLR.
@@ -63,9 +65,10 @@ _LEAP_SECONDS: tuple[tuple[int, int], ...] = tuple(
 _LEAP_T = np.array([t for t, _ in _LEAP_SECONDS], dtype=np.float64)
 _LEAP_N = np.array([0] + [n for _, n in _LEAP_SECONDS], dtype=np.float64)
 
-#: Extra-bytes dimensions written: name, numpy type, description (LAS allows 32 characters).
+#: Extra-bytes dimensions written: name, numpy type, description (LAS allows 32 characters;
+#: the reflectance's is the writer's ``reflectance_description``).
 EXTRA_DIMENSIONS: tuple[tuple[str, str, str], ...] = (
-    ("reflectance", "f4", "intensity normalised to r_ref"),
+    ("reflectance", "f4", "I at 1000 m, 0 deg incidence"),
     ("range", "f4", "sensor to point, m"),
     ("incidence", "f4", "incidence angle, rad"),
     ("correction_flags", "u1", "lidarcal correction flags"),
@@ -140,6 +143,10 @@ class LasChunkWriter:
         Written as an OGC WKT VLR.
     overwrite : bool
         Replace an existing file.
+    reflectance_description : str, optional
+        Description of the ``reflectance`` dimension (at most 32 characters:
+        :attr:`~lidarcal_ros.core.radiometry.RadiometricModel.las_description`); default
+        that of :data:`EXTRA_DIMENSIONS`.
 
     Notes
     -----
@@ -155,8 +162,15 @@ class LasChunkWriter:
         time_field: str = "t",
         crs: Any = None,
         overwrite: bool = False,
+        reflectance_description: str | None = None,
     ) -> None:
         self.path = Path(path)
+        if reflectance_description is not None and len(reflectance_description) > 32:
+            raise ConfigError(f"LAS extra-bytes descriptions hold 32 characters: "
+                              f"{reflectance_description!r} is longer")
+        self.descriptions = {name: desc for name, _, desc in EXTRA_DIMENSIONS}
+        if reflectance_description is not None:
+            self.descriptions["reflectance"] = reflectance_description
         suffix = self.path.suffix.lower()
         if suffix not in (".las", ".laz"):
             raise ConfigError(f"{self.path}: a LAS output must end in .las or .laz")
@@ -195,8 +209,8 @@ class LasChunkWriter:
 
         header = laspy.LasHeader(version="1.4", point_format=6)
         header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=np.dtype(kind),
-                                                      description=desc)
-                               for name, kind, desc in EXTRA_DIMENSIONS])
+                                                      description=self.descriptions[name])
+                               for name, kind, _ in EXTRA_DIMENSIONS])
         header.scales = np.array([SCALE_M, SCALE_M, SCALE_M])
         if xyz.shape[0]:
             lo = np.nanmin(xyz, axis=0)

@@ -7,7 +7,12 @@ Subscribes (raw CDR) to the points (``topics.points``) and the trajectory
 transient-local); publishes each chunk corrected on ``topics.corrected`` with every input
 field, ``x, y, z`` corrected (method.md eq. [13]) and the FLOAT32 ``reflectance``, ``range``,
 ``incidence``, ``scan_angle`` plus UINT8 ``correction_flags``
-(:mod:`lidarcal_ros.pipeline.correction`). Header stamp and frame are the input's.
+(:mod:`lidarcal_ros.pipeline.correction`). Header stamp and frame are the input's. The
+``reflectance`` is the Lambertian reflectance (0-1) when ``radiometry.calibration_constant``
+is set, else relative (intensity normalised to ``radiometry.reference_range_m``; intensity
+units: :mod:`lidarcal_ros.core.radiometry`); a ``radiometry.reference_target`` needs the
+whole mission, so the node does not use it (``lidarcal report`` and ``lidarcal correct`` derive
+the constant from it).
 
 A new estimate is used from the next chunk on, without a restart; so are accepted changes of
 the flight configuration (atmosphere, radiometry, time field...). Until an estimate arrives the
@@ -190,6 +195,11 @@ class CorrectorNode(Node):
         self.estimate_source = "configuration"
         self._delta = self._initial_delta(cfg)
         self._settings = CorrectionSettings.from_config(cfg, self._delta)
+        if cfg["radiometry.reference_target"] and not self._settings.radiometry.absolute:
+            self.get_logger().warning(
+                "radiometry.reference_target is not used live (it needs the whole mission: "
+                "lidarcal report or correct derive radiometry.calibration_constant from it); "
+                "reflectance stays relative, in intensity units")
         self._settings_changed = False
         self._lookahead_changed = False
         self._keep_changed = False

@@ -33,14 +33,16 @@ logger = logging.getLogger(__name__)
 
 
 def load_mission(
-    bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None
+    bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None,
+    box: tuple[float, float, float, float] | None = None,
 ) -> Mission:
     """Read a mission bag with the topics and time field of ``config``.
 
     Control points come from ``control_csv`` if given, else from the configuration's
     ``calibration.control_points_file`` if set, else from the bag's control topic. A
     ``matching.heading_source`` of ``attitude`` with poses that carry no orientation is
-    refused here (ConfigError).
+    refused here (ConfigError). ``box`` ``(xmin, ymin, xmax, ymax)``, map frame, m: only
+    the points inside it.
     """
     mission = read_mission(
         bag,
@@ -49,6 +51,7 @@ def load_mission(
         control_topic=config["topics.control_points"],
         time_field=config["time_field"],
         thinning_cell_m=config["calibration.thinning_cell_m"],
+        box=box,
     )
     check_orientation(config["matching.heading_source"], mission.trajectory, str(bag))
     check_model_setting(config["matching.model"], mission.trajectory, str(bag))

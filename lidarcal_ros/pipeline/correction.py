@@ -284,7 +284,8 @@ class CorrectedColumns:
     xyz : (n, 3) float64
         Corrected points (delivered ones where not corrected), map frame, m.
     range, incidence, scan_angle, reflectance : (n,) float32
-        m, rad, rad, intensity unit normalised to the reference range (NaN where unknown).
+        m, rad, rad, and the reflectance of :mod:`lidarcal_ros.core.radiometry` (Lambertian
+        with a calibration constant, else relative in intensity units); NaN where unknown.
     flags : (n,) uint8
         ``FLAG_*`` bits.
     cell_m : (float, float)
@@ -1181,6 +1182,7 @@ class CorrectionReport:
     seconds: float = 0.0
     frame_id: str = ""
     atmosphere: str = ""
+    reflectance: str = ""
     warnings: list[str] = field(default_factory=list)
 
     def lines(self) -> list[str]:
@@ -1193,6 +1195,8 @@ class CorrectionReport:
             out.append(f"passed through {self.passthrough_messages} other messages")
         out.append(self.atmosphere)
         out.append("model: " + s.describe_models())
+        if self.reflectance:
+            out.append(f"reflectance: {self.reflectance}")
         out.append(f"grazing incidence (clamped): {s.grazing}; rough surface: {s.rough}; "
                    f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
                    f"without intensity: {s.no_intensity}")
@@ -1309,12 +1313,21 @@ def correct_bag(
         frame = next(iter(traj_frames))
         check_orientation(settings.heading_source, trajectory, f"{bag.path}: {traj_topic}")
         check_model_setting(settings.model, trajectory, f"{bag.path}: {traj_topic}")
+        meaning = settings.radiometry.meaning
+        if not settings.radiometry.absolute:
+            from lidarcal_ros.pipeline.reflectance import measure_target_in_bag
+
+            target = measure_target_in_bag(bag_path, trajectory, settings, config)
+            if target is not None:
+                settings = dataclasses.replace(
+                    settings, radiometry=settings.radiometry.with_constant(target.constant))
+                meaning = f"{settings.radiometry.meaning} The {target.describe()}."
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
                                     workers=workers, source=points_topic)
         n_clouds = max(bag.topics[points_topic].count, 1)
         report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
                                   atmosphere=describe_alpha(settings.radiometry),
-                                  warnings=warnings)
+                                  reflectance=meaning, warnings=warnings)
         try:
             corrector.start()  # the workers start while the clouds are read
             if kind == "las":
@@ -1365,7 +1378,9 @@ def _correct_to_las(
     run_points = 0
 
     with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
-                        overwrite=overwrite) as writer:
+                        overwrite=overwrite,
+                        reflectance_description=corrector.settings.radiometry.las_description,
+                        ) as writer:
 
         def write_run(parts: list[np.ndarray]) -> None:
             writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])

@@ -1,0 +1,163 @@
+"""The calibration constant of the reflectance from a reference target of known reflectance.
+
+``radiometry.reference_target`` is a box of the map frame over one surface whose Lambertian
+reflectance ``radiometry.reference_target_reflectance`` is known (a sports ground, a car park
+measured with a field spectrometer). The points inside it whose reflectance is trusted
+(corrected, with an intensity and a normal that is neither rough nor grazing, incidence below
+:data:`TARGET_MAX_INCIDENCE_DEG`) give ``C = median(relative reflectance) / known``
+(:func:`~lidarcal_ros.core.radiometry.constant_from_target`), the intensity of a
+reflectance-1 target at the reference range: the calibration constant that makes the
+reflectance absolute (:mod:`lidarcal_ros.core.radiometry`).
+
+``lidarcal report`` measures the target on the mission it holds; ``lidarcal correct`` reads
+only the target and its surroundings (:func:`measure_target_in_bag`) before correcting.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lidarcal_ros.core.config import FlightConfig, parse_target_box
+from lidarcal_ros.core.flags import (
+    FLAG_GRAZING,
+    FLAG_NO_INTENSITY,
+    FLAG_NO_NORMAL,
+    FLAG_NOT_CORRECTED,
+    FLAG_ROUGH,
+)
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.radiometry import constant_from_target
+from lidarcal_ros.pipeline.correction import (
+    CorrectionSettings,
+    correct_columns,
+    trajectory_heading,
+)
+
+#: Steepest incidence of a target point, degrees (the median stays on the Lambertian part).
+TARGET_MAX_INCIDENCE_DEG = 60.0
+#: Points around the box read with it, m: the surface normals of the points on its edge see
+#: their whole neighbourhood.
+TARGET_MARGIN_M = 20.0
+#: Flags of points left out of the target.
+_UNTRUSTED = FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH | FLAG_GRAZING
+
+
+@dataclass(frozen=True)
+class TargetMeasurement:
+    """A reference target measured on a mission.
+
+    Attributes
+    ----------
+    box : (xmin, ymin, xmax, ymax)
+        Map frame, m.
+    known_reflectance : float
+        The target's Lambertian reflectance (configuration).
+    n_points : int
+        Trusted points inside the box.
+    median_relative : float
+        Their median relative reflectance, intensity units.
+    constant : float
+        The calibration constant, intensity units.
+    """
+
+    box: tuple[float, float, float, float]
+    known_reflectance: float
+    n_points: int
+    median_relative: float
+    constant: float
+
+    def describe(self) -> str:
+        """One sentence for reports."""
+        x0, y0, x1, y1 = self.box
+        return (f"calibration constant {self.constant:.6g} from the reference target "
+                f"({x0:.1f}, {y0:.1f})-({x1:.1f}, {y1:.1f}) of reflectance "
+                f"{self.known_reflectance:g}: median relative reflectance "
+                f"{self.median_relative:.6g} over {self.n_points} points")
+
+
+def target_of(config: FlightConfig) -> tuple[tuple[float, float, float, float], float] | None:
+    """The configured reference target (box, reflectance), or None."""
+    text = str(config["radiometry.reference_target"])
+    if not text:
+        return None
+    return parse_target_box(text), float(config["radiometry.reference_target_reflectance"])
+
+
+def trusted_in_box(xyz: np.ndarray, flags: np.ndarray, incidence: np.ndarray,
+                   box: tuple[float, float, float, float]) -> np.ndarray:
+    """Points inside ``box`` whose reflectance is trusted (module docstring)."""
+    x0, y0, x1, y1 = box
+    x, y = xyz[:, 0], xyz[:, 1]
+    with np.errstate(invalid="ignore"):
+        steep = ~(incidence < math.radians(TARGET_MAX_INCIDENCE_DEG))
+    return ((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+            & ((flags & _UNTRUSTED) == 0) & ~steep)
+
+
+def measure_target(
+    parts: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    box: tuple[float, float, float, float],
+    known_reflectance: float,
+) -> TargetMeasurement:
+    """The calibration constant from corrected points.
+
+    Parameters
+    ----------
+    parts : iterable of (xyz, relative reflectance, flags, incidence)
+        Corrected points ((n, 3) map frame, m), their reflectance computed *without* a
+        calibration constant (intensity units), ``correction_flags`` and incidence (rad).
+    box, known_reflectance
+        The target.
+
+    Raises
+    ------
+    ConfigError
+        No trusted point inside the box, or a reflectance out of range.
+    """
+    values = [refl[trusted_in_box(xyz, flags, inc, box)] for xyz, refl, flags, inc in parts]
+    relative = np.concatenate(values) if values else np.empty(0)
+    constant = constant_from_target(relative, known_reflectance)
+    return TargetMeasurement(box, float(known_reflectance), int(np.isfinite(relative).sum()),
+                             constant * float(known_reflectance), constant)
+
+
+def measure_target_in_bag(
+    bag: str | Path,
+    trajectory: Trajectory,
+    settings: CorrectionSettings,
+    config: FlightConfig,
+) -> TargetMeasurement | None:
+    """The configured reference target measured on the points of a mission bag around it
+    (None when the configuration names no target).
+
+    Only the points within :data:`TARGET_MARGIN_M` of the box are read and corrected (with
+    ``settings``, without a calibration constant), one strip at a time.
+    """
+    from lidarcal_ros.pipeline.calibration import load_mission
+
+    target = target_of(config)
+    if target is None:
+        return None
+    box, known = target
+    m = TARGET_MARGIN_M
+    around = (box[0] - m, box[1] - m, box[2] + m, box[3] + m)
+    mission = load_mission(bag, config, box=around)
+    relative = CorrectionSettings(settings.delta, settings.radiometry.with_constant(0.0),
+                                  settings.window_s, settings.min_samples,
+                                  settings.heading_source, settings.time_field)
+
+    def corrected() -> Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        for strip in mission.strips:
+            if strip.intensity is None or not len(strip):
+                continue
+            heading = trajectory_heading(trajectory, float(np.nanmedian(strip.t)))
+            res = correct_columns(strip.xyz, strip.t, strip.intensity, trajectory, relative,
+                                  heading=heading, source=f"strip {strip.strip_id}")
+            yield res.xyz, res.reflectance, res.flags, res.incidence
+
+    return measure_target(corrected(), box, known)
