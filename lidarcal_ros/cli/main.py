@@ -301,7 +301,10 @@ def _add_correct(sub: Any) -> None:
                        "a bag (corrected clouds beside the input topics) or LAS/LAZ 1.4.",
                        epilog="Corrected clouds carry every input field, x, y, z corrected, "
                        "and FLOAT32 reflectance (intensity normalised to the reference range, "
-                       "normal incidence, clear air), range (m), incidence (rad), scan_angle "
+                       "normal incidence, clear air, over radiometry.calibration_constant: the "
+                       "Lambertian reflectance 0-1 with that constant or a reference target, "
+                       "else relative in intensity units), range (m), incidence (rad), "
+                       "scan_angle "
                        "(rad), plus UINT8 correction_flags: 1 not corrected (trajectory gap; "
                        "x, y, z as delivered, the rest NaN), 2 grazing incidence (cosine "
                        "clamped), 4 no surface normal (incidence, reflectance NaN), 8 no "
