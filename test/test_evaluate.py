@@ -20,7 +20,8 @@ from lidarcal_ros.core.evaluation import AccuracySummary, rigid_icp, tin_heights
 from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import as_vector
 from lidarcal_ros.core.tin import Tin, TinQuality
-from lidarcal_ros.pipeline.evaluation import evaluate_mission
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.pipeline.evaluation import Evaluation, evaluate_mission
 
 mission_factory = helpers_missions.mission_factory
 
@@ -170,6 +171,19 @@ def test_cli_evaluate_json_and_text(evaluated: dict[str, Any], tmp_path: Path,
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "relative accuracy" in text and "absolute accuracy" in text and "RMSE" in text
+
+
+def test_json_reads_back_with_the_biases_evaluated(evaluated: dict[str, Any]) -> None:
+    """``--json`` names the biases it evaluated, and reads back into the same tables (what
+    ``lidarcal report --evaluation`` shows)."""
+    ev = evaluated["ev"]
+    doc = json.loads(json.dumps(ev.as_dict()))
+    assert doc["biases"] == pytest.approx(evaluated["files"].sim.biases)
+    back = Evaluation.from_dict(doc)
+    assert back.delta is not None and np.array_equal(back.delta, ev.delta)
+    assert back.as_dict() == ev.as_dict()
+    with pytest.raises(ConfigError, match=r"x\.json: not an evaluation"):
+        Evaluation.from_dict({"pairs": [{"strips": [1, 2]}]}, source="x.json")
 
 
 def test_cli_evaluate_bad_input_one_line(evaluated: dict[str, Any], tmp_path: Path,

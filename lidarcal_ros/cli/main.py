@@ -368,40 +368,64 @@ def _cmd_correct(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- report
 def _add_report(sub: Any) -> None:
-    p = sub.add_parser("report", help="self-contained HTML report of a calibration",
+    p = sub.add_parser("report", help="self-contained HTML QA report of a calibration",
                        description="One HTML file, figures embedded, readable offline: the "
-                       "biases with sigmas, their correlations, per strip pair the normal "
-                       "discrepancies before and after (maps, histograms), control residuals, "
-                       "the variance-to-mean ratio of intensity against slope before and after "
-                       "radiometric correction, and a reflectance map.")
+                       "USGS LBS quality level met; the flight lines, trajectory, control and "
+                       "check points on a map and a table per strip; the biases with sigmas "
+                       "and correlations; the strip-to-strip height differences over the "
+                       "block before and after (one colour scale); per strip pair the normal "
+                       "discrepancies; the co-alignment of each pair and the check-point "
+                       "residuals of lidarcal evaluate; control residuals; the reflectance, "
+                       "its variance-to-mean ratio against slope and maps; the inputs with "
+                       "sizes and SHA-256, the configuration and the date.",
+                       epilog="The evaluation (point-to-patch ICP per pair) costs about as "
+                       "much as the rest of the report; --evaluation reuses a saved "
+                       "'lidarcal evaluate --json' output of the same calibration instead.")
     _add_bag_and_calibration(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output HTML file")
     p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file; "
                    "the calibration's, for the same sample points)")
     p.add_argument("--control", type=Path, help="control points CSV id,x,y,z")
+    p.add_argument("--check-points", type=Path,
+                   help="CSV id,x,y,z of surveyed check points (not the control used)")
+    p.add_argument("--evaluation", type=Path,
+                   help="JSON of 'lidarcal evaluate --json' for the same bag and calibration "
+                   "(default: evaluate here)")
+    p.add_argument("--crs", help="CRS of the map frame, named on the maps, e.g. EPSG:32633")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (it shows only on a terminal anyway)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_report)
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    import shlex
+
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.html_report import write_html_report
+    from lidarcal_ros.io.las import parse_crs
     from lidarcal_ros.pipeline.report import build_report
 
     _check_output_file(args.output)
     if (args.output.exists() or args.output.is_symlink()) and not args.overwrite:
         raise ConfigError(f"{args.output}: exists (use --overwrite to replace it)")
     config = load_flight_config(args.config)
+    crs = parse_crs(args.crs) if args.crs else None
     started = time.perf_counter()
-    progress, close = _progress_bar(True)
+    progress, close = _progress_bar(not args.quiet)
     try:
         content = build_report(args.bag, args.calibration, config, control_csv=args.control,
-                               config_source=args.config, progress=progress)
+                               config_source=args.config, check_points_csv=args.check_points,
+                               evaluation_json=args.evaluation, crs=crs,
+                               command=shlex.join(["lidarcal", *args.argv]),
+                               progress=progress)
+        path = write_html_report(args.output, content, overwrite=args.overwrite,
+                                 progress=progress)
     finally:
         close()
-    path = write_html_report(args.output, content, overwrite=args.overwrite)
+    quality = content.quality.best.name if content.quality and content.quality.best else "none"
     print(f"report written to {path}: {len(content.pairs)} strip pairs, "
-          f"{len(content.control)} control residuals "
+          f"{len(content.control)} control residuals, USGS LBS {quality} "
           f"({time.perf_counter() - started:.1f} s)")
     return 0
 
@@ -667,6 +691,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``lidarcal`` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # (a report records it)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     try:

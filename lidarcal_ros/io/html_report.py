@@ -1,34 +1,45 @@
 """The calibration report as one self-contained HTML file (``lidarcal report``).
 
 What the report holds is described by :class:`ReportContent` (filled by
-:mod:`lidarcal_ros.pipeline.report`); this module draws its figures with matplotlib's Agg
-canvas (no pyplot, no display, no global state) and writes one HTML file in which every figure
-is a base64 PNG ``<img>`` with an ``id`` and an ``alt`` text, and the style sheet and a small
-script are inline: nothing is fetched, so the file reads offline and can be mailed as it is.
+:mod:`lidarcal_ros.pipeline.report`); the figures come from
+:mod:`lidarcal_ros.io.report_figures`. The file has every figure as a base64 PNG ``<img>``
+with an ``id`` and an ``alt`` text, and the style sheet and a small script inline: nothing
+is fetched, so it reads offline and can be mailed as it is.
 
-Sections: the facts of the run, the bias table (estimate, sigma, unit, or why a parameter was
-not estimated), the correlation matrix as a heat map, per strip pair the normal discrepancies
-over the overlap before and after calibration (two maps, each on a symmetric colour scale of
-its own, and their histograms), the control-point residuals, the variance-to-mean ratio of
-intensity against terrain slope before and after radiometric correction (the paper's Fig. 5),
-and maps of raw intensity and reflectance.
+Sections, in the order a LiDAR processor reads them:
+
+- a summary: mission, the USGS LBS quality level met, the calibration;
+- quality level: each LBS measure against the thresholds of QL0-QL3;
+- the block: flight lines, trajectory, control and check points on a map (map coordinates,
+  CRS named), and a table per strip (time, points, length, heading, speed, height above
+  ground, density);
+- the calibration: its facts, the bias table (estimate, sigma, unit, or why a parameter was
+  not estimated), the correlation matrix;
+- swath-to-swath height differences over the block before and after (mosaics on one colour
+  scale, per pair RMSDz and largest |dz|), then per strip pair the normal discrepancies of the
+  calibration's sample points (maps on one scale, histograms);
+- relative and absolute accuracy as ``lidarcal evaluate`` measures them: the rigid
+  transformation co-aligning each pair (point-to-patch ICP) and the check-point residuals;
+- the control-point residuals;
+- the radiometric correction: what the reflectance is, the variance-to-mean ratio against
+  terrain slope before and after (the paper's Fig. 5), maps of intensity and reflectance;
+- provenance: lidarcal version, date, command, every input with its size and SHA-256, the
+  flight configuration.
 
 The inline script marks every ``<img>`` that decoded (``data-rendered="1"``) and writes
 ``data-figures-total`` and ``data-figures-rendered`` on ``<body>`` once the page has loaded,
-so a headless browser can tell that every figure rendered.
-
-Map coordinates in the figures are map-frame metres relative to :attr:`ReportContent.origin`.
+so a headless browser can tell that every figure rendered. Every section is a ``<section>``
+with an ``id`` (``summary``, ``quality``, ``block``, ``calibration``, ``swath``,
+``pairs``, ``evaluation``, ``control``, ``radiometry``, ``provenance``).
 """
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import html
-import io
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -36,19 +47,19 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lidarcal_ros.core.calibrate import ControlResidual, PairDiscrepancies
+from lidarcal_ros.core.evaluation import RIGID_NAMES, AccuracySummary, RigidFit
 from lidarcal_ros.core.params import display_value
+from lidarcal_ros.core.quality_level import LBS_LEVELS, QualityAssessment
+from lidarcal_ros.core.swath_differences import DzStatistics, SwathDifferences
 from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io import report_figures as figures
 
 if TYPE_CHECKING:
-    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
 logger = logging.getLogger(__name__)
 
-#: Resolution of the embedded PNG figures, dots per inch.
-FIGURE_DPI = 90
-#: Most points drawn per discrepancy map (a regular subsample beyond; statistics use all).
-MAX_MAP_POINTS = 20_000
+Progress = Callable[[str, float], None]
 
 
 # ---------------------------------------------------------------------------- content
@@ -86,8 +97,7 @@ class PairSection:
     before, after : PairDiscrepancies
         At zero biases and at the estimate (the same sample points; metres).
     qa_level : str
-        ``OK``, ``WARN`` or ``ERROR`` for the RMS after (USGS LBS thresholds of the
-        configuration).
+        ``OK``, ``WARN`` or ``ERROR`` for the RMS after (thresholds of the configuration).
     coverage : float or None
         Fraction of the smaller strip's footprint the pair overlaps (from the calibration
         file), if known.
@@ -114,10 +124,11 @@ class SlopeClass:
     n_points : int
         Points used (corrected, with a normal and an intensity, not rough).
     vmr_intensity, vmr_reflectance : float
-        Variance-to-mean ratio of the recorded intensity and of the reflectance (intensity
-        units: reflectance is normalised to the reference range), NaN for too few points.
+        Variance-to-mean ratio of the recorded intensity and of the reflectance put on the
+        intensity's scale (one factor for all classes: equal means over every point used),
+        intensity units; NaN for too few points.
     mean_intensity, mean_reflectance : float
-        Means, intensity units.
+        Means, intensity units and the reflectance's unit.
     """
 
     lo_deg: float
@@ -139,12 +150,12 @@ class SlopeClass:
 
 @dataclass
 class MapRaster:
-    """A grid of mean values over the mission, rows from south to north.
+    """A grid of values over the mission, rows from south to north.
 
     Attributes
     ----------
     values : (ny, nx) float64
-        Mean per cell, NaN where no point fell.
+        Per cell, NaN where no point fell.
     x0, y0 : float
         Map-frame coordinates of the south-west corner of cell ``[0, 0]``, metres.
     cell_m : float
@@ -156,11 +167,10 @@ class MapRaster:
     y0: float
     cell_m: float
 
-    def extent(self, origin: tuple[float, float]) -> tuple[float, float, float, float]:
-        """``(left, right, bottom, top)`` relative to ``origin``, metres (for ``imshow``)."""
+    def extent(self) -> tuple[float, float, float, float]:
+        """``(left, right, bottom, top)``, map frame, metres (for ``imshow``)."""
         ny, nx = self.values.shape
-        left, bottom = self.x0 - origin[0], self.y0 - origin[1]
-        return left, left + nx * self.cell_m, bottom, bottom + ny * self.cell_m
+        return self.x0, self.x0 + nx * self.cell_m, self.y0, self.y0 + ny * self.cell_m
 
 
 @dataclass
@@ -174,8 +184,12 @@ class RadiometrySection:
         Mean recorded intensity and mean reflectance per cell, on one grid.
     n_points, n_used : int
         Points corrected, and points entering the slope statistics.
+    meaning : str
+        What the reflectance is (:attr:`~lidarcal_ros.core.radiometry.RadiometricModel.meaning`).
+    unit : str
+        Its unit: ``1`` (Lambertian reflectance) or ``intensity units`` (relative).
     notes : list of str
-        Sentences shown under the figures (atmosphere used, points left out).
+        Sentences shown under the figures (atmosphere, reference target, points left out).
     """
 
     slope_classes: list[SlopeClass]
@@ -183,7 +197,141 @@ class RadiometrySection:
     reflectance: MapRaster
     n_points: int
     n_used: int
+    meaning: str = ""
+    unit: str = "intensity units"
     notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class InputFile:
+    """One input of the report: role, path, size (bytes) and SHA-256 (hex) of its content
+    (of a directory: of its files' names and contents, in name order)."""
+
+    role: str
+    path: str
+    size_bytes: int
+    sha256: str
+
+
+@dataclass
+class Provenance:
+    """What produced the report.
+
+    Attributes
+    ----------
+    version : str
+        lidarcal's.
+    generated : str
+        When, ISO 8601 UTC.
+    command : str
+        The command line, when run from one.
+    inputs : list of InputFile
+    configuration : list of (str, str, bool)
+        Every flight-configuration parameter: name, value, whether it differs from the
+        default.
+    configuration_source : str
+        The parameters file, or ``defaults``.
+    """
+
+    version: str
+    generated: str
+    command: str
+    inputs: list[InputFile]
+    configuration: list[tuple[str, str, bool]]
+    configuration_source: str
+
+
+@dataclass(frozen=True)
+class StripRow:
+    """One flight line (strip) of the block.
+
+    Attributes
+    ----------
+    strip_id : int
+    points : int
+    start : str
+        First point's time: ISO 8601 UTC for absolute times, else seconds.
+    duration_s, length_m : float
+        Time from first to last point and the trajectory's length over it.
+    heading_deg : float
+        Course over ground, degrees clockwise from grid north (0-360).
+    speed_mps : float
+    height_m : float
+        Flying height above the ground: median trajectory height minus median point height.
+    density_per_m2 : float
+        Points over the footprint's area (cells holding points).
+    """
+
+    strip_id: int
+    points: int
+    start: str
+    duration_s: float
+    length_m: float
+    heading_deg: float
+    speed_mps: float
+    height_m: float
+    density_per_m2: float
+
+
+@dataclass
+class FlightMap:
+    """What the block map shows (map frame, metres).
+
+    Attributes
+    ----------
+    trajectory_xy : (k, 2) float
+        The whole trajectory, thinned.
+    lines : list of (int, (m, 2) float)
+        Per strip, the trajectory while it was flown.
+    coverage : MapRaster
+        Strips covering each cell (0: none).
+    control, check : list of (str, float, float)
+        Control and check points: id, x, y.
+    target : (xmin, ymin, xmax, ymax) or None
+        The radiometric reference target.
+    """
+
+    trajectory_xy: np.ndarray
+    lines: list[tuple[int, np.ndarray]]
+    coverage: MapRaster
+    control: list[tuple[str, float, float]] = field(default_factory=list)
+    check: list[tuple[str, float, float]] = field(default_factory=list)
+    target: tuple[float, float, float, float] | None = None
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """South-west and north-east corners of everything shown, with a margin."""
+        left, right, bottom, top = self.coverage.extent()
+        parts = [np.array([[left, bottom], [right, top]]), self.trajectory_xy]
+        parts += [np.array([(x, y) for _, x, y in pts]) for pts in (self.control, self.check)
+                  if pts]
+        xy = np.concatenate(parts)
+        lo, hi = np.nanmin(xy, axis=0), np.nanmax(xy, axis=0)
+        margin = 0.03 * float(np.max(hi - lo))
+        return lo - margin, hi + margin
+
+
+@dataclass
+class EvaluationSection:
+    """``lidarcal evaluate``'s results (Tables 3 and 4 of the paper).
+
+    Attributes
+    ----------
+    pairs : list of (int, int, RigidFit or None, RigidFit or None)
+        Strip ids and the co-aligning transformation before and after.
+    check : list of (str, list of int, float, float)
+        Check point id, strips seeing it, residual before and after (m).
+    source : str
+        Computed for the report, or the file it was read from.
+    """
+
+    pairs: list[tuple[int, int, RigidFit | None, RigidFit | None]]
+    check: list[tuple[str, list[int], float, float]]
+    source: str
+
+    def summary(self, state: str) -> AccuracySummary:
+        """Check-point statistics ``before`` or ``after``."""
+        k = 2 if state == "before" else 3
+        return AccuracySummary.of(np.array([c[k] for c in self.check]))
 
 
 @dataclass
@@ -194,7 +342,9 @@ class ReportContent:
     ----------
     title : str
     facts : list of (str, str)
-        Label and value of each line of the summary (bag, strips, sigma0, ...).
+        The summary's lines (label, value).
+    calibration_facts : list of (str, str)
+        The calibration's lines (file, sigma0, redundancy, ...).
     biases : list of BiasEntry
         The eight parameters in method.md order.
     correlation_names : list of str
@@ -205,10 +355,20 @@ class ReportContent:
         Metres, before and after.
     radiometry : RadiometrySection or None
         None where the clouds carry no intensity.
-    origin : (float, float)
-        Map-frame point the figures' coordinates are relative to, metres.
+    strips : list of StripRow
+    flight : FlightMap or None
+    swath : SwathDifferences or None
+    swath_limit_m : float
+        Half-range of the dz colour scale, metres.
+    quality : QualityAssessment or None
+    evaluation : EvaluationSection or None
+    provenance : Provenance or None
+    crs : str
+        The map frame's CRS as named on the axes ('' where not known).
     qa_warn_m, qa_error_m : float
-        RMS thresholds of the pair QA, metres.
+        Thresholds of the pair QA, metres.
+    smooth_slope_deg : float
+        Steepest ground of the swath differences, degrees.
     warnings : list of str
     """
 
@@ -220,195 +380,19 @@ class ReportContent:
     pairs: list[PairSection]
     control: list[ControlResidual]
     radiometry: RadiometrySection | None
-    origin: tuple[float, float] = (0.0, 0.0)
+    calibration_facts: list[tuple[str, str]] = field(default_factory=list)
+    strips: list[StripRow] = field(default_factory=list)
+    flight: FlightMap | None = None
+    swath: SwathDifferences | None = None
+    swath_limit_m: float = 0.16
+    quality: QualityAssessment | None = None
+    evaluation: EvaluationSection | None = None
+    provenance: Provenance | None = None
+    crs: str = ""
     qa_warn_m: float = 0.08
     qa_error_m: float = 0.16
+    smooth_slope_deg: float = 10.0
     warnings: list[str] = field(default_factory=list)
-
-
-# ---------------------------------------------------------------------------- figures
-def _new_figure(width_in: float, height_in: float, *, constrained: bool = True) -> Figure:
-    """A figure on its own Agg canvas (no pyplot: no display, nothing global).
-
-    ``constrained``: matplotlib's constrained layout, which costs about as much as drawing
-    itself; without it the caller places the axes (the many pair figures do).
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width_in, height_in), dpi=FIGURE_DPI,
-                 layout="constrained" if constrained else None)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _png_base64(fig: Figure) -> str:
-    """The figure as a base64 PNG of 256 colours (a third of the size of true colour for the
-    scatter maps, and no visible difference); no metadata."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from PIL import Image
-
-    canvas = fig.canvas
-    assert isinstance(canvas, FigureCanvasAgg), "figures come from _new_figure"
-    canvas.draw()
-    rgba = np.asarray(canvas.buffer_rgba())
-    image = Image.fromarray(rgba).convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT)
-    buffer = io.BytesIO()
-    image.save(buffer, format="PNG", optimize=True)
-    return base64.b64encode(buffer.getvalue()).decode("ascii")
-
-
-def _figure(fig_id: str, alt: str, fig: Figure, caption: str = "") -> str:
-    """A ``<figure>`` holding ``fig`` as an embedded PNG."""
-    img = (f'<img id="{html.escape(fig_id)}" class="figure" alt="{html.escape(alt)}" '
-           f'src="data:image/png;base64,{_png_base64(fig)}">')
-    cap = f"<figcaption>{caption}</figcaption>" if caption else ""
-    return f"<figure>{img}{cap}</figure>"
-
-
-def correlation_figure(names: Sequence[str], matrix: np.ndarray) -> Figure:
-    """Heat map of the correlation matrix of the estimated parameters, values written in."""
-    m = len(names)
-    size = 1.2 + 0.55 * max(m, 2)
-    fig = _new_figure(size + 1.0, size)
-    ax = fig.add_subplot()
-    image = ax.imshow(matrix, cmap="RdBu_r", vmin=-1.0, vmax=1.0)
-    ax.set_xticks(range(m), list(names), rotation=45, ha="right")
-    ax.set_yticks(range(m), list(names))
-    for i in range(m):
-        for j in range(m):
-            r = float(matrix[i, j])
-            ax.text(j, i, f"{r:+.2f}", ha="center", va="center", fontsize=8,
-                    color="white" if abs(r) > 0.6 else "black")
-    fig.colorbar(image, ax=ax, shrink=0.8, label="correlation")
-    return fig
-
-
-def _symmetric_limit_cm(distance_m: np.ndarray) -> float:
-    """Colour and histogram limit for discrepancies: their 95th percentile of ``|d|`` in cm,
-    within 5..200 cm."""
-    if not distance_m.size:
-        return 5.0
-    return float(np.clip(np.percentile(np.abs(distance_m), 95) * 100.0, 5.0, 200.0))
-
-
-def _discrepancy_map(fig: Figure, ax: Axes, d: PairDiscrepancies,
-                     origin: tuple[float, float], title: str) -> None:
-    """Points coloured by their discrepancy (cm) on a symmetric scale of their own."""
-    limit_cm = _symmetric_limit_cm(d.distance)
-    step = max(1, d.distance.size // MAX_MAP_POINTS)
-    xy = d.xy[::step]
-    artist = ax.scatter(xy[:, 0] - origin[0], xy[:, 1] - origin[1],
-                        c=d.distance[::step] * 100.0, s=2.0, cmap="RdBu_r",
-                        vmin=-limit_cm, vmax=limit_cm, linewidths=0, rasterized=True)
-    ax.set_aspect("equal", adjustable="box")
-    ax.set_title(f"{title}: RMS {d.rms * 100:.1f} cm", fontsize=10)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.tick_params(labelsize=8)
-    fig.colorbar(artist, ax=ax, shrink=0.9, pad=0.03, label="discrepancy (cm)")
-
-
-def pair_figure(section: PairSection, origin: tuple[float, float]) -> Figure:
-    """Normal discrepancies of one pair over the overlap, before and after (each map on its
-    own symmetric colour scale), and their histograms (cm).
-
-    An overlap wider than high gets its two maps one above the other, beside the histogram;
-    otherwise the three panels stand side by side.
-    """
-    before, after = section.before, section.after
-    xy = after.xy if after.xy.shape[0] else before.xy
-    span = np.ptp(xy, axis=0) if xy.shape[0] else np.ones(2)
-    aspect = float(np.clip(span[1] / max(float(span[0]), 1e-3), 0.15, 4.0))  # height / width
-    if aspect < 1.0:
-        map_width_in = 5.4
-        fig = _new_figure(13.0, 2 * (map_width_in * aspect + 0.9) + 0.7, constrained=False)
-        grid = fig.add_gridspec(2, 2, width_ratios=(1.7, 1.0), left=0.05, right=0.98,
-                                bottom=0.09, top=0.9, hspace=0.45, wspace=0.12)
-        ax_before, ax_after = fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[1, 0])
-        ax_hist = fig.add_subplot(grid[:, 1])
-    else:
-        map_width_in = 3.6
-        fig = _new_figure(13.0, float(np.clip(map_width_in * aspect + 1.5, 4.0, 10.0)),
-                          constrained=False)
-        grid = fig.add_gridspec(1, 3, width_ratios=(1.0, 1.0, 1.1), left=0.05, right=0.98,
-                                bottom=0.12, top=0.86, wspace=0.3)
-        ax_before, ax_after, ax_hist = (fig.add_subplot(grid[0, k]) for k in range(3))
-    _discrepancy_map(fig, ax_before, before, origin, "before")
-    _discrepancy_map(fig, ax_after, after, origin, "after")
-    limit_cm = _symmetric_limit_cm(before.distance)
-    bins = np.linspace(-limit_cm, limit_cm, 61).tolist()
-    for d, label, color in ((before, "before", "tab:red"), (after, "after", "tab:blue")):
-        values = np.clip(d.distance * 100.0, -limit_cm, limit_cm)
-        ax_hist.hist(values, bins=bins, histtype="stepfilled", alpha=0.45, color=color,
-                     label=f"{label}: RMS {d.rms * 100:.1f} cm, n {d.distance.size}")
-    ax_hist.set_xlabel("normal discrepancy (cm; clipped at the ends)")
-    ax_hist.set_ylabel("points")
-    ax_hist.legend(fontsize=8, loc="upper left")
-    ax_hist.tick_params(labelsize=8)
-    a, b = section.strips
-    fig.suptitle(f"strips {a} & {b}: points of strip {after.points_strip} on the TIN of "
-                 f"strip {after.tin_strip}", fontsize=11)
-    return fig
-
-
-def vmr_figure(classes: Sequence[SlopeClass]) -> Figure:
-    """Variance-to-mean ratio of intensity per slope class before and after radiometric
-    correction, and its relative change (the paper's Fig. 5)."""
-    fig = _new_figure(11.0, 4.0)
-    ax_vmr, ax_change = fig.subplots(1, 2)
-    labels = [f"{c.lo_deg:.0f}-{c.hi_deg:.0f}" for c in classes]
-    pos = np.arange(len(classes))
-    ax_vmr.bar(pos - 0.2, [c.vmr_intensity for c in classes], width=0.4,
-               label="intensity (before)", color="tab:red")
-    ax_vmr.bar(pos + 0.2, [c.vmr_reflectance for c in classes], width=0.4,
-               label="reflectance (after)", color="tab:blue")
-    ax_vmr.set_xticks(pos, labels)
-    ax_vmr.set_xlabel("terrain slope (deg)")
-    ax_vmr.set_ylabel("variance / mean (intensity units)")
-    ax_vmr.legend(fontsize=8)
-    change = np.array([c.change * 100.0 for c in classes])
-    colors = ["tab:green" if v < 0 else "tab:orange" for v in np.nan_to_num(change)]
-    ax_change.bar(pos, np.nan_to_num(change), color=colors)
-    ax_change.axhline(0.0, color="black", linewidth=0.8)
-    ax_change.set_xticks(pos, labels)
-    ax_change.set_xlabel("terrain slope (deg)")
-    ax_change.set_ylabel("change of variance / mean (%)")
-    for axis in (ax_vmr, ax_change):
-        axis.tick_params(labelsize=8)
-    return fig
-
-
-def _robust_limits(values: np.ndarray) -> tuple[float, float]:
-    finite = values[np.isfinite(values)]
-    if not finite.size:
-        return 0.0, 1.0
-    lo, hi = np.percentile(finite, [2.0, 98.0])
-    return float(lo), float(max(hi, lo + 1e-6))
-
-
-def reflectance_figure(section: RadiometrySection, origin: tuple[float, float]) -> Figure:
-    """Maps of the mean recorded intensity and the mean reflectance per cell (side by side,
-    or one above the other for a mission much wider than high)."""
-    ny, nx = section.reflectance.values.shape
-    aspect = ny / max(nx, 1)
-    if aspect < 0.6:
-        fig = _new_figure(12.0, float(np.clip(2 * 9.5 * aspect + 2.0, 4.0, 12.5)))
-        axes = fig.subplots(2, 1)
-    else:
-        fig = _new_figure(12.0, float(np.clip(5.0 * aspect + 1.2, 3.0, 9.0)))
-        axes = fig.subplots(1, 2)
-    for ax, raster, label in ((axes[0], section.intensity, "intensity (recorded)"),
-                              (axes[1], section.reflectance, "reflectance")):
-        vmin, vmax = _robust_limits(raster.values)
-        image = ax.imshow(raster.values, origin="lower", extent=raster.extent(origin),
-                          cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
-        ax.set_title(f"{label}, {raster.cell_m:.1f} m cells", fontsize=10)
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.tick_params(labelsize=8)
-        fig.colorbar(image, ax=ax, shrink=0.9, label="intensity units")
-    return fig
 
 
 # ---------------------------------------------------------------------------- HTML
@@ -416,15 +400,20 @@ _STYLE = """
 body { font-family: sans-serif; margin: 1.5em auto; max-width: 1250px; color: #222;
        line-height: 1.4; padding: 0 1em; }
 h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 1.8em;
-     border-bottom: 1px solid #ccc; } h3 { font-size: 1.0em; }
+     border-bottom: 1px solid #ccc; } h3 { font-size: 1.0em; margin-bottom: 0.2em; }
 table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.92em; }
-th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; vertical-align: top; }
 th { background: #f2f2f2; text-align: left; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td.mono { font-family: monospace; font-size: 0.9em; word-break: break-all; }
 figure { margin: 0.8em 0; } figure img { max-width: 100%; height: auto; }
 figcaption { font-size: 0.9em; color: #555; }
-.OK { color: #1a7f37; font-weight: bold; } .WARN { color: #9a6700; font-weight: bold; }
-.ERROR { color: #cf222e; font-weight: bold; } .note { color: #555; font-size: 0.9em; }
+.OK, .met { color: #1a7f37; font-weight: bold; } .WARN { color: #9a6700; font-weight: bold; }
+.ERROR, .missed { color: #cf222e; font-weight: bold; } .note { color: #555; font-size: 0.9em; }
+.statement { font-size: 1.1em; padding: 0.5em 0.8em; background: #f6f8fa;
+             border-left: 4px solid #888; }
+nav a { margin-right: 0.8em; } details summary { cursor: pointer; }
+tr.changed td { background: #fff8c5; }
 """
 
 _SCRIPT = """
@@ -440,21 +429,176 @@ window.addEventListener("load", function () {
 });
 """
 
+_SECTIONS = (("summary", "Summary"), ("quality", "Quality level"), ("block", "Block"),
+             ("calibration", "Calibration"), ("swath", "Swath differences"),
+             ("pairs", "Strip pairs"), ("evaluation", "Accuracy"),
+             ("control", "Control points"), ("radiometry", "Radiometry"),
+             ("provenance", "Provenance"))
+
 
 def _esc(text: object) -> str:
     return html.escape(str(text))
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]], numeric: set[int]) -> str:
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]], numeric: set[int],
+           *, row_classes: Sequence[str] | None = None) -> str:
     """An HTML table (no header row for an empty ``header``); cells are HTML already
     (escape before); columns in ``numeric`` right aligned."""
     head = "<thead><tr>" + "".join(f"<th>{h}</th>" for h in header) + "</tr></thead>" \
         if header else ""
     body = "".join(
-        "<tr>" + "".join(f'<td class="num">{c}</td>' if i in numeric else f"<td>{c}</td>"
-                         for i, c in enumerate(row)) + "</tr>"
-        for row in rows)
+        (f'<tr class="{row_classes[r]}">' if row_classes and row_classes[r] else "<tr>")
+        + "".join(f'<td class="num">{c}</td>' if i in numeric else f"<td>{c}</td>"
+                  for i, c in enumerate(row)) + "</tr>"
+        for r, row in enumerate(rows))
     return f"<table>{head}<tbody>{body}</tbody></table>"
+
+
+def _facts(pairs: Sequence[tuple[str, str]]) -> str:
+    return _table([], [[_esc(k), _esc(v)] for k, v in pairs], set())
+
+
+def _note(text: str) -> str:
+    return f'<p class="note">{text}</p>'
+
+
+def _cm(value: float, sign: bool = False) -> str:
+    if not math.isfinite(value):
+        return "n/a"
+    return f"{value * 100:+.1f}" if sign else f"{value * 100:.1f}"
+
+
+def _num(value: float, fmt: str = ".4g") -> str:
+    return format(value, fmt) if math.isfinite(value) else "n/a"
+
+
+class _Renderer:
+    """Draws the figures one by one, saying how far it is."""
+
+    def __init__(self, n_figures: int, progress: Progress | None) -> None:
+        self.n = max(n_figures, 1)
+        self.done = 0
+        self.progress = progress
+
+    def figure(self, fig_id: str, alt: str, fig: Figure, caption: str = "") -> str:
+        """A ``<figure>`` holding ``fig`` as an embedded PNG."""
+        if self.progress is not None:
+            self.progress("drawing figures", self.done / self.n)
+        img = (f'<img id="{html.escape(fig_id)}" class="figure" alt="{html.escape(alt)}" '
+               f'src="data:image/png;base64,{figures.png_base64(fig)}">')
+        self.done += 1
+        cap = f"<figcaption>{caption}</figcaption>" if caption else ""
+        return f"<figure>{img}{cap}</figure>"
+
+
+def figure_ids(content: ReportContent) -> set[str]:
+    """The ``id`` of every figure the report of ``content`` holds."""
+    ids = {f"fig-pair-{a}-{b}" for a, b in (p.strips for p in content.pairs)}
+    if len(content.correlation_names) >= 2:
+        ids.add("fig-correlation")
+    if content.flight is not None:
+        ids.add("fig-flight-map")
+    if content.swath is not None and content.swath.pairs:
+        ids.add("fig-swath-dz")
+    if content.radiometry is not None:
+        ids |= {"fig-vmr-slope", "fig-reflectance-map"}
+    return ids
+
+
+def render_html(content: ReportContent, *, progress: Progress | None = None) -> str:
+    """The report as one HTML document (module docstring)."""
+    draw = _Renderer(len(figure_ids(content)), progress)
+    nav = "".join(f'<a href="#{key}">{_esc(name)}</a>' for key, name in _SECTIONS)
+    parts = [f"<h1>{_esc(content.title)}</h1>", f"<nav>{nav}</nav>",
+             _summary_html(content), _quality_html(content), _block_html(content, draw),
+             _calibration_html(content, draw), _swath_html(content, draw),
+             _pairs_html(content, draw), _evaluation_html(content.evaluation),
+             _control_html(content.control), _radiometry_html(content, draw),
+             _provenance_html(content.provenance)]
+    body = "\n".join(parts)
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            f"<title>{_esc(content.title)}</title>\n<style>{_STYLE}</style>\n"
+            f"<script>{_SCRIPT}</script>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
+
+
+def _section(key: str, title: str, inner: Sequence[str]) -> str:
+    return f'<section id="{key}">\n<h2>{_esc(title)}</h2>\n' + "\n".join(inner) + \
+        "\n</section>"
+
+
+# ---------------------------------------------------------------------------- sections
+def _summary_html(content: ReportContent) -> str:
+    parts = []
+    if content.quality is not None:
+        parts.append(f'<p class="statement" id="ql-statement">'
+                     f"{_esc(content.quality.statement())}</p>")
+    parts.append(_facts(content.facts))
+    parts.extend(f'<p class="WARN">warning: {_esc(w)}</p>' for w in content.warnings)
+    return _section("summary", "Summary", parts)
+
+
+def _quality_html(content: ReportContent) -> str:
+    quality = content.quality
+    if quality is None:
+        return _section("quality", "Quality level (USGS Lidar Base Specification)",
+                        ["<p>Not assessed: no swath differences.</p>"])
+    header = ["measure", "measured", *(level.name for level in LBS_LEVELS), "how"]
+    rows = []
+    for c in quality.criteria:
+        density = c.at_least
+        value = (f"{c.value:.2f} /m&sup2;" if density else f"{_cm(c.value)} cm") \
+            if c.assessed else "not assessed"
+        cells = [_esc(c.name), value]
+        for level in LBS_LEVELS:
+            limit = c.threshold(level)
+            shown = f"&ge; {limit:g} /m&sup2;" if density else f"&le; {limit * 100:g} cm"
+            met = c.met(level)
+            mark = "" if met is None else (' <span class="met">met</span>' if met
+                                           else ' <span class="missed">missed</span>')
+            cells.append(shown + mark)
+        cells.append(_esc(c.note))
+        rows.append(cells)
+    best = quality.best
+    verdict = ["<tr><td><b>quality level</b></td><td></td>"]
+    for level in LBS_LEVELS:
+        ok = quality.met(level)
+        verdict.append(f'<td><span class="{"met" if ok else "missed"}">'
+                       f'{"met" if ok else "not met"}</span></td>')
+    verdict.append(f"<td>best: {best.name if best else 'none'}</td></tr>")
+    table = _table(header, rows, {1}).replace("</tbody>", "".join(verdict) + "</tbody>")
+    return _section("quality", "Quality level (USGS Lidar Base Specification)", [
+        f'<p class="statement">{_esc(quality.statement())}</p>', table,
+        _note("Interswath measures: the height differences between overlapping strips after "
+              "calibration, over smooth level ground (see Swath differences). A level is met "
+              "when every assessed measure is within its threshold; QL1 and QL2 differ only "
+              "in density. The pair QA of this report (OK/WARN/ERROR) uses the "
+              f"configuration's qa.rmsdz_warn_m ({content.qa_warn_m * 100:g} cm) and "
+              f"qa.max_difference_m ({content.qa_error_m * 100:g} cm). Intraswath "
+              "smooth-surface precision is not assessed.")])
+
+
+def _block_html(content: ReportContent, draw: _Renderer) -> str:
+    parts = []
+    crs = content.crs or "map frame (CRS not given: lidarcal report --crs names it)"
+    if content.flight is not None:
+        parts.append(draw.figure(
+            "fig-flight-map", "flight lines, trajectory, control and check points",
+            figures.flight_map_figure(content.flight, content.crs),
+            f"Flight lines (the trajectory while each strip was flown, arrow: direction, "
+            f"number: strip id) over the cells the strips cover; grey: the rest of the "
+            f"trajectory. Coordinates: {_esc(crs)}."))
+    if content.strips:
+        rows = [[str(s.strip_id), str(s.points), _esc(s.start), f"{s.duration_s:.1f}",
+                 f"{s.length_m:.0f}", f"{s.heading_deg:.1f}", f"{s.speed_mps:.1f}",
+                 f"{s.height_m:.0f}", f"{s.density_per_m2:.2f}"] for s in content.strips]
+        parts.append(_table(["strip", "points", "first point", "duration (s)", "length (m)",
+                             "heading (deg)", "speed (m/s)", "height above ground (m)",
+                             "density (/m&sup2;)"], rows, {1, 3, 4, 5, 6, 7, 8}))
+        parts.append(_note("Heading: course over ground, degrees clockwise from grid north. "
+                           "Height above ground: median trajectory height minus median "
+                           "point height. Density: points over the area of the cells "
+                           "holding the strip's points."))
+    return _section("block", "Block: flight lines and strips", parts)
 
 
 def _display(name: str, value: float) -> tuple[str, str]:
@@ -476,121 +620,227 @@ def _bias_rows(biases: Sequence[BiasEntry]) -> list[list[str]]:
     return rows
 
 
-def _cm(value: float, sign: bool = False) -> str:
-    if not math.isfinite(value):
-        return "n/a"
-    return f"{value * 100:+.1f}" if sign else f"{value * 100:.1f}"
-
-
-def render_html(content: ReportContent) -> str:
-    """The report as one HTML document (module docstring)."""
-    parts = [f"<h1>{_esc(content.title)}</h1>"]
-    parts.append(_table([], [[_esc(k), _esc(v)] for k, v in content.facts], set()))
-    for w in content.warnings:
-        parts.append(f'<p class="WARN">warning: {_esc(w)}</p>')
-    parts.append("<h2>System biases</h2>")
-    parts.append(_table(["parameter", "estimate", "sigma", "unit", "status"],
-                        _bias_rows(content.biases), {1, 2}))
-    parts.append('<p class="note">A bias is the nominal value used by the system minus '
-                 "the true one; lever arm in the body frame (right, forward, up), "
-                 "boresight angles about those axes.</p>")
-    parts.append("<h2>Correlations of the estimates</h2>")
+def _calibration_html(content: ReportContent, draw: _Renderer) -> str:
+    parts = [_facts(content.calibration_facts),
+             _table(["parameter", "estimate", "sigma", "unit", "status"],
+                    _bias_rows(content.biases), {1, 2}),
+             _note("A bias is the nominal value used by the system minus the true one; lever "
+                   "arm in the body frame (right, forward, up), boresight angles about those "
+                   "axes.")]
     if len(content.correlation_names) >= 2:
-        parts.append(_figure(
+        parts.append(draw.figure(
             "fig-correlation", "correlation matrix of the estimated parameters",
-            correlation_figure(content.correlation_names, content.correlation),
-            "Correlation coefficients of the estimated parameters (|r| above 0.9: the "
-            "data hardly tell them apart)."))
+            figures.correlation_figure(content.correlation_names, content.correlation),
+            "Correlation coefficients of the estimated parameters (|r| above 0.9: the data "
+            "hardly tell them apart)."))
     else:
         parts.append("<p>Fewer than two parameters estimated: no correlations.</p>")
-    parts.append(_pairs_html(content))
-    parts.append(_control_html(content.control))
-    parts.append(_radiometry_html(content.radiometry, content.origin))
-    body = "\n".join(parts)
-    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
-            f"<title>{_esc(content.title)}</title>\n<style>{_STYLE}</style>\n"
-            f"<script>{_SCRIPT}</script>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
+    return _section("calibration", "Calibration", parts)
 
 
-def _pairs_html(content: ReportContent) -> str:
-    parts = ["<h2>Strip pairs: normal discrepancies before and after</h2>"]
+def _swath_html(content: ReportContent, draw: _Renderer) -> str:
+    swath = content.swath
+    title = "Swath differences: strip-to-strip heights over the block"
+    if swath is None or not swath.pairs:
+        return _section("swath", title, ["<p>No two strips share smooth ground.</p>"])
+    before, after = swath.statistics("before"), swath.statistics("after")
+    limit = content.swath_limit_m
+    parts = [draw.figure(
+        "fig-swath-dz", "block mosaics of strip-to-strip height differences before and after",
+        figures.swath_figure(swath, limit, content.crs),
+        f"Height difference dz between overlapping strips per {swath.grid.cell_m:.1f} m cell "
+        f"of smooth ground, before and after calibration, on one colour scale of "
+        f"&plusmn;{limit * 100:g} cm (qa.max_difference_m: darkest cells exceed it). Where "
+        "more than two strips overlap, the two that differ most; later-flown minus "
+        "earlier-flown.")]
+    rows = []
+    for p in swath.pairs:
+        b, a = (DzStatistics.of(getattr(p, s)) for s in ("before", "after"))
+        rows.append([f"{p.strips[0]} &amp; {p.strips[1]}", f"{p.later} &minus; {p.earlier}",
+                     str(a.n_cells), _cm(b.rmsdz), _cm(a.rmsdz), _cm(b.max_abs), _cm(a.max_abs)])
+    rows.append(["<b>all</b>", "", str(after.n_cells), _cm(before.rmsdz), _cm(after.rmsdz),
+                 _cm(before.max_abs), _cm(after.max_abs)])
+    parts.append(_table(["strips", "dz", "cells", "RMSDz before (cm)", "RMSDz after (cm)",
+                         "max |dz| before (cm)", "max |dz| after (cm)"], rows,
+                        {2, 3, 4, 5, 6}))
+    parts.append(_note(
+        "Each strip's height per cell is the mean of its points there, each carried to the "
+        "cell centre along its own surface normal. Smooth ground only: the strip has at least "
+        "two points in the cell, every one with a trusted normal (no vegetation, edge or "
+        f"wall) on a slope below {content.smooth_slope_deg:g} deg and at one height, and so "
+        "do the neighbouring cells, without a step between them; elsewhere the cells are "
+        "blank and not counted (pitched roofs, the surroundings of buildings, trees). "
+        f"Coordinates: {_esc(content.crs or 'map frame')}."))
+    return _section("swath", title, parts)
+
+
+def _pairs_html(content: ReportContent, draw: _Renderer) -> str:
+    title = "Strip pairs: normal discrepancies of the calibration's sample points"
     if not content.pairs:
-        parts.append("<p>No overlapping strip pairs.</p>")
-        return "\n".join(parts)
+        return _section("pairs", title, ["<p>No overlapping strip pairs.</p>"])
     rows = []
     for p in content.pairs:
         a, b = p.strips
         coverage = f"{p.coverage * 100:.0f}%" if p.coverage is not None else ""
-        rows.append([f"{a} &amp; {b}", coverage, str(p.after.distance.size),
-                     _cm(p.before.rms), _cm(p.after.rms), _cm(p.after.p95),
-                     f'<span class="{p.qa_level}">{p.qa_level}</span>'])
-    parts.append(_table(["strips", "coverage", "points", "RMS before (cm)", "RMS after (cm)",
-                         "95% after (cm)", "QA"], rows, {1, 2, 3, 4, 5}))
-    parts.append(f'<p class="note">Signed distance of each sample point from the other '
-                 f"strip's TIN patch along the patch normal; gross mismatches (walls, trees) "
-                 f"are left out of the RMS. QA of the RMS after: WARN above "
-                 f"{content.qa_warn_m * 100:.0f} cm, ERROR above "
-                 f"{content.qa_error_m * 100:.0f} cm. Map coordinates relative to "
-                 f"({content.origin[0]:.0f}, {content.origin[1]:.0f}) m.</p>")
+        rows.append([f'<a href="#pair-{a}-{b}">{a} &amp; {b}</a>', coverage,
+                     str(p.after.distance.size), _cm(p.before.rms), _cm(p.after.rms),
+                     _cm(p.after.p95), f'<span class="{p.qa_level}">{p.qa_level}</span>'])
+    parts = [_table(["strips", "coverage", "points", "RMS before (cm)", "RMS after (cm)",
+                     "95% after (cm)", "QA"], rows, {1, 2, 3, 4, 5}),
+             _note("Signed distance of each sample point of the calibration from the other "
+                   "strip's TIN patch along the patch normal; gross mismatches (walls, trees) "
+                   "are left out of the RMS. QA of the RMS after: WARN above "
+                   f"{content.qa_warn_m * 100:g} cm, ERROR above "
+                   f"{content.qa_error_m * 100:g} cm. In the maps, before and after share one "
+                   "colour scale (the 95th percentile of |discrepancy| before).")]
     for p in content.pairs:
         a, b = p.strips
-        parts.append(f"<h3>Strips {a} &amp; {b}</h3>")
-        parts.append(_figure(f"fig-pair-{a}-{b}",
-                             f"normal discrepancies of strips {a} and {b} before and after",
-                             pair_figure(p, content.origin)))
-    return "\n".join(parts)
+        parts.append(f'<h3 id="pair-{a}-{b}">Strips {a} &amp; {b}</h3>')
+        parts.append(draw.figure(f"fig-pair-{a}-{b}",
+                                 f"normal discrepancies of strips {a} and {b} before and after",
+                                 figures.pair_figure(p, content.crs)))
+    return _section("pairs", title, parts)
+
+
+def _fit_cells(fit: RigidFit | None) -> list[str]:
+    """Shifts in cm, rotations in arcsec, '-' where undetermined; RMS and matches."""
+    if fit is None:
+        return ["no correspondences", *[""] * 7]
+    arcsec = 180.0 / math.pi * 3600.0
+    cells = []
+    for i, name in enumerate(RIGID_NAMES):
+        v = float(fit.values[i])
+        if not fit.determined[i] or not math.isfinite(v):
+            cells.append("-")
+        else:
+            cells.append(f"{v * (100.0 if name.startswith('t') else arcsec):+.1f}")
+    cells += [f"{_cm(fit.rms_before)} ({_cm(fit.rms_after)})", str(fit.n_matches)]
+    return cells
+
+
+def _evaluation_html(section: EvaluationSection | None) -> str:
+    title = "Accuracy: co-alignment of strip pairs and check points (lidarcal evaluate)"
+    if section is None:
+        return _section("evaluation", title, ["<p>Not evaluated.</p>"])
+    parts = [f"<p>{_esc(section.source)}</p>", "<h3>Relative accuracy: rigid transformation "
+             "co-aligning each strip pair (point-to-patch ICP)</h3>"]
+    if section.pairs:
+        rows = []
+        for a, b, before, after in section.pairs:
+            rows.append([f"{a} &amp; {b}", "before", *_fit_cells(before)])
+            rows.append(["", "after", *_fit_cells(after)])
+        parts.append(_table(["strips", "state", "tx (cm)", "ty (cm)", "tz (cm)",
+                             "omega (\")", "phi (\")", "kappa (\")", "RMS cm (fitted)",
+                             "matches"], rows, set(range(2, 10))))
+        parts.append(_note("The transformation moving the first strip's points onto the "
+                           "second strip's TIN: near zero after a good calibration. '-': not "
+                           "determined by the overlap's shape (flat ground hides horizontal "
+                           "shifts and the rotation about the vertical)."))
+    else:
+        parts.append("<p>No overlapping strip pairs.</p>")
+    parts.append("<h3>Absolute accuracy: check points (strip surface minus surveyed "
+                 "height)</h3>")
+    if section.check:
+        rows = [[_esc(pid), _esc(",".join(map(str, strips)) or "-"), _cm(b, True),
+                 _cm(a, True)] for pid, strips, b, a in section.check]
+        parts.append(_table(["check point", "strips", "before (cm)", "after (cm)"], rows,
+                            {2, 3}))
+        rows = []
+        for state in ("before", "after"):
+            s = section.summary(state)
+            rows.append([state, str(s.n), _cm(s.mean, True), _cm(s.std), _cm(s.rmse),
+                         _cm(s.max_abs)])
+        parts.append(_table(["state", "n", "mean (cm)", "std (cm)", "RMSE (cm)",
+                             "max |r| (cm)"], rows, {1, 2, 3, 4, 5}))
+    else:
+        parts.append("<p>No check points (lidarcal report --check-points CSV).</p>")
+    return _section("evaluation", title, parts)
 
 
 def _control_html(control: Sequence[ControlResidual]) -> str:
-    parts = ["<h2>Control points</h2>"]
+    title = "Control points used by the calibration"
     if not control:
-        parts.append("<p>No control point falls on a strip.</p>")
-        return "\n".join(parts)
+        return _section("control", title, ["<p>No control point falls on a strip.</p>"])
     rows = [[_esc(c.control_id), str(c.strip_id), _cm(c.before, True), _cm(c.after, True)]
             for c in control]
-    parts.append(_table(["control point", "strip", "before (cm)", "after (cm)"], rows,
-                        {1, 2, 3}))
-    parts.append('<p class="note">Signed normal distance of the control point from the '
-                 "strip's TIN patch, control minus strip; n/a: no patch within the threshold "
-                 "after correction.</p>")
-    return "\n".join(parts)
+    return _section("control", title, [
+        _table(["control point", "strip", "before (cm)", "after (cm)"], rows, {1, 2, 3}),
+        _note("Signed normal distance of the control point from the strip's TIN patch, "
+              "control minus strip; n/a: no patch within the threshold after correction.")])
 
 
-def _radiometry_html(section: RadiometrySection | None, origin: tuple[float, float]) -> str:
-    parts = ["<h2>Radiometric correction</h2>"]
+def _radiometry_html(content: ReportContent, draw: _Renderer) -> str:
+    section = content.radiometry
+    title = "Radiometric correction"
     if section is None:
-        parts.append("<p>The clouds carry no intensity: no radiometric correction.</p>")
-        return "\n".join(parts)
+        return _section("radiometry", title,
+                        ["<p>The clouds carry no intensity: no radiometric correction.</p>"])
+    unit = "" if section.unit == "1" else " (intensity units)"
     rows = [[f"{c.lo_deg:.0f}-{c.hi_deg:.0f}", str(c.n_points), _num(c.mean_intensity),
              _num(c.vmr_intensity), _num(c.mean_reflectance), _num(c.vmr_reflectance),
              "n/a" if not math.isfinite(c.change) else f"{c.change * 100:+.1f}%"]
             for c in section.slope_classes]
-    parts.append(_table(["slope (deg)", "points", "mean intensity", "VMR intensity",
-                         "mean reflectance", "VMR reflectance", "change"], rows,
-                        {1, 2, 3, 4, 5, 6}))
-    parts.append(_figure(
-        "fig-vmr-slope", "variance-to-mean ratio of intensity against slope, before and after",
-        vmr_figure(section.slope_classes),
-        "Variance-to-mean ratio (VMR) of the recorded intensity and of the reflectance per "
-        "terrain-slope class (Habib et al. 2011, Fig. 5): the radiometric correction should "
-        "lower it, most on gentle slopes."))
-    parts.append(_figure("fig-reflectance-map", "map of intensity and reflectance",
-                         reflectance_figure(section, origin),
-                         "Mean recorded intensity and mean reflectance per cell, all "
-                         "strips; grey scale from the 2nd to the 98th percentile, empty "
-                         "cells white."))
+    parts = [f'<p id="reflectance-meaning"><b>Reflectance</b>: {_esc(section.meaning)}</p>',
+             _table(["slope (deg)", "points", "mean intensity", "VMR intensity",
+                     f"mean reflectance{unit}", "VMR reflectance", "change"], rows,
+                    {1, 2, 3, 4, 5, 6}),
+             draw.figure("fig-vmr-slope",
+                         "variance-to-mean ratio of intensity against slope, before and after",
+                         figures.vmr_figure(section.slope_classes),
+                         "Variance-to-mean ratio (VMR) of the recorded intensity and of the "
+                         "reflectance per terrain-slope class (Habib et al. 2011, Fig. 5), the "
+                         "reflectance put on the intensity's scale (one factor: equal means) so "
+                         "that the two compare; the correction should lower it, most on gentle "
+                         "slopes."),
+             draw.figure("fig-reflectance-map", "map of intensity and reflectance",
+                         figures.reflectance_figure(section.intensity, section.reflectance,
+                                                    "reflectance (0-1)" if section.unit == "1"
+                                                    else "relative reflectance "
+                                                    "(intensity units)", content.crs),
+                         "Mean recorded intensity and mean reflectance per cell, all strips; "
+                         "grey scale from the 2nd to the 98th percentile, empty cells white.")]
     notes = [f"{section.n_used} of {section.n_points} points enter the slope statistics.",
              *section.notes]
-    parts.append("".join(f'<p class="note">{_esc(n)}</p>' for n in notes))
-    return "\n".join(parts)
+    parts.append("".join(_note(_esc(n)) for n in notes))
+    return _section("radiometry", title, parts)
 
 
-def _num(value: float) -> str:
-    return f"{value:.4g}" if math.isfinite(value) else "n/a"
+def _size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n} B" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024  # type: ignore[assignment]
+    return f"{n} B"  # pragma: no cover
 
 
-def write_html_report(path: str | Path, content: ReportContent, *,
-                      overwrite: bool = False) -> Path:
+def _provenance_html(provenance: Provenance | None) -> str:
+    if provenance is None:
+        return _section("provenance", "Provenance", ["<p>Not recorded.</p>"])
+    facts = [("lidarcal", provenance.version), ("generated (UTC)", provenance.generated)]
+    if provenance.command:
+        facts.append(("command", provenance.command))
+    facts.append(("flight configuration", provenance.configuration_source))
+    rows = [[_esc(f.role), _esc(f.path), _size(f.size_bytes), f'<span class="mono">'
+             f"{_esc(f.sha256)}</span>"] for f in provenance.inputs]
+    changed = [(n, v) for n, v, c in provenance.configuration if c]
+    config_rows = [[_esc(n), _esc(v)] for n, v, _ in provenance.configuration]
+    classes = ["changed" if c else "" for _, _, c in provenance.configuration]
+    return _section("provenance", "Provenance", [
+        _facts(facts),
+        "<h3>Inputs</h3>",
+        _table(["input", "path", "size", "SHA-256"], rows, {2}),
+        _note("The SHA-256 of a directory (a rosbag2 bag) is that of its files' names and "
+              "contents in name order."),
+        "<h3>Flight configuration</h3>",
+        (f"<p>Differs from the defaults in: {_esc(', '.join(f'{n} = {v}' for n, v in changed))}"
+         "</p>" if changed else "<p>All parameters at their defaults.</p>"),
+        "<details><summary>every parameter</summary>"
+        + _table(["parameter", "value"], config_rows, set(), row_classes=classes)
+        + "</details>"])
+
+
+def write_html_report(path: str | Path, content: ReportContent, *, overwrite: bool = False,
+                      progress: Progress | None = None) -> Path:
     """Render ``content`` and write it to ``path`` (atomically: a reader never sees half a
     file).
 
@@ -602,7 +852,7 @@ def write_html_report(path: str | Path, content: ReportContent, *,
     path = Path(path)
     if (path.exists() or path.is_symlink()) and not overwrite:
         raise ConfigError(f"{path}: exists (use --overwrite to replace it)")
-    text = render_html(content)
+    text = render_html(content, progress=progress)
     tmp = path.with_name(path.name + ".tmp")
     try:
         tmp.write_text(text, encoding="utf-8")

@@ -1315,12 +1315,11 @@ def correct_bag(
         check_model_setting(settings.model, trajectory, f"{bag.path}: {traj_topic}")
         meaning = settings.radiometry.meaning
         if not settings.radiometry.absolute:
-            from lidarcal_ros.pipeline.reflectance import measure_target_in_bag
+            from lidarcal_ros.pipeline.reflectance import measure_target_in_bag, with_constant
 
-            target = measure_target_in_bag(bag_path, trajectory, settings, config)
+            target = measure_target_in_bag(bag_path, settings, config)
             if target is not None:
-                settings = dataclasses.replace(
-                    settings, radiometry=settings.radiometry.with_constant(target.constant))
+                settings = with_constant(settings, target.constant)
                 meaning = f"{settings.radiometry.meaning} The {target.describe()}."
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
                                     workers=workers, source=points_topic)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,9 +28,9 @@ from lidarcal_ros.core.evaluation import (
 )
 from lidarcal_ros.core.mission import ControlPoints, Mission
 from lidarcal_ros.core.model import correct_geometry
-from lidarcal_ros.core.params import N_PARAMETERS
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import Tin
-from lidarcal_ros.errors import CalibrationError
+from lidarcal_ros.errors import CalibrationError, ConfigError
 from lidarcal_ros.pipeline.correction import flagged_geometry
 
 logger = logging.getLogger(__name__)
@@ -58,10 +59,14 @@ class CheckPointResidual:
 
 @dataclass
 class Evaluation:
-    """Everything ``lidarcal evaluate`` reports."""
+    """Everything ``lidarcal evaluate`` reports.
+
+    ``delta``: the biases evaluated (SI, method.md order), None where not known.
+    """
 
     pairs: list[PairAlignment]
     check_points: list[CheckPointResidual] = field(default_factory=list)
+    delta: np.ndarray | None = None
 
     def summary(self, which: str) -> AccuracySummary:
         """Check-point statistics ``before`` or ``after``."""
@@ -83,6 +88,9 @@ class Evaluation:
         out: dict[str, Any] = {"pairs": [
             {"strips": [p.strip_a, p.strip_b], "overlap_cells": p.overlap_cells,
              "before": fit(p.before), "after": fit(p.after)} for p in self.pairs]}
+        if self.delta is not None:
+            out["biases"] = {n: float(v) for n, v in zip(PARAMETER_NAMES, self.delta,
+                                                         strict=True)}
         if self.check_points:
             out["check_points"] = {
                 "residuals": [{"id": c.point_id, "strips": c.strips,
@@ -92,6 +100,48 @@ class Evaluation:
                 "after": {k: _num(v) for k, v in vars(self.summary("after")).items()},
             }
         return out
+
+
+    @classmethod
+    def from_dict(cls, doc: Any, *, source: str = "evaluation") -> Evaluation:
+        """Read back :meth:`as_dict` (``lidarcal evaluate --json``).
+
+        Raises
+        ------
+        ConfigError
+            One line naming ``source`` and the key at fault.
+        """
+        try:
+            biases = doc.get("biases") if isinstance(doc, Mapping) else None
+            delta = (np.array([float(biases[n]) for n in PARAMETER_NAMES])
+                     if isinstance(biases, Mapping) else None)
+            pairs = [PairAlignment(int(p["strips"][0]), int(p["strips"][1]),
+                                   int(p["overlap_cells"]), _fit_from(p["before"]),
+                                   _fit_from(p["after"])) for p in doc["pairs"]]
+            checks = doc.get("check_points") or {}
+            residuals = [CheckPointResidual(str(c["id"]), [int(s) for s in c["strips"]],
+                                            _float(c["before_m"]), _float(c["after_m"]))
+                         for c in checks.get("residuals", [])]
+        except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+            raise ConfigError(f"{source}: not an evaluation of lidarcal evaluate --json "
+                              f"({type(exc).__name__}: {exc})") from None
+        return cls(pairs, residuals, delta)
+
+
+def _float(v: Any) -> float:
+    return math.nan if v is None else float(v)
+
+
+def _fit_from(doc: Any) -> RigidFit | None:
+    """A :class:`RigidFit` from its :meth:`Evaluation.as_dict` form (None stays None)."""
+    if doc is None:
+        return None
+    values = np.array([_float(doc["values"][n]) for n in RIGID_NAMES])
+    sigmas = np.array([_float(doc["sigmas"][n]) for n in RIGID_NAMES])
+    return RigidFit(values=values, sigmas=sigmas, determined=np.isfinite(values),
+                    rms_before=_float(doc["rms_before_m"]), rms_after=_float(doc["rms_after_m"]),
+                    n_matches=int(doc["matches"]), iterations=int(doc["iterations"]),
+                    converged=bool(doc["converged"]))
 
 
 def _num(v: float) -> float | None:
@@ -130,6 +180,7 @@ def evaluate_mission(
     check_points: ControlPoints | None = None,
     max_points_per_pair: int = 100_000,
     seed: int = 0,
+    progress: Callable[[str, float], None] | None = None,
 ) -> Evaluation:
     """Tables 3 and 4 of the paper for ``mission`` before and after the estimate ``delta``.
 
@@ -146,6 +197,7 @@ def evaluate_mission(
         Points of the first strip of a pair used by the ICP (a random subset beyond).
     seed : int
         Seed of that subset.
+    progress : callable(stage, fraction), optional
 
     Raises
     ------
@@ -154,6 +206,8 @@ def evaluate_mission(
     """
     delta = np.asarray(delta, dtype=np.float64).reshape(N_PARAMETERS)
     rng = np.random.default_rng(seed)
+    if progress is not None:
+        progress("evaluation: correcting strips", 0.0)
     states = {"before": corrected_strips(mission, np.zeros(N_PARAMETERS), settings),
               "after": corrected_strips(mission, delta, settings)}
     cells = [np.unique(footprint_keys(x, settings.overlap_cell_m)) for x in states["before"]]
@@ -167,6 +221,8 @@ def evaluate_mission(
     pairs: list[PairAlignment] = []
     ids = [s.strip_id for s in mission.strips]
     for a in range(len(ids)):
+        if progress is not None:
+            progress("evaluation: co-alignment (ICP)", a / max(len(ids), 1))
         for b in range(a + 1, len(ids)):
             common = np.intersect1d(cells[a], cells[b], assume_unique=True)
             if common.size < settings.min_overlap_cells:
@@ -186,6 +242,8 @@ def evaluate_mission(
                         _short(fits["before"]), _short(fits["after"]))
     residuals: list[CheckPointResidual] = []
     if check_points is not None and len(check_points):
+        if progress is not None:
+            progress("evaluation: check points", 0.0)
         heights: dict[str, np.ndarray] = {}
         for which in ("before", "after"):
             per_strip = np.full((len(ids), len(check_points)), np.nan)
@@ -207,7 +265,7 @@ def evaluate_mission(
     if not pairs and not residuals:
         raise CalibrationError("no overlapping strips and no check points: nothing to "
                                "evaluate")
-    return Evaluation(pairs, residuals)
+    return Evaluation(pairs, residuals, delta)
 
 
 def _mean(values: np.ndarray) -> float:

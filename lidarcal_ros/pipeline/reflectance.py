@@ -15,8 +15,9 @@ only the target and its surroundings (:func:`measure_target_in_bag`) before corr
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from lidarcal_ros.core.flags import (
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
 )
-from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.radiometry import constant_from_target
 from lidarcal_ros.pipeline.correction import (
     CorrectionSettings,
@@ -122,42 +123,70 @@ def measure_target(
     values = [refl[trusted_in_box(xyz, flags, inc, box)] for xyz, refl, flags, inc in parts]
     relative = np.concatenate(values) if values else np.empty(0)
     constant = constant_from_target(relative, known_reflectance)
-    return TargetMeasurement(box, float(known_reflectance), int(np.isfinite(relative).sum()),
+    used = int(np.count_nonzero(np.isfinite(relative) & (relative > 0)))
+    return TargetMeasurement(box, float(known_reflectance), used,
                              constant * float(known_reflectance), constant)
+
+
+def relative_settings(settings: CorrectionSettings) -> CorrectionSettings:
+    """``settings`` without a calibration constant (the reflectance in intensity units)."""
+    return dataclasses.replace(settings, radiometry=settings.radiometry.with_constant(0.0))
+
+
+def with_constant(settings: CorrectionSettings, constant: float) -> CorrectionSettings:
+    """``settings`` with the calibration constant ``constant`` (intensity units)."""
+    return dataclasses.replace(settings, radiometry=settings.radiometry.with_constant(constant))
+
+
+def measure_target_on_mission(
+    mission: Mission,
+    settings: CorrectionSettings,
+    target: tuple[tuple[float, float, float, float], float],
+) -> TargetMeasurement:
+    """A reference target (box, known reflectance) measured on a mission in memory: the
+    points of each strip within :data:`TARGET_MARGIN_M` of the box corrected with
+    ``settings`` but without a calibration constant.
+
+    Raises
+    ------
+    ConfigError
+        No trusted point inside the box.
+    """
+    box, known = target
+    m = TARGET_MARGIN_M
+    relative = relative_settings(settings)
+
+    def corrected() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        for strip in mission.strips:
+            if strip.intensity is None or not len(strip):
+                continue
+            x, y = strip.xyz[:, 0], strip.xyz[:, 1]
+            near = (x >= box[0] - m) & (x <= box[2] + m) & (y >= box[1] - m) & (y <= box[3] + m)
+            if not near.any():
+                continue
+            heading = trajectory_heading(mission.trajectory, float(np.nanmedian(strip.t)))
+            res = correct_columns(strip.xyz[near], strip.t[near], strip.intensity[near],
+                                  mission.trajectory, relative, heading=heading,
+                                  source=f"strip {strip.strip_id}")
+            yield res.xyz, res.reflectance, res.flags, res.incidence
+
+    return measure_target(corrected(), box, known)
 
 
 def measure_target_in_bag(
     bag: str | Path,
-    trajectory: Trajectory,
     settings: CorrectionSettings,
     config: FlightConfig,
 ) -> TargetMeasurement | None:
-    """The configured reference target measured on the points of a mission bag around it
-    (None when the configuration names no target).
-
-    Only the points within :data:`TARGET_MARGIN_M` of the box are read and corrected (with
-    ``settings``, without a calibration constant), one strip at a time.
-    """
+    """The configured reference target measured on a mission bag (None when the
+    configuration names no target): only the points within :data:`TARGET_MARGIN_M` of the
+    box are read (:func:`measure_target_on_mission`)."""
     from lidarcal_ros.pipeline.calibration import load_mission
 
     target = target_of(config)
     if target is None:
         return None
-    box, known = target
+    (x0, y0, x1, y1), _ = target
     m = TARGET_MARGIN_M
-    around = (box[0] - m, box[1] - m, box[2] + m, box[3] + m)
-    mission = load_mission(bag, config, box=around)
-    relative = CorrectionSettings(settings.delta, settings.radiometry.with_constant(0.0),
-                                  settings.window_s, settings.min_samples,
-                                  settings.heading_source, settings.time_field)
-
-    def corrected() -> Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        for strip in mission.strips:
-            if strip.intensity is None or not len(strip):
-                continue
-            heading = trajectory_heading(trajectory, float(np.nanmedian(strip.t)))
-            res = correct_columns(strip.xyz, strip.t, strip.intensity, trajectory, relative,
-                                  heading=heading, source=f"strip {strip.strip_id}")
-            yield res.xyz, res.reflectance, res.flags, res.incidence
-
-    return measure_target(corrected(), box, known)
+    mission = load_mission(bag, config, box=(x0 - m, y0 - m, x1 + m, y1 + m))
+    return measure_target_on_mission(mission, settings, target)
