@@ -224,17 +224,23 @@ def rigid_icp(
 
 
 # ---------------------------------------------------------------------------- check points
-def tin_heights(tin: Tin, vertices: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def tin_heights(tin: Tin, vertices: np.ndarray, xy: np.ndarray, *,
+                vertex_shift: np.ndarray | None = None) -> np.ndarray:
     """Height of a strip's surface at map positions, by barycentric interpolation.
 
     Parameters
     ----------
     tin : Tin
-        The strip's TIN, built on ``vertices``.
+        The strip's TIN (built on its delivered coordinates).
     vertices : (n, 3) float64
-        The TIN's vertices, map frame, metres.
+        The TIN's vertices in their current coordinates, map frame, metres.
     xy : (k, 2) float64
         Map positions, metres.
+    vertex_shift : (n, 3) float64, optional
+        ``delivered - current`` per vertex (None: ``vertices`` are the delivered ones). Each
+        position is located in the delivered triangulation moved by the shift of the
+        triangle first found there (the correction is smooth: a triangle's neighbours move
+        alike).
 
     Returns
     -------
@@ -244,6 +250,11 @@ def tin_heights(tin: Tin, vertices: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     tri = tin.locate(xy)
+    if vertex_shift is not None:
+        found = tri >= 0
+        moved = xy.copy()
+        moved[found] += vertex_shift[tin.simplices[tri[found]], :2].mean(axis=1)
+        tri = tin.locate(moved, np.where(found, tri, -1))
     out = np.full(xy.shape[0], np.nan)
     ok = tri >= 0
     ok[ok] = tin.usable[tri[ok]]

@@ -320,14 +320,14 @@ def pair_figure(section: PairSection, crs: str) -> Figure:
     _difference_maps(fig, (ax_before, ax_after), rasters, extent,
                      (f"before: RMS {_cm(before.rms)} cm", f"after: RMS {_cm(after.rms)} cm"),
                      limit_cm, crs, cbar)
-    cbar.set_ylabel(f"normal discrepancy (cm), {cell:.1f} m cells", fontsize=_SMALL)
+    cbar.set_ylabel("normal discrepancy (cm)", fontsize=_SMALL)
     _histograms(ax_hist, ((before.distance, f"before, {before.distance.size} points",
                            "tab:red"),
                           (after.distance, f"after, {after.distance.size} points", "tab:blue")),
                 limit_cm, "normal discrepancy (cm; beyond the scale in the end bins)")
     a, b = section.strips
     fig.suptitle(f"strips {a} & {b}: points of strip {after.points_strip} on the TIN of "
-                 f"strip {after.tin_strip}", fontsize=10)
+                 f"strip {after.tin_strip}, mean per {cell:.1f} m cell", fontsize=10)
     return fig
 
 

@@ -211,12 +211,17 @@ def evaluate_mission(
     states = {"before": corrected_strips(mission, np.zeros(N_PARAMETERS), settings),
               "after": corrected_strips(mission, delta, settings)}
     cells = [np.unique(footprint_keys(x, settings.overlap_cell_m)) for x in states["before"]]
-    tins: dict[tuple[str, int], Tin] = {}
+    # One TIN per strip, on its delivered points; after the correction its vertices move by
+    # a smooth field of centimetres to decimetres (as in the calibration's own matching).
+    tins: dict[int, Tin] = {}
+    shifts: dict[str, list[np.ndarray | None]] = {
+        "before": [None] * len(states["before"]),
+        "after": [b - a for b, a in zip(states["before"], states["after"])]}
 
-    def tin(which: str, k: int) -> Tin:
-        if (which, k) not in tins:
-            tins[(which, k)] = _tin(states[which][k], cells[k].size, settings)
-        return tins[(which, k)]
+    def tin(k: int) -> Tin:
+        if k not in tins:
+            tins[k] = _tin(states["before"][k], cells[k].size, settings)
+        return tins[k]
 
     pairs: list[PairAlignment] = []
     ids = [s.strip_id for s in mission.strips]
@@ -233,9 +238,9 @@ def evaluate_mission(
                 inside = np.sort(rng.choice(inside, max_points_per_pair, replace=False))
             fits: dict[str, RigidFit | None] = {}
             for which in ("before", "after"):
-                fits[which] = rigid_icp(states[which][a][inside], tin(which, b),
-                                        states[which][b],
-                                        max_normal_distance=settings.max_normal_distance_m)
+                fits[which] = rigid_icp(states[which][a][inside], tin(b), states[which][b],
+                                        max_normal_distance=settings.max_normal_distance_m,
+                                        vertex_shift=shifts[which][b])
             pairs.append(PairAlignment(ids[a], ids[b], int(common.size),
                                        fits["before"], fits["after"]))
             logger.info("strips %d & %d: rigid fit %s -> %s", ids[a], ids[b],
@@ -251,8 +256,9 @@ def evaluate_mission(
             for k in range(len(ids)):
                 seen = np.isin(cp_cells, cells[k])
                 if seen.any():
-                    per_strip[k, seen] = tin_heights(tin(which, k), states[which][k],
-                                                     check_points.xyz[seen, :2])
+                    per_strip[k, seen] = tin_heights(tin(k), states[which][k],
+                                                     check_points.xyz[seen, :2],
+                                                     vertex_shift=shifts[which][k])
             heights[which] = per_strip
         for c, pid in enumerate(check_points.ids):
             seen = np.isfinite(heights["before"][:, c]) | np.isfinite(heights["after"][:, c])

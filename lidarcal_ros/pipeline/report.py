@@ -99,8 +99,9 @@ SLOPE_CLASS_EDGES_DEG: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 6
 MIN_CLASS_POINTS = 30
 #: Most cells along the longer side of the intensity and reflectance maps.
 MAP_MAX_CELLS = 600
-#: Map cell in mean point spacings at least (so most cells hold a few points).
-MAP_CELL_SPACINGS = 1.5
+#: Map cell in point spacings of the sparsest strip at least (so that where it flies alone,
+#: at the block's edges, most cells hold a point or two).
+MAP_STRIP_SPACINGS = 2.0
 #: Points left out of the slope statistics: not corrected, no normal, no intensity, or a
 #: rough neighbourhood (edges, vegetation: slope and incidence uncertain).
 EXCLUDED_FLAGS = FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH
@@ -356,28 +357,6 @@ def _cell_sums(xy: np.ndarray, values: np.ndarray, *, x0: float, y0: float, cell
     return sums, np.bincount(key, minlength=nx * ny)
 
 
-def map_grid(xy: np.ndarray, *, max_cells: int = MAP_MAX_CELLS) -> tuple[float, float, float,
-                                                                           tuple[int, int]]:
-    """A grid over the points: ``(x0, y0, cell_m, (rows, columns))``.
-
-    The cell is the larger of the extent over ``max_cells`` and :data:`MAP_CELL_SPACINGS`
-    mean point spacings over the bounding box (metres).
-    """
-    lo = xy.min(axis=0)
-    hi = xy.max(axis=0)
-    return _grid_over(lo, hi, xy.shape[0], max_cells=max_cells)
-
-
-def _grid_over(lo: np.ndarray, hi: np.ndarray, n_points: int, *, max_cells: int
-               ) -> tuple[float, float, float, tuple[int, int]]:
-    size = np.maximum(hi - lo, 1e-3)
-    spacing = math.sqrt(float(size[0] * size[1]) / max(n_points, 1))
-    cell = max(float(size.max()) / max_cells, MAP_CELL_SPACINGS * spacing, 1e-3)
-    nx = int(math.floor(size[0] / cell)) + 1
-    ny = int(math.floor(size[1] / cell)) + 1
-    return float(lo[0]), float(lo[1]), cell, (ny, nx)
-
-
 # ---------------------------------------------------------------------------- block pass
 @dataclass
 class StripFootprint:
@@ -467,7 +446,7 @@ def block_pass(
     swath_grid, footprint_grid : BlockGrid
         Grids of the swath differences and of the footprints.
     map_shape : (x0, y0, cell_m, (rows, columns))
-        The grid of the intensity and reflectance maps (:func:`map_grid`).
+        The grid of the intensity and reflectance maps (:func:`block_grids`).
     progress : callable, optional
     """
     x0, y0, cell, shape = map_shape
@@ -566,8 +545,11 @@ def block_grids(mission: Mission, config: FlightConfig) -> tuple[BlockGrid, Bloc
     span = float(np.max(hi - lo))
     swath = BlockGrid.covering(lo, hi, max(SWATH_CELL_SPACINGS * spacing, 0.5,
                                            span / SWATH_MAX_CELLS))
-    maps = _grid_over(lo, hi, mission.n_points, max_cells=MAP_MAX_CELLS)
-    return footprint, swath, maps
+    # Map cells hold points of the sparsest strip too (where it flies alone, at the edges).
+    sparsest = 1.0 / math.sqrt(float(np.min(densities))) if densities else 1.0
+    cell = max(span / MAP_MAX_CELLS, MAP_STRIP_SPACINGS * sparsest, 1e-3)
+    shape = (int((hi[1] - lo[1]) // cell) + 1, int((hi[0] - lo[0]) // cell) + 1)
+    return footprint, swath, (float(lo[0]), float(lo[1]), cell, shape)
 
 
 def flight_map(mission: Mission, footprints: Sequence[StripFootprint], grid: BlockGrid, *,
