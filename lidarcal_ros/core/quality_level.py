@@ -123,7 +123,7 @@ class QualityAssessment:
 def assess(*, rmsdz_m: float, max_dz_m: float, anpd_per_m2: float, nva_rmse_m: float = math.nan,
            n_check_points: int = 0, dz_note: str = "") -> QualityAssessment:
     """The LBS measures of a mission (NaN: not assessed)."""
-    nva_note = f"{n_check_points} check points"
+    nva_note = f"{n_check_points} check point{'' if n_check_points == 1 else 's'}"
     if 0 < n_check_points < MIN_NVA_CHECK_POINTS:
         nva_note += (f" (fewer than the {MIN_NVA_CHECK_POINTS} of a formal test: "
                      "indicative)")
