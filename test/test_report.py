@@ -255,6 +255,7 @@ def test_bias_table_and_correlation_from_the_calibration_file(reported: Reported
     facts = dict((r[0], r[1]) for r in page.rows["calibration"] if len(r) == 2)
     assert facts["sigma0 (a posteriori)"] == f"{doc['sigma0'] * 100:.2f} cm"
     assert facts["iterations"] == str(doc["iterations"])
+    assert facts["point-positioning model"] == doc["model_detail"]
 
 
 # ------------------------------------------------------------------ block

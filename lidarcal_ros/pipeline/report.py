@@ -186,6 +186,8 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
             facts.append((label, str(body[key])))
     if isinstance(body.get("converged"), bool):
         facts.append(("converged", "yes" if body["converged"] else "NO"))
+    if body.get("model_detail"):
+        facts.append(("point-positioning model", str(body["model_detail"])))
     corr = body.get("correspondences")
     if isinstance(corr, Mapping):
         facts.append(("correspondences", f"{corr.get('strip_pairs', '?')} strip-pair, "
@@ -198,6 +200,9 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
             a, b = sorted(int(s) for s in strips)
             coverage[(a, b)] = float(value)
     warnings = [str(w) for w in body.get("warnings") or []]
+    for strip in body.get("strips") or []:
+        if isinstance(strip, Mapping):
+            warnings.extend(f"strip {strip.get('id')}: {w}" for w in strip.get("warnings") or [])
     return ReportCalibration(path, record, biases, names, matrix, facts, coverage, warnings)
 
 
