@@ -32,5 +32,11 @@ class ConfigError(LidarcalError):
     """A flight configuration, calibration file or parameter value is invalid."""
 
 
+class OutputError(LidarcalError):
+    """An output cannot be written: it exists (without ``--overwrite``), its directory is
+    missing or not writable, or writing failed (disk full, I/O error). Nothing partial is left
+    behind."""
+
+
 class CalibrationError(LidarcalError):
     """The adjustment cannot proceed (no overlap, no correspondences, nothing to estimate)."""

@@ -99,4 +99,4 @@ def test_bad_requests_are_refused_in_one_line(small_mission: Any, tmp_path: Path
     assert not (tmp_path / "out").exists()  # nothing half-written is left
     (tmp_path / "taken").mkdir()
     assert main(["recover", str(small_mission.bag), "-o", str(tmp_path / "taken")]) == 1
-    assert "output exists" in capsys.readouterr().err
+    assert "taken: exists (use --overwrite to replace it)" in capsys.readouterr().err

@@ -13,7 +13,7 @@ from mcap_ros2.writer import Writer as McapRos2Writer
 from rosbags.typesys import Stores, get_typestore
 
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
-from lidarcal_ros.errors import BagError, CloudFormatError, InputError
+from lidarcal_ros.errors import BagError, CloudFormatError, InputError, OutputError
 from lidarcal_ros.io.bag import (
     BagWriter,
     open_bag,
@@ -432,7 +432,7 @@ def test_open_errors(tmp_path):
 def test_overwrite(tmp_path, mission):
     path = tmp_path / "out"
     write_mission_bag(path, mission)
-    with pytest.raises(BagError, match=r"out: output exists; pass overwrite=True"):
+    with pytest.raises(OutputError, match=r"out: exists \(use --overwrite to replace it\)"):
         write_mission_bag(path, mission)
     small = Mission(mission.trajectory, mission.strips[:1], None, "map")
     write_mission_bag(path, small, overwrite=True)
@@ -440,7 +440,7 @@ def test_overwrite(tmp_path, mission):
     other = tmp_path / "project"
     other.mkdir()
     (other / "notes.txt").write_text("keep me")
-    with pytest.raises(BagError, match=r"refusing to overwrite a directory that is not a bag"):
+    with pytest.raises(OutputError, match=r"refusing to overwrite a directory that is not a bag"):
         write_mission_bag(other, mission, overwrite=True)
     assert (other / "notes.txt").read_text() == "keep me"
 

@@ -1,20 +1,33 @@
 """``lidarcal``: simulate, calibrate (and more) from the command line.
 
-Every subcommand exits 0 on success; on bad input it prints one line naming the file, topic,
-field or parameter at fault and exits 1 (2 for usage errors). An unexpected exception (a bug)
-is also reported in one line, with exit status 3; ``-vv`` adds its traceback. ``calibrate
---write-identity`` that could estimate nothing exits 5, having written a calibration that moves
-no point.
+Exit statuses (:data:`EXIT_STATUSES`, also in ``lidarcal --help``):
+
+- 0: success.
+- 1: bad input, or an output that cannot be written: one line on stderr,
+  ``lidarcal COMMAND: error: REASON``, naming the file, topic, field or parameter at fault
+  (and, for a failed write, the operating system's reason). No output is left half-written.
+- 2: usage error (argparse).
+- 3: an unexpected exception (a bug), also in one line; ``-vv`` adds its traceback.
+- 4: ``calibrate`` wrote a calibration whose adjustment did not converge
+  (``converged: false`` in the file, a warning line on stderr).
+- 5: ``calibrate --write-identity`` could estimate nothing and wrote a calibration that moves
+  no point (a warning line on stderr says why).
+- 130: interrupted (Ctrl-C).
+
+Where a command goes on despite something wrong (points dropped, a control point unused, a
+file without a CRS), it says so in a warning line, ``lidarcal COMMAND: warning: ...``, with
+the count. Every command that writes refuses an existing output unless given
+``--overwrite``, in the same words.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
-import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,8 +36,34 @@ from lidarcal_ros.errors import ConfigError, LidarcalError
 
 logger = logging.getLogger("lidarcal")
 
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1
+EXIT_USAGE = 2
+EXIT_INTERNAL_ERROR = 3
+EXIT_NOT_CONVERGED = 4
 #: ``calibrate --write-identity`` estimated nothing and wrote a calibration moving no point.
 EXIT_NOTHING_ESTIMATED = 5
+EXIT_INTERRUPTED = 130
+
+#: What each exit status means (``lidarcal --help`` prints this).
+EXIT_STATUSES: dict[int, str] = {
+    EXIT_OK: "success",
+    EXIT_BAD_INPUT: "bad input or an output that cannot be written (one line on stderr)",
+    EXIT_USAGE: "usage error",
+    EXIT_INTERNAL_ERROR: "internal error (a bug; -vv for the traceback)",
+    EXIT_NOT_CONVERGED: "calibrate: the adjustment did not converge (calibration written "
+                        "with converged: false)",
+    EXIT_NOTHING_ESTIMATED: "calibrate --write-identity: nothing could be estimated "
+                            "(calibration written that moves no point)",
+    EXIT_INTERRUPTED: "interrupted",
+}
+
+
+def _check_output(path: Path, overwrite: bool, *, directory: bool = False) -> None:
+    """Refuse an output that cannot be written before any work (same words everywhere)."""
+    from lidarcal_ros.io.output_files import check_output
+
+    check_output(path, overwrite=overwrite, directory=directory)
 
 
 def _progress_bar(enabled: bool) -> tuple[Any, Any]:
@@ -154,8 +193,14 @@ def _flight_lines(path: Path) -> list[dict[str, Any]]:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG
     from lidarcal_ros.core.simulate import FOV_DEG, crab_wind, scenario_lines, simulate_mission
-    from lidarcal_ros.pipeline.calibration import parse_biases, write_simulation
+    from lidarcal_ros.pipeline.calibration import (
+        parse_biases,
+        simulation_paths,
+        write_simulation,
+    )
 
+    for key, path in simulation_paths(args.output).items():
+        _check_output(path, args.overwrite, directory=key == "bag")
     origin = _two_numbers(args.origin, "--origin", "X,Y")
     if not args.density > 0:
         raise ConfigError(f"--density must be positive, got {args.density}")
@@ -206,6 +251,7 @@ def _add_calibrate(sub: Any) -> None:
                    "no point (every bias at its fixed value, 0 unless configured; none "
                    "estimated; converged false) with the strips' agreement as delivered, "
                    "which lidarcal correct accepts; exit status 5 instead of 1")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_calibrate)
 
 
@@ -217,12 +263,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from lidarcal_ros.pipeline.calibration import (
         Truth,
         calibrate_mission,
+        convergence_warning,
         format_agreement,
         format_report,
         load_mission,
     )
 
-    _check_output_file(args.output)
+    _check_output(args.output, args.overwrite)
     config = load_flight_config(args.config)
     overrides = {}
     if args.points:
@@ -265,25 +312,17 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         print(format_report(result, config, title=title, truth=truth))
         print(f"calibration written to {path}")
-    if unestimated is None:
-        return 0
-    if path is None:
-        raise unestimated
-    print(f"lidarcal calibrate: warning: nothing could be estimated ({unestimated.reason}); "
-          f"{path} moves no point", file=sys.stderr)
-    return EXIT_NOTHING_ESTIMATED
-
-
-def _check_output_file(path: Path) -> None:
-    """Refuse an output path that cannot be written, before hours of work."""
-
-    if path.is_dir():
-        raise ConfigError(f"{path}: is a directory; -o/--output takes a file name")
-    parent = path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"{path}: cannot write here ({parent} is not a writable directory)")
+    if unestimated is not None:
+        if path is None:
+            raise unestimated
+        logger.warning("nothing could be estimated (%s); %s moves no point", unestimated.reason,
+                       path)
+        return EXIT_NOTHING_ESTIMATED
+    warning = convergence_warning(result, config)
+    if warning:
+        logger.warning("%s: %s", path, warning)
+        return EXIT_NOT_CONVERGED
+    return EXIT_OK
 
 
 # ---------------------------------------------------------------------------- correct
@@ -348,12 +387,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     out = args.output
-    if output_kind(out) == "las" and out.is_dir():
-        raise ConfigError(f"{out}: is a directory; a LAS output is a file")
-    if (out.exists() or out.is_symlink()) and not args.overwrite:
-        raise ConfigError(f"{out}: exists (use --overwrite to replace it)")
-    if not out.parent.is_dir():
-        raise ConfigError(f"{out}: parent directory {out.parent} does not exist")
+    _check_output(out, args.overwrite,
+                  directory=output_kind(out) == "bag" and out.suffix != ".mcap")
     progress, close = _progress_bar(True)
     try:
         report = correct_bag(args.bag, calibration, args.output, config, crs=crs,
@@ -406,9 +441,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.las import parse_crs
     from lidarcal_ros.pipeline.report import build_report
 
-    _check_output_file(args.output)
-    if (args.output.exists() or args.output.is_symlink()) and not args.overwrite:
-        raise ConfigError(f"{args.output}: exists (use --overwrite to replace it)")
+    _check_output(args.output, args.overwrite)
     config = load_flight_config(args.config)
     crs = parse_crs(args.crs) if args.crs else None
     started = time.perf_counter()
@@ -613,6 +646,7 @@ def _add_import(sub: Any) -> None:
 def _cmd_import(args: argparse.Namespace) -> int:
     from lidarcal_ros.pipeline.importer import import_mission
 
+    _check_output(args.output, args.overwrite, directory=args.output.suffix != ".mcap")
     progress, close = _progress_bar(True)
     try:
         report = import_mission(
@@ -654,6 +688,8 @@ def _add_recover(sub: Any) -> None:
 def _cmd_recover(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.bag_recovery import recover_bag
 
+    if args.output.resolve() != args.bag.resolve():  # (recover_bag names that mistake)
+        _check_output(args.output, args.overwrite, directory=args.output.suffix != ".mcap")
     recovered = recover_bag(args.bag, args.output, overwrite=args.overwrite,
                             points_topic=args.points, trajectory_topic=args.trajectory,
                             time_field=args.time_field)
@@ -668,6 +704,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="lidarcal",
         description="Airborne LiDAR calibration (quasi-rigorous, Habib et al. 2011) and "
                     "radiometric correction for ROS 2.",
+        epilog="exit status: " + "; ".join(f"{code} {meaning}"
+                                           for code, meaning in EXIT_STATUSES.items()),
     )
     parser.add_argument("--version", action="version", version=f"lidarcal {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
@@ -687,31 +725,67 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _CommandFormatter(logging.Formatter):
+    """Log records as ``lidarcal COMMAND: warning: MESSAGE`` lines, like the error line
+    (with the logger's name too when verbose)."""
+
+    def __init__(self, command: str, *, names: bool) -> None:
+        super().__init__()
+        self.prefix = f"lidarcal {command}: "
+        self.names = names
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        name = f"{record.name}: " if self.names else ""
+        return f"{self.prefix}{record.levelname.lower()}: {name}{record.getMessage()}"
+
+
+@contextlib.contextmanager
+def _log_lines(command: str, verbose: int) -> Iterator[None]:
+    """Log records of the command to stderr as :class:`_CommandFormatter` lines, for the
+    command's duration (``main`` may be called more than once in a process)."""
+    root = logging.getLogger()
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_CommandFormatter(command, names=verbose > 0))
+    level = root.level
+    root.addHandler(handler)
+    root.setLevel(logging.WARNING - 10 * min(verbose, 2))
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``lidarcal`` console script."""
+    """Entry point of the ``lidarcal`` console script (exit statuses: module docstring)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # (a report records it)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    with _log_lines(args.command, args.verbose):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args))
     except LidarcalError as exc:
         print(f"lidarcal {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print(f"lidarcal {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except OSError as exc:  # a file the command reads or writes
+        from lidarcal_ros.io.output_files import os_reason
+
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"lidarcal {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
-        return 1
+        print(f"lidarcal {args.command}: error: {where}{os_reason(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except Exception as exc:  # a bug: still one line, traceback with -vv
         logger.debug("traceback", exc_info=True)
         text = " ".join(str(exc).split())
         print(f"lidarcal {args.command}: internal error: {type(exc).__name__}: {text} "
               "(rerun with -vv for the traceback)", file=sys.stderr)
-        return 3
+        return EXIT_INTERNAL_ERROR
 
 
 if __name__ == "__main__":  # pragma: no cover

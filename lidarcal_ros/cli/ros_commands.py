@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.output_files import check_output
 
 
 def _ros_argv(ros_args: list[str] | None, extra: list[str] | None = None) -> list[str]:
@@ -177,8 +178,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         read_control_csv(args.control)
         extra += ["-p", f"calibration.control_points_file:={args.control.resolve()}"]
-    if args.record is not None and args.record.exists() and not args.overwrite:
-        raise ConfigError(f"{args.record}: exists (use --overwrite to replace)")
+    if args.record is not None:
+        check_output(args.record, overwrite=args.overwrite,
+                     directory=args.record.suffix != ".mcap")
 
     from lidarcal_ros.rosenv import configure_ros_environment
 
@@ -290,8 +292,7 @@ def add_record_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    if args.output.exists() and not args.overwrite:
-        raise ConfigError(f"{args.output}: exists (use --overwrite to replace)")
+    check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be a positive number of seconds, got "
                           f"{args.duration}")

@@ -16,7 +16,6 @@ import itertools
 import logging
 import math
 import os
-import shutil
 import sys
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -47,7 +46,8 @@ from rosbags.typesys.store import Typestore
 from lidarcal_ros.core.attitude import IDENTITY_XYZW
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
-from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError
+from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError, OutputError
+from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 from lidarcal_ros.io.pointcloud import (
     CloudColumns,
     array_to_cloud_parts,
@@ -900,23 +900,37 @@ def _strip_order(sid: np.ndarray, t: np.ndarray) -> tuple[np.ndarray | None, lis
 # --------------------------------------------------------------------------------------
 
 
-def _remove_output(path: Path) -> None:
-    """Delete an existing output, but only if it looks like a bag lidarcal could write."""
+def _check_replaceable(path: Path) -> None:
+    """Refuse to replace an existing output that does not look like a bag lidarcal could
+    have written (a project directory given as ``-o`` by mistake)."""
     if path.is_symlink():
-        path.unlink()
-    elif path.is_dir():
+        return
+    if path.is_dir():
         allowed = {".mcap", ".yaml", ".zstd", ".db3"}
         odd = [p.name for p in path.iterdir() if p.is_dir() or p.suffix not in allowed]
         if odd:
-            raise BagError(
+            raise OutputError(
                 f"{path}: refusing to overwrite a directory that is not a bag "
                 f"(contains {', '.join(sorted(odd)[:3])})"
             )
-        shutil.rmtree(path)
-    else:
-        if path.suffix != ".mcap":
-            raise BagError(f"{path}: refusing to overwrite a file that is not an .mcap")
-        path.unlink()
+    elif path.suffix != ".mcap":
+        raise OutputError(f"{path}: refusing to overwrite a file that is not an .mcap")
+
+
+def _install(new: Path, path: Path) -> None:
+    """Move a complete output ``new`` to ``path``, replacing what was there only now."""
+    old = None
+    if path.exists() or path.is_symlink():
+        old = path.with_name(f".{path.name}.lidarcal-old-{os.getpid()}")
+        path.rename(old)
+    try:
+        new.rename(path)
+    except OSError:
+        if old is not None:
+            old.rename(path)
+        raise
+    if old is not None:
+        remove_quietly(old)
 
 
 class BagWriter:
@@ -928,16 +942,22 @@ class BagWriter:
         Output rosbag2 directory; a path ending in ``.mcap`` gives a bare MCAP file.
     overwrite : bool, keyword-only
         Replace an existing output (which must look like a bag). Otherwise an existing
-        output is refused with :class:`BagError`.
+        output is refused with :class:`~lidarcal_ros.errors.OutputError`.
     latched_topics : iterable of str, keyword-only
         Topics recorded as offered with transient-local durability.
     compress : bool, keyword-only
         zstd chunk compression inside the MCAP file.
+    staged : bool, keyword-only
+        Write under a hidden name beside ``path`` and move the bag into place (an existing
+        output replaced) only when it is complete: if the ``with`` block or the writing fails
+        (disk full), nothing partial is left and a previous output is untouched. False (a
+        live recording, which a power loss may cut: ``lidarcal recover`` reads what it
+        holds) writes a rosbag2 directory in place, an existing one removed first.
 
     Notes
     -----
     Metadata version 8 is written (QoS as a YAML string), which rosbag2 from Humble on
-    reads. If the ``with`` block fails, the partial output is removed.
+    reads. A bare ``.mcap`` is always staged (rosbags writes a directory around it).
     """
 
     def __init__(
@@ -947,36 +967,49 @@ class BagWriter:
         overwrite: bool = False,
         latched_topics: Iterable[str] = (),
         compress: bool = True,
+        staged: bool = True,
     ) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
         self.latched_topics = set(latched_topics)
         self.compress = compress
         self._bare = self.path.suffix == ".mcap"
-        self._target = self.path
+        self._staged = staged or self._bare
+        self._staging = temporary_beside(self.path)
+        # The bag inside the staging directory keeps its final name (the names of its files
+        # in metadata.yaml come from it).
+        self._target = (self._staging / (self.path.stem if self._bare else self.path.name)
+                        if self._staged else self.path)
         self._writer: Writer | None = None
         self._connections: dict[str, Connection] = {}
         self._typestore = _store()
 
     def open(self) -> BagWriter:
-        """Create the output; called on entering the ``with`` block."""
+        """Create the output; called on entering the ``with`` block.
+
+        Raises
+        ------
+        OutputError
+            The output exists and ``overwrite`` is False (or it does not look like a bag),
+            its directory is missing, or the bag cannot be created.
+        """
         if self.path.exists() or self.path.is_symlink():
             if not self.overwrite:
-                raise BagError(f"{self.path}: output exists; pass overwrite=True to replace it")
-            _remove_output(self.path)
+                raise OutputError(f"{self.path}: {EXISTS}")
+            _check_replaceable(self.path)
+            if not self._staged:
+                remove_quietly(self.path)
         if not self.path.parent.is_dir():
-            raise BagError(f"{self.path}: parent directory does not exist")
-        if self._bare:
-            self._target = self.path.parent / f".{self.path.stem}.lidarcal-tmp-{os.getpid()}"
-            if self._target.exists():
-                shutil.rmtree(self._target)
+            raise OutputError(f"{self.path}: directory {self.path.parent} does not exist")
+        remove_quietly(self._staging)
         try:
             writer = Writer(self._target, version=8, storage_plugin=StoragePlugin.MCAP)
             if self.compress:
                 writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             writer.open()
         except (WriterError, OSError) as err:
-            raise BagError(f"{self.path}: cannot create bag ({_one_line(err)})") from None
+            self._discard()
+            raise OutputError(f"{self.path}: cannot create bag ({os_reason(err)})") from None
         self._writer = writer
         return self
 
@@ -1054,7 +1087,10 @@ class BagWriter:
         if stamp_ns < 0:
             raise BagError(f"{self.path}: negative log time {stamp_ns} on {topic}")
         assert self._writer is not None
-        self._writer.write(self._connections[topic], int(stamp_ns), raw)
+        try:
+            self._writer.write(self._connections[topic], int(stamp_ns), raw)
+        except (WriterError, OSError) as err:
+            raise OutputError(f"{self.path}: cannot write bag ({os_reason(err)})") from None
 
     def _header(self, stamp_ns: int, frame_id: str) -> Any:
         types = self._typestore.types
@@ -1164,22 +1200,28 @@ class BagWriter:
                         else tuple(float(v) for v in q))
 
     def close(self) -> None:
-        """Finish the bag (index, metadata.yaml)."""
+        """Finish the bag (index, metadata.yaml) and move it into place.
+
+        Raises
+        ------
+        OutputError
+            The bag cannot be finished (disk full); nothing is left of it.
+        """
         writer, self._writer = self._writer, None
         if writer is None:
             return
         try:
             writer.close()
-        except Exception as err:  # surface as a one-line BagError
+            if self._staged:
+                _install(self._target / f"{self._target.name}.mcap" if self._bare
+                         else self._target, self.path)
+        except Exception as err:  # surface as one line, leaving nothing partial
             self._discard()
-            raise BagError(f"{self.path}: cannot finish bag ({_one_line(err)})") from None
-        if self._bare:
-            inner = self._target / f"{self._target.name}.mcap"
-            inner.replace(self.path)
-            shutil.rmtree(self._target, ignore_errors=True)
+            raise OutputError(f"{self.path}: cannot finish bag ({os_reason(err)})") from None
+        remove_quietly(self._staging)
 
     def abort(self) -> None:
-        """Stop writing and remove the partial output."""
+        """Stop writing and remove the partial output (a previous output stays)."""
         writer, self._writer = self._writer, None
         if writer is not None:
             try:
@@ -1189,7 +1231,7 @@ class BagWriter:
         self._discard()
 
     def _discard(self) -> None:
-        shutil.rmtree(self._target, ignore_errors=True)
+        remove_quietly(self._staging if self._staged else self.path)
 
     def __enter__(self) -> BagWriter:
         return self.open()

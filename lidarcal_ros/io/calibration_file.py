@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -16,7 +15,8 @@ from lidarcal_ros.core.calibrate import CalibrationResult
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.errors import ConfigError, OutputError
+from lidarcal_ros.io.output_files import os_reason, write_text
 from lidarcal_ros.io.yaml_file import read_yaml
 
 ROOT_KEY = "lidarcal_calibration"
@@ -119,21 +119,22 @@ def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
 
 
 def write_calibration(path: str | Path, result: CalibrationResult) -> Path:
-    """Write the calibration file; returns its path."""
+    """Write the calibration file (completely or not at all: a reader never sees half a
+    file, a failure leaves a previous file untouched); returns its path. A missing parent
+    directory is created (a node's ``calibration_file``).
+
+    Raises
+    ------
+    OutputError
+        The file cannot be written; one line with the operating system's reason.
+    """
     path = Path(path)
     text = yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)
-    tmp = path.with_name(path.name + ".tmp")
     try:
-        if path.parent and not path.parent.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_text(text)
-        tmp.replace(path)  # atomic: a reader never sees half a file
+        path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        with contextlib.suppress(OSError):
-            if tmp.is_file():
-                tmp.unlink()
-        raise ConfigError(f"{path}: cannot write calibration ({exc.strerror or exc})") from None
-    return path
+        raise OutputError(f"{path}: cannot write calibration ({os_reason(exc)})") from None
+    return write_text(path, text, what="calibration")
 
 
 def read_calibration(path: str | Path) -> CalibrationRecord:

@@ -11,6 +11,7 @@ import numpy as np
 
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import InputError
+from lidarcal_ros.io.output_files import write_text
 
 logger = logging.getLogger(__name__)
 
@@ -103,6 +104,8 @@ def write_control_csv(path: str | os.PathLike[str], control: ControlPoints) -> N
     ------
     InputError
         Ids and coordinates disagree in number, or an id contains a comma or newline.
+    OutputError
+        The file cannot be written.
     """
     p = Path(path)
     xyz = np.asarray(control.xyz, dtype=np.float64).reshape(-1, 3)
@@ -115,7 +118,4 @@ def write_control_csv(path: str | os.PathLike[str], control: ControlPoints) -> N
         if any(ch in str(pid) for ch in ",\n\r"):
             raise InputError(f"{p}: control id {pid!r} contains a comma or newline")
         rows.append(f"{pid},{float(x)!r},{float(y)!r},{float(z)!r}")
-    try:
-        p.write_text("\n".join(rows) + "\n", encoding="utf-8")
-    except OSError as err:
-        raise InputError(f"{p}: cannot write control point file ({err})") from None
+    write_text(p, "\n".join(rows) + "\n", what="control point file")

@@ -35,7 +35,6 @@ with an ``id`` (``summary``, ``quality``, ``block``, ``calibration``, ``swath``,
 
 from __future__ import annotations
 
-import contextlib
 import html
 import logging
 import math
@@ -51,8 +50,9 @@ from lidarcal_ros.core.evaluation import RIGID_NAMES, AccuracySummary, RigidFit
 from lidarcal_ros.core.params import display_value
 from lidarcal_ros.core.quality_level import LBS_LEVELS, QualityAssessment
 from lidarcal_ros.core.swath_differences import DzStatistics, SwathDifferences
-from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.errors import OutputError
 from lidarcal_ros.io import report_figures as figures
+from lidarcal_ros.io.output_files import EXISTS, write_text
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -846,20 +846,14 @@ def write_html_report(path: str | Path, content: ReportContent, *, overwrite: bo
 
     Raises
     ------
-    ConfigError
-        ``path`` exists and ``overwrite`` is False, or it cannot be written.
+    OutputError
+        ``path`` exists and ``overwrite`` is False, or it cannot be written (nothing partial
+        is left, a previous report is untouched).
     """
     path = Path(path)
     if (path.exists() or path.is_symlink()) and not overwrite:
-        raise ConfigError(f"{path}: exists (use --overwrite to replace it)")
+        raise OutputError(f"{path}: {EXISTS}")
     text = render_html(content, progress=progress)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
-    except OSError as exc:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise ConfigError(f"{path}: cannot write the report ({exc.strerror or exc})") from None
+    write_text(path, text, what="the report")
     logger.info("report written to %s (%d bytes)", path, len(text))
     return path

@@ -30,6 +30,7 @@ Conventions
 from __future__ import annotations
 
 import calendar
+import io
 import logging
 import math
 import os
@@ -42,7 +43,8 @@ import numpy as np
 
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.normals import finite_rows
-from lidarcal_ros.errors import ConfigError, InputError
+from lidarcal_ros.errors import ConfigError, OutputError
+from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 
 logger = logging.getLogger(__name__)
 
@@ -122,6 +124,32 @@ class LasStats:
     withheld: int = 0
 
 
+class _OutputFile(io.BufferedRandom):
+    """The file being written, keeping the first ``OSError`` of its writes: lazrs reports a
+    failed write as a bare ``IoError``, without the operating system's reason (disk full)."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(io.FileIO(path, "w+"))
+        self.error: OSError | None = None
+
+    def _kept(self, exc: OSError) -> OSError:
+        if self.error is None:
+            self.error = exc
+        return exc
+
+    def write(self, data: Any) -> int:
+        try:
+            return super().write(data)
+        except OSError as exc:
+            raise self._kept(exc) from None
+
+    def flush(self) -> None:
+        try:
+            super().flush()
+        except OSError as exc:
+            raise self._kept(exc) from None
+
+
 def _field(arr: np.ndarray, *names: str) -> np.ndarray | None:
     present = arr.dtype.names or ()
     for name in names:
@@ -152,7 +180,15 @@ class LasChunkWriter:
     -----
     The header (offsets) is made when the first chunk arrives; bounds and point counts are
     updated as chunks are written and rewritten on close. Memory does not grow with the number
-    of points. If the ``with`` block fails, the partial file is removed.
+    of points. The file is written under a hidden name beside ``path`` and moved into place
+    when complete: if the ``with`` block or a write fails (disk full), nothing partial is left
+    and a previous file is untouched.
+
+    Raises
+    ------
+    OutputError
+        The output exists (without ``overwrite``), its directory is missing, or a write
+        fails: one line naming the file and the operating system's reason.
     """
 
     def __init__(
@@ -174,10 +210,10 @@ class LasChunkWriter:
         suffix = self.path.suffix.lower()
         if suffix not in (".las", ".laz"):
             raise ConfigError(f"{self.path}: a LAS output must end in .las or .laz")
-        if self.path.exists() and not overwrite:
-            raise InputError(f"{self.path}: output exists (use --overwrite to replace it)")
+        if (self.path.exists() or self.path.is_symlink()) and not overwrite:
+            raise OutputError(f"{self.path}: {EXISTS}")
         if not self.path.parent.is_dir():
-            raise InputError(f"{self.path}: parent directory does not exist")
+            raise OutputError(f"{self.path}: directory {self.path.parent} does not exist")
         self.compress = suffix == ".laz"
         self.time_field = time_field
         self.crs = crs
@@ -185,7 +221,8 @@ class LasChunkWriter:
         self._writer: Any = None
         self._header: Any = None
         self._gps_standard: bool | None = None
-        self._tmp = self.path.with_name(f".{self.path.name}.lidarcal-tmp-{os.getpid()}")
+        self._tmp = temporary_beside(self.path)
+        self._file: _OutputFile | None = None
 
     # -- life cycle ----------------------------------------------------------------------
 
@@ -233,10 +270,18 @@ class LasChunkWriter:
             header.add_crs(self.crs)
         self._header = header
         try:
-            self._writer = laspy.open(str(self._tmp), mode="w", header=header,
-                                      do_compress=self.compress)
-        except OSError as exc:
-            raise InputError(f"{self.path}: cannot create ({exc.strerror or exc})") from None
+            self._file = _OutputFile(self._tmp)
+            self._writer = laspy.open(self._file, mode="w", header=header,
+                                      do_compress=self.compress, closefd=True)
+        except Exception as exc:
+            raise self._failure("cannot create", exc) from None
+
+    def _failure(self, what: str, exc: BaseException) -> OutputError:
+        """The one-line error of a failed write (the operating system's reason where the LAZ
+        compressor hid it); the partial file is removed."""
+        cause = self._file.error if self._file is not None and self._file.error else exc
+        self.abort()
+        return OutputError(f"{self.path}: {what} ({os_reason(cause)})")
 
     def close(self) -> None:
         """Finish the file (header with bounds and counts) and move it into place."""
@@ -247,9 +292,8 @@ class LasChunkWriter:
         try:
             writer.close()
             self._tmp.replace(self.path)
-        except OSError as exc:
-            self._discard()
-            raise InputError(f"{self.path}: cannot finish ({exc.strerror or exc})") from None
+        except Exception as exc:
+            raise self._failure("cannot finish", exc) from None
 
     def abort(self) -> None:
         """Stop writing and remove the partial file."""
@@ -262,10 +306,12 @@ class LasChunkWriter:
         self._discard()
 
     def _discard(self) -> None:
-        try:
-            self._tmp.unlink()
-        except FileNotFoundError:
-            pass
+        if self._file is not None and not self._file.closed:
+            try:
+                self._file.close()
+            except OSError:  # the write that failed, again
+                pass
+        remove_quietly(self._tmp)
 
     # -- writing -------------------------------------------------------------------------
 
@@ -320,7 +366,10 @@ class LasChunkWriter:
             withheld = (np.asarray(flags) & FLAG_NOT_CORRECTED) != 0
             rec.withheld = withheld.astype(np.uint8)
             self.stats.withheld += int(withheld.sum())
-        self._writer.write_points(rec)
+        try:
+            self._writer.write_points(rec)
+        except Exception as exc:  # lazrs wraps a failed write in its own error type
+            raise self._failure("cannot write", exc) from None
         self.stats.points += n
         return n
 

@@ -39,7 +39,7 @@ class RecorderNode(Node):
         super().__init__(node_name, context=context)
         self.topics = list(dict.fromkeys(topics))
         self.queue = queue
-        self.writer = BagWriter(output, overwrite=overwrite).open()
+        self.writer = BagWriter(output, overwrite=overwrite, staged=False).open()
         self.counts: dict[str, int] = {t: 0 for t in self.topics}
         self._recording: dict[str, Any] = {}
         self._lock = threading.Lock()

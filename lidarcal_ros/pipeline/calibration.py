@@ -27,6 +27,7 @@ from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.control import read_control_csv
+from lidarcal_ros.io.output_files import check_output, remove_quietly, write_text
 from lidarcal_ros.io.yaml_file import read_yaml
 
 logger = logging.getLogger(__name__)
@@ -73,6 +74,28 @@ def calibrate_mission(
     if solve_for is not None:
         settings.solve_for = tuple(n for n in PARAMETER_NAMES if n in solve_for)
     return calibrate(mission, settings, progress=progress)
+
+
+def convergence_warning(result: CalibrationResult, config: FlightConfig) -> str | None:
+    """One line saying that the adjustment did not converge, and how far from it the last
+    iteration was (its largest step in sigmas of that parameter); None when it converged."""
+    if result.converged:
+        return None
+    sol = result.solution
+    history = result.history
+    last = history[-1] - history[-2] if len(history) > 1 else \
+        (history[-1] if history else np.zeros_like(sol.delta))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.abs(last) / sol.sigma
+    ratio[~np.isfinite(ratio)] = -1.0
+    worst = int(np.argmax(ratio))
+    step = (f"; its last step moved {PARAMETER_NAMES[worst]} by {ratio[worst]:.2g} sigma "
+            f"(converged: every step below {config['calibration.convergence_fraction']:g})"
+            if ratio[worst] >= 0 else "")
+    n = result.iterations
+    return (f"the adjustment did not converge in {n} iteration{'' if n == 1 else 's'} "
+            f"(calibration.max_iterations {config['calibration.max_iterations']}){step}; "
+            "the calibration is written with converged: false")
 
 
 # ---------------------------------------------------------------------------- reports
@@ -293,19 +316,33 @@ def simulation_paths(output: str | Path) -> dict[str, Path]:
 
 
 def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -> dict[str, Path]:
-    """Write a :class:`~lidarcal_ros.core.simulate.SimulatedMission` as the contract's files."""
+    """Write a :class:`~lidarcal_ros.core.simulate.SimulatedMission` as the contract's files
+    (all of them or, when one fails, none of the new ones).
+
+    Raises
+    ------
+    OutputError
+        One of the outputs exists and ``overwrite`` is False, or cannot be written.
+    """
     from lidarcal_ros.io.bag import write_mission_bag
     from lidarcal_ros.io.control import write_control_csv
 
     paths = simulation_paths(output)
     for key in ("bag", "control", "truth"):
-        if paths[key].exists() and not overwrite:
-            raise ConfigError(f"{paths[key]}: exists (use --overwrite to replace)")
-    write_mission_bag(paths["bag"], sim.mission, overwrite=overwrite)
-    if sim.mission.control is not None and len(sim.mission.control):
-        write_control_csv(paths["control"], sim.mission.control)
-    else:
+        check_output(paths[key], overwrite=overwrite, directory=key == "bag")
+    if sim.mission.control is None or not len(sim.mission.control):
         paths.pop("control")
-    paths["truth"].write_text(yaml.safe_dump(truth_document(sim.biases, sim.config),
-                                             sort_keys=False))
+    written: list[Path] = []
+    try:
+        write_mission_bag(paths["bag"], sim.mission, overwrite=overwrite)
+        written.append(paths["bag"])
+        if "control" in paths:
+            write_control_csv(paths["control"], sim.mission.control)
+            written.append(paths["control"])
+        write_text(paths["truth"], yaml.safe_dump(truth_document(sim.biases, sim.config),
+                                                  sort_keys=False), what="truth file")
+    except BaseException:
+        for path in written:
+            remove_quietly(path)
+        raise
     return paths
