@@ -49,11 +49,13 @@ from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError, OutputError
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 from lidarcal_ros.io.pointcloud import (
+    DEFAULT_COORDINATE_TOLERANCE_M,
     CloudColumns,
     array_to_cloud_parts,
     cloud_to_array,
     extract_columns,
     extract_xyz,
+    float32_warning,
     make_point_dtype,
 )
 
@@ -91,12 +93,9 @@ _NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
 
 class TrajectorySamples:
     """Trajectory messages gathered into a :class:`~lidarcal_ros.core.mission.Trajectory`
-    (in any order), with the frames they are in. ``source`` (a file reader's name for them):
-    poses left out are counted in a warning line, and poses all at one stamp refused
-    (:meth:`~lidarcal_ros.core.mission.Trajectory.from_samples`)."""
+    (in any order), with the frames they are in."""
 
-    def __init__(self, source: str | None = None) -> None:
-        self.source = source
+    def __init__(self) -> None:
         self.t: list[float] = []
         self.xyz: list[tuple[float, float, float]] = []
         self.orientation: list[tuple[float, ...]] = []
@@ -112,10 +111,21 @@ class TrajectorySamples:
     def __len__(self) -> int:
         return len(self.t)
 
-    def trajectory(self) -> Trajectory:
-        return Trajectory.from_samples(np.asarray(self.t), np.asarray(self.xyz),
+    def trajectory(self, source: str) -> Trajectory:
+        """The samples as a trajectory, in time order, screened as a whole (what is left out
+        is counted in a warning line; :meth:`~lidarcal_ros.core.mission.Trajectory.
+        from_samples`).
+
+        Raises
+        ------
+        TrajectoryError
+            Every pose at one stamp (the header stamps were not set), or fewer than two usable
+            poses: one line naming ``source`` (file and topic).
+        """
+        return Trajectory.from_samples(np.asarray(self.t, dtype=np.float64),
+                                       np.asarray(self.xyz, dtype=np.float64),
                                        np.asarray(self.orientation).reshape(-1, 4),
-                                       source=self.source)
+                                       source=source)
 
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -265,6 +275,31 @@ class ReadableMcap:
                     yield channel, schemas.get(channel.schema_id), record
 
 
+def _foreign_encodings(path: Path) -> str:
+    """The channels of an MCAP file that do not hold CDR-encoded ROS 2 messages, as
+    ``topic (encoding), ...`` ('' when every one does, or none can be read)."""
+    from mcap.records import Channel, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, str] = {}
+    foreign: dict[str, str] = {}
+    try:
+        with path.open("rb") as stream:
+            for record in StreamReader(stream, record_size_limit=ReadableMcap.RECORD_LIMIT
+                                       ).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.encoding
+                elif isinstance(record, Channel):
+                    schema = schemas.get(record.schema_id, "")
+                    if record.message_encoding != "cdr":
+                        foreign[record.topic] = record.message_encoding or "no encoding"
+                    elif schema not in ("ros2msg", "ros2idl", ""):
+                        foreign[record.topic] = f"schema {schema}"
+    except Exception:  # damage: what was readable before it is reported
+        logger.debug("%s: stopped reading channels", path, exc_info=True)
+    return ", ".join(f"{topic} ({encoding})" for topic, encoding in foreign.items())
+
+
 def _damage_message(path: Path, what: str) -> str:
     count = sum(1 for _ in ReadableMcap(path).messages())
     return (f"{path}: truncated or corrupt MCAP ({what}); {count} messages were readable "
@@ -389,13 +424,16 @@ class BagReader:
         reader = McapReader(path)
         try:
             reader.open()
-        except ReaderError as err:
+        except Exception as err:  # a foreign encoding, else damage
             text = _one_line(err)
-            if "Profile is not ros2" in text:
+            foreign = _foreign_encodings(path)
+            if foreign:
+                raise BagError(f"{path}: not a ROS 2 bag: messages on {foreign} are not "
+                               "CDR-encoded ROS 2 messages (lidarcal reads the bags of ros2 "
+                               "bag record -s mcap)") from None
+            if isinstance(err, ReaderError) and "Profile is not ros2" in text:
                 raise BagError(f"{path}: MCAP profile is not 'ros2'; not a ROS 2 bag") from None
             raise BagError(_damage_message(path, text)) from None
-        except Exception as err:  # any parse failure means damage
-            raise BagError(_damage_message(path, _one_line(err))) from None
         self._files.append(_File(path, reader, list(reader.connections)))
 
     def _collect_topics(self, meta_qos: dict[str, list[Qos]]) -> None:
@@ -597,6 +635,7 @@ def read_mission(
     time_field: str = "t",
     thinning_cell_m: float = 0.0,
     box: tuple[float, float, float, float] | None = None,
+    coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M,
 ) -> Mission:
     """Read a mission bag into memory.
 
@@ -622,6 +661,10 @@ def read_mission(
     box : (xmin, ymin, xmax, ymax), keyword-only, optional
         Keep only the points inside this box of the map frame (m): a part of a mission
         read without holding the rest.
+    coordinate_tolerance_m : float, keyword-only
+        The coarsest rounding step of FLOAT32 ``x, y, z`` accepted (m; the range noise):
+        coarser is refused, a step above a tenth of it is warned about
+        (:func:`~lidarcal_ros.io.pointcloud.extract_columns`).
 
     Returns
     -------
@@ -654,8 +697,9 @@ def read_mission(
             _expect_type(bag, control_topic, (POINTCLOUD2,))
         wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
 
-        acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m, box)
-        samples = TrajectorySamples(f"{bag.path}: trajectory {trajectory_topic}")
+        acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m, box,
+                                coordinate_tolerance_m)
+        samples = TrajectorySamples()
         control_msg: Any = None
         for topic, msgtype, _log_ns, raw in bag.messages([t for t in wanted if t]):
             is_pose = topic == trajectory_topic
@@ -678,11 +722,21 @@ def read_mission(
         control = None
         if control_msg is not None:
             assert control_topic is not None
-            control = _control_from_cloud(bag.path, control_topic, control_msg, frame)
+            control = _control_from_cloud(bag.path, control_topic, control_msg, frame,
+                                          coordinate_tolerance_m)
         strips, dropped = acc.strips()
+        if not strips and not acc.outside_box:  # (a box may hold nothing: its reader says)
+            raise InputError(
+                f"{bag.path}: all {dropped} points on {points_topic} have a non-finite x, y, z "
+                "or t" if dropped else
+                f"{bag.path}: all {acc.n_messages} clouds on {points_topic} are empty")
+        trajectory = samples.trajectory(f"{bag.path}: trajectory {trajectory_topic}")
+    note = float32_warning(acc.coordinate_step_m, coordinate_tolerance_m)
+    if note:
+        logger.warning("%s: %s: %s", path, points_topic, note)
     if dropped:
         logger.warning("%s: dropped %d points with non-finite x, y, z or t", path, dropped)
-    return Mission(samples.trajectory(), strips, control, frame, dropped, acc.thinned)
+    return Mission(trajectory, strips, control, frame, dropped, acc.thinned)
 
 
 def _expect_type(bag: BagReader, topic: str, types: Sequence[str]) -> None:
@@ -714,13 +768,15 @@ def _check_frames(
     return cloud_frame
 
 
-def _control_from_cloud(path: Path, topic: str, msg: Any, frame: str) -> ControlPoints | None:
+def _control_from_cloud(path: Path, topic: str, msg: Any, frame: str,
+                        coordinate_tolerance_m: float) -> ControlPoints | None:
     if msg.header.frame_id != frame:
         raise InputError(
             f"{path}: control points on {topic} are in frame '{msg.header.frame_id}' but "
             f"the clouds are in '{frame}'"
         )
-    xyz = extract_xyz(cloud_to_array(msg, source=topic), source=topic)
+    xyz = extract_xyz(cloud_to_array(msg, source=topic), source=topic,
+                      coordinate_tolerance_m=coordinate_tolerance_m)
     ok = np.isfinite(xyz).all(axis=1)
     if not ok.all():
         logger.warning("%s: dropped %d non-finite control points", topic, int((~ok).sum()))
@@ -739,11 +795,15 @@ class _CloudAccumulator:
     """
 
     def __init__(self, topic: str, time_field: str, thinning_cell_m: float = 0.0,
-                 box: tuple[float, float, float, float] | None = None) -> None:
+                 box: tuple[float, float, float, float] | None = None,
+                 coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M) -> None:
         self.topic = topic
         self.box = box
         self.time_field = time_field
         self.thinning_cell_m = float(thinning_cell_m)
+        self.coordinate_tolerance_m = coordinate_tolerance_m
+        self.coordinate_step_m = 0.0  # the coarsest FLOAT32 step met
+        self.outside_box = 0  # points left out by the box
         self.thinned = 0
         self.frames: set[str] = set()
         self.xyz: list[np.ndarray] = []
@@ -757,7 +817,9 @@ class _CloudAccumulator:
         self.n_messages += 1
         self.frames.add(msg.header.frame_id)
         arr = cloud_to_array(msg, source=self.topic)
-        cols = extract_columns(arr, time_field=self.time_field, source=self.topic)
+        cols = extract_columns(arr, time_field=self.time_field, source=self.topic,
+                               coordinate_tolerance_m=self.coordinate_tolerance_m)
+        self.coordinate_step_m = max(self.coordinate_step_m, cols.coordinate_step_m)
         if cols.strip_id is None:
             raise CloudFormatError(
                 f"{self.topic}: cloud lacks field 'strip_id' (or 'point_source_id'); "
@@ -767,6 +829,7 @@ class _CloudAccumulator:
             x0, y0, x1, y1 = self.box
             x, y = cols.xyz[:, 0], cols.xyz[:, 1]
             inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+            self.outside_box += int(inside.size - np.count_nonzero(inside))
             cols, arr = cols.take(inside), arr[inside]
         if self.thinning_cell_m > 0:
             cols, arr = self._thinned(cols, arr)

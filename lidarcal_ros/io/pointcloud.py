@@ -61,6 +61,13 @@ DATATYPE_NAMES: dict[int, str] = {
 #: Names a driver may use for the firing-time field when ``t`` is absent.
 TIME_ALIASES: tuple[str, ...] = ("time", "timestamp", "gps_time")
 
+#: The coarsest rounding step of FLOAT32 ``x, y, z`` accepted when no tolerance is given (m):
+#: the default range noise, ``sensor.range_noise_m``.
+DEFAULT_COORDINATE_TOLERANCE_M = 0.03
+#: FLOAT32 steps above this fraction of the tolerance are worth a warning (below: no effect
+#: on any estimate worth a word).
+COORDINATE_WARNING_FRACTION = 0.1
+
 FieldTuple = tuple[str, int, int, int]
 
 
@@ -290,6 +297,9 @@ class CloudColumns:
         :func:`time_span` of ``t`` when known (found while the columns were extracted).
     all_finite : bool or None
         Every ``x, y, z, t`` finite, when known.
+    coordinate_step_m : float
+        The rounding step of FLOAT32 ``x, y, z`` at the cloud's largest coordinate (m; 0 for
+        FLOAT64): :func:`float32_step`.
     """
 
     xyz: np.ndarray
@@ -301,6 +311,7 @@ class CloudColumns:
     time_field: str = "t"
     t_span: tuple[float, float] | None = None
     all_finite: bool | None = None
+    coordinate_step_m: float = 0.0
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -368,15 +379,79 @@ def _xyz_fields(arr: np.ndarray, source: str) -> list[np.ndarray]:
     return [_field(arr, c, (FLOAT64, FLOAT32), source) for c in ("x", "y", "z")]
 
 
-def extract_xyz(arr: np.ndarray, *, source: str = "cloud") -> np.ndarray:
+def extract_xyz(arr: np.ndarray, *, source: str = "cloud",
+                coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M) -> np.ndarray:
     """``(n, 3)`` float64 coordinates from fields ``x, y, z`` (FLOAT64 or FLOAT32).
 
     Raises
     ------
     CloudFormatError
-        A coordinate field is missing or not floating point.
+        A coordinate field is missing or not floating point, or FLOAT32 coordinates are too
+        large for it (:func:`float32_step`).
     """
-    return _stacked_xyz(_xyz_fields(arr, source))
+    fields = _xyz_fields(arr, source)
+    xyz = _stacked_xyz(fields)
+    _checked_float32_step(fields, xyz, source, coordinate_tolerance_m)
+    return xyz
+
+
+def float32_step(xyz: np.ndarray) -> tuple[float, int, float]:
+    """The rounding step of FLOAT32 at the largest finite coordinate of each column.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float64
+        Coordinates that were FLOAT32 (metres).
+
+    Returns
+    -------
+    step : float
+        The spacing of FLOAT32 numbers (its unit in the last place) at the largest magnitude
+        of the worst column, metres: a FLOAT32 coordinate is off by up to half of it. 0 for
+        no finite coordinate.
+    column : int
+        The column (0: x, 1: y, 2: z) of that magnitude.
+    magnitude : float
+        That magnitude, metres.
+    """
+    worst = (0.0, 0, 0.0)
+    for column in range(xyz.shape[1] if xyz.ndim == 2 else 0):
+        values = np.abs(xyz[:, column])
+        values = values[np.isfinite(values)]
+        if values.size:
+            magnitude = float(values.max())
+            step = float(np.spacing(np.float32(magnitude)))
+            if step > worst[0]:
+                worst = (step, column, magnitude)
+    return worst
+
+
+def _checked_float32_step(fields: list[np.ndarray], xyz: np.ndarray, source: str,
+                          tolerance_m: float) -> float:
+    """:func:`float32_step` of the FLOAT32 coordinate fields among ``fields`` (0 if none);
+    a step coarser than ``tolerance_m`` is refused."""
+    is32 = [f.dtype.itemsize == 4 for f in fields]
+    if not any(is32) or not xyz.shape[0]:
+        return 0.0
+    step, column, magnitude = float32_step(xyz[:, np.flatnonzero(is32)])
+    name = "xyz"[np.flatnonzero(is32)[column]]
+    if step > tolerance_m:
+        raise CloudFormatError(
+            f"{source}: FLOAT32 field '{name}' holds coordinates up to {magnitude:.0f} m, where "
+            f"FLOAT32 has {step:.3g} m steps, coarser than the {tolerance_m:g} m range noise "
+            f"(sensor.range_noise_m): points would be off by up to {step / 2:.3g} m; projected "
+            "coordinates need FLOAT64"
+        )
+    return step
+
+
+def float32_warning(step_m: float, tolerance_m: float) -> str | None:
+    """A warning for FLOAT32 coordinates rounded to ``step_m`` (m) below the refusal
+    ``tolerance_m`` but not negligibly (:data:`COORDINATE_WARNING_FRACTION`); None else."""
+    if step_m <= COORDINATE_WARNING_FRACTION * tolerance_m:
+        return None
+    return (f"FLOAT32 x, y, z are rounded to steps of up to {step_m:.3g} m at these coordinates "
+            f"(range noise {tolerance_m:g} m, sensor.range_noise_m); FLOAT64 keeps them exact")
 
 
 def _stacked_xyz(fields: list[np.ndarray]) -> np.ndarray:
@@ -437,7 +512,8 @@ def time_span(t: np.ndarray) -> tuple[float, float]:
 
 
 def extract_columns(
-    arr: np.ndarray, *, time_field: str = "t", source: str = "cloud"
+    arr: np.ndarray, *, time_field: str = "t", source: str = "cloud",
+    coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M,
 ) -> CloudColumns:
     """Interpret a structured point array as lidarcal columns.
 
@@ -451,6 +527,10 @@ def extract_columns(
         uses that field.
     source : str, keyword-only
         Topic or file named in error messages.
+    coordinate_tolerance_m : float, keyword-only
+        The coarsest rounding step of FLOAT32 ``x, y, z`` accepted (m; the range noise,
+        ``sensor.range_noise_m``). FLOAT32 has a step of 0.5 m at a UTM northing of 5000 km:
+        such coordinates are refused, not rounded silently (:func:`float32_step`).
 
     Returns
     -------
@@ -460,7 +540,9 @@ def extract_columns(
     Raises
     ------
     CloudFormatError
-        Missing ``x``, ``y``, ``z`` or time field, or a field of an unsupported type.
+        Missing ``x``, ``y``, ``z`` or time field, a field of an unsupported type, or FLOAT32
+        coordinates whose step exceeds ``coordinate_tolerance_m``: one line naming the field,
+        the magnitude and the step.
     """
     names = arr.dtype.names or ()
     fields = _xyz_fields(arr, source)
@@ -495,6 +577,7 @@ def extract_columns(
                      else np.empty(0, dtype=np.float32))
         strip_id = (sid_field.astype(np.uint32) if sid_field is not None
                     else np.empty(0, dtype=np.uint32))
+    step = _checked_float32_step(fields, xyz, source, coordinate_tolerance_m)
     rn = nr = None
     if "return_number" in names:
         rn = _column(arr, "return_number", (UINT8, UINT16), np.uint8, source)
@@ -502,7 +585,7 @@ def extract_columns(
         nr = _column(arr, "number_of_returns", (UINT8, UINT16), np.uint8, source)
     return CloudColumns(xyz, t, intensity if intensity_field is not None else None,
                         strip_id if sid_field is not None else None, rn, nr, tname,
-                        t_span=t_span, all_finite=all_finite)
+                        t_span=t_span, all_finite=all_finite, coordinate_step_m=step)
 
 
 def make_point_dtype(

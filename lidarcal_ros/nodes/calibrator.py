@@ -231,7 +231,8 @@ class CalibratorNode(Node):
         try:
             cloud = parse_cloud(raw, source=source)
             cols = extract_columns(cloud.points, time_field=self.params["time_field"],
-                                   source=source)
+                                   source=source,
+                                   coordinate_tolerance_m=self.params["sensor.range_noise_m"])
             if cols.strip_id is None:
                 raise LidarcalError(f"{source}: cloud lacks field 'strip_id' (or "
                                     "'point_source_id')")

@@ -53,6 +53,7 @@ def load_mission(
         time_field=config["time_field"],
         thinning_cell_m=config["calibration.thinning_cell_m"],
         box=box,
+        coordinate_tolerance_m=config["sensor.range_noise_m"],
     )
     check_orientation(config["matching.heading_source"], mission.trajectory, str(bag))
     check_model_setting(config["matching.model"], mission.trajectory, str(bag))

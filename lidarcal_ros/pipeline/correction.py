@@ -104,9 +104,11 @@ from lidarcal_ros.errors import (
 )
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
 from lidarcal_ros.io.pointcloud import (
+    DEFAULT_COORDINATE_TOLERANCE_M,
     CloudColumns,
     cloud_to_array,
     extract_columns,
+    float32_warning,
     resolve_time_field,
     time_span,
 )
@@ -155,6 +157,9 @@ class CorrectionSettings:
         estimated its biases decides it (:meth:`from_config`).
     time_field : str
         Cloud field holding the firing time (``time_field``; aliases accepted).
+    coordinate_tolerance_m : float
+        The coarsest rounding step of FLOAT32 ``x, y, z`` accepted (``sensor.range_noise_m``;
+        :func:`~lidarcal_ros.io.pointcloud.extract_columns`).
     """
 
     delta: np.ndarray
@@ -164,6 +169,7 @@ class CorrectionSettings:
     heading_source: str = "auto"
     model: str = "auto"
     time_field: str = "t"
+    coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M
 
     @classmethod
     def from_config(
@@ -190,6 +196,7 @@ class CorrectionSettings:
             heading_source=str(config["matching.heading_source"]),
             model=model,
             time_field=str(config["time_field"]),
+            coordinate_tolerance_m=float(config["sensor.range_noise_m"]),
         )
 
 
@@ -680,7 +687,8 @@ def correct_cloud(
         :func:`corrected_dtype` of the input.
     columns : CorrectedColumns
     """
-    cols = extract_columns(points, time_field=settings.time_field, source=source)
+    cols = extract_columns(points, time_field=settings.time_field, source=source,
+                           coordinate_tolerance_m=settings.coordinate_tolerance_m)
     res = correct_columns(cols.xyz, cols.t, cols.intensity, trajectory, settings,
                           group=cols.strip_id, context_xyz=context, source=source)
     return build_corrected(points, res), res
@@ -883,6 +891,7 @@ class StreamCorrector:
         self._queue: deque[_Message] = deque()
         self._strips: dict[int, _Strip] = {}
         self._warned_intensity = False
+        self._float32_step = 0.0  # the coarsest FLOAT32 coordinate step warned about
         self._pool: ThreadPoolExecutor | None = None
         self._inflight: deque[tuple[list[Any], Future[Any]]] = deque()
         self._late_done = 0
@@ -1000,7 +1009,13 @@ class StreamCorrector:
     # -- internals -------------------------------------------------------------------
 
     def _message(self, points: np.ndarray, tag: Any) -> _Message:
-        cols = extract_columns(points, time_field=self.settings.time_field, source=self.source)
+        cols = extract_columns(points, time_field=self.settings.time_field, source=self.source,
+                               coordinate_tolerance_m=self.settings.coordinate_tolerance_m)
+        if cols.coordinate_step_m > self._float32_step:
+            self._float32_step = cols.coordinate_step_m
+            note = float32_warning(cols.coordinate_step_m, self.settings.coordinate_tolerance_m)
+            if note:
+                logger.warning("%s: %s", self.source, note)
         if len(points) and cols.intensity is None and not self._warned_intensity:
             logger.warning("%s: clouds without an 'intensity' field: geometry is corrected, "
                            "reflectance is NaN (flag %d)", self.source, FLAG_NO_INTENSITY)
@@ -1220,7 +1235,7 @@ def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
         samples.add(msgtype, bag.deserialize(raw, msgtype, topic=topic))
     if not samples:
         raise BagError(f"{bag.path}: topic {topic} has no messages")
-    return samples.trajectory(), samples.frames
+    return samples.trajectory(f"{bag.path}: trajectory {topic}"), samples.frames
 
 
 def correct_bag(
