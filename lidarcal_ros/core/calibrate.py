@@ -675,8 +675,9 @@ class Calibrator:
         control = self.control
         live = [p for p in self.pairs if p.frozen is None]
         frozen = self._kept()
-        if not self.pairs and not frozen and (control is None or len(control) == 0):
-            raise CalibrationError("no overlap between strips and no control points")
+        no_pairs = not self.pairs and not frozen
+        if no_pairs and (control is None or len(control) == 0):
+            raise CalibrationError(self._no_overlap(", and no control points"))
         fresh = [p for p in live if p.sample is None]
         if new_pairs_only:
             kept = [p for p in live if p.last is not None and p.last_delta is not None]
@@ -715,7 +716,15 @@ class Calibrator:
                     "no point-to-patch correspondences: the overlaps hold no usable patches"
                 )
             self._progress(f"iteration {iteration}: adjusting", 1.0)
-            sol = self._robust_solve(obs, delta)
+            try:
+                sol = self._robust_solve(obs, delta)
+            except CalibrationError as exc:
+                if not no_pairs:
+                    raise
+                n = len(control) if control is not None else 0
+                raise CalibrationError(self._no_overlap(
+                    f", and {n} control point{'' if n == 1 else 's'} alone cannot calibrate "
+                    f"({exc})")) from None
             step = sol.delta - delta
             est = np.isfinite(sol.sigma)
             logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
@@ -783,6 +792,32 @@ class Calibrator:
             xyz = ps.strip.xyz[last]
             grid.add(np.full(len(xyz), ps.strip_id, dtype=np.int64), xyz)
         return grid.pairs(min_cells=min_cells)
+
+    def _no_overlap(self, control: str) -> str:
+        """Why no strip pair formed, in words (one strip only, or how close the strips'
+        footprints come: shared cells, else the gap between them), then ``control``."""
+        held = [ps for ps in self.strips if not ps.dropped]
+        ids = ", ".join(str(ps.strip_id) for ps in held)
+        advice = "a calibration needs overlapping strips (two pairs of opposite lines at least)"
+        if len(held) < 2:
+            plural = "" if len(held) == 1 else "s"
+            return (f"no overlap between strips: the mission has {len(held)} strip{plural}"
+                    f"{f' (id {ids})' if held else ''}{control}; {advice}")
+        s = self.settings
+        shared = max(int(np.intersect1d(a.cells, b.cells, assume_unique=True).size)
+                     for k, a in enumerate(held) for b in held[k + 1:])
+        if shared:
+            closest = (f"two strips share at most {shared} footprint cells of "
+                       f"{s.overlap_cell_m:g} m, a pair needs {s.min_overlap_cells}")
+        else:
+            boxes = [(ps.strip.xyz[:, :2].min(axis=0), ps.strip.xyz[:, :2].max(axis=0))
+                     for ps in held]
+            gap = min(float(np.max(np.maximum(lo_b - hi_a, lo_a - hi_b).clip(0.0)))
+                      for k, (lo_a, hi_a) in enumerate(boxes) for lo_b, hi_b in boxes[k + 1:])
+            closest = (f"their footprints are {gap:.0f} m apart at the closest" if gap > 0
+                       else "their footprints cross without sharing a cell")
+        return (f"no overlap between strips: none of the {len(held)} strips ({ids}) overlaps "
+                f"another ({closest}){control}; {advice}")
 
     def _choose_samples(self, pairs: Sequence[_PairWork]) -> None:
         """Match pairs met for the first time once at zero correction: choose their sample

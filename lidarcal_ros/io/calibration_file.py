@@ -143,7 +143,8 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
     Raises
     ------
     ConfigError
-        Missing file or key, non-numeric value; one line naming the key.
+        Missing file or key, a non-numeric value, a negative or non-finite sigma, an
+        ``estimated`` that is not a boolean; one line naming the key.
     """
     path = Path(path)
     doc = read_yaml(path, what="calibration")
@@ -166,16 +167,27 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
             raise ConfigError(f"{path}: biases.{name}.value is not a finite number: {value!r}")
         _check_units(path, name, float(value))
         values[name] = float(value)
-        sigma = entry.get("sigma")
-        sigmas[name] = float(sigma) if isinstance(sigma, (int, float)) else None
-        estimated[name] = bool(entry.get("estimated", False))
-    sigma0 = body.get("sigma0")
+        sigmas[name] = _sigma(path, f"biases.{name}.sigma", entry.get("sigma"))
+        flag = entry.get("estimated", False)
+        if not isinstance(flag, bool):
+            raise ConfigError(f"{path}: biases.{name}.estimated is not true or false: {flag!r}")
+        estimated[name] = flag
     model = body.get("model")
     if model is not None and model not in (LEVEL, RIGOROUS, "mixed"):
         raise ConfigError(f"{path}: model {model!r} is not one of level, rigorous, mixed")
     return CalibrationRecord(values, sigmas, estimated,
-                             float(sigma0) if isinstance(sigma0, (int, float)) else None,
-                             model)
+                             _sigma(path, "sigma0", body.get("sigma0")), model)
+
+
+def _sigma(path: Path, key: str, value: Any) -> float | None:
+    """A standard deviation of the file: null (or NaN: not known), or a finite number not
+    below zero."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+            not math.isfinite(value) or value < 0:
+        raise ConfigError(f"{path}: {key} must be null or a finite number >= 0, got {value!r}")
+    return float(value)
 
 
 #: Plausibility bounds (SI) that catch values written in other units (arcsec, cm, ppm).

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate
+from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate, footprint_keys
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.geometry import RIGOROUS
 from lidarcal_ros.core.georeferencing import check_model_setting, describe_models
@@ -74,7 +74,37 @@ def calibrate_mission(
     settings = config.calibration_settings()
     if solve_for is not None:
         settings.solve_for = tuple(n for n in PARAMETER_NAMES if n in solve_for)
-    return calibrate(mission, settings, progress=progress)
+    result = calibrate(mission, settings, progress=progress)
+    unused = unused_control(mission, result, config)
+    if unused:
+        logger.warning("%s", unused)
+        result.solution.warnings.append(unused)
+    return result
+
+
+def unused_control(mission: Mission, result: CalibrationResult,
+                   config: FlightConfig) -> str | None:
+    """One line naming the control points that no strip's surface saw (outside every strip,
+    or farther from its surface than ``matching.max_normal_distance_m``), which the
+    adjustment therefore did not use; None when every one was used."""
+    control = mission.control
+    if control is None or not len(control):
+        return None
+    seen = {c.control_id for c in result.control}
+    unused = [i for i, cid in enumerate(control.ids) if cid not in seen]
+    if not unused:
+        return None
+    cell = config["matching.overlap_cell_m"]
+    covered = np.unique(np.concatenate([footprint_keys(s.xyz, cell) for s in mission.strips]))
+    outside = ~np.isin(footprint_keys(control.xyz[unused], cell), covered)
+    names = ", ".join(control.ids[i] for i in unused[:5]) + (", ..." if len(unused) > 5 else "")
+    far = len(unused) - int(outside.sum())
+    why = [f"{int(outside.sum())} outside every strip"] if outside.any() else []
+    if far:
+        why.append(f"{far} farther than {config['matching.max_normal_distance_m']:g} m from "
+                   "the strips' surface (matching.max_normal_distance_m)")
+    return (f"{len(unused)} of {len(control)} control points not used ({names}): "
+            f"{' and '.join(why)}")
 
 
 def convergence_warning(result: CalibrationResult, config: FlightConfig) -> str | None:
