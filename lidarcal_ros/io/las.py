@@ -44,9 +44,11 @@ import numpy as np
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import ConfigError, OutputError
+from lidarcal_ros.io.las_reader import quiet_laspy_errors
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 
 logger = logging.getLogger(__name__)
+quiet_laspy_errors("laspy.laswriter")
 
 #: Coordinate resolution, metres.
 SCALE_M = 0.001

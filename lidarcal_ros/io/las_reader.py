@@ -30,6 +30,21 @@ from lidarcal_ros.errors import InputError
 
 logger = logging.getLogger(__name__)
 
+
+def _not_an_error(record: logging.LogRecord) -> bool:
+    return record.levelno < logging.ERROR
+
+
+def quiet_laspy_errors(module: str) -> None:
+    """Drop the ERROR records of a laspy module: laspy logs a LAZ failure and then raises
+    it, and lidarcal reports what it raises in one line of its own (warnings pass)."""
+    logger_ = logging.getLogger(module)
+    if _not_an_error not in logger_.filters:
+        logger_.addFilter(_not_an_error)
+
+
+quiet_laspy_errors("laspy.lasreader")
+
 #: Points decoded per chunk (about 60 MB of columns).
 CHUNK_POINTS = 1_000_000
 

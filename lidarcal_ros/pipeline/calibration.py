@@ -120,8 +120,8 @@ def convergence_warning(result: CalibrationResult, config: FlightConfig) -> str 
         ratio = np.abs(last) / sol.sigma
     ratio[~np.isfinite(ratio)] = -1.0
     worst = int(np.argmax(ratio))
-    step = (f"; its last step moved {PARAMETER_NAMES[worst]} by {ratio[worst]:.2g} sigma "
-            f"(converged: every step below {config['calibration.convergence_fraction']:g})"
+    step = (f"; its last step moved {PARAMETER_NAMES[worst]} by {ratio[worst]:.3g} sigma "
+            f"(converged: every step below {config['calibration.convergence_fraction']:g} sigma)"
             if ratio[worst] >= 0 else "")
     n = result.iterations
     return (f"the adjustment did not converge in {n} iteration{'' if n == 1 else 's'} "

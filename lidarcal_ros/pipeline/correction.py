@@ -1304,6 +1304,7 @@ def correct_bag(
     if crs is not None and kind == "bag":
         warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
         logger.warning("%s", warnings[-1])
+
     with open_bag(bag_path) as bag:
         for topic, types in ((points_topic, (POINTCLOUD2,)),
                              (traj_topic, tuple(TRAJECTORY_TYPES))):
@@ -1360,6 +1361,10 @@ def correct_bag(
         logger.warning("%s: %s", bag_path, report.warnings[-1])
     if s.no_intensity:
         report.warnings.append(f"{s.no_intensity} points without intensity: reflectance NaN")
+    if crs is None and kind == "las":
+        report.warnings.append("written without a CRS: the LAS/LAZ file does not say where "
+                               "its map frame is (give it with --crs, e.g. --crs EPSG:32633)")
+        logger.warning("%s: %s", out_path, report.warnings[-1])
     report.seconds = time.perf_counter() - started
     return report
 
