@@ -476,7 +476,8 @@ def test_cloud_without_intensity(small_mission: MissionFiles, tmp_path: Path,
     cal = write_calibration_yaml(tmp_path / "cal.yaml", sim.biases)
     out = tmp_path / "noint.las"
     with caplog.at_level(logging.WARNING):
-        assert main(["correct", str(bag), "--calibration", str(cal), "-o", str(out)]) == 0
+        assert main(["correct", str(bag), "--calibration", str(cal), "-o", str(out),
+                     "--crs", "EPSG:32633"]) == 0
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and "intensity" in warnings[0].getMessage()
     las = laspy.read(out)

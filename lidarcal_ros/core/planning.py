@@ -32,6 +32,9 @@ logger = logging.getLogger(__name__)
 TERRAINS = ("built-up", "flat")
 #: Planning simulates at most this density (points/m^2) and scales the predicted sigmas.
 MAX_SIMULATED_DENSITY = 0.3
+#: Most points a plan's simulation may hold (about 650 bytes each in the calibration's
+#: matching: some 13 GB); a larger block is planned by a representative part of it.
+MAX_SIMULATED_POINTS = 20_000_000
 
 
 @dataclass
@@ -125,6 +128,14 @@ class FlightPlan:
         if model not in MODELS:
             raise ConfigError(f"{source}: model must be one of {', '.join(MODELS)}, "
                               f"got {model!r}")
+        top = max(ln["height"] for ln in lines)
+        points = sum(math.dist(ln["start"], ln["end"]) for ln in lines) * \
+            swath_width(top, fov) * min(density, MAX_SIMULATED_DENSITY)
+        if points > MAX_SIMULATED_POINTS:
+            raise ConfigError(
+                f"{source}: the {len(lines)} lines would simulate about {points / 1e6:.0f}M "
+                f"points, more than the {MAX_SIMULATED_POINTS / 1e6:.0f}M planning holds in "
+                "memory; plan a representative part of the block")
         control = []
         for i, c in enumerate(doc.get("control", []) or []):
             try:

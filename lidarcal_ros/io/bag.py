@@ -367,12 +367,18 @@ class BagReader:
 
         try:
             doc = YAML(typ="safe").load(meta.read_text())
+            if not isinstance(doc, dict) or "rosbag2_bagfile_information" not in doc:
+                raise BagError(f"{meta}: not rosbag2 bag metadata (no "
+                               "'rosbag2_bagfile_information'; delete it to read the .mcap "
+                               "files alone)")
             info = doc["rosbag2_bagfile_information"]
             storage = str(info.get("storage_identifier", ""))
             rel = [str(x) for x in info.get("relative_file_paths", [])]
             mode = str(info.get("compression_mode", "") or "").lower()
             fmt = str(info.get("compression_format", "") or "").lower()
             topics = info.get("topics_with_message_count", []) or []
+        except BagError:
+            raise
         except Exception as err:  # any YAML or layout problem
             raise BagError(f"{meta}: unreadable bag metadata ({_one_line(err)})") from None
         if storage != "mcap":

@@ -16,6 +16,8 @@ from lidarcal_ros.io.output_files import write_text
 logger = logging.getLogger(__name__)
 
 COLUMNS: tuple[str, ...] = ("id", "x", "y", "z")
+#: Larger coordinates are no map coordinates (metres; UTM northings reach 1e7).
+MAX_COORDINATE_M = 1e8
 
 
 def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
@@ -36,8 +38,8 @@ def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
     Raises
     ------
     InputError
-        Missing or unreadable file, missing columns, a non-numeric or non-finite value (with
-        its line number), a duplicate id, or no rows.
+        Missing or unreadable file, missing columns, a non-numeric, non-finite or
+        implausibly large value (with its line number), a duplicate id, or no rows.
     """
     p = Path(path)
     try:
@@ -85,6 +87,9 @@ def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
                 ) from None
             if not math.isfinite(v):
                 raise InputError(f"{p}: line {no}: {c} value '{value}' is not finite")
+            if abs(v) > MAX_COORDINATE_M:
+                raise InputError(f"{p}: line {no}: {c} value '{value}' is not a map "
+                                 f"coordinate (|{c}| > {MAX_COORDINATE_M:g} m)")
             coords.append(v)
         ids.append(pid)
         xyz.append((coords[0], coords[1], coords[2]))

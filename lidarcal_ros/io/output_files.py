@@ -52,7 +52,8 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     ------
     OutputError
         The output exists and ``overwrite`` is False; it is a directory where a file is
-        written; its parent directory is missing or not writable.
+        written; its parent directory is missing or not writable (the operating system's
+        reason: permission denied, read-only file system...).
     """
     path = Path(path)
     if path.is_dir() and not directory:
@@ -62,8 +63,13 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     parent = path.parent
     if not parent.is_dir():
         raise OutputError(f"{path}: directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(f"{path}: cannot write in {parent} (permission denied)")
+    # What creating the output will meet (permissions, a read-only file system...).
+    probe = path.with_name(f".{path.name}.lidarcal-probe-{os.getpid()}")
+    try:
+        probe.touch()
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write in {parent} ({os_reason(exc)})") from None
+    remove_quietly(probe)
     return path
 
 

@@ -220,8 +220,8 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     if bad.any():
         k = int(np.argmax(bad))
         raise TrajectoryFileError(
-            f"{p}: not an SBET: record {k} has time {t[k]!r}, latitude {lat[k]!r} rad, "
-            f"longitude {lon[k]!r} rad"
+            f"{p}: not an SBET: record {k} has time {float(t[k])!r}, latitude "
+            f"{float(lat[k])!r} rad, longitude {float(lon[k])!r} rad"
         )
     lon_deg = np.degrees(lon)
     lon_deg = np.where(lon_deg > 180.0, lon_deg - 360.0, lon_deg)

@@ -212,6 +212,7 @@ class CorrectionStats:
     no_intensity: int = 0
     rough: int = 0
     seconds: float = 0.0
+    non_finite: int = 0  # points with a non-finite coordinate (also not corrected)
     #: Points corrected by each point-positioning model, and the latest reason each was
     #: chosen (:mod:`lidarcal_ros.core.georeferencing`).
     model_points: dict[str, int] = field(default_factory=dict)
@@ -235,6 +236,7 @@ class CorrectionStats:
     def add(self, tally: CloudTally) -> None:
         """Count a corrected cloud (or several: tallies add up)."""
         self.points += tally.points
+        self.non_finite += int(tally.counts[256])
         self.not_corrected += tally.flagged(FLAG_NOT_CORRECTED)
         self.grazing += tally.flagged(FLAG_GRAZING)
         self.no_normal += tally.flagged(FLAG_NO_NORMAL)
@@ -1354,10 +1356,16 @@ def correct_bag(
         finally:
             corrector.close()
     s = corrector.stats
-    if s.not_corrected:
+    if s.not_corrected > s.non_finite:
         report.warnings.append(
-            f"{s.not_corrected} of {s.points} points not covered by the trajectory (or not "
-            f"below it): left uncorrected, flagged {FLAG_NOT_CORRECTED} in correction_flags")
+            f"{s.not_corrected - s.non_finite} of {s.points} points not covered by the "
+            "trajectory (or not below it): left uncorrected, flagged "
+            f"{FLAG_NOT_CORRECTED} in correction_flags")
+        logger.warning("%s: %s", bag_path, report.warnings[-1])
+    if s.non_finite and kind == "bag":
+        report.warnings.append(
+            f"{s.non_finite} of {s.points} points with a non-finite x, y or z: passed on as "
+            f"delivered, flagged {FLAG_NOT_CORRECTED} in correction_flags")
         logger.warning("%s: %s", bag_path, report.warnings[-1])
     if s.no_intensity:
         report.warnings.append(f"{s.no_intensity} points without intensity: reflectance NaN")
@@ -1427,10 +1435,23 @@ def _correct_to_las(
             if progress and seen % 50 == 0:
                 progress("correcting", seen / n_clouds)
         write(corrector.flush(), final=True)
+        _check_something_corrected(corrector.stats, bag.path, points_topic)
     report.las_skipped_non_finite = writer.stats.skipped_non_finite
     if writer.stats.skipped_non_finite:
         report.warnings.append(f"{writer.stats.skipped_non_finite} points with non-finite "
                                "coordinates cannot be stored in LAS: skipped")
+        logger.warning("%s: %s", out_path, report.warnings[-1])
+
+
+def _check_something_corrected(stats: CorrectionStats, bag_path: Path, topic: str) -> None:
+    """Refuse a correction without a single finite point (every cloud empty, or every point
+    non-finite): there is no result, and the output is not kept."""
+    if stats.points == 0:
+        raise InputError(f"{bag_path}: all {stats.clouds} clouds on {topic} are empty; "
+                         "nothing to correct")
+    if stats.non_finite == stats.points:
+        raise InputError(f"{bag_path}: all {stats.points} points on {topic} have a non-finite "
+                         "x, y or z; nothing to correct")
 
 
 def _correct_to_bag(
@@ -1491,6 +1512,7 @@ def _correct_to_bag(
             emit((held[0], 1) if held else (math.inf, 0))
         collect(corrector.flush())
         emit((math.inf, 0))
+        _check_something_corrected(corrector.stats, bag.path, points_topic)
 
 
 def _cloud_message(msg: Any, points: np.ndarray) -> Any:

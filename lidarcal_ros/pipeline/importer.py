@@ -247,9 +247,9 @@ def reconcile_times(
             f"{p0:.3f}-{p1:.3f} s ({_LABEL[points_base]}) under any reading (tried {readings}); "
             "wrong trajectory file, or give --trajectory-time / --gps-week"
         )
-    if best[0] < 1.0:
-        logger.warning("%s: the trajectory covers only %.0f%% of the points' time span",
-                       where, 100 * best[0])
+    if best[0] < 1.0:  # (the coverage of every strip is checked, and refused in one line)
+        logger.info("%s: the trajectory covers only %.0f%% of the points' time span",
+                    where, 100 * best[0])
     return best[3]
 
 
@@ -733,7 +733,7 @@ def import_mission(
     returns_seen = [0, 0]  # first and last returns of multi-return pulses
     try:
         for info in infos:
-            if info.point_count == 0:
+            if info.point_count == 0 and len(infos) > 1:
                 logger.warning("%s: no points", info.path)
             for chunk in iter_las_chunks(info.path, chunk_points=chunk_points):
                 n = len(chunk)
@@ -781,8 +781,10 @@ def import_mission(
                 n_kept += m
                 report_progress("reading", n_read / max(total, 1))
         if n_kept == 0:
-            raise InputError(f"{paths[0]}: no points to import"
-                             + (f" (--returns {returns})" if returns != "all" else ""))
+            where = str(paths[0]) if len(paths) == 1 else f"{paths[0]} (and {len(paths) - 1} more)"
+            raise InputError(f"{where}: no points to import (--returns {returns})" if n_read
+                             else f"{where}: no points in the "
+                             f"{'file' if len(paths) == 1 else 'files'}")
         return _finish(
             out, paths, infos, store, occupancy, per_psid, collector, n_read, n_kept,
             gap_bin=gap_bin, strip_gap_s=strip_gap_s, points_base=points_base,
