@@ -86,40 +86,33 @@ class Trajectory:
     def from_samples(cls, t: np.ndarray, xyz: np.ndarray,
                      orientation: np.ndarray | None = None, *,
                      full_attitude: bool = True, source: str | None = None) -> Trajectory:
-        """Build from unordered samples: sorts by time, drops non-finite and duplicate stamps
-        (the first sample of a stamp, in the given order, is kept; a sample's orientation may
-        be NaN: it has none).
+        """Build from unordered samples: sorts by time, drops non-finite stamps or positions
+        and repeated stamps (the first sample of a stamp, in the given order, is kept; a
+        sample's orientation may be NaN: it has none).
 
-        ``source`` (e.g. ``"BAG: trajectory /lidar/trajectory"``): a reader's name for the
-        samples. With it, what was dropped is logged as one warning line with the counts
-        (:class:`SampleScreening`), and samples that all carry one stamp are refused.
+        ``source`` (a reader's name for the samples, e.g. ``"BAG: trajectory /lidar/trajectory"``)
+        screens the samples of a file as a whole (:func:`screen_samples`): every sample of a
+        stamp repeated at positions more than :data:`CONFLICT_M` apart is dropped (which one
+        is right is unknown), what is dropped is counted in one warning line, and samples
+        that cannot make a trajectory are refused.
 
         Raises
         ------
         TrajectoryError
-            With ``source``: two or more samples, all at one stamp (no trajectory).
+            With ``source``: two or more samples all at one stamp, or fewer than two usable
+            samples at distinct stamps.
         """
         t = np.asarray(t, dtype=np.float64)
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         q = None if orientation is None else np.asarray(orientation,
                                                         dtype=np.float64).reshape(-1, 4)
-        ok = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
+        ok = (np.isfinite(t) & np.isfinite(xyz).all(axis=1) if source is None
+              else screen_samples(t, xyz, source))
         order = np.flatnonzero(ok)
         order = order[np.argsort(t[order], kind="stable")]
-        first = np.ones(order.size, dtype=bool)
         if order.size:
-            first[1:] = np.diff(t[order]) > 0
-        if source is not None:
-            screening = SampleScreening.of(t, xyz, order, first)
-            if screening.one_stamp:
-                raise TrajectoryError(
-                    f"{source}: all {order.size} poses carry the same stamp "
-                    f"({t[order[0]]:.3f} s), so they trace no path (is the driver stamping "
-                    "its poses?)")
-            text = screening.warning()
-            if text:
-                logger.warning("%s: %s", source, text)
-        order = order[first]
+            ts = t[order]
+            order = order[np.concatenate(([True], np.diff(ts) > 0))]
         return cls(t[order], xyz[order], None if q is None else q[order],
                    full_attitude=full_attitude)
 
@@ -133,73 +126,71 @@ class Trajectory:
         return int(self.t.shape[0])
 
 
-@dataclass
-class SampleScreening:
-    """What :meth:`Trajectory.from_samples` leaves out of a reader's samples.
+#: Samples at one stamp further apart than this (m) conflict: which one is right is unknown.
+CONFLICT_M = 0.001
 
-    Attributes
+
+def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
+    """Which trajectory samples of a reader can be used, saying what is not.
+
+    Samples with a non-finite stamp or position are left out, and so is every sample of a
+    stamp repeated at positions more than :data:`CONFLICT_M` apart (two sources on one
+    topic?); a stamp repeated at one position (a message recorded twice) is harmless.
+    What is left out is counted in one warning line naming ``source``.
+
+    Parameters
     ----------
-    n_samples : int
-        Samples given.
-    non_finite_stamps, non_finite_positions : int
-        Samples left out for a stamp, or else a position, that is not finite.
-    repeated : int
-        Samples at a stamp met before (after sorting; the first of each stamp is kept).
-    conflicting : int
-        Stamps repeated at positions more than 1 mm from the one kept.
-    max_conflict_m : float
-        Largest distance of a repeat from the position kept at its stamp, metres.
-    one_stamp : bool
-        Two or more finite samples, all at one stamp.
+    t : (n,) float64
+        Stamps, seconds.
+    xyz : (n, 3) float64
+        Positions, metres.
+    source : str
+        The reader's name for the samples (file and topic), for the lines.
+
+    Returns
+    -------
+    (n,) bool
+        The samples kept.
+
+    Raises
+    ------
+    TrajectoryError
+        Two or more samples all at one stamp (the stamps were not set), or fewer than two
+        usable samples at distinct stamps: one line naming ``source`` and the counts.
     """
-
-    n_samples: int
-    non_finite_stamps: int
-    non_finite_positions: int
-    repeated: int
-    conflicting: int
-    max_conflict_m: float
-    one_stamp: bool
-
-    @classmethod
-    def of(cls, t: np.ndarray, xyz: np.ndarray, order: np.ndarray,
-           first: np.ndarray) -> SampleScreening:
-        """Screening of samples ``t, xyz`` of which ``order`` (finite, sorted by stamp) are
-        kept where ``first`` (the first at their stamp)."""
-        bad_t = int(np.count_nonzero(~np.isfinite(t)))
-        bad_xyz = int(t.size - order.size - bad_t)
-        kept_at = np.cumsum(first) - 1  # index among the kept of each sorted sample's stamp
-        kept_xyz = xyz[order[first]]
-        gap = np.linalg.norm(xyz[order] - kept_xyz[kept_at], axis=1)[~first]
-        stamps_conflicting = np.unique(kept_at[~first][gap > 1e-3])
-        return cls(n_samples=int(t.size), non_finite_stamps=bad_t, non_finite_positions=bad_xyz,
-                   repeated=int(np.count_nonzero(~first)),
-                   conflicting=int(stamps_conflicting.size),
-                   max_conflict_m=float(gap.max()) if gap.size else 0.0,
-                   one_stamp=bool(order.size >= 2 and np.count_nonzero(first) == 1))
-
-    def warning(self) -> str:
-        """One line with the counts of what was left out and why; empty when nothing was
-        (exact repeats, a message recorded twice, are harmless and not mentioned alone)."""
-        parts = []
-        if self.non_finite_stamps:
-            parts.append(f"{_poses(self.non_finite_stamps)} with non-finite stamps left out")
-        if self.non_finite_positions:
-            parts.append(f"{_poses(self.non_finite_positions)} with non-finite positions left "
-                         "out")
-        if self.conflicting:
-            parts.append(f"{self.conflicting} stamp{'' if self.conflicting == 1 else 's'} "
-                         "repeated at positions up to "
-                         f"{self.max_conflict_m:.3g} m apart: the first kept")
-        if parts:
-            used = (self.n_samples - self.non_finite_stamps - self.non_finite_positions
-                    - self.repeated)
-            parts.append(f"{used} of {self.n_samples} poses used")
-        return "; ".join(parts)
-
-
-def _poses(n: int) -> str:
-    return f"{n} pose{'' if n == 1 else 's'}"
+    finite = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
+    keep = finite.copy()
+    order = np.flatnonzero(finite)
+    order = order[np.argsort(t[order], kind="stable")]
+    ts = t[order]
+    if order.size > 1 and ts[0] == ts[-1]:
+        raise TrajectoryError(
+            f"{source}: all {order.size} poses carry the same stamp t={ts[0]:.3f} s; a "
+            "trajectory needs each pose at its own time (header.stamp not set?)")
+    # each sorted sample against the first of its stamp
+    first = np.concatenate(([True], np.diff(ts) > 0)) if order.size else np.ones(0, bool)
+    head = order[np.maximum.accumulate(np.where(first, np.arange(order.size), 0))]
+    apart = np.linalg.norm(xyz[order] - xyz[head], axis=1)
+    conflicting = np.unique(ts[apart > CONFLICT_M])
+    if conflicting.size:
+        keep[order[np.isin(ts, conflicting)]] = False
+    n_bad, n_conflict = int(np.count_nonzero(~finite)), int(np.count_nonzero(finite & ~keep))
+    parts = [f"{n_bad} with a non-finite stamp or position"] if n_bad else []
+    if n_conflict:
+        parts.append(f"{n_conflict} at {conflicting.size} stamp"
+                     f"{'' if conflicting.size == 1 else 's'} repeated at positions up to "
+                     f"{float(apart.max()):.3g} m apart (first at t={conflicting[0]:.3f} s; "
+                     "which one is right is unknown)")
+    distinct = int(np.unique(t[keep]).size)
+    if distinct < 2:
+        left_out = f" ({'; '.join(parts)})" if parts else ""
+        raise TrajectoryError(f"{source}: {distinct} usable pose stamp"
+                              f"{'' if distinct == 1 else 's'} among {t.size} poses{left_out}; "
+                              "a trajectory needs at least 2 at distinct times")
+    if parts:
+        logger.warning("%s: %d of %d poses left out: %s", source, n_bad + n_conflict, t.size,
+                       "; ".join(parts))
+    return keep
 
 
 @dataclass

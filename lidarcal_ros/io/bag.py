@@ -112,9 +112,10 @@ class TrajectorySamples:
         return len(self.t)
 
     def trajectory(self, source: str) -> Trajectory:
-        """The samples as a trajectory, in time order, screened as a whole (what is left out
-        is counted in a warning line; :meth:`~lidarcal_ros.core.mission.Trajectory.
-        from_samples`).
+        """The samples as a trajectory, in time order, screened as a whole
+        (:func:`~lidarcal_ros.core.mission.screen_samples`: poses with a non-finite stamp or
+        position, and stamps repeated at conflicting positions, left out with a warning line
+        counting them).
 
         Raises
         ------

@@ -192,8 +192,9 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     Raises
     ------
     TrajectoryFileError
-        Missing file, a size that is not a whole number of 136-byte records, no records, or
-        records that are not SBET (latitude/longitude out of range, non-finite time).
+        Missing file, a size that is not a whole number of 136-byte records, no records,
+        records that are not SBET (latitude/longitude out of range, non-finite time), or
+        records all at one time.
     """
     p = _check_file(path)
     size = p.stat().st_size
@@ -223,6 +224,7 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
             f"{p}: not an SBET: record {k} has time {float(t[k])!r}, latitude "
             f"{float(lat[k])!r} rad, longitude {float(lon[k])!r} rad"
         )
+    _check_times(p, t)
     lon_deg = np.degrees(lon)
     lon_deg = np.where(lon_deg > 180.0, lon_deg - 360.0, lon_deg)
     heading = None
@@ -293,7 +295,8 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
     ------
     TrajectoryFileError
         Missing file, no samples, fewer than four columns, a header without time and
-        position columns, or a value that is not a number (with its line).
+        position columns, a value that is not a number (with its line), or samples all at
+        one time.
     """
     p = _check_file(path)
     try:
@@ -359,6 +362,7 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
     if bad.any():
         k = int(np.argmax(bad))
         raise TrajectoryFileError(f"{p}: line {rows[k][0]}: non-finite value")
+    _check_times(p, data[:, 0])
     heading = None
     if col_heading is not None:
         heading = _angle_column(p, body, col_heading, _column_label("heading", col_heading),
@@ -437,6 +441,14 @@ def _locate_bad_row(rows: list[tuple[int, str]], cols: tuple[int | None, ...], w
             if c is not None and not _is_number(cells[c]):
                 return f"line {no}: '{cells[c]}' is not a number"
     return ""
+
+
+def _check_times(p: Path, t: np.ndarray) -> None:
+    """Refuse samples that are all at one time (a column of another meaning, or times not
+    written): they trace no path."""
+    if t.size > 1 and float(t.min()) == float(t.max()):
+        raise TrajectoryFileError(f"{p}: all {t.size} samples carry the same time {t[0]:.3f} s; "
+                                  "a trajectory needs each sample at its own time")
 
 
 def _check_file(path: str | os.PathLike[str]) -> Path:

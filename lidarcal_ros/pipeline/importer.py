@@ -78,7 +78,7 @@ import numpy as np
 
 from lidarcal_ros.core.attitude import attitude_from_quaternions
 from lidarcal_ros.core.georeferencing import choose_model
-from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.mission import Trajectory, screen_samples
 from lidarcal_ros.core.overlap_grid import OverlapGrid, PairQA
 from lidarcal_ros.core.trajectory_estimation import (
     EstimatedTrajectory,
@@ -906,14 +906,15 @@ def _finish(
         assert traj_t_raw is not None and traj_xyz is not None
         t_clock = rule.trajectory(traj_t_raw)
         c0, c1 = rule.points(np.array([p0, p1]))
-        sel = (t_clock >= c0 - 5.0) & (t_clock <= c1 + 5.0)
-        order = np.flatnonzero(sel)
-        order = order[np.argsort(t_clock[order], kind="stable")]
-        keep = order[_decimate(t_clock[order], trajectory_rate_hz)]
-        traj = Trajectory.from_samples(
-            t_clock[keep], traj_xyz[keep],
-            None if traj_orientation is None else traj_orientation[keep],
+        # the file's samples screened as a whole, at the file's times (a warning line counts
+        # what is left out)
+        usable = screen_samples(traj_t_raw, traj_xyz, str(traj_file.path))
+        whole = Trajectory.from_samples(
+            t_clock[usable], traj_xyz[usable],
+            None if traj_orientation is None else traj_orientation[usable],
             full_attitude=full_attitude)
+        inside = np.flatnonzero((whole.t >= c0 - 5.0) & (whole.t <= c1 + 5.0))
+        traj = whole.take(inside[_decimate(whole.t[inside], trajectory_rate_hz)])
         kind, attitude_range = _trajectory_kind(traj, traj_file)
         # fail fast: strip spans known to the gap-bin resolution (exact check while writing)
         inner = []
