@@ -268,6 +268,17 @@ def footprint_keys(xy: np.ndarray, cell: float) -> np.ndarray:
     return ix * (1 << 32) + (iy + (1 << 31))
 
 
+def outside_strips(strips: Sequence[Strip], xy: np.ndarray, cell: float) -> np.ndarray:
+    """Which map positions ``xy`` (columns x, y; further columns ignored) lie in no strip's
+    footprint (no point of any strip in their ``cell``-metre cell): a control point there is
+    seen by no strip."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(len(xy), -1)
+    if not strips:
+        return np.ones(len(xy), dtype=bool)
+    covered = np.unique(np.concatenate([footprint_keys(s.xyz, cell) for s in strips]))
+    return ~np.isin(footprint_keys(xy, cell), covered)
+
+
 @dataclass(frozen=True)
 class _Footprint:
     """Sparse footprint cells (overlap detection), keyed in absolute map coordinates so that
@@ -1089,4 +1100,5 @@ def calibrate(
 __all__: Sequence[str] = (
     "CalibrationResult", "CalibrationSettings", "Calibrator", "ControlResidual", "Iteration",
     "NothingEstimated", "PairDiscrepancies", "PairStats", "calibrate", "footprint_keys",
+    "outside_strips",
 )

@@ -19,9 +19,10 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.adjustment import NormalEquations, ObservabilityLimits, solve
-from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator
+from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator, outside_strips
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import MODELS, describe_models
+from lidarcal_ros.core.mission import Strip
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import normalise_lines, simulate_mission, swath_width
 from lidarcal_ros.core.terrain import RasterTerrain
@@ -143,6 +144,9 @@ class FlightPlan:
                 z = float(c[2]) if len(c) > 2 else 0.0
             except (TypeError, ValueError, IndexError):
                 raise ConfigError(f"{source}: control point {i + 1} must be [x, y, z]") from None
+            if not all(math.isfinite(v) for v in (x, y, z)):
+                raise ConfigError(f"{source}: control point {i + 1} must be finite numbers "
+                                  f"[x, y, z], got {c!r}")
             control.append((x, y, z))
         return cls(lines, terrain, fov, noise, density, speed, control,
                    terrain_cell_m=cell_m, terrain_origin=origin, model=str(model))
@@ -205,6 +209,7 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
                                    model=LEVEL if plan.model == LEVEL else RIGOROUS,
                                    fov_deg=plan.fov_deg)
+    unseen = _unseen_control(plan, sim.mission.strips, settings.overlap_cell_m)
     cal = Calibrator.from_mission(sim.mission, settings)
     model = describe_models({ps.strip_id: ps.choice for ps in cal.strips})
     obs = cal.observations_at(np.zeros(len(PARAMETER_NAMES)))
@@ -221,8 +226,8 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         reason = str(exc)
         parameters = {n: ParameterPrediction(False, None, None, None, reason)
                       for n in PARAMETER_NAMES}
-        return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs),
-                          model)
+        return PlanReport(parameters, _advice(plan, parameters, unseen), len(cal.pairs),
+                          len(obs), model)
     est = list(sol.estimated)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
@@ -236,7 +241,8 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         parameters[name] = ParameterPrediction(
             True, float(sol.sigma[i]),
             round(float(corr[k]), 3) if k >= 0 else None, est[k] if k >= 0 else None)
-    return PlanReport(parameters, _advice(plan, parameters), len(cal.pairs), len(obs), model)
+    return PlanReport(parameters, _advice(plan, parameters, unseen), len(cal.pairs), len(obs),
+                      model)
 
 
 def _check_dsm_covers(plan: FlightPlan, dsm: RasterTerrain) -> None:
@@ -254,14 +260,31 @@ def _check_dsm_covers(plan: FlightPlan, dsm: RasterTerrain) -> None:
                 "terrain_origin to place it")
 
 
-def _advice(plan: FlightPlan, parameters: dict[str, ParameterPrediction]) -> list[str]:
-    """Words on what line or control would fix what the plan cannot see."""
+def _unseen_control(plan: FlightPlan, strips: Sequence[Strip], cell_m: float) -> list[int]:
+    """The control points of ``plan`` (indices) that no line's swath covers, each said in a
+    warning line: the plan cannot use them."""
+    if not plan.control:
+        return []
+    outside = outside_strips(strips, np.array(plan.control), cell_m)
+    unseen = [int(i) for i in np.flatnonzero(outside)]
+    for i in unseen:
+        x, y, _ = plan.control[i]
+        logger.warning("control point %d at (%.0f, %.0f) lies outside every line's swath: "
+                       "no line sees it, the plan does not use it", i + 1, x, y)
+    return unseen
+
+
+def _advice(plan: FlightPlan, parameters: dict[str, ParameterPrediction],
+            unseen_control: Sequence[int] = ()) -> list[str]:
+    """Words on what line or control would fix what the plan cannot see (control points
+    ``unseen_control`` lie outside every swath)."""
     blind = {n for n, p in parameters.items() if not p.estimable}
-    advice = []
+    advice = [f"control point {i + 1}: outside every line's swath, unused; move it under the "
+              "overlaps of the lines" for i in unseen_control]
     geometry = _line_geometry(plan)
     if "dZ" in blind:
         advice.append("dZ: not observable from strips alone; add a vertical control point "
-                      "seen by several strips" if not plan.control else
+                      "seen by several strips" if len(plan.control) <= len(unseen_control) else
                       "dZ: the control cannot separate dZ from dr; fix dZ to its surveyed "
                       "value (the default) or add lines at another height")
     if "dkappa" in blind:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate, footprint_keys
+from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate, outside_strips
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.geometry import RIGOROUS
 from lidarcal_ros.core.georeferencing import check_model_setting, describe_models
@@ -94,9 +94,8 @@ def unused_control(mission: Mission, result: CalibrationResult,
     unused = [i for i, cid in enumerate(control.ids) if cid not in seen]
     if not unused:
         return None
-    cell = config["matching.overlap_cell_m"]
-    covered = np.unique(np.concatenate([footprint_keys(s.xyz, cell) for s in mission.strips]))
-    outside = ~np.isin(footprint_keys(control.xyz[unused], cell), covered)
+    outside = outside_strips(mission.strips, control.xyz[unused],
+                             config["matching.overlap_cell_m"])
     names = ", ".join(control.ids[i] for i in unused[:5]) + (", ..." if len(unused) > 5 else "")
     far = len(unused) - int(outside.sum())
     why = [f"{int(outside.sum())} outside every strip"] if outside.any() else []
