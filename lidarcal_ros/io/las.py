@@ -1,11 +1,11 @@
 """Writing corrected clouds as LAS 1.4 / LAZ (point format 6), chunk by chunk.
 
-Each point record holds X, Y, Z (scale 0.001 m, offsets chosen from the first chunk: X and Y
-rounded down to a kilometre, Z 0), the intensity, return number and count, the scan angle, the
-point source id (strip), the GPS time, and extra-bytes dimensions (LAS 1.4 "extra bytes" VLR)
-``reflectance`` (float32; :mod:`lidarcal_ros.core.radiometry` defines it: the Lambertian
-reflectance when a calibration constant is known, else the intensity normalised to the
-reference range, normal incidence and clear air; its description says which),
+Each point record holds X, Y, Z (scale 0.001 m, offsets chosen from the first chunk: its
+median X and Y rounded down to a kilometre, Z 0), the intensity, return number and count, the
+scan angle, the point source id (strip), the GPS time, and extra-bytes dimensions (LAS 1.4
+"extra bytes" VLR) ``reflectance`` (float32; :mod:`lidarcal_ros.core.radiometry` defines it:
+the Lambertian reflectance when a calibration constant is known, else the intensity normalised
+to the reference range, normal incidence and clear air; its description says which),
 ``range`` (float32, m), ``incidence`` (float32, rad) and ``correction_flags`` (uint8, the bits
 of :mod:`lidarcal_ros.pipeline.correction`). Points whose geometry could not be corrected are
 written with the LAS *withheld* flag set. The CRS, when known, goes into an OGC WKT VLR.
@@ -23,8 +23,8 @@ Conventions
 - Intensity: UINT16 values are kept, UINT8 scaled by 257 (to the 16-bit range, as LAS asks),
   FLOAT32 rounded and clipped to 0..65535 (a warning says how many were clipped).
 - Return number and number of returns default to 1 when the cloud has none; they are clipped
-  to 1..15. Points with a non-finite coordinate cannot be stored in LAS and are skipped (and
-  counted).
+  to 1..15. Points with a non-finite coordinate, or more than about 2147 km from the offsets
+  (beyond LAS's 32-bit coordinates), cannot be stored in LAS and are skipped (and counted).
 """
 
 from __future__ import annotations
@@ -52,6 +52,8 @@ quiet_laspy_errors("laspy.laswriter")
 
 #: Coordinate resolution, metres.
 SCALE_M = 0.001
+#: LAS stores coordinates as 32-bit integers of the scale from the offsets.
+_MAX_SCALED = 2.0**31 - 1.0
 #: UNIX time of the GPS epoch, 1980-01-06T00:00:00Z.
 GPS_EPOCH_UNIX = 315_964_800
 #: Offset of Adjusted Standard GPS Time.
@@ -122,6 +124,9 @@ class LasStats:
 
     points: int = 0
     skipped_non_finite: int = 0
+    #: Points too far from the file's offsets for LAS's 32-bit coordinates (about 2147 km
+    #: at the 1 mm scale): a glitch, not a point of the survey.
+    skipped_out_of_range: int = 0
     clipped_intensity: int = 0
     withheld: int = 0
 
@@ -252,9 +257,10 @@ class LasChunkWriter:
                                for name, kind, _ in EXTRA_DIMENSIONS])
         header.scales = np.array([SCALE_M, SCALE_M, SCALE_M])
         if xyz.shape[0]:
-            lo = np.nanmin(xyz, axis=0)
-            header.offsets = np.array([math.floor(lo[0] / 1000.0) * 1000.0,
-                                       math.floor(lo[1] / 1000.0) * 1000.0, 0.0])
+            # the median: a glitch point far away must not move the offsets off the survey
+            mid = np.median(xyz, axis=0)
+            header.offsets = np.array([math.floor(mid[0] / 1000.0) * 1000.0,
+                                       math.floor(mid[1] / 1000.0) * 1000.0, 0.0])
         else:
             header.offsets = np.zeros(3)
         finite_t = t[np.isfinite(t)]
@@ -333,6 +339,11 @@ class LasChunkWriter:
             points, xyz, t = points[finite], xyz[finite], t[finite]
         if self._writer is None:
             self._open(xyz, t)
+        fits = (np.abs((xyz - self._header.offsets) / self._header.scales)
+                < _MAX_SCALED).all(axis=1)
+        if not fits.all():
+            self.stats.skipped_out_of_range += int((~fits).sum())
+            points, xyz, t = points[fits], xyz[fits], t[fits]
         n = len(points)
         if n == 0:
             return 0

@@ -1437,10 +1437,12 @@ def _correct_to_las(
         write(corrector.flush(), final=True)
         _check_something_corrected(corrector.stats, bag.path, points_topic)
     report.las_skipped_non_finite = writer.stats.skipped_non_finite
-    if writer.stats.skipped_non_finite:
-        report.warnings.append(f"{writer.stats.skipped_non_finite} points with non-finite "
-                               "coordinates cannot be stored in LAS: skipped")
-        logger.warning("%s: %s", out_path, report.warnings[-1])
+    for count, why in ((writer.stats.skipped_non_finite, "with non-finite coordinates"),
+                       (writer.stats.skipped_out_of_range, "more than 2147 km from the others "
+                        "(beyond LAS's 32-bit coordinates)")):
+        if count:
+            report.warnings.append(f"{count} points {why} cannot be stored in LAS: skipped")
+            logger.warning("%s: %s", out_path, report.warnings[-1])
 
 
 def _check_something_corrected(stats: CorrectionStats, bag_path: Path, topic: str) -> None:
