@@ -31,6 +31,10 @@ from lidarcal_ros.errors import CalibrationError, ConfigError
 logger = logging.getLogger(__name__)
 
 TERRAINS = ("built-up", "flat")
+#: The keys of a plan file, and of its ``sensor`` mapping (interface.md "Flight plan").
+PLAN_KEYS = ("sensor", "terrain", "terrain_cell_m", "terrain_origin", "lines", "control",
+             "model")
+SENSOR_KEYS = ("fov_deg", "range_noise_m", "density", "speed_mps")
 #: Planning simulates at most this density (points/m^2) and scales the predicted sigmas.
 MAX_SIMULATED_DENSITY = 0.3
 #: Most points a plan's simulation may hold (about 650 bytes each in the calibration's
@@ -86,6 +90,13 @@ class FlightPlan:
         sensor = doc.get("sensor", {}) or {}
         if not isinstance(sensor, Mapping):
             raise ConfigError(f"{source}: 'sensor' must be a mapping")
+        # a misspelt key would otherwise plan without what it meant (control, a sensor value)
+        for where, keys, known in ((source, doc, PLAN_KEYS),
+                                   (f"{source}: sensor", sensor, SENSOR_KEYS)):
+            unknown = [str(k) for k in keys if k not in known]
+            if unknown:
+                raise ConfigError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} "
+                                  f"{', '.join(unknown)} (known: {', '.join(known)})")
 
         def number(where: Mapping[str, Any], key: str, default: float, lo: float,
                    hi: float) -> float:
@@ -110,9 +121,11 @@ class FlightPlan:
         if origin is not None:
             try:
                 origin = (float(origin[0]), float(origin[1]))
+                if not all(math.isfinite(v) for v in origin):
+                    raise ValueError("not finite")
             except (TypeError, ValueError, IndexError, KeyError):
                 raise ConfigError(f"{source}: terrain_origin must be [west, north] in metres, "
-                                  f"got {origin!r}") from None
+                                  f"got {doc.get('terrain_origin')!r}") from None
         raw_lines = doc.get("lines")
         if not isinstance(raw_lines, Sequence) or isinstance(raw_lines, str) or not raw_lines:
             raise ConfigError(f"{source}: 'lines' must be a non-empty list")
@@ -137,8 +150,12 @@ class FlightPlan:
                 f"{source}: the {len(lines)} lines would simulate about {points / 1e6:.0f}M "
                 f"points, more than the {MAX_SIMULATED_POINTS / 1e6:.0f}M planning holds in "
                 "memory; plan a representative part of the block")
+        raw_control = doc.get("control") or []
+        if not isinstance(raw_control, Sequence) or isinstance(raw_control, str):
+            raise ConfigError(f"{source}: 'control' must be a list of [x, y, z], got "
+                              f"{raw_control!r}")
         control = []
-        for i, c in enumerate(doc.get("control", []) or []):
+        for i, c in enumerate(raw_control):
             try:
                 x, y = float(c[0]), float(c[1])
                 z = float(c[2]) if len(c) > 2 else 0.0

@@ -62,7 +62,8 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
         raise OutputError(f"{path}: {EXISTS}")
     parent = path.parent
     if not parent.is_dir():
-        raise OutputError(f"{path}: directory {parent} does not exist")
+        raise OutputError(f"{path}: {parent} is not a directory" if parent.exists() else
+                          f"{path}: directory {parent} does not exist")
     # What creating the output will meet (permissions, a read-only file system...).
     probe = path.with_name(f".{path.name}.lidarcal-probe-{os.getpid()}")
     try:
