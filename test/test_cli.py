@@ -11,8 +11,6 @@ import contextlib
 import io
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +18,7 @@ import helpers_missions
 import numpy as np
 import pytest
 import yaml
+from helpers_cli import one_line_error, run, run_process
 from helpers_missions import (
     MissionFiles,
     shift_strip,
@@ -44,31 +43,6 @@ small_mission = helpers_missions.small_mission
 
 
 # ------------------------------------------------------------------ helpers
-def run(capsys: pytest.CaptureFixture[str], *args: Any) -> tuple[int, str, str]:
-    """``lidarcal ARGS`` in-process: exit status, stdout, stderr."""
-    capsys.readouterr()
-    rc = main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def run_process(*args: Any, cwd: Path) -> subprocess.CompletedProcess[str]:
-    """``python -m lidarcal_ros ARGS`` in a fresh interpreter."""
-    return subprocess.run([sys.executable, "-m", "lidarcal_ros", *(str(a) for a in args)],
-                          capture_output=True, text=True, cwd=cwd, timeout=120, check=False)
-
-
-def one_line_error(rc: int, err: str, command: str = "calibrate") -> str:
-    """Check the bad-input contract; return the reason (after ``error: ``)."""
-    assert rc == 1, f"exit status {rc}; stderr: {err!r}"
-    assert "Traceback" not in err
-    lines = err.splitlines()
-    assert len(lines) == 1, f"stderr is not one line: {err!r}"
-    prefix = f"lidarcal {command}: error: "
-    assert lines[0].startswith(prefix), lines[0]
-    return lines[0][len(prefix):]
-
-
 def calibration_values(path: Path) -> dict[str, Any]:
     doc = yaml.safe_load(path.read_text())["lidarcal_calibration"]
     return doc

@@ -161,7 +161,9 @@ def recover_bag(source: str | os.PathLike[str], output: str | os.PathLike[str], 
         if not result.messages:
             raise BagError(f"{source}: no message is readable"
                            + "".join(f"; {name}: {what}" for name, what in
-                                     result.damage.items()))
+                                     result.damage.items())
+                           + "".join(f"; {topic} left out: {why}" for topic, why in
+                                     result.skipped.items()))
     for name, what in result.damage.items():
         logger.info("%s: read up to the damage (%s)", name, what)
     return result

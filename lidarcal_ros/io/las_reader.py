@@ -141,7 +141,8 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
     Raises
     ------
     LasFileError
-        Missing or unreadable file, not LAS, no GPS time in its point format.
+        Missing or unreadable file, not LAS, scale factors that are zero or not finite, offsets
+        that are not finite, no GPS time in its point format.
     """
     import laspy
 
@@ -155,6 +156,13 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
         raise LasFileError(f"{p}: cannot read ({exc.strerror or _one_line(exc)})") from None
     except Exception as exc:  # laspy/lazrs raise various types for a bad header
         raise LasFileError(f"{p}: not a readable LAS/LAZ file ({_one_line(exc)})") from None
+    scales = np.asarray(header.scales, dtype=np.float64)
+    offsets = np.asarray(header.offsets, dtype=np.float64)
+    if not (np.isfinite(scales).all() and (scales != 0).all() and np.isfinite(offsets).all()):
+        raise LasFileError(
+            f"{p}: header scale factors {scales.tolist()} and offsets {offsets.tolist()} do "
+            "not give coordinates (scales must be non-zero, both finite)"
+        )
     dims = set(header.point_format.dimension_names)
     if "gps_time" not in dims:
         raise LasFileError(

@@ -257,7 +257,8 @@ class CalibratorNode(Node):
         source = self.params["topics.control_points"]
         try:
             cloud = parse_cloud(raw, source=source)
-            xyz = extract_xyz(cloud.points, source=source)
+            xyz = extract_xyz(cloud.points, source=source,
+                              coordinate_tolerance_m=self.params["sensor.range_noise_m"])
         except LidarcalError as exc:
             self.get_logger().error(f"control points ignored: {exc}")
             return
