@@ -16,6 +16,7 @@ import json
 import math
 import resource
 import signal
+import struct
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -52,6 +53,8 @@ small_mission = helpers_missions.small_mission
 FLOAT32_XYZ = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f8"), ("intensity", "<f4"),
                ("strip_id", "<u2")]
 EXISTS = "exists (use --overwrite to replace it)"
+#: Where a LAS header holds its x, y, z scale factors (LAS 1.4 R15, table 3).
+LAS_SCALES_AT = 131
 
 
 def first_chunks_points(mission: Mission, chunks: int) -> int:
@@ -378,6 +381,11 @@ def test_a_bag_of_json_channels_is_not_read_as_damage(capsys, tmp_path) -> None:
         f"{path}: not a ROS 2 bag: messages on /lidar/trajectory (json), /lidar/points (json) "
         "are not CDR-encoded ROS 2 messages (lidarcal reads the bags of ros2 bag record -s "
         "mcap)")
+    rc, _, err = run(capsys, "recover", path, "-o", tmp_path / "new.mcap")
+    assert one_line_error(rc, err, "recover") == (
+        f"{path}: no message is readable; /lidar/trajectory left out: encoding 'json', not a "
+        "ROS 2 CDR message; /lidar/points left out: encoding 'json', not a ROS 2 CDR message")
+    assert left_in(tmp_path) == ["json.mcap"]
 
 
 # ---------------------------------------------------------------------------- LAS / LAZ
@@ -407,6 +415,19 @@ def test_a_truncated_laz_is_one_line(capsys, tmp_path) -> None:
     reason = one_line_error(rc, err, "import")
     assert reason.startswith(f"{cut}: corrupt or truncated point data after ")
     assert left_in(tmp_path) == ["cut.laz", "whole.laz"]
+
+
+def test_a_las_header_without_usable_scales_is_refused(capsys, tmp_path) -> None:
+    """Scale factors of zero would read every point at the offsets: refused by name."""
+    path = _write_laz(tmp_path / "strip.las", 100)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<3d", data, LAS_SCALES_AT, 0.0, 0.0, 0.0)
+    path.write_bytes(bytes(data))
+    rc, _, err = run(capsys, "import", path, "-o", tmp_path / "bag")
+    assert one_line_error(rc, err, "import") == (
+        f"{path}: header scale factors [0.0, 0.0, 0.0] and offsets [500000.0, 5000000.0, 0.0] "
+        "do not give coordinates (scales must be non-zero, both finite)")
+    assert left_in(tmp_path) == ["strip.las"]
 
 
 def test_las_output_without_a_crs_says_so(capsys, tmp_path, small_mission,
