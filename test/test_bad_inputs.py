@@ -402,8 +402,43 @@ def _write_laz(path: Path, n: int = 20_000) -> Path:
     las.z = rng.uniform(0, 20, n)
     las.gps_time = 3.0e8 + np.sort(rng.uniform(0, 20, n))
     las.point_source_id = np.full(n, 7, dtype=np.uint16)
+    las.header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
     las.write(str(path))
     return path
+
+
+def _ascii_trajectory(path: Path, t: np.ndarray, xyz: np.ndarray) -> Path:
+    """``time,x,y,z`` lines (adjusted standard GPS time, the strip's map frame)."""
+    np.savetxt(path, np.column_stack([t, xyz]), delimiter=",", fmt="%.6f",
+               header="time,x,y,z", comments="")
+    return path
+
+
+def test_an_imported_trajectory_with_conflicting_or_equal_times(capsys, tmp_path) -> None:
+    """An ASCII trajectory repeating times at positions 3 m apart: both left out in one
+    warning line (not the first kept silently), the rest imported; one whose samples all
+    carry one time is refused as such (not as times that 'do not overlap' the points')."""
+    strip = _write_laz(tmp_path / "strip.laz", 2000)
+    t = 3.0e8 + np.arange(-2.0, 22.0, 0.1)
+    xyz = np.column_stack([500_000.0 + 5.0 * (t - t[0]), np.full(t.size, 5_000_100.0),
+                           np.full(t.size, 1000.0)])
+    twice = np.arange(5, t.size, 40)
+    csv = _ascii_trajectory(tmp_path / "traj.csv", np.concatenate([t, t[twice]]),
+                            np.concatenate([xyz, xyz[twice] + [3.0, 0.0, 0.0]]))
+    rc, _, err = run(capsys, "import", strip, "--trajectory", csv, "-o", tmp_path / "bag")
+    assert rc == 0, err
+    assert warning_lines(err, "import") == [
+        f"{csv}: {2 * twice.size} of {t.size + twice.size} poses left out: {2 * twice.size} at "
+        f"{twice.size} stamps repeated at positions up to 3 m apart (first at "
+        f"t={t[twice[0]]:.3f} s; which one is right is unknown)"]
+    imported = read_mission(tmp_path / "bag").trajectory
+    assert len(imported) == t.size - twice.size
+    stuck = _ascii_trajectory(tmp_path / "stuck.csv", np.full(t.size, t[50]), xyz)
+    rc, _, err = run(capsys, "import", strip, "--trajectory", stuck, "-o", tmp_path / "bag2")
+    assert one_line_error(rc, err, "import") == (
+        f"{stuck}: all {t.size} samples carry the same time {t[50]:.3f} s; a trajectory needs "
+        "each sample at its own time")
+    assert not (tmp_path / "bag2").exists()
 
 
 def test_a_truncated_laz_is_one_line(capsys, tmp_path) -> None:
