@@ -331,7 +331,8 @@ def test_odd_poses_and_unseen_control_are_warned_about_and_the_calibration_holds
     assert rc == 0, err
     poses, unused = warning_lines(err, "calibrate")
     assert poses.startswith(
-        f"{bag}: /lidar/trajectory: {n['non_finite'] + n['conflicting']} of {n['poses']} poses "
+        f"{bag}: trajectory /lidar/trajectory: {n['non_finite'] + n['conflicting']} of "
+        f"{n['poses']} poses "
         f"left out: {n['non_finite']} with a non-finite stamp or position; {n['conflicting']} "
         f"at {n['stamps']} stamps repeated at positions up to 3 m apart (first at t=")
     assert unused == "1 of 2 control points not used (FAR): 1 outside every strip"
@@ -351,7 +352,8 @@ def test_poses_all_at_one_stamp_are_refused(capsys, tmp_path, small_mission,
     stuck.trajectory = Trajectory(np.full(len(stuck.trajectory), stuck.trajectory.t[0]),
                                   stuck.trajectory.xyz)
     bag = write_cloud_bag(tmp_path / "stuck", stuck, max_chunks_per_strip=1)
-    words = (f"{bag}: /lidar/trajectory: all {len(stuck.trajectory)} poses carry the same "
+    words = (f"{bag}: trajectory /lidar/trajectory: all {len(stuck.trajectory)} poses carry the "
+             "same "
              f"stamp t={stuck.trajectory.t[0]:.3f} s")
     rc, _, err = run(capsys, "calibrate", bag, "-o", tmp_path / "cal.yaml")
     assert one_line_error(rc, err).startswith(words)
