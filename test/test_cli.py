@@ -18,7 +18,7 @@ import helpers_missions
 import numpy as np
 import pytest
 import yaml
-from helpers_cli import one_line_error, run, run_process
+from helpers_cli import one_line_error, run, run_process, warning_lines
 from helpers_missions import (
     MissionFiles,
     shift_strip,
@@ -221,7 +221,7 @@ def test_keys_no_node_declares_are_named_in_one_warning(tmp_path, small_mission)
                        cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
-    lines = [ln for ln in proc.stderr.splitlines() if "WARNING" in ln]
+    lines = warning_lines(proc.stderr, "calibrate")
     assert len(lines) == 1, proc.stderr
     assert lines[0].endswith("(misspelt?): matching.max_slope, max_backlog_mib "
                              "(lidarcal_calibrator)"), lines[0]
