@@ -324,3 +324,15 @@ def test_the_default_memory_budget_is_half_the_machine_s_memory() -> None:
     assert StreamingCalibration(FlightConfig(), max_points=5).max_points == 5
     with pytest.raises(CalibrationError, match="positive"):
         StreamingCalibration(FlightConfig(), max_points=0)
+
+
+def test_poses_left_out_are_counted() -> None:
+    """Poses with a non-finite position, or at a stamp already received, are left out of
+    the live trajectory and counted (the calibrator's ``lidarcal: input`` status)."""
+    stream = StreamingCalibration(FlightConfig())
+    t = np.arange(5.0)
+    xyz = np.column_stack([np.zeros(5), 60.0 * t, np.full(5, 1000.0)])
+    xyz[2, 0] = np.nan
+    stream.add_trajectory(t, xyz, "map")
+    stream.add_trajectory(np.array([3.0]), xyz[3:4], "map")
+    assert len(stream.trajectory) == 4 and stream.poses_left_out == 2

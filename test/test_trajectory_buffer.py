@@ -36,3 +36,13 @@ def test_the_trajectory_is_sorted_without_duplicates_and_trimmed() -> None:
     assert np.all(np.diff(traj.t) > 0)
     assert traj.t[-1] == t[-1] and traj.t[-1] - traj.t[0] <= 10.0 + 1e-9
     np.testing.assert_array_equal(traj.xyz[:, 1], 60.0 * traj.t)
+
+
+def test_poses_left_out_are_counted() -> None:
+    """A live buffer leaves out poses with a non-finite stamp or position and stamps it
+    already holds, and counts them (the nodes report the count on /diagnostics)."""
+    buffer = TrajectoryBuffer(keep_s=100.0)
+    buffer.add_many(np.arange(10.0), np.zeros((10, 3)))
+    buffer.add(5.0, (1.0, 0.0, 0.0))  # a stamp held already, out of order
+    buffer.add(11.0, (np.nan, 0.0, 0.0))
+    assert len(buffer.trajectory()) == 10 and buffer.left_out == 2

@@ -313,8 +313,11 @@ def solve(
         q = neq.count
         redundancy = q - len(idx)
         if redundancy <= 0:
+            k = len(idx)
             raise CalibrationError(
-                f"{q} correspondences for {len(idx)} parameters: no redundancy"
+                f"{q} correspondence{'' if q == 1 else 's'} for {k} "
+                f"parameter{'' if k == 1 else 's'}: too few to estimate "
+                f"{'it' if k == 1 else 'them'} with any check (redundancy {redundancy})"
             )
         vtpv = max(neq.residual_square_sum(delta), 0.0)
         sigma0 = float(np.sqrt(vtpv / redundancy))

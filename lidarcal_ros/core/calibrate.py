@@ -734,8 +734,8 @@ class Calibrator:
                     raise
                 n = len(control) if control is not None else 0
                 raise CalibrationError(self._no_overlap(
-                    f", and {n} control point{'' if n == 1 else 's'} alone cannot calibrate "
-                    f"({exc})")) from None
+                    f", and {n} control point{'' if n == 1 else 's'} alone cannot calibrate: "
+                    f"{exc}")) from None
             step = sol.delta - delta
             est = np.isfinite(sol.sigma)
             logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",

@@ -53,6 +53,8 @@ class TrajectoryBuffer:
         self.last_arrival = -math.inf  # monotonic clock of the last sample received
         self.samples = 0
         self.oriented_samples = 0  # of them with an orientation (not the identity)
+        #: Samples left out: a non-finite stamp or position, or a stamp already held.
+        self.left_out = 0
 
     def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None,
             orientation: tuple[float, ...] = _NO_ORIENTATION) -> None:
@@ -129,6 +131,7 @@ class TrajectoryBuffer:
             traj = self._Trajectory(t, xyz, orientation)
         else:
             traj = self._Trajectory.from_samples(t, xyz, orientation)
+            self.left_out += int(t.shape[0]) - len(traj)
         if len(traj) and self.keep_s > 0 and traj.t[-1] - traj.t[0] > self.keep_s:
             start = int(np.searchsorted(traj.t, traj.t[-1] - self.keep_s))
             traj = traj.take(slice(start, None))

@@ -567,7 +567,11 @@ class CalibratorNode(Node):
         if rejected:
             msg += (f"; {len(rejected)} strip(s) refused by the calibration, left out "
                     f"(last: {rejected[-1][1]})")
+        if s.poses_left_out:
+            msg += (f"; {s.poses_left_out} poses left out (a non-finite stamp or position, or "
+                    "a stamp already received)")
         out.append(StatusSpec(level, "lidarcal: input", msg, {
+            "poses_left_out": str(s.poses_left_out),
             "clouds": str(inp["clouds"]), "points": str(inp["points"]),
             "poses": str(inp["poses"]), "skipped_clouds": str(inp["skipped"]),
             "last_error": str(inp["last_error"]), "queued_jobs": str(self._jobs.qsize()),

@@ -544,6 +544,7 @@ class CorrectorNode(Node):
             "latency_p50_s": f"{p50:.4f}", "latency_p99_s": f"{p99:.4f}",
             "queued_clouds": str(len(self._queue)), "held_clouds": str(len(self._held)),
             "estimate_source": self.estimate_source, "transport": self._transport(),
+            "poses_left_out": str(self.trajectory.left_out),
             "heading": describe_heading_policy(str(self.params["matching.heading_source"]),
                                                self.trajectory.oriented_samples > 0),
             "model": describe_model_policy(

@@ -181,6 +181,9 @@ class StreamingCalibration:
         self._traj_t: list[np.ndarray] = []
         self._traj_xyz: list[np.ndarray] = []
         self._traj_q: list[np.ndarray] = []  # orientation quaternions xyzw; NaN: none
+        #: Poses left out of the trajectory: a non-finite stamp or position, or a stamp
+        #: already held.
+        self.poses_left_out = 0
         self._trajectory: Trajectory | None = None
         self._open: dict[int, _OpenStrip] = {}
         self._closed: list[Strip] = []
@@ -284,9 +287,10 @@ class StreamingCalibration:
         if self._trajectory is None:
             if not self._traj_t:
                 raise InputError("no trajectory received yet")
-            self._trajectory = Trajectory.from_samples(np.concatenate(self._traj_t),
-                                                       np.concatenate(self._traj_xyz),
+            t = np.concatenate(self._traj_t)
+            self._trajectory = Trajectory.from_samples(t, np.concatenate(self._traj_xyz),
                                                        np.concatenate(self._traj_q))
+            self.poses_left_out = int(t.shape[0]) - len(self._trajectory)
         return self._trajectory
 
     @property
