@@ -6,10 +6,8 @@ with geographic positions) and imported again: the bag must hold the same points
 LAS scale) and give the same calibration. Multiple returns are synthesised on the exact
 (biased) laser ray of a fraction of the pulses to test the trajectory estimate.
 
-Real files: laspy's sample files come from its source distribution on PyPI
-(``scripts/test-data``, run by ``scripts/test``; under CI their absence fails the tests);
-lidR's are looked for in ``$LIDARCAL_REAL_LAS_DIR`` or ``shared/data/las`` and skipped when
-absent.
+The exports are :mod:`helpers_las`'s, which also finds the real files (laspy's samples,
+lidR's when available).
 """
 
 from __future__ import annotations
@@ -18,18 +16,24 @@ import copy
 import logging
 import math
 import os
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers_las import (
+    CRS,
+    add_first_returns,
+    plain_strips,
+    real_las_file,
+    write_las_tiles,
+    write_mission_sbet,
+)
 
 from lidarcal_ros.cli.main import main as cli_main
 from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
-from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
-from lidarcal_ros.core.simulate import SimulatedMission, biased_from_pulse, simulate_mission
+from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
@@ -43,145 +47,11 @@ from lidarcal_ros.io.trajectory_files import (
 )
 from lidarcal_ros.pipeline.importer import import_mission, reconcile_times
 
-CRS = "EPSG:32633"
 ORIGIN = (500_000.0, 5_000_000.0)
 FAST: dict[str, Any] = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
 #: Twice the tolerances of the calibration issue (1 arcsec, 1 cm, 1e-5).
 TWICE = {"dX": 0.02, "dY": 0.02, "dZ": 0.02, "dr": 0.02, "dS": 2e-5,
          "domega": arcsec_to_rad(2), "dphi": arcsec_to_rad(2), "dkappa": arcsec_to_rad(2)}
-
-
-# ---------------------------------------------------------------------------- export helpers
-def add_first_returns(
-    sim: SimulatedMission, *, fraction: float = 0.3, seed: int = 0,
-    separation: tuple[float, float] = (3.0, 30.0), noise_m: float = 0.02,
-    scan_band_deg: dict[int, tuple[float, float]] | None = None,
-) -> list[dict[str, np.ndarray]]:
-    """Per strip: the mission's points as last returns plus, for ``fraction`` of the pulses, a
-    first return on the same (biased) laser ray, ``separation`` metres before the last.
-    ``scan_band_deg``: strip id -> the mirror angles (deg) outside which its pulses have no
-    first return (a tile holding one edge of that strip's swath).
-
-    The ray of a pulse is exact: ``X_o + R_kappa dL + R_kappa R_B rho(r)`` is linear in the
-    range ``r``, so the earlier return is the last one moved along the unit vector between
-    the biased points at ranges ``r`` and ``r - 1`` of the true pulse (true firing position
-    from the noiseless trajectory, true mirror angle, heading of the line).
-    """
-    rng = np.random.default_rng(seed)
-    traj = sim.mission.trajectory
-    out = []
-    for k, strip in enumerate(sim.mission.strips):
-        assert strip.intensity is not None  # simulated strips always carry intensity
-        n = len(strip)
-        xo = np.column_stack([np.interp(strip.t, traj.t, traj.xyz[:, i]) for i in range(3)])
-        kappa = sim.lines[k]["kappa"]
-        theta = sim.scan_angle_true[k].astype(np.float64)
-        r_true = sim.range_true[k]
-        up = (biased_from_pulse(xo, kappa, r_true - 1.0, theta, sim.biases)
-              - biased_from_pulse(xo, kappa, r_true, theta, sim.biases))
-        up /= np.linalg.norm(up, axis=1)[:, None]
-        multi = rng.random(n) < fraction
-        if scan_band_deg is not None and strip.strip_id in scan_band_deg:
-            lo, hi = np.radians(scan_band_deg[strip.strip_id])
-            multi &= (theta >= lo) & (theta <= hi)
-        sep = rng.uniform(*separation, n)
-        first = strip.xyz + sep[:, None] * up + rng.normal(0.0, noise_m, (n, 3))
-        rn = np.where(multi, 2, 1).astype(np.uint8)
-        idx = np.flatnonzero(multi)
-        cols = {
-            "xyz": np.concatenate([strip.xyz, first[idx]]),
-            "t": np.concatenate([strip.t, strip.t[idx]]),
-            "intensity": np.concatenate([strip.intensity, 0.5 * strip.intensity[idx]]),
-            "return_number": np.concatenate([rn, np.ones(idx.size, np.uint8)]),
-            "number_of_returns": np.concatenate([rn, np.full(idx.size, 2, np.uint8)]),
-            "strip_id": np.full(n + idx.size, strip.strip_id, dtype=np.uint16),
-        }
-        order = np.argsort(cols["t"], kind="stable")
-        out.append({key: v[order] for key, v in cols.items()})
-    return out
-
-
-def _plain_strips(sim: SimulatedMission) -> list[dict[str, np.ndarray]]:
-    out = []
-    for s in sim.mission.strips:
-        assert s.intensity is not None  # simulated strips always carry intensity
-        out.append({"xyz": s.xyz, "t": s.t, "intensity": s.intensity,
-                    "return_number": np.ones(len(s), np.uint8),
-                    "number_of_returns": np.ones(len(s), np.uint8),
-                    "strip_id": np.full(len(s), s.strip_id, dtype=np.uint16)})
-    return out
-
-
-def write_las_tiles(
-    strips: list[dict[str, np.ndarray]], directory: Path, *, crs: str | None = CRS,
-    tiles: tuple[int, int] = (2, 2), laz: Sequence[int] = (0,), time_type: str = "adjusted",
-    version: str = "1.4", point_format: int = 6, point_source_id: bool = True,
-) -> list[Path]:
-    """Write the points as a grid of LAS/LAZ tiles (0.001 m scale).
-
-    ``time_type``: ``"adjusted"`` (UNIX times to adjusted standard GPS time, encoding bit
-    set) or ``"week"`` (GPS week seconds, bit clear). Tiles listed in ``laz`` are LAZ.
-    Points within a tile are stored in reverse time order (the importer must sort).
-    """
-    import laspy
-    import pyproj
-
-    cols = {key: np.concatenate([s[key] for s in strips]) for key in strips[0]}
-    xyz = cols["xyz"]
-    gps = unix_to_adjusted_gps(cols["t"])
-    if time_type == "week":
-        gps = np.mod(gps + ADJUSTED_GPS_OFFSET, WEEK_S)
-    nx, ny = tiles
-    ex = np.quantile(xyz[:, 0], np.linspace(0, 1, nx + 1)[1:-1])
-    ey = np.quantile(xyz[:, 1], np.linspace(0, 1, ny + 1)[1:-1])
-    tile = np.searchsorted(ex, xyz[:, 0]) * ny + np.searchsorted(ey, xyz[:, 1])
-    paths = []
-    for k in range(nx * ny):
-        sel = np.flatnonzero(tile == k)[::-1]
-        header = laspy.LasHeader(version=version, point_format=point_format)
-        header.scales = np.array([0.001, 0.001, 0.001])
-        header.offsets = np.floor(xyz[sel].min(axis=0) / 1000.0) * 1000.0
-        header.global_encoding.gps_time_type = (
-            laspy.header.GpsTimeType.STANDARD if time_type == "adjusted"
-            else laspy.header.GpsTimeType.WEEK_TIME)
-        if version == "1.4" and point_format >= 6:
-            header.global_encoding.wkt = True
-        if crs is not None:
-            header.add_crs(pyproj.CRS.from_user_input(crs))
-        las = laspy.LasData(header)
-        las.x, las.y, las.z = xyz[sel, 0], xyz[sel, 1], xyz[sel, 2]
-        las.gps_time = gps[sel]
-        las.intensity = np.clip(np.rint(cols["intensity"][sel]), 0, 65535).astype(np.uint16)
-        las.return_number = cols["return_number"][sel]
-        las.number_of_returns = cols["number_of_returns"][sel]
-        if point_source_id:
-            las.point_source_id = cols["strip_id"][sel]
-        path = directory / f"tile{k}.{'laz' if k in laz else 'las'}"
-        las.write(str(path))
-        paths.append(path)
-    return paths
-
-
-def write_mission_sbet(mission: Mission, path: Path, *, crs: str = CRS,
-                       wander_rad: float = 0.0) -> Path:
-    """The mission's trajectory as an SBET: GPS week seconds, lat/lon (rad), ellipsoidal
-    height (the map heights, taken as ellipsoidal); where the trajectory has headings, the
-    platform heading and wander angle of an SBET (true heading = platform heading - wander,
-    clockwise from true north: the map's grid heading ``-kappa`` turned by PROJ's meridian
-    convergence, the angle from true north to grid north)."""
-    import pyproj
-
-    to_geo = pyproj.Transformer.from_crs(pyproj.CRS(crs).to_3d(), "EPSG:4979", always_xy=True)
-    traj = mission.trajectory
-    lon, lat, h = to_geo.transform(traj.xyz[:, 0], traj.xyz[:, 1], traj.xyz[:, 2])
-    sow = np.mod(unix_to_adjusted_gps(traj.t) + ADJUSTED_GPS_OFFSET, WEEK_S)
-    attitude = {}
-    if traj.heading is not None:
-        convergence = np.radians(pyproj.Proj(crs).get_factors(lon, lat).meridian_convergence)
-        true_heading = -traj.heading + convergence
-        attitude = {"heading": true_heading + wander_rad,
-                    "wander_angle": np.full(len(traj), wander_rad)}
-    return write_sbet(path, sow, np.radians(lat), np.radians(lon), h, **attitude)
 
 
 def _solution_diff(a: Any, b: Any) -> dict[str, float]:
@@ -212,7 +82,7 @@ def original_result(sim: SimulatedMission) -> Any:
 @pytest.fixture(scope="module")
 def exported(sim: SimulatedMission, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     work = tmp_path_factory.mktemp("export")
-    tiles = write_las_tiles(_plain_strips(sim), work)
+    tiles = write_las_tiles(plain_strips(sim), work)
     sbet = write_mission_sbet(sim.mission, work / "mission.out")
     return {"dir": work, "tiles": tiles, "sbet": sbet}
 
@@ -240,7 +110,7 @@ def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> No
                                attitude=True)
     truth = crabbed.mission.trajectory
     assert truth.heading is not None
-    tiles = write_las_tiles(_plain_strips(crabbed), tmp_path, laz=())
+    tiles = write_las_tiles(plain_strips(crabbed), tmp_path, laz=())
     sbet = write_mission_sbet(crabbed.mission, tmp_path / "crab.out", wander_rad=0.7)
     assert read_sbet(sbet).heading_deg is not None
     bag = tmp_path / "imported"
@@ -525,7 +395,7 @@ def test_sbet_round_trip_gives_the_same_calibration(sim, exported, original_resu
 def test_week_time_las_and_ascii_trajectory(sim, tmp_path) -> None:
     """LAS 1.2 in GPS week seconds, no point source ids, an ASCII trajectory in adjusted
     standard time: strips come from time gaps, the week from the trajectory."""
-    tiles = write_las_tiles(_plain_strips(sim), tmp_path, tiles=(1, 2), laz=(), version="1.2",
+    tiles = write_las_tiles(plain_strips(sim), tmp_path, tiles=(1, 2), laz=(), version="1.2",
                             point_format=3, time_type="week", point_source_id=False)
     traj = sim.mission.trajectory
     csv = tmp_path / "trajectory.csv"
@@ -545,7 +415,7 @@ def test_week_time_las_and_ascii_trajectory(sim, tmp_path) -> None:
 
 
 def test_week_time_las_and_sbet_keep_week_seconds(sim, exported, tmp_path) -> None:
-    tiles = write_las_tiles(_plain_strips(sim), tmp_path, tiles=(1, 1), laz=(),
+    tiles = write_las_tiles(plain_strips(sim), tmp_path, tiles=(1, 1), laz=(),
                             time_type="week")
     bag = tmp_path / "bag"
     report = import_mission(tiles, bag, trajectory=exported["sbet"])
@@ -674,7 +544,7 @@ def test_unknown_crs(exported, tmp_path, capsys) -> None:
 
 
 def test_sbet_without_crs(sim, exported, tmp_path, capsys) -> None:
-    tiles = write_las_tiles(_plain_strips(sim), tmp_path, tiles=(1, 1), laz=(), crs=None)
+    tiles = write_las_tiles(plain_strips(sim), tmp_path, tiles=(1, 1), laz=(), crs=None)
     assert _cli(*tiles, "--trajectory", exported["sbet"], "-o", tmp_path / "bag") == 1
     err = capsys.readouterr().err.strip()
     assert "--crs" in err and "\n" not in err
@@ -701,32 +571,10 @@ def test_not_an_sbet(exported, tmp_path) -> None:
 
 
 # ---------------------------------------------------------------------------- real data
-#: Files of laspy's source distribution, fetched by scripts/test-data (run by scripts/test).
-LASPY_SAMPLES = ("simple.las", "autzen_trim.laz", "append-bug.laz",
-                 "file_with_both_wkt_and_geotiff_vlrs.las")
-
-
-def _real_dirs() -> list[Path]:
-    repo = Path(__file__).resolve().parents[1]
-    env = os.environ.get("LIDARCAL_REAL_LAS_DIR")
-    return ([Path(env)] if env else []) + [
-        repo.parent / "shared" / "data" / "las", repo / ".venv" / "test-data" / "laspy"]
-
-
-def _real(name: str) -> Path:
-    for d in _real_dirs():
-        if (d / name).is_file():
-            return d / name
-    if name in LASPY_SAMPLES and os.environ.get("CI"):
-        pytest.fail(f"real test file {name} missing: scripts/test-data did not fetch it")
-    pytest.skip(f"real test file {name} not available (scripts/test-data, "
-                "$LIDARCAL_REAL_LAS_DIR or shared/data/las)")
-
-
 def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
     """laspy's simple.las (LAS 1.2, week time, 9 point source ids, no CRS): reading and
     strip splitting; an ASCII trajectory made up to cover it."""
-    path = _real("simple.las")
+    path = real_las_file("simple.las")
     import laspy
 
     las = laspy.read(str(path))
@@ -775,7 +623,7 @@ def test_real_laspy_lambert93_adjusted_time_and_overlap_qa(tmp_path) -> None:
 
     from lidarcal_ros.io.trajectory_files import gps_to_unix
 
-    path = _real("append-bug.laz")
+    path = real_las_file("append-bug.laz")
     _made_up_trajectory(path, tmp_path / "traj.csv", adjusted=True)
     report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
     las = laspy.read(str(path))
@@ -803,7 +651,7 @@ def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
     from time gaps; coordinates become metres."""
     import laspy
 
-    path = _real("file_with_both_wkt_and_geotiff_vlrs.las")
+    path = real_las_file("file_with_both_wkt_and_geotiff_vlrs.las")
     # The passes span 9 days: the trajectory keeps the file's own (adjusted) times.
     t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
     report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
@@ -823,7 +671,7 @@ def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
 
 def test_real_truncated_laz_one_line(tmp_path, capsys) -> None:
     """autzen_trim.laz cut in half: ``lidarcal import`` fails with one line naming the file."""
-    path = _real("autzen_trim.laz")
+    path = real_las_file("autzen_trim.laz")
     cut = tmp_path / "autzen_cut.laz"
     data = path.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
@@ -838,7 +686,7 @@ def test_real_truncated_laz_one_line(tmp_path, capsys) -> None:
 def test_real_lidr_megaplot_strips_from_time_gaps(tmp_path) -> None:
     """lidR's Megaplot.laz (UTM 17N, week time): point source id 0 everywhere, two passes
     542 s apart become strips 1 and 2."""
-    path = _real("Megaplot.laz")
+    path = real_las_file("Megaplot.laz")
     t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
     report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
     mission = read_mission(tmp_path / "bag")
@@ -854,7 +702,7 @@ def test_real_lidr_mixed_conifer_overlap_qa(tmp_path) -> None:
     """lidR's MixedConifer.laz: four passes over a forest plot (ids 0, week time); the
     swath-to-swath QA of last returns on smooth 2 m cells finds the overlaps consistent
     to a few centimetres."""
-    path = _real("MixedConifer.laz")
+    path = real_las_file("MixedConifer.laz")
     _made_up_trajectory(path, tmp_path / "traj.csv")
     report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv",
                             qa_cell_m=2.0)
@@ -870,7 +718,7 @@ def test_real_topography_trajectory_estimate(tmp_path) -> None:
     """lidR's Topography.laz (adjusted standard time, up to 6 returns, MTM zone 7): a
     sensor path is rebuilt from its multiple returns, high above the ground and moving at
     an aircraft's speed."""
-    path = _real("Topography.laz")
+    path = real_las_file("Topography.laz")
     report = import_mission([path], tmp_path / "bag", trajectory="estimate")
     est = report.estimate
     assert est is not None and not est.failed_strips
@@ -886,7 +734,7 @@ def test_real_topography_trajectory_estimate(tmp_path) -> None:
 def test_real_autzen_feet_to_metres(tmp_path) -> None:
     """laspy's autzen_trim.laz: Oregon Lambert in international feet, week time, one id
     (7326): coordinates become metres and the rebuilt sensor flies some 800 m up."""
-    path = _real("autzen_trim.laz")
+    path = real_las_file("autzen_trim.laz")
     report = import_mission([path], tmp_path / "bag", trajectory="estimate")
     assert report.unit_factors == (0.3048, 0.3048)
     assert report.time_rule.clock == "week"

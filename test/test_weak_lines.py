@@ -27,8 +27,8 @@ import numpy as np
 import pytest
 import yaml
 from helpers_cli import run
+from helpers_las import add_first_returns, real_las_file, write_las_tiles
 from helpers_missions import shift_strip, subset, without_control
-from test_import import _real, add_first_returns, write_las_tiles
 
 from lidarcal_ros.cli.main import EXIT_NOTHING_ESTIMATED
 from lidarcal_ros.core.calibrate import Calibrator
@@ -281,7 +281,7 @@ def test_real_megaplot_both_passes_kept_calibrated_or_reported_and_corrected(
     calibration that correct turns into reflectance for every point."""
     import laspy
 
-    path = _real("Megaplot.laz")
+    path = real_las_file("Megaplot.laz")
     bag = tmp_path / "bag"
     rc, out, err = run(capsys, "import", path, "--trajectory", "estimate", "-o", bag)
     assert rc == 0, err
