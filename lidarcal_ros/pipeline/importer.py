@@ -82,10 +82,10 @@ from lidarcal_ros.core.mission import Trajectory, screen_samples
 from lidarcal_ros.core.overlap_grid import OverlapGrid, PairQA
 from lidarcal_ros.core.trajectory_estimation import (
     EstimatedTrajectory,
-    RayCollector,
+    EstimateSettings,
     estimate_trajectory,
-    rays_from_returns,
 )
+from lidarcal_ros.core.trajectory_rays import RayBudget, RayCollector, rays_from_returns
 from lidarcal_ros.errors import ConfigError, InputError, TrajectoryError
 from lidarcal_ros.io.bag import BagWriter, seconds_to_ns
 from lidarcal_ros.io.las_reader import LasFileInfo, crs_units, inspect_las, iter_las_chunks
@@ -726,8 +726,8 @@ def import_mission(
     gap_bin = min(_GAP_BIN_MAX_S, strip_gap_s / 4.0)
     occupancy: dict[int, set[int]] = {}
     per_psid: dict[int, list[Any]] = {}  # psid -> [count, tmin, tmax, files]
-    collector = RayCollector(**({} if not estimate else {
-        k: v for k, v in (estimate_options or {}).items() if k in _COLLECTOR_OPTIONS}))
+    collector = RayCollector(RayBudget(**({} if not estimate else {
+        k: v for k, v in (estimate_options or {}).items() if k in _COLLECTOR_OPTIONS})))
     n_read = 0
     n_kept = 0
     returns_seen = [0, 0]  # first and last returns of multi-return pulses
@@ -940,7 +940,7 @@ def _finish(
                    if any(returns_seen) else "no point belongs to a pulse with several returns")
                 + "; give a trajectory file with --trajectory"
             )
-        estimated = estimate_trajectory(rays, spans, **opts)  # type: ignore[arg-type]
+        estimated = estimate_trajectory(rays, spans, EstimateSettings(**opts))  # type: ignore[arg-type]
         dropped = sorted(estimated.failed_strips)
         if len(dropped) == len(spans):
             worst = next((q for q in estimated.segments if q.level == "ERROR"), None)
