@@ -45,7 +45,8 @@ from lidarcal_ros.io.trajectory_files import (
     read_trajectory_file,
     write_sbet,
 )
-from lidarcal_ros.pipeline.importer import import_mission, reconcile_times
+from lidarcal_ros.pipeline.import_time_bases import reconcile_times
+from lidarcal_ros.pipeline.importer import ImportOptions, import_mission
 
 ORIGIN = (500_000.0, 5_000_000.0)
 FAST: dict[str, Any] = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
@@ -93,7 +94,7 @@ def multi_return(sim: SimulatedMission, tmp_path_factory: pytest.TempPathFactory
     work = tmp_path_factory.mktemp("multi")
     tiles = write_las_tiles(add_first_returns(sim, fraction=0.3, seed=4), work, laz=(1, 2))
     bag = work / "estimated"
-    report = import_mission(tiles, bag, trajectory="estimate", returns="last")
+    report = import_mission(tiles, bag, ImportOptions(trajectory="estimate", returns="last"))
     return {"tiles": tiles, "bag": bag, "report": report}
 
 
@@ -114,7 +115,7 @@ def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> No
     sbet = write_mission_sbet(crabbed.mission, tmp_path / "crab.out", wander_rad=0.7)
     assert read_sbet(sbet).heading_deg is not None
     bag = tmp_path / "imported"
-    report = import_mission(tiles, bag, trajectory=sbet)
+    report = import_mission(tiles, bag, ImportOptions(trajectory=sbet))
     assert report.trajectory_kind == "SBET crab.out, with heading only"
     assert report.attitude_range_deg == {}
     got = read_mission(bag).trajectory
@@ -289,7 +290,7 @@ def test_import_carries_the_full_attitude(tmp_path: Path, capsys) -> None:
 
     for name, path in (("ascii lat/lon", geographic), ("ascii grid", grid)):
         bag = tmp_path / path.stem
-        report = import_mission(tiles, bag, trajectory=path)
+        report = import_mission(tiles, bag, ImportOptions(trajectory=path))
         assert report.trajectory_kind.endswith(", with attitude (roll, pitch, heading)")
         lo, hi = report.attitude_range_deg["roll"]
         assert lo == pytest.approx(deg["roll"].min(), abs=1e-6)
@@ -361,7 +362,7 @@ def test_sbet_roll_and_pitch_fallbacks(tmp_path, caplog) -> None:
 # ---------------------------------------------------------------------------- round trip
 def test_sbet_round_trip_gives_the_same_points(sim, exported, tmp_path) -> None:
     bag = tmp_path / "imported"
-    report = import_mission(exported["tiles"], bag, trajectory=exported["sbet"])
+    report = import_mission(exported["tiles"], bag, ImportOptions(trajectory=exported["sbet"]))
     assert report.trajectory_kind == "SBET mission.out, positions only"
     assert report.time_rule.clock == "unix"
     assert report.time_rule.trajectory_base == "week"
@@ -384,7 +385,7 @@ def test_sbet_round_trip_gives_the_same_points(sim, exported, tmp_path) -> None:
 def test_sbet_round_trip_gives_the_same_calibration(sim, exported, original_result,
                                                    tmp_path) -> None:
     bag = tmp_path / "imported.mcap"
-    import_mission(exported["tiles"], bag, trajectory=exported["sbet"])
+    import_mission(exported["tiles"], bag, ImportOptions(trajectory=exported["sbet"]))
     mission = read_mission(bag)
     mission.control = sim.mission.control  # as `lidarcal calibrate --control CSV`
     result = calibrate(mission, CalibrationSettings(**FAST))
@@ -402,7 +403,7 @@ def test_week_time_las_and_ascii_trajectory(sim, tmp_path) -> None:
     rows = np.column_stack([unix_to_adjusted_gps(traj.t), traj.xyz])
     np.savetxt(csv, rows, delimiter=",", fmt="%.6f", header="time,x,y,z", comments="")
     bag = tmp_path / "bag"
-    report = import_mission(tiles, bag, trajectory=csv)
+    report = import_mission(tiles, bag, ImportOptions(trajectory=csv))
     assert report.time_rule.points_base == "week"
     assert report.time_rule.trajectory_base == "adjusted"
     mission = read_mission(bag)
@@ -418,14 +419,14 @@ def test_week_time_las_and_sbet_keep_week_seconds(sim, exported, tmp_path) -> No
     tiles = write_las_tiles(plain_strips(sim), tmp_path, tiles=(1, 1), laz=(),
                             time_type="week")
     bag = tmp_path / "bag"
-    report = import_mission(tiles, bag, trajectory=exported["sbet"])
+    report = import_mission(tiles, bag, ImportOptions(trajectory=exported["sbet"]))
     assert report.time_rule.clock == "week"
     mission = read_mission(bag)
     sow = np.mod(unix_to_adjusted_gps(sim.mission.strips[0].t) + ADJUSTED_GPS_OFFSET, WEEK_S)
     assert np.max(np.abs(mission.strips[0].t - sow)) < 1e-6
     # with the GPS week given, UNIX time again
-    report = import_mission(tiles, tmp_path / "bag2", trajectory=exported["sbet"],
-                            gps_week=report_week(sim))
+    report = import_mission(tiles, tmp_path / "bag2", ImportOptions(
+        trajectory=exported["sbet"], gps_week=report_week(sim)))
     assert report.time_rule.clock == "unix"
     assert np.max(np.abs(read_mission(tmp_path / "bag2").strips[0].t
                          - sim.mission.strips[0].t)) < 1e-6
@@ -439,8 +440,8 @@ def report_week(sim: SimulatedMission) -> int:
 def test_streaming_spills_and_merges(sim, exported, tmp_path) -> None:
     """A tiny memory budget forces sorted runs on disk; the bag is the same."""
     bag = tmp_path / "spilled"
-    report = import_mission(exported["tiles"], bag, trajectory=exported["sbet"],
-                            memory_points=20_000, chunk_points=7_000)
+    report = import_mission(exported["tiles"], bag, ImportOptions(
+        trajectory=exported["sbet"], memory_points=20_000, chunk_points=7_000))
     assert report.spilled_runs >= 10
     mission = read_mission(bag)
     for got, want in zip(mission.strips, sim.mission.strips, strict=True):
@@ -477,7 +478,7 @@ def test_calibration_from_rebuilt_trajectory(sim, multi_return) -> None:
 
 def test_no_multiple_returns_cannot_be_estimated(exported, tmp_path) -> None:
     with pytest.raises(TrajectoryError, match="multiple returns"):
-        import_mission(exported["tiles"], tmp_path / "bag", trajectory="estimate")
+        import_mission(exported["tiles"], tmp_path / "bag", ImportOptions(trajectory="estimate"))
 
 
 # ---------------------------------------------------------------------------- time rules
@@ -567,7 +568,7 @@ def test_not_an_sbet(exported, tmp_path) -> None:
     bad = tmp_path / "bad.out"
     bad.write_bytes(b"\x00" * 100)
     with pytest.raises(InputError, match="not an SBET"):
-        import_mission(exported["tiles"], tmp_path / "bag", trajectory=bad)
+        import_mission(exported["tiles"], tmp_path / "bag", ImportOptions(trajectory=bad))
 
 
 # ---------------------------------------------------------------------------- real data
@@ -583,7 +584,7 @@ def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
     xyz = centre + np.outer(t - t[0], [5.0, 0.0, 0.0])
     csv = tmp_path / "traj.txt"
     np.savetxt(csv, np.column_stack([t, xyz]), fmt="%.4f")
-    report = import_mission([path], tmp_path / "bag", trajectory=csv)
+    report = import_mission([path], tmp_path / "bag", ImportOptions(trajectory=csv))
     mission = read_mission(tmp_path / "bag")
     ids, counts = np.unique(np.asarray(las.point_source_id), return_counts=True)
     assert [s.strip_id for s in mission.strips] == ids.tolist()
@@ -625,7 +626,8 @@ def test_real_laspy_lambert93_adjusted_time_and_overlap_qa(tmp_path) -> None:
 
     path = real_las_file("append-bug.laz")
     _made_up_trajectory(path, tmp_path / "traj.csv", adjusted=True)
-    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
+    report = import_mission([path], tmp_path / "bag",
+                            ImportOptions(trajectory=tmp_path / "traj.csv"))
     las = laspy.read(str(path))
     ids, counts = np.unique(np.asarray(las.point_source_id), return_counts=True)
     mission = read_mission(tmp_path / "bag")
@@ -654,7 +656,8 @@ def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
     path = real_las_file("file_with_both_wkt_and_geotiff_vlrs.las")
     # The passes span 9 days: the trajectory keeps the file's own (adjusted) times.
     t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
-    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
+    report = import_mission([path], tmp_path / "bag",
+                            ImportOptions(trajectory=tmp_path / "traj.csv"))
     assert report.time_rule.points_base == report.time_rule.trajectory_base == "adjusted"
     assert report.crs_name == "NAD83_2011_Nebraska_ft"
     assert report.unit_factors == pytest.approx((1200 / 3937, 1200 / 3937))
@@ -688,7 +691,8 @@ def test_real_lidr_megaplot_strips_from_time_gaps(tmp_path) -> None:
     542 s apart become strips 1 and 2."""
     path = real_las_file("Megaplot.laz")
     t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
-    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv")
+    report = import_mission([path], tmp_path / "bag",
+                            ImportOptions(trajectory=tmp_path / "traj.csv"))
     mission = read_mission(tmp_path / "bag")
     assert [s.strip_id for s in mission.strips] == [1, 2]
     assert sum(len(s) for s in mission.strips) == t_las.size
@@ -704,8 +708,8 @@ def test_real_lidr_mixed_conifer_overlap_qa(tmp_path) -> None:
     to a few centimetres."""
     path = real_las_file("MixedConifer.laz")
     _made_up_trajectory(path, tmp_path / "traj.csv")
-    report = import_mission([path], tmp_path / "bag", trajectory=tmp_path / "traj.csv",
-                            qa_cell_m=2.0)
+    report = import_mission([path], tmp_path / "bag",
+                            ImportOptions(trajectory=tmp_path / "traj.csv", qa_cell_m=2.0))
     assert [s.strip_id for s in report.strips] == [1, 2, 3, 4]
     big = [q for q in report.overlaps if q.n_cells >= 100]
     assert len(big) >= 3
@@ -719,7 +723,7 @@ def test_real_topography_trajectory_estimate(tmp_path) -> None:
     sensor path is rebuilt from its multiple returns, high above the ground and moving at
     an aircraft's speed."""
     path = real_las_file("Topography.laz")
-    report = import_mission([path], tmp_path / "bag", trajectory="estimate")
+    report = import_mission([path], tmp_path / "bag", ImportOptions(trajectory="estimate"))
     est = report.estimate
     assert est is not None and not est.failed_strips
     q = est.segments[0]
@@ -735,7 +739,7 @@ def test_real_autzen_feet_to_metres(tmp_path) -> None:
     """laspy's autzen_trim.laz: Oregon Lambert in international feet, week time, one id
     (7326): coordinates become metres and the rebuilt sensor flies some 800 m up."""
     path = real_las_file("autzen_trim.laz")
-    report = import_mission([path], tmp_path / "bag", trajectory="estimate")
+    report = import_mission([path], tmp_path / "bag", ImportOptions(trajectory="estimate"))
     assert report.unit_factors == (0.3048, 0.3048)
     assert report.time_rule.clock == "week"
     est = report.estimate

@@ -35,9 +35,10 @@ from lidarcal_ros.core.calibrate import Calibrator
 from lidarcal_ros.core.mission import Mission, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.trajectory_estimation import EstimateSettings
 from lidarcal_ros.io.bag import read_mission, write_mission_bag
 from lidarcal_ros.io.config_file import load_flight_config
-from lidarcal_ros.pipeline.importer import import_mission
+from lidarcal_ros.pipeline.importer import ImportOptions, import_mission
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission
@@ -74,7 +75,8 @@ def test_weak_line_on_one_edge_of_its_swath_is_kept(three_lines, tmp_path) -> No
     place it where it flew."""
     strips = add_first_returns(three_lines, fraction=0.3, seed=4, scan_band_deg={3: (13, 16)})
     tiles = write_las_tiles(strips, tmp_path, tiles=(1, 1), laz=())
-    report = import_mission(tiles, tmp_path / "bag", trajectory="estimate", returns="last")
+    report = import_mission(tiles, tmp_path / "bag",
+                            ImportOptions(trajectory="estimate", returns="last"))
     est = report.estimate
     assert est is not None and not est.failed_strips
     assert [s.strip_id for s in report.strips] == [1, 2, 3]
@@ -97,8 +99,9 @@ def test_weak_line_on_one_edge_of_its_swath_is_kept(three_lines, tmp_path) -> No
     assert error.max() < weak.sigma_m
 
     # Not allowed a sigma that large, the line is left out and the report says why.
-    report = import_mission(tiles, tmp_path / "strict", trajectory="estimate", returns="last",
-                            estimate_options={"max_weak_fraction": 0.01})
+    report = import_mission(tiles, tmp_path / "strict", ImportOptions(
+        trajectory="estimate", returns="last",
+        estimate=EstimateSettings(max_weak_fraction=0.01)))
     assert report.dropped_strips == [3]
     assert report.estimate is not None
     (left_out,) = [s for s in report.estimate.strips if not s.kept]
@@ -119,7 +122,8 @@ def test_weak_line_flown_at_another_altitude_keeps_its_own(tmp_path) -> None:
     drop = np.random.default_rng(0).permutation(first)[20:]
     strips[2] = {key: np.delete(v, drop, axis=0) for key, v in third.items()}
     tiles = write_las_tiles(strips, tmp_path, tiles=(1, 1), laz=())
-    report = import_mission(tiles, tmp_path / "bag", trajectory="estimate", returns="last")
+    report = import_mission(tiles, tmp_path / "bag",
+                            ImportOptions(trajectory="estimate", returns="last"))
     est = report.estimate
     assert est is not None and not est.failed_strips
     weak = {s.strip_id: s for s in est.strips}[3]

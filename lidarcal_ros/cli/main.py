@@ -644,19 +644,19 @@ def _add_import(sub: Any) -> None:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from lidarcal_ros.pipeline.importer import import_mission
+    from lidarcal_ros.pipeline.importer import ImportOptions, import_mission
 
     _check_output(args.output, args.overwrite, directory=args.output.suffix != ".mcap")
+    options = ImportOptions(
+        trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
+        trajectory_time=args.trajectory_time, gps_week=args.gps_week,
+        strip_gap_s=args.strip_gap, returns=args.returns, frame_id=args.frame,
+        points_topic=args.points, trajectory_topic=args.trajectory_topic,
+        trajectory_rate_hz=args.trajectory_rate, memory_points=args.memory_points,
+        qa_cell_m=args.qa_cell, overwrite=args.overwrite)
     progress, close = _progress_bar(True)
     try:
-        report = import_mission(
-            args.inputs, args.output, trajectory=args.trajectory_source, crs=args.crs,
-            trajectory_crs=args.trajectory_crs, trajectory_time=args.trajectory_time,
-            gps_week=args.gps_week, strip_gap_s=args.strip_gap, returns=args.returns,
-            frame_id=args.frame, points_topic=args.points,
-            trajectory_topic=args.trajectory_topic, trajectory_rate_hz=args.trajectory_rate,
-            memory_points=args.memory_points, qa_cell_m=args.qa_cell,
-            overwrite=args.overwrite, progress=progress)
+        report = import_mission(args.inputs, args.output, options, progress)
     finally:
         close()
     for line in report.lines():

@@ -64,8 +64,6 @@ from lidarcal_ros.core.trajectory_segments import (
 )
 from lidarcal_ros.errors import TrajectoryError
 
-__all__ = ["EstimateSettings", "EstimatedTrajectory", "StripEstimate", "estimate_trajectory"]
-
 logger = logging.getLogger(__name__)
 
 
@@ -233,3 +231,6 @@ def _strip_outcome(strip_id: int, segments: list[SegmentQuality]) -> StripEstima
     return StripEstimate(strip_id, True, sigma, True,
                          f"strip {strip_id}: position sigma {sigma:.1f} m ({horizontal:.1f} m "
                          f"horizontally; {weak}{q.message}); kept{part}, {q.fallback}")
+
+
+__all__ = ["EstimateSettings", "EstimatedTrajectory", "StripEstimate", "estimate_trajectory"]

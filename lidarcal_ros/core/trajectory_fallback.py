@@ -25,8 +25,6 @@ from lidarcal_ros.core.trajectory_segments import (
     flight_problems,
 )
 
-__all__ = ["level_fallback"]
-
 #: Spread of rays across the track (deg) below which they fix the sensor's height poorly.
 _MIN_FAN_DEG = 10.0
 
@@ -132,3 +130,6 @@ def level_fallback(seg: SegmentFit, good: list[SegmentQuality], settings: Estima
         return
     q.level, q.weak, q.message, q.fallback = "WARN", q.sigma_m > settings.max_sigma_m, why, how
     seg.q, seg.coef, seg.tc, seg.half = q, chosen.coef, chosen.tc, chosen.half
+
+
+__all__ = ["level_fallback"]

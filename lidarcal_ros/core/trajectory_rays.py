@@ -14,8 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RayBudget", "RayCollector", "Rays", "rays_from_returns"]
-
 
 @dataclass
 class Rays:
@@ -200,3 +198,6 @@ class RayCollector:
         self._compact()
         rays = self._parts[0]
         return rays.take(np.argsort(rays.t, kind="stable"))
+
+
+__all__ = ["RayBudget", "RayCollector", "Rays", "rays_from_returns"]

@@ -19,9 +19,6 @@ import numpy as np
 from lidarcal_ros.core.trajectory_rays import Rays
 from lidarcal_ros.errors import TrajectoryError
 
-__all__ = ["EstimateSettings", "SegmentFit", "SegmentQuality", "fit_segment", "flight_problems",
-           "grade", "legendre", "segment_edges"]
-
 #: Iterations of the reweighting and outlier rejection of one fit.
 _ITERATIONS = 6
 
@@ -381,3 +378,7 @@ def flight_problems(q: SegmentQuality) -> list[str]:
     if not (q.speed_mps > 1.0):
         problems.append(f"horizontal speed {q.speed_mps:.2f} m/s: heading undefined")
     return problems
+
+
+__all__ = ["EstimateSettings", "SegmentFit", "SegmentQuality", "fit_segment", "flight_problems",
+           "grade", "legendre", "segment_edges"]
