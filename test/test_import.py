@@ -37,9 +37,9 @@ from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
+from lidarcal_ros.io.trajectory_crs import map_orientation
 from lidarcal_ros.io.trajectory_files import (
     WEEK_S,
-    map_orientation,
     read_ascii_trajectory,
     read_sbet,
     read_trajectory_file,
@@ -132,7 +132,7 @@ def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> No
 def test_sbet_without_attitude_and_ascii_heading_column(tmp_path: Path) -> None:
     """All-zero heading and wander (converters that fill only positions) mean no heading; an
     ASCII ``heading`` column is grid north for projected positions, degrees."""
-    from lidarcal_ros.io.trajectory_files import map_heading
+    from lidarcal_ros.io.trajectory_crs import map_heading
 
     sbet = write_sbet(tmp_path / "bare.out", np.array([1.0, 2.0]), np.radians([48.0, 48.0]),
                       np.radians([17.0, 17.0]), np.array([900.0, 900.0]))

@@ -179,25 +179,7 @@ def estimate_trajectory(
         for seg in strip:
             if seg.q.level == "ERROR":
                 level_fallback(seg, good, settings)
-    samples_t: list[np.ndarray] = []
-    samples_xyz: list[np.ndarray] = []
-    for strip in fits.values():
-        for seg in strip:
-            if seg.q.level == "ERROR" or seg.coef is None:
-                continue
-            a, b = seg.q.t_start, seg.q.t_end
-            s0 = a - settings.lead_s if seg.first else a
-            s1 = b + settings.lead_s if seg.last else b
-            n = max(2, int(math.ceil((s1 - s0) * settings.rate_hz)) + 1)
-            ts = np.linspace(s0, s1, n)
-            if not seg.last:
-                ts = ts[:-1]  # the next segment starts there
-            samples_t.append(ts)
-            samples_xyz.append(seg.positions(ts))
-    if samples_t:
-        traj = Trajectory.from_samples(np.concatenate(samples_t), np.concatenate(samples_xyz))
-    else:
-        traj = Trajectory(np.empty(0), np.empty((0, 3)))
+    traj = _sampled([seg for strip in fits.values() for seg in strip], settings)
     segments = [f.q for strip in fits.values() for f in strip]
     for q in segments:
         log = logger.warning if q.level != "OK" else logger.info
@@ -207,6 +189,28 @@ def estimate_trajectory(
     outcomes = [_strip_outcome(sid, [f.q for f in strip]) for sid, strip in fits.items()]
     failed = [o.strip_id for o in outcomes if not o.kept]
     return EstimatedTrajectory(traj, segments, failed, outcomes)
+
+
+def _sampled(fits: list[SegmentFit], settings: EstimateSettings) -> Trajectory:
+    """Samples of the segments kept at ``settings.rate_hz``, a strip's first and last
+    reaching ``settings.lead_s`` beyond its points."""
+    samples_t: list[np.ndarray] = []
+    samples_xyz: list[np.ndarray] = []
+    for seg in fits:
+        if seg.q.level == "ERROR" or seg.coef is None:
+            continue
+        a, b = seg.q.t_start, seg.q.t_end
+        s0 = a - settings.lead_s if seg.first else a
+        s1 = b + settings.lead_s if seg.last else b
+        n = max(2, int(math.ceil((s1 - s0) * settings.rate_hz)) + 1)
+        ts = np.linspace(s0, s1, n)
+        if not seg.last:
+            ts = ts[:-1]  # the next segment starts there
+        samples_t.append(ts)
+        samples_xyz.append(seg.positions(ts))
+    if not samples_t:
+        return Trajectory(np.empty(0), np.empty((0, 3)))
+    return Trajectory.from_samples(np.concatenate(samples_t), np.concatenate(samples_xyz))
 
 
 def _strip_outcome(strip_id: int, segments: list[SegmentQuality]) -> StripEstimate:

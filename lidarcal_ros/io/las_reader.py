@@ -278,3 +278,7 @@ def crs_units(crs: Any) -> tuple[float, float]:
     elif len(axes) >= 3:
         vfac = float(axes[2].unit_conversion_factor)
     return hfac, vfac
+
+
+__all__ = ["CHUNK_POINTS", "GpsTimeType", "LasChunk", "LasFileError", "LasFileInfo", "crs_units",
+           "inspect_las", "iter_las_chunks", "quiet_laspy_errors"]

@@ -33,7 +33,7 @@ from lidarcal_ros.io.trajectory_files import (
 logger = logging.getLogger(__name__)
 
 #: Time bases of raw times, in words.
-TIME_BASES = {"week": "GPS week seconds", "adjusted": "adjusted standard GPS time",
+TIME_BASE_NAMES = {"week": "GPS week seconds", "adjusted": "adjusted standard GPS time",
               "gps": "GPS seconds", "unix": "UNIX seconds"}
 
 
@@ -206,7 +206,7 @@ def reconcile_times(
     scored: list[tuple[float, int, int, TimeRule]] = []
     tried = []
     for rank, base in enumerate(trajectory_bases):
-        tried.append(TIME_BASES[base])
+        tried.append(TIME_BASE_NAMES[base])
         if points_base == "week" and base == "week" and gps_week is None:
             rule = TimeRule("week", "week", None, "week",
                             "points and trajectory both in GPS week seconds, written unchanged")
@@ -216,8 +216,8 @@ def reconcile_times(
             pg = to_gps_seconds(np.array([p0, p1]), points_base, week=week)
             tg = to_gps_seconds(np.array([t0, t1]), base, week=week)
             cov = _overlap(float(pg[0]), float(pg[1]), float(tg[0]), float(tg[1]))
-            note = (f"points in {TIME_BASES[points_base]}, trajectory in {TIME_BASES[base]}"
-                    + (f", GPS week {week}" if week is not None else "")
+            note = (f"points in {TIME_BASE_NAMES[points_base]}, trajectory in "
+                    f"{TIME_BASE_NAMES[base]}" + (f", GPS week {week}" if week is not None else "")
                     + "; written as UNIX time")
             tie = -abs(week - creation_week) if (week is not None and creation_week is not None
                                                  ) else 0
@@ -227,7 +227,7 @@ def reconcile_times(
         readings = ", ".join(tried) or "none"
         raise TrajectoryError(
             f"{where}: times {t0:.3f}-{t1:.3f} s do not overlap the points' times "
-            f"{p0:.3f}-{p1:.3f} s ({TIME_BASES[points_base]}) under any reading (tried "
+            f"{p0:.3f}-{p1:.3f} s ({TIME_BASE_NAMES[points_base]}) under any reading (tried "
             f"{readings}); wrong trajectory file, or give --trajectory-time / --gps-week"
         )
     if best[0] < 1.0:  # (the coverage of every strip is checked, and refused in one line)
@@ -253,5 +253,5 @@ def _weeks(points_base: str, p: tuple[float, float], traj_base: str, t: tuple[fl
     return [w, w - 1, w + 1]
 
 
-__all__ = ["TIME_BASES", "TimeRule", "gps_week_of_creation", "points_time_base",
+__all__ = ["TIME_BASE_NAMES", "TimeRule", "gps_week_of_creation", "points_time_base",
            "reconcile_times", "trajectory_readings", "unwrap_week"]

@@ -29,12 +29,8 @@ from lidarcal_ros.core.trajectory_estimation import (
     estimate_trajectory,
 )
 from lidarcal_ros.errors import InputError, TrajectoryError
-from lidarcal_ros.io.trajectory_files import (
-    TrajectoryFile,
-    map_orientation,
-    project,
-    read_trajectory_file,
-)
+from lidarcal_ros.io.trajectory_crs import map_orientation, project
+from lidarcal_ros.io.trajectory_files import TrajectoryFile, read_trajectory_file
 from lidarcal_ros.pipeline.import_points import PointsFrame, PointsRead
 from lidarcal_ros.pipeline.import_strips import StripAssembly, StripSummary
 from lidarcal_ros.pipeline.import_time_bases import TimeRule

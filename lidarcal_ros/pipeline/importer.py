@@ -42,7 +42,7 @@ Trajectory attitude
     columns, become the poses' orientation (REP-103 quaternions, method.md section 10), the
     heading turned from true to the map's grid north by the meridian convergence; with a
     heading only the poses are level (``full_attitude`` False); without one they carry none
-    (identity). :func:`lidarcal_ros.io.trajectory_files.map_orientation` has the conventions.
+    (identity). :func:`lidarcal_ros.io.trajectory_crs.map_orientation` has the conventions.
 GPS time
     LAS global-encoding bit 0 set: Adjusted Standard GPS Time (GPS seconds - 1e9); clear: GPS
     seconds of the week. SBET times are week seconds. ASCII times are read as whichever of
