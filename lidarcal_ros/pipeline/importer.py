@@ -164,16 +164,16 @@ def import_mission(
     store = RunStore(options.memory_points, out.parent)
     try:
         read = read_points(infos, store, frame, options, report_progress)
-        points_base = points_time_base(header_base, read.time_range[1], str(infos[0].path))
-        return _assemble_and_write(out, read, points_base, given, options, report_progress)
+        return _assemble_and_write(out, read, header_base, given, options, report_progress)
     finally:
         store.cleanup()
 
 
-def _time_rule(read: PointsRead, points_base: str, given: DeliveredTrajectory | None,
+def _time_rule(read: PointsRead, header_base: str, given: DeliveredTrajectory | None,
                options: ImportOptions) -> tuple[TimeRule, np.ndarray | None]:
     """How the times meet (:mod:`.import_time_bases`), and the trajectory file's raw times
     as read under it (None without a file)."""
+    points_base = points_time_base(header_base, read.time_range[1], str(read.infos[0].path))
     week = gps_week_of_creation([i.creation_date for i in read.infos
                                  if i.creation_date is not None])
     if given is None:
@@ -187,13 +187,13 @@ def _time_rule(read: PointsRead, points_base: str, given: DeliveredTrajectory | 
     return rule, raw_t
 
 
-def _assemble_and_write(out: Path, read: PointsRead, points_base: str,
+def _assemble_and_write(out: Path, read: PointsRead, header_base: str,
                         given: DeliveredTrajectory | None, options: ImportOptions,
                         progress: Progress) -> ImportReport:
-    """From the points read to the bag written: time rule, strips, trajectory, bag."""
-    rule, raw_t = _time_rule(read, points_base, given, options)
-    logger.info("time: %s", rule.note)
+    """From the points read to the bag written: strips, time rule, trajectory, bag."""
     strips = assemble_strips(read, options.strip_gap_s)
+    rule, raw_t = _time_rule(read, header_base, given, options)
+    logger.info("time: %s", rule.note)
     trajectory: BagTrajectory
     if given is not None:
         assert raw_t is not None
