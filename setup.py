@@ -3,9 +3,9 @@
 * ``colcon build`` installs the entry points into ``lib/lidarcal_ros`` (see setup.cfg), and
   package.xml, config/ and launch/ under ``share/lidarcal_ros`` plus the ament index marker.
 * Every build (colcon or wheel) also copies ``config/loopback.xml`` into the package as
-  ``lidarcal_ros/_resources/loopback.xml`` so :mod:`lidarcal_ros.rosenv` finds the loopback-only
-  DDS profile in a plain ``pip install`` too. ``config/loopback.xml`` stays the only copy in
-  the source tree.
+  ``lidarcal_ros/_resources/loopback.xml`` so :mod:`lidarcal_ros.ros.environment` finds the
+  loopback-only DDS profile in a plain ``pip install`` too. ``config/loopback.xml`` stays the
+  only copy in the source tree.
 """
 
 from __future__ import annotations

@@ -106,7 +106,7 @@ T0 = 1.7e9
 def _source_main(argv: list[str]) -> int:
     """Child process: publish synthetic chunks at ``rate`` points/s for ``seconds``."""
     rate, points, seconds, topic = float(argv[0]), int(argv[1]), float(argv[2]), argv[3]
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
     import rclpy
@@ -176,7 +176,7 @@ def _source_main(argv: list[str]) -> int:
 def _typed_corrector_main(argv: list[str]) -> int:
     """Child process: the corrector with rclpy's typed PointCloud2 in and out (the message
     objects are converted to and from the CDR bytes the correction takes and gives)."""
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
     from rclpy.parameter import Parameter
@@ -210,7 +210,7 @@ def _relay_main(argv: list[str]) -> int:
     raw off ``/lidar/points`` (and the trajectory, as the node does) and publishes, with the
     cloud's header stamp, a message of the corrected layout and the same width: the floor
     that taking and publishing alone set under the corrector on this machine."""
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
     from geometry_msgs.msg import PoseStamped
@@ -266,7 +266,7 @@ def _goal_verdict(keeps_up: bool, p99: float, p99_steady: float) -> str:
 
 
 def _env() -> dict[str, str]:
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     env = dict(os.environ)
     configure_ros_environment(env)
@@ -432,7 +432,7 @@ def _spin_in_thread(context: Any, nodes: list[Any]) -> tuple[threading.Event, th
 
 # ---------------------------------------------------------------------------- codec
 def bench_codec(points: int, repeats: int) -> dict[str, Any]:
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
     from rclpy.serialization import deserialize_message, serialize_message
@@ -842,7 +842,7 @@ def main() -> int:
     args = parser.parse_args()
     only = set(args.only.split(","))
 
-    from lidarcal_ros.rosenv import claim_domain_id, configure_ros_environment
+    from lidarcal_ros.ros.environment import claim_domain_id, configure_ros_environment
 
     if args.dds_profile is not None:
         os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(args.dds_profile.resolve())

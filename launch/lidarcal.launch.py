@@ -5,7 +5,7 @@
 All three nodes read their parameters from ``params_file`` (default: the installed
 ``share/lidarcal_ros/config/flight_config.yaml``). DDS stays on this machine: the launch process
 and every node get the loopback-only Fast DDS profile, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``
-and one shared ``ROS_DOMAIN_ID`` (see :mod:`lidarcal_ros.rosenv`).
+and one shared ``ROS_DOMAIN_ID`` (see :mod:`lidarcal_ros.ros.environment`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from lidarcal_ros.rosenv import configure_ros_environment
+from lidarcal_ros.ros.environment import configure_ros_environment
 
 PACKAGE = "lidarcal_ros"
 NODE_EXECUTABLES = ("lidarcal_calibrator", "lidarcal_corrector", "lidarcal_flight_config")

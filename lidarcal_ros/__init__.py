@@ -11,6 +11,8 @@ Layout (imports only run downward):
     The one procedure both the CLI and the nodes drive (batch and streaming).
 ``cli`` / ``nodes``
     Thin front ends: argument parsing / rclpy message plumbing.
+``ros``
+    What a process must set before rclpy starts (DDS confined to this machine); no rclpy.
 """
 
 __version__ = "0.1.0"

@@ -1,11 +1,11 @@
 """Shared pytest set-up of lidarcal_ros.
 
 At import time (before any test module can import rclpy) ROS 2 / DDS is confined to this
-machine with :func:`lidarcal_ros.rosenv.configure_ros_environment`: loopback-only Fast DDS
-profile, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, and a domain id of this run's own.
-``scripts/test`` already claims a domain id (exported as ``ROS_DOMAIN_ID``), which is kept; a bare
-``pytest`` run claims one with :func:`lidarcal_ros.rosenv.claim_domain_id`, so parallel runs do
-not see each other.
+machine with :func:`lidarcal_ros.ros.environment.configure_ros_environment`: loopback-only
+Fast DDS profile, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, and a domain id of this run's
+own. ``scripts/test`` already claims a domain id (exported as ``ROS_DOMAIN_ID``), which is kept;
+a bare ``pytest`` run claims one with :func:`lidarcal_ros.ros.environment.claim_domain_id`, so
+parallel runs do not see each other.
 
 ROS integration tests take the ``ros_context`` fixture: a fresh rclpy context for the module,
 shut down afterwards. Pass it to everything that takes a context::
@@ -25,7 +25,7 @@ from typing import Any
 
 import pytest
 
-from lidarcal_ros.rosenv import claim_domain_id, configure_ros_environment
+from lidarcal_ros.ros.environment import claim_domain_id, configure_ros_environment
 
 _preset_domain = os.environ.get("ROS_DOMAIN_ID", "").strip()
 ROS_SETTINGS: dict[str, str] = configure_ros_environment(

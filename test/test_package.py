@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from lidarcal_ros import rosenv
+from lidarcal_ros.ros import environment as ros_environment
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "lidarcal_ros"
@@ -153,7 +153,7 @@ def _profile_from(site_packages: Path, cwd: Path, *, env_extra: dict[str, str]) 
     code = textwrap.dedent(
         """
         import sys
-        import lidarcal_ros, lidarcal_ros.rosenv as r
+        import lidarcal_ros, lidarcal_ros.ros.environment as r
         print("module=" + lidarcal_ros.__file__)
         print("profile=" + str(r.loopback_profile_path()))
         print("rclpy=" + str("rclpy" in sys.modules))
@@ -313,7 +313,7 @@ def test_project_profile_is_loopback_only() -> None:
 
 def test_configure_ros_environment_confines_dds() -> None:
     env: dict[str, str] = {"ROS_STATIC_PEERS": "192.0.2.1", "ROS_DISCOVERY_SERVER": "x:11811"}
-    settings = rosenv.configure_ros_environment(env)
+    settings = ros_environment.configure_ros_environment(env)
     assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     assert "ROS_STATIC_PEERS" not in env and "ROS_DISCOVERY_SERVER" not in env
     assert env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
@@ -335,12 +335,12 @@ def test_configure_keeps_existing_profile_and_domain(tmp_path: Path) -> None:
     own = tmp_path / "own.xml"
     own.write_text("<dds/>")
     env = {"FASTDDS_DEFAULT_PROFILES_FILE": str(own), "ROS_DOMAIN_ID": "17"}
-    rosenv.configure_ros_environment(env)
+    ros_environment.configure_ros_environment(env)
     assert env["FASTDDS_DEFAULT_PROFILES_FILE"] == str(own)
     assert env["ROS_DOMAIN_ID"] == "17"
     env = {"FASTDDS_DEFAULT_PROFILES_FILE": str(tmp_path / "missing.xml")}
-    rosenv.configure_ros_environment(env, domain_id=42)
-    assert Path(env["FASTDDS_DEFAULT_PROFILES_FILE"]) == rosenv.loopback_profile_path()
+    ros_environment.configure_ros_environment(env, domain_id=42)
+    assert Path(env["FASTDDS_DEFAULT_PROFILES_FILE"]) == ros_environment.loopback_profile_path()
     assert env["ROS_DOMAIN_ID"] == "42"
 
 
@@ -356,21 +356,21 @@ def test_configure_refuses_unsafe_settings(
     env: dict[str, str], domain_id: int | None, message: str
 ) -> None:
     with pytest.raises(RuntimeError, match=message) as error:
-        rosenv.configure_ros_environment(env, domain_id=domain_id)
+        ros_environment.configure_ros_environment(env, domain_id=domain_id)
     assert "\n" not in str(error.value)
 
 
 def test_missing_profile_raises_one_line(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(rosenv, "_PACKAGE_DIR", tmp_path / "site" / PACKAGE)
+    monkeypatch.setattr(ros_environment, "PACKAGE_DIR", tmp_path / "site" / PACKAGE)
     monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "nowhere"))
     with pytest.raises(RuntimeError, match="loopback DDS profile") as error:
-        rosenv.loopback_profile_path()
+        ros_environment.loopback_profile_path()
     assert "\n" not in str(error.value)
     env: dict[str, str] = {}
     with pytest.raises(RuntimeError):
-        rosenv.configure_ros_environment(env)
+        ros_environment.configure_ros_environment(env)
     assert "FASTDDS_DEFAULT_PROFILES_FILE" not in env
 
 
@@ -385,20 +385,21 @@ def test_profile_found_through_ament_index(
     profile = prefix / "share" / PACKAGE / "config" / "loopback.xml"
     profile.parent.mkdir(parents=True)
     shutil.copy(ROOT / "config" / "loopback.xml", profile)
-    monkeypatch.setattr(rosenv, "_PACKAGE_DIR", tmp_path / "elsewhere" / PACKAGE)
+    monkeypatch.setattr(ros_environment, "PACKAGE_DIR", tmp_path / "elsewhere" / PACKAGE)
     monkeypatch.setenv("AMENT_PREFIX_PATH", str(prefix))
-    assert rosenv.loopback_profile_path() == profile
+    assert ros_environment.loopback_profile_path() == profile
 
 
 def test_claimed_domain_ids_are_distinct(tmp_path: Path) -> None:
-    first = rosenv.claim_domain_id(tmp_path)
-    second = rosenv.claim_domain_id(tmp_path)
+    first = ros_environment.claim_domain_id(tmp_path)
+    second = ros_environment.claim_domain_id(tmp_path)
     assert first != second
-    assert {first, second} <= set(rosenv.AUTO_DOMAIN_IDS)
+    assert {first, second} <= set(ros_environment.AUTO_DOMAIN_IDS)
 
 
-def test_rosenv_does_not_import_rclpy() -> None:
-    assert not {"rclpy"} & _imported_top_level(ROOT / PACKAGE / "rosenv.py")
+def test_the_ros_environment_does_not_import_rclpy() -> None:
+    for module in (ROOT / PACKAGE / "ros").glob("*.py"):
+        assert not {"rclpy"} & _imported_top_level(module), module
 
 
 @pytest.mark.ros
@@ -469,7 +470,7 @@ def test_colcon_build_installs_ament_python_package(tmp_path: Path, symlink: boo
         found = _profile_from(build / PACKAGE, tmp_path, env_extra=ament)
         assert Path(found["profile"]) == source / "config" / "loopback.xml"
         return
-    # The installed rosenv finds the profile: inside the package, else in the share dir.
+    # The installed ros.environment finds the profile: inside the package, else in the share dir.
     site_packages = next(prefix.glob("lib/python3*/site-packages"))
     found = _profile_from(site_packages, tmp_path, env_extra=ament)
     assert Path(found["module"]).is_relative_to(site_packages)
@@ -499,7 +500,10 @@ def test_plain_pip_install_ships_the_profile(tmp_path: Path) -> None:
 def test_project_profile_has_a_shared_memory_segment_for_large_clouds(tmp_path: Path) -> None:
     """Clouds of several MB must go through shared memory: with Fast DDS's default 512 KiB
     segment they travel as UDP fragments and the trajectory queues behind them."""
-    from lidarcal_ros.rosenv import FASTDDS_DEFAULT_SEGMENT_BYTES, shared_memory_segment_bytes
+    from lidarcal_ros.ros.environment import (
+        FASTDDS_DEFAULT_SEGMENT_BYTES,
+        shared_memory_segment_bytes,
+    )
 
     project = shared_memory_segment_bytes(ROOT / "config" / "loopback.xml")
     assert project is not None  # the project profile has an SHM transport

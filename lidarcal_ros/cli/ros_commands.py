@@ -1,9 +1,9 @@
 """The ROS subcommands of ``lidarcal``: ``replay``, ``run`` and ``record``.
 
-Each confines DDS to this machine (:func:`lidarcal_ros.rosenv.configure_ros_environment`)
-before rclpy is imported, turns SIGINT and SIGTERM into a clean stop (exit status 0, no
-traceback) and passes ``--ros-args ...`` through to rclpy (remappings, ``-p``,
-``--params-file``).
+Each confines DDS to this machine
+(:func:`lidarcal_ros.ros.environment.configure_ros_environment`) before rclpy is imported, turns
+SIGINT and SIGTERM into a clean stop (exit status 0, no traceback) and passes ``--ros-args ...``
+through to rclpy (remappings, ``-p``, ``--params-file``).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def _ros_argv(ros_args: list[str] | None, extra: list[str] | None = None) -> lis
 
 def _start_ros(argv: list[str]) -> tuple[Any, Any]:
     """Confine DDS, initialise a context with our own signal handling."""
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
     from lidarcal_ros.nodes.common import start_ros
@@ -182,7 +182,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         check_output(args.record, overwrite=args.overwrite,
                      directory=args.record.suffix != ".mcap")
 
-    from lidarcal_ros.rosenv import configure_ros_environment
+    from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
     argv = _ros_argv(args.ros_args, extra)

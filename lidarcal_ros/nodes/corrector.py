@@ -328,7 +328,7 @@ class CorrectorNode(Node):
     def _warn_small_segment(self, size: int) -> None:
         """Say once when clouds outgrow the DDS profile's shared-memory segment: they then
         travel as UDP fragments, and the trajectory queues behind them (seconds late)."""
-        from lidarcal_ros.rosenv import shared_memory_segment_bytes
+        from lidarcal_ros.ros.environment import shared_memory_segment_bytes
 
         self._segment_checked = True
         segment = shared_memory_segment_bytes()

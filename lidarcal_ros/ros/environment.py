@@ -30,6 +30,13 @@ from collections.abc import Iterator, MutableMapping
 from pathlib import Path
 from typing import IO
 
+__all__ = [
+    "AUTO_DOMAIN_IDS", "DEFAULT_RMW", "FASTDDS_DEFAULT_SEGMENT_BYTES", "FASTDDS_RMWS",
+    "MAX_DOMAIN_ID", "PACKAGE", "PACKAGE_DIR", "PROFILE_ENV", "PROFILE_NAME", "claim_domain_id",
+    "configure_ros_environment", "domain_lock_dir", "loopback_profile_path", "pid_domain_id",
+    "shared_memory_segment_bytes",
+]
+
 PACKAGE = "lidarcal_ros"
 PROFILE_NAME = "loopback.xml"
 PROFILE_ENV = "FASTDDS_DEFAULT_PROFILES_FILE"
@@ -46,7 +53,8 @@ MAX_DOMAIN_ID = 232
 #: Variables that would make DDS contact other hosts despite the LOCALHOST range.
 _OFF_HOST_VARIABLES = ("ROS_STATIC_PEERS", "ROS_DISCOVERY_SERVER")
 
-_PACKAGE_DIR = Path(__file__).resolve().parent
+#: The installed package ``lidarcal_ros`` (the profile is looked for relative to it).
+PACKAGE_DIR = Path(__file__).resolve().parents[1]
 
 # Open lock files of domain ids claimed by this process (held until the process exits).
 _claimed_domain_locks: list[IO[str]] = []
@@ -55,14 +63,14 @@ _claimed_domain_locks: list[IO[str]] = []
 def _profile_candidates() -> Iterator[Path]:
     """Where the profile may be, most specific first (see :func:`loopback_profile_path`)."""
     # 1. Source checkout (also an editable install): <repo>/config/loopback.xml.
-    repo = _PACKAGE_DIR.parent
+    repo = PACKAGE_DIR.parent
     if (repo / "package.xml").is_file() and (repo / "setup.py").is_file():
         yield repo / "config" / PROFILE_NAME
     # 2. Copy shipped inside the package by setup.py (colcon install, wheel / plain pip).
-    yield _PACKAGE_DIR / "_resources" / PROFILE_NAME
+    yield PACKAGE_DIR / "_resources" / PROFILE_NAME
     # 3. Share dir of the prefix this module is installed in:
     #    <prefix>/lib/pythonX.Y/site-packages/lidarcal_ros -> <prefix>/share/lidarcal_ros/config.
-    parents = _PACKAGE_DIR.parents
+    parents = PACKAGE_DIR.parents
     if len(parents) > 3 and parents[2].name == "lib":
         yield parents[3] / "share" / PACKAGE / "config" / PROFILE_NAME
     # 4. The ament index (a colcon install on AMENT_PREFIX_PATH), if ament_index_python is there.
