@@ -194,7 +194,7 @@ def throughput_worker(density: float, line_length: float, repeats: int,
     Prints one JSON line."""
     import numpy as np
 
-    from lidarcal_ros.allocator import tune_allocator
+    from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
     from lidarcal_ros.core.simulate import simulate_mission

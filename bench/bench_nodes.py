@@ -112,7 +112,7 @@ def _source_main(argv: list[str]) -> int:
     import rclpy
     from geometry_msgs.msg import PoseStamped
 
-    from lidarcal_ros.allocator import tune_allocator
+    from lidarcal_ros.core.allocator import tune_allocator
 
     tune_allocator(single_arena=False)  # as every lidarcal process that talks to DDS
     from rclpy.context import Context
@@ -217,7 +217,7 @@ def _relay_main(argv: list[str]) -> int:
     from rclpy.node import Node
     from sensor_msgs.msg import PointCloud2
 
-    from lidarcal_ros.allocator import tune_allocator
+    from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.io.pointcloud import make_point_dtype
     from lidarcal_ros.io.ros_messages import cloud_cdr
     from lidarcal_ros.nodes.common import run_main, stream_qos
@@ -853,7 +853,7 @@ def main() -> int:
     import rclpy
     from rclpy.context import Context
 
-    from lidarcal_ros.allocator import tune_allocator
+    from lidarcal_ros.core.allocator import tune_allocator
 
     # The receiver (this process) stands for a downstream consumer; tuned as the nodes are,
     # it takes a third of the CPU it would otherwise, which the corrector shares.

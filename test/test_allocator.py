@@ -1,4 +1,4 @@
-"""Process memory helpers (lidarcal_ros.allocator) against what the kernel reports."""
+"""Process memory helpers (lidarcal_ros.core.allocator) against what the kernel reports."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from lidarcal_ros.allocator import populate_in_background
+from lidarcal_ros.core.allocator import populate_in_background
 
 linux_only = pytest.mark.skipif(sys.platform != "linux", reason="madvise/mincore of Linux")
 

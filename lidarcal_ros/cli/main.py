@@ -368,7 +368,7 @@ def _add_correct(sub: Any) -> None:
 
 
 def _cmd_correct(args: argparse.Namespace) -> int:
-    from lidarcal_ros.allocator import tune_allocator
+    from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.las import parse_crs

@@ -44,8 +44,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidarcal_ros.allocator import populate_in_background
 from lidarcal_ros.core import kernels
+from lidarcal_ros.core.allocator import populate_in_background
 
 logger = logging.getLogger(__name__)
 
@@ -911,7 +911,7 @@ def _new_grid(shape: tuple[int, int, int]) -> np.ndarray:
     where calloc must clear every byte: some 60 ms of page faults for the 60 MB grid of a
     wide swath, in one chunk, for rows most of which are used only later.) Its pages are
     faulted in by another thread meanwhile
-    (:func:`~lidarcal_ros.allocator.populate_in_background`)."""
+    (:func:`~lidarcal_ros.core.allocator.populate_in_background`)."""
     grid = np.empty(shape)
     populate_in_background(grid)
     return grid

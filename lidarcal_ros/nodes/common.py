@@ -46,7 +46,7 @@ from rclpy.qos import (
     qos_profile_parameter_events,
 )
 
-from lidarcal_ros.allocator import NODE_TRIM_THRESHOLD_BYTES, tune_allocator
+from lidarcal_ros.core.allocator import NODE_TRIM_THRESHOLD_BYTES, tune_allocator
 from lidarcal_ros.core.config import SCHEMA, FlightConfig, ParameterSpec, coerce, cross_check
 from lidarcal_ros.errors import ConfigError, LidarcalError
 from lidarcal_ros.io.ros_messages import StatusSpec
@@ -470,7 +470,7 @@ def spin_nodes(
 def start_ros(argv: list[str]) -> tuple[Any, Shutdown]:
     """Initialise a ROS context with lidarcal's own SIGINT/SIGTERM handling (``Shutdown``).
 
-    The allocator is tuned first (:func:`lidarcal_ros.allocator.tune_allocator`): every
+    The allocator is tuned first (:func:`lidarcal_ros.core.allocator.tune_allocator`): every
     cloud taken from or handed to DDS is a buffer of several MB, and with glibc's defaults
     each one is mapped and faulted in afresh, which costs a raw subscription about four times
     the CPU of the copy itself.

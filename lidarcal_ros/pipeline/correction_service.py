@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.allocator import tune_allocator
+from lidarcal_ros.core.allocator import tune_allocator
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import point_fields

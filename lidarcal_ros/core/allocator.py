@@ -7,6 +7,10 @@ free) with a fresh ``mmap`` and returns them with ``munmap``, so each buffer is 
 page by page and zeroed by the kernel. On this 2-core machine a raw DDS subscription that
 takes 9.6 MB clouds spent 2.15 s of CPU per GB taken that way (1.1M page faults in 8 s),
 against 0.50 s per GB with the settings below (bench/README.md, "Nodes").
+
+It lives in ``core``, the lowest layer that uses it: the normals fault in their grids with
+:func:`populate_in_background`; the correction, the nodes and the CLI tune the allocator with
+:func:`tune_allocator`.
 """
 
 from __future__ import annotations
@@ -18,6 +22,11 @@ import mmap
 import sys
 import threading
 from typing import Any
+
+__all__ = [
+    "MMAP_THRESHOLD_BYTES", "NODE_TRIM_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES",
+    "populate_in_background", "tune_allocator",
+]
 
 _log = logging.getLogger(__name__)
 
