@@ -119,7 +119,7 @@ def _source_main(argv: list[str]) -> int:
     from sensor_msgs.msg import PointCloud2
 
     from lidarcal_ros.io.ros_messages import cloud_cdr
-    from lidarcal_ros.nodes.common import stream_qos
+    from lidarcal_ros.nodes.topics import stream_qos
 
     ctx = Context()
     rclpy.init(context=ctx)
@@ -184,7 +184,8 @@ def _typed_corrector_main(argv: list[str]) -> int:
     from sensor_msgs.msg import PointCloud2
 
     from lidarcal_ros.nodes import corrector as mod
-    from lidarcal_ros.nodes.common import run_main, stream_qos
+    from lidarcal_ros.nodes.process import run_main
+    from lidarcal_ros.nodes.topics import stream_qos
 
     class TypedCorrector(mod.CorrectorNode):
         def __init__(self, *, context: Any = None) -> None:
@@ -220,7 +221,8 @@ def _relay_main(argv: list[str]) -> int:
     from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.io.pointcloud import make_point_dtype
     from lidarcal_ros.io.ros_messages import cloud_cdr
-    from lidarcal_ros.nodes.common import run_main, stream_qos
+    from lidarcal_ros.nodes.process import run_main
+    from lidarcal_ros.nodes.topics import stream_qos
     from lidarcal_ros.pipeline.correction import corrected_dtype
 
     tune_allocator(single_arena=False)  # as the corrector's node process
@@ -393,7 +395,7 @@ class Receiver:
         import rclpy
         from sensor_msgs.msg import PointCloud2
 
-        from lidarcal_ros.nodes.common import stream_qos
+        from lidarcal_ros.nodes.topics import stream_qos
 
         self.node = rclpy.create_node("bench_sink", context=context)
         self.samples: list[tuple[float, float, int]] = []  # (recv wall, latency, points)
@@ -626,7 +628,7 @@ def bench_calibrator(rate: float, context: Any) -> dict[str, Any]:
 
     from lidarcal_ros.io.bag import open_bag
     from lidarcal_ros.io.ros_messages import parse_cloud
-    from lidarcal_ros.nodes.common import latched_qos
+    from lidarcal_ros.nodes.topics import latched_qos
 
     env = _env()
     with open_bag(SAMPLE_BAG) as bag:

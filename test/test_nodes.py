@@ -186,9 +186,9 @@ def suite(ros_context: Any, suite_mission: Any) -> Iterator[Suite]:
     from std_msgs.msg import Float64MultiArray
 
     from lidarcal_ros.nodes.calibrator import CalibratorNode
-    from lidarcal_ros.nodes.common import latched_qos
     from lidarcal_ros.nodes.corrector import CorrectorNode
     from lidarcal_ros.nodes.flight_config import FlightConfigNode
+    from lidarcal_ros.nodes.topics import latched_qos
 
     workdir = suite_mission.workdir
     shared = {**FAST, "calibration.control_points_file": str(suite_mission.control_csv),
@@ -384,7 +384,7 @@ def test_late_subscriber_gets_the_latest_estimate(replayed: Replayed) -> None:
     import rclpy
     from std_msgs.msg import Float64MultiArray, String
 
-    from lidarcal_ros.nodes.common import latched_qos
+    from lidarcal_ros.nodes.topics import latched_qos
 
     suite = replayed.suite
     latest = list(suite.probe.estimates[-1].data)
@@ -482,9 +482,15 @@ def test_a_bad_value_is_refused_with_its_reason(suite: Suite, values: dict[str, 
 def test_the_cli_knows_every_parameter_the_nodes_declare(ros_context: Any) -> None:
     """The commands tell a misspelt key from a node's own parameter by the names of
     ``core.config``: they must be those the nodes declare."""
-    from lidarcal_ros.core.config import NODE_PARAMETERS, ROS_PARAMETERS, SCHEMA
+    from lidarcal_ros.core.config import (
+        CALIBRATOR_NODE,
+        CORRECTOR_NODE,
+        FLIGHT_CONFIG_NODE,
+        NODE_PARAMETERS,
+        ROS_PARAMETERS,
+        SCHEMA,
+    )
     from lidarcal_ros.nodes import calibrator, corrector
-    from lidarcal_ros.nodes.common import CALIBRATOR_NODE, CORRECTOR_NODE, FLIGHT_CONFIG_NODE
     from lidarcal_ros.nodes.flight_config import FlightConfigNode
 
     assert set(NODE_PARAMETERS) == {CALIBRATOR_NODE, CORRECTOR_NODE, FLIGHT_CONFIG_NODE}
@@ -663,7 +669,7 @@ class Outputs:
         from diagnostic_msgs.msg import DiagnosticArray
         from std_msgs.msg import Float64MultiArray, String
 
-        from lidarcal_ros.nodes.common import latched_qos
+        from lidarcal_ros.nodes.topics import latched_qos
 
         node.create_subscription(Float64MultiArray, f"{prefix}/estimate",
                                  self.estimates.append, latched_qos())
@@ -959,7 +965,7 @@ def test_a_flight_config_change_shows_only_once_the_node_has_applied_it(
     import rclpy
     from rclpy.parameter import Parameter
 
-    from lidarcal_ros.nodes.common import FlightParameters
+    from lidarcal_ros.nodes.parameters import FlightParameters
 
     node = rclpy.create_node("apply_order_probe", context=ros_context)
     try:

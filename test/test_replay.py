@@ -173,7 +173,8 @@ def test_replay_publishes_every_message_with_its_timing(ros_context: Any, tmp_pa
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import PointCloud2
 
-    from lidarcal_ros.nodes.common import latched_qos, trajectory_message_classes
+    from lidarcal_ros.nodes.topics import latched_qos
+    from lidarcal_ros.nodes.trajectory_input import trajectory_message_classes
 
     bag = _small_bag(tmp_path / "small.mcap")
     node = rclpy.create_node("replay_probe", context=ros_context)
@@ -235,7 +236,7 @@ def test_record_writes_a_valid_bag_stopped_by_sigterm(ros_context: Any, tmp_path
     import rclpy
     from std_msgs.msg import String
 
-    from lidarcal_ros.nodes.common import latched_qos
+    from lidarcal_ros.nodes.topics import latched_qos
 
     out = tmp_path / "rec.mcap"
     node = rclpy.create_node("record_source", context=ros_context)

@@ -1,4 +1,5 @@
-"""The nodes' trajectory subscription (``nodes.common.TrajectoryInput``) over loopback DDS.
+"""The nodes' trajectory subscription (``nodes.trajectory_input.TrajectoryInput``) over
+loopback DDS.
 
 With ``trajectory_type`` ``auto`` the node must already listen when a stream starts: a
 subscription made only once a publisher has been seen on the graph loses the first samples of
@@ -90,7 +91,7 @@ def test_auto_listens_before_any_publisher_and_misses_no_sample(probe: tuple[Any
                                                                  ) -> None:
     from geometry_msgs.msg import PoseStamped
 
-    from lidarcal_ros.nodes.common import TrajectoryInput
+    from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 
     node, executor = probe
     samples: list[tuple[float, tuple[float, float, float], str]] = []
@@ -117,7 +118,7 @@ def test_auto_listens_before_any_publisher_and_misses_no_sample(probe: tuple[Any
         # the orientation as published (the identity: none, for the Trajectory)
         assert all(q == (0.0, 0.0, 0.0, 1.0) for q in orientations)
         # the publishers' type is the one subscribed: looking stops
-        _spin_until(executor, lambda: traj._timer is None, 5, "the type to be confirmed")
+        _spin_until(executor, lambda: traj.confirmed, 5, "the type to be confirmed")
         assert traj.msgtype == POSE_STAMPED and traj.errors == 0
     finally:
         node.destroy_publisher(pub)
@@ -127,7 +128,7 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
                                               publisher_node: Any) -> None:
     from nav_msgs.msg import Odometry
 
-    from lidarcal_ros.nodes.common import TrajectoryInput
+    from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 
     node, executor = probe
     samples: list[tuple[float, tuple[float, float, float], str, tuple[float, ...]]] = []
@@ -137,7 +138,7 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
     pub = publisher_node.create_publisher(Odometry, "/trajectory_input/odometry", 100)
     try:
         _spin_until(executor, lambda: traj.msgtype == ODOMETRY, 10, "the switch to Odometry")
-        assert traj.subscription is not first and traj._timer is None
+        assert traj.subscription is not first and traj.confirmed
         _spin_until(executor, lambda: pub.get_subscription_count() >= 1, 10, "the match")
         for k in range(5):
             pub.publish(_odometry(k))
@@ -153,12 +154,12 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
 
 def test_a_given_type_is_subscribed_at_once_without_looking(probe: tuple[Any, Any]) -> None:
     from lidarcal_ros.errors import ConfigError
-    from lidarcal_ros.nodes.common import TrajectoryInput
+    from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 
     node, _executor = probe
     traj = TrajectoryInput(node, "/trajectory_input/given", "nav_msgs/Odometry",
                            lambda t, xyz, frame, kappa: None)
-    assert traj.msgtype == ODOMETRY and traj.subscription is not None and traj._timer is None
+    assert traj.msgtype == ODOMETRY and traj.subscription is not None and traj.confirmed
     with pytest.raises(ConfigError, match="sensor_msgs/msg/Imu"):
         TrajectoryInput(node, "/trajectory_input/bad", "sensor_msgs/msg/Imu",
                         lambda t, xyz, frame, kappa: None)

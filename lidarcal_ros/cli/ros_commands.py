@@ -30,7 +30,7 @@ def _start_ros(argv: list[str]) -> tuple[Any, Any]:
     from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
-    from lidarcal_ros.nodes.common import start_ros
+    from lidarcal_ros.nodes.process import start_ros
 
     return start_ros(argv)
 
@@ -198,7 +198,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _run_in_process(names: list[str], argv: list[str], args: argparse.Namespace) -> int:
-    from lidarcal_ros.nodes.common import run_main
+    from lidarcal_ros.nodes.process import run_main
 
     factories: list[Any] = []
     if "flight_config" in names:
@@ -234,7 +234,7 @@ def supervise(commands: list[list[str]], *, grace_s: float = 15.0) -> int:
     import subprocess
     import time
 
-    from lidarcal_ros.nodes.common import Shutdown
+    from lidarcal_ros.nodes.process import Shutdown
 
     shutdown = Shutdown().install()
     procs = []
@@ -297,7 +297,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         raise ConfigError(f"--duration must be a positive number of seconds, got "
                           f"{args.duration}")
     context, shutdown = _start_ros(_ros_argv(args.ros_args))
-    from lidarcal_ros.nodes.common import spin_nodes
+    from lidarcal_ros.nodes.process import spin_nodes
     from lidarcal_ros.nodes.recorder import DEFAULT_TOPICS, RecorderNode
 
     node = None

@@ -146,18 +146,91 @@ for _name in PARAMETER_NAMES:
         0.0, f"Value of {_name} when not estimated (surveyed), SI units")
 
 
-#: Parameters the nodes declare beside :data:`SCHEMA`, by node name (defined with their
-#: types and ranges by the nodes themselves; ``test_nodes`` checks that the two agree), and
-#: those every ROS 2 node declares. A parameters file may hold them; the CLI passes them over.
-NODE_PARAMETERS: dict[str, tuple[str, ...]] = {
-    "lidarcal_flight_config": (),
-    "lidarcal_calibrator": ("memory_budget_points", "strip_gap_s", "idle_close_s",
-                            "checkpoint_file", "queue_depth", "trajectory_type"),
-    "lidarcal_corrector": ("calibration", "queue_depth", "best_effort", "trajectory_type",
-                           "trajectory_buffer_s", "max_trajectory_wait_s", "flush_timeout_s",
-                           "lookahead", "workers", "batch_points", "separate_process",
-                           "max_backlog_mib", "shared_memory_mib"),
+#: The names of lidarcal's nodes: the sections of a parameters file that reach them.
+FLIGHT_CONFIG_NODE = "lidarcal_flight_config"
+CALIBRATOR_NODE = "lidarcal_calibrator"
+CORRECTOR_NODE = "lidarcal_corrector"
+
+
+def _node_parameter(default: Any, description: str, lo: float | None = None,
+                    hi: float | None = None, *, read_only: bool = False) -> ParameterSpec:
+    """A node's own parameter, of the kind of its ``default``."""
+    kind = {bool: "bool", int: "int", float: "float", str: "str"}[type(default)]
+    return ParameterSpec(default, kind, description, lo, hi, read_only=read_only)
+
+
+_QUEUE_DEPTH = _node_parameter(1000, "Depth of the point-cloud subscription queue", 1, 100000,
+                               read_only=True)
+_TRAJECTORY_TYPE = _node_parameter(
+    "auto", "Trajectory message type, or 'auto': PoseStamped until a publisher of another "
+    "accepted type (Odometry, PoseWithCovarianceStamped, PointStamped) is seen, then that one. "
+    "Give the type when a node of the same process publishes another type on the topic (one "
+    "DDS participant holds a topic with one type only)", read_only=True)
+
+#: The parameters each node declares beside :data:`SCHEMA` (its own), by node name: the nodes
+#: declare them from here, and the CLI tells a node's own key in a parameters file from a
+#: misspelt one by them.
+NODE_PARAMETERS: dict[str, dict[str, ParameterSpec]] = {
+    FLIGHT_CONFIG_NODE: {},
+    CALIBRATOR_NODE: {
+        "memory_budget_points": _node_parameter(
+            0, "Points held for the calibration; past it the oldest complete strip is "
+            "released first (0: about half of this machine's memory, at some 700 bytes a "
+            "point)", 0, 2**40),
+        "strip_gap_s": _node_parameter(
+            2.0, "Seconds of point time without a point of a strip after which the strip is "
+            "complete", 0.0, 3600.0),
+        "idle_close_s": _node_parameter(
+            2.0, "Wall seconds without any input after which every open strip is complete "
+            "(0: never)", 0.0, 3600.0),
+        "checkpoint_file": _node_parameter(
+            "", "Checkpoint written after each solve and read at start ('' = none)"),
+        "queue_depth": _QUEUE_DEPTH,
+        "trajectory_type": _TRAJECTORY_TYPE,
+    },
+    CORRECTOR_NODE: {
+        "calibration": _node_parameter(
+            "", "Calibration YAML used until the calibrator publishes an estimate ('' = the "
+            "configuration's calibration.fixed values)"),
+        "queue_depth": _QUEUE_DEPTH,
+        "best_effort": _node_parameter(False, "Subscribe to points with best-effort "
+                                       "reliability", read_only=True),
+        "trajectory_type": _TRAJECTORY_TYPE,
+        "trajectory_buffer_s": _node_parameter(600.0, "Seconds of trajectory kept", 1.0, 1e6),
+        "max_trajectory_wait_s": _node_parameter(
+            5.0, "Longest wall time a chunk waits for the trajectory to cover it, s", 0.0,
+            600.0),
+        "flush_timeout_s": _node_parameter(
+            0.05, "Wall time without a new chunk after which held chunks are corrected "
+            "without look-ahead, s", 0.0, 60.0),
+        "lookahead": _node_parameter(
+            False, "Wait for the next chunks of a strip so that points at a chunk's leading "
+            "edge have neighbours on both sides for the normal: the normals of `lidarcal "
+            "correct`, a few chunks later (false: correct each chunk at once with the earlier "
+            "ones as neighbours; least latency)"),
+        "workers": _node_parameter(
+            2, "Threads correcting chunks in parallel (the compiled loops of the normals run "
+            "without the interpreter lock; 2 raised the capacity on 2 cores from 3.1 to 3.9M "
+            "points/s)", 1, 64, read_only=True),
+        "batch_points": _node_parameter(
+            0, "Chunks of one strip corrected together up to this many points (0: one chunk "
+            "at a time, least latency)", 0, 100_000_000, read_only=True),
+        "separate_process": _node_parameter(
+            True, "Correct in a child process with its own interpreter lock, so that the "
+            "node's callbacks never wait for the numerics (false: in a thread of the node)",
+            read_only=True),
+        "max_backlog_mib": _node_parameter(
+            512, "Most received clouds (MiB) waiting for the correction; beyond it the oldest "
+            "waiting ones are dropped and counted, so that an overload (or a trajectory that "
+            "stopped) cannot exhaust memory (0: no limit)", 0, 1 << 20),
+        "shared_memory_mib": _node_parameter(
+            96, "Shared memory (MiB) of each of the two rings that carry clouds to the child "
+            "process and back; a cloud that does not fit goes through a pipe (0: pipes only)",
+            0, 65536, read_only=True),
+    },
 }
+#: Parameters every ROS 2 node declares. A parameters file may hold them; the CLI passes
+#: them over.
 ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
 
@@ -182,6 +255,18 @@ def coerce(name: str, value: Any) -> Any:
     spec = SCHEMA.get(name)
     if spec is None:
         raise ConfigError(f"unknown parameter '{name}'")
+    return check_value(name, spec, value)
+
+
+def check_value(name: str, spec: ParameterSpec, value: Any) -> Any:
+    """Check one value of parameter ``name`` against its ``spec`` (of :data:`SCHEMA` or
+    :data:`NODE_PARAMETERS`) and return it in its canonical type.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the parameter and what is wrong.
+    """
     kind = spec.kind
     if kind == "float":
         if isinstance(value, bool) or not isinstance(value, (int, float)):

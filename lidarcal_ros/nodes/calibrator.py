@@ -71,7 +71,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS, FlightConfig
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import extract_columns, extract_xyz
@@ -91,37 +91,19 @@ from lidarcal_ros.io.ros_messages import (
     warm_up_cloud_codec,
     worst_level,
 )
-from lidarcal_ros.nodes.common import (
-    CALIBRATOR_NODE,
+from lidarcal_ros.nodes.parameters import FlightParameters
+from lidarcal_ros.nodes.process import run_main
+from lidarcal_ros.nodes.topics import (
     DIAGNOSTICS_TOPIC,
     ESTIMATE_TOPIC,
-    TRAJECTORY_TYPE_PARAMETER,
     YAML_TOPIC,
-    FlightParameters,
-    NodeParameter,
-    TrajectoryInput,
     diagnostic_array,
     latched_qos,
-    run_main,
     stream_qos,
 )
+from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 
-EXTRA_PARAMETERS = {
-    "memory_budget_points": NodeParameter(0, "Points held for the calibration; past it the "
-                                          "oldest complete strip is released first (0: about "
-                                          "half of this machine's memory, at some 700 bytes "
-                                          "a point)", minimum=0, maximum=2**40),
-    "strip_gap_s": NodeParameter(2.0, "Seconds of point time without a point of a strip after "
-                                 "which the strip is complete", minimum=0.0, maximum=3600.0),
-    "idle_close_s": NodeParameter(2.0, "Wall seconds without any input after which every "
-                                  "open strip is complete (0: never)", minimum=0.0,
-                                  maximum=3600.0),
-    "checkpoint_file": NodeParameter("", "Checkpoint written after each solve and read at "
-                                     "start ('' = none)"),
-    "queue_depth": NodeParameter(1000, "Depth of the point-cloud subscription queue",
-                                 minimum=1, maximum=100000, read_only=True),
-    "trajectory_type": TRAJECTORY_TYPE_PARAMETER,
-}
+EXTRA_PARAMETERS = NODE_PARAMETERS[CALIBRATOR_NODE]
 
 #: Least wall time between two looks for complete strips, s.
 UPDATE_PERIOD_S = 0.2

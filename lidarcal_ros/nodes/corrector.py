@@ -62,7 +62,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
-from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.config import CORRECTOR_NODE, NODE_PARAMETERS, FlightConfig
 from lidarcal_ros.core.georeferencing import describe_model_policy
 from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.params import format_value
@@ -77,70 +77,24 @@ from lidarcal_ros.io.ros_messages import (
     parse_estimate,
     warm_up_cloud_codec,
 )
-from lidarcal_ros.nodes.common import (
-    CORRECTOR_NODE,
+from lidarcal_ros.nodes.parameters import FlightParameters
+from lidarcal_ros.nodes.process import run_main
+from lidarcal_ros.nodes.topics import (
     DIAGNOSTICS_TOPIC,
     ESTIMATE_TOPIC,
-    TRAJECTORY_TYPE_PARAMETER,
-    FlightParameters,
-    NodeParameter,
-    TrajectoryInput,
     diagnostic_array,
     latched_qos,
-    run_main,
     stream_qos,
 )
+from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.correction_service import (
-    RING_BYTES,
     CorrectionProcess,
     LocalCorrection,
     ServiceOptions,
 )
 
-EXTRA_PARAMETERS = {
-    "calibration": NodeParameter("", "Calibration YAML used until the calibrator publishes an "
-                                 "estimate ('' = the configuration's calibration.fixed values)"),
-    "queue_depth": NodeParameter(1000, "Depth of the point-cloud subscription queue",
-                                 minimum=1, maximum=100000, read_only=True),
-    "best_effort": NodeParameter(False, "Subscribe to points with best-effort reliability",
-                                 read_only=True),
-    "trajectory_type": TRAJECTORY_TYPE_PARAMETER,
-    "trajectory_buffer_s": NodeParameter(600.0, "Seconds of trajectory kept", minimum=1.0,
-                                         maximum=1e6),
-    "max_trajectory_wait_s": NodeParameter(5.0, "Longest wall time a chunk waits for the "
-                                           "trajectory to cover it, s", minimum=0.0,
-                                           maximum=600.0),
-    "flush_timeout_s": NodeParameter(0.05, "Wall time without a new chunk after which held "
-                                     "chunks are corrected without look-ahead, s",
-                                     minimum=0.0, maximum=60.0),
-    "lookahead": NodeParameter(False, "Wait for the next chunks of a strip so that points at "
-                               "a chunk's leading edge have neighbours on both sides for the "
-                               "normal: the normals of `lidarcal correct`, a few chunks later "
-                               "(false: correct each chunk at once with the earlier ones as "
-                               "neighbours; least latency)"),
-    "workers": NodeParameter(2, "Threads correcting chunks in parallel (the compiled loops "
-                             "of the normals run without the interpreter lock; 2 raised the "
-                             "capacity on 2 cores from 3.1 to 3.9M points/s)", minimum=1,
-                             maximum=64, read_only=True),
-    "batch_points": NodeParameter(0, "Chunks of one strip corrected together up to this many "
-                                  "points (0: one chunk at a time, least latency)",
-                                  minimum=0, maximum=100_000_000, read_only=True),
-    "separate_process": NodeParameter(True, "Correct in a child process with its own "
-                                      "interpreter lock, so that the node's callbacks never "
-                                      "wait for the numerics (false: in a thread of the node)",
-                                      read_only=True),
-    "max_backlog_mib": NodeParameter(512, "Most received clouds (MiB) waiting for the "
-                                     "correction; beyond it the oldest waiting ones are dropped "
-                                     "and counted, so that an overload (or a trajectory that "
-                                     "stopped) cannot exhaust memory (0: no limit)",
-                                     minimum=0, maximum=1 << 20),
-    "shared_memory_mib": NodeParameter(RING_BYTES >> 20, "Shared memory (MiB) of each of the "
-                                       "two rings that carry clouds to the child process and "
-                                       "back; a cloud that does not fit goes through a pipe "
-                                       "(0: pipes only)", minimum=0, maximum=65536,
-                                       read_only=True),
-}
+EXTRA_PARAMETERS = NODE_PARAMETERS[CORRECTOR_NODE]
 
 _TRAJECTORY_MARGIN_S = 0.02
 #: Trajectory samples the node holds for the correction at most: they go with the next

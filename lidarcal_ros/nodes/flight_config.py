@@ -21,7 +21,12 @@ from typing import Any
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from lidarcal_ros.nodes.common import FLIGHT_CONFIG_NODE, FlightParameters, latched_qos, run_main
+from lidarcal_ros.core.config import FLIGHT_CONFIG_NODE
+from lidarcal_ros.nodes.parameters import FlightParameters
+from lidarcal_ros.nodes.process import run_main
+from lidarcal_ros.nodes.topics import latched_qos
+
+__all__ = ["FlightConfigNode", "main"]
 
 
 class FlightConfigNode(Node):

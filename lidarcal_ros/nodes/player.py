@@ -16,9 +16,12 @@ from collections.abc import Iterable
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from lidarcal_ros.io.bag import BagReader
+from lidarcal_ros.nodes.topics import latched_qos, stream_qos
+
+__all__ = ["PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"]
 
 PLAYER_NODE = "lidarcal_replay"
 
@@ -40,13 +43,8 @@ def topic_qos(info: Any, queue: int) -> QoSProfile:
     best_effort = bool(info.qos) and all(
         q.reliability == QosReliability.BEST_EFFORT for q in info.qos)
     if info.transient_local:
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(1, min(info.count, 100)),
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(int(queue), 1),
-                      reliability=(ReliabilityPolicy.BEST_EFFORT if best_effort
-                                   else ReliabilityPolicy.RELIABLE),
-                      durability=DurabilityPolicy.VOLATILE)
+        return latched_qos(max(1, min(info.count, 100)))
+    return stream_qos(queue, best_effort=best_effort)
 
 
 class PlayerNode(Node):

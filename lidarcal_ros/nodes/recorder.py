@@ -23,6 +23,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from lidarcal_ros.io.bag import BagWriter, normalize_msgtype
 from lidarcal_ros.nodes.player import message_class
 
+__all__ = ["DEFAULT_TOPICS", "RECORDER_NODE", "RecorderNode"]
+
 RECORDER_NODE = "lidarcal_record"
 
 #: What ``lidarcal record`` records by default: the outputs of the node suite.
