@@ -126,7 +126,7 @@ def test_the_stream_converges_by_itself_to_the_offline_estimate(
     midway = StreamingCalibration.load_checkpoint(
         stream.save_checkpoint(tmp_path / "midway.npz"), config)
     assert not midway.converged and midway.refinement_pending
-    assert midway._calibrator.threshold == stream._calibrator.threshold
+    assert midway.threshold == stream.threshold
     assert stream.converge(timeout_s=0.0) is None and stream.refinement_pending  # cut short
     result = stream.converge()
     assert result is not None and result.converged and stream.converged
@@ -144,7 +144,7 @@ def test_the_stream_converges_by_itself_to_the_offline_estimate(
     done = StreamingCalibration.load_checkpoint(
         stream.save_checkpoint(tmp_path / "done.npz"), config)
     assert done.converged and done.refinement_pending and done.latest is None
-    assert done._calibrator.threshold == stream._calibrator.threshold
+    assert done.threshold == stream.threshold
     for resumed in (midway, done):
         again = resumed.converge()
         assert again is not None and again.converged and resumed.converged
@@ -163,7 +163,7 @@ def test_checkpoint_resume_keeps_normal_equations(sim: SimulatedMission, tmp_pat
     np.testing.assert_array_equal(resumed.trajectory.orientation,
                                   stream.trajectory.orientation)
     np.testing.assert_array_equal(resumed.normal_equations.n, stream.normal_equations.n)
-    np.testing.assert_array_equal(resumed._calibrator.delta, stream._calibrator.delta)
+    np.testing.assert_array_equal(resumed.delta, stream.delta)
     assert resumed.strip_ids == stream.strip_ids
     assert resumed.n_points == stream.n_points
     # Carry on from where it stopped: the end result equals the uninterrupted run.
@@ -263,7 +263,7 @@ def test_strips_being_flown_that_outgrow_the_budget_are_thinned_not_kept_whole(
     assert cell > 0 and math.log2(cell / 0.25) == round(math.log2(cell / 0.25))
     assert stream.thinned_points > n_strip // 2
     # strip 1 as held when it closed: every cloud thinned at the final cell
-    held = next(st for st in stream._closed if st.strip_id == 1)
+    held = next(st for st in stream.closed_strips if st.strip_id == 1)
     parts = []
     for c in fed:
         ids = np.asarray(c.strip_id)
@@ -316,7 +316,7 @@ def test_a_trajectory_joined_late_costs_only_the_points_it_misses(
 
 
 def test_the_default_memory_budget_is_half_the_machine_s_memory() -> None:
-    from lidarcal_ros.pipeline.streaming import BYTES_PER_HELD_POINT, default_point_budget
+    from lidarcal_ros.pipeline.stream_inputs import BYTES_PER_HELD_POINT, default_point_budget
 
     assert default_point_budget(16 << 30) == int(0.5 * (16 << 30) / BYTES_PER_HELD_POINT)
     stream = StreamingCalibration(FlightConfig())

@@ -107,7 +107,7 @@ def test_a_bag_read_thinned_and_the_same_bag_streamed_keep_the_same_points(
     assert stream.dropped_non_finite == thinned.dropped_non_finite == 1
     assert stream.n_points == thinned.n_points
     for sid in stream.open_strip_ids:
-        live = stream._open[sid].to_strip(sid)
+        live = stream.open_strip(sid)
         batch = next(s for s in thinned.strips if s.strip_id == sid)
         np.testing.assert_array_equal(live.xyz, batch.xyz)
         np.testing.assert_array_equal(live.t, batch.t)

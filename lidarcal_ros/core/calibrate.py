@@ -380,6 +380,12 @@ class Calibrator:
         """Points held (dropped strips excluded)."""
         return sum(len(ps.strip) for ps in self.strips if not ps.dropped)
 
+    def set_control(self, control: ControlPoints | None) -> None:
+        """Control points for the runs from now on (their matches against the delivered
+        strips are found again)."""
+        self.control = control
+        self._control_before = None
+
     def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
         """Prepare a strip and find its pairs with the strips already held.
 

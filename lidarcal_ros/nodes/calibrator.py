@@ -122,7 +122,7 @@ def streaming_class() -> Any:
 
 def _point_budget(value: Any) -> int:
     """``memory_budget_points`` as points (0: this machine's default)."""
-    from lidarcal_ros.pipeline.streaming import default_point_budget
+    from lidarcal_ros.pipeline.stream_inputs import default_point_budget
 
     return int(value) if int(value) > 0 else default_point_budget()
 

@@ -28,20 +28,23 @@ line, without ``calibration.thinning_cell_m``), their points are thinned as that
 does, at the coarsest of twice the cell in force until they hold at most half the budget, and
 every later cloud at that cell: the calibration goes on with fewer points instead of running
 out of memory (:attr:`StreamingCalibration.auto_thinning_cell_m`, reported).
+
+What is held before a strip is complete (the strips being flown, the trajectory samples) and
+the budget's default are :mod:`lidarcal_ros.pipeline.stream_inputs`; the checkpoint file is
+:mod:`lidarcal_ros.pipeline.stream_checkpoint`.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from lidarcal_ros.core.adjustment import NormalEquations, Observations
+from lidarcal_ros.core.adjustment import NormalEquations
 from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator, Iteration
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.local_trajectory import served_by_trajectory
@@ -49,76 +52,16 @@ from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import CalibrationError, InputError, TrajectoryError
 from lidarcal_ros.io.pointcloud import CloudColumns
+from lidarcal_ros.pipeline.stream_checkpoint import (
+    StreamCheckpoint,
+    read_checkpoint,
+    write_checkpoint,
+)
+from lidarcal_ros.pipeline.stream_inputs import OpenStrips, TrajectorySamples, default_point_budget
+
+__all__ = ["StreamingCalibration"]
 
 logger = logging.getLogger(__name__)
-
-CHECKPOINT_VERSION = 2
-#: What a point held by the calibration costs in memory once its strip is complete (its
-#: triangles, their planes and neighbours; measured: 643 bytes on a 3.2M-point mission).
-BYTES_PER_HELD_POINT = 700
-#: Share of the machine's memory :func:`default_point_budget` gives the calibration.
-_MEMORY_SHARE = 0.5
-#: The first cell of the automatic thinning where no thinning was set, m (then doubled):
-#: about the point spacing of a dense sensor.
-_FIRST_AUTO_CELL_M = 0.25
-#: Coarsest automatic thinning cell, m: beyond it a strip hardly has patches left to match.
-_MAX_AUTO_CELL_M = 32.0
-
-
-def default_point_budget(memory_bytes: int | None = None) -> int:
-    """Points the calibration may hold on this machine: about half of its memory
-    (``memory_bytes``, default the physical memory) at :data:`BYTES_PER_HELD_POINT`; 10M
-    where the memory cannot be read."""
-    if memory_bytes is None:
-        try:
-            memory_bytes = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (AttributeError, ValueError, OSError):
-            return 10_000_000
-    return max(int(_MEMORY_SHARE * memory_bytes / BYTES_PER_HELD_POINT), 1)
-
-
-@dataclass
-class _OpenStrip:
-    """Chunks of a strip still being flown."""
-
-    xyz: list[np.ndarray] = field(default_factory=list)
-    t: list[np.ndarray] = field(default_factory=list)
-    intensity: list[np.ndarray] = field(default_factory=list)
-    has_intensity: bool = True
-    last_t: float = -np.inf
-    n: int = 0
-
-    def add(self, xyz: np.ndarray, t: np.ndarray, intensity: np.ndarray | None) -> None:
-        self.xyz.append(np.ascontiguousarray(xyz, dtype=np.float64))
-        self.t.append(np.ascontiguousarray(t, dtype=np.float64))
-        if intensity is None:
-            self.has_intensity = False
-        elif self.has_intensity:
-            self.intensity.append(np.asarray(intensity, dtype=np.float32))
-        self.last_t = max(self.last_t, float(t.max()))
-        self.n += int(t.shape[0])
-
-    def thin(self, strip_id: int, cell_m: float) -> int:
-        """Keep the first point of each ``cell_m`` cell of every cloud's part held (as
-        ``calibration.thinning_cell_m`` thins each cloud); returns the points let go."""
-        removed = 0
-        for k, xyz in enumerate(self.xyz):
-            keep = first_per_cell(xyz, np.full(xyz.shape[0], strip_id, dtype=np.int64), cell_m)
-            gone = int(keep.size - np.count_nonzero(keep))
-            if not gone:
-                continue
-            removed += gone
-            self.xyz[k], self.t[k] = xyz[keep], self.t[k][keep]
-            if self.has_intensity:
-                self.intensity[k] = self.intensity[k][keep]
-        self.n -= removed
-        return removed
-
-    def to_strip(self, strip_id: int) -> Strip:
-        t = np.concatenate(self.t)
-        order = np.argsort(t, kind="stable")
-        inten = np.concatenate(self.intensity)[order] if self.has_intensity else None
-        return Strip(strip_id, np.concatenate(self.xyz)[order], t[order], inten)
 
 
 @dataclass
@@ -144,6 +87,42 @@ class StreamingCalibration:
         Seconds of point time without a point of a strip after which it is complete.
     """
 
+    #: The map frame of the points and the trajectory (None until the first message).
+    frame_id: str | None
+    #: Points and strips released under the memory budget (module docstring).
+    dropped_points: int
+    dropped_strips: list[int]
+    #: Points left out for a non-finite coordinate or time.
+    dropped_non_finite: int
+    #: Points left out by the thinning of ``calibration.thinning_cell_m`` (and the
+    #: automatic one).
+    thinned_points: int
+    #: Thinning cell (m) the budget forced because the open strips alone held more than it
+    #: (module docstring); 0 while it did not.
+    auto_thinning_cell_m: float
+    #: The latest estimate (None: none yet).
+    latest: CalibrationResult | None
+    #: Whether :attr:`latest` is converged on the strips held (module docstring).
+    converged: bool
+    #: The normal equations of :attr:`latest`.
+    normal_equations: NormalEquations
+    #: Points of strips already complete that arrived later (ignored).
+    late_points: int
+    #: Points of complete strips the trajectory did not serve (left out), and the strips left
+    #: out whole for that reason.
+    uncovered_points: int
+    uncovered_strips: list[int]
+    #: Complete strips the calibration refused, with the reason (left out).
+    rejected_strips: list[tuple[int, str]]
+    _refinement: _Refinement | None
+    _refinement_wanted: bool
+    _samples: TrajectorySamples
+    _open: OpenStrips
+    _closed: list[Strip]
+    _now: float  # newest point time, s
+    _late_strips: set[int]
+    _calibrator: Calibrator
+
     def __init__(
         self,
         config: FlightConfig,
@@ -159,45 +138,12 @@ class StreamingCalibration:
         self.config = config
         self.max_points = int(max_points)
         self.strip_gap_s = float(strip_gap_s)
-        self.frame_id: str | None = None
-        self.dropped_points = 0
-        self.dropped_strips: list[int] = []
-        self.dropped_non_finite = 0
-        #: Points left out by the thinning of ``calibration.thinning_cell_m`` (and the
-        #: automatic one).
-        self.thinned_points = 0
-        #: Thinning cell (m) the budget forced because the open strips alone held more than
-        #: it (module docstring); 0 while it did not.
-        self.auto_thinning_cell_m = 0.0
-        self.latest: CalibrationResult | None = None
-        #: Whether the estimate held is converged on the strips held (module docstring).
-        self.converged = False
+        self._control = control
         #: Seconds the last refinement concluded took in its steps (NaN: none yet).
         self.refinement_seconds = float("nan")
-        self._refinement: _Refinement | None = None
-        self._refinement_wanted = False
+        #: Why there is no estimate yet ('' once there is one).
         self.waiting_for = "no strip complete yet"
-        self.normal_equations = NormalEquations()
-        self._traj_t: list[np.ndarray] = []
-        self._traj_xyz: list[np.ndarray] = []
-        self._traj_q: list[np.ndarray] = []  # orientation quaternions xyzw; NaN: none
-        #: Poses left out of the trajectory: a non-finite stamp or position, or a stamp
-        #: already held.
-        self.poses_left_out = 0
-        self._trajectory: Trajectory | None = None
-        self._open: dict[int, _OpenStrip] = {}
-        self._closed: list[Strip] = []
-        self._control = control
-        self._now = -np.inf
-        self._late_strips: set[int] = set()
-        self.late_points = 0
-        #: Points of complete strips the trajectory did not serve (left out), and the strips
-        #: left out whole for that reason.
-        self.uncovered_points = 0
-        self.uncovered_strips: list[int] = []
-        #: Complete strips the calibration refused, with the reason (left out).
-        self.rejected_strips: list[tuple[int, str]] = []
-        self._calibrator = self._new_calibrator()
+        self.reset()
 
     # ------------------------------------------------------------------ inputs
     def _new_calibrator(self) -> Calibrator:
@@ -215,12 +161,7 @@ class StreamingCalibration:
         """Add trajectory samples (seconds; IMU origin, map frame, metres; the orientation
         quaternions (n, 4) xyzw, NaN rows, the identity or None where not given)."""
         self._check_frame(frame_id, "trajectory")
-        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        self._traj_t.append(t)
-        self._traj_xyz.append(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
-        self._traj_q.append(np.full((t.shape[0], 4), np.nan) if orientation is None
-                            else np.asarray(orientation, dtype=np.float64).reshape(-1, 4))
-        self._trajectory = None
+        self._samples.add(t, xyz, orientation)
 
     def add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
         """Add one PointCloud2 chunk (already decoded to columns).
@@ -256,8 +197,7 @@ class StreamingCalibration:
                 self._late_strips.add(key)
                 self.late_points += int(sel.sum())
                 continue
-            self._open.setdefault(key, _OpenStrip()).add(
-                xyz[sel], t[sel], inten[sel] if inten is not None else None)
+            self._open.add(key, xyz[sel], t[sel], inten[sel] if inten is not None else None)
         self._now = max(self._now, float(t.max()))
         self._enforce_budget()
 
@@ -269,8 +209,7 @@ class StreamingCalibration:
                                                                             control.xyz):
             return
         self._control = control
-        self._calibrator.control = control
-        self._calibrator._control_before = None
+        self._calibrator.set_control(control)
         self._data_changed()
 
     def update_config(self, config: FlightConfig) -> None:
@@ -284,26 +223,57 @@ class StreamingCalibration:
     # ------------------------------------------------------------------ state
     @property
     def trajectory(self) -> Trajectory:
-        if self._trajectory is None:
-            if not self._traj_t:
-                raise InputError("no trajectory received yet")
-            t = np.concatenate(self._traj_t)
-            self._trajectory = Trajectory.from_samples(t, np.concatenate(self._traj_xyz),
-                                                       np.concatenate(self._traj_q))
-            self.poses_left_out = int(t.shape[0]) - len(self._trajectory)
-        return self._trajectory
+        """The trajectory of the samples received.
+
+        Raises
+        ------
+        InputError
+            No sample received yet.
+        """
+        return self._samples.trajectory
+
+    @property
+    def poses_left_out(self) -> int:
+        """Poses left out of the trajectory: a non-finite stamp or position, or a stamp
+        already held."""
+        return self._samples.left_out
 
     @property
     def n_points(self) -> int:
-        return self._calibrator.n_points + sum(o.n for o in self._open.values())
+        """Points held, in complete strips and in strips being flown."""
+        return self._calibrator.n_points + self._open.n_points
 
     @property
     def strip_ids(self) -> list[int]:
-        return [s.strip_id for s in self._closed] + sorted(self._open)
+        """The complete strips held (in the order they were completed), then those being
+        flown."""
+        return [s.strip_id for s in self._closed] + self._open.ids
 
     @property
     def open_strip_ids(self) -> list[int]:
-        return sorted(self._open)
+        """The strips being flown."""
+        return self._open.ids
+
+    @property
+    def closed_strips(self) -> tuple[Strip, ...]:
+        """The complete strips the calibration holds (points as it holds them)."""
+        return tuple(self._closed)
+
+    def open_strip(self, strip_id: int) -> Strip:
+        """The points of a strip being flown held so far, in time order."""
+        return self._open.strip(strip_id)
+
+    @property
+    def delta(self) -> np.ndarray:
+        """The current estimate (``PARAMETER_NAMES`` order, SI units), read-only."""
+        view = self._calibrator.delta.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def threshold(self) -> float:
+        """The matching threshold the next matching uses, m."""
+        return float(self._calibrator.threshold)
 
     @property
     def thinning_cell_m(self) -> float:
@@ -329,13 +299,10 @@ class StreamingCalibration:
     def _thin_open_strips(self) -> None:
         """The open strips alone hold more than the budget: thin them, and what comes later,
         at twice the cell in force until they hold at most half of it (module docstring)."""
-        target = self.max_points // 2
-        cell = self.thinning_cell_m or _FIRST_AUTO_CELL_M / 2.0
         before = self.n_points
-        while self.n_points > target and cell < _MAX_AUTO_CELL_M:
-            cell *= 2.0
-            for key, strip in self._open.items():
-                self.thinned_points += strip.thin(key, cell)
+        cell, removed = self._open.thin_to(self.max_points // 2 - self._calibrator.n_points,
+                                           self.thinning_cell_m)
+        self.thinned_points += removed
         self.auto_thinning_cell_m = cell
         logger.warning("memory budget: the strips being flown held %d points of a budget of %d;"
                        " thinned to one point per %g m cell per strip and cloud (%d held)",
@@ -350,7 +317,7 @@ class StreamingCalibration:
         ``lidarcal calibrate`` refuses such a mission). A strip the calibration still
         refuses is left out with its reason (:attr:`rejected_strips`), and the others go on.
         """
-        strip = self._open.pop(strip_id).to_strip(strip_id)
+        strip = self._open.pop(strip_id)
         served = served_by_trajectory(
             strip.t, strip.xyz, self.trajectory,
             window_s=self._calibrator.settings.trajectory_window_s)
@@ -395,16 +362,16 @@ class StreamingCalibration:
         Returns the new result, or None if no strip was closed.
         """
         now = self._now if now_s is None else max(self._now, float(now_s))
-        if not self._traj_t:
+        if not self._samples:
             self.waiting_for = "no trajectory received yet"
             return None
-        ready = [sid for sid, o in self._open.items()
-                 if now - o.last_t >= self.strip_gap_s and self._covered(o.last_t)]
+        ready = [sid for sid in self._open.ready(now, self.strip_gap_s)
+                 if self._covered(self._open.last_t(sid))]
         if not ready:
             return None
         # Not converged from the moment a strip joins (whoever looks meanwhile: diagnostics).
         self._data_changed(refine=True)
-        for sid in sorted(ready, key=lambda k: self._open[k].last_t):
+        for sid in ready:
             formed = self._close(sid)
             logger.info("strip %d complete: overlaps %s", sid,
                         ", ".join(str(a) for a, _ in formed) or "no earlier strip")
@@ -425,8 +392,8 @@ class StreamingCalibration:
     def solve(self) -> CalibrationResult:
         """Close every open strip the trajectory covers and run the full adjustment, as
         ``lidarcal calibrate`` does on the same data."""
-        for sid in sorted(self._open, key=lambda k: self._open[k].last_t):
-            if self._covered(self._open[sid].last_t):
+        for sid in self._open.by_age():
+            if self._covered(self._open.last_t(sid)):
                 self._close(sid)
         self._data_changed(refine=False)
         self._calibrator.delta = np.zeros_like(self._calibrator.delta)
@@ -539,11 +506,13 @@ class StreamingCalibration:
         self.thinned_points = 0
         self.auto_thinning_cell_m = 0.0
         self.latest = None
-        self._data_changed(refine=False)
+        self.converged = False
+        self._refinement = None
+        self._refinement_wanted = False
         self.normal_equations = NormalEquations()
-        self._traj_t, self._traj_xyz, self._traj_q = [], [], []
-        self._trajectory = None
-        self._open, self._closed = {}, []
+        self._samples = TrajectorySamples()
+        self._open = OpenStrips()
+        self._closed = []
         self._now = -np.inf
         self._late_strips = set()
         self.late_points = 0
@@ -562,58 +531,18 @@ class StreamingCalibration:
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path: str | Path) -> Path:
-        """Write everything needed to resume (atomic ``.npz``)."""
-        path = Path(path)
-        arrays: dict[str, np.ndarray] = {
-            "version": np.array(CHECKPOINT_VERSION),
-            "traj_t": np.concatenate(self._traj_t) if self._traj_t else np.empty(0),
-            "traj_xyz": np.concatenate(self._traj_xyz) if self._traj_xyz else np.empty((0, 3)),
-            "traj_orientation": (np.concatenate(self._traj_q) if self._traj_q
-                                 else np.empty((0, 4))),
-            "delta": self._calibrator.delta,
-            "threshold": np.array(self._calibrator.threshold),
-            "converged": np.array(self.converged),
-            "counters": np.array([self.dropped_points, self.dropped_non_finite,
-                                  self.thinned_points]),
-            "auto_thinning_cell_m": np.array(self.auto_thinning_cell_m),
-            "uncovered_points": np.array(self.uncovered_points),
-            "uncovered_strips": np.array(self.uncovered_strips, dtype=np.int64),
-            "rejected_ids": np.array([i for i, _ in self.rejected_strips], dtype=np.int64),
-            "rejected_reasons": np.array([r for _, r in self.rejected_strips], dtype=np.str_),
-            "dropped_strips": np.array(self.dropped_strips, dtype=np.int64),
-            "neq_n": self.normal_equations.n, "neq_u": self.normal_equations.u,
-            "neq_yy": np.array(self.normal_equations.yy),
-            "neq_count": np.array(self.normal_equations.count),
-            "frame_id": np.array(self.frame_id or ""),
-        }
-        closed_ids = []
-        for strip in self._closed:
-            closed_ids.append(strip.strip_id)
-            arrays[f"closed_{strip.strip_id}_xyz"] = strip.xyz
-            arrays[f"closed_{strip.strip_id}_t"] = strip.t
-            if strip.intensity is not None:
-                arrays[f"closed_{strip.strip_id}_i"] = strip.intensity
-        arrays["closed_ids"] = np.array(closed_ids, dtype=np.int64)
-        open_ids = []
-        for sid, o in self._open.items():
-            open_ids.append(sid)
-            s = o.to_strip(sid)
-            arrays[f"open_{sid}_xyz"] = s.xyz
-            arrays[f"open_{sid}_t"] = s.t
-            if s.intensity is not None:
-                arrays[f"open_{sid}_i"] = s.intensity
-        arrays["open_ids"] = np.array(open_ids, dtype=np.int64)
-        frozen = self._calibrator.frozen_observations()
-        for name in ("rows", "y", "weights", "group", "cluster"):
-            arrays[f"frozen_{name}"] = getattr(frozen, name)
-        if self._control is not None:
-            arrays["control_xyz"] = self._control.xyz
-            arrays["control_ids"] = np.array(self._control.ids)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        with tmp.open("wb") as fh:
-            np.savez(fh, allow_pickle=False, **arrays)
-        tmp.replace(path)
-        return path
+        """Write everything needed to resume (:mod:`~lidarcal_ros.pipeline.stream_checkpoint`)."""
+        return write_checkpoint(path, StreamCheckpoint(
+            frame_id=self.frame_id, trajectory=self._samples.arrays(),
+            closed=list(self._closed), open=list(self._open.strips()),
+            delta=self._calibrator.delta, threshold=self._calibrator.threshold,
+            converged=self.converged, frozen=self._calibrator.frozen_observations(),
+            normal_equations=self.normal_equations, control=self._control,
+            dropped_points=self.dropped_points, dropped_non_finite=self.dropped_non_finite,
+            thinned_points=self.thinned_points, auto_thinning_cell_m=self.auto_thinning_cell_m,
+            uncovered_points=self.uncovered_points,
+            uncovered_strips=list(self.uncovered_strips),
+            rejected_strips=list(self.rejected_strips), dropped_strips=list(self.dropped_strips)))
 
     @classmethod
     def load_checkpoint(
@@ -627,66 +556,36 @@ class StreamingCalibration:
         InputError
             Unreadable or incompatible checkpoint.
         """
-        path = Path(path)
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path}: cannot read checkpoint ({exc})") from None
-        with data:
-            if int(data["version"]) != CHECKPOINT_VERSION:
-                raise InputError(f"{path}: checkpoint version {int(data['version'])} unknown")
-            control = None
-            if "control_xyz" in data:
-                control = ControlPoints([str(i) for i in data["control_ids"]],
-                                        data["control_xyz"])
-            self = cls(config, control=control, max_points=max_points, strip_gap_s=strip_gap_s)
-            frame = str(data["frame_id"])
-            self.frame_id = frame or None
-            if data["traj_t"].size:
-                self._traj_t = [data["traj_t"]]
-                self._traj_xyz = [data["traj_xyz"]]
-                self._traj_q = [data["traj_orientation"]]
-            counters = [int(v) for v in data["counters"]]
-            self.dropped_points, self.dropped_non_finite = counters[:2]
-            if len(counters) > 2:  # (checkpoints of earlier versions lack it)
-                self.thinned_points = counters[2]
-            if "auto_thinning_cell_m" in data:  # (nor this)
-                self.auto_thinning_cell_m = float(data["auto_thinning_cell_m"])
-            if "uncovered_points" in data:  # (checkpoints of earlier versions lack them)
-                self.uncovered_points = int(data["uncovered_points"])
-                self.uncovered_strips = [int(v) for v in data["uncovered_strips"]]
-            if "rejected_ids" in data:
-                self.rejected_strips = [(int(i), str(r)) for i, r in
-                                        zip(data["rejected_ids"], data["rejected_reasons"],
-                                            strict=True)]
-            self.dropped_strips = [int(v) for v in data["dropped_strips"]]
-            for sid in data["closed_ids"]:
-                key = f"closed_{int(sid)}"
-                inten = data[f"{key}_i"] if f"{key}_i" in data else None
-                strip = Strip(int(sid), data[f"{key}_xyz"], data[f"{key}_t"], inten)
-                self._closed.append(strip)
-                self._calibrator.add_strip(strip, self.trajectory)
-            for sid in data["open_ids"]:
-                key = f"open_{int(sid)}"
-                o = _OpenStrip()
-                inten = data[f"{key}_i"] if f"{key}_i" in data else None
-                o.add(data[f"{key}_xyz"], data[f"{key}_t"], inten)
-                self._open[int(sid)] = o
-            frozen = Observations(data["frozen_rows"], data["frozen_y"], data["frozen_weights"],
-                                  data["frozen_group"], data["frozen_cluster"])
-            self._calibrator.delta = np.array(data["delta"])
-            self._calibrator.restore_frozen(frozen)  # expressed at the saved estimate
-            self._calibrator.threshold = float(data["threshold"])
-            # (checkpoints of earlier versions lack it: not known to be converged)
-            self.converged = bool(data["converged"]) if "converged" in data else False
-            # No result survives a restart: converge again (at once where it was converged)
-            # for one to publish.
-            self._refinement_wanted = bool(self._closed) or len(frozen) > 0
-            self.normal_equations = NormalEquations(
-                np.array(data["neq_n"]), np.array(data["neq_u"]), float(data["neq_yy"]),
-                int(data["neq_count"]))
-            if self._closed:
-                self._now = max(float(s.t[-1]) for s in self._closed)
-            for o in self._open.values():
-                self._now = max(self._now, o.last_t)
+        state = read_checkpoint(path)
+        self = cls(config, control=state.control, max_points=max_points,
+                   strip_gap_s=strip_gap_s)
+        self.frame_id = state.frame_id
+        t, xyz, orientation = state.trajectory
+        if t.size:
+            self._samples.add(t, xyz, orientation)
+        self.dropped_points = state.dropped_points
+        self.dropped_non_finite = state.dropped_non_finite
+        self.thinned_points = state.thinned_points
+        self.auto_thinning_cell_m = state.auto_thinning_cell_m
+        self.uncovered_points = state.uncovered_points
+        self.uncovered_strips = list(state.uncovered_strips)
+        self.rejected_strips = list(state.rejected_strips)
+        self.dropped_strips = list(state.dropped_strips)
+        for strip in state.closed:
+            self._closed.append(strip)
+            self._calibrator.add_strip(strip, self.trajectory)
+        for strip in state.open:
+            self._open.add(strip.strip_id, strip.xyz, strip.t, strip.intensity)
+        self._calibrator.delta = np.array(state.delta)
+        self._calibrator.restore_frozen(state.frozen)  # expressed at the saved estimate
+        self._calibrator.threshold = state.threshold
+        self.converged = state.converged
+        # No result survives a restart: converge again (at once where it was converged) for
+        # one to publish.
+        self._refinement_wanted = bool(self._closed) or len(state.frozen) > 0
+        self.normal_equations = state.normal_equations
+        if self._closed:
+            self._now = max(float(s.t[-1]) for s in self._closed)
+        for sid in self._open.ids:
+            self._now = max(self._now, self._open.last_t(sid))
         return self
