@@ -269,9 +269,9 @@ def replayed(suite: Suite) -> Replayed:
     _wait(lambda: len(suite.probe.corrected) >= n_clouds, 60, "every corrected cloud")
     _wait(lambda: len(suite.probe.corrected_in_thread) >= n_clouds, 60,
           "every cloud corrected in a thread")
-    cal = suite.cal
+    cal = suite.cal.calibration
     _wait(lambda: cal.stream.strip_ids == [1, 2, 3, 4, 5, 6] and not cal.stream.open_strip_ids
-          and cal._jobs.empty(), 90, "the calibrator to close all six strips")
+          and cal.queued_jobs == 0, 90, "the calibrator to close all six strips")
     _wait(lambda: "lidarcal: strips 1&2" in suite.probe.diagnostics, 30, "pair diagnostics")
     with suite.probe.lock:
         corrected = list(suite.probe.corrected)
@@ -299,7 +299,7 @@ def test_replayed_mission_gives_the_offline_estimate(replayed: Replayed) -> None
     assert "lidarcal: convergence" in suite.probe.diagnostics
 
     assert "15 strip pairs" in replayed.solve.message
-    assert cal.solves >= 1
+    assert cal.calibration.solves >= 1
     live = parse_estimate(suite.probe.estimates[-1].data,
                           [d.label for d in suite.probe.estimates[-1].layout.dim])
 
@@ -532,14 +532,14 @@ def test_a_malformed_cloud_is_logged_and_skipped(replayed: Replayed) -> None:
     no_time = np.zeros(5, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
     truncated = cloud_cdr(10**18, "map", good)[:-41]
     messages = [cloud_cdr(10**18, "map", no_time), bytes(truncated), b"\x00\x01\x00\x00junk"]
-    skipped_cal = suite.cal.input["skipped"]
+    skipped_cal = suite.cal.calibration.input.skipped
     skipped_cor = suite.cor.stats.skipped
     pub = suite.probe_node.create_publisher(PointCloud2, "/lidar/points", 10)
     try:
         _wait(lambda: pub.get_subscription_count() >= 2, 10, "point subscribers")
         for raw in messages:
             pub.publish(raw)
-        _wait(lambda: suite.cal.input["skipped"] >= skipped_cal + 3 and
+        _wait(lambda: suite.cal.calibration.input.skipped >= skipped_cal + 3 and
               suite.cor.stats.skipped >= skipped_cor + 3, 10, "the clouds to be skipped")
     finally:
         suite.probe_node.destroy_publisher(pub)
@@ -552,7 +552,7 @@ def test_a_malformed_cloud_is_logged_and_skipped(replayed: Replayed) -> None:
     assert np.isfinite(refl).any()
     status = suite.cor.status()
     assert status.level == 1 and "malformed" in status.message
-    inputs = suite.cal.node_statuses()[1]
+    inputs = suite.cal.calibration.operating_statuses()[1]
     assert inputs.level == 1
     # the good cloud belongs to strip 1, complete since the mission's replay: ignored, said
     assert int(inputs.values["late_points"]) >= len(parse_cloud(raw).points)
@@ -581,18 +581,18 @@ def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(
 
 def test_memory_budget_releases_the_oldest_strips_and_says_so(replayed: Replayed) -> None:
     suite = replayed.suite
-    held = suite.cal.stream.n_points
+    held = suite.cal.calibration.stream.n_points
     results = suite.set_parameters("lidarcal_calibrator", memory_budget_points=held // 2)
     assert results[0].successful, results[0].reason
     with open_bag(suite.mission.bag) as b:
         raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
     _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)  # any cloud triggers the budget
-    _wait(lambda: suite.cal.stream.dropped_points > 0, 10, "strips to be released")
-    memory = suite.cal.node_statuses()[0]
+    _wait(lambda: suite.cal.calibration.stream.dropped_points > 0, 10, "strips to be released")
+    memory = suite.cal.calibration.operating_statuses()[0]
     assert memory.name == "lidarcal: memory" and memory.level == 1
-    assert suite.cal.stream.n_points <= held // 2
+    assert suite.cal.calibration.stream.n_points <= held // 2
     assert memory.values["dropped_strips"].startswith("1")  # the oldest first
-    assert int(memory.values["dropped_points"]) == suite.cal.stream.dropped_points
+    assert int(memory.values["dropped_points"]) == suite.cal.calibration.stream.dropped_points
     assert "released" in memory.message
 
 
@@ -602,12 +602,12 @@ def test_thinning_set_at_run_time_thins_the_next_clouds_and_says_so(replayed: Re
     calibrator, which thins the clouds after it (as ``lidarcal calibrate`` reads a bag) and
     counts what it left out in its memory status."""
     suite = replayed.suite
-    before = suite.cal.stream.thinned_points
+    before = suite.cal.calibration.stream.thinned_points
     results = suite.set_parameters("lidarcal_flight_config", calibration__thinning_cell_m=5.0)
     assert results[0].successful, results[0].reason
     try:
-        _wait(lambda: suite.cal.stream.config["calibration.thinning_cell_m"] == 5.0, 10,
-              "the calibrator to follow")
+        _wait(lambda: suite.cal.calibration.stream.config["calibration.thinning_cell_m"] == 5.0,
+              10, "the calibrator to follow")
         with open_bag(suite.mission.bag) as b:
             raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
         cols = extract_columns(parse_cloud(raw).points)
@@ -615,9 +615,9 @@ def test_thinning_set_at_run_time_thins_the_next_clouds_and_says_so(replayed: Re
         expected = int((~first_per_cell(cols.xyz, cols.strip_id, 5.0)).sum())
         assert expected > 0
         _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)
-        _wait(lambda: suite.cal.stream.thinned_points == before + expected, 10,
+        _wait(lambda: suite.cal.calibration.stream.thinned_points == before + expected, 10,
               "the cloud to be thinned")
-        memory = suite.cal.node_statuses()[0]
+        memory = suite.cal.calibration.operating_statuses()[0]
         assert memory.values["thinning_cell_m"] == "5"
         assert int(memory.values["thinned_points"]) == before + expected
         assert "left out by thinning" in memory.message
@@ -641,7 +641,7 @@ def test_reset_forgets_everything_and_its_checkpoint(replayed: Replayed,
         response = suite.call("/lidarcal_calibrator/reset")
         assert response.success and "forgotten" in response.message
         assert str(ckpt) in response.message and not ckpt.exists()
-        stream = suite.cal.stream
+        stream = suite.cal.calibration.stream
         assert stream.strip_ids == [] and stream.n_points == 0
         assert stream.normal_equations.count == 0 and stream.latest is None
         solve = suite.call("/lidarcal_calibrator/solve")
