@@ -25,6 +25,7 @@ schema names lack ``/msg/``).
 from __future__ import annotations
 
 import copy
+import itertools
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +39,7 @@ from lidarcal_ros.core.mission import Mission, Strip, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.io.bag import BagWriter, seconds_to_ns
+from lidarcal_ros.io.pointcloud import CloudColumns
 from lidarcal_ros.pipeline.calibration import write_simulation
 
 #: A six-strip "paper" mission over 250 m lines, about 160 000 points: simulates in < 1 s.
@@ -221,6 +223,35 @@ def with_non_finite(mission: Mission, per_strip: int = 2, seed: int = 0) -> tupl
         s.xyz, s.t = xyz, t
         n += per_strip
     return out, n
+
+
+# ------------------------------------------------------------------ live input
+#: One message of a mission as a live node receives it: (time s, "cloud" or "pose", payload);
+#: a cloud's payload is its CloudColumns, a pose's its position (3,) and quaternion xyzw (4,),
+#: NaN where the trajectory has no orientation.
+StreamEvent = tuple[float, str, Any]
+
+
+def stream_events(mission: Mission, seconds: float = 0.5) -> list[StreamEvent]:
+    """The mission as a bag would carry it: chunks of ``seconds`` of each strip and the
+    trajectory samples, in time order."""
+    traj = mission.trajectory
+    events: list[StreamEvent] = []
+    for strip in mission.strips:
+        assert strip.intensity is not None  # simulated strips always carry intensity
+        edges = np.arange(strip.t[0], strip.t[-1] + seconds, seconds)
+        for a, b in itertools.pairwise(edges):
+            sel = (strip.t >= a) & (strip.t < b)
+            if sel.any():
+                cols = CloudColumns(strip.xyz[sel], strip.t[sel], strip.intensity[sel],
+                                    np.full(int(sel.sum()), strip.strip_id, np.uint32))
+                events.append((float(strip.t[sel][0]), "cloud", cols))
+    orientation = (traj.orientation if traj.orientation is not None
+                   else np.full((len(traj.t), 4), np.nan))  # (NaN: none)
+    for t, xyz, q in zip(traj.t, traj.xyz, orientation, strict=True):
+        events.append((float(t), "pose", (xyz, q)))
+    events.sort(key=lambda e: e[0])
+    return events
 
 
 # ------------------------------------------------------------------ writing variants

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import itertools
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers_missions import stream_events
 
 from lidarcal_ros.core.calibrate import calibrate
 from lidarcal_ros.core.config import FlightConfig
@@ -24,26 +24,6 @@ def sim() -> SimulatedMission:
     heading would take the track's and land sigmas away from the offline estimate."""
     return simulate_mission(density=0.2, line_length_m=220.0, seed=41, wind_mps=(5.0, 0.0),
                             attitude=True)
-
-
-def _chunks(sim: SimulatedMission, seconds: float = 0.5):
-    """The mission as a bag would carry it: time-ordered chunks and trajectory samples."""
-    traj = sim.mission.trajectory
-    events: list[tuple[float, str, Any]] = []
-    for strip in sim.mission.strips:
-        assert strip.intensity is not None  # simulated strips always carry intensity
-        edges = np.arange(strip.t[0], strip.t[-1] + seconds, seconds)
-        for a, b in itertools.pairwise(edges):
-            sel = (strip.t >= a) & (strip.t < b)
-            if sel.any():
-                cols = CloudColumns(strip.xyz[sel], strip.t[sel], strip.intensity[sel],
-                                    np.full(int(sel.sum()), strip.strip_id, np.uint32))
-                events.append((float(strip.t[sel][0]), "cloud", cols))
-    assert traj.orientation is not None
-    for t, xyz, q in zip(traj.t, traj.xyz, traj.orientation, strict=True):
-        events.append((float(t), "pose", (xyz, q)))
-    events.sort(key=lambda e: e[0])
-    return events
 
 
 def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> int:
@@ -63,7 +43,7 @@ def test_replay_equals_offline(sim: SimulatedMission) -> None:
     config = FlightConfig()
     offline = calibrate(sim.mission, config.calibration_settings())
     stream = StreamingCalibration(config, control=sim.mission.control)
-    updates = _feed(stream, _chunks(sim))
+    updates = _feed(stream, stream_events(sim.mission))
     assert updates >= 3  # strips closed and solved as they ended
     assert stream.latest is not None
     live = stream.solve()
@@ -95,7 +75,7 @@ def test_the_stream_converges_by_itself_to_the_offline_estimate(
     stream = StreamingCalibration(config, control=sim.mission.control)
     converged_on: list[list[int]] = []  # strips closed when a refinement converged
     quick: list[Any] = []
-    for t, kind, payload in _chunks(sim):
+    for t, kind, payload in stream_events(sim.mission):
         if kind == "pose":
             stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
                                   payload[1][None, :])
@@ -153,7 +133,7 @@ def test_the_stream_converges_by_itself_to_the_offline_estimate(
 
 def test_checkpoint_resume_keeps_normal_equations(sim: SimulatedMission, tmp_path: Path) -> None:
     config = FlightConfig()
-    events = _chunks(sim)
+    events = stream_events(sim.mission)
     stream = StreamingCalibration(config, control=sim.mission.control)
     half = len(events) * 2 // 3
     _feed(stream, events, stop=half)
@@ -179,7 +159,7 @@ def test_a_point_above_the_aircraft_and_a_strip_resumed_after_closing_are_left_o
     """One spurious return above the aircraft costs that point, not its strip; points of a
     strip that resume after it was closed (a pause longer than strip_gap_s, e.g. over water)
     are left out with the reason, and the rest calibrates as before."""
-    events = _chunks(sim)
+    events = stream_events(sim.mission)
     first, second, last = sim.mission.strips[0], sim.mission.strips[1], sim.mission.strips[-1]
     k = next(i for i, e in enumerate(events)
              if e[1] == "cloud" and e[2].strip_id[0] == second.strip_id)
@@ -204,7 +184,7 @@ def test_a_point_above_the_aircraft_and_a_strip_resumed_after_closing_are_left_o
     assert stream.n_points == sum(len(s) for s in sim.mission.strips) - 1
     assert any(second.strip_id in (p.strip_a, p.strip_b) for p in result.pairs)
     reference = StreamingCalibration(FlightConfig(), control=sim.mission.control)
-    _feed(reference, _chunks(sim))
+    _feed(reference, stream_events(sim.mission))
     assert len(result.pairs) == len(reference.solve().pairs)
     # Under a memory budget the first strip has been released when its points resume: they
     # form a strip of their own, which the calibration refuses (same id): left out, said why.
@@ -227,7 +207,7 @@ def test_memory_budget_releases_oldest_strip(sim: SimulatedMission) -> None:
     n_strip = len(sim.mission.strips[0])
     stream = StreamingCalibration(config, control=sim.mission.control,
                                   max_points=int(3.5 * n_strip))
-    _feed(stream, _chunks(sim))
+    _feed(stream, stream_events(sim.mission))
     assert stream.dropped_points > 0 and stream.dropped_strips[0] == 1
     assert stream.n_points <= int(3.5 * n_strip)
     result = stream.solve()  # frozen correspondences still take part
@@ -247,7 +227,7 @@ def test_strips_being_flown_that_outgrow_the_budget_are_thinned_not_kept_whole(
     stream = StreamingCalibration(FlightConfig(), control=sim.mission.control,
                                   max_points=budget)
     fed: list[CloudColumns] = []  # clouds of strip 1 fed while it is open
-    for t, kind, payload in _chunks(sim):
+    for t, kind, payload in stream_events(sim.mission):
         if kind == "pose":
             stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
                                   payload[1][None, :])
@@ -296,7 +276,7 @@ def test_a_trajectory_joined_late_costs_only_the_points_it_misses(
     late): the points it does not cover are left out and counted, the rest calibrates."""
     first = sim.mission.strips[0]
     t0 = float(np.median(first.t)) if joined == "mid_strip" else float(first.t[-1]) + 1.0
-    events = [e for e in _chunks(sim) if e[1] == "cloud" or e[0] >= t0]
+    events = [e for e in stream_events(sim.mission) if e[1] == "cloud" or e[0] >= t0]
     stream = StreamingCalibration(FlightConfig(), control=sim.mission.control)
     _feed(stream, events)
     result = stream.solve()
