@@ -10,8 +10,7 @@ the calibration refuses is counted with its reason while the next one is taken.
 from __future__ import annotations
 
 import shutil
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from typing import Any
 import helpers_missions
 import numpy as np
 import pytest
+from helpers_wait import wait_until
 
 from lidarcal_ros.core.calibrate import CalibrationResult, calibrate
 from lidarcal_ros.core.config import FlightConfig
@@ -30,15 +30,6 @@ from lidarcal_ros.pipeline.calibration_service import CalibrationService, Calibr
 
 small_mission = helpers_missions.small_mission
 mission_factory = helpers_missions.mission_factory
-
-
-def _wait(cond: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 def _config(mission: Any, tmp_path: Path) -> FlightConfig:
@@ -101,10 +92,10 @@ def fed(small_mission: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterato
     events = helpers_missions.stream_events(small_mission.mission)
     _feed(service, events)
     stream = service.stream
-    _wait(lambda: len(stream.strip_ids) == 6 and not stream.open_strip_ids
-          and not stream.refinement_pending and service.queued_jobs == 0 and bool(results)
-          and results[-1].converged and service.checkpoints == len(results), 120,
-          "a converged estimate over the six strips, checkpointed")
+    wait_until(lambda: len(stream.strip_ids) == 6 and not stream.open_strip_ids
+               and not stream.refinement_pending and service.queued_jobs == 0 and bool(results)
+               and results[-1].converged and service.checkpoints == len(results), 120,
+               "a converged estimate over the six strips, checkpointed")
     kept = tmp_path / "converged.npz"
     shutil.copy(checkpoint, kept)
     try:
@@ -145,7 +136,7 @@ def test_a_new_service_resumes_from_the_checkpoint_and_converges_again(
     try:
         assert service.resumed_from == str(checkpoint)
         assert service.stream.strip_ids == [1, 2, 3, 4, 5, 6]
-        _wait(lambda: bool(results) and results[-1].converged, 60, "the converged estimate")
+        wait_until(lambda: bool(results) and results[-1].converged, 60, "the converged estimate")
         _within(results[-1], fed.results[-1], 0.01)
     finally:
         service.close()
@@ -191,7 +182,7 @@ def test_a_refused_cloud_is_counted_with_its_reason_and_the_next_taken(
         service.add_cloud(cols, "odom")
         service.set_options(CalibratorOptions.from_parameters({"memory_budget_points": 5000}))
         service.add_cloud(cols, "map")
-        _wait(lambda: service.stream.n_points == 100, 10, "the second cloud")
+        wait_until(lambda: service.stream.n_points == 100, 10, "the second cloud")
         assert service.input.clouds == 2 and service.input.skipped == 1
         assert "frame 'odom'" in service.input.last_error
         assert service.stream.max_points == 5000

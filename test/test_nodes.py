@@ -17,7 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +26,7 @@ import helpers_missions
 import numpy as np
 import pytest
 import yaml
+from helpers_wait import wait_until as _wait
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_estimate, format_value
@@ -44,15 +45,6 @@ small_mission = helpers_missions.small_mission
 PYTHON = sys.executable
 FAST = helpers_missions.FAST_SETTINGS
 RATE = 25.0  # the small mission (199 s) replays in 8 s
-
-
-def _wait(cond: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 def _replay(bag: Path, *extra: str, timeout: float = 90.0) -> str:

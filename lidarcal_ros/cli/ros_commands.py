@@ -19,6 +19,11 @@ from typing import Any
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
 
+__all__ = [
+    "NODE_CHOICES", "add_record_arguments", "add_replay_arguments", "add_run_arguments",
+    "check_ros_parameters", "cmd_record", "cmd_replay", "cmd_run", "supervise",
+]
+
 
 def _ros_argv(ros_args: list[str] | None, extra: list[str] | None = None) -> list[str]:
     args = list(extra or []) + list(ros_args or [])

@@ -223,13 +223,8 @@ class StreamingCalibration:
     # ------------------------------------------------------------------ state
     @property
     def trajectory(self) -> Trajectory:
-        """The trajectory of the samples received.
-
-        Raises
-        ------
-        InputError
-            No sample received yet.
-        """
+        """The trajectory of the samples received (:attr:`TrajectorySamples.trajectory`:
+        InputError before the first)."""
         return self._samples.trajectory
 
     @property
