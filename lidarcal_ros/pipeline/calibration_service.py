@@ -276,12 +276,15 @@ class CalibrationService:
         self._submit(AddPose(t, xyz, frame_id, orientation))
 
     def set_control(self, control: ControlPoints, source: str) -> None:
+        """Control points for the solves to come (``source`` names them in the log)."""
         self._submit(SetControl(control, source))
 
     def set_config(self, config: FlightConfig, changed: set[str]) -> None:
+        """A new flight configuration (``changed``: the names that changed)."""
         self._submit(SetConfig(config, frozenset(changed)))
 
     def set_options(self, options: CalibratorOptions) -> None:
+        """New options of the calibrator itself."""
         self._submit(SetOptions(options))
 
     # -- requests (any thread; they wait for the worker) ------------------------------------
