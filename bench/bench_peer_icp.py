@@ -52,7 +52,7 @@ from scipy.spatial.transform import Rotation
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
 from lidarcal_ros.core.simulate import DEFAULT_BIASES, SimulatedMission, simulate_mission
-from lidarcal_ros.core.terrain import TREE
+from lidarcal_ros.core.surface import TREE
 from lidarcal_ros.pipeline.calibration import calibrate_mission
 from lidarcal_ros.pipeline.correction import (
     FLAG_NOT_CORRECTED,

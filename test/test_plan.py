@@ -12,7 +12,8 @@ import yaml
 
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.planning import FlightPlan, predict
-from lidarcal_ros.core.terrain import RasterTerrain, cast_rays
+from lidarcal_ros.core.raster_terrain import RasterTerrain
+from lidarcal_ros.core.ray_casting import cast_rays
 from lidarcal_ros.errors import ConfigError, InputError
 from lidarcal_ros.io.dsm_file import read_dsm
 from lidarcal_ros.io.plan_file import read_flight_plan

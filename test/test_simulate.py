@@ -21,6 +21,7 @@ from lidarcal_ros.core.attitude import (
 from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG, RoughAir, crosswind_for_crab
 from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import PARAMETER_NAMES, as_vector
+from lidarcal_ros.core.ray_casting import cast_rays
 from lidarcal_ros.core.simulate import (
     DEFAULT_BIASES,
     biased_point_exact,
@@ -29,7 +30,8 @@ from lidarcal_ros.core.simulate import (
     simulate_mission,
     swath_width,
 )
-from lidarcal_ros.core.terrain import ROOF, TREE, Terrain, cast_rays
+from lidarcal_ros.core.surface import ROOF, TREE
+from lidarcal_ros.core.terrain import Terrain
 from lidarcal_ros.errors import ConfigError
 
 VECTORS = Path(__file__).resolve().parents[2] / "shared" / "vectors" / "method_vectors.json"

@@ -24,8 +24,8 @@ from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import MODELS, describe_models
 from lidarcal_ros.core.mission import Strip
 from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.raster_terrain import RasterTerrain
 from lidarcal_ros.core.simulate import normalise_lines, simulate_mission, swath_width
-from lidarcal_ros.core.terrain import RasterTerrain
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)

@@ -48,7 +48,9 @@ from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
 from lidarcal_ros.core.radiometry import atmospheric_alpha
-from lidarcal_ros.core.terrain import Terrain, cast_rays
+from lidarcal_ros.core.ray_casting import cast_rays
+from lidarcal_ros.core.surface import Surface
+from lidarcal_ros.core.terrain import Terrain
 from lidarcal_ros.errors import ConfigError
 
 SCENARIOS = ("paper", "flat", "one_track")
@@ -100,7 +102,7 @@ class SimulatedMission:
     incidence_true: list[np.ndarray]
     reflectance_true: list[np.ndarray]
     range_true: list[np.ndarray]
-    terrain: Terrain
+    terrain: Surface
     lines: list[dict[str, Any]]
     config: dict[str, Any]
     scan_angle_true: list[np.ndarray] = field(default_factory=list)
@@ -474,7 +476,7 @@ class _LineScan:
                    np.empty(n, dtype=np.float32))
 
 
-def _scan_line(fl: FlightLine, n: int, terrain: Terrain, sensor: _Sensor,
+def _scan_line(fl: FlightLine, n: int, terrain: Surface, sensor: _Sensor,
                rng: np.random.Generator) -> _LineScan:
     """Fire the line's ``n`` pulses: each leaves the IMU origin at its exact (analytic) pose
     along ``R_ins [-sin theta, 0, -cos theta]``, meets the terrain, and is georeferenced by
@@ -494,11 +496,11 @@ def _scan_line(fl: FlightLine, n: int, terrain: Terrain, sensor: _Sensor,
         hits = cast_rays(terrain, state.position, d)
         noise = rng.normal(0.0, sensor.range_noise_m, m) if sensor.range_noise_m > 0 else 0.0
         xb = georeference(state.position, r_ins, hits.t, theta, sensor.bias, noise)
-        cl, rho = terrain._class_and_reflectance_local(hits.inside[:, 0], hits.inside[:, 1])
-        nrm = terrain._normal_local(hits.xyz[:, 0], hits.xyz[:, 1])
+        cl, rho = terrain.class_and_reflectance_local(hits.inside[:, 0], hits.inside[:, 1])
+        nrm = terrain.normal_local(hits.xyz[:, 0], hits.xyz[:, 1])
         if hits.on_wall.any():
             w = hits.on_wall
-            nrm[w] = terrain._wall_normal_local(hits.inside[w, 0], hits.inside[w, 1])
+            nrm[w] = terrain.wall_normal_local(hits.inside[w, 0], hits.inside[w, 1])
         cos_inc = np.clip(np.abs(np.einsum("ij,ij->i", nrm, d)), 0.0, 1.0)
         amp = INTENSITY_K * rho * cos_inc * np.exp(-2.0 * sensor.alpha * hits.t) / hits.t**2
         if sensor.intensity_noise > 0:
@@ -582,7 +584,7 @@ def simulate_mission(
     terrain_kind: str | None = None,
     noise_seed: int | None = None,
     control_xy: Sequence[Sequence[float]] | None = None,
-    terrain: Terrain | None = None,
+    terrain: Surface | None = None,
     wind_mps: Sequence[float] = (0.0, 0.0),
     attitude: bool | None = None,
     rough_air: RoughAir | None = None,
@@ -619,8 +621,8 @@ def simulate_mission(
         for Monte Carlo runs over one terrain.
     control_xy : explicit control point locations (local X, Y), instead of ``n_control``
         placed automatically; kept clear of buildings and trees, Z from the terrain.
-    terrain : Terrain, optional
-        The surface to scan (e.g. a :class:`~lidarcal_ros.core.terrain.RasterTerrain` of the
+    terrain : Surface, optional
+        The surface to scan (e.g. a :class:`~lidarcal_ros.core.raster_terrain.RasterTerrain` of the
         site), instead of one generated from ``seed`` and ``terrain_kind``.
     wind_mps : (east, north)
         Where the air moves, m/s. To hold its track the aircraft turns its nose into the
@@ -737,7 +739,7 @@ def simulate_mission(
                             np.concatenate(traj_q) if with_attitude else None)
     control = None
     if ctrl_xy.shape[0]:
-        cz = terrain._height_local(ctrl_xy[:, 0], ctrl_xy[:, 1])
+        cz = terrain.height_local(ctrl_xy[:, 0], ctrl_xy[:, 1])
         cxyz = np.column_stack([ctrl_xy[:, 0] + ox, ctrl_xy[:, 1] + oy, cz])
         control = ControlPoints([f"C{i + 1}" for i in range(len(cxyz))], cxyz)
     mission = Mission(trajectory=trajectory, strips=strips, control=control)

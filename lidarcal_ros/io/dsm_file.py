@@ -5,7 +5,7 @@ GeoTIFF
     ``ModelPixelScale`` and ``ModelTiepoint`` (read with tifffile; a ``ModelTransformation``
     with rotation is refused). ``PixelIsPoint`` rasters are shifted by half a cell so that
     the grid's edges are cell edges. The GDAL no-data value becomes NaN (filled from the
-    nearest valid cell by :class:`~lidarcal_ros.core.terrain.RasterTerrain`).
+    nearest valid cell by :class:`~lidarcal_ros.core.raster_terrain.RasterTerrain`).
 ``.npy``
     A 2-D array of heights, row 0 the northern edge. It carries no georeference: the cell
     size (default 1 m) and the map position of the north-west corner come from the flight
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidarcal_ros.core.terrain import RasterTerrain
+from lidarcal_ros.core.raster_terrain import RasterTerrain
 from lidarcal_ros.errors import ConfigError, InputError
 
 logger = logging.getLogger(__name__)
