@@ -13,7 +13,7 @@ without biases.
     .venv/bin/python bench/accuracy.py --rough-air   # turbulence; level and rigorous models
 
 With ``--wind E,N`` (m/s, where the air moves) the sensor flies crabbed into the wind on every
-line (``simulate_mission(wind_mps=...)``), which the method, taking its heading from the
+line (``FlightSpec.wind_mps`` of the simulation), which the method, taking its heading from the
 track, cannot see: the checks above then say how far that carries the estimate. With
 ``--attitude`` the trajectory also carries the sensor's heading, as an IMU gives it, and the
 calibration takes it (``matching.heading_source`` ``auto``).
@@ -39,6 +39,7 @@ from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
 from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 ARCSEC = math.pi / 180 / 3600
@@ -120,9 +121,10 @@ def main() -> int:
             opts.update(rough_air=RoughAir(), attitude=True,
                         wind_mps=wind if any(wind) else crosswind_for_crab(5.0, 60.0))
         t0 = time.perf_counter()
-        sim = simulate_mission(biases=biases, **opts)
+        sim = simulate_mission(SimulationSpec.from_options(biases=biases, **opts))
         t1 = time.perf_counter()
-        floor = calibrate(simulate_mission(biases={}, **opts).mission, CalibrationSettings())
+        floor = calibrate(simulate_mission(SimulationSpec.from_options(biases={}, **opts)).mission,
+                          CalibrationSettings())
         crabs = sorted({round(ln["crab_deg"], 2) for ln in sim.lines})
         print(f"seed {seed}: {sim.mission.n_points} points, simulate {t1 - t0:.1f} s"
               + (f", crab {crabs} deg" if any(crabs) else "")

@@ -69,6 +69,7 @@ def prepare_mission(density: float, line_length: float) -> dict[str, Any]:
         meta["cached"] = True
         return meta
     from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import SimulationSpec
     from lidarcal_ros.io.bag import write_mission_bag
     from lidarcal_ros.io.control import write_control_csv
 
@@ -76,8 +77,8 @@ def prepare_mission(density: float, line_length: float) -> dict[str, Any]:
         shutil.rmtree(where)
     where.mkdir(parents=True)
     started = time.perf_counter()
-    sim = simulate_mission(scenario=SCENARIO, density=density, line_length_m=line_length,
-                           seed=SEED)
+    sim = simulate_mission(SimulationSpec.from_options(
+        scenario=SCENARIO, density=density, line_length_m=line_length, seed=SEED))
     bag = where / "mission"
     write_mission_bag(bag, sim.mission)
     control = where / "control.csv"

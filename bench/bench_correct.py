@@ -103,11 +103,12 @@ def prepare_worker(density: float, line_length: float, where: Path) -> None:
     import yaml
 
     from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import SimulationSpec
     from lidarcal_ros.io.bag import write_mission_bag
 
     started = time.perf_counter()
-    sim = simulate_mission(scenario="paper", density=density, line_length_m=line_length,
-                           seed=SEED)
+    sim = simulate_mission(SimulationSpec.from_options(
+        scenario="paper", density=density, line_length_m=line_length, seed=SEED))
     bag = where / "mission"
     write_mission_bag(bag, sim.mission)
     cal = where / "calibration.yaml"
@@ -198,6 +199,7 @@ def throughput_worker(density: float, line_length: float, repeats: int,
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
     from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import SimulationSpec
     from lidarcal_ros.io.bag import _chunk_bounds, _strip_points
     from lidarcal_ros.pipeline.correction import (
         DEFAULT_BATCH_POINTS,
@@ -206,8 +208,8 @@ def throughput_worker(density: float, line_length: float, repeats: int,
     )
 
     tune_allocator()  # as `lidarcal correct` does
-    sim = simulate_mission(scenario="paper", density=density, line_length_m=line_length,
-                           seed=SEED)
+    sim = simulate_mission(SimulationSpec.from_options(
+        scenario="paper", density=density, line_length_m=line_length, seed=SEED))
     mission = sim.mission
     settings = CorrectionSettings.from_config(FlightConfig(), as_vector(sim.biases))
     clouds: list[tuple[int, int, np.ndarray]] = []

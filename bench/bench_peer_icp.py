@@ -51,7 +51,8 @@ from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
-from lidarcal_ros.core.simulate import DEFAULT_BIASES, SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import DEFAULT_BIASES, SimulationSpec
 from lidarcal_ros.core.surface import TREE
 from lidarcal_ros.pipeline.calibration import calibrate_mission
 from lidarcal_ros.pipeline.correction import (
@@ -127,9 +128,9 @@ def mission_specs(quick: bool) -> list[MissionSpec]:
 def simulate(spec: MissionSpec, *, biased: bool = True) -> SimulatedMission:
     """The paper scenario (six strips at 1150 m and 540 m, built-up terrain, one control
     point) with the spec's biases, or without any (the noise floor: same terrain, same noise)."""
-    return simulate_mission(scenario="paper", seed=spec.seed, density=spec.density,
-                            line_length_m=spec.line_length_m,
-                            biases=spec.biases if biased else {})
+    return simulate_mission(SimulationSpec.from_options(
+        scenario="paper", seed=spec.seed, density=spec.density,
+        line_length_m=spec.line_length_m, biases=spec.biases if biased else {}))
 
 
 # ---------------------------------------------------------------------------- truth

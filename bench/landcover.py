@@ -4,8 +4,8 @@ maximum likelihood) of normalised DSM + raw intensity against normalised DSM + r
     .venv/bin/python bench/landcover.py                  # density 0.5, seeds 3 and 4
     .venv/bin/python bench/landcover.py --seeds 3 --cell 2
 
-Each mission (``simulate_mission(scenario="paper", density=D, line_length_m=250)``: six
-strips at 1150 m and 540 m over built-up terrain whose surface classes are known) is
+Each mission (``SimulationSpec.from_options(scenario="paper", density=D, line_length_m=250)``:
+six strips at 1150 m and 540 m over built-up terrain whose surface classes are known) is
 corrected with its true biases (geometry and reflectance, as ``lidarcal correct`` does); the
 classifier is trained on the simulator's five surfaces (30% of each class's cells) and scored
 on the other cells as the paper's four classes (tree, built-up = roofs + asphalt, grass,
@@ -23,6 +23,7 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.landcover import classify_cells
 from lidarcal_ros.core.params import as_vector
 from lidarcal_ros.core.simulate import simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 NAMES = ["soil", "grass", "asphalt", "roof", "tree"]
@@ -38,8 +39,8 @@ def main() -> None:
     args = ap.parse_args()
     for seed in (int(s) for s in args.seeds.split(",")):
         started = time.perf_counter()
-        sim = simulate_mission(scenario="paper", density=args.density, line_length_m=250.0,
-                               seed=seed)
+        sim = simulate_mission(SimulationSpec.from_options(
+            scenario="paper", density=args.density, line_length_m=250.0, seed=seed))
         settings = CorrectionSettings.from_config(FlightConfig(), as_vector(sim.biases))
         xyz, rho, raw, labels = [], [], [], []
         for strip, cls in zip(sim.mission.strips, sim.surface_class, strict=True):

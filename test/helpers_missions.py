@@ -13,13 +13,13 @@ ruff's F811 quiet where a fixture argument would shadow an imported name)::
         cfg = small_mission.fast_config          # parameters file: quick adjustment
         sim = small_mission.sim                  # SimulatedMission (truth, mission, ...)
 
-``mission_factory(**simulate_mission_kwargs)`` gives a :class:`MissionFiles` for other
-settings; results are cached for the session, so reuse is free. Missions are treated as
-read-only; the transforms below (``subset``, ``shift_strip``, ``without_trajectory``,
-``with_non_finite``, ``without_control``) return modified copies. ``write_cloud_bag`` writes
-clouds of any field layout and frames with lidarcal's BagWriter, and ``write_mcap_ros2_bag``
-writes the same mission with the mcap project's own ROS 2 writer (a bare ``.mcap`` whose
-schema names lack ``/msg/``).
+``mission_factory(**options)`` (the keywords of ``SimulationSpec.from_options``) gives a
+:class:`MissionFiles` for other settings; results are cached for the session, so reuse is
+free. Missions are treated as read-only; the transforms below (``subset``, ``shift_strip``,
+``without_trajectory``, ``with_non_finite``, ``without_control``) return modified copies.
+``write_cloud_bag`` writes clouds of any field layout and frames with lidarcal's BagWriter,
+and ``write_mcap_ros2_bag`` writes the same mission with the mcap project's own ROS 2 writer
+(a bare ``.mcap`` whose schema names lack ``/msg/``).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ import yaml
 from lidarcal_ros.core.mission import Mission, Strip, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.io.bag import BagWriter, seconds_to_ns
 from lidarcal_ros.io.pointcloud import CloudColumns
 from lidarcal_ros.pipeline.calibration import write_simulation
@@ -118,7 +119,8 @@ def _key(kwargs: dict[str, Any]) -> str:
 def mission_factory(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Callable[..., MissionFiles]:
-    """``make(**simulate_mission_kwargs) -> MissionFiles``, cached per session.
+    """``make(**options) -> MissionFiles`` (``SimulationSpec.from_options`` keywords), cached
+    per session.
 
     Unspecified arguments default to :data:`SMALL_MISSION`.
     """
@@ -129,7 +131,7 @@ def mission_factory(
         key = _key(args)
         if key not in cache:
             work = tmp_path_factory.mktemp("mission")
-            sim = simulate_mission(**args)
+            sim = simulate_mission(SimulationSpec.from_options(**args))
             paths = write_simulation(work / "mission", sim)
             cache[key] = MissionFiles(
                 sim=sim,

@@ -11,7 +11,8 @@ import pytest
 
 from lidarcal_ros.core.calibrate import CalibrationResult, CalibrationSettings, calibrate
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
-from lidarcal_ros.core.simulate import HIGH, LOW, SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import HIGH, LOW, SimulationSpec
 from lidarcal_ros.errors import CalibrationError
 
 ALL = PARAMETER_NAMES
@@ -28,7 +29,7 @@ SLACK = {"dX": 1e-3, "dY": 1e-3, "dZ": 1e-3, "dr": 1e-3, "dS": 1e-6,
 def _small(**kw: object) -> SimulatedMission:
     opts: dict = {"density": 0.3, "line_length_m": 200.0, "seed": 5}
     opts.update(kw)
-    return simulate_mission(**opts)
+    return simulate_mission(SimulationSpec.from_options(**opts))
 
 
 def _states(result: CalibrationResult) -> dict[str, str]:
@@ -216,8 +217,10 @@ def test_a_crab_the_method_cannot_see_moves_the_estimate_by_millimetres_and_arcs
     estimate moves by millimetres and arcseconds and the strips agree as well as without
     wind (bench/README.md, "Crab")."""
     settings = CalibrationSettings()
-    calm = simulate_mission(density=0.2, line_length_m=220.0, seed=41)
-    windy = simulate_mission(density=0.2, line_length_m=220.0, seed=41, wind_mps=(5.0, 0.0))
+    calm = simulate_mission(SimulationSpec.from_options(density=0.2, line_length_m=220.0,
+                                                        seed=41))
+    windy = simulate_mission(SimulationSpec.from_options(density=0.2, line_length_m=220.0,
+                                                         seed=41, wind_mps=(5.0, 0.0)))
     assert {round(abs(ln["crab_deg"]), 1) for ln in windy.lines} == {4.8}
     calm_result, windy_result = calibrate(calm.mission, settings), calibrate(windy.mission,
                                                                            settings)

@@ -30,7 +30,7 @@ from helpers_missions import (
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.simulate import INTENSITY_K
+from lidarcal_ros.core.scanning import INTENSITY_K
 from lidarcal_ros.core.surface import ASPHALT, GRASS, SOIL
 from lidarcal_ros.io.las import adjusted_gps_to_unix
 from lidarcal_ros.pipeline.correction import (

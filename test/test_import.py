@@ -34,6 +34,7 @@ from lidarcal_ros.cli.main import main as cli_main
 from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
@@ -63,7 +64,8 @@ def _solution_diff(a: Any, b: Any) -> dict[str, float]:
 # ---------------------------------------------------------------------------- fixtures
 @pytest.fixture(scope="module")
 def sim() -> SimulatedMission:
-    return simulate_mission(density=0.2, line_length_m=250.0, seed=11, origin=ORIGIN)
+    return simulate_mission(SimulationSpec.from_options(density=0.2, line_length_m=250.0,
+                                                        seed=11, origin=ORIGIN))
 
 
 @pytest.fixture(scope="module")
@@ -106,9 +108,9 @@ def test_sbet_heading_becomes_the_map_heading_of_the_poses(tmp_path: Path) -> No
     the calibration then takes (``matching.heading_source`` auto)."""
     from lidarcal_ros.core.local_trajectory import window_lines
 
-    crabbed = simulate_mission(density=0.05, line_length_m=150.0, seed=5,
-                               origin=(700_000.0, 5_300_000.0), wind_mps=(4.0, 0.0),
-                               attitude=True)
+    crabbed = simulate_mission(SimulationSpec.from_options(
+        density=0.05, line_length_m=150.0, seed=5, origin=(700_000.0, 5_300_000.0),
+        wind_mps=(4.0, 0.0), attitude=True))
     truth = crabbed.mission.trajectory
     assert truth.heading is not None
     tiles = write_las_tiles(plain_strips(crabbed), tmp_path, laz=())

@@ -538,9 +538,11 @@ def _best_patches_numpy(points: np.ndarray, tri: np.ndarray, simplices: np.ndarr
 
 def test_best_patches_is_the_numpy_matching() -> None:
     from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import SimulationSpec
     from lidarcal_ros.core.tin import Tin, TinQuality
 
-    strips = simulate_mission(density=0.1, line_length_m=150.0, seed=3).mission.strips
+    spec = SimulationSpec.from_options(density=0.1, line_length_m=150.0, seed=3)
+    strips = simulate_mission(spec).mission.strips
     tin = Tin(strips[0].xyz, TinQuality())
     rng = np.random.default_rng(2)
     vertices = strips[0].xyz + rng.normal(0.0, 0.01, strips[0].xyz.shape)  # "corrected"

@@ -38,7 +38,7 @@ from lidarcal_ros import __version__
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.quality_level import LBS_LEVELS, assess
-from lidarcal_ros.core.simulate import INTENSITY_K
+from lidarcal_ros.core.scanning import INTENSITY_K
 from lidarcal_ros.io.config_file import load_flight_config
 from lidarcal_ros.io.html_report import ReportContent, figure_ids, render_html
 from lidarcal_ros.io.las import parse_crs

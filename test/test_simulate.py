@@ -1,4 +1,5 @@
-"""Tests of the mission simulator (lidarcal_ros.core.simulate) and terrain (core.terrain)."""
+"""Tests of the mission simulator (lidarcal_ros.core.simulate and the modules it assembles: its
+spec, the exact bias model, scanning) and the terrain (core.terrain, core.ray_casting)."""
 
 from __future__ import annotations
 
@@ -18,18 +19,14 @@ from lidarcal_ros.core.attitude import (
     interpolated_frames,
     slerp,
 )
+from lidarcal_ros.core.exact_model import biased_point_exact, georeference
 from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG, RoughAir, crosswind_for_crab
 from lidarcal_ros.core.model import boresight_matrix
 from lidarcal_ros.core.params import PARAMETER_NAMES, as_vector
 from lidarcal_ros.core.ray_casting import cast_rays
-from lidarcal_ros.core.simulate import (
-    DEFAULT_BIASES,
-    biased_point_exact,
-    georeference,
-    pulse_and_scan_rates,
-    simulate_mission,
-    swath_width,
-)
+from lidarcal_ros.core.scanning import pulse_and_scan_rates, swath_width
+from lidarcal_ros.core.simulate import simulate_mission
+from lidarcal_ros.core.simulation_spec import DEFAULT_BIASES, HIGH, SimulationSpec
 from lidarcal_ros.core.surface import ROOF, TREE
 from lidarcal_ros.core.terrain import Terrain
 from lidarcal_ros.errors import ConfigError
@@ -63,8 +60,8 @@ def firing_positions(sim, i):
 
 @pytest.fixture(scope="module")
 def paper():
-    return simulate_mission(density=0.3, line_length_m=300.0, range_noise_m=0.0, n_control=3,
-                            seed=3)
+    return simulate_mission(SimulationSpec.from_options(
+        density=0.3, line_length_m=300.0, range_noise_m=0.0, n_control=3, seed=3))
 
 
 # ---------------------------------------------------------------------- exact model vs vectors
@@ -110,8 +107,8 @@ def test_biased_point_exact_zero_biases_is_identity():
 
 def test_zero_bias_zero_noise_points_are_true_points():
     lines = [{"id": 7, "start": (-30.0, -100.0), "end": (40.0, 120.0), "height": 1150.0}]
-    sim = simulate_mission(lines=lines, biases=ZERO, range_noise_m=0.0, density=0.2,
-                           n_control=0, seed=1)
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=lines, biases=ZERO, range_noise_m=0.0, density=0.2, n_control=0, seed=1))
     assert sim.mission.control is None
     strip = sim.mission.strips[0]
     assert strip.strip_id == 7 and len(strip) > 1000
@@ -139,8 +136,8 @@ def test_biased_offsets_agree_with_linearised_model(paper):
 
 def test_range_noise_and_mean_offset():
     lines = [{"id": 1, "start": (0.0, -100.0), "end": (0.0, 100.0), "height": 800.0}]
-    sim = simulate_mission(lines=lines, density=0.3, n_control=0, range_noise_m=0.05,
-                           terrain_kind="flat", seed=2)
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=lines, density=0.3, n_control=0, range_noise_m=0.05, terrain_kind="flat", seed=2))
     strip = sim.mission.strips[0]
     xo = firing_positions(sim, 0)
     # flat ground: the range residual along the beam is dr + noise
@@ -187,8 +184,9 @@ def test_paper_lines_headings_and_layout(paper):
 
 
 def test_density_at_both_heights():
-    sim = simulate_mission(scenario="one_track", density=0.5, line_length_m=300.0,
-                           range_noise_m=0.0, n_control=0, seed=5)
+    sim = simulate_mission(SimulationSpec.from_options(
+        scenario="one_track", density=0.5, line_length_m=300.0, range_noise_m=0.0, n_control=0,
+        seed=5))
     dens = {}
     for ln, pts in zip(sim.lines, sim.true_xyz):
         box = (np.abs(pts[:, 0]) < 60.0) & (np.abs(pts[:, 1]) < 60.0)
@@ -198,7 +196,7 @@ def test_density_at_both_heights():
     ratio = (dens[3] + dens[4]) / (dens[1] + dens[2])
     assert ratio == pytest.approx(swath_width(1150, 50) / swath_width(540, 50), rel=0.1)
     assert 1.9 < ratio < 2.4
-    prf, scan = pulse_and_scan_rates(0.5, 60.0, 50.0)
+    prf, scan = pulse_and_scan_rates(0.5, 60.0, 50.0, HIGH)
     assert sim.config["prf_hz"] == pytest.approx(prf)
     assert sim.config["scan_rate_hz"] == pytest.approx(scan)
     # one track: every line over x = 0
@@ -287,8 +285,8 @@ def test_origin_shifts_everything():
     line = {"id": 1, "start": (0.0, -80.0), "end": (0.0, 80.0), "height": 600.0}
     kw: dict[str, Any] = {"lines": [line],
                           "density": 0.2, "n_control": 1, "seed": 4, "range_noise_m": 0.0}
-    a = simulate_mission(**kw)
-    b = simulate_mission(origin=(500000.0, 5000000.0), **kw)
+    a = simulate_mission(SimulationSpec.from_options(**kw))
+    b = simulate_mission(SimulationSpec.from_options(origin=(500000.0, 5000000.0), **kw))
     off = np.array([500000.0, 5000000.0, 0.0])
     np.testing.assert_allclose(b.mission.strips[0].xyz - off, a.mission.strips[0].xyz,
                                atol=1e-6)
@@ -305,8 +303,8 @@ def test_trajectory_noise_only_on_samples():
     line = {"id": 1, "start": (0.0, -60.0), "end": (0.0, 60.0), "height": 600.0}
     kw: dict[str, Any] = {"lines": [line],
                           "density": 0.1, "n_control": 0, "seed": 4}
-    a = simulate_mission(**kw)
-    b = simulate_mission(trajectory_noise_m=0.1, **kw)
+    a = simulate_mission(SimulationSpec.from_options(**kw))
+    b = simulate_mission(SimulationSpec.from_options(trajectory_noise_m=0.1, **kw))
     d = b.mission.trajectory.xyz - a.mission.trajectory.xyz
     assert 0.07 < d.std() < 0.13
     np.testing.assert_allclose(np.diff(a.mission.trajectory.t), 1 / 50.0, atol=1e-6)
@@ -318,8 +316,9 @@ def test_a_crosswind_crabs_the_sensor_into_the_wind_and_the_points_stay_true() -
     points, while the trajectory keeps flying the track."""
     lines = [{"id": 1, "start": (0.0, -100.0), "end": (0.0, 100.0), "height": 1150.0},
              {"id": 2, "start": (0.0, 100.0), "end": (0.0, -100.0), "height": 1150.0}]
-    sim = simulate_mission(lines=lines, biases=ZERO, range_noise_m=0.0, density=0.2,
-                           n_control=0, seed=1, wind_mps=(5.0, 0.0))
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=lines, biases=ZERO, range_noise_m=0.0, density=0.2, n_control=0, seed=1,
+        wind_mps=(5.0, 0.0)))
     crab = math.degrees(math.asin(5.0 / 60.0))
     # flying north with the air moving east: the nose turns west (left, a larger kappa)
     assert [ln["crab_deg"] for ln in sim.lines] == pytest.approx([crab, -crab])
@@ -335,16 +334,17 @@ def test_a_crosswind_crabs_the_sensor_into_the_wind_and_the_points_stay_true() -
     assert np.ptp(along) > 50.0  # (what no crab would give: 0)
     np.testing.assert_allclose(sim.mission.trajectory.xyz[:, 0], 0.0, atol=1e-9)
     with pytest.raises(ConfigError, match="crosswind"):
-        simulate_mission(lines=lines, density=0.2, wind_mps=(40.0, 0.0))
+        simulate_mission(SimulationSpec.from_options(
+            lines=lines, density=0.2, wind_mps=(40.0, 0.0)))
 
 
 def test_bad_options_raise():
     with pytest.raises(ConfigError):
-        simulate_mission(scenario="nope")
+        simulate_mission(SimulationSpec.from_options(scenario="nope"))
     with pytest.raises(ConfigError):
-        simulate_mission(biases={"dQ": 1.0})
+        simulate_mission(SimulationSpec.from_options(biases={"dQ": 1.0}))
     with pytest.raises(ConfigError):
-        simulate_mission(density=0.0)
+        simulate_mission(SimulationSpec.from_options(density=0.0))
 
 
 # ---------------------------------------------------------------------- rough air, turns, banks
@@ -380,7 +380,7 @@ def test_calm_level_missions_are_bit_identical_to_the_level_simulator(options, d
     """Straight, level lines in calm air (crabbed or not) come out bit for bit as from the
     simulator before it knew roll and pitch (the digests were taken from it, with this
     environment's numpy): every test and the bundled sample built on them stay valid."""
-    assert mission_digest(simulate_mission(**options)) == digest
+    assert mission_digest(simulate_mission(SimulationSpec.from_options(**options))) == digest
 
 
 def angle_between(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
@@ -407,7 +407,7 @@ ROUGH: dict[str, Any] = {
 @pytest.fixture(scope="module")
 def rough():
     """Four lines flown in the reported rough air, 5 deg of crab, paper-like biases."""
-    return simulate_mission(**ROUGH)
+    return simulate_mission(SimulationSpec.from_options(**ROUGH))
 
 
 def test_rough_air_points_lie_on_beams_turned_by_the_attitude(rough):
@@ -449,7 +449,7 @@ def test_without_boresight_the_forward_component_is_the_lever_arm_alone():
     """Lever arm, range and scale biases but no boresight: ``R_ins^T (X_b - X_o)`` less the
     lever arm has no forward component at all and the biased range."""
     biases = {"dX": 0.05, "dY": -0.04, "dZ": 0.03, "dr": 0.118, "dS": 1e-4}
-    sim = simulate_mission(**{**ROUGH, "biases": biases})
+    sim = simulate_mission(SimulationSpec.from_options(**{**ROUGH, "biases": biases}))
     for i in range(len(sim.mission.strips)):
         rho = laser_vectors(sim, i, sim.mission.strips[i].xyz)
         assert np.abs(rho[:, 1] - biases["dY"]).max() < 1e-9
@@ -516,13 +516,14 @@ def test_the_trajectory_interpolated_gives_back_the_exact_attitude_at_50_hz(roug
 
 
 def test_rough_air_is_seeded_and_attitude_false_keeps_positions_only(rough):
-    again = simulate_mission(**{**ROUGH, "attitude": False})
+    again = simulate_mission(SimulationSpec.from_options(**{**ROUGH, "attitude": False}))
     assert again.mission.trajectory.orientation is None
     assert again.config["attitude"] is False
     for a, b in zip(rough.mission.strips, again.mission.strips, strict=True):
         assert np.array_equal(a.xyz, b.xyz)
     assert np.array_equal(rough.mission.trajectory.xyz, again.mission.trajectory.xyz)
-    other = simulate_mission(**{**ROUGH, "rough_air": RoughAir(seed=99)})
+    other = simulate_mission(SimulationSpec.from_options(
+        **{**ROUGH, "rough_air": RoughAir(seed=99)}))
     assert not np.array_equal(other.mission.strips[0].xyz, rough.mission.strips[0].xyz)
     assert other.config["rough_air"]["seed"] == 99 and rough.config["rough_air"]["seed"] == 3
 
@@ -550,8 +551,8 @@ def test_a_turning_line_curves_with_the_bank_of_a_coordinated_turn(manoeuvre, ri
     ``v^2 / (g tan bank)``, the track's heading turns at ``v / R`` (a positive bank, right wing
     down, turns right), and the orientation carries the bank."""
     line = {"id": 1, "start": (0.0, -300.0), "end": (0.0, 300.0), "height": 700.0, **manoeuvre}
-    sim = simulate_mission(lines=[line], biases=ZERO, range_noise_m=0.0, density=0.05,
-                           n_control=0, seed=2, t0=1000.0)
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=[line], biases=ZERO, range_noise_m=0.0, density=0.05, n_control=0, seed=2, t0=1000.0))
     tr = sim.mission.trajectory
     assert tr.orientation is not None and sim.config["attitude"] is True
     x, y = tr.xyz[:, 0], tr.xyz[:, 1]
@@ -592,8 +593,9 @@ def test_a_banked_straight_line_looks_sideways():
     left of the track (right wing down looks left), abeam of the firing point."""
     line = {"id": 1, "start": (0.0, -200.0), "end": (0.0, 200.0), "height": 600.0,
             "roll_deg": 5.0}
-    sim = simulate_mission(lines=[line], biases=ZERO, range_noise_m=0.0, density=0.1,
-                           n_control=0, seed=2, t0=1000.0, terrain_kind="flat")
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=[line], biases=ZERO, range_noise_m=0.0, density=0.1, n_control=0, seed=2, t0=1000.0,
+        terrain_kind="flat"))
     p = sim.true_xyz[0]
     theta = sim.scan_angle_true[0].astype(np.float64)
     tau = sim.mission.strips[0].t - sim.lines[0]["t_first"]
@@ -616,8 +618,8 @@ def test_control_points_are_seen_by_turning_banked_lines_in_rough_air():
               "roll_deg": -6.0},
              {"id": 3, "start": (-400.0, -400.0), "end": (400.0, 400.0), "height": 1000.0,
               "bank_deg": 12.0}]
-    sim = simulate_mission(lines=lines, density=0.1, n_control=3, seed=4,
-                           rough_air=RoughAir(), wind_mps=(3.0, 2.0))
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=lines, density=0.1, n_control=3, seed=4, rough_air=RoughAir(), wind_mps=(3.0, 2.0)))
     assert sim.mission.control is not None and len(sim.mission.control) == 3
     for strip in sim.mission.strips:
         for x, y, _ in sim.mission.control.xyz:
@@ -645,7 +647,7 @@ def test_control_points_are_seen_by_turning_banked_lines_in_rough_air():
 ])
 def test_bad_flight_options_raise_one_line(options, reason):
     with pytest.raises(ConfigError, match=reason) as info:
-        simulate_mission(density=0.05, **options)
+        simulate_mission(SimulationSpec.from_options(density=0.05, **options))
     assert "\n" not in str(info.value)
 
 

@@ -13,6 +13,7 @@ from helpers_missions import stream_events
 from lidarcal_ros.core.calibrate import calibrate
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.errors import CalibrationError, InputError
 from lidarcal_ros.io.pointcloud import CloudColumns
 from lidarcal_ros.pipeline.streaming import StreamingCalibration
@@ -22,8 +23,9 @@ from lidarcal_ros.pipeline.streaming import StreamingCalibration
 def sim() -> SimulatedMission:
     """Flown crabbed (4.8 deg) with the IMU's heading on the poses: a stream that lost the
     heading would take the track's and land sigmas away from the offline estimate."""
-    return simulate_mission(density=0.2, line_length_m=220.0, seed=41, wind_mps=(5.0, 0.0),
-                            attitude=True)
+    return simulate_mission(SimulationSpec.from_options(density=0.2, line_length_m=220.0,
+                                                        seed=41, wind_mps=(5.0, 0.0),
+                                                        attitude=True))
 
 
 def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> int:

@@ -13,6 +13,7 @@ import pytest
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.io.bag import open_bag, write_mission_bag
 from lidarcal_ros.io.pointcloud import extract_columns
@@ -67,7 +68,7 @@ def test_the_first_point_of_each_cell_is_kept(width_m: float, groups: int) -> No
 @pytest.fixture(scope="module")
 def dense() -> SimulatedMission:
     """The paper's six strips, denser than the sample (some 2-5 points per square metre)."""
-    return simulate_mission(density=2.0, line_length_m=160.0, seed=23)
+    return simulate_mission(SimulationSpec.from_options(density=2.0, line_length_m=160.0, seed=23))
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ import pytest
 
 from lidarcal_ros.core import tin
 from lidarcal_ros.core.simulate import simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 
 pytestmark = pytest.mark.skipif(tin._triangle is None, reason="the 'triangle' package is absent")
 
@@ -48,7 +49,8 @@ def test_triangle_and_qhull_triangulate_alike(layout: str) -> None:
 
 
 def test_a_strip_tin_without_triangle_is_the_same(monkeypatch: Any) -> None:
-    strip = simulate_mission(density=0.1, line_length_m=150.0, seed=3).mission.strips[0]
+    spec = SimulationSpec.from_options(density=0.1, line_length_m=150.0, seed=3)
+    strip = simulate_mission(spec).mission.strips[0]
     quality = tin.TinQuality()
     with_triangle = tin.Tin(strip.xyz, quality)
     monkeypatch.setattr(tin, "_triangle", None)  # as where the package is not installed

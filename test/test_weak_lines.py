@@ -35,6 +35,7 @@ from lidarcal_ros.core.calibrate import Calibrator
 from lidarcal_ros.core.mission import Mission, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.core.trajectory_estimation import EstimateSettings
 from lidarcal_ros.io.bag import read_mission, write_mission_bag
 from lidarcal_ros.io.config_file import load_flight_config
@@ -58,7 +59,8 @@ def three_lines() -> SimulatedMission:
     """Three parallel lines at 1150 m, 350 m apart (each overlaps the next by two thirds)."""
     lines = [{"id": i + 1, "start": (x, -125.0), "end": (x, 125.0), "height": 1150.0}
              for i, x in enumerate((-350.0, 0.0, 350.0))]
-    return simulate_mission(lines=lines, density=0.05, seed=3, origin=ORIGIN)
+    return simulate_mission(SimulationSpec.from_options(lines=lines, density=0.05, seed=3,
+                                                        origin=ORIGIN))
 
 
 def _position_error(traj: Trajectory, truth: Trajectory, t0: float, t1: float) -> np.ndarray:
@@ -115,7 +117,8 @@ def test_weak_line_flown_at_another_altitude_keeps_its_own(tmp_path) -> None:
     and it is kept at its own, saying so."""
     lines = [{"id": i + 1, "start": (x, -125.0), "end": (x, 125.0), "height": h}
              for i, (x, h) in enumerate(((-300.0, 1150.0), (0.0, 1150.0), (300.0, 700.0)))]
-    sim = simulate_mission(lines=lines, density=0.05, seed=5, origin=ORIGIN)
+    sim = simulate_mission(SimulationSpec.from_options(lines=lines, density=0.05, seed=5,
+                                                       origin=ORIGIN))
     strips = add_first_returns(sim, fraction=0.3, seed=6)
     third = strips[2]
     first = np.flatnonzero((third["return_number"] == 1) & (third["number_of_returns"] == 2))

@@ -176,7 +176,7 @@ def _rough_air(text: str) -> Any:
 
 def _flight_lines(path: Path) -> list[dict[str, Any]]:
     """The validated lines of ``--lines YAML`` (a list, or a mapping with ``lines``)."""
-    from lidarcal_ros.core.simulate import normalise_lines
+    from lidarcal_ros.core.simulation_spec import normalise_lines
     from lidarcal_ros.io.yaml_file import read_yaml
 
     doc = read_yaml(path, what="flight lines")
@@ -192,7 +192,18 @@ def _flight_lines(path: Path) -> list[dict[str, Any]]:
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG
-    from lidarcal_ros.core.simulate import FOV_DEG, crab_wind, scenario_lines, simulate_mission
+    from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import (
+        DEFAULT_BIASES,
+        FOV_DEG,
+        FlightSpec,
+        NoiseSpec,
+        SensorSpec,
+        SimulationSpec,
+        SiteSpec,
+        crab_wind,
+        scenario_lines,
+    )
     from lidarcal_ros.pipeline.calibration import (
         parse_biases,
         simulation_paths,
@@ -204,9 +215,6 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     origin = _two_numbers(args.origin, "--origin", "X,Y")
     if not args.density > 0:
         raise ConfigError(f"--density must be positive, got {args.density}")
-    kwargs: dict[str, Any] = {}
-    if args.biases is not None:
-        kwargs["biases"] = parse_biases(args.biases)
     rough_air = None if args.rough_air is None else _rough_air(args.rough_air)
     lines = None if args.lines is None else _flight_lines(args.lines)
     if args.wind is not None:
@@ -216,11 +224,16 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                          lines or scenario_lines(args.scenario, args.line_length, FOV_DEG))
     else:
         wind = (0.0, 0.0)
+    spec = SimulationSpec(
+        seed=args.seed,
+        biases=dict(DEFAULT_BIASES) if args.biases is None else parse_biases(args.biases),
+        flight=FlightSpec(scenario=args.scenario, lines=lines, line_length_m=args.line_length,
+                          wind_mps=wind, rough_air=rough_air),
+        sensor=SensorSpec(density=args.density, attitude=args.attitude),
+        noise=NoiseSpec(range_noise_m=args.range_noise),
+        site=SiteSpec(n_control=args.control, origin=origin))
     started = time.perf_counter()
-    sim = simulate_mission(scenario=args.scenario, seed=args.seed, density=args.density,
-                           line_length_m=args.line_length, range_noise_m=args.range_noise,
-                           n_control=args.control, origin=origin, wind_mps=wind,
-                           attitude=args.attitude, rough_air=rough_air, lines=lines, **kwargs)
+    sim = simulate_mission(spec)
     paths = write_simulation(args.output, sim, overwrite=args.overwrite)
     print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
           f"({time.perf_counter() - started:.1f} s)")

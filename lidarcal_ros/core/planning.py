@@ -25,7 +25,16 @@ from lidarcal_ros.core.georeferencing import MODELS, describe_models
 from lidarcal_ros.core.mission import Strip
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.raster_terrain import RasterTerrain
-from lidarcal_ros.core.simulate import normalise_lines, simulate_mission, swath_width
+from lidarcal_ros.core.scanning import swath_width
+from lidarcal_ros.core.simulate import simulate_mission
+from lidarcal_ros.core.simulation_spec import (
+    FlightSpec,
+    NoiseSpec,
+    SensorSpec,
+    SimulationSpec,
+    SiteSpec,
+    normalise_lines,
+)
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)
@@ -215,14 +224,16 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
             raise ConfigError(f"terrain '{plan.terrain}': the DSM has not been read "
                               "(read the plan with lidarcal_ros.io.plan_file.read_flight_plan)")
         _check_dsm_covers(plan, plan.dsm)
-    sim = simulate_mission(
-        lines=plan.lines, terrain_kind=None if plan.uses_dsm else plan.terrain,
-        terrain=plan.dsm if plan.uses_dsm else None, fov_deg=plan.fov_deg,
-        density=simulated_density, speed_mps=plan.speed_mps, range_noise_m=0.0, biases={},
-        intensity_noise=0.0, seed=seed, n_control=0,
-        control_xy=[(c[0], c[1]) for c in plan.control] if plan.control else None,
-        attitude=plan.model != LEVEL,
-    )
+    sim = simulate_mission(SimulationSpec(
+        seed=seed, biases={},
+        flight=FlightSpec(lines=plan.lines, speed_mps=plan.speed_mps),
+        sensor=SensorSpec(density=simulated_density, fov_deg=plan.fov_deg,
+                          attitude=plan.model != LEVEL),
+        noise=NoiseSpec(range_noise_m=0.0, intensity_noise=0.0),
+        site=SiteSpec(terrain_kind=None if plan.uses_dsm else plan.terrain,
+                      terrain=plan.dsm if plan.uses_dsm else None, n_control=0,
+                      control_xy=[(c[0], c[1]) for c in plan.control] if plan.control else None),
+    ))
     settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
                                    model=LEVEL if plan.model == LEVEL else RIGOROUS,
                                    fov_deg=plan.fov_deg)
