@@ -26,7 +26,16 @@ from lidarcal_ros.core.params import PARAMETER_NAMES, as_vector
 from lidarcal_ros.core.ray_casting import cast_rays
 from lidarcal_ros.core.scanning import pulse_and_scan_rates, swath_width
 from lidarcal_ros.core.simulate import simulate_mission
-from lidarcal_ros.core.simulation_spec import DEFAULT_BIASES, HIGH, SimulationSpec
+from lidarcal_ros.core.simulation_spec import (
+    DEFAULT_BIASES,
+    HIGH,
+    OPTION_NAMES,
+    FlightSpec,
+    NoiseSpec,
+    SensorSpec,
+    SimulationSpec,
+    SiteSpec,
+)
 from lidarcal_ros.core.surface import ROOF, TREE
 from lidarcal_ros.core.terrain import Terrain
 from lidarcal_ros.errors import ConfigError
@@ -345,6 +354,46 @@ def test_bad_options_raise():
         simulate_mission(SimulationSpec.from_options(biases={"dQ": 1.0}))
     with pytest.raises(ConfigError):
         simulate_mission(SimulationSpec.from_options(density=0.0))
+
+
+def test_a_spec_from_options_is_the_spec_of_its_parts():
+    """Each flat option lands in its part, as given or as its part keeps it (floats, tuples,
+    validated lines, every bias); a keyword that is no option is refused by name."""
+    lines = [{"id": 2, "start": [0, -100], "end": [0, 100], "height": 800}]
+    flat = SimulationSpec.from_options(seed=5, density=0.3, lines=lines, wind_mps=[3, 0],
+                                       range_noise_m=0.01, origin=[1, 2], control_xy=[(0, 0)],
+                                       biases={"dX": 0.1})
+    parts = SimulationSpec(seed=5, biases={"dX": 0.1},
+                           flight=FlightSpec(lines=lines, wind_mps=(3.0, 0.0)),
+                           sensor=SensorSpec(density=0.3),
+                           noise=NoiseSpec(range_noise_m=0.01),
+                           site=SiteSpec(origin=(1.0, 2.0), control_xy=[[0.0, 0.0]]))
+    assert flat == parts
+    assert flat.flight.lines == ({"id": 2, "start": (0.0, -100.0), "end": (0.0, 100.0),
+                                  "height": 800.0, "turn_deg_s": None, "bank_deg": None,
+                                  "roll_deg": None},)
+    assert flat.biases == {**ZERO, "dX": 0.1}
+    assert SimulationSpec().biases == DEFAULT_BIASES
+    assert len(set(OPTION_NAMES)) == len(OPTION_NAMES) == 23
+    with pytest.raises(TypeError, match=r"unknown option\(s\) densty;"):
+        SimulationSpec.from_options(densty=0.3)
+
+
+@pytest.mark.parametrize(("options", "reason"), [
+    ({"trajectory_rate_hz": 0.0}, "trajectory_rate_hz must be positive"),
+    ({"fov_deg": 130.0}, "fov_deg must be in"),
+    ({"intensity_noise": -0.1}, "noise levels must be non-negative"),
+    ({"n_control": -1}, "n_control must be >= 0"),
+    ({"wind_mps": (1.0, math.inf)}, "wind_mps must be two finite numbers"),
+    ({"terrain_kind": "forest"}, "terrain kind 'forest' unknown"),
+    ({"origin": (10.0, 0.0), "terrain": Terrain((-50, 50, -50, 50), kind="flat")},
+     "differs from the given terrain's"),
+    ({"biases": {"dr": math.nan}}, "not finite"),
+])
+def test_a_spec_refuses_bad_options_when_made(options, reason):
+    with pytest.raises(ConfigError, match=reason) as info:
+        SimulationSpec.from_options(**options)
+    assert "\n" not in str(info.value)
 
 
 # ---------------------------------------------------------------------- rough air, turns, banks

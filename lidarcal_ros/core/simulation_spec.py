@@ -65,12 +65,6 @@ LEAD_S = 2.0  # trajectory before the first and after the last pulse of a line
 LINE_ATTITUDE_KEYS = ("turn_deg_s", "bank_deg", "roll_deg")
 
 
-def _require_positive(**values: float) -> None:
-    for name, value in values.items():
-        if not (math.isfinite(value) and value > 0.0):
-            raise ConfigError(f"{name} must be positive, got {value}")
-
-
 @dataclass(frozen=True)
 class FlightSpec:
     """What is flown.
@@ -351,6 +345,12 @@ def check_biases(biases: Mapping[str, float] | None) -> dict[str, float]:
     if bad:
         raise ConfigError(f"bias(es) {', '.join(bad)} not finite")
     return out
+
+
+def _require_positive(**values: float) -> None:
+    for name, value in values.items():
+        if not (math.isfinite(value) and value > 0.0):
+            raise ConfigError(f"{name} must be positive, got {value}")
 
 
 # ---------------------------------------------------------------------- flight lines

@@ -92,24 +92,21 @@ def _rotate_to_map(u: np.ndarray, v: np.ndarray, c: np.ndarray, s: np.ndarray) -
 
 
 @dataclass(frozen=True)
-class Buildings:
-    """Buildings on a jittered grid (module docstring); per-building (n,) arrays.
+class _Objects:
+    """Objects on a jittered grid, at most one a cell, each turned by an azimuth.
 
     Attributes
     ----------
-    grid : the cells
-    present : bool, a building stands in the cell
-    cx, cy : centre, metres
-    cos, sin : the azimuth of the long side
-    a, b : half the long and the short side, metres
-    roof : roof type code
-    tan_slope : tangent of the roof's slope
-    shed_u, shed_v, shed_offset : a shed roof's uphill direction in the building's (u, v)
-        frame and the offset to its low eave, metres
-    base, eave, top : ground under the centre, eave height above it, and the highest point
-        (absolute), metres
-    half_diagonal : half the footprint's diagonal, metres
-    reflectance_factor : the building's departure from its class reflectance (0.9-1.1)
+    grid : _Grid
+        The cells.
+    present : (n,) bool
+        An object stands in the cell.
+    cx, cy : (n,) float64
+        Centre, metres.
+    cos, sin : (n,) float64
+        The object's azimuth.
+    reflectance_factor : (n,) float64
+        Its departure from its class reflectance (0.9-1.1).
     """
 
     grid: _Grid
@@ -118,6 +115,52 @@ class Buildings:
     cy: np.ndarray
     cos: np.ndarray
     sin: np.ndarray
+    reflectance_factor: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.present.sum())
+
+    def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices of the positions inside an object's footprint, and that object's."""
+        sel, k = self.grid.candidates(x, y, self.present)
+        if sel.size == 0:
+            return sel, sel
+        u, v = self.local_uv(x[sel], y[sel], k)
+        inside = self._inside(u, v, k)
+        return sel[inside], k[inside]
+
+    def local_uv(self, x: np.ndarray, y: np.ndarray, k: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in object ``k``'s frame: ``u`` along its azimuth, ``v`` across."""
+        dx = x - self.cx[k]
+        dy = y - self.cy[k]
+        c, s = self.cos[k], self.sin[k]
+        return dx * c + dy * s, -dx * s + dy * c
+
+    def _inside(self, u: np.ndarray, v: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """Whether positions (u, v) of object ``k``'s frame lie in its footprint."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Buildings(_Objects):
+    """Buildings on a jittered grid (module docstring), their azimuth that of the long side.
+
+    Attributes
+    ----------
+    (besides ``grid``, ``present``, ``cx``, ``cy``, ``cos``, ``sin`` and
+    ``reflectance_factor`` of every kind of object; per-building (n,) arrays)
+    a, b : half the long and the short side, metres
+    roof : roof type code
+    tan_slope : tangent of the roof's slope
+    shed_u, shed_v, shed_offset : a shed roof's uphill direction in the building's (u, v)
+        frame and the offset to its low eave, metres
+    base, eave, top : ground under the centre, eave height above it, and the highest point
+        (absolute), metres
+    half_diagonal : half the footprint's diagonal, metres
+    """
+
     a: np.ndarray
     b: np.ndarray
     roof: np.ndarray
@@ -129,7 +172,6 @@ class Buildings:
     eave: np.ndarray
     top: np.ndarray
     half_diagonal: np.ndarray
-    reflectance_factor: np.ndarray
 
     @classmethod
     def draw(cls, rng: np.random.Generator, extent: Sequence[float], *, populated: bool,
@@ -176,26 +218,8 @@ class Buildings:
             reflectance_factor=rng.uniform(0.9, 1.1, shape).ravel(),
         )
 
-    @property
-    def count(self) -> int:
-        return int(self.present.sum())
-
-    def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices of the positions inside a building's footprint, and that building's."""
-        sel, k = self.grid.candidates(x, y, self.present)
-        if sel.size == 0:
-            return sel, sel
-        u, v = self.local_uv(x[sel], y[sel], k)
-        inside = (np.abs(u) <= self.a[k]) & (np.abs(v) <= self.b[k])
-        return sel[inside], k[inside]
-
-    def local_uv(self, x: np.ndarray, y: np.ndarray, k: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Positions in building ``k``'s frame: ``u`` along its long side, ``v`` across."""
-        dx = x - self.cx[k]
-        dy = y - self.cy[k]
-        c, s = self.cos[k], self.sin[k]
-        return dx * c + dy * s, -dx * s + dy * c
+    def _inside(self, u: np.ndarray, v: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return (np.abs(u) <= self.a[k]) & (np.abs(v) <= self.b[k])
 
     def roof_height(self, x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
         """Height of building ``k``'s roof above (x, y), metres."""
@@ -290,30 +314,22 @@ class Buildings:
 
 
 @dataclass(frozen=True)
-class Trees:
-    """Trees on a jittered grid (module docstring); per-tree (n,) arrays.
+class Trees(_Objects):
+    """Trees on a jittered grid (module docstring), their azimuth that of the crown's first
+    semi-axis.
 
     Attributes
     ----------
-    grid : the cells
-    present : bool, a tree stands in the cell
-    cx, cy : centre, metres
-    cos, sin : the azimuth of the crown's first semi-axis
+    (besides ``grid``, ``present``, ``cx``, ``cy``, ``cos``, ``sin`` and
+    ``reflectance_factor`` of every kind of object; per-tree (n,) arrays)
     ra, rb : the crown's semi-axes, metres
     crown_base, crown_height : the crown's base above the ground and its height, metres
     base : ground under the centre, metres
     bump_amplitude, bump_k, bump_phase : the crown's bumps (relative amplitude; (3, n)
         wavenumbers, rad/m, and phases, rad)
     top : the highest point the crown may reach (absolute), metres
-    reflectance_factor : the tree's departure from its class reflectance (0.9-1.1)
     """
 
-    grid: _Grid
-    present: np.ndarray
-    cx: np.ndarray
-    cy: np.ndarray
-    cos: np.ndarray
-    sin: np.ndarray
     ra: np.ndarray
     rb: np.ndarray
     crown_base: np.ndarray
@@ -323,7 +339,6 @@ class Trees:
     bump_k: np.ndarray
     bump_phase: np.ndarray
     top: np.ndarray
-    reflectance_factor: np.ndarray
 
     @classmethod
     def draw(cls, rng: np.random.Generator, extent: Sequence[float], *, populated: bool,
@@ -358,29 +373,8 @@ class Trees:
             reflectance_factor=rng.uniform(0.9, 1.1, shape).ravel(),
         )
 
-    @property
-    def count(self) -> int:
-        return int(self.present.sum())
-
-    def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices of the positions under a crown, and that tree's."""
-        sel, k = self.grid.candidates(x, y, self.present)
-        if sel.size == 0:
-            return sel, sel
-        inside = self._q(x[sel], y[sel], k) < 1.0
-        return sel[inside], k[inside]
-
-    def local_uv(self, x: np.ndarray, y: np.ndarray, k: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Positions in tree ``k``'s frame (along its semi-axes ``ra`` and ``rb``)."""
-        dx = x - self.cx[k]
-        dy = y - self.cy[k]
-        c, s = self.cos[k], self.sin[k]
-        return dx * c + dy * s, -dx * s + dy * c
-
-    def _q(self, x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
-        u, v = self.local_uv(x, y, k)
-        return (u / self.ra[k]) ** 2 + (v / self.rb[k]) ** 2
+    def _inside(self, u: np.ndarray, v: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return (u / self.ra[k]) ** 2 + (v / self.rb[k]) ** 2 < 1.0
 
     def crown_surface(self, x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
         """Height of tree ``k``'s crown above (x, y), metres."""
