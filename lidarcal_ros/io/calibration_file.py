@@ -15,6 +15,7 @@ from lidarcal_ros.core.calibrate import CalibrationResult
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.units import finite_or_none
 from lidarcal_ros.errors import ConfigError, OutputError
 from lidarcal_ros.io.output_files import os_reason, write_text
 from lidarcal_ros.io.yaml_file import read_yaml
@@ -39,10 +40,6 @@ class CalibrationRecord:
         return np.array([self.values[n] for n in PARAMETER_NAMES])
 
 
-def _num(value: float) -> float | None:
-    return None if value is None or not math.isfinite(value) else float(value)
-
-
 def calibration_document(result: CalibrationResult) -> dict[str, Any]:
     """The YAML document (a dict) for a calibration result."""
     sol = result.solution
@@ -51,7 +48,7 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         st = sol.status[name]
         entry: dict[str, Any] = {
             "value": float(sol.delta[i]),
-            "sigma": _num(float(sol.sigma[i])),
+            "sigma": finite_or_none(float(sol.sigma[i])),
             "estimated": st.state == "estimated",
         }
         if st.state == "not_estimable":
@@ -59,7 +56,7 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         biases[name] = entry
     doc: dict[str, Any] = {
         "biases": biases,
-        "sigma0": _num(float(sol.sigma0)),
+        "sigma0": finite_or_none(float(sol.sigma0)),
         "redundancy": int(sol.redundancy),
         "correlation": {
             "names": list(sol.estimated),
@@ -77,21 +74,23 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
             {"strips": [int(p.strip_a), int(p.strip_b)],
              "coverage": round(float(p.coverage), 4),
              "correspondences": int(p.correspondences),
-             "rms_before_m": _num(p.rms_before), "rms_after_m": _num(p.rms_after),
-             "p95_after_m": _num(p.p95_after)}
+             "rms_before_m": finite_or_none(p.rms_before),
+             "rms_after_m": finite_or_none(p.rms_after),
+             "p95_after_m": finite_or_none(p.p95_after)}
             for p in result.pairs
         ],
         "strips": [_strip_entry(sid, result) for sid in sorted(result.models)],
         "control_residuals": [
-            {"id": c.control_id, "strip": c.strip_id, "before_m": _num(c.before),
-             "after_m": _num(c.after)} for c in result.control
+            {"id": c.control_id, "strip": c.strip_id, "before_m": finite_or_none(c.before),
+             "after_m": finite_or_none(c.after)} for c in result.control
         ],
     }
     if result.nothing_estimated:
         doc["nothing_estimated"] = result.nothing_estimated
         doc["height_agreement"] = [
             {"strips": [int(q.strip_a), int(q.strip_b)], "coverage": round(float(q.coverage), 4),
-             "cells": int(q.n_cells), "median_m": _num(q.median_dz), "rms_m": _num(q.rms_dz)}
+             "cells": int(q.n_cells), "median_m": finite_or_none(q.median_dz),
+             "rms_m": finite_or_none(q.rms_dz)}
             for q in result.height_agreement
         ]
     if result.dropped_non_finite:
@@ -109,9 +108,9 @@ def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
     qa = result.laser_qa.get(strip_id)
     if qa is not None:
         entry.update({
-            "along_track_median_m": _num(qa.along_median_m),
-            "along_track_spread_m": _num(qa.along_spread_m),
-            "scan_angle_deg": [_num(qa.scan_min_deg), _num(qa.scan_max_deg)],
+            "along_track_median_m": finite_or_none(qa.along_median_m),
+            "along_track_spread_m": finite_or_none(qa.along_spread_m),
+            "scan_angle_deg": [finite_or_none(qa.scan_min_deg), finite_or_none(qa.scan_max_deg)],
         })
         if qa.warnings:
             entry["warnings"] = list(qa.warnings)

@@ -50,6 +50,7 @@ from lidarcal_ros.core.evaluation import RIGID_NAMES, AccuracySummary, RigidFit
 from lidarcal_ros.core.params import display_value
 from lidarcal_ros.core.quality_level import LBS_LEVELS, QualityAssessment
 from lidarcal_ros.core.swath_differences import DzStatistics, SwathDifferences
+from lidarcal_ros.core.units import format_cm, format_number
 from lidarcal_ros.errors import OutputError
 from lidarcal_ros.io import report_figures as figures
 from lidarcal_ros.io.output_files import EXISTS, write_text
@@ -462,16 +463,6 @@ def _note(text: str) -> str:
     return f'<p class="note">{text}</p>'
 
 
-def _cm(value: float, sign: bool = False) -> str:
-    if not math.isfinite(value):
-        return "n/a"
-    return f"{value * 100:+.1f}" if sign else f"{value * 100:.1f}"
-
-
-def _num(value: float, fmt: str = ".4g") -> str:
-    return format(value, fmt) if math.isfinite(value) else "n/a"
-
-
 class _Renderer:
     """Draws the figures one by one, saying how far it is."""
 
@@ -546,7 +537,7 @@ def _quality_html(content: ReportContent) -> str:
     rows = []
     for c in quality.criteria:
         density = c.at_least
-        value = (f"{c.value:.2f} /m&sup2;" if density else f"{_cm(c.value)} cm") \
+        value = (f"{c.value:.2f} /m&sup2;" if density else f"{format_cm(c.value)} cm") \
             if c.assessed else "not assessed"
         cells = [_esc(c.name), value]
         for level in LBS_LEVELS:
@@ -657,9 +648,10 @@ def _swath_html(content: ReportContent, draw: _Renderer) -> str:
     for p in swath.pairs:
         b, a = (DzStatistics.of(getattr(p, s)) for s in ("before", "after"))
         rows.append([f"{p.strips[0]} &amp; {p.strips[1]}", f"{p.later} &minus; {p.earlier}",
-                     str(a.n_cells), _cm(b.rmsdz), _cm(a.rmsdz), _cm(b.max_abs), _cm(a.max_abs)])
-    rows.append(["<b>all</b>", "", str(after.n_cells), _cm(before.rmsdz), _cm(after.rmsdz),
-                 _cm(before.max_abs), _cm(after.max_abs)])
+                     str(a.n_cells), format_cm(b.rmsdz), format_cm(a.rmsdz),
+                     format_cm(b.max_abs), format_cm(a.max_abs)])
+    rows.append(["<b>all</b>", "", str(after.n_cells), format_cm(before.rmsdz),
+                 format_cm(after.rmsdz), format_cm(before.max_abs), format_cm(after.max_abs)])
     parts.append(_table(["strips", "dz", "cells", "RMSDz before (cm)", "RMSDz after (cm)",
                          "max |dz| before (cm)", "max |dz| after (cm)"], rows,
                         {2, 3, 4, 5, 6}))
@@ -683,8 +675,8 @@ def _pairs_html(content: ReportContent, draw: _Renderer) -> str:
         a, b = p.strips
         coverage = f"{p.coverage * 100:.0f}%" if p.coverage is not None else ""
         rows.append([f'<a href="#pair-{a}-{b}">{a} &amp; {b}</a>', coverage,
-                     str(p.after.distance.size), _cm(p.before.rms), _cm(p.after.rms),
-                     _cm(p.after.p95), f'<span class="{p.qa_level}">{p.qa_level}</span>'])
+                     str(p.after.distance.size), format_cm(p.before.rms), format_cm(p.after.rms),
+                     format_cm(p.after.p95), f'<span class="{p.qa_level}">{p.qa_level}</span>'])
     parts = [_table(["strips", "coverage", "points", "RMS before (cm)", "RMS after (cm)",
                      "95% after (cm)", "QA"], rows, {1, 2, 3, 4, 5}),
              _note("Signed distance of each sample point of the calibration from the other "
@@ -714,7 +706,7 @@ def _fit_cells(fit: RigidFit | None) -> list[str]:
             cells.append("-")
         else:
             cells.append(f"{v * (100.0 if name.startswith('t') else arcsec):+.1f}")
-    cells += [f"{_cm(fit.rms_before)} ({_cm(fit.rms_after)})", str(fit.n_matches)]
+    cells += [f"{format_cm(fit.rms_before)} ({format_cm(fit.rms_after)})", str(fit.n_matches)]
     return cells
 
 
@@ -741,15 +733,15 @@ def _evaluation_html(section: EvaluationSection | None) -> str:
     parts.append("<h3>Absolute accuracy: check points (strip surface minus surveyed "
                  "height)</h3>")
     if section.check:
-        rows = [[_esc(pid), _esc(",".join(map(str, strips)) or "-"), _cm(b, True),
-                 _cm(a, True)] for pid, strips, b, a in section.check]
+        rows = [[_esc(pid), _esc(",".join(map(str, strips)) or "-"), format_cm(b, sign=True),
+                 format_cm(a, sign=True)] for pid, strips, b, a in section.check]
         parts.append(_table(["check point", "strips", "before (cm)", "after (cm)"], rows,
                             {2, 3}))
         rows = []
         for state in ("before", "after"):
             s = section.summary(state)
-            rows.append([state, str(s.n), _cm(s.mean, True), _cm(s.std), _cm(s.rmse),
-                         _cm(s.max_abs)])
+            rows.append([state, str(s.n), format_cm(s.mean, sign=True), format_cm(s.std),
+                         format_cm(s.rmse), format_cm(s.max_abs)])
         parts.append(_table(["state", "n", "mean (cm)", "std (cm)", "RMSE (cm)",
                              "max |r| (cm)"], rows, {1, 2, 3, 4, 5}))
     else:
@@ -761,8 +753,8 @@ def _control_html(control: Sequence[ControlResidual]) -> str:
     title = "Control points used by the calibration"
     if not control:
         return _section("control", title, ["<p>No control point falls on a strip.</p>"])
-    rows = [[_esc(c.control_id), str(c.strip_id), _cm(c.before, True), _cm(c.after, True)]
-            for c in control]
+    rows = [[_esc(c.control_id), str(c.strip_id), format_cm(c.before, sign=True),
+             format_cm(c.after, sign=True)] for c in control]
     return _section("control", title, [
         _table(["control point", "strip", "before (cm)", "after (cm)"], rows, {1, 2, 3}),
         _note("Signed normal distance of the control point from the strip's TIN patch, "
@@ -776,8 +768,9 @@ def _radiometry_html(content: ReportContent, draw: _Renderer) -> str:
         return _section("radiometry", title,
                         ["<p>The clouds carry no intensity: no radiometric correction.</p>"])
     unit = "" if section.unit == "1" else " (intensity units)"
-    rows = [[f"{c.lo_deg:.0f}-{c.hi_deg:.0f}", str(c.n_points), _num(c.mean_intensity),
-             _num(c.vmr_intensity), _num(c.mean_reflectance), _num(c.vmr_reflectance),
+    rows = [[f"{c.lo_deg:.0f}-{c.hi_deg:.0f}", str(c.n_points), format_number(c.mean_intensity),
+             format_number(c.vmr_intensity), format_number(c.mean_reflectance),
+             format_number(c.vmr_reflectance),
              "n/a" if not math.isfinite(c.change) else f"{c.change * 100:+.1f}%"]
             for c in section.slope_classes]
     parts = [f'<p id="reflectance-meaning"><b>Reflectance</b>: {_esc(section.meaning)}</p>',

@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lidarcal_ros.core.units import format_cm
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
@@ -267,8 +269,8 @@ def swath_figure(swath: SwathDifferences, limit_m: float, crs: str) -> Figure:
     limit_cm = limit_m * 100.0
     _difference_maps(fig, (ax_before, ax_after), (swath.before[r0:r1, c0:c1],
                                                  swath.after[r0:r1, c0:c1]), extent,
-                     (f"before calibration: RMSDz {_cm(before.rmsdz)} cm",
-                      f"after calibration: RMSDz {_cm(after.rmsdz)} cm"), limit_cm, crs, cbar)
+                     (f"before calibration: RMSDz {format_cm(before.rmsdz)} cm",
+                      f"after calibration: RMSDz {format_cm(after.rmsdz)} cm"), limit_cm, crs, cbar)
     values = {s: np.concatenate([getattr(p, s) for p in swath.pairs]) if swath.pairs
               else np.zeros(0) for s in ("before", "after")}
     _histograms(ax_hist, ((values["before"], f"before, {before.n_cells} cells", "tab:red"),
@@ -318,7 +320,8 @@ def pair_figure(section: PairSection, crs: str) -> Figure:
               float(lo[1] + shape[0] * cell))
     rasters = [_pair_raster(d, float(lo[0]), float(lo[1]), cell, shape) for d in (before, after)]
     _difference_maps(fig, (ax_before, ax_after), rasters, extent,
-                     (f"before: RMS {_cm(before.rms)} cm", f"after: RMS {_cm(after.rms)} cm"),
+                     (f"before: RMS {format_cm(before.rms)} cm",
+                      f"after: RMS {format_cm(after.rms)} cm"),
                      limit_cm, crs, cbar)
     cbar.set_ylabel("normal discrepancy (cm)", fontsize=_SMALL)
     _histograms(ax_hist, ((before.distance, f"before, {before.distance.size} points",
@@ -389,7 +392,3 @@ def reflectance_figure(intensity: MapRaster, reflectance: MapRaster, unit: str,
         colorbar.set_label(bar, fontsize=_SMALL)
         colorbar.ax.tick_params(labelsize=7)
     return fig
-
-
-def _cm(value: float) -> str:
-    return f"{value * 100:.1f}" if math.isfinite(value) else "n/a"

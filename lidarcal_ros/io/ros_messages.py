@@ -50,6 +50,7 @@ from lidarcal_ros.core.params import (
     format_estimate,
     format_value,
 )
+from lidarcal_ros.core.units import format_cm, format_percent, status_value
 from lidarcal_ros.errors import CloudFormatError
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
 
@@ -329,20 +330,6 @@ class StatusSpec:
     values: dict[str, str] = field(default_factory=dict)
 
 
-def _cm(value: float) -> str:
-    return "n/a" if not math.isfinite(value) else f"{value * 100:.1f} cm"
-
-
-def _num(value: Any) -> str:
-    if isinstance(value, float):
-        return "nan" if not math.isfinite(value) else f"{value:.6g}"
-    return str(value)
-
-
-def _percent(fraction: float) -> str:
-    return "n/a" if not math.isfinite(fraction) else f"{fraction * 100:.0f}%"
-
-
 def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
                     crab_deg: dict[int, float] | None = None,
                     models: dict[int, Any] | None = None) -> StatusSpec:
@@ -383,8 +370,9 @@ def geometry_status(models: dict[int, Any], laser_qa: dict[int, Any]) -> StatusS
     values = {"model": describe_models(models)}
     for sid, qa in sorted(laser_qa.items()):
         values[f"strip {sid}"] = (
-            f"along track {_num(qa.along_median_m)} m (+-{_num(qa.along_spread_m)}), scan "
-            f"{_num(qa.scan_min_deg)}..{_num(qa.scan_max_deg)} deg")
+            f"along track {status_value(qa.along_median_m)} m "
+            f"(+-{status_value(qa.along_spread_m)}), scan "
+            f"{status_value(qa.scan_min_deg)}..{status_value(qa.scan_max_deg)} deg")
     message = warnings[0] if warnings else describe_models(models)
     if len(warnings) > 1:
         message += f" (and {len(warnings) - 1} more)"
@@ -415,22 +403,25 @@ def qa_statuses(
         level = pair_level(p.rms_after, p.p95_after, warn_m=warn_m, error_m=error_m)
         out.append(StatusSpec(
             level, f"lidarcal: strips {p.strip_a}&{p.strip_b}",
-            f"RMS {_cm(p.rms_after)} (before {_cm(p.rms_before)}), coverage "
-            f"{_percent(p.coverage)}: {LEVEL_NAMES[level]}",
-            {"coverage": _num(float(p.coverage)), "rms_before": _num(float(p.rms_before)),
-             "rms_after": _num(float(p.rms_after)), "p95_after": _num(float(p.p95_after)),
+            f"RMS {format_cm(p.rms_after, unit='cm')} "
+            f"(before {format_cm(p.rms_before, unit='cm')}), coverage "
+            f"{format_percent(p.coverage)}: {LEVEL_NAMES[level]}",
+            {"coverage": status_value(float(p.coverage)),
+             "rms_before": status_value(float(p.rms_before)),
+             "rms_after": status_value(float(p.rms_after)),
+             "p95_after": status_value(float(p.p95_after)),
              "correspondences": str(int(p.correspondences)),
-             "rms_warn_threshold": _num(float(warn_m)),
-             "max_difference_threshold": _num(float(error_m))}))
+             "rms_warn_threshold": status_value(float(warn_m)),
+             "max_difference_threshold": status_value(float(error_m))}))
     sol = result.solution
     conv_level = OK if result.converged else WARN
     out.append(StatusSpec(
         conv_level, "lidarcal: convergence",
         (f"converged in {result.iterations} iterations" if result.converged else
          f"NOT converged after {result.iterations} iterations")
-        + f", sigma0 {_cm(float(sol.sigma0))}",
+        + f", sigma0 {format_cm(float(sol.sigma0), unit='cm')}",
         {"iterations": str(int(result.iterations)), "converged": str(bool(result.converged)),
-         "sigma0": _num(float(sol.sigma0)), "redundancy": str(int(sol.redundancy)),
+         "sigma0": status_value(float(sol.sigma0)), "redundancy": str(int(sol.redundancy)),
          "strip_pair_correspondences": str(int(result.n_pair_correspondences)),
          "control_correspondences": str(int(result.n_control_correspondences))}))
     wanted = set(solve_for) or set(PARAMETER_NAMES)
@@ -475,4 +466,4 @@ def worst_level(statuses: Iterable[StatusSpec]) -> int:
 
 def flatten_values(values: Mapping[str, Any]) -> dict[str, str]:
     """Key-values as strings (numbers formatted compactly)."""
-    return {str(k): _num(v) for k, v in values.items()}
+    return {str(k): status_value(v) for k, v in values.items()}

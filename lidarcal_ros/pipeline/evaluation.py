@@ -30,6 +30,7 @@ from lidarcal_ros.core.mission import ControlPoints, Mission
 from lidarcal_ros.core.model import correct_geometry
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import Tin
+from lidarcal_ros.core.units import finite_or_none, format_cm
 from lidarcal_ros.errors import CalibrationError, ConfigError
 from lidarcal_ros.pipeline.correction import flagged_geometry
 
@@ -94,10 +95,11 @@ class Evaluation:
         if self.check_points:
             out["check_points"] = {
                 "residuals": [{"id": c.point_id, "strips": c.strips,
-                               "before_m": _num(c.before), "after_m": _num(c.after)}
+                               "before_m": finite_or_none(c.before),
+                               "after_m": finite_or_none(c.after)}
                               for c in self.check_points],
-                "before": {k: _num(v) for k, v in vars(self.summary("before")).items()},
-                "after": {k: _num(v) for k, v in vars(self.summary("after")).items()},
+                "before": {k: finite_or_none(v) for k, v in vars(self.summary("before")).items()},
+                "after": {k: finite_or_none(v) for k, v in vars(self.summary("after")).items()},
             }
         return out
 
@@ -142,10 +144,6 @@ def _fit_from(doc: Any) -> RigidFit | None:
                     rms_before=_float(doc["rms_before_m"]), rms_after=_float(doc["rms_after_m"]),
                     n_matches=int(doc["matches"]), iterations=int(doc["iterations"]),
                     converged=bool(doc["converged"]))
-
-
-def _num(v: float) -> float | None:
-    return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 def corrected_strips(
@@ -316,16 +314,12 @@ def format_evaluation(ev: Evaluation) -> str:
         lines.append("point            strips            before cm   after cm")
         for c in ev.check_points:
             lines.append(f"{c.point_id:<16} {','.join(map(str, c.strips)) or '-':<16} "
-                         f"{_cm(c.before):>10} {_cm(c.after):>10}")
+                         f"{format_cm(c.before, sign=True, missing='-'):>10} "
+                         f"{format_cm(c.after, sign=True, missing='-'):>10}")
         for which in ("before", "after"):
             s = ev.summary(which)
-            lines.append(f"{which:<6} n={s.n}  mean {_cm(s.mean)} cm  std "
-                         f"{_cm(s.std, sign=False)} cm  RMSE {_cm(s.rmse, sign=False)} cm  "
-                         f"max |r| {_cm(s.max_abs, sign=False)} cm")
+            lines.append(f"{which:<6} n={s.n}  mean {format_cm(s.mean, sign=True, missing='-')} "
+                         f"cm  std {format_cm(s.std, missing='-')} cm  RMSE "
+                         f"{format_cm(s.rmse, missing='-')} cm  max |r| "
+                         f"{format_cm(s.max_abs, missing='-')} cm")
     return "\n".join(lines)
-
-
-def _cm(v: float, *, sign: bool = True) -> str:
-    if not math.isfinite(v):
-        return "-"
-    return f"{100 * v:+.1f}" if sign else f"{100 * v:.1f}"

@@ -1,0 +1,56 @@
+"""The unit formatters every output shares: metres shown in centimetres, numbers and shares
+in text, and missing values (NaN, inf) written as such.
+
+Angles and the eight biases have their own display rules (arcseconds, cm, the scale
+factor), in :mod:`lidarcal_ros.core.params` (``format_value``, ``format_estimate``).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """``value`` for YAML and JSON: None (``null``) where it is missing or not finite, a
+    whole number as a Python ``int`` (a count stays a count), else a Python ``float``."""
+    if value is None:
+        return None
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def format_cm(value_m: float, *, sign: bool = False, unit: str = "", missing: str = "n/a"
+              ) -> str:
+    """A length given in metres, shown in centimetres to a millimetre (``+1.6`` with
+    ``sign``; ``unit`` appended after a space, e.g. ``"cm"``); ``missing`` where not
+    finite."""
+    if not math.isfinite(value_m):
+        return missing
+    text = f"{value_m * 100:+.1f}" if sign else f"{value_m * 100:.1f}"
+    return f"{text} {unit}" if unit else text
+
+
+def format_number(value: Any, fmt: str = ".4g", *, missing: str = "n/a") -> str:
+    """A float in ``fmt``, ``missing`` where not finite; anything else as ``str``."""
+    if isinstance(value, float):
+        return format(value, fmt) if math.isfinite(value) else missing
+    return str(value)
+
+
+def status_value(value: Any) -> str:
+    """A value of a ``diagnostic_msgs/KeyValue``: a float to six significant digits
+    (``nan`` where not finite, as a program parsing it back reads it), anything else as
+    ``str``."""
+    return format_number(value, ".6g", missing="nan")
+
+
+def format_percent(fraction: float, *, missing: str = "n/a") -> str:
+    """A share (0-1) in whole percent, ``missing`` where not finite."""
+    return missing if not math.isfinite(fraction) else f"{fraction * 100:.0f}%"
+
+
+__all__ = ["finite_or_none", "format_cm", "format_number", "format_percent", "status_value"]
