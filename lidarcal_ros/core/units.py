@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Any
+from typing import Any, SupportsFloat
 
 
-def finite_or_none(value: float | None) -> float | None:
+def finite_or_none(value: SupportsFloat | None) -> float | None:
     """``value`` for YAML and JSON: None (``null``) where it is missing or not finite, a
     whole number as a Python ``int`` (a count stays a count), else a Python ``float``."""
     if value is None:
