@@ -722,6 +722,47 @@ def _level_frame(ti: float, w: int, lines: tuple[np.ndarray, np.ndarray, np.ndar
             p_mean[w, 2] + velocity[w, 2] * dt, c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
 
 
+#: Points per block of :func:`correct_returns`: its columns (some 40 values a point) stay
+#: in the first caches between the block's loops.
+_RETURNS_BLOCK = 256
+
+
+@inlined
+def _return_beam(px: float, py: float, pz: float, ox: float, oy: float, oz: float,
+                 r00: float, r01: float, r02: float, r10: float, r11: float, r12: float,
+                 r20: float, r21: float, r22: float,
+                 d: tuple[float, float, float, float, float, float, float, float],
+                 n0: float, n1: float, n2: float, rigorous: bool
+                 ) -> tuple[float, float, float, float, float, float, float]:
+    """One return from its firing point ``o`` and body frame ``R`` (row by row): ``beta``
+    (NaN at or above the firing point), the corrected point (eq. [13]), the range, the scan
+    angle and the incidence cosine (NaN without a normal) as :func:`correct_returns`
+    documents; no branch but selects, so that a loop over it runs in vector registers."""
+    dx, dy, dz = px - ox, py - oy, pz - oz
+    x = r00 * dx + r10 * dy + r20 * dz
+    z = r02 * dx + r12 * dy + r22 * dz
+    q = x / z
+    b = atan_poly(q) if z < 0.0 else np.nan
+    r2 = x * x + z * z
+    if rigorous:  # section 10's r = |rho_hat|; section 4 recovers no along-track part
+        y = r01 * dx + r11 * dy + r21 * dz
+        r2 += y * y
+    inv_r = 1.0 / math.sqrt(r2)
+    right, fwd, up = _body_offset(d, x, z, b, -x * inv_r, -z * inv_r)
+    cx = px - (r00 * right + r01 * fwd + r02 * up)  # eq. [13]
+    cy = py - (r10 * right + r11 * fwd + r12 * up)
+    cz = pz - (r20 * right + r21 * fwd + r22 * up)
+    # The beam from the firing point to the corrected return.
+    rx, ry, rz = cx - ox, cy - oy, cz - oz
+    r = math.sqrt(rx * rx + ry * ry + rz * rz)
+    # the tangent's change, ``d`` in correct_returns' docstring
+    dtan = (r00 * rx + r10 * ry + r20 * rz) / (r02 * rx + r12 * ry + r22 * rz) - q
+    g = 1.0 / (1.0 + q * q)
+    scan = b + dtan * g - q * dtan * dtan * g * g
+    cos_t = abs((n0 * rx + n1 * ry + n2 * rz) * (1.0 / r))
+    return b, cx, cy, cz, r, scan, 1.0 if cos_t > 1.0 else cos_t  # (NaN stays NaN)
+
+
 @compiled
 def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.ndarray,
                     rigorous: bool,
@@ -741,15 +782,18 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     :meth:`lidarcal_ros.core.radiometry.RadiometricModel.reflectance` (in float32, operation
     for operation) and the ``correction_flags`` bits (:mod:`lidarcal_ros.core.flags`).
 
-    As numpy passes these stages streamed a dozen (n,) and (n, 3) temporaries through
-    memory; but the arithmetic costs more than that traffic (bench/README.md), and the libm
-    arctangent and arc cosine of each point more than the rest of it. So ``beta`` and the
-    incidence come from :func:`atan_poly` and :func:`acos_poly` (within 1e-10 rad; the
-    incidence from the float64 cosine, where a float32 one would lose up to 3e-4 rad near
-    normal incidence), and the scan angle ``atan(x_c / z_c)`` of the corrected return from
-    ``beta`` of the delivered one: their tangents differ by ``d``, of the order of the biases
-    (below 1e-3), and ``atan(q + d) = atan(q) + d / (1 + q^2) - q d^2 / (1 + q^2)^2`` up to a
-    ``d^3`` term below 1e-9 rad.
+    The arithmetic costs more than the memory traffic, and the libm arctangent and arc
+    cosine of each point more than the rest of it. So ``beta`` and the incidence come from
+    :func:`atan_poly` and :func:`acos_poly` (within 1e-10 rad; the incidence from the float64
+    cosine, where a float32 one would lose up to 3e-4 rad near normal incidence), and the
+    scan angle ``atan(x_c / z_c)`` of the corrected return from ``beta`` of the delivered
+    one: their tangents differ by ``d``, of the order of the biases (below 1e-3), and
+    ``atan(q + d) = atan(q) + d / (1 + q^2) - q d^2 / (1 + q^2)^2`` up to a ``d^3`` term
+    below 1e-9 rad. The points go in blocks of :data:`_RETURNS_BLOCK`: each point's frame
+    is looked up (level) or interpolated (rigorous) into columns of the block, then the
+    arithmetic of the whole block runs without a branch, several points at a time in the
+    processor's vector registers (:func:`_return_beam`), and the radiometry after it; the
+    operations, and so the results, are those of a point at a time.
 
     Parameters
     ----------
@@ -787,126 +831,132 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     out_xyz, range_m, incidence, scan_angle, reflectance, flags = out
     c_min, c_doubt, scale, two_alpha = radiometry
     traj_t, traj_xyz, traj_q = poses
+    t_mean, p_mean, velocity, cos_w, sin_w = lines
     n = t.shape[0]
     nan32 = np.float32(np.nan)
     has_rough = rough.shape[0] == n
     has_intensity = intensity.shape[0] == n
     no_intensity = np.uint8(0 if has_intensity else FLAG_NO_INTENSITY)
     d = (delta[0], delta[1], delta[2], delta[3], delta[4], delta[5], delta[6], delta[7])
-    # Three loops, not one: a point's work is one long chain of dependent operations
-    # (arctangent, correction, beam, arc cosine, exponential), too long for the processor
-    # to overlap the next point's with it; in three shorter loops it does more of that
-    # (80 against 92 ns a point on the 2 GHz machine of bench/README.md).
-    # 1. The firing point, x, z and beta of each served point (NaN: not served).
-    beta = np.empty(n)
+    size = _RETURNS_BLOCK
+    # The block's columns: the point, its normal, firing point and frame (level: the
+    # heading's cosine and sine in rows 9-10; rigorous: R row by row in rows 9-17), whether
+    # it is served, its roughness and intensity; then what the beam gives.
+    col = np.empty((18, size))
+    served = np.empty(size, dtype=np.bool_)
+    corrected = np.empty(size, dtype=np.bool_)
+    flag_col = np.empty(size, dtype=np.uint8)
+    rough_col = np.zeros(size, dtype=np.bool_)
+    level_col = np.full(size, np.nan, dtype=np.float32)
+    beam = np.empty((8, size))
+    gain = np.empty(size, dtype=np.float32)
     current = -1
     spline = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     j = 0
-    for i in range(n):
-        beta[i] = np.nan
-        if ok[i]:
+    for a in range(0, n, size):
+        m = min(size, n - a)
+        # 1. Each point's frame (the window's line, or the attitude's cubic between the
+        #    samples around it: points come in time order, a segment serves thousands).
+        for k in range(m):
+            i = a + k
+            col[0, k], col[1, k], col[2, k] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            col[3, k], col[4, k], col[5, k] = normals[i, 0], normals[i, 1], normals[i, 2]
+            served[k] = ok[i]
+            if has_rough:
+                rough_col[k] = rough[i]
+            if has_intensity:
+                level_col[k] = intensity[i]
+            if not ok[i]:
+                for row in range(6, 18):
+                    col[row, k] = 0.0
+                continue
             w = window[j]
             j += 1
             if rigorous:
-                if w != current:  # points come in time order: a segment serves thousands
+                if w != current:
                     spline = segment_spline(w, traj_t, traj_q)
                     current = w
                 f = pose_on_segment(t[i], w, spline, traj_t, traj_xyz, traj_q)
+                for row in range(12):
+                    col[6 + row, k] = f[row]
             else:
-                f = _level_frame(t[i], w, lines)
-            dx, dy, dz = xyz[i, 0] - f[0], xyz[i, 1] - f[1], xyz[i, 2] - f[2]
-            x = f[3] * dx + f[6] * dy + f[9] * dz
-            z = f[5] * dx + f[8] * dy + f[11] * dz
-            if z < 0.0:
-                beta[i] = atan_poly(x / z)
-    # 2. Eq. [13], range, scan angle and the incidence cosine (kept in ``cos_inc``).
-    cos_inc = np.empty(n)
-    current = -1
-    j = 0
-    for i in range(n):
-        px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-        if ok[i]:
-            w = window[j]
-            j += 1
-        b = beta[i]
-        if math.isnan(b):
-            out_xyz[i, 0], out_xyz[i, 1], out_xyz[i, 2] = px, py, pz
-            range_m[i] = incidence[i] = scan_angle[i] = reflectance[i] = nan32
-            cos_inc[i] = np.nan
-            flags[i] = FLAG_NOT_CORRECTED | no_intensity
-            continue
+                dt = t[i] - t_mean[w]
+                col[6, k] = p_mean[w, 0] + velocity[w, 0] * dt
+                col[7, k] = p_mean[w, 1] + velocity[w, 1] * dt
+                col[8, k] = p_mean[w, 2] + velocity[w, 2] * dt
+                col[9, k], col[10, k] = cos_w[w], sin_w[w]
+        # 2. The beam of every point of the block (in vector registers).
         if rigorous:
-            if w != current:
-                spline = segment_spline(w, traj_t, traj_q)
-                current = w
-            f = pose_on_segment(t[i], w, spline, traj_t, traj_xyz, traj_q)
+            for k in range(m):
+                res = _return_beam(col[0, k], col[1, k], col[2, k], col[6, k], col[7, k],
+                                   col[8, k], col[9, k], col[10, k], col[11, k], col[12, k],
+                                   col[13, k], col[14, k], col[15, k], col[16, k],
+                                   col[17, k], d, col[3, k], col[4, k], col[5, k], True)
+                for row in range(7):
+                    beam[row, k] = res[row]
+                beam[7, k] = acos_poly(res[6])
         else:
-            f = _level_frame(t[i], w, lines)
-        ox, oy, oz = f[0], f[1], f[2]
-        r00, r01, r02, r10, r11, r12, r20, r21, r22 = (f[3], f[4], f[5], f[6], f[7], f[8],
-                                                       f[9], f[10], f[11])
-        dx, dy, dz = px - ox, py - oy, pz - oz
-        x = r00 * dx + r10 * dy + r20 * dz
-        z = r02 * dx + r12 * dy + r22 * dz
-        r2 = x * x + z * z
-        if rigorous:  # section 10's r = |rho_hat|; section 4 recovers no along-track part
-            y = r01 * dx + r11 * dy + r21 * dz
-            r2 += y * y
-        q = x / z
-        inv_r = 1.0 / math.sqrt(r2)
-        right, fwd, up = _body_offset(d, x, z, b, -x * inv_r, -z * inv_r)
-        cx = px - (r00 * right + r01 * fwd + r02 * up)  # eq. [13]
-        cy = py - (r10 * right + r11 * fwd + r12 * up)
-        cz = pz - (r20 * right + r21 * fwd + r22 * up)
-        out_xyz[i, 0], out_xyz[i, 1], out_xyz[i, 2] = cx, cy, cz
-        # The beam from the firing point to the corrected return.
-        rx, ry, rz = cx - ox, cy - oy, cz - oz
-        r = math.sqrt(rx * rx + ry * ry + rz * rz)
-        range_m[i] = r
-        # the tangent's change, ``d`` in the docstring
-        dtan = (r00 * rx + r10 * ry + r20 * rz) / (r02 * rx + r12 * ry + r22 * rz) - q
-        g = 1.0 / (1.0 + q * q)
-        scan_angle[i] = b + dtan * g - q * dtan * dtan * g * g
-        cos_t = abs((normals[i, 0] * rx + normals[i, 1] * ry + normals[i, 2] * rz) * (1.0 / r))
-        cos_inc[i] = 1.0 if cos_t > 1.0 else cos_t  # (NaN stays NaN)
-        flags[i] = no_intensity
-    # 3. Incidence, reflectance, flags.
-    for i in range(n):
-        if math.isnan(beta[i]):
-            continue
-        fl = flags[i]
-        cos_t = cos_inc[i]
-        if math.isnan(cos_t):
-            fl |= FLAG_NO_NORMAL
-        incidence[i] = acos_poly(cos_t)
-        uncertain = has_rough and rough[i]
-        if uncertain:
-            fl |= FLAG_ROUGH
+            for k in range(m):
+                c, s = col[9, k], col[10, k]
+                res = _return_beam(col[0, k], col[1, k], col[2, k], col[6, k], col[7, k],
+                                   col[8, k], c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0, d,
+                                   col[3, k], col[4, k], col[5, k], False)
+                for row in range(7):
+                    beam[row, k] = res[row]
+                beam[7, k] = acos_poly(res[6])
+        # 3. The two-way attenuation (libm's exponential: a call per point).
         if has_intensity:
-            level = intensity[i]
-            if not math.isfinite(level):
-                fl |= FLAG_NO_INTENSITY
+            for k in range(m):
+                gain[k] = math.exp(two_alpha * np.float32(beam[4, k]))
+        # 4. Reflectance and flags (without a branch, as step 2).
+        for k in range(m):
+            good = served[k] and not math.isnan(beam[0, k])
+            cos_t = beam[6, k]
+            r32 = np.float32(beam[4, k])
+            fl = no_intensity
+            if math.isnan(cos_t):
+                fl |= FLAG_NO_NORMAL
+            uncertain = rough_col[k]
+            if uncertain:
+                fl |= FLAG_ROUGH
             # RadiometricModel.reflectance: the clamped cosine (NaN stays NaN), bounded
             # further where the normal is uncertain, then the radar equation.
+            level = level_col[k]
+            if has_intensity and not math.isfinite(level):
+                fl |= FLAG_NO_INTENSITY
             cos32 = np.float32(cos_t)
-            cos_eff = cos32
-            if cos32 < c_min:
+            grazing = cos32 < c_min
+            if has_intensity and grazing:
                 fl |= FLAG_GRAZING
-                uncertain = True
-                cos_eff = c_min
-            if uncertain and cos_eff < c_doubt:
+            cos_eff = c_min if grazing else cos32
+            if (uncertain or grazing) and cos_eff < c_doubt:
                 cos_eff = c_doubt
-            r32 = range_m[i]
-            gain = np.float32(math.exp(two_alpha * r32))
-            gain *= r32
-            gain *= r32
-            gain *= scale
-            gain /= cos_eff
-            gain *= level
-            reflectance[i] = gain
-        else:
-            reflectance[i] = nan32
-        flags[i] = fl
+            g32 = gain[k]
+            g32 *= r32
+            g32 *= r32
+            g32 *= scale
+            g32 /= cos_eff
+            g32 *= level
+            gain[k] = g32 if good and has_intensity else nan32
+            flag_col[k] = fl if good else FLAG_NOT_CORRECTED | no_intensity
+            corrected[k] = good
+        # 5. Written out, a field at a time (the points not corrected keep their coordinates,
+        #    NaN in the derived fields).
+        for k in range(m):
+            good = corrected[k]
+            out_xyz[a + k, 0] = beam[1, k] if good else col[0, k]
+            out_xyz[a + k, 1] = beam[2, k] if good else col[1, k]
+            out_xyz[a + k, 2] = beam[3, k] if good else col[2, k]
+        for k in range(m):
+            range_m[a + k] = np.float32(beam[4, k]) if corrected[k] else nan32
+        for k in range(m):
+            scan_angle[a + k] = np.float32(beam[5, k]) if corrected[k] else nan32
+        for k in range(m):
+            incidence[a + k] = np.float32(beam[7, k]) if corrected[k] else nan32
+        for k in range(m):
+            reflectance[a + k] = gain[k]
+        for k in range(m):
+            flags[a + k] = flag_col[k]
 
 
 @compiled
