@@ -5,19 +5,21 @@
 (:func:`lidarcal_ros.pipeline.correction.build_corrected`).
 
 numpy spends most of their time streaming temporaries through memory: ten weighted
-``bincount`` passes per binning, a (10, nu, nv) copy per block sum, a handful of gathers,
+``bincount`` passes per binning, a copy of the grid per block sum, a handful of gathers,
 (n, 3) intermediates and masks per point. These loops do the same arithmetic in one pass each,
-compiled by numba
-(``nopython``, ``nogil``: threads of the correction run them in parallel), cached on disk
-next to this module (or in numba's user cache where that is read-only).
+compiled by numba (``nopython``, ``nogil``: threads of the correction run them in parallel),
+cached on disk next to this module (or in numba's user cache where that is read-only). The
+busiest are written so that the compiler can vectorise them (no branch, indices counted from
+a block's start): the arithmetic of several points at a time in one register, the same
+operations in the same order, hence the same results.
 
 Every function states the numpy expression it replaces; the arithmetic is done in the same
 order, so results agree with it to the last bits or close (transcendental functions come from
 libm rather than numpy's SIMD loops).
 
 Frames: ``u`` along track, ``v`` across track (right), ``z`` up, metres, relative to the
-grid's origin; moment arrays are ``(10, ...)`` stacks of ``n, u, v, z, uu, uv, uz, vv, vz,
-zz`` sums.
+grid's origin; a moment grid is ``(rows, columns, 10)``, the sums ``n, u, v, z, uu, uv, uz,
+vv, vz, zz`` of a cell side by side, and a lone set of sums is a ``(10,)`` column.
 """
 
 from __future__ import annotations
@@ -42,33 +44,33 @@ _THIRD_TURN = 2.0 * math.pi / 3.0
 @compiled
 def accumulate_moments(out: np.ndarray, row0: int, col0: int, iu: np.ndarray, iv: np.ndarray,
                        u: np.ndarray, v: np.ndarray, z: np.ndarray) -> None:
-    """Add each point's moments to its cell: ``out[:, iu - row0, iv - col0] += (1, u, v, z,
-    uu, uv, uz, vv, vz, zz)``, in the order of the points.
+    """Add each point's moments to its cell: ``out[iu - row0, iv - col0] += (1, u, v, z, uu,
+    uv, uz, vv, vz, zz)``, in the order of the points.
 
     Parameters
     ----------
-    out : (10, rows, cols) float64
-        Moment sums per cell (modified in place).
+    out : (rows, cols, 10) float64
+        Moment sums per cell (modified in place). A cell's ten sums lie together: a point
+        touches one or two cache lines, not ten.
     row0, col0 : int
-        Grid row and column of ``out[:, 0, 0]``.
+        Grid row and column of ``out[0, 0]``.
     iu, iv : (n,) int64
         Cell row and column of each point (inside ``out``).
     u, v, z : (n,) float64
     """
     for i in range(iu.shape[0]):
-        r = iu[i] - row0
-        c = iv[i] - col0
+        cell = out[iu[i] - row0, iv[i] - col0]
         pu, pv, pz = u[i], v[i], z[i]
-        out[0, r, c] += 1.0
-        out[1, r, c] += pu
-        out[2, r, c] += pv
-        out[3, r, c] += pz
-        out[4, r, c] += pu * pu
-        out[5, r, c] += pu * pv
-        out[6, r, c] += pu * pz
-        out[7, r, c] += pv * pv
-        out[8, r, c] += pv * pz
-        out[9, r, c] += pz * pz
+        cell[0] += 1.0
+        cell[1] += pu
+        cell[2] += pv
+        cell[3] += pz
+        cell[4] += pu * pu
+        cell[5] += pu * pv
+        cell[6] += pu * pz
+        cell[7] += pv * pv
+        cell[8] += pv * pz
+        cell[9] += pz * pz
 
 
 @compiled
@@ -196,96 +198,145 @@ def fit_sums(sums: np.ndarray, min_points: int, min_spread: float
     return residual, normals, valid, centroid
 
 
-@compiled
-def fit_blocks2(moments: np.ndarray, min_points: int, min_spread: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Plane fits of the 2x2 blocks anchored at every cell of a (10, nu, nv) grid (cells
-    ``[i:i+2, j:j+2]``, zero beyond the grid), flat over the cells: residual variance,
-    normals, valid, centroid as :func:`fit_sums` (``_fit_sums(_box_sums(moments, 2))``).
+#: Columns of a block table (:func:`fit_blocks`): the unit upward normal of the block's
+#: plane, its offset ``normal . centroid`` (m) and its residual variance (m^2, inf without
+#: a plane).
+BLOCK_COLUMNS = 5
+#: Columns of the block sums and fits handled at a time (:func:`fit_blocks`): their
+#: transposed sums stay in the first-level cache.
+_FIT_TILE = 64
 
-    Row by row, in loops without branches (the compiler vectorises them): the block sums,
-    then the height-plane fit of every block; the principal-component fallback only for the
-    few blocks that need it.
+
+@inlined
+def _height_plane(n: float, su: float, sv: float, sz: float, suu: float, suv: float,
+                  suz: float, svv: float, svz: float, szz: float, min_points: int,
+                  min_spread: float
+                  ) -> tuple[float, float, float, float, float, float, float, bool, float,
+                             float, float, float, float, float]:
+    """The least-squares height plane of a block from its ten moment sums, without a
+    branch: residual, normal, centroid and validity as :func:`fit_sums` (inf, NaN where
+    the points do not spread in both horizontal directions), then the covariances
+    ``cuu, cuv, cuz, cvv, cvz, czz`` for the principal-component fallback."""
+    inv = 1.0 / n
+    mu = su * inv
+    mv = sv * inv
+    mz = sz * inv
+    cuu = suu * inv - mu * mu
+    cuv = suv * inv - mu * mv
+    cuz = suz * inv - mu * mz
+    cvv = svv * inv - mv * mv
+    cvz = svz * inv - mv * mz
+    czz = szz * inv - mz * mz
+    det = cuu * cvv - cuv * cuv
+    half_tr = 0.5 * (cuu + cvv)
+    lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
+    ls = (n >= min_points) & (lam_h >= min_spread)
+    inv_det = 1.0 / det
+    b = (cvv * cuz - cuv * cvz) * inv_det
+    c = (cuu * cvz - cuv * cuz) * inv_det
+    norm2 = 1.0 + b * b + c * c
+    scale = 1.0 / math.sqrt(norm2)
+    res = max((czz - b * cuz - c * cvz) / norm2, 0.0)
+    return (res if ls else np.inf, -b * scale if ls else np.nan,
+            -c * scale if ls else np.nan, scale if ls else np.nan, mu, mv, mz, ls,
+            cuu, cuv, cuz, cvv, cvz, czz)
+
+
+@compiled
+def fit_blocks(moments: np.ndarray, min_points: int, min_spread: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Plane fits of the 2x2 blocks anchored at every cell of a (nu, nv, 10) grid (cells
+    ``[i:i+2, j:j+2]``, zero beyond the grid), as :func:`fit_sums` of their summed moments
+    (``_fit_sums(_box_sums(moments, 2))``), flat over the cells.
+
+    Row by row, :data:`_FIT_TILE` columns at a time: the column sums of rows ``i, i+1``
+    transposed, the block sums, the height-plane fit of every block in a loop without
+    branches (the compiler vectorises it), the principal-component fallback only for the
+    few blocks that need it. What is kept of a fit is what the normals read: the table is
+    written once and is most of this function's memory traffic.
+
+    Returns
+    -------
+    blocks : (nu * nv, BLOCK_COLUMNS) float64
+        Normal (3), offset ``normal . centroid`` and residual variance of each block
+        (NaN, NaN and inf without a plane).
+    valid : (nu * nv,) bool
+        The block has a plane.
     """
-    _, nu, nv = moments.shape
-    size = nu * nv
-    residual = np.empty(size)
-    normals = np.empty((size, 3))
-    valid = np.empty(size, dtype=np.bool_)
-    centroid = np.empty((size, 3))
-    col = np.zeros((10, nv + 1))  # column sums of rows i, i+1; zero beyond the grid
-    box = np.empty((10, nv))
+    nu, nv = moments.shape[0], moments.shape[1]
+    tile = _FIT_TILE
+    blocks = np.empty((nu * nv, BLOCK_COLUMNS))
+    valid = np.empty(nu * nv, dtype=np.bool_)
+    col = np.zeros((10, tile + 1))  # column sums of rows i, i+1 (zero beyond the grid)
+    box = np.empty((10, tile))
+    fit = np.empty((8, tile))
     for i in range(nu):
-        if i + 1 < nu:
+        below = i + 1 < nu
+        for j0 in range(0, nv, tile):
+            m = min(tile, nv - j0)
+            ends_row = j0 + m >= nv
+            for jj in range(m if ends_row else m + 1):
+                j = j0 + jj
+                if below:
+                    for q in range(10):
+                        col[q, jj] = moments[i, j, q] + moments[i + 1, j, q]
+                else:
+                    for q in range(10):
+                        col[q, jj] = moments[i, j, q]
             for q in range(10):
-                for j in range(nv):
-                    col[q, j] = moments[q, i, j] + moments[q, i + 1, j]
-        else:
-            for q in range(10):
-                for j in range(nv):
-                    col[q, j] = moments[q, i, j]
-        for q in range(10):
-            for j in range(nv - 1):
-                box[q, j] = col[q, j] + col[q, j + 1]
-            box[q, nv - 1] = col[q, nv - 1]
-        base = i * nv
-        for j in range(nv):
-            n = box[0, j]
-            inv = 1.0 / n
-            mu = box[1, j] * inv
-            mv = box[2, j] * inv
-            mz = box[3, j] * inv
-            cuu = box[4, j] * inv - mu * mu
-            cuv = box[5, j] * inv - mu * mv
-            cuz = box[6, j] * inv - mu * mz
-            cvv = box[7, j] * inv - mv * mv
-            cvz = box[8, j] * inv - mv * mz
-            czz = box[9, j] * inv - mz * mz
-            det = cuu * cvv - cuv * cuv
-            half_tr = 0.5 * (cuu + cvv)
-            lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
-            ls = (n >= min_points) & (lam_h >= min_spread)
-            inv_det = 1.0 / det
-            b = (cvv * cuz - cuv * cvz) * inv_det
-            c = (cuu * cvz - cuv * cuz) * inv_det
-            norm2 = 1.0 + b * b + c * c
-            scale = 1.0 / math.sqrt(norm2)
-            res = max((czz - b * cuz - c * cvz) / norm2, 0.0)
-            k = base + j
-            residual[k] = res if ls else np.inf
-            normals[k, 0] = -b * scale if ls else np.nan
-            normals[k, 1] = -c * scale if ls else np.nan
-            normals[k, 2] = scale if ls else np.nan
-            valid[k] = ls
-            centroid[k, 0] = mu
-            centroid[k, 1] = mv
-            centroid[k, 2] = mz
-        for j in range(nv):
-            k = base + j
-            if valid[k] or not box[0, j] >= min_points:
-                continue
-            # a wall or a single scan line: the principal-component plane
-            _fit_one(box[0, j], box[1, j], box[2, j], box[3, j], box[4, j], box[5, j],
-                     box[6, j], box[7, j], box[8, j], box[9, j], min_points, min_spread,
-                     residual, normals, valid, centroid, k)
-    return residual, normals, valid, centroid
+                for jj in range(m):
+                    box[q, jj] = col[q, jj] + col[q, jj + 1]
+                if ends_row:
+                    box[q, m - 1] = col[q, m - 1]
+            for jj in range(m):
+                f = _height_plane(box[0, jj], box[1, jj], box[2, jj], box[3, jj], box[4, jj],
+                                  box[5, jj], box[6, jj], box[7, jj], box[8, jj], box[9, jj],
+                                  min_points, min_spread)
+                fit[0, jj], fit[1, jj], fit[2, jj], fit[3, jj] = f[0], f[1], f[2], f[3]
+                fit[4, jj], fit[5, jj], fit[6, jj] = f[4], f[5], f[6]
+                fit[7, jj] = 1.0 if f[7] else 0.0
+            for jj in range(m):
+                if fit[7, jj] == 0.0 and box[0, jj] >= min_points:
+                    # a wall or a single scan line: the principal-component plane
+                    f = _height_plane(box[0, jj], box[1, jj], box[2, jj], box[3, jj],
+                                      box[4, jj], box[5, jj], box[6, jj], box[7, jj],
+                                      box[8, jj], box[9, jj], min_points, min_spread)
+                    lam_min, lam_mid, x, y, zz, good = _eigen_smallest(
+                        f[8], f[9], f[10], f[11], f[12], f[13])
+                    if good and lam_mid >= min_spread:
+                        fit[0, jj], fit[1, jj], fit[2, jj] = max(lam_min, 0.0), x, y
+                        fit[3, jj], fit[7, jj] = zz, 1.0
+            base = i * nv + j0
+            for jj in range(m):
+                nx, ny, nz = fit[1, jj], fit[2, jj], fit[3, jj]
+                k = base + jj
+                blocks[k, 0], blocks[k, 1], blocks[k, 2] = nx, ny, nz
+                blocks[k, 3] = nx * fit[4, jj] + ny * fit[5, jj] + nz * fit[6, jj]
+                blocks[k, 4] = fit[0, jj]
+                valid[k] = fit[7, jj] != 0.0
+    return blocks, valid
 
 
 @compiled
-def cell_planes(residual: np.ndarray, normals: np.ndarray, centroid: np.ndarray, nu: int,
-                nv: int) -> tuple[np.ndarray, np.ndarray]:
+def cell_planes(residual: np.ndarray, nu: int, nv: int) -> tuple[np.ndarray, np.ndarray]:
     """The plane of each cell: that of the best-fitting (least residual) of the four 2x2
     blocks containing it, anchored at ``(i-1..i, j-1..j)``; ties go to the block anchored at
     the cell, then ``(i-1, j)``, ``(i, j-1)``, ``(i-1, j-1)``.
 
+    Parameters
+    ----------
+    residual : (nu * nv,) float64
+        Residual variance of each block's plane (inf without one): the last column of the
+        block table of :func:`fit_blocks`.
+
     Returns
     -------
-    plane : (nu * nv, 5) float64
-        Normal (3), offset ``normal . centroid`` and residual variance of each cell's plane.
+    best : (nu * nv,) int64
+        The block whose plane each cell takes.
     ok : (nu * nv,) bool
         Whether the cell has a plane (finite residual).
     """
-    plane = np.empty((nu * nv, 5))
+    best_block = np.empty(nu * nv, dtype=np.int64)
     ok = np.empty(nu * nv, dtype=np.bool_)
     for i in range(nu):
         for j in range(nv):
@@ -298,25 +349,23 @@ def cell_planes(residual: np.ndarray, normals: np.ndarray, centroid: np.ndarray,
                 best, a = residual[k - 1], k - 1
             if i >= 1 and j >= 1 and residual[k - nv - 1] < best:
                 best, a = residual[k - nv - 1], k - nv - 1
-            nx, ny, nz = normals[a, 0], normals[a, 1], normals[a, 2]
-            plane[k, 0], plane[k, 1], plane[k, 2] = nx, ny, nz
-            plane[k, 3] = nx * centroid[a, 0] + ny * centroid[a, 1] + nz * centroid[a, 2]
-            plane[k, 4] = best
+            best_block[k] = a
             ok[k] = math.isfinite(best)
-    return plane, ok
+    return best_block, ok
 
 
 @compiled
-def cells_without_plane(iu: np.ndarray, iv: np.ndarray, nv: int, cell_ok: np.ndarray
-                        ) -> np.ndarray:
+def cells_without_plane(iu: np.ndarray, iv: np.ndarray, row0: int, col0: int, nv: int,
+                        cell_ok: np.ndarray) -> np.ndarray:
     """The flat indices (ascending, once each) of the cells holding points that have no
-    plane: ``np.flatnonzero(wanted & ~cell_ok)`` where ``wanted[iu * nv + iv] = True``,
-    without the index temporaries.
+    plane: ``np.flatnonzero(wanted & ~cell_ok)`` where
+    ``wanted[(iu - row0) * nv + iv - col0] = True``, without the index temporaries.
 
     Parameters
     ----------
     iu, iv : (n,) int64
-        Cell of each point in a grid of ``nv`` columns.
+        Cell of each point: row ``iu - row0`` and column ``iv - col0`` of a grid of ``nv``
+        columns.
     cell_ok : (nu * nv,) bool
         The cells with a plane.
     """
@@ -324,7 +373,7 @@ def cells_without_plane(iu: np.ndarray, iv: np.ndarray, nv: int, cell_ok: np.nda
     mark = np.zeros(size, dtype=np.bool_)
     count = 0
     for i in range(iu.shape[0]):
-        k = iu[i] * nv + iv[i]
+        k = (iu[i] - row0) * nv + iv[i] - col0
         if not cell_ok[k] and not mark[k]:
             mark[k] = True
             count += 1
@@ -338,34 +387,45 @@ def cells_without_plane(iu: np.ndarray, iv: np.ndarray, nv: int, cell_ok: np.nda
 
 
 @compiled
-def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
-                  normals: np.ndarray, centroid: np.ndarray, valid: np.ndarray, nu: int,
-                  nv: int, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
-                  z: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def point_normals(blocks: np.ndarray, valid: np.ndarray, filled: np.ndarray,
+                  best: np.ndarray, cell_ok: np.ndarray, nu: int, nv: int, iu: np.ndarray,
+                  iv: np.ndarray,
+                  row0: int, col0: int, u: np.ndarray, v: np.ndarray, z: np.ndarray,
+                  tol: float, cos_h: float, sin_h: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normal, validity and roughness of each point from the planes of the grid's cells.
 
     A point takes the plane of its cell unless it lies off it (distance above ``tol``) or
     the plane fits its block badly (residual variance above ``tol^2``, a cell across an
     edge); then the nearest of the planes of the nine 2x2 blocks around its cell (score:
     squared distance plus the block's residual variance; ties to the first in row order)
-    if that scores better. Rough: the best score is still above ``tol^2``.
+    if that scores better. Rough: the best score is still above ``tol^2``. The normal is
+    then turned from the grid's frame to the map's (:func:`flight_to_map`).
 
     Parameters
     ----------
-    plane, cell_ok : from :func:`cell_planes`
-    residual, normals, centroid, valid : the 2x2 block fits (:func:`fit_blocks2`)
+    blocks, valid : (nu * nv, BLOCK_COLUMNS) float64, (nu * nv,) bool
+        The 2x2 block fits (:func:`fit_blocks`).
+    filled : (f, BLOCK_COLUMNS) float64
+        Planes of cells whose own blocks had none, from larger blocks around them.
+    best, cell_ok : (nu * nv,) int64 and bool
+        The block whose plane each cell takes, and whether it has one
+        (:func:`cell_planes`); ``best - nu * nv`` is the row of ``filled`` where it is
+        past the grid's blocks.
     nu, nv : int
         Grid shape.
     iu, iv : (n,) int64
-        Cell of each point in the grid.
+        Cell of each point: row ``iu - row0``, column ``iv - col0`` of the grid.
     u, v, z : (n,) float64
     tol : float
         Edge tolerance, m.
+    cos_h, sin_h : float
+        Cosine and sine of the grid's heading.
 
     Returns
     -------
     nrm : (n, 3) float64
-        Unit normals (grid frame), NaN where the cell has no plane.
+        Unit normals, map frame, NaN where the cell has no plane.
     ok : (n,) bool
     rough : (n,) bool
     """
@@ -374,20 +434,23 @@ def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
     ok = np.empty(n, dtype=np.bool_)
     rough = np.zeros(n, dtype=np.bool_)
     tol2 = tol * tol
+    size = nu * nv
     for p in range(n):
-        i, j = iu[p], iv[p]
+        i, j = iu[p] - row0, iv[p] - col0
         k = i * nv + j
         if not cell_ok[k]:
             ok[p] = False
             nrm[p, 0] = nrm[p, 1] = nrm[p, 2] = np.nan
             continue
         ok[p] = True
-        nx, ny, nz = plane[k, 0], plane[k, 1], plane[k, 2]
-        d = nx * u[p] + ny * v[p] + nz * z[p] - plane[k, 3]
-        lam = plane[k, 4]
+        a = best[k]
+        plane = blocks[a] if a < size else filled[a - size]
+        nx, ny, nz = plane[0], plane[1], plane[2]
+        d = nx * u[p] + ny * v[p] + nz * z[p] - plane[3]
+        lam = plane[4]
         if abs(d) > tol or lam > tol2:
             own = d * d + lam
-            best = np.inf
+            score_best = np.inf
             bx = by = bz = 0.0
             for di in range(-1, 2):
                 ii = i + di
@@ -400,16 +463,17 @@ def point_normals(plane: np.ndarray, cell_ok: np.ndarray, residual: np.ndarray,
                     b = ii * nv + jj
                     if not valid[b]:
                         continue
-                    cx, cy, cz = normals[b, 0], normals[b, 1], normals[b, 2]
-                    dk = (cx * u[p] + cy * v[p] + cz * z[p]
-                          - (cx * centroid[b, 0] + cy * centroid[b, 1] + cz * centroid[b, 2]))
-                    score = dk * dk + residual[b]
-                    if score < best:
-                        best, bx, by, bz = score, cx, cy, cz
-            if best < own:
+                    cx, cy, cz = blocks[b, 0], blocks[b, 1], blocks[b, 2]
+                    dk = cx * u[p] + cy * v[p] + cz * z[p] - blocks[b, 3]
+                    score = dk * dk + blocks[b, 4]
+                    if score < score_best:
+                        score_best, bx, by, bz = score, cx, cy, cz
+            if score_best < own:
                 nx, ny, nz = bx, by, bz
-            rough[p] = min(best, own) > tol2
-        nrm[p, 0], nrm[p, 1], nrm[p, 2] = nx, ny, nz
+            rough[p] = min(score_best, own) > tol2
+        nrm[p, 0] = -sin_h * nx + cos_h * ny
+        nrm[p, 1] = cos_h * nx + sin_h * ny
+        nrm[p, 2] = nz
     return nrm, ok, rough
 
 
@@ -1111,17 +1175,17 @@ def byte_counts(values: np.ndarray) -> np.ndarray:
 @compiled
 def centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
     """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
-    cell indices ``cells`` of a (10, nu, nv) grid (zero beyond it), the block's cells added
+    cell indices ``cells`` of a (nu, nv, 10) grid (zero beyond it), the block's cells added
     row by row, column by column.
 
     Parameters
     ----------
-    moments : (10, nu, nv) float64
+    moments : (nu, nv, 10) float64
     cells : (m,) int64
         Flat indices ``row * nv + column``.
     radius : int
     """
-    nu, nv = moments.shape[1], moments.shape[2]
+    nu, nv = moments.shape[0], moments.shape[1]
     m = cells.shape[0]
     sums = np.zeros((10, m))
     for k in range(m):
@@ -1136,7 +1200,7 @@ def centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndar
                 if jj < 0 or jj >= nv:
                     continue
                 for q in range(10):
-                    sums[q, k] += moments[q, ii, jj]
+                    sums[q, k] += moments[ii, jj, q]
     return sums
 
 
