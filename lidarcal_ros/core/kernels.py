@@ -1114,10 +1114,10 @@ def fill_corrected_rows(out_words: np.ndarray, in_words: np.ndarray, x: np.ndarr
 
     Parameters
     ----------
-    out_words : (n, m) uint32
-        The output rows as 4-byte words (written whole).
-    in_words : (n, k) uint32, k <= m
-        The input rows as 4-byte words.
+    out_words : (n, m) uint32 or uint64
+        The output rows as 4- or 8-byte words (written whole).
+    in_words : (n, k) of the same type, k <= m
+        The input rows as words.
     x, y, z, reflectance, range_m, incidence, scan_angle, flags : (n,)
         Views of the output's fields (into ``out_words``' memory), written after the words
         of their row.

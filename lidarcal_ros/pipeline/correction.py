@@ -632,10 +632,12 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
     points = np.ascontiguousarray(points)
     counts = tally.counts if tally is not None else np.zeros(257, dtype=np.int64)
     if points.dtype.itemsize % 4 == 0:
-        # The usual layout: one compiled pass row by row instead of nine over the output.
+        # The usual layout: one compiled pass row by row instead of nine over the output,
+        # the rows copied in 8-byte words where they allow (the corrected rows always do).
+        word = np.dtype(np.uint64 if points.dtype.itemsize % 8 == 0 else np.uint32)
         kernels.fill_corrected_rows(
-            out.view(np.uint32).reshape(n, dtype.itemsize // 4),
-            points.view(np.uint32).reshape(n, points.dtype.itemsize // 4),
+            out.view(word).reshape(n, dtype.itemsize // word.itemsize),
+            points.view(word).reshape(n, points.dtype.itemsize // word.itemsize),
             out["x"], out["y"], out["z"], res.xyz[a:b], out["reflectance"], out["range"],
             out["incidence"], out["scan_angle"], out["correction_flags"],
             res.reflectance[a:b], res.range[a:b], res.incidence[a:b], res.scan_angle[a:b],
