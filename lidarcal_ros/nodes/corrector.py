@@ -248,7 +248,9 @@ class CorrectorNode(Node):
             self._poses_t.append(t)
             self._poses_xyz.append(xyz)
             self._poses_q.append(orientation)
-            self._lock.notify()
+            if self._queue:  # a cloud may be waiting for the trajectory to cover it
+                # (not otherwise: hundreds of samples a second would each wake the worker)
+                self._lock.notify()
 
     def _on_points(self, raw: bytes) -> None:
         chunk = _Chunk(raw, time.monotonic(), len(raw))
