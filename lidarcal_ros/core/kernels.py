@@ -917,57 +917,92 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     current = -1
     spline = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     j = 0
+    # Every point served and the level model (the usual case): a point's window is its own
+    # index, and the windows come in runs of thousands of points (a window changes with each
+    # trajectory sample), over which the line's parameters are constants.
+    runs = not rigorous and window.shape[0] == n
     for a in range(0, n, size):
         m = min(size, n - a)
         # 1. Each point's frame (the window's line, or the attitude's cubic between the
         #    samples around it: points come in time order, a segment serves thousands).
+        pts, nrm = xyz[a:a + m], normals[a:a + m]
         for k in range(m):
-            i = a + k
-            col[0, k], col[1, k], col[2, k] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-            col[3, k], col[4, k], col[5, k] = normals[i, 0], normals[i, 1], normals[i, 2]
-            served[k] = ok[i]
-            if has_rough:
-                rough_col[k] = rough[i]
-            if has_intensity:
-                level_col[k] = intensity[i]
-            if not ok[i]:
-                for row in range(6, 18):
-                    col[row, k] = 0.0
-                continue
-            w = window[j]
-            j += 1
-            if rigorous:
-                if w != current:
-                    spline = segment_spline(w, traj_t, traj_q)
-                    current = w
-                f = pose_on_segment(t[i], w, spline, traj_t, traj_xyz, traj_q)
-                for row in range(12):
-                    col[6 + row, k] = f[row]
-            else:
-                dt = t[i] - t_mean[w]
-                col[6, k] = p_mean[w, 0] + velocity[w, 0] * dt
-                col[7, k] = p_mean[w, 1] + velocity[w, 1] * dt
-                col[8, k] = p_mean[w, 2] + velocity[w, 2] * dt
-                col[9, k], col[10, k] = cos_w[w], sin_w[w]
-        # 2. The beam of every point of the block (in vector registers).
-        if rigorous:
+            col[0, k], col[1, k], col[2, k] = pts[k, 0], pts[k, 1], pts[k, 2]
+            col[3, k], col[4, k], col[5, k] = nrm[k, 0], nrm[k, 1], nrm[k, 2]
+        if has_rough:
+            rgh = rough[a:a + m]
             for k in range(m):
-                res = _return_beam(col[0, k], col[1, k], col[2, k], col[6, k], col[7, k],
-                                   col[8, k], col[9, k], col[10, k], col[11, k], col[12, k],
-                                   col[13, k], col[14, k], col[15, k], col[16, k],
-                                   col[17, k], d, col[3, k], col[4, k], col[5, k], True)
-                for row in range(7):
-                    beam[row, k] = res[row]
-                beam[7, k] = acos_poly(res[6])
+                rough_col[k] = rgh[k]
+        if has_intensity:
+            lvl = intensity[a:a + m]
+            for k in range(m):
+                level_col[k] = lvl[k]
+        if runs:
+            for k in range(m):
+                served[k] = True
+            # 2. The beam of every point of the block, run by run (in vector registers).
+            k0 = 0
+            while k0 < m:
+                w = window[a + k0]
+                k1 = k0 + 1
+                while k1 < m and window[a + k1] == w:
+                    k1 += 1
+                tm, c, s = t_mean[w], cos_w[w], sin_w[w]
+                p0, p1, p2 = p_mean[w, 0], p_mean[w, 1], p_mean[w, 2]
+                v0, v1, v2 = velocity[w, 0], velocity[w, 1], velocity[w, 2]
+                tt, cr, br = t[a + k0:a + k1], col[:, k0:k1], beam[:, k0:k1]
+                for k in range(k1 - k0):
+                    dt = tt[k] - tm
+                    res = _return_beam(cr[0, k], cr[1, k], cr[2, k], p0 + v0 * dt,
+                                       p1 + v1 * dt, p2 + v2 * dt, c, -s, 0.0, s, c, 0.0,
+                                       0.0, 0.0, 1.0, d, cr[3, k], cr[4, k], cr[5, k], False)
+                    for row in range(7):
+                        br[row, k] = res[row]
+                    br[7, k] = acos_poly(res[6])
+                k0 = k1
         else:
             for k in range(m):
-                c, s = col[9, k], col[10, k]
-                res = _return_beam(col[0, k], col[1, k], col[2, k], col[6, k], col[7, k],
-                                   col[8, k], c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0, d,
-                                   col[3, k], col[4, k], col[5, k], False)
-                for row in range(7):
-                    beam[row, k] = res[row]
-                beam[7, k] = acos_poly(res[6])
+                i = a + k
+                served[k] = ok[i]
+                if not ok[i]:
+                    for row in range(6, 18):
+                        col[row, k] = 0.0
+                    continue
+                w = window[j]
+                j += 1
+                if rigorous:
+                    if w != current:
+                        spline = segment_spline(w, traj_t, traj_q)
+                        current = w
+                    f = pose_on_segment(t[i], w, spline, traj_t, traj_xyz, traj_q)
+                    for row in range(12):
+                        col[6 + row, k] = f[row]
+                else:
+                    dt = t[i] - t_mean[w]
+                    col[6, k] = p_mean[w, 0] + velocity[w, 0] * dt
+                    col[7, k] = p_mean[w, 1] + velocity[w, 1] * dt
+                    col[8, k] = p_mean[w, 2] + velocity[w, 2] * dt
+                    col[9, k], col[10, k] = cos_w[w], sin_w[w]
+            # 2. The beam of every point of the block (in vector registers).
+            if rigorous:
+                for k in range(m):
+                    res = _return_beam(col[0, k], col[1, k], col[2, k], col[6, k],
+                                       col[7, k], col[8, k], col[9, k], col[10, k],
+                                       col[11, k], col[12, k], col[13, k], col[14, k],
+                                       col[15, k], col[16, k], col[17, k], d, col[3, k],
+                                       col[4, k], col[5, k], True)
+                    for row in range(7):
+                        beam[row, k] = res[row]
+                    beam[7, k] = acos_poly(res[6])
+            else:
+                for k in range(m):
+                    c, s = col[9, k], col[10, k]
+                    res = _return_beam(col[0, k], col[1, k], col[2, k], col[6, k],
+                                       col[7, k], col[8, k], c, -s, 0.0, s, c, 0.0, 0.0,
+                                       0.0, 1.0, d, col[3, k], col[4, k], col[5, k], False)
+                    for row in range(7):
+                        beam[row, k] = res[row]
+                    beam[7, k] = acos_poly(res[6])
         # 3. The two-way attenuation (libm's exponential: a call per point).
         if has_intensity:
             for k in range(m):
