@@ -81,6 +81,7 @@ def test_samples_arriving_in_order_are_normalised_once_and_what_was_handed_out_s
         pos += k
         traj = buffer.trajectory()
         if early is None and pos > 500:
+            assert traj.orientation is not None
             early = traj
             early_copy = (traj.t.copy(), traj.xyz.copy(), traj.orientation.copy())
     first = int(np.searchsorted(t, t[-1] - 5.0))
