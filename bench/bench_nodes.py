@@ -96,17 +96,41 @@ def synthetic_chunk(k: int, n: int, dt: float, t0: float, rng: np.random.Generat
     return pts
 
 
-def pose_cdr(t: float) -> bytes:
+#: ``--attitude``: what orientation the source's poses carry. ``none``: the identity (no
+#: orientation, the positions' track gives the heading); ``heading``: a level attitude along
+#: the track (a heading only: the level model with the INS heading); ``ins``: a few hundredths
+#: of a radian of roll and pitch besides (the rigorous model).
+ATTITUDES = ("none", "heading", "ins")
+
+
+def pose_quaternion(t: float, attitude: str) -> tuple[float, float, float, float]:
+    """The orientation ``(x, y, z, w)`` of the source's pose at time ``t`` (``ATTITUDES``):
+    REP-103's body (x forward) heading along +y, the synthetic flight line."""
+    if attitude == "none":
+        return 0.0, 0.0, 0.0, 1.0
+    roll = pitch = 0.0
+    if attitude == "ins":
+        roll = 0.02 * math.sin(2.0 * math.pi * 0.3 * (t - T0))
+        pitch = 0.01 * math.sin(2.0 * math.pi * 0.2 * (t - T0))
+    cy, sy = math.cos(math.pi / 4.0), math.sin(math.pi / 4.0)  # yaw pi/2: along +y
+    cp, sp = math.cos(pitch / 2.0), math.sin(pitch / 2.0)
+    cr, sr = math.cos(roll / 2.0), math.sin(roll / 2.0)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+def pose_cdr(t: float, attitude: str = "none") -> bytes:
     from lidarcal_ros.io.ros_messages import serialize, typestore
 
     types = typestore().types
+    qx, qy, qz, qw = pose_quaternion(t, attitude)
     sec, nsec = divmod(round(t * 1e9), 1_000_000_000)
     msg = types["geometry_msgs/msg/PoseStamped"](
         header=types["std_msgs/msg/Header"](
             stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id="map"),
         pose=types["geometry_msgs/msg/Pose"](
             position=types["geometry_msgs/msg/Point"](x=0.0, y=SPEED * (t - T0), z=HEIGHT),
-            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+            orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
     return serialize(msg, "geometry_msgs/msg/PoseStamped")
 
 
@@ -114,8 +138,11 @@ T0 = 1.7e9
 
 
 def _source_main(argv: list[str]) -> int:
-    """Child process: publish synthetic chunks at ``rate`` points/s for ``seconds``."""
+    """Child process: publish synthetic chunks at ``rate`` points/s for ``seconds`` (poses with
+    ``attitude``, ``history`` seconds of them before the first chunk)."""
     rate, points, seconds, topic = float(argv[0]), int(argv[1]), float(argv[2]), argv[3]
+    attitude = argv[4] if len(argv) > 4 else "none"
+    history = float(argv[5]) if len(argv) > 5 else 0.0
     from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
@@ -155,10 +182,18 @@ def _source_main(argv: list[str]) -> int:
             time.monotonic() < deadline:
         time.sleep(0.05)
     time.sleep(1.0)
+    # A flight under way: the trajectory of the last ``history`` seconds first (in bursts,
+    # so that the subscriber's queue takes them all).
+    for k in range(-round(history * TRAJ_HZ), 0):
+        traj.publish(pose_cdr(T0 + k / TRAJ_HZ, attitude))
+        if k % 1000 == 0:
+            time.sleep(0.05)
+    if history:
+        time.sleep(2.0)
     next_pose = 0.0
     # the trajectory covers the first chunks before they are sent
     while next_pose < 2 * dt + 0.5:
-        traj.publish(pose_cdr(T0 + next_pose))
+        traj.publish(pose_cdr(T0 + next_pose, attitude))
         next_pose += 1.0 / TRAJ_HZ
     start = time.monotonic()
     for k in range(n_chunks):
@@ -167,7 +202,7 @@ def _source_main(argv: list[str]) -> int:
         if target > now:
             time.sleep(target - now)
         while next_pose < (k + 2) * dt + 0.5:
-            traj.publish(pose_cdr(T0 + next_pose))
+            traj.publish(pose_cdr(T0 + next_pose, attitude))
             next_pose += 1.0 / TRAJ_HZ
         j = k % 4
         shift = (k - j) * dt
@@ -497,7 +532,8 @@ def bench_codec(points: int, repeats: int) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- corrector
 def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant: str,
-                    context: Any) -> list[dict[str, Any]]:
+                    context: Any, attitude: str = "none", history: float = 0.0
+                    ) -> list[dict[str, Any]]:
     results = []
     env = _env()
     typed = variant == "typed"
@@ -523,8 +559,8 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             sampler = CpuSampler(corrector.pid)
             source = subprocess.run(
                 [PYTHON, str(Path(__file__)), "_source", str(rate), str(points), str(seconds),
-                 "/lidar/points"], env=env, capture_output=True, text=True,
-                timeout=seconds + 120)
+                 "/lidar/points", attitude, str(history)], env=env, capture_output=True,
+                text=True, timeout=seconds + 120 + history / 10.0)
             sent = json.loads(source.stdout.strip().splitlines()[-1]) if \
                 source.returncode == 0 else {"chunks": 0, "seconds": math.nan}
             # let the corrector drain (bounded)
@@ -883,6 +919,14 @@ def main() -> int:
                         "(typed-rclpy PointCloud2 in and out), relay (the node's DDS "
                         "traffic alone: take each cloud, publish one of the corrected "
                         "layout, no correction)")
+    parser.add_argument("--attitude", choices=ATTITUDES, default="none",
+                        help="orientation of the corrector section's poses: none (the "
+                        "identity), heading (level, along the track) or ins (with some roll "
+                        "and pitch: the rigorous model)")
+    parser.add_argument("--history", type=float, default=0.0,
+                        help="seconds of trajectory the corrector section's source publishes "
+                        "before its first chunk (a flight under way: the corrector keeps "
+                        "trajectory_buffer_s, 600 s, of it)")
     parser.add_argument("--repeats", type=int, default=1,
                         help="runs of the corrector section, its variants in turn each time "
                         "(the summary against the relay gives the median and the spread)")
@@ -958,8 +1002,9 @@ def main() -> int:
                 if args.repeats > 1:
                     print(f" run {repeat + 1} of {args.repeats}:", flush=True)
                 for variant in args.variants.split(","):
-                    results["corrector"] += bench_corrector(rates, args.seconds, args.chunk_s,
-                                                            variant, context)
+                    results["corrector"] += bench_corrector(
+                        rates, args.seconds, args.chunk_s, variant, context,
+                        attitude=args.attitude, history=args.history)
             print(f"corrector against the relay (CPU per point in the steady state, node and "
                   f"correction processes; goal: at most {GOAL_NS_PER_POINT:.0f} ns and "
                   f"{GOAL_RELAY_RATIO:g}x the relay, p99 after the first second at most "
