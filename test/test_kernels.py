@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core import kernels
+from lidarcal_ros.pipeline import correction as correction_module
 
 MIN_POINTS = 4
 MIN_SPREAD = 0.01
@@ -326,7 +327,8 @@ def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: 
     kernels.correct_returns(t, xyz, ok, lines.window, False,
                             (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa,
                              lines.sin_kappa), (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))),
-                            delta, normals, rough, intensity, model.kernel_constants(), out)
+                            delta, normals, rough, intensity, model.kernel_constants(), out,
+                            correction_module._NO_ROWS)
     return out
 
 
@@ -601,3 +603,56 @@ def test_cells_without_plane_is_the_numpy_expression() -> None:
                                                               cell_ok),
                                   np.flatnonzero(wanted & ~cell_ok))
     assert kernels.cells_without_plane(iu[:0], iv[:0], 0, 0, nv, cell_ok).size == 0
+
+
+@pytest.mark.parametrize("all_served", [True, False])
+@pytest.mark.parametrize("layout", ["lidarcal", "float32 xyz"])
+def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
+        all_served: bool, layout: str) -> None:
+    """Corrected straight into a cloud's rows (the node's path), the bytes and the tally are
+    those of the columns written out by fill_corrected_rows, whether every point is served
+    (the run-by-run path) or not (a point's window counted among the served ones), with
+    8-byte (lidarcal's layout) or 4-byte words (single-precision coordinates)."""
+    from lidarcal_ros.core.radiometry import RadiometricModel
+    from lidarcal_ros.io.pointcloud import make_point_dtype
+
+    t, xyz, ok, lines, _traj, normals, rough, intensity, delta = _returns_case(n=1000)
+    if all_served:
+        ok[:] = True
+        xyz[7, 2] = xyz[6, 2]
+        lines = _returns_lines(t, _traj)
+    model = RadiometricModel(visibility_km=20.0)
+    dtype = (make_point_dtype() if layout == "lidarcal" else np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f8"), ("intensity", "<f4")]))
+    points = np.zeros(len(t), dtype=dtype)
+    points["x"], points["y"], points["z"], points["t"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], t
+    points["intensity"] = intensity
+    if layout != "lidarcal":
+        xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    xc, rng_m, inc, scan, refl, flags = _run_correct_returns(
+        t, xyz, ok, lines, normals, rough, intensity, delta, model)
+    res = correction_module.CorrectedColumns(xc, rng_m, inc, scan, refl, flags)
+    expected_tally = correction_module.CloudTally.empty()
+    expected = correction_module.build_corrected(points, res, tally=expected_tally)
+    out = np.full(len(t) * expected.dtype.itemsize, 0xAB, np.uint8).view(expected.dtype)
+    counts = np.zeros(257, dtype=np.int64)
+    target = correction_module.row_target(points, out, counts)
+    assert target is not None
+    n = len(t)
+    kernels.correct_returns(
+        t, xyz, ok, lines.window, False,
+        (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
+        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,
+        model.kernel_constants(), (np.empty((0, 3)), *(np.empty(0, np.float32),) * 4,
+                                   np.empty(0, np.uint8)), target)
+    assert n > 2 * 256  # (several blocks)
+    assert out.tobytes() == expected.tobytes()
+    np.testing.assert_array_equal(counts, expected_tally.counts)
+    assert expected_tally.flagged(correction_module.FLAG_NOT_CORRECTED) == (0 if all_served
+                                                                           else 2)
+
+
+def _returns_lines(t: np.ndarray, traj: Any) -> Any:
+    from lidarcal_ros.core.local_trajectory import window_lines
+
+    return window_lines(t, traj)

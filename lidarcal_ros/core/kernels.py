@@ -836,7 +836,10 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
                     intensity: np.ndarray,
                     radiometry: tuple[np.float32, np.float32, np.float32, np.float32],
                     out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                               np.ndarray]) -> None:
+                               np.ndarray],
+                    rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                np.ndarray]) -> None:
     """Correct each return and derive its beam quantities and reflectance, in one compiled
     call (:func:`lidarcal_ros.pipeline.correction.correct_columns`, whose module docstring gives
     the steps): the firing position and body frame of each point (a window's line and
@@ -891,8 +894,19 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         Written: corrected points (n, 3) float64 (the delivered ones where not corrected),
         m; range, incidence, scan angle, reflectance (n,) float32 (m, rad, rad, the
         reflectance's unit; NaN where unknown); the ``correction_flags`` bits (n,) uint8.
+        Not written with ``rows`` (may be empty then).
+    rows : (out_words, in_words, x, y, z, reflectance, range, incidence, scan_angle, flags,
+        tally), or ``out_words`` empty
+        The corrected cloud's rows to write instead of ``out``, as
+        :func:`fill_corrected_rows` writes them from ``out`` (its arguments but for the
+        columns): each block of points goes from the first-level cache into its rows, not
+        through ``out`` and a second pass.
     """
     out_xyz, range_m, incidence, scan_angle, reflectance, flags = out
+    (out_words, in_words, x_row, y_row, z_row, refl_row, range_row, inc_row, scan_row,
+     flags_row, tally) = rows
+    in_rows = out_words.shape[0] == t.shape[0]
+    k_words, m_words = in_words.shape[1], out_words.shape[1]
     c_min, c_doubt, scale, two_alpha = radiometry
     traj_t, traj_xyz, traj_q = poses
     t_mean, p_mean, velocity, cos_w, sin_w = lines
@@ -1039,8 +1053,30 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             gain[k] = g32 if good and has_intensity else nan32
             flag_col[k] = fl if good else FLAG_NOT_CORRECTED | no_intensity
             corrected[k] = good
-        # 5. Written out, a field at a time (the points not corrected keep their coordinates,
-        #    NaN in the derived fields).
+        # 5. Written out (the points not corrected keep their coordinates, NaN in the derived
+        #    fields): into the cloud's rows, or a field at a time.
+        if in_rows:
+            for k in range(m):
+                i = a + k
+                for word in range(k_words):
+                    out_words[i, word] = in_words[i, word]
+                for word in range(k_words, m_words):
+                    out_words[i, word] = 0
+                good = corrected[k]
+                px = beam[1, k] if good else col[0, k]
+                py = beam[2, k] if good else col[1, k]
+                pz = beam[3, k] if good else col[2, k]
+                bits = flag_col[k]
+                tally[bits] += 1
+                if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+                    tally[256] += 1
+                x_row[i], y_row[i], z_row[i] = px, py, pz
+                refl_row[i] = gain[k]
+                range_row[i] = np.float32(beam[4, k]) if good else nan32
+                inc_row[i] = np.float32(beam[7, k]) if good else nan32
+                scan_row[i] = np.float32(beam[5, k]) if good else nan32
+                flags_row[i] = bits
+            continue
         for k in range(m):
             good = corrected[k]
             out_xyz[a + k, 0] = beam[1, k] if good else col[0, k]
