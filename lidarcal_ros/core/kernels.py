@@ -243,11 +243,13 @@ def _height_plane(n: float, su: float, sv: float, sz: float, suu: float, suv: fl
 
 
 @compiled
-def fit_blocks(moments: np.ndarray, min_points: int, min_spread: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+def fit_blocks(moments: np.ndarray, min_points: int, min_spread: float, first: int = 0,
+               stop: int = -1) -> tuple[np.ndarray, np.ndarray]:
     """Plane fits of the 2x2 blocks anchored at every cell of a (nu, nv, 10) grid (cells
     ``[i:i+2, j:j+2]``, zero beyond the grid), as :func:`fit_sums` of their summed moments
-    (``_fit_sums(_box_sums(moments, 2))``), flat over the cells.
+    (``_fit_sums(_box_sums(moments, 2))``), flat over the cells; only those anchored in
+    rows ``first`` to ``stop - 1`` (``stop`` -1: the last row) when the others are not read
+    (a chunk's points read the blocks of their rows and the next ones only).
 
     Row by row, :data:`_FIT_TILE` columns at a time: the column sums of rows ``i, i+1``
     transposed, the block sums, the height-plane fit of every block in a loop without
@@ -259,18 +261,19 @@ def fit_blocks(moments: np.ndarray, min_points: int, min_spread: float
     -------
     blocks : (nu * nv, BLOCK_COLUMNS) float64
         Normal (3), offset ``normal . centroid`` and residual variance of each block
-        (NaN, NaN and inf without a plane).
+        (NaN, NaN and inf without a plane; not written outside the rows fitted).
     valid : (nu * nv,) bool
-        The block has a plane.
+        The block has a plane (False outside the rows fitted).
     """
     nu, nv = moments.shape[0], moments.shape[1]
+    stop = nu if stop < 0 else min(stop, nu)
     tile = _FIT_TILE
     blocks = np.empty((nu * nv, BLOCK_COLUMNS))
-    valid = np.empty(nu * nv, dtype=np.bool_)
+    valid = np.zeros(nu * nv, dtype=np.bool_)
     col = np.zeros((10, tile + 1))  # column sums of rows i, i+1 (zero beyond the grid)
     box = np.empty((10, tile))
     fit = np.empty((8, tile))
-    for i in range(nu):
+    for i in range(max(first, 0), stop):
         below = i + 1 < nu
         for j0 in range(0, nv, tile):
             m = min(tile, nv - j0)
@@ -318,10 +321,13 @@ def fit_blocks(moments: np.ndarray, min_points: int, min_spread: float
 
 
 @compiled
-def cell_planes(residual: np.ndarray, nu: int, nv: int) -> tuple[np.ndarray, np.ndarray]:
+def cell_planes(residual: np.ndarray, nu: int, nv: int, first: int = 0, stop: int = -1
+                ) -> tuple[np.ndarray, np.ndarray]:
     """The plane of each cell: that of the best-fitting (least residual) of the four 2x2
     blocks containing it, anchored at ``(i-1..i, j-1..j)``; ties go to the block anchored at
-    the cell, then ``(i-1, j)``, ``(i, j-1)``, ``(i-1, j-1)``.
+    the cell, then ``(i-1, j)``, ``(i, j-1)``, ``(i-1, j-1)``. Only for the cells of rows
+    ``first`` to ``stop - 1`` (``stop`` -1: the last), which read the blocks anchored from
+    row ``first - 1`` on; the other cells get none.
 
     Parameters
     ----------
@@ -337,8 +343,9 @@ def cell_planes(residual: np.ndarray, nu: int, nv: int) -> tuple[np.ndarray, np.
         Whether the cell has a plane (finite residual).
     """
     best_block = np.empty(nu * nv, dtype=np.int64)
-    ok = np.empty(nu * nv, dtype=np.bool_)
-    for i in range(nu):
+    ok = np.zeros(nu * nv, dtype=np.bool_)
+    stop = nu if stop < 0 else min(stop, nu)
+    for i in range(max(first, 0), stop):
         for j in range(nv):
             k = i * nv + j
             best = residual[k]

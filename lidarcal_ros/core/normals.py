@@ -400,7 +400,8 @@ class _Planes:
 
 
 def _plane_table(moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, row0: int, col0: int,
-                 min_points: int, min_spread: float) -> _Planes:
+                 min_points: int, min_spread: float, rows: tuple[int, int] | None = None
+                 ) -> _Planes:
     """The planes of the cells of a dense grid, for its points (module docstring).
 
     Parameters
@@ -412,11 +413,15 @@ def _plane_table(moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, row0: int,
         theirs without a plane of its own blocks takes that of the 3x3 block of cells around
         it, failing that of the 5x5 one (e.g. the newest scan line when nothing beyond it
         has arrived yet).
+    rows : (int, int), optional
+        The first and last grid row holding points (all rows by default): only the planes
+        of their cells and the blocks those read (a row either side) are fitted.
     """
     nu, nv, _ = moments.shape
-    blocks, valid = kernels.fit_blocks(moments, min_points, min_spread)
+    first, last = (0, nu - 1) if rows is None else rows
+    blocks, valid = kernels.fit_blocks(moments, min_points, min_spread, first - 1, last + 2)
     # Each cell: the best of the four 2x2 blocks containing it.
-    best, cell_ok = kernels.cell_planes(blocks[:, 4], nu, nv)
+    best, cell_ok = kernels.cell_planes(blocks[:, 4], nu, nv, first, last + 1)
     # The cells of the points that lack a plane (not every occupied cell: a grid may reach
     # beyond the points).
     need = kernels.cells_without_plane(iu, iv, row0, col0, nv, cell_ok)
@@ -902,8 +907,9 @@ class StripNormals:
         hi = min(max(p.row_max for p in binned) + 3, self._row0 + self._moments.shape[0],
                  self._clean_to)
         iu, iv = _joined([p.iu for p in binned]), _joined([p.iv for p in binned])
+        rows = (min(p.row_min for p in binned) - lo, max(p.row_max for p in binned) - lo)
         planes = _plane_table(self._moments[lo - self._row0:hi - self._row0], iu, iv, lo,
-                              self._col0, self.min_points, _min_spread(self.cell))
+                              self._col0, self.min_points, _min_spread(self.cell), rows)
         return NormalsTask(ready, planes, lo, self._col0, self.cell, self.heading, self._noise)
 
 
