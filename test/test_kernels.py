@@ -407,6 +407,15 @@ def test_finite_range_on_a_strided_field() -> None:
     lo, hi = kernels.finite_range(np.full(3, np.nan))
     assert math.isnan(lo) and math.isnan(hi)
     assert all(math.isnan(v) for v in kernels.finite_range(np.empty(0)))
+    # every length (four running extremes and a tail), the extremes anywhere, infinities
+    for n in range(1, 11):
+        for k in range(n):
+            v = np.arange(n, dtype=np.float64)
+            v[k] = -5.0
+            v[(k + 1) % n] = np.nan if n > 2 else v[(k + 1) % n]
+            assert kernels.finite_range(v) == (np.fmin.reduce(v), np.fmax.reduce(v))
+    assert kernels.finite_range(np.array([np.inf, np.nan])) == (np.inf, np.inf)
+    assert kernels.finite_range(np.array([2.0, -np.inf, 1.0])) == (-np.inf, 2.0)
 
 
 def test_byte_counts_is_bincount() -> None:

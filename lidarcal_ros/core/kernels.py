@@ -1442,23 +1442,33 @@ def all_finite3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> bool:
     return True
 
 
+@inlined
+def _low_high(v: float, lo: float, hi: float) -> tuple[float, float]:
+    """``lo, hi`` widened to ``v`` (a NaN ``v`` leaves them), without a branch."""
+    return (v if v < lo else lo), (v if v > hi else hi)
+
+
 @compiled
 def finite_range(values: np.ndarray) -> tuple[float, float]:
     """``(np.fmin.reduce(values), np.fmax.reduce(values))`` in one pass (a field of a
     structured cloud, strided): the least and greatest values ignoring NaN, ``(nan, nan)``
-    when all are NaN or there are none."""
-    lo = math.inf
-    hi = -math.inf
-    seen = False
-    for i in range(values.shape[0]):
-        v = values[i]
-        if v == v:  # (not NaN)
-            seen = True
-            if v < lo:
-                lo = v
-            if v > hi:
-                hi = v
-    if not seen:
+    when all are NaN or there are none. Four running extremes, not one: one is a chain of
+    dependent comparisons a value long, four overlap (the node reads every cloud's times
+    this way, 200 000 of them per 50 ms at 4M points/s)."""
+    n = values.shape[0]
+    lo0 = lo1 = lo2 = lo3 = math.inf
+    hi0 = hi1 = hi2 = hi3 = -math.inf
+    body = n - n % 4
+    for i in range(0, body, 4):
+        lo0, hi0 = _low_high(values[i], lo0, hi0)
+        lo1, hi1 = _low_high(values[i + 1], lo1, hi1)
+        lo2, hi2 = _low_high(values[i + 2], lo2, hi2)
+        lo3, hi3 = _low_high(values[i + 3], lo3, hi3)
+    for i in range(body, n):
+        lo0, hi0 = _low_high(values[i], lo0, hi0)
+    lo = min(min(lo0, lo1), min(lo2, lo3))
+    hi = max(max(hi0, hi1), max(hi2, hi3))
+    if not lo <= hi:  # nothing but NaN (an infinite value counts: inf <= inf)
         return math.nan, math.nan
     return float(lo), float(hi)
 
