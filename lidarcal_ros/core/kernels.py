@@ -914,6 +914,9 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
      flags_row, tally) = rows
     in_rows = out_words.shape[0] == t.shape[0]
     k_words, m_words = in_words.shape[1], out_words.shape[1]
+    # The tally in four interleaved sets of counts (one counter incremented point after point
+    # would make each increment wait for the one before); added up at the end.
+    counts = np.zeros((4, 257), dtype=np.int64)
     c_min, c_doubt, scale, two_alpha = radiometry
     traj_t, traj_xyz, traj_q = poses
     t_mean, p_mean, velocity, cos_w, sin_w = lines
@@ -1074,9 +1077,9 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
                 py = beam[2, k] if good else col[1, k]
                 pz = beam[3, k] if good else col[2, k]
                 bits = flag_col[k]
-                tally[bits] += 1
+                counts[k & 3, bits] += 1
                 if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
-                    tally[256] += 1
+                    counts[k & 3, 256] += 1
                 x_row[i], y_row[i], z_row[i] = px, py, pz
                 refl_row[i] = gain[k]
                 range_row[i] = np.float32(beam[4, k]) if good else nan32
@@ -1099,6 +1102,10 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             reflectance[a + k] = gain[k]
         for k in range(m):
             flags[a + k] = flag_col[k]
+    if in_rows:
+        for lane in range(4):
+            for bits in range(257):
+                tally[bits] += counts[lane, bits]
 
 
 @compiled
