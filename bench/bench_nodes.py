@@ -1,8 +1,10 @@
 """Benchmark of the ROS 2 nodes over loopback DDS (bench/README.md, "Nodes").
 
-    .venv/bin/python bench/bench_nodes.py                    # everything (~6 min)
+    .venv/bin/python bench/bench_nodes.py                    # everything (~8 min)
     .venv/bin/python bench/bench_nodes.py --only codec,corrector
     .venv/bin/python bench/bench_nodes.py --rates 0.25,0.5,1,2,4 --seconds 10
+    .venv/bin/python bench/bench_nodes.py --only corrector --variants raw,relay --rates 3,4 \
+        --repeats 3                                          # the 4 M/s goal, ~10 min
 
 Sections (every figure measured in this run; the typed-rclpy path is measured beside the raw
 CDR path under the same load):
@@ -19,7 +21,10 @@ corrector  sustained throughput of ``lidarcal_corrector`` through DDS: a source 
            minus first third: growth = backlog). Once with the node's raw path, once with a
            typed-rclpy variant of the same node (typed subscription and publisher); the
            ``relay`` variant, a bare node that takes each cloud and publishes one of the
-           corrected layout without correcting, measures the floor DDS sets under it.
+           corrected layout without correcting, measures the floor DDS sets under it. With
+           both ``raw`` and ``relay``, a summary per rate: their CPU per point, its ratio
+           run by run, and the goal (GOAL_NS_PER_POINT, GOAL_RELAY_RATIO, the p99, no
+           chunk lost); ``--repeats`` runs the variants in turn that many times.
 calibrator-rate (only when asked for) ``lidarcal_calibrator`` alone fed the corrector's
            synthetic stream at each offered rate with ``calibration.thinning_cell_m``
            (``--calibrator-thinning``): whether its intake keeps up (the queue of clouds
@@ -59,6 +64,11 @@ SAMPLE_CONTROL = ROOT / "bags" / "paper_sample_control.csv"
 
 GOAL_POINTS_PER_S = 4.0e6
 GOAL_P99_S = 0.100
+#: The corrector's whole CPU per point (node and correction processes, steady state): at most
+#: this, and at most GOAL_RELAY_RATIO times that of the relay (the same DDS traffic without
+#: the correction) measured in the same run.
+GOAL_NS_PER_POINT = 200.0
+GOAL_RELAY_RATIO = 2.5
 
 #: Synthetic stream: aircraft at 1000 m along +y at 60 m/s; flat ground; swath +-400 m.
 SPEED = 60.0
@@ -86,17 +96,41 @@ def synthetic_chunk(k: int, n: int, dt: float, t0: float, rng: np.random.Generat
     return pts
 
 
-def pose_cdr(t: float) -> bytes:
+#: ``--attitude``: what orientation the source's poses carry. ``none``: the identity (no
+#: orientation, the positions' track gives the heading); ``heading``: a level attitude along
+#: the track (a heading only: the level model with the INS heading); ``ins``: a few hundredths
+#: of a radian of roll and pitch besides (the rigorous model).
+ATTITUDES = ("none", "heading", "ins")
+
+
+def pose_quaternion(t: float, attitude: str) -> tuple[float, float, float, float]:
+    """The orientation ``(x, y, z, w)`` of the source's pose at time ``t`` (``ATTITUDES``):
+    REP-103's body (x forward) heading along +y, the synthetic flight line."""
+    if attitude == "none":
+        return 0.0, 0.0, 0.0, 1.0
+    roll = pitch = 0.0
+    if attitude == "ins":
+        roll = 0.02 * math.sin(2.0 * math.pi * 0.3 * (t - T0))
+        pitch = 0.01 * math.sin(2.0 * math.pi * 0.2 * (t - T0))
+    cy, sy = math.cos(math.pi / 4.0), math.sin(math.pi / 4.0)  # yaw pi/2: along +y
+    cp, sp = math.cos(pitch / 2.0), math.sin(pitch / 2.0)
+    cr, sr = math.cos(roll / 2.0), math.sin(roll / 2.0)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+def pose_cdr(t: float, attitude: str = "none") -> bytes:
     from lidarcal_ros.io.ros_messages import serialize, typestore
 
     types = typestore().types
+    qx, qy, qz, qw = pose_quaternion(t, attitude)
     sec, nsec = divmod(round(t * 1e9), 1_000_000_000)
     msg = types["geometry_msgs/msg/PoseStamped"](
         header=types["std_msgs/msg/Header"](
             stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id="map"),
         pose=types["geometry_msgs/msg/Pose"](
             position=types["geometry_msgs/msg/Point"](x=0.0, y=SPEED * (t - T0), z=HEIGHT),
-            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+            orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
     return serialize(msg, "geometry_msgs/msg/PoseStamped")
 
 
@@ -104,8 +138,11 @@ T0 = 1.7e9
 
 
 def _source_main(argv: list[str]) -> int:
-    """Child process: publish synthetic chunks at ``rate`` points/s for ``seconds``."""
+    """Child process: publish synthetic chunks at ``rate`` points/s for ``seconds`` (poses with
+    ``attitude``, ``history`` seconds of them before the first chunk)."""
     rate, points, seconds, topic = float(argv[0]), int(argv[1]), float(argv[2]), argv[3]
+    attitude = argv[4] if len(argv) > 4 else "none"
+    history = float(argv[5]) if len(argv) > 5 else 0.0
     from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
@@ -145,10 +182,18 @@ def _source_main(argv: list[str]) -> int:
             time.monotonic() < deadline:
         time.sleep(0.05)
     time.sleep(1.0)
+    # A flight under way: the trajectory of the last ``history`` seconds first (in bursts,
+    # so that the subscriber's queue takes them all).
+    for k in range(-round(history * TRAJ_HZ), 0):
+        traj.publish(pose_cdr(T0 + k / TRAJ_HZ, attitude))
+        if k % 1000 == 0:
+            time.sleep(0.05)
+    if history:
+        time.sleep(2.0)
     next_pose = 0.0
     # the trajectory covers the first chunks before they are sent
     while next_pose < 2 * dt + 0.5:
-        traj.publish(pose_cdr(T0 + next_pose))
+        traj.publish(pose_cdr(T0 + next_pose, attitude))
         next_pose += 1.0 / TRAJ_HZ
     start = time.monotonic()
     for k in range(n_chunks):
@@ -157,7 +202,7 @@ def _source_main(argv: list[str]) -> int:
         if target > now:
             time.sleep(target - now)
         while next_pose < (k + 2) * dt + 0.5:
-            traj.publish(pose_cdr(T0 + next_pose))
+            traj.publish(pose_cdr(T0 + next_pose, attitude))
             next_pose += 1.0 / TRAJ_HZ
         j = k % 4
         shift = (k - j) * dt
@@ -487,7 +532,8 @@ def bench_codec(points: int, repeats: int) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- corrector
 def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant: str,
-                    context: Any) -> list[dict[str, Any]]:
+                    context: Any, attitude: str = "none", history: float = 0.0
+                    ) -> list[dict[str, Any]]:
     results = []
     env = _env()
     typed = variant == "typed"
@@ -497,8 +543,8 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
         cmd = [PYTHON, str(Path(__file__)), "_relay"]
     elif variant == "raw-lookahead":
         cmd += ["--ros-args", "-p", "lookahead:=true"]
-    elif variant == "raw-1worker":
-        cmd += ["--ros-args", "-p", "workers:=1"]
+    elif variant == "raw-2workers":
+        cmd += ["--ros-args", "-p", "workers:=2"]
     elif variant == "raw-thread":
         cmd += ["--ros-args", "-p", "separate_process:=false"]
     for rate in rates:
@@ -513,8 +559,8 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
             sampler = CpuSampler(corrector.pid)
             source = subprocess.run(
                 [PYTHON, str(Path(__file__)), "_source", str(rate), str(points), str(seconds),
-                 "/lidar/points"], env=env, capture_output=True, text=True,
-                timeout=seconds + 120)
+                 "/lidar/points", attitude, str(history)], env=env, capture_output=True,
+                text=True, timeout=seconds + 120 + history / 10.0)
             sent = json.loads(source.stdout.strip().splitlines()[-1]) if \
                 source.returncode == 0 else {"chunks": 0, "seconds": math.nan}
             # let the corrector drain (bounded)
@@ -575,6 +621,8 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
         })
         keeps_up = (len(s) == sent["chunks"] and out_rate >= 0.95 * rate
                     and growth < 0.05)
+        results[-1]["keeps_up"] = keeps_up
+        results[-1]["load_avg"] = os.getloadavg()[0]
         print(f"  {variant:15} offered {rate / 1e6:5.2f} M/s ({points} pts/chunk): "
               f"out {out_rate / 1e6:5.2f} M/s, {len(s)}/{sent['chunks']} chunks, "
               f"p50 {p50 * 1000:7.1f} ms, p99 {p99 * 1000:7.1f} ms (after 1 s "
@@ -588,6 +636,46 @@ def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant:
               f"{_goal_verdict(keeps_up, p99, p99_steady)}",
               flush=True)
     return results
+
+
+def summarize_against_relay(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The corrector as shipped (``raw``) against the relay at each offered rate: CPU per
+    point of each run, their ratio run by run (the n-th corrector run with the n-th relay
+    run of the same rate: measured minutes apart, under the same load), and the goals
+    (:data:`GOAL_NS_PER_POINT`, :data:`GOAL_RELAY_RATIO`, the p99 after the first second,
+    every chunk out). Printed, and returned for ``--json``."""
+    rows = []
+    for rate in sorted({r["offered_pts_s"] for r in runs}):
+        raw = [r for r in runs if r["path"] == "raw" and r["offered_pts_s"] == rate]
+        relay = [r for r in runs if r["path"] == "relay" and r["offered_pts_s"] == rate]
+        if not raw or not relay:
+            continue
+        raw_ns = [r["corrector_ns_per_point"] for r in raw]
+        relay_ns = [r["corrector_ns_per_point"] for r in relay]
+        ratios = [a / b for a, b in zip(raw_ns, relay_ns)]
+        p99 = [r["latency_p99_steady_s"] for r in raw]
+        chunks = (sum(r["chunks_received"] for r in raw), sum(r["chunks_sent"] for r in raw))
+        median_ns, median_ratio = statistics.median(raw_ns), statistics.median(ratios)
+        met = (all(r["keeps_up"] for r in raw) and chunks[0] == chunks[1]
+               and max(p99) <= GOAL_P99_S and median_ns <= GOAL_NS_PER_POINT
+               and median_ratio <= GOAL_RELAY_RATIO)
+        row = {"offered_pts_s": rate, "corrector_ns_per_point": raw_ns,
+               "relay_ns_per_point": relay_ns, "ratio": ratios, "p99_steady_s": p99,
+               "chunks": chunks, "load_avg": [r["load_avg"] for r in raw + relay],
+               "goal_met": met}
+        rows.append(row)
+
+        def spread(values: list[float], fmt: str) -> str:
+            text = ", ".join(format(v, fmt) for v in values)
+            return f"median {statistics.median(values):{fmt}}" + (
+                f" (min {min(values):{fmt}}; runs {text})" if len(values) > 1 else "")
+
+        print(f"  {rate / 1e6:5.2f} M/s: corrector {spread(raw_ns, '.0f')} ns/point, relay "
+              f"{spread(relay_ns, '.0f')} ns/point; ratio {spread(ratios, '.2f')}; p99 after "
+              f"1 s at most {max(p99) * 1000:.0f} ms; {chunks[0]}/{chunks[1]} chunks out; "
+              f"1-min load {min(row['load_avg']):.1f}-{max(row['load_avg']):.1f}: "
+              f"{'goal met' if met else 'goal missed'}", flush=True)
+    return rows
 
 
 def bench_transport(rate: float, seconds: float, chunk_s: float,
@@ -824,13 +912,24 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=8.0, help="per offered load")
     parser.add_argument("--chunk-s", type=float, default=0.05,
                         help="mission time per chunk, s (points per chunk = rate x this)")
-    parser.add_argument("--variants", default="raw,raw-lookahead,typed",
+    parser.add_argument("--variants", default="raw,relay,raw-lookahead,typed",
                         help="corrector variants: raw (the node as shipped), raw-lookahead "
-                        "(lookahead:=true), raw-1worker (workers:=1), raw-thread "
+                        "(lookahead:=true), raw-2workers (workers:=2), raw-thread "
                         "(separate_process:=false: numerics in a thread of the node), typed "
                         "(typed-rclpy PointCloud2 in and out), relay (the node's DDS "
                         "traffic alone: take each cloud, publish one of the corrected "
                         "layout, no correction)")
+    parser.add_argument("--attitude", choices=ATTITUDES, default="none",
+                        help="orientation of the corrector section's poses: none (the "
+                        "identity), heading (level, along the track) or ins (with some roll "
+                        "and pitch: the rigorous model)")
+    parser.add_argument("--history", type=float, default=0.0,
+                        help="seconds of trajectory the corrector section's source publishes "
+                        "before its first chunk (a flight under way: the corrector keeps "
+                        "trajectory_buffer_s, 600 s, of it)")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="runs of the corrector section, its variants in turn each time "
+                        "(the summary against the relay gives the median and the spread)")
     parser.add_argument("--calibrator-rate", type=float, default=10.0)
     parser.add_argument("--calibrator-thinning", type=float, default=1.0,
                         help="calibration.thinning_cell_m of the calibrator-rate section, m")
@@ -899,9 +998,20 @@ def main() -> int:
             print(f"corrector through DDS ({args.seconds:g} s per load, chunks of "
                   f"{args.chunk_s * 1000:g} ms):", flush=True)
             results["corrector"] = []
-            for variant in args.variants.split(","):
-                results["corrector"] += bench_corrector(rates, args.seconds, args.chunk_s,
-                                                        variant, context)
+            for repeat in range(max(args.repeats, 1)):
+                if args.repeats > 1:
+                    print(f" run {repeat + 1} of {args.repeats}:", flush=True)
+                for variant in args.variants.split(","):
+                    results["corrector"] += bench_corrector(
+                        rates, args.seconds, args.chunk_s, variant, context,
+                        attitude=args.attitude, history=args.history)
+            print(f"corrector against the relay (CPU per point in the steady state, node and "
+                  f"correction processes; goal: at most {GOAL_NS_PER_POINT:.0f} ns and "
+                  f"{GOAL_RELAY_RATIO:g}x the relay, p99 after the first second at most "
+                  f"{GOAL_P99_S * 1000:.0f} ms, every chunk out):", flush=True)
+            results["corrector_against_relay"] = summarize_against_relay(results["corrector"])
+            if not results["corrector_against_relay"]:
+                print("  (needs --variants with both raw and relay)", flush=True)
         if "calibrator-rate" in only:
             print(f"calibrator fed the synthetic stream ({args.seconds:g} s per load, "
                   f"thinning {args.calibrator_thinning:g} m):", flush=True)

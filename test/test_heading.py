@@ -156,7 +156,7 @@ def test_live_trajectory_buffer_keeps_the_headings_in_order_and_window() -> None
         buf.add(float(k), (0.0, float(k), 100.0), "map", tuple(q))
     traj = buf.trajectory()
     assert traj.t.tolist() == [float(k) for k in range(6, 12)]  # the last 5 s
-    assert np.allclose(traj.heading, 0.01 * traj.t)
+    assert traj.heading is not None and np.allclose(traj.heading, 0.01 * traj.t)
     assert buf.oriented_samples == 12
     buf.add_many(np.array([12.0, 13.0]), np.zeros((2, 3)))  # without orientation
     assert buf.oriented_samples == 12

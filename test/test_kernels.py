@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core import kernels
+from lidarcal_ros.pipeline import correction as correction_module
 
 MIN_POINTS = 4
 MIN_SPREAD = 0.01
@@ -28,7 +29,7 @@ def _points(n: int, seed: int = 3, step_v: float = 3.0) -> tuple[np.ndarray, ...
 
 def _grid(u: np.ndarray, v: np.ndarray, z: np.ndarray, iu: np.ndarray, iv: np.ndarray
           ) -> np.ndarray:
-    moments = np.zeros((10, int(iu.max()) + 1, int(iv.max()) + 1))
+    moments = np.zeros((int(iu.max()) + 1, int(iv.max()) + 1, 10))
     kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
     return moments
 
@@ -38,21 +39,21 @@ def test_accumulate_moments_matches_bincount_and_honours_the_grid_offset() -> No
     nu, nv = int(iu.max()) + 1, int(iv.max()) + 1
     key = iu * nv + iv
     expected = np.stack([np.bincount(key, weights=w, minlength=nu * nv) for w in (
-        None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)]).reshape(10, nu, nv)
+        None, u, v, z, u * u, u * v, u * z, v * v, v * z, z * z)], axis=-1).reshape(nu, nv, 10)
     np.testing.assert_allclose(_grid(u, v, z, iu, iv), expected, rtol=1e-12, atol=1e-9)
     # Rows and columns numbered from (row0, col0) = (-5, 7): the same sums, moved.
-    shifted = np.zeros((10, nu + 2, nv + 3))
+    shifted = np.zeros((nu + 2, nv + 3, 10))
     kernels.accumulate_moments(shifted, -5 - 1, 7 - 2, iu - 5, iv + 7, u, v, z)
-    np.testing.assert_allclose(shifted[:, 1:1 + nu, 2:2 + nv], expected, rtol=1e-12,
-                               atol=1e-9)
-    assert shifted[0].sum() == u.size
+    np.testing.assert_allclose(shifted[1:1 + nu, 2:2 + nv], expected, rtol=1e-12, atol=1e-9)
+    assert shifted[..., 0].sum() == u.size
 
 
 def test_block_fits_match_least_squares_and_pca_on_the_points() -> None:
     u, v, z, iu, iv = _points(3000)
     moments = _grid(u, v, z, iu, iv)
-    _, nu, nv = moments.shape
-    residual, normals, valid, centroid = kernels.fit_blocks2(moments, MIN_POINTS, MIN_SPREAD)
+    nu, nv, _ = moments.shape
+    blocks, valid = kernels.fit_blocks(moments, MIN_POINTS, MIN_SPREAD)
+    normals, offset, residual = blocks[:, :3], blocks[:, 3], blocks[:, 4]
     checked = 0
     for i in range(nu):
         for j in range(nv):
@@ -72,14 +73,14 @@ def test_block_fits_match_least_squares_and_pca_on_the_points() -> None:
             assert valid[k]
             np.testing.assert_allclose(normals[k], expected_n, atol=1e-9)
             assert residual[k] == pytest.approx(res_var, rel=1e-6, abs=1e-12)
-            np.testing.assert_allclose(centroid[k], pts.mean(axis=0), atol=1e-12)
+            assert offset[k] == pytest.approx(float(expected_n @ pts.mean(axis=0)), abs=1e-9)
             checked += 1
     assert checked > 10
     # The generic fit of the same sums gives the same planes.
     box = np.zeros((10, nu * nv))
     for i in range(nu):
         for j in range(nv):
-            box[:, i * nv + j] = moments[:, i:i + 2, j:j + 2].sum(axis=(1, 2))
+            box[:, i * nv + j] = moments[i:i + 2, j:j + 2].sum(axis=(0, 1))
     r2, n2, ok2, _ = kernels.fit_sums(box, MIN_POINTS, MIN_SPREAD)
     np.testing.assert_array_equal(ok2, valid)
     np.testing.assert_allclose(n2[valid], normals[valid], atol=1e-12)
@@ -106,30 +107,35 @@ def test_a_wall_gets_the_principal_component_plane() -> None:
 def test_cell_planes_take_the_best_of_the_four_blocks_with_ties_to_the_own_block() -> None:
     nu, nv = 3, 3
     residual = np.full(nu * nv, np.inf)
-    normals = np.full((nu * nv, 3), np.nan)
-    centroid = np.zeros((nu * nv, 3))
     for k, lam in ((0, 0.5), (1, 0.2), (3, 0.2), (4, 0.2)):
         residual[k] = lam
-        normals[k] = (0.0, 0.0, 1.0)
-        centroid[k] = (0.0, 0.0, float(k))
-    plane, ok = kernels.cell_planes(residual, normals, centroid, nu, nv)
-    # The block each cell's plane comes from (its centroid's z is the block's index): own
-    # block first, then (i-1, j), (i, j-1), (i-1, j-1), a later one only if strictly better.
-    np.testing.assert_array_equal(plane[:, 3], [0, 1, 1, 3, 4, 4, 3, 4, 4])
-    np.testing.assert_array_equal(plane[:, 4], [0.5, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2])
+    best, ok = kernels.cell_planes(residual, nu, nv)
+    # The block each cell's plane comes from: own block first, then (i-1, j), (i, j-1),
+    # (i-1, j-1), a later one only if strictly better.
+    np.testing.assert_array_equal(best, [0, 1, 1, 3, 4, 4, 3, 4, 4])
     assert ok.all()
+    # A cell whose four blocks have no plane has none.
+    residual[:] = np.inf
+    residual[8] = 0.1
+    best, ok = kernels.cell_planes(residual, nu, nv)
+    np.testing.assert_array_equal(ok, [False] * 8 + [True])
 
 
 @pytest.mark.parametrize("step_v", [3.0, 2.5])
 def test_points_near_an_edge_take_the_plane_of_their_side(step_v: float) -> None:
     u, v, z, iu, iv = _points(6000, seed=11, step_v=step_v)
     moments = _grid(u, v, z, iu, iv)
-    _, nu, nv = moments.shape
-    residual, normals, valid, centroid = kernels.fit_blocks2(moments, MIN_POINTS, MIN_SPREAD)
-    plane, cell_ok = kernels.cell_planes(residual, normals, centroid, nu, nv)
-    nrm, ok, rough = kernels.point_normals(plane, cell_ok, residual, normals, centroid, valid,
-                                           nu, nv, iu, iv, u, v, z, 0.1)
-    truth = np.array([-0.2, 0.1, 1.0]) / math.sqrt(1.05)
+    nu, nv, _ = moments.shape
+    blocks, valid = kernels.fit_blocks(moments, MIN_POINTS, MIN_SPREAD)
+    best, cell_ok = kernels.cell_planes(blocks[:, 4], nu, nv)
+    heading = 0.7
+    # (cells numbered from (row0, col0) = (3, -2): the same normals)
+    nrm, ok, rough = kernels.point_normals(blocks, valid, np.empty((0, 5)), best, cell_ok,
+                                           nu, nv, iu + 3, iv - 2, 3, -2, u, v, z, 0.1,
+                                           math.cos(heading), math.sin(heading))
+    # the plane's normal in the grid's frame, turned to the map's
+    truth = kernels.flight_to_map(np.array([[-0.2, 0.1, 1.0]]) / math.sqrt(1.05),
+                                  math.cos(heading), math.sin(heading))[0]
     assert ok.all()
     good = ~rough
     np.testing.assert_allclose(nrm[good], np.broadcast_to(truth, nrm[good].shape), atol=0.02)
@@ -139,7 +145,7 @@ def test_points_near_an_edge_take_the_plane_of_their_side(step_v: float) -> None
     else:
         # The step halves cell column 2: every block holding that cell straddles the step.
         k = iu * nv + iv
-        assert (plane[k[iv == 2], 4] > 0.1).all()
+        assert (blocks[best[k[iv == 2]], 4] > 0.1).all()
         # Its points above the step find the clean blocks beyond it (column 3 on) ...
         upper = (iv == 2) & (v > step_v + 0.05)
         assert upper.any() and not rough[upper].any()
@@ -158,10 +164,10 @@ def test_the_loops_work_where_no_cache_directory_is_writable() -> None:
         "caching.CacheImpl._locator_classes = []\n"
         "import numpy as np\n"
         "from lidarcal_ros.core import kernels\n"
-        "m = np.zeros((10, 1, 3))\n"
+        "m = np.zeros((1, 3, 10))\n"
         "kernels.accumulate_moments(m, 0, 0, np.zeros(2, np.int64), np.array([0, 2]),\n"
         "                           np.ones(2), np.ones(2), np.ones(2))\n"
-        "assert m[0].sum() == 2.0, m[0]\n"
+        "assert m[..., 0].sum() == 2.0, m\n"
         "print('ok')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -321,7 +327,8 @@ def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: 
     kernels.correct_returns(t, xyz, ok, lines.window, False,
                             (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa,
                              lines.sin_kappa), (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))),
-                            delta, normals, rough, intensity, model.kernel_constants(), out)
+                            delta, normals, rough, intensity, model.kernel_constants(), out,
+                            correction_module._NO_ROWS)
     return out
 
 
@@ -400,6 +407,15 @@ def test_finite_range_on_a_strided_field() -> None:
     lo, hi = kernels.finite_range(np.full(3, np.nan))
     assert math.isnan(lo) and math.isnan(hi)
     assert all(math.isnan(v) for v in kernels.finite_range(np.empty(0)))
+    # every length (four running extremes and a tail), the extremes anywhere, infinities
+    for n in range(1, 11):
+        for k in range(n):
+            v = np.arange(n, dtype=np.float64)
+            v[k] = -5.0
+            v[(k + 1) % n] = np.nan if n > 2 else v[(k + 1) % n]
+            assert kernels.finite_range(v) == (np.fmin.reduce(v), np.fmax.reduce(v))
+    assert kernels.finite_range(np.array([np.inf, np.nan])) == (np.inf, np.inf)
+    assert kernels.finite_range(np.array([2.0, -np.inf, 1.0])) == (-np.inf, 2.0)
 
 
 def test_byte_counts_is_bincount() -> None:
@@ -413,13 +429,13 @@ def test_byte_counts_is_bincount() -> None:
 @pytest.mark.parametrize("radius", [0, 1, 2])
 def test_centred_sums_add_the_block_around_each_cell_inside_the_grid(radius: int) -> None:
     rng = np.random.default_rng(5)
-    moments = rng.random((10, 7, 9))
+    moments = rng.random((7, 9, 10))
     cells = np.array([0, 8, 9 * 3 + 4, 9 * 6 + 8, 9 * 6, 5], dtype=np.int64)  # corners, edges
     got = kernels.centred_sums(moments, cells, radius)
     for k, cell in enumerate(cells):
         i, j = divmod(int(cell), 9)
-        block = moments[:, max(i - radius, 0):i + radius + 1, max(j - radius, 0):j + radius + 1]
-        np.testing.assert_allclose(got[:, k], block.sum(axis=(1, 2)), rtol=1e-12)
+        block = moments[max(i - radius, 0):i + radius + 1, max(j - radius, 0):j + radius + 1]
+        np.testing.assert_allclose(got[:, k], block.sum(axis=(0, 1)), rtol=1e-12)
 
 
 def test_below_line_decides_as_numpy_interp() -> None:
@@ -589,6 +605,63 @@ def test_cells_without_plane_is_the_numpy_expression() -> None:
     cell_ok = rng.random(nu * nv) < 0.7
     wanted = np.zeros(nu * nv, dtype=bool)
     wanted[iu * nv + iv] = True
-    np.testing.assert_array_equal(kernels.cells_without_plane(iu, iv, nv, cell_ok),
+    np.testing.assert_array_equal(kernels.cells_without_plane(iu, iv, 0, 0, nv, cell_ok),
                                   np.flatnonzero(wanted & ~cell_ok))
-    assert kernels.cells_without_plane(iu[:0], iv[:0], nv, cell_ok).size == 0
+    # cells numbered from (row0, col0) = (-4, 9): the same grid cells
+    np.testing.assert_array_equal(kernels.cells_without_plane(iu - 4, iv + 9, -4, 9, nv,
+                                                              cell_ok),
+                                  np.flatnonzero(wanted & ~cell_ok))
+    assert kernels.cells_without_plane(iu[:0], iv[:0], 0, 0, nv, cell_ok).size == 0
+
+
+@pytest.mark.parametrize("all_served", [True, False])
+@pytest.mark.parametrize("layout", ["lidarcal", "float32 xyz"])
+def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
+        all_served: bool, layout: str) -> None:
+    """Corrected straight into a cloud's rows (the node's path), the bytes and the tally are
+    those of the columns written out by fill_corrected_rows, whether every point is served
+    (the run-by-run path) or not (a point's window counted among the served ones), with
+    8-byte (lidarcal's layout) or 4-byte words (single-precision coordinates)."""
+    from lidarcal_ros.core.radiometry import RadiometricModel
+    from lidarcal_ros.io.pointcloud import make_point_dtype
+
+    t, xyz, ok, lines, _traj, normals, rough, intensity, delta = _returns_case(n=1000)
+    if all_served:
+        ok[:] = True
+        xyz[7, 2] = xyz[6, 2]
+        lines = _returns_lines(t, _traj)
+    model = RadiometricModel(visibility_km=20.0)
+    dtype = (make_point_dtype() if layout == "lidarcal" else np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f8"), ("intensity", "<f4")]))
+    points = np.zeros(len(t), dtype=dtype)
+    points["x"], points["y"], points["z"], points["t"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], t
+    points["intensity"] = intensity
+    if layout != "lidarcal":
+        xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    xc, rng_m, inc, scan, refl, flags = _run_correct_returns(
+        t, xyz, ok, lines, normals, rough, intensity, delta, model)
+    res = correction_module.CorrectedColumns(xc, rng_m, inc, scan, refl, flags)
+    expected_tally = correction_module.CloudTally.empty()
+    expected = correction_module.build_corrected(points, res, tally=expected_tally)
+    out = np.full(len(t) * expected.dtype.itemsize, 0xAB, np.uint8).view(expected.dtype)
+    counts = np.zeros(257, dtype=np.int64)
+    target = correction_module.row_target(points, out, counts)
+    assert target is not None
+    n = len(t)
+    kernels.correct_returns(
+        t, xyz, ok, lines.window, False,
+        (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
+        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,
+        model.kernel_constants(), (np.empty((0, 3)), *(np.empty(0, np.float32),) * 4,
+                                   np.empty(0, np.uint8)), target)
+    assert n > 2 * 256  # (several blocks)
+    assert out.tobytes() == expected.tobytes()
+    np.testing.assert_array_equal(counts, expected_tally.counts)
+    assert expected_tally.flagged(correction_module.FLAG_NOT_CORRECTED) == (0 if all_served
+                                                                           else 2)
+
+
+def _returns_lines(t: np.ndarray, traj: Any) -> Any:
+    from lidarcal_ros.core.local_trajectory import window_lines
+
+    return window_lines(t, traj)

@@ -597,11 +597,11 @@ def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole(
     for k, (a, b) in enumerate(itertools.pairwise(cuts)):
         sn.add(k, xyz[a:b], t[a:b])
         arrays.add(id(sn._moments))
-        columns.append(sn._moments.shape[2])
+        columns.append(sn._moments.shape[1])
         out.update(sn.pop_ready())  # type: ignore[arg-type]
     out.update(sn.pop_ready(final=True))  # type: ignore[arg-type]
     rows_along = int(np.ptp(xy[:, 1]) / sn.cell[0])
-    assert rows_along > 4 * sn._moments.shape[1]  # the strip is several grids long
+    assert rows_along > 4 * sn._moments.shape[0]  # the strip is several grids long
     if widening:
         assert len(set(columns)) >= 3  # the grid widened more than once
     else:

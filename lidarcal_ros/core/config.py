@@ -209,9 +209,10 @@ NODE_PARAMETERS: dict[str, dict[str, ParameterSpec]] = {
             "correct`, a few chunks later (false: correct each chunk at once with the earlier "
             "ones as neighbours; least latency)"),
         "workers": _node_parameter(
-            2, "Threads correcting chunks in parallel (the compiled loops of the normals run "
-            "without the interpreter lock; 2 raised the capacity on 2 cores from 3.1 to 3.9M "
-            "points/s)", 1, 64, read_only=True),
+            1, "Threads correcting chunks in parallel (the compiled loops run without the "
+            "interpreter lock; one corrects 4M points/s with room to spare, and each further "
+            "thread costs some 8% more CPU per point: the points of a chunk move between the "
+            "cores' caches)", 1, 64, read_only=True),
         "batch_points": _node_parameter(
             0, "Chunks of one strip corrected together up to this many points (0: one chunk "
             "at a time, least latency)", 0, 100_000_000, read_only=True),

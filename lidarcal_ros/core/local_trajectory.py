@@ -132,8 +132,8 @@ def served_by_trajectory(
     ok = np.ones(t.shape[0], dtype=bool) if all_finite else np.isfinite(t) & finite_rows(xyz)
     ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
     if ok.any():
-        ok &= kernels.below_line(t, np.ascontiguousarray(xyz[:, 2]), trajectory.t,
-                                 np.ascontiguousarray(trajectory.xyz[:, 2]), min_depth_m)
+        ok &= kernels.below_line(t, xyz[:, 2], trajectory.t, trajectory.xyz[:, 2],
+                                 min_depth_m)  # (the heights read in place)
     return ok
 
 

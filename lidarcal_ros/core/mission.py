@@ -116,6 +116,21 @@ class Trajectory:
         return cls(t[order], xyz[order], None if q is None else q[order],
                    full_attitude=full_attitude)
 
+    @classmethod
+    def of_normalised(cls, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None,
+                      full_attitude: bool, heading: np.ndarray | None = None) -> Trajectory:
+        """A trajectory of arrays already as construction makes them (times (n,) and
+        positions (n, 3) contiguous float64; unit quaternions in one hemisphere from row to
+        row, or None; ``full_attitude`` decided; the headings of the quaternions if known),
+        taken as they are: no copy, no check. For a keeper of samples that derives each
+        sample's values once (:class:`~lidarcal_ros.core.trajectory_buffer.TrajectoryBuffer`)
+        rather than all of them at every new sample."""
+        traj = cls.__new__(cls)
+        traj.t, traj.xyz, traj.orientation = t, xyz, orientation
+        traj.full_attitude = full_attitude
+        traj._heading = heading
+        return traj
+
     def take(self, index: np.ndarray | slice) -> Trajectory:
         """The samples at ``index`` (a slice, or indices in time order)."""
         return Trajectory(self.t[index], self.xyz[index],

@@ -3,14 +3,14 @@
 Per-point k-nearest-neighbour searches are too slow for a stream of millions of points per
 second, so the neighbourhood is a grid: the points are binned into cells of 1.5 point spacings
 in a frame aligned with the flight line (``u`` along, ``v`` across, metres), the first and
-second moments of each cell are summed with ``np.bincount``, and a plane is fitted to every
-2x2 block of cells (least-squares height plane; principal components for the few blocks whose
-points do not spread in both horizontal directions, e.g. walls). Each cell takes the plane of
-the most planar of the four blocks that contain it (smallest residual variance), so a cell
-beside a roof ridge or a building edge takes the block lying on its own side where there is
-one; a cell whose four blocks are all degenerate (fewer than ``min_points`` points, or all on
-one scan line) falls back to the 3x3 block centred on it, then to the 5x5 one, and failing
-that gets no normal (NaN).
+second moments of each cell are summed (the ten sums of a cell side by side), and a plane is
+fitted to every 2x2 block of cells (least-squares height plane; principal components for the
+few blocks whose points do not spread in both horizontal directions, e.g. walls). Each cell
+takes the plane of the most planar of the four blocks that contain it (smallest residual
+variance), so a cell beside a roof ridge or a building edge takes the block lying on its own
+side where there is one; a cell whose four blocks are all degenerate (fewer than
+``min_points`` points, or all on one scan line) falls back to the 3x3 block centred on it,
+then to the 5x5 one, and failing that gets no normal (NaN).
 
 Every point takes the plane of its cell, unless it lies off that plane (further than three
 times the typical residual, at least 5 cm) or the plane fits its block badly: then it takes,
@@ -27,9 +27,10 @@ where consecutive sweeps meet). :func:`cell_size` therefore measures the spacing
 from consecutive pulses and the spacing along track from the area per point, and the cells
 are rectangles of 1.5 of each; a 2x2 block then always spans two sweeps.
 
-Cost: ten ``bincount`` passes over the points, a few dozen array operations over the cells
-(about one cell per 2.25 points) and a few over the points; a nine-plane search for the few
-per cent of points near edges.
+Cost (compiled loops, :mod:`lidarcal_ros.core.kernels`): one pass over the points to bin
+them, one over the cells (about one cell per 2.25 points) to fit the blocks and choose each
+cell's plane, one over the points for their normals; a nine-plane search for the few per cent
+of points near edges.
 
 Normals are returned in the map frame, unit length, oriented upward (``n_z >= 0``).
 """
@@ -316,15 +317,14 @@ def _fit_group(
     moments, iu, iv = _dense_moments(u, v, z, cell)
     if moments is None:
         return _fit_sparse(u, v, z, iu, iv, heading, min_points, min_spread)
-    nrm, ok, rough = _grid_planes(moments, iu, iv, u, v, z, min_points, min_spread)
-    return _to_map(nrm, heading), ok, rough
+    return _grid_planes(moments, iu, iv, u, v, z, min_points, min_spread, heading)
 
 
 def _dense_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, cell: tuple[float, float]
                    ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
     """A grid of cells over points, anchored at their lowest coordinates (``u`` and ``v`` are
     shifted there, in place: moments stay small, indices non-negative): each point's cell
-    ``iu, iv`` and the (10, nu, nv) moment sums of the cells, None where the grid would be
+    ``iu, iv`` and the (nu, nv, 10) moment sums of the cells, None where the grid would be
     mostly empty (use :func:`_fit_sparse`)."""
     u -= u.min()
     v -= v.min()
@@ -334,7 +334,7 @@ def _dense_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, cell: tuple[floa
     nv = int(iv.max()) + 1
     if nu * nv > _MAX_CELLS_PER_POINT * u.shape[0] + 1024:
         return None, iu, iv
-    moments = np.zeros((10, nu, nv))
+    moments = np.zeros((nu, nv, 10))
     kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
     return moments, iu, iv
 
@@ -348,10 +348,10 @@ def _bin_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, key: np.ndarray,
                  size: int) -> np.ndarray:
     """The ten moment sums ``n, u, v, z, uu, uv, uz, vv, vz, zz`` of the points per cell
     ``key`` (flat index below ``size``), shape (10, size)."""
-    out = np.zeros((10, 1, size))
+    out = np.zeros((1, size, 10))
     kernels.accumulate_moments(out, 0, 0, np.zeros(key.shape[0], dtype=np.int64),
                                np.asarray(key, dtype=np.int64), u, v, z)
-    return out.reshape(10, size)
+    return np.ascontiguousarray(out[0].T)
 
 
 def _median_noise(lam: np.ndarray, ok: np.ndarray) -> float:
@@ -362,41 +362,74 @@ def _median_noise(lam: np.ndarray, ok: np.ndarray) -> float:
 
 def _centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
     """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
-    cell indices ``cells`` of a (10, nu, nv) grid (zero beyond it)."""
+    cell indices ``cells`` of a (nu, nv, 10) grid (zero beyond it)."""
     return kernels.centred_sums(np.ascontiguousarray(moments, dtype=np.float64),
                                 np.ascontiguousarray(cells, dtype=np.int64), int(radius))
 
 
-def _grid_planes(
-    moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
-    z: np.ndarray, min_points: int, min_spread: float, noise: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normals (flight frame), validity and roughness of points from the moment sums of a
-    dense grid of cells (module docstring).
+@dataclass
+class _Planes:
+    """The planes of a grid's cells (:func:`_plane_table`): what the normals of the points
+    in the grid read.
+
+    Attributes
+    ----------
+    blocks, valid : (nu * nv, 5) float64, (nu * nv,) bool
+        The 2x2 block fits (:func:`~lidarcal_ros.core.kernels.fit_blocks`).
+    filled : (f, 5) float64
+        The planes of the points' cells whose four blocks all failed, from the 3x3 or 5x5
+        block around them.
+    best, cell_ok : (nu * nv,) int64 and bool
+        The plane of each cell (:func:`~lidarcal_ros.core.kernels.cell_planes`; rows of
+        ``filled`` past ``nu * nv``), and whether it has one.
+    nu, nv : int
+        Grid shape.
+    """
+
+    blocks: np.ndarray
+    valid: np.ndarray
+    filled: np.ndarray
+    best: np.ndarray
+    cell_ok: np.ndarray
+    nu: int
+    nv: int
+
+    def noise(self) -> float:
+        """Typical residual (m) of the blocks' plane fits (:func:`_median_noise`)."""
+        return _median_noise(self.blocks[:, 4], self.valid)
+
+
+def _plane_table(moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, row0: int, col0: int,
+                 min_points: int, min_spread: float, rows: tuple[int, int] | None = None
+                 ) -> _Planes:
+    """The planes of the cells of a dense grid, for its points (module docstring).
 
     Parameters
     ----------
-    moments : (10, nu, nv) float64
-        Moment sums per cell (:func:`_bin_moments`), in the frame of ``u, v, z``; cells beyond
-        the grid count as empty.
+    moments : (nu, nv, 10) float64
+        Moment sums per cell (:func:`_bin_moments`); cells beyond the grid count as empty.
     iu, iv : (n,) int64
-        Cell of each point in the grid.
-    u, v, z : (n,) float64
-        The points, same frame as the moments, m.
-    noise : float, optional
-        Typical residual of a plane fit (m) that sets the edge tolerance; default the
-        median over the grid's blocks.
+        Cell of each point: row ``iu - row0``, column ``iv - col0`` of the grid. A cell of
+        theirs without a plane of its own blocks takes that of the 3x3 block of cells around
+        it, failing that of the 5x5 one (e.g. the newest scan line when nothing beyond it
+        has arrived yet).
+    rows : (int, int), optional
+        The first and last grid row holding points (all rows by default): only the planes
+        of their cells and the blocks those read (a row either side) are fitted.
     """
-    _, nu, nv = moments.shape
-    lam2, vec2, ok2, cen2 = kernels.fit_blocks2(moments, min_points, min_spread)
+    nu, nv, _ = moments.shape
+    first, last = (0, nu - 1) if rows is None else rows
+    blocks, valid = kernels.fit_blocks(moments, min_points, min_spread, first - 1, last + 2)
     # Each cell: the best of the four 2x2 blocks containing it.
-    plane, cell_ok = kernels.cell_planes(lam2, vec2, cen2, nu, nv)
+    best, cell_ok = kernels.cell_planes(blocks[:, 4], nu, nv, first, last + 1)
     # The cells of the points that lack a plane (not every occupied cell: a grid may reach
     # beyond the points).
-    need = kernels.cells_without_plane(iu, iv, nv, cell_ok)
+    need = kernels.cells_without_plane(iu, iv, row0, col0, nv, cell_ok)
+    filled: list[np.ndarray] = []
+    count = 0
     for radius in (1, 2):
         # (2r+1)^2 blocks centred on the cells that still lack a plane: 3x3 first, then
-        # 5x5 (e.g. the newest scan line when nothing beyond it has arrived yet).
+        # 5x5.
         if radius > 1:
             need = need[~cell_ok[need]]
         if not need.size:
@@ -404,18 +437,53 @@ def _grid_planes(
         lam3, vec3, ok3, cen3 = _fit_sums(_centred_sums(moments, need, radius), min_points,
                                           min_spread)
         fill = need[ok3]
-        plane[fill, :3] = vec3[ok3]
-        plane[fill, 3] = np.einsum("ij,ij->i", vec3[ok3], cen3[ok3])
-        plane[fill, 4] = lam3[ok3]
+        table = np.empty((fill.size, 5))
+        table[:, :3] = vec3[ok3]
+        table[:, 3] = np.einsum("ij,ij->i", vec3[ok3], cen3[ok3])
+        table[:, 4] = lam3[ok3]
+        best[fill] = nu * nv + count + np.arange(fill.size)
         cell_ok[fill] = True
-    # Per point: the plane of its cell, unless the point lies off it or the plane fits its
-    # block badly (a cell across an edge): then the nearest of the nine 2x2 blocks' planes.
-    if noise is None:
-        noise = _median_noise(lam2, ok2)
+        filled.append(table)
+        count += fill.size
+    return _Planes(blocks, valid, np.concatenate(filled) if filled else np.empty((0, 5)),
+                   best, cell_ok, nu, nv)
+
+
+def _point_normals(planes: _Planes, iu: np.ndarray, iv: np.ndarray, row0: int, col0: int,
+                   u: np.ndarray, v: np.ndarray, z: np.ndarray, noise: float, heading: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals (map frame), validity and roughness of points from the planes of their grid's
+    cells: the plane of its cell, unless the point lies off it or the plane fits its block
+    badly (a cell across an edge): then the nearest of the nine 2x2 blocks' planes
+    (:func:`~lidarcal_ros.core.kernels.point_normals`; ``noise``, the typical residual of a
+    plane fit in m, sets the edge tolerance)."""
     tol = max(3.0 * noise, _EDGE_TOLERANCE_M)
-    nrm, ok, rough = kernels.point_normals(plane, cell_ok, lam2, vec2, cen2, ok2, nu, nv,
-                                           iu, iv, u, v, z, tol)
-    return nrm, ok, rough
+    return kernels.point_normals(planes.blocks, planes.valid, planes.filled, planes.best,
+                                 planes.cell_ok, planes.nu, planes.nv, iu, iv, row0, col0,
+                                 u, v, z, tol, math.cos(heading), math.sin(heading))
+
+
+def _grid_planes(
+    moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, u: np.ndarray, v: np.ndarray,
+    z: np.ndarray, min_points: int, min_spread: float, heading: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals (map frame), validity and roughness of points from the moment sums of a
+    dense grid of cells (module docstring), the edge tolerance from the median residual of
+    the grid's blocks.
+
+    Parameters
+    ----------
+    moments : (nu, nv, 10) float64
+        Moment sums per cell (:func:`_bin_moments`), in the frame of ``u, v, z``.
+    iu, iv : (n,) int64
+        Cell of each point in the grid.
+    u, v, z : (n,) float64
+        The points, same frame as the moments, m.
+    heading : float
+        Heading of the grid's frame, rad.
+    """
+    planes = _plane_table(moments, iu, iv, 0, 0, min_points, min_spread)
+    return _point_normals(planes, iu, iv, 0, 0, u, v, z, planes.noise(), heading)
 
 
 def _fit_sparse(
@@ -500,13 +568,13 @@ class _Part:
 
 
 def _move_rows_down(moments: np.ndarray, by: int, rows: int) -> None:
-    """``moments[:, i] = moments[:, i + by]`` for ``i < rows``, in blocks that do not
-    overlap (numpy would otherwise copy the whole overlapping source first)."""
+    """``moments[i] = moments[i + by]`` for ``i < rows``, in blocks that do not overlap
+    (numpy would otherwise copy the whole overlapping source first)."""
     if by <= 0 or rows <= 0:
         return
     for a in range(0, rows, by):
         b = min(a + by, rows)
-        moments[:, a:b] = moments[:, a + by:b + by]
+        moments[a:b] = moments[a + by:b + by]
 
 
 class StripNormals:
@@ -556,7 +624,7 @@ class StripNormals:
         self._noise = 0.0
         self._start: list[tuple[object, np.ndarray, np.ndarray | None]] = []
         self._start_points = 0
-        self._moments = np.zeros((10, 0, 0))
+        self._moments = np.zeros((0, 0, 10))
         self._row0 = 0
         self._col0 = 0
         self._clean_to = 0  # rows from here on hold stale sums (zeroed before use)
@@ -652,8 +720,8 @@ class StripNormals:
         moments, _, _ = _dense_moments(*self._frame(xyz), self.cell)
         if moments is None:
             return 0.0
-        lam, _, ok, _ = kernels.fit_blocks2(moments, self.min_points, _min_spread(self.cell))
-        return _median_noise(lam, ok)
+        blocks, valid = kernels.fit_blocks(moments, self.min_points, _min_spread(self.cell))
+        return _median_noise(blocks[:, 4], valid)
 
     def _frame(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x0, y0, z0 = self._origin
@@ -708,7 +776,7 @@ class StripNormals:
         if iu.size == 0:
             return None
         for idx, lo, hi, lo_bound in (
-                (iu, r_lo, r_hi, self._row0 if self._moments.shape[1] else None),
+                (iu, r_lo, r_hi, self._row0 if self._moments.shape[0] else None),
                 (iv, c_lo, c_hi, None)):
             if hi - lo > _MAX_PART_SPAN:
                 q_lo, q_hi = np.percentile(idx, [0.1, 99.9])
@@ -733,14 +801,14 @@ class StripNormals:
         while the next chunks filled it; now only a strip's first arrays pay that.)
         """
         m = self._moments
-        if m.shape[1] == 0:
+        if m.shape[0] == 0:
             pad_c = 16
             self._row0, self._col0 = r_lo - 1, c_lo - pad_c
-            self._moments = _new_grid((10, r_hi - r_lo + 64, c_hi - c_lo + 1 + 2 * pad_c))
+            self._moments = _new_grid((r_hi - r_lo + 64, c_hi - c_lo + 1 + 2 * pad_c, 10))
             self._clean_to = self._row0
             self._clean_ahead(r_hi)
             return
-        _, nrows, ncols = m.shape
+        nrows, ncols, _ = m.shape
         new_c0, new_c1 = self._col0, self._col0 + ncols
         if c_lo < new_c0 or c_hi >= new_c1:
             grow = max(16, ncols // 8)
@@ -760,10 +828,10 @@ class StripNormals:
             self._clean_ahead(r_hi)
             return
         new_r1 = max(self._row0 + nrows, r_hi + 1 + max(64, (r_hi + 1 - new_r0) // 2))
-        grown = _new_grid((10, new_r1 - new_r0, new_c1 - new_c0))
-        grown[:, :live, :] = 0.0
-        grown[:, :live, self._col0 - new_c0:self._col0 - new_c0 + ncols] = \
-            m[:, new_r0 - self._row0:new_r0 - self._row0 + live, :]
+        grown = _new_grid((new_r1 - new_r0, new_c1 - new_c0, 10))
+        grown[:live] = 0.0
+        grown[:live, self._col0 - new_c0:self._col0 - new_c0 + ncols] = \
+            m[new_r0 - self._row0:new_r0 - self._row0 + live]
         self._moments, self._row0, self._col0 = grown, new_r0, new_c0
         self._clean_to = new_r0 + live
         self._clean_ahead(r_hi)
@@ -771,11 +839,11 @@ class StripNormals:
     def _clean_ahead(self, r_hi: int) -> None:
         """Zero the rows up to a few past ``r_hi`` that were not zeroed since they were
         last used (an evaluation reads up to 3 rows past its points)."""
-        end = self._row0 + self._moments.shape[1]
+        end = self._row0 + self._moments.shape[0]
         if r_hi + 4 <= self._clean_to or self._clean_to >= end:
             return
         stop = min(end, r_hi + 4 + _SPARE_ROWS)
-        self._moments[:, self._clean_to - self._row0:stop - self._row0, :] = 0.0
+        self._moments[self._clean_to - self._row0:stop - self._row0] = 0.0
         self._clean_to = stop
 
     def _keep_from(self) -> int:
@@ -793,7 +861,9 @@ class StripNormals:
 
     def take_ready(self, *, final: bool = False, min_points: int = 0) -> NormalsTask | None:
         """The evaluation of the parts that are final, in the order added, as a task that
-        may run in another thread (it holds a copy of the grid rows it reads).
+        may run in another thread: the planes of the grid's cells around them are fitted
+        now (later points do not change them), the normals of their points are left to the
+        task.
 
         Parameters
         ----------
@@ -817,8 +887,7 @@ class StripNormals:
                 none = np.empty(0, dtype=np.int64)
                 parts = [_Part(key, xyz.shape[0], None, none, none, none, none, none, 0, -1)
                          for key, xyz, _ in start]
-                return NormalsTask(parts, np.zeros((10, 0, 0)), 0, 0, self.cell,
-                                   self.heading, self._noise, self.min_points)
+                return NormalsTask(parts, None, 0, 0, self.cell, self.heading, self._noise)
         ready: list[_Part] = []
         count = 0
         for part in self._parts:
@@ -832,14 +901,16 @@ class StripNormals:
         for _ in ready:
             self._parts.popleft()
         binned = [p for p in ready if p.iu.size]
-        lo = hi = self._row0
-        if binned:
-            lo = max(min(p.row_min for p in binned) - 2, self._row0)
-            hi = min(max(p.row_max for p in binned) + 3, self._row0 + self._moments.shape[1],
-                     self._clean_to)
-        rows = self._moments[:, lo - self._row0:hi - self._row0, :].copy()
-        return NormalsTask(ready, rows, lo, self._col0, self.cell, self.heading, self._noise,
-                           self.min_points)
+        if not binned:
+            return NormalsTask(ready, None, 0, 0, self.cell, self.heading, self._noise)
+        lo = max(min(p.row_min for p in binned) - 2, self._row0)
+        hi = min(max(p.row_max for p in binned) + 3, self._row0 + self._moments.shape[0],
+                 self._clean_to)
+        iu, iv = _joined([p.iu for p in binned]), _joined([p.iv for p in binned])
+        rows = (min(p.row_min for p in binned) - lo, max(p.row_max for p in binned) - lo)
+        planes = _plane_table(self._moments[lo - self._row0:hi - self._row0], iu, iv, lo,
+                              self._col0, self.min_points, _min_spread(self.cell), rows)
+        return NormalsTask(ready, planes, lo, self._col0, self.cell, self.heading, self._noise)
 
 
 @dataclass
@@ -848,13 +919,12 @@ class NormalsTask:
     their evaluation reads, so that :meth:`run` may run in another thread."""
 
     parts: list[_Part]
-    moments: np.ndarray  # (10, rows, ncols) copy of the grid rows around the parts
-    row0: int
+    planes: _Planes | None  # of the grid rows around the parts (None: no point binned)
+    row0: int  # grid row and column of the planes' first cell
     col0: int
     cell: tuple[float, float]
     heading: float
     noise: float
-    min_points: int
 
     @property
     def keys(self) -> list[object]:
@@ -897,12 +967,11 @@ class NormalsTask:
         return GridNormals(nrm, ok, self.cell, rough)
 
     def _evaluate(self, binned: list[_Part]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        assert self.planes is not None
         u, v, z, iu, iv = (_joined([getattr(p, f) for p in binned])
                            for f in ("u", "v", "z", "iu", "iv"))
-        nrm, ok, rough = _grid_planes(self.moments, iu - self.row0, iv - self.col0, u, v, z,
-                                      self.min_points, _min_spread(self.cell),
-                                      noise=self.noise)
-        return _to_map(nrm, self.heading), ok, rough
+        return _point_normals(self.planes, iu, iv, self.row0, self.col0, u, v, z, self.noise,
+                              self.heading)
 
 
 def _new_grid(shape: tuple[int, int, int]) -> np.ndarray:

@@ -248,7 +248,9 @@ class CorrectorNode(Node):
             self._poses_t.append(t)
             self._poses_xyz.append(xyz)
             self._poses_q.append(orientation)
-            self._lock.notify()
+            if self._queue:  # a cloud may be waiting for the trajectory to cover it
+                # (not otherwise: hundreds of samples a second would each wake the worker)
+                self._lock.notify()
 
     def _on_points(self, raw: bytes) -> None:
         chunk = _Chunk(raw, time.monotonic(), len(raw))
@@ -332,7 +334,23 @@ class CorrectorNode(Node):
             if not progressed:
                 with self._lock:
                     if not self._closing:
-                        self._lock.wait(timeout=0.005)
+                        self._lock.wait(timeout=self._idle_timeout())
+
+    def _idle_timeout(self) -> float:
+        """How long the worker may wait for a notification (a cloud, or a trajectory sample
+        while a cloud waits for the trajectory) before it must look again itself: to
+        collect the batches of worker threads in this process, to release held clouds after
+        ``flush_timeout_s`` without a new one, to give up on a trajectory that stopped, or to
+        hand on samples piling up without clouds. Called with the lock held."""
+        if isinstance(self._service, LocalCorrection) and self._service.in_flight:
+            return 0.005
+        timeout = 0.25
+        if self._queue:
+            timeout = 0.05  # (max_trajectory_wait_s is seconds)
+        if self._held and self._released_tag != self._next_tag:
+            due = self._last_push + self.params["flush_timeout_s"] - time.monotonic()
+            timeout = min(timeout, max(due, 0.001))
+        return timeout
 
     def _parse(self, chunk: _Chunk) -> bool:
         source = self.params["topics.points"]

@@ -493,6 +493,7 @@ def correct_columns(
     normals: GridNormals | None = None,
     source: str = "cloud",
     all_finite: bool = False,
+    rows: RowTarget | None = None,
 ) -> CorrectedColumns:
     """Correct the geometry and compute reflectance of a set of points (module docstring).
 
@@ -524,6 +525,9 @@ def correct_columns(
         Named in log messages.
     all_finite : bool
         Every point and time is known to be finite (the check is skipped).
+    rows : RowTarget, optional
+        Write the corrected cloud of the points (:func:`row_target`) instead of the
+        columns, which are then returned empty (one pass less over the points).
 
     Returns
     -------
@@ -532,12 +536,13 @@ def correct_columns(
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     t = np.ascontiguousarray(t, dtype=np.float64)
     n = t.shape[0]
-    flags = np.empty(n, dtype=np.uint8)
-    rng = np.empty(n, dtype=np.float32)
-    inc = np.empty(n, dtype=np.float32)
-    scan = np.empty(n, dtype=np.float32)
-    refl = np.empty(n, dtype=np.float32)
-    out_xyz = np.empty((n, 3))
+    m = 0 if rows is not None else n  # (the columns are written without rows)
+    flags = np.empty(m, dtype=np.uint8)
+    rng = np.empty(m, dtype=np.float32)
+    inc = np.empty(m, dtype=np.float32)
+    scan = np.empty(m, dtype=np.float32)
+    refl = np.empty(m, dtype=np.float32)
+    out_xyz = np.empty((m, 3))
     if n == 0:
         return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags)
     ok, frames = served_frames(t, xyz, trajectory, window_s=settings.window_s,
@@ -559,16 +564,27 @@ def correct_columns(
         _NO_ROUGH if gn.rough is None else np.ascontiguousarray(gn.rough[:n]),
         _NO_INTENSITY if intensity is None else np.ascontiguousarray(intensity,
                                                                       dtype=np.float32),
-        settings.radiometry.kernel_constants(), (out_xyz, rng, inc, scan, refl, flags))
+        settings.radiometry.kernel_constants(), (out_xyz, rng, inc, scan, refl, flags),
+        _NO_ROWS if rows is None else rows)
     return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags, gn.cell_m,
                             None if frames is None else frames.choice)
 
 
+#: The rows of a corrected cloud as the compiled loops write them
+#: (:func:`row_target`): the output and input rows as words, the output's fields ``x, y, z,
+#: reflectance, range, incidence, scan_angle, correction_flags`` and the tally's counts.
+RowTarget = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                  np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 #: "None" of the compiled correction's optional columns.
 _NO_ROUGH = np.zeros(0, dtype=bool)
 _NO_INTENSITY = np.zeros(0, dtype=np.float32)
 _NO_WINDOW = np.zeros(0, dtype=np.int64)
 _NO_QUATERNIONS = np.zeros((0, 4))
+_NO_ROWS: RowTarget = (np.zeros((0, 1), np.uint64), np.zeros((0, 1), np.uint64), np.zeros(0),
+                       np.zeros(0), np.zeros(0), np.zeros(0, np.float32),
+                       np.zeros(0, np.float32), np.zeros(0, np.float32),
+                       np.zeros(0, np.float32), np.zeros(0, np.uint8),
+                       np.zeros(257, np.int64))
 _NO_LINES = WindowLines(_NO_WINDOW, np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)),
                         np.zeros(1), np.zeros(1), np.zeros(1))
 
@@ -631,15 +647,15 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
         return out
     points = np.ascontiguousarray(points)
     counts = tally.counts if tally is not None else np.zeros(257, dtype=np.int64)
-    if points.dtype.itemsize % 4 == 0:
+    target = row_target(points, out, counts)
+    if target is not None:
         # The usual layout: one compiled pass row by row instead of nine over the output.
+        (out_words, in_words, x, y, z, reflectance, range_m, incidence, scan_angle,
+         flags, _) = target
         kernels.fill_corrected_rows(
-            out.view(np.uint32).reshape(n, dtype.itemsize // 4),
-            points.view(np.uint32).reshape(n, points.dtype.itemsize // 4),
-            out["x"], out["y"], out["z"], res.xyz[a:b], out["reflectance"], out["range"],
-            out["incidence"], out["scan_angle"], out["correction_flags"],
-            res.reflectance[a:b], res.range[a:b], res.incidence[a:b], res.scan_angle[a:b],
-            res.flags[a:b], counts)
+            out_words, in_words, x, y, z, res.xyz[a:b], reflectance, range_m, incidence,
+            scan_angle, flags, res.reflectance[a:b], res.range[a:b], res.incidence[a:b],
+            res.scan_angle[a:b], res.flags[a:b], counts)
         return out
     if tally is not None:
         counts[:256] += kernels.byte_counts(np.ascontiguousarray(res.flags[a:b]))
@@ -660,6 +676,22 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
     out["scan_angle"] = res.scan_angle[a:b]
     out["correction_flags"] = res.flags[a:b]
     return out
+
+
+def row_target(points: np.ndarray, out: np.ndarray, counts: np.ndarray) -> RowTarget | None:
+    """Where the compiled loops write the corrected cloud of ``points`` (contiguous) into
+    ``out`` (``len(points)`` rows of :func:`corrected_dtype`, contiguous) and count its flags
+    into ``counts`` (a :class:`CloudTally`'s); None for a layout whose rows are not whole
+    4-byte words. The rows are copied in 8-byte words where both layouts allow (the
+    corrected rows always do)."""
+    if points.dtype.itemsize % 4:
+        return None
+    n = len(points)
+    word = np.dtype(np.uint64 if points.dtype.itemsize % 8 == 0 else np.uint32)
+    return (out.view(word).reshape(n, out.dtype.itemsize // word.itemsize),
+            points.view(word).reshape(n, points.dtype.itemsize // word.itemsize),
+            out["x"], out["y"], out["z"], out["reflectance"], out["range"],
+            out["incidence"], out["scan_angle"], out["correction_flags"], counts)
 
 
 def correct_cloud(
@@ -789,6 +821,10 @@ def _run_job(job: _Job, source: str
     started = time.perf_counter()
     msgs = job.messages
     whole = _whole_normals(job)
+    if len(msgs) == 1 and len(msgs[0]):
+        done = _run_one(job, msgs[0], whole, source, started)
+        if done is not None:
+            return done
     for task in job.tasks if whole is None else ():
         _deliver(task.run())
     if whole is not None:
@@ -820,6 +856,35 @@ def _run_job(job: _Job, source: str
         out.append(build_corrected(m.points, res, a, b, out=where, tally=tallies[-1]))
         a = b
     return out, tallies, time.perf_counter() - started, res.choice
+
+
+def _run_one(job: _Job, m: _Message, whole: GridNormals | None, source: str, started: float
+             ) -> tuple[list[np.ndarray], list[CloudTally], float, ModelChoice | None] | None:
+    """:func:`_run_job` of one cloud (the usual batch of the node), corrected straight into
+    its rows (:func:`row_target`); None for a layout that needs the columns."""
+    points = np.ascontiguousarray(m.points)
+    dtype = corrected_dtype(points.dtype)
+    where = job.place(m.tag, len(m), dtype) if job.place is not None else None
+    out = where if where is not None else np.empty(len(m), dtype=dtype)  # (all written)
+    tally = CloudTally.empty()
+    target = row_target(points, out, tally.counts)
+    if target is None:
+        if where is not None:  # (placed: the general path builds the cloud there)
+            job.place = _placed(m.tag, where)
+        return None
+    if whole is None:
+        for task in job.tasks:
+            _deliver(task.run())
+    gn = whole if whole is not None else m.normals or no_normals(len(m))
+    c = m.columns
+    res = correct_columns(c.xyz, c.t, c.intensity, job.trajectory, job.settings, normals=gn,
+                          source=source, all_finite=bool(c.all_finite), rows=target)
+    return [out], [tally], time.perf_counter() - started, res.choice
+
+
+def _placed(tag: Any, where: np.ndarray) -> OutputPlacer:
+    """A placer that gives ``tag`` the output already placed for it."""
+    return lambda t, n, dtype: where if t == tag else None
 
 
 class StreamCorrector:

@@ -222,6 +222,11 @@ class LocalCorrection:
         """Correct what is held now, without waiting for look-ahead."""
         self._emit(self._engine.release())
 
+    @property
+    def in_flight(self) -> int:
+        """Batches in worker threads whose clouds :meth:`poll` has not yet reported."""
+        return self._engine.corrector.in_flight
+
     def poll(self) -> None:
         """Report the clouds worker threads have finished (``workers`` > 1)."""
         if self._engine.corrector.in_flight:
