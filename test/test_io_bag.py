@@ -477,3 +477,35 @@ def test_control_csv_matches_bag_control(tmp_path, bag, mission):
             read_control_csv(tmp_path / "bad.csv")
     with pytest.raises(InputError, match=r"nope\.csv: control point file not found"):
         read_control_csv(tmp_path / "nope.csv")
+
+
+def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch):
+    """Many chunks, compressed out of order by the storage's threads, are written in order:
+    the mcap project's reader gives back every message and its bytes in log-time order, and
+    each chunk says how it is compressed."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from lidarcal_ros.io import mcap_storage
+
+    monkeypatch.setattr(mcap_storage, "CHUNK_BYTES", 20_000)
+    rng = np.random.default_rng(5)
+    written = []
+    out = tmp_path / "many.mcap"
+    with BagWriter(out) as writer:
+        for k in range(400):
+            raw = rng.integers(0, 4, rng.integers(100, 3000)).astype(np.uint8).tobytes()
+            topic = "/a" if k % 3 else "/b"
+            written.append((topic, 1_000 + 10 * k, raw))
+            writer.write_raw(topic, "std_msgs/msg/String", 1_000 + 10 * k, raw)
+    with out.open("rb") as stream:
+        chunks = [r for r in StreamReader(stream, emit_chunks=True).records
+                  if isinstance(r, Chunk)]
+    assert len(chunks) > 2 * mcap_storage.MAX_PENDING
+    assert {c.compression for c in chunks} == {"zstd"}
+    with out.open("rb") as stream:
+        got = [(c.topic, m.log_time, bytes(m.data)) for _s, c, m in
+               make_reader(stream).iter_messages(log_time_order=True)]
+    assert got == written
+    with open_bag(out) as bag:
+        assert [(t, ns, bytes(raw)) for t, _ty, ns, raw in bag.messages()] == written

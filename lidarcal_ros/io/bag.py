@@ -36,7 +36,6 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2.errors import ReaderError, WriterError
 from rosbags.rosbag2.storage_mcap import McapReader
@@ -47,6 +46,7 @@ from lidarcal_ros.core.attitude import IDENTITY_XYZW
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError, OutputError
+from lidarcal_ros.io.mcap_storage import BagWriterBackend
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 from lidarcal_ros.io.pointcloud import (
     DEFAULT_COORDINATE_TOLERANCE_M,
@@ -1050,7 +1050,7 @@ class BagWriter:
         # in metadata.yaml come from it).
         self._target = (self._staging / (self.path.stem if self._bare else self.path.name)
                         if self._staged else self.path)
-        self._writer: Writer | None = None
+        self._writer: BagWriterBackend | None = None
         self._connections: dict[str, Connection] = {}
         self._typestore = _store()
 
@@ -1073,7 +1073,8 @@ class BagWriter:
             raise OutputError(f"{self.path}: directory {self.path.parent} does not exist")
         remove_quietly(self._staging)
         try:
-            writer = Writer(self._target, version=8, storage_plugin=StoragePlugin.MCAP)
+            writer = BagWriterBackend(self._target, version=8,
+                                      storage_plugin=StoragePlugin.MCAP)
             if self.compress:
                 writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             writer.open()
