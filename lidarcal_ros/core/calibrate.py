@@ -15,8 +15,11 @@ the horizontal parameters.
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TypeVar
 
@@ -219,6 +222,38 @@ class CalibrationResult:
     #: Where nothing was estimated: the strip pairs' height agreement on smooth cells, which
     #: needs no patch (:mod:`lidarcal_ros.core.overlap_grid`).
     height_agreement: list[PairQA] = field(default_factory=list)
+    #: CPU seconds of the calibration's threads in each of its stages (:class:`StageClock`).
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+
+class StageClock:
+    """CPU seconds spent in each stage of a calibration, summed over its threads (thread
+    time: what the work costs, whatever else the machine runs). A stage entered within
+    another pauses it, so the stages add up to the time spent in any of them."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._lock = threading.Lock()
+        self._local = threading.local()
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        local = self._local
+        outer: str | None = getattr(local, "stage", None)
+        now = time.thread_time()
+        if outer is not None:
+            self._add(outer, now - local.since)
+        local.stage, local.since = stage, now
+        try:
+            yield
+        finally:
+            now = time.thread_time()
+            self._add(stage, now - local.since)
+            local.stage, local.since = outer, now
+
+    def _add(self, stage: str, seconds: float) -> None:
+        with self._lock:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + seconds
 
 
 class NothingEstimated(CalibrationError):
@@ -367,6 +402,7 @@ class Calibrator:
         self._restored_delta = np.zeros(N_PARAMETERS)
         self._control_before: list[tuple[int, int, float]] | None = None
         self._pool: ThreadPoolExecutor | None = None
+        self.clock = StageClock()
 
     @classmethod
     def from_mission(
@@ -409,6 +445,10 @@ class Calibrator:
         CalibrationError
             A strip with this id is already held.
         """
+        with self.clock("local trajectories"):
+            return self._add_strip(strip, trajectory)
+
+    def _add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
         s = self.settings
         if any(ps.strip_id == strip.strip_id for ps in self.strips):
             raise CalibrationError(f"strip {strip.strip_id} added twice")
@@ -503,7 +543,8 @@ class Calibrator:
     def _tin(self, k: int) -> Tin:
         ps = self.strips[k]
         if ps.tin is None:
-            ps.tin = Tin(ps.strip.xyz, self.settings.tin_quality(ps.density))
+            with self.clock("TINs"):
+                ps.tin = Tin(ps.strip.xyz, self.settings.tin_quality(ps.density))
         return ps.tin
 
     def _build_tins(self, strips: Iterable[int]) -> None:
@@ -554,7 +595,9 @@ class Calibrator:
         ps = self.strips[k]
         key = np.asarray(delta, dtype=np.float64).tobytes()
         if ps.corrected is None or ps.corrected[0] != key:
-            corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0, delta)
+            with self.clock("corrections"):
+                corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
+                                                              delta)
             ps.corrected = (key, corrected, shift, geometry)
         _, corrected, shift, ps.geometry = ps.corrected
         return corrected, shift
@@ -569,8 +612,10 @@ class Calibrator:
         # The sample is matched every iteration: start each search at its last patch.
         on_sample = points_idx is pair.sample
         start = pair.last_triangle if on_sample else None
-        m = match_to_tin(a_xyz[points_idx], self._tin(pair.b), b_xyz,
-                         max_normal_distance=threshold, vertex_shift=shift, start=start)
+        tin = self._tin(pair.b)
+        with self.clock("matching"):
+            m = match_to_tin(a_xyz[points_idx], tin, b_xyz, max_normal_distance=threshold,
+                             vertex_shift=shift, start=start)
         if on_sample:
             pair.last_triangle = m.triangle
         return m
@@ -583,14 +628,15 @@ class Calibrator:
         (the patch distance along the observed normal)."""
         ok = m.valid
         tin = self._tin(k)
-        n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
-        w = m.weights[ok]
-        verts = tin.simplices[m.triangle[ok]]
-        geometry = self.strips[k].geometry
-        rows = np.zeros((int(ok.sum()), N_PARAMETERS))
-        for v in range(3):
-            add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
-        y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+        with self.clock("design rows"):
+            n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
+            w = m.weights[ok]
+            verts = tin.simplices[m.triangle[ok]]
+            geometry = self.strips[k].geometry
+            rows = np.zeros((int(ok.sum()), N_PARAMETERS))
+            for v in range(3):
+                add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
+            y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
         return n, rows, y
 
     def _pair_observations(
@@ -601,10 +647,11 @@ class Calibrator:
         # eq. [11]: the discrepancy n . (X_A - X_B) left by the current estimate; the
         # adjustment solves for the increment that removes it (Gauss-Newton).
         n, patch_rows, y = self._patch_terms(pair.b, m)
-        rows = np.zeros_like(patch_rows)
-        add_geometry_normal_rows(rows, n, sa.geometry, idx)
-        rows -= patch_rows
-        cluster = self._cluster_of(sa.strip.xyz[idx])
+        with self.clock("design rows"):
+            rows = np.zeros_like(patch_rows)
+            add_geometry_normal_rows(rows, n, sa.geometry, idx)
+            rows -= patch_rows
+            cluster = self._cluster_of(sa.strip.xyz[idx])
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster)
 
     def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
@@ -625,6 +672,10 @@ class Calibrator:
 
     def _select_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
         """Stratify matched candidates by patch slope and aspect; cap each class."""
+        with self.clock("sample selection"):
+            return self._stratified_sample(pair, m)
+
+    def _stratified_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
         s = self.settings
         ok = np.flatnonzero(m.valid)
         n = m.normal[ok]
@@ -659,9 +710,10 @@ class Calibrator:
                 continue
             cps = np.flatnonzero(inside)
             xyz, shift = corrected[k]
-            m = match_to_tin(control.xyz[cps], self._tin(k), xyz,
-                             max_normal_distance=threshold,
-                             vertex_shift=shift if np.any(delta) else None)
+            tin = self._tin(k)
+            with self.clock("matching"):
+                m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
+                                 vertex_shift=shift if np.any(delta) else None)
             if not m.valid.any():
                 continue
             ok = m.valid
@@ -683,6 +735,10 @@ class Calibrator:
         Returns the solution with ``delta`` = current estimate + increment; parameters not
         solved for are moved to their fixed values.
         """
+        with self.clock("normal equations"):
+            return self._reweighted_solve(obs, delta)
+
+    def _reweighted_solve(self, obs: Observations, delta: np.ndarray) -> Solution:
         s = self.settings
         fixed_step = {name: float(s.fixed.get(name, 0.0) - delta[i])
                       for i, name in enumerate(PARAMETER_NAMES)}
@@ -833,8 +889,9 @@ class Calibrator:
         """The result of the iterations of :meth:`iterate` that ended with ``last``: sigmas
         allowing for shared errors, and the QA of every pair at the estimate. Call once per
         iteration (it widens ``last``'s sigmas)."""
-        self.normal_equations = NormalEquations.from_observations(last.observations)
-        self._allow_for_shared_errors(last.solution, last.observations, last.step)
+        with self.clock("normal equations"):
+            self.normal_equations = NormalEquations.from_observations(last.observations)
+            self._allow_for_shared_errors(last.solution, last.observations, last.step)
         return self._finish(last.solution, last.observations, last.solution.delta, last.number,
                             last.converged, last.history)
 
@@ -1057,10 +1114,12 @@ class Calibrator:
         laser vectors of the points corrected by it."""
         s = self.settings
         corrected = self._corrected_all(delta)
-        for ps in self.strips:
-            if not ps.dropped:
-                ps.laser_qa = laser_vector_qa(ps.geometry, fov_deg=s.fov_deg,
-                                              speed_mps=ps.speed_mps)
+        with self.clock("QA"):
+            for ps in self.strips:
+                if not ps.dropped:
+                    ps.laser_qa = laser_vector_qa(ps.geometry, fov_deg=s.fov_deg,
+                                                  speed_mps=ps.speed_mps)
+
         def after_of(pair: _PairWork) -> np.ndarray:
             assert pair.sample is not None
             if pair.frozen is not None and pair.frozen_delta is not None:
@@ -1096,6 +1155,7 @@ class Calibrator:
             crab_deg={ps.strip.strip_id: ps.geometry0.crab_deg for ps in self.strips},
             models={ps.strip.strip_id: ps.choice for ps in self.strips},
             laser_qa={ps.strip.strip_id: ps.laser_qa for ps in self.strips},
+            stage_seconds=dict(self.clock.seconds),
         )
 
 
