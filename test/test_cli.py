@@ -18,7 +18,7 @@ import helpers_missions
 import numpy as np
 import pytest
 import yaml
-from helpers_cli import one_line_error, run, run_process, warning_lines
+from helpers_cli import one_line_error, run, run_on_a_terminal, run_process, warning_lines
 from helpers_missions import (
     MissionFiles,
     shift_strip,
@@ -545,60 +545,22 @@ def test_simulate_refuses_existing_bag_subprocess(tmp_path):
     assert not (tmp_path / "sim_truth.yaml").exists()
 
 
-def _stderr_on_a_terminal(*args: Any, cwd: Path) -> tuple[int, str]:
-    """``python -m lidarcal_ros ARGS`` with its stderr on a pseudo-terminal (as a user at a
-    terminal sees it): exit status and everything written to the terminal."""
-    import fcntl
-    import os
-    import pty
-    import struct
-    import termios
-    import threading
-
-    master, slave = pty.openpty()
-    # A terminal of 24 x 120 characters (a new pseudo-terminal has none: no room for a bar).
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))
-    seen = bytearray()
-
-    def drain() -> None:
-        while True:
-            try:
-                data = os.read(master, 65536)
-            except OSError:  # the terminal closed with the process
-                return
-            if not data:
-                return
-            seen.extend(data)
-
-    reader = threading.Thread(target=drain)
-    reader.start()
-    try:
-        proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *(str(a) for a in args)],
-                              stdout=subprocess.DEVNULL, stderr=slave, cwd=cwd, timeout=300,
-                              check=False)
-    finally:
-        os.close(slave)
-        reader.join(timeout=10)
-        os.close(master)
-    return proc.returncode, seen.decode(errors="replace")
-
-
 def test_progress_on_a_terminal_and_quiet_otherwise(tmp_path, small_mission):
     """calibrate and correct show a progress bar on a terminal, none with --quiet or when
     stderr is not a terminal."""
     base = ["calibrate", small_mission.bag, "--config", small_mission.fast_config,
             "--control", small_mission.control_csv, "-o"]
     cal = tmp_path / "cal.yaml"
-    rc, shown = _stderr_on_a_terminal(*base, cal, cwd=tmp_path)
+    rc, shown = run_on_a_terminal(*base, cal, cwd=tmp_path)
     assert rc == 0 and "iteration 1: matching" in shown and "choosing sample points" in shown
-    rc, shown = _stderr_on_a_terminal(*base, tmp_path / "cal2.yaml", "--quiet", cwd=tmp_path)
+    rc, shown = run_on_a_terminal(*base, tmp_path / "cal2.yaml", "--quiet", cwd=tmp_path)
     assert rc == 0 and "iteration" not in shown
     piped = run_process(*base, tmp_path / "cal3.yaml", cwd=tmp_path)
     assert piped.returncode == 0 and "iteration" not in piped.stderr
     correct = ["correct", small_mission.bag, "--calibration", cal, "-o"]
-    rc, shown = _stderr_on_a_terminal(*correct, tmp_path / "a.laz", cwd=tmp_path)
+    rc, shown = run_on_a_terminal(*correct, tmp_path / "a.laz", cwd=tmp_path)
     assert rc == 0 and "reading trajectory" in shown
-    rc, shown = _stderr_on_a_terminal(*correct, tmp_path / "b.laz", "-q", cwd=tmp_path)
+    rc, shown = run_on_a_terminal(*correct, tmp_path / "b.laz", "-q", cwd=tmp_path)
     assert rc == 0 and "trajectory" not in shown
     piped = run_process(*correct, tmp_path / "c.laz", cwd=tmp_path)
     assert piped.returncode == 0 and "trajectory" not in piped.stderr
