@@ -509,3 +509,36 @@ def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch
     assert got == written
     with open_bag(out) as bag:
         assert [(t, ns, bytes(raw)) for t, _ty, ns, raw in bag.messages()] == written
+
+
+def test_chunks_read_ahead_give_rosbags_messages(bag, tmp_path, monkeypatch):
+    """Chunks decompressed ahead in threads give the messages, bytes and order of rosbags'
+    reader (a bag of ours, and one whose chunks overlap in time, which rosbags merges)."""
+    from lidarcal_ros.io import bag as bag_module
+    from lidarcal_ros.io import mcap_chunks
+
+    def read(path: Path, topics: list[str] | None = None) -> list[tuple[str, str, int, bytes]]:
+        with open_bag(path) as reader:
+            return [(t, ty, ns, bytes(raw)) for t, ty, ns, raw in reader.messages(topics)]
+
+    overlapping = tmp_path / "overlap.mcap"
+    with BagWriter(overlapping) as writer:
+        for k in range(300):  # two topics written out of time order: chunks overlap
+            writer.write_raw("/a" if k % 2 else "/b", "std_msgs/msg/String",
+                             10_000 + (k % 7) * 1000 + k, bytes([k % 256]) * 5000)
+    in_order = tmp_path / "in_order.mcap"
+    with BagWriter(in_order) as writer:
+        for k in range(900):  # many chunks, equal log times across their boundaries
+            writer.write_raw("/a" if k % 3 else "/b", "std_msgs/msg/String",
+                             10_000 + k // 4, bytes([k % 256]) * 5000)
+    with open_bag(overlapping) as reader:
+        assert not mcap_chunks.in_time_order(reader._files[0].reader.chunks)
+    with open_bag(in_order) as reader:
+        chunks = reader._files[0].reader.chunks
+        assert len(chunks) > 3 and mcap_chunks.in_time_order(chunks)
+    cases = [(bag, None), (bag, ["/lidar/trajectory"]), (in_order, None), (in_order, ["/b"]),
+             (overlapping, None)]
+    fast = [read(path, topics) for path, topics in cases]
+    monkeypatch.setattr(bag_module, "chunk_messages", lambda reader, channels: None)
+    assert fast == [read(path, topics) for path, topics in cases]
+    assert len(fast[0]) > len(fast[1]) > 0

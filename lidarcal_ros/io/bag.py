@@ -46,6 +46,7 @@ from lidarcal_ros.core.attitude import IDENTITY_XYZW
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import BagError, CloudFormatError, ConfigError, InputError, OutputError
+from lidarcal_ros.io.mcap_chunks import chunk_messages
 from lidarcal_ros.io.mcap_storage import BagWriterBackend
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 from lidarcal_ros.io.pointcloud import (
@@ -543,7 +544,10 @@ class BagReader:
     def _file_messages(
         self, index: int, file: _File, conns: list[Connection]
     ) -> Iterator[tuple[str, str, int, bytes]]:
-        source = file.reader.messages(conns)
+        by_id = {c.id: c for c in conns}
+        fast = chunk_messages(file.reader, set(by_id))
+        source: Iterator[tuple[Any, int, bytes]] = file.reader.messages(conns) \
+            if fast is None else ((by_id[k], t, data) for k, t, data in fast)
         count = 0
         while True:
             try:
