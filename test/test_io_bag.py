@@ -542,3 +542,38 @@ def test_chunks_read_ahead_give_rosbags_messages(bag, tmp_path, monkeypatch):
     monkeypatch.setattr(bag_module, "chunk_messages", lambda reader, channels: None)
     assert fast == [read(path, topics) for path, topics in cases]
     assert len(fast[0]) > len(fast[1]) > 0
+
+
+def test_poses_read_from_their_bytes_are_those_decoded():
+    """A PoseStamped read straight from its CDR bytes gives the numbers and frame of its
+    decoded message, whatever the frame id's length (and so its padding); other types and
+    big-endian bytes go through the decoder."""
+    from lidarcal_ros.io.bag import POSE_STAMPED, TrajectorySamples
+
+    types = TS.types
+    rng = np.random.default_rng(9)
+    raws = []
+    for k, frame in enumerate(["", "m", "map", "utm32", "odom_ned", "a" * 9, "éé", "x" * 31]):
+        pose = types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](*rng.normal(0, 1e5, 3)),
+            orientation=types["geometry_msgs/msg/Quaternion"](*rng.normal(0, 1, 4)))
+        msg = types[POSE_STAMPED](header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1_700_000_000 + k,
+                                                       nanosec=123_456_789 * k % 10**9),
+            frame_id=frame), pose=pose)
+        raws.append(bytes(TS.serialize_cdr(msg, POSE_STAMPED)))
+        raws.append(bytes(TS.serialize_cdr(msg, POSE_STAMPED, little_endian=False)))
+    decoded = []
+
+    def decode(raw, msgtype):
+        decoded.append(msgtype)
+        return TS.deserialize_cdr(raw, msgtype)
+
+    fast, slow = TrajectorySamples(), TrajectorySamples()
+    for raw in raws:
+        fast.add_raw(POSE_STAMPED, raw, decode)
+        slow.add(POSE_STAMPED, TS.deserialize_cdr(raw, POSE_STAMPED))
+    assert len(decoded) == len(raws) // 2  # the big-endian ones
+    for name in ("t", "xyz", "orientation"):
+        assert getattr(fast, name) == getattr(slow, name)
+    assert fast.frames == slow.frames and len(fast.frames) == 8

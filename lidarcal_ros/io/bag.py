@@ -11,11 +11,13 @@ seconds on the same clock. Coordinates are metres in the map frame (``header.fra
 
 from __future__ import annotations
 
+import functools
 import heapq
 import itertools
 import logging
 import math
 import os
+import struct
 import sys
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -90,6 +92,10 @@ def trajectory_sample(msgtype: str, msg: Any
 
 
 _NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
+#: A PoseStamped in CDR after its encapsulation: stamp (sec, nanosec), the frame id's length;
+#: then, 8-byte aligned, position and orientation.
+_POSE_HEADER = struct.Struct("<iII")
+_POSE_BODY = struct.Struct("<7d")
 
 
 class TrajectorySamples:
@@ -108,6 +114,25 @@ class TrajectorySamples:
         self.xyz.append(xyz)
         self.orientation.append(q)
         self.frames.add(str(msg.header.frame_id))
+
+    def add_raw(self, msgtype: str, raw: bytes | memoryview,
+                decode: Callable[[memoryview, str], Any]) -> None:
+        """Add a message from its CDR bytes: a little-endian ``PoseStamped`` read straight
+        from them (the same numbers as its decoded message gives, a tenth of the time: the
+        poses of a long mission number tens of thousands), any other through
+        ``decode(bytes, msgtype)``."""
+        if msgtype == POSE_STAMPED and len(raw) >= 16 and raw[1] == 1:  # CDR, little-endian
+            sec, nanosec, size = _POSE_HEADER.unpack_from(raw, 4)
+            end = 16 + size  # of the frame id, its NUL included
+            body = 4 + (end - 4 + 7) // 8 * 8
+            if size and body + _POSE_BODY.size == len(raw) and raw[end - 1] == 0:
+                x, y, z, qx, qy, qz, qw = _POSE_BODY.unpack_from(raw, body)
+                self.t.append(float(sec) + int(nanosec) * 1e-9)  # (stamp_seconds)
+                self.xyz.append((x, y, z))
+                self.orientation.append((qx, qy, qz, qw))
+                self.frames.add(bytes(raw[16:end - 1]).decode())
+                return
+        self.add(msgtype, decode(memoryview(raw), msgtype))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -711,17 +736,19 @@ def read_mission(
         acc = _CloudAccumulator(points_topic, time_field, thinning_cell_m, box,
                                 coordinate_tolerance_m)
         samples = TrajectorySamples()
+        decode_pose = functools.partial(bag.deserialize, topic=trajectory_topic)
         control_msg: Any = None
         for topic, msgtype, _log_ns, raw in bag.messages([t for t in wanted if t]):
             is_pose = topic == trajectory_topic
             ok_type = msgtype in TRAJECTORY_TYPES if is_pose else msgtype == POINTCLOUD2
             if not ok_type:
                 raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
-            msg = bag.deserialize(raw, msgtype, topic=topic)
+            if is_pose:
+                samples.add_raw(msgtype, raw, decode_pose)
+                continue
+            msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
             if topic == points_topic:
                 acc.add(msg)
-            elif is_pose:
-                samples.add(msgtype, msg)
             else:
                 control_msg = msg
         if not acc.n_messages:

@@ -1233,10 +1233,11 @@ def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
     from lidarcal_ros.io.bag import TRAJECTORY_TYPES, TrajectorySamples
 
     samples = TrajectorySamples()
+    decode = functools.partial(bag.deserialize, topic=topic)
     for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([topic])):
         if msgtype not in TRAJECTORY_TYPES:
             raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
-        samples.add(msgtype, bag.deserialize(memoryview(raw), msgtype, topic=topic))
+        samples.add_raw(msgtype, raw, decode)
     if not samples:
         raise BagError(f"{bag.path}: topic {topic} has no messages")
     return samples.trajectory(f"{bag.path}: trajectory {topic}"), samples.frames
