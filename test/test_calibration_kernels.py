@@ -29,14 +29,15 @@ def geometries() -> dict[str, tuple[np.ndarray, LaserGeometry]]:
     from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
     from lidarcal_ros.core.georeferencing import strip_geometry
     from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import SimulationSpec
 
     out: dict[str, tuple[np.ndarray, LaserGeometry]] = {}
     for name in ("level", "rigorous"):
         rough = name == "rigorous"
-        mission = simulate_mission(density=0.1, line_length_m=200.0, seed=5,
-                                   rough_air=RoughAir() if rough else None, attitude=rough,
-                                   wind_mps=crosswind_for_crab(5.0, 60.0) if rough
-                                   else (0.0, 0.0)).mission
+        mission = simulate_mission(SimulationSpec.from_options(
+            density=0.1, line_length_m=200.0, seed=5, rough_air=RoughAir() if rough else None,
+            attitude=rough, wind_mps=crosswind_for_crab(5.0, 60.0) if rough else (0.0, 0.0)
+        )).mission
         strip = mission.strips[0]
         g, choice = strip_geometry(strip.t, strip.xyz, mission.trajectory)
         assert choice.model == name
