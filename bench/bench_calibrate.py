@@ -46,7 +46,7 @@ def run_lidarcal(meta: dict, repeats: int, work: Path) -> dict[str, Any]:
     for r in range(repeats):
         log = work / f"lidarcal_{meta['key']}_{r}.log"
         res = run_child([LIDARCAL, "calibrate", meta["bag"], "--control", meta["control"],
-                         "-o", str(out)], log=log)
+                         "-o", str(out), "--overwrite"], log=log)
         if res["rc"] != 0:
             raise SystemExit(f"lidarcal calibrate failed (exit {res['rc']}):\n{tail(log)}")
         runs.append(res)
