@@ -16,20 +16,26 @@ _T = TypeVar("_T")
 _DONE = object()
 
 
-def prefetched(items: Callable[[], Iterator[_T]], *, depth: int = 64,
+def prefetched(items: Callable[[], Iterator[_T]], *, depth: int = 16, batch: int = 32,
                name: str = "lidarcal-read") -> Iterator[_T]:
-    """The items of ``items()``, produced in a thread up to ``depth`` ahead of the caller.
+    """The items of ``items()``, produced in a thread up to ``depth * batch`` ahead of the
+    caller.
 
-    An exception of the producer is raised in the caller at the point where the items
-    stopped. Closing the returned generator early (``break``, an exception of the caller)
-    stops the producer at its next item.
+    They are handed over ``batch`` at a time: each hand-over wakes the other thread, which
+    then waits for the interpreter lock (up to its switch interval, 5 ms, while the numerics'
+    threads hold it between their compiled calls), and a bag of points holds thousands of
+    messages. An exception of the producer is raised in the caller at the point where the
+    items stopped. Closing the returned generator early (``break``, an exception of the
+    caller) stops the producer at its next item.
 
     Parameters
     ----------
     items : callable
         Makes the iterator, in the producing thread.
     depth : int
-        Items held ready at most.
+        Batches held ready at most.
+    batch : int
+        Items per hand-over.
     """
     ready: queue.Queue[object] = queue.Queue(maxsize=max(depth, 1))
     stop = threading.Event()
@@ -45,22 +51,28 @@ def prefetched(items: Callable[[], Iterator[_T]], *, depth: int = 64,
         return False
 
     def produce() -> None:
+        chunk: list[_T] = []
         try:
             for item in items():
-                if not put(item):
-                    return
+                chunk.append(item)
+                if len(chunk) >= batch:
+                    if not put(chunk):
+                        return
+                    chunk = []
         except BaseException as exc:  # handed to the caller
             failure.append(exc)
+        if chunk:
+            put(chunk)
         put(_DONE)
 
     thread = threading.Thread(target=produce, name=name, daemon=True)
     thread.start()
     try:
         while True:
-            item = ready.get()
-            if item is _DONE:
+            got = ready.get()
+            if got is _DONE:
                 break
-            yield item  # type: ignore[misc]
+            yield from got  # type: ignore[misc]
         if failure:
             raise failure[0]
     finally:
