@@ -16,7 +16,7 @@ _T = TypeVar("_T")
 _DONE = object()
 
 
-def prefetched(items: Callable[[], Iterator[_T]], *, depth: int = 16, batch: int = 32,
+def prefetched(items: Callable[[], Iterator[_T]], *, depth: int = 4, batch: int = 32,
                name: str = "lidarcal-read") -> Iterator[_T]:
     """The items of ``items()``, produced in a thread up to ``depth * batch`` ahead of the
     caller.
