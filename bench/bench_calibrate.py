@@ -1,12 +1,12 @@
-"""Benchmark of ``lidarcal calibrate`` against a straightforward baseline (bench/README.md).
+"""Benchmark of ``lidarcal calibrate`` (bench/README.md, "Calibration").
 
-    .venv/bin/python bench/bench_calibrate.py                 # ~1M-point mission (the goals)
-    .venv/bin/python bench/bench_calibrate.py --quick         # ~200k points, sanity run
-    .venv/bin/python bench/bench_calibrate.py --profile       # + cProfile of calibrate
+    .venv/bin/python bench/bench_calibrate.py            # end to end, scaling to 10M, matching
+    .venv/bin/python bench/bench_calibrate.py --quick    # end to end and matching only
+    .venv/bin/python bench/bench_calibrate.py --baseline # + the straightforward baseline
 
-Every figure is measured in this run, the baseline too: nothing is compared with numbers
-recorded elsewhere. Each measured program runs in a fresh subprocess, so its peak memory is its
-own (``os.wait4`` gives the child's own resource usage).
+Every figure is measured in this run. Each measured program runs in a fresh process, so its
+peak memory is its own (``os.wait4`` gives the child's own resource usage). The estimates are
+held to the reference of bench/reference_estimates.json (every one within 0.1 of its sigma).
 """
 
 from __future__ import annotations
@@ -14,120 +14,26 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import shutil
-import signal
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-BENCH = Path(__file__).resolve().parent
-ROOT = BENCH.parent
-CACHE = BENCH / ".cache"
-PYTHON = sys.executable
-LIDARCAL = str(Path(PYTHON).with_name("lidarcal"))
+import benchlib  # bench/benchlib.py: this script's folder is on sys.path
+from benchlib import BENCH, LIDARCAL, PYTHON, ROOT, MissionSpec, run_child, tail
 
-#: Goals of the issue (for a simulated mission of about 1M points on a 2-core machine).
-GOAL_WALL_S = 20.0
+#: Goals of the issue for a mission of about 1M points on the 2-core machine.
+GOAL_WALL_S = 10.0
+GOAL_PEAK_MIB = 1024.0
+GOAL_SIGMA = 0.1  # every estimate within this many of its sigmas of the reference
+#: The matching's throughput goal of an earlier issue (a stage figure now).
 GOAL_POINTS_PER_S_PER_CORE = 1.0e6
-GOAL_PEAK_MIB = 2048.0
-#: Below this mission size the end-to-end time goal is not judged (it is stated for ~1M).
-JUDGE_WALL_MIN_POINTS = 900_000
-
-SCENARIO = "paper"
-SEED = 7
-#: Points per metre of line per unit density: density * swath at 1150 m (50 deg FOV).
-SWATH_HIGH_M = 2.0 * 1150.0 * math.tan(math.radians(25.0))
-N_STRIPS = 6
 ARCSEC = 180.0 / math.pi * 3600.0
 
 SINGLE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
                      "MKL_NUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1"}
-
-
-# ---------------------------------------------------------------------------- mission
-def mission_plan(points: int, density: float | None, line_length: float | None
-                 ) -> tuple[float, float]:
-    """Density (pts/m^2 at 1150 m) and line length (m) of a paper mission of ~``points``."""
-    d = density if density is not None else (0.3 if points >= 500_000 else 0.1)
-    if line_length is None:
-        line_length = max(100.0, round(points / (N_STRIPS * d * SWATH_HIGH_M) / 10.0) * 10.0)
-    return d, float(line_length)
-
-
-def prepare_mission(density: float, line_length: float) -> dict[str, Any]:
-    """Simulate once and cache the bag, control CSV and truth under bench/.cache/."""
-    key = f"{SCENARIO}_d{density:g}_L{line_length:g}_s{SEED}"
-    where = CACHE / key
-    meta_path = where / "meta.json"
-    if meta_path.exists():
-        meta = json.loads(meta_path.read_text())
-        meta["cached"] = True
-        return meta
-    from lidarcal_ros.core.simulate import simulate_mission
-    from lidarcal_ros.core.simulation_spec import SimulationSpec
-    from lidarcal_ros.io.bag import write_mission_bag
-    from lidarcal_ros.io.control import write_control_csv
-
-    if where.exists():
-        shutil.rmtree(where)
-    where.mkdir(parents=True)
-    started = time.perf_counter()
-    sim = simulate_mission(SimulationSpec.from_options(
-        scenario=SCENARIO, density=density, line_length_m=line_length, seed=SEED))
-    bag = where / "mission"
-    write_mission_bag(bag, sim.mission)
-    control = where / "control.csv"
-    assert sim.mission.control is not None
-    write_control_csv(control, sim.mission.control)
-    meta = {"key": key, "bag": str(bag), "control": str(control),
-            "n_points": int(sim.mission.n_points), "n_strips": len(sim.mission.strips),
-            "density": density, "line_length_m": line_length, "seed": SEED,
-            "biases": sim.biases, "simulate_s": time.perf_counter() - started}
-    meta_path.write_text(json.dumps(meta, indent=1))  # written last: marks a complete entry
-    meta["cached"] = False
-    return meta
-
-
-# ---------------------------------------------------------------------------- child processes
-def run_child(cmd: list[str], *, limit_s: float | None = None, env: dict | None = None,
-              cwd: Path | None = None, log: Path | None = None) -> dict[str, Any]:
-    """Run ``cmd``; wall time, peak RSS of that child (MiB), exit status, timed-out flag."""
-    out = open(log, "wb") if log else subprocess.DEVNULL
-    try:
-        started = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=cwd,
-                                env={**os.environ, **(env or {})}, start_new_session=True)
-        timed_out = False
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            if limit_s is not None and time.perf_counter() - started > limit_s:
-                timed_out = True
-                os.killpg(proc.pid, signal.SIGKILL)
-                pid, status, usage = os.wait4(proc.pid, 0)
-                break
-            time.sleep(0.02)
-        wall = time.perf_counter() - started
-        proc.returncode = os.waitstatus_to_exitcode(status)  # already reaped
-    finally:
-        if log:
-            out.close()
-    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
-            "peak_mib": usage.ru_maxrss / 1024.0, "rc": proc.returncode,
-            "timed_out": timed_out}
-
-
-def tail(path: Path, n: int = 15) -> str:
-    try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
-    except OSError:
-        return ""
 
 
 def run_lidarcal(meta: dict, repeats: int, work: Path) -> dict[str, Any]:
@@ -136,29 +42,101 @@ def run_lidarcal(meta: dict, repeats: int, work: Path) -> dict[str, Any]:
 
     runs = []
     doc = None
+    out = work / "lidarcal.yaml"
     for r in range(repeats):
-        out = work / f"lidarcal_{r}.yaml"
-        log = work / f"lidarcal_{r}.log"
+        log = work / f"lidarcal_{meta['key']}_{r}.log"
         res = run_child([LIDARCAL, "calibrate", meta["bag"], "--control", meta["control"],
-                         "-o", str(out)], log=log)
+                         "-o", str(out), "--overwrite"], log=log)
         if res["rc"] != 0:
             raise SystemExit(f"lidarcal calibrate failed (exit {res['rc']}):\n{tail(log)}")
         runs.append(res)
-        print(f"  lidarcal calibrate run {r + 1}/{repeats}: {res['wall_s']:.1f} s wall, "
-              f"{res['cpu_s']:.1f} s CPU, peak {res['peak_mib']:.0f} MiB", flush=True)
+        print(f"  {meta['key']} run {r + 1}/{repeats}: {res['wall_s']:.2f} s wall, "
+              f"{res['cpu_s']:.2f} s CPU, peak {res['peak_mib']:.0f} MiB", flush=True)
         doc = yaml.safe_load(out.read_text())["lidarcal_calibration"]
     assert doc is not None
     return {
         "runs": runs,
+        "walls": [r["wall_s"] for r in runs],
         "wall_s": statistics.median(r["wall_s"] for r in runs),
         "cpu_s": statistics.median(r["cpu_s"] for r in runs),
-        "peak_mib": statistics.median(r["peak_mib"] for r in runs),
+        "peak_mib": max(r["peak_mib"] for r in runs),
         "iterations": int(doc["iterations"]),
         "converged": bool(doc["converged"]),
+        "model": str(doc.get("model", "")),
+        "estimate": benchlib.read_estimate(out),
         "delta": {k: float(v["value"]) for k, v in doc["biases"].items()},
         "estimated": {k: bool(v["estimated"]) for k, v in doc["biases"].items()},
-        "correspondences": doc["correspondences"]["strip_pairs"],
     }
+
+
+# ---------------------------------------------------------------------------- scaling
+def scaling_worker(spec: MissionSpec) -> None:
+    """In a child: bag reading and the calibration of one mission in process, the CPU
+    seconds of each stage (:class:`~lidarcal_ros.core.calibrate.StageClock`). One JSON line."""
+    import resource
+
+    from lidarcal_ros.io.config_file import load_flight_config
+    from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
+
+    meta = benchlib.prepare_mission(spec, quiet=True)
+    config = load_flight_config(None)
+    w0, c0 = time.perf_counter(), time.thread_time()
+    mission = load_mission(meta["bag"], config, control_csv=meta["control"])
+    w1, c1 = time.perf_counter(), time.thread_time()
+    result = calibrate_mission(mission, config)
+    w2 = time.perf_counter()
+    print(json.dumps({
+        "points": mission.n_points, "read_wall_s": w1 - w0, "read_cpu_s": c1 - c0,
+        "calibrate_wall_s": w2 - w1, "stages": result.stage_seconds,
+        "iterations": result.iterations,
+        "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}))
+
+
+def run_scaling(specs: list[MissionSpec], work: Path) -> list[dict[str, Any]]:
+    out = []
+    for spec in specs:
+        benchlib.prepare_mission(spec)
+        log = work / f"scaling_{spec.key}.log"
+        res = run_child([PYTHON, str(Path(__file__).resolve()), "_scaling",
+                         json.dumps(spec.__dict__)], log=log)
+        if res["rc"] != 0:
+            raise SystemExit(f"scaling worker failed (exit {res['rc']}):\n{tail(log)}")
+        line = [ln for ln in log.read_text().splitlines() if ln.startswith("{")][-1]
+        out.append({"spec": spec, "wall_s": res["wall_s"], **json.loads(line)})
+        print(f"  {spec.key}: {out[-1]['points']:,} points, {res['wall_s']:.1f} s", flush=True)
+    return out
+
+
+def print_scaling(rows: list[dict[str, Any]]) -> None:
+    """Per stage: CPU seconds at each size, ns a point, and the growth."""
+    order = sorted({k for r in rows for k in r["stages"]},
+                   key=lambda k: -rows[0]["stages"].get(k, 0.0))
+    stages = ["bag reading", *order]
+
+    def seconds(row: dict[str, Any], stage: str) -> float:
+        return row["read_cpu_s"] if stage == "bag reading" else row["stages"].get(stage, 0.0)
+
+    head = f"{'stage (CPU s of its threads)':32s}" + "".join(
+        f"{r['points'] / 1e6:>9.2f}M {'ns/pt':>6s}" for r in rows)
+    if len(rows) > 1:
+        head += f" {'growth':>7s} (points x{rows[-1]['points'] / rows[0]['points']:.1f})"
+    print(head)
+    for stage in stages:
+        line = f"{stage:32s}" + "".join(
+            f"{seconds(r, stage):>10.2f} {1e9 * seconds(r, stage) / r['points']:>6.0f}"
+            for r in rows)
+        if len(rows) > 1 and seconds(rows[0], stage) > 0:
+            line += f" {seconds(rows[-1], stage) / seconds(rows[0], stage):>7.1f}x"
+        print(line)
+    print(f"{'calibration, wall':32s}" + "".join(
+        f"{r['calibrate_wall_s']:>10.2f} {1e9 * r['calibrate_wall_s'] / r['points']:>6.0f}"
+        for r in rows))
+    print(f"{'process, wall / peak RSS':32s}" + "".join(
+        f"{r['wall_s']:>8.1f} s {r['peak_mib']:>5.0f} MiB" for r in rows))
+    print("stage figures: CPU seconds the calibration's threads spent in each stage (bag "
+          "reading: the reading thread); matching: point location and candidate tests; "
+          "corrections: the exact correction of every strip at each estimate; design rows: "
+          "n^T A of the matches; normal equations: accumulation, solution, robust weights")
 
 
 def run_baseline(meta: dict, iterations: int, limit_s: float, work: Path,
@@ -399,8 +377,53 @@ def machine() -> str:
     return f"{bench_machine.describe()}; triangle installed: {tri}"
 
 
+def end_to_end(missions: list[tuple[str, MissionSpec]], repeats: int, work: Path,
+               write_reference: bool) -> tuple[dict[str, dict[str, Any]], list[str]]:
+    """``lidarcal calibrate`` of each mission; its table and the check of its estimate."""
+    results: dict[str, dict[str, Any]] = {}
+    metas = {}
+    for name, spec in missions:
+        meta = benchlib.prepare_mission(spec)
+        metas[name] = meta
+        print(f"mission {name}: {spec.describe()}, {meta['n_points']:,} points "
+              f"({benchlib.CACHE / spec.key})", flush=True)
+    for name, _spec in missions:
+        results[name] = run_lidarcal(metas[name], repeats, work)
+    failed = []
+    print(f"\n{'mission':8s} {'points':>11s} {'model':>9s} {'wall s min / med':>17s} "
+          f"{'CPU s':>6s} {'peak RSS':>9s} {'iter.':>5s}  goal <= {GOAL_WALL_S:g} s and "
+          f"{GOAL_PEAK_MIB:g} MiB")
+    for name, _spec in missions:
+        lc, meta = results[name], metas[name]
+        ok = min(lc["walls"]) <= GOAL_WALL_S and lc["peak_mib"] <= GOAL_PEAK_MIB
+        print(f"{name:8s} {meta['n_points']:>11,} {lc['model']:>9s} "
+              f"{benchlib.median_min(lc['walls']):>17s} {lc['cpu_s']:>6.2f} "
+              f"{lc['peak_mib']:>5.0f} MiB {lc['iterations']:>5d}  {'met' if ok else 'NOT met'}")
+        if not ok:
+            failed.append(f"{name}: {min(lc['walls']):.1f} s, {lc['peak_mib']:.0f} MiB")
+    print("\nestimates against the reference (bench/reference_estimates.json), in the "
+          "reference's sigmas:")
+    for name, spec in missions:
+        lc = results[name]
+        if write_reference:
+            benchlib.store_reference(spec.key, lc["estimate"], "bench_calibrate.py "
+                                     "--write-reference")
+        same, lines = benchlib.compare_with_reference(spec.key, lc["estimate"], GOAL_SIGMA)
+        verdict = {True: f"every estimate within {GOAL_SIGMA:g} sigma",
+                   False: f"NOT within {GOAL_SIGMA:g} sigma", None: "no reference"}[same]
+        print(f"  {name}: {verdict}")
+        for line in lines:
+            print(f"    {line}")
+        if same is False:
+            failed.append(f"{name}: estimate moved")
+    return results, failed
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "_scaling":
+        scaling_worker(MissionSpec(**json.loads(argv[1])))
+        return 0
     if argv and argv[0] in ("_throughput", "_profile"):
         wp = argparse.ArgumentParser()
         wp.add_argument("--meta", required=True)
@@ -413,173 +436,105 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     ap = argparse.ArgumentParser(description="Benchmark lidarcal calibrate (bench/README.md).")
-    ap.add_argument("--points", type=int, default=None,
-                    help="approximate mission size (default 1000000; 200000 with --quick)")
-    ap.add_argument("--quick", action="store_true", help="~200k-point mission, fast sanity run")
-    ap.add_argument("--density", type=float, default=None, help="override simulated density")
-    ap.add_argument("--line-length", type=float, default=None, help="override line length, m")
-    ap.add_argument("--repeats", type=int, default=3, help="end-to-end runs (median reported)")
+    ap.add_argument("--quick", action="store_true",
+                    help="no scaling to 10M points (end to end and matching only)")
+    ap.add_argument("--repeats", type=int, default=3, help="end-to-end runs per mission")
+    ap.add_argument("--missions", nargs="+", choices=("level", "rough"),
+                    default=["level", "rough"])
+    ap.add_argument("--no-matching", action="store_true",
+                    help="skip the matching microbenchmark")
     ap.add_argument("--match-points", type=int, default=None,
                     help="query points of the matching benchmark (default: mission size)")
+    ap.add_argument("--baseline", action="store_true",
+                    help="also run the straightforward baseline (bench/baseline.py, minutes)")
     ap.add_argument("--baseline-limit", type=float, default=600.0,
                     help="time limit of the baseline run, s (default 600)")
-    ap.add_argument("--baseline-blas", choices=("1", "default", "both"), default="1",
-                    help="BLAS threads of the baseline: 1 (default; the ratios use it), the "
-                    "library default (scipy's per-triangle LAPACK calls then contend on a "
-                    "loaded machine), or both")
-    ap.add_argument("--no-baseline", action="store_true",
-                    help="skip the baseline calibration (its column shows '-')")
     ap.add_argument("--profile", action="store_true",
                     help="also print a cProfile of the in-process calibration")
     ap.add_argument("--top", type=int, default=15, help="profile lines (default 15)")
+    ap.add_argument("--write-reference", action="store_true",
+                    help="store this run's estimates as the reference (run it on main)")
     args = ap.parse_args(argv)
 
-    points = args.points or (200_000 if args.quick else 1_000_000)
-    match_points = args.match_points or points
-    density, line_length = mission_plan(points, args.density, args.line_length)
     print(f"machine: {machine()}")
-    load_start = os.getloadavg()[0]
-    meta = prepare_mission(density, line_length)
-    meta_path = CACHE / meta["key"] / "meta.json"
-    print(f"mission: paper scenario, {meta['n_strips']} strips, {meta['n_points']:,} points "
-          f"(density {density:g}, lines {line_length:g} m, seed {SEED}; "
-          f"{'cached' if meta['cached'] else 'simulated in {:.1f} s'.format(meta['simulate_s'])}: "
-          f"{CACHE / meta['key']})", flush=True)
-
+    load_start = benchlib.load_average()
+    missions = [(name, {"level": benchlib.MISSION_1M, "rough": benchlib.MISSION_1M_ROUGH}[name])
+                for name in args.missions]
+    failed: list[str] = []
     with tempfile.TemporaryDirectory(prefix="lidarcal-bench-") as tmp:
         work = Path(tmp)
-        print("end to end: lidarcal calibrate", flush=True)
-        lc = run_lidarcal(meta, args.repeats, work)
-        base_default: dict[str, Any] | None = None
-        if args.no_baseline:
-            base: dict[str, Any] = {"wall_s": None, "peak_mib": None, "timed_out": False}
-        else:
-            print(f"end to end: baseline ({lc['iterations']} iterations, as lidarcal; "
+        print("end to end: lidarcal calibrate BAG --control CSV -o OUT.yaml", flush=True)
+        results, failed = end_to_end(missions, args.repeats, work, args.write_reference)
+        if not args.quick:
+            print("\nscaling: one mission of ~1M points and one ten times as long, in "
+                  "process", flush=True)
+            print_scaling(run_scaling([benchlib.MISSION_1M, benchlib.MISSION_10M_LONG], work))
+        level = benchlib.prepare_mission(benchlib.MISSION_1M)
+        level_meta_path = benchlib.CACHE / level["key"] / "meta.json"
+        if not args.no_matching:
+            n_q = args.match_points or level["n_points"]
+            print(f"\nmatching (stage figure): {n_q:,} queries against one strip's TIN, one "
+                  "thread", flush=True)
+            print_matching(run_throughput(level_meta_path, n_q, 3, work))
+        if args.baseline and "level" in results:
+            print(f"\nbaseline ({results['level']['iterations']} iterations, as lidarcal; "
                   f"limit {args.baseline_limit:.0f} s)", flush=True)
-            base = {}
-            if args.baseline_blas in ("1", "both"):
-                base = run_baseline(meta, lc["iterations"], args.baseline_limit, work)
-            if args.baseline_blas in ("default", "both"):
-                base_default = run_baseline(meta, lc["iterations"], args.baseline_limit, work,
-                                            single_thread_blas=False)
-                if not base:
-                    base = base_default
-        print(f"matching: {match_points:,} queries, single thread", flush=True)
-        tp = run_throughput(meta_path, match_points, 3, work)
-        prof_log = work / "profile.log"
+            base = run_baseline(level, results["level"]["iterations"], args.baseline_limit,
+                                work)
+            print_baseline(results["level"], base, level, args.baseline_limit)
         if args.profile:
-            print("profile: in-process calibrate under cProfile", flush=True)
+            prof_log = work / "profile.log"
+            print("\nprofile: in-process calibrate under cProfile", flush=True)
             res = run_child([PYTHON, str(Path(__file__).resolve()), "_profile", "--meta",
-                             str(meta_path), "--top", str(args.top)], log=prof_log, cwd=ROOT)
+                             str(level_meta_path), "--top", str(args.top)], log=prof_log,
+                            cwd=ROOT)
             if res["rc"] != 0:
                 raise SystemExit(f"profile failed:\n{tail(prof_log)}")
-            profile_text = prof_log.read_text()
-        else:
-            profile_text = ""
+            print(prof_log.read_text().rstrip())
+    load_end = benchlib.load_average()
+    print(f"\nload average (1 min) before / after: {load_start:.2f} / {load_end:.2f}")
+    print("goals: " + ("all met" if not failed else "NOT met: " + "; ".join(failed)))
+    return 0
 
-    # ------------------------------------------------------------------ tables
+
+def print_matching(tp: dict[str, Any]) -> None:
     n_q = tp["n_queries"]
-    rate_l = n_q / tp["match_s"]["lidarcal"]
-    rate_ls = n_q / tp["match_s"]["lidarcal_shift"]
-    rate_b = n_q / tp["match_s"]["baseline"]
     rand = tp["random_order"]
-    judge_wall = meta["n_points"] >= JUDGE_WALL_MIN_POINTS
-    timed_out = bool(base.get("timed_out"))
-
-    def ratio(better_if_lower: bool, lid: float | None, bas: float | None,
-              lower_bound: bool = False) -> str:
-        if lid is None or bas is None or lid <= 0 or bas <= 0:
-            return "-"
-        r = bas / lid if better_if_lower else lid / bas
-        return f"{'>' if lower_bound else ''}{r:.1f}x"
-
-    def met(ok: bool | None) -> str:
-        return "-" if ok is None else ("yes" if ok else "NO")
-
-    base_wall = base.get("wall_s")
-    base_wall_txt = (f"> {args.baseline_limit:.0f} s" if timed_out
-                     else fmt_num(base_wall, "s"))
     rows = [
-        [f"end-to-end calibrate, wall (median of {len(lc['runs'])})",
-         fmt_num(lc["wall_s"], "s"), base_wall_txt,
-         ratio(True, lc["wall_s"], base_wall, timed_out),
-         f"<= {GOAL_WALL_S:g} s @ ~1M pts",
-         met(lc["wall_s"] <= GOAL_WALL_S) if judge_wall else "- (not ~1M)"],
-    ]
-    if base_default is not None and args.baseline_blas == "both":
-        dto = bool(base_default.get("timed_out"))
-        rows.append([
-            "  same, baseline with default BLAS threads", fmt_num(lc["wall_s"], "s"),
-            f"> {args.baseline_limit:.0f} s" if dto else fmt_num(base_default["wall_s"], "s"),
-            ratio(True, lc["wall_s"], base_default["wall_s"], dto), "-", "-"])
-    rows += [
-        ["end-to-end CPU time (user+sys)", fmt_num(lc["cpu_s"], "s"),
-         "-" if timed_out else fmt_num(base.get("cpu_s"), "s"),
-         "-" if timed_out else ratio(True, lc["cpu_s"], base.get("cpu_s")), "-", "-"],
-        ["end-to-end peak memory (RSS)", fmt_num(lc["peak_mib"], "mib"),
-         "-" if timed_out else fmt_num(base.get("peak_mib"), "mib"),
-         "-" if timed_out else ratio(True, lc["peak_mib"], base.get("peak_mib")),
-         f"<= {GOAL_PEAK_MIB:g} MiB", met(lc["peak_mib"] <= GOAL_PEAK_MIB)],
-        ["matching throughput, per core", fmt_num(rate_l, "rate"), fmt_num(rate_b, "rate"),
-         ratio(False, rate_l, rate_b), f">= {GOAL_POINTS_PER_S_PER_CORE / 1e6:g} M/s",
-         met(rate_l >= GOAL_POINTS_PER_S_PER_CORE)],
-        ["  same, later iterations (vertex shift)", fmt_num(rate_ls, "rate"),
-         fmt_num(rate_b, "rate"), ratio(False, rate_ls, rate_b),
-         f">= {GOAL_POINTS_PER_S_PER_CORE / 1e6:g} M/s",
-         met(rate_ls >= GOAL_POINTS_PER_S_PER_CORE)],
-        ["  same, queries in random order", fmt_num(rand["n"] / rand["lidarcal_s"], "rate"),
-         fmt_num(rand["n"] / rand["baseline_s"], "rate"),
-         ratio(False, rand["n"] / rand["lidarcal_s"], rand["n"] / rand["baseline_s"]),
-         "-", "-"],
+        ["in acquisition order", fmt_num(n_q / tp["match_s"]["lidarcal"], "rate"),
+         fmt_num(n_q / tp["match_s"]["baseline"], "rate")],
+        ["later iterations (vertex shift)", fmt_num(n_q / tp["match_s"]["lidarcal_shift"],
+                                                    "rate"), "-"],
+        ["in random order", fmt_num(rand["n"] / rand["lidarcal_s"], "rate"),
+         fmt_num(rand["n"] / rand["baseline_s"], "rate")],
         [f"TIN build, one strip ({tp['tin_points']:,} pts)",
-         fmt_num(tp["tin_build_s"]["lidarcal"], "s"), fmt_num(tp["tin_build_s"]["baseline"], "s"),
-         ratio(True, tp["tin_build_s"]["lidarcal"], tp["tin_build_s"]["baseline"]), "-", "-"],
+         fmt_num(tp["tin_build_s"]["lidarcal"], "s"), fmt_num(tp["tin_build_s"]["baseline"],
+                                                              "s")],
     ]
-    print()
-    print(f"== results: {meta['n_points']:,}-point mission, {lc['iterations']} iterations "
-          f"({'converged' if lc['converged'] else 'NOT converged'}) ==")
-    print_table(rows, ["figure", "lidarcal", "baseline", "ratio", "goal", "met?"])
-    print("ratio: how many times better lidarcal is than the baseline (>1 = lidarcal better).")
-    load_end = os.getloadavg()[0]
-    busy = load_start > 0.5 or load_end > 1.5  # the benchmark itself keeps ~1 core busy
-    print(f"load average (1 min) before / after: {load_start:.1f} / {load_end:.1f}"
-          + (f" -- other processes were running on this {os.cpu_count()}-core machine: wall "
-             "times are inflated; CPU times and the matching figures (CPU time of one core) "
-             "much less so." if busy else ""))
-    mw = tp["match_wall_s"]
-    print(f"matching: {n_q:,} queries against strip 1's TIN, 1 thread, rates from CPU time "
-          f"(wall: {n_q / mw['lidarcal'] / 1e6:.2f} / {n_q / mw['lidarcal_shift'] / 1e6:.2f} / "
-          f"{n_q / mw['baseline'] / 1e6:.2f} M/s); matched "
-          f"{tp['matched_fraction']['lidarcal']:.1%} (lidarcal), "
-          f"{tp['matched_fraction']['lidarcal_shift']:.1%} (vertex shift), "
+    print_table(rows, ["matching, per core (CPU time)", "lidarcal", "baseline find_simplex"])
+    print(f"matched {tp['matched_fraction']['lidarcal']:.1%} (lidarcal), "
           f"{tp['matched_fraction']['baseline']:.1%} (baseline); point location alone "
           f"{fmt_num(tp['match_s']['lidarcal_locate_only'], 's')} of "
-          f"{fmt_num(tp['match_s']['lidarcal'], 's')} (lidarcal Tin.locate), "
-          f"{fmt_num(tp['match_s']['baseline_locate_only'], 's')} of "
-          f"{fmt_num(tp['match_s']['baseline'], 's')} (baseline find_simplex).")
+          f"{fmt_num(tp['match_s']['lidarcal'], 's')}")
 
-    # Estimates.
-    print()
-    print("estimates (truth = simulated biases):")
-    est_rows = []
-    bd = base.get("delta") if not timed_out else None
+
+def print_baseline(lc: dict[str, Any], base: dict[str, Any], meta: dict[str, Any],
+                   limit: float) -> None:
+    timed_out = bool(base.get("timed_out"))
+    wall = f"> {limit:.0f} s" if timed_out else fmt_num(base.get("wall_s"), "s")
+    ratio = lc["wall_s"] and (limit if timed_out else base["wall_s"]) / lc["wall_s"]
+    print(f"baseline end to end: {wall} (lidarcal {fmt_num(lc['wall_s'], 's')}: "
+          f"{'>' if timed_out else ''}{ratio:.1f}x), peak "
+          f"{fmt_num(base.get('peak_mib'), 'mib')}")
+    if timed_out:
+        return
+    rows = []
     for name in ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS"):
         lv = lc["delta"][name] if lc["estimated"].get(name) else None
-        bv = bd.get(name) if bd else None
-        diff = "-"
-        if lv is not None and bv is not None:
-            diff = show_param(name, bv - lv)
-        est_rows.append([name, show_param(name, meta["biases"][name]), show_param(name, lv),
-                         show_param(name, bv), diff])
-    print_table(est_rows, ["parameter", "truth", "lidarcal", "baseline", "baseline-lidarcal"])
-    if base.get("phases_s"):
-        print()
-        print("baseline time by phase: " + ", ".join(
-            f"{k} {v:.1f} s" for k, v in base["phases_s"].items()))
-    if profile_text:
-        print()
-        print(profile_text.rstrip())
-    return 0
+        bv = base.get("delta", {}).get(name)
+        rows.append([name, show_param(name, meta["biases"][name]), show_param(name, lv),
+                     show_param(name, bv)])
+    print_table(rows, ["parameter", "truth", "lidarcal", "baseline"])
 
 
 if __name__ == "__main__":

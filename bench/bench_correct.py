@@ -1,48 +1,36 @@
-"""Benchmark of the correction (``lidarcal correct``) against a straightforward baseline.
+"""Benchmark of ``lidarcal correct``: end to end against the I/O floor of the same output,
+the numerics in memory against a straightforward baseline, and memory.
 
-    .venv/bin/python bench/bench_correct.py                # throughput (~3M points) + memory
-    .venv/bin/python bench/bench_correct.py --quick        # ~0.8M points, 2.6M for memory
-    .venv/bin/python bench/bench_correct.py --no-memory    # throughput only
+    .venv/bin/python bench/bench_correct.py                  # everything (~6 min on 2 cores)
+    .venv/bin/python bench/bench_correct.py --only floor     # end to end vs the I/O floor
+    .venv/bin/python bench/bench_correct.py --quick          # the 1M-point mission only
 
-Every figure is measured in this run, the baseline too. Each measured program runs in a fresh
-subprocess, so its peak memory is its own (``os.wait4`` gives the child's own ``ru_maxrss``).
+Every figure is measured in this run, on missions simulated once and cached under
+``bench/.cache/`` (bench/benchlib.py). Each measured program runs in a fresh process; its
+wall time includes the process start.
 
-Figures
--------
-- **correction throughput** (the goal: 5M points/s or more on the 2-core machine): points per
-  second of the whole per-point correction, in memory, on a simulated mission cut into 0.1 s
-  clouds: column extraction, local trajectory (``laser_geometry``), eq. [13]
-  (``correct_points``), range and scan angle, grid normals with the look-ahead context,
-  incidence, atmosphere and radar equation, and the corrected structured arrays -- i.e.
-  :class:`lidarcal_ros.pipeline.correction.StreamCorrector` in one thread, with 2 worker
-  threads (what ``lidarcal correct`` uses by default, ``--workers 2``), and as the corrector
-  node runs it: one cloud at a time (``batch_points=0``), with and without look-ahead, one
-  thread. Median of ``--repeats`` runs after a warm-up, with the allocator tuning of
-  ``lidarcal correct`` (``tune_allocator``).
-- **baseline**: the same steps done the obvious way: per strip, ``laser_geometry`` +
-  ``correct_points`` (the same), normals by ``scipy.spatial.cKDTree`` k-nearest neighbours
-  (k = 10, ``workers=-1``: both cores) and PCA (``numpy.linalg.eigh`` on the 3x3
-  covariances), the same radar equation. Its accuracy is printed beside lidarcal's (median
-  relative reflectance error against the simulated truth, incidence < 60 deg, one global
-  scale), so that a speed-up that loses accuracy shows.
-- **end to end**: ``lidarcal correct BAG --calibration CAL -o OUT`` for ``.mcap`` and ``.laz``
-  outputs, ``--workers 1`` and ``2``, wall time of the process (start, imports, both passes
-  over the bag, CDR decoding, zstd / LAZ compression and writing included).
-- **peak memory** (the goal: flat with mission length, under 1 GB): peak RSS of ``lidarcal
-  correct`` on two missions of the same density, about 2.6M and 10.3M points (``--quick``:
-  1.3M and 5.1M), to ``.mcap`` and ``.laz``, ``--workers 1`` and ``2``. Every strip of both
-  holds more points than a correction batch (200k), so a flat peak shows that memory is
-  bounded by the batch, not by the strip or the mission. The peak is that of the whole
-  process tree (the worker processes and their forkserver included), sampled every 50 ms
-  from /proc, or the process's own ``ru_maxrss`` if larger.
+Figures (bench/README.md, "Correction")
+---------------------------------------
+- **end to end against the I/O floor** (the goals: within 2x of the floor for MCAP and LAZ,
+  on missions of about 1M and 10M points; at least 3M points/s to MCAP on the 10M one):
+  ``lidarcal correct BAG --calibration CAL -o OUT.mcap|.laz`` as a user runs it (process
+  start, imports, the trajectory, reading and decoding every cloud, normals, correction,
+  encoding, compression, writing), against ``bench/io_floor.py`` (the same bag read and the
+  same number of points and fields written to the same format with the same libraries, no
+  correction, one thread), alternately, ``--repeats`` times each; min and median.
+- **the numerics in memory** (stage figures, not goals): points per second of the whole
+  per-point correction on the clouds of a mission already in memory
+  (:class:`~lidarcal_ros.pipeline.correction.StreamCorrector`: column extraction, local
+  trajectory, eq. [13], normals with the look-ahead, incidence, radar equation, the
+  corrected arrays), in one thread, with two worker threads, and as the corrector node runs
+  it (one cloud at a time), against a baseline doing the same steps the obvious way
+  (``cKDTree`` k = 10 + PCA normals); the median reflectance error against the simulated
+  truth beside each, so that a speed-up that loses accuracy shows.
+- **peak memory** of ``lidarcal correct`` (the goal: flat with mission length, under 1 GB)
+  on two missions of the same density (2.6M and 10.3M points; ``--quick``: 1.3M and 5.1M),
+  both formats, ``--workers`` 1 and 2: the peak resident set of the process tree.
 
-The machine should be otherwise idle: on a 2-core machine any other process shows directly
-in the figures (the load average is printed first).
-
-Missions are ``simulate_mission(scenario="paper", density=D, line_length_m=L, seed=7)``: six
-strips at 1150 m and 540 m, built-up terrain; a strip holds about ``D * 1072.5 * L`` points.
-They are written once as bags under ``bench/.cache/`` (git-ignored) with a calibration file of
-the true biases; delete the directory to simulate again.
+The machine should be otherwise idle (the load average is printed before and after).
 """
 
 from __future__ import annotations
@@ -51,155 +39,142 @@ import argparse
 import itertools
 import json
 import math
-import os
 import shutil
-import signal
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import machine  # bench/machine.py: this script's folder is on sys.path
+import benchlib  # bench/benchlib.py: this script's folder is on sys.path
+import machine
+from benchlib import PYTHON, MissionSpec, run_child, tail
 
-BENCH = Path(__file__).resolve().parent
-ROOT = BENCH.parent
-CACHE = BENCH / ".cache"
-PYTHON = sys.executable
-SEED = 7
-SWATH_HIGH_M = 2.0 * 1150.0 * math.tan(math.radians(25.0))
-N_STRIPS = 6
-
-GOAL_POINTS_PER_S = 5.0e6
+GOAL_RATIO_TO_FLOOR = 2.0
+GOAL_POINTS_PER_S_10M_MCAP = 3.0e6
 GOAL_PEAK_MIB = 1024.0
+WORK = benchlib.CACHE / "correct_work"
 
 
 # ---------------------------------------------------------------------------- missions
-def mission_points(density: float, line_length: float) -> int:
-    return int(N_STRIPS * density * SWATH_HIGH_M * line_length)
-
-
-def prepare_mission(density: float, line_length: float) -> dict[str, Any]:
-    """A cached mission bag and calibration file (simulated in a child process)."""
-    key = f"correct_paper_d{density:g}_L{line_length:g}_s{SEED}"
-    where = CACHE / key
-    meta_path = where / "meta.json"
-    if meta_path.exists():
-        return json.loads(meta_path.read_text())
-    if where.exists():
-        shutil.rmtree(where)
-    where.mkdir(parents=True)
-    print(f"  simulating {key} (~{mission_points(density, line_length) / 1e6:.1f}M points)...",
-          flush=True)
-    res = run_child([PYTHON, __file__, "_prepare", str(density), str(line_length), str(where)],
-                    log=where / "prepare.log")
-    if res["rc"] != 0 or not meta_path.exists():
-        raise SystemExit(f"simulation failed:\n{tail(where / 'prepare.log')}")
-    return json.loads(meta_path.read_text())
-
-
-def prepare_worker(density: float, line_length: float, where: Path) -> None:
+def calibration_of(meta: dict[str, Any]) -> Path:
+    """A calibration file of the mission's true biases (beside its bag)."""
     import yaml
 
-    from lidarcal_ros.core.simulate import simulate_mission
-    from lidarcal_ros.core.simulation_spec import SimulationSpec
-    from lidarcal_ros.io.bag import write_mission_bag
-
-    started = time.perf_counter()
-    sim = simulate_mission(SimulationSpec.from_options(
-        scenario="paper", density=density, line_length_m=line_length, seed=SEED))
-    bag = where / "mission"
-    write_mission_bag(bag, sim.mission)
-    cal = where / "calibration.yaml"
-    cal.write_text(yaml.safe_dump({"lidarcal_calibration": {"biases": {
-        k: {"value": float(v), "sigma": None, "estimated": True}
-        for k, v in sim.biases.items()}}}))
-    meta = {"bag": str(bag), "calibration": str(cal), "n_points": int(sim.mission.n_points),
-            "density": density, "line_length_m": line_length,
-            "prepare_s": time.perf_counter() - started}
-    (where / "meta.json").write_text(json.dumps(meta, indent=1))
+    path = Path(meta["bag"]).parent / "calibration_truth.yaml"
+    if not path.exists():
+        path.write_text(yaml.safe_dump({"lidarcal_calibration": {"biases": {
+            k: {"value": float(v), "sigma": None, "estimated": True}
+            for k, v in meta["biases"].items()}}}))
+    return path
 
 
-# ---------------------------------------------------------------------------- children
-def _tree_rss_mib(root: int) -> float:
-    """Resident memory of a process and all its descendants (worker processes, the
-    forkserver), MiB, from /proc."""
-    parent: dict[int, int] = {}
-    rss: dict[int, int] = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat", "rb") as f:
-                fields = f.read().rsplit(b")", 1)[1].split()
-            parent[int(entry)] = int(fields[1])
-            rss[int(entry)] = int(fields[21])  # pages
-        except (OSError, IndexError, ValueError):
-            continue
-    tree = {root}
-    grew = True
-    while grew:
-        grew = False
-        for pid, ppid in parent.items():
-            if ppid in tree and pid not in tree:
-                tree.add(pid)
-                grew = True
-    return sum(rss.get(pid, 0) for pid in tree) * os.sysconf("SC_PAGE_SIZE") / 2**20
+def output_size_mib(path: Path) -> float:
+    if path.is_file():
+        return path.stat().st_size / 2**20
+    return sum(f.stat().st_size for f in path.iterdir()) / 2**20
 
 
-def run_child(cmd: list[str], *, log: Path | None = None, limit_s: float | None = None,
-              env: dict[str, str] | None = None) -> dict[str, Any]:
-    """Run ``cmd``; its wall time, peak RSS (MiB) of the process itself (``wait4``) and of its
-    whole process tree (sampled every 50 ms), and exit status."""
-    out = open(log, "wb") if log else subprocess.DEVNULL
-    tree_peak = 0.0
-    try:
-        started = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT,
-                                env={**os.environ, **(env or {})}, start_new_session=True)
-        last_sample = 0.0
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            if limit_s is not None and time.perf_counter() - started > limit_s:
-                os.killpg(proc.pid, signal.SIGKILL)
-                pid, status, usage = os.wait4(proc.pid, 0)
-                break
-            now = time.perf_counter()
-            if now - last_sample >= 0.05:
-                tree_peak = max(tree_peak, _tree_rss_mib(proc.pid))
-                last_sample = now
-            time.sleep(0.01)
-        wall = time.perf_counter() - started
-    finally:
-        if log:
-            out.close()
-    return {"wall_s": wall, "peak_mib": max(usage.ru_maxrss / 1024.0, tree_peak),
-            "self_peak_mib": usage.ru_maxrss / 1024.0, "tree_peak_mib": tree_peak,
-            "rc": os.waitstatus_to_exitcode(status)}
+def remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path)
+    elif path.exists():
+        path.unlink()
 
 
-def tail(path: Path, n: int = 15) -> str:
-    try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
-    except OSError:
-        return ""
+# ---------------------------------------------------------------------------- end to end
+def run_correct(meta: dict[str, Any], out: Path, workers: int = 2,
+                log: Path | None = None) -> dict[str, Any]:
+    remove(out)
+    log = log or WORK / f"correct{out.suffix}.log"
+    res = run_child([benchlib.LIDARCAL, "correct", meta["bag"], "--calibration",
+                     str(calibration_of(meta)), "-o", str(out), "--workers", str(workers)],
+                    log=log)
+    if res["rc"] != 0:
+        raise SystemExit(f"lidarcal correct failed (exit {res['rc']}):\n{tail(log)}")
+    res["size_mib"] = output_size_mib(out)
+    remove(out)
+    return res
+
+
+def run_floor(meta: dict[str, Any], out: Path) -> dict[str, Any]:
+    from lidarcal_ros.io.mcap_storage import ZSTD_LEVEL
+
+    remove(out)
+    log = WORK / f"floor{out.suffix}.log"
+    res = run_child([PYTHON, str(benchlib.BENCH / "io_floor.py"), meta["bag"], str(out),
+                     str(ZSTD_LEVEL)], log=log)
+    if res["rc"] != 0:
+        raise SystemExit(f"io_floor failed (exit {res['rc']}):\n{tail(log)}")
+    res["size_mib"] = output_size_mib(out)
+    remove(out)
+    return res
+
+
+def floor_comparison(specs: list[MissionSpec], repeats: int) -> list[dict[str, Any]]:
+    """lidarcal correct and the I/O floor, alternately, per mission and output format."""
+    rows = []
+    for spec in specs:
+        meta = benchlib.prepare_mission(spec)
+        for suffix in (".mcap", ".laz"):
+            floor, lidarcal = [], []
+            for r in range(repeats):
+                floor.append(run_floor(meta, WORK / f"floor{suffix}"))
+                lidarcal.append(run_correct(meta, WORK / f"corrected{suffix}"))
+                print(f"  {spec.key} {suffix} run {r + 1}/{repeats}: floor "
+                      f"{floor[-1]['wall_s']:.2f} s, lidarcal correct "
+                      f"{lidarcal[-1]['wall_s']:.2f} s ({lidarcal[-1]['cpu_s']:.2f} s CPU, "
+                      f"peak {lidarcal[-1]['peak_mib']:.0f} MiB)", flush=True)
+            rows.append({"mission": spec.key, "points": meta["n_points"],
+                         "clouds": meta.get("approx_clouds"), "format": suffix,
+                         "floor": floor, "lidarcal": lidarcal})
+    return rows
+
+
+def print_floor_table(rows: list[dict[str, Any]]) -> list[str]:
+    """The table of record; returns the goals not met."""
+    def walls(runs: list[dict[str, Any]]) -> list[float]:
+        return [r["wall_s"] for r in runs]
+
+    print(f"\n{'mission':>24} {'points':>11} {'out':>5} {'floor s':>13} {'correct s':>13} "
+          f"{'ratio':>12} {'correct M pts/s':>15} {'CPU s':>6} {'peak':>8} {'MiB out':>15}")
+    print(f"{'':>24} {'':>11} {'':>5} {'min / med':>13} {'min / med':>13} "
+          f"{'min / med':>12} {'(min wall)':>15} {'':>6} {'':>8} {'floor / ours':>15}")
+    failed = []
+    for row in rows:
+        f, c = walls(row["floor"]), walls(row["lidarcal"])
+        ratio_min = min(c) / min(f)
+        ratio_med = statistics.median(c) / statistics.median(f)
+        rate = row["points"] / min(c)
+        cpu = statistics.median(r["cpu_s"] for r in row["lidarcal"])
+        peak = max(r["peak_mib"] for r in row["lidarcal"])
+        sizes = (f"{row['floor'][0]['size_mib']:.0f} / "
+                 f"{row['lidarcal'][0]['size_mib']:.0f}")
+        print(f"{row['mission']:>24} {row['points']:>11,} {row['format']:>5} "
+              f"{benchlib.median_min(f):>13} {benchlib.median_min(c):>13} "
+              f"{ratio_min:>5.2f} / {ratio_med:<4.2f} {rate / 1e6:>15.2f} {cpu:>6.2f} "
+              f"{peak:>4.0f} MiB {sizes:>15}")
+        if ratio_min > GOAL_RATIO_TO_FLOOR:
+            failed.append(f"{row['mission']} {row['format']}: {ratio_min:.2f}x the I/O floor "
+                          f"(goal <= {GOAL_RATIO_TO_FLOOR:g}x)")
+        if row["format"] == ".mcap" and row["points"] >= 9e6 and \
+                rate < GOAL_POINTS_PER_S_10M_MCAP:
+            failed.append(f"{row['mission']} .mcap: {rate / 1e6:.2f}M points/s (goal >= "
+                          f"{GOAL_POINTS_PER_S_10M_MCAP / 1e6:g}M)")
+    print("ratio: lidarcal correct's wall time over the floor's (min over min, median over "
+          "median); both include the process start")
+    return failed
 
 
 # ---------------------------------------------------------------------------- throughput
-def throughput_worker(density: float, line_length: float, repeats: int,
-                      baseline_points: int) -> None:
-    """In a child: lidarcal's correction (1 and 2 threads) and the baseline, in memory.
-    Prints one JSON line."""
+def throughput_worker(spec: MissionSpec, repeats: int, baseline_points: int) -> None:
+    """In a child: lidarcal's correction (1 and 2 threads, node mode) and the baseline, in
+    memory. Prints one JSON line."""
     import numpy as np
 
     from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
-    from lidarcal_ros.core.simulate import simulate_mission
-    from lidarcal_ros.core.simulation_spec import SimulationSpec
     from lidarcal_ros.io.bag import _chunk_bounds, _strip_points
     from lidarcal_ros.pipeline.correction import (
         DEFAULT_BATCH_POINTS,
@@ -208,8 +183,7 @@ def throughput_worker(density: float, line_length: float, repeats: int,
     )
 
     tune_allocator()  # as `lidarcal correct` does
-    sim = simulate_mission(SimulationSpec.from_options(
-        scenario="paper", density=density, line_length_m=line_length, seed=SEED))
+    sim = benchlib.simulate(spec)
     mission = sim.mission
     settings = CorrectionSettings.from_config(FlightConfig(), as_vector(sim.biases))
     clouds: list[tuple[int, int, np.ndarray]] = []
@@ -251,7 +225,6 @@ def throughput_worker(density: float, line_length: float, repeats: int,
                         "points_per_s": n / statistics.median(walls)}
         result[name]["error"] = reflectance_error(sim, refl, range(len(mission.strips)))
 
-    # Baseline on whole strips up to baseline_points.
     strips = []
     total = 0
     for k, strip in enumerate(mission.strips):
@@ -307,108 +280,45 @@ def reflectance_error(sim: Any, refl: dict[int, Any], strips: Any) -> float:
     return float(np.median(np.abs(g * est[sel] / truth[sel] - 1.0)))
 
 
-# ---------------------------------------------------------------------------- driver
-def end_to_end(meta: dict[str, Any], work: Path, suffix: str, workers: int = 2
-               ) -> dict[str, Any]:
-    out = work / f"corrected_{Path(meta['bag']).parent.name}{suffix}"
-    if out.exists():
-        shutil.rmtree(out) if out.is_dir() else out.unlink()
-    log = work / f"correct_{Path(meta['bag']).parent.name}{suffix}.log"
-    res = run_child([PYTHON, "-m", "lidarcal_ros", "correct", meta["bag"], "--calibration",
-                     meta["calibration"], "-o", str(out), "--workers", str(workers)], log=log)
-    if res["rc"] != 0:
-        raise SystemExit(f"lidarcal correct failed (exit {res['rc']}):\n{tail(log)}")
-    res["points_per_s"] = meta["n_points"] / res["wall_s"]
-    res["size_mib"] = out.stat().st_size / 2**20 if out.is_file() else sum(
-        f.stat().st_size for f in out.iterdir()) / 2**20
-    print(f"  lidarcal correct -> {suffix} (--workers {workers}): "
-          f"{meta['n_points'] / 1e6:.2f}M points, {res['wall_s']:.1f} s "
-          f"({res['points_per_s'] / 1e6:.2f}M points/s), peak {res['peak_mib']:.0f} MiB "
-          f"(process tree; main process {res['self_peak_mib']:.0f} MiB), output "
-          f"{res['size_mib']:.0f} MiB", flush=True)
-    out.unlink() if out.is_file() else shutil.rmtree(out)
-    return res
-
-
-def main() -> None:
-    if len(sys.argv) > 1 and sys.argv[1] == "_prepare":
-        prepare_worker(float(sys.argv[2]), float(sys.argv[3]), Path(sys.argv[4]))
-        return
-    if len(sys.argv) > 1 and sys.argv[1] == "_throughput":
-        throughput_worker(float(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]),
-                          int(sys.argv[5]))
-        return
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smaller missions")
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--no-memory", action="store_true", help="skip the memory missions")
-    ap.add_argument("--no-throughput", action="store_true",
-                    help="skip the in-memory throughput comparison")
-    ap.add_argument("--no-end-to-end", action="store_true", help="skip lidarcal correct runs")
-    ap.add_argument("--baseline-points", type=int, default=1_000_000,
-                    help="points the baseline corrects (whole strips; default 1M)")
-    args = ap.parse_args()
-
-    density = 0.5 if args.quick else 1.0
-    line = 250.0 if args.quick else 500.0
-    # Strips longer than a batch (200k points) in both missions: the peak must not grow.
-    mem_density = 0.8 if args.quick else 1.6
-    mem_lines = (250.0, 1000.0)
-    work = CACHE / "correct_work"
-    work.mkdir(parents=True, exist_ok=True)
-    print(f"machine: {machine.describe()}", flush=True)
-
-    if not args.no_throughput:
-        throughput(args, density, line, work)
-
-    if not args.no_end_to_end:
-        meta = prepare_mission(density, line)
-        for suffix in (".mcap", ".laz"):
-            for workers in (1, 2):
-                end_to_end(meta, work, suffix, workers)
-
-    if not args.no_memory:
-        memory(mem_density, mem_lines, work)
-
-
-def throughput(args: argparse.Namespace, density: float, line: float, work: Path) -> None:
-    print(f"throughput: mission density {density}, lines {line:g} m "
-          f"(~{mission_points(density, line) / 1e6:.1f}M points)", flush=True)
-    log = work / "throughput.log"
-    res = run_child([PYTHON, __file__, "_throughput", str(density), str(line),
-                     str(args.repeats), str(args.baseline_points)], log=log)
+def throughput(spec: MissionSpec, repeats: int, baseline_points: int) -> None:
+    print(f"\nthe numerics in memory (stage figures): {spec.describe()} "
+          f"(~{spec.approx_points / 1e6:.1f}M points)", flush=True)
+    log = WORK / "throughput.log"
+    res = run_child([PYTHON, __file__, "_throughput", json.dumps(spec.__dict__),
+                     str(repeats), str(baseline_points)], log=log)
     if res["rc"] != 0:
         raise SystemExit(f"throughput worker failed:\n{tail(log)}")
     tp = json.loads(log.read_text().strip().splitlines()[-1])
     rows = [
         (label, tp[key]["points_per_s"], tp[key]["error"]) for label, key in (
-            ("correction, 1 thread", "lidarcal_1"),
-            ("correction, 2 worker threads", "lidarcal_2"),
+            ("StreamCorrector, 1 thread", "lidarcal_1"),
+            ("StreamCorrector, 2 worker threads", "lidarcal_2"),
             ("one cloud at a time (node), 1 thread", "node_mode"),
             ("one cloud at a time, no look-ahead", "node_mode_no_lookahead"))] + [
         (f"baseline (cKDTree k=10 + PCA), {tp['baseline']['points'] / 1e6:.2f}M points",
          tp["baseline"]["points_per_s"], tp["baseline_error"]),
     ]
-    print(f"\n{'':48s} {'M points/s':>10s} {'refl. error':>11s}")
+    print(f"{'':48s} {'M points/s':>10s} {'refl. error':>11s}")
     for name, rate, err in rows:
         print(f"{name:48s} {rate / 1e6:10.2f} {100 * err:10.2f}%")
     best = max(tp[k]["points_per_s"] for k in ("lidarcal_1", "lidarcal_2"))
-    met = "met" if best >= GOAL_POINTS_PER_S else "NOT met"
-    print(f"ratio lidarcal / baseline: {best / tp['baseline']['points_per_s']:.1f}x; goal "
-          f"{GOAL_POINTS_PER_S / 1e6:.0f}M points/s: {met} "
-          f"({tp['n_points'] / 1e6:.2f}M points in {tp['n_clouds']} clouds)\n", flush=True)
+    print(f"ratio lidarcal / baseline: {best / tp['baseline']['points_per_s']:.1f}x "
+          f"({tp['n_points'] / 1e6:.2f}M points in {tp['n_clouds']} clouds)", flush=True)
 
 
-
-def memory(mem_density: float, mem_lines: tuple[float, float], work: Path) -> None:
+# ---------------------------------------------------------------------------- memory
+def memory(specs: tuple[MissionSpec, MissionSpec]) -> list[str]:
     print("\npeak memory of lidarcal correct, same density, two mission lengths:", flush=True)
     peaks = []
-    for length in mem_lines:
-        meta = prepare_mission(mem_density, length)
+    for spec in specs:
+        meta = benchlib.prepare_mission(spec)
         for suffix in (".mcap", ".laz"):
             for workers in (1, 2):
-                r = end_to_end(meta, work, suffix, workers)
+                r = run_correct(meta, WORK / f"corrected{suffix}", workers)
                 peaks.append((meta["n_points"], f"{suffix} -w{workers}", r["peak_mib"]))
+                print(f"  {meta['n_points'] / 1e6:.2f}M points -> {suffix}, --workers "
+                      f"{workers}: {r['wall_s']:.1f} s, peak {r['peak_mib']:.0f} MiB",
+                      flush=True)
     print(f"\n{'mission':>14s} {'output':>11s} {'peak RSS':>10s}")
     for n, label, peak in peaks:
         print(f"{n / 1e6:11.2f}M pt {label:>11s} {peak:8.0f} MiB")
@@ -421,7 +331,47 @@ def memory(mem_density: float, mem_lines: tuple[float, float], work: Path) -> No
     print(f"largest peak {big:.0f} MiB (goal < {GOAL_PEAK_MIB:.0f} MiB: "
           f"{'met' if big < GOAL_PEAK_MIB else 'NOT met'}); largest growth from the short "
           f"to the long mission {growth:+.0f} MiB")
+    return [] if big < GOAL_PEAK_MIB else [f"peak memory {big:.0f} MiB"]
+
+
+# ---------------------------------------------------------------------------- driver
+def main() -> int:
+    if len(sys.argv) > 1 and sys.argv[1] == "_throughput":
+        throughput_worker(MissionSpec(**json.loads(sys.argv[2])), int(sys.argv[3]),
+                          int(sys.argv[4]))
+        return 0
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="the 1M-point mission only; smaller memory missions")
+    ap.add_argument("--only", nargs="+", choices=("floor", "throughput", "memory"),
+                    default=["floor", "throughput", "memory"])
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="runs of each measured program (min and median reported)")
+    ap.add_argument("--baseline-points", type=int, default=1_000_000,
+                    help="points the in-memory baseline corrects (whole strips; default 1M)")
+    args = ap.parse_args()
+    WORK.mkdir(parents=True, exist_ok=True)
+    load_start = benchlib.load_average()
+    print(f"machine: {machine.describe()}", flush=True)
+    failed: list[str] = []
+    if "floor" in args.only:
+        specs = [benchlib.MISSION_1M] + ([] if args.quick else [benchlib.MISSION_10M_DENSE])
+        for spec in specs:
+            print(f"mission {spec.key}: {spec.describe()}", flush=True)
+        print("end to end, lidarcal correct against the I/O floor (bench/io_floor.py):",
+              flush=True)
+        failed += print_floor_table(floor_comparison(specs, args.repeats))
+    if "throughput" in args.only:
+        throughput(MissionSpec(0.5, 250.0) if args.quick else MissionSpec(1.0, 500.0),
+                   args.repeats, args.baseline_points)
+    if "memory" in args.only:
+        density = 0.8 if args.quick else 1.6
+        failed += memory((MissionSpec(density, 250.0), MissionSpec(density, 1000.0)))
+    load_end = benchlib.load_average()
+    print(f"\nload average (1 min) before / after: {load_start:.2f} / {load_end:.2f}")
+    print("goals: " + ("all met" if not failed else "NOT met: " + "; ".join(failed)))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

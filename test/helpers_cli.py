@@ -51,3 +51,41 @@ def warning_lines(err: str, command: str) -> list[str]:
     lines = err.splitlines()
     assert all(line.startswith(prefix) for line in lines), f"not only warnings: {err!r}"
     return [line[len(prefix):] for line in lines]
+
+
+def run_on_a_terminal(*args: Any, cwd: Path) -> tuple[int, str]:
+    """``python -m lidarcal_ros ARGS`` with its stderr on a pseudo-terminal (as a user at a
+    terminal sees it): exit status and everything written to the terminal."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+    import threading
+
+    master, slave = pty.openpty()
+    # A terminal of 24 x 120 characters (a new pseudo-terminal has none: no room for a bar).
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))
+    seen = bytearray()
+
+    def drain() -> None:
+        while True:
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # the terminal closed with the process
+                return
+            if not data:
+                return
+            seen.extend(data)
+
+    reader = threading.Thread(target=drain)
+    reader.start()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *(str(a) for a in args)],
+                              stdout=subprocess.DEVNULL, stderr=slave, cwd=cwd, timeout=300,
+                              check=False)
+    finally:
+        os.close(slave)
+        reader.join(timeout=10)
+        os.close(master)
+    return proc.returncode, seen.decode(errors="replace")

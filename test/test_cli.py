@@ -18,7 +18,7 @@ import helpers_missions
 import numpy as np
 import pytest
 import yaml
-from helpers_cli import one_line_error, run, run_process, warning_lines
+from helpers_cli import one_line_error, run, run_on_a_terminal, run_process, warning_lines
 from helpers_missions import (
     MissionFiles,
     shift_strip,
@@ -543,3 +543,24 @@ def test_simulate_refuses_existing_bag_subprocess(tmp_path):
     reason = one_line_error(proc.returncode, proc.stderr, command="simulate")
     assert reason.startswith("sim: exists (use --overwrite")
     assert not (tmp_path / "sim_truth.yaml").exists()
+
+
+def test_progress_on_a_terminal_and_quiet_otherwise(tmp_path, small_mission):
+    """calibrate and correct show a progress bar on a terminal, none with --quiet or when
+    stderr is not a terminal."""
+    base = ["calibrate", small_mission.bag, "--config", small_mission.fast_config,
+            "--control", small_mission.control_csv, "-o"]
+    cal = tmp_path / "cal.yaml"
+    rc, shown = run_on_a_terminal(*base, cal, cwd=tmp_path)
+    assert rc == 0 and "iteration 1: matching" in shown and "choosing sample points" in shown
+    rc, shown = run_on_a_terminal(*base, tmp_path / "cal2.yaml", "--quiet", cwd=tmp_path)
+    assert rc == 0 and "iteration" not in shown
+    piped = run_process(*base, tmp_path / "cal3.yaml", cwd=tmp_path)
+    assert piped.returncode == 0 and "iteration" not in piped.stderr
+    correct = ["correct", small_mission.bag, "--calibration", cal, "-o"]
+    rc, shown = run_on_a_terminal(*correct, tmp_path / "a.laz", cwd=tmp_path)
+    assert rc == 0 and "reading trajectory" in shown
+    rc, shown = run_on_a_terminal(*correct, tmp_path / "b.laz", "-q", cwd=tmp_path)
+    assert rc == 0 and "trajectory" not in shown
+    piped = run_process(*correct, tmp_path / "c.laz", cwd=tmp_path)
+    assert piped.returncode == 0 and "trajectory" not in piped.stderr

@@ -477,3 +477,103 @@ def test_control_csv_matches_bag_control(tmp_path, bag, mission):
             read_control_csv(tmp_path / "bad.csv")
     with pytest.raises(InputError, match=r"nope\.csv: control point file not found"):
         read_control_csv(tmp_path / "nope.csv")
+
+
+def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch):
+    """Many chunks, compressed out of order by the storage's threads, are written in order:
+    the mcap project's reader gives back every message and its bytes in log-time order, and
+    each chunk says how it is compressed."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from lidarcal_ros.io import mcap_storage
+
+    monkeypatch.setattr(mcap_storage, "CHUNK_BYTES", 20_000)
+    rng = np.random.default_rng(5)
+    written = []
+    out = tmp_path / "many.mcap"
+    with BagWriter(out) as writer:
+        for k in range(400):
+            raw = rng.integers(0, 4, rng.integers(100, 3000)).astype(np.uint8).tobytes()
+            topic = "/a" if k % 3 else "/b"
+            written.append((topic, 1_000 + 10 * k, raw))
+            writer.write_raw(topic, "std_msgs/msg/String", 1_000 + 10 * k, raw)
+    with out.open("rb") as stream:
+        chunks = [r for r in StreamReader(stream, emit_chunks=True).records
+                  if isinstance(r, Chunk)]
+    assert len(chunks) > 2 * mcap_storage.MAX_PENDING
+    assert {c.compression for c in chunks} == {"zstd"}
+    with out.open("rb") as stream:
+        got = [(c.topic, m.log_time, bytes(m.data)) for _s, c, m in
+               make_reader(stream).iter_messages(log_time_order=True)]
+    assert got == written
+    with open_bag(out) as bag:
+        assert [(t, ns, bytes(raw)) for t, _ty, ns, raw in bag.messages()] == written
+
+
+def test_chunks_read_ahead_give_rosbags_messages(bag, tmp_path, monkeypatch):
+    """Chunks decompressed ahead in threads give the messages, bytes and order of rosbags'
+    reader (a bag of ours, and one whose chunks overlap in time, which rosbags merges)."""
+    from lidarcal_ros.io import bag as bag_module
+    from lidarcal_ros.io import mcap_chunks
+
+    def read(path: Path, topics: list[str] | None = None) -> list[tuple[str, str, int, bytes]]:
+        with open_bag(path) as reader:
+            return [(t, ty, ns, bytes(raw)) for t, ty, ns, raw in reader.messages(topics)]
+
+    overlapping = tmp_path / "overlap.mcap"
+    with BagWriter(overlapping) as writer:
+        for k in range(300):  # two topics written out of time order: chunks overlap
+            writer.write_raw("/a" if k % 2 else "/b", "std_msgs/msg/String",
+                             10_000 + (k % 7) * 1000 + k, bytes([k % 256]) * 5000)
+    in_order = tmp_path / "in_order.mcap"
+    with BagWriter(in_order) as writer:
+        for k in range(900):  # many chunks, equal log times across their boundaries
+            writer.write_raw("/a" if k % 3 else "/b", "std_msgs/msg/String",
+                             10_000 + k // 4, bytes([k % 256]) * 5000)
+    with open_bag(overlapping) as reader:
+        assert not mcap_chunks.in_time_order(reader._files[0].reader.chunks)
+    with open_bag(in_order) as reader:
+        chunks = reader._files[0].reader.chunks
+        assert len(chunks) > 3 and mcap_chunks.in_time_order(chunks)
+    cases = [(bag, None), (bag, ["/lidar/trajectory"]), (in_order, None), (in_order, ["/b"]),
+             (overlapping, None)]
+    fast = [read(path, topics) for path, topics in cases]
+    monkeypatch.setattr(bag_module, "chunk_messages", lambda reader, channels: None)
+    assert fast == [read(path, topics) for path, topics in cases]
+    assert len(fast[0]) > len(fast[1]) > 0
+
+
+def test_poses_read_from_their_bytes_are_those_decoded():
+    """A PoseStamped read straight from its CDR bytes gives the numbers and frame of its
+    decoded message, whatever the frame id's length (and so its padding); other types and
+    big-endian bytes go through the decoder."""
+    from lidarcal_ros.io.bag import POSE_STAMPED, TrajectorySamples
+
+    types = TS.types
+    rng = np.random.default_rng(9)
+    raws = []
+    for k, frame in enumerate(["", "m", "map", "utm32", "odom_ned", "a" * 9, "éé", "x" * 31]):
+        pose = types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](*rng.normal(0, 1e5, 3)),
+            orientation=types["geometry_msgs/msg/Quaternion"](*rng.normal(0, 1, 4)))
+        msg = types[POSE_STAMPED](header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1_700_000_000 + k,
+                                                       nanosec=123_456_789 * k % 10**9),
+            frame_id=frame), pose=pose)
+        raws.append(bytes(TS.serialize_cdr(msg, POSE_STAMPED)))
+        raws.append(bytes(TS.serialize_cdr(msg, POSE_STAMPED, little_endian=False)))
+    decoded = []
+
+    def decode(raw, msgtype):
+        decoded.append(msgtype)
+        return TS.deserialize_cdr(raw, msgtype)
+
+    fast, slow = TrajectorySamples(), TrajectorySamples()
+    for raw in raws:
+        fast.add_raw(POSE_STAMPED, raw, decode)
+        slow.add(POSE_STAMPED, TS.deserialize_cdr(raw, POSE_STAMPED))
+    assert len(decoded) == len(raws) // 2  # the big-endian ones
+    for name in ("t", "xyz", "orientation"):
+        assert getattr(fast, name) == getattr(slow, name)
+    assert fast.frames == slow.frames and len(fast.frames) == 8

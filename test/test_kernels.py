@@ -459,49 +459,6 @@ def test_below_line_decides_as_numpy_interp() -> None:
     assert one.tolist() == [True, False]
 
 
-def _walk_numpy(q: np.ndarray, start: np.ndarray, a: np.ndarray, inv: np.ndarray,
-                neighbors: np.ndarray, max_steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """The walk in numpy, all queries a step at a time (what GridLocator.locate did)."""
-    out = np.full(q.shape[0], -1, dtype=np.int64)
-    active = np.flatnonzero(start >= 0)
-    t = start[active]
-    for _ in range(max_steps):
-        if not active.size:
-            break
-        d = q[active] - a[t]
-        l1 = inv[t, 0, 0] * d[:, 0] + inv[t, 0, 1] * d[:, 1]
-        l2 = inv[t, 1, 0] * d[:, 0] + inv[t, 1, 1] * d[:, 1]
-        lam = np.stack([1.0 - l1 - l2, l1, l2], axis=1)
-        worst = np.argmin(lam, axis=1)
-        hit = lam[np.arange(t.size), worst] >= -1e-12
-        out[active[hit]] = t[hit]
-        step = neighbors[t, worst]
-        going = ~hit & (step >= 0)
-        active, t = active[going], step[going]
-    return out, active
-
-
-@pytest.mark.parametrize("max_steps", [64, 3])
-def test_walk_to_triangles_is_the_numpy_walk(max_steps: int) -> None:
-    from lidarcal_ros.core.tin import GridLocator, delaunay
-
-    rng = np.random.default_rng(11)
-    xy = rng.uniform(0.0, 100.0, (3000, 2))
-    simplices, neighbors = delaunay(xy, backend="scipy")
-    locator = GridLocator(xy, simplices)
-    # inside, outside the hull, on vertices (ties of the coordinates), far starts, no start
-    q = np.vstack([rng.uniform(-10.0, 110.0, (5000, 2)), xy[:200]])
-    start = np.asarray(rng.integers(-1, simplices.shape[0], q.shape[0]), dtype=np.int64)
-    expected, unsettled_expected = _walk_numpy(q, start, locator.a, locator.inv, neighbors,
-                                               max_steps)
-    out = np.full(q.shape[0], -1, dtype=np.int64)
-    unsettled = kernels.walk_to_triangles(q, start, locator.a, locator.inv, neighbors,
-                                          max_steps, out)
-    np.testing.assert_array_equal(out, expected)
-    np.testing.assert_array_equal(np.sort(unsettled), np.sort(unsettled_expected))
-    assert (out >= 0).sum() > (1500 if max_steps > 3 else 0) and unsettled.size > 100
-
-
 def _best_patches_numpy(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
                         neighbors: np.ndarray, usable: np.ndarray, vertices: np.ndarray,
                         max_d: float) -> tuple[np.ndarray, ...]:

@@ -66,6 +66,12 @@ def _check_output(path: Path, overwrite: bool, *, directory: bool = False) -> No
     check_output(path, overwrite=overwrite, directory=directory)
 
 
+def _add_quiet(p: Any) -> None:
+    """``-q/--quiet`` of the commands that show progress."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (it shows only on a terminal anyway)")
+
+
 def _progress_bar(enabled: bool) -> tuple[Any, Any]:
     """A tqdm-backed progress callback (stderr; silent when not a terminal)."""
     if not enabled:
@@ -265,6 +271,7 @@ def _add_calibrate(sub: Any) -> None:
                    "estimated; converged false) with the strips' agreement as delivered, "
                    "which lidarcal correct accepts; exit status 5 instead of 1")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    _add_quiet(p)
     p.set_defaults(func=_cmd_calibrate)
 
 
@@ -300,7 +307,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError(f"--solve-for: {exc}") from None
     truth = Truth.read(args.truth) if args.truth else None
     started = time.perf_counter()
-    progress, close = _progress_bar(True)
+    progress, close = _progress_bar(not args.quiet)
     unestimated: NothingEstimated | None = None
     try:
         mission = load_mission(args.bag, config, control_csv=args.control)
@@ -377,6 +384,7 @@ def _add_correct(sub: Any) -> None:
                    help="threads correcting batches in parallel (default 2; 1: all in one "
                    "thread)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    _add_quiet(p)
     p.set_defaults(func=_cmd_correct)
 
 
@@ -402,7 +410,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     out = args.output
     _check_output(out, args.overwrite,
                   directory=output_kind(out) == "bag" and out.suffix != ".mcap")
-    progress, close = _progress_bar(True)
+    progress, close = _progress_bar(not args.quiet)
     try:
         report = correct_bag(args.bag, calibration, args.output, config, crs=crs,
                              overwrite=args.overwrite, workers=args.workers,
@@ -440,8 +448,7 @@ def _add_report(sub: Any) -> None:
                    help="JSON of 'lidarcal evaluate --json' for the same bag and calibration "
                    "(default: evaluate here)")
     p.add_argument("--crs", help="CRS of the map frame, named on the maps, e.g. EPSG:32633")
-    p.add_argument("-q", "--quiet", action="store_true",
-                   help="no progress bar (it shows only on a terminal anyway)")
+    _add_quiet(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=_cmd_report)
 
@@ -653,6 +660,7 @@ def _add_import(sub: Any) -> None:
     p.add_argument("--qa-cell", type=float, default=2.0,
                    help="cell of the swath-to-swath overlap QA grid, m (default 2; 0: none)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    _add_quiet(p)
     p.set_defaults(func=_cmd_import)
 
 
@@ -667,7 +675,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
         points_topic=args.points, trajectory_topic=args.trajectory_topic,
         trajectory_rate_hz=args.trajectory_rate, memory_points=args.memory_points,
         qa_cell_m=args.qa_cell, overwrite=args.overwrite)
-    progress, close = _progress_bar(True)
+    progress, close = _progress_bar(not args.quiet)
     try:
         report = import_mission(args.inputs, args.output, options, progress)
     finally:

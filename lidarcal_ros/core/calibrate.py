@@ -15,8 +15,13 @@ the horizontal parameters.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator, Sequence
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
@@ -29,7 +34,7 @@ from lidarcal_ros.core.adjustment import (
     cluster_robust_sigma,
     solve,
 )
-from lidarcal_ros.core.geometry import LaserGeometry, geometry_at
+from lidarcal_ros.core.geometry import LaserGeometry
 from lidarcal_ros.core.georeferencing import (
     LaserVectorQA,
     ModelChoice,
@@ -37,7 +42,7 @@ from lidarcal_ros.core.georeferencing import (
     strip_geometry,
 )
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
-from lidarcal_ros.core.model import correct_points_exact, geometry_normal_rows
+from lidarcal_ros.core.model import add_geometry_normal_rows, exact_correction
 from lidarcal_ros.core.overlap_grid import OverlapGrid, PairQA
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.tin import PatchMatches, Tin, TinQuality, match_to_tin
@@ -47,6 +52,8 @@ logger = logging.getLogger(__name__)
 
 #: Progress callback: (stage description, fraction done in [0, 1]).
 Progress = Callable[[str, float], None]
+_T = TypeVar("_T")
+_R = TypeVar("_R")
 
 
 @dataclass
@@ -82,6 +89,9 @@ class CalibrationSettings:
     robust_k: float = 3.0
     control_weight: float = 1.0
     seed: int = 0
+    #: Threads the calibration runs strips and strip pairs in (TINs, corrections, matching);
+    #: the result does not depend on it.
+    workers: int = 2
     limits: ObservabilityLimits = field(default_factory=ObservabilityLimits)
 
     def __post_init__(self) -> None:
@@ -113,6 +123,9 @@ class PreparedStrip:
     speed_mps: float  # ground speed over the strip, m/s
     tin: Tin | None = None
     geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
+    #: The latest correction (:meth:`Calibrator._corrected`): the estimate it is of (its
+    #: bytes), the corrected points, ``delivered - corrected`` and their geometry.
+    corrected: tuple[bytes, np.ndarray, np.ndarray, LaserGeometry] | None = None
     dropped: bool = False  # points released (memory budget); its pairs are frozen
 
     def __post_init__(self) -> None:
@@ -209,6 +222,38 @@ class CalibrationResult:
     #: Where nothing was estimated: the strip pairs' height agreement on smooth cells, which
     #: needs no patch (:mod:`lidarcal_ros.core.overlap_grid`).
     height_agreement: list[PairQA] = field(default_factory=list)
+    #: CPU seconds of the calibration's threads in each of its stages (:class:`StageClock`).
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+
+class StageClock:
+    """CPU seconds spent in each stage of a calibration, summed over its threads (thread
+    time: what the work costs, whatever else the machine runs). A stage entered within
+    another pauses it, so the stages add up to the time spent in any of them."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._lock = threading.Lock()
+        self._local = threading.local()
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        local = self._local
+        outer: str | None = getattr(local, "stage", None)
+        now = time.thread_time()
+        if outer is not None:
+            self._add(outer, now - local.since)
+        local.stage, local.since = stage, now
+        try:
+            yield
+        finally:
+            now = time.thread_time()
+            self._add(stage, now - local.since)
+            local.stage, local.since = outer, now
+
+    def _add(self, stage: str, seconds: float) -> None:
+        with self._lock:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + seconds
 
 
 class NothingEstimated(CalibrationError):
@@ -356,6 +401,8 @@ class Calibrator:
         self._restored = Observations.empty()
         self._restored_delta = np.zeros(N_PARAMETERS)
         self._control_before: list[tuple[int, int, float]] | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self.clock = StageClock()
 
     @classmethod
     def from_mission(
@@ -398,6 +445,10 @@ class Calibrator:
         CalibrationError
             A strip with this id is already held.
         """
+        with self.clock("local trajectories"):
+            return self._add_strip(strip, trajectory)
+
+    def _add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
         s = self.settings
         if any(ps.strip_id == strip.strip_id for ps in self.strips):
             raise CalibrationError(f"strip {strip.strip_id} added twice")
@@ -483,6 +534,7 @@ class Calibrator:
                 empty = np.empty((0, 3))
                 ps.strip = Strip(ps.strip_id, empty, np.empty(0))
                 ps.geometry0 = ps.geometry = ps.geometry0.take(np.zeros(0, dtype=np.int64))
+                ps.corrected = None
                 ps.point_cells = np.empty(0, dtype=np.int64)
                 ps.priority = np.empty(0)
                 return n
@@ -491,8 +543,45 @@ class Calibrator:
     def _tin(self, k: int) -> Tin:
         ps = self.strips[k]
         if ps.tin is None:
-            ps.tin = Tin(ps.strip.xyz, self.settings.tin_quality(ps.density))
+            with self.clock("TINs"):
+                ps.tin = Tin(ps.strip.xyz, self.settings.tin_quality(ps.density))
         return ps.tin
+
+    def _build_tins(self, strips: Iterable[int]) -> None:
+        """Build the TINs of ``strips`` not built yet (largest first, in the threads)."""
+        todo = sorted({k for k in strips if self.strips[k].tin is None and
+                       not self.strips[k].dropped}, key=lambda k: -len(self.strips[k].strip))
+        self._map(self._tin, todo, "building TINs" if todo else None)
+
+    # ------------------------------------------------------------------ threads
+    def _map(self, fn: Callable[[_T], _R], items: Sequence[_T], stage: str | None = None
+             ) -> list[_R]:
+        """``[fn(item) for item in items]``, in the worker threads while :meth:`run` holds
+        them (``settings.workers``), reporting progress in ``stage``."""
+        if stage:
+            self._progress(stage, 0.0)
+        if self._pool is None or len(items) < 2:
+            out = []
+            for i, item in enumerate(items):
+                out.append(fn(item))
+                if stage:
+                    self._progress(stage, (i + 1) / len(items))
+            return out
+        futures = [self._pool.submit(fn, item) for item in items]
+        results = []
+        try:
+            for i, future in enumerate(futures):
+                results.append(future.result())
+                if stage:
+                    self._progress(stage, (i + 1) / len(items))
+        finally:
+            for future in futures:
+                future.cancel()
+        return results
+
+    def _threads(self) -> _Threads:
+        """The worker threads for the duration of a ``with`` block."""
+        return _Threads(self)
 
     # ------------------------------------------------------------------ matching
     def _corrected(self, k: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -504,11 +593,14 @@ class Calibrator:
         would appear not to cancel, and mimic dphi.
         """
         ps = self.strips[k]
-        g0 = ps.geometry0
-        xyz = ps.strip.xyz
-        corrected = correct_points_exact(xyz, g0, delta)
-        ps.geometry = geometry_at(corrected, g0)
-        return corrected, xyz - corrected
+        key = np.asarray(delta, dtype=np.float64).tobytes()
+        if ps.corrected is None or ps.corrected[0] != key:
+            with self.clock("corrections"):
+                corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
+                                                              delta)
+            ps.corrected = (key, corrected, shift, geometry)
+        _, corrected, shift, ps.geometry = ps.corrected
+        return corrected, shift
 
     def _match_pair(
         self, pair: _PairWork, points_idx: np.ndarray, delta: np.ndarray,
@@ -520,8 +612,10 @@ class Calibrator:
         # The sample is matched every iteration: start each search at its last patch.
         on_sample = points_idx is pair.sample
         start = pair.last_triangle if on_sample else None
-        m = match_to_tin(a_xyz[points_idx], self._tin(pair.b), b_xyz,
-                         max_normal_distance=threshold, vertex_shift=shift, start=start)
+        tin = self._tin(pair.b)
+        with self.clock("matching"):
+            m = match_to_tin(a_xyz[points_idx], tin, b_xyz, max_normal_distance=threshold,
+                             vertex_shift=shift, start=start)
         if on_sample:
             pair.last_triangle = m.triangle
         return m
@@ -534,15 +628,15 @@ class Calibrator:
         (the patch distance along the observed normal)."""
         ok = m.valid
         tin = self._tin(k)
-        n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
-        w = m.weights[ok]
-        verts = tin.simplices[m.triangle[ok]]
-        geometry = self.strips[k].geometry
-        rows = np.zeros((int(ok.sum()), N_PARAMETERS))
-        for v in range(3):
-            gv = geometry.take(verts[:, v])
-            rows += w[:, v:v + 1] * geometry_normal_rows(n, gv)
-        y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+        with self.clock("design rows"):
+            n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
+            w = m.weights[ok]
+            verts = tin.simplices[m.triangle[ok]]
+            geometry = self.strips[k].geometry
+            rows = np.zeros((int(ok.sum()), N_PARAMETERS))
+            for v in range(3):
+                add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
+            y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
         return n, rows, y
 
     def _pair_observations(
@@ -553,9 +647,11 @@ class Calibrator:
         # eq. [11]: the discrepancy n . (X_A - X_B) left by the current estimate; the
         # adjustment solves for the increment that removes it (Gauss-Newton).
         n, patch_rows, y = self._patch_terms(pair.b, m)
-        ga = sa.geometry.take(idx)
-        rows = geometry_normal_rows(n, ga) - patch_rows
-        cluster = self._cluster_of(sa.strip.xyz[idx])
+        with self.clock("design rows"):
+            rows = np.zeros_like(patch_rows)
+            add_geometry_normal_rows(rows, n, sa.geometry, idx)
+            rows -= patch_rows
+            cluster = self._cluster_of(sa.strip.xyz[idx])
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster)
 
     def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
@@ -576,6 +672,10 @@ class Calibrator:
 
     def _select_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
         """Stratify matched candidates by patch slope and aspect; cap each class."""
+        with self.clock("sample selection"):
+            return self._stratified_sample(pair, m)
+
+    def _stratified_sample(self, pair: _PairWork, m: PatchMatches) -> np.ndarray:
         s = self.settings
         ok = np.flatnonzero(m.valid)
         n = m.normal[ok]
@@ -600,6 +700,8 @@ class Calibrator:
         parts = []
         found: list[tuple[int, int, float]] = []
         cp_cells = self.footprint.keys(control.xyz[:, :2])
+        self._build_tins(k for k, ps in enumerate(self.strips)
+                         if not ps.dropped and np.isin(cp_cells, ps.cells).any())
         for k, ps in enumerate(self.strips):
             if ps.dropped:
                 continue
@@ -608,9 +710,10 @@ class Calibrator:
                 continue
             cps = np.flatnonzero(inside)
             xyz, shift = corrected[k]
-            m = match_to_tin(control.xyz[cps], self._tin(k), xyz,
-                             max_normal_distance=threshold,
-                             vertex_shift=shift if np.any(delta) else None)
+            tin = self._tin(k)
+            with self.clock("matching"):
+                m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
+                                 vertex_shift=shift if np.any(delta) else None)
             if not m.valid.any():
                 continue
             ok = m.valid
@@ -632,6 +735,10 @@ class Calibrator:
         Returns the solution with ``delta`` = current estimate + increment; parameters not
         solved for are moved to their fixed values.
         """
+        with self.clock("normal equations"):
+            return self._reweighted_solve(obs, delta)
+
+    def _reweighted_solve(self, obs: Observations, delta: np.ndarray) -> Solution:
         s = self.settings
         fixed_step = {name: float(s.fixed.get(name, 0.0) - delta[i])
                       for i, name in enumerate(PARAMETER_NAMES)}
@@ -658,7 +765,8 @@ class Calibrator:
             new_pairs_only: bool = False) -> CalibrationResult:
         """Iterate matching and adjustment from the current estimate to convergence (at most
         ``max_iterations``, default the settings'): :meth:`iterate` until an iteration
-        converges, then :meth:`conclude`.
+        converges, then :meth:`conclude`, with the worker threads (``settings.workers``)
+        matching the strip pairs of each iteration at once.
 
         Pairs met for the first time are matched once at zero correction: that chooses their
         sample points and gives the "before" discrepancies. With ``new_pairs_only`` (a live
@@ -666,11 +774,12 @@ class Calibrator:
         re-matched; only pairs formed since are matched each iteration.
         """
         limit = max_iterations or self.settings.max_iterations
-        iterations = self.iterate(new_pairs_only=new_pairs_only)
-        while True:
-            done = next(iterations)
-            if done is not None and (done.converged or done.number >= limit):
-                return self.conclude(done)
+        with self._threads():
+            iterations = self.iterate(new_pairs_only=new_pairs_only)
+            while True:
+                done = next(iterations)
+                if done is not None and (done.converged or done.number >= limit):
+                    return self.conclude(done)
 
     def iterate(self, *, new_pairs_only: bool = False) -> Iterator[Iteration | None]:
         """Match and adjust from the current estimate, iteration after iteration, for as long
@@ -681,7 +790,8 @@ class Calibrator:
         after each adjustment, whose estimate and matching threshold are from then on the
         calibrator's (:attr:`delta`, :attr:`threshold`). Strips, pairs and control points must
         not change while the iterations are under way; :meth:`conclude` turns the last one
-        into a result.
+        into a result. Within :meth:`run` (its threads started) the pairs of an iteration are
+        matched together, in the threads, before their items are yielded.
 
         Raises
         ------
@@ -711,7 +821,23 @@ class Calibrator:
             corrected: dict[int, tuple[np.ndarray, np.ndarray]] = {}
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
             parts = [_at(obs, at, delta) for obs, at in frozen]
-            for p_i, pair in enumerate(live):
+            if self._pool is not None:  # (run(): every pair at once, in the threads)
+                corrected = self._corrected_many(self._used_strips(live), delta)
+
+                def observe(pair: _PairWork, delta: np.ndarray = delta,
+                            corrected: dict[int, tuple[np.ndarray, np.ndarray]] = corrected
+                            ) -> Observations:
+                    assert pair.sample is not None
+                    m = self._match_pair(pair, pair.sample, delta, corrected, self.threshold)
+                    return self._pair_observations(pair, pair.sample, m)
+
+                matched = self._map(observe, live, f"iteration {iteration}: matching")
+                for pair, last in zip(live, matched, strict=True):
+                    pair.last = last
+                    pair.last_delta = delta.copy()
+                    parts.append(last)
+                    yield None
+            for p_i, pair in enumerate(live if self._pool is None else ()):
                 self._progress(f"iteration {iteration}: matching", p_i / max(len(live), 1))
                 assert pair.sample is not None
                 for k in (pair.a, pair.b):
@@ -723,8 +849,9 @@ class Calibrator:
                 parts.append(pair.last)
                 yield None
             if control is not None and len(control):
-                corrected.update({k: self._corrected(k, delta) for k in range(len(self.strips))
-                                  if k not in corrected and not self.strips[k].dropped})
+                corrected.update(self._corrected_many(
+                    (k for k in range(len(self.strips))
+                     if k not in corrected and not self.strips[k].dropped), delta))
                 parts.append(self._control_observations(control, delta, corrected,
                                                         s.max_normal_distance_m)[0])
             obs = Observations.concatenate(parts)
@@ -762,8 +889,9 @@ class Calibrator:
         """The result of the iterations of :meth:`iterate` that ended with ``last``: sigmas
         allowing for shared errors, and the QA of every pair at the estimate. Call once per
         iteration (it widens ``last``'s sigmas)."""
-        self.normal_equations = NormalEquations.from_observations(last.observations)
-        self._allow_for_shared_errors(last.solution, last.observations, last.step)
+        with self.clock("normal equations"):
+            self.normal_equations = NormalEquations.from_observations(last.observations)
+            self._allow_for_shared_errors(last.solution, last.observations, last.step)
         return self._finish(last.solution, last.observations, last.solution.delta, last.number,
                             last.converged, last.history)
 
@@ -776,13 +904,16 @@ class Calibrator:
         """
         s = self.settings
         delta = np.array([float(s.fixed.get(name, 0.0)) for name in PARAMETER_NAMES])
-        self._choose_samples([p for p in self.pairs if p.frozen is None and p.sample is None])
+        with self._threads():
+            self._choose_samples([p for p in self.pairs if p.frozen is None and
+                                  p.sample is None])
         status = {name: ParameterStatus("not_estimable", reason) if name in s.solve_for
                   else ParameterStatus("fixed") for name in PARAMETER_NAMES}
         sol = Solution(delta=delta, sigma=np.full(N_PARAMETERS, np.nan), estimated=(),
                        covariance=np.zeros((0, 0)), correlation=np.zeros((0, 0)),
                        sigma0=float("nan"), redundancy=0, status=status)
-        result = self._finish(sol, Observations.empty(), delta, 0, False, [])
+        with self._threads():
+            result = self._finish(sol, Observations.empty(), delta, 0, False, [])
         for p in result.pairs:
             p.correspondences = p.n_after
         result.nothing_estimated = reason
@@ -843,13 +974,16 @@ class Calibrator:
             return
         s = self.settings
         zero = np.zeros(N_PARAMETERS)
-        delivered = {k: self._corrected(k, zero) for k in self._used_strips(pairs)}
-        for p_i, pair in enumerate(pairs):
-            self._progress("choosing sample points", p_i / len(pairs))
+        self._build_tins(p.b for p in pairs)
+        delivered = self._corrected_many(self._used_strips(pairs), zero)
+
+        def choose(pair: _PairWork) -> None:
             m = self._match_pair(pair, pair.candidates, zero, delivered, s.max_normal_distance_m)
             pair.sample = self._select_sample(pair, m)
             before = m.take(np.isin(pair.candidates, pair.sample)).distance
             pair.before = before[np.isfinite(before)]
+
+        self._map(choose, pairs, "choosing sample points")
 
     def _match_samples(
         self, delta: np.ndarray
@@ -864,27 +998,34 @@ class Calibrator:
         # Samples first: choosing them leaves every strip's geometry at the delivered points.
         self._choose_samples([p for p in live if p.sample is None])
         corrected = self._corrected_all(delta)
-        matched = []
-        for pair in live:
+
+        def match(pair: _PairWork) -> PatchMatches:
             assert pair.sample is not None
-            matched.append((pair, self._match_pair(pair, pair.sample, delta, corrected,
-                                                   s.max_normal_distance_m)))
-        return matched, corrected
+            return self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
+
+        return list(zip(live, self._map(match, live), strict=True)), corrected
 
     def _corrected_all(self, delta: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """:meth:`_corrected` of every strip that holds its points."""
-        return {k: self._corrected(k, delta) for k in range(len(self.strips))
-                if not self.strips[k].dropped}
+        return self._corrected_many((k for k in range(len(self.strips))
+                                     if not self.strips[k].dropped), delta)
+
+    def _corrected_many(self, strips: Iterable[int], delta: np.ndarray
+                        ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`_corrected` of ``strips`` (in the threads)."""
+        ks = sorted(set(strips))
+        return dict(zip(ks, self._map(lambda k: self._corrected(k, delta), ks), strict=True))
 
     def observations_at(self, delta: np.ndarray) -> Observations:
         """The correspondences of every pair (and control) at the estimate ``delta``, with
         no adjustment: what flight planning analyses."""
-        matched, corrected = self._match_samples(delta)
-        parts = [self._pair_observations(pair, pair.sample, m) for pair, m in matched
-                 if pair.sample is not None]
-        if self.control is not None and len(self.control):
-            parts.append(self._control_observations(self.control, delta, corrected,
-                                                    self.settings.max_normal_distance_m)[0])
+        with self._threads():
+            matched, corrected = self._match_samples(delta)
+            parts = [self._pair_observations(pair, pair.sample, m) for pair, m in matched
+                     if pair.sample is not None]
+            if self.control is not None and len(self.control):
+                parts.append(self._control_observations(self.control, delta, corrected,
+                                                        self.settings.max_normal_distance_m)[0])
         return Observations.concatenate(parts)
 
     def pair_discrepancies(self, delta: np.ndarray) -> list[PairDiscrepancies]:
@@ -898,7 +1039,9 @@ class Calibrator:
         """
         floor = self.settings.min_normal_distance_m
         out = []
-        for pair, m in self._match_samples(np.asarray(delta, dtype=np.float64))[0]:
+        with self._threads():
+            matched = self._match_samples(np.asarray(delta, dtype=np.float64))[0]
+        for pair, m in matched:
             assert pair.sample is not None
             idx = pair.sample[m.valid]
             distance = m.distance[m.valid]
@@ -940,7 +1083,7 @@ class Calibrator:
             if control is None or not len(control):
                 return []
             zero = np.zeros(N_PARAMETERS)
-            delivered = {k: self._corrected(k, zero) for k in range(len(self.strips))}
+            delivered = self._corrected_many(range(len(self.strips)), zero)
             self._control_before = self._control_observations(
                 control, zero, delivered, self.settings.max_normal_distance_m)[1]
         return self._control_before
@@ -971,20 +1114,23 @@ class Calibrator:
         laser vectors of the points corrected by it."""
         s = self.settings
         corrected = self._corrected_all(delta)
-        for ps in self.strips:
-            if not ps.dropped:
-                ps.laser_qa = laser_vector_qa(ps.geometry, fov_deg=s.fov_deg,
-                                              speed_mps=ps.speed_mps)
-        stats = []
-        for pair in self.pairs:
-            assert pair.sample is not None and pair.before is not None
+        with self.clock("QA"):
+            for ps in self.strips:
+                if not ps.dropped:
+                    ps.laser_qa = laser_vector_qa(ps.geometry, fov_deg=s.fov_deg,
+                                                  speed_mps=ps.speed_mps)
+
+        def after_of(pair: _PairWork) -> np.ndarray:
+            assert pair.sample is not None
             if pair.frozen is not None and pair.frozen_delta is not None:
-                after = pair.frozen.residuals(delta - pair.frozen_delta) if len(pair.frozen) else \
-                    np.empty(0)
-            else:
-                m = self._match_pair(pair, pair.sample, delta, corrected,
-                                     s.max_normal_distance_m)
-                after = m.distance[m.valid]
+                return pair.frozen.residuals(delta - pair.frozen_delta) if len(pair.frozen) \
+                    else np.empty(0)
+            m = self._match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
+            return m.distance[m.valid]
+
+        stats = []
+        for pair, after in zip(self.pairs, self._map(after_of, self.pairs), strict=True):
+            assert pair.before is not None
             ids = sorted((self.strips[pair.a].strip_id, self.strips[pair.b].strip_id))
             rms_after, p95_after = _robust_qa(after, s.min_normal_distance_m)
             stats.append(PairStats(
@@ -1009,7 +1155,30 @@ class Calibrator:
             crab_deg={ps.strip.strip_id: ps.geometry0.crab_deg for ps in self.strips},
             models={ps.strip.strip_id: ps.choice for ps in self.strips},
             laser_qa={ps.strip.strip_id: ps.laser_qa for ps in self.strips},
+            stage_seconds=dict(self.clock.seconds),
         )
+
+
+class _Threads:
+    """The worker threads of a :class:`Calibrator` (``settings.workers``) for a ``with``
+    block; nested blocks share the outer one's."""
+
+    def __init__(self, calibrator: Calibrator) -> None:
+        self.calibrator = calibrator
+        self.owner = False
+
+    def __enter__(self) -> None:
+        cal = self.calibrator
+        if cal._pool is None and cal.settings.workers > 1:
+            cal._pool = ThreadPoolExecutor(max_workers=cal.settings.workers,
+                                           thread_name_prefix="lidarcal-calibrate")
+            self.owner = True
+
+    def __exit__(self, *exc: object) -> None:
+        cal = self.calibrator
+        if self.owner and cal._pool is not None:
+            cal._pool.shutdown(wait=True, cancel_futures=True)
+            cal._pool = None
 
 
 def _at(obs: Observations, matched_at: np.ndarray, delta: np.ndarray) -> Observations:

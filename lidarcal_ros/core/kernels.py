@@ -1290,68 +1290,6 @@ def centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndar
 
 
 @compiled
-def walk_to_triangles(q: np.ndarray, start: np.ndarray, a: np.ndarray, inv: np.ndarray,
-                      neighbors: np.ndarray, max_steps: int, out: np.ndarray) -> np.ndarray:
-    """Walk each query from its start triangle to the one containing it
-    (:meth:`lidarcal_ros.core.tin.GridLocator.locate`).
-
-    Per step, the barycentric coordinates of the query in the current triangle,
-    ``(1 - l1 - l2, l1, l2)`` with ``(l1, l2) = inv @ (q - a)``; all at least ``-1e-12``:
-    found; otherwise cross the edge opposite the most negative one (the first of equals, as
-    ``np.argmin``), and past the hull the query is outside (stays -1).
-
-    Parameters
-    ----------
-    q : (n, 2) float64
-        Queries, the triangulation's local XY.
-    start : (n,) int64
-        Start triangle per query, -1: not located (left as it is in ``out``).
-    a : (m, 2) float64; inv : (m, 2, 2) float64
-        First vertex and barycentric transform of each triangle.
-    neighbors : (m, 3) int64
-        Triangle opposite each vertex, -1 on the hull.
-    max_steps : int
-    out : (n,) int64
-        Receives the triangle of each query settled.
-
-    Returns
-    -------
-    (k,) int64
-        The queries not settled within ``max_steps`` (degenerate walks), in order.
-    """
-    n = q.shape[0]
-    unsettled = np.empty(n, np.int64)
-    k = 0
-    for i in range(n):
-        t = start[i]
-        if t < 0:
-            continue
-        settled = False
-        for _ in range(max_steps):
-            d0 = q[i, 0] - a[t, 0]
-            d1 = q[i, 1] - a[t, 1]
-            l1 = inv[t, 0, 0] * d0 + inv[t, 0, 1] * d1
-            l2 = inv[t, 1, 0] * d0 + inv[t, 1, 1] * d1
-            worst, low = 0, 1.0 - l1 - l2
-            if l1 < low:
-                worst, low = 1, l1
-            if l2 < low:
-                worst, low = 2, l2
-            if low >= -1e-12:
-                out[i] = t
-                settled = True
-                break
-            t = neighbors[t, worst]
-            if t < 0:  # stepped out of the hull: outside
-                settled = True
-                break
-        if not settled:
-            unsettled[k] = i
-            k += 1
-    return unsettled[:k]
-
-
-@compiled
 def best_patches(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
                  neighbors: np.ndarray, usable: np.ndarray, vertices: np.ndarray,
                  max_normal_distance: float, best_tri: np.ndarray, best_d: np.ndarray,

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
+from lidarcal_ros.core import calibration_kernels, kernels
 from lidarcal_ros.core.geometry import LaserGeometry
 from lidarcal_ros.core.params import N_PARAMETERS
 
@@ -290,17 +290,67 @@ def correct_points_exact(
     delta : (8,) float64
         Biases, SI.
     """
+    return exact_correction(xyz, frame, delta)[0]
+
+
+def exact_correction(
+    xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, LaserGeometry]:
+    """:func:`correct_points_exact` and the laser geometry of the corrected points seen from
+    the same firing positions and body frames
+    (:func:`~lidarcal_ros.core.geometry.geometry_at`, with its sines and cosines of
+    ``beta``), in one compiled pass (:func:`~lidarcal_ros.core.calibration_kernels.
+    exact_correction`).
+
+    Returns
+    -------
+    corrected : (n, 3) float64
+        The points without the biases, map frame, m.
+    shift : (n, 3) float64
+        ``xyz - corrected``, m.
+    geometry : LaserGeometry
+        Of the corrected points (``kappa``, ``origin`` and ``rotation`` shared with
+        ``frame``).
+    """
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    n = xyz.shape[0]
+    if xyz.shape != (np.shape(frame.x)[0], 3):
+        raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(frame.x)[0]} points")
     d = np.asarray(delta, dtype=np.float64)
-    # Body frame (right, forward, up) minus the lever arm.
-    q = frame.to_body(np.asarray(xyz, dtype=np.float64) - frame.origin)
-    q -= d[:3]
-    rho = q @ boresight_matrix(d[3], d[4], d[5])  # R_B^T q, row-wise
-    r_rec = np.hypot(rho[:, 0], rho[:, 2])
-    beta = np.arctan2(-rho[:, 0], -rho[:, 2])
-    r_true = r_rec - d[6]
-    theta = beta / (1.0 + d[7])
-    body = np.empty_like(rho)
-    body[:, 0] = -r_true * np.sin(theta)
-    body[:, 1] = rho[:, 1]
-    body[:, 2] = -r_true * np.cos(theta)
-    return frame.origin + frame.to_map(body)
+    c, s = frame.cos_kappa, frame.sin_kappa
+    if c is None or s is None:
+        c, s, _, _ = frame.trig()
+    rigorous = frame.rotation is not None
+    corrected = np.empty((n, 3))
+    shift = np.empty((n, 3))
+    x, z, beta, sb, cb = (np.empty(n) for _ in range(5))
+    y = np.empty(n) if rigorous else _NO_COLUMN
+    calibration_kernels.exact_correction(
+        xyz, np.ascontiguousarray(frame.origin, dtype=np.float64),
+        np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
+        _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
+        d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb)
+    geometry = LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
+                             cos_kappa=c, sin_kappa=s, sin_beta=sb, cos_beta=cb,
+                             heading_from=frame.heading_from, crab_deg=frame.crab_deg,
+                             rotation=frame.rotation, y=y if rigorous else None,
+                             model=frame.model)
+    return corrected, shift, geometry
+
+
+_NO_COLUMN = np.zeros(0)
+
+
+def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: LaserGeometry,
+                             index: np.ndarray, weight: np.ndarray | None = None) -> None:
+    """``out += weight * n^T A`` of the points ``index`` of ``geometry`` (either model) and
+    their patch normals ``normal`` (k, 3, map frame): :func:`geometry_normal_rows` of
+    ``geometry.take(index)`` without the copy, in one compiled pass
+    (:func:`~lidarcal_ros.core.calibration_kernels.add_normal_rows`)."""
+    c, s, sb, cb = geometry.trig()
+    calibration_kernels.add_normal_rows(
+        np.ascontiguousarray(normal, dtype=np.float64),
+        np.ascontiguousarray(index, dtype=np.int64),
+        _NO_COLUMN if weight is None else np.ascontiguousarray(weight, dtype=np.float64),
+        geometry.x, geometry.z, geometry.beta, sb, cb, c, s,
+        _NO_ROTATION if geometry.rotation is None else geometry.rotation, out)

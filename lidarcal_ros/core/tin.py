@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
+from lidarcal_ros.core import calibration_kernels, kernels
 
 logger = logging.getLogger(__name__)
 
@@ -54,32 +54,6 @@ class TinQuality:
     flat_slope_deg: float = 5.0
 
 
-def triangle_normals(vertices: np.ndarray, simplices: np.ndarray) -> np.ndarray:
-    """Upward unit normals of triangles.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float64
-        Vertex coordinates (any common origin), metres.
-    simplices : (m, 3) int
-        Vertex indices of each triangle.
-
-    Returns
-    -------
-    (m, 3) float64
-        Unit normals with non-negative Z; zero vectors for degenerate triangles.
-    """
-    v0 = vertices[simplices[:, 0]]
-    e1 = vertices[simplices[:, 1]] - v0
-    e2 = vertices[simplices[:, 2]] - v0
-    nrm = np.cross(e1, e2)
-    length = np.linalg.norm(nrm, axis=1)
-    length[length == 0] = np.inf
-    nrm /= length[:, None]
-    nrm[nrm[:, 2] < 0] *= -1.0
-    return nrm
-
-
 class Tin:
     """Delaunay TIN over one strip's XY, with per-triangle quality.
 
@@ -100,38 +74,31 @@ class Tin:
         self.simplices, self.neighbors = delaunay(local[:, :2])
         self.quality = quality
         self.usable = self._judge(local)
-        self._locator = GridLocator(local[:, :2], self.simplices)
+        self._locator = GridLocator(local[:, :2], self.simplices, self.neighbors)
         logger.debug(
             "TIN of %d points: %d triangles, %.0f%% usable",
             xyz.shape[0], self.simplices.shape[0], 100.0 * self.usable.mean(),
         )
 
     def _judge(self, local: np.ndarray) -> np.ndarray:
+        """Usable patches (and :attr:`sloped`) by the rules of :class:`TinQuality`, in one
+        compiled pass (:func:`~lidarcal_ros.core.calibration_kernels.tin_quality`)."""
         q = self.quality
-        tri = local[self.simplices]
-        edges = tri[:, [1, 2, 0], :2] - tri[:, :, :2]
-        max_edge = np.sqrt((edges**2).sum(axis=2)).max(axis=1)
-        nrm = triangle_normals(local, self.simplices)
-        ok = (max_edge <= q.max_edge_m) & (nrm[:, 2] >= np.cos(np.radians(q.max_slope_deg)))
-        cos_bend = np.cos(np.radians(q.max_bend_deg))
-        cos_flat = np.cos(np.radians(q.flat_slope_deg))
-        self.sloped = nrm[:, 2] < cos_flat
-        for k in range(3):
-            nb = self.neighbors[:, k]
-            has = nb >= 0
-            agree = np.ones_like(ok)
-            agree[has] = (nrm[has] * nrm[nb[has]]).sum(axis=1) >= cos_bend
-            ok &= agree
-            self.sloped &= has
-            self.sloped[has] &= nrm[nb[has], 2] < cos_flat
-        return ok
+        m = self.simplices.shape[0]
+        usable = np.empty(m, dtype=bool)
+        self.sloped = np.empty(m, dtype=bool)
+        calibration_kernels.tin_quality(
+            np.ascontiguousarray(local), self.simplices, self.neighbors, float(q.max_edge_m),
+            float(np.cos(np.radians(q.max_slope_deg))), float(np.cos(np.radians(q.max_bend_deg))),
+            float(np.cos(np.radians(q.flat_slope_deg))), usable, self.sloped)
+        return usable
 
     def locate(self, xy: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
         """Triangle containing each XY (map frame) in the delivered geometry, -1 outside.
 
         ``start``: triangles to begin the search from (e.g. a previous match), -1 for none.
         """
-        return self._locator.locate(xy - self.origin[:2], self.neighbors, start)
+        return self._locator.locate(xy - self.origin[:2], start)
 
 
 def delaunay(xy: np.ndarray, *, backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
@@ -146,142 +113,80 @@ def delaunay(xy: np.ndarray, *, backend: str = "auto") -> tuple[np.ndarray, np.n
 
     Returns
     -------
-    simplices : (m, 3) int64
+    simplices : (m, 3) int32
         Vertex indices of each triangle (duplicate points are left out of every triangle).
-    neighbors : (m, 3) int64
+    neighbors : (m, 3) int32
         Triangle opposite each vertex, -1 on the hull.
     """
     if backend == "triangle" or (backend == "auto" and _triangle is not None):
         if _triangle is None:
             raise ImportError("the 'triangle' package is not installed")
         out = _triangle.triangulate({"vertices": xy}, "Qzn")
-        tris = np.asarray(out.get("triangles", np.empty((0, 3))), dtype=np.int64)
-        nbrs = np.asarray(out.get("neighbors", np.empty((0, 3))), dtype=np.int64)
+        tris = np.asarray(out.get("triangles", np.empty((0, 3))), dtype=np.int32)
+        nbrs = np.asarray(out.get("neighbors", np.empty((0, 3))), dtype=np.int32)
         return tris.reshape(-1, 3), nbrs.reshape(-1, 3)
     from scipy.spatial import Delaunay
 
     tri = Delaunay(xy, qhull_options="Qbb Qc Qz")
-    return tri.simplices.astype(np.int64), tri.neighbors.astype(np.int64)
+    return tri.simplices.astype(np.int32), tri.neighbors.astype(np.int32)
 
 
 class GridLocator:
     """Point location in a triangulation through a uniform grid of triangle lists.
 
-    Each triangle is listed in every cell its bounding box touches; a query tests the few
-    triangles of its cell with precomputed barycentric transforms. Unlike a walk, the cost per
-    query does not depend on query order or on queries outside the hull.
+    Each triangle is listed in every cell its bounding box touches. A query walks from its
+    start triangle (a previous match, or the first one listed in its cell) toward the query,
+    crossing the edge with the most negative barycentric coordinate; a walk that does not
+    settle falls back to testing every triangle listed in the cell. The cost per query does
+    not depend on query order or on queries outside the hull
+    (:func:`~lidarcal_ros.core.calibration_kernels.locate_points`).
 
     Parameters
     ----------
     xy : (n, 2) float64
         Vertices (local origin).
-    simplices : (m, 3) int64
+    simplices : (m, 3) int
+    neighbors : (m, 3) int
+        Triangle opposite each vertex, -1 on the hull.
     """
 
     #: Triangles whose bounding box spans more cells than this are not listed (they are far
     #: longer than the point spacing and never usable as patches).
     MAX_CELLS_PER_TRIANGLE = 64
-
-    def __init__(self, xy: np.ndarray, simplices: np.ndarray) -> None:
-        tri = xy[simplices]  # (m, 3, 2)
-        lo = tri.min(axis=1)
-        hi = tri.max(axis=1)
-        extent = hi - lo
-        size = float(np.median(np.maximum(extent[:, 0], extent[:, 1]))) if len(tri) else 1.0
-        self.cell = max(size, 1e-3)
-        self.x0 = xy[:, 0].min() if len(xy) else 0.0
-        self.y0 = xy[:, 1].min() if len(xy) else 0.0
-        self.nx = int((xy[:, 0].max() - self.x0) / self.cell) + 1 if len(xy) else 1
-        self.ny = int((xy[:, 1].max() - self.y0) / self.cell) + 1 if len(xy) else 1
-        ix0 = ((lo[:, 0] - self.x0) // self.cell).astype(np.int64)
-        iy0 = ((lo[:, 1] - self.y0) // self.cell).astype(np.int64)
-        ix1 = ((hi[:, 0] - self.x0) // self.cell).astype(np.int64)
-        iy1 = ((hi[:, 1] - self.y0) // self.cell).astype(np.int64)
-        wx = ix1 - ix0 + 1
-        wy = iy1 - iy0 + 1
-        count = wx * wy
-        listed = count <= self.MAX_CELLS_PER_TRIANGLE
-        tri_ids = np.repeat(np.flatnonzero(listed), count[listed])
-        first = np.repeat(np.cumsum(count[listed]) - count[listed], count[listed])
-        k = np.arange(tri_ids.size) - first
-        cx = ix0[tri_ids] + k % wx[tri_ids]
-        cy = iy0[tri_ids] + k // wx[tri_ids]
-        cells = cx * self.ny + cy
-        order = np.argsort(cells, kind="stable")
-        self.entries = tri_ids[order]
-        self.starts = np.searchsorted(cells[order], np.arange(self.nx * self.ny + 1))
-        # Barycentric transform: (l1, l2) = inv @ (q - a).
-        a = tri[:, 0]
-        m = np.stack([tri[:, 1] - a, tri[:, 2] - a], axis=2)  # columns b-a, c-a
-        det = m[:, 0, 0] * m[:, 1, 1] - m[:, 0, 1] * m[:, 1, 0]
-        det[det == 0] = np.inf
-        self.inv = np.empty_like(m)
-        self.inv[:, 0, 0] = m[:, 1, 1] / det
-        self.inv[:, 0, 1] = -m[:, 0, 1] / det
-        self.inv[:, 1, 0] = -m[:, 1, 0] / det
-        self.inv[:, 1, 1] = m[:, 0, 0] / det
-        self.a = np.ascontiguousarray(a)
-
-    def locate(self, q: np.ndarray, neighbors: np.ndarray | None = None,
-               start: np.ndarray | None = None) -> np.ndarray:
-        """Index of the triangle containing each query point (local XY), -1 if none.
-
-        With ``neighbors`` (triangle opposite each vertex), walks from a triangle listed in the
-        query's cell (or from ``start`` where given and >= 0) toward the query, crossing the
-        edge with the most negative barycentric coordinate: a few vectorised steps for all
-        queries, whatever their order. Queries a walk does not settle fall back to testing
-        every triangle listed in their cell.
-        """
-        if neighbors is None:
-            return self._scan(q, np.arange(q.shape[0]))
-        out = np.full(q.shape[0], -1, dtype=np.int64)
-        ix = np.floor((q[:, 0] - self.x0) / self.cell).astype(np.int64)
-        iy = np.floor((q[:, 1] - self.y0) / self.cell).astype(np.int64)
-        inside = (ix >= 0) & (ix < self.nx) & (iy >= 0) & (iy < self.ny) & np.isfinite(q).all(1)
-        cell = np.where(inside, ix * self.ny + iy, 0)
-        has = inside & (self.starts[cell + 1] > self.starts[cell])
-        tri = np.where(has, self.entries[np.minimum(self.starts[cell], self.entries.size - 1)], -1)
-        if start is not None:
-            tri = np.where((start >= 0) & inside, start, tri)
-        unsettled = kernels.walk_to_triangles(
-            np.ascontiguousarray(q, dtype=np.float64), tri.astype(np.int64, copy=False),
-            self.a, self.inv, np.ascontiguousarray(neighbors, dtype=np.int64), self.MAX_WALK,
-            out)
-        if unsettled.size:  # rare: degenerate walks; settle them by scanning their cells
-            out[unsettled] = self._scan(q[unsettled], np.arange(unsettled.size))
-        return out
-
     #: Most walking steps before falling back to a scan.
     MAX_WALK = 64
 
-    def _scan(self, q: np.ndarray, _: np.ndarray) -> np.ndarray:
-        """Test every triangle listed in each query's cell."""
-        out = np.full(q.shape[0], -1, dtype=np.int64)
-        ix = np.floor((q[:, 0] - self.x0) / self.cell).astype(np.int64)
-        iy = np.floor((q[:, 1] - self.y0) / self.cell).astype(np.int64)
-        inside = (ix >= 0) & (ix < self.nx) & (iy >= 0) & (iy < self.ny) & np.isfinite(q).all(1)
-        active = np.flatnonzero(inside)
-        cell = ix[active] * self.ny + iy[active]
-        start = self.starts[cell]
-        count = self.starts[cell + 1] - start
-        k = 0
-        eps = -1e-12
-        while active.size:
-            more = count > k
-            active, start, count = active[more], start[more], count[more]
-            if not active.size:
-                break
-            t = self.entries[start + k]
-            d = q[active] - self.a[t]
-            inv = self.inv[t]
-            l1 = inv[:, 0, 0] * d[:, 0] + inv[:, 0, 1] * d[:, 1]
-            l2 = inv[:, 1, 0] * d[:, 0] + inv[:, 1, 1] * d[:, 1]
-            hit = (l1 >= eps) & (l2 >= eps) & (1.0 - l1 - l2 >= eps)
-            out[active[hit]] = t[hit]
-            keep = ~hit
-            active, start, count = active[keep], start[keep], count[keep]
-            k += 1
+    def __init__(self, xy: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray) -> None:
+        self.xy = np.ascontiguousarray(xy, dtype=np.float64)
+        self.simplices = simplices
+        self.neighbors = neighbors
+        box = calibration_kernels.triangle_boxes(self.xy, simplices)
+        size = float(np.median(np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]))) \
+            if len(box) else 1.0
+        self.cell = max(size, 1e-3)
+        xy = self.xy
+        self.x0 = float(xy[:, 0].min()) if len(xy) else 0.0
+        self.y0 = float(xy[:, 1].min()) if len(xy) else 0.0
+        self.nx = int((xy[:, 0].max() - self.x0) / self.cell) + 1 if len(xy) else 1
+        self.ny = int((xy[:, 1].max() - self.y0) / self.cell) + 1 if len(xy) else 1
+        self.starts = np.empty(self.nx * self.ny + 1, dtype=np.int64)
+        self.entries = calibration_kernels.grid_lists(
+            simplices, box, self.x0, self.y0, self.cell, self.nx, self.ny,
+            self.MAX_CELLS_PER_TRIANGLE, self.starts)
+
+    def locate(self, q: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """Index of the triangle containing each query point (local XY), -1 if none;
+        ``start``: triangles to begin from (-1: none)."""
+        out = np.empty(q.shape[0], dtype=np.int64)
+        calibration_kernels.locate_points(
+            np.ascontiguousarray(q, dtype=np.float64),
+            _NO_START if start is None else np.ascontiguousarray(start, dtype=np.int64),
+            self.xy, self.simplices, self.neighbors, self.entries, self.starts, self.x0,
+            self.y0, self.cell, self.nx, self.ny, self.MAX_WALK, out)
         return out
+
+
+_NO_START = np.zeros(0, dtype=np.int64)
 
 
 @dataclass
@@ -382,10 +287,9 @@ def _match_block(
         fresh = guess < 0
         if fresh.any():
             guess[fresh] = tin.locate(xy[fresh])
-        found = guess >= 0
-        shift = vertex_shift[tin.simplices[guess[found]]].mean(axis=1)[:, :2]
-        xy2 = xy.copy()
-        xy2[found] += shift
+        xy2 = calibration_kernels.shifted_queries(
+            np.ascontiguousarray(xy), guess, tin.simplices,
+            np.ascontiguousarray(vertex_shift, dtype=np.float64))
         tri = tin.locate(xy2, guess)
     n = points.shape[0]
     best_tri = np.full(n, -1, dtype=np.int64)

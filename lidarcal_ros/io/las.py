@@ -42,8 +42,8 @@ from typing import Any, Literal
 import numpy as np
 
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
-from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import ConfigError, OutputError
+from lidarcal_ros.io import las_kernels
 from lidarcal_ros.io.las_reader import quiet_laspy_errors
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 
@@ -155,6 +155,12 @@ class _OutputFile(io.BufferedRandom):
             super().flush()
         except OSError as exc:
             raise self._kept(exc) from None
+
+
+def _column(values: np.ndarray | None, kind: str = "f4") -> np.ndarray:
+    """An optional column of :func:`~lidarcal_ros.io.las_kernels.fill_records`: empty (of
+    the type it would have) when the cloud lacks it."""
+    return np.zeros(0, dtype=kind) if values is None else values
 
 
 def _field(arr: np.ndarray, *names: str) -> np.ndarray | None:
@@ -330,55 +336,49 @@ class LasChunkWriter:
         ``incidence``, ``correction_flags``). Returns the number of points written."""
         import laspy
 
-        xyz = np.column_stack([np.asarray(points[c], dtype=np.float64) for c in "xyz"]) \
-            if len(points) else np.empty((0, 3))
+        x, y, z = (np.asarray(points[c], dtype=np.float64) for c in "xyz")
         t = np.asarray(points[self.time_field], dtype=np.float64)
-        finite = finite_rows(xyz)
-        if not finite.all():
-            self.stats.skipped_non_finite += int((~finite).sum())
-            points, xyz, t = points[finite], xyz[finite], t[finite]
         if self._writer is None:
-            self._open(xyz, t)
-        fits = (np.abs((xyz - self._header.offsets) / self._header.scales)
-                < _MAX_SCALED).all(axis=1)
-        if not fits.all():
-            self.stats.skipped_out_of_range += int((~fits).sum())
-            points, xyz, t = points[fits], xyz[fits], t[fits]
-        n = len(points)
+            finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+            self._open(np.column_stack([x[finite], y[finite], z[finite]]), t[finite])
+        header = self._header
+        offsets = np.asarray(header.offsets, dtype=np.float64)
+        scales = np.asarray(header.scales, dtype=np.float64)
+        rows, non_finite, out_of_range = las_kernels.rows_to_write(x, y, z, offsets, scales,
+                                                                   _MAX_SCALED)
+        self.stats.skipped_non_finite += non_finite
+        self.stats.skipped_out_of_range += out_of_range
+        n = len(rows)
         if n == 0:
             return 0
-        rec = laspy.ScaleAwarePointRecord.zeros(n, header=self._header)
-        rec.x = xyz[:, 0]
-        rec.y = xyz[:, 1]
-        rec.z = xyz[:, 2]
-        rec.gps_time = unix_to_adjusted_gps(t) if self._gps_standard else t
+        rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+        out = rec.array
         inten = _field(points, "intensity")
-        if inten is not None:
-            rec.intensity = self._intensity16(inten)
-        sid = _field(points, "strip_id", "point_source_id")
-        if sid is not None:
-            rec.point_source_id = np.clip(np.asarray(sid, dtype=np.int64), 0, 65535)
-        rn = _field(points, "return_number")
-        nr = _field(points, "number_of_returns")
-        one = np.ones(n, dtype=np.uint8)
-        rec.return_number = np.clip(rn, 1, 15).astype(np.uint8) if rn is not None else one
-        rec.number_of_returns = np.clip(nr, 1, 15).astype(np.uint8) if nr is not None else one
-        scan = _field(points, "scan_angle")
-        if scan is not None:
-            steps = np.degrees(-np.asarray(scan, dtype=np.float64)) / 0.006
-            rec.scan_angle = np.clip(np.nan_to_num(np.rint(steps)), -30000, 30000).astype(
-                np.int16)
-        for name, kind, _ in EXTRA_DIMENSIONS:
-            col = _field(points, name)
-            if col is not None:
-                rec[name] = np.asarray(col).astype(kind)
-            elif kind.startswith("f"):
-                rec[name] = np.full(n, np.nan, dtype=kind)
-        flags = _field(points, "correction_flags")
-        if flags is not None:
-            withheld = (np.asarray(flags) & FLAG_NOT_CORRECTED) != 0
-            rec.withheld = withheld.astype(np.uint8)
-            self.stats.withheld += int(withheld.sum())
+        mode = las_kernels.INTENSITY_NONE if inten is None else (
+            las_kernels.INTENSITY_U16 if inten.dtype == np.uint16 else
+            las_kernels.INTENSITY_U8 if inten.dtype == np.uint8 else
+            las_kernels.INTENSITY_FLOAT)
+        extra = [name for name, _, _ in EXTRA_DIMENSIONS]  # reflectance, range, incidence, flags
+        clipped, withheld = las_kernels.fill_records(
+            rows, x, y, z, t, bool(self._gps_standard),
+            GPS_EPOCH_UNIX + ADJUSTED_GPS_OFFSET, _LEAP_T, _LEAP_N,
+            _column(inten, "u2"), mode,
+            _column(_field(points, "strip_id", "point_source_id"), "u2"),
+            _column(_field(points, "return_number"), "u1"),
+            _column(_field(points, "number_of_returns"), "u1"),
+            _column(_field(points, "scan_angle")),
+            _column(_field(points, extra[0])), _column(_field(points, extra[1])),
+            _column(_field(points, extra[2])), _column(_field(points, extra[3]), "u1"),
+            FLAG_NOT_CORRECTED, offsets, scales, out["X"], out["Y"], out["Z"],
+            out["intensity"], out["bit_fields"], out["classification_flags"],
+            out["scan_angle"], out["point_source_id"], out["gps_time"], out[extra[0]],
+            out[extra[1]], out[extra[2]], out[extra[3]])
+        if clipped:
+            if self.stats.clipped_intensity == 0:
+                logger.warning("%s: intensities outside 0..65535 are clipped to the LAS range",
+                               self.path)
+            self.stats.clipped_intensity += clipped
+        self.stats.withheld += withheld
         try:
             self._writer.write_points(rec)
         except Exception as exc:  # lazrs wraps a failed write in its own error type
@@ -386,17 +386,3 @@ class LasChunkWriter:
         self.stats.points += n
         return n
 
-    def _intensity16(self, values: np.ndarray) -> np.ndarray:
-        kind = values.dtype
-        if kind == np.uint16:
-            return np.asarray(values)
-        if kind == np.uint8:
-            return np.asarray(values, dtype=np.uint16) * np.uint16(257)
-        v = np.nan_to_num(np.rint(np.asarray(values, dtype=np.float64)), nan=0.0)
-        clipped = (v < 0) | (v > 65535)
-        if clipped.any():
-            if self.stats.clipped_intensity == 0:
-                logger.warning("%s: intensities outside 0..65535 are clipped to the LAS range",
-                               self.path)
-            self.stats.clipped_intensity += int(clipped.sum())
-        return np.clip(v, 0, 65535).astype(np.uint16)

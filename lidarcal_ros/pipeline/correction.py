@@ -45,11 +45,11 @@ clouds waiting for their look-ahead and a few grid rows, whatever the mission le
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import heapq
 import logging
 import math
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
@@ -109,9 +109,11 @@ from lidarcal_ros.io.pointcloud import (
     cloud_to_array,
     extract_columns,
     float32_warning,
+    make_point_dtype,
     resolve_time_field,
     time_span,
 )
+from lidarcal_ros.io.prefetch import prefetched
 
 logger = logging.getLogger(__name__)
 
@@ -1296,10 +1298,11 @@ def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
     from lidarcal_ros.io.bag import TRAJECTORY_TYPES, TrajectorySamples
 
     samples = TrajectorySamples()
-    for _topic, msgtype, _ns, raw in bag.messages([topic]):
+    decode = functools.partial(bag.deserialize, topic=topic)
+    for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([topic])):
         if msgtype not in TRAJECTORY_TYPES:
             raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
-        samples.add(msgtype, bag.deserialize(raw, msgtype, topic=topic))
+        samples.add_raw(msgtype, raw, decode)
     if not samples:
         raise BagError(f"{bag.path}: topic {topic} has no messages")
     return samples.trajectory(f"{bag.path}: trajectory {topic}"), samples.frames
@@ -1355,6 +1358,9 @@ def correct_bag(
     from lidarcal_ros.io.bag import POINTCLOUD2, TRAJECTORY_TYPES, open_bag
 
     started = time.perf_counter()
+    # The compiled loops load while the trajectory is read (their first call in a process
+    # costs some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
+    threading.Thread(target=warm_up, name="lidarcal-warm-up", daemon=True).start()
     config = config or FlightConfig()
     record = (calibration if isinstance(calibration, CalibrationRecord)
               else read_calibration(calibration))
@@ -1405,7 +1411,8 @@ def correct_bag(
                 settings = with_constant(settings, target.constant)
                 meaning = f"{settings.radiometry.meaning} The {target.describe()}."
         corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
-                                    workers=workers, source=points_topic)
+                                    workers=workers, source=points_topic,
+                                    keep_tallies=kind == "bag")
         n_clouds = max(bag.topics[points_topic].count, 1)
         report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
                                   atmosphere=describe_alpha(settings.radiometry),
@@ -1448,7 +1455,8 @@ def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str, frame: str) ->
 
     if msgtype != POINTCLOUD2:
         raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
-    msg = bag.deserialize(raw, msgtype, topic=topic)
+    # (through a memoryview: rosbags would copy bytes to cut off their CDR header)
+    msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
     if msg.header.frame_id != frame:
         raise InputError(f"{bag.path}: clouds on {topic} are in frame '{msg.header.frame_id}' "
                          f"but the trajectory is in frame '{frame}'")
@@ -1489,7 +1497,7 @@ def _correct_to_las(
                 write_run(run)
                 run, run_points = [], 0
 
-        for topic, msgtype, _ns, raw in bag.messages([points_topic]):
+        for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([points_topic])):
             _msg, points = _cloud_points(bag, msgtype, raw, topic, frame)
             if time_field is None and len(points):
                 time_field = resolve_time_field(points, corrector.settings.time_field,
@@ -1527,6 +1535,8 @@ def _correct_to_bag(
     progress: Callable[[str, float], None] | None, report: CorrectionReport,
 ) -> None:
     from lidarcal_ros.io.bag import POINTCLOUD2, BagWriter
+    from lidarcal_ros.io.pointcloud import point_fields
+    from lidarcal_ros.io.ros_messages import cloud_header_cdr, stamp_ns
 
     latched = [t for t, info in bag.topics.items() if info.transient_local]
     # Output queue keyed by (input sequence number, 0 = passed through / 1 = corrected).
@@ -1535,14 +1545,30 @@ def _correct_to_bag(
     # keeps the input's (log-time) order.
     ready: list[tuple[int, int, Any]] = []
     held: deque[int] = deque()
+    clouds: dict[int, tuple[int, Any]] = {}  # input sequence number -> log time, message
+    # Each corrected cloud is built in the bytes of its message (the input's header, then
+    # the points, 8-byte aligned, then is_dense), which the writer then copies once.
+    messages: dict[int, np.ndarray] = {}
     skipped_topics: set[str] = set()
     seen = 0
 
+    def place(k_: int, n_: int, dtype_: np.dtype[Any]) -> np.ndarray:
+        """(from the worker threads)"""
+        _ns, msg_ = clouds[k_]
+        head = cloud_header_cdr(stamp_ns(msg_.header.stamp), msg_.header.frame_id,
+                                point_fields(dtype_), dtype_.itemsize, n_)
+        pad = (-len(head)) % 8
+        size = len(head) + n_ * dtype_.itemsize + 1
+        buf = np.empty(pad + size, dtype=np.uint8)
+        buf[pad:pad + len(head)] = np.frombuffer(head, dtype=np.uint8)
+        messages[k_] = buf[pad:]
+        return buf[pad + len(head):pad + size - 1].view(dtype_)
+
+    corrector.place = place
     with BagWriter(out_path, overwrite=overwrite, latched_topics=latched) as writer:
 
-        def write_corrected(ns_: int, msg_: Any, corrected_: np.ndarray) -> None:
-            writer.write_message(corrected_topic, POINTCLOUD2, ns_,
-                                 _cloud_message(msg_, corrected_))
+        def write_corrected(ns_: int, message: np.ndarray) -> None:
+            writer.write_raw(corrected_topic, POINTCLOUD2, ns_, message.data)
 
         def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
             if topic_ in skipped_topics:
@@ -1563,16 +1589,20 @@ def _correct_to_bag(
                 (write_corrected if kind_ == 1 else write_raw)(*payload)
 
         def collect(done: list[tuple[Any, np.ndarray]]) -> None:
-            for (k_, ns_, msg_), corrected in done:
-                heapq.heappush(ready, (k_, 1, (ns_, msg_, corrected)))
+            for k_, _corrected in done:
+                ns_, _msg = clouds.pop(k_)
+                message = messages.pop(k_)
+                message[-1] = corrector.tallies.pop(k_).dense
+                heapq.heappush(ready, (k_, 1, (ns_, message)))
                 held.remove(k_)
 
-        for k, (topic, msgtype, ns, raw) in enumerate(bag.messages()):
+        for k, (topic, msgtype, ns, raw) in enumerate(prefetched(bag.messages)):
             heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
             if topic == points_topic:
                 msg, points = _cloud_points(bag, msgtype, raw, topic, frame)
                 held.append(k)
-                collect(corrector.push(points, (k, ns, msg)))
+                clouds[k] = (ns, msg)
+                collect(corrector.push(points, k))
                 seen += 1
                 if progress and seen % 50 == 0:
                     progress("correcting", seen / n_clouds)
@@ -1582,18 +1612,25 @@ def _correct_to_bag(
         _check_something_corrected(corrector.stats, bag.path, points_topic)
 
 
-def _cloud_message(msg: Any, points: np.ndarray) -> Any:
-    """A PointCloud2 like ``msg`` (same header) carrying ``points`` as one row."""
-    from lidarcal_ros.io.pointcloud import array_to_cloud_parts
-
-    fields, step, data = array_to_cloud_parts(points)
-    field_cls = type(msg.fields[0])
-    n = len(points)
-    return dataclasses.replace(
-        msg, height=1, width=n,
-        fields=[field_cls(name=name, offset=off, datatype=dt, count=cnt)
-                for name, off, dt, cnt in fields],
-        is_bigendian=False, point_step=step, row_step=n * step, data=data)
+def warm_up() -> None:
+    """Correct a small synthetic cloud (of the lidarcal layout, read-only as a decoded one
+    is), so that the compiled loops of the correction are loaded, and numba initialised, now
+    rather than by the first cloud."""
+    n = 64
+    tt = np.linspace(0.0, 2.0, 41)
+    trajectory = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt,
+                                                 np.full_like(tt, 1000.0)]))
+    points = np.zeros(n, dtype=make_point_dtype())
+    points["x"] = np.linspace(-300.0, 300.0, n)
+    points["y"] = np.linspace(55.0, 65.0, n)
+    points["t"] = np.linspace(0.9, 1.1, n)
+    points["intensity"] = 100.0
+    points["strip_id"] = 1
+    cloud = np.frombuffer(points.tobytes(), dtype=points.dtype)
+    corrector = StreamCorrector(trajectory, CorrectionSettings(delta=np.zeros(8)),
+                                source="warm-up")
+    corrector.push(cloud)
+    corrector.flush()
 
 
 def iter_corrected(
