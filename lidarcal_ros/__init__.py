@@ -15,4 +15,4 @@ Layout (imports only run downward):
     What a process must set before rclpy starts (DDS confined to this machine); no rclpy.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
