@@ -439,3 +439,16 @@ def cluster_robust_sigma(sol: Solution, obs: Observations, step: np.ndarray) -> 
     q = int(used.sum())
     factor = n_clusters / (n_clusters - 1) * (q - 1) / max(q - len(idx), 1)
     return np.sqrt(np.maximum(np.diag(cov) * factor, 0.0))
+
+
+__all__ = [
+    "DEFAULT_MAX_SIGMA",
+    "REFERENCE_MAGNITUDE",
+    "NormalEquations",
+    "ObservabilityLimits",
+    "Observations",
+    "ParameterStatus",
+    "Solution",
+    "cluster_robust_sigma",
+    "solve",
+]

@@ -20,3 +20,8 @@ FLAG_NO_INTENSITY = 8
 #: normal, hence incidence, is uncertain (computed all the same); reflectance bounds the
 #: incidence term (``radiometry.uncertain_incidence_max_deg``).
 FLAG_ROUGH = 16
+
+
+__all__ = [
+    "FLAG_GRAZING", "FLAG_NOT_CORRECTED", "FLAG_NO_INTENSITY", "FLAG_NO_NORMAL", "FLAG_ROUGH",
+]

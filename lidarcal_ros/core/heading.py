@@ -187,3 +187,10 @@ def _log_once(message: str) -> None:
     if message not in _LOGGED:
         _LOGGED.add(message)
         logger.warning("%s", message)
+
+
+__all__ = [
+    "HEADING_SOURCES", "MAX_CRAB_DEG", "check_orientation", "choose_heading",
+    "describe_heading_policy", "describe_heading_use", "median_crab_deg", "window_headings",
+    "wrap_angle",
+]

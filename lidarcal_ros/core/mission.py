@@ -266,3 +266,6 @@ class Mission:
     @property
     def n_points(self) -> int:
         return sum(len(s) for s in self.strips)
+
+
+__all__ = ["CONFLICT_M", "ControlPoints", "Mission", "Strip", "Trajectory", "screen_samples"]

@@ -354,3 +354,11 @@ def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: Lase
         _NO_COLUMN if weight is None else np.ascontiguousarray(weight, dtype=np.float64),
         geometry.x, geometry.z, geometry.beta, sb, cb, c, s,
         _NO_ROTATION if geometry.rotation is None else geometry.rotation, out)
+
+
+__all__ = [
+    "Trig", "add_geometry_normal_rows", "body_columns", "body_normal_rows", "boresight_matrix",
+    "correct_geometry", "correct_points", "correct_points_exact", "design_matrix",
+    "exact_correction", "geometry_design_matrix", "geometry_normal_rows", "geometry_offsets",
+    "normal_design_rows", "point_offsets",
+]

@@ -96,3 +96,10 @@ def as_vector(values: dict[str, float]) -> np.ndarray:
 def as_dict(vector: np.ndarray) -> dict[str, float]:
     """Vector in :data:`PARAMETER_NAMES` order to a dict."""
     return {name: float(v) for name, v in zip(PARAMETER_NAMES, vector)}
+
+
+__all__ = [
+    "ANGLES", "ARCSEC_PER_RAD", "BORESIGHT", "LEVER_ARM", "N_PARAMETERS", "PARAMETER_INDEX",
+    "PARAMETER_NAMES", "SI_UNITS", "arcsec_to_rad", "as_dict", "as_vector", "display_value",
+    "format_estimate", "format_value", "parse_parameter_list", "rad_to_arcsec",
+]

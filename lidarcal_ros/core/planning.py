@@ -367,3 +367,16 @@ def _line_geometry(plan: FlightPlan) -> dict[str, bool]:
                 if lateral >= 0.2 * swath_width(hi, plan.fov_deg):
                     offset_same = True
     return {"offset_same_direction": offset_same, "crossing": crossing}
+
+
+__all__ = [
+    "MAX_SIMULATED_DENSITY",
+    "MAX_SIMULATED_POINTS",
+    "PLAN_KEYS",
+    "SENSOR_KEYS",
+    "TERRAINS",
+    "FlightPlan",
+    "ParameterPrediction",
+    "PlanReport",
+    "predict",
+]

@@ -135,3 +135,13 @@ def assess(*, rmsdz_m: float, max_dz_m: float, anpd_per_m2: float, nva_rmse_m: f
         Criterion("aggregate nominal pulse density", anpd_per_m2, "anpd_per_m2",
                   at_least=True, note="points over the area the strips cover"),
     ))
+
+
+__all__ = [
+    "LBS_LEVELS",
+    "MIN_NVA_CHECK_POINTS",
+    "Criterion",
+    "QualityAssessment",
+    "QualityLevel",
+    "assess",
+]

@@ -447,3 +447,21 @@ def constant_from_target(relative: np.ndarray, known_reflectance: float) -> floa
                           "reflectance (none inside it, or all rough, grazing or without "
                           "intensity)")
     return float(np.median(values)) / float(known_reflectance)
+
+
+__all__ = [
+    "P0_KPA",
+    "POWER_MODELS",
+    "RAYLEIGH_550_PER_KM",
+    "T0_K",
+    "RadiometricModel",
+    "atmospheric_alpha",
+    "constant_from_target",
+    "cos_incidence",
+    "describe_alpha",
+    "extinction_coefficient",
+    "kim_q",
+    "power_ratio",
+    "rayleigh_alpha",
+    "two_way_transmittance",
+]

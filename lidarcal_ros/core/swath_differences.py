@@ -269,3 +269,17 @@ def swath_differences(
     shape = (grid.ny, grid.nx)
     return SwathDifferences(grid, mosaics["before"].reshape(shape),
                             mosaics["after"].reshape(shape), pairs)
+
+
+__all__ = [
+    "MAX_CELL_SPREAD_M",
+    "MIN_CELL_POINTS",
+    "SMOOTH_SLOPE_DEG",
+    "BlockGrid",
+    "CellHeights",
+    "DzStatistics",
+    "PairDifference",
+    "SwathDifferences",
+    "cell_heights",
+    "swath_differences",
+]

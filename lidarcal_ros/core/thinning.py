@@ -55,3 +55,6 @@ def first_per_cell(xyz: np.ndarray, group: np.ndarray, cell_m: float, *,
             np.ascontiguousarray(valid, dtype=bool))
     done, keep = kernels.first_in_grid(*args, _MAX_GRID_CELLS)
     return keep if done else kernels.first_in_cells(*args)
+
+
+__all__ = ["first_per_cell"]

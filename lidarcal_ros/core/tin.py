@@ -308,3 +308,6 @@ def _match_block(
     out.normal[where] = best_nrm
     out.weights[where] = best_w
     out.distance[where] = best_d
+
+
+__all__ = ["GridLocator", "PatchMatches", "Tin", "TinQuality", "delaunay", "match_to_tin"]

@@ -219,3 +219,6 @@ def _latched(metadata: dict[str, str]) -> bool:
     except Exception:  # unreadable QoS: informative only, as for BagReader
         return False
     return any(q.durability == QosDurability.TRANSIENT_LOCAL for q in profiles)
+
+
+__all__ = ["RecoveredBag", "bag_files", "recover_bag"]

@@ -202,3 +202,12 @@ def _check_units(path: Path, name: str, value: float) -> None:
             f"{path}: biases.{name}.value {value:g} is implausible in SI units ({unit}; "
             f"|value| <= {limit:g}); arcseconds or centimetres written by mistake?"
         )
+
+
+__all__ = [
+    "ROOT_KEY",
+    "CalibrationRecord",
+    "calibration_document",
+    "read_calibration",
+    "write_calibration",
+]

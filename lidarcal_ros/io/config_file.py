@@ -100,3 +100,6 @@ def load_flight_config(path: str | Path | None) -> FlightConfig:
         # Relative paths in a parameters file are relative to the file, not to the caller.
         flight["calibration.control_points_file"] = str(Path(path).parent / control)
     return FlightConfig.from_mapping(flight, source=str(path), check=False)
+
+
+__all__ = ["flatten", "load_flight_config", "read_parameters_file", "warn_undeclared"]

@@ -124,3 +124,6 @@ def write_control_csv(path: str | os.PathLike[str], control: ControlPoints) -> N
             raise InputError(f"{p}: control id {pid!r} contains a comma or newline")
         rows.append(f"{pid},{float(x)!r},{float(y)!r},{float(z)!r}")
     write_text(p, "\n".join(rows) + "\n", what="control point file")
+
+
+__all__ = ["COLUMNS", "MAX_COORDINATE_M", "read_control_csv", "write_control_csv"]

@@ -45,3 +45,6 @@ def total_size(path: str | Path) -> int:
     if path.is_dir():
         return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
     return path.stat().st_size
+
+
+__all__ = ["digest", "total_size"]

@@ -386,3 +386,16 @@ class LasChunkWriter:
         self.stats.points += n
         return n
 
+
+__all__ = [
+    "ADJUSTED_GPS_OFFSET",
+    "EXTRA_DIMENSIONS",
+    "GPS_EPOCH_UNIX",
+    "SCALE_M",
+    "LasChunkWriter",
+    "LasStats",
+    "adjusted_gps_to_unix",
+    "leap_seconds",
+    "parse_crs",
+    "unix_to_adjusted_gps",
+]

@@ -117,3 +117,8 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
         remove_quietly(tmp)
         raise OutputError(f"{path}: cannot write {what} ({os_reason(exc)})") from None
     return path
+
+
+__all__ = [
+    "EXISTS", "check_output", "os_reason", "remove_quietly", "temporary_beside", "write_text",
+]

@@ -392,3 +392,10 @@ def reflectance_figure(intensity: MapRaster, reflectance: MapRaster, unit: str,
         colorbar.set_label(bar, fontsize=_SMALL)
         colorbar.ax.tick_params(labelsize=7)
     return fig
+
+
+__all__ = [
+    "DIFFERENCE_CMAP", "FIGURE_DPI", "PAIR_POINTS_PER_CELL", "correlation_figure",
+    "flight_map_figure", "new_figure", "pair_figure", "pair_limit_cm", "png_base64",
+    "reflectance_figure", "swath_figure", "vmr_figure",
+]

@@ -467,3 +467,36 @@ def worst_level(statuses: Iterable[StatusSpec]) -> int:
 def flatten_values(values: Mapping[str, Any]) -> dict[str, str]:
     """Key-values as strings (numbers formatted compactly)."""
     return {str(k): status_value(v) for k, v in values.items()}
+
+
+__all__ = [
+    "ESTIMATE_COLUMN_LABEL",
+    "ESTIMATE_ROWS",
+    "ESTIMATE_ROW_LABEL",
+    "LEVEL_NAMES",
+    "POINTCLOUD2",
+    "CloudMessage",
+    "Estimate",
+    "StatusSpec",
+    "calibration_yaml",
+    "cloud_cdr",
+    "cloud_cdr_parts",
+    "cloud_header_cdr",
+    "deserialize",
+    "estimate_matrix",
+    "estimate_row_label",
+    "estimate_status",
+    "flatten_values",
+    "geometry_status",
+    "is_dense_byte",
+    "pair_level",
+    "parse_cloud",
+    "parse_estimate",
+    "qa_statuses",
+    "qa_summary",
+    "serialize",
+    "stamp_ns",
+    "typestore",
+    "warm_up_cloud_codec",
+    "worst_level",
+]

@@ -203,3 +203,6 @@ def _remove_orphans(directory: Path, prefix: str) -> None:
             path.unlink(missing_ok=True)
         except (PermissionError, OSError):
             pass  # another user's process, or alive
+
+
+__all__ = ["SharedRing"]

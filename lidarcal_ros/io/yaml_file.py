@@ -30,3 +30,6 @@ def read_yaml(path: str | Path, *, what: str = "file") -> Any:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise ConfigError(f"{path}: {what} is not valid YAML{where}") from None
+
+
+__all__ = ["read_yaml"]

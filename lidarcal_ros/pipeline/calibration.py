@@ -376,3 +376,10 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
             remove_quietly(path)
         raise
     return paths
+
+
+__all__ = [
+    "Truth", "calibrate_mission", "convergence_warning", "format_agreement", "format_report",
+    "load_mission", "parse_biases", "qa_level", "simulation_paths", "truth_document",
+    "unused_control", "write_simulation",
+]

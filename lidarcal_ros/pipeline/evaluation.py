@@ -323,3 +323,9 @@ def format_evaluation(ev: Evaluation) -> str:
                          f"{format_cm(s.rmse, missing='-')} cm  max |r| "
                          f"{format_cm(s.max_abs, missing='-')} cm")
     return "\n".join(lines)
+
+
+__all__ = [
+    "CheckPointResidual", "Evaluation", "PairAlignment", "corrected_strips",
+    "evaluate_mission", "format_evaluation",
+]

@@ -190,3 +190,10 @@ def measure_target_in_bag(
     m = TARGET_MARGIN_M
     mission = load_mission(bag, config, box=(x0 - m, y0 - m, x1 + m, y1 + m))
     return measure_target_on_mission(mission, settings, target)
+
+
+__all__ = [
+    "TARGET_MARGIN_M", "TARGET_MAX_INCIDENCE_DEG", "TargetMeasurement", "measure_target",
+    "measure_target_in_bag", "measure_target_on_mission", "relative_settings", "target_of",
+    "trusted_in_box", "with_constant",
+]

@@ -230,3 +230,8 @@ def iter_window(messages: Iterable[Message], window: ReplayWindow) -> Iterator[M
         if msg[2] > window.end_ns:
             break
         yield msg
+
+
+__all__ = [
+    "Message", "Pacer", "ReplayStats", "ReplayWindow", "iter_window", "replay", "replay_window",
+]
