@@ -1,0 +1,43 @@
+"""How each layer package (``core``, ``io``, ``pipeline``) exports its public names.
+
+A layer's ``__init__`` lists every public name of its modules (``from lidarcal_ros.core
+import Calibrator``) but imports a module only when one of its names is first asked for:
+importing a package would otherwise load every module of the layer (numba's compiled loops,
+matplotlib, rosbags' type store), which the command line and the nodes must not pay for at
+start. :func:`lazy_exports` builds the package's ``__getattr__`` and ``__dir__`` (PEP 562)
+from a table of name -> module; ``test/test_exports.py`` holds the table to the modules'
+own ``__all__``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from typing import Any
+
+
+def lazy_exports(package: str, table: Mapping[str, str]
+                 ) -> tuple[Callable[[str], Any], Callable[[], list[str]]]:
+    """``__getattr__`` and ``__dir__`` for ``package`` exporting ``table``.
+
+    Parameters
+    ----------
+    package
+        The package's ``__name__``.
+    table
+        Each exported name -> the module (relative to ``package``) that defines it.
+    """
+
+    def __getattr__(name: str) -> Any:
+        module = table.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        return getattr(importlib.import_module(f"{package}.{module}"), name)
+
+    def __dir__() -> list[str]:
+        return sorted(table)
+
+    return __getattr__, __dir__
+
+
+__all__ = ["lazy_exports"]
