@@ -175,7 +175,7 @@ def throughput_worker(spec: MissionSpec, repeats: int, baseline_points: int) -> 
     from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
-    from lidarcal_ros.io.bag import _chunk_bounds, _strip_points
+    from lidarcal_ros.io.mission_bag import strip_point_array, time_chunk_bounds
     from lidarcal_ros.pipeline.correction import (
         DEFAULT_BATCH_POINTS,
         CorrectionSettings,
@@ -188,8 +188,8 @@ def throughput_worker(spec: MissionSpec, repeats: int, baseline_points: int) -> 
     settings = CorrectionSettings.from_config(FlightConfig(), as_vector(sim.biases))
     clouds: list[tuple[int, int, np.ndarray]] = []
     for k, strip in enumerate(mission.strips):
-        pts = _strip_points(strip, {}, "bench")
-        b = _chunk_bounds(pts["t"], 0.1)
+        pts = strip_point_array(strip, {}, "bench")
+        b = time_chunk_bounds(pts["t"], 0.1)
         clouds.extend((k, lo, pts[lo:hi]) for lo, hi in itertools.pairwise(b))
     n = mission.n_points
 

@@ -714,7 +714,7 @@ def bench_calibrator(rate: float, context: Any) -> dict[str, Any]:
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
 
-    from lidarcal_ros.io.bag import open_bag
+    from lidarcal_ros.io.bag_reader import open_bag
     from lidarcal_ros.io.ros_messages import parse_cloud
     from lidarcal_ros.nodes.topics import latched_qos
 
@@ -856,7 +856,7 @@ def bench_calibrator_rate(rate: float, seconds: float, chunk_s: float, thinning_
 
 
 def bag_duration(path: Path) -> float:
-    from lidarcal_ros.io.bag import open_bag
+    from lidarcal_ros.io.bag_reader import open_bag
 
     with open_bag(path) as bag:
         return (bag.end_ns - bag.start_ns) / 1e9

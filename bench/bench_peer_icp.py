@@ -460,7 +460,7 @@ def run_lidarcal_cli(sim: SimulatedMission) -> MethodResult:
 def corrected_points(bag: Path, sim: SimulatedMission) -> list[np.ndarray]:
     """The corrected x, y, z of every strip of ``sim`` read back from a corrected bag, in the
     simulation's order (each strip's clouds in log-time order, which is its time order)."""
-    from lidarcal_ros.io.bag import open_bag
+    from lidarcal_ros.io.bag_reader import open_bag
     from lidarcal_ros.io.pointcloud import cloud_to_array
 
     parts: dict[int, list[np.ndarray]] = {}

@@ -132,8 +132,8 @@ def prepare_mission(spec: MissionSpec, *, quiet: bool = False) -> dict[str, Any]
 
 
 def _prepare_worker(spec: MissionSpec, where: Path) -> None:
-    from lidarcal_ros.io.bag import write_mission_bag
     from lidarcal_ros.io.control import write_control_csv
+    from lidarcal_ros.io.mission_bag import write_mission_bag
 
     started = time.perf_counter()
     sim = simulate(spec)

@@ -39,7 +39,8 @@ from lidarcal_ros.core.mission import Mission, Strip, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
-from lidarcal_ros.io.bag import BagWriter, seconds_to_ns
+from lidarcal_ros.io.bag_format import seconds_to_ns
+from lidarcal_ros.io.bag_writer import BagWriter
 from lidarcal_ros.io.pointcloud import CloudColumns
 from lidarcal_ros.pipeline.calibration import write_simulation
 

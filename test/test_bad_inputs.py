@@ -42,8 +42,10 @@ from helpers_missions import (
 from lidarcal_ros.core.mission import Mission, Trajectory, screen_samples
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import CloudFormatError, TrajectoryError
-from lidarcal_ros.io.bag import BagWriter, read_mission, seconds_to_ns, write_mission_bag
+from lidarcal_ros.io.bag_format import seconds_to_ns
+from lidarcal_ros.io.bag_writer import BagWriter
 from lidarcal_ros.io.las import LasChunkWriter
+from lidarcal_ros.io.mission_bag import read_mission, write_mission_bag
 from lidarcal_ros.io.pointcloud import extract_columns, float32_step, float32_warning
 
 mission_factory = helpers_missions.mission_factory

@@ -19,7 +19,8 @@ from helpers_missions import truncate
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.errors import BagError
-from lidarcal_ros.io.bag import open_bag, stamp_seconds
+from lidarcal_ros.io.bag_format import stamp_seconds
+from lidarcal_ros.io.bag_reader import open_bag
 from lidarcal_ros.io.bag_recovery import recover_bag
 from lidarcal_ros.io.pointcloud import time_span
 from lidarcal_ros.io.ros_messages import deserialize, parse_cloud

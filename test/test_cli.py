@@ -35,7 +35,7 @@ from helpers_missions import (
 
 from lidarcal_ros.cli.main import main
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.io.bag import write_mission_bag
+from lidarcal_ros.io.mission_bag import write_mission_bag
 
 # The shared fixtures (module attributes are collected as fixtures).
 mission_factory = helpers_missions.mission_factory
@@ -404,7 +404,7 @@ def test_simulate_with_attitude_writes_the_crabbed_heading_as_the_orientation(ca
                                                                                tmp_path):
     """``--attitude``: each pose's orientation is the sensor's heading, the track's turned
     by the line's crab; without it the orientation is the identity."""
-    from lidarcal_ros.io.bag import read_mission
+    from lidarcal_ros.io.mission_bag import read_mission
 
     for attitude in (True, False):
         out = tmp_path / f"sim_{attitude}"
@@ -433,7 +433,7 @@ def test_simulate_rough_air_writes_the_ins_attitude_and_its_truth(capsys, tmp_pa
     heading wobble, 5 deg of crab), the orientation on the trajectory at 50 Hz; the truth
     says the settings and each line's attitude; ``--no-attitude`` keeps positions only."""
     from lidarcal_ros.core.attitude import attitude_from_quaternions
-    from lidarcal_ros.io.bag import read_mission
+    from lidarcal_ros.io.mission_bag import read_mission
 
     base = ["--scenario", "one_track", "--density", "0.05", "--line-length", "200",
             "--rough-air"]

@@ -403,13 +403,13 @@ def test_streaming_batches_do_not_change_results(corrected: dict[str, Any]) -> N
     at once give the same output: the normals of each strip come from one grid whatever the
     cut into clouds. Without look-ahead only the normals at the clouds' leading edges differ."""
     from lidarcal_ros.core.config import FlightConfig
-    from lidarcal_ros.io.bag import _strip_points
+    from lidarcal_ros.io.mission_bag import strip_point_array
 
     sim = corrected["files"].sim
     settings = CorrectionSettings.from_config(
         FlightConfig(), np.array([sim.biases[n] for n in PARAMETER_NAMES]))
     strip = sim.mission.strips[2]
-    pts = _strip_points(strip, {}, "test")
+    pts = strip_point_array(strip, {}, "test")
     outs = {}
     for name, batch, workers, lookahead, step in (
             ("one cloud at a time", 0, 1, True, 4000),
@@ -534,13 +534,13 @@ def test_node_mode_one_cloud_at_a_time_with_empty_clouds(small_mission: MissionF
     reach past its look-ahead; empty clouds pass; flush releases the rest; order is kept."""
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.normals import STREAM_START_POINTS
-    from lidarcal_ros.io.bag import _strip_points
+    from lidarcal_ros.io.mission_bag import strip_point_array
 
     sim = small_mission.sim
     settings = CorrectionSettings.from_config(
         FlightConfig(), np.array([sim.biases[n] for n in PARAMETER_NAMES]))
     corr = StreamCorrector(sim.mission.trajectory, settings, batch_points=0)
-    pts = _strip_points(sim.mission.strips[0], {}, "test")
+    pts = strip_point_array(sim.mission.strips[0], {}, "test")
     empty = pts[:0]
     released: list[tuple[str, int]] = []
     cuts = [*range(0, len(pts), 1500), len(pts)]

@@ -18,7 +18,7 @@ from helpers_missions import MissionFiles
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.io.bag import _strip_points
+from lidarcal_ros.io.mission_bag import strip_point_array
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.shared_ring import SharedRing
 from lidarcal_ros.pipeline import correction as correction_module
@@ -58,7 +58,7 @@ def _stream(small_mission: MissionFiles) -> tuple[CorrectionSettings, Any, list[
     sim = small_mission.sim
     settings = CorrectionSettings.from_config(
         FlightConfig(), np.array([sim.biases[n] for n in PARAMETER_NAMES]))
-    pts = _strip_points(sim.mission.strips[0], {}, "test")
+    pts = strip_point_array(sim.mission.strips[0], {}, "test")
     cuts = [*range(0, len(pts), 3000), len(pts)]
     clouds = [cloud_cdr(1_000_000_000 + k, "map", pts[a:b])
               for k, (a, b) in enumerate(itertools.pairwise(cuts))]

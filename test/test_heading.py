@@ -30,7 +30,7 @@ from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import TrajectoryError
-from lidarcal_ros.io.bag import read_mission, write_mission_bag
+from lidarcal_ros.io.mission_bag import read_mission, write_mission_bag
 from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 WIND = (5.0, 0.0)  # m/s east: 4.8 degrees of crab at 60 m/s on north-south lines

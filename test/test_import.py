@@ -36,8 +36,8 @@ from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.errors import InputError, TrajectoryError
-from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
+from lidarcal_ros.io.mission_bag import read_mission
 from lidarcal_ros.io.trajectory_crs import map_orientation
 from lidarcal_ros.io.trajectory_files import (
     WEEK_S,

@@ -14,13 +14,10 @@ from rosbags.typesys import Stores, get_typestore
 
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.errors import BagError, CloudFormatError, InputError, OutputError
-from lidarcal_ros.io.bag import (
-    BagWriter,
-    open_bag,
-    read_mission,
-    seconds_to_ns,
-    write_mission_bag,
-)
+from lidarcal_ros.io.bag_format import seconds_to_ns
+from lidarcal_ros.io.bag_reader import open_bag
+from lidarcal_ros.io.bag_writer import BagWriter
+from lidarcal_ros.io.mission_bag import read_mission, write_mission_bag
 
 T0 = 1.7e9  # absolute seconds, as a GPS-synchronised recorder would stamp
 TS = get_typestore(Stores.ROS2_HUMBLE)
@@ -373,7 +370,7 @@ def test_nan_points_dropped(tmp_path, mission, caplog):
     m = Mission(mission.trajectory, strips, None, "map")
     path = tmp_path / "nan"
     write_mission_bag(path, m)
-    with caplog.at_level(logging.WARNING, logger="lidarcal_ros.io.bag"):
+    with caplog.at_level(logging.WARNING, logger="lidarcal_ros.io.mission_bag"):
         got = read_mission(path)
     assert got.dropped_non_finite == 4
     assert "dropped 4 points" in caplog.text
@@ -514,7 +511,7 @@ def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch
 def test_chunks_read_ahead_give_rosbags_messages(bag, tmp_path, monkeypatch):
     """Chunks decompressed ahead in threads give the messages, bytes and order of rosbags'
     reader (a bag of ours, and one whose chunks overlap in time, which rosbags merges)."""
-    from lidarcal_ros.io import bag as bag_module
+    from lidarcal_ros.io import bag_reader as bag_module
     from lidarcal_ros.io import mcap_chunks
 
     def read(path: Path, topics: list[str] | None = None) -> list[tuple[str, str, int, bytes]]:
@@ -548,7 +545,8 @@ def test_poses_read_from_their_bytes_are_those_decoded():
     """A PoseStamped read straight from its CDR bytes gives the numbers and frame of its
     decoded message, whatever the frame id's length (and so its padding); other types and
     big-endian bytes go through the decoder."""
-    from lidarcal_ros.io.bag import POSE_STAMPED, TrajectorySamples
+    from lidarcal_ros.io.bag_format import POSE_STAMPED
+    from lidarcal_ros.io.trajectory_messages import TrajectorySamples
 
     types = TS.types
     rng = np.random.default_rng(9)

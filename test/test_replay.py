@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.bag import BagWriter, open_bag
+from lidarcal_ros.io.bag_reader import open_bag
+from lidarcal_ros.io.bag_writer import BagWriter
 from lidarcal_ros.io.pointcloud import make_point_dtype
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, serialize, typestore
 from lidarcal_ros.pipeline.replay import Pacer, ReplayWindow, iter_window, replay, replay_window

@@ -298,7 +298,7 @@ def test_rough_air_needs_the_rigorous_model(
     5 mm); the level model puts boresight and range several sigmas off."""
     from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
     from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
-    from lidarcal_ros.io.bag import read_mission
+    from lidarcal_ros.io.mission_bag import read_mission
     from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
     rough = mission_factory(**ROUGH, rough_air=RoughAir(),

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core.attitude import headings_from_quaternions
-from lidarcal_ros.io.bag import ODOMETRY, POSE_STAMPED
+from lidarcal_ros.io.bag_format import ODOMETRY, POSE_STAMPED
 
 
 @pytest.fixture()

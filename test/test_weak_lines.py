@@ -37,8 +37,8 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.core.trajectory_estimation import EstimateSettings
-from lidarcal_ros.io.bag import read_mission, write_mission_bag
 from lidarcal_ros.io.config_file import load_flight_config
+from lidarcal_ros.io.mission_bag import read_mission, write_mission_bag
 from lidarcal_ros.pipeline.importer import ImportOptions, import_mission
 
 mission_factory = helpers_missions.mission_factory

@@ -72,7 +72,7 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from lidarcal_ros.io.bag import open_bag
+    from lidarcal_ros.io.bag_reader import open_bag
     from lidarcal_ros.pipeline.replay import Pacer, replay, replay_window
 
     if not (math.isfinite(args.rate) and args.rate > 0):

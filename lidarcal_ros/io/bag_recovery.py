@@ -2,8 +2,8 @@
 
 A recorder that loses power in flight leaves an MCAP file without its summary and footer, often
 cut inside a chunk, and a rosbag2 directory without ``metadata.yaml`` (rosbag2 writes it when
-the recording ends). :class:`~lidarcal_ros.io.bag.BagReader` refuses such a bag, as it must: it
-cannot know what is missing. :func:`recover_bag` reads the files record by record from the
+the recording ends). :class:`~lidarcal_ros.io.bag_reader.BagReader` refuses such a bag, as it
+must: it cannot know what is missing. :func:`recover_bag` reads the files record by record from the
 start (the ``mcap`` library's stream reader needs no summary), keeps every message up to the
 first damaged record of each file, and writes them to a complete bag that every command reads.
 """
@@ -19,7 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from lidarcal_ros.errors import BagError
-from lidarcal_ros.io.bag import BagWriter, ReadableMcap, normalize_msgtype, stamp_seconds
+from lidarcal_ros.io.bag_format import normalize_msgtype, stamp_seconds
+from lidarcal_ros.io.bag_reader import ReadableMcap
+from lidarcal_ros.io.bag_writer import BagWriter
 
 logger = logging.getLogger(__name__)
 
@@ -210,7 +212,7 @@ def _declare(channel: Any, schema: Any, writer: BagWriter,
 def _latched(metadata: dict[str, str]) -> bool:
     """Whether rosbag2 recorded the topic as offered with transient-local durability (as
     the control points are), from the channel's ``offered_qos_profiles`` (parsed by rosbags,
-    as :class:`~lidarcal_ros.io.bag.BagReader` parses them)."""
+    as :class:`~lidarcal_ros.io.bag_reader.BagReader` parses them)."""
     from rosbags.interfaces import QosDurability
     from rosbags.rosbag2.metadata import parse_qos
 

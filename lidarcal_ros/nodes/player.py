@@ -18,7 +18,7 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from lidarcal_ros.io.bag import BagReader
+from lidarcal_ros.io.bag_reader import BagReader
 from lidarcal_ros.nodes.topics import latched_qos, stream_qos
 
 __all__ = ["PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"]

@@ -25,8 +25,8 @@ from lidarcal_ros.core.heading import check_orientation, describe_heading_use
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.bag import read_mission
 from lidarcal_ros.io.control import read_control_csv
+from lidarcal_ros.io.mission_bag import read_mission
 from lidarcal_ros.io.output_files import check_output, remove_quietly, write_text
 from lidarcal_ros.io.yaml_file import read_yaml
 
@@ -354,8 +354,8 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
     OutputError
         One of the outputs exists and ``overwrite`` is False, or cannot be written.
     """
-    from lidarcal_ros.io.bag import write_mission_bag
     from lidarcal_ros.io.control import write_control_csv
+    from lidarcal_ros.io.mission_bag import write_mission_bag
 
     paths = simulation_paths(output)
     for key in ("bag", "control", "truth"):

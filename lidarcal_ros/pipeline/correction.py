@@ -1295,7 +1295,7 @@ def output_kind(path: str | Path) -> str:
 
 def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
     """First pass: every trajectory sample of an open bag, and the frames they are in."""
-    from lidarcal_ros.io.bag import TRAJECTORY_TYPES, TrajectorySamples
+    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
 
     samples = TrajectorySamples()
     decode = functools.partial(bag.deserialize, topic=topic)
@@ -1355,7 +1355,9 @@ def correct_bag(
     BagError, CloudFormatError, InputError, ConfigError, TrajectoryError
         One line naming the file, topic or field at fault.
     """
-    from lidarcal_ros.io.bag import POINTCLOUD2, TRAJECTORY_TYPES, open_bag
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
+    from lidarcal_ros.io.bag_reader import open_bag
+    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
 
     started = time.perf_counter()
     # The compiled loops load while the trajectory is read (their first call in a process
@@ -1451,7 +1453,7 @@ def correct_bag(
 
 def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str, frame: str) -> tuple[Any,
                                                                                         np.ndarray]:
-    from lidarcal_ros.io.bag import POINTCLOUD2
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
 
     if msgtype != POINTCLOUD2:
         raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
@@ -1534,7 +1536,8 @@ def _correct_to_bag(
     corrected_topic: str, frame: str, overwrite: bool, n_clouds: int,
     progress: Callable[[str, float], None] | None, report: CorrectionReport,
 ) -> None:
-    from lidarcal_ros.io.bag import POINTCLOUD2, BagWriter
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
+    from lidarcal_ros.io.bag_writer import BagWriter
     from lidarcal_ros.io.pointcloud import point_fields
     from lidarcal_ros.io.ros_messages import cloud_header_cdr, stamp_ns
 

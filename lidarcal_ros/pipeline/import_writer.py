@@ -17,7 +17,8 @@ import numpy as np
 
 from lidarcal_ros.core.overlap_grid import OverlapGrid, PairQA
 from lidarcal_ros.errors import TrajectoryError
-from lidarcal_ros.io.bag import BagWriter, seconds_to_ns
+from lidarcal_ros.io.bag_format import seconds_to_ns
+from lidarcal_ros.io.bag_writer import BagWriter
 from lidarcal_ros.pipeline.import_options import ImportOptions
 from lidarcal_ros.pipeline.import_points import PointsRead, Progress, merged_windows
 from lidarcal_ros.pipeline.import_strips import StripAssembly

@@ -1,0 +1,89 @@
+"""What the bag reader and the bag writer share: the message types lidarcal reads and writes,
+their names, the standard typestore, the QoS profile recorded with a topic, and the conversions
+between float seconds and the integer nanoseconds of bags and message stamps.
+
+Times: bag log times and header stamps are integer nanoseconds; mission times are float seconds
+on the same clock.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+ODOMETRY = "nav_msgs/msg/Odometry"
+
+#: Nanoseconds in a second (bag log times and stamps are integer nanoseconds).
+NS_PER_SECOND = 1_000_000_000
+_INFINITE = QosTime(9223372036, 854775807)
+
+
+def standard_typestore() -> Typestore:
+    """A fresh typestore with the standard ROS 2 message definitions."""
+    store = getattr(Stores, "ROS2_JAZZY", Stores.ROS2_HUMBLE)
+    return get_typestore(store)
+
+
+def normalize_msgtype(name: str) -> str:
+    """``pkg/Type`` -> ``pkg/msg/Type``; names that already have a namespace are kept."""
+    parts = name.split("/")
+    if len(parts) == 2 and all(parts):
+        return f"{parts[0]}/msg/{parts[1]}"
+    return name
+
+
+def one_line(err: BaseException) -> str:
+    """An exception's message as one line (its type's name when it has none)."""
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
+def make_qos(*, transient_local: bool = False) -> Qos:
+    """The offered QoS profile lidarcal records: reliable, volatile or transient-local."""
+    return Qos(
+        QosHistory.UNKNOWN,
+        0,
+        QosReliability.RELIABLE,
+        QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+        _INFINITE,
+        _INFINITE,
+        QosLiveliness.AUTOMATIC,
+        _INFINITE,
+        False,
+    )
+
+
+def seconds_to_ns(t: float) -> int:
+    """Float seconds to integer nanoseconds, rounded to the nearest nanosecond."""
+    sec = np.floor(t)
+    return int(sec) * NS_PER_SECOND + round(float(t - sec) * 1e9)
+
+
+def ns_to_seconds(ns: int) -> float:
+    """Integer nanoseconds to float seconds."""
+    sec, nsec = divmod(int(ns), NS_PER_SECOND)
+    return float(sec) + nsec * 1e-9
+
+
+def stamp_seconds(stamp: Any) -> float:
+    """A builtin_interfaces/Time as float seconds (the trajectory's times)."""
+    return float(stamp.sec) + int(stamp.nanosec) * 1e-9
+
+
+
+__all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "make_qos",
+           "normalize_msgtype", "ns_to_seconds", "one_line", "seconds_to_ns", "stamp_seconds",
+           "standard_typestore"]
