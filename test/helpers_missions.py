@@ -41,7 +41,7 @@ from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.io.bag_format import seconds_to_ns
 from lidarcal_ros.io.bag_writer import BagWriter
-from lidarcal_ros.io.pointcloud import CloudColumns
+from lidarcal_ros.io.cloud_columns import CloudColumns
 from lidarcal_ros.pipeline.calibration import write_simulation
 
 #: A six-strip "paper" mission over 250 m lines, about 160 000 points: simulates in < 1 s.

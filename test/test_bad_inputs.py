@@ -44,9 +44,9 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import CloudFormatError, TrajectoryError
 from lidarcal_ros.io.bag_format import seconds_to_ns
 from lidarcal_ros.io.bag_writer import BagWriter
+from lidarcal_ros.io.cloud_columns import extract_columns, float32_step, float32_warning
 from lidarcal_ros.io.las import LasChunkWriter
 from lidarcal_ros.io.mission_bag import read_mission, write_mission_bag
-from lidarcal_ros.io.pointcloud import extract_columns, float32_step, float32_warning
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission

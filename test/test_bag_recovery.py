@@ -22,7 +22,7 @@ from lidarcal_ros.errors import BagError
 from lidarcal_ros.io.bag_format import stamp_seconds
 from lidarcal_ros.io.bag_reader import open_bag
 from lidarcal_ros.io.bag_recovery import recover_bag
-from lidarcal_ros.io.pointcloud import time_span
+from lidarcal_ros.io.cloud_columns import time_span
 from lidarcal_ros.io.ros_messages import deserialize, parse_cloud
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
 

@@ -25,7 +25,7 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.calibration_file import read_calibration
-from lidarcal_ros.io.pointcloud import CloudColumns
+from lidarcal_ros.io.cloud_columns import CloudColumns
 from lidarcal_ros.pipeline.calibration_service import CalibrationService, CalibratorOptions
 
 small_mission = helpers_missions.small_mission

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.errors import CloudFormatError
+from lidarcal_ros.io.cloud_columns import extract_columns
 from lidarcal_ros.io.pointcloud import (
     FLOAT32,
     FLOAT64,
@@ -18,7 +19,6 @@ from lidarcal_ros.io.pointcloud import (
     array_to_cloud_parts,
     cloud_dtype,
     cloud_to_array,
-    extract_columns,
     make_point_dtype,
 )
 
@@ -104,7 +104,7 @@ def test_time_alias_and_point_source_id(alias, caplog):
     src = np.zeros(2, dtype=dt)
     src[alias] = [11.5, 12.5]
     src["point_source_id"] = [42, 43]
-    with caplog.at_level(logging.DEBUG, logger="lidarcal_ros.io.pointcloud"):
+    with caplog.at_level(logging.DEBUG, logger="lidarcal_ros.io.cloud_columns"):
         cols = extract_columns(cloud_to_array(_cloud_from(src)), source="/lidar/points")
     assert cols.time_field == alias
     assert cols.t.tolist() == [11.5, 12.5]
@@ -242,7 +242,7 @@ def test_time_span_skips_nan_and_says_nan_when_there_is_no_time() -> None:
     import math
     import warnings
 
-    from lidarcal_ros.io.pointcloud import time_span
+    from lidarcal_ros.io.cloud_columns import time_span
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no RuntimeWarning for all-NaN times either
@@ -253,7 +253,7 @@ def test_time_span_skips_nan_and_says_nan_when_there_is_no_time() -> None:
 
 def test_extracted_columns_carry_their_time_span_and_whether_all_is_finite() -> None:
     """(Found in the extraction's pass, so that the correction need not look again.)"""
-    from lidarcal_ros.io.pointcloud import time_span
+    from lidarcal_ros.io.cloud_columns import time_span
 
     pts = np.zeros(40, dtype=make_point_dtype())
     pts["t"] = 100.0 + np.arange(40) * 0.01
@@ -281,7 +281,7 @@ def test_extracted_columns_carry_their_time_span_and_whether_all_is_finite() -> 
 
 def test_big_endian_fields_are_read_and_judged_like_little_endian_ones() -> None:
     """(The compiled loops take native byte order; other clouds go the numpy way.)"""
-    from lidarcal_ros.io.pointcloud import extract_xyz
+    from lidarcal_ros.io.cloud_columns import extract_xyz
     from lidarcal_ros.io.ros_messages import is_dense_byte
 
     little = np.zeros(50, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f4")])

@@ -32,7 +32,7 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_estimate, format_value
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.io.bag_reader import open_bag
-from lidarcal_ros.io.pointcloud import extract_columns
+from lidarcal_ros.io.cloud_columns import extract_columns
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
 

@@ -15,7 +15,7 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.errors import CalibrationError, InputError
-from lidarcal_ros.io.pointcloud import CloudColumns
+from lidarcal_ros.io.cloud_columns import CloudColumns
 from lidarcal_ros.pipeline.streaming import StreamingCalibration
 
 

@@ -16,8 +16,8 @@ from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.io.bag_reader import open_bag
+from lidarcal_ros.io.cloud_columns import extract_columns
 from lidarcal_ros.io.mission_bag import write_mission_bag
-from lidarcal_ros.io.pointcloud import extract_columns
 from lidarcal_ros.io.ros_messages import parse_cloud
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
 from lidarcal_ros.pipeline.streaming import StreamingCalibration

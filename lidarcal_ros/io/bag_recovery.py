@@ -184,7 +184,7 @@ def _header_seconds(data: bytes, schema: Any) -> float:
 def _latest_point_s(data: bytes, time_field: str) -> float:
     """The latest firing time of a cloud, s (-inf if it has none or cannot be read: such a
     cloud is kept as it is, for the commands that read it to judge)."""
-    from lidarcal_ros.io.pointcloud import resolve_time_field, time_span
+    from lidarcal_ros.io.cloud_columns import resolve_time_field, time_span
     from lidarcal_ros.io.ros_messages import parse_cloud
 
     try:

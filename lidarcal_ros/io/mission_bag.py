@@ -26,13 +26,12 @@ from lidarcal_ros.errors import BagError, ConfigError, InputError
 from lidarcal_ros.io.bag_format import POINTCLOUD2, seconds_to_ns
 from lidarcal_ros.io.bag_reader import BagReader, open_bag
 from lidarcal_ros.io.bag_writer import BagWriter
-from lidarcal_ros.io.pointcloud import (
+from lidarcal_ros.io.cloud_columns import (
     DEFAULT_COORDINATE_TOLERANCE_M,
-    cloud_to_array,
     extract_xyz,
     float32_warning,
-    make_point_dtype,
 )
+from lidarcal_ros.io.pointcloud import cloud_to_array, make_point_dtype
 from lidarcal_ros.io.strip_accumulator import StripAccumulator, is_nondecreasing
 from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
 
@@ -73,7 +72,7 @@ def read_mission(
         ``PointCloud2`` with ``x, y, z`` control points; the last message is used. Ignored
         when absent from the bag or None.
     time_field : str, keyword-only
-        Time field of the clouds (see :func:`~lidarcal_ros.io.pointcloud.extract_columns`).
+        Time field of the clouds (see :func:`~lidarcal_ros.io.cloud_columns.extract_columns`).
     thinning_cell_m : float, keyword-only
         Keep only the first point of each square cell of this size (m) per strip in each
         cloud (:mod:`lidarcal_ros.core.thinning`; counted in ``thinned_points``); 0 keeps
@@ -84,7 +83,7 @@ def read_mission(
     coordinate_tolerance_m : float, keyword-only
         The coarsest rounding step of FLOAT32 ``x, y, z`` accepted (m; the range noise):
         coarser is refused, a step above a tenth of it is warned about
-        (:func:`~lidarcal_ros.io.pointcloud.extract_columns`).
+        (:func:`~lidarcal_ros.io.cloud_columns.extract_columns`).
 
     Returns
     -------

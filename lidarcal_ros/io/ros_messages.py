@@ -184,7 +184,8 @@ def warm_up_cloud_codec() -> None:
     generates its (de)serialisers and the compiled loops of the codec load now: done by the
     first real cloud, that is some 70 ms in its path (a node calls this before it
     subscribes)."""
-    from lidarcal_ros.io.pointcloud import make_point_dtype, time_span
+    from lidarcal_ros.io.cloud_columns import time_span
+    from lidarcal_ros.io.pointcloud import make_point_dtype
 
     # Two points, not one: the field views of a one-point cloud are contiguous, a type the
     # compiled loops then load for nothing (every real cloud's fields are strided).
@@ -236,7 +237,7 @@ def is_dense_byte(points: np.ndarray) -> bytes:
     names = points.dtype.names or ()
     present = [points[c] for c in "xyz" if c in names]
     if len(present) == 3 and all(p.dtype.kind == "f" and p.dtype.isnative for p in present):
-        from lidarcal_ros.core import kernels  # (here: see io.pointcloud.extract_xyz)
+        from lidarcal_ros.core import kernels  # (here: see io.cloud_columns.extract_xyz)
 
         dense = kernels.all_finite3(*present)  # one pass over the rows
     else:

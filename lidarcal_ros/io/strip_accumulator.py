@@ -20,12 +20,12 @@ import numpy as np
 from lidarcal_ros.core.mission import Strip
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import CloudFormatError
-from lidarcal_ros.io.pointcloud import (
+from lidarcal_ros.io.cloud_columns import (
     DEFAULT_COORDINATE_TOLERANCE_M,
     CloudColumns,
-    cloud_to_array,
     extract_columns,
 )
+from lidarcal_ros.io.pointcloud import cloud_to_array
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ class StripAccumulator:
     topic : str
         The points topic, named in error and warning lines.
     time_field : str
-        Time field of the clouds (:func:`~lidarcal_ros.io.pointcloud.extract_columns`).
+        Time field of the clouds (:func:`~lidarcal_ros.io.cloud_columns.extract_columns`).
     thinning_cell_m : float
         Keep only the first point of each square cell of this size (m) per strip in each
         cloud (counted in ``thinned``); 0 keeps every point.

@@ -71,7 +71,7 @@ from lidarcal_ros.core.calibrate import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.pointcloud import extract_columns, extract_xyz
+from lidarcal_ros.io.cloud_columns import extract_columns, extract_xyz
 from lidarcal_ros.io.ros_messages import (
     ESTIMATE_COLUMN_LABEL,
     ESTIMATE_ROWS,

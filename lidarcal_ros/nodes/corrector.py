@@ -68,7 +68,7 @@ from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.params import format_value
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.pointcloud import resolve_time_field, time_span
+from lidarcal_ros.io.cloud_columns import resolve_time_field, time_span
 from lidarcal_ros.io.ros_messages import (
     OK,
     WARN,

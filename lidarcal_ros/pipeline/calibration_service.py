@@ -46,7 +46,7 @@ from lidarcal_ros.core.calibrate import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS, FlightConfig
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.pointcloud import CloudColumns
+from lidarcal_ros.io.cloud_columns import CloudColumns
 from lidarcal_ros.io.ros_messages import ERROR, StatusSpec, qa_statuses
 from lidarcal_ros.pipeline.calibrator_statuses import (
     InputCounts,

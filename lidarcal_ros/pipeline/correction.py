@@ -103,16 +103,15 @@ from lidarcal_ros.errors import (
     TrajectoryError,
 )
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
-from lidarcal_ros.io.pointcloud import (
+from lidarcal_ros.io.cloud_columns import (
     DEFAULT_COORDINATE_TOLERANCE_M,
     CloudColumns,
-    cloud_to_array,
     extract_columns,
     float32_warning,
-    make_point_dtype,
     resolve_time_field,
     time_span,
 )
+from lidarcal_ros.io.pointcloud import cloud_to_array, make_point_dtype
 from lidarcal_ros.io.prefetch import prefetched
 
 logger = logging.getLogger(__name__)
@@ -161,7 +160,7 @@ class CorrectionSettings:
         Cloud field holding the firing time (``time_field``; aliases accepted).
     coordinate_tolerance_m : float
         The coarsest rounding step of FLOAT32 ``x, y, z`` accepted (``sensor.range_noise_m``;
-        :func:`~lidarcal_ros.io.pointcloud.extract_columns`).
+        :func:`~lidarcal_ros.io.cloud_columns.extract_columns`).
     """
 
     delta: np.ndarray

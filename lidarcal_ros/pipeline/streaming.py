@@ -51,7 +51,7 @@ from lidarcal_ros.core.local_trajectory import served_by_trajectory
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.core.thinning import first_per_cell
 from lidarcal_ros.errors import CalibrationError, InputError, TrajectoryError
-from lidarcal_ros.io.pointcloud import CloudColumns
+from lidarcal_ros.io.cloud_columns import CloudColumns
 from lidarcal_ros.pipeline.stream_checkpoint import (
     StreamCheckpoint,
     read_checkpoint,
