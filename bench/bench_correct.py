@@ -98,7 +98,7 @@ def run_correct(meta: dict[str, Any], out: Path, workers: int = 2,
 
 
 def run_floor(meta: dict[str, Any], out: Path) -> dict[str, Any]:
-    from lidarcal_ros.io.mcap_storage import ZSTD_LEVEL
+    from lidarcal_ros.io.mcap_chunk_writer import ZSTD_LEVEL
 
     remove(out)
     log = WORK / f"floor{out.suffix}.log"

@@ -483,9 +483,9 @@ def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
-    from lidarcal_ros.io import mcap_storage
+    from lidarcal_ros.io import mcap_chunk_writer
 
-    monkeypatch.setattr(mcap_storage, "CHUNK_BYTES", 20_000)
+    monkeypatch.setattr(mcap_chunk_writer, "CHUNK_BYTES", 20_000)
     rng = np.random.default_rng(5)
     written = []
     out = tmp_path / "many.mcap"
@@ -498,7 +498,7 @@ def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch
     with out.open("rb") as stream:
         chunks = [r for r in StreamReader(stream, emit_chunks=True).records
                   if isinstance(r, Chunk)]
-    assert len(chunks) > 2 * mcap_storage.MAX_PENDING
+    assert len(chunks) > 2 * mcap_chunk_writer.MAX_PENDING
     assert {c.compression for c in chunks} == {"zstd"}
     with out.open("rb") as stream:
         got = [(c.topic, m.log_time, bytes(m.data)) for _s, c, m in
@@ -511,12 +511,23 @@ def test_chunks_compressed_in_threads_keep_order_and_bytes(tmp_path, monkeypatch
 def test_chunks_read_ahead_give_rosbags_messages(bag, tmp_path, monkeypatch):
     """Chunks decompressed ahead in threads give the messages, bytes and order of rosbags'
     reader (a bag of ours, and one whose chunks overlap in time, which rosbags merges)."""
+    from rosbags.rosbag2.storage_mcap import McapReader
+
     from lidarcal_ros.io import bag_reader as bag_module
-    from lidarcal_ros.io import mcap_chunks
+    from lidarcal_ros.io import mcap_chunk_reader
 
     def read(path: Path, topics: list[str] | None = None) -> list[tuple[str, str, int, bytes]]:
         with open_bag(path) as reader:
             return [(t, ty, ns, bytes(raw)) for t, ty, ns, raw in reader.messages(topics)]
+
+    def chunk_index(path: Path) -> list:
+        """The chunk index of an MCAP file, as rosbags' reader holds it."""
+        mcap = McapReader(path)
+        mcap.open()
+        try:
+            return list(mcap.chunks)
+        finally:
+            mcap.close()
 
     overlapping = tmp_path / "overlap.mcap"
     with BagWriter(overlapping) as writer:
@@ -528,11 +539,9 @@ def test_chunks_read_ahead_give_rosbags_messages(bag, tmp_path, monkeypatch):
         for k in range(900):  # many chunks, equal log times across their boundaries
             writer.write_raw("/a" if k % 3 else "/b", "std_msgs/msg/String",
                              10_000 + k // 4, bytes([k % 256]) * 5000)
-    with open_bag(overlapping) as reader:
-        assert not mcap_chunks.in_time_order(reader._files[0].reader.chunks)
-    with open_bag(in_order) as reader:
-        chunks = reader._files[0].reader.chunks
-        assert len(chunks) > 3 and mcap_chunks.in_time_order(chunks)
+    assert not mcap_chunk_reader.in_time_order(chunk_index(overlapping))
+    chunks = chunk_index(in_order)
+    assert len(chunks) > 3 and mcap_chunk_reader.in_time_order(chunks)
     cases = [(bag, None), (bag, ["/lidar/trajectory"]), (in_order, None), (in_order, ["/b"]),
              (overlapping, None)]
     fast = [read(path, topics) for path, topics in cases]

@@ -9,7 +9,7 @@ readable before the damage: ``lidarcal recover`` keeps them, reading the file wi
 :class:`ReadableMcap`), an undecodable message.
 
 Messages come out in log-time order, merged across the bag's files, as CDR bytes; the chunks of
-an indexed file are decompressed ahead in threads (:mod:`lidarcal_ros.io.mcap_chunks`).
+an indexed file are decompressed ahead in threads (:mod:`lidarcal_ros.io.mcap_chunk_reader`).
 Times are integer nanoseconds.
 """
 
@@ -39,7 +39,7 @@ from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
 from lidarcal_ros.errors import BagError
 from lidarcal_ros.io.bag_format import normalize_msgtype, one_line, standard_typestore
-from lidarcal_ros.io.mcap_chunks import chunk_messages
+from lidarcal_ros.io.mcap_chunk_reader import chunk_messages
 
 logger = logging.getLogger(__name__)
 

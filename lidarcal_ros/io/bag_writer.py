@@ -1,7 +1,7 @@
 """Writing rosbag2 bags with MCAP storage, without ROS.
 
 :class:`BagWriter` produces a rosbag2 directory (metadata version 8, MCAP storage, zstd-compressed
-chunks, compressed in threads by :mod:`lidarcal_ros.io.mcap_storage`) that ``ros2 bag play``
+chunks, compressed in threads by :mod:`lidarcal_ros.io.mcap_chunk_writer`) that ``ros2 bag play``
 and Foxglove open, or a bare MCAP file when the path ends in ``.mcap``. The output is complete
 or absent: it is written under a hidden name beside its path and moved into place when
 finished (a live recording, which a power loss may cut, is written in place instead). An
@@ -38,7 +38,7 @@ from lidarcal_ros.io.bag_format import (
     one_line,
     standard_typestore,
 )
-from lidarcal_ros.io.mcap_storage import BagWriterBackend
+from lidarcal_ros.io.mcap_chunk_writer import BagWriterBackend
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts
 

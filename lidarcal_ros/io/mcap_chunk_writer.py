@@ -17,7 +17,8 @@ rosbags' in every other respect (records, indexes, summary, the rosbag2 metadata
 readers of MCAP read it as any other: messages in log-time order through the chunk index.
 
 :class:`BagWriterBackend` is rosbags' :class:`~rosbags.rosbag2.Writer` with this storage for
-MCAP; :class:`lidarcal_ros.io.bag_writer.BagWriter` writes through it.
+MCAP; :class:`lidarcal_ros.io.bag_writer.BagWriter` writes through it. Its reading counterpart
+is :mod:`lidarcal_ros.io.mcap_chunk_reader`.
 """
 
 from __future__ import annotations

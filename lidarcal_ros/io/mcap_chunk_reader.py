@@ -8,6 +8,9 @@ same messages come out in the same order when the chunks are read in turn: here 
 chunks are decompressed in a pool of threads (zstd releases the interpreter lock) while the
 caller works on the messages of the current one, whose records are cut out of it with one
 copy each. Files whose chunks overlap in time are left to rosbags' merge.
+
+:class:`~lidarcal_ros.io.bag_reader.BagReader` reads each file of a bag through
+:func:`chunk_messages`; its writing counterpart is :mod:`lidarcal_ros.io.mcap_chunk_writer`.
 """
 
 from __future__ import annotations
