@@ -40,6 +40,15 @@ DEFAULT_COORDINATE_TOLERANCE_M = 0.03
 COORDINATE_WARNING_FRACTION = 0.1
 
 
+def float32_warning(step_m: float, tolerance_m: float) -> str | None:
+    """A warning for FLOAT32 coordinates rounded to ``step_m`` (m) below the refusal
+    ``tolerance_m`` but not negligibly (:data:`COORDINATE_WARNING_FRACTION`); None else."""
+    if step_m <= COORDINATE_WARNING_FRACTION * tolerance_m:
+        return None
+    return (f"FLOAT32 x, y, z are rounded to steps of up to {step_m:.3g} m at these coordinates "
+            f"(range noise {tolerance_m:g} m, sensor.range_noise_m); FLOAT64 keeps them exact")
+
+
 @dataclass
 class CloudColumns:
     """Per-point columns of one cloud, in native byte order.
@@ -207,14 +216,6 @@ def _checked_float32_step(fields: list[np.ndarray], xyz: np.ndarray, source: str
         )
     return step
 
-
-def float32_warning(step_m: float, tolerance_m: float) -> str | None:
-    """A warning for FLOAT32 coordinates rounded to ``step_m`` (m) below the refusal
-    ``tolerance_m`` but not negligibly (:data:`COORDINATE_WARNING_FRACTION`); None else."""
-    if step_m <= COORDINATE_WARNING_FRACTION * tolerance_m:
-        return None
-    return (f"FLOAT32 x, y, z are rounded to steps of up to {step_m:.3g} m at these coordinates "
-            f"(range noise {tolerance_m:g} m, sensor.range_noise_m); FLOAT64 keeps them exact")
 
 
 def _stacked_xyz(fields: list[np.ndarray]) -> np.ndarray:
