@@ -83,7 +83,6 @@ def stamp_seconds(stamp: Any) -> float:
     return float(stamp.sec) + int(stamp.nanosec) * 1e-9
 
 
-
 __all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "make_qos",
            "normalize_msgtype", "ns_to_seconds", "one_line", "seconds_to_ns", "stamp_seconds",
            "standard_typestore"]

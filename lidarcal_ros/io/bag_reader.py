@@ -76,13 +76,11 @@ class TopicInfo:
         )
 
 
-
 @dataclass
 class _File:
     path: Path
     reader: McapReader
     connections: list[Connection] = field(default_factory=list)
-
 
 
 def _zstd_decompress(data: bytes) -> bytes:

@@ -217,7 +217,6 @@ def _checked_float32_step(fields: list[np.ndarray], xyz: np.ndarray, source: str
     return step
 
 
-
 def _stacked_xyz(fields: list[np.ndarray]) -> np.ndarray:
     """``(n, 3)`` float64 from the views of ``x, y, z``."""
     xyz = np.empty((fields[0].shape[0], 3), dtype=np.float64)

@@ -270,7 +270,6 @@ def array_to_cloud_parts(arr: np.ndarray) -> tuple[list[FieldTuple], int, np.nda
     return fields, int(dtype.itemsize), flat.view(np.uint8).reshape(-1)
 
 
-
 def make_point_dtype(
     extra_float32_fields: Sequence[str] = (), *, intensity: bool = True
 ) -> np.dtype[np.void]:
