@@ -27,7 +27,7 @@ where consecutive sweeps meet). :func:`cell_size` therefore measures the spacing
 from consecutive pulses and the spacing along track from the area per point, and the cells
 are rectangles of 1.5 of each; a 2x2 block then always spans two sweeps.
 
-Cost (compiled loops, :mod:`lidarcal_ros.core.kernels`): one pass over the points to bin
+Cost (compiled loops, :mod:`lidarcal_ros.core.normals_kernels`): one pass over the points to bin
 them, one over the cells (about one cell per 2.25 points) to fit the blocks and choose each
 cell's plane, one over the points for their normals; a nine-plane search for the few per cent
 of points near edges.
@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
+from lidarcal_ros.core import normals_kernels
 from lidarcal_ros.core.allocator import populate_in_background
 
 logger = logging.getLogger(__name__)
@@ -183,7 +183,7 @@ def _flight_frame(
 
 def _to_map(n_uvz: np.ndarray, heading: float) -> np.ndarray:
     """Normals from the flight frame (u forward, v right, z up) to the map frame."""
-    return kernels.flight_to_map(np.asarray(n_uvz, dtype=np.float64), math.cos(heading),
+    return normals_kernels.flight_to_map(np.asarray(n_uvz, dtype=np.float64), math.cos(heading),
                                  math.sin(heading))
 
 
@@ -205,7 +205,7 @@ def smallest_eigen(
         False where the vector is undefined (isotropic or zero matrix).
     """
     arrays = [np.ascontiguousarray(c, dtype=np.float64) for c in (cxx, cxy, cxz, cyy, cyz, czz)]
-    lam_min, lam_mid, vec, ok = kernels.smallest_eigen_many(*arrays)
+    lam_min, lam_mid, vec, ok = normals_kernels.smallest_eigen_many(*arrays)
     return lam_min, lam_mid, vec, ok
 
 
@@ -229,7 +229,7 @@ def _fit_sums(
     centroid : (m, 3) float64
         Mean point of each block, frame of the sums.
     """
-    residual, normals, valid, centroid = kernels.fit_sums(
+    residual, normals, valid, centroid = normals_kernels.fit_sums(
         np.ascontiguousarray(sums, dtype=np.float64), min_points, min_spread)
     return residual, normals, valid, centroid
 
@@ -335,7 +335,7 @@ def _dense_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, cell: tuple[floa
     if nu * nv > _MAX_CELLS_PER_POINT * u.shape[0] + 1024:
         return None, iu, iv
     moments = np.zeros((nu, nv, 10))
-    kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
+    normals_kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
     return moments, iu, iv
 
 
@@ -349,7 +349,7 @@ def _bin_moments(u: np.ndarray, v: np.ndarray, z: np.ndarray, key: np.ndarray,
     """The ten moment sums ``n, u, v, z, uu, uv, uz, vv, vz, zz`` of the points per cell
     ``key`` (flat index below ``size``), shape (10, size)."""
     out = np.zeros((1, size, 10))
-    kernels.accumulate_moments(out, 0, 0, np.zeros(key.shape[0], dtype=np.int64),
+    normals_kernels.accumulate_moments(out, 0, 0, np.zeros(key.shape[0], dtype=np.int64),
                                np.asarray(key, dtype=np.int64), u, v, z)
     return np.ascontiguousarray(out[0].T)
 
@@ -363,7 +363,7 @@ def _median_noise(lam: np.ndarray, ok: np.ndarray) -> float:
 def _centred_sums(moments: np.ndarray, cells: np.ndarray, radius: int) -> np.ndarray:
     """Moment sums (10, m) of the ``(2 radius + 1)^2`` blocks of cells centred on the flat
     cell indices ``cells`` of a (nu, nv, 10) grid (zero beyond it)."""
-    return kernels.centred_sums(np.ascontiguousarray(moments, dtype=np.float64),
+    return normals_kernels.centred_sums(np.ascontiguousarray(moments, dtype=np.float64),
                                 np.ascontiguousarray(cells, dtype=np.int64), int(radius))
 
 
@@ -375,12 +375,12 @@ class _Planes:
     Attributes
     ----------
     blocks, valid : (nu * nv, 5) float64, (nu * nv,) bool
-        The 2x2 block fits (:func:`~lidarcal_ros.core.kernels.fit_blocks`).
+        The 2x2 block fits (:func:`~lidarcal_ros.core.normals_kernels.fit_blocks`).
     filled : (f, 5) float64
         The planes of the points' cells whose four blocks all failed, from the 3x3 or 5x5
         block around them.
     best, cell_ok : (nu * nv,) int64 and bool
-        The plane of each cell (:func:`~lidarcal_ros.core.kernels.cell_planes`; rows of
+        The plane of each cell (:func:`~lidarcal_ros.core.normals_kernels.cell_planes`; rows of
         ``filled`` past ``nu * nv``), and whether it has one.
     nu, nv : int
         Grid shape.
@@ -419,12 +419,12 @@ def _plane_table(moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, row0: int,
     """
     nu, nv, _ = moments.shape
     first, last = (0, nu - 1) if rows is None else rows
-    blocks, valid = kernels.fit_blocks(moments, min_points, min_spread, first - 1, last + 2)
+    blocks, valid = normals_kernels.fit_blocks(moments, min_points, min_spread, first - 1, last + 2)
     # Each cell: the best of the four 2x2 blocks containing it.
-    best, cell_ok = kernels.cell_planes(blocks[:, 4], nu, nv, first, last + 1)
+    best, cell_ok = normals_kernels.cell_planes(blocks[:, 4], nu, nv, first, last + 1)
     # The cells of the points that lack a plane (not every occupied cell: a grid may reach
     # beyond the points).
-    need = kernels.cells_without_plane(iu, iv, row0, col0, nv, cell_ok)
+    need = normals_kernels.cells_without_plane(iu, iv, row0, col0, nv, cell_ok)
     filled: list[np.ndarray] = []
     count = 0
     for radius in (1, 2):
@@ -455,10 +455,10 @@ def _point_normals(planes: _Planes, iu: np.ndarray, iv: np.ndarray, row0: int, c
     """Normals (map frame), validity and roughness of points from the planes of their grid's
     cells: the plane of its cell, unless the point lies off it or the plane fits its block
     badly (a cell across an edge): then the nearest of the nine 2x2 blocks' planes
-    (:func:`~lidarcal_ros.core.kernels.point_normals`; ``noise``, the typical residual of a
+    (:func:`~lidarcal_ros.core.normals_kernels.point_normals`; ``noise``, the typical residual of a
     plane fit in m, sets the edge tolerance)."""
     tol = max(3.0 * noise, _EDGE_TOLERANCE_M)
-    return kernels.point_normals(planes.blocks, planes.valid, planes.filled, planes.best,
+    return normals_kernels.point_normals(planes.blocks, planes.valid, planes.filled, planes.best,
                                  planes.cell_ok, planes.nu, planes.nv, iu, iv, row0, col0,
                                  u, v, z, tol, math.cos(heading), math.sin(heading))
 
@@ -720,7 +720,7 @@ class StripNormals:
         moments, _, _ = _dense_moments(*self._frame(xyz), self.cell)
         if moments is None:
             return 0.0
-        blocks, valid = kernels.fit_blocks(moments, self.min_points, _min_spread(self.cell))
+        blocks, valid = normals_kernels.fit_blocks(moments, self.min_points, _min_spread(self.cell))
         return _median_noise(blocks[:, 4], valid)
 
     def _frame(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -735,7 +735,7 @@ class StripNormals:
         """Bin the points of consecutive parts (``(key, count)``, their points one after the
         other in ``xyz``) in one pass."""
         x0, y0, z0 = self._origin
-        u, v, z, iu, iv, finite_index, bounds = kernels.flight_cells(
+        u, v, z, iu, iv, finite_index, bounds = normals_kernels.flight_cells(
             np.ascontiguousarray(xyz, dtype=np.float64), math.cos(self.heading),
             math.sin(self.heading), x0, y0, z0, 1.0 / self.cell[0], 1.0 / self.cell[1])
         index = None if finite_index.size == xyz.shape[0] else finite_index
@@ -749,7 +749,7 @@ class StripNormals:
                 c_lo, c_hi = int(iv.min()), int(iv.max())
         if iu.size:
             self._fit_grid(r_lo, r_hi, c_lo, c_hi)
-            kernels.accumulate_moments(self._moments, self._row0, self._col0, iu, iv, u, v, z)
+            normals_kernels.accumulate_moments(self._moments, self._row0, self._col0, iu, iv, u, v, z)
         start = 0
         for key, n in parts:
             # The binned points of this part: a slice (``index`` is sorted).
