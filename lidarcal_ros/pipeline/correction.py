@@ -87,14 +87,13 @@ from lidarcal_ros.core.local_trajectory import (
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import (
     GridNormals,
-    NormalsTask,
-    StripNormals,
     cell_size,
     finite_rows,
     grid_normals,
     no_normals,
 )
 from lidarcal_ros.core.radiometry import RadiometricModel, describe_alpha
+from lidarcal_ros.core.strip_normals import NormalsTask, StripNormals
 from lidarcal_ros.errors import (
     BagError,
     ConfigError,
