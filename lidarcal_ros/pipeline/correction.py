@@ -35,7 +35,7 @@ Output: every input field, ``x, y, z`` corrected (in their own type), and the FL
 coordinates, gets NaN in the four derived fields and a flag, and is counted.
 
 Streaming: :class:`StreamCorrector` takes clouds one at a time. The points of each strip
-join one grid of cells (:class:`~lidarcal_ros.core.normals.StripNormals`), each point binned
+join one grid of cells (:class:`~lidarcal_ros.core.strip_normals.StripNormals`), each point binned
 and evaluated once, so the normals do not depend on how the stream is cut into clouds: a
 cloud is released once the clouds after it cover the grid rows its normals read (the
 look-ahead), or at once without look-ahead. Clouds are corrected in batches
