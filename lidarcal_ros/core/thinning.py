@@ -12,6 +12,10 @@ keeping the surface's shape down to the cell's size.
 The thinning is done per cloud, in arrival order, the same way by ``lidarcal calibrate`` (per
 message of the bag) and by the calibrator node (per message on the topic), so that both see
 the same points. A cell cut by the boundary of two clouds may keep a point from each.
+
+The choice is one compiled pass over the points (:mod:`lidarcal_ros.core.jit`): a flag per
+cell of the cloud's box where that is small enough (:func:`first_in_grid`), else a hash table
+of the cells met (:func:`first_in_cells`).
 """
 
 from __future__ import annotations
@@ -66,14 +70,12 @@ def _cell_index(q: float) -> int:
     return int(np.int64(min(max(math.floor(q), -4.0e18), 4.0e18)))
 
 
-
 @inlined
 def _cell_slot(u: int, v: int, g: int | np.int64, mask: int) -> int:
     """Home slot of cell ``(u, v)`` of group ``g`` in a table of ``mask + 1`` slots."""
     h = (u * np.int64(-7046029254386353131) + v * np.int64(3266489917)
          + g * np.int64(668265263))
     return int((h ^ (h >> 29)) & mask)
-
 
 
 @compiled
@@ -138,7 +140,6 @@ def first_in_cells(x: np.ndarray, y: np.ndarray, group: np.ndarray, inv_cell: fl
                     used[slot] = True
                     keys[slot, 0], keys[slot, 1], keys[slot, 2] = su, sv, sg
     return keep
-
 
 
 @compiled
