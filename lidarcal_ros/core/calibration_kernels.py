@@ -51,11 +51,12 @@ def _to_map(rigorous: bool, rotation: np.ndarray, c: np.ndarray, s: np.ndarray, 
 
 
 @compiled
-def exact_correction(xyz: np.ndarray, origin: np.ndarray, cos_kappa: np.ndarray,
-                     sin_kappa: np.ndarray, rotation: np.ndarray, delta: np.ndarray,
-                     boresight: np.ndarray, corrected: np.ndarray, shift: np.ndarray,
-                     x: np.ndarray, y: np.ndarray, z: np.ndarray, beta: np.ndarray,
-                     sin_beta: np.ndarray, cos_beta: np.ndarray) -> None:
+def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa: np.ndarray,
+                                  sin_kappa: np.ndarray, rotation: np.ndarray,
+                                  delta: np.ndarray, boresight: np.ndarray,
+                                  corrected: np.ndarray, shift: np.ndarray, x: np.ndarray,
+                                  y: np.ndarray, z: np.ndarray, beta: np.ndarray,
+                                  sin_beta: np.ndarray, cos_beta: np.ndarray) -> None:
     """The biases removed exactly and the laser geometry of the corrected points, in one
     pass: :func:`lidarcal_ros.core.model.correct_points_exact` followed by
     :func:`lidarcal_ros.core.geometry.geometry_at` and its :meth:`trig`.
@@ -168,4 +169,4 @@ def add_normal_rows(normal: np.ndarray, index: np.ndarray, weight: np.ndarray,
                 out[i, j] += row[j]
 
 
-__all__ = ["add_normal_rows", "exact_correction"]
+__all__ = ["add_normal_rows", "exact_correction_and_geometry"]

@@ -301,8 +301,8 @@ def exact_correction(
     """:func:`correct_points_exact` and the laser geometry of the corrected points seen from
     the same firing positions and body frames
     (:func:`~lidarcal_ros.core.geometry.geometry_at`, with its sines and cosines of
-    ``beta``), in one compiled pass (:func:`~lidarcal_ros.core.calibration_kernels.
-    exact_correction`).
+    ``beta``), in one compiled pass
+    (:func:`~lidarcal_ros.core.calibration_kernels.exact_correction_and_geometry`).
 
     Returns
     -------
@@ -327,7 +327,7 @@ def exact_correction(
     shift = np.empty((n, 3))
     x, z, beta, sb, cb = (np.empty(n) for _ in range(5))
     y = np.empty(n) if rigorous else _NO_COLUMN
-    calibration_kernels.exact_correction(
+    calibration_kernels.exact_correction_and_geometry(
         xyz, np.ascontiguousarray(frame.origin, dtype=np.float64),
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
