@@ -1,5 +1,6 @@
-"""The compiled loops of the calibration (lidarcal_ros.core.calibration_kernels) against the
-numpy formulations they replace, on simulated strips of both point-positioning models."""
+"""The compiled loops of the calibration (lidarcal_ros.core.calibration_kernels and the TIN's,
+lidarcal_ros.core.tin_kernels) against the numpy formulations they replace, on simulated
+strips of both point-positioning models."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from lidarcal_ros.core import calibration_kernels
+from lidarcal_ros.core import tin_kernels
 from lidarcal_ros.core.geometry import LaserGeometry, geometry_at
 from lidarcal_ros.core.model import (
     add_geometry_normal_rows,
@@ -263,4 +264,4 @@ def test_shifted_queries_move_by_the_mean_shift_of_their_triangle() -> None:
     found = tri >= 0
     expected[found] += shift[simplices[tri[found]]].mean(axis=1)[:, :2]
     np.testing.assert_array_equal(
-        calibration_kernels.shifted_queries(q, tri, simplices, shift), expected)
+        tin_kernels.shifted_queries(q, tri, simplices, shift), expected)

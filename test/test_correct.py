@@ -533,7 +533,7 @@ def test_node_mode_one_cloud_at_a_time_with_empty_clouds(small_mission: MissionF
     """batch_points=0 (the corrector node): each cloud is released once the later clouds
     reach past its look-ahead; empty clouds pass; flush releases the rest; order is kept."""
     from lidarcal_ros.core.config import FlightConfig
-    from lidarcal_ros.core.normals import STREAM_START_POINTS
+    from lidarcal_ros.core.strip_normals import STREAM_START_POINTS
     from lidarcal_ros.io.mission_bag import strip_point_array
 
     sim = small_mission.sim

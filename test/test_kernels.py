@@ -1,5 +1,7 @@
-"""The compiled loops of the grid normals (lidarcal_ros.core.kernels) against independent
-numpy computations on the points themselves."""
+"""The compiled loops of the grid normals, the local trajectory, the correction, the TIN
+matching and the cloud scans (lidarcal_ros.core.normals_kernels, local_trajectory_kernels,
+correction_kernels, tin_kernels, lidarcal_ros.io.pointcloud_kernels) against independent numpy
+computations on the points themselves."""
 
 from __future__ import annotations
 
@@ -9,7 +11,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from lidarcal_ros.core import kernels
+from lidarcal_ros.core import (
+    correction_kernels,
+    local_trajectory_kernels,
+    normals_kernels,
+    tin_kernels,
+)
+from lidarcal_ros.io import pointcloud_kernels
 from lidarcal_ros.pipeline import correction as correction_module
 
 MIN_POINTS = 4
@@ -30,7 +38,7 @@ def _points(n: int, seed: int = 3, step_v: float = 3.0) -> tuple[np.ndarray, ...
 def _grid(u: np.ndarray, v: np.ndarray, z: np.ndarray, iu: np.ndarray, iv: np.ndarray
           ) -> np.ndarray:
     moments = np.zeros((int(iu.max()) + 1, int(iv.max()) + 1, 10))
-    kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
+    normals_kernels.accumulate_moments(moments, 0, 0, iu, iv, u, v, z)
     return moments
 
 
@@ -43,7 +51,7 @@ def test_accumulate_moments_matches_bincount_and_honours_the_grid_offset() -> No
     np.testing.assert_allclose(_grid(u, v, z, iu, iv), expected, rtol=1e-12, atol=1e-9)
     # Rows and columns numbered from (row0, col0) = (-5, 7): the same sums, moved.
     shifted = np.zeros((nu + 2, nv + 3, 10))
-    kernels.accumulate_moments(shifted, -5 - 1, 7 - 2, iu - 5, iv + 7, u, v, z)
+    normals_kernels.accumulate_moments(shifted, -5 - 1, 7 - 2, iu - 5, iv + 7, u, v, z)
     np.testing.assert_allclose(shifted[1:1 + nu, 2:2 + nv], expected, rtol=1e-12, atol=1e-9)
     assert shifted[..., 0].sum() == u.size
 
@@ -52,7 +60,7 @@ def test_block_fits_match_least_squares_and_pca_on_the_points() -> None:
     u, v, z, iu, iv = _points(3000)
     moments = _grid(u, v, z, iu, iv)
     nu, nv, _ = moments.shape
-    blocks, valid = kernels.fit_blocks(moments, MIN_POINTS, MIN_SPREAD)
+    blocks, valid = normals_kernels.fit_blocks(moments, MIN_POINTS, MIN_SPREAD)
     normals, offset, residual = blocks[:, :3], blocks[:, 3], blocks[:, 4]
     checked = 0
     for i in range(nu):
@@ -81,7 +89,7 @@ def test_block_fits_match_least_squares_and_pca_on_the_points() -> None:
     for i in range(nu):
         for j in range(nv):
             box[:, i * nv + j] = moments[i:i + 2, j:j + 2].sum(axis=(0, 1))
-    r2, n2, ok2, _ = kernels.fit_sums(box, MIN_POINTS, MIN_SPREAD)
+    r2, n2, ok2, _ = normals_kernels.fit_sums(box, MIN_POINTS, MIN_SPREAD)
     np.testing.assert_array_equal(ok2, valid)
     np.testing.assert_allclose(n2[valid], normals[valid], atol=1e-12)
     np.testing.assert_allclose(r2[valid], residual[valid], rtol=1e-9, atol=1e-15)
@@ -97,7 +105,7 @@ def test_a_wall_gets_the_principal_component_plane() -> None:
     sums = np.array([[float(n)], [u.sum()], [v.sum()], [z.sum()], [(u * u).sum()],
                      [(u * v).sum()], [(u * z).sum()], [(v * v).sum()], [(v * z).sum()],
                      [(z * z).sum()]])
-    residual, normals, valid, _ = kernels.fit_sums(sums, MIN_POINTS, MIN_SPREAD)
+    residual, normals, valid, _ = normals_kernels.fit_sums(sums, MIN_POINTS, MIN_SPREAD)
     assert valid[0]
     assert abs(normals[0, 1]) == pytest.approx(1.0, abs=1e-3)  # horizontal, across the wall
     assert normals[0, 2] >= 0.0
@@ -109,7 +117,7 @@ def test_cell_planes_take_the_best_of_the_four_blocks_with_ties_to_the_own_block
     residual = np.full(nu * nv, np.inf)
     for k, lam in ((0, 0.5), (1, 0.2), (3, 0.2), (4, 0.2)):
         residual[k] = lam
-    best, ok = kernels.cell_planes(residual, nu, nv)
+    best, ok = normals_kernels.cell_planes(residual, nu, nv)
     # The block each cell's plane comes from: own block first, then (i-1, j), (i, j-1),
     # (i-1, j-1), a later one only if strictly better.
     np.testing.assert_array_equal(best, [0, 1, 1, 3, 4, 4, 3, 4, 4])
@@ -117,7 +125,7 @@ def test_cell_planes_take_the_best_of_the_four_blocks_with_ties_to_the_own_block
     # A cell whose four blocks have no plane has none.
     residual[:] = np.inf
     residual[8] = 0.1
-    best, ok = kernels.cell_planes(residual, nu, nv)
+    best, ok = normals_kernels.cell_planes(residual, nu, nv)
     np.testing.assert_array_equal(ok, [False] * 8 + [True])
 
 
@@ -126,16 +134,16 @@ def test_points_near_an_edge_take_the_plane_of_their_side(step_v: float) -> None
     u, v, z, iu, iv = _points(6000, seed=11, step_v=step_v)
     moments = _grid(u, v, z, iu, iv)
     nu, nv, _ = moments.shape
-    blocks, valid = kernels.fit_blocks(moments, MIN_POINTS, MIN_SPREAD)
-    best, cell_ok = kernels.cell_planes(blocks[:, 4], nu, nv)
+    blocks, valid = normals_kernels.fit_blocks(moments, MIN_POINTS, MIN_SPREAD)
+    best, cell_ok = normals_kernels.cell_planes(blocks[:, 4], nu, nv)
     heading = 0.7
     # (cells numbered from (row0, col0) = (3, -2): the same normals)
-    nrm, ok, rough = kernels.point_normals(blocks, valid, np.empty((0, 5)), best, cell_ok,
-                                           nu, nv, iu + 3, iv - 2, 3, -2, u, v, z, 0.1,
-                                           math.cos(heading), math.sin(heading))
+    nrm, ok, rough = normals_kernels.point_normals(blocks, valid, np.empty((0, 5)), best, cell_ok,
+                                                   nu, nv, iu + 3, iv - 2, 3, -2, u, v, z, 0.1,
+                                                   math.cos(heading), math.sin(heading))
     # the plane's normal in the grid's frame, turned to the map's
-    truth = kernels.flight_to_map(np.array([[-0.2, 0.1, 1.0]]) / math.sqrt(1.05),
-                                  math.cos(heading), math.sin(heading))[0]
+    truth = normals_kernels.flight_to_map(np.array([[-0.2, 0.1, 1.0]]) / math.sqrt(1.05),
+                                          math.cos(heading), math.sin(heading))[0]
     assert ok.all()
     good = ~rough
     np.testing.assert_allclose(nrm[good], np.broadcast_to(truth, nrm[good].shape), atol=0.02)
@@ -163,9 +171,9 @@ def test_the_loops_work_where_no_cache_directory_is_writable() -> None:
         "from numba.core import caching\n"
         "caching.CacheImpl._locator_classes = []\n"
         "import numpy as np\n"
-        "from lidarcal_ros.core import kernels\n"
+        "from lidarcal_ros.core import normals_kernels\n"
         "m = np.zeros((1, 3, 10))\n"
-        "kernels.accumulate_moments(m, 0, 0, np.zeros(2, np.int64), np.array([0, 2]),\n"
+        "normals_kernels.accumulate_moments(m, 0, 0, np.zeros(2, np.int64), np.array([0, 2]),\n"
         "                           np.ones(2), np.ones(2), np.ones(2))\n"
         "assert m[..., 0].sum() == 2.0, m\n"
         "print('ok')\n"
@@ -235,8 +243,8 @@ def test_time_windows_in_one_pass_are_those_of_the_binary_search() -> None:
     t = np.sort(np.concatenate([rng.uniform(99.0, 107.0, 3000), traj_t[:5] + window_s,
                                 traj_t[3:9] - window_s, traj_t[2:4], [101.0] * 4]))
     for min_samples in (2, 4):
-        in_order, start, stop, window, n_bad, first_bad = kernels.sorted_time_windows(
-            traj_t, t, window_s, min_samples)
+        in_order, start, stop, window, n_bad, first_bad = (
+            local_trajectory_kernels.sorted_time_windows(traj_t, t, window_s, min_samples))
         assert in_order
         want_start = np.searchsorted(traj_t, t - window_s, side="right")
         want_stop = np.searchsorted(traj_t, t + window_s, side="left")
@@ -247,10 +255,10 @@ def test_time_windows_in_one_pass_are_those_of_the_binary_search() -> None:
         bad = ~_bracketed(t, traj_t, want_start, want_stop, min_samples)
         assert 0 < n_bad == int(bad.sum()) and first_bad == int(np.argmax(bad))
     shuffled = t[::-1].copy()
-    assert not kernels.sorted_time_windows(traj_t, shuffled, window_s, 2)[0]
+    assert not local_trajectory_kernels.sorted_time_windows(traj_t, shuffled, window_s, 2)[0]
     with_nan = t.copy()
     with_nan[10] = np.nan
-    assert not kernels.sorted_time_windows(traj_t, with_nan, window_s, 2)[0]
+    assert not local_trajectory_kernels.sorted_time_windows(traj_t, with_nan, window_s, 2)[0]
 
 
 def test_flight_cells_are_the_flight_frame_and_cells_of_the_finite_points() -> None:
@@ -260,8 +268,8 @@ def test_flight_cells_are_the_flight_frame_and_cells_of_the_finite_points() -> N
     xyz[200, 2] = np.inf
     heading, x0, y0, z0 = 0.7, 5e5 - 1.0, 4e6 + 2.0, 290.0
     c, s = math.cos(heading), math.sin(heading)
-    u, v, z, iu, iv, index, bounds = kernels.flight_cells(xyz, c, s, x0, y0, z0, 1 / 0.6,
-                                                          1 / 0.075)
+    u, v, z, iu, iv, index, bounds = normals_kernels.flight_cells(xyz, c, s, x0, y0, z0, 1 / 0.6,
+                                                                  1 / 0.075)
     keep = np.isfinite(xyz).all(axis=1)
     np.testing.assert_array_equal(index, np.flatnonzero(keep))
     dx, dy = xyz[keep, 0] - x0, xyz[keep, 1] - y0
@@ -271,13 +279,13 @@ def test_flight_cells_are_the_flight_frame_and_cells_of_the_finite_points() -> N
     np.testing.assert_array_equal(iu, np.floor(u * (1 / 0.6)).astype(np.int64))
     np.testing.assert_array_equal(iv, np.floor(v * (1 / 0.075)).astype(np.int64))
     assert bounds.tolist() == [iu.min(), iu.max(), iv.min(), iv.max()]
-    assert kernels.flight_cells(xyz[:0], c, s, x0, y0, z0, 1.0, 1.0)[0].size == 0
+    assert normals_kernels.flight_cells(xyz[:0], c, s, x0, y0, z0, 1.0, 1.0)[0].size == 0
 
 
 def test_flight_to_map_rotates_by_the_heading() -> None:
     heading = 2.1
     n_uvz = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, -1.0], [np.nan, 0.2, 0.3]])
-    out = kernels.flight_to_map(n_uvz, math.cos(heading), math.sin(heading))
+    out = normals_kernels.flight_to_map(n_uvz, math.cos(heading), math.sin(heading))
     # forward along the heading kappa = atan2(-dx, dy); right is forward turned clockwise
     np.testing.assert_allclose(out[0], [-math.sin(heading), math.cos(heading), 0.5])
     np.testing.assert_allclose(out[1], [math.cos(heading), math.sin(heading), -1.0])
@@ -324,26 +332,27 @@ def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: 
     n = t.shape[0]
     out = (np.empty((n, 3)), np.empty(n, np.float32), np.empty(n, np.float32),
            np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.uint8))
-    kernels.correct_returns(t, xyz, ok, lines.window, False,
-                            (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa,
-                             lines.sin_kappa), (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))),
-                            delta, normals, rough, intensity, model.kernel_constants(), out,
-                            correction_module._NO_ROWS)
+    correction_kernels.correct_returns(
+        t, xyz, ok, lines.window, False,
+        (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
+        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,
+        model.kernel_constants(), out, correction_module._NO_ROWS)
     return out
 
 
 def test_polynomial_arctangent_and_arc_cosine_match_numpy() -> None:
     q = np.concatenate([np.linspace(-30.0, 30.0, 600_001), [0.0, -0.0, 1e-300, 1e300,
                                                             np.tan(np.pi / 8)]])
-    got = np.array([kernels.atan_poly(v) for v in q[::7]])
+    got = np.array([correction_kernels.atan_poly(v) for v in q[::7]])
     np.testing.assert_allclose(got, np.arctan(q[::7]), rtol=0, atol=5e-11)
-    assert kernels.atan_poly(math.inf) == pytest.approx(math.pi / 2, abs=1e-15)
-    assert kernels.atan_poly(-math.inf) == pytest.approx(-math.pi / 2, abs=1e-15)
-    assert math.isnan(kernels.atan_poly(math.nan))
+    assert correction_kernels.atan_poly(math.inf) == pytest.approx(math.pi / 2, abs=1e-15)
+    assert correction_kernels.atan_poly(-math.inf) == pytest.approx(-math.pi / 2, abs=1e-15)
+    assert math.isnan(correction_kernels.atan_poly(math.nan))
     c = np.concatenate([np.linspace(0.0, 1.0, 200_001), 1.0 - np.logspace(-16, -1, 200)])
-    got = np.array([kernels.acos_poly(v) for v in c])
+    got = np.array([correction_kernels.acos_poly(v) for v in c])
     np.testing.assert_allclose(got, np.arccos(c), rtol=0, atol=1e-10)
-    assert kernels.acos_poly(1.0) == 0.0 and math.isnan(kernels.acos_poly(math.nan))
+    assert correction_kernels.acos_poly(1.0) == 0.0
+    assert math.isnan(correction_kernels.acos_poly(math.nan))
 
 
 def test_correct_returns_matches_the_numpy_stages() -> None:
@@ -403,27 +412,27 @@ def test_finite_range_on_a_strided_field() -> None:
     rows["t"] = rng.normal(1.7e9, 100.0, 1000)
     rows["t"][[0, 17, 999]] = np.nan
     t = rows["t"]  # a strided view
-    assert kernels.finite_range(t) == (np.fmin.reduce(t), np.fmax.reduce(t))
-    lo, hi = kernels.finite_range(np.full(3, np.nan))
+    assert pointcloud_kernels.finite_range(t) == (np.fmin.reduce(t), np.fmax.reduce(t))
+    lo, hi = pointcloud_kernels.finite_range(np.full(3, np.nan))
     assert math.isnan(lo) and math.isnan(hi)
-    assert all(math.isnan(v) for v in kernels.finite_range(np.empty(0)))
+    assert all(math.isnan(v) for v in pointcloud_kernels.finite_range(np.empty(0)))
     # every length (four running extremes and a tail), the extremes anywhere, infinities
     for n in range(1, 11):
         for k in range(n):
             v = np.arange(n, dtype=np.float64)
             v[k] = -5.0
             v[(k + 1) % n] = np.nan if n > 2 else v[(k + 1) % n]
-            assert kernels.finite_range(v) == (np.fmin.reduce(v), np.fmax.reduce(v))
-    assert kernels.finite_range(np.array([np.inf, np.nan])) == (np.inf, np.inf)
-    assert kernels.finite_range(np.array([2.0, -np.inf, 1.0])) == (-np.inf, 2.0)
+            assert pointcloud_kernels.finite_range(v) == (np.fmin.reduce(v), np.fmax.reduce(v))
+    assert pointcloud_kernels.finite_range(np.array([np.inf, np.nan])) == (np.inf, np.inf)
+    assert pointcloud_kernels.finite_range(np.array([2.0, -np.inf, 1.0])) == (-np.inf, 2.0)
 
 
 def test_byte_counts_is_bincount() -> None:
     values = np.random.default_rng(4).integers(0, 256, 10_001).astype(np.uint8)
     values[:300] = 255
-    np.testing.assert_array_equal(kernels.byte_counts(values),
+    np.testing.assert_array_equal(correction_kernels.byte_counts(values),
                                   np.bincount(values, minlength=256))
-    assert kernels.byte_counts(np.empty(0, np.uint8)).sum() == 0
+    assert correction_kernels.byte_counts(np.empty(0, np.uint8)).sum() == 0
 
 
 @pytest.mark.parametrize("radius", [0, 1, 2])
@@ -431,7 +440,7 @@ def test_centred_sums_add_the_block_around_each_cell_inside_the_grid(radius: int
     rng = np.random.default_rng(5)
     moments = rng.random((7, 9, 10))
     cells = np.array([0, 8, 9 * 3 + 4, 9 * 6 + 8, 9 * 6, 5], dtype=np.int64)  # corners, edges
-    got = kernels.centred_sums(moments, cells, radius)
+    got = normals_kernels.centred_sums(moments, cells, radius)
     for k, cell in enumerate(cells):
         i, j = divmod(int(cell), 9)
         block = moments[max(i - radius, 0):i + radius + 1, max(j - radius, 0):j + radius + 1]
@@ -448,14 +457,15 @@ def test_below_line_decides_as_numpy_interp() -> None:
     z = threshold + rng.choice([-1e-9, 0.0, 1e-9, -3.0, 3.0], t.size)
     z[::11] = np.nextafter(threshold[::11], -np.inf)
     expected = z < threshold
-    np.testing.assert_array_equal(kernels.below_line(t, z, line_t, line_z, 1.0), expected)
+    below_line = local_trajectory_kernels.below_line
+    np.testing.assert_array_equal(below_line(t, z, line_t, line_z, 1.0), expected)
     shuffle = rng.permutation(t.size)
-    np.testing.assert_array_equal(kernels.below_line(t[shuffle], z[shuffle], line_t, line_z,
-                                                     1.0), expected[shuffle])
+    np.testing.assert_array_equal(below_line(t[shuffle], z[shuffle], line_t, line_z,
+                                             1.0), expected[shuffle])
     # a single sample: its height everywhere
     h = line_z[0]
-    one = kernels.below_line(np.array([0.0, 99.0]), np.array([h - 1.5, h - 0.5]), line_t[:1],
-                             line_z[:1], 1.0)
+    one = below_line(np.array([0.0, 99.0]), np.array([h - 1.5, h - 0.5]), line_t[:1],
+                     line_z[:1], 1.0)
     assert one.tolist() == [True, False]
 
 
@@ -527,8 +537,8 @@ def test_best_patches_is_the_numpy_matching() -> None:
     n = points.shape[0]
     got = (np.full(n, -1, dtype=np.int64), np.full(n, np.nan), np.zeros((n, 3)),
            np.zeros((n, 3)))
-    kernels.best_patches(points, tri, tin.simplices, tin.neighbors, tin.usable, vertices, 0.5,
-                         *got)
+    tin_kernels.best_patches(points, tri, tin.simplices, tin.neighbors, tin.usable, vertices, 0.5,
+                             *got)
     for a, b in zip(got, expected, strict=True):
         np.testing.assert_array_equal(a, b)
     found = got[0] >= 0
@@ -537,21 +547,21 @@ def test_best_patches_is_the_numpy_matching() -> None:
 
 
 @pytest.mark.parametrize("field_type", ["<f8", "<f4"])
-def test_gather_xyz_and_all_finite3_on_the_fields_of_a_cloud(field_type: str) -> None:
+def test_gather_xyz_and_all_finite_xyz_on_the_fields_of_a_cloud(field_type: str) -> None:
     rng = np.random.default_rng(4)
     cloud = np.zeros(1000, dtype=[("x", field_type), ("t", "<f8"), ("y", field_type),
                                   ("i", "<u2"), ("z", field_type)])
     for c in "xyz":
         cloud[c] = rng.normal(0.0, 1e3, 1000)
     out = np.empty((1000, 3))
-    kernels.gather_xyz(cloud["x"], cloud["y"], cloud["z"], out)
+    pointcloud_kernels.gather_xyz(cloud["x"], cloud["y"], cloud["z"], out)
     np.testing.assert_array_equal(out, np.column_stack([cloud[c].astype(np.float64)
                                                         for c in "xyz"]))
-    assert kernels.all_finite3(cloud["x"], cloud["y"], cloud["z"])
+    assert pointcloud_kernels.all_finite_xyz(cloud["x"], cloud["y"], cloud["z"])
     for bad, c, row in ((np.nan, "z", 999), (np.inf, "x", 0), (-np.inf, "y", 500)):
         spoilt = cloud.copy()
         spoilt[c][row] = bad
-        assert not kernels.all_finite3(spoilt["x"], spoilt["y"], spoilt["z"])
+        assert not pointcloud_kernels.all_finite_xyz(spoilt["x"], spoilt["y"], spoilt["z"])
 
 
 def test_cells_without_plane_is_the_numpy_expression() -> None:
@@ -562,13 +572,13 @@ def test_cells_without_plane_is_the_numpy_expression() -> None:
     cell_ok = rng.random(nu * nv) < 0.7
     wanted = np.zeros(nu * nv, dtype=bool)
     wanted[iu * nv + iv] = True
-    np.testing.assert_array_equal(kernels.cells_without_plane(iu, iv, 0, 0, nv, cell_ok),
+    np.testing.assert_array_equal(normals_kernels.cells_without_plane(iu, iv, 0, 0, nv, cell_ok),
                                   np.flatnonzero(wanted & ~cell_ok))
     # cells numbered from (row0, col0) = (-4, 9): the same grid cells
-    np.testing.assert_array_equal(kernels.cells_without_plane(iu - 4, iv + 9, -4, 9, nv,
-                                                              cell_ok),
+    np.testing.assert_array_equal(normals_kernels.cells_without_plane(iu - 4, iv + 9, -4, 9, nv,
+                                                                      cell_ok),
                                   np.flatnonzero(wanted & ~cell_ok))
-    assert kernels.cells_without_plane(iu[:0], iv[:0], 0, 0, nv, cell_ok).size == 0
+    assert normals_kernels.cells_without_plane(iu[:0], iv[:0], 0, 0, nv, cell_ok).size == 0
 
 
 @pytest.mark.parametrize("all_served", [True, False])
@@ -605,7 +615,7 @@ def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
     target = correction_module.row_target(points, out, counts)
     assert target is not None
     n = len(t)
-    kernels.correct_returns(
+    correction_kernels.correct_returns(
         t, xyz, ok, lines.window, False,
         (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
         (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,

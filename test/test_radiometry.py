@@ -9,17 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from lidarcal_ros.core import normals as normals_module
+from lidarcal_ros.core import strip_normals as strip_normals_module
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.grid_planes import smallest_eigen
 from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.core.normals import (
-    GridNormals,
-    StripNormals,
-    cell_size,
-    grid_normals,
-    smallest_eigen,
-)
+from lidarcal_ros.core.normals import GridNormals, cell_size, grid_normals
 from lidarcal_ros.core.radiometry import (
     RadiometricModel,
     atmospheric_alpha,
@@ -31,6 +26,7 @@ from lidarcal_ros.core.radiometry import (
     rayleigh_alpha,
     two_way_transmittance,
 )
+from lidarcal_ros.core.strip_normals import StripNormals
 from lidarcal_ros.errors import ConfigError, TrajectoryError
 from lidarcal_ros.io.las import adjusted_gps_to_unix, unix_to_adjusted_gps
 from lidarcal_ros.pipeline.correction import (
@@ -557,7 +553,7 @@ def test_stream_normals_outliers_and_late_points_get_no_normal() -> None:
     xyz[20_001] = np.nan
     g, sn, _ = _stream(xyz, t, list(range(5000, len(t), 5000)))
     assert not g.valid[20_000] and not g.valid[20_001]
-    assert sn._moments.nbytes < 50e6
+    assert sn.moment_grid.nbytes < 50e6
     assert g.valid.mean() > 0.99
     # A point far behind the rows kept arrives late: no normal, counted.
     xy, t = _scan_pattern(n_sweeps=400, per_sweep=100, swath=100.0, spacing_along=1.0)
@@ -581,7 +577,8 @@ def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole(
     given at once, so no stale sums survive a move. New grids start as garbage (NaN here):
     a row read before it was zeroed would show, also where a widening swath (terrain
     rising towards the aircraft, say) makes the grid grow sideways."""
-    monkeypatch.setattr(normals_module, "_new_grid", lambda shape: np.full(shape, np.nan))
+    monkeypatch.setattr(strip_normals_module, "new_moment_grid",
+                        lambda shape: np.full(shape, np.nan))
     xy, t = _scan_pattern(n_sweeps=900, per_sweep=150, swath=150.0, spacing_along=0.5)
     if widening:
         xy[:, 0] *= 1.0 + 1.5 * t / t[-1]
@@ -596,12 +593,12 @@ def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole(
     columns = []
     for k, (a, b) in enumerate(itertools.pairwise(cuts)):
         sn.add(k, xyz[a:b], t[a:b])
-        arrays.add(id(sn._moments))
-        columns.append(sn._moments.shape[1])
+        arrays.add(id(sn.moment_grid))
+        columns.append(sn.moment_grid.shape[1])
         out.update(sn.pop_ready())  # type: ignore[arg-type]
     out.update(sn.pop_ready(final=True))  # type: ignore[arg-type]
     rows_along = int(np.ptp(xy[:, 1]) / sn.cell[0])
-    assert rows_along > 4 * sn._moments.shape[0]  # the strip is several grids long
+    assert rows_along > 4 * sn.moment_grid.shape[0]  # the strip is several grids long
     if widening:
         assert len(set(columns)) >= 3  # the grid widened more than once
     else:

@@ -24,9 +24,13 @@ from typing import Literal
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
 from lidarcal_ros.core.geometry import LaserGeometry
 from lidarcal_ros.core.heading import choose_heading, median_crab_deg, window_headings
+from lidarcal_ros.core.local_trajectory_kernels import (
+    below_line,
+    sorted_time_windows,
+    window_geometry,
+)
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import finite_rows
 from lidarcal_ros.errors import TrajectoryError
@@ -132,8 +136,8 @@ def served_by_trajectory(
     ok = np.ones(t.shape[0], dtype=bool) if all_finite else np.isfinite(t) & finite_rows(xyz)
     ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
     if ok.any():
-        ok &= kernels.below_line(t, xyz[:, 2], trajectory.t, trajectory.xyz[:, 2],
-                                 min_depth_m)  # (the heights read in place)
+        ok &= below_line(t, xyz[:, 2], trajectory.t, trajectory.xyz[:, 2],
+                         min_depth_m)  # (the heights read in place)
     return ok
 
 
@@ -236,7 +240,7 @@ def window_lines(
         )
     traj_t = trajectory.t
     # Points in time order (the usual case): windows are runs, found in one pass.
-    in_order, win_start, win_stop, inv, n_bad, first = kernels.sorted_time_windows(
+    in_order, win_start, win_stop, inv, n_bad, first = sorted_time_windows(
         traj_t, t, float(window_s), int(min_samples))
     if not in_order:
         start, stop = _windows(traj_t, t, window_s)
@@ -325,7 +329,7 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
     """
     # Per point, in one pass: the firing position on its window's line, then what
     # geometry.geometry_at computes from it.
-    origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta = kernels.window_geometry(
+    origin, x, z, kappa, cos_kappa, sin_kappa, sin_beta, cos_beta = window_geometry(
         t, xyz, lines.window, lines.t_mean, lines.p_mean, lines.velocity, lines.kappa,
         lines.cos_kappa, lines.sin_kappa)
     with np.errstate(divide="ignore", invalid="ignore"):

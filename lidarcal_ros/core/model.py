@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lidarcal_ros.core import calibration_kernels, kernels
+from lidarcal_ros.core import calibration_kernels
+from lidarcal_ros.core.correction_kernels import bias_offsets
 from lidarcal_ros.core.geometry import LaserGeometry
 from lidarcal_ros.core.params import N_PARAMETERS
 
@@ -181,7 +182,8 @@ def point_offsets(
 def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
              beta: np.ndarray, trig: Trig | None, base: np.ndarray,
              rotation: np.ndarray | None = None) -> np.ndarray:
-    """:func:`point_offsets`, or ``base - `` them (one pass: :func:`kernels.bias_offsets`).
+    """:func:`point_offsets`, or ``base - `` them (one pass:
+    :func:`~lidarcal_ros.core.correction_kernels.bias_offsets`).
 
     Body frame: the displacement to the right is ``dX + z dphi - sin(beta) dr + z beta dS``,
     forward ``dY - z domega + x dkappa``, up ``dZ - x dphi - cos(beta) dr - x beta dS``;
@@ -192,9 +194,9 @@ def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
     c, s, sb, cb = (np.asarray(a, dtype=np.float64) for a in trig)
     rot = _NO_ROTATION if rotation is None else np.ascontiguousarray(rotation,
                                                                      dtype=np.float64)
-    return kernels.bias_offsets(np.asarray(delta, dtype=np.float64),
-                                np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64),
-                                np.asarray(beta, dtype=np.float64), c, s, sb, cb, base, rot)
+    return bias_offsets(np.asarray(delta, dtype=np.float64),
+                        np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64),
+                        np.asarray(beta, dtype=np.float64), c, s, sb, cb, base, rot)
 
 
 _NO_ROTATION = np.zeros((0, 3, 3))
@@ -299,8 +301,8 @@ def exact_correction(
     """:func:`correct_points_exact` and the laser geometry of the corrected points seen from
     the same firing positions and body frames
     (:func:`~lidarcal_ros.core.geometry.geometry_at`, with its sines and cosines of
-    ``beta``), in one compiled pass (:func:`~lidarcal_ros.core.calibration_kernels.
-    exact_correction`).
+    ``beta``), in one compiled pass
+    (:func:`~lidarcal_ros.core.calibration_kernels.exact_correction_and_geometry`).
 
     Returns
     -------
@@ -325,7 +327,7 @@ def exact_correction(
     shift = np.empty((n, 3))
     x, z, beta, sb, cb = (np.empty(n) for _ in range(5))
     y = np.empty(n) if rigorous else _NO_COLUMN
-    calibration_kernels.exact_correction(
+    calibration_kernels.exact_correction_and_geometry(
         xyz, np.ascontiguousarray(frame.origin, dtype=np.float64),
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),

@@ -12,13 +12,17 @@ keeping the surface's shape down to the cell's size.
 The thinning is done per cloud, in arrival order, the same way by ``lidarcal calibrate`` (per
 message of the bag) and by the calibrator node (per message on the topic), so that both see
 the same points. A cell cut by the boundary of two clouds may keep a point from each.
+
+The choice is one compiled pass over the points (:mod:`lidarcal_ros.core.thinning_kernels`): a
+flag per cell of the cloud's box where that is small enough, else a hash table of the cells
+met.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
+from lidarcal_ros.core.thinning_kernels import first_in_cells, first_in_grid
 
 #: Most cells of the box of a cloud's points thinned with a flag per cell (16 MB); wider
 #: clouds, and clouds of several strips, go through a hash table of the cells met.
@@ -53,8 +57,8 @@ def first_per_cell(xyz: np.ndarray, group: np.ndarray, cell_m: float, *,
     args = (np.ascontiguousarray(xyz[:, 0]), np.ascontiguousarray(xyz[:, 1]),
             np.ascontiguousarray(group, dtype=np.int64), 1.0 / cell_m,
             np.ascontiguousarray(valid, dtype=bool))
-    done, keep = kernels.first_in_grid(*args, _MAX_GRID_CELLS)
-    return keep if done else kernels.first_in_cells(*args)
+    done, keep = first_in_grid(*args, _MAX_GRID_CELLS)
+    return keep if done else first_in_cells(*args)
 
 
 __all__ = ["first_per_cell"]

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lidarcal_ros.core import calibration_kernels, kernels
+from lidarcal_ros.core import tin_kernels
 
 logger = logging.getLogger(__name__)
 
@@ -82,12 +82,12 @@ class Tin:
 
     def _judge(self, local: np.ndarray) -> np.ndarray:
         """Usable patches (and :attr:`sloped`) by the rules of :class:`TinQuality`, in one
-        compiled pass (:func:`~lidarcal_ros.core.calibration_kernels.tin_quality`)."""
+        compiled pass (:func:`~lidarcal_ros.core.tin_kernels.tin_quality`)."""
         q = self.quality
         m = self.simplices.shape[0]
         usable = np.empty(m, dtype=bool)
         self.sloped = np.empty(m, dtype=bool)
-        calibration_kernels.tin_quality(
+        tin_kernels.tin_quality(
             np.ascontiguousarray(local), self.simplices, self.neighbors, float(q.max_edge_m),
             float(np.cos(np.radians(q.max_slope_deg))), float(np.cos(np.radians(q.max_bend_deg))),
             float(np.cos(np.radians(q.flat_slope_deg))), usable, self.sloped)
@@ -139,7 +139,7 @@ class GridLocator:
     crossing the edge with the most negative barycentric coordinate; a walk that does not
     settle falls back to testing every triangle listed in the cell. The cost per query does
     not depend on query order or on queries outside the hull
-    (:func:`~lidarcal_ros.core.calibration_kernels.locate_points`).
+    (:func:`~lidarcal_ros.core.tin_kernels.locate_points`).
 
     Parameters
     ----------
@@ -160,7 +160,7 @@ class GridLocator:
         self.xy = np.ascontiguousarray(xy, dtype=np.float64)
         self.simplices = simplices
         self.neighbors = neighbors
-        box = calibration_kernels.triangle_boxes(self.xy, simplices)
+        box = tin_kernels.triangle_boxes(self.xy, simplices)
         size = float(np.median(np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]))) \
             if len(box) else 1.0
         self.cell = max(size, 1e-3)
@@ -170,7 +170,7 @@ class GridLocator:
         self.nx = int((xy[:, 0].max() - self.x0) / self.cell) + 1 if len(xy) else 1
         self.ny = int((xy[:, 1].max() - self.y0) / self.cell) + 1 if len(xy) else 1
         self.starts = np.empty(self.nx * self.ny + 1, dtype=np.int64)
-        self.entries = calibration_kernels.grid_lists(
+        self.entries = tin_kernels.grid_lists(
             simplices, box, self.x0, self.y0, self.cell, self.nx, self.ny,
             self.MAX_CELLS_PER_TRIANGLE, self.starts)
 
@@ -178,7 +178,7 @@ class GridLocator:
         """Index of the triangle containing each query point (local XY), -1 if none;
         ``start``: triangles to begin from (-1: none)."""
         out = np.empty(q.shape[0], dtype=np.int64)
-        calibration_kernels.locate_points(
+        tin_kernels.locate_points(
             np.ascontiguousarray(q, dtype=np.float64),
             _NO_START if start is None else np.ascontiguousarray(start, dtype=np.int64),
             self.xy, self.simplices, self.neighbors, self.entries, self.starts, self.x0,
@@ -287,7 +287,7 @@ def _match_block(
         fresh = guess < 0
         if fresh.any():
             guess[fresh] = tin.locate(xy[fresh])
-        xy2 = calibration_kernels.shifted_queries(
+        xy2 = tin_kernels.shifted_queries(
             np.ascontiguousarray(xy), guess, tin.simplices,
             np.ascontiguousarray(vertex_shift, dtype=np.float64))
         tri = tin.locate(xy2, guess)
@@ -298,10 +298,10 @@ def _match_block(
     best_d = np.full(n, np.nan)
     # The patch containing the point's XY settles almost every point; its three neighbours
     # are tried only where it does not qualify (foot of the normal outside it, or unusable).
-    kernels.best_patches(np.ascontiguousarray(points, dtype=np.float64), tri, tin.simplices,
-                         tin.neighbors, tin.usable,
-                         np.ascontiguousarray(vertices, dtype=np.float64),
-                         float(max_normal_distance), best_tri, best_d, best_nrm, best_w)
+    tin_kernels.best_patches(np.ascontiguousarray(points, dtype=np.float64), tri,
+                             tin.simplices, tin.neighbors, tin.usable,
+                             np.ascontiguousarray(vertices, dtype=np.float64),
+                             float(max_normal_distance), best_tri, best_d, best_nrm, best_w)
     valid = best_tri >= 0
     out.valid[where] = valid
     out.triangle[where] = best_tri

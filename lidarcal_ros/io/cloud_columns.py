@@ -223,9 +223,9 @@ def _stacked_xyz(fields: list[np.ndarray]) -> np.ndarray:
     if all(f.dtype.isnative for f in fields):
         # Imported here: the processes that only pass clouds on (the nodes' ROS side, a
         # replay) need not load numba.
-        from lidarcal_ros.core import kernels
+        from lidarcal_ros.io.pointcloud_kernels import gather_xyz
 
-        kernels.gather_xyz(fields[0], fields[1], fields[2], xyz)  # one pass over the rows
+        gather_xyz(fields[0], fields[1], fields[2], xyz)  # one pass over the rows
     else:  # a big-endian cloud (the compiled loop takes native byte order only)
         for i, f in enumerate(fields):
             xyz[:, i] = f
@@ -267,9 +267,9 @@ def time_span(t: np.ndarray) -> tuple[float, float]:
     if t.size == 0:
         return float("nan"), float("nan")
     if t.ndim == 1 and t.dtype.kind == "f" and t.dtype.isnative:
-        from lidarcal_ros.core import kernels  # (here: see extract_xyz)
+        from lidarcal_ros.io.pointcloud_kernels import finite_range  # (here: see extract_xyz)
 
-        return kernels.finite_range(t)  # one pass (the field is strided in the cloud's rows)
+        return finite_range(t)  # one pass (the field is strided in the cloud's rows)
     # fmin/fmax skip NaN, and give NaN (without a warning) only when all are.
     return float(np.fmin.reduce(t)), float(np.fmax.reduce(t))
 
@@ -323,12 +323,12 @@ def extract_columns(
     t_span: tuple[float, float] | None = None
     all_finite: bool | None = None
     if all(f is None or f.dtype.isnative for f in wanted):
-        from lidarcal_ros.core import kernels  # (here: see extract_xyz)
+        from lidarcal_ros.io.pointcloud_kernels import gather_columns  # (here: see extract_xyz)
 
         xyz, t = np.empty((n, 3)), np.empty(n)
         intensity = np.empty(n if intensity_field is not None else 0, dtype=np.float32)
         strip_id = np.empty(n if sid_field is not None else 0, dtype=np.uint32)
-        t_lo, t_hi, non_finite = kernels.gather_columns(  # one pass over the rows
+        t_lo, t_hi, non_finite = gather_columns(  # one pass over the rows
             fields[0], fields[1], fields[2], t_field,
             intensity_field if intensity_field is not None else intensity,
             sid_field if sid_field is not None else strip_id, xyz, t, intensity, strip_id)

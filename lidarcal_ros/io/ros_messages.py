@@ -237,9 +237,10 @@ def is_dense_byte(points: np.ndarray) -> bytes:
     names = points.dtype.names or ()
     present = [points[c] for c in "xyz" if c in names]
     if len(present) == 3 and all(p.dtype.kind == "f" and p.dtype.isnative for p in present):
-        from lidarcal_ros.core import kernels  # (here: see io.cloud_columns.extract_xyz)
+        # (Imported here: see io.cloud_columns.extract_xyz.)
+        from lidarcal_ros.io.pointcloud_kernels import all_finite_xyz
 
-        dense = kernels.all_finite3(*present)  # one pass over the rows
+        dense = all_finite_xyz(*present)  # one pass over the rows
     else:
         dense = all(bool(np.isfinite(p).all()) for p in present)
     return b"\x01" if dense else b"\x00"

@@ -22,7 +22,7 @@ corrector uses the file named by its ``calibration`` parameter, else the configu
 Every input point comes out exactly once, in the order received. A chunk is corrected once
 the trajectory covers it (a sample past its last point time) or after
 ``max_trajectory_wait_s``. The normals come from one grid per strip that every chunk's points
-join (:class:`~lidarcal_ros.core.normals.StripNormals`): by default (``lookahead`` false) a
+join (:class:`~lidarcal_ros.core.strip_normals.StripNormals`): by default (``lookahead`` false) a
 chunk is corrected at once, its points seeing the earlier chunks as neighbours; with
 ``lookahead`` true it waits until the next chunks cover the grid rows beyond it (about three
 rows, a few chunks), which gives exactly the normals of ``lidarcal correct`` at that cost in

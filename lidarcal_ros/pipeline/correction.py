@@ -2,7 +2,7 @@
 corrector node share this module.
 
 Per point (method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
-(:func:`lidarcal_ros.core.kernels.correct_returns`):
+(:func:`lidarcal_ros.core.correction_kernels.correct_returns`):
 
 1. the local trajectory gives ``x, z, kappa, beta`` and the firing position ``X_o(t)``
    (:func:`lidarcal_ros.core.local_trajectory.laser_geometry`);
@@ -35,7 +35,7 @@ Output: every input field, ``x, y, z`` corrected (in their own type), and the FL
 coordinates, gets NaN in the four derived fields and a flag, and is counted.
 
 Streaming: :class:`StreamCorrector` takes clouds one at a time. The points of each strip
-join one grid of cells (:class:`~lidarcal_ros.core.normals.StripNormals`), each point binned
+join one grid of cells (:class:`~lidarcal_ros.core.strip_normals.StripNormals`), each point binned
 and evaluated once, so the normals do not depend on how the stream is cut into clouds: a
 cloud is released once the clouds after it cover the grid rows its normals read (the
 look-ahead), or at once without look-ahead. Clouds are corrected in batches
@@ -60,7 +60,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core import kernels
+from lidarcal_ros.core import correction_kernels
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.flags import (
     FLAG_GRAZING,
@@ -87,14 +87,13 @@ from lidarcal_ros.core.local_trajectory import (
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import (
     GridNormals,
-    NormalsTask,
-    StripNormals,
     cell_size,
     finite_rows,
     grid_normals,
     no_normals,
 )
 from lidarcal_ros.core.radiometry import RadiometricModel, describe_alpha
+from lidarcal_ros.core.strip_normals import NormalsTask, StripNormals
 from lidarcal_ros.errors import (
     BagError,
     ConfigError,
@@ -556,7 +555,7 @@ def correct_columns(
     lines = _NO_LINES if frames is None or frames.lines is None else frames.lines
     rigorous = frames is not None and frames.rigorous
     q = trajectory.orientation
-    kernels.correct_returns(
+    correction_kernels.correct_returns(
         t, xyz, ok, _NO_WINDOW if frames is None else frames.window, rigorous,
         (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
         (trajectory.t, trajectory.xyz, q if rigorous and q is not None else _NO_QUATERNIONS),
@@ -653,13 +652,13 @@ def build_corrected(points: np.ndarray, res: CorrectedColumns, a: int = 0,
         # The usual layout: one compiled pass row by row instead of nine over the output.
         (out_words, in_words, x, y, z, reflectance, range_m, incidence, scan_angle,
          flags, _) = target
-        kernels.fill_corrected_rows(
+        correction_kernels.fill_corrected_rows(
             out_words, in_words, x, y, z, res.xyz[a:b], reflectance, range_m, incidence,
             scan_angle, flags, res.reflectance[a:b], res.range[a:b], res.incidence[a:b],
             res.scan_angle[a:b], res.flags[a:b], counts)
         return out
     if tally is not None:
-        counts[:256] += kernels.byte_counts(np.ascontiguousarray(res.flags[a:b]))
+        counts[:256] += correction_kernels.byte_counts(np.ascontiguousarray(res.flags[a:b]))
         counts[256] += int(np.count_nonzero(~np.isfinite(res.xyz[a:b]).all(axis=1)))
     if not fresh:
         # A used buffer: zero the added part of each row (whole 8-byte words; the row size
