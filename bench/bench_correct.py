@@ -20,7 +20,7 @@ Figures (bench/README.md, "Correction")
   correction, one thread), alternately, ``--repeats`` times each; min and median.
 - **the numerics in memory** (stage figures, not goals): points per second of the whole
   per-point correction on the clouds of a mission already in memory
-  (:class:`~lidarcal_ros.pipeline.correction.StreamCorrector`: column extraction, local
+  (:class:`~lidarcal_ros.pipeline.stream_corrector.StreamCorrector`: column extraction, local
   trajectory, eq. [13], normals with the look-ahead, incidence, radar equation, the
   corrected arrays), in one thread, with two worker threads, and as the corrector node runs
   it (one cloud at a time), against a baseline doing the same steps the obvious way
@@ -176,11 +176,8 @@ def throughput_worker(spec: MissionSpec, repeats: int, baseline_points: int) -> 
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
     from lidarcal_ros.io.mission_bag import strip_point_array, time_chunk_bounds
-    from lidarcal_ros.pipeline.correction import (
-        DEFAULT_BATCH_POINTS,
-        CorrectionSettings,
-        StreamCorrector,
-    )
+    from lidarcal_ros.pipeline.correction import CorrectionSettings
+    from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamCorrector
 
     tune_allocator()  # as `lidarcal correct` does
     sim = benchlib.simulate(spec)

@@ -268,7 +268,7 @@ def _relay_main(argv: list[str]) -> int:
     from lidarcal_ros.io.ros_messages import cloud_cdr
     from lidarcal_ros.nodes.process import run_main
     from lidarcal_ros.nodes.topics import stream_qos
-    from lidarcal_ros.pipeline.correction import corrected_dtype
+    from lidarcal_ros.pipeline.corrected_cloud import corrected_dtype
 
     tune_allocator(single_arena=False)  # as the corrector's node process
     layout = corrected_dtype(make_point_dtype())
@@ -487,7 +487,7 @@ def bench_codec(points: int, repeats: int) -> dict[str, Any]:
 
     from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
     from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
-    from lidarcal_ros.pipeline.correction import corrected_dtype
+    from lidarcal_ros.pipeline.corrected_cloud import corrected_dtype
 
     rng = np.random.default_rng(1)
     pts = synthetic_chunk(0, points, 0.05, T0, rng)

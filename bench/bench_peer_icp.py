@@ -57,16 +57,13 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import DEFAULT_BIASES, SimulationSpec
 from lidarcal_ros.core.surface import TREE
 from lidarcal_ros.pipeline.calibration import calibrate_mission
-from lidarcal_ros.pipeline.correction import (
-    FLAG_NOT_CORRECTED,
-    CorrectionSettings,
-    correct_columns,
-)
+from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 ARCSEC = math.pi / 180.0 / 3600.0
 

@@ -24,7 +24,7 @@ from lidarcal_ros.core.landcover import classify_cells
 from lidarcal_ros.core.params import as_vector
 from lidarcal_ros.core.simulate import simulate_mission
 from lidarcal_ros.core.simulation_spec import SimulationSpec
-from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
+from lidarcal_ros.pipeline.correction import CorrectionSettings, NormalsFit, correct_columns
 
 NAMES = ["soil", "grass", "asphalt", "roof", "tree"]
 MERGE = [3, 2, 1, 1, 0]
@@ -46,7 +46,8 @@ def main() -> None:
         for strip, cls in zip(sim.mission.strips, sim.surface_class, strict=True):
             res = correct_columns(strip.xyz, strip.t, strip.intensity,
                                   sim.mission.trajectory, settings,
-                                  group=np.full(len(strip), strip.strip_id))
+                                  normals=NormalsFit(group=np.full(len(strip),
+                                                                   strip.strip_id)))
             xyz.append(res.xyz)
             rho.append(res.reflectance)
             raw.append(strip.intensity)

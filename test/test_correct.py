@@ -28,19 +28,19 @@ from helpers_missions import (
 )
 
 from lidarcal_ros.cli.main import main
+from lidarcal_ros.core.flags import (
+    FLAG_GRAZING,
+    FLAG_NO_INTENSITY,
+    FLAG_NOT_CORRECTED,
+    FLAG_ROUGH,
+)
 from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.scanning import INTENSITY_K
 from lidarcal_ros.core.surface import ASPHALT, GRASS, SOIL
 from lidarcal_ros.io.las import adjusted_gps_to_unix
-from lidarcal_ros.pipeline.correction import (
-    FLAG_GRAZING,
-    FLAG_NO_INTENSITY,
-    FLAG_NOT_CORRECTED,
-    FLAG_ROUGH,
-    CorrectionSettings,
-    StreamCorrector,
-)
+from lidarcal_ros.pipeline.correction import CorrectionSettings
+from lidarcal_ros.pipeline.stream_corrector import StreamCorrector
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission

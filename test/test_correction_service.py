@@ -21,13 +21,14 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.io.mission_bag import strip_point_array
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.shared_ring import SharedRing
-from lidarcal_ros.pipeline import correction as correction_module
-from lidarcal_ros.pipeline.correction import CorrectionSettings, StreamCorrector
+from lidarcal_ros.pipeline import correction_batch
+from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.correction_service import (
     CorrectionProcess,
     LocalCorrection,
     ServiceOptions,
 )
+from lidarcal_ros.pipeline.stream_corrector import StreamCorrector
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission
@@ -206,17 +207,17 @@ def test_a_batch_that_raises_reports_its_own_clouds_and_the_stream_goes_on(
     clouds of that batch, not for those of whatever request is being handled when it
     surfaces; the other clouds come out corrected, each once."""
     settings, trajectory, clouds = _stream(small_mission)
-    real_run_job = correction_module._run_job
+    real_run_batch = correction_batch.run_batch
     failing: list[Any] = []
 
-    def run_job(job: Any, source: str) -> Any:
+    def run_batch(job: Any, source: str) -> Any:
         tags = [m.tag for m in job.messages]
         if 6 in tags:
             failing.extend(tags)
             raise RuntimeError("injected")
-        return real_run_job(job, source)
+        return real_run_batch(job, source)
 
-    monkeypatch.setattr(correction_module, "_run_job", run_job)
+    monkeypatch.setattr(correction_batch, "run_batch", run_batch)
     got = Collector()
     service = LocalCorrection(settings, ServiceOptions(workers=workers, lookahead=False,
                                                        batch_points=0),

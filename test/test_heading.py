@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -240,7 +241,7 @@ def test_correction_of_a_crabbed_mission_lands_on_the_truth_with_the_attitude(
 
 
 def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
-        caplog: pytest.LogCaptureFixture) -> None:
+        caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
     """Live, 'attitude' with poses that carry none leaves each cloud uncorrected (flagged):
     one warning, then silence for a while, then one that counts the clouds in between."""
     from lidarcal_ros.pipeline import correction
@@ -257,11 +258,11 @@ def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
             assert lines is None and not ok.any()
         assert len(caplog.records) == 1
         assert "'attitude' but the trajectory has no orientation" in caplog.text
-        last, since = correction._uncorrected_warned[source]
-        assert since == 4
+        warnings = correction.UNCORRECTED_WARNINGS
+        assert warnings.passed_over(source) == 4
         # as if the quiet time had passed
-        correction._uncorrected_warned[source] = (last - correction.UNCORRECTED_WARNING_S,
-                                                  since)
+        monkeypatch.setattr(warnings, "clock",
+                            lambda: time.monotonic() + correction.UNCORRECTED_WARNING_S)
         correction.served_frames(pts_t, xyz, bare, source=source, heading_source="attitude")
     assert len(caplog.records) == 2
     assert "(and 4 more clouds since the last warning)" in caplog.records[-1].getMessage()

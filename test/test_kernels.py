@@ -17,8 +17,9 @@ from lidarcal_ros.core import (
     normals_kernels,
     tin_kernels,
 )
+from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.io import pointcloud_kernels
-from lidarcal_ros.pipeline import correction as correction_module
+from lidarcal_ros.pipeline import corrected_cloud
 
 MIN_POINTS = 4
 MIN_SPREAD = 0.01
@@ -336,7 +337,7 @@ def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: 
         t, xyz, ok, lines.window, False,
         (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
         (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,
-        model.kernel_constants(), out, correction_module._NO_ROWS)
+        model.kernel_constants(), out, corrected_cloud.NO_ROWS)
     return out
 
 
@@ -607,12 +608,12 @@ def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
         xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
     xc, rng_m, inc, scan, refl, flags = _run_correct_returns(
         t, xyz, ok, lines, normals, rough, intensity, delta, model)
-    res = correction_module.CorrectedColumns(xc, rng_m, inc, scan, refl, flags)
-    expected_tally = correction_module.CloudTally.empty()
-    expected = correction_module.build_corrected(points, res, tally=expected_tally)
+    res = corrected_cloud.CorrectedColumns(xc, rng_m, inc, scan, refl, flags)
+    expected_tally = corrected_cloud.CloudTally.empty()
+    expected = corrected_cloud.build_corrected(points, res, tally=expected_tally)
     out = np.full(len(t) * expected.dtype.itemsize, 0xAB, np.uint8).view(expected.dtype)
     counts = np.zeros(257, dtype=np.int64)
-    target = correction_module.row_target(points, out, counts)
+    target = corrected_cloud.row_target(points, out, counts)
     assert target is not None
     n = len(t)
     correction_kernels.correct_returns(
@@ -624,7 +625,7 @@ def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
     assert n > 2 * 256  # (several blocks)
     assert out.tobytes() == expected.tobytes()
     np.testing.assert_array_equal(counts, expected_tally.counts)
-    assert expected_tally.flagged(correction_module.FLAG_NOT_CORRECTED) == (0 if all_served
+    assert expected_tally.flagged(FLAG_NOT_CORRECTED) == (0 if all_served
                                                                            else 2)
 
 

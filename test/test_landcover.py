@@ -13,7 +13,7 @@ import pytest
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.landcover import Accuracy, GaussianML, Raster, classify_cells
 from lidarcal_ros.core.params import as_vector
-from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
+from lidarcal_ros.pipeline.correction import CorrectionSettings, NormalsFit, correct_columns
 
 mission_factory = helpers_missions.mission_factory
 
@@ -78,7 +78,8 @@ def classified(mission_factory: Any) -> dict[str, Accuracy]:
     xyz, rho, raw, labels = [], [], [], []
     for strip, cls in zip(sim.mission.strips, sim.surface_class, strict=True):
         res = correct_columns(strip.xyz, strip.t, strip.intensity, sim.mission.trajectory,
-                              settings, group=np.full(len(strip), strip.strip_id))
+                              settings,
+                              normals=NormalsFit(group=np.full(len(strip), strip.strip_id)))
         xyz.append(res.xyz)
         rho.append(res.reflectance)
         raw.append(strip.intensity)

@@ -29,7 +29,7 @@ from lidarcal_ros.core.radiometry import (
 from lidarcal_ros.core.strip_normals import StripNormals
 from lidarcal_ros.errors import ConfigError, TrajectoryError
 from lidarcal_ros.io.las import adjusted_gps_to_unix, unix_to_adjusted_gps
-from lidarcal_ros.pipeline.correction import (
+from lidarcal_ros.pipeline.corrected_cloud import (
     ADDED_FIELDS,
     CloudTally,
     CorrectedColumns,

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.allocator import tune_allocator
+from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.pointcloud import point_fields
@@ -45,11 +46,8 @@ from lidarcal_ros.io.ros_messages import (
     parse_cloud,
 )
 from lidarcal_ros.io.shared_ring import SharedRing
-from lidarcal_ros.pipeline.correction import (
-    FLAG_NOT_CORRECTED,
-    CorrectionSettings,
-    StreamCorrector,
-)
+from lidarcal_ros.pipeline.correction import CorrectionSettings
+from lidarcal_ros.pipeline.stream_corrector import StreamCorrector
 
 logger = logging.getLogger(__name__)
 

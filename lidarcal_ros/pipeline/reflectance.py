@@ -35,6 +35,7 @@ from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.radiometry import constant_from_target
 from lidarcal_ros.pipeline.correction import (
     CorrectionSettings,
+    NormalsFit,
     correct_columns,
     trajectory_heading,
 )
@@ -166,7 +167,8 @@ def measure_target_on_mission(
                 continue
             heading = trajectory_heading(mission.trajectory, float(np.nanmedian(strip.t)))
             res = correct_columns(strip.xyz[near], strip.t[near], strip.intensity[near],
-                                  mission.trajectory, relative, heading=heading,
+                                  mission.trajectory, relative,
+                                  normals=NormalsFit(heading=heading),
                                   source=f"strip {strip.strip_id}")
             yield res.xyz, res.reflectance, res.flags, res.incidence
 

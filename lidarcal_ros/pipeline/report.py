@@ -42,7 +42,12 @@ import numpy as np
 from lidarcal_ros import __version__
 from lidarcal_ros.core.calibrate import Calibrator, ControlResidual, Progress
 from lidarcal_ros.core.config import SCHEMA, FlightConfig
-from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.flags import (
+    FLAG_NO_INTENSITY,
+    FLAG_NO_NORMAL,
+    FLAG_NOT_CORRECTED,
+    FLAG_ROUGH,
+)
 from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.mission import ControlPoints, Mission, Trajectory
 from lidarcal_ros.core.normals import cell_size, finite_rows, grid_normals
@@ -76,9 +81,6 @@ from lidarcal_ros.io.html_report import (
 from lidarcal_ros.io.yaml_file import read_yaml
 from lidarcal_ros.pipeline.calibration import load_mission, qa_level
 from lidarcal_ros.pipeline.correction import (
-    FLAG_NO_INTENSITY,
-    FLAG_NO_NORMAL,
-    FLAG_ROUGH,
     CorrectionSettings,
     correct_columns,
     trajectory_heading,

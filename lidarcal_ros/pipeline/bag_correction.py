@@ -1,0 +1,475 @@
+"""``lidarcal correct``: every cloud of a mission bag corrected into a bag or a LAS/LAZ file.
+
+:func:`correct_bag` checks the bag's topics, reads the whole trajectory first
+(:func:`read_trajectory`), then streams the clouds through a
+:class:`~lidarcal_ros.pipeline.stream_corrector.StreamCorrector` (read ahead in a thread,
+batches corrected in worker threads) and writes what comes out, in order:
+
+- a bag: every input message passed through unchanged and each corrected cloud on
+  ``topics.corrected``, in the input's (log-time) order; each corrected cloud is built in the
+  bytes of its output message;
+- LAS/LAZ: the corrected clouds in runs of at least :data:`LAS_RUN_POINTS` points.
+
+It returns a :class:`CorrectionReport` (counts, models, warnings) for the command to print.
+"""
+
+from __future__ import annotations
+
+import functools
+import heapq
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.georeferencing import check_model_setting
+from lidarcal_ros.core.heading import check_orientation
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.radiometry import describe_alpha
+from lidarcal_ros.errors import BagError, InputError
+from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
+from lidarcal_ros.io.cloud_columns import resolve_time_field
+from lidarcal_ros.io.pointcloud import cloud_to_array, make_point_dtype
+from lidarcal_ros.io.prefetch import prefetched
+from lidarcal_ros.pipeline.corrected_cloud import CorrectionStats
+from lidarcal_ros.pipeline.correction import CorrectionSettings
+from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamCorrector
+
+__all__ = [
+    "LAS_RUN_POINTS", "CorrectionReport", "correct_bag", "output_kind", "read_trajectory",
+    "warm_up",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Points per LAS write (corrected clouds are gathered into runs of this size).
+LAS_RUN_POINTS = 100_000
+
+@dataclass
+class CorrectionReport:
+    """What :func:`correct_bag` did."""
+
+    output: Path
+    kind: str
+    stats: CorrectionStats
+    passthrough_messages: int = 0
+    las_skipped_non_finite: int = 0
+    seconds: float = 0.0
+    frame_id: str = ""
+    atmosphere: str = ""
+    reflectance: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    def lines(self) -> list[str]:
+        """A short human-readable summary."""
+        s = self.stats
+        rate = s.points / self.seconds if self.seconds > 0 else math.nan
+        out = [f"corrected {s.points} points in {s.clouds} clouds -> {self.output} "
+               f"({self.kind}, {self.seconds:.1f} s, {rate / 1e6:.2f} M points/s)"]
+        if self.kind == "bag":
+            out.append(f"passed through {self.passthrough_messages} other messages")
+        out.append(self.atmosphere)
+        out.append("model: " + s.describe_models())
+        if self.reflectance:
+            out.append(f"reflectance: {self.reflectance}")
+        out.append(f"grazing incidence (clamped): {s.grazing}; rough surface: {s.rough}; "
+                   f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
+                   f"without intensity: {s.no_intensity}")
+        out.extend(f"warning: {w}" for w in self.warnings)
+        return out
+
+
+def output_kind(path: str | Path) -> str:
+    """``las`` for ``.las``/``.laz``, else ``bag`` (``.mcap`` file or rosbag2 directory)."""
+    return "las" if Path(path).suffix.lower() in (".las", ".laz") else "bag"
+
+
+def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
+    """First pass: every trajectory sample of an open bag, and the frames they are in."""
+    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
+
+    samples = TrajectorySamples()
+    decode = functools.partial(bag.deserialize, topic=topic)
+    for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([topic])):
+        if msgtype not in TRAJECTORY_TYPES:
+            raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+        samples.add_raw(msgtype, raw, decode)
+    if not samples:
+        raise BagError(f"{bag.path}: topic {topic} has no messages")
+    return samples.trajectory(f"{bag.path}: trajectory {topic}"), samples.frames
+
+
+def correct_bag(
+    bag_path: str | Path,
+    calibration: str | Path | CalibrationRecord,
+    output: str | Path,
+    config: FlightConfig | None = None,
+    *,
+    crs: Any = None,
+    overwrite: bool = False,
+    batch_points: int = DEFAULT_BATCH_POINTS,
+    workers: int = 1,
+    progress: Callable[[str, float], None] | None = None,
+) -> CorrectionReport:
+    """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
+
+    Parameters
+    ----------
+    bag_path : path
+        rosbag2 directory or ``.mcap`` with the topics of ``config``.
+    calibration : path or CalibrationRecord
+        Calibration file of interface.md.
+    output : path
+        ``.las``/``.laz``: LAS 1.4 point format 6 (:mod:`lidarcal_ros.io.las`); otherwise a
+        rosbag2 bag (bare MCAP for ``.mcap``) with the corrected clouds on
+        ``topics.corrected`` and every input message passed through unchanged.
+    config : FlightConfig, optional
+        Defaults when None.
+    crs : pyproj.CRS, optional
+        CRS of the map frame, written into LAS output (ignored, with a warning, for bags).
+    overwrite : bool
+        Replace an existing output.
+    batch_points : int
+        Points corrected together (memory is about 1 kB per point of batch).
+    workers : int
+        Batches corrected in parallel (reading and writing stay in the calling thread:
+        they are mostly Python code, and threads of their own only contend for the
+        interpreter lock).
+    progress : callable(stage, fraction), optional
+
+    Returns
+    -------
+    CorrectionReport
+
+    Raises
+    ------
+    BagError, CloudFormatError, InputError, ConfigError, TrajectoryError
+        One line naming the file, topic or field at fault.
+    """
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
+    from lidarcal_ros.io.bag_reader import open_bag
+    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
+
+    started = time.perf_counter()
+    # The compiled loops load while the trajectory is read (their first call in a process
+    # costs some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
+    threading.Thread(target=warm_up, name="lidarcal-warm-up", daemon=True).start()
+    config = config or FlightConfig()
+    record = (calibration if isinstance(calibration, CalibrationRecord)
+              else read_calibration(calibration))
+    settings = CorrectionSettings.from_config(config, record)
+    out_path = Path(output)
+    kind = output_kind(out_path)
+    points_topic = config["topics.points"]
+    traj_topic = config["topics.trajectory"]
+    corrected_topic = config["topics.corrected"]
+    bag_path = Path(bag_path)
+    if out_path.resolve() == bag_path.resolve():
+        raise InputError(f"{out_path}: output would overwrite the input bag")
+    warnings: list[str] = []
+    if crs is not None and kind == "bag":
+        warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
+        logger.warning("%s", warnings[-1])
+
+    with open_bag(bag_path) as bag:
+        for topic, types in ((points_topic, (POINTCLOUD2,)),
+                             (traj_topic, tuple(TRAJECTORY_TYPES))):
+            if topic not in bag.topics:
+                raise BagError(f"{bag.path}: topic {topic} not found; topics present: "
+                               f"{', '.join(bag.topics) or 'none'}")
+            got = bag.topics[topic].msgtype
+            if got not in types:
+                raise BagError(f"{bag.path}: topic {topic} has type {got}; expected "
+                               f"{' or '.join(types)}")
+            if bag.topics[topic].count == 0:
+                raise BagError(f"{bag.path}: topic {topic} has no messages")
+        if corrected_topic in bag.topics and kind == "bag":
+            raise BagError(f"{bag.path}: already has topic {corrected_topic}; a corrected "
+                           "bag cannot be corrected again into the same topic")
+        if progress:
+            progress("reading trajectory", 0.0)
+        trajectory, traj_frames = read_trajectory(bag, traj_topic)
+        if len(traj_frames) > 1:
+            raise InputError(f"{bag.path}: poses on {traj_topic} are in several frames: "
+                             f"{sorted(traj_frames)}")
+        frame = next(iter(traj_frames))
+        check_orientation(settings.heading_source, trajectory, f"{bag.path}: {traj_topic}")
+        check_model_setting(settings.model, trajectory, f"{bag.path}: {traj_topic}")
+        meaning = settings.radiometry.meaning
+        if not settings.radiometry.absolute:
+            from lidarcal_ros.pipeline.reflectance import measure_target_in_bag, with_constant
+
+            target = measure_target_in_bag(bag_path, settings, config)
+            if target is not None:
+                settings = with_constant(settings, target.constant)
+                meaning = f"{settings.radiometry.meaning} The {target.describe()}."
+        corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
+                                    workers=workers, source=points_topic,
+                                    keep_tallies=kind == "bag")
+        n_clouds = max(bag.topics[points_topic].count, 1)
+        report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
+                                  atmosphere=describe_alpha(settings.radiometry),
+                                  reflectance=meaning, warnings=warnings)
+        job = _Job(bag, corrector, out_path, points_topic, corrected_topic, frame, overwrite,
+                   n_clouds, progress, report)
+        try:
+            corrector.start()  # the workers start while the clouds are read
+            if kind == "las":
+                _correct_to_las(job, crs)
+            else:
+                _correct_to_bag(job)
+        finally:
+            corrector.close()
+    s = corrector.stats
+    if s.not_corrected > s.non_finite:
+        report.warnings.append(
+            f"{s.not_corrected - s.non_finite} of {s.points} points not covered by the "
+            "trajectory (or not below it): left uncorrected, flagged "
+            f"{FLAG_NOT_CORRECTED} in correction_flags")
+        logger.warning("%s: %s", bag_path, report.warnings[-1])
+    if s.non_finite and kind == "bag":
+        report.warnings.append(
+            f"{s.non_finite} of {s.points} points with a non-finite x, y or z: passed on as "
+            f"delivered, flagged {FLAG_NOT_CORRECTED} in correction_flags")
+        logger.warning("%s: %s", bag_path, report.warnings[-1])
+    if s.no_intensity:
+        report.warnings.append(f"{s.no_intensity} points without intensity: reflectance NaN")
+    if crs is None and kind == "las":
+        report.warnings.append("written without a CRS: the LAS/LAZ file does not say where "
+                               "its map frame is (give it with --crs, e.g. --crs EPSG:32633)")
+        logger.warning("%s: %s", out_path, report.warnings[-1])
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One :func:`correct_bag`: what its LAS and its bag writer share.
+
+    Attributes
+    ----------
+    bag : AnyReader-like
+        The open input bag (:func:`lidarcal_ros.io.bag_reader.open_bag`).
+    corrector : StreamCorrector
+    out_path : Path
+        The output file or directory.
+    points_topic, corrected_topic : str
+        The input clouds' topic, and the corrected clouds' (bag output).
+    frame : str
+        The map frame of the trajectory, which every cloud must be in.
+    overwrite : bool
+        Replace an existing output.
+    n_clouds : int
+        Clouds on ``points_topic`` (for ``progress``).
+    progress : callable(stage, fraction) or None
+    report : CorrectionReport
+        Filled in as the clouds are written.
+    """
+
+    bag: Any
+    corrector: StreamCorrector
+    out_path: Path
+    points_topic: str
+    corrected_topic: str
+    frame: str
+    overwrite: bool
+    n_clouds: int
+    progress: Callable[[str, float], None] | None
+    report: CorrectionReport
+
+
+def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str, frame: str) -> tuple[Any,
+                                                                                        np.ndarray]:
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
+
+    if msgtype != POINTCLOUD2:
+        raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+    # (through a memoryview: rosbags would copy bytes to cut off their CDR header)
+    msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
+    if msg.header.frame_id != frame:
+        raise InputError(f"{bag.path}: clouds on {topic} are in frame '{msg.header.frame_id}' "
+                         f"but the trajectory is in frame '{frame}'")
+    return msg, cloud_to_array(msg, source=topic)
+
+
+def _correct_to_las(job: _Job, crs: Any) -> None:
+    """Correct the clouds of ``job`` into a LAS/LAZ file (``crs``: pyproj.CRS or None)."""
+    from lidarcal_ros.io.las import LasChunkWriter
+
+    bag, corrector, out_path, points_topic = (job.bag, job.corrector, job.out_path,
+                                              job.points_topic)
+    progress, report = job.progress, job.report
+
+    seen = 0
+    time_field: str | None = None
+    # Corrected clouds are written in runs of at least this many points (fewer, larger LAZ
+    # chunks); clouds of one layout only in a run.
+    run: list[np.ndarray] = []
+    run_points = 0
+
+    with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
+                        overwrite=job.overwrite,
+                        reflectance_description=corrector.settings.radiometry.las_description,
+                        ) as writer:
+
+        def write_run(parts: list[np.ndarray]) -> None:
+            writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
+
+        def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
+            nonlocal run, run_points
+            for _tag, corrected in done:
+                if run and corrected.dtype != run[0].dtype:
+                    write_run(run)
+                    run, run_points = [], 0
+                run.append(corrected)
+                run_points += len(corrected)
+            if run and (final or run_points >= LAS_RUN_POINTS):
+                write_run(run)
+                run, run_points = [], 0
+
+        for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([points_topic])):
+            _msg, points = _cloud_points(bag, msgtype, raw, topic, job.frame)
+            if time_field is None and len(points):
+                time_field = resolve_time_field(points, corrector.settings.time_field,
+                                                source=topic)
+                writer.time_field = time_field
+            write(corrector.push(points, None))
+            seen += 1
+            if progress and seen % 50 == 0:
+                progress("correcting", seen / job.n_clouds)
+        write(corrector.flush(), final=True)
+        _check_something_corrected(corrector.stats, bag.path, points_topic)
+    report.las_skipped_non_finite = writer.stats.skipped_non_finite
+    for count, why in ((writer.stats.skipped_non_finite, "with non-finite coordinates"),
+                       (writer.stats.skipped_out_of_range, "more than 2147 km from the others "
+                        "(beyond LAS's 32-bit coordinates)")):
+        if count:
+            report.warnings.append(f"{count} points {why} cannot be stored in LAS: skipped")
+            logger.warning("%s: %s", out_path, report.warnings[-1])
+
+
+def _check_something_corrected(stats: CorrectionStats, bag_path: Path, topic: str) -> None:
+    """Refuse a correction without a single finite point (every cloud empty, or every point
+    non-finite): there is no result, and the output is not kept."""
+    if stats.points == 0:
+        raise InputError(f"{bag_path}: all {stats.clouds} clouds on {topic} are empty; "
+                         "nothing to correct")
+    if stats.non_finite == stats.points:
+        raise InputError(f"{bag_path}: all {stats.points} points on {topic} have a non-finite "
+                         "x, y or z; nothing to correct")
+
+
+def _correct_to_bag(job: _Job) -> None:
+    """Correct the clouds of ``job`` into a bag, every other message passed through."""
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
+    from lidarcal_ros.io.bag_writer import BagWriter
+    from lidarcal_ros.io.pointcloud import point_fields
+    from lidarcal_ros.io.ros_messages import cloud_header_cdr, stamp_ns
+
+    bag, corrector, points_topic, corrected_topic = (job.bag, job.corrector, job.points_topic,
+                                                     job.corrected_topic)
+    progress, report = job.progress, job.report
+
+    latched = [t for t, info in bag.topics.items() if info.transient_local]
+    # Output queue keyed by (input sequence number, 0 = passed through / 1 = corrected).
+    # Passed-through messages are ready at once, corrected clouds when their batch is
+    # released; everything before the oldest cloud still held is written, so the output
+    # keeps the input's (log-time) order.
+    ready: list[tuple[int, int, Any]] = []
+    held: deque[int] = deque()
+    clouds: dict[int, tuple[int, Any]] = {}  # input sequence number -> log time, message
+    # Each corrected cloud is built in the bytes of its message (the input's header, then
+    # the points, 8-byte aligned, then is_dense), which the writer then copies once.
+    messages: dict[int, np.ndarray] = {}
+    skipped_topics: set[str] = set()
+    seen = 0
+
+    def place(k_: int, n_: int, dtype_: np.dtype[Any]) -> np.ndarray:
+        """(from the worker threads)"""
+        _ns, msg_ = clouds[k_]
+        head = cloud_header_cdr(stamp_ns(msg_.header.stamp), msg_.header.frame_id,
+                                point_fields(dtype_), dtype_.itemsize, n_)
+        pad = (-len(head)) % 8
+        size = len(head) + n_ * dtype_.itemsize + 1
+        buf = np.empty(pad + size, dtype=np.uint8)
+        buf[pad:pad + len(head)] = np.frombuffer(head, dtype=np.uint8)
+        messages[k_] = buf[pad:]
+        return buf[pad + len(head):pad + size - 1].view(dtype_)
+
+    corrector.place = place
+    with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched) as writer:
+
+        def write_corrected(ns_: int, message: np.ndarray) -> None:
+            writer.write_raw(corrected_topic, POINTCLOUD2, ns_, message.data)
+
+        def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
+            if topic_ in skipped_topics:
+                return
+            try:
+                writer.write_raw(topic_, msgtype_, ns_, raw_,
+                                 msgdef=bag.topics[topic_].msgdef or None)
+            except BagError as exc:
+                skipped_topics.add(topic_)
+                report.warnings.append(f"topic {topic_} not passed through ({exc})")
+                logger.warning("%s", report.warnings[-1])
+                return
+            report.passthrough_messages += 1
+
+        def emit(limit: tuple[float, int]) -> None:
+            while ready and (ready[0][0], ready[0][1]) < limit:
+                _, kind_, payload = heapq.heappop(ready)
+                (write_corrected if kind_ == 1 else write_raw)(*payload)
+
+        def collect(done: list[tuple[Any, np.ndarray]]) -> None:
+            for k_, _corrected in done:
+                ns_, _msg = clouds.pop(k_)
+                message = messages.pop(k_)
+                message[-1] = corrector.tallies.pop(k_).dense
+                heapq.heappush(ready, (k_, 1, (ns_, message)))
+                held.remove(k_)
+
+        for k, (topic, msgtype, ns, raw) in enumerate(prefetched(bag.messages)):
+            heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
+            if topic == points_topic:
+                msg, points = _cloud_points(bag, msgtype, raw, topic, job.frame)
+                held.append(k)
+                clouds[k] = (ns, msg)
+                collect(corrector.push(points, k))
+                seen += 1
+                if progress and seen % 50 == 0:
+                    progress("correcting", seen / job.n_clouds)
+            emit((held[0], 1) if held else (math.inf, 0))
+        collect(corrector.flush())
+        emit((math.inf, 0))
+        _check_something_corrected(corrector.stats, bag.path, points_topic)
+
+
+def warm_up() -> None:
+    """Correct a small synthetic cloud (of the lidarcal layout, read-only as a decoded one
+    is), so that the compiled loops of the correction are loaded, and numba initialised, now
+    rather than by the first cloud."""
+    n = 64
+    tt = np.linspace(0.0, 2.0, 41)
+    trajectory = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt,
+                                                 np.full_like(tt, 1000.0)]))
+    points = np.zeros(n, dtype=make_point_dtype())
+    points["x"] = np.linspace(-300.0, 300.0, n)
+    points["y"] = np.linspace(55.0, 65.0, n)
+    points["t"] = np.linspace(0.9, 1.1, n)
+    points["intensity"] = 100.0
+    points["strip_id"] = 1
+    cloud = np.frombuffer(points.tobytes(), dtype=points.dtype)
+    corrector = StreamCorrector(trajectory, CorrectionSettings(delta=np.zeros(8)),
+                                source="warm-up")
+    corrector.push(cloud)
+    corrector.flush()
+
