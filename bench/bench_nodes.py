@@ -243,9 +243,9 @@ def _typed_corrector_main(argv: list[str]) -> int:
                                      stream_qos(1000))
 
         def _on_typed(self, msg: PointCloud2) -> None:
-            self._on_points(serialize_message(msg))
+            self.correction.add_cloud(serialize_message(msg))
 
-        def _publish(self, cdr: bytes) -> None:
+        def publish_corrected(self, cdr: bytes) -> None:
             self.typed_pub.publish(deserialize_message(cdr, PointCloud2))
 
     return run_main([TypedCorrector], ["bench_typed_corrector"], threads=1)

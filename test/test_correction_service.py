@@ -23,11 +23,8 @@ from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.shared_ring import SharedRing
 from lidarcal_ros.pipeline import correction_batch
 from lidarcal_ros.pipeline.correction import CorrectionSettings
-from lidarcal_ros.pipeline.correction_service import (
-    CorrectionProcess,
-    LocalCorrection,
-    ServiceOptions,
-)
+from lidarcal_ros.pipeline.correction_process import CorrectionProcess
+from lidarcal_ros.pipeline.correction_service import LocalCorrection, ServiceOptions
 from lidarcal_ros.pipeline.stream_corrector import StreamCorrector
 
 mission_factory = helpers_missions.mission_factory
@@ -141,8 +138,8 @@ def _run_process(settings: CorrectionSettings, options: ServiceOptions, trajecto
         time.sleep(0.01)  # the rings are used once the child has mapped them
     assert service.shared_memory == shared_memory
     out = _feed(service, got, trajectory, clouds)
-    for ring in (service._inbound, service._outbound):
-        assert ring is None or not Path(ring.path).exists()  # no file left behind
+    for path in service.ring_paths:
+        assert not Path(path).exists()  # no file left behind
     if carried is not None:
         carried.update(service.carried)
     return out
@@ -244,15 +241,15 @@ def test_a_dead_child_reports_the_clouds_it_held(small_mission: MissionFiles) ->
     service.poses(trajectory.t, trajectory.xyz)
     service.push([(k, clouds[k]) for k in range(4)])  # held for look-ahead
     time.sleep(0.5)
-    service._process.kill()
+    service.kill()
     got.wait(4)
     assert not service.alive
     assert sorted(e[1] for e in got.events) == [0, 1, 2, 3]
     lost = [e for e in got.events if e[0] == "error"]
     assert lost and all("ended" in e[2] for e in lost)
     assert failures and "ended" in failures[0]
-    for ring in (service._inbound, service._outbound):
-        assert ring is None or not Path(ring.path).exists()
+    for path in service.ring_paths:
+        assert not Path(path).exists()
     service.close(timeout=1.0)
 
 

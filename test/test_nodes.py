@@ -35,6 +35,7 @@ from lidarcal_ros.io.bag_reader import open_bag
 from lidarcal_ros.io.cloud_columns import extract_columns
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, parse_estimate
 from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
+from lidarcal_ros.pipeline.correction_process import CorrectionProcess
 
 if TYPE_CHECKING:
     from rclpy.client import Client
@@ -368,7 +369,9 @@ def test_every_input_point_is_corrected_exactly_once(replayed: Replayed) -> None
     assert suite.cor_in_thread.status().values["transport"] == "thread"
     # the crabbed mission's poses carry the IMU's heading, and the corrector says it uses it
     assert suite.cor.status().values["heading"].startswith("from the poses' orientation")
-    carried = suite.cor._service.carried
+    runner = suite.cor.correction.runner
+    assert isinstance(runner, CorrectionProcess)
+    carried = runner.carried
     assert carried["ring in"] > 0 and carried["ring out"] > 0, carried
 
 
@@ -525,18 +528,18 @@ def test_a_malformed_cloud_is_logged_and_skipped(replayed: Replayed) -> None:
     truncated = cloud_cdr(10**18, "map", good)[:-41]
     messages = [cloud_cdr(10**18, "map", no_time), bytes(truncated), b"\x00\x01\x00\x00junk"]
     skipped_cal = suite.cal.calibration.input.skipped
-    skipped_cor = suite.cor.stats.skipped
+    skipped_cor = suite.cor.correction.stats.skipped
     pub = suite.probe_node.create_publisher(PointCloud2, "/lidar/points", 10)
     try:
         _wait(lambda: pub.get_subscription_count() >= 2, 10, "point subscribers")
         for raw in messages:
             pub.publish(raw)
         _wait(lambda: suite.cal.calibration.input.skipped >= skipped_cal + 3 and
-              suite.cor.stats.skipped >= skipped_cor + 3, 10, "the clouds to be skipped")
+              suite.cor.correction.stats.skipped >= skipped_cor + 3, 10, "the clouds to be skipped")
     finally:
         suite.probe_node.destroy_publisher(pub)
-    assert "lacks time field" in suite.cor.stats.last_error or \
-        "undecodable" in suite.cor.stats.last_error
+    assert "lacks time field" in suite.cor.correction.stats.last_error or \
+        "undecodable" in suite.cor.correction.stats.last_error
     # still running: a good cloud goes through, the diagnostics say what was skipped
     with open_bag(suite.mission.bag) as b:
         raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
@@ -556,17 +559,19 @@ def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(
     """The correction process killed between clouds: the node starts a new one (with its own
     shared memory, the old rings' files gone) and corrects the next cloud."""
     suite = replayed.suite
-    old = suite.cor._service
-    rings = [r for r in (old._inbound, old._outbound) if r is not None]
-    old._process.kill()
+    old = suite.cor.correction.runner
+    assert isinstance(old, CorrectionProcess)
+    rings = old.ring_paths
+    old.kill()
     _wait(lambda: not old.alive, 10, "the correction process to die")
     with open_bag(suite.mission.bag) as b:
         raw = next(raw for _t, _m, _ns, raw in b.messages(["/lidar/points"]))
     refl = _reflectance_of(suite, raw, parse_cloud(raw).stamp_ns)
     assert np.isfinite(refl).any()
-    new = suite.cor._service
+    new = suite.cor.correction.runner
+    assert isinstance(new, CorrectionProcess)
     assert new is not old and new.alive
-    assert all(not Path(r.path).exists() for r in rings)
+    assert all(not Path(path).exists() for path in rings)
     _wait(lambda: new.shared_memory, 30, "the new process to map its rings")
     assert suite.cor.status().values["transport"] == "shared memory"
 
@@ -992,87 +997,6 @@ def test_a_flight_config_change_shows_only_once_the_node_has_applied_it(
         node.destroy_node()
 
 
-def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
-        ros_context: Any, small_mission: Any) -> None:
-    """Clouds that cannot be corrected yet (here: no trajectory) wait, but not without
-    bound: above ``max_backlog_mib`` the oldest are dropped and counted, the diagnostics
-    warn, and the newest are corrected once the trajectory comes."""
-    from rclpy.parameter import Parameter
-
-    from lidarcal_ros.nodes.corrector import CorrectorNode
-
-    with open_bag(small_mission.bag) as b:
-        clouds = [raw for _t, _m, _ns, raw in b.messages(["/lidar/points"])]
-    sent, total = [], 0
-    for raw in clouds:
-        sent.append(raw)
-        total += len(raw)
-        if total > 3 << 20:
-            break
-    assert total > 3 << 20, "the mission is too small for this test"
-    node = CorrectorNode(context=ros_context, node_name="lidarcal_corrector_backlog",
-                         parameter_overrides=[Parameter("max_backlog_mib", value=1),
-                                              Parameter("separate_process", value=False),
-                                              Parameter("max_trajectory_wait_s", value=600.0)])
-    published: list[bytes] = []
-    # Monkeypatched on the instance: record what the node would publish (list.append's
-    # parameter is positional-only, the method's is named; the node passes it by position).
-    node._publish = published.append  # type: ignore[method-assign, assignment]
-    try:
-        for raw in sent:
-            node._on_points(raw)
-        _wait(lambda: node.stats.dropped > 0 and (node._queued_bytes <= 1 << 20
-                                                  or len(node._queue) == 1),
-              10, "the backlog to be trimmed")
-        kept = len(node._queue)
-        assert node.stats.dropped == len(sent) - kept > 0
-        assert node.stats.dropped_bytes == sum(len(r) for r in sent[:node.stats.dropped])
-        status = node.status()
-        assert status.level == 1 and "dropped" in status.message
-        assert status.values["dropped_clouds"] == str(node.stats.dropped)
-        trajectory = small_mission.sim.mission.trajectory
-        frame = parse_cloud(sent[0]).frame_id
-        for t, xyz in zip(trajectory.t, trajectory.xyz, strict=True):  # it comes at last
-            node._on_pose(float(t), (float(xyz[0]), float(xyz[1]), float(xyz[2])), frame,
-                          (math.nan,) * 4)
-        _wait(lambda: len(published) == kept, 30, "the kept clouds to be corrected")
-    finally:
-        node.close()
-        node.destroy_node()
-    newest = [parse_cloud(raw).stamp_ns for raw in sent[len(sent) - kept:]]
-    assert [parse_cloud(raw).stamp_ns for raw in published] == newest
-
-
-def test_a_trajectory_without_clouds_is_handed_on_not_hoarded(ros_context: Any) -> None:
-    """Poses that come for long without clouds (transit to the site) go on to the
-    correction in batches; the node does not keep them all, nor does its own buffer."""
-    from rclpy.parameter import Parameter
-
-    from lidarcal_ros.nodes import corrector as corrector_module
-
-    node = corrector_module.CorrectorNode(
-        context=ros_context, node_name="lidarcal_corrector_transit",
-        parameter_overrides=[Parameter("separate_process", value=False),
-                             Parameter("trajectory_buffer_s", value=30.0)])
-    fed = 60_000  # 5 minutes at 200 Hz
-    try:
-        for k in range(fed):
-            t = 1000.0 + k * 0.005
-            node._on_pose(t, (0.0, 60.0 * t, 1000.0), "map", (math.nan,) * 4)
-        engine = node._service._engine  # type: ignore[union-attr]
-        # The worker takes the node's poses under its lock, then adds them to the engine
-        # outside it: wait for the hand-over to be complete, not merely begun. (Reading the
-        # engine's count first can only undercount in that window, never reach ``fed``.)
-        _wait(lambda: engine.trajectory.samples + len(node._poses_t) == fed
-              and len(node._poses_t) <= corrector_module._POSES_PER_HANDOVER, 10,
-              "the poses to be handed on")
-        assert engine.trajectory.samples >= fed - corrector_module._POSES_PER_HANDOVER
-        assert len(node.trajectory) < fed / 2  # its own buffer keeps ~30 s, not everything
-    finally:
-        node.close()
-        node.destroy_node()
-
-
 def test_shared_memory_can_be_turned_off_or_refused_with_a_reason(ros_context: Any) -> None:
     """``shared_memory_mib:=0`` sends clouds through pipes (diagnostics say so); a negative
     size is refused at start with the parameter's name."""
@@ -1080,14 +1004,14 @@ def test_shared_memory_can_be_turned_off_or_refused_with_a_reason(ros_context: A
 
     from lidarcal_ros.errors import ConfigError
     from lidarcal_ros.nodes.corrector import CorrectorNode
-    from lidarcal_ros.pipeline.correction_service import CorrectionProcess
 
     node = CorrectorNode(context=ros_context, node_name="lidarcal_corrector_pipes",
                          parameter_overrides=[Parameter("shared_memory_mib", value=0)])
     try:
-        assert isinstance(node._service, CorrectionProcess)
+        runner = node.correction.runner
+        assert isinstance(runner, CorrectionProcess)
         assert node.status().values["transport"] == "pipes"
-        assert node._service._inbound is None and node._service._outbound is None
+        assert runner.ring_paths == []
     finally:
         node.close()
         node.destroy_node()
