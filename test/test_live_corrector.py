@@ -13,7 +13,7 @@ import helpers_missions
 from helpers_missions import MissionFiles
 from helpers_wait import wait_until as _wait
 
-from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.config import CORRECTOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.io.bag_reader import open_bag
 from lidarcal_ros.io.ros_messages import parse_cloud
@@ -106,8 +106,8 @@ def test_the_oldest_waiting_clouds_are_dropped_above_the_bound_and_the_newest_ke
 
 # ---------------------------------------------------------------------------- the corrector
 def _options(**changes: Any) -> CorrectorOptions:
-    return dataclasses.replace(CorrectorOptions.from_parameters({}), separate_process=False,
-                               **changes)
+    return dataclasses.replace(node_options(CorrectorOptions, CORRECTOR_NODE, {}),
+                               separate_process=False, **changes)
 
 
 def _clouds(mission: MissionFiles) -> list[bytes]:
@@ -115,22 +115,31 @@ def _clouds(mission: MissionFiles) -> list[bytes]:
         return [raw for _t, _m, _ns, raw in b.messages(["/lidar/points"])]
 
 
+def _corrector(clouds: list[bytes], **options: Any) -> tuple[LiveCorrector, list[bytes]]:
+    """A live corrector in this process, given ``clouds``; and what it publishes."""
+    published: list[bytes] = []
+    live = LiveCorrector(FlightConfig(), _options(**options), publish=published.append)
+    for raw in clouds:
+        live.add_cloud(raw)
+    return live, published
+
+
+def _add_trajectory(live: LiveCorrector, mission: MissionFiles, frame: str) -> None:
+    """The mission's trajectory, sample by sample as a node's callback gives it."""
+    trajectory = mission.sim.mission.trajectory
+    for t, xyz in zip(trajectory.t, trajectory.xyz, strict=True):
+        live.add_pose(float(t), (float(xyz[0]), float(xyz[1]), float(xyz[2])), frame,
+                      (math.nan,) * 4)
+
+
 def test_clouds_wait_for_the_trajectory_and_come_out_in_order_when_it_covers_them(
         small_mission: MissionFiles) -> None:
     clouds = _clouds(small_mission)[:6]
-    published: list[bytes] = []
-    live = LiveCorrector(FlightConfig(), _options(max_trajectory_wait_s=600.0),
-                         publish=published.append)
+    live, published = _corrector(clouds, max_trajectory_wait_s=600.0)
     try:
-        for raw in clouds:
-            live.add_cloud(raw)
-        _wait(lambda: live.waiting_clouds == len(clouds), 10, "the clouds to wait")
+        assert live.waiting_clouds == len(clouds)
         assert live.held_clouds == 0 and not published
-        trajectory = small_mission.sim.mission.trajectory
-        frame = parse_cloud(clouds[0]).frame_id
-        for t, xyz in zip(trajectory.t, trajectory.xyz, strict=True):
-            live.add_pose(float(t), (float(xyz[0]), float(xyz[1]), float(xyz[2])), frame,
-                          (math.nan,) * 4)
+        _add_trajectory(live, small_mission, parse_cloud(clouds[0]).frame_id)
         _wait(lambda: len(published) == len(clouds), 30, "the clouds to be corrected")
     finally:
         live.close()
@@ -146,12 +155,8 @@ def test_clouds_wait_for_the_trajectory_and_come_out_in_order_when_it_covers_the
 def test_clouds_go_on_uncovered_once_the_trajectory_has_stalled(
         small_mission: MissionFiles) -> None:
     clouds = _clouds(small_mission)[:3]
-    published: list[bytes] = []
-    live = LiveCorrector(FlightConfig(), _options(max_trajectory_wait_s=0.0),
-                         publish=published.append)
+    live, published = _corrector(clouds, max_trajectory_wait_s=0.0)
     try:
-        for raw in clouds:
-            live.add_cloud(raw)
         _wait(lambda: len(published) == len(clouds), 30, "the clouds to be given up on")
     finally:
         live.close()
@@ -174,13 +179,8 @@ def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
         if total > 3 << 20:
             break
     assert total > 3 << 20, "the mission is too small for this test"
-    published: list[bytes] = []
-    live = LiveCorrector(FlightConfig(), _options(max_backlog_mib=1,
-                                                  max_trajectory_wait_s=600.0),
-                         publish=published.append)
+    live, published = _corrector(sent, max_backlog_mib=1, max_trajectory_wait_s=600.0)
     try:
-        for raw in sent:
-            live.add_cloud(raw)
         _wait(lambda: live.stats.dropped > 0 and (live.waiting_bytes <= 1 << 20
                                                   or live.waiting_clouds == 1),
               10, "the backlog to be trimmed")
@@ -190,11 +190,7 @@ def test_a_backlog_above_its_bound_drops_the_oldest_clouds_and_says_so(
         status = live.status()
         assert status.level == 1 and "dropped" in status.message
         assert status.values["dropped_clouds"] == str(live.stats.dropped)
-        trajectory = small_mission.sim.mission.trajectory
-        frame = parse_cloud(sent[0]).frame_id
-        for t, xyz in zip(trajectory.t, trajectory.xyz, strict=True):  # it comes at last
-            live.add_pose(float(t), (float(xyz[0]), float(xyz[1]), float(xyz[2])), frame,
-                          (math.nan,) * 4)
+        _add_trajectory(live, small_mission, parse_cloud(sent[0]).frame_id)  # at last
         _wait(lambda: len(published) == kept, 30, "the kept clouds to be corrected")
     finally:
         live.close()

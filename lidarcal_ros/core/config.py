@@ -9,14 +9,16 @@ is refused offline with the same reason.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any, TypeVar
 
 from lidarcal_ros.core.adjustment import DEFAULT_MAX_SIGMA, ObservabilityLimits
 from lidarcal_ros.core.calibrate import CalibrationSettings
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import ConfigError
+
+OptionsT = TypeVar("OptionsT")
 
 
 @dataclass(frozen=True)
@@ -233,6 +235,16 @@ NODE_PARAMETERS: dict[str, dict[str, ParameterSpec]] = {
 #: Parameters every ROS 2 node declares. A parameters file may hold them; the CLI passes
 #: them over.
 ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def node_options(cls: Callable[..., OptionsT], node: str, values: Mapping[str, Any]
+                 ) -> OptionsT:
+    """A node's options object ``cls`` (a dataclass whose fields are parameters of ``node``,
+    :data:`NODE_PARAMETERS`) from the node's parameter values, each one missing at its
+    parameter's default."""
+    own = NODE_PARAMETERS[node]
+    return cls(**{f.name: values.get(f.name, own[f.name].default)
+                  for f in fields(cls)})  # type: ignore[arg-type]  # (a dataclass)
 
 
 def undeclared(names: Iterable[str], node: str | None = None) -> list[str]:

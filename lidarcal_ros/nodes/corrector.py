@@ -59,7 +59,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray
 
-from lidarcal_ros.core.config import CORRECTOR_NODE, NODE_PARAMETERS
+from lidarcal_ros.core.config import CORRECTOR_NODE, NODE_PARAMETERS, node_options
 from lidarcal_ros.core.params import format_value
 from lidarcal_ros.io.ros_messages import StatusSpec, parse_estimate, warm_up_cloud_codec
 from lidarcal_ros.nodes.parameters import FlightParameters
@@ -116,7 +116,7 @@ class CorrectorNode(Node):
                                f"{self.correction.estimate_source})")
 
     def _options(self) -> CorrectorOptions:
-        return CorrectorOptions.from_parameters(self.params.extra_values)
+        return node_options(CorrectorOptions, CORRECTOR_NODE, self.params.extra_values)
 
     # -- input callbacks (convert and hand over only) ------------------------------------
     def _on_points(self, raw: bytes) -> None:

@@ -36,14 +36,14 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lidarcal_ros.core.calibrate import CalibrationResult
-from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS, FlightConfig
+from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.cloud_columns import CloudColumns
@@ -94,8 +94,7 @@ class CalibratorOptions:
     @classmethod
     def from_parameters(cls, values: Mapping[str, Any]) -> CalibratorOptions:
         """From the node's parameter values (the parameters' defaults where not given)."""
-        own = NODE_PARAMETERS[CALIBRATOR_NODE]
-        return cls(**{f.name: values.get(f.name, own[f.name].default) for f in fields(cls)})
+        return node_options(cls, CALIBRATOR_NODE, values)
 
     @property
     def max_points(self) -> int:

@@ -32,13 +32,12 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from lidarcal_ros.core.config import CORRECTOR_NODE, NODE_PARAMETERS, FlightConfig
+from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.georeferencing import describe_model_policy
 from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.params import PARAMETER_NAMES
@@ -67,33 +66,41 @@ _LOG_EVERY_S = 2.0
 @dataclass(frozen=True)
 class CorrectorOptions:
     """The corrector's own settings: the node parameters of the same names
-    (:data:`lidarcal_ros.core.config.NODE_PARAMETERS`, where they are described)."""
+    (:data:`lidarcal_ros.core.config.NODE_PARAMETERS`, where they are described; from the
+    node's values with :func:`~lidarcal_ros.core.config.node_options`).
 
-    #: Seconds of trajectory kept.
+    Attributes
+    ----------
+    trajectory_buffer_s : float
+        Seconds of trajectory kept.
+    max_trajectory_wait_s : float
+        Longest wall time a cloud waits for the trajectory to cover it, s.
+    flush_timeout_s : float
+        Wall time without a new cloud after which held clouds are corrected without
+        look-ahead, s.
+    lookahead : bool
+        Wait for the next clouds of a strip before fitting a cloud's normals.
+    workers : int
+        Threads correcting batches.
+    batch_points : int
+        Clouds of one strip corrected together up to this many points (0: one at a time).
+    separate_process : bool
+        Correct in a child process (else in a thread of this one).
+    max_backlog_mib : int
+        Most received clouds waiting for the correction, MiB (0: no limit).
+    shared_memory_mib : int
+        Size of each shared-memory ring of the child process, MiB (0: pipes only).
+    """
+
     trajectory_buffer_s: float
-    #: Longest wall time a cloud waits for the trajectory to cover it, s.
     max_trajectory_wait_s: float
-    #: Wall time without a new cloud after which held clouds are corrected without
-    #: look-ahead, s.
     flush_timeout_s: float
-    #: Wait for the next clouds of a strip before fitting a cloud's normals.
     lookahead: bool
-    #: Threads correcting batches.
     workers: int
-    #: Clouds of one strip corrected together up to this many points (0: one at a time).
     batch_points: int
-    #: Correct in a child process (else in a thread of this one).
     separate_process: bool
-    #: Most received clouds waiting for the correction, MiB (0: no limit).
     max_backlog_mib: int
-    #: Bytes of each shared-memory ring of the child process, MiB (0: pipes only).
     shared_memory_mib: int
-
-    @classmethod
-    def from_parameters(cls, values: Mapping[str, Any]) -> CorrectorOptions:
-        """From the node's parameter values (the parameters' defaults where not given)."""
-        own = NODE_PARAMETERS[CORRECTOR_NODE]
-        return cls(**{f.name: values.get(f.name, own[f.name].default) for f in fields(cls)})
 
 
 @dataclass
