@@ -393,7 +393,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.las import parse_crs
-    from lidarcal_ros.pipeline.bag_correction import correct_bag, output_kind
+    from lidarcal_ros.pipeline.bag_correction import CorrectOptions, correct_bag, output_kind
 
     tune_allocator()
     config = load_flight_config(args.config)
@@ -412,9 +412,9 @@ def _cmd_correct(args: argparse.Namespace) -> int:
                   directory=output_kind(out) == "bag" and out.suffix != ".mcap")
     progress, close = _progress_bar(not args.quiet)
     try:
-        report = correct_bag(args.bag, calibration, args.output, config, crs=crs,
-                             overwrite=args.overwrite, workers=args.workers,
-                             progress=progress)
+        report = correct_bag(args.bag, calibration, args.output, config,
+                             CorrectOptions(crs=crs, overwrite=args.overwrite,
+                                            workers=args.workers), progress=progress)
     finally:
         close()
     for line in report.lines():

@@ -45,8 +45,8 @@ from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamCorrector
 
 __all__ = [
-    "LAS_RUN_POINTS", "CorrectionReport", "correct_bag", "output_kind", "read_trajectory",
-    "warm_up",
+    "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport", "correct_bag", "output_kind",
+    "read_trajectory", "warm_up",
 ]
 
 logger = logging.getLogger(__name__)
@@ -108,16 +108,37 @@ def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
     return samples.trajectory(f"{bag.path}: trajectory {topic}"), samples.frames
 
 
+@dataclass(frozen=True)
+class CorrectOptions:
+    """How :func:`correct_bag` writes and works.
+
+    Attributes
+    ----------
+    crs : pyproj.CRS or None
+        CRS of the map frame, written into LAS output (ignored, with a warning, for bags).
+    overwrite : bool
+        Replace an existing output.
+    batch_points : int
+        Points corrected together (memory is about 1 kB per point of batch).
+    workers : int
+        Batches corrected in parallel (reading and writing stay in the calling thread:
+        they are mostly Python code, and threads of their own only contend for the
+        interpreter lock).
+    """
+
+    crs: Any = None
+    overwrite: bool = False
+    batch_points: int = DEFAULT_BATCH_POINTS
+    workers: int = 1
+
+
 def correct_bag(
     bag_path: str | Path,
     calibration: str | Path | CalibrationRecord,
     output: str | Path,
     config: FlightConfig | None = None,
+    options: CorrectOptions = CorrectOptions(),  # (frozen: shared safely)
     *,
-    crs: Any = None,
-    overwrite: bool = False,
-    batch_points: int = DEFAULT_BATCH_POINTS,
-    workers: int = 1,
     progress: Callable[[str, float], None] | None = None,
 ) -> CorrectionReport:
     """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
@@ -134,16 +155,7 @@ def correct_bag(
         ``topics.corrected`` and every input message passed through unchanged.
     config : FlightConfig, optional
         Defaults when None.
-    crs : pyproj.CRS, optional
-        CRS of the map frame, written into LAS output (ignored, with a warning, for bags).
-    overwrite : bool
-        Replace an existing output.
-    batch_points : int
-        Points corrected together (memory is about 1 kB per point of batch).
-    workers : int
-        Batches corrected in parallel (reading and writing stay in the calling thread:
-        they are mostly Python code, and threads of their own only contend for the
-        interpreter lock).
+    options : CorrectOptions
     progress : callable(stage, fraction), optional
 
     Returns
@@ -155,9 +167,7 @@ def correct_bag(
     BagError, CloudFormatError, InputError, ConfigError, TrajectoryError
         One line naming the file, topic or field at fault.
     """
-    from lidarcal_ros.io.bag_format import POINTCLOUD2
     from lidarcal_ros.io.bag_reader import open_bag
-    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
 
     started = time.perf_counter()
     # The compiled loops load while the trajectory is read (their first call in a process
@@ -176,25 +186,13 @@ def correct_bag(
     if out_path.resolve() == bag_path.resolve():
         raise InputError(f"{out_path}: output would overwrite the input bag")
     warnings: list[str] = []
-    if crs is not None and kind == "bag":
+    if options.crs is not None and kind == "bag":
         warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
         logger.warning("%s", warnings[-1])
 
     with open_bag(bag_path) as bag:
-        for topic, types in ((points_topic, (POINTCLOUD2,)),
-                             (traj_topic, tuple(TRAJECTORY_TYPES))):
-            if topic not in bag.topics:
-                raise BagError(f"{bag.path}: topic {topic} not found; topics present: "
-                               f"{', '.join(bag.topics) or 'none'}")
-            got = bag.topics[topic].msgtype
-            if got not in types:
-                raise BagError(f"{bag.path}: topic {topic} has type {got}; expected "
-                               f"{' or '.join(types)}")
-            if bag.topics[topic].count == 0:
-                raise BagError(f"{bag.path}: topic {topic} has no messages")
-        if corrected_topic in bag.topics and kind == "bag":
-            raise BagError(f"{bag.path}: already has topic {corrected_topic}; a corrected "
-                           "bag cannot be corrected again into the same topic")
+        _check_topics(bag, points_topic, traj_topic,
+                      corrected_topic if kind == "bag" else None)
         if progress:
             progress("reading trajectory", 0.0)
         trajectory, traj_frames = read_trajectory(bag, traj_topic)
@@ -212,24 +210,55 @@ def correct_bag(
             if target is not None:
                 settings = with_constant(settings, target.constant)
                 meaning = f"{settings.radiometry.meaning} The {target.describe()}."
-        corrector = StreamCorrector(trajectory, settings, batch_points=batch_points,
-                                    workers=workers, source=points_topic,
+        corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
+                                    workers=options.workers, source=points_topic,
                                     keep_tallies=kind == "bag")
         n_clouds = max(bag.topics[points_topic].count, 1)
         report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
                                   atmosphere=describe_alpha(settings.radiometry),
                                   reflectance=meaning, warnings=warnings)
-        job = _Job(bag, corrector, out_path, points_topic, corrected_topic, frame, overwrite,
-                   n_clouds, progress, report)
+        job = _Job(bag, corrector, out_path, points_topic, corrected_topic, frame,
+                   options.overwrite, n_clouds, progress, report)
         try:
             corrector.start()  # the workers start while the clouds are read
             if kind == "las":
-                _correct_to_las(job, crs)
+                _correct_to_las(job, options.crs)
             else:
                 _correct_to_bag(job)
         finally:
             corrector.close()
-    s = corrector.stats
+    _warn_of_what_was_left(report, bag_path, options.crs)
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _check_topics(bag: Any, points_topic: str, trajectory_topic: str,
+                  corrected_topic: str | None) -> None:
+    """Refuse a bag without the clouds or the trajectory (or with them of the wrong type or
+    empty), or one that already holds ``corrected_topic``."""
+    from lidarcal_ros.io.bag_format import POINTCLOUD2
+    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
+
+    for topic, types in ((points_topic, (POINTCLOUD2,)),
+                         (trajectory_topic, tuple(TRAJECTORY_TYPES))):
+        if topic not in bag.topics:
+            raise BagError(f"{bag.path}: topic {topic} not found; topics present: "
+                           f"{', '.join(bag.topics) or 'none'}")
+        got = bag.topics[topic].msgtype
+        if got not in types:
+            raise BagError(f"{bag.path}: topic {topic} has type {got}; expected "
+                           f"{' or '.join(types)}")
+        if bag.topics[topic].count == 0:
+            raise BagError(f"{bag.path}: topic {topic} has no messages")
+    if corrected_topic in bag.topics:
+        raise BagError(f"{bag.path}: already has topic {corrected_topic}; a corrected "
+                       "bag cannot be corrected again into the same topic")
+
+
+def _warn_of_what_was_left(report: CorrectionReport, bag_path: Path, crs: Any) -> None:
+    """The report's (and the log's) warnings of points left uncorrected or without
+    reflectance, and of a LAS/LAZ file without a CRS."""
+    s, kind, out_path = report.stats, report.kind, report.output
     if s.not_corrected > s.non_finite:
         report.warnings.append(
             f"{s.not_corrected - s.non_finite} of {s.points} points not covered by the "
@@ -247,8 +276,6 @@ def correct_bag(
         report.warnings.append("written without a CRS: the LAS/LAZ file does not say where "
                                "its map frame is (give it with --crs, e.g. --crs EPSG:32633)")
         logger.warning("%s: %s", out_path, report.warnings[-1])
-    report.seconds = time.perf_counter() - started
-    return report
 
 
 @dataclass(frozen=True)
