@@ -270,8 +270,8 @@ def replayed(suite: Suite) -> Replayed:
         corrected = list(suite.probe.corrected)
         corrected_in_thread = list(suite.probe.corrected_in_thread)
     nodes = {"process": suite.cor, "thread": suite.cor_in_thread}
-    points_out = {k: n.stats.points_out for k, n in nodes.items()}
-    skipped = {k: n.stats.skipped for k, n in nodes.items()}
+    points_out = {k: n.correction.stats.points_out for k, n in nodes.items()}
+    skipped = {k: n.correction.stats.skipped for k, n in nodes.items()}
     solve = suite.call("/lidarcal_calibrator/solve")
     assert solve.success, solve.message
     _wait(lambda: cal.solves >= 1 and len(suite.probe.estimates) >= 1, 10, "an estimate")
