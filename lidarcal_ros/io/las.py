@@ -7,7 +7,7 @@ scan angle, the point source id (strip), the GPS time, and extra-bytes dimension
 the Lambertian reflectance when a calibration constant is known, else the intensity normalised
 to the reference range, normal incidence and clear air; its description says which),
 ``range`` (float32, m), ``incidence`` (float32, rad) and ``correction_flags`` (uint8, the bits
-of :mod:`lidarcal_ros.pipeline.correction`). Points whose geometry could not be corrected are
+of :mod:`lidarcal_ros.core.flags`). Points whose geometry could not be corrected are
 written with the LAS *withheld* flag set. The CRS, when known, goes into an OGC WKT VLR.
 
 Conventions
