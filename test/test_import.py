@@ -46,8 +46,9 @@ from lidarcal_ros.io.trajectory_files import (
     read_trajectory_file,
     write_sbet,
 )
+from lidarcal_ros.pipeline.import_options import ImportOptions
 from lidarcal_ros.pipeline.import_time_bases import reconcile_times
-from lidarcal_ros.pipeline.importer import ImportOptions, import_mission
+from lidarcal_ros.pipeline.importer import import_mission
 
 ORIGIN = (500_000.0, 5_000_000.0)
 FAST: dict[str, Any] = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}

@@ -39,7 +39,8 @@ from lidarcal_ros.core.simulation_spec import SimulationSpec
 from lidarcal_ros.core.trajectory_estimation import EstimateSettings
 from lidarcal_ros.io.config_file import load_flight_config
 from lidarcal_ros.io.mission_bag import read_mission, write_mission_bag
-from lidarcal_ros.pipeline.importer import ImportOptions, import_mission
+from lidarcal_ros.pipeline.import_options import ImportOptions
+from lidarcal_ros.pipeline.importer import import_mission
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission

@@ -237,4 +237,4 @@ def _strip_outcome(strip_id: int, segments: list[SegmentQuality]) -> StripEstima
                          f"horizontally; {weak}{q.message}); kept{part}, {q.fallback}")
 
 
-__all__ = ["EstimateSettings", "EstimatedTrajectory", "StripEstimate", "estimate_trajectory"]
+__all__ = ["EstimatedTrajectory", "StripEstimate", "estimate_trajectory"]

@@ -52,9 +52,8 @@ from lidarcal_ros.core.params import (
 )
 from lidarcal_ros.core.units import format_cm, format_percent, status_value
 from lidarcal_ros.errors import CloudFormatError
+from lidarcal_ros.io.bag_format import POINTCLOUD2
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
-
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 
 #: Diagnostic levels (diagnostic_msgs/DiagnosticStatus).
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -476,7 +475,6 @@ __all__ = [
     "ESTIMATE_ROWS",
     "ESTIMATE_ROW_LABEL",
     "LEVEL_NAMES",
-    "POINTCLOUD2",
     "CloudMessage",
     "Estimate",
     "StatusSpec",

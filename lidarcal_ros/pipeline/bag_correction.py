@@ -46,7 +46,7 @@ from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamC
 
 __all__ = [
     "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport", "correct_bag", "output_kind",
-    "read_trajectory", "warm_up",
+    "read_trajectory", "warm_up_compiled_loops",
 ]
 
 logger = logging.getLogger(__name__)
@@ -172,7 +172,7 @@ def correct_bag(
     started = time.perf_counter()
     # The compiled loops load while the trajectory is read (their first call in a process
     # costs some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
-    threading.Thread(target=warm_up, name="lidarcal-warm-up", daemon=True).start()
+    threading.Thread(target=warm_up_compiled_loops, name="lidarcal-warm-up", daemon=True).start()
     config = config or FlightConfig()
     record = (calibration if isinstance(calibration, CalibrationRecord)
               else read_calibration(calibration))
@@ -480,7 +480,7 @@ def _correct_to_bag(job: _Job) -> None:
         _check_something_corrected(corrector.stats, bag.path, points_topic)
 
 
-def warm_up() -> None:
+def warm_up_compiled_loops() -> None:
     """Correct a small synthetic cloud (of the lidarcal layout, read-only as a decoded one
     is), so that the compiled loops of the correction are loaded, and numba initialised, now
     rather than by the first cloud."""

@@ -40,7 +40,7 @@ from lidarcal_ros.pipeline.correction_service import (
     ErrorHandler,
     ResultHandler,
     ServiceOptions,
-    warm_up,
+    warm_up_engine,
 )
 
 __all__ = ["CorrectionProcess"]
@@ -127,7 +127,7 @@ def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSetting
     # (a start-up backlog that took seconds, not one, to drain).
     tune_allocator()
     try:
-        warm_up(settings, options)
+        warm_up_engine(settings, options)
     except Exception:  # only a warm-up
         logger.debug("warm-up failed", exc_info=True)
     _widen(inbox)

@@ -34,7 +34,7 @@ from lidarcal_ros.pipeline.stream_corrector import StreamCorrector
 
 __all__ = [
     "RING_BYTES", "CorrectedMessage", "CorrectionEngine", "ErrorHandler", "LocalCorrection",
-    "MessagePlacer", "ResultHandler", "ServiceOptions", "warm_up",
+    "MessagePlacer", "ResultHandler", "ServiceOptions", "warm_up_engine",
 ]
 
 logger = logging.getLogger(__name__)
@@ -224,14 +224,14 @@ class LocalCorrection:
     """The correction in the calling thread (same interface as
     :class:`~lidarcal_ros.pipeline.correction_process.CorrectionProcess`).
 
-    ``warm``: run the engine once over a synthetic strip first (:func:`warm_up`).
+    ``warm``: run the engine once over a synthetic strip first (:func:`warm_up_engine`).
     """
 
     def __init__(self, settings: CorrectionSettings, options: ServiceOptions, *,
                  on_result: ResultHandler, on_error: ErrorHandler,
                  warm: bool = False) -> None:
         if warm:
-            warm_up(settings, options)
+            warm_up_engine(settings, options)
         #: The engine it runs (its trajectory and stream corrector).
         self.engine = CorrectionEngine(settings, options, on_failed=on_error)
         self._on_result = on_result
@@ -286,7 +286,7 @@ class LocalCorrection:
 _WARM_UP_CLOUD_POINTS = 200_000
 
 
-def warm_up(settings: CorrectionSettings, options: ServiceOptions) -> None:
+def warm_up_engine(settings: CorrectionSettings, options: ServiceOptions) -> None:
     """Run the engine once over a synthetic strip (level flight at 1000 m over flat ground),
     so that the first real clouds do not pay for first calls (imports done lazily, compiled
     loops loaded) or first allocations (the heap grown page by page): without it the first

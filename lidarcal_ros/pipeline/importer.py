@@ -216,4 +216,4 @@ def _assemble_and_write(out: Path, read: PointsRead, header_base: str,
     )
 
 
-__all__ = ["ImportOptions", "ImportReport", "import_mission"]
+__all__ = ["import_mission"]
