@@ -40,8 +40,9 @@ from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.quality_level import LBS_LEVELS, assess
 from lidarcal_ros.core.scanning import INTENSITY_K
 from lidarcal_ros.io.config_file import load_flight_config
-from lidarcal_ros.io.html_report import ReportContent, figure_ids, render_html
+from lidarcal_ros.io.html_report import figure_ids, render_html
 from lidarcal_ros.io.las import parse_crs
+from lidarcal_ros.io.report_content import ReportContent
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.report import (
     FOOTPRINT_CELL_M,

@@ -60,7 +60,7 @@ from lidarcal_ros.core.swath_differences import (
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.calibration_file import ROOT_KEY, CalibrationRecord, read_calibration
 from lidarcal_ros.io.digest import digest
-from lidarcal_ros.io.html_report import (
+from lidarcal_ros.io.report_content import (
     BiasEntry,
     EvaluationSection,
     FlightMap,
