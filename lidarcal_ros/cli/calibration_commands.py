@@ -28,7 +28,6 @@ logger = logging.getLogger("lidarcal")
 
 
 def add_calibrate_command(sub: Any) -> None:
-    """``lidarcal calibrate`` on the subparsers ``sub``."""
     p = sub.add_parser("calibrate", help="estimate the system biases from a mission bag",
                        description="Quasi-rigorous calibration (Habib et al. 2011) of a "
                        "mission bag; writes the calibration file and prints a report.")
@@ -125,9 +124,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-
 def add_evaluate_command(sub: Any) -> None:
-    """``lidarcal evaluate`` on the subparsers ``sub``."""
     p = sub.add_parser("evaluate", help="relative and absolute accuracy before and after a "
                        "calibration",
                        description="The paper's accuracy measures: per overlapping strip pair "
@@ -167,9 +164,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-
 def add_report_command(sub: Any) -> None:
-    """``lidarcal report`` on the subparsers ``sub``."""
     p = sub.add_parser("report", help="self-contained HTML QA report of a calibration",
                        description="One HTML file, figures embedded, readable offline: the "
                        "USGS LBS quality level met; the flight lines, trajectory, control and "

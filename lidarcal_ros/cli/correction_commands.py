@@ -19,7 +19,6 @@ __all__ = ["add_correct_command", "cmd_correct"]
 
 
 def add_correct_command(sub: Any) -> None:
-    """``lidarcal correct`` on the subparsers ``sub``."""
     p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
                        description="Move every point by the estimated biases (method.md eq. "
                        "[13]) and turn its intensity into reflectance (radar equation); write "

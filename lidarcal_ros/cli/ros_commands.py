@@ -331,7 +331,6 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- the subcommands
 def add_replay_command(sub: Any) -> None:
-    """``lidarcal replay`` on the subparsers ``sub``."""
     p = sub.add_parser("replay", help="publish a bag to live topics with its original timing",
                        description="Publish a bag's messages (raw CDR) on their topics with "
                        "the original timing scaled by --rate; --clock publishes /clock for "
@@ -341,7 +340,6 @@ def add_replay_command(sub: Any) -> None:
 
 
 def add_run_command(sub: Any) -> None:
-    """``lidarcal run`` on the subparsers ``sub``."""
     p = sub.add_parser("run", help="start the node suite (calibrator, corrector, flight config)",
                        description="Start lidarcal_flight_config, lidarcal_calibrator and "
                        "lidarcal_corrector in this process; Ctrl-C or SIGTERM stops them "
@@ -351,7 +349,6 @@ def add_run_command(sub: Any) -> None:
 
 
 def add_record_command(sub: Any) -> None:
-    """``lidarcal record`` on the subparsers ``sub``."""
     p = sub.add_parser("record", help="record live topics (default: the outputs) to MCAP",
                        description="Record topics (raw CDR, with their types and durability) "
                        "into a rosbag2 MCAP bag; Ctrl-C or SIGTERM finishes the bag.")

@@ -15,7 +15,6 @@ __all__ = ["add_plan_command", "add_simulate_command", "cmd_plan", "cmd_simulate
 
 
 def add_simulate_command(sub: Any) -> None:
-    """``lidarcal simulate`` on the subparsers ``sub``."""
     p = sub.add_parser("simulate", help="synthetic mission with known biases",
                        description="Ray-cast a linear scanner over built-up terrain with known "
                        "biases; write a mission bag, control points (CSV) and the truth (YAML).")
@@ -174,9 +173,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-
 def add_plan_command(sub: Any) -> None:
-    """``lidarcal plan`` on the subparsers ``sub``."""
     p = sub.add_parser("plan", help="which parameters a flight plan can recover",
                        description="Simulate a flight plan's lines over the chosen terrain, form "
                        "the normal matrix the calibration would see and report, per parameter, "
