@@ -33,6 +33,7 @@ __all__ = [
 
 
 def summary_html(content: ReportContent) -> str:
+    """The summary: the quality-level statement, the mission's facts, the warnings."""
     parts = []
     if content.quality is not None:
         parts.append(f'<p class="statement" id="ql-statement">'
@@ -43,6 +44,7 @@ def summary_html(content: ReportContent) -> str:
 
 
 def quality_html(content: ReportContent) -> str:
+    """Each USGS LBS measure against the thresholds of QL0-QL3, and the level met."""
     quality = content.quality
     if quality is None:
         return html_section("quality", "Quality level (USGS Lidar Base Specification)",
@@ -83,6 +85,7 @@ def quality_html(content: ReportContent) -> str:
 
 
 def block_html(content: ReportContent, draw: FigureRenderer) -> str:
+    """The block map (flight lines, trajectory, control and check points) and the strip table."""
     parts = []
     crs = content.crs or "map frame (CRS not given: lidarcal report --crs names it)"
     if content.flight is not None:
@@ -126,6 +129,7 @@ def _bias_rows(biases: Sequence[BiasEntry]) -> list[list[str]]:
 
 
 def calibration_html(content: ReportContent, draw: FigureRenderer) -> str:
+    """The calibration's facts, the bias table and the correlation matrix."""
     parts = [facts_table(content.calibration_facts),
              html_table(["parameter", "estimate", "sigma", "unit", "status"],
                         _bias_rows(content.biases), {1, 2}),
@@ -144,6 +148,7 @@ def calibration_html(content: ReportContent, draw: FigureRenderer) -> str:
 
 
 def swath_html(content: ReportContent, draw: FigureRenderer) -> str:
+    """The swath-to-swath height differences before and after: mosaics and per-pair table."""
     swath = content.swath
     title = "Swath differences: strip-to-strip heights over the block"
     if swath is None or not swath.pairs:
@@ -181,6 +186,7 @@ def swath_html(content: ReportContent, draw: FigureRenderer) -> str:
 
 
 def pairs_html(content: ReportContent, draw: FigureRenderer) -> str:
+    """Per strip pair the normal discrepancies of the calibration's sample points."""
     title = "Strip pairs: normal discrepancies of the calibration's sample points"
     if not content.pairs:
         return html_section("pairs", title, ["<p>No overlapping strip pairs.</p>"])
@@ -225,6 +231,7 @@ def _fit_cells(fit: RigidFit | None) -> list[str]:
 
 
 def evaluation_html(section: EvaluationSection | None) -> str:
+    """``lidarcal evaluate``'s co-alignment of each pair and check-point residuals."""
     title = "Accuracy: co-alignment of strip pairs and check points (lidarcal evaluate)"
     if section is None:
         return html_section("evaluation", title, ["<p>Not evaluated.</p>"])
@@ -264,6 +271,7 @@ def evaluation_html(section: EvaluationSection | None) -> str:
 
 
 def control_html(control: Sequence[ControlResidual]) -> str:
+    """The residuals of the control points used by the calibration."""
     title = "Control points used by the calibration"
     if not control:
         return html_section("control", title, ["<p>No control point falls on a strip.</p>"])
@@ -276,6 +284,7 @@ def control_html(control: Sequence[ControlResidual]) -> str:
 
 
 def radiometry_html(content: ReportContent, draw: FigureRenderer) -> str:
+    """The reflectance's meaning, its variance-to-mean ratio per slope class, the maps."""
     section = content.radiometry
     title = "Radiometric correction"
     if section is None:
@@ -321,6 +330,7 @@ def _file_size_text(n: int) -> str:
 
 
 def provenance_html(provenance: Provenance | None) -> str:
+    """lidarcal's version, the date, the command, the inputs and the configuration."""
     if provenance is None:
         return html_section("provenance", "Provenance", ["<p>Not recorded.</p>"])
     facts = [("lidarcal", provenance.version), ("generated (UTC)", provenance.generated)]
