@@ -40,17 +40,16 @@ from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.quality_level import LBS_LEVELS, assess
 from lidarcal_ros.core.scanning import INTENSITY_K
 from lidarcal_ros.io.config_file import load_flight_config
-from lidarcal_ros.io.html_report import ReportContent, figure_ids, render_html
+from lidarcal_ros.io.html_report import figure_ids, render_html
 from lidarcal_ros.io.las import parse_crs
+from lidarcal_ros.io.report_content import ReportContent
 from lidarcal_ros.pipeline.correction import CorrectionSettings
-from lidarcal_ros.pipeline.report import (
-    FOOTPRINT_CELL_M,
-    block_grids,
-    block_pass,
-    build_report,
+from lidarcal_ros.pipeline.report import build_report
+from lidarcal_ros.pipeline.report_block import FOOTPRINT_CELL_M, block_grids, block_pass
+from lidarcal_ros.pipeline.report_calibration import read_report_calibration
+from lidarcal_ros.pipeline.report_radiometry import (
     mean_raster,
     radiometry_section,
-    read_report_calibration,
     slope_class_statistics,
 )
 
@@ -477,7 +476,7 @@ def test_clouds_without_intensity_report_no_radiometry(reported: Reported) -> No
         config, read_report_calibration(reported.calibration).record)
     footprint, swath, maps = block_grids(no_intensity, config)
     passed = block_pass(no_intensity, settings, swath_grid=swath, footprint_grid=footprint,
-                        map_shape=maps)
+                        map_grid=maps)
     assert radiometry_section(passed, settings, maps) is None
     assert len(passed.surfaces) == len(mission.strips)  # the geometry is there all the same
     content = dataclasses.replace(reported.content, pairs=[], radiometry=None)

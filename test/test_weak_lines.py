@@ -30,7 +30,7 @@ from helpers_cli import run
 from helpers_las import add_first_returns, real_las_file, write_las_tiles
 from helpers_missions import shift_strip, subset, without_control
 
-from lidarcal_ros.cli.main import EXIT_NOTHING_ESTIMATED
+from lidarcal_ros.cli.exit_status import EXIT_NOTHING_ESTIMATED
 from lidarcal_ros.core.calibrate import Calibrator
 from lidarcal_ros.core.mission import Mission, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES

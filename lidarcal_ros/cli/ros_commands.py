@@ -20,8 +20,9 @@ from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
 
 __all__ = [
-    "NODE_CHOICES", "add_record_arguments", "add_replay_arguments", "add_run_arguments",
-    "check_ros_parameters", "cmd_record", "cmd_replay", "cmd_run", "supervise",
+    "NODE_CHOICES", "add_record_arguments", "add_record_command", "add_replay_arguments",
+    "add_replay_command", "add_run_arguments", "add_run_command", "check_ros_parameters",
+    "cmd_record", "cmd_replay", "cmd_run", "supervise",
 ]
 
 
@@ -326,3 +327,30 @@ def cmd_record(args: argparse.Namespace) -> int:
         context.try_shutdown()
         shutdown.restore()
     return 0
+
+
+# ---------------------------------------------------------------------------- the subcommands
+def add_replay_command(sub: Any) -> None:
+    p = sub.add_parser("replay", help="publish a bag to live topics with its original timing",
+                       description="Publish a bag's messages (raw CDR) on their topics with "
+                       "the original timing scaled by --rate; --clock publishes /clock for "
+                       "nodes with use_sim_time.")
+    add_replay_arguments(p)
+    p.set_defaults(func=cmd_replay)
+
+
+def add_run_command(sub: Any) -> None:
+    p = sub.add_parser("run", help="start the node suite (calibrator, corrector, flight config)",
+                       description="Start lidarcal_flight_config, lidarcal_calibrator and "
+                       "lidarcal_corrector in this process; Ctrl-C or SIGTERM stops them "
+                       "cleanly.")
+    add_run_arguments(p)
+    p.set_defaults(func=cmd_run)
+
+
+def add_record_command(sub: Any) -> None:
+    p = sub.add_parser("record", help="record live topics (default: the outputs) to MCAP",
+                       description="Record topics (raw CDR, with their types and durability) "
+                       "into a rosbag2 MCAP bag; Ctrl-C or SIGTERM finishes the bag.")
+    add_record_arguments(p)
+    p.set_defaults(func=cmd_record)

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
     from lidarcal_ros.core.calibrate import PairDiscrepancies
     from lidarcal_ros.core.swath_differences import SwathDifferences
-    from lidarcal_ros.io.html_report import FlightMap, MapRaster, PairSection, SlopeClass
+    from lidarcal_ros.io.report_content import FlightMap, MapRaster, PairSection, SlopeClass
 
 #: Resolution of the embedded PNG figures, dots per inch.
 FIGURE_DPI = 90

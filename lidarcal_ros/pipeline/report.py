@@ -6,8 +6,11 @@ themselves.
   same sample points as ``lidarcal calibrate`` (same configuration, same seeds) and matches
   them at zero biases ("before") and at the calibration file's estimate ("after"): per strip
   pair, the signed normal discrepancy of every matched point with its map position, whose
-  robust RMS is the calibration's own pair QA; and the control-point residuals.
-- The block pass: every strip once through
+  robust RMS is the calibration's own pair QA; and the control-point residuals
+  (:func:`geometric_sections`, here).
+- The calibration file's biases, correlations and facts
+  (:mod:`lidarcal_ros.pipeline.report_calibration`).
+- The block pass (:mod:`lidarcal_ros.pipeline.report_block`): every strip once through
   :func:`~lidarcal_ros.pipeline.correction.correct_columns` (the correction ``lidarcal
   correct`` applies) with the surface normals it needs fitted once
   (:func:`~lidarcal_ros.core.normals.grid_normals`). From it: the strip's surface on the
@@ -15,12 +18,18 @@ themselves.
   swath-to-swath height differences (:mod:`lidarcal_ros.core.swath_differences`); the
   terrain slope of each point, with which the variance-to-mean ratio of the recorded
   intensity (before) and of the reflectance (after) per slope class; maps of both on one
-  grid; and the strip's row of the block table.
+  grid (:mod:`lidarcal_ros.pipeline.report_radiometry`); and the strip's row of the block
+  table.
 - Accuracy: ``lidarcal evaluate``'s co-alignment of each pair and check-point residuals
   (:func:`~lidarcal_ros.pipeline.evaluation.evaluate_mission`), or its saved JSON.
 - The USGS LBS quality level (:mod:`lidarcal_ros.core.quality_level`) from the swath
   differences after calibration, the aggregate density and the check points.
-- Provenance: version, date, command, inputs with size and SHA-256, the configuration.
+- Provenance: version, date, command, inputs with size and SHA-256, the configuration
+  (:mod:`lidarcal_ros.pipeline.report_provenance`).
+
+:func:`build_report` reads the inputs and :func:`report_mission` puts the parts together into
+the :class:`~lidarcal_ros.io.report_content.ReportContent` that
+:mod:`lidarcal_ros.io.html_report` renders.
 
 Everything stays in memory beside the mission: per strip the cells of its surface, the
 points of the slope statistics and the sums of the maps.
@@ -41,189 +50,39 @@ import numpy as np
 
 from lidarcal_ros import __version__
 from lidarcal_ros.core.calibrate import Calibrator, ControlResidual, Progress
-from lidarcal_ros.core.config import SCHEMA, FlightConfig
-from lidarcal_ros.core.flags import (
-    FLAG_NO_INTENSITY,
-    FLAG_NO_NORMAL,
-    FLAG_NOT_CORRECTED,
-    FLAG_ROUGH,
-)
+from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.heading import describe_heading_policy
-from lidarcal_ros.core.mission import ControlPoints, Mission, Trajectory
-from lidarcal_ros.core.normals import cell_size, finite_rows, grid_normals
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
+from lidarcal_ros.core.mission import ControlPoints, Mission
+from lidarcal_ros.core.params import N_PARAMETERS
 from lidarcal_ros.core.quality_level import QualityAssessment, assess
-from lidarcal_ros.core.radiometry import describe_alpha
 from lidarcal_ros.core.swath_differences import (
     SMOOTH_SLOPE_DEG,
-    BlockGrid,
-    CellHeights,
     SwathDifferences,
-    cell_heights,
     swath_differences,
 )
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.calibration_file import ROOT_KEY, CalibrationRecord, read_calibration
-from lidarcal_ros.io.digest import digest
-from lidarcal_ros.io.html_report import (
-    BiasEntry,
-    EvaluationSection,
-    FlightMap,
-    InputFile,
-    MapRaster,
-    PairSection,
-    Provenance,
-    RadiometrySection,
-    ReportContent,
-    SlopeClass,
-    StripRow,
-)
-from lidarcal_ros.io.yaml_file import read_yaml
+from lidarcal_ros.io.report_content import EvaluationSection, PairSection, Provenance, ReportContent
 from lidarcal_ros.pipeline.calibration import load_mission, qa_level
-from lidarcal_ros.pipeline.correction import (
-    CorrectionSettings,
-    correct_columns,
-    trajectory_heading,
-)
+from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.evaluation import Evaluation, evaluate_mission
-from lidarcal_ros.pipeline.reflectance import (
-    TargetMeasurement,
-    measure_target_on_mission,
-    target_of,
-    with_constant,
+from lidarcal_ros.pipeline.reflectance import measure_target_on_mission, target_of, with_constant
+from lidarcal_ros.pipeline.report_block import (
+    FOOTPRINT_CELL_M,
+    StripFootprint,
+    block_grids,
+    block_pass,
+    flight_map,
 )
+from lidarcal_ros.pipeline.report_calibration import ReportCalibration, read_report_calibration
+from lidarcal_ros.pipeline.report_provenance import configuration_table, describe_inputs
+from lidarcal_ros.pipeline.report_radiometry import radiometry_section
+
+__all__ = [
+    "ReportInputs", "build_report", "evaluation_section", "geometric_sections",
+    "quality_assessment", "read_evaluation", "report_mission",
+]
 
 logger = logging.getLogger(__name__)
-
-#: Bounds of the terrain-slope classes of the variance-to-mean ratio, degrees.
-SLOPE_CLASS_EDGES_DEG: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 90.0)
-#: Fewest points for a class's statistics (NaN below).
-MIN_CLASS_POINTS = 30
-#: Most cells along the longer side of the intensity and reflectance maps.
-MAP_MAX_CELLS = 600
-#: Map cell in point spacings of the sparsest strip at least (so that where it flies alone,
-#: at the block's edges, most cells hold a point or two).
-MAP_STRIP_SPACINGS = 2.0
-#: Points left out of the slope statistics: not corrected, no normal, no intensity, or a
-#: rough neighbourhood (edges, vegetation: slope and incidence uncertain).
-EXCLUDED_FLAGS = FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH
-#: Cell of the strips' footprints (density, coverage), metres.
-FOOTPRINT_CELL_M = 10.0
-#: Cell of the swath differences in nominal pulse spacings (the LBS's "twice the NPS").
-SWATH_CELL_SPACINGS = 2.0
-#: Most cells along the longer side of the swath differences' grid.
-SWATH_MAX_CELLS = 1500
-#: Most trajectory samples drawn on the block map.
-TRAJECTORY_MAP_POINTS = 4000
-#: Times above this (s) are absolute (UNIX, after 1973) and shown as UTC dates.
-_ABSOLUTE_TIME_S = 1e8
-
-
-# ---------------------------------------------------------------------------- calibration file
-@dataclass
-class ReportCalibration:
-    """A calibration file as the report shows it.
-
-    Attributes
-    ----------
-    path : Path
-    record : CalibrationRecord
-        The biases (SI) as ``lidarcal correct`` reads them.
-    biases : list of BiasEntry
-        The eight parameters with their state and, where not estimable, the reason.
-    correlation_names : list of str
-    correlation : (m, m) float64
-        Correlations of the estimated parameters (empty when the file has none).
-    facts : list of (str, str)
-        sigma0, redundancy, iterations, convergence, correspondences, as in the file.
-    coverage : dict
-        ``(strip, strip) -> overlap fraction`` of the pairs the file lists.
-    warnings : list of str
-    """
-
-    path: Path
-    record: CalibrationRecord
-    biases: list[BiasEntry]
-    correlation_names: list[str]
-    correlation: np.ndarray
-    facts: list[tuple[str, str]]
-    coverage: dict[tuple[int, int], float]
-    warnings: list[str]
-
-
-def read_report_calibration(path: str | Path) -> ReportCalibration:
-    """Read a calibration file (interface.md) with the keys the report shows beyond the
-    biases: correlation matrix, reasons for parameters not estimable, pair coverage.
-
-    Raises
-    ------
-    ConfigError
-        A required key is missing or malformed (see
-        :func:`~lidarcal_ros.io.calibration_file.read_calibration`), or the correlation
-        matrix does not match its names.
-    """
-    path = Path(path)
-    record = read_calibration(path)
-    body = read_yaml(path, what="calibration")[ROOT_KEY]
-    entries = body["biases"]
-    biases = []
-    for name in PARAMETER_NAMES:
-        entry = entries[name]
-        reason = entry.get("not_estimable")
-        if record.estimated[name]:
-            state = "estimated"
-        elif reason:
-            state = "not_estimable"
-        else:
-            state = "fixed"
-        biases.append(BiasEntry(name, record.values[name],
-                                record.sigmas[name] if state == "estimated" else None,
-                                state, str(reason) if reason else ""))
-    names, matrix = _correlation(path, body.get("correlation"))
-    facts = [("calibration file", str(path))]
-    if record.sigma0 is not None:
-        facts.append(("sigma0 (a posteriori)", f"{record.sigma0 * 100:.2f} cm"))
-    for key, label in (("redundancy", "redundancy"), ("iterations", "iterations")):
-        if isinstance(body.get(key), int):
-            facts.append((label, str(body[key])))
-    if isinstance(body.get("converged"), bool):
-        facts.append(("converged", "yes" if body["converged"] else "NO"))
-    if body.get("model_detail"):
-        facts.append(("point-positioning model", str(body["model_detail"])))
-    corr = body.get("correspondences")
-    if isinstance(corr, Mapping):
-        facts.append(("correspondences", f"{corr.get('strip_pairs', '?')} strip-pair, "
-                                         f"{corr.get('control', '?')} control"))
-    coverage = {}
-    for pair in body.get("strip_pairs") or []:
-        strips = pair.get("strips") if isinstance(pair, Mapping) else None
-        value = pair.get("coverage") if isinstance(pair, Mapping) else None
-        if isinstance(strips, list) and len(strips) == 2 and isinstance(value, (int, float)):
-            a, b = sorted(int(s) for s in strips)
-            coverage[(a, b)] = float(value)
-    warnings = [str(w) for w in body.get("warnings") or []]
-    for strip in body.get("strips") or []:
-        if isinstance(strip, Mapping):
-            warnings.extend(f"strip {strip.get('id')}: {w}" for w in strip.get("warnings") or [])
-    return ReportCalibration(path, record, biases, names, matrix, facts, coverage, warnings)
-
-
-def _correlation(path: Path, doc: Any) -> tuple[list[str], np.ndarray]:
-    """Names and matrix of the file's ``correlation`` (empty if absent)."""
-    if doc is None:
-        return [], np.zeros((0, 0))
-    names = doc.get("names") if isinstance(doc, Mapping) else None
-    rows = doc.get("matrix") if isinstance(doc, Mapping) else None
-    if not isinstance(names, list) or not all(n in PARAMETER_NAMES for n in names):
-        raise ConfigError(f"{path}: correlation.names must list parameter names, got {names!r}")
-    try:
-        matrix = np.array(rows, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{path}: correlation.matrix is not a matrix of numbers") from None
-    if matrix.shape != (len(names), len(names)):
-        raise ConfigError(f"{path}: correlation.matrix is {matrix.shape}, expected "
-                          f"{len(names)} x {len(names)} for its names")
-    return [str(n) for n in names], matrix
 
 
 # ---------------------------------------------------------------------------- geometry
@@ -271,325 +130,6 @@ def geometric_sections(
         pairs.append(PairSection(b, a, qa_level(a.rms, warn_m=warn, error_m=error),
                                  coverage.get(a.strips)))
     return pairs, control
-
-
-# ---------------------------------------------------------------------------- radiometry
-def slope_class_statistics(
-    slope_deg: np.ndarray,
-    intensity: np.ndarray,
-    reflectance: np.ndarray,
-    edges_deg: Sequence[float] = SLOPE_CLASS_EDGES_DEG,
-    *,
-    min_points: int = MIN_CLASS_POINTS,
-) -> list[SlopeClass]:
-    """Variance-to-mean ratio of intensity and of reflectance per terrain-slope class.
-
-    The variance-to-mean ratio depends on the unit; so that the two compare, the reflectance
-    is put on the intensity's scale first: multiplied by one factor for every class, the
-    ratio of their means over all the points given.
-
-    Parameters
-    ----------
-    slope_deg : (n,) float
-        Terrain slope of each point, degrees from horizontal.
-    intensity, reflectance : (n,) float
-        Recorded intensity and reflectance of the same points, finite.
-    edges_deg : sequence of float
-        Class bounds, degrees, increasing; a class is ``[lo, hi)`` (the last also holds
-        ``hi``).
-    min_points : int
-        Classes with fewer points get NaN statistics.
-
-    Returns
-    -------
-    list of SlopeClass
-        One per class, in order.
-    """
-    edges = np.asarray(edges_deg, dtype=np.float64)
-    which = np.clip(np.searchsorted(edges, slope_deg, side="right") - 1, 0, edges.size - 2)
-    mean_refl = float(np.mean(reflectance, dtype=np.float64)) if reflectance.size else 0.0
-    scale = float(np.mean(intensity, dtype=np.float64)) / mean_refl if mean_refl > 0 else 1.0
-    out = []
-    for k in range(edges.size - 1):
-        members = which == k
-        n = int(np.count_nonzero(members))
-        stats = [math.nan] * 4
-        if n >= min_points:
-            inten = np.asarray(intensity[members], dtype=np.float64)
-            refl = np.asarray(reflectance[members], dtype=np.float64)
-            stats = [_vmr(inten), _vmr(refl * scale), float(inten.mean()), float(refl.mean())]
-        out.append(SlopeClass(float(edges[k]), float(edges[k + 1]), n, *stats))
-    return out
-
-
-def _vmr(values: np.ndarray) -> float:
-    """Variance (ddof 1) over mean; NaN for a non-positive mean."""
-    mean = float(values.mean())
-    return float(values.var(ddof=1)) / mean if mean > 0 else math.nan
-
-
-def mean_raster(xy: np.ndarray, values: np.ndarray, *, x0: float, y0: float, cell_m: float,
-                shape: tuple[int, int]) -> MapRaster:
-    """Mean of ``values`` per cell of a grid (rows south to north).
-
-    Parameters
-    ----------
-    xy : (n, 2) float
-        Map-frame positions, metres.
-    values : (n,) float
-        Finite values.
-    x0, y0 : float
-        South-west corner of the grid, metres.
-    cell_m : float
-        Cell size, metres.
-    shape : (int, int)
-        ``(rows, columns)``; points outside are ignored.
-    """
-    sums, counts = _cell_sums(xy, values, x0=x0, y0=y0, cell_m=cell_m, shape=shape)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(counts > 0, sums / counts, np.nan)
-    return MapRaster(mean.reshape(shape), x0, y0, cell_m)
-
-
-def _cell_sums(xy: np.ndarray, values: np.ndarray, *, x0: float, y0: float, cell_m: float,
-               shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Sums of ``values`` and counts per cell, flat (points outside ignored)."""
-    ny, nx = shape
-    col = np.floor((xy[:, 0] - x0) / cell_m).astype(np.int64)
-    row = np.floor((xy[:, 1] - y0) / cell_m).astype(np.int64)
-    inside = (col >= 0) & (col < nx) & (row >= 0) & (row < ny)
-    key = row[inside] * nx + col[inside]
-    sums = np.bincount(key, weights=np.asarray(values, dtype=np.float64)[inside],
-                       minlength=nx * ny)
-    return sums, np.bincount(key, minlength=nx * ny)
-
-
-# ---------------------------------------------------------------------------- block pass
-@dataclass
-class StripFootprint:
-    """Where a strip's points fall: its cells of :data:`FOOTPRINT_CELL_M` (sorted keys of a
-    :class:`~lidarcal_ros.core.swath_differences.BlockGrid`)."""
-
-    strip_id: int
-    keys: np.ndarray
-
-    @property
-    def area_m2(self) -> float:
-        return float(self.keys.size) * FOOTPRINT_CELL_M**2
-
-
-@dataclass
-class BlockPass:
-    """What one correction pass over every strip gives the report (module docstring).
-
-    Attributes
-    ----------
-    surfaces : list of (int, float, CellHeights, CellHeights)
-        Per strip: id, median time (s), its surface as delivered and as corrected.
-    rows : list of StripRow
-    footprints : list of StripFootprint
-    slope, intensity, reflectance : (k,) float32
-        The points of the slope statistics.
-    map_sums : (3, ny * nx) float64
-        Per map cell: sums of intensity and reflectance, and the number of points.
-    n_radiometric : int
-        Points with an intensity.
-    """
-
-    surfaces: list[tuple[int, float, CellHeights, CellHeights]] = field(default_factory=list)
-    rows: list[StripRow] = field(default_factory=list)
-    footprints: list[StripFootprint] = field(default_factory=list)
-    slope: list[np.ndarray] = field(default_factory=list)
-    intensity: list[np.ndarray] = field(default_factory=list)
-    reflectance: list[np.ndarray] = field(default_factory=list)
-    map_sums: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))
-    n_radiometric: int = 0
-
-
-def _time_text(t: float) -> str:
-    """A time as UTC (absolute) or seconds (relative)."""
-    if t > _ABSOLUTE_TIME_S:
-        stamp = datetime.datetime.fromtimestamp(t, tz=datetime.UTC)
-        return stamp.strftime("%Y-%m-%d %H:%M:%S UTC")
-    return f"{t:.1f} s"
-
-
-def _strip_row(strip_id: int, t: np.ndarray, z: np.ndarray, trajectory: Trajectory,
-               footprint: StripFootprint) -> StripRow:
-    """The block table's row of a strip (:class:`StripRow`)."""
-    t0, t1 = float(np.nanmin(t)), float(np.nanmax(t))
-    inside = (trajectory.t >= t0) & (trajectory.t <= t1)
-    path = trajectory.xyz[inside]
-    if path.shape[0] >= 2:
-        steps = np.diff(path[:, :2], axis=0)
-        length = float(np.sum(np.hypot(steps[:, 0], steps[:, 1])))
-        dx, dy = path[-1, :2] - path[0, :2]
-        heading = math.degrees(math.atan2(dx, dy)) % 360.0
-        height = float(np.median(path[:, 2]) - np.nanmedian(z))
-    else:
-        length = heading = height = math.nan
-    duration = t1 - t0
-    return StripRow(strip_id, int(t.size), _time_text(t0), duration, length, heading,
-                    length / duration if duration > 0 else math.nan, height,
-                    t.size / footprint.area_m2 if footprint.area_m2 > 0 else math.nan)
-
-
-def block_pass(
-    mission: Mission,
-    settings: CorrectionSettings,
-    *,
-    swath_grid: BlockGrid,
-    footprint_grid: BlockGrid,
-    map_shape: tuple[float, float, float, tuple[int, int]],
-    progress: Progress | None = None,
-) -> BlockPass:
-    """Correct every strip once and keep what the report needs of it (module docstring).
-
-    Parameters
-    ----------
-    mission : Mission
-    settings : CorrectionSettings
-        Biases and radiometric model (with the calibration constant, if any).
-    swath_grid, footprint_grid : BlockGrid
-        Grids of the swath differences and of the footprints.
-    map_shape : (x0, y0, cell_m, (rows, columns))
-        The grid of the intensity and reflectance maps (:func:`block_grids`).
-    progress : callable, optional
-    """
-    x0, y0, cell, shape = map_shape
-    out = BlockPass(map_sums=np.zeros((3, shape[0] * shape[1])))
-    strips = [s for s in mission.strips if len(s)]
-    for k, strip in enumerate(strips):
-        if progress is not None:
-            progress("correcting strips", k / len(strips))
-        heading = trajectory_heading(mission.trajectory, float(np.nanmedian(strip.t)))
-        finite = finite_rows(strip.xyz) & np.isfinite(strip.t)
-        normals = grid_normals(strip.xyz, heading,
-                               cell_m=cell_size(strip.xyz[finite], heading, strip.t[finite]))
-        res = correct_columns(strip.xyz, strip.t, strip.intensity, mission.trajectory,
-                              settings, normals=normals, source=f"strip {strip.strip_id}")
-        with np.errstate(invalid="ignore"):
-            slope = np.degrees(np.arccos(np.clip(np.abs(normals.normals[:, 2]), 0.0, 1.0)))
-        rough = normals.rough if normals.rough is not None else np.zeros(len(strip), bool)
-        corrected = (res.flags & FLAG_NOT_CORRECTED) == 0
-        smooth = normals.valid & ~rough & (slope < SMOOTH_SLOPE_DEG) & corrected
-        out.surfaces.append((strip.strip_id, float(np.nanmedian(strip.t)),
-                             cell_heights(swath_grid, strip.xyz, normals.normals, smooth),
-                             cell_heights(swath_grid, res.xyz, normals.normals, smooth)))
-        keys = footprint_grid.keys(strip.xyz[finite, :2])
-        footprint = StripFootprint(strip.strip_id, np.unique(keys[keys >= 0]))
-        out.footprints.append(footprint)
-        out.rows.append(_strip_row(strip.strip_id, strip.t[finite], res.xyz[finite, 2],
-                                   mission.trajectory, footprint))
-        if strip.intensity is None:
-            continue
-        intensity = np.asarray(strip.intensity, dtype=np.float64)
-        mapped = np.isfinite(res.reflectance) & np.isfinite(intensity)
-        out.n_radiometric += len(strip)
-        for row, values in enumerate((intensity[mapped], res.reflectance[mapped],
-                                      np.ones(int(mapped.sum())))):
-            sums, _ = _cell_sums(res.xyz[mapped, :2], values, x0=x0, y0=y0, cell_m=cell,
-                                 shape=shape)
-            out.map_sums[row] += sums
-        usable = mapped & ((res.flags & EXCLUDED_FLAGS) == 0) & np.isfinite(slope)
-        out.slope.append(slope[usable].astype(np.float32))
-        out.intensity.append(intensity[usable].astype(np.float32))
-        out.reflectance.append(res.reflectance[usable])
-    return out
-
-
-def radiometry_section(
-    passed: BlockPass,
-    settings: CorrectionSettings,
-    map_shape: tuple[float, float, float, tuple[int, int]],
-    target: TargetMeasurement | None = None,
-) -> RadiometrySection | None:
-    """Slope statistics of intensity and reflectance, and their maps (None where no strip
-    carries intensity)."""
-    if not passed.n_radiometric or not passed.map_sums[2].any():
-        return None
-    x0, y0, cell, shape = map_shape
-    with np.errstate(invalid="ignore", divide="ignore"):
-        count = passed.map_sums[2]
-        maps = [np.where(count > 0, passed.map_sums[row] / count, np.nan).reshape(shape)
-                for row in (0, 1)]
-    slope, intensity, reflectance = (np.concatenate(parts) if parts else np.zeros(0)
-                                     for parts in (passed.slope, passed.intensity,
-                                                   passed.reflectance))
-    classes = slope_class_statistics(slope, intensity, reflectance)
-    model = settings.radiometry
-    notes = [f"Atmosphere: {describe_alpha(model)}."]
-    if target is not None:
-        notes.append(f"The {target.describe()}.")
-    notes.append("Left out of the slope statistics: points not corrected, without a surface "
-                 "normal or intensity, and rough neighbourhoods (edges, vegetation), whose "
-                 "slope and incidence are uncertain. Terrain slope from the grid normals of "
-                 "the radiometric correction.")
-    return RadiometrySection(
-        slope_classes=classes, intensity=MapRaster(maps[0], x0, y0, cell),
-        reflectance=MapRaster(maps[1], x0, y0, cell), n_points=passed.n_radiometric,
-        n_used=int(slope.size), meaning=model.meaning, unit=model.unit, notes=notes)
-
-
-# ---------------------------------------------------------------------------- block
-def block_grids(mission: Mission, config: FlightConfig) -> tuple[BlockGrid, BlockGrid,
-                                                                   tuple[float, float, float,
-                                                                         tuple[int, int]]]:
-    """The grids of the footprints, of the swath differences and of the maps."""
-    bounds = [(np.nanmin(s.xyz[:, :2], axis=0), np.nanmax(s.xyz[:, :2], axis=0))
-              for s in mission.strips if len(s)]
-    lo = np.min([b[0] for b in bounds], axis=0)
-    hi = np.max([b[1] for b in bounds], axis=0)
-    footprint = BlockGrid.covering(lo, hi, FOOTPRINT_CELL_M)
-    # The nominal pulse spacing of single strips: their median density over their footprints.
-    densities = []
-    for s in mission.strips:
-        keys = footprint.keys(s.xyz[:, :2])
-        cells = np.unique(keys[keys >= 0]).size
-        if cells:
-            densities.append(len(s) / (cells * FOOTPRINT_CELL_M**2))
-    spacing = 1.0 / math.sqrt(float(np.median(densities))) if densities else 1.0
-    span = float(np.max(hi - lo))
-    swath = BlockGrid.covering(lo, hi, max(SWATH_CELL_SPACINGS * spacing, 0.5,
-                                           span / SWATH_MAX_CELLS))
-    # Map cells hold points of the sparsest strip too (where it flies alone, at the edges).
-    sparsest = 1.0 / math.sqrt(float(np.min(densities))) if densities else 1.0
-    cell = max(span / MAP_MAX_CELLS, MAP_STRIP_SPACINGS * sparsest, 1e-3)
-    shape = (int((hi[1] - lo[1]) // cell) + 1, int((hi[0] - lo[0]) // cell) + 1)
-    return footprint, swath, (float(lo[0]), float(lo[1]), cell, shape)
-
-
-def flight_map(mission: Mission, footprints: Sequence[StripFootprint], grid: BlockGrid, *,
-               check_points: ControlPoints | None = None,
-               target: tuple[float, float, float, float] | None = None) -> FlightMap:
-    """The block map's content (:class:`~lidarcal_ros.io.html_report.FlightMap`)."""
-    traj = mission.trajectory
-    step = max(1, len(traj) // TRAJECTORY_MAP_POINTS)
-    drawn = traj.xyz[::step, :2].copy()
-    # No line across a gap in the trajectory (turns not recorded).
-    dt = np.diff(traj.t[::step])
-    if dt.size:
-        gaps = np.flatnonzero(dt > 10.0 * max(float(np.median(dt)), 1e-6)) + 1
-        drawn = np.insert(drawn, gaps, np.nan, axis=0)
-    lines = []
-    for strip in mission.strips:
-        if not len(strip):
-            continue
-        inside = (traj.t >= np.nanmin(strip.t)) & (traj.t <= np.nanmax(strip.t))
-        xy = traj.xyz[inside, :2]
-        lines.append((strip.strip_id, xy[::max(1, xy.shape[0] // 200)]))
-    counts = np.zeros(grid.nx * grid.ny)
-    for f in footprints:
-        counts[f.keys] += 1
-    coverage = MapRaster(counts.reshape(grid.ny, grid.nx), grid.x0, grid.y0, grid.cell_m)
-
-    def named(points: ControlPoints | None) -> list[tuple[str, float, float]]:
-        if points is None:
-            return []
-        return [(str(i), float(p[0]), float(p[1])) for i, p in zip(points.ids, points.xyz)]
-
-    return FlightMap(drawn, lines, coverage, named(mission.control),
-                     named(check_points), target)
 
 
 def evaluation_section(evaluation: Evaluation, source: str) -> EvaluationSection:
@@ -666,13 +206,13 @@ def report_mission(
     if target is not None and not settings.radiometry.absolute:
         measured = measure_target_on_mission(mission, settings, target)
         settings = with_constant(settings, measured.constant)
-    footprint_grid, swath_grid, map_shape = block_grids(mission, config)
+    footprint_grid, swath_grid, map_grid = block_grids(mission, config)
     passed = block_pass(mission, settings, swath_grid=swath_grid,
-                        footprint_grid=footprint_grid, map_shape=map_shape, progress=progress)
+                        footprint_grid=footprint_grid, map_grid=map_grid, progress=progress)
     if progress is not None:
         progress("swath differences", 0.0)
     swath = swath_differences(swath_grid, passed.surfaces)
-    radiometry = radiometry_section(passed, settings, map_shape, measured)
+    radiometry = radiometry_section(passed, settings, map_grid, measured)
     evaluation = inputs.evaluation
     source = inputs.evaluation_source
     if evaluation is None:
@@ -742,29 +282,6 @@ def read_evaluation(path: str | Path, delta: np.ndarray) -> Evaluation:
         raise ConfigError(f"{path}: the evaluation is of other biases than the calibration "
                           "file's (a different calibration)")
     return evaluation
-
-
-def configuration_table(config: FlightConfig) -> list[tuple[str, str, bool]]:
-    """Every parameter of ``config``: name, value, whether it differs from the default."""
-    return [(name, _config_text(config[name]), config[name] != spec.default)
-            for name, spec in SCHEMA.items()]
-
-
-def _config_text(value: Any) -> str:
-    return ", ".join(value) if isinstance(value, list) else str(value)
-
-
-def describe_inputs(files: Sequence[tuple[str, str | Path | None]], *,
-                    progress: Progress | None = None) -> list[InputFile]:
-    """Size and SHA-256 of each input (role, path); None paths are left out."""
-    present = [(role, Path(path)) for role, path in files if path is not None]
-    out = []
-    for k, (role, path) in enumerate(present):
-        if progress is not None:
-            progress(f"hashing {role}", k / max(len(present), 1))
-        size, sha = digest(path)
-        out.append(InputFile(role, str(path), size, sha))
-    return out
 
 
 def build_report(

@@ -1,0 +1,123 @@
+"""``lidarcal import`` (LAS/LAZ strips and a trajectory into a mission bag) and ``lidarcal
+recover`` (a damaged bag's readable messages into a new bag)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from lidarcal_ros.cli.common import add_quiet_option, progress_bar
+from lidarcal_ros.io.output_files import check_output
+
+__all__ = ["add_import_command", "add_recover_command", "cmd_import", "cmd_recover"]
+
+
+def add_import_command(sub: Any) -> None:
+    p = sub.add_parser("import", help="LAS/LAZ strips and a trajectory into a mission bag",
+                       description="Bring LAS/LAZ flight lines (LAS 1.0-1.4, any number of "
+                       "files) and an Applanix SBET, an ASCII trajectory time,x,y,z[,...], or "
+                       "a trajectory rebuilt from multiple returns into a mission bag that "
+                       "calibrate, correct and replay read.",
+                       epilog="Strips come from point_source_id, or from GPS-time gaps where "
+                       "it is 0 or the same everywhere. LAS GPS time is adjusted standard "
+                       "time (global encoding bit 0) or week seconds, SBET time week seconds: "
+                       "the GPS week comes from the absolute side, the bag's clock is UNIX "
+                       "time whenever an absolute time is known, else week seconds. SBET "
+                       "positions (EPSG:4979) are projected to the points' CRS, heights kept "
+                       "ellipsoidal unless the CRS is compound; coordinates in feet are "
+                       "converted to metres.")
+    p.add_argument("inputs", nargs="+", type=Path, metavar="STRIP",
+                   help="LAS or LAZ files")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output rosbag2 directory (or .mcap file)")
+    p.add_argument("--trajectory", dest="trajectory_source", default="estimate",
+                   metavar="SBET|CSV|estimate",
+                   help="SBET (.out), ASCII trajectory, or 'estimate' to rebuild it from "
+                   "multiple returns (default)")
+    p.add_argument("--crs", help="CRS of the points, e.g. EPSG:32633 (default: LAS header)")
+    p.add_argument("--trajectory-crs",
+                   help="CRS of the trajectory positions (default EPSG:4979 for SBET and "
+                   "lat/lon columns, the points' CRS for ASCII x,y,z)")
+    p.add_argument("--trajectory-time", default="auto",
+                   choices=("auto", "week", "adjusted", "gps", "unix"),
+                   help="time base of the trajectory file (default: SBET week seconds, ASCII "
+                   "by magnitude and overlap with the points)")
+    p.add_argument("--gps-week", type=int, help="GPS week of week-second times")
+    p.add_argument("--strip-gap", type=float, default=10.0,
+                   help="GPS-time gap separating strips without point source ids, s "
+                   "(default 10)")
+    p.add_argument("--returns", default="all", choices=("all", "first", "last"),
+                   help="returns written to the bag (default all; every return feeds "
+                   "--trajectory estimate)")
+    p.add_argument("--frame", default="map", help="map frame id (default map)")
+    p.add_argument("--points", default="/lidar/points", help="points topic")
+    p.add_argument("--trajectory-topic", default="/lidar/trajectory", help="trajectory topic")
+    p.add_argument("--trajectory-rate", type=float, default=50.0,
+                   help="trajectory samples kept per second, 0 for all (default 50)")
+    p.add_argument("--memory-points", type=int, default=2_000_000,
+                   help="points held in memory before spilling sorted runs to disk")
+    p.add_argument("--qa-cell", type=float, default=2.0,
+                   help="cell of the swath-to-swath overlap QA grid, m (default 2; 0: none)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_quiet_option(p)
+    p.set_defaults(func=cmd_import)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Run ``lidarcal import`` with the parsed ``args``; its exit status."""
+    from lidarcal_ros.pipeline.import_options import ImportOptions
+    from lidarcal_ros.pipeline.importer import import_mission
+
+    check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
+    options = ImportOptions(
+        trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
+        trajectory_time=args.trajectory_time, gps_week=args.gps_week,
+        strip_gap_s=args.strip_gap, returns=args.returns, frame_id=args.frame,
+        points_topic=args.points, trajectory_topic=args.trajectory_topic,
+        trajectory_rate_hz=args.trajectory_rate, memory_points=args.memory_points,
+        qa_cell_m=args.qa_cell, overwrite=args.overwrite)
+    progress, close = progress_bar(not args.quiet)
+    try:
+        report = import_mission(args.inputs, args.output, options, progress)
+    finally:
+        close()
+    for line in report.lines():
+        print(line)
+    return 0
+
+
+def add_recover_command(sub: Any) -> None:
+    p = sub.add_parser("recover", help="a damaged bag's readable messages into a new bag",
+                       description="Read a bag whose recording was cut (no MCAP summary or "
+                       "footer, no metadata.yaml) from the start, and write every message "
+                       "readable before the damage to a new, complete bag.")
+    p.add_argument("bag", type=Path, help="damaged rosbag2 directory or .mcap file")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="new rosbag2 directory (or a bare .mcap file)")
+    p.add_argument("--points", default="/lidar/points",
+                   help="points topic: clouds past the last readable trajectory sample are "
+                   "left out (default /lidar/points)")
+    p.add_argument("--trajectory", default="/lidar/trajectory",
+                   help="trajectory topic (default /lidar/trajectory)")
+    p.add_argument("--time-field", default="t",
+                   help="time field of the clouds (default t, or its alias time, timestamp, "
+                   "gps_time)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=cmd_recover)
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    """Run ``lidarcal recover`` with the parsed ``args``; its exit status."""
+    from lidarcal_ros.io.bag_recovery import recover_bag
+
+    if args.output.resolve() != args.bag.resolve():  # (recover_bag names that mistake)
+        check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
+    recovered = recover_bag(args.bag, args.output, overwrite=args.overwrite,
+                            points_topic=args.points, trajectory_topic=args.trajectory,
+                            time_field=args.time_field)
+    for line in recovered.lines():
+        print(line)
+    return 0
+
+

@@ -1,0 +1,41 @@
+"""What several ``lidarcal`` commands share: the ``-q/--quiet`` option, the bag and
+calibration arguments, and the progress bar on stderr."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_bag_and_calibration_arguments", "add_quiet_option", "progress_bar"]
+
+
+def add_quiet_option(p: Any) -> None:
+    """``-q/--quiet`` of the commands that show progress."""
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (it shows only on a terminal anyway)")
+
+
+def add_bag_and_calibration_arguments(p: Any) -> None:
+    """The arguments of the commands that read a mission bag with a calibration."""
+    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("--calibration", required=True, type=Path,
+                   help="calibration YAML (lidarcal calibrate)")
+
+
+def progress_bar(enabled: bool) -> tuple[Any, Any]:
+    """A tqdm-backed progress callback (stderr; silent when not a terminal) and the function
+    closing it."""
+    if not enabled:
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=100, unit="%", file=sys.stderr, leave=False,
+               bar_format="{desc:<28} {bar} {elapsed}", disable=None)
+
+    def update(stage: str, fraction: float) -> None:
+        bar.set_description_str(stage)
+        bar.n = int(round(100 * max(0.0, min(1.0, fraction))))
+        bar.refresh()
+
+    return update, bar.close

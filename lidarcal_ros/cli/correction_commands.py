@@ -1,0 +1,90 @@
+"""``lidarcal correct``: apply a calibration to a mission bag and correct intensity to
+reflectance, into a bag or LAS/LAZ."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from lidarcal_ros.cli.common import (
+    add_bag_and_calibration_arguments,
+    add_quiet_option,
+    progress_bar,
+)
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.output_files import check_output
+
+__all__ = ["add_correct_command", "cmd_correct"]
+
+
+def add_correct_command(sub: Any) -> None:
+    p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
+                       description="Move every point by the estimated biases (method.md eq. "
+                       "[13]) and turn its intensity into reflectance (radar equation); write "
+                       "a bag (corrected clouds beside the input topics) or LAS/LAZ 1.4.",
+                       epilog="Corrected clouds carry every input field, x, y, z corrected, "
+                       "and FLOAT32 reflectance (intensity normalised to the reference range, "
+                       "normal incidence, clear air, over radiometry.calibration_constant: the "
+                       "Lambertian reflectance 0-1 with that constant or a reference target, "
+                       "else relative in intensity units), range (m), incidence (rad), "
+                       "scan_angle "
+                       "(rad), plus UINT8 correction_flags: 1 not corrected (trajectory gap; "
+                       "x, y, z as delivered, the rest NaN), 2 grazing incidence (cosine "
+                       "clamped), 4 no surface normal (incidence, reflectance NaN), 8 no "
+                       "intensity (reflectance NaN), 16 rough surface (edge, vegetation: "
+                       "incidence uncertain). LAS: extra bytes reflectance, range, incidence, "
+                       "correction_flags; flag 1 also sets 'withheld'.")
+    add_bag_and_calibration_arguments(p)
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output: .mcap or a directory (rosbag2), or .las/.laz")
+    p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
+    p.add_argument("--crs", help="CRS of the map frame for LAS/LAZ output, e.g. EPSG:32633")
+    p.add_argument("--points", help="points topic (default from config)")
+    p.add_argument("--trajectory", help="trajectory topic (default from config)")
+    p.add_argument("--corrected", help="output topic of the corrected clouds (default from "
+                   "config)")
+    p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="threads correcting batches in parallel (default 2; 1: all in one "
+                   "thread)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_quiet_option(p)
+    p.set_defaults(func=cmd_correct)
+
+
+def cmd_correct(args: argparse.Namespace) -> int:
+    """Run ``lidarcal correct`` with the parsed ``args``; its exit status."""
+    from lidarcal_ros.core.allocator import tune_allocator
+    from lidarcal_ros.io.calibration_file import read_calibration
+    from lidarcal_ros.io.config_file import load_flight_config
+    from lidarcal_ros.io.las import parse_crs
+    from lidarcal_ros.pipeline.bag_correction import CorrectOptions, correct_bag, output_kind
+
+    tune_allocator()
+    config = load_flight_config(args.config)
+    overrides = {}
+    for opt, name in (("points", "topics__points"), ("trajectory", "topics__trajectory"),
+                      ("corrected", "topics__corrected"), ("time_field", "time_field")):
+        if getattr(args, opt):
+            overrides[name] = getattr(args, opt)
+    config = config.with_values(**overrides)
+    calibration = read_calibration(args.calibration)
+    crs = parse_crs(args.crs) if args.crs else None
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
+    out = args.output
+    check_output(out, overwrite=args.overwrite,
+                  directory=output_kind(out) == "bag" and out.suffix != ".mcap")
+    progress, close = progress_bar(not args.quiet)
+    try:
+        report = correct_bag(args.bag, calibration, args.output, config,
+                             CorrectOptions(crs=crs, overwrite=args.overwrite,
+                                            workers=args.workers), progress=progress)
+    finally:
+        close()
+    for line in report.lines():
+        print(line)
+    return 0
+
+

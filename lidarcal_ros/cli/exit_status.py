@@ -1,0 +1,68 @@
+"""The exit statuses of ``lidarcal`` and the one line a failed command prints.
+
+:func:`run_command` runs a parsed command and turns what it raises into its exit status and
+one line on stderr (``lidarcal COMMAND: error: REASON``); what each status means is in
+:data:`EXIT_STATUSES` and the docstring of :mod:`lidarcal_ros.cli.main`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from lidarcal_ros.errors import LidarcalError
+
+__all__ = [
+    "EXIT_BAD_INPUT", "EXIT_INTERNAL_ERROR", "EXIT_INTERRUPTED", "EXIT_NOTHING_ESTIMATED",
+    "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_USAGE", "run_command",
+]
+
+logger = logging.getLogger("lidarcal")
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1
+EXIT_USAGE = 2
+EXIT_INTERNAL_ERROR = 3
+EXIT_NOT_CONVERGED = 4
+#: ``calibrate --write-identity`` estimated nothing and wrote a calibration moving no point.
+EXIT_NOTHING_ESTIMATED = 5
+EXIT_INTERRUPTED = 130
+
+#: What each exit status means (``lidarcal --help`` prints this).
+EXIT_STATUSES: dict[int, str] = {
+    EXIT_OK: "success",
+    EXIT_BAD_INPUT: "bad input or an output that cannot be written (one line on stderr)",
+    EXIT_USAGE: "usage error",
+    EXIT_INTERNAL_ERROR: "internal error (a bug; -vv for the traceback)",
+    EXIT_NOT_CONVERGED: "calibrate: the adjustment did not converge (calibration written "
+                        "with converged: false)",
+    EXIT_NOTHING_ESTIMATED: "calibrate --write-identity: nothing could be estimated "
+                            "(calibration written that moves no point)",
+    EXIT_INTERRUPTED: "interrupted",
+}
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """Run the command ``args.func`` of the parsed ``args``; its exit status, with what it
+    raises told in one line on stderr (a traceback only at ``-vv``, for a bug)."""
+    try:
+        return int(args.func(args))
+    except LidarcalError as exc:
+        print(f"lidarcal {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"lidarcal {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as exc:  # a file the command reads or writes
+        from lidarcal_ros.io.output_files import os_reason
+
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"lidarcal {args.command}: error: {where}{os_reason(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:  # a bug: still one line, traceback with -vv
+        logger.debug("traceback", exc_info=True)
+        text = " ".join(str(exc).split())
+        print(f"lidarcal {args.command}: internal error: {type(exc).__name__}: {text} "
+              "(rerun with -vv for the traceback)", file=sys.stderr)
+        return EXIT_INTERNAL_ERROR

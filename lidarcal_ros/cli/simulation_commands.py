@@ -1,0 +1,213 @@
+"""``lidarcal simulate`` (a synthetic mission with known biases) and ``lidarcal plan``
+(which parameters a flight plan's lines can recover, from a simulation of them)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.output_files import check_output
+
+__all__ = ["add_plan_command", "add_simulate_command", "cmd_plan", "cmd_simulate"]
+
+
+def add_simulate_command(sub: Any) -> None:
+    p = sub.add_parser("simulate", help="synthetic mission with known biases",
+                       description="Ray-cast a linear scanner over built-up terrain with known "
+                       "biases; write a mission bag, control points (CSV) and the truth (YAML).")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="output rosbag2 directory; OUT_control.csv and OUT_truth.yaml beside it")
+    p.add_argument("--scenario", default="paper", choices=("paper", "flat", "one_track"),
+                   help="flight configuration and terrain (default: paper)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (terrain, noise)")
+    p.add_argument("--density", type=float, default=1.0,
+                   help="points per m^2 at the 1150 m lines (default 1.0)")
+    p.add_argument("--line-length", type=float, default=1000.0, help="metres (default 1000)")
+    p.add_argument("--biases", default=None,
+                   help="e.g. 'dX=0.05,domega=-29arcsec,dr=11.8cm' (default: paper-like)")
+    p.add_argument("--range-noise", type=float, default=0.02, help="metres (default 0.02)")
+    p.add_argument("--control", type=int, default=1, help="number of control points")
+    p.add_argument("--origin", default="0,0",
+                   help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")
+    p.add_argument("--wind", default=None,
+                   help="E,N m/s where the air moves: the sensor flies crabbed into the "
+                   "crosswind, a heading the trajectory's positions do not show "
+                   "(default 0,0; with --rough-air, 5 deg of crab across the first line)")
+    p.add_argument("--rough-air", nargs="?", const="", default=None, metavar="SPEC",
+                   help="fly in turbulence, as an INS records it: alone, the reported "
+                   "roll +-4 deg, pitch +-2.5 deg, 1 deg heading wobble, heave and sway "
+                   "+-0.5 m, periods 2-30 s, the orientation at 50 Hz, 5 deg of crab; or "
+                   "changes to it, e.g. 'roll=6,pitch=3,yaw=0.5,heave=1,sway=0,"
+                   "min-period=3,max-period=20,components=5,rate=100,seed=4'")
+    p.add_argument("--lines", type=Path, default=None, metavar="YAML",
+                   help="explicit flight lines instead of the scenario's: a YAML list of "
+                   "{id, start: [x, y], end: [x, y], height} in metres about the area's "
+                   "centre, each optionally turning (turn_deg_s: heading rate, positive "
+                   "left; or bank_deg: a coordinated turn's bank, right wing down positive) "
+                   "or banked straight (roll_deg)")
+    p.add_argument("--attitude", action=argparse.BooleanOptionalAction, default=None,
+                   help="write the sensor's orientation (roll, pitch, heading) as the "
+                   "trajectory's, as an INS would (default: with --rough-air or banked or "
+                   "turning lines; otherwise identity orientation, positions only)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.set_defaults(func=cmd_simulate)
+
+
+def _parse_two_numbers(text: str, option: str, what: str) -> tuple[float, float]:
+    """``A,B`` of an option as two floats (ConfigError naming the option otherwise)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"{option}: expected {what}, got '{text}'") from None
+    if len(values) != 2:
+        raise ConfigError(f"{option}: expected {what}, got '{text}'")
+    return values[0], values[1]
+
+
+#: ``--rough-air`` keys: the RoughAir field each sets, and its type.
+_ROUGH_AIR_KEYS: dict[str, tuple[str, type]] = {
+    "roll": ("roll_deg", float), "pitch": ("pitch_deg", float), "yaw": ("yaw_deg", float),
+    "heave": ("heave_m", float), "sway": ("sway_m", float),
+    "min-period": ("min_period_s", float), "max-period": ("max_period_s", float),
+    "components": ("components", int), "rate": ("ins_rate_hz", float), "seed": ("seed", int),
+}
+
+
+def _parse_rough_air(text: str) -> Any:
+    """The RoughAir of ``--rough-air [SPEC]``: the reported one with SPEC's changes."""
+    from dataclasses import replace
+
+    from lidarcal_ros.core.flight_path import REPORTED_ROUGH_AIR
+
+    changes: dict[str, Any] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, eq, value = part.partition("=")
+        key = key.strip()
+        if not eq or key not in _ROUGH_AIR_KEYS:
+            raise ConfigError(f"--rough-air: expected KEY=VALUE with KEY one of "
+                              f"{', '.join(_ROUGH_AIR_KEYS)}, got '{part}'")
+        name, kind = _ROUGH_AIR_KEYS[key]
+        try:
+            changes[name] = kind(value.strip())
+        except ValueError:
+            raise ConfigError(f"--rough-air: {key} '{value.strip()}' is not "
+                              f"{'an integer' if kind is int else 'a number'}") from None
+    try:
+        return replace(REPORTED_ROUGH_AIR, **changes)
+    except ConfigError as exc:
+        reason = str(exc).removeprefix("rough air: ")
+        for key, (name, _) in _ROUGH_AIR_KEYS.items():  # in the option's own words
+            reason = reason.replace(name, key)
+        raise ConfigError(f"--rough-air: {reason}") from None
+
+
+def _read_flight_lines(path: Path) -> list[dict[str, Any]]:
+    """The validated lines of ``--lines YAML`` (a list, or a mapping with ``lines``)."""
+    from lidarcal_ros.core.simulation_spec import normalise_lines
+    from lidarcal_ros.io.yaml_file import read_yaml
+
+    doc = read_yaml(path, what="flight lines")
+    if isinstance(doc, dict):
+        doc = doc.get("lines")
+    if not isinstance(doc, list):
+        raise ConfigError(f"{path}: expected a list of lines (or a mapping with 'lines')")
+    try:
+        return normalise_lines(doc)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Run ``lidarcal simulate`` with the parsed ``args``; its exit status."""
+    from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG
+    from lidarcal_ros.core.simulate import simulate_mission
+    from lidarcal_ros.core.simulation_spec import (
+        DEFAULT_BIASES,
+        FOV_DEG,
+        FlightSpec,
+        NoiseSpec,
+        SensorSpec,
+        SimulationSpec,
+        SiteSpec,
+        crab_wind,
+        scenario_lines,
+    )
+    from lidarcal_ros.pipeline.calibration import (
+        parse_biases,
+        simulation_paths,
+        write_simulation,
+    )
+
+    for key, path in simulation_paths(args.output).items():
+        check_output(path, overwrite=args.overwrite, directory=key == "bag")
+    origin = _parse_two_numbers(args.origin, "--origin", "X,Y")
+    if not args.density > 0:
+        raise ConfigError(f"--density must be positive, got {args.density}")
+    rough_air = None if args.rough_air is None else _parse_rough_air(args.rough_air)
+    lines = None if args.lines is None else _read_flight_lines(args.lines)
+    if args.wind is not None:
+        wind = _parse_two_numbers(args.wind, "--wind", "E,N in m/s")
+    elif rough_air is not None:
+        wind = crab_wind(REPORTED_CRAB_DEG,
+                         lines or scenario_lines(args.scenario, args.line_length, FOV_DEG))
+    else:
+        wind = (0.0, 0.0)
+    spec = SimulationSpec(
+        seed=args.seed,
+        biases=dict(DEFAULT_BIASES) if args.biases is None else parse_biases(args.biases),
+        flight=FlightSpec(scenario=args.scenario, lines=lines, line_length_m=args.line_length,
+                          wind_mps=wind, rough_air=rough_air),
+        sensor=SensorSpec(density=args.density, attitude=args.attitude),
+        noise=NoiseSpec(range_noise_m=args.range_noise),
+        site=SiteSpec(n_control=args.control, origin=origin))
+    started = time.perf_counter()
+    sim = simulate_mission(spec)
+    paths = write_simulation(args.output, sim, overwrite=args.overwrite)
+    print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
+          f"({time.perf_counter() - started:.1f} s)")
+    for label, path in paths.items():
+        print(f"  {label}: {path}")
+    return 0
+
+
+def add_plan_command(sub: Any) -> None:
+    p = sub.add_parser("plan", help="which parameters a flight plan can recover",
+                       description="Simulate a flight plan's lines over the chosen terrain, form "
+                       "the normal matrix the calibration would see and report, per parameter, "
+                       "whether it can be estimated, its predicted sigma and its largest "
+                       "correlation, with advice in words.")
+    p.add_argument("plan", type=Path, help="flight plan YAML (interface.md)")
+    p.add_argument("--json", action="store_true", help="print JSON (interface.md format)")
+    p.add_argument("--seed", type=int, default=0, help="terrain seed (default 0)")
+    p.set_defaults(func=cmd_plan)
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    """Run ``lidarcal plan`` with the parsed ``args``; its exit status."""
+    import json
+
+    from lidarcal_ros.core.params import display_value
+    from lidarcal_ros.core.planning import predict
+    from lidarcal_ros.io.plan_file import read_flight_plan
+
+    report = predict(read_flight_plan(args.plan), seed=args.seed)
+    if args.json:
+        print(json.dumps(report.to_json_dict(), indent=1))
+        return 0
+    print(f"{args.plan}: {report.strip_pairs} overlapping strip pairs, "
+          f"{report.correspondences} correspondences; model: {report.model}")
+    for name, pred in report.parameters.items():
+        if pred.estimable and pred.sigma is not None:
+            value, unit = display_value(name, pred.sigma)
+            print(f"  {name:<7} estimable   sigma {value:9.3g} {unit:<6} largest correlation "
+                  f"{pred.max_correlation:.2f} with {pred.correlated_with}")
+        else:
+            print(f"  {name:<7} NOT estimable: {pred.reason}")
+    for line in report.advice:
+        print(f"advice: {line}")
+    return 0
+
+
