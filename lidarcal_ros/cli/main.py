@@ -276,7 +276,7 @@ def _add_calibrate(sub: Any) -> None:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from lidarcal_ros.core.calibrate import NothingEstimated
+    from lidarcal_ros.core.calibration_result import NothingEstimated
     from lidarcal_ros.core.params import parse_parameter_list
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config

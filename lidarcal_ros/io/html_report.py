@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import ControlResidual, PairDiscrepancies
+from lidarcal_ros.core.calibration_result import ControlResidual, PairDiscrepancies
 from lidarcal_ros.core.evaluation import RIGID_NAMES, AccuracySummary, RigidFit
 from lidarcal_ros.core.params import display_value
 from lidarcal_ros.core.quality_level import LBS_LEVELS, QualityAssessment

@@ -40,7 +40,8 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros import __version__
-from lidarcal_ros.core.calibrate import Calibrator, ControlResidual, Progress
+from lidarcal_ros.core.calibrate import Calibrator, Progress
+from lidarcal_ros.core.calibration_result import ControlResidual
 from lidarcal_ros.core.config import SCHEMA, FlightConfig
 from lidarcal_ros.core.flags import (
     FLAG_NO_INTENSITY,
