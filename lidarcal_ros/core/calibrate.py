@@ -1,4 +1,6 @@
-"""The quasi-rigorous calibration procedure (method.md sections 4-7), batch form.
+"""The quasi-rigorous calibration procedure (method.md sections 4-7): :func:`calibrate` a
+mission, or drive a :class:`Calibrator` strip by strip; :class:`CalibrationSettings` are its
+options.
 
 ``match -> solve -> correct -> match again`` until the corrections to the parameters are
 negligible. What is computed once per mission: the laser-frame geometry of every point, one TIN
@@ -6,10 +8,12 @@ per strip, the overlap between strips and the candidate points of each overlap. 
 iteration does: correct vertex coordinates (a linear function of the estimate), re-match the
 selected sample points to the corrected TINs, re-solve with robust weights.
 
-Sample points are chosen so that slopes and aspects are well represented: every candidate in
-an overlap is matched once, classed by its patch's slope and aspect, and each class is capped,
-so flat ground (which sees only vertical effects) does not drown the sloped roofs that reveal
-the horizontal parameters.
+The calibrator holds the estimate and runs the iterations; the pieces are beside it:
+:mod:`~lidarcal_ros.core.strip_pairs` (strips, overlaps, pairs, sample selection),
+:mod:`~lidarcal_ros.core.strip_matching` (TINs, corrections, matching, observation rows),
+:mod:`~lidarcal_ros.core.calibration_iteration` (robust solve, threshold, convergence),
+:mod:`~lidarcal_ros.core.calibration_result` (the result and its QA) and
+:mod:`~lidarcal_ros.core.calibration_threads` (worker threads, CPU time per stage).
 """
 
 from __future__ import annotations
@@ -70,35 +74,59 @@ class CalibrationSettings:
     Lengths in metres, angles in degrees unless stated.
     """
 
+    #: The biases estimated (names of :data:`~lidarcal_ros.core.params.PARAMETER_NAMES`,
+    #: kept in that order); the others are held at ``fixed``.
     solve_for: tuple[str, ...] = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
+    #: Value of each bias not estimated, SI units (0 where not given).
     fixed: dict[str, float] = field(default_factory=dict)
+    #: Half-width of the local-trajectory window, s (:mod:`lidarcal_ros.core.local_trajectory`).
     trajectory_window_s: float = 0.5
+    #: Heading of the local trajectory: ``auto``, ``track`` or ``attitude``
+    #: (:mod:`lidarcal_ros.core.heading`).
     heading_source: str = "auto"
     #: ``matching.model``: ``auto``, ``level`` or ``rigorous``
     #: (:mod:`lidarcal_ros.core.georeferencing`).
     model: str = "auto"
     #: The scanner's full field of view, deg (``sensor.fov_deg``): the laser-vector QA.
     fov_deg: float = 50.0
+    #: Largest point-to-patch distance matched at the first iteration, m.
     max_normal_distance_m: float = 2.0
+    #: Smallest matching threshold later iterations shrink to, m.
     min_normal_distance_m: float = 0.15
+    #: Longest patch edge, in point spacings of its strip.
     max_edge_factor: float = 4.0
+    #: Steepest usable patch, deg.
     max_slope_deg: float = 70.0
+    #: Largest angle between a patch and its neighbours, deg.
     max_bend_deg: float = 10.0
+    #: Patches (and all their neighbours) flatter than this observe vertical effects only, deg.
     flat_slope_deg: float = 5.0
+    #: Cell of the spatial clusters of the cluster-robust sigmas, m.
     cluster_cell_m: float = 25.0
+    #: Cell of the footprint grid the overlaps are found on, m.
     overlap_cell_m: float = 10.0
+    #: Footprint cells two strips must share to form a pair.
     min_overlap_cells: int = 20
+    #: Candidate points of a pair matched at the first iteration (at most).
     max_candidates_per_pair: int = 100_000
+    #: Sample points kept per slope/aspect class and pair.
     per_class_cap: int = 3_000
+    #: The flat class keeps this many times ``per_class_cap``.
     flat_class_factor: int = 4
+    #: Most match-solve iterations.
     max_iterations: int = 10
+    #: Converged when every step is below this fraction of its sigma.
     convergence_fraction: float = 0.01
+    #: Strip-pair outliers rejected beyond this many robust sigmas.
     robust_k: float = 3.0
+    #: Weight of a control observation relative to a strip-pair one.
     control_weight: float = 1.0
+    #: Seed of the sampling priorities (with each strip's id).
     seed: int = 0
     #: Threads the calibration runs strips and strip pairs in (TINs, corrections, matching);
     #: the result does not depend on it.
     workers: int = 2
+    #: When a parameter is reported as not separable or not observable.
     limits: ObservabilityLimits = field(default_factory=ObservabilityLimits)
 
     def __post_init__(self) -> None:

@@ -85,9 +85,9 @@ class PreparedStrip:
     speed_mps: float  # ground speed over the strip, m/s
     tin: Tin | None = None
     geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
-    #: The latest correction (:meth:`~lidarcal_ros.core.calibrate.Calibrator.corrected`): the
-    #: estimate it is of (its bytes), the corrected points, ``delivered - corrected`` and
-    #: their geometry.
+    #: The latest correction (:meth:`~lidarcal_ros.core.strip_matching.PairMatcher.
+    #: corrected`): the estimate it is of (its bytes), the corrected points,
+    #: ``delivered - corrected`` and their geometry.
     corrected: tuple[bytes, np.ndarray, np.ndarray, LaserGeometry] | None = None
     dropped: bool = False  # points released (memory budget); its pairs are frozen
 
