@@ -220,18 +220,9 @@ class Calibrator:
         self._control_before = None
 
     def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
-        """Prepare a strip and find its pairs with the strips already held
-        (:meth:`PairMatcher.add_strip`).
-
-        Returns the ``(strip_id, strip_id)`` pairs it forms.
-
-        Raises
-        ------
-        TrajectoryError
-            The trajectory does not cover the strip's points.
-        CalibrationError
-            A strip with this id is already held.
-        """
+        """Prepare a strip and find its pairs with the strips already held; the
+        ``(strip_id, strip_id)`` pairs it forms (:meth:`PairMatcher.add_strip`, which says
+        what it raises)."""
         return self.matcher.add_strip(strip, trajectory)
 
     def drop_strip(self, strip_id: int) -> int:
