@@ -459,5 +459,6 @@ class FlightConfig:
 __all__ = [
     "CALIBRATOR_NODE", "CORRECTOR_NODE", "FLIGHT_CONFIG_NODE", "NODE_PARAMETERS",
     "ROS_PARAMETERS", "SCHEMA", "FlightConfig", "ParameterSpec", "check_value", "coerce",
-    "cross_check", "float_parameter", "int_parameter", "parse_target_box", "undeclared",
+    "cross_check", "float_parameter", "int_parameter", "node_options", "parse_target_box",
+    "undeclared",
 ]
