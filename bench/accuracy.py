@@ -34,7 +34,8 @@ import time
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import CalibrationResult, CalibrationSettings, calibrate
+from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
 from lidarcal_ros.core.params import PARAMETER_NAMES, display_value

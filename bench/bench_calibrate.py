@@ -72,7 +72,8 @@ def run_lidarcal(meta: dict, repeats: int, work: Path) -> dict[str, Any]:
 # ---------------------------------------------------------------------------- scaling
 def scaling_worker(spec: MissionSpec) -> None:
     """In a child: bag reading and the calibration of one mission in process, the CPU
-    seconds of each stage (:class:`~lidarcal_ros.core.calibrate.StageClock`). One JSON line."""
+    seconds of each stage (:class:`~lidarcal_ros.core.calibration_threads.StageClock`). One
+    JSON line."""
     import resource
 
     from lidarcal_ros.io.config_file import load_flight_config

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidarcal_ros.core.calibrate import CalibrationResult, CalibrationSettings, calibrate
+from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import HIGH, LOW, SimulationSpec

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from helpers_wait import wait_until
 
-from lidarcal_ros.core.calibrate import CalibrationResult, calibrate
+from lidarcal_ros.core.calibrate import calibrate
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import LidarcalError

@@ -235,7 +235,7 @@ def test_laser_geometry_in_one_pass_matches_geometry_at_its_own_origins() -> Non
 
 
 def test_time_windows_in_one_pass_are_those_of_the_binary_search() -> None:
-    from lidarcal_ros.core.local_trajectory import _bracketed
+    from lidarcal_ros.core.local_trajectory import windows_cover_points
 
     window_s = 0.5
     traj_t = np.concatenate([np.arange(100.0, 103.0, 0.25), np.arange(104.5, 106.0, 0.25)])
@@ -253,7 +253,7 @@ def test_time_windows_in_one_pass_are_those_of_the_binary_search() -> None:
         np.testing.assert_array_equal(stop[window], want_stop)
         assert np.all(np.diff(window) >= 0) and np.all(np.diff(window) <= 1)
         assert len(set(zip(start.tolist(), stop.tolist(), strict=True))) == start.size
-        bad = ~_bracketed(t, traj_t, want_start, want_stop, min_samples)
+        bad = ~windows_cover_points(t, traj_t, want_start, want_stop, min_samples)
         assert 0 < n_bad == int(bad.sum()) and first_bad == int(np.argmax(bad))
     shuffled = t[::-1].copy()
     assert not local_trajectory_kernels.sorted_time_windows(traj_t, shuffled, window_s, 2)[0]

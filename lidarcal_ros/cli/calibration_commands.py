@@ -55,7 +55,7 @@ def add_calibrate_command(sub: Any) -> None:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Run ``lidarcal calibrate`` with the parsed ``args``; its exit status."""
-    from lidarcal_ros.core.calibrate import NothingEstimated
+    from lidarcal_ros.core.calibration_result import NothingEstimated
     from lidarcal_ros.core.params import parse_parameter_list
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config

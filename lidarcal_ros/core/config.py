@@ -37,13 +37,17 @@ class ParameterSpec:
     read_only: bool = False
 
 
-def _f(default: float, description: str, lo: float | None = None, hi: float | None = None,
-       read_only: bool = False) -> ParameterSpec:
-    return ParameterSpec(float(default), "float", description, lo, hi, read_only=read_only)
+def float_parameter(default: float, description: str, minimum: float | None = None,
+                    maximum: float | None = None, read_only: bool = False) -> ParameterSpec:
+    """The spec of a real-valued parameter (``kind`` ``float``) in ``[minimum, maximum]``
+    (no bound where None), in the unit its ``description`` names."""
+    return ParameterSpec(float(default), "float", description, minimum, maximum,
+                         read_only=read_only)
 
 
-def _i(default: int, description: str, lo: int, hi: int) -> ParameterSpec:
-    return ParameterSpec(int(default), "int", description, lo, hi)
+def int_parameter(default: int, description: str, minimum: int, maximum: int) -> ParameterSpec:
+    """The spec of an integer parameter (``kind`` ``int``) in ``[minimum, maximum]``."""
+    return ParameterSpec(int(default), "int", description, minimum, maximum)
 
 
 _DEFAULT_SOLVE = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
@@ -62,57 +66,58 @@ SCHEMA: dict[str, ParameterSpec] = {
                                            read_only=True),
     "topics.corrected": ParameterSpec("/lidar/points_corrected", "str",
                                       "Corrected clouds (PointCloud2)", read_only=True),
-    "sensor.wavelength_nm": _f(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
-    "sensor.beam_divergence_mrad": _f(0.33, "Beam divergence, mrad", 0.01, 10.0),
-    "sensor.fov_deg": _f(50.0, "Full field of view of the scanner, degrees", 1.0, 180.0),
-    "sensor.pulse_rate_hz": _f(70000.0, "Pulse repetition frequency, Hz", 1.0, 1e7),
-    "sensor.range_noise_m": _f(0.03, "Range noise (1 sigma), metres", 1e-4, 1.0),
-    "atmosphere.visibility_km": _f(48.3, "Visibility of the day, km", 0.1, 500.0),
-    "atmosphere.temperature_c": _f(29.8, "Air temperature, deg C", -60.0, 60.0),
-    "atmosphere.pressure_kpa": _f(101.81, "Air pressure, kPa", 50.0, 110.0),
-    "radiometry.reference_range_m": _f(1000.0, "Range reflectance is normalised to, metres",
-                                       1.0, 1e5),
-    "radiometry.calibration_constant": _f(
+    "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
+    "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
+    "sensor.fov_deg": float_parameter(
+        50.0, "Full field of view of the scanner, degrees", 1.0, 180.0),
+    "sensor.pulse_rate_hz": float_parameter(70000.0, "Pulse repetition frequency, Hz", 1.0, 1e7),
+    "sensor.range_noise_m": float_parameter(0.03, "Range noise (1 sigma), metres", 1e-4, 1.0),
+    "atmosphere.visibility_km": float_parameter(48.3, "Visibility of the day, km", 0.1, 500.0),
+    "atmosphere.temperature_c": float_parameter(29.8, "Air temperature, deg C", -60.0, 60.0),
+    "atmosphere.pressure_kpa": float_parameter(101.81, "Air pressure, kPa", 50.0, 110.0),
+    "radiometry.reference_range_m": float_parameter(
+        1000.0, "Range reflectance is normalised to, metres", 1.0, 1e5),
+    "radiometry.calibration_constant": float_parameter(
         0.0, "Intensity of a Lambertian target of reflectance 1 at the reference range, normal "
         "incidence, clear air and reference power: with it reflectance is the Lambertian "
-        "reflectance (0-1); 0 = not known (reflectance relative, in intensity units)",
-        0.0, 1e12),
+        "reflectance (0-1); 0 = not known (reflectance relative, in intensity units)", 0.0, 1e12),
     "radiometry.reference_target": ParameterSpec(
         "", "str", "Box 'xmin,ymin,xmax,ymax' (map frame, m) over a surface of known "
         "reflectance: lidarcal report and correct derive the calibration constant from it "
         "when none is given; '' = none"),
-    "radiometry.reference_target_reflectance": _f(
+    "radiometry.reference_target_reflectance": float_parameter(
         0.0, "Lambertian reflectance of the reference target (0 = no target)", 0.0, 1.5),
-    "radiometry.reference_pulse_rate_hz": _f(70000.0, "Pulse rate of the reference power, Hz",
-                                             1.0, 1e7),
+    "radiometry.reference_pulse_rate_hz": float_parameter(
+        70000.0, "Pulse rate of the reference power, Hz", 1.0, 1e7),
     "radiometry.power_model": ParameterSpec(
         "constant", "str", "Transmitted power: constant, or inversely proportional to pulse "
         "rate (pulse_rate)", choices=("constant", "pulse_rate")),
-    "radiometry.min_cos_incidence": _f(0.1, "Clamp of cos(incidence); below it points are "
-                                       "flagged grazing", 0.01, 1.0),
-    "radiometry.uncertain_incidence_max_deg": _f(
+    "radiometry.min_cos_incidence": float_parameter(
+        0.1, "Clamp of cos(incidence); below it points are flagged grazing", 0.01, 1.0),
+    "radiometry.uncertain_incidence_max_deg": float_parameter(
         60.0, "Where the normal is uncertain (rough neighbourhood, or an estimate beyond the "
         "grazing clamp) the incidence term is bounded at this angle, deg", 0.0, 89.0),
     "calibration.solve_for": ParameterSpec(list(_DEFAULT_SOLVE), "str_list",
                                            "Parameters to estimate (others held fixed)"),
     "calibration.control_points_file": ParameterSpec("", "str",
                                                      "CSV id,x,y,z of vertical control points"),
-    "calibration.max_iterations": _i(10, "Most match-solve iterations", 1, 100),
-    "calibration.convergence_fraction": _f(0.01, "Converged when every correction is below "
-                                           "this fraction of its sigma", 1e-6, 1.0),
-    "calibration.robust_k": _f(3.0, "Outlier rejection at this many robust sigmas", 1.5, 20.0),
-    "calibration.control_weight": _f(1.0, "Weight of a control observation relative to a "
-                                     "strip-pair one", 0.0, 1e6),
-    "calibration.max_correlation": _f(0.999, "Above this |correlation| two parameters are "
-                                      "reported as not separable", 0.5, 1.0),
-    "calibration.thinning_cell_m": _f(
+    "calibration.max_iterations": int_parameter(10, "Most match-solve iterations", 1, 100),
+    "calibration.convergence_fraction": float_parameter(
+        0.01, "Converged when every correction is below this fraction of its sigma", 1e-6, 1.0),
+    "calibration.robust_k": float_parameter(
+        3.0, "Outlier rejection at this many robust sigmas", 1.5, 20.0),
+    "calibration.control_weight": float_parameter(
+        1.0, "Weight of a control observation relative to a strip-pair one", 0.0, 1e6),
+    "calibration.max_correlation": float_parameter(
+        0.999, "Above this |correlation| two parameters are reported as not separable", 0.5, 1.0),
+    "calibration.thinning_cell_m": float_parameter(
         0.0, "Keep one point per square cell of this size (m) of the map per strip and cloud "
         "before calibrating (bounds memory and work for dense sensors; about 0.5 for tens of "
         "points per square metre); 0 keeps every point", 0.0, 100.0),
     "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
                                                   "Where ~/save writes the calibration"),
-    "matching.trajectory_window_s": _f(0.5, "Half-width of the local-trajectory window, s",
-                                       0.01, 60.0),
+    "matching.trajectory_window_s": float_parameter(
+        0.5, "Half-width of the local-trajectory window, s", 0.01, 60.0),
     "matching.heading_source": ParameterSpec(
         "auto", "str", "Heading of the local trajectory: 'track' (method.md: the direction of "
         "the fitted line), 'attitude' (the trajectory's orientation: a crabbing aircraft), "
@@ -123,29 +128,33 @@ SCHEMA: dict[str, ParameterSpec] = {
         "platform), 'rigorous' (section 10: the poses' full INS attitude, roll, pitch and "
         "heading, interpolated to each firing time), 'auto' (rigorous where the poses carry "
         "a usable attitude at 10 Hz or more, else level)", choices=("auto", "level", "rigorous")),
-    "matching.max_normal_distance_m": _f(2.0, "Largest point-to-patch distance accepted at "
-                                         "the first iteration, metres", 0.01, 50.0),
-    "matching.min_normal_distance_m": _f(0.15, "Smallest matching threshold later "
-                                         "iterations shrink to, metres", 0.001, 50.0),
-    "matching.max_edge_factor": _f(4.0, "Longest patch edge, in point spacings", 1.0, 100.0),
-    "matching.max_slope_deg": _f(70.0, "Steepest usable patch, degrees", 1.0, 89.9),
-    "matching.max_bend_deg": _f(10.0, "Largest angle between a patch and its neighbours, "
-                                "degrees", 0.1, 90.0),
-    "matching.flat_slope_deg": _f(5.0, "Patches (and all their neighbours) flatter than this "
-                                  "observe vertical effects only, degrees", 0.0, 45.0),
-    "matching.overlap_cell_m": _f(10.0, "Cell of the overlap raster, metres", 0.5, 1000.0),
-    "matching.max_candidates_per_pair": _i(100_000, "Candidate points matched per pair at "
-                                           "the first iteration", 100, 100_000_000),
-    "matching.per_class_cap": _i(3000, "Correspondences kept per slope/aspect class and pair",
-                                 10, 10_000_000),
-    "qa.rmsdz_warn_m": _f(0.08, "Swath-to-swath RMS discrepancy above which QA warns, metres "
-                          "(USGS LBS QL2: 8 cm)", 0.0, 10.0),
-    "qa.max_difference_m": _f(0.16, "Discrepancy no point pair may exceed, metres "
-                              "(USGS LBS QL2: 16 cm)", 0.0, 10.0),
+    "matching.max_normal_distance_m": float_parameter(
+        2.0, "Largest point-to-patch distance accepted at the first iteration, metres", 0.01, 50.0),
+    "matching.min_normal_distance_m": float_parameter(0.15, "Smallest matching threshold later "
+                                                      "iterations shrink to, metres", 0.001, 50.0),
+    "matching.max_edge_factor": float_parameter(
+        4.0, "Longest patch edge, in point spacings", 1.0, 100.0),
+    "matching.max_slope_deg": float_parameter(70.0, "Steepest usable patch, degrees", 1.0, 89.9),
+    "matching.max_bend_deg": float_parameter(
+        10.0, "Largest angle between a patch and its neighbours, degrees", 0.1, 90.0),
+    "matching.flat_slope_deg": float_parameter(
+        5.0, "Patches (and all their neighbours) flatter than this "
+        "observe vertical effects only, degrees", 0.0, 45.0),
+    "matching.overlap_cell_m": float_parameter(
+        10.0, "Cell of the overlap raster, metres", 0.5, 1000.0),
+    "matching.max_candidates_per_pair": int_parameter(
+        100_000, "Candidate points matched per pair at the first iteration", 100, 100_000_000),
+    "matching.per_class_cap": int_parameter(
+        3000, "Correspondences kept per slope/aspect class and pair", 10, 10_000_000),
+    "qa.rmsdz_warn_m": float_parameter(
+        0.08, "Swath-to-swath RMS discrepancy above which QA warns, metres "
+        "(USGS LBS QL2: 8 cm)", 0.0, 10.0),
+    "qa.max_difference_m": float_parameter(0.16, "Discrepancy no point pair may exceed, metres "
+                                           "(USGS LBS QL2: 16 cm)", 0.0, 10.0),
 }
-for _name in PARAMETER_NAMES:
-    SCHEMA[f"calibration.fixed.{_name}"] = _f(
-        0.0, f"Value of {_name} when not estimated (surveyed), SI units")
+for _parameter in PARAMETER_NAMES:
+    SCHEMA[f"calibration.fixed.{_parameter}"] = float_parameter(
+        0.0, f"Value of {_parameter} when not estimated (surveyed), SI units")
 
 
 #: The names of lidarcal's nodes: the sections of a parameters file that reach them.
@@ -154,11 +163,11 @@ CALIBRATOR_NODE = "lidarcal_calibrator"
 CORRECTOR_NODE = "lidarcal_corrector"
 
 
-def _node_parameter(default: Any, description: str, lo: float | None = None,
-                    hi: float | None = None, *, read_only: bool = False) -> ParameterSpec:
+def _node_parameter(default: Any, description: str, minimum: float | None = None,
+                    maximum: float | None = None, *, read_only: bool = False) -> ParameterSpec:
     """A node's own parameter, of the kind of its ``default``."""
     kind = {bool: "bool", int: "int", float: "float", str: "str"}[type(default)]
-    return ParameterSpec(default, kind, description, lo, hi, read_only=read_only)
+    return ParameterSpec(default, kind, description, minimum, maximum, read_only=read_only)
 
 
 _QUEUE_DEPTH = _node_parameter(1000, "Depth of the point-cloud subscription queue", 1, 100000,
@@ -420,28 +429,36 @@ class FlightConfig:
 
     def calibration_settings(self) -> CalibrationSettings:
         """The adjustment options this configuration sets."""
-        v = self.values
-        fixed = {n: float(v[f"calibration.fixed.{n}"]) for n in PARAMETER_NAMES}
+        values = self.values
+        fixed = {n: float(values[f"calibration.fixed.{n}"]) for n in PARAMETER_NAMES}
         return CalibrationSettings(
-            solve_for=tuple(v["calibration.solve_for"]),
+            solve_for=tuple(values["calibration.solve_for"]),
             fixed=fixed,
-            trajectory_window_s=v["matching.trajectory_window_s"],
-            heading_source=v["matching.heading_source"],
-            model=v["matching.model"],
-            fov_deg=v["sensor.fov_deg"],
-            max_normal_distance_m=v["matching.max_normal_distance_m"],
-            min_normal_distance_m=v["matching.min_normal_distance_m"],
-            max_edge_factor=v["matching.max_edge_factor"],
-            max_slope_deg=v["matching.max_slope_deg"],
-            max_bend_deg=v["matching.max_bend_deg"],
-            flat_slope_deg=v["matching.flat_slope_deg"],
-            overlap_cell_m=v["matching.overlap_cell_m"],
-            max_candidates_per_pair=v["matching.max_candidates_per_pair"],
-            per_class_cap=v["matching.per_class_cap"],
-            max_iterations=v["calibration.max_iterations"],
-            convergence_fraction=v["calibration.convergence_fraction"],
-            robust_k=v["calibration.robust_k"],
-            control_weight=v["calibration.control_weight"],
-            limits=ObservabilityLimits(max_correlation=v["calibration.max_correlation"],
+            trajectory_window_s=values["matching.trajectory_window_s"],
+            heading_source=values["matching.heading_source"],
+            model=values["matching.model"],
+            fov_deg=values["sensor.fov_deg"],
+            max_normal_distance_m=values["matching.max_normal_distance_m"],
+            min_normal_distance_m=values["matching.min_normal_distance_m"],
+            max_edge_factor=values["matching.max_edge_factor"],
+            max_slope_deg=values["matching.max_slope_deg"],
+            max_bend_deg=values["matching.max_bend_deg"],
+            flat_slope_deg=values["matching.flat_slope_deg"],
+            overlap_cell_m=values["matching.overlap_cell_m"],
+            max_candidates_per_pair=values["matching.max_candidates_per_pair"],
+            per_class_cap=values["matching.per_class_cap"],
+            max_iterations=values["calibration.max_iterations"],
+            convergence_fraction=values["calibration.convergence_fraction"],
+            robust_k=values["calibration.robust_k"],
+            control_weight=values["calibration.control_weight"],
+            limits=ObservabilityLimits(max_correlation=values["calibration.max_correlation"],
                                        max_sigma=dict(DEFAULT_MAX_SIGMA)),
         )
+
+
+__all__ = [
+    "CALIBRATOR_NODE", "CORRECTOR_NODE", "FLIGHT_CONFIG_NODE", "NODE_PARAMETERS",
+    "ROS_PARAMETERS", "SCHEMA", "FlightConfig", "ParameterSpec", "check_value", "coerce",
+    "cross_check", "float_parameter", "int_parameter", "node_options", "parse_target_box",
+    "undeclared",
+]

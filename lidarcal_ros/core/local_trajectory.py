@@ -101,7 +101,7 @@ def covered_by_trajectory(
                 and float(np.max(np.diff(traj_t[i0:i1 + 1]))) < window_s):
             return np.ones(t.shape, dtype=bool)
     start, stop = _windows(traj_t, t, window_s)
-    return _bracketed(t, traj_t, start, stop, min_samples)
+    return windows_cover_points(t, traj_t, start, stop, min_samples)
 
 
 #: Least depth (m) below the trajectory of a point it serves: no real return comes from
@@ -167,10 +167,26 @@ def _windows(traj_t: np.ndarray, t: np.ndarray, window_s: float
             _search(traj_t, t + window_s, side="left"))
 
 
-def _bracketed(
+def windows_cover_points(
     t: np.ndarray, traj_t: np.ndarray, start: np.ndarray, stop: np.ndarray, min_samples: int
 ) -> np.ndarray:
-    """A window must hold enough samples and bracket the point (no extrapolation past a gap)."""
+    """Which points their trajectory window serves: it holds ``min_samples`` samples at least
+    and brackets the point (no extrapolation past a gap).
+
+    Parameters
+    ----------
+    t : (n,) float64
+        Firing times, s.
+    traj_t : (m,) float64
+        Trajectory sample times, s, increasing.
+    start, stop : (n,) int64
+        Each point's window: first and one-past-last sample inside ``(t - w, t + w)``.
+    min_samples : int
+
+    Returns
+    -------
+    (n,) bool
+    """
     before = start < stop
     last = len(traj_t) - 1
     lo_ok = traj_t[np.minimum(start, last)] <= t
@@ -244,7 +260,7 @@ def window_lines(
         traj_t, t, float(window_s), int(min_samples))
     if not in_order:
         start, stop = _windows(traj_t, t, window_s)
-        bad = ~_bracketed(t, traj_t, start, stop, min_samples)
+        bad = ~windows_cover_points(t, traj_t, start, stop, min_samples)
         n_bad, first = int(bad.sum()), int(np.argmax(bad))
         # One fit per distinct window.
         key = start.astype(np.int64) * (len(traj_t) + 1) + stop
@@ -346,3 +362,9 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
             f"(z={geometry.z[k]:.2f} m); wrong trajectory or time base?"
         )
     return geometry
+
+
+__all__ = [
+    "MIN_DEPTH_M", "WindowLines", "covered_by_trajectory", "geometry_on_lines", "laser_geometry",
+    "served_by_trajectory", "window_lines", "windows_cover_points",
+]

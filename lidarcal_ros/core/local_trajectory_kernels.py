@@ -89,8 +89,8 @@ def sorted_time_windows(traj_t: np.ndarray, t: np.ndarray, window_s: float, min_
     ``start = searchsorted(traj_t, t - window_s, "right")`` to
     ``stop = searchsorted(traj_t, t + window_s, "left")``. It serves the point when it holds
     ``min_samples`` samples and brackets ``t``
-    (:func:`~lidarcal_ros.core.local_trajectory._bracketed`). Consecutive points sharing a
-    window share its line fit.
+    (:func:`~lidarcal_ros.core.local_trajectory.windows_cover_points`). Consecutive points
+    sharing a window share its line fit.
 
     Parameters
     ----------

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.adjustment import NormalEquations, ObservabilityLimits, solve
-from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator, outside_strips
+from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import MODELS, describe_models
 from lidarcal_ros.core.mission import Strip
@@ -35,6 +35,7 @@ from lidarcal_ros.core.simulation_spec import (
     SiteSpec,
     normalise_lines,
 )
+from lidarcal_ros.core.strip_pairs import outside_strips
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.calibrate import CalibrationResult
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES

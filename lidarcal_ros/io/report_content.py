@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import ControlResidual, PairDiscrepancies
+from lidarcal_ros.core.calibration_result import ControlResidual, PairDiscrepancies
 from lidarcal_ros.core.evaluation import AccuracySummary, RigidFit
 from lidarcal_ros.core.quality_level import QualityAssessment
 from lidarcal_ros.core.swath_differences import SwathDifferences

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from lidarcal_ros.core.calibrate import PairDiscrepancies
+    from lidarcal_ros.core.calibration_result import PairDiscrepancies
     from lidarcal_ros.core.swath_differences import SwathDifferences
     from lidarcal_ros.io.report_content import FlightMap, MapRaster, PairSection, SlopeClass
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from lidarcal_ros.core.calibrate import ControlResidual
+from lidarcal_ros.core.calibration_result import ControlResidual
 from lidarcal_ros.core.evaluation import RIGID_NAMES, RigidFit
 from lidarcal_ros.core.params import display_value
 from lidarcal_ros.core.quality_level import LBS_LEVELS

@@ -67,7 +67,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from lidarcal_ros.core.calibrate import CalibrationResult
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError

@@ -17,13 +17,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.calibrate import CalibrationResult, Progress, calibrate, outside_strips
+from lidarcal_ros.core.calibrate import Progress, calibrate
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.geometry import RIGOROUS
 from lidarcal_ros.core.georeferencing import check_model_setting, describe_models
 from lidarcal_ros.core.heading import check_orientation, describe_heading_use
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
+from lidarcal_ros.core.strip_pairs import outside_strips
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.control import read_control_csv
 from lidarcal_ros.io.mission_bag import read_mission
@@ -220,9 +222,9 @@ def format_report(
 def format_agreement(result: CalibrationResult, config: FlightConfig, *, title: str = "",
                      identity_written: Path | None = None) -> str:
     """What ``lidarcal calibrate`` prints when nothing could be estimated
-    (:class:`~lidarcal_ros.core.calibrate.NothingEstimated`): how well the strips agree as
-    delivered (per strip pair the coverage, the sample points matched to a patch, RMS and
-    95th percentile of their normal discrepancy, the QA level), the control residuals, and
+    (:class:`~lidarcal_ros.core.calibration_result.NothingEstimated`): how well the strips
+    agree as delivered (per strip pair the coverage, the sample points matched to a patch, RMS
+    and 95th percentile of their normal discrepancy, the QA level), the control residuals, and
     what became of the calibration file."""
     lines = [title] if title else []
     lines.append(f"nothing estimated: {result.nothing_estimated}")

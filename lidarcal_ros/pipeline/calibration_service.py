@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import CalibrationResult
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import CalibrationSettings, footprint_keys
+from lidarcal_ros.core.calibrate import CalibrationSettings
 from lidarcal_ros.core.evaluation import (
     RIGID_NAMES,
     AccuracySummary,
@@ -29,6 +29,7 @@ from lidarcal_ros.core.evaluation import (
 from lidarcal_ros.core.mission import ControlPoints, Mission
 from lidarcal_ros.core.model import correct_geometry
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
+from lidarcal_ros.core.strip_pairs import footprint_keys
 from lidarcal_ros.core.tin import Tin
 from lidarcal_ros.core.units import finite_or_none, format_cm
 from lidarcal_ros.errors import CalibrationError, ConfigError

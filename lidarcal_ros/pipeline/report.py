@@ -49,7 +49,8 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros import __version__
-from lidarcal_ros.core.calibrate import Calibrator, ControlResidual, Progress
+from lidarcal_ros.core.calibrate import Calibrator, Progress
+from lidarcal_ros.core.calibration_result import ControlResidual
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.mission import ControlPoints, Mission

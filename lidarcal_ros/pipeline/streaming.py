@@ -45,7 +45,9 @@ from pathlib import Path
 import numpy as np
 
 from lidarcal_ros.core.adjustment import NormalEquations
-from lidarcal_ros.core.calibrate import CalibrationResult, Calibrator, Iteration
+from lidarcal_ros.core.calibrate import Calibrator
+from lidarcal_ros.core.calibration_iteration import Iteration
+from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.local_trajectory import served_by_trajectory
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
