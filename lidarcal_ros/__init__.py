@@ -13,6 +13,11 @@ Layout (imports only run downward):
     Thin front ends: argument parsing / rclpy message plumbing.
 ``ros``
     What a process must set before rclpy starts (DDS confined to this machine); no rclpy.
+
+Each layer package exports its modules' public names (``from lidarcal_ros.core import
+Calibrator``), importing a module only when one of its names is asked for
+(:mod:`lidarcal_ros.exports`). Errors derive from :class:`lidarcal_ros.errors.LidarcalError`.
+ARCHITECTURE.md says where to add an input format, an output or a node.
 """
 
 __version__ = "0.2.0"

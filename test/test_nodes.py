@@ -489,8 +489,8 @@ def test_the_cli_knows_every_parameter_the_nodes_declare(ros_context: Any) -> No
     from lidarcal_ros.nodes.flight_config import FlightConfigNode
 
     assert set(NODE_PARAMETERS) == {CALIBRATOR_NODE, CORRECTOR_NODE, FLIGHT_CONFIG_NODE}
-    assert set(NODE_PARAMETERS[CALIBRATOR_NODE]) == set(calibrator.EXTRA_PARAMETERS)
-    assert set(NODE_PARAMETERS[CORRECTOR_NODE]) == set(corrector.EXTRA_PARAMETERS)
+    assert set(NODE_PARAMETERS[CALIBRATOR_NODE]) == set(calibrator.CALIBRATOR_PARAMETERS)
+    assert set(NODE_PARAMETERS[CORRECTOR_NODE]) == set(corrector.CORRECTOR_PARAMETERS)
     node = FlightConfigNode(context=ros_context, node_name="fc_declared")
     try:
         declared = set(node.list_parameters([], 0).names)

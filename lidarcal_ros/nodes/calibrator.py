@@ -97,9 +97,9 @@ from lidarcal_ros.nodes.topics import (
 from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 from lidarcal_ros.pipeline.calibration_service import CalibrationService, CalibratorOptions
 
-__all__ = ["EXTRA_PARAMETERS", "CalibratorNode", "main"]
+__all__ = ["CALIBRATOR_PARAMETERS", "CalibratorNode"]
 
-EXTRA_PARAMETERS = NODE_PARAMETERS[CALIBRATOR_NODE]
+CALIBRATOR_PARAMETERS = NODE_PARAMETERS[CALIBRATOR_NODE]
 
 
 class CalibratorNode(Node):
@@ -109,7 +109,7 @@ class CalibratorNode(Node):
                  **kwargs: Any) -> None:
         super().__init__(node_name, context=context, **kwargs)
         self._control_from_topic = False
-        self.params = FlightParameters(self, extra=EXTRA_PARAMETERS,
+        self.params = FlightParameters(self, extra=CALIBRATOR_PARAMETERS,
                                        has_control=lambda: self._control_from_topic)
         cfg = self.params.config
         self.calibration = CalibrationService(cfg, self._options(),

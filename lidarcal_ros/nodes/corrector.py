@@ -74,9 +74,9 @@ from lidarcal_ros.nodes.topics import (
 from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
 from lidarcal_ros.pipeline.live_corrector import CorrectorOptions, LiveCorrector
 
-__all__ = ["EXTRA_PARAMETERS", "CorrectorNode", "main"]
+__all__ = ["CORRECTOR_PARAMETERS", "CorrectorNode"]
 
-EXTRA_PARAMETERS = NODE_PARAMETERS[CORRECTOR_NODE]
+CORRECTOR_PARAMETERS = NODE_PARAMETERS[CORRECTOR_NODE]
 
 
 class CorrectorNode(Node):
@@ -85,7 +85,7 @@ class CorrectorNode(Node):
     def __init__(self, *, context: Any = None, node_name: str = CORRECTOR_NODE,
                  **kwargs: Any) -> None:
         super().__init__(node_name, context=context, **kwargs)
-        self.params = FlightParameters(self, extra=EXTRA_PARAMETERS)
+        self.params = FlightParameters(self, extra=CORRECTOR_PARAMETERS)
         cfg = self.params.config
         self._segment_checked = False
         self.publisher = self.create_publisher(PointCloud2, cfg["topics.corrected"],

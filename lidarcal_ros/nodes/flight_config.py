@@ -26,7 +26,7 @@ from lidarcal_ros.nodes.parameters import FlightParameters
 from lidarcal_ros.nodes.process import run_main
 from lidarcal_ros.nodes.topics import latched_qos
 
-__all__ = ["FlightConfigNode", "main"]
+__all__ = ["FlightConfigNode"]
 
 
 class FlightConfigNode(Node):
