@@ -40,7 +40,7 @@ def test_layer_exports_every_public_name_of_its_modules(layer: str) -> None:
                 continue
             assert name not in expected, f"{name} in both {expected[name]} and {path.stem}"
             expected[name] = path.stem
-    assert sorted(package.__all__) == sorted(expected)
+    assert sorted(package.__all__) == sorted(expected), "run scripts/update_exports.py"
     for name, module in expected.items():
         defined = getattr(importlib.import_module(f"lidarcal_ros.{layer}.{module}"), name)
         assert getattr(package, name) is defined, name

@@ -10,38 +10,12 @@ side effects on import.
 from lidarcal_ros.exports import lazy_exports
 
 _EXPORTS = {
-    "AUTO_DOMAIN_IDS": "environment",
-    "DEFAULT_RMW": "environment",
-    "FASTDDS_DEFAULT_SEGMENT_BYTES": "environment",
-    "FASTDDS_RMWS": "environment",
-    "MAX_DOMAIN_ID": "environment",
-    "PACKAGE": "environment",
-    "PACKAGE_DIR": "environment",
-    "PROFILE_ENV": "environment",
-    "PROFILE_NAME": "environment",
-    "claim_domain_id": "environment",
-    "configure_ros_environment": "environment",
-    "domain_lock_dir": "environment",
-    "loopback_profile_path": "environment",
-    "pid_domain_id": "environment",
-    "shared_memory_segment_bytes": "environment",
+    "environment": (
+        "AUTO_DOMAIN_IDS", "DEFAULT_RMW", "FASTDDS_DEFAULT_SEGMENT_BYTES", "FASTDDS_RMWS",
+        "MAX_DOMAIN_ID", "PACKAGE", "PACKAGE_DIR", "PROFILE_ENV", "PROFILE_NAME",
+        "claim_domain_id", "configure_ros_environment", "domain_lock_dir",
+        "loopback_profile_path", "pid_domain_id", "shared_memory_segment_bytes",
+    ),
 }
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
-__all__ = [
-    "AUTO_DOMAIN_IDS",
-    "DEFAULT_RMW",
-    "FASTDDS_DEFAULT_SEGMENT_BYTES",
-    "FASTDDS_RMWS",
-    "MAX_DOMAIN_ID",
-    "PACKAGE",
-    "PACKAGE_DIR",
-    "PROFILE_ENV",
-    "PROFILE_NAME",
-    "claim_domain_id",
-    "configure_ros_environment",
-    "domain_lock_dir",
-    "loopback_profile_path",
-    "pid_domain_id",
-    "shared_memory_segment_bytes",
-]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
 # --- end of exports ---
