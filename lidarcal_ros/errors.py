@@ -8,6 +8,13 @@ exits non-zero; nodes log it and keep running.
 from __future__ import annotations
 
 
+def one_line(err: BaseException) -> str:
+    """An exception's message as one line (its type's name when it has none): what a
+    library's error adds to a :class:`LidarcalError` message."""
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
 class LidarcalError(Exception):
     """Root of every lidarcal_ros error."""
 
@@ -40,3 +47,9 @@ class OutputError(LidarcalError):
 
 class CalibrationError(LidarcalError):
     """The adjustment cannot proceed (no overlap, no correspondences, nothing to estimate)."""
+
+
+__all__ = [
+    "BagError", "CalibrationError", "CloudFormatError", "ConfigError", "InputError",
+    "LidarcalError", "OutputError", "TrajectoryError", "one_line",
+]

@@ -110,8 +110,8 @@ def test_records_are_those_of_lasps_setters(tmp_path: Path, intensity: str,
     with LasChunkWriter(out, time_field="t") as writer:
         writer.write(cloud[:1500])
         writer.write(cloud[1500:])
-        header = writer._header
-        gps_standard = bool(writer._gps_standard)
+        header = writer.header
+        gps_standard = bool(writer.gps_standard)
         stats = writer.stats
     expected = [_records_numpy(part, header, gps_standard) for part in (cloud[:1500],
                                                                         cloud[1500:])]
@@ -133,7 +133,7 @@ def test_absent_fields_keep_their_defaults(tmp_path: Path) -> None:
     out = tmp_path / "out.laz"
     with LasChunkWriter(out, time_field="t") as writer:
         writer.write(cloud)
-        header = writer._header
+        header = writer.header
     want, _ = _records_numpy(np.asarray(cloud), header, True)
     got = laspy.read(out).points.array
     np.testing.assert_array_equal(got.view(np.uint8), want.array.view(np.uint8))

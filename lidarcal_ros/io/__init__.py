@@ -6,7 +6,7 @@ from lidarcal_ros.exports import lazy_exports
 _EXPORTS = {
     "bag_format": (
         "NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "make_qos",
-        "normalize_msgtype", "ns_to_seconds", "one_line", "seconds_to_ns", "stamp_seconds",
+        "normalize_msgtype", "ns_to_seconds", "seconds_to_ns", "stamp_seconds",
         "standard_typestore",
     ),
     "bag_reader": ("BagReader", "ReadableMcap", "TopicInfo", "open_bag"),

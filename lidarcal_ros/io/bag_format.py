@@ -45,12 +45,6 @@ def normalize_msgtype(name: str) -> str:
     return name
 
 
-def one_line(err: BaseException) -> str:
-    """An exception's message as one line (its type's name when it has none)."""
-    text = " ".join(str(err).split())
-    return text or type(err).__name__
-
-
 def make_qos(*, transient_local: bool = False) -> Qos:
     """The offered QoS profile lidarcal records: reliable, volatile or transient-local."""
     return Qos(
@@ -84,5 +78,5 @@ def stamp_seconds(stamp: Any) -> float:
 
 
 __all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "make_qos",
-           "normalize_msgtype", "ns_to_seconds", "one_line", "seconds_to_ns", "stamp_seconds",
+           "normalize_msgtype", "ns_to_seconds", "seconds_to_ns", "stamp_seconds",
            "standard_typestore"]

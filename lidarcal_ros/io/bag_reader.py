@@ -37,8 +37,8 @@ from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
-from lidarcal_ros.errors import BagError
-from lidarcal_ros.io.bag_format import normalize_msgtype, one_line, standard_typestore
+from lidarcal_ros.errors import BagError, one_line
+from lidarcal_ros.io.bag_format import normalize_msgtype, standard_typestore
 from lidarcal_ros.io.mcap_chunk_reader import chunk_messages
 
 logger = logging.getLogger(__name__)

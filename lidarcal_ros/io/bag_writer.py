@@ -28,14 +28,13 @@ from rosbags.typesys import get_types_from_msg
 
 from lidarcal_ros.core.attitude import IDENTITY_XYZW
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.errors import BagError, OutputError
+from lidarcal_ros.errors import BagError, OutputError, one_line
 from lidarcal_ros.io.bag_format import (
     NS_PER_SECOND,
     POINTCLOUD2,
     POSE_STAMPED,
     make_qos,
     normalize_msgtype,
-    one_line,
     standard_typestore,
 )
 from lidarcal_ros.io.mcap_chunk_writer import BagWriterBackend

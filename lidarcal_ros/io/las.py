@@ -237,6 +237,19 @@ class LasChunkWriter:
         self._tmp = temporary_beside(self.path)
         self._file: _OutputFile | None = None
 
+    @property
+    def header(self) -> Any:
+        """The laspy header of the file (scales, offsets, point format), made from the first
+        chunk written; None before it."""
+        return self._header
+
+    @property
+    def gps_standard(self) -> bool | None:
+        """Whether the GPS times are written as adjusted standard GPS time (True) or as they
+        came (False: times before the GPS epoch, e.g. GPS week seconds); None before the first
+        chunk."""
+        return self._gps_standard
+
     # -- life cycle ----------------------------------------------------------------------
 
     def __enter__(self) -> LasChunkWriter:

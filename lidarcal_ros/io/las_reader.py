@@ -26,7 +26,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from lidarcal_ros.errors import InputError
+from lidarcal_ros.errors import InputError, one_line
 
 logger = logging.getLogger(__name__)
 
@@ -123,11 +123,6 @@ class LasChunk:
                         self.number_of_returns[index], self.classification[index])
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text or type(exc).__name__
-
-
 def _check_path(path: Path) -> None:
     if not path.exists():
         raise LasFileError(f"{path}: LAS/LAZ file not found")
@@ -153,9 +148,9 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
             header = reader.header
             compressed = bool(header.are_points_compressed)
     except OSError as exc:
-        raise LasFileError(f"{p}: cannot read ({exc.strerror or _one_line(exc)})") from None
+        raise LasFileError(f"{p}: cannot read ({exc.strerror or one_line(exc)})") from None
     except Exception as exc:  # laspy/lazrs raise various types for a bad header
-        raise LasFileError(f"{p}: not a readable LAS/LAZ file ({_one_line(exc)})") from None
+        raise LasFileError(f"{p}: not a readable LAS/LAZ file ({one_line(exc)})") from None
     scales = np.asarray(header.scales, dtype=np.float64)
     offsets = np.asarray(header.offsets, dtype=np.float64)
     if not (np.isfinite(scales).all() and (scales != 0).all() and np.isfinite(offsets).all()):
@@ -173,7 +168,7 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
     try:
         crs = header.parse_crs()
     except Exception as exc:  # a malformed CRS VLR: usable with --crs
-        logger.warning("%s: cannot parse the CRS VLR (%s)", p, _one_line(exc))
+        logger.warning("%s: cannot parse the CRS VLR (%s)", p, one_line(exc))
     encoding = header.global_encoding.gps_time_type
     gps_type: GpsTimeType = "adjusted" if int(encoding) == 1 else "week"
     return LasFileInfo(
@@ -246,12 +241,12 @@ def iter_las_chunks(
         raise
     except OSError as exc:
         raise LasFileError(
-            f"{p}: cannot read point data after {done} points ({exc.strerror or _one_line(exc)})"
+            f"{p}: cannot read point data after {done} points ({exc.strerror or one_line(exc)})"
         ) from None
     except Exception as exc:  # lazrs / laspy decoding errors: corrupt or truncated data
         raise LasFileError(
             f"{p}: corrupt or truncated point data after {done} of {expected} points "
-            f"({_one_line(exc)})"
+            f"({one_line(exc)})"
         ) from None
     if expected >= 0 and done != expected:
         raise LasFileError(f"{p}: truncated: header says {expected} points, read {done}")
