@@ -4,9 +4,9 @@
     .venv/bin/python bench/bench_thinning.py --density 0.5 --line-length 300 --cells 0,1
 
 ``lidarcal calibrate`` runs on one simulated mission (the paper's six strips, built-up
-terrain; cached under ``bench/.cache/`` as ``bench_correct.py`` caches it, with the true
-biases) once without thinning, the baseline of the same run, and once per cell size. Per run:
-wall time and peak resident memory of the process (``wait4``), points left out, and per
+terrain; cached under ``bench/.cache/`` by ``benchlib.py``, with the true biases) once
+without thinning, the baseline of the same run, and once per cell size. Per run: wall time
+and peak resident memory of the process (its own ``VmHWM``), points left out, and per
 parameter the estimate's difference from the unthinned one (cm, arcsec, or the unit of dS)
 and its error in its own sigmas against the simulated truth. Ratios are baseline / thinned.
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import machine  # bench/machine.py: this script's folder is on sys.path
-from bench_correct import CACHE, PYTHON, prepare_mission, run_child, tail
+from benchlib import CACHE, PYTHON, MissionSpec, prepare_mission, run_child, tail
 
 ARCSEC = 180.0 * 3600.0 / 3.141592653589793
 #: Display scale and unit of each parameter.
@@ -43,7 +43,7 @@ def calibrate(bag: str, cell: float, work: Path) -> dict[str, Any]:
     out = work / f"calibration_{cell:g}.yaml"
     log = work / f"calibrate_{cell:g}.log"
     res = run_child([PYTHON, "-m", "lidarcal_ros", "calibrate", bag, "--config", str(config),
-                     "-o", str(out)], log=log)
+                     "-o", str(out), "--overwrite"], log=log)
     if res["rc"] != 0:
         raise SystemExit(f"lidarcal calibrate (cell {cell:g} m) failed:\n{tail(log)}")
     text = log.read_text(errors="replace")
@@ -62,8 +62,8 @@ def main() -> int:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     print(machine.describe(), flush=True)
-    meta = prepare_mission(args.density, args.line_length)
-    truth = read_biases(Path(meta["calibration"]))
+    meta = prepare_mission(MissionSpec(args.density, args.line_length))
+    truth = {name: (float(value), None) for name, value in meta["biases"].items()}
     work = CACHE / "thinning_work"
     work.mkdir(parents=True, exist_ok=True)
     cells = [0.0] + [float(c) for c in args.cells.split(",") if float(c) > 0]
@@ -73,7 +73,7 @@ def main() -> int:
     for cell in cells:
         runs[cell] = calibrate(meta["bag"], cell, work)
         r = runs[cell]
-        print(f"  cell {cell:g} m: {r['wall_s']:.1f} s, {r['self_peak_mib']:.0f} MiB, "
+        print(f"  cell {cell:g} m: {r['wall_s']:.1f} s, {r['peak_mib']:.0f} MiB, "
               f"{r['left_out']} points left out", flush=True)
     base = runs[0.0]
     names = [n for n in UNITS if base["biases"][n][1] is not None]
@@ -91,8 +91,8 @@ def main() -> int:
             if sigma:
                 worst = max(worst, abs(value - truth[n][0]) / float(sigma))
         print(f"{cell:>5g}m {kept:>6.0%} {r['wall_s']:>6.1f}s "
-              f"{base['wall_s'] / r['wall_s']:>6.2f} {r['self_peak_mib']:>9.0f} "
-              f"{base['self_peak_mib'] / r['self_peak_mib']:>6.2f}  " + " ".join(diffs)
+              f"{base['wall_s'] / r['wall_s']:>6.2f} {r['peak_mib']:>9.0f} "
+              f"{base['peak_mib'] / r['peak_mib']:>6.2f}  " + " ".join(diffs)
               + f"   {worst:.1f}")
     if args.json:
         args.json.write_text(json.dumps({"meta": meta, "runs": {
