@@ -176,6 +176,9 @@ def to_laz(bag: Path, out: Path, zstd_level: int) -> int:
 
 
 def main(argv: list[str]) -> int:
+    if len(argv) not in (2, 3) or argv[0] in ("-h", "--help"):
+        print("usage: io_floor.py BAG OUT.mcap|OUT.laz [ZSTD_LEVEL]", file=sys.stderr)
+        return 2
     bag, out = Path(argv[0]), Path(argv[1])
     level = int(argv[2]) if len(argv) > 2 else 3
     n = (to_laz if out.suffix == ".laz" else to_mcap)(bag, out, level)
