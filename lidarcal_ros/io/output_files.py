@@ -15,7 +15,7 @@ import os
 import shutil
 from pathlib import Path
 
-from lidarcal_ros.errors import OutputError
+from lidarcal_ros.errors import OutputError, one_line
 
 #: The refusal of an existing output, the same for every command.
 EXISTS = "exists (use --overwrite to replace it)"
@@ -26,8 +26,7 @@ def os_reason(exc: BaseException) -> str:
     the exception in one line."""
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror
-    text = " ".join(str(exc).split())
-    return text or type(exc).__name__
+    return one_line(exc)
 
 
 def check_output(path: str | os.PathLike[str], *, overwrite: bool,

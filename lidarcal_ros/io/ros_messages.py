@@ -51,7 +51,7 @@ from lidarcal_ros.core.params import (
     format_value,
 )
 from lidarcal_ros.core.units import format_cm, format_percent, status_value
-from lidarcal_ros.errors import CloudFormatError
+from lidarcal_ros.errors import CloudFormatError, one_line
 from lidarcal_ros.io.bag_format import POINTCLOUD2
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
 
@@ -135,8 +135,7 @@ def parse_cloud(raw: bytes | memoryview, *, source: str = "cloud") -> CloudMessa
         # would copy the whole message (10 MB for 200k points) while holding the GIL.
         msg = deserialize(memoryview(raw), POINTCLOUD2)
     except Exception as err:  # truncated or garbage bytes
-        text = " ".join(str(err).split()) or type(err).__name__
-        raise CloudFormatError(f"{source}: undecodable PointCloud2 ({text})") from None
+        raise CloudFormatError(f"{source}: undecodable PointCloud2 ({one_line(err)})") from None
     points = cloud_to_array(msg, source=source)
     return CloudMessage(stamp_ns(msg.header.stamp), str(msg.header.frame_id), points, msg)
 
