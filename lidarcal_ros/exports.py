@@ -12,6 +12,7 @@ the modules' own ``__all__``.
 from __future__ import annotations
 
 import importlib
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -37,7 +38,9 @@ def lazy_exports(package: str, modules: Mapping[str, Sequence[str]]
         return getattr(importlib.import_module(f"{package}.{module}"), name)
 
     def __dir__() -> list[str]:
-        return sorted(table)
+        # What the package itself holds (its submodules once imported, __name__, ...) and
+        # what it exports, as dir() of a package that imported its names would list.
+        return sorted(set(vars(sys.modules[package])) | set(table))
 
     return __getattr__, __dir__, sorted(table)
 

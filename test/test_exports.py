@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ast
 import importlib
 import os
 import subprocess
@@ -17,15 +16,6 @@ PACKAGE_DIR = Path(lidarcal_ros.__file__).parent
 LAYERS = ["core", "io", "pipeline", "cli", "nodes", "ros"]
 
 
-def _module_all(path: Path) -> list[str]:
-    """A module's ``__all__`` as written (read from its source, the module not imported)."""
-    for node in ast.parse(path.read_text()).body:
-        if isinstance(node, ast.Assign) and any(
-                isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
-            return [ast.literal_eval(e) for e in node.value.elts]  # type: ignore[attr-defined]
-    raise AssertionError(f"{path} has no __all__")
-
-
 @pytest.mark.parametrize("layer", LAYERS)
 def test_layer_exports_every_public_name_of_its_modules(layer: str) -> None:
     package = importlib.import_module(f"lidarcal_ros.{layer}")
@@ -33,7 +23,8 @@ def test_layer_exports_every_public_name_of_its_modules(layer: str) -> None:
     for path in sorted((PACKAGE_DIR / layer).glob("*.py")):
         if path.name == "__init__.py":
             continue
-        for name in _module_all(path):
+        module = importlib.import_module(f"lidarcal_ros.{layer}.{path.stem}")
+        for name in module.__all__:
             if (PACKAGE_DIR / layer / f"{name}.py").exists():
                 # A function named as its module (core.calibrate.calibrate): once the
                 # module is imported the package attribute is the module, as Python sets it.
@@ -41,9 +32,10 @@ def test_layer_exports_every_public_name_of_its_modules(layer: str) -> None:
             assert name not in expected, f"{name} in both {expected[name]} and {path.stem}"
             expected[name] = path.stem
     assert sorted(package.__all__) == sorted(expected), "run scripts/update_exports.py"
-    for name, module in expected.items():
-        defined = getattr(importlib.import_module(f"lidarcal_ros.{layer}.{module}"), name)
+    for name, module_name in expected.items():
+        defined = getattr(importlib.import_module(f"lidarcal_ros.{layer}.{module_name}"), name)
         assert getattr(package, name) is defined, name
+    assert set(package.__all__) <= set(dir(package)) and "__name__" in dir(package)
     with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
         package.not_a_name  # noqa: B018 (the lookup is the test)
 
