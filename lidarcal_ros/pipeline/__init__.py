@@ -115,6 +115,7 @@ _EXPORTS = {
         "OpenStrips", "TrajectorySamples", "default_point_budget",
     ),
     "streaming": ("StreamingCalibration",),
+    "throttled_log": ("ThrottledLog",),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
 # --- end of exports ---

@@ -56,6 +56,7 @@ from lidarcal_ros.pipeline.calibrator_statuses import (
 )
 from lidarcal_ros.pipeline.stream_inputs import default_point_budget
 from lidarcal_ros.pipeline.streaming import StreamingCalibration
+from lidarcal_ros.pipeline.throttled_log import ThrottledLog
 
 __all__ = [
     "REQUEST_TIMEOUT_S", "SAVE_CONVERGE_S", "SHUTDOWN_CONVERGE_S", "UPDATE_PERIOD_S",
@@ -205,7 +206,7 @@ class CalibrationService:
         self._last_update = 0.0
         self._qa: list[StatusSpec] = []
         self._qa_lock = threading.Lock()
-        self._said: dict[str, float] = {}  # throttled log lines: when each was last said
+        self._throttled = ThrottledLog(logger)
         self.input = InputCounts()
         #: Estimates given to ``on_result``, and the seconds the last one took.
         self.solves = 0
@@ -442,7 +443,7 @@ class CalibrationService:
         try:
             result = self._stream.update(now_s)
         except LidarcalError as exc:  # e.g. no trajectory yet: keep accumulating
-            self._log_throttled(logging.WARNING, 10.0, f"not updated: {exc}")
+            self._throttled.log(logging.WARNING, 10.0, f"not updated: {exc}")
             return
         if result is not None:
             self._publish(result, time.perf_counter() - started)
@@ -519,16 +520,7 @@ class CalibrationService:
             self._stream.save_checkpoint(path)
             self.checkpoints += 1
         except (OSError, LidarcalError) as exc:
-            self._log_throttled(logging.ERROR, 30.0, f"checkpoint {path} not written: {exc}")
-
-    def _log_throttled(self, level: int, every_s: float, message: str) -> None:
-        """Log ``message`` unless its words before the first colon were logged less than
-        ``every_s`` ago (a condition that lasts would otherwise fill the log)."""
-        key = message.split(":", 1)[0]
-        now = time.monotonic()
-        if now - self._said.get(key, -math.inf) >= every_s:
-            self._said[key] = now
-            logger.log(level, "%s", message)
+            self._throttled.log(logging.ERROR, 30.0, f"checkpoint {path} not written: {exc}")
 
     # -- statuses ---------------------------------------------------------------------------
     def estimate_statuses(self) -> list[StatusSpec]:

@@ -50,6 +50,7 @@ from lidarcal_ros.pipeline.cloud_backlog import WaitingCloud, WaitingClouds, tak
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.correction_process import CorrectionProcess
 from lidarcal_ros.pipeline.correction_service import LocalCorrection, ServiceOptions
+from lidarcal_ros.pipeline.throttled_log import ThrottledLog
 
 __all__ = ["POSES_PER_HANDOVER", "CorrectorOptions", "CorrectorStats", "LiveCorrector"]
 
@@ -120,20 +121,6 @@ class CorrectorStats:
     busy_s: float = 0.0
 
 
-class _Throttled:
-    """A log line said at most every ``every_s`` of wall time."""
-
-    def __init__(self, level: int, every_s: float) -> None:
-        self.level, self.every_s = level, every_s
-        self._said = -math.inf
-
-    def __call__(self, message: str) -> None:
-        now = time.monotonic()
-        if now - self._said >= self.every_s:
-            self._said = now
-            logger.log(self.level, "%s", message)
-
-
 class LiveCorrector:
     """The live correction of clouds as they arrive (module docstring).
 
@@ -187,8 +174,7 @@ class LiveCorrector:
         self._next_tag = 0
         self._last_push = time.monotonic()
         self._released_tag = -1  # the newest tag at the last time-out release
-        self._skipped_log = _Throttled(logging.ERROR, _LOG_EVERY_S)
-        self._dropped_log = _Throttled(logging.WARNING, _LOG_EVERY_S)
+        self._throttled = ThrottledLog(logger)
         #: What corrects the clouds: a :class:`CorrectionProcess` or a
         #: :class:`LocalCorrection` (replaced if the process dies).
         self.runner = self._start_runner()
@@ -369,7 +355,8 @@ class LiveCorrector:
             return
         self.stats.dropped += dropped
         self.stats.dropped_bytes += dropped_bytes
-        self._dropped_log(
+        self._throttled.log(
+            logging.WARNING, _LOG_EVERY_S,
             f"backlog above max_backlog_mib ({limit >> 20} MiB): dropped the {dropped} oldest "
             f"waiting clouds ({dropped_bytes / 2**20:.0f} MiB; {self.stats.dropped} so far)")
 
@@ -409,7 +396,7 @@ class LiveCorrector:
     def _skip(self, reason: str) -> None:
         self.stats.skipped += 1
         self.stats.last_error = reason
-        self._skipped_log(f"malformed cloud skipped: {reason}")
+        self._throttled.log(logging.ERROR, _LOG_EVERY_S, f"malformed cloud skipped: {reason}")
 
     def _step(self, clouds: list[WaitingCloud]) -> bool:
         """Hand the clouds that the trajectory covers to the correction, in order; returns
