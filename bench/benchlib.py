@@ -176,10 +176,27 @@ def _tree_rss_mib(root: int) -> float:
     return sum(rss.get(pid, 0) for pid in tree) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+_compiled = False
+
+
+def compile_package() -> None:
+    """Byte-compile lidarcal_ros once per benchmark run, so that the timed processes load
+    it as an installed package does (pip and colcon compile on install; an editable install
+    compiles on first import, unless ``PYTHONDONTWRITEBYTECODE`` is set, as it is in some
+    containers: then every process would compile the package's sources again)."""
+    global _compiled
+    if not _compiled:
+        import compileall
+
+        compileall.compile_dir(ROOT / "lidarcal_ros", quiet=1)
+        _compiled = True
+
+
 def run_child(cmd: list[str], *, log: Path | None = None, limit_s: float | None = None,
               env: dict[str, str] | None = None, cwd: Path | None = ROOT,
               tree_memory: bool = False) -> dict[str, Any]:
-    """Run ``cmd`` in a fresh process (its output to ``log``).
+    """Run ``cmd`` in a fresh process (its output to ``log``), lidarcal_ros byte-compiled
+    first (:func:`compile_package`).
 
     Returns
     -------
@@ -190,6 +207,7 @@ def run_child(cmd: list[str], *, log: Path | None = None, limit_s: float | None 
         benchmark's process as ``ru_maxrss`` does; or with ``tree_memory`` that of its
         process tree sampled every 50 ms if larger), ``rc``, ``timed_out``.
     """
+    compile_package()
     out = open(log, "wb") if log else subprocess.DEVNULL
     tree_peak = 0.0
     own_peak = 0.0

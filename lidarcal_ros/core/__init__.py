@@ -67,7 +67,7 @@ _EXPORTS = {
         "describe_heading_policy", "describe_heading_use", "median_crab_deg",
         "window_headings", "wrap_angle",
     ),
-    "jit": ("JIT_OPTIONS", "compiled", "inlined"),
+    "jit": ("JIT_OPTIONS", "compiled", "inlined", "start_without_blas"),
     "landcover": ("Accuracy", "GaussianML", "Raster", "classify_cells", "stratified_split"),
     "local_trajectory": (
         "MIN_DEPTH_M", "WindowLines", "covered_by_trajectory", "geometry_on_lines",

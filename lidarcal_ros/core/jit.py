@@ -9,6 +9,7 @@ read-only).
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
@@ -38,4 +39,33 @@ def inlined(func: _F) -> _F:
     return cast(_F, njit(inline="always", **JIT_OPTIONS)(func))
 
 
-__all__ = ["JIT_OPTIONS", "compiled", "inlined"]
+def start_without_blas() -> None:
+    """Start numba's compiler now, telling it that no BLAS is at hand.
+
+    numba's first compilation (or cache load) in a process loads its implementations of
+    numpy, and one of them imports ``scipy.linalg`` only to learn whether ``np.dot`` and
+    ``np.linalg`` can be compiled: some 0.2-0.3 s, a third of numba's start. The compiled
+    loops of this package call no BLAS or LAPACK function (``test_jit`` checks their source),
+    so a process that only corrects points (``lidarcal correct``, the corrector node's
+    numerics) starts numba with scipy.linalg hidden from that one check; scipy.linalg is
+    importable as usual afterwards. Where it is imported already, or numba has compiled
+    before, numba's check costs nothing and this does nothing more than start it.
+
+    Call it before anything else compiles, from the thread that starts the process's
+    compiled loops, while no other thread imports scipy.linalg (for those few hundred
+    milliseconds that import would fail).
+    """
+    from numba.core.registry import cpu_target
+
+    if "scipy.linalg" in sys.modules:
+        cpu_target.target_context.refresh()
+        return
+    sys.modules["scipy.linalg"] = None  # type: ignore[assignment]  # import -> ImportError
+    try:
+        cpu_target.target_context.refresh()
+    finally:
+        if sys.modules.get("scipy.linalg", 0) is None:
+            del sys.modules["scipy.linalg"]
+
+
+__all__ = ["JIT_OPTIONS", "compiled", "inlined", "start_without_blas"]

@@ -33,6 +33,7 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.georeferencing import check_model_setting
 from lidarcal_ros.core.heading import check_orientation
+from lidarcal_ros.core.jit import start_without_blas
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.radiometry import describe_alpha
 from lidarcal_ros.errors import BagError, InputError
@@ -172,7 +173,9 @@ def correct_bag(
     started = time.perf_counter()
     # The compiled loops load while the trajectory is read (their first call in a process
     # costs some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
-    threading.Thread(target=warm_up_compiled_loops, name="lidarcal-warm-up", daemon=True).start()
+    warm_up = threading.Thread(target=warm_up_compiled_loops, name="lidarcal-warm-up",
+                               daemon=True)
+    warm_up.start()
     config = config or FlightConfig()
     record = (calibration if isinstance(calibration, CalibrationRecord)
               else read_calibration(calibration))
@@ -206,6 +209,7 @@ def correct_bag(
         if not settings.radiometry.absolute:
             from lidarcal_ros.pipeline.reflectance import measure_target_in_bag, with_constant
 
+            warm_up.join()  # (it hides scipy.linalg for a moment, which the target may need)
             target = measure_target_in_bag(bag_path, settings, config)
             if target is not None:
                 settings = with_constant(settings, target.constant)
@@ -483,7 +487,9 @@ def _correct_to_bag(job: _Job) -> None:
 def warm_up_compiled_loops() -> None:
     """Correct a small synthetic cloud (of the lidarcal layout, read-only as a decoded one
     is), so that the compiled loops of the correction are loaded, and numba initialised, now
-    rather than by the first cloud."""
+    rather than by the first cloud (numba started without its BLAS check:
+    :func:`~lidarcal_ros.core.jit.start_without_blas`)."""
+    start_without_blas()
     n = 64
     tt = np.linspace(0.0, 2.0, 41)
     trajectory = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt,

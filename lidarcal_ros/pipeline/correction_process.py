@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.allocator import tune_allocator
+from lidarcal_ros.core.jit import start_without_blas
 from lidarcal_ros.io.pointcloud import point_fields
 from lidarcal_ros.io.ros_messages import cloud_header_cdr
 from lidarcal_ros.io.shared_ring import SharedRing
@@ -127,6 +128,7 @@ def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSetting
     # (a start-up backlog that took seconds, not one, to drain).
     tune_allocator()
     try:
+        start_without_blas()  # (nothing else runs in this process yet)
         warm_up_engine(settings, options)
     except Exception:  # only a warm-up
         logger.debug("warm-up failed", exc_info=True)
