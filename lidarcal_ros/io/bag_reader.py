@@ -418,6 +418,11 @@ class BagReader:
             count += 1
             yield conn.topic, self._connection_types[(index, conn.id)], timestamp, data
 
+    def indexed_files(self) -> list[McapReader] | None:
+        """The open readers of the bag's MCAP files, whose chunks hold its messages as
+        :meth:`messages` yields them; None when the messages are compressed one by one."""
+        return None if self._message_compressed else [file.reader for file in self._files]
+
     def deserialize(self, raw: bytes | memoryview, msgtype: str, *, topic: str = "") -> Any:
         """Decode a CDR message.
 

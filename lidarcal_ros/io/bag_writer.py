@@ -37,6 +37,7 @@ from lidarcal_ros.io.bag_format import (
     normalize_msgtype,
     standard_typestore,
 )
+from lidarcal_ros.io.mcap_chunk_copy import ChunkCopy, adopt_and_copy, plan_chunk_copy
 from lidarcal_ros.io.mcap_chunk_writer import BagWriterBackend
 from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
 from lidarcal_ros.io.pointcloud import array_to_cloud_parts
@@ -186,18 +187,7 @@ class BagWriter:
             if have != msgtype:
                 raise BagError(f"{self.path}: topic {topic} already has type {have}, not {msgtype}")
             return
-        if msgtype not in self._typestore.fielddefs:
-            if not msgdef:
-                raise BagError(f"{self.path}: unknown message type {msgtype} for {topic}")
-            try:
-                typs = get_types_from_msg(msgdef, msgtype)
-                self._typestore.register(
-                    {k: v for k, v in typs.items() if k not in self._typestore.fielddefs}
-                )
-            except Exception as err:  # bad definition text
-                raise BagError(
-                    f"{self.path}: cannot parse definition of {msgtype} ({one_line(err)})"
-                ) from None
+        self._register_type(topic, msgtype, msgdef)
         if latched is None:
             latched = topic in self.latched_topics
         self._connections[topic] = self._writer.add_connection(
@@ -206,6 +196,66 @@ class BagWriter:
             typestore=self._typestore,
             offered_qos_profiles=[make_qos(transient_local=latched)],
         )
+
+    def _register_type(self, topic: str, msgtype: str, msgdef: str | None) -> None:
+        """Make ``msgtype`` known to the typestore (from ``msgdef`` if the standard
+        typestore lacks it); BagError if it cannot be."""
+        if msgtype in self._typestore.fielddefs:
+            return
+        if not msgdef:
+            raise BagError(f"{self.path}: unknown message type {msgtype} for {topic}")
+        try:
+            typs = get_types_from_msg(msgdef, msgtype)
+            self._typestore.register(
+                {k: v for k, v in typs.items() if k not in self._typestore.fielddefs}
+            )
+        except Exception as err:  # bad definition text
+            raise BagError(
+                f"{self.path}: cannot parse definition of {msgtype} ({one_line(err)})"
+            ) from None
+
+    def copy_chunks_of(self, bag: Any, new_topics: dict[str, str]) -> ChunkCopy | None:
+        """Pass every message of an open input bag through by copying its compressed
+        chunks (:mod:`lidarcal_ros.io.mcap_chunk_copy`), where it allows that.
+
+        Call before writing anything. The input's topics then have the input's channel and
+        schema records (QoS as recorded), and their messages are in the output: write
+        only messages on ``new_topics`` (topic -> type) afterwards.
+
+        Parameters
+        ----------
+        bag : BagReader
+        new_topics : dict of str to str
+            Topics the output adds, and their types.
+
+        Returns
+        -------
+        ChunkCopy or None
+            What was copied; None when nothing was (the input does not allow it, or a
+            topic of it has a type this writer cannot record): write every message.
+        """
+        if self._writer is None or self._connections:
+            raise BagError(f"{self.path}: chunks are copied only into a new, empty bag")
+        plan = plan_chunk_copy(bag, new_topics, new_topics.values())
+        if plan is None:
+            return None
+        try:
+            for copied in plan.channels.values():
+                topic = copied.channel.topic
+                self._register_type(topic, copied.msgtype, bag.topics[topic].msgdef or None)
+        except BagError as err:
+            logger.info("%s: chunks not copied (%s); messages written one by one",
+                        bag.path, err)
+            return None
+        digests = {c.msgtype: self._typestore.hash_rihs01(c.msgtype)
+                   for c in plan.channels.values()}
+        try:
+            adopt_and_copy(self._writer, plan, digests)
+        except (WriterError, OSError) as err:
+            raise OutputError(f"{self.path}: cannot write bag ({os_reason(err)})") from None
+        for connection in self._writer.connections:
+            self._connections[connection.topic] = connection
+        return plan
 
     def write_raw(
         self,

@@ -7,7 +7,9 @@ of any recorder: each chunk's messages no earlier than the last of the chunk bef
 same messages come out in the same order when the chunks are read in turn: here the next
 chunks are decompressed in a pool of threads (zstd releases the interpreter lock) while the
 caller works on the messages of the current one, whose records are cut out of it with one
-copy each. Files whose chunks overlap in time are left to rosbags' merge.
+copy each. The chunks of a file whose chunks overlap in time (a corrected bag: the input's
+chunks copied, the corrected clouds' beside them) are decompressed in the order of their
+first messages and merged.
 
 :class:`~lidarcal_ros.io.bag_reader.BagReader` reads each file of a bag through
 :func:`chunk_messages`; its writing counterpart is :mod:`lidarcal_ros.io.mcap_chunk_writer`.
@@ -15,6 +17,7 @@ copy each. Files whose chunks overlap in time are left to rosbags' merge.
 
 from __future__ import annotations
 
+import heapq
 import itertools
 import os
 import struct
@@ -41,13 +44,14 @@ def in_time_order(chunks: Sequence[ChunkInfo]) -> bool:
 def chunk_messages(reader: McapReader, channels: set[int]
                    ) -> Iterator[tuple[int, int, bytes]] | None:
     """``(channel id, log time ns, message bytes)`` of the messages on ``channels``, in
-    log-time order, as rosbags' reader gives them (within a chunk, its messages sorted by
-    log time, equal times in file order); None where this way does not apply (no chunk
-    index, or chunks that overlap in time)."""
-    chunks = [c for c in reader.chunks if any(c.channel_count.get(k, 0) for k in channels)]
-    if not reader.chunks or not in_time_order(reader.chunks):
+    log-time order, as rosbags' reader gives them (equal times in the order of their chunks
+    in the file, then in the chunk); None where this way does not apply (no chunk index)."""
+    if not reader.chunks:
         return None
-    return _messages(reader, chunks, channels)
+    chunks = [c for c in reader.chunks if any(c.channel_count.get(k, 0) for k in channels)]
+    if in_time_order(reader.chunks):
+        return _in_order(reader, chunks, channels)
+    return _merged(reader, chunks, channels)
 
 
 def _chunk_bytes(reader: McapReader, chunk: ChunkInfo) -> tuple[bytes, int]:
@@ -63,8 +67,10 @@ def _chunk_bytes(reader: McapReader, chunk: ChunkInfo) -> tuple[bytes, int]:
     return data, crc
 
 
-def _messages(reader: McapReader, chunks: list[ChunkInfo], channels: set[int]
-              ) -> Iterator[tuple[int, int, bytes]]:
+def _decompressed(reader: McapReader, chunks: list[ChunkInfo]
+                  ) -> Iterator[tuple[ChunkInfo, bytes]]:
+    """Each of ``chunks`` in turn with its decompressed data, decompressed ahead in
+    threads."""
     pool = ThreadPoolExecutor(max_workers=DECOMPRESS_THREADS,
                               thread_name_prefix="lidarcal-unzstd")
     ahead: deque[tuple[ChunkInfo, Future[bytes]]] = deque()
@@ -81,9 +87,48 @@ def _messages(reader: McapReader, chunks: list[ChunkInfo], channels: set[int]
             if not ahead:
                 return
             chunk, future = ahead.popleft()
-            yield from _records(future.result(), channels)
+            yield chunk, future.result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _in_order(reader: McapReader, chunks: list[ChunkInfo], channels: set[int]
+              ) -> Iterator[tuple[int, int, bytes]]:
+    """Chunks that follow each other in time: their messages chunk after chunk."""
+    for _chunk, data in _decompressed(reader, chunks):
+        yield from _records(data, channels)
+
+
+def _merged(reader: McapReader, chunks: list[ChunkInfo], channels: set[int]
+            ) -> Iterator[tuple[int, int, bytes]]:
+    """Chunks that overlap in time: their messages merged by (log time, chunk offset in
+    the file, place in the chunk), the order of rosbags' and the ``mcap`` library's
+    readers.
+
+    The chunks are decompressed in the order of their first message; a chunk joins the
+    merge when its first message time is reached, so only the chunks open at one time are
+    held (a copied input chunk and a new one beside it, in a corrected bag)."""
+    order = sorted(chunks, key=lambda c: (c.message_start_time, c.chunk_start_offset))
+    loaded = _decompressed(reader, order)
+    pending = next(loaded, None)
+    # (log time of the chunk's next message, chunk offset, index of it, the chunk's messages)
+    heap: list[tuple[int, int, int, list[tuple[int, int, bytes]]]] = []
+    while True:
+        while pending is not None and (not heap or pending[0].message_start_time <= heap[0][0]):
+            chunk, data = pending
+            messages = _records(data, channels)
+            if messages:
+                heapq.heappush(heap, (messages[0][1], chunk.chunk_start_offset, 0, messages))
+            pending = next(loaded, None)
+        if not heap:
+            return
+        _, offset, index, messages = heap[0]
+        yield messages[index]
+        index += 1
+        if index < len(messages):
+            heapq.heapreplace(heap, (messages[index][1], offset, index, messages))
+        else:
+            heapq.heappop(heap)
 
 
 def _records(buf: bytes, channels: set[int]) -> list[tuple[int, int, bytes]]:

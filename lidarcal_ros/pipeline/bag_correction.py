@@ -438,12 +438,17 @@ def _correct_to_bag(job: _Job) -> None:
 
     corrector.place = place
     with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched) as writer:
+        # Where the input allows it, its chunks are copied as they are: every input message
+        # is then in the output, and only the clouds are read.
+        copied = writer.copy_chunks_of(bag, {corrected_topic: POINTCLOUD2})
+        if copied is not None:
+            report.passthrough_messages = copied.messages
 
         def write_corrected(ns_: int, message: np.ndarray) -> None:
             writer.write_raw(corrected_topic, POINTCLOUD2, ns_, message.data)
 
         def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
-            if topic_ in skipped_topics:
+            if copied is not None or topic_ in skipped_topics:
                 return
             try:
                 writer.write_raw(topic_, msgtype_, ns_, raw_,
@@ -468,7 +473,8 @@ def _correct_to_bag(job: _Job) -> None:
                 heapq.heappush(ready, (k_, 1, (ns_, message)))
                 held.remove(k_)
 
-        for k, (topic, msgtype, ns, raw) in enumerate(prefetched(bag.messages)):
+        read = functools.partial(bag.messages, None if copied is None else [points_topic])
+        for k, (topic, msgtype, ns, raw) in enumerate(prefetched(read)):
             heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
             if topic == points_topic:
                 msg, points = _cloud_points(bag, msgtype, raw, topic, job.frame)
