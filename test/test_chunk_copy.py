@@ -232,3 +232,47 @@ def test_sqlite_input_is_refused_as_before(outputs: dict[str, Path], tmp_path: P
                  "-o", str(tmp_path / "out.mcap")]) != 0
     assert "sqlite3 storage is not supported" in capsys.readouterr().err
     assert not (tmp_path / "out.mcap").exists()
+
+
+def split_bag(source: Path, bagdir: Path, *, same_ids: bool) -> Path:
+    """``source`` rewritten as a rosbag2 directory of two MCAP files, cut at the middle of
+    its time span; ``same_ids``: both files number the topics alike (else the second in the
+    reverse order)."""
+    bagdir.mkdir()
+    with open_bag(source) as bag:
+        topics = dict(bag.topics)
+        messages = list(bag.messages())
+        middle = (bag.start_ns + bag.end_ns) // 2
+    latched = [t for t, info in topics.items() if info.transient_local]
+    for k, name in enumerate(("split_0.mcap", "split_1.mcap")):
+        with BagWriter(bagdir / name, latched_topics=latched) as writer:
+            for topic in sorted(topics, reverse=k == 1 and not same_ids):
+                writer.add_topic(topic, topics[topic].msgtype)
+            for topic, msgtype, log_time, raw in messages:
+                if (log_time >= middle) == (k == 1):
+                    writer.write_raw(topic, msgtype, log_time, raw)
+    (bagdir / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: 8\n  storage_identifier: mcap\n"
+        "  relative_file_paths: [split_0.mcap, split_1.mcap]\n  compression_mode: ''\n"
+        "  compression_format: ''\n  topics_with_message_count: []\n")
+    return bagdir
+
+
+@pytest.mark.parametrize("same_ids", [True, False])
+def test_bag_of_several_files(small_mission: MissionFiles, outputs: dict[str, Path],
+                              tmp_path: Path, caplog: Any, same_ids: bool) -> None:
+    """The files' chunks are copied when their channel ids agree; else the messages are
+    written one by one. Either way the output holds what writing them one by one gives."""
+    bag = split_bag(small_mission.bag, tmp_path / "split", same_ids=same_ids)
+    with caplog.at_level(logging.INFO, logger="lidarcal_ros"):
+        correct(bag, outputs["cal"], tmp_path / "out.mcap")
+    assert (NOT_COPIED in caplog.text) != same_ids
+    with messages_one_by_one():
+        correct(bag, outputs["cal"], tmp_path / "reference.mcap")
+    written, order = read_with_mcap(tmp_path / "out.mcap")
+    reference, reference_order = read_with_mcap(tmp_path / "reference.mcap")
+    assert written == reference and order == reference_order
+    assert read_with_rosbags(tmp_path / "out.mcap") == reference
+    assert read_with_bag_reader(tmp_path / "out.mcap") == order
+    # the corrected clouds are those of the mission in one file
+    assert written[CORRECTED] == read_with_mcap(outputs["copied.mcap"])[0][CORRECTED]
