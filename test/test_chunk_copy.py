@@ -27,7 +27,7 @@ from helpers_missions import (
 )
 
 from lidarcal_ros.cli.main import main
-from lidarcal_ros.io.bag_reader import open_bag
+from lidarcal_ros.io.bag_reader import ReadableMcap, open_bag
 from lidarcal_ros.io.bag_writer import BagWriter
 
 mission_factory = helpers_missions.mission_factory
@@ -276,3 +276,44 @@ def test_bag_of_several_files(small_mission: MissionFiles, outputs: dict[str, Pa
     assert read_with_bag_reader(tmp_path / "out.mcap") == order
     # the corrected clouds are those of the mission in one file
     assert written[CORRECTED] == read_with_mcap(outputs["copied.mcap"])[0][CORRECTED]
+
+
+@pytest.mark.parametrize("compression", ["lz4", "none"])
+def test_chunks_of_other_compressions(small_mission: MissionFiles, outputs: dict[str, Path],
+                                      tmp_path: Path, caplog: Any, compression: str) -> None:
+    """lz4 and uncompressed chunks (of the ``mcap`` library's writer, its schema and channel
+    records outside the chunks) are copied as they are, and read back by every reader."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    bag = tmp_path / "input.mcap"
+    with mcap_file(small_mission.bag).open("rb") as f, bag.open("wb") as out:
+        reader = make_reader(f)
+        info = reader.get_summary()
+        assert info is not None
+        writer = Writer(out, compression=CompressionType[compression.upper()])
+        writer.start(profile="ros2", library="test")
+        for schema in info.schemas.values():
+            writer.register_schema(schema.name, schema.encoding, schema.data)
+        for channel in info.channels.values():
+            writer.register_channel(channel.topic, channel.message_encoding,
+                                    channel.schema_id, channel.metadata)
+        for _schema, channel, message in reader.iter_messages(log_time_order=True):
+            writer.add_message(channel.id, message.log_time, message.data,
+                               message.publish_time)
+        writer.finish()
+    with caplog.at_level(logging.INFO, logger="lidarcal_ros"):
+        correct(bag, outputs["cal"], tmp_path / "out.mcap")
+    assert NOT_COPIED not in caplog.text
+    chunks = chunk_data(tmp_path / "out.mcap")
+    assert {c for c, _d, t in chunks if CORRECTED not in t} == {
+        "" if compression == "none" else compression}
+    with messages_one_by_one():
+        correct(bag, outputs["cal"], tmp_path / "reference.mcap")
+    written, order = read_with_mcap(tmp_path / "out.mcap")
+    reference, reference_order = read_with_mcap(tmp_path / "reference.mcap")
+    assert written == reference and order == reference_order
+    assert read_with_rosbags(tmp_path / "out.mcap") == reference
+    assert read_with_bag_reader(tmp_path / "out.mcap") == order
+    # a reader from the start of the file (lidarcal recover's) meets every channel first
+    assert sum(1 for _ in ReadableMcap(tmp_path / "out.mcap").messages()) == len(order)

@@ -35,6 +35,8 @@ from rosbags.rosbag2.storage_mcap import (
     McapReader,
     Schema,
     get_qos,
+    write_channel,
+    write_schema,
     write_string,
     write_uint32,
     write_uint64,
@@ -227,6 +229,12 @@ def adopt_and_copy(writer: Any, plan: ChunkCopy, digests: dict[str, str]) -> Non
         writer.counts[cid] = 0
         storage.channels.append(channel)
         storage.channel_stats[cid] = 0
+    # The records also open the data section, ahead of the messages on them, for readers
+    # that read a file from its start (the input's may have been outside its chunks).
+    for schema in storage.schemas:
+        write_schema(storage.bio, schema)
+    for channel in storage.channels:
+        write_channel(storage.bio, channel, storage.schemas)
     for reader in plan.files:
         with reader.path.open("rb") as source:
             for chunk in sorted(reader.chunks, key=lambda c: c.chunk_start_offset):
