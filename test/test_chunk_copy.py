@@ -278,16 +278,14 @@ def test_bag_of_several_files(small_mission: MissionFiles, outputs: dict[str, Pa
     assert written[CORRECTED] == read_with_mcap(outputs["copied.mcap"])[0][CORRECTED]
 
 
-@pytest.mark.parametrize("compression", ["lz4", "none"])
-def test_chunks_of_other_compressions(small_mission: MissionFiles, outputs: dict[str, Path],
-                                      tmp_path: Path, caplog: Any, compression: str) -> None:
-    """lz4 and uncompressed chunks (of the ``mcap`` library's writer, its schema and channel
-    records outside the chunks) are copied as they are, and read back by every reader."""
+def rewrite_with_mcap(source: Path, bag: Path, compression: str, *,
+                      unknown_topic: bool = False) -> Path:
+    """The messages of ``source`` rewritten by the ``mcap`` library's writer (``compression``:
+    lz4, zstd, none); ``unknown_topic`` adds a topic of a type without a definition."""
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
-    bag = tmp_path / "input.mcap"
-    with mcap_file(small_mission.bag).open("rb") as f, bag.open("wb") as out:
+    with mcap_file(source).open("rb") as f, bag.open("wb") as out:
         reader = make_reader(f)
         info = reader.get_summary()
         assert info is not None
@@ -298,10 +296,25 @@ def test_chunks_of_other_compressions(small_mission: MissionFiles, outputs: dict
         for channel in info.channels.values():
             writer.register_channel(channel.topic, channel.message_encoding,
                                     channel.schema_id, channel.metadata)
+        unknown = 0
+        if unknown_topic:
+            unknown = writer.register_channel(
+                "/unknown", "cdr", writer.register_schema("my_pkg/msg/Thing", "ros2msg", b""))
         for _schema, channel, message in reader.iter_messages(log_time_order=True):
             writer.add_message(channel.id, message.log_time, message.data,
                                message.publish_time)
+            if unknown:
+                writer.add_message(unknown, message.log_time, b"\0\1\0\0", message.log_time)
         writer.finish()
+    return bag
+
+
+@pytest.mark.parametrize("compression", ["lz4", "none"])
+def test_chunks_of_other_compressions(small_mission: MissionFiles, outputs: dict[str, Path],
+                                      tmp_path: Path, caplog: Any, compression: str) -> None:
+    """lz4 and uncompressed chunks (of the ``mcap`` library's writer) are copied as they
+    are, and read back by every reader."""
+    bag = rewrite_with_mcap(small_mission.bag, tmp_path / "input.mcap", compression)
     with caplog.at_level(logging.INFO, logger="lidarcal_ros"):
         correct(bag, outputs["cal"], tmp_path / "out.mcap")
     assert NOT_COPIED not in caplog.text
@@ -317,3 +330,46 @@ def test_chunks_of_other_compressions(small_mission: MissionFiles, outputs: dict
     assert read_with_bag_reader(tmp_path / "out.mcap") == order
     # a reader from the start of the file (lidarcal recover's) meets every channel first
     assert sum(1 for _ in ReadableMcap(tmp_path / "out.mcap").messages()) == len(order)
+
+
+def test_messages_compressed_one_by_one_are_written_one_by_one(
+        small_mission: MissionFiles, outputs: dict[str, Path], tmp_path: Path,
+        caplog: Any) -> None:
+    """A rosbag2 bag of zstd-compressed messages (compression_mode: message): its chunks
+    hold compressed messages, which the output passes through decompressed."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+
+    from lidarcal_ros.io.bag_format import standard_typestore
+
+    bag = tmp_path / "compressed"
+    typestore = standard_typestore()
+    with open_bag(small_mission.bag) as source:
+        writer = Writer(bag, version=8, storage_plugin=StoragePlugin.MCAP)
+        writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+        with writer:
+            connections = {topic: writer.add_connection(topic, info.msgtype,
+                                                        typestore=typestore)
+                           for topic, info in source.topics.items()}
+            for topic, _msgtype, log_time, raw in source.messages():
+                writer.write(connections[topic], log_time, raw)
+    with caplog.at_level(logging.INFO, logger="lidarcal_ros"):
+        correct(bag, outputs["cal"], tmp_path / "out.mcap")
+    assert NOT_COPIED in caplog.text and "compressed one by one" in caplog.text
+    written, _order = read_with_mcap(tmp_path / "out.mcap")
+    assert written == read_with_mcap(outputs["copied.mcap"])[0]
+
+
+def test_topic_that_cannot_be_written_is_left_out(
+        small_mission: MissionFiles, outputs: dict[str, Path], tmp_path: Path,
+        caplog: Any) -> None:
+    """A topic of a type without a definition is left out of the output, with a warning,
+    so its chunks cannot be copied as they are."""
+    bag = rewrite_with_mcap(small_mission.bag, tmp_path / "input.mcap", "zstd",
+                            unknown_topic=True)
+    with caplog.at_level(logging.INFO, logger="lidarcal_ros"):
+        correct(bag, outputs["cal"], tmp_path / "out.mcap")
+    assert NOT_COPIED in caplog.text and "unknown message type my_pkg/msg/Thing" in caplog.text
+    assert "topic /unknown not passed through" in caplog.text
+    written, _order = read_with_mcap(tmp_path / "out.mcap")
+    assert written == read_with_mcap(outputs["copied.mcap"])[0]

@@ -99,8 +99,8 @@ def _schema_id(reader: McapReader, name: str) -> int | None:
 
 
 class _Refusal(Exception):
-    """Why the chunks of a bag cannot be copied (logged, then the messages are written one
-    by one)."""
+    """Why the chunks of a bag cannot be copied (logged by :func:`plan_chunk_copy`, never
+    raised out of it: the messages are then written one by one)."""
 
 
 def _file_channels(reader: McapReader, topics: dict[str, Any], new_topics: Collection[str]
@@ -170,11 +170,10 @@ def plan_chunk_copy(bag: Any, new_topics: Collection[str], new_msgtypes: Collect
         across the files, ids that leave the next ones free for ``new_topics``.
     """
     readers = bag.indexed_files()
-    if not readers:
-        logger.debug("%s: messages compressed one by one; chunks not copied", bag.path)
-        return None
-    plan = ChunkCopy(list(readers))
+    plan = ChunkCopy(list(readers or ()))
     try:
+        if readers is None:
+            raise _Refusal("its messages are compressed one by one")
         for reader in readers:
             plan.messages += _check_chunks(reader)
             for cid, copied in _file_channels(reader, bag.topics, new_topics).items():
