@@ -43,6 +43,10 @@ _EXPORTS = {
         "CHUNK_POINTS", "GpsTimeType", "LasChunk", "LasFileError", "LasFileInfo", "crs_units",
         "inspect_las", "iter_las_chunks", "quiet_laspy_errors",
     ),
+    "mcap_chunk_copy": (
+        "COPYABLE_COMPRESSIONS", "ChunkCopy", "CopiedChannel", "adopt_and_copy",
+        "plan_chunk_copy",
+    ),
     "mcap_chunk_reader": ("chunk_messages", "in_time_order"),
     "mcap_chunk_writer": (
         "BagWriterBackend", "CHUNK_BYTES", "ThreadedMcapStorage", "ZSTD_LEVEL",

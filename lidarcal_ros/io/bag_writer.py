@@ -5,7 +5,9 @@ chunks, compressed in threads by :mod:`lidarcal_ros.io.mcap_chunk_writer`) that 
 and Foxglove open, or a bare MCAP file when the path ends in ``.mcap``. The output is complete
 or absent: it is written under a hidden name beside its path and moved into place when
 finished (a live recording, which a power loss may cut, is written in place instead). An
-existing output is replaced only when asked and only if it looks like a bag.
+existing output is replaced only when asked and only if it looks like a bag. A bag that passes
+every message of another through takes that bag's compressed chunks as they are, where it
+allows that (:meth:`BagWriter.copy_chunks_of`, :mod:`lidarcal_ros.io.mcap_chunk_copy`).
 
 Times: log times and header stamps are integer nanoseconds. Coordinates are metres in the
 frame named by ``header.frame_id``.

@@ -18,7 +18,8 @@ readers of MCAP read it as any other: messages in log-time order through the chu
 
 :class:`BagWriterBackend` is rosbags' :class:`~rosbags.rosbag2.Writer` with this storage for
 MCAP; :class:`lidarcal_ros.io.bag_writer.BagWriter` writes through it. Its reading counterpart
-is :mod:`lidarcal_ros.io.mcap_chunk_reader`.
+is :mod:`lidarcal_ros.io.mcap_chunk_reader`; :mod:`lidarcal_ros.io.mcap_chunk_copy` puts
+another file's chunks into it as they are.
 """
 
 from __future__ import annotations
