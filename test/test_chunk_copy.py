@@ -373,3 +373,31 @@ def test_topic_that_cannot_be_written_is_left_out(
     assert "topic /unknown not passed through" in caplog.text
     written, _order = read_with_mcap(tmp_path / "out.mcap")
     assert written == read_with_mcap(outputs["copied.mcap"])[0]
+
+
+def test_copy_through_a_buffer(small_mission: MissionFiles, outputs: dict[str, Path],
+                               tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the kernel cannot copy file to file (after a first part), the chunks are
+    copied through a buffer: the same file."""
+    import errno
+
+    from lidarcal_ros.io import mcap_chunk_copy
+
+    calls: list[int] = []
+    mcap_chunk_copy_range = mcap_chunk_copy.os.copy_file_range
+
+    def partly(src: int, dst: int, count: int, offset_src: int, offset_dst: int) -> int:
+        if calls:
+            raise OSError(errno.EXDEV, "cross-device")
+        calls.append(count)
+        return int(mcap_chunk_copy_range(src, dst, min(count, 1000), offset_src, offset_dst))
+
+    # (the same name: rosbag2's metadata in the file names it)
+    for way in ("in_kernel", "buffered"):
+        (tmp_path / way).mkdir()
+        if way == "buffered":
+            monkeypatch.setattr(mcap_chunk_copy.os, "copy_file_range", partly)
+        correct(small_mission.bag, outputs["cal"], tmp_path / way / "out.mcap")
+    assert calls
+    assert ((tmp_path / "buffered/out.mcap").read_bytes()
+            == (tmp_path / "in_kernel/out.mcap").read_bytes())

@@ -17,10 +17,11 @@ messages are written one by one), :func:`adopt_and_copy` does it into a
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Collection
 from dataclasses import dataclass, field
 from io import BytesIO
-from typing import Any
+from typing import Any, BinaryIO
 
 from rosbags.interfaces import (
     Connection,
@@ -240,20 +241,38 @@ def adopt_and_copy(writer: Any, plan: ChunkCopy, digests: dict[str, str]) -> Non
                 _copy_chunk(writer, source, chunk)
 
 
-def _copy_chunk(writer: Any, source: Any, chunk: ChunkInfo) -> None:
+def _copy_bytes(source: BinaryIO, out: BinaryIO, offset: int, size: int) -> None:
+    """``size`` bytes of ``source`` from ``offset`` appended to ``out``: file to file in
+    the kernel where it can, else through a buffer."""
+    out.flush()
+    at = out.tell()
+    done = 0
+    try:
+        while done < size:
+            n = os.copy_file_range(source.fileno(), out.fileno(), size - done,
+                                   offset + done, at + done)
+            if n == 0:
+                raise EOFError(f"MCAP data at {offset} cut short")
+            done += n
+    except OSError:  # a file system (or kernel) without it: copy what is left
+        source.seek(offset + done)
+        out.seek(at + done)
+        while done < size:
+            block = source.read(min(size - done, _COPY_BLOCK))
+            if not block:
+                raise EOFError(f"MCAP data at {offset} cut short") from None
+            out.write(block)
+            done += len(block)
+    out.seek(at + size)
+
+
+def _copy_chunk(writer: Any, source: BinaryIO, chunk: ChunkInfo) -> None:
     """One chunk record and its message indexes, copied; its chunk index entry and the
     counts and times of the writer's statistics and metadata."""
     storage = writer.storage
-    out = storage.bio
-    start = out.tell()
-    source.seek(chunk.chunk_start_offset)
-    left = chunk.chunk_length + chunk.message_index_length
-    while left:
-        block = source.read(min(left, _COPY_BLOCK))
-        if not block:
-            raise EOFError(f"chunk at {chunk.chunk_start_offset} cut short")
-        out.write(block)
-        left -= len(block)
+    start = storage.bio.tell()
+    _copy_bytes(source, storage.bio, chunk.chunk_start_offset,
+                chunk.chunk_length + chunk.message_index_length)
     shift = start - chunk.chunk_start_offset
     rec = BytesIO()
     for value in (chunk.message_start_time, chunk.message_end_time, start, chunk.chunk_length):
