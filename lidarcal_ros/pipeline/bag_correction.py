@@ -474,7 +474,9 @@ def _correct_to_bag(job: _Job) -> None:
                 held.remove(k_)
 
         read = functools.partial(bag.messages, None if copied is None else [points_topic])
-        for k, (topic, msgtype, ns, raw) in enumerate(prefetched(read)):
+        # (clouds alone: fewer of them read ahead hold as many bytes as the mixed messages)
+        for k, (topic, msgtype, ns, raw) in enumerate(
+                prefetched(read, batch=32 if copied is None else 8)):
             heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
             if topic == points_topic:
                 msg, points = _cloud_points(bag, msgtype, raw, topic, job.frame)
