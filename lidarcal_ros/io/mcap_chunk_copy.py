@@ -167,32 +167,38 @@ def plan_chunk_copy(bag: Any, new_topics: Collection[str], new_msgtypes: Collect
     ChunkCopy or None
         None (the reason logged) unless every file is an indexed MCAP whose messages are
         all in chunks of a compression the output may carry, on CDR channels of normalised
-        type names, each topic under one channel id and each type under one schema id
-        across the files, ids that leave the next ones free for ``new_topics``.
+        type names, each topic under one channel id and each type under one schema id,
+        each id the same record in every file, and ids that leave the next ones free for
+        ``new_topics``.
     """
     readers = bag.indexed_files()
     plan = ChunkCopy(list(readers or ()))
+    # Every record of every file, with messages or not: the copied chunks may hold them.
+    channels: dict[int, Channel] = {}
+    schemas: dict[int, Schema] = {}
     try:
         if readers is None:
             raise _Refusal("its messages are compressed one by one")
         for reader in readers:
+            for kind, records, held in (("channel", channels, reader.channels),
+                                        ("schema", schemas, reader.schemas)):
+                for key, record in held.items():
+                    if records.setdefault(key, record) != record:
+                        raise _Refusal(f"{kind} id {key} differs between the files")
             plan.messages += _check_chunks(reader)
             for cid, copied in _file_channels(reader, bag.topics, new_topics).items():
-                if plan.channels.setdefault(cid, copied) != copied:
-                    raise _Refusal(f"channel {cid} differs between the files")
-                have = plan.schemas.setdefault(copied.schema.id, copied.schema)
-                if have != copied.schema:
-                    raise _Refusal(f"schema {have.id} differs between the files")
+                plan.channels[cid] = copied
+                plan.schemas[copied.schema.id] = copied.schema
         topics = [c.channel.topic for c in plan.channels.values()]
         names = [s.name for s in plan.schemas.values()]
         if len(set(topics)) != len(topics) or len(set(names)) != len(names):
             raise _Refusal("a topic or type under several ids")
         # The writer numbers new channels and schemas from one past how many it has.
-        if any(len(plan.channels) + k in plan.channels for k in range(1, len(new_topics) + 1)):
-            raise _Refusal(f"channel ids {sorted(plan.channels)} leave no id for new topics")
+        if any(len(plan.channels) + k in channels for k in range(1, len(new_topics) + 1)):
+            raise _Refusal(f"channel ids {sorted(channels)} leave no id for new topics")
         fresh = {t for t in new_msgtypes if t not in names}
-        if any(len(plan.schemas) + k in plan.schemas for k in range(1, len(fresh) + 1)):
-            raise _Refusal(f"schema ids {sorted(plan.schemas)} leave no id for new types")
+        if any(len(plan.schemas) + k in schemas for k in range(1, len(fresh) + 1)):
+            raise _Refusal(f"schema ids {sorted(schemas)} leave no id for new types")
     except _Refusal as why:
         logger.info("%s: chunks not copied (%s); messages written one by one", bag.path, why)
         return None
