@@ -140,6 +140,13 @@ def acos_poly(c: float) -> float:
     return 0.5 * math.pi - _asin_half(c)
 
 
+#: 8-byte words of a row of the points lidarcal writes
+#: (:func:`~lidarcal_ros.io.pointcloud.make_point_dtype`: 40 bytes) and of their corrected
+#: rows (64 bytes): for these :func:`correct_returns` copies a row with counts known when it
+#: is compiled (unrolled, a tenth of its time less than a loop over counts read at run time).
+_USUAL_IN_WORDS = 5
+_USUAL_OUT_WORDS = 8
+
 #: Points per block of :func:`correct_returns`: its columns (some 40 values a point) stay
 #: in the first caches between the block's loops.
 _RETURNS_BLOCK = 256
@@ -261,6 +268,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
      flags_row, tally) = rows
     in_rows = out_words.shape[0] == t.shape[0]
     k_words, m_words = in_words.shape[1], out_words.shape[1]
+    usual_rows = k_words == _USUAL_IN_WORDS and m_words == _USUAL_OUT_WORDS
     # The tally in four interleaved sets of counts (one counter incremented point after point
     # would make each increment wait for the one before); added up at the end.
     counts = np.zeros((4, 257), dtype=np.int64)
@@ -415,10 +423,16 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         if in_rows:
             for k in range(m):
                 i = a + k
-                for word in range(k_words):
-                    out_words[i, word] = in_words[i, word]
-                for word in range(k_words, m_words):
-                    out_words[i, word] = 0
+                if usual_rows:  # (word counts the compiler knows: the copy unrolled)
+                    for word in range(_USUAL_IN_WORDS):
+                        out_words[i, word] = in_words[i, word]
+                    for word in range(_USUAL_IN_WORDS, _USUAL_OUT_WORDS):
+                        out_words[i, word] = 0
+                else:
+                    for word in range(k_words):
+                        out_words[i, word] = in_words[i, word]
+                    for word in range(k_words, m_words):
+                        out_words[i, word] = 0
                 good = corrected[k]
                 px = beam[1, k] if good else col[0, k]
                 py = beam[2, k] if good else col[1, k]

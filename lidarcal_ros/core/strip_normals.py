@@ -279,7 +279,12 @@ class StripNormals:
                 if part_index.size == n:
                     part_index = None
             piu = iu[lo:hi]
-            r_min, r_max = (int(piu.min()), int(piu.max())) if piu.size else (0, -1)
+            if not piu.size:
+                r_min, r_max = 0, -1
+            elif piu.size == iu.size:  # every binned point (one part): the span is known
+                r_min, r_max = r_lo, r_hi
+            else:
+                r_min, r_max = int(piu.min()), int(piu.max())
             self._parts.append(_Part(key, n, part_index, u[lo:hi], v[lo:hi], z[lo:hi], piu,
                                      iv[lo:hi], r_min, r_max))
             if piu.size:
