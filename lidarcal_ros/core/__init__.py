@@ -52,10 +52,10 @@ _EXPORTS = {
     ),
     "geometry": ("LEVEL", "LaserGeometry", "RIGOROUS", "geometry_at"),
     "georeferencing": (
-        "LaserVectorQA", "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "ModelChoice",
-        "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
-        "describe_models", "laser_vector_qa", "models_summary", "rigorous_geometry",
-        "strip_geometry",
+        "LaserVectorQA", "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "MODEL_SPAN_PAD_S",
+        "ModelChoice", "attitude_segments", "check_model_setting", "choose_model",
+        "describe_model_policy", "describe_models", "laser_vector_qa", "models_summary",
+        "rigorous_geometry", "strip_geometry",
     ),
     "grid_planes": (
         "CellPlanes", "block_min_spread", "dense_grid_normals", "dense_moment_grid",

@@ -49,8 +49,9 @@ MIN_ATTITUDE_RATE_HZ = 10.0
 #: Largest tilt of the body's up axis from the vertical (deg) taken for REP-103's body frame:
 #: survey flights bank by up to about 30 degrees in turns; a z-down frame is 180 off.
 MAX_TILT_DEG = 60.0
-#: Trajectory kept around a strip's time span when judging its attitude, s.
-_SPAN_PAD_S = 1.0
+#: Trajectory kept around a strip's time span when judging its attitude, s (the model of a
+#: point reads the samples this far from it).
+MODEL_SPAN_PAD_S = 1.0
 
 #: Messages already logged (a stream asks once per chunk; one line is enough).
 _LOGGED: set[str] = set()
@@ -128,8 +129,8 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str 
 
 
 def _span(trajectory: Trajectory, t_lo: float, t_hi: float) -> Trajectory:
-    i0 = int(np.searchsorted(trajectory.t, t_lo - _SPAN_PAD_S))
-    i1 = int(np.searchsorted(trajectory.t, t_hi + _SPAN_PAD_S, side="right"))
+    i0 = int(np.searchsorted(trajectory.t, t_lo - MODEL_SPAN_PAD_S))
+    i1 = int(np.searchsorted(trajectory.t, t_hi + MODEL_SPAN_PAD_S, side="right"))
     return trajectory.take(slice(i0, i1))
 
 
@@ -451,7 +452,8 @@ def _log_once(message: str) -> None:
 
 
 __all__ = [
-    "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "LaserVectorQA", "ModelChoice",
+    "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "MODEL_SPAN_PAD_S", "LaserVectorQA",
+    "ModelChoice",
     "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
     "describe_models",
     "laser_vector_qa", "models_summary", "rigorous_geometry", "strip_geometry",

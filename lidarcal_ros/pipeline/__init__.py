@@ -9,8 +9,9 @@ Calibration: :mod:`.calibration` (load a mission, calibrate, summaries, simulate
 :mod:`.calibration_service` and :mod:`.calibrator_statuses` (the calibrator node's jobs and
 statuses, ROS-free). Correction: :mod:`.correction` (a set of points), :mod:`.corrected_cloud`
 (the corrected rows), :mod:`.correction_batch` and :mod:`.stream_corrector` (chunk by chunk),
-:mod:`.bag_correction` (``lidarcal correct``), :mod:`.live_corrector`, :mod:`.cloud_backlog`,
-:mod:`.correction_service` and :mod:`.correction_process` (the corrector node's side, ROS-free),
+:mod:`.bag_correction` (``lidarcal correct``) and :mod:`.trajectory_gate`,
+:mod:`.live_corrector`, :mod:`.cloud_backlog`, :mod:`.correction_service` and
+:mod:`.correction_process` (the corrector node's side, ROS-free),
 :mod:`.reflectance`. Import: :mod:`.importer` and its ``import_*`` parts. QA:
 :mod:`.evaluation`, :mod:`.report` and its ``report_*`` parts. :mod:`.replay` paces a bag.
 """
@@ -116,6 +117,7 @@ _EXPORTS = {
     ),
     "streaming": ("StreamingCalibration",),
     "throttled_log": ("ThrottledLog",),
+    "trajectory_gate": ("REACH_SAMPLES", "RereadBag", "TrajectoryGate"),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
 # --- end of exports ---

@@ -1,9 +1,13 @@
 """``lidarcal correct``: every cloud of a mission bag corrected into a bag or a LAS/LAZ file.
 
-:func:`correct_bag` checks the bag's topics, reads the whole trajectory first
-(:func:`read_trajectory`), then streams the clouds through a
+:func:`correct_bag` checks the bag's topics, then reads it once: the trajectory is gathered
+as it comes, and each cloud is streamed through a
 :class:`~lidarcal_ros.pipeline.stream_corrector.StreamCorrector` (read ahead in a thread,
-batches corrected in worker threads) and writes what comes out, in order:
+batches corrected in worker threads) once the trajectory covers it
+(:class:`~lidarcal_ros.pipeline.trajectory_gate.TrajectoryGate`), with the result reading the
+whole trajectory first (:func:`read_trajectory`) gives. Where a bag does not allow that (its
+trajectory comes after its clouds, or out of time order) it is read again, the trajectory
+first. What comes out is written in order:
 
 - a bag: every input message passed through unchanged and each corrected cloud on
   ``topics.corrected``, in the input's (log-time) order; each corrected cloud is built in the
@@ -36,7 +40,7 @@ from lidarcal_ros.core.heading import check_orientation
 from lidarcal_ros.core.jit import start_without_blas
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.radiometry import describe_alpha
-from lidarcal_ros.errors import BagError, InputError
+from lidarcal_ros.errors import BagError, InputError, LidarcalError, one_line
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
 from lidarcal_ros.io.cloud_columns import resolve_time_field
 from lidarcal_ros.io.pointcloud import cloud_to_array, make_point_dtype
@@ -44,6 +48,7 @@ from lidarcal_ros.io.prefetch import prefetched
 from lidarcal_ros.pipeline.corrected_cloud import CorrectionStats
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamCorrector
+from lidarcal_ros.pipeline.trajectory_gate import RereadBag, TrajectoryGate
 
 __all__ = [
     "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport", "correct_bag", "output_kind",
@@ -54,6 +59,9 @@ logger = logging.getLogger(__name__)
 
 #: Points per LAS write (corrected clouds are gathered into runs of this size).
 LAS_RUN_POINTS = 100_000
+#: Fewest points held waiting for the trajectory before a bag is read again, trajectory first
+#: (:attr:`CorrectOptions.max_held_points`; some 40 MB of clouds).
+MIN_HELD_POINTS = 1_000_000
 
 @dataclass
 class CorrectionReport:
@@ -95,18 +103,50 @@ def output_kind(path: str | Path) -> str:
 
 
 def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
-    """First pass: every trajectory sample of an open bag, and the frames they are in."""
-    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
+    """Every trajectory sample of an open bag (a pass over it), and the frames they are
+    in."""
+    from lidarcal_ros.io.trajectory_messages import TrajectorySamples
 
     samples = TrajectorySamples()
-    decode = functools.partial(bag.deserialize, topic=topic)
+    add = _pose_reader(bag, topic, samples)
     for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([topic])):
+        add(msgtype, raw)
+    return _whole_trajectory(bag, topic, samples), samples.frames
+
+
+def _pose_reader(bag: Any, topic: str, samples: Any) -> Callable[[str, Any], None]:
+    """``add(msgtype, raw)``: a trajectory message's CDR bytes into ``samples``
+    (:class:`~lidarcal_ros.io.trajectory_messages.TrajectorySamples`), refusing another
+    type."""
+    from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
+
+    decode = functools.partial(bag.deserialize, topic=topic)
+
+    def add(msgtype: str, raw: Any) -> None:
         if msgtype not in TRAJECTORY_TYPES:
             raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
         samples.add_raw(msgtype, raw, decode)
+
+    return add
+
+
+def _whole_trajectory(bag: Any, topic: str, samples: Any) -> Trajectory:
     if not samples:
         raise BagError(f"{bag.path}: topic {topic} has no messages")
-    return samples.trajectory(f"{bag.path}: trajectory {topic}"), samples.frames
+    return samples.trajectory(f"{bag.path}: trajectory {topic}")
+
+
+def _checked_trajectory(bag: Any, topic: str, samples: Any,
+                        settings: CorrectionSettings) -> tuple[Trajectory, str]:
+    """The whole trajectory of ``samples`` and its frame, refused as :func:`correct_bag`
+    refuses it (several frames, no orientation where the settings need one)."""
+    trajectory = _whole_trajectory(bag, topic, samples)
+    if len(samples.frames) > 1:
+        raise InputError(f"{bag.path}: poses on {topic} are in several frames: "
+                         f"{sorted(samples.frames)}")
+    check_orientation(settings.heading_source, trajectory, f"{bag.path}: {topic}")
+    check_model_setting(settings.model, trajectory, f"{bag.path}: {topic}")
+    return trajectory, next(iter(samples.frames))
 
 
 @dataclass(frozen=True)
@@ -125,12 +165,26 @@ class CorrectOptions:
         Batches corrected in parallel (reading and writing stay in the calling thread:
         they are mostly Python code, and threads of their own only contend for the
         interpreter lock).
+    max_held_points : int or None
+        Most points of clouds held while the trajectory read so far does not cover them
+        (the bag read once); beyond, the bag is read again with its trajectory first (its
+        trajectory comes after its clouds). None: ``4 * batch_points``, at least
+        :data:`MIN_HELD_POINTS`; 0: always the trajectory first (two passes). The output
+        is the same.
     """
 
     crs: Any = None
     overwrite: bool = False
     batch_points: int = DEFAULT_BATCH_POINTS
     workers: int = 1
+    max_held_points: int | None = None
+
+    @property
+    def held_points_bound(self) -> int:
+        """:attr:`max_held_points`, None resolved."""
+        if self.max_held_points is not None:
+            return max(int(self.max_held_points), 0)
+        return max(4 * self.batch_points, MIN_HELD_POINTS)
 
 
 def correct_bag(
@@ -171,8 +225,8 @@ def correct_bag(
     from lidarcal_ros.io.bag_reader import open_bag
 
     started = time.perf_counter()
-    # The compiled loops load while the trajectory is read (their first call in a process
-    # costs some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
+    # The compiled loops load while the bag is read (their first call in a process costs
+    # some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
     warm_up = threading.Thread(target=warm_up_compiled_loops, name="lidarcal-warm-up",
                                daemon=True)
     warm_up.start()
@@ -196,43 +250,93 @@ def correct_bag(
     with open_bag(bag_path) as bag:
         _check_topics(bag, points_topic, traj_topic,
                       corrected_topic if kind == "bag" else None)
-        if progress:
-            progress("reading trajectory", 0.0)
-        trajectory, traj_frames = read_trajectory(bag, traj_topic)
-        if len(traj_frames) > 1:
-            raise InputError(f"{bag.path}: poses on {traj_topic} are in several frames: "
-                             f"{sorted(traj_frames)}")
-        frame = next(iter(traj_frames))
-        check_orientation(settings.heading_source, trajectory, f"{bag.path}: {traj_topic}")
-        check_model_setting(settings.model, trajectory, f"{bag.path}: {traj_topic}")
-        meaning = settings.radiometry.meaning
-        if not settings.radiometry.absolute:
-            from lidarcal_ros.pipeline.reflectance import measure_target_in_bag, with_constant
-
-            warm_up.join()  # (it hides scipy.linalg for a moment, which the target may need)
-            target = measure_target_in_bag(bag_path, settings, config)
-            if target is not None:
-                settings = with_constant(settings, target.constant)
-                meaning = f"{settings.radiometry.meaning} The {target.describe()}."
-        corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
-                                    workers=options.workers, source=points_topic,
-                                    keep_tallies=kind == "bag")
-        n_clouds = max(bag.topics[points_topic].count, 1)
-        report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
-                                  atmosphere=describe_alpha(settings.radiometry),
-                                  reflectance=meaning, warnings=warnings)
-        job = _Job(bag, corrector, out_path, points_topic, corrected_topic, frame,
-                   options.overwrite, n_clouds, progress, report)
-        try:
-            corrector.start()  # the workers start while the clouds are read
-            if kind == "las":
-                _correct_to_las(job, options.crs)
-            else:
-                _correct_to_bag(job)
-        finally:
-            corrector.close()
+        run = functools.partial(_correct_once, bag, _Request(
+            settings, config, options, out_path, (points_topic, traj_topic, corrected_topic),
+            progress, warnings, warm_up))
+        report = None
+        if options.held_points_bound:
+            try:
+                report = run(single_pass=True)
+            except (RereadBag, LidarcalError) as exc:
+                # An error is raised again by the second pass, after what reading the
+                # trajectory first finds wrong: the same error as always.
+                logger.info("%s: reading the bag again, trajectory first (%s)", bag_path,
+                            one_line(exc))
+        if report is None:
+            report = run(single_pass=False)
     _warn_of_what_was_left(report, bag_path, options.crs)
     report.seconds = time.perf_counter() - started
+    return report
+
+
+@dataclass(frozen=True)
+class _Request:
+    """What :func:`correct_bag` was asked, checked: the settings, the output, the topics
+    (clouds, trajectory, corrected clouds), the warnings so far and the warm-up thread."""
+
+    settings: CorrectionSettings
+    config: FlightConfig
+    options: CorrectOptions
+    out_path: Path
+    topics: tuple[str, str, str]
+    progress: Callable[[str, float], None] | None
+    warnings: list[str]
+    warm_up: threading.Thread
+
+
+def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> CorrectionReport:
+    """:func:`correct_bag` after its checks: the trajectory read first, or (``single_pass``)
+    with the clouds; RereadBag where one pass cannot give the result of two."""
+    from lidarcal_ros.io.trajectory_messages import TrajectorySamples
+
+    settings, options, out_path, progress = (request.settings, request.options,
+                                             request.out_path, request.progress)
+    points_topic, traj_topic, corrected_topic = request.topics
+    kind = output_kind(out_path)
+    trajectory, frame = Trajectory(np.zeros(0), np.zeros((0, 3))), ""
+    samples = TrajectorySamples()
+    if not single_pass:
+        if progress:
+            progress("reading trajectory", 0.0)
+        add = _pose_reader(bag, traj_topic, samples)
+        for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([traj_topic])):
+            add(msgtype, raw)
+        trajectory, frame = _checked_trajectory(bag, traj_topic, samples, settings)
+    meaning = settings.radiometry.meaning
+    if not settings.radiometry.absolute:
+        from lidarcal_ros.pipeline.reflectance import measure_target_in_bag, with_constant
+
+        request.warm_up.join()  # (it hides scipy.linalg for a moment, which the target may need)
+        target = measure_target_in_bag(bag.path, settings, request.config)
+        if target is not None:
+            settings = with_constant(settings, target.constant)
+            meaning = f"{settings.radiometry.meaning} The {target.describe()}."
+    corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
+                                workers=options.workers, source=points_topic,
+                                keep_tallies=kind == "bag")
+    source = str(bag.path)
+    gate = (TrajectoryGate(corrector, samples, _pose_reader(bag, traj_topic, samples),
+                           functools.partial(_checked_trajectory, bag, traj_topic, samples,
+                                             settings),
+                           source=source, topic=points_topic,
+                           max_held_points=options.held_points_bound)
+            if single_pass else
+            TrajectoryGate.known(corrector, frame, source=source, topic=points_topic))
+    n_clouds = max(bag.topics[points_topic].count, 1)
+    report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
+                              atmosphere=describe_alpha(settings.radiometry),
+                              reflectance=meaning, warnings=list(request.warnings))
+    job = _Job(bag, corrector, gate, out_path, points_topic, traj_topic, corrected_topic,
+               options.overwrite, n_clouds, progress, report)
+    try:
+        corrector.start()  # the workers start while the clouds are read
+        if kind == "las":
+            _correct_to_las(job, options.crs)
+        else:
+            _correct_to_bag(job)
+    finally:
+        corrector.close()
+    report.frame_id = gate.frame or ""
     return report
 
 
@@ -291,12 +395,13 @@ class _Job:
     bag : AnyReader-like
         The open input bag (:func:`lidarcal_ros.io.bag_reader.open_bag`).
     corrector : StreamCorrector
+    gate : TrajectoryGate
+        Hands each cloud to the corrector once the trajectory covers it (and checks its
+        frame); reads the trajectory messages (:attr:`TrajectoryGate.reading`).
     out_path : Path
         The output file or directory.
-    points_topic, corrected_topic : str
-        The input clouds' topic, and the corrected clouds' (bag output).
-    frame : str
-        The map frame of the trajectory, which every cloud must be in.
+    points_topic, trajectory_topic, corrected_topic : str
+        The input clouds' topic, the trajectory's, and the corrected clouds' (bag output).
     overwrite : bool
         Replace an existing output.
     n_clouds : int
@@ -308,27 +413,24 @@ class _Job:
 
     bag: Any
     corrector: StreamCorrector
+    gate: TrajectoryGate
     out_path: Path
     points_topic: str
+    trajectory_topic: str
     corrected_topic: str
-    frame: str
     overwrite: bool
     n_clouds: int
     progress: Callable[[str, float], None] | None
     report: CorrectionReport
 
 
-def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str, frame: str) -> tuple[Any,
-                                                                                        np.ndarray]:
+def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str) -> tuple[Any, np.ndarray]:
     from lidarcal_ros.io.bag_format import POINTCLOUD2
 
     if msgtype != POINTCLOUD2:
         raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
     # (through a memoryview: rosbags would copy bytes to cut off their CDR header)
     msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
-    if msg.header.frame_id != frame:
-        raise InputError(f"{bag.path}: clouds on {topic} are in frame '{msg.header.frame_id}' "
-                         f"but the trajectory is in frame '{frame}'")
     return msg, cloud_to_array(msg, source=topic)
 
 
@@ -336,8 +438,8 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
     """Correct the clouds of ``job`` into a LAS/LAZ file (``crs``: pyproj.CRS or None)."""
     from lidarcal_ros.io.las import LasChunkWriter
 
-    bag, corrector, out_path, points_topic = (job.bag, job.corrector, job.out_path,
-                                              job.points_topic)
+    bag, corrector, gate, out_path, points_topic = (job.bag, job.corrector, job.gate,
+                                                    job.out_path, job.points_topic)
     progress, report = job.progress, job.report
 
     seen = 0
@@ -367,16 +469,23 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
                 write_run(run)
                 run, run_points = [], 0
 
-        for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([points_topic])):
-            _msg, points = _cloud_points(bag, msgtype, raw, topic, job.frame)
+        topics = [points_topic, job.trajectory_topic] if gate.reading else [points_topic]
+        for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages(topics)):
+            if topic != points_topic:
+                gate.pose(msgtype, raw)
+                continue
+            msg, points = _cloud_points(bag, msgtype, raw, topic)
             if time_field is None and len(points):
                 time_field = resolve_time_field(points, corrector.settings.time_field,
                                                 source=topic)
                 writer.time_field = time_field
-            write(corrector.push(points, None))
+            for _tag, ready in gate.cloud(None, msg, points):
+                write(corrector.push(ready, None))
             seen += 1
             if progress and seen % 50 == 0:
                 progress("correcting", seen / job.n_clouds)
+        for _tag, ready in gate.finish():
+            write(corrector.push(ready, None))
         write(corrector.flush(), final=True)
         _check_something_corrected(corrector.stats, bag.path, points_topic)
     report.las_skipped_non_finite = writer.stats.skipped_non_finite
@@ -406,8 +515,8 @@ def _correct_to_bag(job: _Job) -> None:
     from lidarcal_ros.io.pointcloud import point_fields
     from lidarcal_ros.io.ros_messages import cloud_header_cdr, stamp_ns
 
-    bag, corrector, points_topic, corrected_topic = (job.bag, job.corrector, job.points_topic,
-                                                     job.corrected_topic)
+    bag, corrector, gate, points_topic, corrected_topic = (
+        job.bag, job.corrector, job.gate, job.points_topic, job.corrected_topic)
     progress, report = job.progress, job.report
 
     latched = [t for t, info in bag.topics.items() if info.transient_local]
@@ -479,14 +588,19 @@ def _correct_to_bag(job: _Job) -> None:
                 prefetched(read, batch=32 if copied is None else 8)):
             heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
             if topic == points_topic:
-                msg, points = _cloud_points(bag, msgtype, raw, topic, job.frame)
+                msg, points = _cloud_points(bag, msgtype, raw, topic)
                 held.append(k)
                 clouds[k] = (ns, msg)
-                collect(corrector.push(points, k))
+                for tag, covered in gate.cloud(k, msg, points):
+                    collect(corrector.push(covered, tag))
                 seen += 1
                 if progress and seen % 50 == 0:
                     progress("correcting", seen / job.n_clouds)
+            elif topic == job.trajectory_topic and gate.reading:
+                gate.pose(msgtype, raw)
             emit((held[0], 1) if held else (math.inf, 0))
+        for tag, covered in gate.finish():
+            collect(corrector.push(covered, tag))
         collect(corrector.flush())
         emit((math.inf, 0))
         _check_something_corrected(corrector.stats, bag.path, points_topic)
