@@ -183,7 +183,7 @@ class TrajectoryGate:
     def _last_time(self, points: np.ndarray) -> float:
         if not len(points):
             return -math.inf
-        if self._time_field is None:
+        if self._time_field not in (points.dtype.names or ()):  # (a cloud of another layout)
             self._time_field = resolve_time_field(
                 points, self.corrector.settings.time_field, source=self.topic)
         t = np.asarray(points[self._time_field])
