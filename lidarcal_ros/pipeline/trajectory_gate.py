@@ -101,6 +101,7 @@ class TrajectoryGate:
         self._newest = -math.inf  # latest sample time read, s
         self._given: Trajectory | None = None  # the corrector's trajectory
         self._reach_s = max(corrector.settings.window_s, MODEL_SPAN_PAD_S)
+        self._least_samples = max(REACH_SAMPLES, corrector.settings.min_samples)
         self._queue: deque[_Queued] = deque()
         self._queued_points = 0
         self._time_field: str | None = None
@@ -213,7 +214,7 @@ class TrajectoryGate:
 
     def _covers(self, t_last: float) -> bool:
         traj = self._given
-        return (traj is not None and len(traj) >= REACH_SAMPLES
+        return (traj is not None and len(traj) >= self._least_samples
                 and t_last + self._reach_s < traj.t[-REACH_SAMPLES])
 
     def _take_trajectory(self) -> None:
