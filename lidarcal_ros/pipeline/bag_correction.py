@@ -295,9 +295,9 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
     kind = output_kind(out_path)
     trajectory, frame = Trajectory(np.zeros(0), np.zeros((0, 3))), ""
     samples = TrajectorySamples()
+    if progress:
+        progress("correcting" if single_pass else "reading trajectory", 0.0)
     if not single_pass:
-        if progress:
-            progress("reading trajectory", 0.0)
         add = _pose_reader(bag, traj_topic, samples)
         for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([traj_topic])):
             add(msgtype, raw)
