@@ -8,9 +8,11 @@ time order and derives each one's values once), clouds into a queue. A cloud lea
 in the order read, once the trajectory read so far holds :data:`REACH_SAMPLES` samples later
 than its last point time plus the reach of the correction around a point (the
 local-trajectory window, ``matching.trajectory_window_s``, and the span the model choice
-judges, :data:`~lidarcal_ros.core.georeferencing.MODEL_SPAN_PAD_S`); the corrector is then
-given that trajectory. If the samples come in time order, the ones a cloud's correction reads
-are those of the whole trajectory, and so is the result.
+judges, :data:`~lidarcal_ros.core.georeferencing.MODEL_SPAN_PAD_S`), and at least
+``matching.min_samples`` in all; the corrector is then given that trajectory (taken again
+from the samples only when a batch's worth of points waits: a few times per mission, not per
+cloud). If the samples come in time order, the ones a cloud's correction reads are those of
+the whole trajectory, and so is the result.
 
 Whether they did is checked when the bag has been read: the whole trajectory is made and
 checked as when it is read first (screening warnings, frames, orientation and model
@@ -187,8 +189,11 @@ class TrajectoryGate:
         if self._time_field not in (points.dtype.names or ()):  # (a cloud of another layout)
             self._time_field = resolve_time_field(
                 points, self.corrector.settings.time_field, source=self.topic)
-        t = np.asarray(points[self._time_field])
-        t = t[np.isfinite(t)]
+        t = points[self._time_field]
+        last = float(t.max())
+        if math.isfinite(last):
+            return last
+        t = t[np.isfinite(t)]  # (some time NaN or infinite)
         return float(t.max()) if t.size else -math.inf
 
     def _release(self) -> list[tuple[Any, np.ndarray]]:
