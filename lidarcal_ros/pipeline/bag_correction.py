@@ -582,10 +582,13 @@ def _correct_to_bag(job: _Job) -> None:
                 heapq.heappush(ready, (k_, 1, (ns_, message)))
                 held.remove(k_)
 
-        read = functools.partial(bag.messages, None if copied is None else [points_topic])
+        # (the chunks copied: the clouds, and the trajectory where the gate reads it)
+        read_topics = (None if copied is None else
+                       [points_topic, job.trajectory_topic] if gate.reading else [points_topic])
+        read = functools.partial(bag.messages, read_topics)
         # (clouds alone: fewer of them read ahead hold as many bytes as the mixed messages)
         for k, (topic, msgtype, ns, raw) in enumerate(
-                prefetched(read, batch=32 if copied is None else 8)):
+                prefetched(read, batch=8 if read_topics == [points_topic] else 32)):
             heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
             if topic == points_topic:
                 msg, points = _cloud_points(bag, msgtype, raw, topic)
