@@ -458,6 +458,9 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
             writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
 
         def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
+            # A run ends at the first cloud that brings it to LAS_RUN_POINTS, whichever
+            # batches the clouds came back in: the file's chunks (and laspy's extra-bytes
+            # minima and maxima, which it takes per write) are then the same on every run.
             nonlocal run, run_points
             for _tag, corrected in done:
                 if run and corrected.dtype != run[0].dtype:
@@ -465,7 +468,10 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
                     run, run_points = [], 0
                 run.append(corrected)
                 run_points += len(corrected)
-            if run and (final or run_points >= LAS_RUN_POINTS):
+                if run_points >= LAS_RUN_POINTS:
+                    write_run(run)
+                    run, run_points = [], 0
+            if run and final:
                 write_run(run)
                 run, run_points = [], 0
 
