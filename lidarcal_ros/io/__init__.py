@@ -65,7 +65,7 @@ _EXPORTS = {
         "point_fields",
     ),
     "pointcloud_kernels": ("all_finite_xyz", "finite_range", "gather_columns", "gather_xyz"),
-    "prefetch": ("prefetched",),
+    "prefetch": ("WriteBehind", "prefetched"),
     "report_content": (
         "BiasEntry", "EvaluationSection", "FlightMap", "InputFile", "MapRaster", "PairSection",
         "Provenance", "RadiometrySection", "ReportContent", "SlopeClass", "StripRow",

@@ -1,16 +1,21 @@
-"""Reading ahead in a thread: the items of an iterator produced while the caller works.
+"""Reading ahead and writing behind in a thread, while the caller works.
 
 Reading a bag is mostly decompressing its chunks (zstd, which releases the interpreter lock)
-and cutting them into records: done in a thread of its own, it overlaps the caller's work on
-the messages already read instead of alternating with it.
+and cutting them into records: done in a thread of its own (:func:`prefetched`), it overlaps
+the caller's work on the messages already read instead of alternating with it. Writing a LAZ
+file is mostly compressing its points (lazrs, which releases it too): :class:`WriteBehind`
+does it in a thread of its own while the caller reads and corrects the next clouds.
 """
 
 from __future__ import annotations
 
 import queue
 import threading
+from collections import deque
 from collections.abc import Callable, Iterator
-from typing import TypeVar
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from types import TracebackType
+from typing import Any, TypeVar
 
 _T = TypeVar("_T")
 _DONE = object()
@@ -80,4 +85,56 @@ def prefetched(items: Callable[[], Iterator[_T]], *, depth: int = 4, batch: int 
         thread.join()
 
 
-__all__ = ["prefetched"]
+class WriteBehind:
+    """Calls of ``write`` made in one thread of their own, in the order they are asked for;
+    use as a context manager.
+
+    Parameters
+    ----------
+    write : callable
+        Called with the arguments of each :meth:`__call__`, one call at a time.
+    depth : int, keyword-only
+        Calls that may wait (queued or running) before :meth:`__call__` waits for the oldest:
+        what the caller has handed over stays in memory until written.
+    name : str, keyword-only
+        The thread's name.
+
+    An exception of ``write`` is raised in the caller: by the next :meth:`__call__`, by
+    :meth:`finish`, or on leaving the ``with`` block (unless the block raised first). Leaving
+    the block always waits for the calls still queued, so that nothing writes into a file
+    its owner is removing.
+    """
+
+    def __init__(self, write: Callable[..., Any], *, depth: int = 2,
+                 name: str = "lidarcal-write") -> None:
+        self._write = write
+        self._depth = max(1, depth)
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix=name)
+        self._pending: deque[Future[Any]] = deque()
+
+    def __call__(self, *args: Any) -> None:
+        """Queue ``write(*args)``; wait first while ``depth`` calls are waiting."""
+        while len(self._pending) >= self._depth:
+            self._pending.popleft().result()
+        self._pending.append(self._pool.submit(self._write, *args))
+
+    def finish(self) -> None:
+        """Wait for every call queued; raise the first one's exception."""
+        while self._pending:
+            self._pending.popleft().result()
+
+    def __enter__(self) -> WriteBehind:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        try:
+            wait(self._pending)
+            if exc_type is None:
+                self.finish()
+        finally:
+            self._pending.clear()
+            self._pool.shutdown(wait=True)
+
+
+__all__ = ["WriteBehind", "prefetched"]

@@ -44,7 +44,7 @@ from lidarcal_ros.errors import BagError, InputError, LidarcalError, one_line
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
 from lidarcal_ros.io.cloud_columns import resolve_time_field
 from lidarcal_ros.io.pointcloud import cloud_to_array, make_point_dtype
-from lidarcal_ros.io.prefetch import prefetched
+from lidarcal_ros.io.prefetch import WriteBehind, prefetched
 from lidarcal_ros.pipeline.corrected_cloud import CorrectionStats
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamCorrector
@@ -304,9 +304,14 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
         trajectory, frame = _checked_trajectory(bag, traj_topic, samples, settings)
     meaning = settings.radiometry.meaning
     if not settings.radiometry.absolute:
-        from lidarcal_ros.pipeline.reflectance import measure_target_in_bag, with_constant
+        from lidarcal_ros.pipeline.reflectance import (
+            measure_target_in_bag,
+            target_of,
+            with_constant,
+        )
 
-        request.warm_up.join()  # (it hides scipy.linalg for a moment, which the target may need)
+        if target_of(request.config) is not None:
+            request.warm_up.join()  # (it hides scipy.linalg a moment; the target may need it)
         target = measure_target_in_bag(bag.path, settings, request.config)
         if target is not None:
             settings = with_constant(settings, target.constant)
@@ -449,13 +454,15 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
     run: list[np.ndarray] = []
     run_points = 0
 
+    def write_parts(parts: list[np.ndarray]) -> None:
+        writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
+
+    # The runs are compressed (lazrs, which releases the interpreter lock) in a thread of
+    # their own while this one reads, decodes and corrects the next clouds.
     with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
                         overwrite=job.overwrite,
                         reflectance_description=corrector.settings.radiometry.las_description,
-                        ) as writer:
-
-        def write_run(parts: list[np.ndarray]) -> None:
-            writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
+                        ) as writer, WriteBehind(write_parts, name="lidarcal-las") as write_run:
 
         def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
             # A run ends at the first cloud that brings it to LAS_RUN_POINTS, whichever
@@ -493,6 +500,7 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
         for _tag, ready in gate.finish():
             write(corrector.push(ready, None))
         write(corrector.flush(), final=True)
+        write_run.finish()
         _check_something_corrected(corrector.stats, bag.path, points_topic)
     report.las_skipped_non_finite = writer.stats.skipped_non_finite
     for count, why in ((writer.stats.skipped_non_finite, "with non-finite coordinates"),
