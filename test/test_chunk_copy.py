@@ -52,6 +52,20 @@ def correct(bag: Path, cal: Path, out: Path, *extra: str) -> None:
     assert main(["correct", str(bag), "--calibration", str(cal), "-o", str(out), *extra]) == 0
 
 
+def assert_reads_as_one_by_one(bag: Path, cal: Path, work: Path) -> tuple[Any, Any]:
+    """``work/out.mcap`` (corrected from ``bag``) reads back, through the mcap library, rosbags
+    and BagReader, as ``bag`` corrected with every message written one by one
+    (``work/reference.mcap``) does; the mcap library's messages by topic and their order."""
+    with messages_one_by_one():
+        correct(bag, cal, work / "reference.mcap")
+    written, order = read_with_mcap(work / "out.mcap")
+    reference, reference_order = read_with_mcap(work / "reference.mcap")
+    assert written == reference and order == reference_order
+    assert read_with_rosbags(work / "out.mcap") == reference
+    assert read_with_bag_reader(work / "out.mcap") == order
+    return written, order
+
+
 def mcap_file(bag: Path) -> Path:
     return bag if bag.suffix == ".mcap" else bag / f"{bag.name}.mcap"
 
@@ -272,13 +286,7 @@ def test_bag_of_several_files(small_mission: MissionFiles, outputs: dict[str, Pa
     with caplog.at_level(logging.INFO, logger="lidarcal_ros"):
         correct(bag, outputs["cal"], tmp_path / "out.mcap")
     assert (NOT_COPIED in caplog.text) == (layout != "same_ids")
-    with messages_one_by_one():
-        correct(bag, outputs["cal"], tmp_path / "reference.mcap")
-    written, order = read_with_mcap(tmp_path / "out.mcap")
-    reference, reference_order = read_with_mcap(tmp_path / "reference.mcap")
-    assert written == reference and order == reference_order
-    assert read_with_rosbags(tmp_path / "out.mcap") == reference
-    assert read_with_bag_reader(tmp_path / "out.mcap") == order
+    written, _order = assert_reads_as_one_by_one(bag, outputs["cal"], tmp_path)
     # the corrected clouds are those of the mission in one file
     assert written[CORRECTED] == read_with_mcap(outputs["copied.mcap"])[0][CORRECTED]
 
@@ -326,13 +334,7 @@ def test_chunks_of_other_compressions(small_mission: MissionFiles, outputs: dict
     chunks = chunk_data(tmp_path / "out.mcap")
     assert {c for c, _d, t in chunks if CORRECTED not in t} == {
         "" if compression == "none" else compression}
-    with messages_one_by_one():
-        correct(bag, outputs["cal"], tmp_path / "reference.mcap")
-    written, order = read_with_mcap(tmp_path / "out.mcap")
-    reference, reference_order = read_with_mcap(tmp_path / "reference.mcap")
-    assert written == reference and order == reference_order
-    assert read_with_rosbags(tmp_path / "out.mcap") == reference
-    assert read_with_bag_reader(tmp_path / "out.mcap") == order
+    _written, order = assert_reads_as_one_by_one(bag, outputs["cal"], tmp_path)
     # a reader from the start of the file (lidarcal recover's) meets every channel first
     assert sum(1 for _ in ReadableMcap(tmp_path / "out.mcap").messages()) == len(order)
 
