@@ -11,12 +11,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from lidarcal_ros.core.adjustment import DEFAULT_MAX_SIGMA, ObservabilityLimits
-from lidarcal_ros.core.calibrate import CalibrationSettings
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import ConfigError
+
+if TYPE_CHECKING:  # (imported where used: the correction reads configurations too)
+    from lidarcal_ros.core.calibrate import CalibrationSettings
 
 OptionsT = TypeVar("OptionsT")
 
@@ -429,6 +431,8 @@ class FlightConfig:
 
     def calibration_settings(self) -> CalibrationSettings:
         """The adjustment options this configuration sets."""
+        from lidarcal_ros.core.calibrate import CalibrationSettings
+
         values = self.values
         fixed = {n: float(values[f"calibration.fixed.{n}"]) for n in PARAMETER_NAMES}
         return CalibrationSettings(

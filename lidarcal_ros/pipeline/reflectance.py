@@ -183,11 +183,11 @@ def measure_target_in_bag(
     """The configured reference target measured on a mission bag (None when the
     configuration names no target): only the points within :data:`TARGET_MARGIN_M` of the
     box are read (:func:`measure_target_on_mission`)."""
-    from lidarcal_ros.pipeline.calibration import load_mission
-
     target = target_of(config)
     if target is None:
         return None
+    from lidarcal_ros.pipeline.calibration import load_mission  # (the calibration's imports)
+
     (x0, y0, x1, y1), _ = target
     m = TARGET_MARGIN_M
     mission = load_mission(bag, config, box=(x0 - m, y0 - m, x1 + m, y1 + m))
