@@ -125,37 +125,58 @@ def smallest_eigen_many(cxx: np.ndarray, cxy: np.ndarray, cxz: np.ndarray, cyy: 
     return lam_min, lam_mid, vec, ok
 
 
+@inlined
+def _height_plane(n: float, su: float, sv: float, sz: float, suu: float, suv: float,
+                  suz: float, svv: float, svz: float, szz: float, min_points: int,
+                  min_spread: float
+                  ) -> tuple[float, float, float, float, float, float, float, bool, float,
+                             float, float, float, float, float]:
+    """The least-squares height plane of a block from its ten moment sums, without a
+    branch: residual, normal, centroid and validity as :func:`fit_sums` (inf, NaN where
+    the points do not spread in both horizontal directions), then the covariances
+    ``cuu, cuv, cuz, cvv, cvz, czz`` for the principal-component fallback."""
+    inv = 1.0 / n
+    mu = su * inv
+    mv = sv * inv
+    mz = sz * inv
+    cuu = suu * inv - mu * mu
+    cuv = suv * inv - mu * mv
+    cuz = suz * inv - mu * mz
+    cvv = svv * inv - mv * mv
+    cvz = svz * inv - mv * mz
+    czz = szz * inv - mz * mz
+    det = cuu * cvv - cuv * cuv
+    half_tr = 0.5 * (cuu + cvv)
+    lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
+    ls = (n >= min_points) & (lam_h >= min_spread)
+    inv_det = 1.0 / det
+    b = (cvv * cuz - cuv * cvz) * inv_det
+    c = (cuu * cvz - cuv * cuz) * inv_det
+    norm2 = 1.0 + b * b + c * c
+    scale = 1.0 / math.sqrt(norm2)
+    res = max((czz - b * cuz - c * cvz) / norm2, 0.0)
+    return (res if ls else np.inf, -b * scale if ls else np.nan,
+            -c * scale if ls else np.nan, scale if ls else np.nan, mu, mv, mz, ls,
+            cuu, cuv, cuz, cvv, cvz, czz)
+
+
 @compiled
 def _fit_one(n: float, su: float, sv: float, sz: float, suu: float, suv: float, suz: float,
              svv: float, svz: float, szz: float, min_points: int, min_spread: float,
              residual: np.ndarray, normals: np.ndarray, valid: np.ndarray,
              centroid: np.ndarray, k: int) -> None:
     """Plane fit of one block from its ten moment sums into row ``k`` of the outputs
-    (:func:`lidarcal_ros.core.grid_planes.fit_block_planes` has the method)."""
-    inv = 1.0 / n
-    mu, mv, mz = su * inv, sv * inv, sz * inv
-    cuu = suu * inv - mu * mu
-    cuv = suv * inv - mu * mv
-    cvv = svv * inv - mv * mv
-    cuz = suz * inv - mu * mz
-    cvz = svz * inv - mv * mz
-    czz = szz * inv - mz * mz
+    (:func:`lidarcal_ros.core.grid_planes.fit_block_planes` has the method): the height
+    plane of :func:`_height_plane`, else the principal-component plane."""
+    res, nx, ny, nz, mu, mv, mz, height_plane, cuu, cuv, cuz, cvv, cvz, czz = _height_plane(
+        n, su, sv, sz, suu, suv, suz, svv, svz, szz, min_points, min_spread)
     centroid[k, 0], centroid[k, 1], centroid[k, 2] = mu, mv, mz
-    det = cuu * cvv - cuv * cuv
-    half_tr = 0.5 * (cuu + cvv)
-    lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
-    enough = n >= min_points
-    if enough and lam_h >= min_spread:
-        inv_det = 1.0 / det
-        b = (cvv * cuz - cuv * cvz) * inv_det
-        c = (cuu * cvz - cuv * cuz) * inv_det
-        norm2 = 1.0 + b * b + c * c
-        scale = 1.0 / math.sqrt(norm2)
-        residual[k] = max((czz - b * cuz - c * cvz) / norm2, 0.0)
-        normals[k, 0], normals[k, 1], normals[k, 2] = -b * scale, -c * scale, scale
+    if height_plane:
+        residual[k] = res
+        normals[k, 0], normals[k, 1], normals[k, 2] = nx, ny, nz
         valid[k] = True
         return
-    if enough:  # a wall or a single scan line: the principal-component plane
+    if n >= min_points:  # a wall or a single scan line: the principal-component plane
         lam_min, lam_mid, x, y, zz, good = _eigen_smallest(cuu, cuv, cuz, cvv, cvz, czz)
         if good and lam_mid >= min_spread:
             residual[k] = max(lam_min, 0.0)
@@ -193,41 +214,6 @@ BLOCK_COLUMNS = 5
 #: Columns of the block sums and fits handled at a time (:func:`fit_blocks`): their
 #: transposed sums stay in the first-level cache.
 _FIT_TILE = 64
-
-
-@inlined
-def _height_plane(n: float, su: float, sv: float, sz: float, suu: float, suv: float,
-                  suz: float, svv: float, svz: float, szz: float, min_points: int,
-                  min_spread: float
-                  ) -> tuple[float, float, float, float, float, float, float, bool, float,
-                             float, float, float, float, float]:
-    """The least-squares height plane of a block from its ten moment sums, without a
-    branch: residual, normal, centroid and validity as :func:`fit_sums` (inf, NaN where
-    the points do not spread in both horizontal directions), then the covariances
-    ``cuu, cuv, cuz, cvv, cvz, czz`` for the principal-component fallback."""
-    inv = 1.0 / n
-    mu = su * inv
-    mv = sv * inv
-    mz = sz * inv
-    cuu = suu * inv - mu * mu
-    cuv = suv * inv - mu * mv
-    cuz = suz * inv - mu * mz
-    cvv = svv * inv - mv * mv
-    cvz = svz * inv - mv * mz
-    czz = szz * inv - mz * mz
-    det = cuu * cvv - cuv * cuv
-    half_tr = 0.5 * (cuu + cvv)
-    lam_h = half_tr - math.sqrt(max(half_tr * half_tr - det, 0.0))
-    ls = (n >= min_points) & (lam_h >= min_spread)
-    inv_det = 1.0 / det
-    b = (cvv * cuz - cuv * cvz) * inv_det
-    c = (cuu * cvz - cuv * cuz) * inv_det
-    norm2 = 1.0 + b * b + c * c
-    scale = 1.0 / math.sqrt(norm2)
-    res = max((czz - b * cuz - c * cvz) / norm2, 0.0)
-    return (res if ls else np.inf, -b * scale if ls else np.nan,
-            -c * scale if ls else np.nan, scale if ls else np.nan, mu, mv, mz, ls,
-            cuu, cuv, cuz, cvv, cvz, czz)
 
 
 @compiled
