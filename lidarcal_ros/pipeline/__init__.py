@@ -22,7 +22,7 @@ from lidarcal_ros.exports import lazy_exports
 _EXPORTS = {
     "bag_correction": (
         "CorrectOptions", "CorrectionReport", "LAS_RUN_POINTS", "correct_bag", "output_kind",
-        "read_trajectory", "warm_up_compiled_loops",
+        "warm_up_compiled_loops",
     ),
     "calibration": (
         "Truth", "calibrate_mission", "convergence_warning", "format_agreement",

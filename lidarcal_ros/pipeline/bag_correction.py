@@ -4,8 +4,8 @@
 as it comes, and each cloud is streamed through a
 :class:`~lidarcal_ros.pipeline.stream_corrector.StreamCorrector` (read ahead in a thread,
 batches corrected in worker threads) once the trajectory covers it
-(:class:`~lidarcal_ros.pipeline.trajectory_gate.TrajectoryGate`), with the result reading the
-whole trajectory first (:func:`read_trajectory`) gives. Where a bag does not allow that (its
+(:class:`~lidarcal_ros.pipeline.trajectory_gate.TrajectoryGate`), with the result that reading
+the whole trajectory first gives. Where a bag does not allow that (its
 trajectory comes after its clouds, or out of time order) it is read again, the trajectory
 first. What comes out is written in order:
 
@@ -52,7 +52,7 @@ from lidarcal_ros.pipeline.trajectory_gate import RereadBag, TrajectoryGate
 
 __all__ = [
     "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport", "correct_bag", "output_kind",
-    "read_trajectory", "warm_up_compiled_loops",
+    "warm_up_compiled_loops",
 ]
 
 logger = logging.getLogger(__name__)
@@ -100,18 +100,6 @@ class CorrectionReport:
 def output_kind(path: str | Path) -> str:
     """``las`` for ``.las``/``.laz``, else ``bag`` (``.mcap`` file or rosbag2 directory)."""
     return "las" if Path(path).suffix.lower() in (".las", ".laz") else "bag"
-
-
-def read_trajectory(bag: Any, topic: str) -> tuple[Trajectory, set[str]]:
-    """Every trajectory sample of an open bag (a pass over it), and the frames they are
-    in."""
-    from lidarcal_ros.io.trajectory_messages import TrajectorySamples
-
-    samples = TrajectorySamples()
-    add = _pose_reader(bag, topic, samples)
-    for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([topic])):
-        add(msgtype, raw)
-    return _whole_trajectory(bag, topic, samples), samples.frames
 
 
 def _pose_reader(bag: Any, topic: str, samples: Any) -> Callable[[str, Any], None]:
