@@ -100,3 +100,26 @@ def test_start_without_blas_after_scipy_linalg() -> None:
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "ok"
+
+
+def test_start_without_blas_holds_the_compiler_lock() -> None:
+    """numba's registries load under its compiler lock, as its own compilations load them: a
+    kernel compiled meanwhile in another thread (the correction's reading thread compiles
+    while the warm-up thread starts numba) must not be typed against half-loaded ones."""
+    script = textwrap.dedent("""
+        from numba.core.compiler_lock import global_compiler_lock
+        from numba.core.registry import cpu_target
+        from lidarcal_ros.core.jit import start_without_blas
+        context = cpu_target.target_context
+        held = []
+        refresh = type(context).refresh
+        type(context).refresh = lambda self: (held.append(global_compiler_lock.is_locked()),
+                                              refresh(self))
+        start_without_blas()
+        assert held and all(held), held
+        print("ok")
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "ok"

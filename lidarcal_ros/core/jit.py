@@ -55,17 +55,22 @@ def start_without_blas() -> None:
     compiled loops, while no other thread imports scipy.linalg (for those few hundred
     milliseconds that import would fail).
     """
+    from numba.core.compiler_lock import global_compiler_lock
     from numba.core.registry import cpu_target
 
-    if "scipy.linalg" in sys.modules:
-        cpu_target.target_context.refresh()
-        return
-    sys.modules["scipy.linalg"] = None  # type: ignore[assignment]  # import -> ImportError
-    try:
-        cpu_target.target_context.refresh()
-    finally:
-        if sys.modules.get("scipy.linalg", 0) is None:
-            del sys.modules["scipy.linalg"]
+    # Under numba's compiler lock, as its own compilations set the compiler up: a function
+    # compiled in another thread meanwhile would otherwise be typed against registries
+    # half loaded ("Unknown attribute 'shape' of type array").
+    with global_compiler_lock:
+        if "scipy.linalg" in sys.modules:
+            cpu_target.target_context.refresh()
+            return
+        sys.modules["scipy.linalg"] = None  # type: ignore[assignment]  # import -> ImportError
+        try:
+            cpu_target.target_context.refresh()
+        finally:
+            if sys.modules.get("scipy.linalg", 0) is None:
+                del sys.modules["scipy.linalg"]
 
 
 __all__ = ["JIT_OPTIONS", "compiled", "inlined", "start_without_blas"]
