@@ -50,7 +50,7 @@ _EXPORTS = {
     "mcap_chunk_reader": ("chunk_messages", "in_time_order"),
     "mcap_chunk_writer": (
         "BagWriterBackend", "CHUNK_BYTES", "ThreadedMcapStorage", "ZSTD_LEVEL",
-        "compress_parts",
+        "chunk_index_record", "compress_parts",
     ),
     "mission_bag": ("read_mission", "strip_point_array", "time_chunk_bounds", "write_mission_bag"),
     "output_files": (

@@ -20,7 +20,6 @@ import logging
 import os
 from collections.abc import Collection
 from dataclasses import dataclass, field
-from io import BytesIO
 from typing import Any, BinaryIO
 
 from rosbags.interfaces import (
@@ -38,10 +37,9 @@ from rosbags.rosbag2.storage_mcap import (
     get_qos,
     write_channel,
     write_schema,
-    write_string,
-    write_uint32,
-    write_uint64,
 )
+
+from lidarcal_ros.io.mcap_chunk_writer import chunk_index_record
 
 logger = logging.getLogger(__name__)
 
@@ -280,18 +278,11 @@ def _copy_chunk(writer: Any, source: BinaryIO, chunk: ChunkInfo) -> None:
     _copy_bytes(source, storage.bio, chunk.chunk_start_offset,
                 chunk.chunk_length + chunk.message_index_length)
     shift = start - chunk.chunk_start_offset
-    rec = BytesIO()
-    for value in (chunk.message_start_time, chunk.message_end_time, start, chunk.chunk_length):
-        write_uint64(rec, value)
-    write_uint32(rec, len(chunk.message_index_offsets) * 10)
-    for cid, offset in chunk.message_index_offsets.items():
-        rec.write(cid.to_bytes(2, "little"))
-        write_uint64(rec, offset + shift)
-    write_uint64(rec, chunk.message_index_length)
-    write_string(rec, chunk.compression)
-    write_uint64(rec, chunk.compressed_size)
-    write_uint64(rec, chunk.uncompressed_size)
-    storage.chunks.append(rec)
+    storage.chunks.append(chunk_index_record(
+        chunk.message_start_time, chunk.message_end_time, start, chunk.chunk_length,
+        [(cid, offset + shift) for cid, offset in chunk.message_index_offsets.items()],
+        chunk.message_index_length, chunk.compression, chunk.compressed_size,
+        chunk.uncompressed_size))
     for cid, count in chunk.channel_count.items():
         storage.channel_stats[cid] += count
         writer.counts[cid] += count

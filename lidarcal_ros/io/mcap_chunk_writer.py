@@ -92,6 +92,31 @@ class _Chunk:
     parts: list[Buffer] = field(default_factory=list)
 
 
+def chunk_index_record(start: int, end: int, offset: int, length: int,
+                       message_indexes: Sequence[tuple[int, int]], index_length: int,
+                       compression: str, compressed_size: int, uncompressed_size: int
+                       ) -> BytesIO:
+    """The body of a chunk's Chunk Index record (MCAP, opcode 0x08), as rosbags' writer
+    keeps them for the summary: message log times ``start`` to ``end`` (ns), the chunk
+    record's file ``offset`` and ``length``, ``(channel id, file offset)`` of each of its
+    message index records and their total ``index_length`` (bytes), its compression and
+    sizes."""
+    rec = BytesIO()
+    write_uint64(rec, start)
+    write_uint64(rec, end)
+    write_uint64(rec, offset)
+    write_uint64(rec, length)
+    write_uint32(rec, len(message_indexes) * 10)
+    for cid, index_offset in message_indexes:
+        write_uint16(rec, cid)
+        write_uint64(rec, index_offset)
+    write_uint64(rec, index_length)
+    write_string(rec, compression)
+    write_uint64(rec, compressed_size)
+    write_uint64(rec, uncompressed_size)
+    return rec
+
+
 class ThreadedMcapStorage(McapWriter):
     """rosbags' MCAP storage writer whose chunks are lists of parts compressed in threads
     (module docstring); the records it writes are rosbags'."""
@@ -206,20 +231,9 @@ class ThreadedMcapStorage(McapWriter):
                 write_uint64(rec, offset)
             write_record(bio, 0x07, rec)
 
-        rec = BytesIO()
-        write_uint64(rec, chunk.start)
-        write_uint64(rec, chunk.end)
-        write_uint64(rec, chunk_start)
-        write_uint64(rec, chunk_end - chunk_start)
-        write_uint32(rec, len(offsets) * 10)
-        for cid, offset in offsets:
-            write_uint16(rec, cid)
-            write_uint64(rec, offset)
-        write_uint64(rec, bio.tell() - chunk_end)
-        write_string(rec, self.compression)
-        write_uint64(rec, len(data))
-        write_uint64(rec, chunk.size)
-        self.chunks.append(rec)
+        self.chunks.append(chunk_index_record(
+            chunk.start, chunk.end, chunk_start, chunk_end - chunk_start, offsets,
+            bio.tell() - chunk_end, self.compression, len(data), chunk.size))
 
     def close(self, version: int, metadata: str) -> None:
         """Write the last chunks, then rosbags' summary and footer."""
@@ -249,4 +263,4 @@ class BagWriterBackend(Writer):
 
 
 __all__ = ["CHUNK_BYTES", "ZSTD_LEVEL", "BagWriterBackend", "ThreadedMcapStorage",
-           "compress_parts"]
+           "chunk_index_record", "compress_parts"]
