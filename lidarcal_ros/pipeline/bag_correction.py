@@ -559,7 +559,7 @@ def _correct_to_bag(job: _Job) -> None:
             writer.write_raw(corrected_topic, POINTCLOUD2, ns_, message.data)
 
         def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
-            if copied is not None or topic_ in skipped_topics:
+            if topic_ in skipped_topics:
                 return
             try:
                 writer.write_raw(topic_, msgtype_, ns_, raw_,
@@ -591,7 +591,8 @@ def _correct_to_bag(job: _Job) -> None:
         # (clouds alone: fewer of them read ahead hold as many bytes as the mixed messages)
         for k, (topic, msgtype, ns, raw) in enumerate(
                 prefetched(read, batch=8 if read_topics == [points_topic] else 32)):
-            heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
+            if copied is None:  # (copied, the input's messages are in the output already)
+                heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
             if topic == points_topic:
                 msg, points = _cloud_points(bag, msgtype, raw, topic)
                 held.append(k)
