@@ -97,7 +97,7 @@ setup(
     cmdclass={"build_py": BuildPyWithProfile},
     entry_points={
         "console_scripts": [
-            "lidarcal = lidarcal_ros.cli.main:main",
+            "lidarcal = lidarcal_ros.cli.main:console_main",
             "lidarcal_calibrator = lidarcal_ros.nodes.calibrator:main",
             "lidarcal_corrector = lidarcal_ros.nodes.corrector:main",
             "lidarcal_flight_config = lidarcal_ros.nodes.flight_config:main",

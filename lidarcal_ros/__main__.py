@@ -1,8 +1,6 @@
 """``python -m lidarcal_ros`` runs the ``lidarcal`` command line."""
 
-import sys
-
-from lidarcal_ros.cli.main import main
+from lidarcal_ros.cli.main import console_main
 
 if __name__ == "__main__":  # (not when a spawned child process imports the main module)
-    sys.exit(main())
+    console_main()

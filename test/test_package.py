@@ -221,7 +221,7 @@ def test_setup_py_matches_package_xml() -> None:
     tree = ast.parse((ROOT / "setup.py").read_text())
     strings = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)}
     for executable, target in (
-        ("lidarcal", "lidarcal_ros.cli.main:main"),
+        ("lidarcal", "lidarcal_ros.cli.main:console_main"),
         ("lidarcal_calibrator", "lidarcal_ros.nodes.calibrator:main"),
         ("lidarcal_corrector", "lidarcal_ros.nodes.corrector:main"),
         ("lidarcal_flight_config", "lidarcal_ros.nodes.flight_config:main"),

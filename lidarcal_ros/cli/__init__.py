@@ -13,9 +13,10 @@ _EXPORTS = {
     "correction_commands": ("add_correct_command", "cmd_correct"),
     "exit_status": (
         "EXIT_BAD_INPUT", "EXIT_INTERNAL_ERROR", "EXIT_INTERRUPTED", "EXIT_NOTHING_ESTIMATED",
-        "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_USAGE", "run_command",
+        "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_USAGE", "end_process",
+        "run_command",
     ),
-    "main": ("CommandLogFormatter", "build_parser", "command_log_lines"),
+    "main": ("CommandLogFormatter", "build_parser", "command_log_lines", "console_main"),
     "ros_commands": (
         "NODE_CHOICES", "add_record_arguments", "add_record_command", "add_replay_arguments",
         "add_replay_command", "add_run_arguments", "add_run_command", "check_ros_parameters",

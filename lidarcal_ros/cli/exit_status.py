@@ -8,14 +8,18 @@ one line on stderr (``lidarcal COMMAND: error: REASON``); what each status means
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
+import os
 import sys
+import threading
+from typing import NoReturn
 
 from lidarcal_ros.errors import LidarcalError
 
 __all__ = [
     "EXIT_BAD_INPUT", "EXIT_INTERNAL_ERROR", "EXIT_INTERRUPTED", "EXIT_NOTHING_ESTIMATED",
-    "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_USAGE", "run_command",
+    "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_USAGE", "end_process", "run_command",
 ]
 
 logger = logging.getLogger("lidarcal")
@@ -66,3 +70,28 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"lidarcal {args.command}: internal error: {type(exc).__name__}: {text} "
               "(rerun with -vv for the traceback)", file=sys.stderr)
         return EXIT_INTERNAL_ERROR
+
+
+def end_process(status: int) -> NoReturn:
+    """End the ``lidarcal`` process with ``status`` once a command has returned.
+
+    The exit handlers run (logging's flush, multiprocessing's children, coverage, temporary
+    directories), then standard output and error are flushed and the process ends without
+    the interpreter's teardown: with numba's compiler and the bag libraries loaded, freeing
+    every module's objects one by one takes 0.15-0.3 s, a sixth of a one-million-point
+    ``lidarcal correct``, and gives the system nothing it does not reclaim at once.
+    Where that teardown matters it is kept: a thread that is not a daemon still runs (the
+    interpreter waits for it), or ROS was started (its participants say goodbye to the
+    others as they are destroyed).
+    """
+    others = [t for t in threading.enumerate()
+              if t is not threading.main_thread() and not t.daemon and t.is_alive()]
+    if others or "rclpy" in sys.modules:
+        sys.exit(status)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (``lidarcal ... | head``): nothing to do
+            pass
+    os._exit(status)

@@ -32,6 +32,7 @@ import contextlib
 import logging
 import sys
 from collections.abc import Iterator, Sequence
+from typing import NoReturn
 
 from lidarcal_ros import __version__
 from lidarcal_ros.cli.bag_commands import add_import_command, add_recover_command
@@ -41,11 +42,11 @@ from lidarcal_ros.cli.calibration_commands import (
     add_report_command,
 )
 from lidarcal_ros.cli.correction_commands import add_correct_command
-from lidarcal_ros.cli.exit_status import EXIT_STATUSES, run_command
+from lidarcal_ros.cli.exit_status import EXIT_STATUSES, end_process, run_command
 from lidarcal_ros.cli.ros_commands import add_record_command, add_replay_command, add_run_command
 from lidarcal_ros.cli.simulation_commands import add_plan_command, add_simulate_command
 
-__all__ = ["CommandLogFormatter", "build_parser", "command_log_lines", "main"]
+__all__ = ["CommandLogFormatter", "build_parser", "command_log_lines", "console_main", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -115,5 +116,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_command(args)
 
 
+def console_main() -> NoReturn:
+    """Entry point of the ``lidarcal`` console script and of ``python -m lidarcal_ros``:
+    :func:`main`, then the process ends (:func:`~lidarcal_ros.cli.exit_status.end_process`)."""
+    end_process(main())
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console_main()
