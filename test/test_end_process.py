@@ -79,6 +79,16 @@ def test_the_interpreter_ends_itself_once_ros_was_started(tmp_path: Path) -> Non
     assert proc.stdout == "torn down\n"
 
 
+def test_a_profiler_still_writes_its_figures(tmp_path: Path) -> None:
+    script = tmp_path / "probe.py"
+    script.write_text("from lidarcal_ros.cli.exit_status import end_process\nend_process(0)\n")
+    proc = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(tmp_path / "prof"),
+                           str(script)], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=60, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "prof").stat().st_size > 0
+
+
 def test_without_ros_the_teardown_is_skipped(tmp_path: Path) -> None:
     proc = _python("""
         class Late:

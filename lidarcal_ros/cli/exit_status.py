@@ -81,12 +81,13 @@ def end_process(status: int) -> NoReturn:
     every module's objects one by one takes 0.15-0.3 s, a sixth of a one-million-point
     ``lidarcal correct``, and gives the system nothing it does not reclaim at once.
     Where that teardown matters it is kept: a thread that is not a daemon still runs (the
-    interpreter waits for it), or ROS was started (its participants say goodbye to the
-    others as they are destroyed).
+    interpreter waits for it), ROS was started (its participants say goodbye to the others
+    as they are destroyed), or a profiler or tracer is attached (``python -m cProfile``
+    writes its figures after the program's end).
     """
     others = [t for t in threading.enumerate()
               if t is not threading.main_thread() and not t.daemon and t.is_alive()]
-    if others or "rclpy" in sys.modules:
+    if others or "rclpy" in sys.modules or sys.getprofile() or sys.gettrace():
         sys.exit(status)
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
