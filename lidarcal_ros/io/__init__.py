@@ -5,9 +5,9 @@ from lidarcal_ros.exports import lazy_exports
 
 _EXPORTS = {
     "bag_format": (
-        "NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "make_qos",
-        "normalize_msgtype", "ns_to_seconds", "seconds_to_ns", "stamp_seconds",
-        "standard_typestore",
+        "NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "add_standard_types",
+        "empty_typestore", "make_qos", "normalize_msgtype", "ns_to_seconds", "seconds_to_ns",
+        "stamp_seconds", "standard_typestore",
     ),
     "bag_reader": ("BagReader", "ReadableMcap", "TopicInfo", "open_bag"),
     "bag_recovery": ("RecoveredBag", "bag_files", "recover_bag"),

@@ -37,6 +37,20 @@ def standard_typestore() -> Typestore:
     return get_typestore(store)
 
 
+def empty_typestore() -> Typestore:
+    """A typestore without a type, for the definitions a bag carries (building the standard
+    one imports every ROS 2 release's definitions: some 0.07 s)."""
+    return get_typestore(Stores.EMPTY)
+
+
+def add_standard_types(store: Typestore) -> None:
+    """Add to ``store`` the standard ROS 2 types it lacks (those it has are kept)."""
+    standard = standard_typestore()
+    missing = {k: v for k, v in standard.fielddefs.items() if k not in store.fielddefs}
+    if missing:
+        store.register(missing)
+
+
 def normalize_msgtype(name: str) -> str:
     """``pkg/Type`` -> ``pkg/msg/Type``; names that already have a namespace are kept."""
     parts = name.split("/")
@@ -77,6 +91,6 @@ def stamp_seconds(stamp: Any) -> float:
     return float(stamp.sec) + int(stamp.nanosec) * 1e-9
 
 
-__all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "make_qos",
-           "normalize_msgtype", "ns_to_seconds", "seconds_to_ns", "stamp_seconds",
-           "standard_typestore"]
+__all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "add_standard_types",
+           "empty_typestore", "make_qos", "normalize_msgtype", "ns_to_seconds", "seconds_to_ns",
+           "stamp_seconds", "standard_typestore"]

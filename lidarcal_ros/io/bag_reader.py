@@ -38,7 +38,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
 from lidarcal_ros.errors import BagError, one_line
-from lidarcal_ros.io.bag_format import normalize_msgtype, standard_typestore
+from lidarcal_ros.io.bag_format import add_standard_types, empty_typestore, normalize_msgtype
 from lidarcal_ros.io.mcap_chunk_reader import chunk_messages
 
 logger = logging.getLogger(__name__)
@@ -181,7 +181,9 @@ class BagReader:
         self._files: list[_File] = []
         self._tmpdir: tempfile.TemporaryDirectory[str] | None = None
         self._message_compressed = False
-        self._typestore = standard_typestore()
+        # The bag's own definitions decode its messages; the standard ones only stand in for
+        # those it lacks (see _collect_topics).
+        self._typestore = empty_typestore()
         self._connection_types: dict[tuple[int, int], str] = {}
         try:
             self._open()
@@ -325,6 +327,8 @@ class BagReader:
                 if conn.msgdef.format != MessageDefinitionFormat.NONE and conn.msgdef.data:
                     defs.setdefault(conn.topic, conn.msgdef.data)
                     self._register(msgtype, conn.msgdef.data, conn.msgdef.format)
+        if any(t not in self._typestore.fielddefs for t in types.values()):
+            add_standard_types(self._typestore)
         self.start_ns = min(starts) if starts else 0
         self.end_ns = max(ends) if ends else 0
         self.topics = {
@@ -338,7 +342,8 @@ class BagReader:
         }
 
     def _register(self, msgtype: str, text: str, fmt: MessageDefinitionFormat) -> None:
-        """Add a bag's definition of a type the standard typestore lacks."""
+        """Add the bag's definition of ``msgtype`` (and of the types it uses), unless an
+        earlier connection gave one."""
         if msgtype in self._typestore.fielddefs:
             return
         try:
@@ -422,6 +427,13 @@ class BagReader:
         """The open readers of the bag's MCAP files, whose chunks hold its messages as
         :meth:`messages` yields them; None when the messages are compressed one by one."""
         return None if self._message_compressed else [file.reader for file in self._files]
+
+    @property
+    def typestore(self) -> Any:
+        """The rosbags typestore that decodes the bag: its own definitions, the standard
+        ROS 2 ones only for types it carries none of (a writer may share it:
+        :class:`~lidarcal_ros.io.bag_writer.BagWriter`'s ``typestore``)."""
+        return self._typestore
 
     def deserialize(self, raw: bytes | memoryview, msgtype: str, *, topic: str = "") -> Any:
         """Decode a CDR message.

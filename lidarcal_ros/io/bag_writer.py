@@ -35,6 +35,7 @@ from lidarcal_ros.io.bag_format import (
     NS_PER_SECOND,
     POINTCLOUD2,
     POSE_STAMPED,
+    add_standard_types,
     make_qos,
     normalize_msgtype,
     standard_typestore,
@@ -100,6 +101,11 @@ class BagWriter:
         (disk full), nothing partial is left and a previous output is untouched. False (a
         live recording, which a power loss may cut: ``lidarcal recover`` reads what it
         holds) writes a rosbag2 directory in place, an existing one removed first.
+    typestore : rosbags Typestore, keyword-only
+        The type definitions to write with, e.g. an input bag's
+        (:attr:`~lidarcal_ros.io.bag_reader.BagReader.typestore`: its messages passed
+        through keep their definitions); the standard ROS 2 ones are added where a type is
+        missing. Default: the standard ones.
 
     Notes
     -----
@@ -115,6 +121,7 @@ class BagWriter:
         latched_topics: Iterable[str] = (),
         compress: bool = True,
         staged: bool = True,
+        typestore: Any = None,
     ) -> None:
         self.path = Path(path)
         self.overwrite = overwrite
@@ -129,7 +136,8 @@ class BagWriter:
                         if self._staged else self.path)
         self._writer: BagWriterBackend | None = None
         self._connections: dict[str, Connection] = {}
-        self._typestore = standard_typestore()
+        self._typestore = standard_typestore() if typestore is None else typestore
+        self._standard_added = typestore is None
 
     def open(self) -> BagWriter:
         """Create the output; called on entering the ``with`` block.
@@ -204,6 +212,10 @@ class BagWriter:
         typestore lacks it); BagError if it cannot be."""
         if msgtype in self._typestore.fielddefs:
             return
+        if not msgdef and not self._standard_added:
+            self._add_standard_types()
+            if msgtype in self._typestore.fielddefs:
+                return
         if not msgdef:
             raise BagError(f"{self.path}: unknown message type {msgtype} for {topic}")
         try:
@@ -215,6 +227,18 @@ class BagWriter:
             raise BagError(
                 f"{self.path}: cannot parse definition of {msgtype} ({one_line(err)})"
             ) from None
+
+    def _add_standard_types(self) -> None:
+        """The standard ROS 2 types, where the typestore given lacks them (once)."""
+        add_standard_types(self._typestore)
+        self._standard_added = True
+
+    @property
+    def _types(self) -> dict[str, Any]:
+        """The typestore's message classes, the standard ones among them (typed writes)."""
+        if not self._standard_added:
+            self._add_standard_types()
+        return self._typestore.types
 
     def copy_chunks_of(self, bag: Any, new_topics: dict[str, str]) -> ChunkCopy | None:
         """Pass every message of an open input bag through by copying its compressed
@@ -290,7 +314,7 @@ class BagWriter:
             raise OutputError(f"{self.path}: cannot write bag ({os_reason(err)})") from None
 
     def _header(self, stamp_ns: int, frame_id: str) -> Any:
-        types = self._typestore.types
+        types = self._types
         sec, nsec = divmod(int(stamp_ns), NS_PER_SECOND)
         if not 0 <= sec < 2**31:
             raise BagError(f"{self.path}: stamp {stamp_ns} ns out of range for a ROS 2 Time")
@@ -335,7 +359,7 @@ class BagWriter:
         if is_dense is None:
             names = points.dtype.names or ()
             is_dense = all(bool(np.isfinite(points[c]).all()) for c in "xyz" if c in names)
-        types = self._typestore.types
+        types = self._types
         point_field = types["sensor_msgs/msg/PointField"]
         msg = types[POINTCLOUD2](
             header=self._header(stamp_ns, frame_id),
@@ -375,7 +399,7 @@ class BagWriter:
         quaternion_xyzw : (4,) float, keyword-only
             Orientation; identity by default.
         """
-        types = self._typestore.types
+        types = self._types
         x, y, z = (float(v) for v in xyz)
         qx, qy, qz, qw = (float(v) for v in quaternion_xyzw)
         msg = types[POSE_STAMPED](

@@ -548,7 +548,8 @@ def _correct_to_bag(job: _Job) -> None:
         return buf[pad + len(head):pad + size - 1].view(dtype_)
 
     corrector.place = place
-    with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched) as writer:
+    with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched,
+                   typestore=bag.typestore) as writer:
         # Where the input allows it, its chunks are copied as they are: every input message
         # is then in the output, and only the clouds are read.
         copied = writer.copy_chunks_of(bag, {corrected_topic: POINTCLOUD2})
