@@ -273,8 +273,8 @@ def test_a_type_the_bag_does_not_define_decodes_with_the_standard_one(tmp_path):
 
     cloud = _points(20, 4, 10.0)
     source = tmp_path / "source"
-    with BagWriter(source, compress=False) as writer:
-        writer.write_cloud("/lidar/points", seconds_to_ns(10.0), "map", cloud)
+    with BagWriter(source, compress=False) as bag_writer:
+        bag_writer.write_cloud("/lidar/points", seconds_to_ns(10.0), "map", cloud)
     with open_bag(source) as reader:
         [(_topic, msgtype, ns, raw)] = list(reader.messages())
     path = tmp_path / "bare.mcap"
