@@ -14,7 +14,7 @@ from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.grid_planes import smallest_eigen
 from lidarcal_ros.core.local_trajectory import covered_by_trajectory
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.core.normals import GridNormals, cell_size, grid_normals
+from lidarcal_ros.core.normals import CELL_SPACINGS, GridNormals, cell_size, grid_normals
 from lidarcal_ros.core.radiometry import (
     RadiometricModel,
     atmospheric_alpha,
@@ -281,12 +281,17 @@ def test_plane_normals_of_any_orientation() -> None:
 
 
 def test_cells_follow_the_scan_pattern() -> None:
-    # 0.5 m between pulses across, 1.5 m between sweeps along: rectangular cells.
+    # 0.5 m between pulses across, 1.5 m between sweeps along: rectangular cells, of 1.5
+    # spacings where two would exceed a metre, else of two up to a metre.
     xy, t = _scan_pattern(n_sweeps=60, per_sweep=400, swath=200.0, spacing_along=1.5)
     xyz = np.column_stack([xy, np.zeros(len(t))])
     along, across = cell_size(xyz, 0.0, t)
     assert along == pytest.approx(1.5 * 1.5, rel=0.1)
-    assert across == pytest.approx(1.5 * 0.5, rel=0.1)
+    assert across == pytest.approx(1.0, rel=0.1)
+    # Dense (0.1 m across, 0.3 m along): two spacings each.
+    along, across = cell_size(xyz * 0.2, 0.0, t)
+    assert along == pytest.approx(CELL_SPACINGS * 0.3, rel=0.1)
+    assert across == pytest.approx(CELL_SPACINGS * 0.1, rel=0.1)
     # Without times the cell is square.
     sq = cell_size(xyz, 0.0)
     assert sq[0] == sq[1]

@@ -1,16 +1,17 @@
 """Local surface normals of a LiDAR strip by grid plane fits (for the incidence angle).
 
 Per-point k-nearest-neighbour searches are too slow for a stream of millions of points per
-second, so the neighbourhood is a grid: the points are binned into cells of 1.5 point spacings
-in a frame aligned with the flight line (``u`` along, ``v`` across, metres), the first and
-second moments of each cell are summed (the ten sums of a cell side by side), and a plane is
-fitted to every 2x2 block of cells (least-squares height plane; principal components for the
-few blocks whose points do not spread in both horizontal directions, e.g. walls). Each cell
-takes the plane of the most planar of the four blocks that contain it (smallest residual
-variance), so a cell beside a roof ridge or a building edge takes the block lying on its own
-side where there is one; a cell whose four blocks are all degenerate (fewer than
-``min_points`` points, or all on one scan line) falls back to the 3x3 block centred on it,
-then to the 5x5 one, and failing that gets no normal (NaN).
+second, so the neighbourhood is a grid: the points are binned into cells of two point spacings
+(1.5 where points are so sparse that two would exceed a metre) in a frame aligned with the
+flight line (``u`` along, ``v`` across, metres), the first and second moments of each cell are
+summed (the ten sums of a cell side by side), and a plane is fitted to every 2x2 block of
+cells (least-squares height plane; principal components for the few blocks whose points do
+not spread in both horizontal directions, e.g. walls). Each cell takes the plane of the most
+planar of the four blocks that contain it (smallest residual variance), so a cell beside a
+roof ridge or a building edge takes the block lying on its own side where there is one; a
+cell whose four blocks are all degenerate (fewer than ``min_points`` points, or all on one
+scan line) falls back to the 3x3 block centred on it, then to the 5x5 one, and failing that
+gets no normal (NaN).
 
 Every point takes the plane of its cell, unless it lies off that plane (further than three
 times the typical residual, at least 5 cm) or the plane fits its block badly: then it takes,
@@ -25,10 +26,11 @@ A linear (zig-zag) scanner samples anisotropically: points follow each other clo
 sweep while the sweeps are further apart (twice their mean distance near the swath edges,
 where consecutive sweeps meet). :func:`cell_size` therefore measures the spacing across track
 from consecutive pulses and the spacing along track from the area per point, and the cells
-are rectangles of 1.5 of each; a 2x2 block then always spans two sweeps.
+are rectangles of two of each (:data:`CELL_SPACINGS`); a 2x2 block then always spans two
+sweeps.
 
 Cost (compiled loops, :mod:`lidarcal_ros.core.normals_kernels`): one pass over the points to
-bin them, one over the cells (about one cell per 2.25 points) to fit the blocks and choose
+bin them, one over the cells (about one cell per four points) to fit the blocks and choose
 each cell's plane, one over the points for their normals; a nine-plane search for the few per
 cent of points near edges.
 
@@ -57,8 +59,18 @@ from lidarcal_ros.core.grid_planes import (
 
 logger = logging.getLogger(__name__)
 
-#: Cell size in mean point spacings.
-CELL_SPACINGS = 1.5
+#: Cell size in point spacings (along and across track each), while that stays within
+#: :data:`_CELL_MAX_M`; never below :data:`_SPARSE_CELL_SPACINGS` spacings. Against the
+#: simulation's truth, where points are dense (cells below a metre) blocks of some 16 points
+#: give lower reflectance and incidence errors than cells of 1.5 spacings (the range noise
+#: averages out; the nine-plane search keeps edges sharp), for fewer cells to bin and fit;
+#: where they are sparse (cells of metres) the larger cells straddle more roof edges.
+CELL_SPACINGS = 2.0
+#: Cell size in point spacings where :data:`CELL_SPACINGS` would pass :data:`_CELL_MAX_M`.
+_SPARSE_CELL_SPACINGS = 1.5
+#: Largest cell side (m) that :data:`CELL_SPACINGS` may give.
+_CELL_MAX_M = 1.0
+
 
 #: Fewest points a block needs for a plane.
 MIN_BLOCK_POINTS = 5
@@ -125,15 +137,22 @@ def mean_spacing(xyz: np.ndarray, heading: float) -> float:
     return math.sqrt(area / (0.98 * n))
 
 
+def _cell_side(spacing: float) -> float:
+    """A cell's side (m) for a point spacing (m): :data:`CELL_SPACINGS` spacings up to
+    :data:`_CELL_MAX_M`, at least :data:`_SPARSE_CELL_SPACINGS` spacings."""
+    return min(CELL_SPACINGS * spacing, max(_SPARSE_CELL_SPACINGS * spacing, _CELL_MAX_M))
+
+
 def cell_size(
     xyz: np.ndarray, heading: float, t: np.ndarray | None = None
 ) -> tuple[float, float]:
-    """Grid cell ``(along, across)`` in metres for a piece of strip: 1.5 spacings each.
+    """Grid cell ``(along, across)`` in metres for a piece of strip: :data:`CELL_SPACINGS`
+    spacings each, within :data:`_CELL_MAX_M` (:func:`_cell_side`).
 
     With the firing times ``t``, the across-track spacing is the median lateral distance
     between consecutive pulses (the in-sweep spacing) and the along-track spacing the area per
     point divided by it (the sweep spacing); their ratio is kept within 1/8..8. Without
-    ``t`` (or where that fails) the cell is square, 1.5 :func:`mean_spacing`.
+    ``t`` (or where that fails) the cell is square, from :func:`mean_spacing`.
 
     Parameters
     ----------
@@ -152,7 +171,7 @@ def cell_size(
     s = mean_spacing(xyz, heading)
     if not math.isfinite(s):
         return math.nan, math.nan
-    square = (CELL_SPACINGS * s, CELL_SPACINGS * s)
+    square = (_cell_side(s), _cell_side(s))
     n = xyz.shape[0]
     if t is None or n < 20:
         return square
@@ -170,7 +189,7 @@ def cell_size(
         return square
     across = min(max(across, s / math.sqrt(8.0)), s * math.sqrt(8.0))
     along = s * s / across
-    return CELL_SPACINGS * along, CELL_SPACINGS * across
+    return _cell_side(along), _cell_side(across)
 
 
 def flight_frame(
