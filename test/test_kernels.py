@@ -281,6 +281,13 @@ def test_flight_cells_are_the_flight_frame_and_cells_of_the_finite_points() -> N
     np.testing.assert_array_equal(iv, np.floor(v * (1 / 0.075)).astype(np.int64))
     assert bounds.tolist() == [iu.min(), iu.max(), iv.min(), iv.max()]
     assert normals_kernels.flight_cells(xyz[:0], c, s, x0, y0, z0, 1.0, 1.0)[0].size == 0
+    # Every point finite: the same, without the index (the rows in order).
+    finite = np.ascontiguousarray(xyz[keep])
+    got = normals_kernels.flight_cells(finite, c, s, x0, y0, z0, 1 / 0.6, 1 / 0.075)
+    assert got[5].size == 0
+    for a, b in zip(got[:5], (u, v, z, iu, iv), strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(got[6], bounds)
 
 
 def test_flight_to_map_rotates_by_the_heading() -> None:

@@ -482,6 +482,10 @@ def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: flo
     ``v = cos_h dx + sin_h dy``, ``z - z0``; ``floor(u inv_cell_u)``,
     ``floor(v inv_cell_v)`` as int64, for the finite rows).
 
+    Every point finite (the usual case): one pass without a branch, which the compiler runs
+    several points at a time, and no index written (``index`` empty: the finite points are
+    the rows of ``xyz`` in order). Otherwise the finite rows are gathered in a second pass.
+
     Parameters
     ----------
     xyz : (n, 3) float64
@@ -499,7 +503,7 @@ def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: flo
         The ``m`` finite points, in order, m.
     iu, iv : (m,) int64
         Their cells.
-    index : (m,) int64
+    index : (m,) int64, or (0,) when ``m == n``
         Their rows in ``xyz``.
     bounds : (4,) int64
         ``iu.min(), iu.max(), iv.min(), iv.max()`` (meaningless when ``m == 0``).
@@ -510,7 +514,28 @@ def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: flo
     z = np.empty(n)
     iu = np.empty(n, dtype=np.int64)
     iv = np.empty(n, dtype=np.int64)
-    index = np.empty(n, dtype=np.int64)
+    r_lo, r_hi = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+    c_lo, c_hi = r_lo, r_hi
+    bad = 0
+    for i in range(n):
+        px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        finite = math.isfinite(px + py + pz)
+        bad += 0 if finite else 1
+        dx = px - x0
+        dy = py - y0
+        pu = -sin_h * dx + cos_h * dy
+        pv = cos_h * dx + sin_h * dy
+        # (a non-finite row's cell is never used: kept finite for the conversion)
+        cu = int(math.floor(pu * inv_cell_u if finite else 0.0))
+        cv = int(math.floor(pv * inv_cell_v if finite else 0.0))
+        u[i], v[i], z[i] = pu, pv, pz - z0
+        iu[i], iv[i] = cu, cv
+        r_lo, r_hi = min(r_lo, cu), max(r_hi, cu)
+        c_lo, c_hi = min(c_lo, cv), max(c_hi, cv)
+    if bad == 0:
+        bounds = np.array([r_lo, r_hi, c_lo, c_hi], dtype=np.int64)
+        return u, v, z, iu, iv, np.empty(0, dtype=np.int64), bounds
+    index = np.empty(n - bad, dtype=np.int64)
     r_lo, r_hi = np.iinfo(np.int64).max, np.iinfo(np.int64).min
     c_lo, c_hi = r_lo, r_hi
     m = 0
@@ -518,19 +543,14 @@ def flight_cells(xyz: np.ndarray, cos_h: float, sin_h: float, x0: float, y0: flo
         px, py, pz = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         if not math.isfinite(px + py + pz):
             continue
-        dx = px - x0
-        dy = py - y0
-        pu = -sin_h * dx + cos_h * dy
-        pv = cos_h * dx + sin_h * dy
-        cu = int(math.floor(pu * inv_cell_u))
-        cv = int(math.floor(pv * inv_cell_v))
-        u[m], v[m], z[m] = pu, pv, pz - z0
+        cu, cv = iu[i], iv[i]
+        u[m], v[m], z[m] = u[i], v[i], z[i]
         iu[m], iv[m], index[m] = cu, cv, i
         r_lo, r_hi = min(r_lo, cu), max(r_hi, cu)
         c_lo, c_hi = min(c_lo, cv), max(c_hi, cv)
         m += 1
     bounds = np.array([r_lo, r_hi, c_lo, c_hi], dtype=np.int64)
-    return u[:m], v[:m], z[:m], iu[:m], iv[:m], index[:m], bounds
+    return u[:m], v[:m], z[:m], iu[:m], iv[:m], index, bounds
 
 
 @compiled

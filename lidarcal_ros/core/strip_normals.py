@@ -256,11 +256,11 @@ class StripNormals:
         u, v, z, iu, iv, finite_index, bounds = flight_cells(
             np.ascontiguousarray(xyz, dtype=np.float64), math.cos(self.heading),
             math.sin(self.heading), x0, y0, z0, 1.0 / self.cell[0], 1.0 / self.cell[1])
-        index = None if finite_index.size == xyz.shape[0] else finite_index
+        index = None if u.size == xyz.shape[0] else finite_index  # (None: every point)
         r_lo, r_hi, c_lo, c_hi = (int(b) for b in bounds)
         keep = self._inliers(iu, iv, r_lo, r_hi, c_lo, c_hi)
         if keep is not None:
-            index = finite_index[keep]
+            index = np.flatnonzero(keep) if index is None else index[keep]
             u, v, z, iu, iv = u[keep], v[keep], z[keep], iu[keep], iv[keep]
             if iu.size:
                 r_lo, r_hi = int(iu.min()), int(iu.max())
