@@ -294,6 +294,35 @@ def test_a_type_the_bag_does_not_define_decodes_with_the_standard_one(tmp_path):
     assert [f.name for f in msg.fields] == list(cloud.dtype.names or ())
 
 
+def test_a_definition_without_those_it_uses_is_completed_by_the_standard_ones(tmp_path):
+    """A schema holding PointCloud2's own fields but not the definitions of the types they
+    use (Header, PointField): those come from the standard ROS 2 ones."""
+    from mcap.writer import Writer
+
+    cloud = _points(12, 2, 10.0)
+    source = tmp_path / "source"
+    with BagWriter(source, compress=False) as bag_writer:
+        bag_writer.write_cloud("/lidar/points", seconds_to_ns(10.0), "map", cloud)
+    with open_bag(source) as reader:
+        [(_topic, msgtype, ns, raw)] = list(reader.messages())
+        own_fields = reader.topics["/lidar/points"].msgdef.split("=" * 80)[0]
+    assert "MSG:" not in own_fields and "std_msgs/Header header" in own_fields
+    path = tmp_path / "partial.mcap"
+    with path.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2", library="test")
+        schema = writer.register_schema(name=msgtype, encoding="ros2msg",
+                                        data=own_fields.encode())
+        channel = writer.register_channel(topic="/lidar/points", message_encoding="cdr",
+                                          schema_id=schema)
+        writer.add_message(channel, log_time=ns, data=bytes(raw), publish_time=ns)
+        writer.finish()
+    with open_bag(path) as reader:
+        [(topic, msgtype, _ns, raw)] = list(reader.messages())
+        msg = reader.deserialize(raw, msgtype, topic=topic)
+    assert (msg.width, msg.header.frame_id) == (12, "map")
+
+
 def test_a_copy_of_a_bag_needs_no_standard_definitions(tmp_path):
     """Reading a lidarcal bag and writing its messages to another with the reader's
     definitions (as ``lidarcal correct`` does) never builds the standard typestore (every

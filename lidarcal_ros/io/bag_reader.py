@@ -327,7 +327,7 @@ class BagReader:
                 if conn.msgdef.format != MessageDefinitionFormat.NONE and conn.msgdef.data:
                     defs.setdefault(conn.topic, conn.msgdef.data)
                     self._register(msgtype, conn.msgdef.data, conn.msgdef.format)
-        if any(t not in self._typestore.fielddefs for t in types.values()):
+        if not all(self._resolves(t) for t in set(types.values())):
             add_standard_types(self._typestore)
         self.start_ns = min(starts) if starts else 0
         self.end_ns = max(ends) if ends else 0
@@ -340,6 +340,15 @@ class BagReader:
             )
             for topic in sorted(types)
         }
+
+    def _resolves(self, msgtype: str) -> bool:
+        """Whether the typestore defines ``msgtype`` and every type it uses (a bag may give
+        a type's definition without those of the types it uses)."""
+        try:
+            self._typestore.get_msgdef(msgtype)
+        except Exception:  # (rosbags raises KeyError, or its own errors for bad ones)
+            return False
+        return True
 
     def _register(self, msgtype: str, text: str, fmt: MessageDefinitionFormat) -> None:
         """Add the bag's definition of ``msgtype`` (and of the types it uses), unless an
