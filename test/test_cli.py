@@ -270,6 +270,18 @@ def test_output_is_a_directory(capsys, tmp_path, small_mission):
     assert one_line_error(rc, err).startswith(f"{tmp_path}: is a directory")
 
 
+@pytest.mark.parametrize("name", ["out.txt", "out.PLY", "points.xyz"])
+def test_correct_refuses_a_format_it_does_not_write(capsys, tmp_path, small_mission, name):
+    calibration = helpers_missions.write_calibration_yaml(
+        tmp_path / "calibration.yaml", dict.fromkeys(PARAMETER_NAMES, 0.0))
+    rc, _, err = run(capsys, "correct", small_mission.bag, "--calibration", calibration,
+                     "-o", tmp_path / name)
+    reason = one_line_error(rc, err, "correct")
+    assert reason.startswith(f"{tmp_path / name}: lidarcal correct does not write "
+                             f"{(tmp_path / name).suffix.lower()} files")
+    assert not (tmp_path / name).exists()
+
+
 def test_usage_error_exits_2(capsys, small_mission):
     with pytest.raises(SystemExit) as exc:
         main(["calibrate", str(small_mission.bag)])  # no -o

@@ -21,8 +21,8 @@ from lidarcal_ros.exports import lazy_exports
 
 _EXPORTS = {
     "bag_correction": (
-        "CorrectOptions", "CorrectionReport", "LAS_RUN_POINTS", "correct_bag", "output_kind",
-        "warm_up_compiled_loops",
+        "CorrectOptions", "CorrectionReport", "FOREIGN_OUTPUT_SUFFIXES", "LAS_RUN_POINTS",
+        "correct_bag", "output_kind", "warm_up_compiled_loops",
     ),
     "calibration": (
         "Truth", "calibrate_mission", "convergence_warning", "format_agreement",

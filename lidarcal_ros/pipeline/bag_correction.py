@@ -51,7 +51,8 @@ from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamC
 from lidarcal_ros.pipeline.trajectory_gate import RereadBag, TrajectoryGate
 
 __all__ = [
-    "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport", "correct_bag", "output_kind",
+    "FOREIGN_OUTPUT_SUFFIXES", "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport",
+    "correct_bag", "output_kind",
     "warm_up_compiled_loops",
 ]
 
@@ -97,9 +98,29 @@ class CorrectionReport:
         return out
 
 
+#: Suffixes of point, text and archive formats that ``lidarcal correct`` does not write: an
+#: output named so is refused rather than written as a rosbag2 directory of that name.
+FOREIGN_OUTPUT_SUFFIXES = frozenset({
+    ".asc", ".bag", ".csv", ".db3", ".e57", ".gz", ".h5", ".json", ".npy", ".npz", ".pcd",
+    ".ply", ".pts", ".tif", ".tiff", ".txt", ".xyz", ".yaml", ".yml", ".zip",
+})
+
+
 def output_kind(path: str | Path) -> str:
-    """``las`` for ``.las``/``.laz``, else ``bag`` (``.mcap`` file or rosbag2 directory)."""
-    return "las" if Path(path).suffix.lower() in (".las", ".laz") else "bag"
+    """``las`` for ``.las``/``.laz``, else ``bag`` (``.mcap`` file or rosbag2 directory).
+
+    Raises
+    ------
+    InputError
+        A suffix of :data:`FOREIGN_OUTPUT_SUFFIXES` (``out.txt``, ``out.ply``, ...): a format
+        lidarcal does not write.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix in FOREIGN_OUTPUT_SUFFIXES:
+        raise InputError(f"{path}: lidarcal correct does not write {suffix} files; name the "
+                         "output .las or .laz (LAS 1.4), .mcap, or a directory for a rosbag2 "
+                         "bag")
+    return "las" if suffix in (".las", ".laz") else "bag"
 
 
 def _pose_reader(bag: Any, topic: str, samples: Any) -> Callable[[str, Any], None]:
