@@ -440,7 +440,7 @@ class BagReader:
     @property
     def typestore(self) -> Any:
         """The rosbags typestore that decodes the bag: its own definitions, the standard
-        ROS 2 ones only for types it carries none of (a writer may share it:
+        ROS 2 ones only where those are missing or incomplete (a writer may share it:
         :class:`~lidarcal_ros.io.bag_writer.BagWriter`'s ``typestore``)."""
         return self._typestore
 

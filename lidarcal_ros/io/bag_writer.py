@@ -186,7 +186,7 @@ class BagWriter:
             Offer transient-local durability; None: whether ``topic`` is in
             ``latched_topics``.
         msgdef : str or None, keyword-only
-            ``.msg`` definition text (ROS 2 concatenated form) for types the standard
+            ``.msg`` definition text (ROS 2 concatenated form) for types the writer's
             typestore lacks.
         """
         if self._writer is None:
@@ -208,8 +208,8 @@ class BagWriter:
         )
 
     def _register_type(self, topic: str, msgtype: str, msgdef: str | None) -> None:
-        """Make ``msgtype`` known to the typestore (from ``msgdef`` if the standard
-        typestore lacks it); BagError if it cannot be."""
+        """Make ``msgtype`` known to the typestore (from ``msgdef`` where the typestore
+        lacks it, else from the standard definitions); BagError if it cannot be."""
         if msgtype in self._typestore.fielddefs:
             return
         if not msgdef and not self._standard_added:
@@ -302,7 +302,7 @@ class BagWriter:
         raw : bytes
             CDR bytes.
         msgdef : str or None, keyword-only
-            Definition text for a type the standard typestore lacks.
+            Definition text for a type the writer's typestore lacks.
         """
         self.add_topic(topic, msgtype, msgdef=msgdef)
         if stamp_ns < 0:
