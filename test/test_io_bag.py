@@ -267,25 +267,39 @@ def test_a_bag_decodes_with_its_own_definitions(tmp_path):
         assert reader.deserialize(raw, msgtype, topic=topic).data == 42
 
 
-def test_a_type_the_bag_does_not_define_decodes_with_the_standard_one(tmp_path):
-    """A channel whose schema carries no definition text: the standard ROS 2 one decodes it."""
-    from mcap.writer import Writer
-
-    cloud = _points(20, 4, 10.0)
+def _one_cloud(tmp_path: Path, cloud: np.ndarray) -> tuple[str, int, bytes, str]:
+    """``cloud`` written by lidarcal on /lidar/points and read back: its type, log time,
+    CDR bytes and the definition text the bag carries."""
     source = tmp_path / "source"
     with BagWriter(source, compress=False) as bag_writer:
         bag_writer.write_cloud("/lidar/points", seconds_to_ns(10.0), "map", cloud)
     with open_bag(source) as reader:
         [(_topic, msgtype, ns, raw)] = list(reader.messages())
-    path = tmp_path / "bare.mcap"
+        return msgtype, ns, bytes(raw), reader.topics["/lidar/points"].msgdef
+
+
+def _bare_mcap(path: Path, msgtype: str, definition: str, ns: int, raw: bytes) -> None:
+    """One message on /lidar/points in an MCAP file whose schema holds ``definition``
+    (written with the mcap project's own writer)."""
+    from mcap.writer import Writer
+
     with path.open("wb") as stream:
         writer = Writer(stream)
         writer.start(profile="ros2", library="test")
-        schema = writer.register_schema(name=msgtype, encoding="ros2msg", data=b"")
+        schema = writer.register_schema(name=msgtype, encoding="ros2msg",
+                                        data=definition.encode())
         channel = writer.register_channel(topic="/lidar/points", message_encoding="cdr",
                                           schema_id=schema)
-        writer.add_message(channel, log_time=ns, data=bytes(raw), publish_time=ns)
+        writer.add_message(channel, log_time=ns, data=raw, publish_time=ns)
         writer.finish()
+
+
+def test_a_type_the_bag_does_not_define_decodes_with_the_standard_one(tmp_path):
+    """A channel whose schema carries no definition text: the standard ROS 2 one decodes it."""
+    cloud = _points(20, 4, 10.0)
+    msgtype, ns, raw, _definition = _one_cloud(tmp_path, cloud)
+    path = tmp_path / "bare.mcap"
+    _bare_mcap(path, msgtype, "", ns, raw)
     with open_bag(path) as reader:
         assert reader.topics["/lidar/points"].msgdef == ""
         [(topic, msgtype, _ns, raw)] = list(reader.messages())
@@ -297,26 +311,11 @@ def test_a_type_the_bag_does_not_define_decodes_with_the_standard_one(tmp_path):
 def test_a_definition_without_those_it_uses_is_completed_by_the_standard_ones(tmp_path):
     """A schema holding PointCloud2's own fields but not the definitions of the types they
     use (Header, PointField): those come from the standard ROS 2 ones."""
-    from mcap.writer import Writer
-
-    cloud = _points(12, 2, 10.0)
-    source = tmp_path / "source"
-    with BagWriter(source, compress=False) as bag_writer:
-        bag_writer.write_cloud("/lidar/points", seconds_to_ns(10.0), "map", cloud)
-    with open_bag(source) as reader:
-        [(_topic, msgtype, ns, raw)] = list(reader.messages())
-        own_fields = reader.topics["/lidar/points"].msgdef.split("=" * 80)[0]
+    msgtype, ns, raw, definition = _one_cloud(tmp_path, _points(12, 2, 10.0))
+    own_fields = definition.split("=" * 80)[0]
     assert "MSG:" not in own_fields and "std_msgs/Header header" in own_fields
     path = tmp_path / "partial.mcap"
-    with path.open("wb") as stream:
-        writer = Writer(stream)
-        writer.start(profile="ros2", library="test")
-        schema = writer.register_schema(name=msgtype, encoding="ros2msg",
-                                        data=own_fields.encode())
-        channel = writer.register_channel(topic="/lidar/points", message_encoding="cdr",
-                                          schema_id=schema)
-        writer.add_message(channel, log_time=ns, data=bytes(raw), publish_time=ns)
-        writer.finish()
+    _bare_mcap(path, msgtype, own_fields, ns, raw)
     with open_bag(path) as reader:
         [(topic, msgtype, _ns, raw)] = list(reader.messages())
         msg = reader.deserialize(raw, msgtype, topic=topic)
