@@ -437,6 +437,13 @@ class _Job:
     progress: Callable[[str, float], None] | None
     report: CorrectionReport
 
+    @property
+    def cloud_topics(self) -> list[str]:
+        """The topics read for the correction: the clouds, and the trajectory where the gate
+        reads it as it comes."""
+        return ([self.points_topic, self.trajectory_topic] if self.gate.reading
+                else [self.points_topic])
+
 
 def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str) -> tuple[Any, np.ndarray]:
     from lidarcal_ros.io.bag_format import POINTCLOUD2
@@ -491,7 +498,7 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
                 write_run(run)
                 run, run_points = [], 0
 
-        topics = [points_topic, job.trajectory_topic] if gate.reading else [points_topic]
+        topics = job.cloud_topics
         for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages(topics)):
             if topic != points_topic:
                 gate.pose(msgtype, raw)
@@ -607,8 +614,7 @@ def _correct_to_bag(job: _Job) -> None:
                 held.remove(k_)
 
         # (the chunks copied: the clouds, and the trajectory where the gate reads it)
-        read_topics = (None if copied is None else
-                       [points_topic, job.trajectory_topic] if gate.reading else [points_topic])
+        read_topics = None if copied is None else job.cloud_topics
         read = functools.partial(bag.messages, read_topics)
         # (clouds alone: fewer of them read ahead hold as many bytes as the mixed messages)
         for k, (topic, msgtype, ns, raw) in enumerate(
