@@ -212,11 +212,10 @@ class BagWriter:
         lacks it, else from the standard definitions); BagError if it cannot be."""
         if msgtype in self._typestore.fielddefs:
             return
-        if not msgdef and not self._standard_added:
+        if not msgdef:
             self._add_standard_types()
             if msgtype in self._typestore.fielddefs:
                 return
-        if not msgdef:
             raise BagError(f"{self.path}: unknown message type {msgtype} for {topic}")
         try:
             typs = get_types_from_msg(msgdef, msgtype)
@@ -230,14 +229,14 @@ class BagWriter:
 
     def _add_standard_types(self) -> None:
         """The standard ROS 2 types, where the typestore given lacks them (once)."""
-        add_standard_types(self._typestore)
-        self._standard_added = True
+        if not self._standard_added:
+            add_standard_types(self._typestore)
+            self._standard_added = True
 
     @property
     def _types(self) -> dict[str, Any]:
         """The typestore's message classes, the standard ones among them (typed writes)."""
-        if not self._standard_added:
-            self._add_standard_types()
+        self._add_standard_types()
         return self._typestore.types
 
     def copy_chunks_of(self, bag: Any, new_topics: dict[str, str]) -> ChunkCopy | None:
