@@ -107,6 +107,7 @@ def test_correct_in_its_own_process_writes_whole_files(tmp_path: Path,
     """``python -m lidarcal_ros correct`` (the console script's path): the LAZ file and the
     bag, read back by laspy and the mcap project's reader, hold every corrected point."""
     from lidarcal_ros.core.params import PARAMETER_NAMES
+    from lidarcal_ros.io.bag_reader import open_bag
 
     calibration = write_calibration_yaml(tmp_path / "calibration.yaml",
                                          dict.fromkeys(PARAMETER_NAMES, 0.0))
@@ -129,12 +130,6 @@ def test_correct_in_its_own_process_writes_whole_files(tmp_path: Path,
             assert channel.topic == "/lidar/points_corrected"
             corrected += 1
             assert message.data
-    assert corrected == sum(1 for _ in _clouds(small_mission))
-
-
-def _clouds(mission: MissionFiles) -> list[int]:
-    """The clouds on ``/lidar/points`` of the mission's bag (one entry each)."""
-    from lidarcal_ros.io.bag_reader import open_bag
-
-    with open_bag(mission.bag) as bag:
-        return [1 for _ in bag.messages(["/lidar/points"])]
+    with open_bag(small_mission.bag) as bag:
+        clouds = sum(1 for _ in bag.messages(["/lidar/points"]))
+    assert corrected == clouds
