@@ -245,8 +245,8 @@ def _typed_corrector_main(argv: list[str]) -> int:
         def _on_typed(self, msg: PointCloud2) -> None:
             self.correction.add_cloud(serialize_message(msg))
 
-        def publish_corrected(self, cdr: bytes) -> None:
-            self.typed_pub.publish(deserialize_message(cdr, PointCloud2))
+        def publish_corrected(self, cdr: bytes | memoryview) -> None:
+            self.typed_pub.publish(deserialize_message(bytes(cdr), PointCloud2))
 
     return run_main([TypedCorrector], ["bench_typed_corrector"], threads=1)
 

@@ -38,9 +38,10 @@ class Collector:
         self.events: list[tuple[str, Any, Any]] = []
         self.lock = threading.Lock()
 
-    def result(self, tag: Any, cdr: bytes, n: int, bad: int, _seconds: float) -> None:
-        with self.lock:
-            self.events.append(("out", tag, cdr))
+    def result(self, tag: Any, cdr: bytes | memoryview, n: int, bad: int, _seconds: float
+               ) -> None:
+        with self.lock:  # (a view of the outbound ring is valid during the call only)
+            self.events.append(("out", tag, bytes(cdr)))
 
     def error(self, tag: Any, reason: str) -> None:
         with self.lock:

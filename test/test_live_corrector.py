@@ -118,7 +118,8 @@ def _clouds(mission: MissionFiles) -> list[bytes]:
 def _corrector(clouds: list[bytes], **options: Any) -> tuple[LiveCorrector, list[bytes]]:
     """A live corrector in this process, given ``clouds``; and what it publishes."""
     published: list[bytes] = []
-    live = LiveCorrector(FlightConfig(), _options(**options), publish=published.append)
+    live = LiveCorrector(FlightConfig(), _options(**options),
+                         publish=lambda cdr: published.append(bytes(cdr)))
     for raw in clouds:
         live.add_cloud(raw)
     return live, published

@@ -22,6 +22,7 @@ _EXPORTS = {
     "player": ("PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"),
     "process": ("Shutdown", "run_main", "spin_nodes", "start_ros"),
     "recorder": ("DEFAULT_TOPICS", "RECORDER_NODE", "RecorderNode"),
+    "serialized_publisher": ("SerializedPublisher", "rcl_serialized_publish"),
     "topics": (
         "DIAGNOSTICS_TOPIC", "ESTIMATE_TOPIC", "YAML_TOPIC", "diagnostic_array", "latched_qos",
         "stream_qos",

@@ -64,6 +64,7 @@ from lidarcal_ros.core.params import format_value
 from lidarcal_ros.io.ros_messages import StatusSpec, parse_estimate, warm_up_cloud_codec
 from lidarcal_ros.nodes.parameters import FlightParameters
 from lidarcal_ros.nodes.process import run_main
+from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
 from lidarcal_ros.nodes.topics import (
     DIAGNOSTICS_TOPIC,
     ESTIMATE_TOPIC,
@@ -90,6 +91,9 @@ class CorrectorNode(Node):
         self._segment_checked = False
         self.publisher = self.create_publisher(PointCloud2, cfg["topics.corrected"],
                                                stream_qos(self.params["queue_depth"]))
+        # Corrected clouds go to rcl from the correction's shared memory, not through a
+        # bytes copy (:mod:`~lidarcal_ros.nodes.serialized_publisher`).
+        self._corrected_out = SerializedPublisher(self.publisher)
         self.diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         #: The correction (ROS-free): clouds in, corrected clouds out to the publisher.
         self.correction = LiveCorrector(cfg, self._options(), publish=self.publish_corrected,
@@ -151,9 +155,10 @@ class CorrectorNode(Node):
                 "trajectory; use the project's config/loopback.xml (128 MiB)")
 
     # -- outputs ----------------------------------------------------------------------------
-    def publish_corrected(self, cdr: bytes) -> None:
-        """Publish a corrected chunk (its CDR bytes; from the correction's reader thread)."""
-        self.publisher.publish(cdr)
+    def publish_corrected(self, cdr: bytes | memoryview) -> None:
+        """Publish a corrected chunk (its CDR bytes, read during the call only; from the
+        correction's reader thread)."""
+        self._corrected_out.publish(cdr)
 
     def status(self) -> StatusSpec:
         """The diagnostics ``lidarcal: corrector``."""

@@ -463,14 +463,11 @@ class CorrectionProcess:
                 if reply[0] == "out":
                     _kind, tag, n, bad, seconds, offset, start, size = reply
                     self.carried["pipe out" if offset is None else "ring out"] += 1
-                    if offset is None:
-                        cdr = _recv_payload(self._outbox)
-                    else:
-                        assert self._outbound is not None
-                        cdr = bytes(self._outbound.view(start, size))
-                        self._freed.send(offset)  # a few bytes: never waits
                     self._done(tag)
-                    self._on_result(tag, cdr, n, bad, seconds)
+                    if offset is None:
+                        self._on_result(tag, _recv_payload(self._outbox), n, bad, seconds)
+                    else:
+                        self._result_in_ring(tag, offset, start, size, n, bad, seconds)
                 elif reply[0] == "error":
                     self._done(reply[1])
                     self._on_error(reply[1], reply[2])
@@ -487,6 +484,17 @@ class CorrectionProcess:
                 return
             except Exception:  # a handler failed: keep reading
                 logger.exception("correction result handler")
+
+    def _result_in_ring(self, tag: Any, offset: int, start: int, size: int, n: int,
+                        bad: int, seconds: float) -> None:
+        """Hand on a corrected cloud in place in the outbound ring (the handler publishes it
+        from there), then give its region back to the child."""
+        assert self._outbound is not None
+        try:
+            with self._outbound.view(start, size) as cdr:
+                self._on_result(tag, cdr, n, bad, seconds)
+        finally:
+            self._freed.send(offset)  # a few bytes: never waits
 
     def _done(self, tag: Any) -> None:
         with self._pending_lock:

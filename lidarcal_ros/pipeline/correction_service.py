@@ -39,8 +39,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: ``on_result(tag, cdr, points, not_corrected, seconds)``: a corrected cloud, serialised.
-ResultHandler = Callable[[Any, bytes, int, int, float], None]
+#: ``on_result(tag, cdr, points, not_corrected, seconds)``: a corrected cloud, serialised
+#: (``bytes``, or a view of a shared-memory ring that is valid during the call only).
+ResultHandler = Callable[[Any, bytes | memoryview, int, int, float], None]
 #: ``on_error(tag, reason)``: a cloud that could not be corrected (malformed), skipped.
 ErrorHandler = Callable[[Any, str], None]
 

@@ -128,9 +128,10 @@ class LiveCorrector:
     ----------
     config : FlightConfig
     options : CorrectorOptions
-    publish : callable(bytes)
+    publish : callable(bytes or memoryview)
         Called with each corrected cloud's CDR bytes, in the order the clouds arrived (from
-        the correction's reader thread, or the worker thread).
+        the correction's reader thread, or the worker thread). A ``memoryview`` is a view of
+        shared memory, valid during the call only: published from there, never kept.
     calibration : str
         Calibration file used until an estimate arrives ('' = the configuration's
         ``calibration.fixed.*`` values).
@@ -142,7 +143,7 @@ class LiveCorrector:
     """
 
     def __init__(self, config: FlightConfig, options: CorrectorOptions, *,
-                 publish: Callable[[bytes], None], calibration: str = "") -> None:
+                 publish: Callable[[bytes | memoryview], None], calibration: str = "") -> None:
         self.config = config
         self.options = options
         self._publish = publish
@@ -466,7 +467,7 @@ class LiveCorrector:
         self._last_push = time.monotonic()
         self.stats.busy_s += time.perf_counter() - started
 
-    def _on_result(self, tag: int, cdr: bytes, points: int, not_corrected: int,
+    def _on_result(self, tag: int, cdr: bytes | memoryview, points: int, not_corrected: int,
                    _seconds: float) -> None:
         """A corrected cloud (from the correction's reader thread, or inline): published."""
         with self._lock:
