@@ -20,4 +20,4 @@ Calibrator``), importing a module only when one of its names is asked for
 ARCHITECTURE.md says where to add an input format, an output or a node.
 """
 
-__version__ = "0.2.2"
+__version__ = "0.2.3"
