@@ -272,3 +272,48 @@ def test_look_ahead_switched_off_at_run_time_releases_what_waits(
     got.wait(7, timeout=10.0)
     assert [e[1] for e in got.events] == list(range(7))  # all out, in order, before the end
     service.close()
+
+
+def test_clouds_received_into_the_inbound_ring_are_corrected_in_place(
+        small_mission: MissionFiles) -> None:
+    """Clouds written into regions of the inbound ring (as the node's subscription takes
+    them, :meth:`CorrectionProcess.inbound_region`) come out as the same clouds pushed as
+    bytes, with no copy in (the regions are those handed out, and all are free again at the
+    end); a region of another process's ring is copied from."""
+    settings, trajectory, clouds = _stream(small_mission)
+    options = ServiceOptions(lookahead=True)
+    expected = _run_process(settings, options, trajectory, clouds)
+    got = Collector()
+    service = CorrectionProcess(settings, options, on_result=got.result, on_error=got.error)
+    other = CorrectionProcess(settings, options, on_result=Collector().result,
+                              on_error=Collector().error)
+    deadline = time.monotonic() + 60
+    while not (service.shared_memory and other.shared_memory) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    writes: list[int] = []
+    assert service._inbound is not None
+    original_write = service._inbound.write
+
+    def counted_write(offset: int, parts: list[Any]) -> int:
+        writes.append(offset)
+        return original_write(offset, parts)
+
+    service._inbound.write = counted_write  # type: ignore[method-assign]
+    service.poses(trajectory.t, trajectory.xyz, trajectory.orientation)
+    foreign = other.inbound_region(len(clouds[0]))
+    assert foreign is not None
+    foreign.view[:] = clouds[0]
+    pushed: list[tuple[int, Any]] = [(0, foreign)]
+    for tag, raw in enumerate(clouds[1:], start=1):
+        region = service.inbound_region(len(raw))
+        assert region is not None and region.ring is service._inbound
+        region.view[:] = raw
+        pushed.append((tag, region))
+    service.push(pushed)
+    service.close()
+    other.close()
+    assert {e[1]: e[2] for e in got.events} == expected
+    assert len(writes) == 1  # the foreign region only: the others were read where they lay
+    assert service.carried["ring in"] == len(clouds)
+    assert service.carried["in place"] == len(clouds) - 1
+    assert service._inbound.regions_in_use == 0

@@ -104,6 +104,50 @@ def test_the_oldest_waiting_clouds_are_dropped_above_the_bound_and_the_newest_ke
     assert len(waiting) == 0 and waiting.bytes == 0
 
 
+class _Region:
+    """A stand-in for the shared memory a cloud was received into: counts its release."""
+
+    def __init__(self) -> None:
+        self.released = 0
+
+    def release(self) -> None:
+        self.released += 1
+
+
+def test_a_dropped_cloud_gives_back_its_shared_memory_and_a_handed_on_one_does_not() -> None:
+    waiting = WaitingClouds()
+    regions = [_Region() for _ in range(3)]
+    clouds = [_cloud(float(k), size=400) for k in range(3)]
+    for cloud, region in zip(clouds, regions, strict=True):
+        cloud.region = region
+        waiting.append(cloud)
+    assert waiting.drop_oldest(400) == (2, 800)
+    assert [r.released for r in regions] == [1, 1, 0]
+    assert clouds[0].region is None and clouds[0].raw == b""
+    waiting.pop_oldest(1)  # handed on: the correction owns its memory now
+    assert regions[2].released == 0
+
+
+def test_a_malformed_cloud_received_in_shared_memory_gives_it_back() -> None:
+    live = LiveCorrector(FlightConfig(), _options(), publish=lambda _cdr: None)
+    try:
+        region = _Region()
+        live.add_cloud(memoryview(bytearray(b"\x00\x01garbage")), region)
+        _wait(lambda: live.stats.skipped == 1, 10, "the malformed cloud to be skipped")
+        assert region.released == 1 and live.waiting_clouds == 0
+    finally:
+        live.close()
+
+
+def test_without_a_correction_process_clouds_are_received_into_buffers_of_their_own() -> None:
+    live = LiveCorrector(FlightConfig(), _options(), publish=lambda _cdr: None)
+    try:
+        view, region = live.receive_buffer(1000)
+        assert region is None and len(view) == 1000 and not view.readonly
+    finally:
+        live.close()
+
+
 # ---------------------------------------------------------------------------- the corrector
 def _options(**changes: Any) -> CorrectorOptions:
     return dataclasses.replace(node_options(CorrectorOptions, CORRECTOR_NODE, {}),

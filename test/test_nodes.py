@@ -373,6 +373,8 @@ def test_every_input_point_is_corrected_exactly_once(replayed: Replayed) -> None
     assert isinstance(runner, CorrectionProcess)
     carried = runner.carried
     assert carried["ring in"] > 0 and carried["ring out"] > 0, carried
+    # the clouds were taken from DDS into the ring, not copied there
+    assert carried["in place"] > 0 and suite.cor.points_input.direct, carried
 
 
 def test_late_subscriber_gets_the_latest_estimate(replayed: Replayed) -> None:

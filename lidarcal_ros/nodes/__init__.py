@@ -23,6 +23,7 @@ _EXPORTS = {
     "process": ("Shutdown", "run_main", "spin_nodes", "start_ros"),
     "recorder": ("DEFAULT_TOPICS", "RECORDER_NODE", "RecorderNode"),
     "serialized_publisher": ("SerializedPublisher", "rcl_serialized_publish"),
+    "serialized_subscription": ("SerializedSubscription", "rcl_serialized_take"),
     "topics": (
         "DIAGNOSTICS_TOPIC", "ESTIMATE_TOPIC", "YAML_TOPIC", "diagnostic_array", "latched_qos",
         "stream_qos",

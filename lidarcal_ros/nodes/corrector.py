@@ -2,9 +2,10 @@
 
     ros2 run lidarcal_ros lidarcal_corrector --ros-args --params-file config/flight_config.yaml
 
-Subscribes (raw CDR) to the points (``topics.points``) and the trajectory
-(``topics.trajectory``), and to the calibrator's estimate (``/lidar/calibration/estimate``,
-transient-local); publishes each chunk corrected on ``topics.corrected`` with every input
+Subscribes (raw CDR) to the points (``topics.points``; each cloud taken from DDS straight
+into the correction's shared memory, :mod:`~lidarcal_ros.nodes.serialized_subscription`) and
+the trajectory (``topics.trajectory``), and to the calibrator's estimate
+(``/lidar/calibration/estimate``, transient-local); publishes each chunk corrected on ``topics.corrected`` with every input
 field, ``x, y, z`` corrected (method.md eq. [13]) and the FLOAT32 ``reflectance``, ``range``,
 ``incidence``, ``scan_angle`` plus UINT8 ``correction_flags``
 (:mod:`lidarcal_ros.core.flags`). Header stamp and frame are the input's. The
@@ -36,7 +37,9 @@ process (``separate_process``, :mod:`~lidarcal_ros.pipeline.correction_process`)
 process only takes messages off DDS and publishes, so that its callbacks (hundreds of
 trajectory samples a second) never wait for the interpreter lock of the numerics. The clouds
 go there and back through shared memory (``shared_memory_mib``; pipes where a host has none:
-diagnostics key ``transport``).
+diagnostics key ``transport``): each is taken from DDS into the inbound ring, and published
+from the outbound ring where it was corrected
+(:mod:`~lidarcal_ros.nodes.serialized_publisher`), so the node copies none.
 
 Node-specific parameters: ``calibration`` (YAML path), ``queue_depth``, ``best_effort``,
 ``trajectory_type`` (``auto`` or a type), ``trajectory_buffer_s``, ``max_trajectory_wait_s``,
@@ -65,6 +68,7 @@ from lidarcal_ros.io.ros_messages import StatusSpec, parse_estimate, warm_up_clo
 from lidarcal_ros.nodes.parameters import FlightParameters
 from lidarcal_ros.nodes.process import run_main
 from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
+from lidarcal_ros.nodes.serialized_subscription import SerializedSubscription
 from lidarcal_ros.nodes.topics import (
     DIAGNOSTICS_TOPIC,
     ESTIMATE_TOPIC,
@@ -73,6 +77,7 @@ from lidarcal_ros.nodes.topics import (
     stream_qos,
 )
 from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
+from lidarcal_ros.pipeline.correction_process import InboundRegion
 from lidarcal_ros.pipeline.live_corrector import CorrectorOptions, LiveCorrector
 
 __all__ = ["CORRECTOR_PARAMETERS", "CorrectorNode"]
@@ -102,10 +107,13 @@ class CorrectorNode(Node):
 
         points_group = MutuallyExclusiveCallbackGroup()
         other_group = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(
-            PointCloud2, cfg["topics.points"], self._on_points,
+        # Clouds are taken from DDS straight into the correction's shared memory
+        # (:mod:`~lidarcal_ros.nodes.serialized_subscription`).
+        self.points_input = SerializedSubscription(
+            self, PointCloud2, cfg["topics.points"],
             stream_qos(self.params["queue_depth"], best_effort=self.params["best_effort"]),
-            raw=True, callback_group=points_group)
+            allocate=self.correction.receive_buffer, callback=self._on_points,
+            discard=_give_back, callback_group=points_group)
         self.trajectory_input = TrajectoryInput(
             self, cfg["topics.trajectory"], self.params["trajectory_type"],
             self.correction.add_pose, callback_group=other_group)
@@ -123,10 +131,11 @@ class CorrectorNode(Node):
         return node_options(CorrectorOptions, CORRECTOR_NODE, self.params.extra_values)
 
     # -- input callbacks (convert and hand over only) ------------------------------------
-    def _on_points(self, raw: bytes) -> None:
-        if not self._segment_checked and len(raw) > 256 * 1024:
-            self._warn_small_segment(len(raw))
-        self.correction.add_cloud(raw)
+    def _on_points(self, raw: bytes | memoryview, region: InboundRegion | None) -> None:
+        size = memoryview(raw).nbytes
+        if not self._segment_checked and size > 256 * 1024:
+            self._warn_small_segment(size)
+        self.correction.add_cloud(raw, region)
 
     def _on_estimate(self, msg: Float64MultiArray) -> None:
         try:
@@ -170,6 +179,12 @@ class CorrectorNode(Node):
     def close(self) -> None:
         """Stop the correction; held chunks are corrected and published first."""
         self.correction.close()
+
+
+def _give_back(region: InboundRegion | None) -> None:
+    """Memory taken for a cloud that never came (see SerializedSubscription)."""
+    if region is not None:
+        region.release()
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -39,7 +39,7 @@ _EXPORTS = {
         "InputCounts", "ServiceCounts", "operating_statuses", "refinement_status",
     ),
     "cloud_backlog": (
-        "MAX_PUSH_POINTS", "TRAJECTORY_MARGIN_S", "WaitingCloud", "WaitingClouds",
+        "MAX_PUSH_POINTS", "Region", "TRAJECTORY_MARGIN_S", "WaitingCloud", "WaitingClouds",
         "take_ready",
     ),
     "corrected_cloud": (
@@ -55,7 +55,7 @@ _EXPORTS = {
         "BatchResult", "CorrectionBatch", "HeldCloud", "OutputPlacer", "deliver_normals",
         "run_batch",
     ),
-    "correction_process": ("CorrectionProcess",),
+    "correction_process": ("CorrectionProcess", "InboundRegion"),
     "correction_service": (
         "CorrectedMessage", "CorrectionEngine", "ErrorHandler", "LocalCorrection",
         "MessagePlacer", "RING_BYTES", "ResultHandler", "ServiceOptions", "warm_up_engine",

@@ -20,8 +20,9 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any, Protocol
 
-__all__ = ["MAX_PUSH_POINTS", "TRAJECTORY_MARGIN_S", "WaitingCloud", "WaitingClouds",
+__all__ = ["MAX_PUSH_POINTS", "TRAJECTORY_MARGIN_S", "Region", "WaitingCloud", "WaitingClouds",
            "take_ready"]
 
 #: A cloud waits for a trajectory sample this far past its last point time, s.
@@ -31,13 +32,19 @@ TRAJECTORY_MARGIN_S = 0.02
 MAX_PUSH_POINTS = 400_000
 
 
+class Region(Protocol):
+    """Where a cloud was received in place (shared memory), given back if it is dropped."""
+
+    def release(self) -> None: ...
+
+
 @dataclass
 class WaitingCloud:
     """A cloud received and not yet reported back.
 
     Attributes
     ----------
-    raw : bytes
+    raw : bytes or memoryview
         Its CDR bytes (emptied once handed to the correction, which then owns them).
     received : float
         When it arrived, s (:func:`time.monotonic`).
@@ -48,14 +55,25 @@ class WaitingCloud:
     n_points : int
     t_max : float
         Its last point time, s (-inf: none finite).
+    region : Region or None
+        The shared memory ``raw`` lies in, when it was received there: given back
+        (:meth:`release`) when the cloud is dropped or skipped, handed on with it otherwise.
     """
 
-    raw: bytes
+    raw: bytes | memoryview
     received: float
     size: int = 0
     parsed: bool = False
     n_points: int = 0
     t_max: float = -math.inf
+    region: Any = None
+
+    def release(self) -> None:
+        """The cloud will not be corrected: its shared memory, if any, is free again."""
+        region: Region | None = self.region
+        self.raw, self.region = b"", None
+        if region is not None:
+            region.release()
 
 
 class WaitingClouds:
@@ -92,6 +110,7 @@ class WaitingClouds:
             self.bytes -= cloud.size
             dropped += 1
             dropped_bytes += cloud.size
+            cloud.release()
         return dropped, dropped_bytes
 
 

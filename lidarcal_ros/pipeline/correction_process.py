@@ -9,10 +9,11 @@ delays every callback of the executor by up to the interpreter's switch interval
 hundred trajectory samples a second the trajectory then falls seconds behind the points,
 and the points wait for it. :class:`CorrectionProcess` therefore runs the numerics in a
 child process (spawned, not forked: the node process runs threads). The clouds travel to it
-and back through two shared-memory rings (:mod:`~lidarcal_ros.io.shared_ring`): one copy in,
-read in place, and only their place on the request pipe; each corrected cloud is built
-straight into the outbound ring behind its message header. A cloud that finds no room, or a
-host without shared memory, goes through the pipe itself. The interface is that of
+and back through two shared-memory rings (:mod:`~lidarcal_ros.io.shared_ring`): received into
+the inbound ring by the node's subscription (:meth:`CorrectionProcess.inbound_region`), or
+copied there, read in place, and only their place on the request pipe; each corrected cloud
+is built straight into the outbound ring behind its message header. A cloud that finds no
+room, or a host without shared memory, goes through the pipe itself. The interface is that of
 :class:`~lidarcal_ros.pipeline.correction_service.LocalCorrection`.
 """
 
@@ -44,7 +45,7 @@ from lidarcal_ros.pipeline.correction_service import (
     warm_up_engine,
 )
 
-__all__ = ["CorrectionProcess"]
+__all__ = ["CorrectionProcess", "InboundRegion"]
 
 logger = logging.getLogger(__name__)
 
@@ -105,6 +106,26 @@ class _Rings:
     inbound: str | None
     outbound: str | None
     size: int
+
+
+@dataclass(frozen=True)
+class InboundRegion:
+    """A region of a correction process's inbound ring that a cloud is received into
+    straight from DDS (:meth:`CorrectionProcess.inbound_region`): pushed as it lies, only
+    its place on the pipe."""
+
+    ring: SharedRing
+    offset: int
+    size: int
+
+    @property
+    def view(self) -> memoryview:
+        """Its bytes, in place."""
+        return self.ring.view(self.offset, self.size)
+
+    def release(self) -> None:
+        """Give the region back unused (its cloud was dropped or skipped)."""
+        self.ring.free(self.offset)
 
 
 def _attach(rings: _Rings) -> tuple[SharedRing | None, SharedRing | None]:
@@ -347,8 +368,10 @@ class CorrectionProcess:
         self._pending_lock = threading.Lock()
         self._flushed = threading.Event()
         self._closing = False
-        #: Clouds carried so far, by way: ``ring in``, ``pipe in``, ``ring out``, ``pipe out``.
-        self.carried = dict.fromkeys(("ring in", "pipe in", "ring out", "pipe out"), 0)
+        #: Clouds carried so far, by way: ``ring in`` (of which ``in place``: received into
+        #: the ring, :meth:`inbound_region`), ``pipe in``, ``ring out``, ``pipe out``.
+        self.carried = dict.fromkeys(("ring in", "in place", "pipe in", "ring out",
+                                      "pipe out"), 0)
         self._reader = threading.Thread(target=self._read, name="lidarcal-correction-reader",
                                         daemon=True)
         self._reader.start()
@@ -384,24 +407,43 @@ class CorrectionProcess:
                     None if orientation is None
                     else np.asarray(orientation, dtype=np.float64).reshape(-1, 4)))
 
-    def push(self, clouds: list[tuple[Any, bytes]]) -> None:
-        """Correct clouds (tag, CDR bytes); results come through the handlers."""
+    def inbound_region(self, size: int) -> InboundRegion | None:
+        """Room in the inbound ring to receive a cloud of ``size`` bytes into, so that
+        :meth:`push` need not copy it; None without a ring (yet), or when it is full."""
+        ring = self._inbound
+        if ring is None or not self._inbound_ready:
+            return None
+        offset = ring.allocate(size)
+        return None if offset is None else InboundRegion(ring, offset, size)
+
+    def push(self, clouds: list[tuple[Any, bytes | memoryview | InboundRegion]]) -> None:
+        """Correct clouds (tag, CDR bytes, or a region of this process's inbound ring they
+        were received into); results come through the handlers."""
         if not clouds:
             return
         entries: list[tuple[Any, int | None, int]] = []
-        by_pipe: list[bytes] = []
+        copies: list[tuple[int | None, bytes | memoryview]] = []
         ring = self._inbound if self._inbound_ready else None
         with self._pending_lock:
             for tag, raw in clouds:
-                offset = ring.allocate(len(raw)) if ring is not None else None
+                if isinstance(raw, InboundRegion) and raw.ring is ring:
+                    offset: int | None = raw.offset  # received in place: no copy
+                    size = raw.size
+                    self.carried["in place"] += 1
+                else:
+                    data = raw.view if isinstance(raw, InboundRegion) else raw
+                    size = memoryview(data).nbytes
+                    offset = ring.allocate(size) if ring is not None else None
+                    copies.append((offset, data))
                 self._pending[tag] = offset
-                entries.append((tag, offset, len(raw)))
-        for (_tag, offset, _size), (_, raw) in zip(entries, clouds, strict=True):
+                entries.append((tag, offset, size))
+        by_pipe: list[bytes | memoryview] = []
+        for offset, data in copies:
             if offset is None:
-                by_pipe.append(raw)
+                by_pipe.append(data)
             else:
                 assert ring is not None
-                ring.write(offset, [raw])
+                ring.write(offset, [data])
         self.carried["pipe in"] += len(by_pipe)
         self.carried["ring in"] += len(entries) - len(by_pipe)
         with self._send_lock:

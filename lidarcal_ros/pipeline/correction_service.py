@@ -244,7 +244,7 @@ class LocalCorrection:
         rows or None: none)."""
         self.engine.poses(t, xyz, orientation)
 
-    def push(self, clouds: list[tuple[Any, bytes]]) -> None:
+    def push(self, clouds: list[tuple[Any, bytes | memoryview]]) -> None:
         """Correct clouds (tag, CDR bytes); results come through the handlers."""
         self._emit(self.engine.push(clouds, self._on_error))
 

@@ -46,9 +46,9 @@ from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.calibration_file import read_calibration
 from lidarcal_ros.io.cloud_columns import resolve_time_field, time_span
 from lidarcal_ros.io.ros_messages import OK, WARN, StatusSpec, parse_cloud
-from lidarcal_ros.pipeline.cloud_backlog import WaitingCloud, WaitingClouds, take_ready
+from lidarcal_ros.pipeline.cloud_backlog import Region, WaitingCloud, WaitingClouds, take_ready
 from lidarcal_ros.pipeline.correction import CorrectionSettings
-from lidarcal_ros.pipeline.correction_process import CorrectionProcess
+from lidarcal_ros.pipeline.correction_process import CorrectionProcess, InboundRegion
 from lidarcal_ros.pipeline.correction_service import LocalCorrection, ServiceOptions
 from lidarcal_ros.pipeline.throttled_log import ThrottledLog
 
@@ -184,9 +184,23 @@ class LiveCorrector:
         self._worker.start()
 
     # -- input (from the node's callbacks) ---------------------------------------------
-    def add_cloud(self, raw: bytes) -> None:
-        """A cloud received (CDR bytes): corrected once the trajectory covers it."""
-        cloud = WaitingCloud(raw, time.monotonic(), len(raw))
+    def receive_buffer(self, size: int) -> tuple[memoryview, InboundRegion | None]:
+        """Memory to receive a cloud of ``size`` bytes into (from the node's subscription,
+        during the take): a region of the correction process's inbound ring, so that the
+        cloud reaches the numerics without another copy, or (no ring, or a full one) a
+        buffer of its own. Give both to :meth:`add_cloud` once the cloud is in it, or the
+        region back (:meth:`InboundRegion.release`) if it never came."""
+        runner = self.runner
+        if isinstance(runner, CorrectionProcess):
+            region = runner.inbound_region(size)
+            if region is not None:
+                return region.view, region
+        return memoryview(bytearray(size)), None
+
+    def add_cloud(self, raw: bytes | memoryview, region: Region | None = None) -> None:
+        """A cloud received (CDR bytes; in ``region`` of :meth:`receive_buffer`, if it was
+        received there): corrected once the trajectory covers it."""
+        cloud = WaitingCloud(raw, time.monotonic(), memoryview(raw).nbytes, region=region)
         with self._lock:
             self._waiting.append(cloud)
             self._lock.notify()
@@ -389,6 +403,7 @@ class LiveCorrector:
             _, t_max = time_span(parsed.points[tname])
             cloud.t_max = t_max if math.isfinite(t_max) else -math.inf
         except LidarcalError as exc:
+            cloud.release()
             self._skip(str(exc))
             return False
         cloud.parsed, cloud.n_points = True, len(parsed.points)
@@ -453,17 +468,22 @@ class LiveCorrector:
     def _push(self, clouds: list[WaitingCloud]) -> None:
         started = time.perf_counter()
         self._sync()
-        tagged: list[tuple[int, bytes]] = []
+        tagged: list[tuple[int, bytes | memoryview, Region | None]] = []
         with self._lock:
             for cloud in clouds:
                 tag = self._next_tag
                 self._next_tag += 1
                 self._held[tag] = cloud
-                tagged.append((tag, cloud.raw))
-                cloud.raw = b""  # the correction has it now
+                tagged.append((tag, cloud.raw, cloud.region))
+                cloud.raw, cloud.region = b"", None  # the correction has it now
                 self.stats.clouds_in += 1
                 self.stats.points_in += cloud.n_points
-        self.runner.push(tagged)
+        runner = self.runner
+        if isinstance(runner, CorrectionProcess):  # (a region of its ring: not copied)
+            runner.push([(tag, region if isinstance(region, InboundRegion) else raw)
+                         for tag, raw, region in tagged])
+        else:
+            runner.push([(tag, raw) for tag, raw, _ in tagged])
         self._last_push = time.monotonic()
         self.stats.busy_s += time.perf_counter() - started
 

@@ -1,0 +1,234 @@
+"""Taking serialized (CDR) messages straight into memory the caller provides.
+
+rclpy hands a raw subscription each message as a Python :class:`bytes`: DDS copies the
+payload into rcl's buffer, rclpy copies that into the ``bytes``, and the corrector node then
+copied it once more into the shared-memory ring its numerics process reads. At 4M points/s
+those last two copies of 8 MB a chunk cost a few percent of a core and hold the interpreter
+lock.
+
+:class:`SerializedSubscription` takes each message with rcl's public
+``rcl_take_serialized_message`` (``rcl/subscription.h``) through :mod:`ctypes`, into an
+``rcutils_uint8_array_t`` whose allocator is the caller's: rmw asks it for exactly the
+message's size before copying, and the caller answers with a place of its own (a region of
+the shared-memory ring). The subscription itself is made by rclpy (it is on the graph, with
+its QoS event handlers), but rclpy's executor does not take its messages: this
+:class:`~rclpy.waitable.Waitable` puts it in the executor's wait set and takes them. Where
+rcl's function or the handles' addresses are not to be had, it is a plain rclpy raw
+subscription and the callback gets ``bytes``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+from collections.abc import Callable
+from typing import Any
+
+from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.subscription import Subscription
+from rclpy.waitable import NumberOfEntities, Waitable
+
+__all__ = ["SerializedSubscription", "rcl_serialized_take"]
+
+logger = logging.getLogger(__name__)
+
+_ALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p)
+_DEALLOCATE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p)
+_REALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t,
+                               ctypes.c_void_p)
+_ZERO_ALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_size_t,
+                                  ctypes.c_void_p)
+
+
+class _TakenMessage(ctypes.Structure):
+    """``rcutils_uint8_array_t`` (= ``rcl_serialized_message_t``) with its
+    ``rcutils_allocator_t`` spelt out: allocate, deallocate, reallocate, zero_allocate,
+    state."""
+
+    _fields_ = [
+        ("buffer", ctypes.c_void_p),
+        ("buffer_length", ctypes.c_size_t),
+        ("buffer_capacity", ctypes.c_size_t),
+        ("allocate", _ALLOCATE),
+        ("deallocate", _DEALLOCATE),
+        ("reallocate", _REALLOCATE),
+        ("zero_allocate", _ZERO_ALLOCATE),
+        ("state", ctypes.c_void_p),
+    ]
+
+
+_RCL_RET_OK = 0
+_RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401  # nothing to take (rcl/types.h)
+_NOT_LOOKED_UP: Any = object()
+_take_function: Any = _NOT_LOOKED_UP
+
+
+def rcl_serialized_take() -> Any:
+    """rcl's ``rcl_take_serialized_message`` as a ctypes function, or None (looked up once,
+    in the rcl that rclpy loaded: see
+    :func:`~lidarcal_ros.nodes.serialized_publisher.rcl_serialized_publish`)."""
+    global _take_function
+    if _take_function is _NOT_LOOKED_UP:
+        _take_function = None
+        try:
+            library = ctypes.CDLL("librcl.so", mode=getattr(os, "RTLD_NOLOAD", 0))
+            function = library.rcl_take_serialized_message
+        except (OSError, AttributeError) as exc:
+            logger.debug("rcl_take_serialized_message not available (%s): messages are "
+                         "taken as bytes", exc)
+        else:
+            function.argtypes = [ctypes.c_void_p, ctypes.POINTER(_TakenMessage),
+                                 ctypes.c_void_p, ctypes.c_void_p]
+            function.restype = ctypes.c_int
+            _take_function = function
+    return _take_function
+
+
+#: ``allocate(size) -> (view, token)``: a writable view of ``size`` bytes to receive a
+#: message into, and what the callback gets with it.
+Allocate = Callable[[int], tuple[memoryview, Any]]
+#: ``callback(message, token)``: the message (a view of the allocated memory, or ``bytes``)
+#: and the allocation's token (None for ``bytes``).
+Callback = Callable[[memoryview | bytes, Any], None]
+
+
+class _NotTheSubscription(MutuallyExclusiveCallbackGroup):
+    """The group of a subscription taken by a :class:`SerializedSubscription`: rclpy's
+    executor runs its QoS event handlers, never the subscription itself (so it never takes
+    its messages)."""
+
+    def can_execute(self, entity: Any) -> bool:
+        return not isinstance(entity, Subscription) and super().can_execute(entity)
+
+    def beginning_execution(self, entity: Any) -> bool:
+        return not isinstance(entity, Subscription) and super().beginning_execution(entity)
+
+
+class SerializedSubscription(Waitable[Any]):
+    """A raw subscription whose messages are taken into the caller's memory (module
+    docstring).
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+    msg_type : type
+        The message class (the topic's type).
+    topic : str
+    qos : rclpy.qos.QoSProfile
+    allocate : callable(int) -> (memoryview, token)
+        Where to receive a message of so many bytes (called from the executor's thread,
+        during the take). It must not fail; a view shorter than asked is refused.
+    callback : callable(memoryview or bytes, token)
+        Each message, once taken, in order.
+    discard : callable(token), optional
+        Memory allocated for a message that rcl then failed to deliver (not otherwise
+        called).
+    callback_group : rclpy.callback_groups.CallbackGroup, optional
+        Where the taking and the callback run (the node's default group otherwise).
+    direct : bool
+        Take into ``allocate``'s memory where rcl allows (else always rclpy's ``bytes``).
+    """
+
+    def __init__(self, node: Node, msg_type: Any, topic: str, qos: Any, *,
+                 allocate: Allocate, callback: Callback,
+                 discard: Callable[[Any], None] | None = None,
+                 callback_group: CallbackGroup | None = None, direct: bool = True) -> None:
+        group = callback_group if callback_group is not None else node.default_callback_group
+        super().__init__(group)
+        self._allocate = allocate
+        self._callback = callback
+        self._discard = discard
+        function = rcl_serialized_take() if direct else None
+        if function is None:
+            self.subscription = node.create_subscription(
+                msg_type, topic, lambda raw: callback(raw, None), qos, raw=True,
+                callback_group=group)
+            self._function = None
+            return
+        self._function = function
+        self.subscription = node.create_subscription(
+            msg_type, topic, _never_called, qos, raw=True,
+            callback_group=_NotTheSubscription())
+        if not hasattr(self.subscription.handle, "pointer"):
+            node.destroy_subscription(self.subscription)
+            self._function = None
+            self.subscription = node.create_subscription(
+                msg_type, topic, lambda raw: callback(raw, None), qos, raw=True,
+                callback_group=group)
+            return
+        self._index = -1
+        self._received: tuple[memoryview, Any] | None = None
+        # The allocator rmw calls during a take: reallocate (from no buffer) is the one it
+        # uses; the others are there because rcutils checks that all four are set.
+        self._functions = (_ALLOCATE(lambda size, state: None),
+                           _DEALLOCATE(lambda pointer, state: None),
+                           _REALLOCATE(self._reallocate),
+                           _ZERO_ALLOCATE(lambda count, size, state: None))
+        node.add_waitable(self)
+
+    @property
+    def direct(self) -> bool:
+        """Whether messages are taken into ``allocate``'s memory (else ``bytes``)."""
+        return self._function is not None
+
+    # -- rclpy's Waitable ----------------------------------------------------------------
+    def __enter__(self) -> None:
+        self.subscription.handle.__enter__()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.subscription.handle.__exit__(*exc)
+
+    def get_num_entities(self) -> NumberOfEntities:
+        return NumberOfEntities(num_subs=1)
+
+    def add_to_wait_set(self, wait_set: Any) -> None:
+        self._index = wait_set.add_subscription(self.subscription.handle)
+
+    def is_ready(self, wait_set: Any) -> bool:
+        return bool(wait_set.is_ready("subscription", self._index))
+
+    def take_data(self) -> tuple[memoryview, Any] | None:
+        """Take one message into memory from ``allocate`` (None: there was none)."""
+        function = self._function
+        assert function is not None  # (rclpy's executor takes the messages otherwise)
+        message = _TakenMessage(None, 0, 0, *self._functions, None)
+        self._received = None
+        handle = self.subscription.handle
+        with handle:
+            ret = function(handle.pointer, ctypes.byref(message), None, None)
+        received, self._received = self._received, None
+        if ret == _RCL_RET_OK and received is not None:
+            view, token = received
+            return view[:message.buffer_length], token
+        if ret not in (_RCL_RET_OK, _RCL_RET_SUBSCRIPTION_TAKE_FAILED):
+            logger.error("%s: a message could not be taken (rcl error %d)",
+                         self.subscription.topic_name, ret)
+        if received is not None and self._discard is not None:  # allocated, not filled
+            self._discard(received[1])
+        return None
+
+    async def execute(self, taken_data: tuple[memoryview, Any] | None) -> None:
+        if taken_data is not None:
+            self._callback(*taken_data)
+
+    # -- the allocator rmw calls -------------------------------------------------------------
+    def _reallocate(self, pointer: int | None, size: int, _state: int | None) -> int | None:
+        """rmw's request for the message's buffer (from none): the caller's memory. Never
+        raises (the exception would be lost inside the C call): None refuses."""
+        try:
+            if pointer or self._received is not None:
+                return None  # (a second resize: not how rmw takes a message)
+            view, token = self._allocate(int(size))
+            if len(view) < size or view.readonly:
+                return None
+            self._received = (view, token)
+            return ctypes.addressof(ctypes.c_char.from_buffer(view))
+        except Exception:  # (see the docstring)
+            logger.exception("allocating a message of %d bytes", size)
+            return None
+
+
+def _never_called(_raw: bytes) -> None:  # pragma: no cover - the executor never takes it
+    raise AssertionError("taken by SerializedSubscription")
