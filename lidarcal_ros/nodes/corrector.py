@@ -5,10 +5,10 @@
 Subscribes (raw CDR) to the points (``topics.points``; each cloud taken from DDS straight
 into the correction's shared memory, :mod:`~lidarcal_ros.nodes.serialized_subscription`) and
 the trajectory (``topics.trajectory``), and to the calibrator's estimate
-(``/lidar/calibration/estimate``, transient-local); publishes each chunk corrected on ``topics.corrected`` with every input
-field, ``x, y, z`` corrected (method.md eq. [13]) and the FLOAT32 ``reflectance``, ``range``,
-``incidence``, ``scan_angle`` plus UINT8 ``correction_flags``
-(:mod:`lidarcal_ros.core.flags`). Header stamp and frame are the input's. The
+(``/lidar/calibration/estimate``, transient-local); publishes each chunk corrected on
+``topics.corrected`` with every input field, ``x, y, z`` corrected (method.md eq. [13])
+and the FLOAT32 ``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus UINT8
+``correction_flags`` (:mod:`lidarcal_ros.core.flags`). Header stamp and frame are the input's. The
 ``reflectance`` is the Lambertian reflectance (0-1) when ``radiometry.calibration_constant``
 is set, else relative (intensity normalised to ``radiometry.reference_range_m``; intensity
 units: :mod:`lidarcal_ros.core.radiometry`); a ``radiometry.reference_target`` needs the
