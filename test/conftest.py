@@ -59,3 +59,21 @@ def ros_context() -> Iterator[Any]:
         yield context
     finally:
         context.try_shutdown()
+
+
+@pytest.fixture()
+def probe(ros_context: Any, request: pytest.FixtureRequest) -> Iterator[tuple[Any, Any]]:
+    """A node of the test module's context (named after the module) and an executor that
+    spins it on demand."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    name = request.module.__name__.rsplit(".", 1)[-1].removeprefix("test_") + "_probe"
+    node = rclpy.create_node(name, context=ros_context)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(node)
+    try:
+        yield node, executor
+    finally:
+        executor.shutdown()
+        node.destroy_node()

@@ -7,11 +7,9 @@ subscription."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
-import pytest
 
 from lidarcal_ros.io.pointcloud import make_point_dtype
 from lidarcal_ros.io.ros_messages import cloud_cdr
@@ -55,21 +53,6 @@ class _Receiver:
             self.ring.free(token)
 
 
-@pytest.fixture()
-def node(ros_context: Any) -> Iterator[tuple[Any, Any]]:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    node = rclpy.create_node("serialized_subscription_probe", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    try:
-        yield node, executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-
-
 def _exchange(node: Any, executor: Any, receiver: _Receiver, clouds: list[bytes], *,
               direct: bool = True) -> SerializedSubscription:
     from sensor_msgs.msg import PointCloud2
@@ -92,13 +75,13 @@ def _exchange(node: Any, executor: Any, receiver: _Receiver, clouds: list[bytes]
     return subscription
 
 
-def test_messages_are_taken_into_the_given_memory(node: tuple[Any, Any]) -> None:
+def test_messages_are_taken_into_the_given_memory(probe: tuple[Any, Any]) -> None:
     assert rcl_serialized_take() is not None
     clouds = _clouds(5, 20_000)
     ring = SharedRing.create(3 * len(clouds[-1]) + 4096)
     try:
         receiver = _Receiver(ring)
-        subscription = _exchange(*node, receiver, clouds)
+        subscription = _exchange(*probe, receiver, clouds)
         assert subscription.direct
         assert [raw for raw, _ in receiver.got] == clouds  # whole, in order
         assert receiver.asked == [len(raw) for raw in clouds]  # exactly each size, once
@@ -110,12 +93,12 @@ def test_messages_are_taken_into_the_given_memory(node: tuple[Any, Any]) -> None
 
 
 def test_a_message_larger_than_the_ring_goes_to_memory_of_its_own(
-        node: tuple[Any, Any]) -> None:
+        probe: tuple[Any, Any]) -> None:
     clouds = _clouds(2, 1000) + _clouds(1, 50_000)
     ring = SharedRing.create(len(clouds[0]) * 3)
     try:
         receiver = _Receiver(ring)
-        _exchange(*node, receiver, clouds)
+        _exchange(*probe, receiver, clouds)
         assert [raw for raw, _ in receiver.got] == clouds
         assert [token is None for _, token in receiver.got] == [False, False, True]
     finally:
@@ -123,12 +106,12 @@ def test_a_message_larger_than_the_ring_goes_to_memory_of_its_own(
         ring.close()
 
 
-def test_without_rcl_function_messages_arrive_as_bytes(node: tuple[Any, Any]) -> None:
+def test_without_rcl_function_messages_arrive_as_bytes(probe: tuple[Any, Any]) -> None:
     clouds = _clouds(3, 1000)
     ring = SharedRing.create(1 << 20)
     try:
         receiver = _Receiver(ring)
-        subscription = _exchange(*node, receiver, clouds, direct=False)
+        subscription = _exchange(*probe, receiver, clouds, direct=False)
         assert not subscription.direct
         assert receiver.got == [(raw, None) for raw in clouds]
         assert receiver.asked == []

@@ -22,22 +22,6 @@ from lidarcal_ros.io.bag_format import ODOMETRY, POSE_STAMPED
 
 
 @pytest.fixture()
-def probe(ros_context: Any) -> Iterator[tuple[Any, Any]]:
-    """A node and an executor spinning it on demand."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    node = rclpy.create_node("trajectory_input_probe", context=ros_context)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
-    try:
-        yield node, executor
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-
-
-@pytest.fixture()
 def publisher_node(ros_context: Any) -> Iterator[Any]:
     """A node of another DDS participant (as a driver or a replay in a process of its own:
     one participant cannot hold one topic with two types)."""

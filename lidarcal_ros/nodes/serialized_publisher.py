@@ -18,17 +18,15 @@ another platform), it publishes as rclpy does, from a ``bytes`` copy of the buff
 from __future__ import annotations
 
 import ctypes
-import logging
-import os
+import functools
 from typing import Any
 
 import numpy as np
 
 from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.nodes.rcl_functions import RCL_RET_OK, c_function, take_rcl_error
 
 __all__ = ["SerializedPublisher", "rcl_serialized_publish"]
-
-logger = logging.getLogger(__name__)
 
 
 class _Uint8Array(ctypes.Structure):
@@ -48,48 +46,13 @@ class _Uint8Array(ctypes.Structure):
     ]
 
 
-_RCL_RET_OK = 0
-_NOT_LOOKED_UP: Any = object()
-_publish_function: Any = _NOT_LOOKED_UP
-
-
+@functools.cache
 def rcl_serialized_publish() -> Any:
-    """rcl's ``rcl_publish_serialized_message`` as a ctypes function, or None where rcl is
-    not loaded in this process or lacks it (looked up once; rclpy must be imported first:
-    the library is the one rclpy loaded, never another found on a path)."""
-    global _publish_function
-    if _publish_function is _NOT_LOOKED_UP:
-        _publish_function = None
-        try:
-            library = ctypes.CDLL("librcl.so", mode=getattr(os, "RTLD_NOLOAD", 0))
-            function = library.rcl_publish_serialized_message
-        except (OSError, AttributeError) as exc:
-            logger.debug("rcl_publish_serialized_message not available (%s): clouds are "
-                         "published from bytes", exc)
-        else:
-            function.argtypes = [ctypes.c_void_p, ctypes.POINTER(_Uint8Array), ctypes.c_void_p]
-            function.restype = ctypes.c_int
-            _publish_function = function
-    return _publish_function
-
-
-class _ErrorString(ctypes.Structure):
-    """``rcutils_error_string_t``."""
-
-    _fields_ = [("text", ctypes.c_char * 1024)]
-
-
-def _take_rcl_error(ret: int) -> str:
-    """rcl's error message for the failed call (``rcl error N`` where it cannot be read), and
-    its error state cleared, as rclpy does after a failure."""
-    try:
-        library = ctypes.CDLL("librcutils.so", mode=getattr(os, "RTLD_NOLOAD", 0))
-        library.rcutils_get_error_string.restype = _ErrorString
-        text = library.rcutils_get_error_string().text.decode(errors="replace")
-        library.rcutils_reset_error()
-    except (OSError, AttributeError):
-        text = ""
-    return " ".join(text.split()) or f"rcl error {ret}"
+    """rcl's ``rcl_publish_serialized_message`` as a ctypes function, or None
+    (:func:`~lidarcal_ros.nodes.rcl_functions.c_function`; looked up once)."""
+    return c_function("librcl.so", "rcl_publish_serialized_message",
+                      [ctypes.c_void_p, ctypes.POINTER(_Uint8Array), ctypes.c_void_p],
+                      ctypes.c_int)
 
 
 class SerializedPublisher:
@@ -134,6 +97,6 @@ class SerializedPublisher:
         handle = self.publisher.handle
         with handle:  # (not destroyed while rcl reads it)
             ret = self._function(handle.pointer, ctypes.byref(message), None)
-        if ret != _RCL_RET_OK:
+        if ret != RCL_RET_OK:
             raise LidarcalError(f"{self.publisher.topic_name}: publishing failed "
-                                f"({_take_rcl_error(ret)})")
+                                f"({take_rcl_error(ret)})")

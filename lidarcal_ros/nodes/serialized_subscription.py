@@ -20,8 +20,8 @@ subscription and the callback gets ``bytes``.
 from __future__ import annotations
 
 import ctypes
+import functools
 import logging
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +29,8 @@ from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.subscription import Subscription
 from rclpy.waitable import NumberOfEntities, Waitable
+
+from lidarcal_ros.nodes.rcl_functions import RCL_RET_OK, c_function, take_rcl_error
 
 __all__ = ["SerializedSubscription", "rcl_serialized_take"]
 
@@ -59,31 +61,17 @@ class _TakenMessage(ctypes.Structure):
     ]
 
 
-_RCL_RET_OK = 0
-_RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401  # nothing to take (rcl/types.h)
-_NOT_LOOKED_UP: Any = object()
-_take_function: Any = _NOT_LOOKED_UP
+#: rcl's return value when there was no message to take (``rcl/types.h``).
+_RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401
 
 
+@functools.cache
 def rcl_serialized_take() -> Any:
-    """rcl's ``rcl_take_serialized_message`` as a ctypes function, or None (looked up once,
-    in the rcl that rclpy loaded: see
-    :func:`~lidarcal_ros.nodes.serialized_publisher.rcl_serialized_publish`)."""
-    global _take_function
-    if _take_function is _NOT_LOOKED_UP:
-        _take_function = None
-        try:
-            library = ctypes.CDLL("librcl.so", mode=getattr(os, "RTLD_NOLOAD", 0))
-            function = library.rcl_take_serialized_message
-        except (OSError, AttributeError) as exc:
-            logger.debug("rcl_take_serialized_message not available (%s): messages are "
-                         "taken as bytes", exc)
-        else:
-            function.argtypes = [ctypes.c_void_p, ctypes.POINTER(_TakenMessage),
-                                 ctypes.c_void_p, ctypes.c_void_p]
-            function.restype = ctypes.c_int
-            _take_function = function
-    return _take_function
+    """rcl's ``rcl_take_serialized_message`` as a ctypes function, or None
+    (:func:`~lidarcal_ros.nodes.rcl_functions.c_function`; looked up once)."""
+    return c_function("librcl.so", "rcl_take_serialized_message",
+                      [ctypes.c_void_p, ctypes.POINTER(_TakenMessage), ctypes.c_void_p,
+                       ctypes.c_void_p], ctypes.c_int)
 
 
 #: ``allocate(size) -> (view, token)``: a writable view of ``size`` bytes to receive a
@@ -199,12 +187,12 @@ class SerializedSubscription(Waitable[Any]):
         with handle:
             ret = function(handle.pointer, ctypes.byref(message), None, None)
         received, self._received = self._received, None
-        if ret == _RCL_RET_OK and received is not None:
+        if ret == RCL_RET_OK and received is not None:
             view, token = received
             return view[:message.buffer_length], token
-        if ret not in (_RCL_RET_OK, _RCL_RET_SUBSCRIPTION_TAKE_FAILED):
-            logger.error("%s: a message could not be taken (rcl error %d)",
-                         self.subscription.topic_name, ret)
+        if ret not in (RCL_RET_OK, _RCL_RET_SUBSCRIPTION_TAKE_FAILED):
+            logger.error("%s: a message could not be taken (%s)",
+                         self.subscription.topic_name, take_rcl_error(ret))
         if received is not None and self._discard is not None:  # allocated, not filled
             self._discard(received[1])
         return None
