@@ -118,3 +118,19 @@ def test_without_rcl_function_messages_arrive_as_bytes(probe: tuple[Any, Any]) -
     finally:
         ring.unlink()
         ring.close()
+
+
+def test_the_executor_spins_on_once_the_subscription_is_destroyed(
+        probe: tuple[Any, Any]) -> None:
+    node, executor = probe
+    clouds = _clouds(1, 100)
+    ring = SharedRing.create(1 << 20)
+    try:
+        receiver = _Receiver(ring)
+        subscription = _exchange(node, executor, receiver, clouds)
+        node.destroy_subscription(subscription.subscription)
+        executor.spin_once(timeout_sec=0.05)  # the waitable adds nothing, raises nothing
+        assert not subscription.is_ready(None) and len(receiver.got) == 1
+    finally:
+        ring.unlink()
+        ring.close()

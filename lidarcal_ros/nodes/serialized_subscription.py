@@ -163,7 +163,11 @@ class SerializedSubscription(Waitable[Any]):
 
     # -- rclpy's Waitable ----------------------------------------------------------------
     def __enter__(self) -> None:
+        # (a destroyed subscription raises here; the executor then leaves it out of the wait
+        # set's count, but still calls add_to_wait_set: it must add nothing)
+        self._index = -1
         self.subscription.handle.__enter__()
+        self._index = 0
 
     def __exit__(self, *exc: Any) -> None:
         self.subscription.handle.__exit__(*exc)
@@ -172,10 +176,11 @@ class SerializedSubscription(Waitable[Any]):
         return NumberOfEntities(num_subs=1)
 
     def add_to_wait_set(self, wait_set: Any) -> None:
-        self._index = wait_set.add_subscription(self.subscription.handle)
+        if self._index >= 0:
+            self._index = wait_set.add_subscription(self.subscription.handle)
 
     def is_ready(self, wait_set: Any) -> bool:
-        return bool(wait_set.is_ready("subscription", self._index))
+        return self._index >= 0 and bool(wait_set.is_ready("subscription", self._index))
 
     def take_data(self) -> tuple[memoryview, Any] | None:
         """Take one message into memory from ``allocate`` (None: there was none)."""
