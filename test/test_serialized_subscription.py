@@ -131,6 +131,7 @@ def test_the_executor_spins_on_once_the_subscription_is_destroyed(
         node.destroy_subscription(subscription.subscription)
         executor.spin_once(timeout_sec=0.05)  # the waitable adds nothing, raises nothing
         assert not subscription.is_ready(None) and len(receiver.got) == 1
+        assert subscription.take_data() is None  # (a take after the wait: skipped)
     finally:
         ring.unlink()
         ring.close()

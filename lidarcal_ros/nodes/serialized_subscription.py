@@ -26,6 +26,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.subscription import Subscription
 from rclpy.waitable import NumberOfEntities, Waitable
@@ -189,8 +190,11 @@ class SerializedSubscription(Waitable[Any]):
         message = _TakenMessage(None, 0, 0, *self._functions, None)
         self._received = None
         handle = self.subscription.handle
-        with handle:
-            ret = function(handle.pointer, ctypes.byref(message), None, None)
+        try:
+            with handle:
+                ret = function(handle.pointer, ctypes.byref(message), None, None)
+        except InvalidHandle:  # destroyed since the wait (as rclpy's own take, skipped)
+            return None
         received, self._received = self._received, None
         if ret == RCL_RET_OK and received is not None:
             view, token = received
