@@ -19,6 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from lidarcal_ros.io.bag_reader import BagReader
+from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
 from lidarcal_ros.nodes.topics import latched_qos, stream_qos
 
 __all__ = ["PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"]
@@ -55,6 +56,7 @@ class PlayerNode(Node):
         super().__init__(node_name, context=context)
         wanted = set(topics) if topics is not None else None
         self.publishers_by_topic: dict[str, Any] = {}
+        self._serialized: dict[str, SerializedPublisher] = {}
         self.latched: set[str] = set()
         self.skipped: dict[str, str] = {}
         for topic, info in bag.topics.items():
@@ -67,6 +69,8 @@ class PlayerNode(Node):
                 continue
             self.publishers_by_topic[topic] = self.create_publisher(cls, topic,
                                                                     topic_qos(info, queue))
+            # (a message is published from where the bag reader holds it: no bytes copy)
+            self._serialized[topic] = SerializedPublisher(self.publishers_by_topic[topic])
             if info.transient_local:
                 self.latched.add(topic)
         self.clock_publisher = None
@@ -81,10 +85,10 @@ class PlayerNode(Node):
     def topics(self) -> list[str]:
         return sorted(self.publishers_by_topic)
 
-    def publish(self, topic: str, _msgtype: str, _ns: int, raw: bytes) -> None:
-        pub = self.publishers_by_topic.get(topic)
+    def publish(self, topic: str, _msgtype: str, _ns: int, raw: bytes | memoryview) -> None:
+        pub = self._serialized.get(topic)
         if pub is not None:
-            pub.publish(bytes(raw))
+            pub.publish(raw)
 
     def publish_clock(self, ns: int) -> None:
         if self.clock_publisher is None:
