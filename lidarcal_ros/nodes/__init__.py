@@ -21,7 +21,10 @@ _EXPORTS = {
     "parameters": ("FlightParameters", "Listener", "descriptor_for", "parameter_value"),
     "player": ("PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"),
     "process": ("Shutdown", "run_main", "spin_nodes", "start_ros"),
-    "rcl_functions": ("RCL_RET_OK", "c_function", "take_rcl_error"),
+    "rcl_functions": (
+        "ALLOCATE", "DEALLOCATE", "RCL_RET_OK", "REALLOCATE", "SerializedMessage",
+        "ZERO_ALLOCATE", "c_function", "take_rcl_error",
+    ),
     "recorder": ("DEFAULT_TOPICS", "RECORDER_NODE", "RecorderNode"),
     "serialized_publisher": ("SerializedPublisher", "rcl_serialized_publish"),
     "serialized_subscription": ("SerializedSubscription", "rcl_serialized_take"),

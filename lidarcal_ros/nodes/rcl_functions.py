@@ -13,12 +13,43 @@ import logging
 import os
 from typing import Any
 
-__all__ = ["RCL_RET_OK", "c_function", "take_rcl_error"]
+__all__ = [
+    "ALLOCATE", "DEALLOCATE", "RCL_RET_OK", "REALLOCATE", "ZERO_ALLOCATE", "SerializedMessage",
+    "c_function", "take_rcl_error",
+]
 
 logger = logging.getLogger(__name__)
 
 #: rcl's return value for success (``rcl/types.h``).
 RCL_RET_OK = 0
+
+#: The four functions of an ``rcutils_allocator_t`` (``rcutils/allocator.h``), each with
+#: the allocator's state last: allocate(size), deallocate(pointer), reallocate(pointer, size),
+#: zero_allocate(count, size).
+ALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p)
+DEALLOCATE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p)
+REALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t,
+                              ctypes.c_void_p)
+ZERO_ALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_size_t,
+                                 ctypes.c_void_p)
+
+
+class SerializedMessage(ctypes.Structure):
+    """``rcl_serialized_message_t`` (= ``rcutils_uint8_array_t``,
+    ``rcutils/types/uint8_array.h``): the buffer, its length and capacity, and its
+    ``rcutils_allocator_t`` spelt out (the four functions, NULL unless given, and the
+    state). Publishing reads the buffer only; a take asks the allocator for it."""
+
+    _fields_ = [
+        ("buffer", ctypes.c_void_p),
+        ("buffer_length", ctypes.c_size_t),
+        ("buffer_capacity", ctypes.c_size_t),
+        ("allocate", ALLOCATE),
+        ("deallocate", DEALLOCATE),
+        ("reallocate", REALLOCATE),
+        ("zero_allocate", ZERO_ALLOCATE),
+        ("state", ctypes.c_void_p),
+    ]
 
 
 @functools.cache

@@ -24,26 +24,14 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.nodes.rcl_functions import RCL_RET_OK, c_function, take_rcl_error
+from lidarcal_ros.nodes.rcl_functions import (
+    RCL_RET_OK,
+    SerializedMessage,
+    c_function,
+    take_rcl_error,
+)
 
 __all__ = ["SerializedPublisher", "rcl_serialized_publish"]
-
-
-class _Uint8Array(ctypes.Structure):
-    """``rcutils_uint8_array_t`` (= ``rcl_serialized_message_t``): the buffer, its length
-    and capacity, and an ``rcutils_allocator_t`` (four function pointers and a state) that
-    publishing never calls."""
-
-    _fields_ = [
-        ("buffer", ctypes.c_void_p),
-        ("buffer_length", ctypes.c_size_t),
-        ("buffer_capacity", ctypes.c_size_t),
-        ("allocate", ctypes.c_void_p),
-        ("deallocate", ctypes.c_void_p),
-        ("reallocate", ctypes.c_void_p),
-        ("zero_allocate", ctypes.c_void_p),
-        ("state", ctypes.c_void_p),
-    ]
 
 
 @functools.cache
@@ -51,7 +39,7 @@ def rcl_serialized_publish() -> Any:
     """rcl's ``rcl_publish_serialized_message`` as a ctypes function, or None
     (:func:`~lidarcal_ros.nodes.rcl_functions.c_function`; looked up once)."""
     return c_function("librcl.so", "rcl_publish_serialized_message",
-                      [ctypes.c_void_p, ctypes.POINTER(_Uint8Array), ctypes.c_void_p],
+                      [ctypes.c_void_p, ctypes.POINTER(SerializedMessage), ctypes.c_void_p],
                       ctypes.c_int)
 
 
@@ -93,7 +81,7 @@ class SerializedPublisher:
             self.publisher.publish(data if isinstance(data, bytes) else bytes(data))
             return
         array = np.frombuffer(data, dtype=np.uint8)  # its address; no copy
-        message = _Uint8Array(array.ctypes.data, array.size, array.size)
+        message = SerializedMessage(array.ctypes.data, array.size, array.size)
         handle = self.publisher.handle
         with handle:  # (not destroyed while rcl reads it)
             ret = self._function(handle.pointer, ctypes.byref(message), None)

@@ -31,36 +31,20 @@ from rclpy.node import Node
 from rclpy.subscription import Subscription
 from rclpy.waitable import NumberOfEntities, Waitable
 
-from lidarcal_ros.nodes.rcl_functions import RCL_RET_OK, c_function, take_rcl_error
+from lidarcal_ros.nodes.rcl_functions import (
+    ALLOCATE,
+    DEALLOCATE,
+    RCL_RET_OK,
+    REALLOCATE,
+    ZERO_ALLOCATE,
+    SerializedMessage,
+    c_function,
+    take_rcl_error,
+)
 
 __all__ = ["SerializedSubscription", "rcl_serialized_take"]
 
 logger = logging.getLogger(__name__)
-
-_ALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p)
-_DEALLOCATE = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p)
-_REALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p, ctypes.c_size_t,
-                               ctypes.c_void_p)
-_ZERO_ALLOCATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t, ctypes.c_size_t,
-                                  ctypes.c_void_p)
-
-
-class _TakenMessage(ctypes.Structure):
-    """``rcutils_uint8_array_t`` (= ``rcl_serialized_message_t``) with its
-    ``rcutils_allocator_t`` spelt out: allocate, deallocate, reallocate, zero_allocate,
-    state."""
-
-    _fields_ = [
-        ("buffer", ctypes.c_void_p),
-        ("buffer_length", ctypes.c_size_t),
-        ("buffer_capacity", ctypes.c_size_t),
-        ("allocate", _ALLOCATE),
-        ("deallocate", _DEALLOCATE),
-        ("reallocate", _REALLOCATE),
-        ("zero_allocate", _ZERO_ALLOCATE),
-        ("state", ctypes.c_void_p),
-    ]
-
 
 #: rcl's return value when there was no message to take (``rcl/types.h``).
 _RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401
@@ -71,7 +55,7 @@ def rcl_serialized_take() -> Any:
     """rcl's ``rcl_take_serialized_message`` as a ctypes function, or None
     (:func:`~lidarcal_ros.nodes.rcl_functions.c_function`; looked up once)."""
     return c_function("librcl.so", "rcl_take_serialized_message",
-                      [ctypes.c_void_p, ctypes.POINTER(_TakenMessage), ctypes.c_void_p,
+                      [ctypes.c_void_p, ctypes.POINTER(SerializedMessage), ctypes.c_void_p,
                        ctypes.c_void_p], ctypes.c_int)
 
 
@@ -151,10 +135,10 @@ class SerializedSubscription(Waitable[Any]):
         self._received: tuple[memoryview, Any] | None = None
         # The allocator rmw calls during a take: reallocate (from no buffer) is the one it
         # uses; the others are there because rcutils checks that all four are set.
-        self._functions = (_ALLOCATE(lambda size, state: None),
-                           _DEALLOCATE(lambda pointer, state: None),
-                           _REALLOCATE(self._reallocate),
-                           _ZERO_ALLOCATE(lambda count, size, state: None))
+        self._functions = (ALLOCATE(lambda size, state: None),
+                           DEALLOCATE(lambda pointer, state: None),
+                           REALLOCATE(self._reallocate),
+                           ZERO_ALLOCATE(lambda count, size, state: None))
         node.add_waitable(self)
 
     @property
@@ -187,7 +171,7 @@ class SerializedSubscription(Waitable[Any]):
         """Take one message into memory from ``allocate`` (None: there was none)."""
         function = self._function
         assert function is not None  # (rclpy's executor takes the messages otherwise)
-        message = _TakenMessage(None, 0, 0, *self._functions, None)
+        message = SerializedMessage(None, 0, 0, *self._functions, None)
         self._received = None
         handle = self.subscription.handle
         try:
