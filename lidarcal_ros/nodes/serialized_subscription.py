@@ -114,19 +114,15 @@ class SerializedSubscription(Waitable[Any]):
         self._callback = callback
         self._discard = discard
         function = rcl_serialized_take() if direct else None
-        if function is None:
+        if function is not None:
             self.subscription = node.create_subscription(
-                msg_type, topic, lambda raw: callback(raw, None), qos, raw=True,
-                callback_group=group)
-            self._function = None
-            return
+                msg_type, topic, _never_called, qos, raw=True,
+                callback_group=_NotTheSubscription())
+            if not hasattr(self.subscription.handle, "pointer"):  # (an rclpy without it)
+                node.destroy_subscription(self.subscription)
+                function = None
         self._function = function
-        self.subscription = node.create_subscription(
-            msg_type, topic, _never_called, qos, raw=True,
-            callback_group=_NotTheSubscription())
-        if not hasattr(self.subscription.handle, "pointer"):
-            node.destroy_subscription(self.subscription)
-            self._function = None
+        if function is None:  # a plain raw subscription, taken by rclpy's executor
             self.subscription = node.create_subscription(
                 msg_type, topic, lambda raw: callback(raw, None), qos, raw=True,
                 callback_group=group)
