@@ -20,7 +20,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
 __all__ = ["MAX_PUSH_POINTS", "TRAJECTORY_MARGIN_S", "Region", "WaitingCloud", "WaitingClouds",
            "take_ready"]
@@ -66,11 +66,11 @@ class WaitingCloud:
     parsed: bool = False
     n_points: int = 0
     t_max: float = -math.inf
-    region: Any = None
+    region: Region | None = None
 
     def release(self) -> None:
         """The cloud will not be corrected: its shared memory, if any, is free again."""
-        region: Region | None = self.region
+        region = self.region
         self.raw, self.region = b"", None
         if region is not None:
             region.release()
