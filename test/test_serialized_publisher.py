@@ -5,7 +5,6 @@ byte for byte as rclpy's own ``publish(bytes)`` sends it, rcl taking the buffer 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -20,29 +19,21 @@ TOPIC = "/serialized_publisher_test/points"
 
 
 @pytest.fixture()
-def link(ros_context: Any) -> Iterator[tuple[Any, Any, list[bytes]]]:
-    """A publisher and a raw subscriber of PointCloud2 on one node, the executor spinning
-    it, and what the subscriber received."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+def link(probe: tuple[Any, Any]) -> tuple[Any, Any, list[bytes]]:
+    """A publisher and a raw subscriber of PointCloud2 on the probe node, its executor, and
+    what the subscriber received."""
     from sensor_msgs.msg import PointCloud2
 
     from lidarcal_ros.nodes.topics import stream_qos
 
-    node = rclpy.create_node("serialized_publisher_probe", context=ros_context)
+    node, executor = probe
     received: list[bytes] = []
     publisher = node.create_publisher(PointCloud2, TOPIC, stream_qos(100))
     node.create_subscription(PointCloud2, TOPIC, received.append, stream_qos(100), raw=True)
-    executor = SingleThreadedExecutor(context=ros_context)
-    executor.add_node(node)
     deadline = time.monotonic() + 10.0
     while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.05)
-    try:
-        yield publisher, executor, received
-    finally:
-        executor.shutdown()
-        node.destroy_node()
+    return publisher, executor, received
 
 
 def _receive(executor: Any, received: list[bytes], count: int) -> list[bytes]:
