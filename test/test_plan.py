@@ -240,3 +240,83 @@ def test_a_banked_turn_over_one_track_shows_dkappa() -> None:
         FlightPlan.from_mapping({**base, "model": "exact"})
     with pytest.raises(ConfigError, match="line 7"):
         FlightPlan.from_mapping({**base, "lines": [*PAPER[:4], {**turn, "bank_deg": "x"}]})
+
+
+def _rotated(lines: list[dict], heading_deg: float) -> list[dict]:
+    """``lines`` turned by ``heading_deg`` about the origin (counter-clockwise)."""
+    c, s = math.cos(math.radians(heading_deg)), math.sin(math.radians(heading_deg))
+
+    def turn(p: list[float]) -> list[float]:
+        return [c * p[0] - s * p[1], s * p[0] + c * p[1]]
+
+    return [{**ln, "start": turn(ln["start"]), "end": turn(ln["end"])} for ln in lines]
+
+
+def test_the_contract_example_plan_prints_its_table(tmp_path: Path, capsys) -> None:
+    """interface.md's example: lines 3-4 east-west (a level pose heading east is the identity
+    quaternion), with and without its control point."""
+    lines = [{"id": 1, "start": [0, -HALF], "end": [0, HALF], "height": 1150},
+             {"id": 2, "start": [0, HALF], "end": [0, -HALF], "height": 1150},
+             {"id": 3, "start": [-HALF, 0], "end": [HALF, 0], "height": 540},
+             {"id": 4, "start": [HALF, 0], "end": [-HALF, 0], "height": 540},
+             {"id": 5, "start": [-150, -HALF], "end": [-150, HALF], "height": 540},
+             {"id": 6, "start": [150, -HALF], "end": [150, HALF], "height": 540}]
+    for control in ([[-60, 40, 41.2]], None):
+        doc = {"sensor": {"fov_deg": 50.0, "range_noise_m": 0.03}, "terrain": "built-up",
+               "lines": lines, **({"control": control} if control else {})}
+        path = tmp_path / "plan.yaml"
+        path.write_text(yaml.safe_dump(doc))
+        assert main(["plan", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert "model: rigorous (INS attitude at 50 Hz) for every strip" in out
+        rows = [ln.split()[0] for ln in out.splitlines()[1:9]]
+        assert rows == ["dX", "dY", "dZ", "domega", "dphi", "dkappa", "dr", "dS"]
+        assert out.count(" estimable ") >= 7
+
+
+@pytest.mark.parametrize("model", ["auto", "level"])
+def test_every_heading_plans_alike(model: str) -> None:
+    """The paper's configuration turned through 0-345 deg: the same parameters estimable,
+    sigmas within a factor 2 of the north-south plan's (the terrain under the lines varies),
+    with the INS attitude (rigorous model) and without (level)."""
+    doc = {"lines": PAPER, "sensor": {"density": 0.05}, "model": model}
+    north = predict(FlightPlan.from_mapping(doc))
+    estimable = {n for n, p in north.parameters.items() if p.estimable}
+    assert SEVEN - {"dr"} <= estimable <= SEVEN
+    for heading in range(15, 360, 15):
+        report = predict(FlightPlan.from_mapping({**doc, "lines": _rotated(PAPER, heading)}))
+        want = "rigorous (INS attitude at 50 Hz)" if model == "auto" else "level"
+        assert report.model.startswith(want) and report.model.endswith("for every strip"), \
+            (heading, report.model)
+        assert {n for n, p in report.parameters.items() if p.estimable} == estimable, heading
+        for name in estimable:
+            ratio = report.parameters[name].sigma / north.parameters[name].sigma
+            assert 0.5 < ratio < 2.0, (heading, name, ratio)
+
+
+def test_banked_and_turning_lines_plan_at_any_heading() -> None:
+    """Banked lines (constant roll) and a turning line, flown east, south-west and north-west,
+    over the paper's opposite pairs turned alike: the rigorous model on every strip, dkappa
+    seen through the attitude as on the north-south plan."""
+    for heading in (90, 225, 300):
+        bank = {"id": 7, "start": [-150, -HALF], "end": [150, HALF], "height": 1150,
+                "bank_deg": 20}
+        turn = {"id": 8, "start": [200, -HALF], "end": [200, HALF], "height": 900,
+                "turn_deg_s": 1.5}
+        lines = _rotated([*PAPER[:4], bank, turn], heading)
+        report = predict(FlightPlan.from_mapping({"lines": lines, "control": [[0, 0, 0]],
+                                                  "sensor": {"density": 0.05}}))
+        assert report.model == "rigorous (INS attitude at 50 Hz) for every strip", heading
+        assert report.parameters["dkappa"].estimable, heading
+        assert {"dX", "dphi", "domega"} <= {n for n, p in report.parameters.items()
+                                            if p.estimable}, heading
+
+
+def test_a_plan_of_one_line_due_east() -> None:
+    """Level poses all heading due east are identity quaternions, which alone read as no
+    attitude: the plan runs the level model (the same geometry) and says so."""
+    report = predict(FlightPlan.from_mapping({"lines": [
+        {"id": 1, "start": [-HALF, 0], "end": [HALF, 0], "height": 540}],
+        "sensor": {"density": 0.05}}))
+    assert report.model.startswith("level"), report.model
+    assert not any(p.estimable for p in report.parameters.values())

@@ -125,3 +125,35 @@ def test_a_level_attitude_once_dropped_and_out_of_order_samples() -> None:
     buffer.add_many(t[440:430:-1] + 0.005, xyz[440:430:-1])  # late, out of order
     traj = buffer.trajectory()
     assert np.all(np.diff(traj.t) > 0) and len(traj) == 111
+
+
+def test_the_identity_is_a_level_pose_heading_east_among_poses_with_attitude() -> None:
+    """An identity quaternion is "no orientation" only where every pose is the identity; in a
+    trajectory with attitude it is a level pose heading due east, batch, sliced and live."""
+    from lidarcal_ros.core.attitude import IDENTITY_XYZW, quaternions_from_attitude
+    from lidarcal_ros.core.mission import Trajectory
+
+    n = 40
+    t = np.arange(n) * 0.02
+    xyz = np.column_stack([t * 60.0, np.zeros(n), np.full(n, 500.0)])
+    north = quaternions_from_attitude(np.zeros(20), np.zeros(20), np.zeros(20))
+    east = np.tile(IDENTITY_XYZW, (20, 1))
+    q = np.concatenate([north, east])
+    batch = Trajectory(t, xyz, q)
+    assert batch.orientation is not None and np.isfinite(batch.orientation).all()
+    assert batch.heading is not None and np.allclose(batch.heading[20:], -np.pi / 2)
+    tail = batch.take(slice(25, 40))  # identity rows only, taken from poses with attitude
+    assert tail.orientation is not None and np.isfinite(tail.orientation).all()
+    assert Trajectory(t, xyz, np.tile(IDENTITY_XYZW, (n, 1))).orientation is None
+
+    live = TrajectoryBuffer()
+    live.add_many(t[:20], xyz[:20], q[:20])
+    live.trajectory()  # the first rows merged before the east-bound ones arrive
+    live.add_many(t[20:], xyz[20:], q[20:])
+    got = live.trajectory()
+    assert got.orientation is not None
+    np.testing.assert_allclose(got.orientation, batch.orientation)
+    bare = TrajectoryBuffer()
+    for k in range(n):
+        bare.add(float(t[k]), tuple(xyz[k]), orientation=IDENTITY_XYZW)
+    assert bare.trajectory().orientation is None

@@ -13,8 +13,10 @@ cos kappa)``), a pitch (nose up positive, about the body's right axis) and a rol
 down positive, about the forward axis), ``R_ins = Rz(kappa) Rx(pitch) Ry(roll)``. A level pose
 gives ``R_ins = R_kappa``, the rotation of sections 2-4.
 
-An orientation is *absent* where the pose's quaternion is the identity (the contract allows
-it: "orientation may be identity"), zero or not finite: such a sample is a row of NaN.
+An orientation is *absent* where the pose's quaternion is zero or not finite, and where it is the
+identity in a trajectory whose every pose is the identity (the contract allows that: "orientation
+may be identity"): such a sample is a row of NaN. Among poses that carry an attitude the identity
+is a real one, a level pose heading east.
 """
 
 from __future__ import annotations
@@ -33,18 +35,22 @@ P_BODY = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 IDENTITY_XYZW = (0.0, 0.0, 0.0, 1.0)
 
 
-def normalise_quaternions(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(n, 4)`` xyzw, NaN rows where absent (identity, zero or non-finite).
+def normalise_quaternions(q: np.ndarray, *, oriented: bool = False) -> np.ndarray:
+    """Unit quaternions ``(n, 4)`` xyzw, NaN rows where absent (module docstring).
 
-    The sign is chosen so that consecutive rows lie in the same hemisphere (``q`` and ``-q``
-    are the same rotation; interpolation needs the shorter arc).
+    The identity rows are absent unless another row, or an earlier part of the same trajectory
+    (``oriented``), carries a rotation other than the identity. The sign is chosen so that
+    consecutive rows lie in the same hemisphere (``q`` and ``-q`` are the same rotation;
+    interpolation needs the shorter arc).
     """
     q = np.array(q, dtype=np.float64, copy=True).reshape(-1, 4)
     norm = np.sqrt(np.einsum("ij,ij->i", q, q))
     with np.errstate(invalid="ignore", divide="ignore"):
         q /= norm[:, None]
-    absent = ~np.isfinite(q).all(axis=1) | ~(norm > 0.0) | (
-        (q[:, 0] == 0.0) & (q[:, 1] == 0.0) & (q[:, 2] == 0.0))
+    absent = ~np.isfinite(q).all(axis=1) | ~(norm > 0.0)
+    identity = (q[:, 0] == 0.0) & (q[:, 1] == 0.0) & (q[:, 2] == 0.0)
+    if not oriented and not (~absent & ~identity).any():
+        absent |= identity  # identity everywhere: the producer has no attitude
     q[absent] = np.nan
     if q.shape[0] > 1:
         flip = np.einsum("ij,ij->i", q[1:], q[:-1]) < 0.0

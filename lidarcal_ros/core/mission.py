@@ -17,6 +17,17 @@ from lidarcal_ros.errors import TrajectoryError
 logger = logging.getLogger(__name__)
 
 
+def _tilted(q: np.ndarray) -> bool:
+    """Some of the unit quaternions ``q`` (n, 4), NaN rows ignored, is not level to 1e-9 rad
+    or not upright: the poses carry roll and pitch, not a heading only."""
+    # R(q)[2, 0], R(q)[2, 1]: the vertical components of the forward and left axes (0: level),
+    # and R(q)[2, 2], the up axis's (1: upright)
+    x, y, z, w = q.T
+    tilt = np.abs(np.concatenate([x * z - y * w, y * z + x * w]))
+    upright = 1.0 - 2.0 * (x * x + y * y)
+    return not bool(np.nanmax(tilt) < 0.5e-9 and np.nanmin(upright) > 0.0)
+
+
 @dataclass
 class Trajectory:
     """Positions of the IMU origin over time, and its attitude where known.
@@ -63,13 +74,7 @@ class Trajectory:
             q = normalise_quaternions(q)
             self.orientation = None if not q.size or np.isnan(q).all() else q
         if self.orientation is not None and self.full_attitude:
-            # R(q)[2, 0], R(q)[2, 1]: the vertical components of the forward and left axes
-            # (0: level), and R(q)[2, 2], the up axis's (1: upright)
-            x, y, z, w = self.orientation.T
-            tilt = np.abs(np.concatenate([x * z - y * w, y * z + x * w]))
-            upright = 1.0 - 2.0 * (x * x + y * y)
-            self.full_attitude = not bool(np.nanmax(tilt) < 0.5e-9
-                                          and np.nanmin(upright) > 0.0)
+            self.full_attitude = _tilted(self.orientation)
 
     @property
     def heading(self) -> np.ndarray | None:
@@ -133,9 +138,16 @@ class Trajectory:
 
     def take(self, index: np.ndarray | slice) -> Trajectory:
         """The samples at ``index`` (a slice, or indices in time order)."""
-        return Trajectory(self.t[index], self.xyz[index],
-                          None if self.orientation is None else self.orientation[index],
-                          full_attitude=self.full_attitude)
+        t = np.ascontiguousarray(self.t[index])
+        xyz = np.ascontiguousarray(self.xyz[index])
+        if self.orientation is None:
+            return Trajectory.of_normalised(t, xyz, None, self.full_attitude)
+        # Taken as normalised: an identity row of this trajectory is a level pose heading
+        # east even where the part taken holds nothing else.
+        q = np.ascontiguousarray(self.orientation[index])
+        if not q.size or np.isnan(q).all():
+            return Trajectory.of_normalised(t, xyz, None, self.full_attitude)
+        return Trajectory.of_normalised(t, xyz, q, self.full_attitude and _tilted(q))
 
     def __len__(self) -> int:
         return int(self.t.shape[0])

@@ -235,9 +235,11 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
                       terrain=plan.dsm if plan.uses_dsm else None, n_control=0,
                       control_xy=[(c[0], c[1]) for c in plan.control] if plan.control else None),
     ))
+    # Level lines all flown due east are poses of the identity, which alone read as "no
+    # attitude": the level model is then the same geometry.
+    level = plan.model == LEVEL or sim.mission.trajectory.orientation is None
     settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
-                                   model=LEVEL if plan.model == LEVEL else RIGOROUS,
-                                   fov_deg=plan.fov_deg)
+                                   model=LEVEL if level else RIGOROUS, fov_deg=plan.fov_deg)
     unseen = _unseen_control(plan, sim.mission.strips, settings.overlap_cell_m)
     cal = Calibrator.from_mission(sim.mission, settings)
     model = describe_models({ps.strip_id: ps.choice for ps in cal.strips})

@@ -18,8 +18,8 @@ _NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
 
 
 def _has_orientation(q: tuple[float, ...]) -> bool:
-    """A quaternion that is finite and not the identity (module of
-    :mod:`lidarcal_ros.core.attitude`: the identity means "not given")."""
+    """A quaternion that is finite and not the identity (the identity of every pose means "not
+    given", :mod:`lidarcal_ros.core.attitude`)."""
     return all(math.isfinite(v) for v in q) and any(v != 0.0 for v in q[:3])
 
 #: Samples added and not yet merged beyond which :meth:`TrajectoryBuffer.add` merges them
@@ -76,11 +76,12 @@ class _Rows:
             if at > self.lo:
                 # The previous row first: the new rows take its hemisphere, as when the
                 # whole trajectory is normalised at once.
-                unit = normalise_quaternions(np.concatenate([self.q[at - 1:at], q]))[1:]
+                unit = normalise_quaternions(np.concatenate([self.q[at - 1:at], q]),
+                                             oriented=self.oriented)[1:]
             else:
-                unit = normalise_quaternions(q)
+                unit = normalise_quaternions(q, oriented=self.oriented)
             self._derive(at, unit)
-            self.oriented = True
+            self.oriented = self.oriented or not np.isnan(unit[:, 0]).all()
         self.hi = at + n
 
     def _grow(self, n: int) -> None:
