@@ -429,3 +429,36 @@ __all__ = [
     "write_mcap_ros2_bag",
     "write_params_file",
 ]
+
+
+def with_trajectory_errors(mission: Mission, *, seed: int, offset_m: Sequence[float] = (
+        0.04, 0.04, 0.05), drift_m_per_s: float = 0.001, oscillation_m: float = 0.01,
+        period_s: float = 60.0) -> tuple[Mission, dict[int, Callable[[np.ndarray], np.ndarray]]]:
+    """Each strip's points and the trajectory while it was flown moved by a trajectory error
+    ``e_s(t)`` (method.md section 11: a random offset, drift and slow oscillation about the
+    strip's mid time), as a navigation solution's error moves them; with ``e_s`` by strip id."""
+    out = _copy(mission)
+    rng = np.random.default_rng(seed)
+    traj = out.trajectory
+    xyz = traj.xyz.copy()
+    errors: dict[int, Callable[[np.ndarray], np.ndarray]] = {}
+    for strip in out.strips:
+        t0, t1 = strip_span(out, strip.strip_id)
+        mid = 0.5 * (t0 + t1)
+        offset = rng.normal(0.0, offset_m, 3)
+        drift = rng.normal(0.0, drift_m_per_s, 3)
+        phase = rng.uniform(0.0, 2.0 * np.pi, 3)
+
+        def error(t: np.ndarray, offset: np.ndarray = offset, drift: np.ndarray = drift,
+                  phase: np.ndarray = phase, mid: float = mid) -> np.ndarray:
+            dt = (np.asarray(t, dtype=np.float64) - mid)[:, None]
+            return offset + dt * drift + oscillation_m * np.sin(2 * np.pi * dt / period_s
+                                                                + phase)
+
+        errors[strip.strip_id] = error
+        strip.xyz = strip.xyz + error(strip.t)
+        near = (traj.t >= t0 - 2.0) & (traj.t <= t1 + 2.0)
+        xyz[near] += error(traj.t[near])
+    out.trajectory = Trajectory(traj.t, xyz, traj.orientation,
+                                full_attitude=traj.full_attitude)
+    return out, errors

@@ -20,8 +20,9 @@ _EXPORTS = {
     ),
     "calibrate": ("CalibrationSettings", "Calibrator", "Progress"),
     "calibration_iteration": (
-        "CYCLE_FACTOR", "Iteration", "allow_for_shared_errors", "has_converged",
-        "matching_cycle", "next_threshold", "reexpress_observations", "robust_solve",
+        "CYCLE_FACTOR", "Iteration", "TrajectoryTerms", "allow_for_shared_errors",
+        "has_converged", "matching_cycle", "next_threshold", "reexpress_observations",
+        "robust_solve",
     ),
     "calibration_kernels": ("add_normal_rows", "exact_correction_and_geometry"),
     "calibration_result": (
@@ -129,6 +130,7 @@ _EXPORTS = {
         "BIAS_CONVENTION", "line_attitude_record", "line_summary", "rough_air_record",
         "truth_config",
     ),
+    "strip_blocks": ("StripBlocks",),
     "strip_matching": ("PairMatcher",),
     "strip_normals": (
         "NormalsTask", "STREAM_START_POINTS", "STREAM_START_SECONDS", "StripNormals",
@@ -160,6 +162,11 @@ _EXPORTS = {
         "triangle_boxes",
     ),
     "trajectory_buffer": ("TrajectoryBuffer",),
+    "trajectory_errors": (
+        "AUTO_SIGMA0_RATIO", "StripError", "TrajectoryErrorSettings", "TrajectoryEstimate",
+        "TrajectoryModel", "TrajectoryRows", "TrajectoryState", "basis", "error_at",
+        "error_columns",
+    ),
     "trajectory_estimation": ("EstimatedTrajectory", "StripEstimate", "estimate_trajectory"),
     "trajectory_fallback": ("level_fallback",),
     "trajectory_rays": ("RayBudget", "RayCollector", "Rays", "rays_from_returns"),

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_INDEX, PARAMETER_NAMES, as_vector
+from lidarcal_ros.core.trajectory_errors import TrajectoryRows
 from lidarcal_ros.errors import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -103,6 +104,9 @@ class Observations:
     cluster : (k,) int64
         Spatial cell of the observation: observations in one cell share errors (the same
         patches and points serve several strip pairs), see :func:`cluster_robust_sigma`.
+    trajectory : TrajectoryRows, optional
+        The trajectory terms of each row, where trajectory errors are estimated (method.md
+        section 11).
     """
 
     rows: np.ndarray
@@ -110,6 +114,7 @@ class Observations:
     weights: np.ndarray
     group: np.ndarray
     cluster: np.ndarray
+    trajectory: TrajectoryRows | None = None
 
     @classmethod
     def empty(cls) -> Observations:
@@ -121,12 +126,19 @@ class Observations:
         parts = list(parts)
         if not parts:
             return cls.empty()
+        trajectory = None
+        if any(p.trajectory is not None for p in parts):
+            # (rows kept without their trajectory terms get none: they observe no error)
+            trajectory = TrajectoryRows.concatenate(
+                p.trajectory if p.trajectory is not None else TrajectoryRows.none(len(p))
+                for p in parts)
         return cls(
             np.concatenate([p.rows for p in parts]),
             np.concatenate([p.y for p in parts]),
             np.concatenate([p.weights for p in parts]),
             np.concatenate([p.group for p in parts]),
             np.concatenate([p.cluster for p in parts]),
+            trajectory,
         )
 
     def __len__(self) -> int:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from lidarcal_ros.core.adjustment import (
 )
 from lidarcal_ros.core.calibration_iteration import (
     Iteration,
+    TrajectoryTerms,
     allow_for_shared_errors,
     has_converged,
     next_threshold,
@@ -59,6 +60,13 @@ from lidarcal_ros.core.strip_pairs import (
     no_overlap_reason,
 )
 from lidarcal_ros.core.tin import TinQuality
+from lidarcal_ros.core.trajectory_errors import (
+    AUTO_SIGMA0_RATIO,
+    TrajectoryErrorSettings,
+    TrajectoryEstimate,
+    TrajectoryModel,
+    TrajectoryState,
+)
 from lidarcal_ros.errors import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -128,6 +136,9 @@ class CalibrationSettings:
     workers: int = 2
     #: When a parameter is reported as not separable or not observable.
     limits: ObservabilityLimits = field(default_factory=ObservabilityLimits)
+    #: Per-strip trajectory errors estimated with the biases (method.md section 11).
+    trajectory: TrajectoryErrorSettings = field(
+        default_factory=lambda: TrajectoryErrorSettings(TrajectoryModel.NONE))
 
     def __post_init__(self) -> None:
         self.solve_for = tuple(n for n in PARAMETER_NAMES if n in self.solve_for)
@@ -179,6 +190,9 @@ class Calibrator:
         self.workers = WorkerPool(settings.workers, self._progress)
         self.clock = StageClock()
         self.matcher = PairMatcher(settings, self.clock, self.workers)
+        #: Sigma of a correspondence of weight 1 (m) the trajectory priors are weighed with:
+        #: the configured one, then each adjustment's own sigma0.
+        self.unit_sigma = settings.trajectory.observation_sigma_m
 
     @classmethod
     def from_mission(
@@ -243,8 +257,9 @@ class Calibrator:
     def frozen_observations(self) -> Observations:
         """Correspondences kept without their points (released strips, restored state),
         expressed at the current estimate."""
-        return Observations.concatenate(reexpress_observations(obs, at, self.delta)
-                                        for obs, at in self._kept())
+        return Observations.concatenate(
+            reexpress_observations(obs, at, self.delta, self.matcher.trajectory)
+            for obs, at in self._kept())
 
     def restore_frozen(self, obs: Observations) -> None:
         """Take frozen correspondences back from a checkpoint (expressed at ``self.delta``:
@@ -253,9 +268,11 @@ class Calibrator:
         self._restored_delta = self.delta.copy()
 
     # ------------------------------------------------------------------ adjustment
-    def _robust_solve(self, obs: Observations, delta: np.ndarray) -> Solution:
-        """Solve for the increment to ``delta``, zeroing the weights of outliers
-        (> robust_k robust sigmas) until they no longer change.
+    def _robust_solve(self, obs: Observations, delta: np.ndarray,
+                      trajectory: TrajectoryTerms | None) -> Solution:
+        """Solve for the increment to ``delta`` (and the trajectory errors' in
+        ``trajectory``), zeroing the weights of outliers (> robust_k robust sigmas) until
+        they no longer change.
 
         Returns the solution with ``delta`` = current estimate + increment; parameters not
         solved for are moved to their fixed values.
@@ -263,7 +280,12 @@ class Calibrator:
         s = self.settings
         with self.clock("normal equations"):
             return robust_solve(obs, delta, solve_for=s.solve_for, fixed=s.fixed,
-                                limits=s.limits, robust_k=s.robust_k)
+                                limits=s.limits, robust_k=s.robust_k, trajectory=trajectory)
+
+    @property
+    def trajectory(self) -> TrajectoryState:
+        """Every strip's trajectory error as estimated so far (method.md section 11)."""
+        return self.matcher.trajectory
 
     def run(self, *, max_iterations: int | None = None,
             new_pairs_only: bool = False) -> CalibrationResult:
@@ -324,7 +346,8 @@ class Calibrator:
             delta = self.delta.copy()
             corrected: dict[int, tuple[np.ndarray, np.ndarray]] = {}
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
-            parts = [reexpress_observations(obs, at, delta) for obs, at in frozen]
+            parts = [reexpress_observations(obs, at, delta, self.trajectory)
+                     for obs, at in frozen]
             if self.workers.running:  # (run(): every pair at once, in the threads)
                 corrected = self.matcher.corrected_many(self.matcher.used_strips(live), delta)
 
@@ -364,8 +387,10 @@ class Calibrator:
                     "no point-to-patch correspondences: the overlaps hold no usable patches"
                 )
             self._progress(f"iteration {iteration}: adjusting", 1.0)
+            terms = TrajectoryTerms(self.trajectory, s.trajectory, self.unit_sigma) \
+                if self.trajectory.active and obs.trajectory is not None else None
             try:
-                sol = self._robust_solve(obs, delta)
+                sol = self._robust_solve(obs, delta, terms)
             except CalibrationError as exc:
                 if not no_pairs:
                     raise
@@ -378,23 +403,55 @@ class Calibrator:
             logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
                         iteration, sol.sigma0, len(obs),
                         float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
-            self.threshold = next_threshold(obs, step, robust_k=s.robust_k,
+            if terms is not None:
+                assert terms.blocks is not None and terms.step is not None
+                residuals = terms.blocks.residuals(obs, step, terms.step)
+            else:
+                residuals = obs.residuals(step)
+            self.threshold = next_threshold(obs, residuals, robust_k=s.robust_k,
                                             floor_m=s.min_normal_distance_m,
                                             current_m=self.threshold)
             self.delta = sol.delta.copy()
             history.append(self.delta.copy())
             converged = has_converged(history, step, sol.sigma, s.convergence_fraction)
-            yield Iteration(iteration, sol, obs, step, converged, list(history))
+            if terms is not None and terms.step is not None:
+                tau_step = terms.step.reshape(self.trajectory.params.shape)
+                self.trajectory.params = self.trajectory.params + tau_step
+                if np.isfinite(sol.sigma0) and sol.sigma0 > 0:
+                    self.unit_sigma = sol.sigma0
+                # the errors' steps below the same fraction of their priors' sigmas
+                converged = converged and bool(np.all(
+                    np.abs(tau_step) <= s.convergence_fraction * s.trajectory.prior_sigmas()))
+            yield Iteration(iteration, sol, obs, step, converged, list(history), terms)
 
     def conclude(self, last: Iteration) -> CalibrationResult:
         """The result of the iterations of :meth:`iterate` that ended with ``last``: sigmas
         allowing for shared errors, and the QA of every pair at the estimate. Call once per
         iteration (it widens ``last``'s sigmas)."""
+        terms = last.trajectory
         with self.clock("normal equations"):
-            self.normal_equations = NormalEquations.from_observations(last.observations)
-            allow_for_shared_errors(last.solution, last.observations, last.step)
-        return self._finish(last.solution, last.observations, last.solution.delta, last.number,
-                            last.converged, last.history)
+            if terms is None or terms.blocks is None or terms.step is None:
+                self.normal_equations = NormalEquations.from_observations(last.observations)
+                allow_for_shared_errors(last.solution, last.observations, last.step)
+                trajectory = None
+            else:
+                # the biases' equations with the trajectory errors reduced out; the shared
+                # errors' sigmas from the design rows with the errors partialled out
+                blocks = terms.blocks
+                self.normal_equations = blocks.reduced
+                obs = last.observations
+                reduced = blocks.reduced_rows(obs)
+                v = blocks.residuals(obs, last.step, terms.step)
+                allow_for_shared_errors(last.solution, Observations(
+                    reduced, v + reduced @ last.step, obs.weights, obs.group, obs.cluster),
+                    last.step)
+                trajectory = TrajectoryEstimate.from_state(
+                    self.trajectory, [ps.strip_id for ps in self.strips],
+                    blocks.tau_sigma(last.solution))
+        result = self._finish(last.solution, last.observations, last.solution.delta,
+                              last.number, last.converged, last.history)
+        result.trajectory = trajectory
+        return result
 
     def unestimated_result(self, reason: str) -> CalibrationResult:
         """The result of a calibration that estimated nothing (``reason``): every bias at
@@ -569,13 +626,37 @@ def calibrate(
         no overlap, no usable patches, nothing observable); it carries the QA of the strips
         as delivered.
     """
-    cal = Calibrator.from_mission(mission, settings or CalibrationSettings(), progress=progress)
+    settings = settings or CalibrationSettings()
+    if settings.trajectory.model is not TrajectoryModel.AUTO:
+        return _calibrate_once(mission, settings, progress)
+    # auto: the trajectory as exact, then with every strip's drift; the drift is kept where
+    # it fits clearly better (the strips disagree by more than their noise)
+    exact = _calibrate_once(mission, replace(settings, trajectory=replace(
+        settings.trajectory, model=TrajectoryModel.NONE)), progress)
+    drift = _calibrate_once(mission, replace(settings, trajectory=replace(
+        settings.trajectory, model=TrajectoryModel.DRIFT)), progress)
+    s_exact, s_drift = exact.solution.sigma0, drift.solution.sigma0
+    better = bool(s_exact > AUTO_SIGMA0_RATIO * s_drift)
+    chosen = drift if better else exact
+    chosen.trajectory_choice = (
+        f"auto: {'drift' if better else 'none'} (sigma0 {s_exact * 100:.2f} cm with the "
+        f"trajectory as exact, {s_drift * 100:.2f} cm with each strip's drift"
+        f"{'' if better else ': the trajectory fits within the noise'})")
+    return chosen
+
+
+def _calibrate_once(mission: Mission, settings: CalibrationSettings,
+                    progress: Progress | None) -> CalibrationResult:
+    """:func:`calibrate` with one trajectory model."""
+    cal = Calibrator.from_mission(mission, settings, progress=progress)
     try:
-        return cal.run()
+        result = cal.run()
     except NothingEstimated:
         raise
     except CalibrationError as exc:
         raise NothingEstimated(str(exc), cal.unestimated_result(str(exc))) from None
+    result.trajectory_choice = settings.trajectory.model.value
+    return result
 
 
 __all__ = ["CalibrationSettings", "Calibrator", "Progress", "calibrate"]

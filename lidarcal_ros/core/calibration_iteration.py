@@ -26,6 +26,26 @@ from lidarcal_ros.core.adjustment import (
     solve,
 )
 from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.strip_blocks import StripBlocks
+from lidarcal_ros.core.trajectory_errors import (
+    TrajectoryErrorSettings,
+    TrajectoryRows,
+    TrajectoryState,
+)
+
+
+@dataclass
+class TrajectoryTerms:
+    """The trajectory errors :func:`robust_solve` estimates with the biases (method.md section
+    11), and what it leaves of them: the blocks of its last solve and the parameters'
+    increment (S * per_strip,)."""
+
+    state: TrajectoryState
+    settings: TrajectoryErrorSettings
+    #: Sigma of a correspondence of weight 1, m (weighs the priors).
+    unit_sigma: float
+    blocks: StripBlocks | None = None
+    step: np.ndarray | None = None
 
 
 @dataclass
@@ -48,6 +68,8 @@ class Iteration:
         ``convergence_fraction`` of its sigma.
     history : list of (8,) float64
         The estimate after each iteration so far from the same start, this one's last.
+    trajectory : TrajectoryTerms, optional
+        The trajectory errors solved for with the biases (method.md section 11).
     """
 
     number: int
@@ -56,26 +78,37 @@ class Iteration:
     step: np.ndarray
     converged: bool
     history: list[np.ndarray]
+    trajectory: TrajectoryTerms | None = None
 
 
-def reexpress_observations(obs: Observations, matched_at: np.ndarray, delta: np.ndarray
-                           ) -> Observations:
+def reexpress_observations(obs: Observations, matched_at: np.ndarray, delta: np.ndarray,
+                           trajectory: TrajectoryState | None = None) -> Observations:
     """Observations matched at the estimate ``matched_at`` re-expressed at the estimate
-    ``delta`` (8 biases, SI): the discrepancy left after the correction ``delta`` is
-    ``y - a . (delta - matched_at)`` (linear in between)."""
-    if not len(obs) or not np.any(delta - matched_at):
+    ``delta`` (8 biases, SI) and ``trajectory``: the discrepancy left after the correction
+    ``delta`` is ``y - a . (delta - matched_at)`` (linear in between), less the change of the
+    trajectory errors' projection since the match."""
+    rows = obs.trajectory
+    moved = rows is not None and trajectory is not None and trajectory.active and len(rows)
+    if not len(obs) or (not np.any(delta - matched_at) and not moved):
         return obs
-    return Observations(obs.rows, obs.residuals(delta - matched_at), obs.weights, obs.group,
-                        obs.cluster)
+    y = obs.residuals(delta - matched_at)
+    if moved:
+        assert rows is not None and trajectory is not None
+        now = trajectory.projected(rows)
+        y = y - (now - rows.applied)
+        rows = TrajectoryRows(rows.strip_a, rows.t_a, rows.strip_b, rows.t_b, rows.normal, now)
+    return Observations(obs.rows, y, obs.weights, obs.group, obs.cluster, rows)
 
 
 def robust_solve(
     obs: Observations, delta: np.ndarray, *, solve_for: tuple[str, ...],
     fixed: Mapping[str, float], limits: ObservabilityLimits, robust_k: float,
+    trajectory: TrajectoryTerms | None = None,
 ) -> Solution:
     """Solve for the increment to the estimate ``delta``, zeroing the weights of strip-pair
     outliers (> ``robust_k`` robust sigmas) until they no longer change (``obs.weights`` is
-    left at the final weights).
+    left at the final weights). With ``trajectory``, each strip's trajectory errors are
+    solved for too (their increment left in ``trajectory.step``).
 
     Returns the solution with ``delta`` = current estimate + increment; the parameters not in
     ``solve_for`` are moved to their ``fixed`` values (0 where not given, SI).
@@ -85,9 +118,16 @@ def robust_solve(
     base_w = obs.weights.copy()
     sol = None
     for _ in range(6):
-        neq = NormalEquations.from_observations(obs)
-        sol = solve(neq, solve_for=solve_for, fixed=fixed_step, limits=limits)
-        v = obs.residuals(sol.delta)
+        if trajectory is None or obs.trajectory is None:
+            sol = solve(NormalEquations.from_observations(obs), solve_for=solve_for,
+                        fixed=fixed_step, limits=limits)
+            v = obs.residuals(sol.delta)
+        else:
+            blocks = StripBlocks(obs, obs.trajectory, trajectory.state, trajectory.settings,
+                                 trajectory.unit_sigma)
+            sol = solve(blocks.reduced, solve_for=solve_for, fixed=fixed_step, limits=limits)
+            trajectory.blocks, trajectory.step = blocks, blocks.tau_step(sol.delta)
+            v = blocks.residuals(obs, sol.delta, trajectory.step)
         # Robust weights for strip pairs only: control points are surveyed and few, and
         # before dZ and dr are estimated their discrepancies are legitimately large.
         pairs = (obs.group >= 0) & (base_w > 0)
@@ -102,13 +142,13 @@ def robust_solve(
     return sol
 
 
-def next_threshold(obs: Observations, step: np.ndarray, *, robust_k: float, floor_m: float,
-                   current_m: float) -> float:
+def next_threshold(obs: Observations, residuals: np.ndarray, *, robust_k: float,
+                   floor_m: float, current_m: float) -> float:
     """The matching threshold for the next iteration, metres: ``2 robust_k`` times the RMS
-    residual of the strip-pair inliers after ``step``, between ``floor_m`` and the
-    ``current_m`` threshold (it only shrinks)."""
+    of the strip-pair inliers' ``residuals`` after the iteration's step, between ``floor_m``
+    and the ``current_m`` threshold (it only shrinks)."""
     inl = (obs.weights > 0) & (obs.group >= 0)
-    scale = float(np.sqrt(np.mean(obs.residuals(step)[inl] ** 2))) if inl.any() else 0.0
+    scale = float(np.sqrt(np.mean(residuals[inl] ** 2))) if inl.any() else 0.0
     return float(np.clip(2.0 * robust_k * scale, floor_m, current_m))
 
 
@@ -162,6 +202,6 @@ def allow_for_shared_errors(sol: Solution, obs: Observations, step: np.ndarray) 
 
 
 __all__ = [
-    "CYCLE_FACTOR", "Iteration", "allow_for_shared_errors", "has_converged", "matching_cycle",
-    "next_threshold", "reexpress_observations", "robust_solve",
+    "CYCLE_FACTOR", "Iteration", "TrajectoryTerms", "allow_for_shared_errors", "has_converged",
+    "matching_cycle", "next_threshold", "reexpress_observations", "robust_solve",
 ]

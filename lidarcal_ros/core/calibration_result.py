@@ -16,6 +16,7 @@ import numpy as np
 from lidarcal_ros.core.adjustment import Solution
 from lidarcal_ros.core.georeferencing import LaserVectorQA, ModelChoice
 from lidarcal_ros.core.overlap_grid import PairQA
+from lidarcal_ros.core.trajectory_errors import TrajectoryEstimate
 from lidarcal_ros.errors import CalibrationError
 
 
@@ -109,6 +110,11 @@ class CalibrationResult:
     #: CPU seconds of the calibration's threads in each of its stages
     #: (:class:`~lidarcal_ros.core.calibration_threads.StageClock`).
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    #: Each strip's trajectory error estimated with the biases (method.md section 11), or
+    #: None where the trajectory was taken as exact.
+    trajectory: TrajectoryEstimate | None = None
+    #: The trajectory model that ran, and where ``auto`` chose it, why.
+    trajectory_choice: str = "none"
 
 
 class NothingEstimated(CalibrationError):

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from lidarcal_ros.core.adjustment import DEFAULT_MAX_SIGMA, ObservabilityLimits
 from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.trajectory_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import ConfigError
 
 if TYPE_CHECKING:  # (imported where used: the correction reads configurations too)
@@ -118,6 +119,19 @@ SCHEMA: dict[str, ParameterSpec] = {
         "points per square metre); 0 keeps every point", 0.0, 100.0),
     "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
                                                   "Where ~/save writes the calibration"),
+    "calibration.trajectory.model": ParameterSpec(
+        "auto", "str", "Per-strip trajectory errors estimated with the biases (method.md "
+        "section 11): 'none' (the trajectory as exact), 'offset' (3 per strip), 'drift' "
+        "(offset and linear drift, 6 per strip), 'auto' (drift where it fits the data clearly "
+        "better than none; a batch calibration decides, the live calibrator runs none)",
+        choices=tuple(m.value for m in TrajectoryModel)),
+    "calibration.trajectory.offset_sigma_horizontal_m": float_parameter(
+        0.05, "A-priori sigma of a strip's horizontal trajectory offset (the navigation "
+        "solution's accuracy), m", 1e-4, 10.0),
+    "calibration.trajectory.offset_sigma_vertical_m": float_parameter(
+        0.05, "A-priori sigma of a strip's vertical trajectory offset, m", 1e-4, 10.0),
+    "calibration.trajectory.drift_sigma_m_per_s": float_parameter(
+        0.002, "A-priori sigma of a strip's trajectory drift rate, per axis, m/s", 1e-6, 1.0),
     "matching.trajectory_window_s": float_parameter(
         0.5, "Half-width of the local-trajectory window, s", 0.01, 60.0),
     "matching.heading_source": ParameterSpec(
@@ -457,6 +471,12 @@ class FlightConfig:
             control_weight=values["calibration.control_weight"],
             limits=ObservabilityLimits(max_correlation=values["calibration.max_correlation"],
                                        max_sigma=dict(DEFAULT_MAX_SIGMA)),
+            trajectory=TrajectoryErrorSettings(
+                TrajectoryModel(values["calibration.trajectory.model"]),
+                offset_sigma_horizontal_m=values[
+                    "calibration.trajectory.offset_sigma_horizontal_m"],
+                offset_sigma_vertical_m=values["calibration.trajectory.offset_sigma_vertical_m"],
+                drift_sigma_m_per_s=values["calibration.trajectory.drift_sigma_m_per_s"]),
         )
 
 

@@ -32,6 +32,7 @@ from lidarcal_ros.core.strip_pairs import (
     stratified_sample,
 )
 from lidarcal_ros.core.tin import PatchMatches, Tin, match_to_tin
+from lidarcal_ros.core.trajectory_errors import TrajectoryRows, TrajectoryState
 from lidarcal_ros.errors import CalibrationError
 
 if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
@@ -65,6 +66,8 @@ class PairMatcher:
         self.footprint = FootprintGrid(settings.overlap_cell_m)
         self.strips: list[PreparedStrip] = []
         self.pairs: list[StripPair] = []
+        #: Every strip's trajectory error as estimated so far (method.md section 11).
+        self.trajectory = TrajectoryState(settings.trajectory.model)
 
     @property
     def n_points(self) -> int:
@@ -103,6 +106,8 @@ class PairMatcher:
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
         self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority, choice,
                                          qa, speed))
+        self.trajectory.add_strip(0.5 * (float(strip.t.min()) + float(strip.t.max()))
+                                  if len(strip) else 0.0)
         new = len(self.strips) - 1
         formed = []
         for other in range(new):
@@ -164,11 +169,18 @@ class PairMatcher:
         would appear not to cancel, and mimic dphi.
         """
         ps = self.strips[k]
-        key = np.asarray(delta, dtype=np.float64).tobytes()
+        error = self.trajectory.params[k] if self.trajectory.active else np.zeros(0)
+        key = np.asarray(delta, dtype=np.float64).tobytes() + error.tobytes()
         if ps.corrected is None or ps.corrected[0] != key:
             with self.clock("corrections"):
                 corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
                                                               delta)
+                if np.any(error):
+                    # method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
+                    # geometry stays that of the delivered positions
+                    e = self.trajectory.error(k, ps.strip.t)
+                    corrected -= e
+                    shift += e
             ps.corrected = (key, corrected, shift, geometry)
         _, corrected, shift, ps.geometry = ps.corrected
         return corrected, shift
@@ -182,7 +194,7 @@ class PairMatcher:
         corrected points and ``delivered - corrected``), within ``threshold`` metres."""
         a_xyz, _ = corrected[pair.a]
         b_xyz, b_shift = corrected[pair.b]
-        shift = b_shift if np.any(delta) else None
+        shift = b_shift if np.any(delta) or self._moved(pair.b) else None
         # The sample is matched every iteration: start each search at its last patch.
         on_sample = points_idx is pair.sample
         start = pair.last_triangle if on_sample else None
@@ -194,12 +206,16 @@ class PairMatcher:
             pair.last_triangle = m.triangle
         return m
 
+    def _moved(self, k: int) -> bool:
+        """Strip ``k``'s points are moved by a trajectory error estimated for it."""
+        return self.trajectory.active and bool(np.any(self.trajectory.params[k]))
+
     def _patch_terms(
         self, k: int, m: PatchMatches
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For the valid matches to strip ``k``'s patches: the observed normals, ``n^T A_B``
-        interpolated at the foot of the normal (barycentric), and the observed discrepancy
-        (the patch distance along the observed normal)."""
+        interpolated at the foot of the normal (barycentric), the observed discrepancy (the
+        patch distance along the observed normal) and the time of the foot (s, barycentric)."""
         ok = m.valid
         tin = self.tin(k)
         with self.clock("design rows"):
@@ -211,7 +227,21 @@ class PairMatcher:
             for v in range(3):
                 add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
             y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
-        return n, rows, y
+            t_foot = (self.strips[k].strip.t[verts] * w).sum(axis=1)
+        return n, rows, y, t_foot
+
+    def _trajectory_rows(self, a: int, t_a: np.ndarray, b: int, t_b: np.ndarray,
+                         n: np.ndarray) -> TrajectoryRows | None:
+        """The trajectory terms of correspondences of strip ``a``'s points at ``t_a`` (``a``
+        -1: control points) against strip ``b``'s patches with feet at ``t_b``, normals ``n``;
+        None where trajectory errors are not estimated."""
+        if not self.trajectory.active:
+            return None
+        k = t_b.shape[0]
+        rows = TrajectoryRows(np.full(k, a, np.int64), t_a, np.full(k, b, np.int64), t_b, n,
+                              np.zeros(k))
+        rows.applied = self.trajectory.projected(rows)
+        return rows
 
     def pair_observations(
         self, pair: StripPair, points_idx: np.ndarray, m: PatchMatches
@@ -222,13 +252,14 @@ class PairMatcher:
         idx = points_idx[m.valid]
         # eq. [11]: the discrepancy n . (X_A - X_B) left by the current estimate; the
         # adjustment solves for the increment that removes it (Gauss-Newton).
-        n, patch_rows, y = self._patch_terms(pair.b, m)
+        n, patch_rows, y, t_foot = self._patch_terms(pair.b, m)
         with self.clock("design rows"):
             rows = np.zeros_like(patch_rows)
             add_geometry_normal_rows(rows, n, sa.geometry, idx)
             rows -= patch_rows
             cluster = self._cluster_of(sa.strip.xyz[idx])
-        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster)
+        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster,
+                            self._trajectory_rows(pair.a, sa.strip.t[idx], pair.b, t_foot, n))
 
     def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
         """Spatial cluster (cell of ``cluster_cell_m``) of observations at ``xyz``."""
@@ -276,16 +307,19 @@ class PairMatcher:
             tin = self.tin(k)
             with self.clock("matching"):
                 m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
-                                 vertex_shift=shift if np.any(delta) else None)
+                                 vertex_shift=shift if np.any(delta) or self._moved(k)
+                                 else None)
             if not m.valid.any():
                 continue
             ok = m.valid
             # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
-            _, patch_rows, y = self._patch_terms(k, m)
+            n, patch_rows, y, t_foot = self._patch_terms(k, m)
             rows = -patch_rows
             weights = np.full(y.size, self.settings.control_weight)
             parts.append(Observations(rows, y, weights, -1 - cps[ok],
-                                      self._cluster_of(control.xyz[cps[ok]])))
+                                      self._cluster_of(control.xyz[cps[ok]]),
+                                      self._trajectory_rows(-1, np.zeros(y.size), k, t_foot,
+                                                            n)))
             for c, d in zip(cps[ok], m.distance[ok]):
                 found.append((int(c), k, float(d)))
         return Observations.concatenate(parts), found

@@ -14,7 +14,7 @@ _EXPORTS = {
     "bag_writer": ("BagWriter",),
     "calibration_file": (
         "CalibrationRecord", "ROOT_KEY", "calibration_document", "read_calibration",
-        "write_calibration",
+        "read_trajectory_block", "trajectory_document", "write_calibration",
     ),
     "cloud_columns": (
         "COORDINATE_WARNING_FRACTION", "CloudColumns", "DEFAULT_COORDINATE_TOLERANCE_M",

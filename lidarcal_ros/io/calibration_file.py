@@ -15,6 +15,7 @@ from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.trajectory_errors import StripError, TrajectoryEstimate, TrajectoryModel
 from lidarcal_ros.core.units import finite_or_none
 from lidarcal_ros.errors import ConfigError, OutputError
 from lidarcal_ros.io.output_files import os_reason, write_text
@@ -34,6 +35,8 @@ class CalibrationRecord:
     #: The point-positioning model the biases were estimated with: ``level``, ``rigorous``,
     #: ``mixed`` (strips of both), or None where the file does not say.
     model: str | None = None
+    #: Each strip's trajectory error (method.md section 11), where the file holds one.
+    trajectory: TrajectoryEstimate | None = None
 
     @property
     def delta(self) -> np.ndarray:
@@ -93,11 +96,82 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
              "rms_m": finite_or_none(q.rms_dz)}
             for q in result.height_agreement
         ]
+    doc["trajectory_model"] = result.trajectory_choice
+    if result.trajectory is not None:
+        doc["trajectory"] = trajectory_document(result.trajectory)
     if result.dropped_non_finite:
         doc["dropped_non_finite_points"] = int(result.dropped_non_finite)
     if sol.warnings:
         doc["warnings"] = list(sol.warnings)
     return {ROOT_KEY: doc}
+
+
+def trajectory_document(estimate: TrajectoryEstimate) -> dict[str, Any]:
+    """interface.md's ``trajectory`` block: each strip's error ``e_s(t)`` (delivered - true,
+    map frame, m; drift in m/s about ``t_ref``, s) and its sigmas."""
+    strips: dict[str, Any] = {}
+    for sid in sorted(estimate.strips):
+        se = estimate.strips[sid]
+        entry: dict[str, Any] = {"t_ref": float(se.t_ref),
+                                 "offset": [float(v) for v in se.offset],
+                                 "offset_sigma": [finite_or_none(float(v))
+                                                  for v in se.offset_sigma]}
+        if se.drift is not None and se.drift_sigma is not None:
+            entry["drift"] = [float(v) for v in se.drift]
+            entry["drift_sigma"] = [finite_or_none(float(v)) for v in se.drift_sigma]
+        strips[str(sid)] = entry
+    return {"model": estimate.model.value, "strips": strips}
+
+
+def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
+    """The ``trajectory`` block of a calibration file (:func:`trajectory_document`).
+
+    Raises
+    ------
+    ConfigError
+        A model other than offset or drift, a strip id that is not a whole number, a missing
+        or non-finite ``t_ref``, ``offset`` or ``drift``; one line naming the key.
+    """
+    if not isinstance(block, Mapping):
+        raise ConfigError(f"{path}: trajectory must be a mapping with model and strips")
+    try:
+        model = TrajectoryModel(block.get("model"))
+    except ValueError:
+        model = TrajectoryModel.NONE
+    if model not in (TrajectoryModel.OFFSET, TrajectoryModel.DRIFT):
+        raise ConfigError(f"{path}: trajectory.model must be offset or drift, got "
+                          f"{block.get('model')!r}")
+    raw = block.get("strips")
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"{path}: trajectory.strips must be a mapping of strip ids")
+    strips: dict[int, StripError] = {}
+    for key, entry in raw.items():
+        where = f"{path}: trajectory.strips.{key}"
+        try:
+            sid = int(str(key))
+        except ValueError:
+            raise ConfigError(f"{where}: the strip id is not a whole number") from None
+        if not isinstance(entry, Mapping):
+            raise ConfigError(f"{where} must be a mapping with t_ref and offset")
+
+        def vector(name: str, size: int, entry: Mapping[str, Any] = entry,
+                   where: str = where) -> np.ndarray:
+            value = entry.get(name)
+            try:
+                out = np.array(value, dtype=np.float64).reshape(size)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{where}.{name} must be {size} finite numbers, got "
+                                  f"{value!r}") from None
+            if not np.isfinite(out).all():
+                raise ConfigError(f"{where}.{name} must be {size} finite numbers, got "
+                                  f"{value!r}")
+            return out
+
+        t_ref = float(vector("t_ref", 1)[0])
+        offset = vector("offset", 3)
+        drift = vector("drift", 3) if model is TrajectoryModel.DRIFT else None
+        strips[sid] = StripError(sid, t_ref, offset, np.full(3, np.nan), drift)
+    return TrajectoryEstimate(model, strips)
 
 
 def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
@@ -174,8 +248,11 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
     model = body.get("model")
     if model is not None and model not in (LEVEL, RIGOROUS, "mixed"):
         raise ConfigError(f"{path}: model {model!r} is not one of level, rigorous, mixed")
+    trajectory = body.get("trajectory")
     return CalibrationRecord(values, sigmas, estimated,
-                             _sigma(path, "sigma0", body.get("sigma0")), model)
+                             _sigma(path, "sigma0", body.get("sigma0")), model,
+                             None if trajectory is None else
+                             read_trajectory_block(path, trajectory))
 
 
 def _sigma(path: Path, key: str, value: Any) -> float | None:
@@ -209,5 +286,7 @@ __all__ = [
     "CalibrationRecord",
     "calibration_document",
     "read_calibration",
+    "read_trajectory_block",
+    "trajectory_document",
     "write_calibration",
 ]

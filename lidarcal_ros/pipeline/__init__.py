@@ -27,7 +27,7 @@ _EXPORTS = {
     "calibration": (
         "Truth", "calibrate_mission", "convergence_warning", "format_agreement",
         "format_report", "load_mission", "parse_biases", "qa_level", "simulation_paths",
-        "truth_document", "unused_control", "write_simulation",
+        "trajectory_lines", "truth_document", "unused_control", "write_simulation",
     ),
     "calibration_service": (
         "AddCloud", "AddPose", "CalibrationService", "CalibratorOptions", "Job",

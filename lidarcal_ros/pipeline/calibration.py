@@ -209,6 +209,7 @@ def format_report(
                      f"{result.thinned_points} points left out")
     if result.models:
         lines.append("model: " + describe_models(result.models))
+    lines.extend(trajectory_lines(result))
     if not result.models or any(c.model != RIGOROUS for c in result.models.values()):
         heading = describe_heading_use(result.heading_from, result.crab_deg)
         if heading:
@@ -217,6 +218,25 @@ def format_report(
         lines.extend(f"warning: strip {sid}: {w}" for w in qa.warnings)
     lines.extend(_pair_lines(result, config))
     return "\n".join(lines)
+
+
+def trajectory_lines(result: CalibrationResult) -> list[str]:
+    """The trajectory model (and why, where ``auto`` chose it), then each strip's estimated
+    error at its mid time and its drift (method.md section 11), in cm and cm/s."""
+    lines = [f"trajectory errors: {result.trajectory_choice}"]
+    est = result.trajectory
+    if est is None:
+        return lines
+    for sid in sorted(est.strips):
+        se = est.strips[sid]
+        row = (f"  strip {sid}: offset E {se.offset[0] * 100:+.1f} N {se.offset[1] * 100:+.1f} "
+               f"U {se.offset[2] * 100:+.1f} cm (+- {se.offset_sigma[0] * 100:.1f} "
+               f"{se.offset_sigma[1] * 100:.1f} {se.offset_sigma[2] * 100:.1f})")
+        if se.drift is not None:
+            row += (f", drift {se.drift[0] * 100:+.2f} {se.drift[1] * 100:+.2f} "
+                    f"{se.drift[2] * 100:+.2f} cm/s")
+        lines.append(row)
+    return lines
 
 
 def format_agreement(result: CalibrationResult, config: FlightConfig, *, title: str = "",
@@ -382,6 +402,7 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
 
 __all__ = [
     "Truth", "calibrate_mission", "convergence_warning", "format_agreement", "format_report",
-    "load_mission", "parse_biases", "qa_level", "simulation_paths", "truth_document",
+    "load_mission", "parse_biases", "qa_level", "simulation_paths", "trajectory_lines",
+    "truth_document",
     "unused_control", "write_simulation",
 ]

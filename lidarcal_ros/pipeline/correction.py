@@ -70,6 +70,7 @@ from lidarcal_ros.core.local_trajectory import (
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import GridNormals, cell_size, finite_rows, grid_normals
 from lidarcal_ros.core.radiometry import RadiometricModel
+from lidarcal_ros.core.trajectory_errors import TrajectoryEstimate
 from lidarcal_ros.errors import ConfigError, TrajectoryError
 from lidarcal_ros.io.calibration_file import CalibrationRecord
 from lidarcal_ros.io.cloud_columns import DEFAULT_COORDINATE_TOLERANCE_M, extract_columns
@@ -123,6 +124,8 @@ class CorrectionSettings:
     model: str = "auto"
     time_field: str = "t"
     coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M
+    #: Each strip's trajectory error, removed with the biases (method.md section 11).
+    trajectory_errors: TrajectoryEstimate | None = None
 
     @classmethod
     def from_config(
@@ -150,6 +153,8 @@ class CorrectionSettings:
             model=model,
             time_field=str(config["time_field"]),
             coordinate_tolerance_m=float(config["sensor.range_noise_m"]),
+            trajectory_errors=(calibration.trajectory
+                               if isinstance(calibration, CalibrationRecord) else None),
         )
 
 
@@ -378,6 +383,7 @@ def correct_columns(
     source: str = "cloud",
     all_finite: bool = False,
     rows: RowTarget | None = None,
+    strip_id: np.ndarray | int | None = None,
 ) -> CorrectedColumns:
     """Correct the geometry and compute reflectance of a set of points (module docstring).
 
@@ -411,6 +417,11 @@ def correct_columns(
     """
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     t = np.ascontiguousarray(t, dtype=np.float64)
+    if settings.trajectory_errors is not None and strip_id is not None and t.size:
+        # X_b - e_s(t) (method.md section 11); the firing positions stay the delivered ones,
+        # which moves each laser vector by e (centimetres of hundreds of metres: below 1e-4
+        # of the biases' correction and of the range)
+        xyz = xyz - settings.trajectory_errors.errors(strip_id, t)
     n = t.shape[0]
     m = 0 if rows is not None else n  # (the columns are written without rows)
     flags = np.empty(m, dtype=np.uint8)
@@ -485,5 +496,5 @@ def correct_cloud(
                            coordinate_tolerance_m=settings.coordinate_tolerance_m)
     res = correct_columns(cols.xyz, cols.t, cols.intensity, trajectory, settings,
                           normals=NormalsFit(group=cols.strip_id, context_xyz=context),
-                          source=source)
+                          source=source, strip_id=cols.strip_id)
     return build_corrected(points, res), res

@@ -135,6 +135,13 @@ def _whole_normals(job: CorrectionBatch) -> GridNormals | None:
     return job.tasks[0].run_whole()
 
 
+def _job_strip_ids(msgs: list[HeldCloud]) -> np.ndarray | None:
+    """The strip id of every point of the clouds of a job (None where a cloud has none)."""
+    if any(m.columns.strip_id is None for m in msgs):
+        return None
+    return np.concatenate([m.columns.strip_id for m in msgs])
+
+
 def _job_columns(msgs: list[HeldCloud]
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """xyz, t and intensity (NaN for clouds without) of the clouds of a job, concatenated."""
@@ -179,7 +186,8 @@ def run_batch(job: CorrectionBatch, source: str) -> BatchResult:
                                          for r, m in zip(rough, msgs, strict=True)]))
     res = correct_columns(xyz, t, inten, job.trajectory, job.settings, normals=gn,
                           source=source,
-                          all_finite=all(m.columns.all_finite for m in msgs))
+                          all_finite=all(m.columns.all_finite for m in msgs),
+                          strip_id=_job_strip_ids(msgs))
     out: list[np.ndarray] = []
     tallies: list[CloudTally] = []
     a = 0
@@ -214,7 +222,8 @@ def _run_one(job: CorrectionBatch, m: HeldCloud, whole: GridNormals | None, sour
     gn = whole if whole is not None else m.normals or no_normals(len(m))
     c = m.columns
     res = correct_columns(c.xyz, c.t, c.intensity, job.trajectory, job.settings, normals=gn,
-                          source=source, all_finite=bool(c.all_finite), rows=target)
+                          source=source, all_finite=bool(c.all_finite), rows=target,
+                          strip_id=c.strip_id)
     return [out], [tally], time.perf_counter() - started, res.choice
 
 

@@ -169,7 +169,7 @@ def measure_target_on_mission(
             res = correct_columns(strip.xyz[near], strip.t[near], strip.intensity[near],
                                   mission.trajectory, relative,
                                   normals=NormalsFit(heading=heading),
-                                  source=f"strip {strip.strip_id}")
+                                  source=f"strip {strip.strip_id}", strip_id=strip.strip_id)
             yield res.xyz, res.reflectance, res.flags, res.incidence
 
     return measure_target(corrected(), box, known)

@@ -170,7 +170,8 @@ def block_pass(
         normals = grid_normals(strip.xyz, heading,
                                cell_m=cell_size(strip.xyz[finite], heading, strip.t[finite]))
         res = correct_columns(strip.xyz, strip.t, strip.intensity, mission.trajectory,
-                              settings, normals=normals, source=f"strip {strip.strip_id}")
+                              settings, normals=normals, source=f"strip {strip.strip_id}",
+                              strip_id=strip.strip_id)
         with np.errstate(invalid="ignore"):
             slope = np.degrees(np.arccos(np.clip(np.abs(normals.normals[:, 2]), 0.0, 1.0)))
         rough = normals.rough if normals.rough is not None else np.zeros(len(strip), bool)

@@ -1,0 +1,97 @@
+"""The biases' normal equations with every strip's trajectory parameters reduced out (method.md
+section 11: a Schur complement over the strip blocks, sparse, so the cost grows with the strips
+and their overlaps, not with their square)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse import linalg as sparse_linalg
+
+from lidarcal_ros.core.adjustment import NormalEquations, Observations, Solution
+from lidarcal_ros.core.params import PARAMETER_INDEX
+from lidarcal_ros.core.trajectory_errors import (
+    TrajectoryErrorSettings,
+    TrajectoryRows,
+    TrajectoryState,
+    error_columns,
+)
+
+
+class StripBlocks:
+    """One linearised adjustment of the biases' increment and the trajectory parameters'.
+
+    The correspondences ``y = a . d_delta + t . d_tau`` (``t``: the rows of
+    :func:`~lidarcal_ros.core.trajectory_errors.error_columns`) and the priors
+    ``tau + d_tau = 0`` (weight ``(unit_sigma / prior sigma)^2``) give the normal equations;
+    :attr:`reduced` holds those of ``d_delta`` alone, the trajectory parameters eliminated,
+    which :func:`~lidarcal_ros.core.adjustment.solve` analyses and solves as ever.
+
+    Parameters
+    ----------
+    obs : Observations
+        The correspondences at the current estimate, with their weights.
+    rows : TrajectoryRows
+        Their trajectory terms, row for row.
+    state : TrajectoryState
+        The current trajectory estimate (its parameters are the priors' ``tau``).
+    settings : TrajectoryErrorSettings
+    unit_sigma : float
+        Sigma of a correspondence of weight 1, m.
+    """
+
+    def __init__(self, obs: Observations, rows: TrajectoryRows, state: TrajectoryState,
+                 settings: TrajectoryErrorSettings, unit_sigma: float) -> None:
+        w = obs.weights
+        a = obs.rows
+        self.t = error_columns(state, rows)
+        tw = sparse.csr_matrix(self.t.multiply(w[:, None]))
+        strips = len(state.t_ref)
+        prior_w = np.tile((unit_sigma / settings.prior_sigmas()) ** 2, strips)
+        tau = state.params.ravel()
+        n_tt = (tw.T @ self.t + sparse.diags(prior_w)).tocsc()
+        n_ts = np.asarray(tw.T @ a)  # (M, 8)
+        u_t = tw.T @ obs.y - prior_w * tau
+        self._lu = sparse_linalg.splu(n_tt)
+        self._x = self._lu.solve(n_ts) if n_ts.size else np.zeros_like(n_ts)
+        self._z = self._lu.solve(u_t) if u_t.size else np.zeros_like(u_t)
+        wa = a * w[:, None]
+        self.reduced = NormalEquations(
+            wa.T @ a - n_ts.T @ self._x, wa.T @ obs.y - n_ts.T @ self._z,
+            float(np.dot(w * obs.y, obs.y) + np.dot(prior_w * tau, tau) - u_t @ self._z),
+            int(np.count_nonzero(w)))
+        self._per_strip = state.model.per_strip
+
+    def tau_step(self, delta_step: np.ndarray) -> np.ndarray:
+        """The trajectory parameters' increment (S * per_strip,) given the biases'."""
+        return self._z - self._x @ delta_step
+
+    def residuals(self, obs: Observations, delta_step: np.ndarray,
+                  tau_step: np.ndarray) -> np.ndarray:
+        """``y - a . d_delta - t . d_tau`` of each correspondence, m."""
+        return obs.residuals(delta_step) - self.t @ tau_step
+
+    def reduced_rows(self, obs: Observations) -> np.ndarray:
+        """The biases' design rows with the trajectory parameters partialled out
+        (``a - t N_tt^-1 N_ts``): what the cluster-robust sigmas take."""
+        return obs.rows - self.t @ self._x
+
+    def tau_sigma(self, sol: Solution) -> np.ndarray:
+        """Standard deviations (S, per_strip) of the trajectory parameters:
+        ``sigma0^2 N_tt^-1 + X Cov(delta) X^T`` on the diagonal."""
+        m = self._per_strip
+        size = self._x.shape[0]
+        diag = np.empty(size)
+        for lo in range(0, size, m):  # one strip's columns of N_tt^-1 at a time
+            eye = np.zeros((size, m))
+            eye[lo:lo + m] = np.eye(m)
+            diag[lo:lo + m] = np.diag(self._lu.solve(eye)[lo:lo + m])
+        var = sol.sigma0 ** 2 * diag
+        if sol.estimated:
+            idx = [PARAMETER_INDEX[n] for n in sol.estimated]
+            xs = self._x[:, idx]
+            var += np.einsum("ij,jk,ik->i", xs, sol.covariance, xs)
+        return np.sqrt(np.maximum(var, 0.0)).reshape(-1, m)
+
+
+__all__ = ["StripBlocks"]
