@@ -648,8 +648,8 @@ def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
         t, xyz, ok, lines.window, False,
         (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
         (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough,
-        volume, intensity, model.kernel_constants(), (np.empty((0, 3)), *(np.empty(0, np.float32),) * 4,
-                                   np.empty(0, np.uint8)), target)
+        volume, intensity, model.kernel_constants(),
+        (np.empty((0, 3)), *(np.empty(0, np.float32),) * 4, np.empty(0, np.uint8)), target)
     assert n > 2 * 256  # (several blocks)
     assert out.tobytes() == expected.tobytes()
     np.testing.assert_array_equal(counts, expected_tally.counts)

@@ -12,6 +12,7 @@ import helpers_missions
 import numpy as np
 import pytest
 from helpers_missions import MissionFiles
+from numpy.lib import recfunctions
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.flags import (
@@ -121,8 +122,8 @@ def test_canopy_returns_get_no_incidence_and_leave_the_ground_normals_alone(
     p, stats = _corrected(sim, points)
     # The same cloud without return numbers: every return taken as a surface (the rule of
     # clouds that do not say), the canopy inside the normals' grid.
-    plain = points[[n for n in points.dtype.names if n not in ("return_number",
-                                                                "number_of_returns")]]
+    plain = recfunctions.drop_fields(points, ["return_number", "number_of_returns"],
+                                     usemask=False)
     q, plain_stats = _corrected(sim, plain)
     flags, canopy = p["correction_flags"], truth["canopy"]
     # Canopy: flagged volume, no incidence, never grazing nor without a normal, and the

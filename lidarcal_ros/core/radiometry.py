@@ -369,6 +369,15 @@ class RadiometricModel:
             return "Lambertian reflectance, 0-1"
         return f"I at {self.reference_range_m:g} m, 0 deg incidence"[:32]
 
+    @property
+    def incidence_rule(self) -> str:
+        """The incidence rule of the reflectance in one line (module docstring, "Incidence on
+        vegetation"), for logs and diagnostics."""
+        return (f"cos of the surface normal's incidence, at least {self.min_cos_incidence:g} "
+                f"(grazing, flagged), where the normal is rough or grazing at most "
+                f"{self.uncertain_incidence_max_deg:g} deg; none (cos 1) for volume returns, "
+                "not the last of their pulse (canopy)")
+
     def with_constant(self, calibration_constant: float) -> RadiometricModel:
         """The same model with another calibration constant (intensity units; 0: none)."""
         return dataclasses.replace(self, calibration_constant=float(calibration_constant))

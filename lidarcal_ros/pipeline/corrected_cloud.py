@@ -34,8 +34,8 @@ from lidarcal_ros.core.flags import (
 from lidarcal_ros.core.georeferencing import ModelChoice
 
 __all__ = [
-    "ADDED_FIELDS", "INCIDENCE_RULES", "NO_ROWS", "CloudTally", "CorrectedColumns", "CorrectionStats",
-    "RowTarget", "build_corrected", "corrected_dtype", "row_target",
+    "ADDED_FIELDS", "INCIDENCE_RULES", "NO_ROWS", "CloudTally", "CorrectedColumns",
+    "CorrectionStats", "RowTarget", "build_corrected", "corrected_dtype", "row_target",
 ]
 
 #: Fields added to the corrected clouds (name, numpy type).
