@@ -336,14 +336,16 @@ def _returns_case(n: int = 400, seed: int = 8) -> tuple[Any, ...]:
 
 def _run_correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, lines: Any,
                          normals: np.ndarray, rough: np.ndarray, intensity: np.ndarray,
-                         delta: np.ndarray, model: Any) -> tuple[np.ndarray, ...]:
+                         delta: np.ndarray, model: Any,
+                         volume: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     n = t.shape[0]
     out = (np.empty((n, 3)), np.empty(n, np.float32), np.empty(n, np.float32),
            np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.uint8))
     correction_kernels.correct_returns(
         t, xyz, ok, lines.window, False,
         (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
-        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,
+        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough,
+        np.zeros(0, bool) if volume is None else volume, intensity,
         model.kernel_constants(), out, corrected_cloud.NO_ROWS)
     return out
 
@@ -370,6 +372,7 @@ def test_correct_returns_matches_the_numpy_stages() -> None:
         FLAG_NO_NORMAL,
         FLAG_NOT_CORRECTED,
         FLAG_ROUGH,
+        FLAG_VOLUME,
     )
     from lidarcal_ros.core.local_trajectory import laser_geometry
     from lidarcal_ros.core.model import correct_points
@@ -412,6 +415,22 @@ def test_correct_returns_matches_the_numpy_stages() -> None:
         t, xyz, ok, lines, normals, np.zeros(0, bool), np.zeros(0, np.float32), delta, model)
     assert np.isnan(refl2).all() and ((flags2 & FLAG_NO_INTENSITY) != 0).all()
     assert not ((flags2 & (FLAG_ROUGH | FLAG_GRAZING)) != 0).any()
+    # volume returns (among them a NaN normal and grazing walls): cos 1, NaN incidence
+    volume = np.zeros(len(t), bool)
+    volume[[0, 1, 2, 5, 10, 11, 12]] = True
+    volume[30:60] = True
+    _, _, inc3, _, refl3, flags3 = _run_correct_returns(
+        t, xyz, ok, lines, normals, rough, intensity, delta, model, volume)
+    want3, grazing3 = model.reflectance(intensity[served], want_r, cos_t,
+                                        uncertain=rough[served], volume=volume[served])
+    np.testing.assert_allclose(refl3[served], want3, rtol=2e-6)
+    vol, sub3 = volume[served], flags3[served]
+    assert np.array_equal((sub3 & FLAG_VOLUME) != 0, vol)
+    assert np.isnan(inc3[served][vol]).all()
+    np.testing.assert_array_equal(inc3[served][~vol], inc[served][~vol])
+    assert np.array_equal((sub3 & FLAG_GRAZING) != 0, grazing3) and not grazing3[vol].any()
+    assert np.array_equal((sub3 & FLAG_NO_NORMAL) != 0, np.isnan(cos_t) & ~vol)
+    assert flags3[3] == FLAG_NOT_CORRECTED  # (not served: no volume flag either)
 
 
 def test_finite_range_on_a_strided_field() -> None:
@@ -613,8 +632,10 @@ def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
     points["intensity"] = intensity
     if layout != "lidarcal":
         xyz = np.column_stack([points["x"], points["y"], points["z"]]).astype(np.float64)
+    volume = np.zeros(len(t), bool)
+    volume[::9] = True  # (volume returns among them: flag, NaN incidence, cos 1)
     xc, rng_m, inc, scan, refl, flags = _run_correct_returns(
-        t, xyz, ok, lines, normals, rough, intensity, delta, model)
+        t, xyz, ok, lines, normals, rough, intensity, delta, model, volume)
     res = corrected_cloud.CorrectedColumns(xc, rng_m, inc, scan, refl, flags)
     expected_tally = corrected_cloud.CloudTally.empty()
     expected = corrected_cloud.build_corrected(points, res, tally=expected_tally)
@@ -626,9 +647,9 @@ def test_correct_returns_into_the_rows_writes_the_bytes_of_the_columns_and_rows(
     correction_kernels.correct_returns(
         t, xyz, ok, lines.window, False,
         (lines.t_mean, lines.p_mean, lines.velocity, lines.cos_kappa, lines.sin_kappa),
-        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough, intensity,
-        model.kernel_constants(), (np.empty((0, 3)), *(np.empty(0, np.float32),) * 4,
-                                   np.empty(0, np.uint8)), target)
+        (np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), delta, normals, rough,
+        volume, intensity, model.kernel_constants(),
+        (np.empty((0, 3)), *(np.empty(0, np.float32),) * 4, np.empty(0, np.uint8)), target)
     assert n > 2 * 256  # (several blocks)
     assert out.tobytes() == expected.tobytes()
     np.testing.assert_array_equal(counts, expected_tally.counts)

@@ -195,6 +195,8 @@ def test_clouds_wait_for_the_trajectory_and_come_out_in_order_when_it_covers_the
         assert not (flags & FLAG_NOT_CORRECTED).any()  # the trajectory covered them
     assert live.stats.clouds_out == live.stats.clouds_in == len(clouds)
     assert live.status().values["transport"] == "thread"
+    # The incidence rule the reflectance ran (canopy returns: none).
+    assert "none (cos 1) for volume returns" in live.status().values["incidence"]
 
 
 def test_clouds_go_on_uncovered_once_the_trajectory_has_stalled(

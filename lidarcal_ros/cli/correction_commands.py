@@ -33,7 +33,9 @@ def add_correct_command(sub: Any) -> None:
                        "x, y, z as delivered, the rest NaN), 2 grazing incidence (cosine "
                        "clamped), 4 no surface normal (incidence, reflectance NaN), 8 no "
                        "intensity (reflectance NaN), 16 rough surface (edge, vegetation: "
-                       "incidence uncertain). LAS: extra bytes reflectance, range, incidence, "
+                       "incidence uncertain), 32 volume return (not the last of its pulse: "
+                       "canopy; no incidence correction, incidence NaN). LAS: extra bytes "
+                       "reflectance, range, incidence, "
                        "correction_flags; flag 1 also sets 'withheld'.")
     add_bag_and_calibration_arguments(p)
     p.add_argument("-o", "--output", required=True, type=Path,

@@ -44,7 +44,7 @@ _EXPORTS = {
     "exact_model": ("biased_from_pulse", "biased_point_exact", "georeference", "true_pulse"),
     "flags": (
         "FLAG_GRAZING", "FLAG_NOT_CORRECTED", "FLAG_NO_INTENSITY", "FLAG_NO_NORMAL",
-        "FLAG_ROUGH",
+        "FLAG_ROUGH", "FLAG_VOLUME",
     ),
     "flight_path": (
         "AXES", "FlightLine", "FlightState", "G_MPS2", "MAX_OFF_NADIR_DEG",
@@ -111,7 +111,7 @@ _EXPORTS = {
         "P0_KPA", "POWER_MODELS", "RAYLEIGH_550_PER_KM", "RadiometricModel", "T0_K",
         "atmospheric_alpha", "constant_from_target", "cos_incidence", "describe_alpha",
         "extinction_coefficient", "kim_q", "power_ratio", "rayleigh_alpha",
-        "two_way_transmittance",
+        "two_way_transmittance", "volume_returns",
     ),
     "raster_terrain": ("RasterTerrain",),
     "ray_casting": ("RayHits", "cast_rays"),

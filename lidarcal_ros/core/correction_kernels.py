@@ -25,6 +25,7 @@ from lidarcal_ros.core.flags import (
     FLAG_NO_NORMAL,
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
+    FLAG_VOLUME,
 )
 from lidarcal_ros.core.jit import compiled, inlined
 
@@ -194,7 +195,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
                     lines: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
                     poses: tuple[np.ndarray, np.ndarray, np.ndarray],
                     delta: np.ndarray, normals: np.ndarray, rough: np.ndarray,
-                    intensity: np.ndarray,
+                    volume: np.ndarray, intensity: np.ndarray,
                     radiometry: tuple[np.float32, np.float32, np.float32, np.float32],
                     out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                np.ndarray],
@@ -247,6 +248,10 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         Unit surface normals, map frame (NaN: none).
     rough : (n,) bool, or empty
         Uncertain normals (none when empty).
+    volume : (n,) bool, or empty
+        Volume returns (none when empty;
+        :func:`~lidarcal_ros.core.radiometry.volume_returns`): no incidence correction
+        (``cos`` 1, incidence NaN, no ``FLAG_NO_NORMAL``), flagged ``FLAG_VOLUME``.
     intensity : (n,) float32, or empty
         Recorded intensity (the cloud has none when empty).
     radiometry : (c_min, c_doubt, scale, two_alpha) float32
@@ -278,6 +283,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     n = t.shape[0]
     nan32 = np.float32(np.nan)
     has_rough = rough.shape[0] == n
+    has_volume = volume.shape[0] == n
     has_intensity = intensity.shape[0] == n
     no_intensity = np.uint8(0 if has_intensity else FLAG_NO_INTENSITY)
     d = (delta[0], delta[1], delta[2], delta[3], delta[4], delta[5], delta[6], delta[7])
@@ -290,6 +296,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     corrected = np.empty(size, dtype=np.bool_)
     flag_col = np.empty(size, dtype=np.uint8)
     rough_col = np.zeros(size, dtype=np.bool_)
+    volume_col = np.zeros(size, dtype=np.bool_)
     level_col = np.full(size, np.nan, dtype=np.float32)
     beam = np.empty((8, size))
     gain = np.empty(size, dtype=np.float32)
@@ -312,6 +319,10 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             rgh = rough[a:a + m]
             for k in range(m):
                 rough_col[k] = rgh[k]
+        if has_volume:
+            vol = volume[a:a + m]
+            for k in range(m):
+                volume_col[k] = vol[k]
         if has_intensity:
             lvl = intensity[a:a + m]
             for k in range(m):
@@ -392,6 +403,12 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
             cos_t = beam[6, k]
             r32 = np.float32(beam[4, k])
             fl = no_intensity
+            # A volume return takes no incidence correction (cos 1) and has no incidence.
+            in_volume = volume_col[k]
+            if in_volume:
+                fl |= FLAG_VOLUME
+                cos_t = 1.0
+                beam[7, k] = np.nan
             if math.isnan(cos_t):
                 fl |= FLAG_NO_NORMAL
             uncertain = rough_col[k]

@@ -20,8 +20,14 @@ FLAG_NO_INTENSITY = 8
 #: normal, hence incidence, is uncertain (computed all the same); reflectance bounds the
 #: incidence term (``radiometry.uncertain_incidence_max_deg``).
 FLAG_ROUGH = 16
-
+#: A volume return: not the last return of its pulse (``return_number < number_of_returns``:
+#: canopy, a branch, a wire; the beam went on past it), so no surface filled the footprint
+#: and ``cos(incidence)`` does not apply. No incidence correction (``cos`` taken as 1: the
+#: reflectance is that of normal incidence), incidence NaN; the point is left out of the
+#: normals' grid, whose planes then follow the last returns (the terrain under a canopy).
+FLAG_VOLUME = 32
 
 __all__ = [
     "FLAG_GRAZING", "FLAG_NOT_CORRECTED", "FLAG_NO_INTENSITY", "FLAG_NO_NORMAL", "FLAG_ROUGH",
+    "FLAG_VOLUME",
 ]

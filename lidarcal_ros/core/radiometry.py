@@ -24,6 +24,27 @@ specular returns). Without it ``C`` is taken as 1 and the field is ``I_n`` itsel
 *relative* reflectance in intensity units, proportional to the true one by an unknown factor
 the same for the whole mission (:attr:`RadiometricModel.meaning` says which in words).
 
+Incidence on vegetation
+-----------------------
+``cos(theta)`` belongs to an extended target, a surface filling the footprint (Höfle and
+Pfeifer 2007; Wagner 2010; the review of Kashani et al. 2015). A canopy is a volume of leaves
+and twigs smaller than the footprint: its cross-section does not follow the cosine of any
+surface normal, and the plane fitted to a crown's neighbourhood has no physical meaning
+(dividing by its cosine would make grazing angles, clamped, dominate a forest's
+reflectance). The rule, per point:
+
+- a *volume return*, one that is not the last return of its pulse (``return_number <
+  number_of_returns``: the beam went on past it, so it did not fill the footprint;
+  :func:`volume_returns`), gets no incidence correction (``cos`` taken as 1, the usual
+  practice for canopy returns) and flag ``FLAG_VOLUME``; its incidence is undefined (NaN);
+- every other return (last or single: the ground under the canopy, roofs, crowns dense
+  enough to stop the beam) keeps ``cos(theta)`` of its surface normal, fitted to the last and
+  single returns of its strip only (a grid holding the canopy above the ground would tilt
+  the terrain's planes), clamped and bounded as :meth:`RadiometricModel.reflectance` says.
+
+Clouds without ``return_number``/``number_of_returns`` (the simulator's, many drivers') have
+no volume returns: every point keeps its surface normal.
+
 Atmosphere
 ----------
 The extinction coefficient follows Kim et al. (2001) from the visibility ``V`` (km) of the day:
@@ -183,6 +204,29 @@ def power_ratio(
     raise ConfigError(f"radiometry.power_model: '{model}' is not one of {', '.join(POWER_MODELS)}")
 
 
+def volume_returns(return_number: np.ndarray | None,
+                   number_of_returns: np.ndarray | None) -> np.ndarray | None:
+    """The volume returns of a cloud (module docstring): not the last return of their pulse.
+
+    Parameters
+    ----------
+    return_number, number_of_returns : (n,) int or None
+        1-based return of each point and returns of its pulse (LAS convention; 0 where the
+        sensor did not say).
+
+    Returns
+    -------
+    (n,) bool or None
+        ``1 <= return_number < number_of_returns``; None when either column is missing or no
+        point is a volume return (the correction then treats every point as a surface).
+    """
+    if return_number is None or number_of_returns is None:
+        return None
+    rn = np.asarray(return_number)
+    volume = (rn >= 1) & (rn < np.asarray(number_of_returns))
+    return volume if volume.any() else None
+
+
 def cos_incidence(normals: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """``|n . l|`` per point: cosine of the incidence angle.
 
@@ -325,6 +369,15 @@ class RadiometricModel:
             return "Lambertian reflectance, 0-1"
         return f"I at {self.reference_range_m:g} m, 0 deg incidence"[:32]
 
+    @property
+    def incidence_rule(self) -> str:
+        """The incidence rule of the reflectance in one line (module docstring, "Incidence on
+        vegetation"), for logs and diagnostics."""
+        return (f"cos of the surface normal's incidence, at least {self.min_cos_incidence:g} "
+                f"(grazing, flagged), where the normal is rough or grazing at most "
+                f"{self.uncertain_incidence_max_deg:g} deg; none (cos 1) for volume returns, "
+                "not the last of their pulse (canopy)")
+
     def with_constant(self, calibration_constant: float) -> RadiometricModel:
         """The same model with another calibration constant (intensity units; 0: none)."""
         return dataclasses.replace(self, calibration_constant=float(calibration_constant))
@@ -336,6 +389,7 @@ class RadiometricModel:
         cos_theta: np.ndarray,
         *,
         uncertain: np.ndarray | None = None,
+        volume: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Reflectance of each point (module docstring) and its grazing flag.
 
@@ -351,18 +405,21 @@ class RadiometricModel:
             The normal is uncertain (rough neighbourhood): the cosine used is at least
             ``cos(uncertain_incidence_max_deg)``. Points beyond the grazing clamp are
             uncertain too.
+        volume : (n,) bool, keyword-only, optional
+            Volume returns (:func:`volume_returns`): no incidence correction, ``cos`` taken
+            as 1 whatever ``cos_theta`` says (NaN included); never grazing.
 
         Returns
         -------
         reflectance : (n,) float32
             ``I (r / r_ref)^2 / max(cos theta, c) / exp(-2 alpha r) * P_ref / P_t / C`` with
             ``c = cos(uncertain_incidence_max_deg)`` for uncertain and grazing points, else
-            ``c_min``, and ``C`` the calibration constant (1 when not known); NaN where an
-            input is NaN. Dimensionless with a calibration constant, else in the unit of the
-            intensity.
+            ``c_min``, 1 for volume returns, and ``C`` the calibration constant (1 when not
+            known); NaN where an input is NaN. Dimensionless with a calibration constant, else
+            in the unit of the intensity.
         grazing : (n,) bool
-            ``cos theta < c_min``: the clamped value was used; never divided by a cosine
-            below ``c_min``.
+            ``cos theta < c_min`` (volume returns excepted): the clamped value was used;
+            never divided by a cosine below ``c_min``.
         """
         # float32 throughout (the result's type; relative precision 1e-7).
         c_min, c_doubt, scale, two_alpha = self.kernel_constants()
@@ -373,6 +430,10 @@ class RadiometricModel:
         doubtful = grazing if uncertain is None else (grazing | np.asarray(uncertain, bool))
         if doubtful.any():
             cos_eff[doubtful] = np.maximum(cos_eff[doubtful], c_doubt)
+        if volume is not None:
+            vol = np.asarray(volume, dtype=bool)
+            cos_eff[vol] = np.float32(1.0)
+            grazing &= ~vol
         gain = np.exp(two_alpha * r)
         gain *= r
         gain *= r
@@ -464,4 +525,5 @@ __all__ = [
     "power_ratio",
     "rayleigh_alpha",
     "two_way_transmittance",
+    "volume_returns",
 ]

@@ -43,17 +43,17 @@ _EXPORTS = {
         "take_ready",
     ),
     "corrected_cloud": (
-        "ADDED_FIELDS", "CloudTally", "CorrectedColumns", "CorrectionStats", "NO_ROWS",
-        "RowTarget", "build_corrected", "corrected_dtype", "row_target",
+        "ADDED_FIELDS", "CloudTally", "CorrectedColumns", "CorrectionStats", "INCIDENCE_RULES",
+        "NO_ROWS", "RowTarget", "build_corrected", "corrected_dtype", "row_target",
     ),
     "correction": (
         "CorrectionSettings", "NormalsFit", "ServedFrames", "UNCORRECTED_WARNINGS",
         "UNCORRECTED_WARNING_S", "UncorrectedWarnings", "correct_cloud", "correct_columns",
-        "flagged_geometry", "served_frames", "trajectory_heading",
+        "flagged_geometry", "served_frames", "surface_points", "trajectory_heading",
     ),
     "correction_batch": (
-        "BatchResult", "CorrectionBatch", "HeldCloud", "OutputPlacer", "deliver_normals",
-        "run_batch",
+        "BatchResult", "CorrectionBatch", "HeldCloud", "OutputPlacer", "cloud_volume",
+        "deliver_normals", "run_batch",
     ),
     "correction_process": ("CorrectionProcess", "InboundRegion"),
     "correction_service": (

@@ -91,7 +91,9 @@ class CorrectionReport:
         out.append("model: " + s.describe_models())
         if self.reflectance:
             out.append(f"reflectance: {self.reflectance}")
+        out.append("incidence: " + s.describe_incidence())
         out.append(f"grazing incidence (clamped): {s.grazing}; rough surface: {s.rough}; "
+                   f"volume (canopy) returns: {s.volume}; "
                    f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
                    f"without intensity: {s.no_intensity}")
         out.extend(f"warning: {w}" for w in self.warnings)

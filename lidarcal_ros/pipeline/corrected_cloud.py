@@ -29,12 +29,13 @@ from lidarcal_ros.core.flags import (
     FLAG_NO_NORMAL,
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
+    FLAG_VOLUME,
 )
 from lidarcal_ros.core.georeferencing import ModelChoice
 
 __all__ = [
-    "ADDED_FIELDS", "NO_ROWS", "CloudTally", "CorrectedColumns", "CorrectionStats",
-    "RowTarget", "build_corrected", "corrected_dtype", "row_target",
+    "ADDED_FIELDS", "INCIDENCE_RULES", "NO_ROWS", "CloudTally", "CorrectedColumns",
+    "CorrectionStats", "RowTarget", "build_corrected", "corrected_dtype", "row_target",
 ]
 
 #: Fields added to the corrected clouds (name, numpy type).
@@ -58,6 +59,9 @@ class CorrectionStats:
     no_normal: int = 0
     no_intensity: int = 0
     rough: int = 0
+    volume: int = 0
+    #: Corrected points by the incidence their reflectance took (:data:`INCIDENCE_RULES`).
+    incidence_rules: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
     non_finite: int = 0  # points with a non-finite coordinate (also not corrected)
     #: Points corrected by each point-positioning model, and the latest reason each was
@@ -80,8 +84,25 @@ class CorrectionStats:
                          f"{100.0 * k / total:.0f}% of the points"
                          for m, k in sorted(self.model_points.items(), key=lambda kv: -kv[1]))
 
+    def describe_incidence(self) -> str:
+        """One line on the incidence each corrected point's reflectance took, e.g.
+        ``"surface normal for 71% of the points, none for volume (canopy) returns 27%,
+        clamped grazing 2%"`` (the rules: :data:`INCIDENCE_RULES`)."""
+        total = sum(self.incidence_rules.values())
+        if not total:
+            return "no point corrected"
+        shares = [(name, 100.0 * k / total) for name, _, _ in INCIDENCE_RULES
+                  if (k := self.incidence_rules.get(name, 0))]
+        (first, share), rest = shares[0], shares[1:]
+        return ", ".join([f"{first} for {_percent(share)} of the points",
+                          *(f"{name} {_percent(share)}" for name, share in rest)])
+
     def add(self, tally: CloudTally) -> None:
         """Count a corrected cloud (or several: tallies add up)."""
+        for name, any_of, none_of in INCIDENCE_RULES:
+            self.incidence_rules[name] = (self.incidence_rules.get(name, 0)
+                                          + tally.matching(any_of, none_of))
+        self.volume += tally.flagged(FLAG_VOLUME)
         self.points += tally.points
         self.non_finite += int(tally.counts[256])
         self.not_corrected += tally.flagged(FLAG_NOT_CORRECTED)
@@ -90,6 +111,27 @@ class CorrectionStats:
         self.no_intensity += tally.flagged(FLAG_NO_INTENSITY)
         self.rough += tally.flagged(FLAG_ROUGH)
 
+
+def _percent(share: float) -> str:
+    """A share in per cent for a summary: whole per cents, ``<1%`` below one."""
+    return f"{share:.0f}%" if share >= 1.0 or share == 0.0 else "<1%"
+
+
+#: The incidence a corrected point's reflectance took (:mod:`lidarcal_ros.core.radiometry`),
+#: each as (name in the summary, flags of which one must be set (0: none needed), flags none
+#: of which may be): the surface normal's; none, for volume returns (canopy: ``cos`` 1);
+#: bounded at ``radiometry.uncertain_incidence_max_deg``, for rough neighbourhoods; clamped
+#: at ``radiometry.min_cos_incidence``, grazing (then bounded too); none known (no normal:
+#: reflectance NaN).
+INCIDENCE_RULES: tuple[tuple[str, int, int], ...] = (
+    ("surface normal", 0,
+     FLAG_NOT_CORRECTED | FLAG_VOLUME | FLAG_GRAZING | FLAG_ROUGH | FLAG_NO_NORMAL),
+    ("none for volume (canopy) returns", FLAG_VOLUME, FLAG_NOT_CORRECTED),
+    ("bounded (rough)", FLAG_ROUGH,
+     FLAG_NOT_CORRECTED | FLAG_VOLUME | FLAG_GRAZING | FLAG_NO_NORMAL),
+    ("clamped grazing", FLAG_GRAZING, FLAG_NOT_CORRECTED | FLAG_VOLUME | FLAG_NO_NORMAL),
+    ("no normal", FLAG_NO_NORMAL, FLAG_NOT_CORRECTED | FLAG_VOLUME),
+)
 
 #: Each possible ``correction_flags`` byte, the index of :attr:`CloudTally.counts`.
 _FLAG_BYTES = np.arange(256)
@@ -125,6 +167,14 @@ class CloudTally:
     def flagged(self, mask: int) -> int:
         """Points with any of the bits of ``mask`` set."""
         return int(self.counts[:256][(_FLAG_BYTES & mask) != 0].sum())
+
+    def matching(self, any_of: int, none_of: int) -> int:
+        """Points with one of the bits of ``any_of`` set (0: any point) and none of
+        ``none_of``."""
+        hit = (_FLAG_BYTES & none_of) == 0
+        if any_of:
+            hit &= (_FLAG_BYTES & any_of) != 0
+        return int(self.counts[:256][hit].sum())
 
     def __add__(self, other: CloudTally) -> CloudTally:
         return CloudTally(self.counts + other.counts)

@@ -15,14 +15,17 @@ Per point (method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
    taken at the IMU origin: the lever arm itself (not only its bias) is unknown to the
    quasi-rigorous method; at airborne ranges it changes angles by < 1e-3 rad;
 4. the local surface normal from a grid plane fit over the point's neighbourhood in its own
-   strip (:mod:`lidarcal_ros.core.normals`), ``incidence = arccos |n . l|`` (rad);
+   strip (:mod:`lidarcal_ros.core.normals`; volume returns, those that are not the last of
+   their pulse, are left out of the grid), ``incidence = arccos |n . l|`` (rad);
 5. ``reflectance`` by the radar equation (:mod:`lidarcal_ros.core.radiometry`), with
    ``cos(incidence)`` clamped at ``radiometry.min_cos_incidence``; where the normal is
    uncertain (flagged rough or grazing) the incidence term is bounded at
    ``radiometry.uncertain_incidence_max_deg`` (60 deg): at building edges a plane mixing roof
    and ground gives a steep incidence that the surface does not have, and dividing by its
    cosine would make the point several times too bright (the incidence field keeps the
-   estimate; the flags say it is uncertain).
+   estimate; the flags say it is uncertain). A volume return (canopy: not the last return of
+   its pulse) takes no incidence correction, ``cos`` 1, and NaN incidence (the rule and why:
+   :mod:`lidarcal_ros.core.radiometry`, "Incidence on vegetation").
 
 Normals are fitted to the delivered (uncorrected) coordinates: the correction is a smooth field
 (its gradient is of the order of the boresight angles and ``dS``, below 1e-3), so it would turn
@@ -33,8 +36,6 @@ Output: every input field, ``x, y, z`` corrected (in their own type), and the FL
 ``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus the UINT8 ``correction_flags``
 (bits below). Nothing is silently wrong: a point that cannot be corrected keeps its delivered
 coordinates, gets NaN in the four derived fields and a flag, and is counted.
-
-Streaming: :class:`StreamCorrector` takes clouds one at a time. The points of each strip
 
 This module corrects a set of points at once (:func:`correct_columns`, :func:`correct_cloud`);
 the corrected cloud's layout and rows are :mod:`~lidarcal_ros.pipeline.corrected_cloud`, the
@@ -69,7 +70,7 @@ from lidarcal_ros.core.local_trajectory import (
 )
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import GridNormals, cell_size, finite_rows, grid_normals
-from lidarcal_ros.core.radiometry import RadiometricModel
+from lidarcal_ros.core.radiometry import RadiometricModel, volume_returns
 from lidarcal_ros.core.trajectory_errors import TrajectoryEstimate
 from lidarcal_ros.errors import ConfigError, TrajectoryError
 from lidarcal_ros.io.calibration_file import CalibrationRecord
@@ -84,7 +85,7 @@ from lidarcal_ros.pipeline.corrected_cloud import (
 __all__ = [
     "UNCORRECTED_WARNINGS", "UNCORRECTED_WARNING_S", "CorrectionSettings", "NormalsFit",
     "ServedFrames", "UncorrectedWarnings", "correct_cloud", "correct_columns",
-    "flagged_geometry", "served_frames", "trajectory_heading",
+    "flagged_geometry", "served_frames", "surface_points", "trajectory_heading",
 ]
 
 logger = logging.getLogger(__name__)
@@ -372,6 +373,17 @@ def _fitted_normals(xyz: np.ndarray, t: np.ndarray, trajectory: Trajectory,
     return grid_normals(all_xyz, heading, cell_m=cell_m, group=all_group)
 
 
+def surface_points(xyz: np.ndarray, volume: np.ndarray | None) -> np.ndarray:
+    """The points a normals grid takes: ``xyz`` (map frame, m) with the volume returns
+    (``volume``, or None: none) made NaN, which leaves them out of the grid (no normal, and
+    nobody's neighbour); ``xyz`` itself when there are none."""
+    if volume is None or not volume.any():
+        return xyz
+    out = xyz.copy()
+    out[volume] = np.nan
+    return out
+
+
 def correct_columns(
     xyz: np.ndarray,
     t: np.ndarray,
@@ -383,6 +395,7 @@ def correct_columns(
     source: str = "cloud",
     all_finite: bool = False,
     rows: RowTarget | None = None,
+    volume: np.ndarray | None = None,
     strip_id: np.ndarray | int | None = None,
 ) -> CorrectedColumns:
     """Correct the geometry and compute reflectance of a set of points (module docstring).
@@ -410,6 +423,10 @@ def correct_columns(
         Write the corrected cloud of the points
         (:func:`~lidarcal_ros.pipeline.corrected_cloud.row_target`) instead of the
         columns, which are then returned empty (one pass less over the points).
+    volume : (n,) bool, optional
+        Volume returns (:func:`~lidarcal_ros.core.radiometry.volume_returns`): no
+        incidence correction; left out of the normals fitted here (given normals should
+        have left them out too).
 
     Returns
     -------
@@ -437,7 +454,8 @@ def correct_columns(
                                all_finite=all_finite, heading_source=settings.heading_source,
                                model=settings.model)
     gn = normals if isinstance(normals, GridNormals) else _fitted_normals(
-        xyz, t, trajectory, normals if normals is not None else NormalsFit())
+        surface_points(xyz, volume), t, trajectory,
+        normals if normals is not None else NormalsFit())
     lines = _NO_LINES if frames is None or frames.lines is None else frames.lines
     rigorous = frames is not None and frames.rigorous
     q = trajectory.orientation
@@ -448,6 +466,7 @@ def correct_columns(
         np.asarray(settings.delta, dtype=np.float64),
         np.ascontiguousarray(gn.normals[:n], dtype=np.float64),
         _NO_ROUGH if gn.rough is None else np.ascontiguousarray(gn.rough[:n]),
+        _NO_ROUGH if volume is None else np.ascontiguousarray(volume, dtype=bool),
         _NO_INTENSITY if intensity is None else np.ascontiguousarray(intensity,
                                                                       dtype=np.float32),
         settings.radiometry.kernel_constants(), (out_xyz, rng, inc, scan, refl, flags),
@@ -496,5 +515,7 @@ def correct_cloud(
                            coordinate_tolerance_m=settings.coordinate_tolerance_m)
     res = correct_columns(cols.xyz, cols.t, cols.intensity, trajectory, settings,
                           normals=NormalsFit(group=cols.strip_id, context_xyz=context),
-                          source=source, strip_id=cols.strip_id)
+                          source=source,
+                          volume=volume_returns(cols.return_number, cols.number_of_returns),
+                          strip_id=cols.strip_id)
     return build_corrected(points, res), res

@@ -21,6 +21,7 @@ import numpy as np
 from lidarcal_ros.core.georeferencing import ModelChoice
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import GridNormals, no_normals
+from lidarcal_ros.core.radiometry import volume_returns
 from lidarcal_ros.core.strip_normals import NormalsTask
 from lidarcal_ros.io.cloud_columns import CloudColumns
 from lidarcal_ros.pipeline.corrected_cloud import (
@@ -32,8 +33,8 @@ from lidarcal_ros.pipeline.corrected_cloud import (
 from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 __all__ = [
-    "BatchResult", "CorrectionBatch", "HeldCloud", "OutputPlacer", "deliver_normals",
-    "run_batch",
+    "BatchResult", "CorrectionBatch", "HeldCloud", "OutputPlacer", "cloud_volume",
+    "deliver_normals", "run_batch",
 ]
 
 #: ``place(tag, n, dtype)``: an array of ``n`` rows of ``dtype`` to build a corrected cloud
@@ -157,6 +158,21 @@ def _job_columns(msgs: list[HeldCloud]
     return xyz, t, inten
 
 
+def cloud_volume(columns: CloudColumns) -> np.ndarray | None:
+    """The volume returns of a cloud (:func:`~lidarcal_ros.core.radiometry.volume_returns`),
+    None when it has none."""
+    return volume_returns(columns.return_number, columns.number_of_returns)
+
+
+def _job_volume(msgs: list[HeldCloud]) -> np.ndarray | None:
+    """The volume returns of the clouds of a job, concatenated (None: none)."""
+    parts = [cloud_volume(m.columns) for m in msgs]
+    if all(p is None for p in parts):
+        return None
+    return np.concatenate([p if p is not None else np.zeros(len(m), bool)
+                           for p, m in zip(parts, msgs, strict=True)])
+
+
 def run_batch(job: CorrectionBatch, source: str) -> BatchResult:
     """Correct one batch of clouds: the corrected clouds, their tallies, seconds spent, and
     the model their points got (``source``: named in messages)."""
@@ -187,7 +203,7 @@ def run_batch(job: CorrectionBatch, source: str) -> BatchResult:
     res = correct_columns(xyz, t, inten, job.trajectory, job.settings, normals=gn,
                           source=source,
                           all_finite=all(m.columns.all_finite for m in msgs),
-                          strip_id=_job_strip_ids(msgs))
+                          volume=_job_volume(msgs), strip_id=_job_strip_ids(msgs))
     out: list[np.ndarray] = []
     tallies: list[CloudTally] = []
     a = 0
@@ -223,7 +239,7 @@ def _run_one(job: CorrectionBatch, m: HeldCloud, whole: GridNormals | None, sour
     c = m.columns
     res = correct_columns(c.xyz, c.t, c.intensity, job.trajectory, job.settings, normals=gn,
                           source=source, all_finite=bool(c.all_finite), rows=target,
-                          strip_id=c.strip_id)
+                          volume=cloud_volume(c), strip_id=c.strip_id)
     return [out], [tally], time.perf_counter() - started, res.choice
 
 

@@ -302,6 +302,7 @@ class LiveCorrector:
             "latency_p50_s": f"{p50:.4f}", "latency_p99_s": f"{p99:.4f}",
             "queued_clouds": str(len(self._waiting)), "held_clouds": str(len(self._held)),
             "estimate_source": self.estimate_source, "transport": self.transport,
+            "incidence": self.settings.radiometry.incidence_rule,
             "poses_left_out": str(self.trajectory.left_out),
             "heading": describe_heading_policy(heading_source,
                                                self.trajectory.oriented_samples > 0),

@@ -3,7 +3,8 @@
 ``radiometry.reference_target`` is a box of the map frame over one surface whose Lambertian
 reflectance ``radiometry.reference_target_reflectance`` is known (a sports ground, a car park
 measured with a field spectrometer). The points inside it whose reflectance is trusted
-(corrected, with an intensity and a normal that is neither rough nor grazing, incidence below
+(corrected, last or single returns, with an intensity and a normal that is neither rough nor
+grazing, incidence below
 :data:`TARGET_MAX_INCIDENCE_DEG`) give ``C = median(relative reflectance) / known``
 (:func:`~lidarcal_ros.core.radiometry.constant_from_target`), the intensity of a
 reflectance-1 target at the reference range: the calibration constant that makes the
@@ -30,9 +31,10 @@ from lidarcal_ros.core.flags import (
     FLAG_NO_NORMAL,
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
+    FLAG_VOLUME,
 )
 from lidarcal_ros.core.mission import Mission
-from lidarcal_ros.core.radiometry import constant_from_target
+from lidarcal_ros.core.radiometry import constant_from_target, volume_returns
 from lidarcal_ros.pipeline.correction import (
     CorrectionSettings,
     NormalsFit,
@@ -46,7 +48,8 @@ TARGET_MAX_INCIDENCE_DEG = 60.0
 #: their whole neighbourhood.
 TARGET_MARGIN_M = 20.0
 #: Flags of points left out of the target.
-_UNTRUSTED = FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH | FLAG_GRAZING
+_UNTRUSTED = (FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH | FLAG_GRAZING
+              | FLAG_VOLUME)
 
 
 @dataclass(frozen=True)
@@ -166,10 +169,14 @@ def measure_target_on_mission(
             if not near.any():
                 continue
             heading = trajectory_heading(mission.trajectory, float(np.nanmedian(strip.t)))
+            volume = volume_returns(strip.extra.get("return_number"),
+                                    strip.extra.get("number_of_returns"))
             res = correct_columns(strip.xyz[near], strip.t[near], strip.intensity[near],
                                   mission.trajectory, relative,
                                   normals=NormalsFit(heading=heading),
-                                  source=f"strip {strip.strip_id}", strip_id=strip.strip_id)
+                                  source=f"strip {strip.strip_id}",
+                                  volume=None if volume is None else volume[near],
+                                  strip_id=strip.strip_id)
             yield res.xyz, res.reflectance, res.flags, res.incidence
 
     return measure_target(corrected(), box, known)

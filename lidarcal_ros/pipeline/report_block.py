@@ -25,9 +25,11 @@ from lidarcal_ros.core.flags import (
     FLAG_NO_NORMAL,
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
+    FLAG_VOLUME,
 )
 from lidarcal_ros.core.mission import ControlPoints, Mission, Trajectory
 from lidarcal_ros.core.normals import cell_size, finite_rows, grid_normals
+from lidarcal_ros.core.radiometry import volume_returns
 from lidarcal_ros.core.swath_differences import (
     SMOOTH_SLOPE_DEG,
     BlockGrid,
@@ -38,6 +40,7 @@ from lidarcal_ros.io.report_content import FlightMap, MapRaster, StripRow
 from lidarcal_ros.pipeline.correction import (
     CorrectionSettings,
     correct_columns,
+    surface_points,
     trajectory_heading,
 )
 
@@ -52,9 +55,11 @@ MAP_MAX_CELLS = 600
 #: Map cell in point spacings of the sparsest strip at least (so that where it flies alone,
 #: at the block's edges, most cells hold a point or two).
 MAP_STRIP_SPACINGS = 2.0
-#: Points left out of the slope statistics: not corrected, no normal, no intensity, or a
-#: rough neighbourhood (edges, vegetation: slope and incidence uncertain).
-EXCLUDED_FLAGS = FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH
+#: Points left out of the slope statistics: not corrected, no normal, no intensity, a
+#: rough neighbourhood (edges, vegetation: slope and incidence uncertain) or a volume return
+#: (canopy: no surface).
+EXCLUDED_FLAGS = (FLAG_NOT_CORRECTED | FLAG_NO_NORMAL | FLAG_NO_INTENSITY | FLAG_ROUGH
+                  | FLAG_VOLUME)
 #: Cell of the strips' footprints (density, coverage), metres.
 FOOTPRINT_CELL_M = 10.0
 #: Cell of the swath differences in nominal pulse spacings (the LBS's "twice the NPS").
@@ -167,11 +172,16 @@ def block_pass(
             progress("correcting strips", k / len(strips))
         heading = trajectory_heading(mission.trajectory, float(np.nanmedian(strip.t)))
         finite = finite_rows(strip.xyz) & np.isfinite(strip.t)
-        normals = grid_normals(strip.xyz, heading,
-                               cell_m=cell_size(strip.xyz[finite], heading, strip.t[finite]))
+        # The normals of the last returns (volume returns: none, as lidarcal correct).
+        volume = volume_returns(strip.extra.get("return_number"),
+                                strip.extra.get("number_of_returns"))
+        surface = surface_points(strip.xyz, volume)
+        fitted = finite_rows(surface) & np.isfinite(strip.t)
+        normals = grid_normals(surface, heading,
+                               cell_m=cell_size(surface[fitted], heading, strip.t[fitted]))
         res = correct_columns(strip.xyz, strip.t, strip.intensity, mission.trajectory,
                               settings, normals=normals, source=f"strip {strip.strip_id}",
-                              strip_id=strip.strip_id)
+                              volume=volume, strip_id=strip.strip_id)
         with np.errstate(invalid="ignore"):
             slope = np.degrees(np.arccos(np.clip(np.abs(normals.normals[:, 2]), 0.0, 1.0)))
         rough = normals.rough if normals.rough is not None else np.zeros(len(strip), bool)

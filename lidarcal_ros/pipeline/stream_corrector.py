@@ -31,12 +31,17 @@ from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.cloud_columns import extract_columns, float32_warning, time_span
 from lidarcal_ros.pipeline import correction_batch
 from lidarcal_ros.pipeline.corrected_cloud import CloudTally, CorrectionStats
-from lidarcal_ros.pipeline.correction import CorrectionSettings, trajectory_heading
+from lidarcal_ros.pipeline.correction import (
+    CorrectionSettings,
+    surface_points,
+    trajectory_heading,
+)
 from lidarcal_ros.pipeline.correction_batch import (
     BatchResult,
     CorrectionBatch,
     HeldCloud,
     OutputPlacer,
+    cloud_volume,
     deliver_normals,
 )
 
@@ -291,8 +296,10 @@ class StreamCorrector:
 
         for m in self._unbinned:
             cols = m.columns
+            # Volume returns stay out of the grids: the planes follow the last returns.
+            surface = surface_points(cols.xyz, cloud_volume(cols))
             for strip_id, idx in m.strip_parts:
-                xyz = cols.xyz if idx is None else cols.xyz[idx]
+                xyz = surface if idx is None else surface[idx]
                 t = cols.t if idx is None else cols.t[idx]
                 t_lo, t_hi = (cols.t_span if idx is None and cols.t_span is not None
                               else time_span(t))
