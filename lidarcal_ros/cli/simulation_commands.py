@@ -54,13 +54,13 @@ def add_simulate_command(sub: Any) -> None:
                    "turning lines; otherwise identity orientation, positions only)")
     p.add_argument("--trajectory-errors", default=None, metavar="SPEC",
                    help="deliver the trajectory with per-strip errors, as a GNSS/INS solution "
-                   "errs (method.md section 11): the points of each strip and the "
-                   "trajectory carry e_s(t) = offset + drift (t - t_mid) + a slow "
-                   "oscillation, drawn per strip and axis and recorded in the truth; "
-                   "'typical' (offsets 4 cm horizontal / 5 cm vertical sigma, drift 1 cm per "
-                   "10 s sigma, a 1 cm oscillation of period 60 s), or KEY=VALUE changes to "
-                   "none (or to 'typical' given first), e.g. 'offset_h=4cm,offset_v=5cm,"
-                   "drift=1cm/10s,oscillation=1cm,period=60s,seed=3' (default: none)")
+                   "errs (method.md section 11): each strip's points and trajectory carry "
+                   "e_s(t) = offset + drift (t - t_mid) + a slow oscillation, drawn per strip "
+                   "and axis and recorded in the truth. 'typical': offsets 4 cm horizontal / "
+                   "5 cm vertical sigma, drift 1 cm per 10 s sigma, a 1 cm oscillation of "
+                   "period 60 s; or KEY=VALUE settings (those not given 0, or as typical "
+                   "after 'typical,'), e.g. 'offset_h=4cm,offset_v=5cm,drift=1cm/10s,"
+                   "oscillation=1cm,period=60s,seed=3' (default: no error)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_simulate)
 
@@ -87,8 +87,6 @@ _ROUGH_AIR_KEYS: dict[str, tuple[str, type]] = {
 
 def _parse_rough_air(text: str) -> Any:
     """The RoughAir of ``--rough-air [SPEC]``: the reported one with SPEC's changes."""
-    from dataclasses import replace
-
     from lidarcal_ros.core.flight_path import REPORTED_ROUGH_AIR
 
     changes: dict[str, Any] = {}
@@ -104,13 +102,23 @@ def _parse_rough_air(text: str) -> Any:
         except ValueError:
             raise ConfigError(f"--rough-air: {key} '{value.strip()}' is not "
                               f"{'an integer' if kind is int else 'a number'}") from None
+    return _changed(REPORTED_ROUGH_AIR, changes, option="--rough-air", prefix="rough air: ",
+                    keys=_ROUGH_AIR_KEYS)
+
+
+def _changed(base: Any, changes: dict[str, Any], *, option: str, prefix: str,
+             keys: dict[str, tuple[str, Any]]) -> Any:
+    """The dataclass ``base`` with ``changes`` (field: value); the ConfigError its checks raise
+    said as ``option``'s (its ``prefix`` dropped, each field named by its key in ``keys``)."""
+    from dataclasses import replace
+
     try:
-        return replace(REPORTED_ROUGH_AIR, **changes)
+        return replace(base, **changes)
     except ConfigError as exc:
-        reason = str(exc).removeprefix("rough air: ")
-        for key, (name, _) in _ROUGH_AIR_KEYS.items():  # in the option's own words
+        reason = str(exc).removeprefix(prefix)
+        for key, (name, _) in keys.items():  # in the option's own words
             reason = reason.replace(name, key)
-        raise ConfigError(f"--rough-air: {reason}") from None
+        raise ConfigError(f"{option}: {reason}") from None
 
 
 #: ``--trajectory-errors`` keys: the TrajectoryErrorSpec field each sets and its unit ("length",
@@ -139,8 +147,6 @@ def _trajectory_error_value(key: str, text: str) -> float | int:
 def _parse_trajectory_errors(text: str) -> Any:
     """The TrajectoryErrorSpec of ``--trajectory-errors SPEC``: ``typical``, and/or KEY=VALUE
     changes (to no error, or to the typical given first)."""
-    from dataclasses import replace
-
     from lidarcal_ros.core.simulation_spec import TYPICAL_TRAJECTORY_ERRORS, TrajectoryErrorSpec
 
     parts = [p.strip() for p in text.split(",") if p.strip()]
@@ -162,13 +168,8 @@ def _parse_trajectory_errors(text: str) -> Any:
             raise ConfigError(f"--trajectory-errors: {key} '{value}' is not "
                               f"{_TRAJECTORY_ERROR_HINTS[_TRAJECTORY_ERROR_KEYS[key][1]]}"
                               ) from None
-    try:
-        return replace(base, **changes)
-    except ConfigError as exc:
-        reason = str(exc).removeprefix("trajectory errors: ")
-        for key, (name, _) in _TRAJECTORY_ERROR_KEYS.items():  # in the option's own words
-            reason = reason.replace(name, key)
-        raise ConfigError(f"--trajectory-errors: {reason}") from None
+    return _changed(base, changes, option="--trajectory-errors", prefix="trajectory errors: ",
+                    keys=_TRAJECTORY_ERROR_KEYS)
 
 
 #: What a ``--trajectory-errors`` value of each unit looks like.
