@@ -477,6 +477,38 @@ def test_simulate_rough_air_writes_the_ins_attitude_and_its_truth(capsys, tmp_pa
     assert simulation["attitude"] is False and simulation["wind_mps"] == [0.0, 0.0]
 
 
+def test_simulate_trajectory_errors_move_the_bag_by_the_truths_e_s(capsys, tmp_path):
+    """``--trajectory-errors`` spelt out equals ``typical``; the bag's points and trajectory
+    minus those of the same simulation without errors are each strip's ``e_s(t)`` of the
+    truth file."""
+    from lidarcal_ros.io.mission_bag import read_mission
+    from lidarcal_ros.pipeline.calibration import Truth
+
+    base = ["--scenario", "one_track", "--density", "0.05", "--line-length", "200",
+            "--seed", "4"]
+    runs = {"clean": [], "typical": ["--trajectory-errors", "typical"],
+            "spelt": ["--trajectory-errors", "offset_h=4cm,offset_v=5cm,drift=1cm/10s,"
+                      "oscillation=1cm,period=60s"],
+            "other": ["--trajectory-errors", "typical, seed=9, period=2min"]}
+    for name, option in runs.items():
+        rc, _, err = run(capsys, "simulate", "-o", tmp_path / name, *base, *option)
+        assert rc == 0, err
+    truth = {name: Truth.read(tmp_path / f"{name}_truth.yaml") for name in runs}
+    assert truth["typical"] == truth["spelt"] != truth["clean"]
+    other = truth["other"].trajectory_errors[1]
+    assert other.period_s == 120.0 and other.offset != truth["typical"].trajectory_errors[1].offset
+    clean, delivered = read_mission(tmp_path / "clean"), read_mission(tmp_path / "typical")
+    errors = truth["typical"].trajectory_errors
+    for strip0, strip in zip(clean.strips, delivered.strips, strict=True):
+        error = errors[strip.strip_id]
+        np.testing.assert_allclose(strip.xyz - strip0.xyz, error.at(strip.t), rtol=0, atol=1e-9)
+        assert np.abs(error.at(strip.t)).max() > 0.005
+        trajectory = delivered.trajectory
+        on = (trajectory.t >= error.t_span[0]) & (trajectory.t <= error.t_span[1])
+        np.testing.assert_allclose(trajectory.xyz[on] - clean.trajectory.xyz[on],
+                                   error.at(trajectory.t[on]), rtol=0, atol=1e-9)
+
+
 def test_simulate_rough_air_changes_and_turning_lines(capsys, tmp_path):
     """``--rough-air KEY=VALUE,...`` changes the reported rough air; ``--lines`` flies a
     banked turn, which puts the orientation on the trajectory by itself."""
@@ -514,6 +546,18 @@ def test_simulate_rough_air_changes_and_turning_lines(capsys, tmp_path):
     ("--rough-air", "components=2.5", "--rough-air: components '2.5' is not an integer"),
     ("--rough-air", "min-period=5,max-period=2",
      "--rough-air: periods must satisfy 0 < min-period <= max-period"),
+    ("--trajectory-errors", "typcal", "--trajectory-errors: expected 'typical' first, then "
+     "KEY=VALUE with KEY one of offset_h, offset_v, drift, oscillation, period, seed, got "
+     "'typcal'"),
+    ("--trajectory-errors", "drift=1cm/x", "--trajectory-errors: drift '1cm/x' is not a "
+     "drift rate (e.g. 1cm/10s, 1mm/s, 0.001)"),
+    ("--trajectory-errors", "offset_v=5km", "--trajectory-errors: offset_v '5km' is not a "
+     "length"),
+    ("--trajectory-errors", "typical,offset_h=-4cm",
+     "--trajectory-errors: offset_h must be a finite number >= 0, got -0.04"),
+    ("--trajectory-errors", "period=0s", "--trajectory-errors: period must be positive"),
+    ("--trajectory-errors", "seed=1.5", "--trajectory-errors: seed '1.5' is not an integer"),
+    ("--trajectory-errors", ",", "--trajectory-errors: expected 'typical' or KEY=VALUE"),
     ("--lines", "missing.yaml", "missing.yaml: cannot read flight lines"),
     ("--lines", "{id: 1}", "lines.yaml: expected a list of lines"),
     ("--lines", "[{id: 1, start: [0, 0], end: [0, 500], height: 600, turn_deg_s: x}]",

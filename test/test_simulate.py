@@ -6,11 +6,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from lidarcal_ros.core.attitude import (
     attitude_from_quaternions,
@@ -30,15 +32,18 @@ from lidarcal_ros.core.simulation_spec import (
     DEFAULT_BIASES,
     HIGH,
     OPTION_NAMES,
+    TYPICAL_TRAJECTORY_ERRORS,
     FlightSpec,
     NoiseSpec,
     SensorSpec,
     SimulationSpec,
     SiteSpec,
+    TrajectoryErrorSpec,
 )
 from lidarcal_ros.core.surface import ROOF, TREE
 from lidarcal_ros.core.terrain import Terrain
 from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.pipeline.calibration import Truth, write_simulation
 
 VECTORS = Path(__file__).resolve().parents[2] / "shared" / "vectors" / "method_vectors.json"
 
@@ -374,7 +379,7 @@ def test_a_spec_from_options_is_the_spec_of_its_parts():
                                   "roll_deg": None},)
     assert flat.biases == {**ZERO, "dX": 0.1}
     assert SimulationSpec().biases == DEFAULT_BIASES
-    assert len(set(OPTION_NAMES)) == len(OPTION_NAMES) == 23
+    assert len(set(OPTION_NAMES)) == len(OPTION_NAMES) == 29
     with pytest.raises(TypeError, match=r"unknown option\(s\) densty;"):
         SimulationSpec.from_options(densty=0.3)
 
@@ -724,6 +729,179 @@ def test_georeference_reproduces_the_rigorous_vectors():
                           pulse["beta_true"], data["biases"])
         assert xb.shape == (3,)
         np.testing.assert_allclose(xb, pulse["X_biased"], rtol=0, atol=1e-8)
+
+
+# ---------------------------------------------------------------------- trajectory errors
+
+
+def error_from_record(record: dict[str, Any], t: np.ndarray) -> np.ndarray:
+    """``e_s(t)`` (n, 3) of a truth file's strip entry, written out from its documented model
+    (independently of StripTrajectoryError.at)."""
+    dt = t[:, None] - record["t_ref"]
+    return (np.array(record["offset"]) + dt * np.array(record["drift"])
+            + np.array(record["oscillation_amplitude"])
+            * np.sin(2 * math.pi * dt / record["oscillation_period_s"]
+                     + np.array(record["oscillation_phase_rad"])))
+
+
+#: Calm level lines (positions only, then with the attitude; trajectory noise) and rough air
+#: (with the INS attitude, then positions only), each flown with and without errors.
+TRAJECTORY_ERROR_CASES: dict[str, dict[str, Any]] = {
+    "level": {"density": 0.05, "line_length_m": 300.0, "seed": 5, "n_control": 1},
+    "level-attitude": {"scenario": "one_track", "density": 0.05, "line_length_m": 300.0,
+                       "seed": 6, "wind_mps": (3.0, -1.0), "attitude": True,
+                       "trajectory_noise_m": 0.05},
+    "rough": ROUGH,
+    "rough-positions": {**ROUGH, "attitude": False},
+}
+
+
+@pytest.mark.parametrize("case", TRAJECTORY_ERROR_CASES)
+def test_trajectory_errors_move_each_strip_by_its_e_s_of_the_truth(case, tmp_path):
+    """The same mission with the typical errors: every delivered point and trajectory sample
+    minus the error-free one is ``e_s(t)`` of its strip, evaluated from the truth file (1e-9
+    m); the true trajectory, the true points, the intensities and the attitude are unchanged;
+    the errors are centimetres and differ from strip to strip."""
+    spec = SimulationSpec.from_options(**TRAJECTORY_ERROR_CASES[case])
+    assert spec.trajectory_errors == TrajectoryErrorSpec()
+    clean = simulate_mission(spec)
+    sim = simulate_mission(replace(spec, trajectory_errors=TYPICAL_TRAJECTORY_ERRORS))
+    write_simulation(tmp_path / "sim", sim)
+    records = yaml.safe_load((tmp_path / "sim_truth.yaml").read_text())["simulation"][
+        "trajectory_errors"]["strips"]
+    assert set(records) == {st.strip_id for st in sim.mission.strips}
+    tr, tr0 = sim.mission.trajectory, clean.mission.trajectory
+    assert np.array_equal(tr.t, tr0.t)
+    assert sim.true_trajectory is not None
+    assert np.array_equal(sim.true_trajectory.xyz, tr0.xyz)
+    assert (tr.orientation is None) == (tr0.orientation is None) == (
+        case in ("level", "rough-positions"))
+    if tr.orientation is not None and tr0.orientation is not None:
+        assert np.array_equal(tr.orientation, tr0.orientation)
+    covered = np.zeros(tr.t.shape, dtype=bool)
+    offsets = []
+    for i, (strip, strip0) in enumerate(zip(sim.mission.strips, clean.mission.strips,
+                                            strict=True)):
+        record = records[strip.strip_id]
+        want = error_from_record(record, strip.t)
+        assert np.array_equal(strip.t, strip0.t)
+        np.testing.assert_allclose(strip.xyz - strip0.xyz, want, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(sim.trajectory_error(strip.strip_id, strip.t), want,
+                                   rtol=0, atol=1e-12)
+        assert np.array_equal(sim.true_xyz[i], clean.true_xyz[i])
+        assert strip.intensity is not None and strip0.intensity is not None
+        assert np.array_equal(strip.intensity, strip0.intensity)
+        assert record["t_ref"] == pytest.approx(0.5 * (strip.t[0] + strip.t[-1]), abs=1e-6)
+        on = (tr.t >= record["t_span"][0]) & (tr.t <= record["t_span"][1])
+        assert not (covered & on).any()
+        covered |= on
+        assert tr.t[on][0] < strip.t[0] and strip.t[-1] < tr.t[on][-1]
+        np.testing.assert_allclose(tr.xyz[on] - sim.true_trajectory.xyz[on],
+                                   error_from_record(record, tr.t[on]), rtol=0, atol=1e-9)
+        offsets.append(record["offset"])
+        assert 0.0 < np.abs(want).max() < 0.5
+    assert covered.all()  # every sample belongs to one line: the turns have none
+    assert len({tuple(o) for o in offsets}) == len(offsets)
+
+
+def test_no_trajectory_errors_by_default_and_their_draws_scale_with_the_sigmas():
+    """By default e_s is 0 (the delivered trajectory is the true one, the same object); the
+    draws are standard normals times the sigmas (the same seed, twice the sigma: twice the
+    offsets), the vertical sigma only on Z, a seed of their own changes them alone."""
+    options: dict[str, Any] = {"scenario": "one_track", "density": 0.02,
+                               "line_length_m": 150.0, "seed": 2, "n_control": 0}
+    clean = simulate_mission(SimulationSpec.from_options(**options))
+    assert not SimulationSpec().trajectory_errors.active and TYPICAL_TRAJECTORY_ERRORS.active
+    assert clean.true_trajectory is clean.mission.trajectory
+    strip = clean.mission.strips[0]
+    assert np.array_equal(clean.trajectory_error(strip.strip_id, strip.t),
+                          np.zeros((len(strip), 3)))
+    record = clean.config["trajectory_errors"]
+    assert record["seed"] == 2 and record["offset_horizontal_m"] == 0.0
+
+    def errors(**spec: Any) -> dict[int, Any]:
+        return simulate_mission(SimulationSpec.from_options(**options, **spec)
+                                ).trajectory_errors
+
+    one, two = errors(offset_horizontal_m=0.04), errors(offset_horizontal_m=0.08)
+    vertical = errors(offset_vertical_m=0.05)
+    reseeded = errors(offset_horizontal_m=0.04, trajectory_error_seed=11)
+    for sid, err in one.items():
+        assert err.offset[2] == 0.0 and err.drift == (0.0, 0.0, 0.0)
+        assert two[sid].offset == pytest.approx(tuple(2.0 * v for v in err.offset), abs=0)
+        assert vertical[sid].offset[:2] == (0.0, 0.0) and vertical[sid].offset[2] != 0.0
+        assert reseeded[sid].offset != err.offset
+        assert vertical[sid].phase == err.phase  # the same draws, whatever the sigmas
+        t = np.linspace(err.t_span[0], err.t_span[1], 7)
+        assert np.all(err.at(t) == np.array(err.offset))  # an offset alone: constant
+    assert clean.trajectory_errors[1].phase == one[1].phase
+    with pytest.raises(ConfigError, match=r"no strip 9 in the simulated mission; strips: 1, "):
+        clean.trajectory_error(9, strip.t)
+
+
+def test_the_typical_errors_have_their_sigmas_over_many_strips():
+    """Over 60 strips the draws have the typical sigmas (offsets 4 cm / 5 cm, drift 1 mm/s,
+    within 25%), the oscillation its 1 cm amplitude and 60 s period."""
+    lines = [{"id": i + 1, "start": (0.0, -40.0), "end": (0.0, 40.0), "height": 400.0}
+             for i in range(60)]
+    sim = simulate_mission(SimulationSpec.from_options(
+        lines=lines, density=0.01, n_control=0, seed=4, offset_horizontal_m=0.04,
+        offset_vertical_m=0.05, drift_m_per_s=0.001, oscillation_m=0.01))
+    offset = np.array([e.offset for e in sim.trajectory_errors.values()])
+    drift = np.array([e.drift for e in sim.trajectory_errors.values()])
+    assert offset[:, :2].std() == pytest.approx(0.04, rel=0.25)
+    assert offset[:, 2].std() == pytest.approx(0.05, rel=0.25)
+    assert drift.std() == pytest.approx(0.001, rel=0.25)
+    err = sim.trajectory_errors[1]
+    assert err.amplitude == (0.01, 0.01, 0.01) and err.period_s == 60.0
+    # the oscillation alone: a sine of 1 cm over 60 s
+    t = err.t_ref + np.linspace(0.0, 60.0, 241)
+    swing = err.at(t) - err.offset - (t - err.t_ref)[:, None] * np.array(err.drift)
+    assert np.abs(swing).max(axis=0) == pytest.approx([0.01] * 3, rel=1e-3)
+    np.testing.assert_allclose(swing[0], swing[-1], atol=1e-12)
+
+
+def test_the_truth_file_round_trips_the_trajectory_errors(tmp_path):
+    """Truth.read gives back each strip's error to the bit, and refuses a damaged entry in one
+    line naming the strip and the key."""
+    sim = simulate_mission(SimulationSpec(
+        seed=8, flight=FlightSpec(scenario="one_track", line_length_m=150.0),
+        sensor=SensorSpec(density=0.02), trajectory_errors=TYPICAL_TRAJECTORY_ERRORS))
+    paths = write_simulation(tmp_path / "sim", sim)
+    truth = Truth.read(paths["truth"])
+    assert truth.trajectory_errors == sim.trajectory_errors
+    assert truth.biases == sim.biases
+    doc = yaml.safe_load(paths["truth"].read_text())
+    block = doc["simulation"]["trajectory_errors"]
+    assert {k: block[k] for k in ("offset_horizontal_m", "offset_vertical_m", "drift_m_per_s",
+                                  "oscillation_m", "oscillation_period_s", "seed")} == {
+        "offset_horizontal_m": 0.04, "offset_vertical_m": 0.05, "drift_m_per_s": 0.001,
+        "oscillation_m": 0.01, "oscillation_period_s": 60.0, "seed": 8}
+    assert "t_ref" in block["model"] and "interpolating" in block["between_strips"]
+    del doc["simulation"]["trajectory_errors"]
+    old = tmp_path / "old_truth.yaml"
+    old.write_text(yaml.safe_dump(doc))
+    assert Truth.read(old).trajectory_errors == {}  # a truth file of before
+    block["strips"][2]["drift"] = [0.0, "x", 0.0]
+    doc["simulation"]["trajectory_errors"] = block
+    old.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match=r"old_truth.yaml: simulation.trajectory_errors: "
+                                          r"strip 2: drift must be 3 finite numbers") as info:
+        Truth.read(old)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(("options", "reason"), [
+    ({"offset_horizontal_m": -0.01}, "offset_horizontal_m must be a finite number >= 0"),
+    ({"drift_m_per_s": math.inf}, "drift_m_per_s must be a finite number >= 0"),
+    ({"oscillation_m": "1cm"}, "oscillation_m must be a finite number >= 0"),
+    ({"oscillation_period_s": 0.0}, "oscillation_period_s must be positive"),
+    ({"trajectory_error_seed": 1.5}, "trajectory_error_seed must be an integer >= 0"),
+])
+def test_bad_trajectory_errors_are_refused(options, reason):
+    with pytest.raises(ConfigError, match=reason) as info:
+        SimulationSpec.from_options(**options)
+    assert "\n" not in str(info.value)
 
 
 # ---------------------------------------------------------------------- terrain and ray casting

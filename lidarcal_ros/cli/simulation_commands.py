@@ -52,6 +52,15 @@ def add_simulate_command(sub: Any) -> None:
                    help="write the sensor's orientation (roll, pitch, heading) as the "
                    "trajectory's, as an INS would (default: with --rough-air or banked or "
                    "turning lines; otherwise identity orientation, positions only)")
+    p.add_argument("--trajectory-errors", default=None, metavar="SPEC",
+                   help="deliver the trajectory with per-strip errors, as a GNSS/INS solution "
+                   "errs (method.md section 11): each strip's points and trajectory carry "
+                   "e_s(t) = offset + drift (t - t_mid) + a slow oscillation, drawn per strip "
+                   "and axis and recorded in the truth. 'typical': offsets 4 cm horizontal / "
+                   "5 cm vertical sigma, drift 1 cm per 10 s sigma, a 1 cm oscillation of "
+                   "period 60 s; or KEY=VALUE settings (those not given 0, or as typical "
+                   "after 'typical,'), e.g. 'offset_h=4cm,offset_v=5cm,drift=1cm/10s,"
+                   "oscillation=1cm,period=60s,seed=3' (default: no error)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_simulate)
 
@@ -78,8 +87,6 @@ _ROUGH_AIR_KEYS: dict[str, tuple[str, type]] = {
 
 def _parse_rough_air(text: str) -> Any:
     """The RoughAir of ``--rough-air [SPEC]``: the reported one with SPEC's changes."""
-    from dataclasses import replace
-
     from lidarcal_ros.core.flight_path import REPORTED_ROUGH_AIR
 
     changes: dict[str, Any] = {}
@@ -95,13 +102,81 @@ def _parse_rough_air(text: str) -> Any:
         except ValueError:
             raise ConfigError(f"--rough-air: {key} '{value.strip()}' is not "
                               f"{'an integer' if kind is int else 'a number'}") from None
+    return _changed(REPORTED_ROUGH_AIR, changes, option="--rough-air", prefix="rough air: ",
+                    keys=_ROUGH_AIR_KEYS)
+
+
+def _changed(base: Any, changes: dict[str, Any], *, option: str, prefix: str,
+             keys: dict[str, tuple[str, Any]]) -> Any:
+    """The dataclass ``base`` with ``changes`` (field: value); the ConfigError its checks raise
+    said as ``option``'s (its ``prefix`` dropped, each field named by its key in ``keys``)."""
+    from dataclasses import replace
+
     try:
-        return replace(REPORTED_ROUGH_AIR, **changes)
+        return replace(base, **changes)
     except ConfigError as exc:
-        reason = str(exc).removeprefix("rough air: ")
-        for key, (name, _) in _ROUGH_AIR_KEYS.items():  # in the option's own words
+        reason = str(exc).removeprefix(prefix)
+        for key, (name, _) in keys.items():  # in the option's own words
             reason = reason.replace(name, key)
-        raise ConfigError(f"--rough-air: {reason}") from None
+        raise ConfigError(f"{option}: {reason}") from None
+
+
+#: ``--trajectory-errors`` keys: the TrajectoryErrorSpec field each sets and its unit ("length",
+#: "time", "speed": a length per time, or "count": an integer).
+_TRAJECTORY_ERROR_KEYS: dict[str, tuple[str, str]] = {
+    "offset_h": ("offset_horizontal_m", "length"), "offset_v": ("offset_vertical_m", "length"),
+    "drift": ("drift_m_per_s", "speed"), "oscillation": ("oscillation_m", "length"),
+    "period": ("oscillation_period_s", "time"), "seed": ("trajectory_error_seed", "count"),
+}
+
+
+def _trajectory_error_value(key: str, text: str) -> float | int:
+    """A ``--trajectory-errors`` value in SI (ValueError if it is not one)."""
+    from lidarcal_ros.core.units import LENGTH_UNITS, TIME_UNITS, parse_quantity
+
+    unit = _TRAJECTORY_ERROR_KEYS[key][1]
+    if unit == "count":
+        return int(text)
+    if unit == "speed" and "/" in text:
+        length, _, per = text.partition("/")
+        return parse_quantity(length, LENGTH_UNITS) / parse_quantity(per, TIME_UNITS,
+                                                                     bare_one=True)
+    return parse_quantity(text, TIME_UNITS if unit == "time" else LENGTH_UNITS)
+
+
+def _parse_trajectory_errors(text: str) -> Any:
+    """The TrajectoryErrorSpec of ``--trajectory-errors SPEC``: ``typical``, and/or KEY=VALUE
+    changes (to no error, or to the typical given first)."""
+    from lidarcal_ros.core.simulation_spec import TYPICAL_TRAJECTORY_ERRORS, TrajectoryErrorSpec
+
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    base = TrajectoryErrorSpec()
+    if parts and parts[0] == "typical":
+        base, parts = TYPICAL_TRAJECTORY_ERRORS, parts[1:]
+    if not parts and base is not TYPICAL_TRAJECTORY_ERRORS:
+        raise ConfigError(f"--trajectory-errors: expected 'typical' or KEY=VALUE, got '{text}'")
+    changes: dict[str, Any] = {}
+    for part in parts:
+        key, eq, value = (v.strip() for v in part.partition("="))
+        if not eq or key not in _TRAJECTORY_ERROR_KEYS:
+            raise ConfigError(f"--trajectory-errors: expected 'typical' first, then KEY=VALUE "
+                              f"with KEY one of {', '.join(_TRAJECTORY_ERROR_KEYS)}, got "
+                              f"'{part}'")
+        try:
+            changes[_TRAJECTORY_ERROR_KEYS[key][0]] = _trajectory_error_value(key, value)
+        except (ValueError, ZeroDivisionError):
+            raise ConfigError(f"--trajectory-errors: {key} '{value}' is not "
+                              f"{_TRAJECTORY_ERROR_HINTS[_TRAJECTORY_ERROR_KEYS[key][1]]}"
+                              ) from None
+    return _changed(base, changes, option="--trajectory-errors", prefix="trajectory errors: ",
+                    keys=_TRAJECTORY_ERROR_KEYS)
+
+
+#: What a ``--trajectory-errors`` value of each unit looks like.
+_TRAJECTORY_ERROR_HINTS = {"length": "a length (e.g. 4cm, 0.04)",
+                           "time": "a time (e.g. 60s, 1min)",
+                           "speed": "a drift rate (e.g. 1cm/10s, 1mm/s, 0.001)",
+                           "count": "an integer"}
 
 
 def _read_flight_lines(path: Path) -> list[dict[str, Any]]:
@@ -132,6 +207,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         SensorSpec,
         SimulationSpec,
         SiteSpec,
+        TrajectoryErrorSpec,
         crab_wind,
         scenario_lines,
     )
@@ -147,6 +223,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.density > 0:
         raise ConfigError(f"--density must be positive, got {args.density}")
     rough_air = None if args.rough_air is None else _parse_rough_air(args.rough_air)
+    trajectory_errors = (TrajectoryErrorSpec() if args.trajectory_errors is None
+                         else _parse_trajectory_errors(args.trajectory_errors))
     lines = None if args.lines is None else _read_flight_lines(args.lines)
     if args.wind is not None:
         wind = _parse_two_numbers(args.wind, "--wind", "E,N in m/s")
@@ -162,7 +240,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                           wind_mps=wind, rough_air=rough_air),
         sensor=SensorSpec(density=args.density, attitude=args.attitude),
         noise=NoiseSpec(range_noise_m=args.range_noise),
-        site=SiteSpec(n_control=args.control, origin=origin))
+        site=SiteSpec(n_control=args.control, origin=origin),
+        trajectory_errors=trajectory_errors)
     started = time.perf_counter()
     sim = simulate_mission(spec)
     paths = write_simulation(args.output, sim, overwrite=args.overwrite)

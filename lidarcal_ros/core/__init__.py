@@ -120,10 +120,15 @@ _EXPORTS = {
         "pulse_and_scan_rates", "scan_line", "swath_width", "triangle",
     ),
     "simulate": ("CONTROL_CLEAR_RADIUS_M", "SimulatedMission", "simulate_mission"),
+    "simulated_trajectory_errors": (
+        "BETWEEN_STRIPS", "StripTrajectoryError", "TRAJECTORY_ERROR_MODEL",
+        "draw_trajectory_errors", "read_trajectory_errors", "trajectory_errors_record",
+    ),
     "simulation_spec": (
         "DEFAULT_BIASES", "FOV_DEG", "FlightSpec", "HIGH", "LEAD_S", "LINE_ATTITUDE_KEYS",
         "LOW", "NoiseSpec", "OPTION_NAMES", "SCENARIOS", "SPEED_MPS", "SensorSpec",
-        "SimulationSpec", "SiteSpec", "TURN_S", "check_biases", "crab_wind", "normalise_lines",
+        "SimulationSpec", "SiteSpec", "TURN_S", "TYPICAL_TRAJECTORY_ERRORS",
+        "TrajectoryErrorSpec", "check_biases", "crab_wind", "normalise_lines",
         "scenario_lines",
     ),
     "simulation_truth": (
@@ -174,7 +179,10 @@ _EXPORTS = {
         "EstimateSettings", "SegmentFit", "SegmentQuality", "fit_segment", "flight_problems",
         "grade", "legendre", "segment_edges",
     ),
-    "units": ("finite_or_none", "format_cm", "format_number", "format_percent", "status_value"),
+    "units": (
+        "LENGTH_UNITS", "TIME_UNITS", "finite_or_none", "format_cm", "format_number",
+        "format_percent", "parse_quantity", "status_value",
+    ),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
 # --- end of exports ---

@@ -13,6 +13,8 @@ beside it:
   :mod:`~lidarcal_ros.core.ray_casting`: the surface and where each pulse meets it;
 - :mod:`~lidarcal_ros.core.scanning`: one line's pulses, from firing to the recorded point and
   intensity, with the exact bias model of :mod:`~lidarcal_ros.core.exact_model`;
+- :mod:`~lidarcal_ros.core.simulated_trajectory_errors`: the errors of the delivered
+  trajectory, per strip;
 - :mod:`~lidarcal_ros.core.simulation_truth`: what the truth records.
 
 Here: the mission's assembly. The lines are scheduled one after the other (each trajectory
@@ -20,7 +22,9 @@ Here: the mission's assembly. The lines are scheduled one after the other (each 
 trajectory and the next), the terrain is generated over the lines' footprint with the control
 points where every strip surely sees them, and all measurement noise is drawn from one
 generator in flight order (range and intensity noise of a line, then its trajectory's), so that
-a spec gives the same mission to the bit.
+a spec gives the same mission to the bit. The trajectory errors come from a generator of their
+own and are added last (to the points and trajectory samples of their strip), so a mission with
+them differs from the same mission without them by exactly ``e_s(t)``.
 """
 
 from __future__ import annotations
@@ -37,6 +41,11 @@ from lidarcal_ros.core.flight_path import FlightLine, RoughAir, Turbulence
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.radiometry import atmospheric_alpha
 from lidarcal_ros.core.scanning import LineScan, Scanner, pulse_and_scan_rates, scan_line
+from lidarcal_ros.core.simulated_trajectory_errors import (
+    StripTrajectoryError,
+    draw_trajectory_errors,
+    trajectory_errors_record,
+)
 from lidarcal_ros.core.simulation_spec import LEAD_S, TURN_S, SimulationSpec
 from lidarcal_ros.core.simulation_truth import line_summary, truth_config
 from lidarcal_ros.core.surface import Surface
@@ -56,6 +65,10 @@ class SimulatedMission:
     (:func:`~lidarcal_ros.core.simulation_truth.line_summary`), ``config`` is the record of
     the whole (:func:`~lidarcal_ros.core.simulation_truth.truth_config`). ``flight_lines``
     are the flights themselves (:meth:`pose`).
+
+    The mission is as delivered: its points and trajectory carry each strip's trajectory error
+    (``trajectory_errors``, by strip id; zero unless the spec asked for some), which
+    ``true_trajectory`` (the same samples, trajectory noise included) does not.
     """
 
     mission: Mission
@@ -71,6 +84,19 @@ class SimulatedMission:
     scan_angle_true: list[np.ndarray] = field(default_factory=list)
     on_wall: list[np.ndarray] = field(default_factory=list)
     flight_lines: list[FlightLine] = field(default_factory=list)
+    trajectory_errors: dict[int, StripTrajectoryError] = field(default_factory=dict)
+    true_trajectory: Trajectory | None = None
+
+    def trajectory_error(self, strip_id: int, t: np.ndarray | float) -> np.ndarray:
+        """The true error ``e_s`` (delivered - true, map frame, metres; (n, 3)) of strip
+        ``strip_id``'s trajectory at absolute times ``t`` (s): what its points carry at their
+        firing times."""
+        try:
+            error = self.trajectory_errors[int(strip_id)]
+        except KeyError:
+            raise ConfigError(f"no strip {strip_id} in the simulated mission; strips: "
+                              f"{', '.join(map(str, self.trajectory_errors))}") from None
+        return error.at(t)
 
     def pose(self, index: int, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The exact IMU origin (n, 3, map frame) and ``R_ins`` (n, 3, 3) of strip ``index``
@@ -115,6 +141,9 @@ def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
                for ln in plan]
     terrain, control_xy = _site(spec, flights, half_fov)
     times = _schedule(flights, prf, spec.trajectory_rate_hz, flight.t0)
+    errors = draw_trajectory_errors(spec.trajectory_errors, spec.trajectory_error_seed, [
+        (fl.line_id, tm.t_mid(prf), (tm.t_line, tm.t_line + float(tm.tr[-1])))
+        for fl, tm in zip(flights, times, strict=True)])
     flights, turbulence = _into_the_air(flights, times, flight.t0, flight.rough_air, spec.seed)
     manoeuvres = any(fl.turn_rate != 0.0 or fl.roll_offset != 0.0 for fl in flights)
     attitude = ((flight.rough_air is not None or manoeuvres) if sensor.attitude is None
@@ -122,8 +151,8 @@ def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
     recorder = _Recorder(terrain, scanner, np.random.default_rng([spec.noise_seed, 0x5EED]),
                          spec.site.origin, spec.noise.trajectory_noise_m, attitude,
                          sensor.fov_deg)
-    for fl, tm in zip(flights, times, strict=True):
-        recorder.fly(fl, tm)
+    for fl, tm, error in zip(flights, times, errors, strict=True):
+        recorder.fly(fl, tm, error if spec.trajectory_errors.active else None)
 
     control = None
     if control_xy.shape[0]:
@@ -132,10 +161,14 @@ def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
         cxyz = np.column_stack([control_xy[:, 0] + ox, control_xy[:, 1] + oy, cz])
         control = ControlPoints([f"C{i + 1}" for i in range(len(cxyz))], cxyz)
     mission = Mission(trajectory=recorder.trajectory(), strips=recorder.strips, control=control)
+    true_trajectory = (recorder.trajectory(true=True) if spec.trajectory_errors.active
+                       else mission.trajectory)
     scans = recorder.scans
     config = truth_config(spec, scanner, terrain=terrain, lines=recorder.lines,
                           attitude=attitude, turbulence=turbulence,
                           n_points=int(sum(len(st) for st in recorder.strips)))
+    config["trajectory_errors"] = trajectory_errors_record(spec.trajectory_errors,
+                                                           spec.trajectory_error_seed, errors)
     return SimulatedMission(
         mission=mission, biases=dict(spec.biases), true_xyz=[s.xyz_t for s in scans],
         surface_class=[s.cls for s in scans], incidence_true=[s.incidence for s in scans],
@@ -143,6 +176,7 @@ def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
         range_true=[s.range_true for s in scans], terrain=terrain, lines=recorder.lines,
         config=config, scan_angle_true=[s.theta for s in scans],
         on_wall=[s.on_wall for s in scans], flight_lines=flights,
+        trajectory_errors={err.strip_id: err for err in errors}, true_trajectory=true_trajectory,
     )
 
 
@@ -224,6 +258,15 @@ class _LineTimes:
     t_last_rel: float
     tr: np.ndarray
 
+    def pulse_times(self, prf: float) -> np.ndarray:
+        """The absolute firing times (s) at ``prf`` (Hz)."""
+        return (self.t_line + LEAD_S) + np.arange(self.n, dtype=np.float64) / prf
+
+    def t_mid(self, prf: float) -> float:
+        """Halfway between the first and the last pulse (absolute, s)."""
+        first = self.t_line + LEAD_S
+        return 0.5 * (first + (first + (self.n - 1) / prf))
+
 
 def _schedule(flights: list[FlightLine], prf: float, rate: float, t0: float
               ) -> list[_LineTimes]:
@@ -275,17 +318,23 @@ class _Recorder:
     lines: list[dict[str, Any]] = field(default_factory=list)
     _t: list[np.ndarray] = field(default_factory=list)
     _xyz: list[np.ndarray] = field(default_factory=list)
+    _xyz_true: list[np.ndarray] = field(default_factory=list)
     _q: list[np.ndarray] = field(default_factory=list)
 
-    def fly(self, fl: FlightLine, tm: _LineTimes) -> None:
+    def fly(self, fl: FlightLine, tm: _LineTimes, error: StripTrajectoryError | None) -> None:
         """Scan a line, then sample its trajectory (exact poses, ``LEAD_S`` before its first
-        pulse to ``LEAD_S`` after its last, with the trajectory noise)."""
+        pulse to ``LEAD_S`` after its last, with the trajectory noise); with an ``error``, the
+        points and the samples as georeferenced with the delivered trajectory (+ ``e_s(t)``;
+        the samples without it kept for :meth:`trajectory` ``true``)."""
         ox, oy = self.origin
         scan = scan_line(fl, tm.n, self.terrain, self.scanner, self.rng)
         for arr in (scan.xyz_b, scan.xyz_t):
             arr[:, 0] += ox
             arr[:, 1] += oy
-        t_abs = (tm.t_line + LEAD_S) + np.arange(tm.n, dtype=np.float64) / self.scanner.prf_hz
+        t_abs = tm.pulse_times(self.scanner.prf_hz)
+        if error is not None:
+            # the system georeferences with X_o,true + e_s: each point moves with its position
+            scan.xyz_b += error.at(t_abs)
         self.strips.append(Strip(strip_id=fl.line_id, xyz=scan.xyz_b, t=t_abs,
                                  intensity=scan.intensity))
         self.scans.append(scan)
@@ -295,8 +344,10 @@ class _Recorder:
         pos[:, 1] += oy
         if self.trajectory_noise_m > 0:
             pos += self.rng.normal(0.0, self.trajectory_noise_m, pos.shape)
-        self._t.append(tm.t_line + tm.tr)
-        self._xyz.append(pos)
+        t_samples = tm.t_line + tm.tr
+        self._t.append(t_samples)
+        self._xyz_true.append(pos)
+        self._xyz.append(pos if error is None else pos + error.at(t_samples))
         if self.attitude:
             self._q.append(quaternions_from_attitude(
                 *(np.broadcast_to(v, tm.tr.shape) for v in (state.roll, state.pitch,
@@ -305,9 +356,11 @@ class _Recorder:
         self.lines.append(line_summary(fl, state, over_line, t_abs, self.origin,
                                        self.fov_deg))
 
-    def trajectory(self) -> Trajectory:
-        """The samples of every line flown so far."""
-        return Trajectory(np.concatenate(self._t), np.concatenate(self._xyz),
+    def trajectory(self, *, true: bool = False) -> Trajectory:
+        """The samples of every line flown so far, as delivered (``true``: without the
+        trajectory errors)."""
+        return Trajectory(np.concatenate(self._t),
+                          np.concatenate(self._xyz_true if true else self._xyz),
                           np.concatenate(self._q) if self.attitude else None)
 
 

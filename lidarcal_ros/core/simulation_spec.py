@@ -1,7 +1,7 @@
 """What a simulated mission is: every option of
 :func:`~lidarcal_ros.core.simulate.simulate_mission`.
 
-A :class:`SimulationSpec` holds the seed, the biases and four parts:
+A :class:`SimulationSpec` holds the seed, the biases and five parts:
 
 - :class:`FlightSpec`: the lines (a named scenario's or given ones), the speed, the wind, rough
   air and the clock;
@@ -9,7 +9,9 @@ A :class:`SimulationSpec` holds the seed, the biases and four parts:
   attitude of the trajectory it records;
 - :class:`NoiseSpec`: range, intensity and trajectory noise and their seed;
 - :class:`SiteSpec`: the surface (generated or given), where it lies, its control points and
-  its air.
+  its air;
+- :class:`TrajectoryErrorSpec`: the errors of the delivered trajectory, per strip (method.md
+  section 11).
 
 Build one from its parts, or from flat keywords (:meth:`SimulationSpec.from_options`: each
 keyword names a field of one part, as the truth file's ``config`` names it)::
@@ -28,6 +30,7 @@ Coordinates are local (the area's centre at (0, 0)) until ``SiteSpec.origin`` is
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -242,6 +245,89 @@ class SiteSpec:
 
 
 @dataclass(frozen=True)
+class TrajectoryErrorSpec:
+    """The errors of the delivered trajectory (GNSS/INS), drawn per strip (method.md section
+    11): strip ``s`` is georeferenced with ``X_o,true(t) + e_s(t)``, so its points and its
+    trajectory carry, per map axis ``k`` (metres, delivered - true),
+
+    ``e_s,k(t) = o_s,k + (t - t_s) v_s,k + a sin(2 pi (t - t_s) / P + phi_s,k)``
+
+    with ``t_s`` the strip's mid time (between its first and last pulse), ``o_s,k`` and
+    ``v_s,k`` normal with the sigmas below, ``phi_s,k`` uniform in ``[0, 2 pi)``, independent
+    from strip to strip. The default is no error at all (a mission as without this part, to the
+    bit); :data:`TYPICAL_TRAJECTORY_ERRORS` is a typical post-processed solution's.
+
+    Attributes
+    ----------
+    offset_horizontal_m : float
+        Sigma of the offset along each of map X and Y, metres.
+    offset_vertical_m : float
+        Sigma of the offset along map Z, metres.
+    drift_m_per_s : float
+        Sigma of the drift rate along each axis, m/s (1 cm per 10 s: 0.001).
+    oscillation_m : float
+        Amplitude ``a`` of the slow oscillation along each axis, metres (random phase).
+    oscillation_period_s : float
+        Its period ``P``, seconds.
+    trajectory_error_seed : int, optional
+        Seed of the draws (default: the spec's seed); they come from a generator of their own,
+        so the rest of the mission is the same with or without them.
+    """
+
+    offset_horizontal_m: float = 0.0
+    offset_vertical_m: float = 0.0
+    drift_m_per_s: float = 0.0
+    oscillation_m: float = 0.0
+    oscillation_period_s: float = 60.0
+    trajectory_error_seed: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("offset_horizontal_m", "offset_vertical_m", "drift_m_per_s",
+                     "oscillation_m"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    math.isfinite(value) and value >= 0.0):
+                raise ConfigError(f"trajectory errors: {name} must be a finite number >= 0, "
+                                  f"got {value!r}")
+            object.__setattr__(self, name, float(value))
+        period = self.oscillation_period_s
+        if isinstance(period, bool) or not isinstance(period, (int, float)) or not (
+                math.isfinite(period) and period > 0.0):
+            raise ConfigError(f"trajectory errors: oscillation_period_s must be positive, "
+                              f"got {period!r}")
+        object.__setattr__(self, "oscillation_period_s", float(period))
+        seed = self.trajectory_error_seed
+        if seed is not None and (isinstance(seed, bool)
+                                 or not isinstance(seed, numbers.Integral) or seed < 0):
+            raise ConfigError(f"trajectory errors: trajectory_error_seed must be an integer "
+                              f">= 0, got {seed!r}")
+        if seed is not None:
+            object.__setattr__(self, "trajectory_error_seed", int(seed))
+
+    @property
+    def active(self) -> bool:
+        """Whether any error is drawn (a sigma or the amplitude above 0)."""
+        return any(v > 0.0 for v in (self.offset_horizontal_m, self.offset_vertical_m,
+                                     self.drift_m_per_s, self.oscillation_m))
+
+    def describe(self) -> dict[str, Any]:
+        """The settings as plain values (for a truth file)."""
+        return {"offset_horizontal_m": self.offset_horizontal_m,
+                "offset_vertical_m": self.offset_vertical_m,
+                "drift_m_per_s": self.drift_m_per_s, "oscillation_m": self.oscillation_m,
+                "oscillation_period_s": self.oscillation_period_s,
+                "seed": self.trajectory_error_seed}
+
+
+#: A typical post-processed GNSS/INS solution (issue 29): offsets of 4 cm horizontal and 5 cm
+#: vertical (sigma per axis), a drift of 1 cm per 10 s (sigma per axis), a 1 cm oscillation of
+#: period 60 s.
+TYPICAL_TRAJECTORY_ERRORS = TrajectoryErrorSpec(
+    offset_horizontal_m=0.04, offset_vertical_m=0.05, drift_m_per_s=0.001, oscillation_m=0.01,
+    oscillation_period_s=60.0)
+
+
+@dataclass(frozen=True)
 class SimulationSpec:
     """Every option of a simulated mission (module docstring).
 
@@ -253,7 +339,7 @@ class SimulationSpec:
         Bias values (nominal - true), SI, of every name of
         :data:`~lidarcal_ros.core.params.PARAMETER_NAMES` (kept as :func:`check_biases` gives
         them: names left out are 0); default :data:`DEFAULT_BIASES`.
-    flight, sensor, noise, site : the parts (their classes)
+    flight, sensor, noise, site, trajectory_errors : the parts (their classes)
     """
 
     seed: int = 0
@@ -262,6 +348,7 @@ class SimulationSpec:
     sensor: SensorSpec = field(default_factory=SensorSpec)
     noise: NoiseSpec = field(default_factory=NoiseSpec)
     site: SiteSpec = field(default_factory=SiteSpec)
+    trajectory_errors: TrajectoryErrorSpec = field(default_factory=TrajectoryErrorSpec)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "seed", int(self.seed))
@@ -313,6 +400,12 @@ class SimulationSpec:
         """Seed of the measurement noise: the noise's, else the spec's."""
         return int(self.seed if self.noise.noise_seed is None else self.noise.noise_seed)
 
+    @property
+    def trajectory_error_seed(self) -> int:
+        """Seed of the trajectory errors: theirs, else the spec's."""
+        seed = self.trajectory_errors.trajectory_error_seed
+        return int(self.seed if seed is None else seed)
+
     def line_specs(self) -> list[dict[str, Any]]:
         """The validated lines to fly (:func:`normalise_lines`): the given ones, else the
         scenario's."""
@@ -323,7 +416,7 @@ class SimulationSpec:
 
 
 _PARTS: dict[str, type] = {"flight": FlightSpec, "sensor": SensorSpec, "noise": NoiseSpec,
-                           "site": SiteSpec}
+                           "site": SiteSpec, "trajectory_errors": TrajectoryErrorSpec}
 #: The keywords of :meth:`SimulationSpec.from_options`.
 OPTION_NAMES: tuple[str, ...] = ("seed", "biases", *(f.name for part in _PARTS.values()
                                                     for f in fields(part)))
@@ -427,6 +520,7 @@ def crab_wind(crab_deg: float, lines: Sequence[dict[str, Any]],
 
 
 __all__ = ["DEFAULT_BIASES", "FOV_DEG", "HIGH", "LEAD_S", "LINE_ATTITUDE_KEYS", "LOW",
-           "OPTION_NAMES", "SCENARIOS", "SPEED_MPS", "TURN_S", "FlightSpec", "NoiseSpec",
-           "SensorSpec", "SimulationSpec", "SiteSpec", "check_biases", "crab_wind",
-           "normalise_lines", "scenario_lines"]
+           "OPTION_NAMES", "SCENARIOS", "SPEED_MPS", "TURN_S", "TYPICAL_TRAJECTORY_ERRORS",
+           "FlightSpec", "NoiseSpec", "SensorSpec", "SimulationSpec", "SiteSpec",
+           "TrajectoryErrorSpec", "check_biases", "crab_wind", "normalise_lines",
+           "scenario_lines"]

@@ -1,5 +1,5 @@
-"""The unit formatters every output shares: metres shown in centimetres, numbers and shares
-in text, and missing values (NaN, inf) written as such.
+"""The unit formatters every output shares (metres shown in centimetres, numbers and shares
+in text, missing values (NaN, inf) written as such) and the parser of values given with a unit.
 
 Angles and the eight biases have their own display rules (arcseconds, cm, the scale
 factor), in :mod:`lidarcal_ros.core.params` (``format_value``, ``format_estimate``).
@@ -9,7 +9,13 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Mapping
 from typing import Any, SupportsFloat
+
+#: Length units of :func:`parse_quantity`: metres per unit.
+LENGTH_UNITS: dict[str, float] = {"mm": 0.001, "cm": 0.01, "m": 1.0}
+#: Time units of :func:`parse_quantity`: seconds per unit.
+TIME_UNITS: dict[str, float] = {"ms": 0.001, "s": 1.0, "min": 60.0, "h": 3600.0}
 
 
 def finite_or_none(value: SupportsFloat | None) -> float | None:
@@ -53,4 +59,26 @@ def format_percent(fraction: float, *, missing: str = "n/a") -> str:
     return missing if not math.isfinite(fraction) else f"{fraction * 100:.0f}%"
 
 
-__all__ = ["finite_or_none", "format_cm", "format_number", "format_percent", "status_value"]
+def parse_quantity(text: str, units: Mapping[str, float], *, bare_one: bool = False) -> float:
+    """A number with an optional unit suffix (a key of ``units``; the longest that ends the text
+    wins, so ``cm`` is not read as ``m``) in SI: the number times the unit's factor, the number
+    alone where no unit ends it. ``bare_one``: a unit without a number is 1 of it (``s`` as in
+    ``cm/s``).
+
+    Raises
+    ------
+    ValueError
+        What is left once the unit is taken off is not a number.
+    """
+    raw, factor = text.strip(), 1.0
+    for suffix in sorted(units, key=len, reverse=True):
+        if raw.endswith(suffix):
+            raw, factor = raw[: -len(suffix)].strip(), units[suffix]
+            break
+    if bare_one and not raw:
+        return factor
+    return float(raw) * factor
+
+
+__all__ = ["LENGTH_UNITS", "TIME_UNITS", "finite_or_none", "format_cm", "format_number",
+           "format_percent", "parse_quantity", "status_value"]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,12 @@ from lidarcal_ros.core.georeferencing import check_model_setting, describe_model
 from lidarcal_ros.core.heading import check_orientation, describe_heading_use
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
+from lidarcal_ros.core.simulated_trajectory_errors import (
+    StripTrajectoryError,
+    read_trajectory_errors,
+)
 from lidarcal_ros.core.strip_pairs import outside_strips
+from lidarcal_ros.core.units import LENGTH_UNITS, parse_quantity
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.control import read_control_csv
 from lidarcal_ros.io.mission_bag import read_mission
@@ -133,9 +138,11 @@ def convergence_warning(result: CalibrationResult, config: FlightConfig) -> str 
 # ---------------------------------------------------------------------------- reports
 @dataclass
 class Truth:
-    """Simulated truth kept beside a simulated bag."""
+    """Simulated truth kept beside a simulated bag: the biases and, where the file records
+    them (``simulation.trajectory_errors``), each strip's trajectory error by strip id."""
 
     biases: dict[str, float]
+    trajectory_errors: dict[int, StripTrajectoryError] = field(default_factory=dict)
 
     @classmethod
     def read(cls, path: str | Path) -> Truth:
@@ -150,7 +157,13 @@ class Truth:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigError(f"{path}: biases.{name} is not a number: {value!r}")
             values[name] = float(value)
-        return cls(values)
+        simulation = doc.get("simulation")
+        block = simulation.get("trajectory_errors") if isinstance(simulation, Mapping) else None
+        try:
+            errors = {} if block is None else read_trajectory_errors(block)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: simulation.{exc}") from None
+        return cls(values, errors)
 
 
 def _fmt(name: str, value: float, sign: bool = True) -> str:
@@ -318,6 +331,10 @@ def qa_level(rms_m: float, *, warn_m: float, error_m: float) -> str:
     return "WARN" if rms_m > warn_m else "OK"
 
 
+#: The units of ``--biases`` values: SI per unit.
+_BIAS_UNITS = {**LENGTH_UNITS, "arcsec": math.pi / 180 / 3600, "rad": 1.0, "ppm": 1e-6}
+
+
 def parse_biases(text: str) -> dict[str, float]:
     """``"dX=0.05,domega=-29arcsec,dr=11.8cm"`` to SI values.
 
@@ -333,14 +350,8 @@ def parse_biases(text: str) -> dict[str, float]:
         name, raw = (s.strip() for s in part.split("=", 1))
         if name not in PARAMETER_NAMES:
             raise ConfigError(f"--biases: unknown parameter '{name}'")
-        factor = 1.0
-        for suffix, f in (("arcsec", math.pi / 180 / 3600), ("ppm", 1e-6), ("cm", 0.01),
-                          ("mm", 0.001), ("rad", 1.0), ("m", 1.0)):
-            if raw.endswith(suffix):
-                raw, factor = raw[: -len(suffix)], f
-                break
         try:
-            out[name] = float(raw) * factor
+            out[name] = parse_quantity(raw, _BIAS_UNITS)
         except ValueError:
             raise ConfigError(f"--biases: '{part}' is not a number") from None
     return out
