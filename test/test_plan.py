@@ -290,8 +290,9 @@ def test_every_heading_plans_alike(model: str) -> None:
             (heading, report.model)
         assert {n for n, p in report.parameters.items() if p.estimable} == estimable, heading
         for name in estimable:
-            ratio = report.parameters[name].sigma / north.parameters[name].sigma
-            assert 0.5 < ratio < 2.0, (heading, name, ratio)
+            sigma, sigma_north = report.parameters[name].sigma, north.parameters[name].sigma
+            assert sigma is not None and sigma_north is not None
+            assert 0.5 < sigma / sigma_north < 2.0, (heading, name, sigma / sigma_north)
 
 
 def test_banked_and_turning_lines_plan_at_any_heading() -> None:
