@@ -33,10 +33,12 @@ from lidarcal_ros.core.adjustment import (
 )
 from lidarcal_ros.core.calibration_iteration import (
     Iteration,
+    MatchedSet,
     allow_for_shared_errors,
-    has_converged,
+    judge_convergence,
     next_threshold,
     reexpress_observations,
+    rematching_noise,
     robust_solve,
 )
 from lidarcal_ros.core.calibration_result import (
@@ -282,7 +284,7 @@ class Calibrator:
             iterations = self.iterate(new_pairs_only=new_pairs_only)
             while True:
                 done = next(iterations)
-                if done is not None and (done.converged or done.number >= limit):
+                if done is not None and (done.ended or done.number >= limit):
                     return self.conclude(done)
 
     def iterate(self, *, new_pairs_only: bool = False) -> Iterator[Iteration | None]:
@@ -319,26 +321,35 @@ class Calibrator:
         self._control_matches_before()
         iteration = 0
         history: list[np.ndarray] = []
+        steps: list[np.ndarray] = []
+        sigmas: list[np.ndarray] = []
+        noises: list[np.ndarray] = []
+        changed: list[int] = []
+        matched_before: MatchedSet | None = None
         while True:
             iteration += 1
             delta = self.delta.copy()
             corrected: dict[int, tuple[np.ndarray, np.ndarray]] = {}
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
             parts = [reexpress_observations(obs, at, delta) for obs, at in frozen]
+            # Each live pair's (index, first row, patch of each sample point or -1).
+            layout: list[tuple[int, int, np.ndarray]] = []
             if self.workers.running:  # (run(): every pair at once, in the threads)
                 corrected = self.matcher.corrected_many(self.matcher.used_strips(live), delta)
 
                 def observe(pair: StripPair, delta: np.ndarray = delta,
                             corrected: dict[int, tuple[np.ndarray, np.ndarray]] = corrected
-                            ) -> Observations:
+                            ) -> tuple[Observations, np.ndarray]:
                     assert pair.sample is not None
                     m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
-                    return self.matcher.pair_observations(pair, pair.sample, m)
+                    return (self.matcher.pair_observations(pair, pair.sample, m),
+                            np.where(m.valid, m.triangle, -1))
 
                 matched = self.workers.map(observe, live, f"iteration {iteration}: matching")
-                for pair, last in zip(live, matched, strict=True):
+                for pair, (last, patches) in zip(live, matched, strict=True):
                     pair.last = last
                     pair.last_delta = delta.copy()
+                    layout.append((pair.index, sum(map(len, parts)), patches))
                     parts.append(last)
                     yield None
             for p_i, pair in enumerate(() if self.workers.running else live):
@@ -350,6 +361,7 @@ class Calibrator:
                 m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
                 pair.last = self.matcher.pair_observations(pair, pair.sample, m)
                 pair.last_delta = delta.copy()
+                layout.append((pair.index, sum(map(len, parts)), np.where(m.valid, m.triangle, -1)))
                 parts.append(pair.last)
                 yield None
             if control is not None and len(control):
@@ -374,17 +386,26 @@ class Calibrator:
                     f", and {n} control point{'' if n == 1 else 's'} alone cannot calibrate: "
                     f"{exc}")) from None
             step = sol.delta - delta
-            est = np.isfinite(sol.sigma)
-            logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
-                        iteration, sol.sigma0, len(obs),
-                        float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
             self.threshold = next_threshold(obs, step, robust_k=s.robust_k,
                                             floor_m=s.min_normal_distance_m,
                                             current_m=self.threshold)
             self.delta = sol.delta.copy()
             history.append(self.delta.copy())
-            converged = has_converged(history, step, sol.sigma, s.convergence_fraction)
-            yield Iteration(iteration, sol, obs, step, converged, list(history))
+            # What re-matching alone moves the estimate by: the correspondences that changed.
+            adjusted = MatchedSet.of(obs, layout)
+            n_changed, changed_normal = adjusted.changes(matched_before) \
+                if matched_before is not None else (len(obs), np.full((N_PARAMETERS,) * 2, np.nan))
+            matched_before = adjusted
+            steps.append(step)
+            sigmas.append(sol.sigma.copy())
+            noises.append(rematching_noise(sol, changed_normal))
+            changed.append(n_changed)
+            verdict = judge_convergence(history, steps, sigmas, noises, changed,
+                                        s.convergence_fraction)
+            logger.info("iteration %d: sigma0 %.4f m, %d observations; %s", iteration,
+                        sol.sigma0, len(obs), verdict.outcome)
+            yield Iteration(iteration, sol, obs, step, verdict.converged, list(history),
+                            ended=verdict.ended, outcome=verdict.outcome, noise=noises[-1])
 
     def conclude(self, last: Iteration) -> CalibrationResult:
         """The result of the iterations of :meth:`iterate` that ended with ``last``: sigmas
@@ -393,8 +414,10 @@ class Calibrator:
         with self.clock("normal equations"):
             self.normal_equations = NormalEquations.from_observations(last.observations)
             allow_for_shared_errors(last.solution, last.observations, last.step)
-        return self._finish(last.solution, last.observations, last.solution.delta, last.number,
-                            last.converged, last.history)
+        result = self._finish(last.solution, last.observations, last.solution.delta,
+                              last.number, last.converged, last.history)
+        result.convergence = last.outcome
+        return result
 
     def unestimated_result(self, reason: str) -> CalibrationResult:
         """The result of a calibration that estimated nothing (``reason``): every bias at
