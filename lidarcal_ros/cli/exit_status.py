@@ -40,7 +40,7 @@ EXIT_STATUSES: dict[int, str] = {
     EXIT_USAGE: "usage error",
     EXIT_INTERNAL_ERROR: "internal error (a bug; -vv for the traceback)",
     EXIT_NOT_CONVERGED: "calibrate: the adjustment did not converge (calibration written "
-                        "with converged: false)",
+                        "with converged: false, and why)",
     EXIT_NOTHING_ESTIMATED: "calibrate --write-identity: nothing could be estimated "
                             "(calibration written that moves no point)",
     EXIT_INTERRUPTED: "interrupted",

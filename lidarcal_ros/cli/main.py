@@ -14,7 +14,8 @@ Exit statuses (:data:`~lidarcal_ros.cli.exit_status.EXIT_STATUSES`, also in ``li
 - 2: usage error (argparse).
 - 3: an unexpected exception (a bug), also in one line; ``-vv`` adds its traceback.
 - 4: ``calibrate`` wrote a calibration whose adjustment did not converge
-  (``converged: false`` in the file, a warning line on stderr).
+  (``converged: false`` in the file, a warning line on stderr saying why; an estimate
+  converged within the re-matching noise is success, 0).
 - 5: ``calibrate --write-identity`` could estimate nothing and wrote a calibration that moves
   no point (a warning line on stderr says why).
 - 130: interrupted (Ctrl-C).

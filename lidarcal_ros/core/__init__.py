@@ -20,9 +20,10 @@ _EXPORTS = {
     ),
     "calibrate": ("CalibrationSettings", "Calibrator", "Progress"),
     "calibration_iteration": (
-        "CYCLE_FACTOR", "Iteration", "TrajectoryTerms", "allow_for_shared_errors",
-        "has_converged", "matching_cycle", "next_threshold", "reexpress_observations",
-        "robust_solve",
+        "CYCLE_FACTOR", "Convergence", "Iteration", "MatchedSet", "NOISE_Z",
+        "SETTLED_MAX_SIGMA", "TrajectoryTerms", "allow_for_shared_errors", "has_converged",
+        "judge_convergence", "matching_cycle", "next_threshold", "reexpress_observations",
+        "rematching_noise", "robust_solve",
     ),
     "calibration_kernels": ("add_normal_rows", "exact_correction_and_geometry"),
     "calibration_result": (

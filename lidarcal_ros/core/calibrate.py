@@ -32,12 +32,15 @@ from lidarcal_ros.core.adjustment import (
     Solution,
 )
 from lidarcal_ros.core.calibration_iteration import (
+    Convergence,
     Iteration,
+    MatchedSet,
     TrajectoryTerms,
     allow_for_shared_errors,
-    has_converged,
+    judge_convergence,
     next_threshold,
     reexpress_observations,
+    rematching_noise,
     robust_solve,
 )
 from lidarcal_ros.core.calibration_result import (
@@ -282,6 +285,24 @@ class Calibrator:
             return robust_solve(obs, delta, solve_for=s.solve_for, fixed=s.fixed,
                                 limits=s.limits, robust_k=s.robust_k, trajectory=trajectory)
 
+    def _trajectory_step(self, tau_step: np.ndarray, sigma0: float,
+                         verdict: Convergence) -> Convergence:
+        """Apply the trajectory errors' increment (S * per_strip,) and weigh it into
+        ``verdict``: plainly converged only where every increment is below the convergence
+        fraction of its prior sigma. The adjustment's ``sigma0`` (m) weighs the priors from
+        now on."""
+        s = self.settings
+        if np.isfinite(sigma0) and sigma0 > 0:
+            self.unit_sigma = sigma0
+        tau_step = tau_step.reshape(self.trajectory.params.shape)
+        self.trajectory.params = self.trajectory.params + tau_step
+        ratio = np.abs(tau_step) / s.trajectory.prior_sigmas()
+        if verdict.converged and verdict.outcome.startswith("converged:") and \
+                ratio.size and float(ratio.max()) > s.convergence_fraction:
+            return Convergence(False, False, "not converged: a strip's trajectory error moved "
+                               f"by {float(ratio.max()):.2g} of its prior sigma")
+        return verdict
+
     @property
     def trajectory(self) -> TrajectoryState:
         """Every strip's trajectory error as estimated so far (method.md section 11)."""
@@ -304,7 +325,7 @@ class Calibrator:
             iterations = self.iterate(new_pairs_only=new_pairs_only)
             while True:
                 done = next(iterations)
-                if done is not None and (done.converged or done.number >= limit):
+                if done is not None and (done.ended or done.number >= limit):
                     return self.conclude(done)
 
     def iterate(self, *, new_pairs_only: bool = False) -> Iterator[Iteration | None]:
@@ -341,6 +362,11 @@ class Calibrator:
         self._control_matches_before()
         iteration = 0
         history: list[np.ndarray] = []
+        steps: list[np.ndarray] = []
+        sigmas: list[np.ndarray] = []
+        noises: list[np.ndarray] = []
+        changed: list[int] = []
+        matched_before: MatchedSet | None = None
         while True:
             iteration += 1
             delta = self.delta.copy()
@@ -348,20 +374,24 @@ class Calibrator:
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
             parts = [reexpress_observations(obs, at, delta, self.trajectory)
                      for obs, at in frozen]
+            # Each live pair's (index, first row, patch of each sample point or -1).
+            layout: list[tuple[int, int, np.ndarray]] = []
             if self.workers.running:  # (run(): every pair at once, in the threads)
                 corrected = self.matcher.corrected_many(self.matcher.used_strips(live), delta)
 
                 def observe(pair: StripPair, delta: np.ndarray = delta,
                             corrected: dict[int, tuple[np.ndarray, np.ndarray]] = corrected
-                            ) -> Observations:
+                            ) -> tuple[Observations, np.ndarray]:
                     assert pair.sample is not None
                     m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
-                    return self.matcher.pair_observations(pair, pair.sample, m)
+                    return (self.matcher.pair_observations(pair, pair.sample, m),
+                            np.where(m.valid, m.triangle, -1))
 
                 matched = self.workers.map(observe, live, f"iteration {iteration}: matching")
-                for pair, last in zip(live, matched, strict=True):
+                for pair, (last, patches) in zip(live, matched, strict=True):
                     pair.last = last
                     pair.last_delta = delta.copy()
+                    layout.append((pair.index, sum(map(len, parts)), patches))
                     parts.append(last)
                     yield None
             for p_i, pair in enumerate(() if self.workers.running else live):
@@ -373,6 +403,7 @@ class Calibrator:
                 m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
                 pair.last = self.matcher.pair_observations(pair, pair.sample, m)
                 pair.last_delta = delta.copy()
+                layout.append((pair.index, sum(map(len, parts)), np.where(m.valid, m.triangle, -1)))
                 parts.append(pair.last)
                 yield None
             if control is not None and len(control):
@@ -399,10 +430,6 @@ class Calibrator:
                     f", and {n} control point{'' if n == 1 else 's'} alone cannot calibrate: "
                     f"{exc}")) from None
             step = sol.delta - delta
-            est = np.isfinite(sol.sigma)
-            logger.info("iteration %d: sigma0 %.4f m, %d observations, max step/sigma %.3g",
-                        iteration, sol.sigma0, len(obs),
-                        float(np.max(np.abs(step[est]) / sol.sigma[est])) if est.any() else 0.0)
             if terms is not None:
                 assert terms.blocks is not None and terms.step is not None
                 residuals = terms.blocks.residuals(obs, step, terms.step)
@@ -413,16 +440,24 @@ class Calibrator:
                                             current_m=self.threshold)
             self.delta = sol.delta.copy()
             history.append(self.delta.copy())
-            converged = has_converged(history, step, sol.sigma, s.convergence_fraction)
+            # What re-matching alone moves the estimate by: the correspondences that changed.
+            adjusted = MatchedSet.of(obs, layout)
+            n_changed, changed_normal = adjusted.changes(matched_before) \
+                if matched_before is not None else (len(obs), np.full((N_PARAMETERS,) * 2, np.nan))
+            matched_before = adjusted
+            steps.append(step)
+            sigmas.append(sol.sigma.copy())
+            noises.append(rematching_noise(sol, changed_normal))
+            changed.append(n_changed)
+            verdict = judge_convergence(history, steps, sigmas, noises, changed,
+                                        s.convergence_fraction)
             if terms is not None and terms.step is not None:
-                tau_step = terms.step.reshape(self.trajectory.params.shape)
-                self.trajectory.params = self.trajectory.params + tau_step
-                if np.isfinite(sol.sigma0) and sol.sigma0 > 0:
-                    self.unit_sigma = sol.sigma0
-                # the errors' steps below the same fraction of their priors' sigmas
-                converged = converged and bool(np.all(
-                    np.abs(tau_step) <= s.convergence_fraction * s.trajectory.prior_sigmas()))
-            yield Iteration(iteration, sol, obs, step, converged, list(history), terms)
+                verdict = self._trajectory_step(terms.step, sol.sigma0, verdict)
+            logger.info("iteration %d: sigma0 %.4f m, %d observations; %s", iteration,
+                        sol.sigma0, len(obs), verdict.outcome)
+            yield Iteration(iteration, sol, obs, step, verdict.converged, list(history),
+                            ended=verdict.ended, outcome=verdict.outcome, noise=noises[-1],
+                            trajectory=terms)
 
     def conclude(self, last: Iteration) -> CalibrationResult:
         """The result of the iterations of :meth:`iterate` that ended with ``last``: sigmas
@@ -451,6 +486,7 @@ class Calibrator:
         result = self._finish(last.solution, last.observations, last.solution.delta,
                               last.number, last.converged, last.history)
         result.trajectory = trajectory
+        result.convergence = last.outcome
         return result
 
     def unestimated_result(self, reason: str) -> CalibrationResult:
@@ -633,8 +669,13 @@ def calibrate(
     # it fits clearly better (the strips disagree by more than their noise)
     exact = _calibrate_once(mission, replace(settings, trajectory=replace(
         settings.trajectory, model=TrajectoryModel.NONE)), progress)
-    drift = _calibrate_once(mission, replace(settings, trajectory=replace(
-        settings.trajectory, model=TrajectoryModel.DRIFT)), progress)
+    try:
+        drift = _calibrate_once(mission, replace(settings, trajectory=replace(
+            settings.trajectory, model=TrajectoryModel.DRIFT)), progress)
+    except CalibrationError as exc:  # (NothingEstimated too)
+        exact.trajectory_choice = (f"auto: none (with each strip's drift the data determine "
+                                   f"nothing: {exc})")
+        return exact
     s_exact, s_drift = exact.solution.sigma0, drift.solution.sigma0
     better = bool(s_exact > AUTO_SIGMA0_RATIO * s_drift)
     chosen = drift if better else exact

@@ -107,6 +107,10 @@ class CalibrationResult:
     #: Where nothing was estimated: the strip pairs' height agreement on smooth cells, which
     #: needs no patch (:mod:`lidarcal_ros.core.overlap_grid`).
     height_agreement: list[PairQA] = field(default_factory=list)
+    #: How the iterations ended, in words (:func:`~lidarcal_ros.core.calibration_iteration.
+    #: judge_convergence`): "converged: ...", "converged within the re-matching noise: ...",
+    #: "not converged: ..."; empty where no adjustment ran.
+    convergence: str = ""
     #: CPU seconds of the calibration's threads in each of its stages
     #: (:class:`~lidarcal_ros.core.calibration_threads.StageClock`).
     stage_seconds: dict[str, float] = field(default_factory=dict)

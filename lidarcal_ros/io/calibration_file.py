@@ -67,6 +67,7 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         },
         "iterations": int(result.iterations),
         "converged": bool(result.converged),
+        "convergence": result.convergence,
         "model": models_summary(result.models) if result.models else LEVEL,
         "model_detail": describe_models(result.models) if result.models else LEVEL,
         "correspondences": {
@@ -88,6 +89,8 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
              "after_m": finite_or_none(c.after)} for c in result.control
         ],
     }
+    if not result.convergence:  # (no adjustment ran)
+        del doc["convergence"]
     if result.nothing_estimated:
         doc["nothing_estimated"] = result.nothing_estimated
         doc["height_agreement"] = [

@@ -114,25 +114,32 @@ def unused_control(mission: Mission, result: CalibrationResult,
 
 
 def convergence_warning(result: CalibrationResult, config: FlightConfig) -> str | None:
-    """One line saying that the adjustment did not converge, and how far from it the last
-    iteration was (its largest step in sigmas of that parameter); None when it converged."""
+    """One line saying that the adjustment did not converge and why (the result's
+    ``convergence``: how far from it the last iteration was, its largest step in sigmas of that
+    parameter, against what re-matching alone moves it by); None when it converged (within
+    the re-matching noise included)."""
     if result.converged:
         return None
-    sol = result.solution
-    history = result.history
-    last = history[-1] - history[-2] if len(history) > 1 else \
-        (history[-1] if history else np.zeros_like(sol.delta))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.abs(last) / sol.sigma
-    ratio[~np.isfinite(ratio)] = -1.0
-    worst = int(np.argmax(ratio))
-    step = (f"; its last step moved {PARAMETER_NAMES[worst]} by {ratio[worst]:.3g} sigma "
-            f"(converged: every step below {config['calibration.convergence_fraction']:g} sigma)"
-            if ratio[worst] >= 0 else "")
     n = result.iterations
+    why = result.convergence.removeprefix("not converged").lstrip(":, ")
+    if not why:  # (a result from before the outcome was recorded)
+        sol = result.solution
+        history = result.history
+        last = history[-1] - history[-2] if len(history) > 1 else \
+            (history[-1] if history else np.zeros_like(sol.delta))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.abs(last) / sol.sigma
+        ratio[~np.isfinite(ratio)] = -1.0
+        worst = int(np.argmax(ratio))
+        why = (f"its last step moved {PARAMETER_NAMES[worst]} by {ratio[worst]:.3g} sigma"
+               if ratio[worst] >= 0 else "")
+    limit = config["calibration.max_iterations"]
+    stopped = ("stopped early" if n < limit else
+               f"calibration.max_iterations {limit}")
+    rule = f"converged: every step below {config['calibration.convergence_fraction']:g} sigma"
     return (f"the adjustment did not converge in {n} iteration{'' if n == 1 else 's'} "
-            f"(calibration.max_iterations {config['calibration.max_iterations']}){step}; "
-            "the calibration is written with converged: false")
+            f"({stopped}){'; ' + why if why else ''} ({rule}, or steps that stopped shrinking "
+            "within the re-matching noise); the calibration is written with converged: false")
 
 
 # ---------------------------------------------------------------------------- reports
@@ -204,10 +211,12 @@ def format_report(
         lines.append(row)
     lines.append(
         f"sigma0 {sol.sigma0 * 100:.2f} cm, redundancy {sol.redundancy}, "
-        f"{result.iterations} iterations, {'converged' if result.converged else 'NOT converged'}; "
+        f"{result.iterations} iterations, {_converged_words(result)}; "
         f"{result.n_pair_correspondences} strip-pair and {result.n_control_correspondences} "
         "control correspondences"
     )
+    if result.convergence and not result.convergence.startswith("converged: every step"):
+        lines.append(f"convergence: {result.convergence}")  # (how, where not plain)
     pairs = sol.correlated_pairs(0.5)
     if pairs:
         lines.append("correlations above 0.5: " + ", ".join(f"{a}/{b} {r:+.2f}"
@@ -250,6 +259,14 @@ def trajectory_lines(result: CalibrationResult) -> list[str]:
                     f"{se.drift[2] * 100:+.2f} cm/s")
         lines.append(row)
     return lines
+
+
+def _converged_words(result: CalibrationResult) -> str:
+    """``converged``, ``converged within the re-matching noise`` or ``NOT converged``."""
+    if not result.converged:
+        return "NOT converged"
+    return ("converged within the re-matching noise"
+            if result.convergence.startswith("converged within") else "converged")
 
 
 def format_agreement(result: CalibrationResult, config: FlightConfig, *, title: str = "",

@@ -445,8 +445,9 @@ class StreamingCalibration:
         """Take the background convergence one step further (module docstring): one strip
         pair's matching or one adjustment, from the estimate reached.
 
-        Returns the result once an iteration converged (:attr:`converged` then True) or
-        ``calibration.max_iterations`` passed without (False); None while under way or with
+        Returns the result once an iteration ended (converged: :attr:`converged` then True;
+        or said that more iterations cannot converge it) or ``calibration.max_iterations``
+        passed without (False); None while under way or with
         nothing to do (:attr:`refinement_pending`). Too little data to solve ends it quietly
         (:attr:`waiting_for` says why).
         """
@@ -468,7 +469,7 @@ class StreamingCalibration:
             raise
         if done is not None:
             refinement.completed = done.number
-        if done is None or not (done.converged or
+        if done is None or not (done.ended or
                                 done.number >= self._calibrator.settings.max_iterations):
             refinement.seconds += time.perf_counter() - started
             return None
