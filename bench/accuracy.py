@@ -24,6 +24,19 @@ heading wobble, a 5 deg crab, the INS attitude on the trajectory at 50 Hz), and 
 calibrated with every model of ``--models`` (default ``rigorous level``) in the same run; a
 further check per model: the median vertical error of the corrected points against the true
 surface (within 5 mm).
+
+With ``--trajectory-errors`` the delivered trajectory errs per strip as a typical
+post-processed GNSS/INS solution does (the simulator's ``TYPICAL_TRAJECTORY_ERRORS``: offsets
+4 cm horizontal / 5 cm vertical, drift 1 cm per 10 s, a 1 cm slow oscillation; method.md
+section 11), and each mission is calibrated with every ``--trajectory-models`` (default
+``none drift auto``) in the same run; six control points. The checks then are method.md
+section 11's: boresight within 1 arcsec, dr within 1 cm, dS within 1e-5, every estimated bias
+within 3 sigma; the corrected points' median vertical error within 5 mm and their rms90
+within 1.25 times that of the same mission simulated without trajectory errors and
+calibrated with the trajectory taken as exact:
+
+    .venv/bin/python bench/accuracy.py --trajectory-errors --seeds 7 8 9
+    .venv/bin/python bench/accuracy.py --trajectory-errors --rough-air --models rigorous
 """
 
 from __future__ import annotations
@@ -31,6 +44,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from dataclasses import fields
 
 import numpy as np
 
@@ -40,7 +54,16 @@ from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
 from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
-from lidarcal_ros.core.simulation_spec import SimulationSpec
+from lidarcal_ros.core.simulation_spec import (
+    DEFAULT_BIASES,
+    TYPICAL_TRAJECTORY_ERRORS,
+    SimulationSpec,
+)
+from lidarcal_ros.core.trajectory_errors import (
+    TrajectoryErrorSettings,
+    TrajectoryEstimate,
+    TrajectoryModel,
+)
 from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 ARCSEC = math.pi / 180 / 3600
@@ -50,6 +73,8 @@ SLACK = {"dX": 1e-3, "dY": 1e-3, "dZ": 1e-3, "dr": 1e-3, "dS": 1e-6,
          "domega": 0.1 * ARCSEC, "dphi": 0.1 * ARCSEC, "dkappa": 0.1 * ARCSEC}
 
 
+#: Every bias but dZ (held at its surveyed value).
+SOLVE_ALL = tuple(n for n in PARAMETER_NAMES if n != "dZ")
 #: Largest median vertical error of the corrected points against the true surface, m.
 MAX_MEDIAN_DZ_M = 0.005
 
@@ -80,16 +105,59 @@ def check_estimate(res: CalibrationResult, biases: dict[str, float]) -> int:
     return failures
 
 
-def median_vertical_error(sim: SimulatedMission, delta: np.ndarray, model: str) -> float:
-    """Median of (corrected - true) height of every corrected point, m."""
-    settings = CorrectionSettings(delta=delta, model=model)
+def vertical_errors(sim: SimulatedMission, delta: np.ndarray, model: str,
+                    trajectory: TrajectoryEstimate | None = None) -> np.ndarray:
+    """(corrected - true) height of every corrected point, m (``trajectory``: each strip's
+    trajectory error removed too)."""
+    settings = CorrectionSettings(delta=delta, model=model, trajectory_errors=trajectory)
     dz = []
     for strip, truth in zip(sim.mission.strips, sim.true_xyz, strict=True):
         res = correct_columns(strip.xyz, strip.t, strip.intensity, sim.mission.trajectory,
-                              settings)
+                              settings, strip_id=strip.strip_id)
         ok = (res.flags & FLAG_NOT_CORRECTED) == 0
         dz.append(res.xyz[ok, 2] - truth[ok, 2])
-    return float(np.median(np.concatenate(dz)))
+    return np.concatenate(dz)
+
+
+def median_vertical_error(sim: SimulatedMission, delta: np.ndarray, model: str) -> float:
+    """Median of (corrected - true) height of every corrected point, m."""
+    return float(np.median(vertical_errors(sim, delta, model)))
+
+
+def rms90(dz: np.ndarray) -> float:
+    """RMS of the 90% smallest ``|dz|``, m."""
+    return float(np.sqrt(np.mean(np.sort(dz ** 2)[:int(0.9 * dz.size)])))
+
+
+def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[str, float],
+                   model: str, trajectory_models: list[str]) -> int:
+    """Calibrate ``sim`` (with trajectory errors) with each of ``trajectory_models``, against
+    ``ideal`` (the same mission without them, the trajectory taken as exact): method.md
+    section 11's checks (module docstring); the number of failed checks."""
+    failures = 0
+    floor = calibrate(ideal.mission, CalibrationSettings(model=model, solve_for=SOLVE_ALL))
+    floor_rms = rms90(vertical_errors(ideal, floor.solution.delta, model))
+    print(f" without trajectory errors, as exact: corrected points rms90 "
+          f"{floor_rms * 1000:.1f} mm")
+    for name in trajectory_models:
+        t0 = time.perf_counter()
+        res = calibrate(sim.mission, CalibrationSettings(
+            model=model, solve_for=SOLVE_ALL,
+            trajectory=TrajectoryErrorSettings(TrajectoryModel(name))))
+        sol = res.solution
+        state = "converged" if res.converged else "NOT converged"
+        print(f" trajectory {res.trajectory_choice}: calibrate {time.perf_counter() - t0:.1f} "
+              f"s, {res.iterations} iterations ({state}), sigma0 {sol.sigma0 * 100:.2f} cm")
+        failures += check_estimate(res, biases)
+        dz = vertical_errors(sim, sol.delta, model, res.trajectory)
+        med, r90 = float(np.median(dz)), rms90(dz)
+        ok = abs(med) <= MAX_MEDIAN_DZ_M and r90 <= 1.25 * floor_rms
+        failures += not ok
+        print(f"  corrected points: median {med * 1000:+.1f} mm, rms90 {r90 * 1000:.1f} mm "
+              f"({r90 / floor_rms:.2f}x the floor)  {'ok' if ok else 'FAIL'}")
+        worst = max(p.rms_after for p in res.pairs)
+        print(f"  strip pairs: RMS after up to {worst * 100:.1f} cm")
+    return failures
 
 
 def main() -> int:
@@ -105,6 +173,10 @@ def main() -> int:
                     help="the trajectory carries the sensor's heading (an IMU's)")
     ap.add_argument("--rough-air", action="store_true",
                     help="fly in the simulator's rough air (its INS attitude on the poses)")
+    ap.add_argument("--trajectory-errors", action="store_true",
+                    help="the typical per-strip trajectory errors of a GNSS/INS solution")
+    ap.add_argument("--trajectory-models", nargs="+", default=["none", "drift", "auto"],
+                    choices=[m.value for m in TrajectoryModel])
     ap.add_argument("--models", nargs="+", default=None,
                     choices=("auto", "level", "rigorous"),
                     help="matching.model of each calibration (default: auto; with "
@@ -121,9 +193,23 @@ def main() -> int:
         if args.rough_air:
             opts.update(rough_air=RoughAir(), attitude=True,
                         wind_mps=wind if any(wind) else crosswind_for_crab(5.0, 60.0))
+        if args.trajectory_errors:
+            biases = dict(DEFAULT_BIASES)  # (the paper's; the trajectory errs at random)
+            opts["n_control"] = 6
         t0 = time.perf_counter()
-        sim = simulate_mission(SimulationSpec.from_options(biases=biases, **opts))
+        extra = {f.name: getattr(TYPICAL_TRAJECTORY_ERRORS, f.name)
+                 for f in fields(TYPICAL_TRAJECTORY_ERRORS)} \
+            if args.trajectory_errors else {}
+        sim = simulate_mission(SimulationSpec.from_options(biases=biases, **opts, **extra))
         t1 = time.perf_counter()
+        if args.trajectory_errors:
+            ideal = simulate_mission(SimulationSpec.from_options(biases=biases, **opts))
+            print(f"seed {seed}: {sim.mission.n_points} points, simulate {t1 - t0:.1f} s"
+                  + (", rough air" if args.rough_air else ""))
+            for model in models:
+                print(f" model {model}")
+                failures += trajectory_run(sim, ideal, biases, model, args.trajectory_models)
+            continue
         floor = calibrate(simulate_mission(SimulationSpec.from_options(biases={}, **opts)).mission,
                           CalibrationSettings())
         crabs = sorted({round(ln["crab_deg"], 2) for ln in sim.lines})

@@ -11,6 +11,7 @@ import pytest
 import yaml
 
 from lidarcal_ros.cli.main import main
+from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.planning import FlightPlan, predict
 from lidarcal_ros.core.raster_terrain import RasterTerrain
 from lidarcal_ros.core.ray_casting import cast_rays
@@ -321,3 +322,28 @@ def test_a_plan_of_one_line_due_east() -> None:
         "sensor": {"density": 0.05}}))
     assert report.model.startswith("level"), report.model
     assert not any(p.estimable for p in report.parameters.values())
+
+
+def test_what_a_plan_separates_with_trajectory_errors(tmp_path: Path, capsys) -> None:
+    """The same correspondences analysed with each strip's drift estimated too (method.md
+    section 11): the lever arm, a constant shift of each straight strip, is lost to the
+    strips' offsets and the advice says so; dphi stays; crossing lines keep dkappa; the
+    predicted sigmas are no smaller than with the trajectory as exact."""
+    parallel = predict(FlightPlan.from_mapping({"lines": PAPER, "control": [[0, 0, 0]]}))
+    with_errors = parallel.with_trajectory_errors
+    assert set(with_errors) == set(PARAMETER_NAMES)
+    assert not with_errors["dX"].estimable and with_errors["dphi"].estimable
+    for name, p in with_errors.items():
+        exact = parallel.parameters[name]
+        if p.estimable and exact.sigma is not None:
+            assert p.sigma is not None and p.sigma >= 0.999 * exact.sigma, name
+    assert any(a.startswith("dX") and "surveyed value" in a for a in parallel.advice)
+    crossing = [*PAPER[:4], *({**ln, "id": ln["id"] + 10} for ln in _rotated(PAPER[:2], 90))]
+    crossed = predict(FlightPlan.from_mapping({"lines": crossing, "control": [[0, 0, 0]]}))
+    assert crossed.with_trajectory_errors["dkappa"].estimable
+    path = tmp_path / "plan.yaml"
+    path.write_text(yaml.safe_dump({"lines": PAPER, "control": [[0, 0, 0]]}))
+    assert main(["plan", str(path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["with_trajectory_errors"]["model"] == "drift"
+    assert doc["with_trajectory_errors"]["parameters"]["dX"]["estimable"] is False

@@ -278,13 +278,18 @@ def cmd_plan(args: argparse.Namespace) -> int:
         return 0
     print(f"{args.plan}: {report.strip_pairs} overlapping strip pairs, "
           f"{report.correspondences} correspondences; model: {report.model}")
-    for name, pred in report.parameters.items():
-        if pred.estimable and pred.sigma is not None:
-            value, unit = display_value(name, pred.sigma)
-            print(f"  {name:<7} estimable   sigma {value:9.3g} {unit:<6} largest correlation "
-                  f"{pred.max_correlation:.2f} with {pred.correlated_with}")
-        else:
-            print(f"  {name:<7} NOT estimable: {pred.reason}")
+    for title, predictions in (("", report.parameters),
+                               ("with each strip's trajectory drift estimated too (priors 5 cm, "
+                                "2 mm/s):", report.with_trajectory_errors)):
+        if title and predictions:
+            print(title)
+        for name, pred in predictions.items():
+            if pred.estimable and pred.sigma is not None:
+                value, unit = display_value(name, pred.sigma)
+                print(f"  {name:<7} estimable   sigma {value:9.3g} {unit:<6} largest "
+                      f"correlation {pred.max_correlation:.2f} with {pred.correlated_with}")
+            else:
+                print(f"  {name:<7} NOT estimable: {pred.reason}")
     for line in report.advice:
         print(f"advice: {line}")
     return 0

@@ -35,7 +35,9 @@ from lidarcal_ros.core.simulation_spec import (
     SiteSpec,
     normalise_lines,
 )
+from lidarcal_ros.core.strip_blocks import StripBlocks
 from lidarcal_ros.core.strip_pairs import outside_strips
+from lidarcal_ros.core.trajectory_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)
@@ -200,21 +202,33 @@ class PlanReport:
     correspondences: int
     #: The model the predictions are of, and why (``describe_models`` of the strips).
     model: str = ""
+    #: The same predictions where each strip's trajectory drift is estimated with the biases
+    #: (method.md section 11; priors of 5 cm and 2 mm/s), empty without correspondences.
+    with_trajectory_errors: dict[str, ParameterPrediction] = field(default_factory=dict)
 
     def to_json_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"parameters": {}, "advice": list(self.advice)}
-        for name, p in self.parameters.items():
-            entry: dict[str, Any] = {
-                "estimable": p.estimable, "sigma": p.sigma,
-                "max_correlation": p.max_correlation, "correlated_with": p.correlated_with,
-            }
-            if p.reason:
-                entry["reason"] = p.reason
-            out["parameters"][name] = entry
+        """interface.md's ``lidarcal plan --json``, plus ``with_trajectory_errors``."""
+        out: dict[str, Any] = {"parameters": _json_parameters(self.parameters),
+                               "advice": list(self.advice)}
         out["strip_pairs"] = self.strip_pairs
         out["correspondences"] = self.correspondences
         out["model"] = self.model
+        out["with_trajectory_errors"] = {
+            "model": "drift", "parameters": _json_parameters(self.with_trajectory_errors)}
         return out
+
+
+def _json_parameters(parameters: dict[str, ParameterPrediction]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, p in parameters.items():
+        entry: dict[str, Any] = {
+            "estimable": p.estimable, "sigma": p.sigma,
+            "max_correlation": p.max_correlation, "correlated_with": p.correlated_with,
+        }
+        if p.reason:
+            entry["reason"] = p.reason
+        out[name] = entry
+    return out
 
 
 def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
@@ -238,27 +252,50 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     # Level lines all flown due east are poses of the identity, which alone read as "no
     # attitude": the level model is then the same geometry.
     level = plan.model == LEVEL or sim.mission.trajectory.orientation is None
+    # The correspondences carry their trajectory terms: the same matches serve the analysis
+    # with the trajectory as exact and with each strip's drift (method.md section 11).
+    drift = TrajectoryErrorSettings(TrajectoryModel.DRIFT)
     settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
-                                   model=LEVEL if level else RIGOROUS, fov_deg=plan.fov_deg)
+                                   model=LEVEL if level else RIGOROUS, fov_deg=plan.fov_deg,
+                                   trajectory=drift)
     unseen = _unseen_control(plan, sim.mission.strips, settings.overlap_cell_m)
     cal = Calibrator.from_mission(sim.mission, settings)
     model = describe_models({ps.strip_id: ps.choice for ps in cal.strips})
     obs = cal.observations_at(np.zeros(len(PARAMETER_NAMES)))
-    neq = NormalEquations.from_observations(obs)
     # A correspondence compares a point with a patch interpolated from three noisy vertices;
     # the calibration samples a fixed share of the points, so sigmas scale with density.
     sigma_obs = plan.range_noise_m * math.sqrt(1.5)
     sigma_obs *= math.sqrt(simulated_density / plan.density)
-    parameters: dict[str, ParameterPrediction] = {}
+    parameters = _predictions(NormalEquations.from_observations(obs), sigma_obs, settings.limits)
+    with_errors: dict[str, ParameterPrediction] = {}
+    if obs.trajectory is not None and len(obs):
+        blocks = StripBlocks(obs, obs.trajectory, cal.trajectory, drift, sigma_obs)
+        with_errors = _predictions(blocks.reduced, sigma_obs, settings.limits)
+    advice = _advice(plan, parameters, unseen)
+    lost = [n for n in PARAMETER_NAMES if parameters[n].estimable and n in with_errors
+            and not with_errors[n].estimable]
+    lever = [n for n in lost if n in ("dX", "dY", "dZ")]
+    if lever:
+        advice.append(f"{', '.join(lever)}: with each strip's trajectory error estimated, the "
+                      "lever arm is a constant shift of each straight strip, as the strip's "
+                      "offset is: hold it at its surveyed value, or fly banked turns within "
+                      "the lines")
+    if "dkappa" in lost:
+        advice.append("dkappa: with each strip's trajectory error estimated, its along-track "
+                      "shift is a strip's offset: add crossing lines")
+    return PlanReport(parameters, advice, len(cal.pairs), len(obs), model, with_errors)
+
+
+def _predictions(neq: NormalEquations, sigma_obs: float,
+                 limits: ObservabilityLimits) -> dict[str, ParameterPrediction]:
+    """Per parameter what the normal equations ``neq`` predict with correspondences of sigma
+    ``sigma_obs`` (m)."""
     try:
-        sol = solve(neq, solve_for=PARAMETER_NAMES, sigma0_apriori=sigma_obs,
-                    limits=settings.limits)
+        sol = solve(neq, solve_for=PARAMETER_NAMES, sigma0_apriori=sigma_obs, limits=limits)
     except CalibrationError as exc:
-        reason = str(exc)
-        parameters = {n: ParameterPrediction(False, None, None, None, reason)
-                      for n in PARAMETER_NAMES}
-        return PlanReport(parameters, _advice(plan, parameters, unseen), len(cal.pairs),
-                          len(obs), model)
+        return {n: ParameterPrediction(False, None, None, None, str(exc))
+                for n in PARAMETER_NAMES}
+    parameters: dict[str, ParameterPrediction] = {}
     est = list(sol.estimated)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
@@ -272,8 +309,7 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         parameters[name] = ParameterPrediction(
             True, float(sol.sigma[i]),
             round(float(corr[k]), 3) if k >= 0 else None, est[k] if k >= 0 else None)
-    return PlanReport(parameters, _advice(plan, parameters, unseen), len(cal.pairs), len(obs),
-                      model)
+    return parameters
 
 
 def _check_dsm_covers(plan: FlightPlan, dsm: RasterTerrain) -> None:
