@@ -120,8 +120,8 @@ class TrajectoryState:
 
     @property
     def active(self) -> bool:
-        """Errors are modelled at all."""
-        return self.model is not TrajectoryModel.NONE
+        """Errors are modelled at all (``auto`` models none until it has chosen)."""
+        return self.model.per_strip > 0
 
     def add_strip(self, t_ref: float) -> None:
         """A new strip, its error zero about ``t_ref`` (s)."""
