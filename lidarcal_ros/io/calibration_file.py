@@ -93,6 +93,9 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
              "rms_m": finite_or_none(q.rms_dz)}
             for q in result.height_agreement
         ]
+    if result.partial_strips:
+        doc["partial_strips"] = {str(sid): text for sid, text in
+                                 sorted(result.partial_strips.items())}
     if result.dropped_non_finite:
         doc["dropped_non_finite_points"] = int(result.dropped_non_finite)
     if sol.warnings:
