@@ -19,7 +19,14 @@ from lidarcal_ros.io.bag_reader import open_bag
 from lidarcal_ros.io.bag_writer import BagWriter
 from lidarcal_ros.io.pointcloud import make_point_dtype
 from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud, serialize, typestore
-from lidarcal_ros.pipeline.replay import Pacer, ReplayWindow, iter_window, replay, replay_window
+from lidarcal_ros.pipeline.replay import (
+    Pacer,
+    ReplayWindow,
+    iter_window,
+    replay,
+    replay_window,
+    wait_for_subscribers,
+)
 
 NS = 1_000_000_000
 PYTHON = sys.executable
@@ -133,6 +140,40 @@ def test_bad_rate_is_refused() -> None:
 
 
 # ---------------------------------------------------------------------------- CDR helpers
+def test_the_wait_ends_when_every_topic_has_its_subscribers_and_they_settled() -> None:
+    """Subscribers appear one by one (a suite's nodes); the wait ends 1 s after the last
+    change once each topic has one, and not while a ``lidarcal run`` is still starting."""
+    fake = FakeClock()
+    seen = {"/lidar/points": [(100.0, 0), (102.0, 1), (103.5, 2)],
+            "/lidar/trajectory": [(100.0, 0), (102.5, 1)]}
+
+    def counts() -> dict[str, int]:
+        return {t: max(n for at, n in steps if at <= fake.t) for t, steps in seen.items()}
+
+    outcome = wait_for_subscribers(counts, timeout_s=30.0, settle_s=1.0, now=fake.now,
+                                   wait=fake.wait)
+    assert outcome.ready and outcome.counts == {"/lidar/points": 2, "/lidar/trajectory": 1}
+    assert 4.5 <= outcome.waited_s <= 4.6  # 1 s after the last new subscriber (3.5 s)
+    fake = FakeClock()
+    outcome = wait_for_subscribers(counts, timeout_s=30.0, settle_s=1.0, now=fake.now,
+                                   wait=fake.wait, suite_starting=lambda: fake.t < 110.0)
+    assert outcome.ready and 10.0 <= outcome.waited_s <= 10.1
+
+
+def test_the_wait_times_out_naming_the_topics_short_of_subscribers() -> None:
+    fake = FakeClock()
+    outcome = wait_for_subscribers(lambda: {"/a": 1, "/b": 0}, timeout_s=2.0, now=fake.now,
+                                   wait=fake.wait)
+    assert not outcome.ready and outcome.missing == ["/b"] and not outcome.suite_starting
+    assert 2.0 <= outcome.waited_s <= 2.1
+    fake = FakeClock()
+    outcome = wait_for_subscribers(lambda: {"/a": 1}, timeout_s=2.0, now=fake.now,
+                                   wait=fake.wait, suite_starting=lambda: True)
+    assert not outcome.ready and outcome.missing == [] and outcome.suite_starting
+    with pytest.raises(ConfigError, match="--min-subscribers"):
+        wait_for_subscribers(lambda: {}, timeout_s=1.0, minimum=0)
+
+
 def test_cloud_cdr_matches_rosbags_serialisation() -> None:
     pts = np.zeros(7, dtype=make_point_dtype(("reflectance",)))
     pts["x"] = np.arange(7)
@@ -276,29 +317,41 @@ def test_record_writes_a_valid_bag_stopped_by_sigterm(ros_context: Any, tmp_path
     assert texts == [f"m{i}" for i in range(25)]
 
 
-def test_run_stops_cleanly_on_sigterm(ros_context: Any, tmp_path: Path) -> None:
-    """``lidarcal run`` starts the three nodes and ends with status 0 on SIGTERM."""
+def test_run_says_when_the_suite_is_up_and_stops_cleanly_on_sigterm(ros_context: Any,
+                                                                     tmp_path: Path) -> None:
+    """``lidarcal run`` starts the three nodes, prints one line once each has its
+    subscriptions and services (the graph shows them then), and ends with status 0 on
+    SIGTERM."""
     import rclpy
+
+    from lidarcal_ros.nodes.suite import SUITE_NODES, node_is_up
 
     node = rclpy.create_node("run_probe", context=ros_context)
     proc = subprocess.Popen([PYTHON, "-m", "lidarcal_ros", "run"], env=_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=tmp_path)
+                            cwd=Path(__file__).resolve().parent.parent)
     try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # (blocks until the line, or the end of the process)
         want = {"lidarcal_calibrator", "lidarcal_corrector", "lidarcal_flight_config"}
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            if want <= set(node.get_node_names()):
-                break
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not all(
+                node_is_up(node, n, SUITE_NODES[n]) for n in want):
             time.sleep(0.1)
-        assert want <= set(node.get_node_names())
+        up = {n for n in want if node_is_up(node, n, SUITE_NODES[n])}
+        services = {s for s, _ in node.get_service_names_and_types()}
         proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=30)
+        out, stderr = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
         node.destroy_node()
+    assert line.startswith("lidarcal run: suite up (lidarcal_calibrator, lidarcal_corrector, "
+                           "lidarcal_flight_config) in "), (line, stderr)
+    assert 0.0 < float(line.rsplit(" in ", 1)[1].removesuffix(" s\n")) < 120.0
+    assert up == want and "/lidarcal_calibrator/save" in services
+    assert "suite up" not in out  # one line
     assert proc.returncode == 0, stderr
     assert "Traceback" not in stderr
 
@@ -336,10 +389,10 @@ def test_the_replay_waits_for_every_subscriber_of_a_suite(ros_context: Any,
                 PointCloud2, "/lidar/points", lambda raw: None, 10, raw=True))
             started = time.monotonic()
             late.start()
-            missing = player.wait_for_subscribers(10.0, minimum=1, settle_s=1.0)
+            outcome = player.wait_for_subscribers(10.0, minimum=1, settle_s=1.0)
             waited = time.monotonic() - started
             late.join()
-            assert missing == []
+            assert outcome.ready and outcome.missing == []
             assert player.publishers_by_topic["/lidar/points"].get_subscription_count() >= 2
             assert 1.6 <= waited < 5.0  # the second match, then a second without a new one
             # nobody there: the time-out ends the wait and names the topic
@@ -347,10 +400,153 @@ def test_the_replay_waits_for_every_subscriber_of_a_suite(ros_context: Any,
                                 node_name="settle_alone")
             try:
                 started = time.monotonic()
-                assert nobody.wait_for_subscribers(0.5, minimum=1) == ["/lidar/trajectory"]
+                outcome = nobody.wait_for_subscribers(0.5, minimum=1)
+                assert not outcome.ready and outcome.missing == ["/lidar/trajectory"]
                 assert time.monotonic() - started < 2.0
             finally:
                 nobody.destroy_node()
         finally:
             for node in (player, first, second):
                 node.destroy_node()
+
+
+def _replay(bag: Path, *options: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([PYTHON, "-m", "lidarcal_ros", "replay", str(bag), *options],
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def _finish(proc: subprocess.Popen[str], timeout: float = 60.0) -> tuple[str, str]:
+    try:
+        return proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_the_replay_waits_for_subscribers_that_come_late(ros_context: Any,
+                                                         tmp_path: Path) -> None:
+    """Started before anyone listens, the replay waits (default) until the points and
+    trajectory have a subscriber: the subscriber made 3 s later gets the first cloud."""
+    from sensor_msgs.msg import PointCloud2
+
+    from lidarcal_ros.nodes.trajectory_input import trajectory_message_classes
+
+    bag = _small_bag(tmp_path / "small.mcap")
+    proc = _replay(bag)
+    node = None
+    try:
+        time.sleep(3.0)
+        assert proc.poll() is None, "the replay did not wait"
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        node = rclpy.create_node("late_listener", context=ros_context)
+        strips: list[int] = []
+        node.create_subscription(PointCloud2, "/lidar/points", lambda raw: strips.append(
+            int(parse_cloud(raw).points["strip_id"][0])), 100, raw=True)
+        node.create_subscription(trajectory_message_classes()["geometry_msgs/msg/PoseStamped"],
+                                 "/lidar/trajectory", lambda m: None, 100)
+        executor = SingleThreadedExecutor(context=ros_context)
+        executor.add_node(node)
+        deadline = time.monotonic() + 40
+        while proc.poll() is None and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+        for _ in range(50):
+            executor.spin_once(timeout_sec=0.02)
+        executor.shutdown()
+        out, err = _finish(proc)
+    finally:
+        _finish(proc, 1.0)
+        if node is not None:
+            node.destroy_node()
+    assert proc.returncode == 0, err
+    assert strips[:1] == [0] and len(strips) == 20
+    found = [line for line in out.splitlines() if "subscribers found" in line]
+    assert len(found) == 1 and "/lidar/points (1), /lidar/trajectory (1)" in found[0], out
+    waited_s = float(found[0].split(" after ")[1].split(" s")[0])
+    assert waited_s >= 3.0
+
+
+@pytest.mark.parametrize("options", [("--no-wait",), ("--wait-for-subscribers", "1.5")])
+def test_without_subscribers_the_replay_plays_at_once_or_after_the_time_out(
+        tmp_path: Path, options: tuple[str, ...]) -> None:
+    """``--no-wait`` plays at once and says nothing; past ``--wait-for-subscribers`` one
+    warning names the topics without a subscriber (not the latched control points), then it
+    plays anyway."""
+    bag = _small_bag(tmp_path / "small.mcap")
+    started = time.monotonic()
+    proc = _replay(bag, *options)
+    out, err = _finish(proc)
+    took = time.monotonic() - started
+    assert proc.returncode == 0, err
+    assert "done: 61 messages" in out and "subscribers found" not in out
+    if options == ("--no-wait",):
+        assert err.strip() == "", err
+    else:
+        assert err.strip().splitlines() == [
+            "lidarcal replay: warning: after 1.5 s (--wait-for-subscribers), fewer than 1 "
+            "subscriber(s) on /lidar/points, /lidar/trajectory; replaying anyway"]
+        assert took >= 1.5 + 1.9
+
+
+def test_the_replay_waits_for_a_lidarcal_run_still_starting(ros_context: Any,
+                                                           tmp_path: Path) -> None:
+    """A ``lidarcal run`` seen still starting holds the replay although the topics already
+    have a subscriber (a quick node up, a slow one still importing): the replay starts once
+    the monitor says the suite is up, and says so."""
+    import threading
+
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+
+    from lidarcal_ros.nodes.flight_config import FlightConfigNode
+    from lidarcal_ros.nodes.suite import SuiteMonitor
+    from lidarcal_ros.nodes.trajectory_input import trajectory_message_classes
+
+    lines: list[str] = []
+    monitor = SuiteMonitor(["lidarcal_flight_config"], started=time.monotonic(),
+                           announce=lines.append, context=ros_context)
+    quick = rclpy.create_node("quick_listener", context=ros_context)
+    arrivals: list[float] = []
+    quick.create_subscription(PointCloud2, "/lidar/points",
+                              lambda raw: arrivals.append(time.monotonic()), 100, raw=True)
+    quick.create_subscription(trajectory_message_classes()["geometry_msgs/msg/PoseStamped"],
+                              "/lidar/trajectory", lambda m: None, 100)
+    executor = MultiThreadedExecutor(num_threads=2, context=ros_context)
+    for n in (monitor, quick):
+        executor.add_node(n)
+    spinning = threading.Event()
+    spinning.set()
+
+    def spin() -> None:
+        while spinning.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    proc = _replay(_small_bag(tmp_path / "small.mcap"))
+    slow = None
+    try:
+        time.sleep(4.0)
+        assert proc.poll() is None and not arrivals, "the replay did not wait for the suite"
+        slow = FlightConfigNode(context=ros_context)
+        up_at = time.monotonic()
+        executor.add_node(slow)
+        out, err = _finish(proc)
+    finally:
+        _finish(proc, 1.0)
+        spinning.clear()
+        spinner.join(timeout=5)
+        executor.shutdown()
+        for held in (monitor, quick, slow):
+            if held is not None:
+                held.destroy_node()
+    assert proc.returncode == 0, err
+    assert len(lines) == 1 and lines[0].startswith("lidarcal run: suite up "
+                                                   "(lidarcal_flight_config) in ")
+    assert monitor.up_after_s is not None and monitor.up_after_s >= 4.0
+    assert len(arrivals) == 20 and arrivals[0] > up_at
+    assert "lidarcal run's suite up" in out, out

@@ -318,3 +318,41 @@ def test_poses_left_out_are_counted() -> None:
     stream.add_trajectory(t, xyz, "map")
     stream.add_trajectory(np.array([3.0]), xyz[3:4], "map")
     assert len(stream.trajectory) == 4 and stream.poses_left_out == 2
+
+
+def test_strips_the_input_delivered_in_part_are_named(sim: SimulatedMission) -> None:
+    """A calibrator that joined the streams in the middle of strip 1 (clouds and poses alike,
+    as a node started after the replay) names strip 1 as begun before the input; a cloud lost
+    in the middle of strip 3 names that strip with the seconds missing; the whole mission
+    names none (the simulator flies 2 s of trajectory before each strip). The names reach
+    every result and the calibration file."""
+    from lidarcal_ros.io.calibration_file import calibration_document
+
+    events = stream_events(sim.mission)
+    whole = StreamingCalibration(FlightConfig(), control=sim.mission.control)
+    _feed(whole, events)
+    assert whole.solve().partial_strips == {} and whole.partial_strips == {}
+
+    first, third = sim.mission.strips[0], sim.mission.strips[2]
+    t0 = float(np.median(first.t))
+    clouds3 = [i for i, e in enumerate(events) if e[1] == "cloud" and
+               int(e[2].strip_id[0]) == third.strip_id]
+    lost = clouds3[len(clouds3) // 2]
+    lost_s = float(np.ptp(events[lost][2].t))
+    joined = [e for i, e in enumerate(events) if e[0] >= t0 and i != lost]
+    stream = StreamingCalibration(FlightConfig(), control=sim.mission.control)
+    _feed(stream, joined)
+    result = stream.solve()
+    assert sorted(stream.partial_strips) == [first.strip_id, third.strip_id]
+    began = stream.partial_strips[first.strip_id]
+    assert began.startswith("beginning missed: its first point came "), began
+    lead_s = float(began.split(" came ")[1].split(" s after")[0])
+    assert 0.0 <= lead_s <= 0.5  # (within the first cloud received: 0.5 s chunks)
+    hole = stream.partial_strips[third.strip_id]
+    assert "in 1 gap(s) between its clouds" in hole and "beginning" not in hole
+    missing_s = float(hole.split(" s of points missing")[0])
+    assert lost_s <= missing_s <= lost_s + 0.01
+    assert result.partial_strips == stream.partial_strips
+    doc = calibration_document(result)["lidarcal_calibration"]
+    assert doc["partial_strips"] == {str(k): v for k, v in stream.partial_strips.items()}
+    assert "partial_strips" not in calibration_document(whole.solve())["lidarcal_calibration"]

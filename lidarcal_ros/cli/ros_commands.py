@@ -13,6 +13,8 @@ import itertools
 import math
 import sys
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -59,15 +61,18 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="replay only these topics (default: all)")
     p.add_argument("--queue", type=int, default=100,
                    help="keep-last depth of the publishers (default 100)")
-    p.add_argument("--wait-for-subscribers", type=float, default=5.0, metavar="SECONDS",
-                   help="first wait up to this long until every topic has --min-subscribers "
-                   "and no new subscriber came for 1 s, so that nodes started before the "
-                   "replay miss none of its first messages (default 5; 0: start at once)")
+    p.add_argument("--wait-for-subscribers", type=float, default=30.0, metavar="SECONDS",
+                   help="before the first message, wait up to this long until each played "
+                   "topic the suite listens to (points, trajectory) has --min-subscribers, no "
+                   "new subscriber came for 1 s and a `lidarcal run` seen has its suite up; "
+                   "past it, warn naming the topics without subscribers and replay anyway "
+                   "(default 30; 0: do not wait)")
+    p.add_argument("--no-wait", action="store_true",
+                   help="start at once, without waiting for subscribers")
     p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
-                   help="subscribers each topic needs before --wait-for-subscribers ends "
-                   "(default 1)")
-    p.add_argument("--delay", type=float, default=0.0,
-                   help="wait this long after creating the publishers (discovery), seconds")
+                   help="subscribers each waited-for topic needs (default 1)")
+    p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS",
+                   help="then wait this much longer before the first message (default 0)")
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
                    help="rclpy arguments (e.g. remappings -r /lidar/points:=/other)")
 
@@ -80,6 +85,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rate must be a positive number, got {args.rate}")
     if args.queue < 1:
         raise ConfigError(f"--queue must be at least 1, got {args.queue}")
+    if not (math.isfinite(args.delay) and args.delay >= 0):
+        raise ConfigError(f"--delay must be a non-negative number of seconds, got {args.delay}")
+    if not (math.isfinite(args.wait_for_subscribers) and args.wait_for_subscribers >= 0):
+        raise ConfigError("--wait-for-subscribers must be a non-negative number of seconds, "
+                          f"got {args.wait_for_subscribers}")
+    if args.min_subscribers < 1:
+        raise ConfigError(f"--min-subscribers must be at least 1, got {args.min_subscribers}")
     with open_bag(args.bag) as bag:
         if args.topics:
             unknown = [t for t in args.topics if t not in bag.topics]
@@ -97,14 +109,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
                               context=context)
             pacer = Pacer(args.rate, clock=node.publish_clock if args.clock else None,
                           clock_hz=args.clock_hz, wait=shutdown.event.wait)
-            if args.wait_for_subscribers > 0:
-                missing = node.wait_for_subscribers(args.wait_for_subscribers,
-                                                    minimum=args.min_subscribers,
-                                                    stop=lambda: shutdown.requested)
-                if missing:
-                    print(f"lidarcal replay: no subscriber on {', '.join(missing)}; "
-                          "replaying anyway", file=sys.stderr)
-            if args.delay > 0:
+            if not args.no_wait and args.wait_for_subscribers > 0:
+                _wait_for_suite(node, args, shutdown)
+            if args.delay > 0 and not shutdown.requested:
                 shutdown.event.wait(args.delay)
             topics = node.topics
             print(f"replaying {args.bag}: {window.duration_s:.1f} s of bag time at rate "
@@ -125,6 +132,34 @@ def cmd_replay(args: argparse.Namespace) -> int:
             context.try_shutdown()
             shutdown.restore()
     return 0
+
+
+def _wait_for_suite(node: Any, args: argparse.Namespace, shutdown: Any) -> None:
+    """Wait for the subscribers of the topics the suite listens to (``--wait-for-subscribers``)
+    and say in one line what was found, or warn naming what was not (then replay anyway:
+    ``ros2 bag play`` plays without subscribers too, and the calibrator names the strips it
+    saw only in part)."""
+    waited = node.wait_topics()
+    outcome = node.wait_for_subscribers(args.wait_for_subscribers,
+                                        minimum=args.min_subscribers, topics=waited,
+                                        stop=lambda: shutdown.requested)
+    if outcome.stopped:
+        return
+    found = ", ".join(f"{t} ({n})" for t, n in sorted(outcome.counts.items()))
+    if outcome.ready:
+        suite = "; lidarcal run's suite up" if node.suite_seen else ""
+        print(f"lidarcal replay: subscribers found after {outcome.waited_s:.1f} s: "
+              f"{found or 'no topic to wait for'}{suite}", flush=True)
+        return
+    short = []
+    if outcome.missing:
+        short.append(f"fewer than {args.min_subscribers} subscriber(s) on "
+                     f"{', '.join(outcome.missing)}")
+    if outcome.suite_starting:
+        short.append(f"lidarcal run's suite not up ({node.suite_waiting_for()})")
+    print(f"lidarcal replay: warning: after {args.wait_for_subscribers:g} s "
+          f"(--wait-for-subscribers), {'; '.join(short)}; replaying anyway", file=sys.stderr,
+          flush=True)
 
 
 # ---------------------------------------------------------------------------- run
@@ -169,6 +204,7 @@ def check_ros_parameters(ros_args: list[str]) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.config_file import load_flight_config
 
+    started = time.monotonic()  # (the ready line's seconds)
     names = [n.strip() for n in args.nodes.split(",") if n.strip()]
     unknown = [n for n in names if n not in NODE_CHOICES]
     if unknown or not names:
@@ -193,18 +229,60 @@ def cmd_run(args: argparse.Namespace) -> int:
     configure_ros_environment()
     argv = _ros_argv(args.ros_args, extra)
     if args.single_process:
-        return _run_in_process(names, argv, args)
+        return _run_in_process(names, argv, args, started)
     commands = [[sys.executable, "-m", f"lidarcal_ros.nodes.{name}", *argv[1:]]
                 for name in names]
     if args.record is not None:
         commands.append([sys.executable, "-m", "lidarcal_ros", "record", "-o",
                          str(args.record), *(["--overwrite"] if args.overwrite else []),
                          *(["--ros-args", *args.ros_args] if args.ros_args else [])])
-    return supervise(commands)
+    return _supervise_suite(commands, names, started)
 
 
-def _run_in_process(names: list[str], argv: list[str], args: argparse.Namespace) -> int:
+def _node_names(choices: list[str]) -> list[str]:
+    """The ROS node names of ``choices`` (of :data:`NODE_CHOICES`)."""
+    from lidarcal_ros.core.config import CALIBRATOR_NODE, CORRECTOR_NODE, FLIGHT_CONFIG_NODE
+
+    names = {"flight_config": FLIGHT_CONFIG_NODE, "calibrator": CALIBRATOR_NODE,
+             "corrector": CORRECTOR_NODE}
+    return [names[c] for c in choices]
+
+
+def _announce(line: str) -> None:
+    print(line, flush=True)
+
+
+def _supervise_suite(commands: list[list[str]], names: list[str], started: float) -> int:
+    """:func:`supervise` the node processes, watching from this process (a
+    :class:`~lidarcal_ros.nodes.suite.SuiteMonitor` of its own context, no ``--ros-args``)
+    when they are up."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from lidarcal_ros.nodes.suite import SuiteMonitor
+
+    context = Context()
+    rclpy.init(args=["lidarcal"], context=context,
+               signal_handler_options=SignalHandlerOptions.NO)
+    monitor = SuiteMonitor(_node_names(names), started=started,
+                           announce=_announce, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(monitor)
+    try:
+        return supervise(commands, tick=lambda seconds: executor.spin_once(
+            timeout_sec=seconds))
+    finally:
+        executor.shutdown()
+        monitor.destroy_node()
+        context.try_shutdown()
+
+
+def _run_in_process(names: list[str], argv: list[str], args: argparse.Namespace,
+                    started: float) -> int:
     from lidarcal_ros.nodes.process import run_main
+    from lidarcal_ros.nodes.suite import SuiteMonitor
 
     factories: list[Any] = []
     if "flight_config" in names:
@@ -225,11 +303,18 @@ def _run_in_process(names: list[str], argv: list[str], args: argparse.Namespace)
         out, overwrite = args.record, args.overwrite
         factories.append(lambda context: RecorderNode(out, overwrite=overwrite,
                                                       context=context))
+    suite = _node_names(names)
+    factories.append(lambda context: SuiteMonitor(suite, started=started, announce=_announce,
+                                                  context=context))
     return run_main(factories, argv, threads=args.threads)
 
 
-def supervise(commands: list[list[str]], *, grace_s: float = 15.0) -> int:
+def supervise(commands: list[list[str]], *, grace_s: float = 15.0,
+              tick: Callable[[float], Any] | None = None) -> int:
     """Run ``commands`` as child processes until SIGINT / SIGTERM or until one ends.
+
+    ``tick(seconds)`` (e.g. an executor's ``spin_once``) is called in the loop instead of
+    sleeping between looks at the children.
 
     A signal is passed on to every child as SIGTERM (Ctrl-C in a terminal reaches them
     directly too); when a child ends on its own, the others are stopped. Children still running
@@ -238,7 +323,6 @@ def supervise(commands: list[list[str]], *, grace_s: float = 15.0) -> int:
     """
     import signal
     import subprocess
-    import time
 
     from lidarcal_ros.nodes.process import Shutdown
 
@@ -258,7 +342,10 @@ def supervise(commands: list[list[str]], *, grace_s: float = 15.0) -> int:
                 print(f"lidarcal run: a node exited with status {ended[0]}; stopping the "
                       "others", file=sys.stderr)
                 break
-            shutdown.event.wait(0.2)
+            if tick is not None:
+                tick(0.2)
+            else:
+                shutdown.event.wait(0.2)
         for p in procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)

@@ -93,6 +93,9 @@ class CalibrationResult:
     history: list[np.ndarray]
     dropped_non_finite: int = 0
     thinned_points: int = 0  # left out by calibration.thinning_cell_m
+    #: Strips a live input delivered only in part, with what is missing, by strip id
+    #: (:mod:`lidarcal_ros.pipeline.strip_coverage`; empty offline).
+    partial_strips: dict[int, str] = field(default_factory=dict)
     #: Where each strip's heading came from (``track`` or ``attitude``), and its median crab
     #: (attitude less track, deg; NaN without attitude), by strip id.
     heading_from: dict[int, str] = field(default_factory=dict)

@@ -102,6 +102,9 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
     doc["trajectory_model"] = result.trajectory_choice
     if result.trajectory is not None:
         doc["trajectory"] = trajectory_document(result.trajectory)
+    if result.partial_strips:
+        doc["partial_strips"] = {str(sid): text for sid, text in
+                                 sorted(result.partial_strips.items())}
     if result.dropped_non_finite:
         doc["dropped_non_finite_points"] = int(result.dropped_non_finite)
     if sol.warnings:

@@ -19,7 +19,7 @@ _EXPORTS = {
     "corrector": ("CORRECTOR_PARAMETERS", "CorrectorNode"),
     "flight_config": ("FlightConfigNode",),
     "parameters": ("FlightParameters", "Listener", "descriptor_for", "parameter_value"),
-    "player": ("PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"),
+    "player": ("PLAYER_NODE", "PlayerNode", "SUITE_INPUTS", "message_class", "topic_qos"),
     "process": ("Shutdown", "run_main", "spin_nodes", "start_ros"),
     "rcl_functions": (
         "ALLOCATE", "DEALLOCATE", "RCL_RET_OK", "REALLOCATE", "SerializedMessage",
@@ -28,6 +28,10 @@ _EXPORTS = {
     "recorder": ("DEFAULT_TOPICS", "RECORDER_NODE", "RecorderNode"),
     "serialized_publisher": ("SerializedPublisher", "rcl_serialized_publish"),
     "serialized_subscription": ("SerializedSubscription", "rcl_serialized_take"),
+    "suite": (
+        "RUN_NODE", "SUITE_NODES", "SUITE_TOPIC", "SuiteMonitor", "SuiteNode", "node_is_up",
+        "read_suite_state",
+    ),
     "topics": (
         "DIAGNOSTICS_TOPIC", "ESTIMATE_TOPIC", "YAML_TOPIC", "diagnostic_array", "latched_qos",
         "stream_qos",

@@ -6,25 +6,36 @@ the CDR bytes of the bag as they are (no deserialisation). QoS follows what the 
 transient-local topics (control points) are published transient-local with the depth of their
 message count (up to 100), other topics reliable (best effort if every recorded publisher was),
 keep-last ``queue`` deep.
+
+Before the first message the player waits for its subscribers
+(:meth:`PlayerNode.wait_for_subscribers`): on the topics the suite listens to (points and
+trajectory, :meth:`PlayerNode.wait_topics`), and for a ``lidarcal run`` it sees to have its
+suite up (its state on :data:`~lidarcal_ros.nodes.suite.SUITE_TOPIC`).
 """
 
 from __future__ import annotations
 
 import importlib
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
 
+from lidarcal_ros.core.config import SCHEMA
 from lidarcal_ros.io.bag_reader import BagReader
 from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
+from lidarcal_ros.nodes.suite import SUITE_TOPIC, read_suite_state
 from lidarcal_ros.nodes.topics import latched_qos, stream_qos
+from lidarcal_ros.pipeline.replay import SubscriberWait, wait_for_subscribers
 
-__all__ = ["PLAYER_NODE", "PlayerNode", "message_class", "topic_qos"]
+__all__ = ["PLAYER_NODE", "SUITE_INPUTS", "PlayerNode", "message_class", "topic_qos"]
 
 PLAYER_NODE = "lidarcal_replay"
+#: The streams the suite's nodes subscribe to (their default topics).
+SUITE_INPUTS = (SCHEMA["topics.points"].default, SCHEMA["topics.trajectory"].default)
 
 
 def message_class(msgtype: str) -> Any:
@@ -80,6 +91,13 @@ class PlayerNode(Node):
             self._clock_cls = Clock
             self.clock_publisher = self.create_publisher(
                 Clock, "/clock", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        #: The last state of a ``lidarcal run`` seen ({} : none), and whether one was seen.
+        self.suite_state: dict[str, Any] = {}
+        self.suite_seen = False
+        self.create_subscription(String, SUITE_TOPIC, self._on_suite, latched_qos())
+
+    def _on_suite(self, msg: Any) -> None:
+        self.suite_state = read_suite_state(msg.data)
 
     @property
     def topics(self) -> list[str]:
@@ -108,24 +126,52 @@ class PlayerNode(Node):
             ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
         return ok
 
+    def wait_topics(self) -> list[str]:
+        """The topics to wait for subscribers on: those played (not latched: a late joiner
+        gets their messages anyway) that the suite listens to (:data:`SUITE_INPUTS`), or
+        every one played when none of them is (a bag of other streams): a played topic no
+        node listens to does not hold the replay up to the time-out."""
+        streams = [t for t in self.topics if t not in self.latched]
+        return [t for t in streams if t in SUITE_INPUTS] or streams
+
+    def suite_starting(self) -> bool:
+        """Whether a ``lidarcal run`` is seen (its monitor publishes the suite's state) that
+        has not said its suite is up."""
+        if self.count_publishers(SUITE_TOPIC) == 0:
+            return False
+        self.suite_seen = True
+        return self.suite_state.get("state") != "up"
+
+    def suite_waiting_for(self) -> str:
+        """The nodes of a ``lidarcal run`` seen that are not up yet, as text."""
+        state = self.suite_state
+        missing = [n for n in state.get("nodes", []) if n not in state.get("up", [])]
+        return ", ".join(missing) or "no state received"
+
     def wait_for_subscribers(self, timeout_s: float, *, minimum: int = 1,
-                             settle_s: float = 1.0, stop: Any = None) -> list[str]:
-        """Wait until each non-latched topic has ``minimum`` subscribers and the counts have
-        not changed for ``settle_s`` (the nodes of a suite are matched one by one: the first
-        match alone would start the replay while the others' subscriptions are still being
-        matched, and their first messages would be lost); returns the topics still short of
-        ``minimum`` when ``timeout_s`` runs out."""
-        deadline = time.monotonic() + timeout_s
-        counts: dict[str, int] = {}
-        steady_since = time.monotonic()
-        while True:
-            now = time.monotonic()
-            seen = {t: p.get_subscription_count() for t, p in self.publishers_by_topic.items()
-                    if t not in self.latched}
-            if seen != counts:
-                counts, steady_since = seen, now
-            missing = [t for t, n in counts.items() if n < minimum]
-            settled = not missing and now - steady_since >= settle_s
-            if settled or now >= deadline or (stop is not None and stop()):
-                return missing
-            time.sleep(0.05)
+                             topics: Iterable[str] | None = None, settle_s: float = 1.0,
+                             stop: Callable[[], bool] = lambda: False) -> SubscriberWait:
+        """Wait (spinning this node) until each of ``topics`` (default
+        :meth:`wait_topics`) has ``minimum`` subscribers, the counts have not changed for
+        ``settle_s`` and no ``lidarcal run`` seen is still starting
+        (:func:`lidarcal_ros.pipeline.replay.wait_for_subscribers`), at most ``timeout_s``
+        seconds; ``stop()`` ends the wait early."""
+        from rclpy.executors import SingleThreadedExecutor
+
+        waited = list(self.wait_topics() if topics is None else topics)
+        executor = SingleThreadedExecutor(context=self.context)
+        executor.add_node(self)
+
+        def pause(seconds: float) -> bool:
+            executor.spin_once(timeout_sec=seconds)
+            return stop()
+
+        try:
+            return wait_for_subscribers(
+                lambda: {t: self.publishers_by_topic[t].get_subscription_count()
+                         for t in waited},
+                timeout_s=timeout_s, minimum=minimum, settle_s=settle_s,
+                suite_starting=self.suite_starting, wait=pause)
+        finally:
+            executor.remove_node(self)
+            executor.shutdown()

@@ -91,7 +91,10 @@ _EXPORTS = {
         "measure_target_in_bag", "measure_target_on_mission", "relative_settings", "target_of",
         "trusted_in_box", "with_constant",
     ),
-    "replay": ("Message", "Pacer", "ReplayStats", "ReplayWindow", "iter_window", "replay_window"),
+    "replay": (
+        "Message", "Pacer", "ReplayStats", "ReplayWindow", "SubscriberWait", "iter_window",
+        "replay_window", "wait_for_subscribers",
+    ),
     "report": (
         "ReportInputs", "build_report", "evaluation_section", "geometric_sections",
         "quality_assessment", "read_evaluation", "report_mission",
@@ -116,6 +119,7 @@ _EXPORTS = {
         "OpenStrips", "TrajectorySamples", "default_point_budget",
     ),
     "streaming": ("StreamingCalibration",),
+    "strip_coverage": ("HOLE_FRACTION", "JOIN_S", "MIN_HOLE_S", "StripCoverage"),
     "throttled_log": ("ThrottledLog",),
     "trajectory_gate": ("REACH_SAMPLES", "RereadBag", "TrajectoryGate"),
 }

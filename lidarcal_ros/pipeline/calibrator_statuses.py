@@ -2,10 +2,11 @@
 
 ``lidarcal: memory`` (points held against the budget, thinning, strips released),
 ``lidarcal: input`` (clouds, points and poses received; what was skipped, left out or refused,
-and why), ``lidarcal: state`` (estimates, checkpoints, the normal equations) and, while there
-is no estimate, ``lidarcal: convergence``; and the convergence status of the latest estimate
-while the background refinement works on it (:func:`refinement_status`). Levels and the
-status record are :mod:`lidarcal_ros.io.ros_messages`'.
+and why; the strips seen only in part), ``lidarcal: state`` (estimates, checkpoints, the
+normal equations) and, while there is no estimate, ``lidarcal: convergence``; and the
+convergence status of the latest estimate while the background refinement works on it
+(:func:`refinement_status`). Levels and the status record are
+:mod:`lidarcal_ros.io.ros_messages`'.
 """
 
 from __future__ import annotations
@@ -111,7 +112,8 @@ def input_status(stream: StreamingCalibration, received: InputCounts,
     s, inp = stream, received
     uncovered, left_out = s.uncovered_points, s.uncovered_strips
     rejected, late = s.rejected_strips, s.late_points
-    level = WARN if inp.skipped or uncovered or rejected or late else OK
+    partial = s.partial_strips
+    level = WARN if inp.skipped or uncovered or rejected or late or partial else OK
     message = f"{inp.clouds} clouds, {inp.points} points, {inp.poses} poses"
     if inp.skipped:
         message += f"; {inp.skipped} malformed clouds skipped (last: {inp.last_error})"
@@ -124,6 +126,9 @@ def input_status(stream: StreamingCalibration, received: InputCounts,
     if rejected:
         message += (f"; {len(rejected)} strip(s) refused by the calibration, left out "
                     f"(last: {rejected[-1][1]})")
+    if partial:
+        message += (f"; strips {', '.join(str(i) for i in partial)} seen in part (strip "
+                    f"{next(iter(partial))}: {next(iter(partial.values()))})")
     if s.poses_left_out:
         message += (f"; {s.poses_left_out} poses left out (a non-finite stamp or position, or "
                     "a stamp already received)")
@@ -136,4 +141,5 @@ def input_status(stream: StreamingCalibration, received: InputCounts,
         "uncovered_strips": ",".join(str(i) for i in left_out),
         "late_points": str(late),
         "rejected_strips": ",".join(str(i) for i, _ in rejected),
+        "partial_strips": "; ".join(f"{i}: {text}" for i, text in partial.items()),
         "last_rejection": rejected[-1][1] if rejected else ""})

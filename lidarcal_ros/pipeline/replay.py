@@ -10,6 +10,9 @@ the replay is published every ``1 / clock_hz`` wall seconds (and once before the
 each pass), for nodes with ``use_sim_time``; on a loop the clock jumps back, as with
 ``ros2 bag play --loop``.
 
+Before the first message, :func:`wait_for_subscribers` waits until the topics the suite listens
+to have their subscribers and a ``lidarcal run`` seen has its nodes up.
+
 :func:`replay` takes the message source, a publish function and (for tests) the clock and sleep
 functions, so everything here runs without rclpy; ``lidarcal replay`` wires it to publishers.
 """
@@ -222,6 +225,69 @@ def replay(
         stats.wall_s = pacer.now() - started
 
 
+@dataclass
+class SubscriberWait:
+    """How :func:`wait_for_subscribers` ended: the topics still short of subscribers, the
+    last subscriber counts, whether a ``lidarcal run`` seen was still starting its suite, the
+    seconds waited and whether a stop was requested."""
+
+    missing: list[str]
+    counts: dict[str, int]
+    suite_starting: bool
+    waited_s: float
+    stopped: bool = False
+
+    @property
+    def ready(self) -> bool:
+        return not self.missing and not self.suite_starting and not self.stopped
+
+
+def wait_for_subscribers(
+    counts: Callable[[], dict[str, int]],
+    *,
+    timeout_s: float,
+    minimum: int = 1,
+    settle_s: float = 1.0,
+    suite_starting: Callable[[], bool] = lambda: False,
+    now: Callable[[], float] = time.monotonic,
+    wait: Callable[[float], bool] | None = None,
+    poll_s: float = 0.05,
+) -> SubscriberWait:
+    """Wait until every topic of ``counts()`` (subscribers per topic) has ``minimum``
+    subscribers, the counts have not changed for ``settle_s`` seconds and no ``lidarcal run``
+    is still starting its nodes (``suite_starting()``), or until ``timeout_s`` seconds.
+
+    The settle time is there because the nodes of a suite are matched one by one: the first
+    match alone would start the replay while the others' subscriptions are still being
+    matched, and their first messages would be lost. ``suite_starting`` covers a node whose
+    process has not even created it yet (a calibrator importing for seconds on a busy
+    machine), which no subscriber count can show. ``wait(seconds)`` sleeps and returns True
+    when the wait is to stop (e.g. ``threading.Event.wait``).
+    """
+    if not (math.isfinite(timeout_s) and timeout_s >= 0):
+        raise ConfigError(f"--wait-for-subscribers must be a non-negative number of seconds, "
+                          f"got {timeout_s}")
+    if minimum < 1:
+        raise ConfigError(f"--min-subscribers must be at least 1, got {minimum}")
+    sleep = wait if wait is not None else threading.Event().wait
+    started = now()
+    seen: dict[str, int] | None = None
+    steady_since = started
+    while True:
+        t = now()
+        current = counts()
+        if current != seen:
+            seen, steady_since = current, t
+        missing = sorted(topic for topic, n in current.items() if n < minimum)
+        starting = suite_starting()
+        settled = not missing and not starting and t - steady_since >= settle_s
+        if settled or t - started >= timeout_s:
+            return SubscriberWait(missing, dict(current), starting, t - started)
+        if sleep(poll_s):
+            return SubscriberWait(missing, dict(current), starting, now() - started,
+                                  stopped=True)
+
+
 def iter_window(messages: Iterable[Message], window: ReplayWindow) -> Iterator[Message]:
     """The messages inside ``window`` (no timing); for tests and dry runs."""
     for msg in messages:
@@ -233,5 +299,6 @@ def iter_window(messages: Iterable[Message], window: ReplayWindow) -> Iterator[M
 
 
 __all__ = [
-    "Message", "Pacer", "ReplayStats", "ReplayWindow", "iter_window", "replay", "replay_window",
+    "Message", "Pacer", "ReplayStats", "ReplayWindow", "SubscriberWait", "iter_window", "replay",
+    "replay_window", "wait_for_subscribers",
 ]

@@ -29,6 +29,10 @@ does, at the coarsest of twice the cell in force until they hold at most half th
 every later cloud at that cell: the calibration goes on with fewer points instead of running
 out of memory (:attr:`StreamingCalibration.auto_thinning_cell_m`, reported).
 
+Strips the input delivered only in part (begun before the input, holes between clouds) are
+named with what is missing (:attr:`StreamingCalibration.partial_strips`, rules in
+:mod:`lidarcal_ros.pipeline.strip_coverage`), in every result and in a warning as each closes.
+
 What is held before a strip is complete (the strips being flown, the trajectory samples) and
 the budget's default are :mod:`lidarcal_ros.pipeline.stream_inputs`; the checkpoint file is
 :mod:`lidarcal_ros.pipeline.stream_checkpoint`.
@@ -60,6 +64,7 @@ from lidarcal_ros.pipeline.stream_checkpoint import (
     write_checkpoint,
 )
 from lidarcal_ros.pipeline.stream_inputs import OpenStrips, TrajectorySamples, default_point_budget
+from lidarcal_ros.pipeline.strip_coverage import StripCoverage
 
 __all__ = ["StreamingCalibration"]
 
@@ -123,6 +128,7 @@ class StreamingCalibration:
     _closed: list[Strip]
     _now: float  # newest point time, s
     _late_strips: set[int]
+    _coverage: StripCoverage
     _calibrator: Calibrator
 
     def __init__(
@@ -164,6 +170,7 @@ class StreamingCalibration:
         quaternions (n, 4) xyzw, NaN rows, the identity or None where not given)."""
         self._check_frame(frame_id, "trajectory")
         self._samples.add(t, xyz, orientation)
+        self._coverage.add_poses(t)
 
     def add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
         """Add one PointCloud2 chunk (already decoded to columns).
@@ -180,6 +187,9 @@ class StreamingCalibration:
         self.dropped_non_finite += int((~ok).sum())
         if not ok.any():
             return
+        received_ids, received_t = columns.strip_id[ok], columns.t[ok]
+        for sid in np.unique(received_ids):  # (all it received: before any thinning)
+            self._coverage.add_cloud(int(sid), received_t[received_ids == sid])
         cell = self.thinning_cell_m
         if cell > 0:  # (among the finite points, in order: as lidarcal calibrate reads a bag)
             thin = first_per_cell(columns.xyz[ok], columns.strip_id[ok], cell)
@@ -234,6 +244,11 @@ class StreamingCalibration:
         """Poses left out of the trajectory: a non-finite stamp or position, or a stamp
         already held."""
         return self._samples.left_out
+
+    @property
+    def partial_strips(self) -> dict[int, str]:
+        """The strips received only in part, with what is missing (module docstring)."""
+        return self._coverage.partial_strips
 
     @property
     def n_points(self) -> int:
@@ -315,6 +330,9 @@ class StreamingCalibration:
         refuses is left out with its reason (:attr:`rejected_strips`), and the others go on.
         """
         strip = self._open.pop(strip_id)
+        missing = self._coverage.describe(strip_id)
+        if missing:
+            logger.warning("strip %d seen in part: %s", strip_id, missing)
         served = served_by_trajectory(
             strip.t, strip.xyz, self.trajectory,
             window_s=self._calibrator.settings.trajectory_window_s)
@@ -413,6 +431,7 @@ class StreamingCalibration:
         self._calibrator.thinned_points = self.thinned_points
 
     def _adopt(self, result: CalibrationResult) -> CalibrationResult:
+        result.partial_strips = self.partial_strips
         self.latest = result
         self.waiting_for = ""
         self.normal_equations = self._calibrator.normal_equations
@@ -513,6 +532,7 @@ class StreamingCalibration:
         self._closed = []
         self._now = -np.inf
         self._late_strips = set()
+        self._coverage = StripCoverage()
         self.late_points = 0
         self.uncovered_points = 0
         self.uncovered_strips = []
