@@ -69,6 +69,9 @@ from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 ARCSEC = math.pi / 180 / 3600
 TOL = {"dX": 0.01, "dY": 0.01, "dZ": 0.01, "dr": 0.01, "dS": 1e-5,
        "domega": ARCSEC, "dphi": ARCSEC, "dkappa": ARCSEC}
+#: method.md section 11's bars with trajectory errors: dphi, dr and dS; every other estimated
+#: bias within 3 sigma (weakly determined ones honestly wide).
+TRAJECTORY_TOL = {"dphi": ARCSEC, "dr": 0.01, "dS": 1e-5}
 SLACK = {"dX": 1e-3, "dY": 1e-3, "dZ": 1e-3, "dr": 1e-3, "dS": 1e-6,
          "domega": 0.1 * ARCSEC, "dphi": 0.1 * ARCSEC, "dkappa": 0.1 * ARCSEC}
 
@@ -86,8 +89,10 @@ def random_biases(rng: np.random.Generator) -> dict[str, float]:
             "dS": rng.uniform(-2e-4, 2e-4)}
 
 
-def check_estimate(res: CalibrationResult, biases: dict[str, float]) -> int:
-    """Print each parameter's error against the truth; the number of failed checks."""
+def check_estimate(res: CalibrationResult, biases: dict[str, float],
+                   tolerance: dict[str, float] = TOL) -> int:
+    """Print each parameter's error against the truth; the number of failed checks (an
+    error beyond ``tolerance``, or beyond 3 sigma and ``SLACK``)."""
     sol = res.solution
     failures = 0
     for i, name in enumerate(PARAMETER_NAMES):
@@ -95,8 +100,8 @@ def check_estimate(res: CalibrationResult, biases: dict[str, float]) -> int:
             print(f"  {name:7s} {sol.status[name].state}")
             continue
         err = sol.delta[i] - biases[name]
-        ok = abs(err) <= TOL[name] and (abs(err) <= 3 * sol.sigma[i] or
-                                        abs(err) <= SLACK[name])
+        ok = abs(err) <= tolerance.get(name, math.inf) and (
+            abs(err) <= 3 * sol.sigma[i] or abs(err) <= SLACK[name])
         failures += not ok
         e, unit = display_value(name, err)
         sg, _ = display_value(name, sol.sigma[i])
@@ -136,9 +141,10 @@ def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[
     section 11's checks (module docstring); the number of failed checks."""
     failures = 0
     floor = calibrate(ideal.mission, CalibrationSettings(model=model, solve_for=SOLVE_ALL))
-    floor_rms = rms90(vertical_errors(ideal, floor.solution.delta, model))
-    print(f" without trajectory errors, as exact: corrected points rms90 "
-          f"{floor_rms * 1000:.1f} mm")
+    floor_dz = vertical_errors(ideal, floor.solution.delta, model)
+    floor_rms = rms90(floor_dz)
+    print(f" without trajectory errors, as exact: corrected points median "
+          f"{np.median(floor_dz) * 1000:+.1f} mm, rms90 {floor_rms * 1000:.1f} mm")
     for name in trajectory_models:
         t0 = time.perf_counter()
         res = calibrate(sim.mission, CalibrationSettings(
@@ -148,7 +154,7 @@ def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[
         state = "converged" if res.converged else "NOT converged"
         print(f" trajectory {res.trajectory_choice}: calibrate {time.perf_counter() - t0:.1f} "
               f"s, {res.iterations} iterations ({state}), sigma0 {sol.sigma0 * 100:.2f} cm")
-        failures += check_estimate(res, biases)
+        failures += check_estimate(res, biases, TRAJECTORY_TOL)
         dz = vertical_errors(sim, sol.delta, model, res.trajectory)
         med, r90 = float(np.median(dz)), rms90(dz)
         ok = abs(med) <= MAX_MEDIAN_DZ_M and r90 <= 1.25 * floor_rms

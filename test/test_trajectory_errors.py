@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers_missions import with_trajectory_errors
+from scipy.interpolate import BSpline
 
 from lidarcal_ros.core.adjustment import (
     NormalEquations,
@@ -27,7 +28,6 @@ from lidarcal_ros.core.trajectory_errors import (
     TrajectoryModel,
     TrajectoryRows,
     TrajectoryState,
-    error_at,
     error_columns,
 )
 from lidarcal_ros.errors import ConfigError
@@ -37,46 +37,61 @@ from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 ALL = tuple(n for n in PARAMETER_NAMES if n != "dZ")
 
 
-def test_error_columns_are_the_projected_errors() -> None:
-    """``T p`` is ``n . (e_a(t_a) - e_b(t_b))`` row by row, control rows (a = -1) included."""
+MODELS = (TrajectoryModel.OFFSET, TrajectoryModel.DRIFT, TrajectoryModel.SPLINE)
+
+
+def _state(model: TrajectoryModel, rng: np.random.Generator, scale: float) -> TrajectoryState:
+    """Four strips of 60 s, 90 s apart (splines of 20 s knots), random coefficients."""
+    state = TrajectoryState(model, knot_interval_s=20.0)
+    for t0 in (0.0, 90.0, 180.0, 270.0):
+        state.add_strip(t0, t0 + 60.0)
+    state.params = rng.normal(0, scale, state.params.shape)
+    return state
+
+
+@pytest.mark.parametrize("model", MODELS, ids=[m.value for m in MODELS])
+def test_error_columns_are_the_projected_errors(model: TrajectoryModel) -> None:
+    """``T p`` is ``n . (e_a(t_a) - e_b(t_b))`` row by row, control rows (a = -1) included;
+    each model's error as its formula says (a spline held constant beyond its strip)."""
     rng = np.random.default_rng(1)
-    for model in (TrajectoryModel.OFFSET, TrajectoryModel.DRIFT):
-        state = TrajectoryState(model)
-        for t_ref in (100.0, 160.0, 220.0):
-            state.add_strip(t_ref)
-        state.params = rng.normal(0, 0.05, state.params.shape)
-        k = 50
-        n = rng.normal(size=(k, 3))
-        n /= np.linalg.norm(n, axis=1)[:, None]
-        a = rng.integers(-1, 3, k)
-        b = rng.integers(0, 3, k)
-        rows = TrajectoryRows(a, rng.uniform(90, 230, k), b, rng.uniform(90, 230, k), n,
-                              np.zeros(k))
-        want = np.array([
-            (n[i] @ state.error(a[i], rows.t_a[i:i + 1])[0] if a[i] >= 0 else 0.0)
-            - n[i] @ state.error(b[i], rows.t_b[i:i + 1])[0] for i in range(k)])
-        np.testing.assert_allclose(error_columns(state, rows) @ state.params.ravel(), want,
-                                   atol=1e-12)
-        np.testing.assert_allclose(state.projected(rows), want, atol=1e-12)
-        np.testing.assert_allclose(error_at(model, state.params[1], np.array([60.0]))[0],
-                                   state.error(1, np.array([220.0]))[0])
+    state = _state(model, rng, 0.05)
+    k = 50
+    n = rng.normal(size=(k, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    a = rng.integers(-1, 4, k)
+    b = rng.integers(0, 4, k)
+    rows = TrajectoryRows(a, rng.uniform(-10, 340, k), b, rng.uniform(-10, 340, k), n,
+                          np.zeros(k))
+    want = np.array([
+        (n[i] @ state.error(a[i], rows.t_a[i:i + 1])[0] if a[i] >= 0 else 0.0)
+        - n[i] @ state.error(b[i], rows.t_b[i:i + 1])[0] for i in range(k)])
+    np.testing.assert_allclose(error_columns(state, rows) @ state.params, want, atol=1e-12)
+    np.testing.assert_allclose(state.projected(rows), want, atol=1e-12)
+    c = state.strip_params(1).reshape(-1, 3)
+    t = np.array([95.0, 120.0, 149.0])
+    if model is TrajectoryModel.SPLINE:
+        spline = BSpline(state.bases[1].knots, c, 3)
+        np.testing.assert_allclose(state.error(1, t), spline(t), atol=1e-12)
+        np.testing.assert_allclose(state.error(1, np.array([80.0, 170.0])),
+                                   spline(np.array([90.0, 150.0])), atol=1e-12)
+    else:
+        want_e = c[0] + (t - 120.0)[:, None] * (c[1] if model is TrajectoryModel.DRIFT else 0)
+        np.testing.assert_allclose(state.error(1, t), want_e, atol=1e-12)
 
 
-def test_the_reduced_equations_solve_as_the_whole_system() -> None:
+@pytest.mark.parametrize("model", MODELS, ids=[m.value for m in MODELS])
+def test_the_reduced_equations_solve_as_the_whole_system(model: TrajectoryModel) -> None:
     """The Schur complement over the strip blocks gives the biases, the trajectory
-    parameters and sigma0 of the dense solve of everything with the priors."""
+    parameters, sigma0 and every sigma of the dense solve of everything with the priors."""
     rng = np.random.default_rng(2)
-    settings = TrajectoryErrorSettings(TrajectoryModel.DRIFT)
-    state = TrajectoryState(TrajectoryModel.DRIFT)
-    for t_ref in (0.0, 50.0, 100.0, 150.0):
-        state.add_strip(t_ref)
-    state.params = rng.normal(0, 0.01, state.params.shape)
+    settings = TrajectoryErrorSettings(model, knot_interval_s=20.0)
+    state = _state(model, rng, 0.01)
     k = 4000
     a8 = rng.normal(size=(k, 8))
     n = rng.normal(size=(k, 3))
     n /= np.linalg.norm(n, axis=1)[:, None]
     sa, sb = rng.integers(-1, 4, k), rng.integers(0, 4, k)
-    rows = TrajectoryRows(sa, rng.uniform(-20, 170, k), sb, rng.uniform(-20, 170, k), n,
+    rows = TrajectoryRows(sa, rng.uniform(-5, 335, k), sb, rng.uniform(-5, 335, k), n,
                           np.zeros(k))
     y = rng.normal(0, 0.02, k) + a8 @ rng.normal(0, 0.01, 8)
     obs = Observations(a8, y, np.ones(k), np.zeros(k, np.int64), np.zeros(k, np.int64), rows)
@@ -86,23 +101,22 @@ def test_the_reduced_equations_solve_as_the_whole_system() -> None:
     tau = blocks.tau_step(sol.delta)
     # dense: [a8 | T] with the priors as observations of the increment
     t = error_columns(state, rows).toarray()
-    w_prior = np.tile((0.02 / settings.prior_sigmas()) ** 2, 4)
+    prior = state.prior(settings).toarray() * 0.02 ** 2
     full = np.hstack([a8, t])
     n_mat = full.T @ full
-    n_mat[8:, 8:] += np.diag(w_prior)
+    n_mat[8:, 8:] += prior
     u = full.T @ y
-    u[8:] -= w_prior * state.params.ravel()
+    u[8:] -= prior @ state.params
     x = np.linalg.solve(n_mat, u)
     np.testing.assert_allclose(sol.delta, x[:8], rtol=1e-8, atol=1e-12)
-    np.testing.assert_allclose(tau, x[8:], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(tau, x[8:], rtol=1e-7, atol=1e-11)
     v = y - full @ x
-    vtpv = v @ v + np.sum(w_prior * (state.params.ravel() + x[8:]) ** 2)
+    total = state.params + x[8:]
+    vtpv = v @ v + total @ prior @ total
     assert sol.sigma0 == pytest.approx(np.sqrt(vtpv / (k - 8)), rel=1e-9)
     cov = sol.sigma0 ** 2 * np.linalg.inv(n_mat)
-    np.testing.assert_allclose(blocks.tau_sigma(sol).ravel(), np.sqrt(np.diag(cov)[8:]),
-                               rtol=1e-7)
+    np.testing.assert_allclose(blocks.tau_sigma(sol), np.sqrt(np.diag(cov)[8:]), rtol=1e-7)
     np.testing.assert_allclose(sol.sigma, np.sqrt(np.diag(cov)[:8]), rtol=1e-7)
-    # the same equations as NormalEquations of the biases alone where no strip is involved
     bare = Observations(a8, y, np.ones(k), np.zeros(k, np.int64), np.zeros(k, np.int64))
     assert NormalEquations.from_observations(bare).count == blocks.reduced.count
 
@@ -219,7 +233,13 @@ def test_offsets_alone_and_the_file_round_trip(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("block", "message"), [
-    ({"model": "spline", "strips": {}}, "trajectory.model"),
+    ({"model": "kinematic", "strips": {}}, "trajectory.model"),
+    ({"model": "spline", "strips": {"1": {"t_ref": 1.0, "knots": [0, 1, 2, 3, 4, 5],
+                                          "coefficients": [[0, 0, 0]]}}}, "takes 6"),
+    ({"model": "spline", "strips": {"1": {"t_ref": 1.0, "knots": [0, 1, 2, 2, 4],
+                                          "coefficients": [[0, 0, 0]]}}}, "increasing"),
+    ({"model": "spline", "strips": {"1": {"t_ref": 1.0, "coefficients": [[0, 0, 0]]}}},
+     "knots"),
     ({"model": "drift", "strips": {"x": {}}}, "whole number"),
     ({"model": "drift", "strips": {"1": {"t_ref": 1.0, "offset": [0, 0]}}}, "offset"),
     ({"model": "offset", "strips": {"1": {"t_ref": "a", "offset": [0, 0, 0]}}}, "t_ref"),

@@ -54,7 +54,7 @@ from lidarcal_ros.core.calibration_result import (
 from lidarcal_ros.core.calibration_threads import StageClock, WorkerPool
 from lidarcal_ros.core.georeferencing import laser_vector_qa
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, display_value
 from lidarcal_ros.core.strip_matching import PairMatcher
 from lidarcal_ros.core.strip_pairs import (
     PreparedStrip,
@@ -281,22 +281,26 @@ class Calibrator:
         solved for are moved to their fixed values.
         """
         s = self.settings
+        # With the trajectory errors free, the lever arm (a shift of each strip) and dkappa
+        # (an along-track one) are determined only through the navigation priors and changes
+        # of attitude: kept with their wide sigmas, not held at a value the strips' errors
+        # would then absorb (conclude() says so).
+        limits = s.limits if trajectory is None else replace(s.limits, max_sigma={})
         with self.clock("normal equations"):
             return robust_solve(obs, delta, solve_for=s.solve_for, fixed=s.fixed,
-                                limits=s.limits, robust_k=s.robust_k, trajectory=trajectory)
+                                limits=limits, robust_k=s.robust_k, trajectory=trajectory)
 
     def _trajectory_step(self, tau_step: np.ndarray, sigma0: float,
                          verdict: Convergence) -> Convergence:
-        """Apply the trajectory errors' increment (S * per_strip,) and weigh it into
+        """Apply the trajectory errors' increment (all coefficients) and weigh it into
         ``verdict``: plainly converged only where every increment is below the convergence
         fraction of its prior sigma. The adjustment's ``sigma0`` (m) weighs the priors from
         now on."""
         s = self.settings
         if np.isfinite(sigma0) and sigma0 > 0:
             self.unit_sigma = sigma0
-        tau_step = tau_step.reshape(self.trajectory.params.shape)
         self.trajectory.params = self.trajectory.params + tau_step
-        ratio = np.abs(tau_step) / s.trajectory.prior_sigmas()
+        ratio = np.abs(tau_step) / self.trajectory.prior_sigmas(s.trajectory)
         if verdict.converged and verdict.outcome.startswith("converged:") and \
                 ratio.size and float(ratio.max()) > s.convergence_fraction:
             return Convergence(False, False, "not converged: a strip's trajectory error moved "
@@ -483,11 +487,24 @@ class Calibrator:
                 trajectory = TrajectoryEstimate.from_state(
                     self.trajectory, [ps.strip_id for ps in self.strips],
                     blocks.tau_sigma(last.solution))
+                self._weak_with_trajectory(last.solution)
         result = self._finish(last.solution, last.observations, last.solution.delta,
                               last.number, last.converged, last.history)
         result.trajectory = trajectory
         result.convergence = last.outcome
         return result
+
+    def _weak_with_trajectory(self, sol: Solution) -> None:
+        """Warn of the biases whose sigma exceeds what a calibration can use (the limits the
+        trajectory errors' solve lifted), in words."""
+        limits = self.settings.limits.max_sigma
+        for i, name in enumerate(PARAMETER_NAMES):
+            if name in sol.estimated and sol.sigma[i] > limits.get(name, np.inf):
+                value, unit = display_value(name, sol.sigma[i])
+                sol.warnings.append(
+                    f"{name} determined only weakly (sigma {value:.3g} {unit}): with each "
+                    "strip's trajectory error estimated, only through the navigation priors "
+                    "and changes of attitude; hold it at its surveyed value if one is known")
 
     def unestimated_result(self, reason: str) -> CalibrationResult:
         """The result of a calibration that estimated nothing (``reason``): every bias at
@@ -665,23 +682,23 @@ def calibrate(
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
         return _calibrate_once(mission, settings, progress)
-    # auto: the trajectory as exact, then with every strip's drift; the drift is kept where
+    # auto: the trajectory as exact, then with each strip's spline; the spline is kept where
     # it fits clearly better (the strips disagree by more than their noise)
     exact = _calibrate_once(mission, replace(settings, trajectory=replace(
         settings.trajectory, model=TrajectoryModel.NONE)), progress)
     try:
-        drift = _calibrate_once(mission, replace(settings, trajectory=replace(
-            settings.trajectory, model=TrajectoryModel.DRIFT)), progress)
+        spline = _calibrate_once(mission, replace(settings, trajectory=replace(
+            settings.trajectory, model=TrajectoryModel.SPLINE)), progress)
     except CalibrationError as exc:  # (NothingEstimated too)
-        exact.trajectory_choice = (f"auto: none (with each strip's drift the data determine "
-                                   f"nothing: {exc})")
+        exact.trajectory_choice = (f"auto: none (with each strip's trajectory error the data "
+                                   f"determine nothing: {exc})")
         return exact
-    s_exact, s_drift = exact.solution.sigma0, drift.solution.sigma0
-    better = bool(s_exact > AUTO_SIGMA0_RATIO * s_drift)
-    chosen = drift if better else exact
+    s_exact, s_spline = exact.solution.sigma0, spline.solution.sigma0
+    better = bool(s_exact > AUTO_SIGMA0_RATIO * s_spline)
+    chosen = spline if better else exact
     chosen.trajectory_choice = (
-        f"auto: {'drift' if better else 'none'} (sigma0 {s_exact * 100:.2f} cm with the "
-        f"trajectory as exact, {s_drift * 100:.2f} cm with each strip's drift"
+        f"auto: {'spline' if better else 'none'} (sigma0 {s_exact * 100:.2f} cm with the "
+        f"trajectory as exact, {s_spline * 100:.2f} cm with each strip's spline"
         f"{'' if better else ': the trajectory fits within the noise'})")
     return chosen
 

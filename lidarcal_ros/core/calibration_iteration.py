@@ -40,7 +40,7 @@ from lidarcal_ros.core.trajectory_errors import (
 class TrajectoryTerms:
     """The trajectory errors :func:`robust_solve` estimates with the biases (method.md section
     11), and what it leaves of them: the blocks of its last solve and the parameters'
-    increment (S * per_strip,)."""
+    increment (all coefficients)."""
 
     state: TrajectoryState
     settings: TrajectoryErrorSettings

@@ -122,8 +122,10 @@ SCHEMA: dict[str, ParameterSpec] = {
     "calibration.trajectory.model": ParameterSpec(
         "auto", "str", "Per-strip trajectory errors estimated with the biases (method.md "
         "section 11): 'none' (the trajectory as exact), 'offset' (3 per strip), 'drift' "
-        "(offset and linear drift, 6 per strip), 'auto' (drift where it fits the data clearly "
-        "better than none; a batch calibration decides, the live calibrator runs none)",
+        "(offset and linear drift, 6 per strip), 'spline' (a cubic B-spline in time per axis, "
+        "knots calibration.trajectory.knot_interval_s apart), 'auto' (drift where it fits the "
+        "data clearly better than none; a batch calibration decides, the live calibrator runs "
+        "none)",
         choices=tuple(m.value for m in TrajectoryModel)),
     "calibration.trajectory.offset_sigma_horizontal_m": float_parameter(
         0.05, "A-priori sigma of a strip's horizontal trajectory offset (the navigation "
@@ -131,7 +133,10 @@ SCHEMA: dict[str, ParameterSpec] = {
     "calibration.trajectory.offset_sigma_vertical_m": float_parameter(
         0.05, "A-priori sigma of a strip's vertical trajectory offset, m", 1e-4, 10.0),
     "calibration.trajectory.drift_sigma_m_per_s": float_parameter(
-        0.002, "A-priori sigma of a strip's trajectory drift rate, per axis, m/s", 1e-6, 1.0),
+        0.002, "A-priori sigma of a strip's trajectory drift rate, per axis, m/s (spline: of "
+        "the change between knots, per second)", 1e-6, 1.0),
+    "calibration.trajectory.knot_interval_s": float_parameter(
+        20.0, "Time between the knots of the spline model, s", 1.0, 3600.0),
     "matching.trajectory_window_s": float_parameter(
         0.5, "Half-width of the local-trajectory window, s", 0.01, 60.0),
     "matching.heading_source": ParameterSpec(
@@ -476,7 +481,8 @@ class FlightConfig:
                 offset_sigma_horizontal_m=values[
                     "calibration.trajectory.offset_sigma_horizontal_m"],
                 offset_sigma_vertical_m=values["calibration.trajectory.offset_sigma_vertical_m"],
-                drift_sigma_m_per_s=values["calibration.trajectory.drift_sigma_m_per_s"]),
+                drift_sigma_m_per_s=values["calibration.trajectory.drift_sigma_m_per_s"],
+                knot_interval_s=values["calibration.trajectory.knot_interval_s"]),
         )
 
 

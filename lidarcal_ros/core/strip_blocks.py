@@ -46,24 +46,23 @@ class StripBlocks:
         a = obs.rows
         self.t = error_columns(state, rows)
         tw = sparse.csr_matrix(self.t.multiply(w[:, None]))
-        strips = len(state.t_ref)
-        prior_w = np.tile((unit_sigma / settings.prior_sigmas()) ** 2, strips)
-        tau = state.params.ravel()
-        n_tt = (tw.T @ self.t + sparse.diags(prior_w)).tocsc()
+        prior = state.prior(settings) * unit_sigma ** 2
+        tau = state.params
+        n_tt = (tw.T @ self.t + prior).tocsc()
         n_ts = np.asarray(tw.T @ a)  # (M, 8)
-        u_t = tw.T @ obs.y - prior_w * tau
+        u_t = tw.T @ obs.y - prior @ tau
         self._lu = sparse_linalg.splu(n_tt)
         self._x = self._lu.solve(n_ts) if n_ts.size else np.zeros_like(n_ts)
         self._z = self._lu.solve(u_t) if u_t.size else np.zeros_like(u_t)
         wa = a * w[:, None]
         self.reduced = NormalEquations(
             wa.T @ a - n_ts.T @ self._x, wa.T @ obs.y - n_ts.T @ self._z,
-            float(np.dot(w * obs.y, obs.y) + np.dot(prior_w * tau, tau) - u_t @ self._z),
+            float(np.dot(w * obs.y, obs.y) + tau @ (prior @ tau) - u_t @ self._z),
             int(np.count_nonzero(w)))
-        self._per_strip = state.model.per_strip
+        self._starts = list(state.starts)
 
     def tau_step(self, delta_step: np.ndarray) -> np.ndarray:
-        """The trajectory parameters' increment (S * per_strip,) given the biases'."""
+        """The trajectory parameters' increment (all coefficients) given the biases'."""
         return self._z - self._x @ delta_step
 
     def residuals(self, obs: Observations, delta_step: np.ndarray,
@@ -77,21 +76,22 @@ class StripBlocks:
         return obs.rows - self.t @ self._x
 
     def tau_sigma(self, sol: Solution) -> np.ndarray:
-        """Standard deviations (S, per_strip) of the trajectory parameters:
+        """Standard deviations of the trajectory parameters (all coefficients):
         ``sigma0^2 N_tt^-1 + X Cov(delta) X^T`` on the diagonal."""
-        m = self._per_strip
         size = self._x.shape[0]
         diag = np.empty(size)
-        for lo in range(0, size, m):  # one strip's columns of N_tt^-1 at a time
-            eye = np.zeros((size, m))
-            eye[lo:lo + m] = np.eye(m)
-            diag[lo:lo + m] = np.diag(self._lu.solve(eye)[lo:lo + m])
+        for lo, hi in zip(self._starts[:-1], self._starts[1:], strict=True):
+            if hi == lo:
+                continue
+            eye = np.zeros((size, hi - lo))  # one strip's columns of N_tt^-1 at a time
+            eye[lo:hi] = np.eye(hi - lo)
+            diag[lo:hi] = np.diag(self._lu.solve(eye)[lo:hi])
         var = sol.sigma0 ** 2 * diag
         if sol.estimated:
             idx = [PARAMETER_INDEX[n] for n in sol.estimated]
             xs = self._x[:, idx]
             var += np.einsum("ij,jk,ik->i", xs, sol.covariance, xs)
-        return np.sqrt(np.maximum(var, 0.0)).reshape(-1, m)
+        return np.sqrt(np.maximum(var, 0.0))
 
 
 __all__ = ["StripBlocks"]

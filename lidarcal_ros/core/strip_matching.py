@@ -67,7 +67,8 @@ class PairMatcher:
         self.strips: list[PreparedStrip] = []
         self.pairs: list[StripPair] = []
         #: Every strip's trajectory error as estimated so far (method.md section 11).
-        self.trajectory = TrajectoryState(settings.trajectory.model)
+        self.trajectory = TrajectoryState(settings.trajectory.model,
+                                          settings.trajectory.knot_interval_s)
 
     @property
     def n_points(self) -> int:
@@ -106,8 +107,8 @@ class PairMatcher:
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
         self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority, choice,
                                          qa, speed))
-        self.trajectory.add_strip(0.5 * (float(strip.t.min()) + float(strip.t.max()))
-                                  if len(strip) else 0.0)
+        self.trajectory.add_strip(float(np.nanmin(strip.t)) if len(strip) else 0.0,
+                                  float(np.nanmax(strip.t)) if len(strip) else 0.0)
         new = len(self.strips) - 1
         formed = []
         for other in range(new):
@@ -169,7 +170,7 @@ class PairMatcher:
         would appear not to cancel, and mimic dphi.
         """
         ps = self.strips[k]
-        error = self.trajectory.params[k] if self.trajectory.active else np.zeros(0)
+        error = self.trajectory.strip_params(k) if self.trajectory.active else np.zeros(0)
         key = np.asarray(delta, dtype=np.float64).tobytes() + error.tobytes()
         if ps.corrected is None or ps.corrected[0] != key:
             with self.clock("corrections"):
@@ -208,7 +209,7 @@ class PairMatcher:
 
     def _moved(self, k: int) -> bool:
         """Strip ``k``'s points are moved by a trajectory error estimated for it."""
-        return self.trajectory.active and bool(np.any(self.trajectory.params[k]))
+        return self.trajectory.active and bool(np.any(self.trajectory.strip_params(k)))
 
     def _patch_terms(
         self, k: int, m: PatchMatches

@@ -1,8 +1,9 @@
 """Per-strip trajectory errors estimated with the biases (method.md section 11).
 
-The error of strip ``s`` is ``e_s(t) = sum_j b_j(t - t_s) p_s[j]`` (map frame, metres,
-delivered - true): ``offset`` has the basis ``[1]``, ``drift`` ``[1, t - t_s]`` (``t_s`` the
-strip's mid time, s), so a strip holds 3 or 6 parameters, axis by axis.
+The error of strip ``s`` is ``e_s(t) = sum_j b_j(t) c_s[j]`` (map frame, metres, delivered -
+true; ``c_s[j]`` a 3-vector): ``offset`` has the basis ``[1]``, ``drift`` ``[1, t - t_s]``
+(``t_s`` the strip's mid time, s), ``spline`` the cubic B-splines of uniform knots
+``knot_interval_s`` apart over the strip (times beyond its ends clipped to them).
 """
 
 from __future__ import annotations
@@ -13,32 +14,33 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
+from scipy.interpolate import BSpline
 
 
 class TrajectoryModel(enum.Enum):
     """How each strip's trajectory error is parametrised (``calibration.trajectory.model``)."""
 
-    #: ``drift`` where it fits the data clearly better than ``none``
+    #: ``spline`` where it fits the data clearly better than ``none``
     #: (:data:`AUTO_SIGMA0_RATIO`), decided by a batch calibration; ``none`` strip by strip.
     AUTO = "auto"
     NONE = "none"
     OFFSET = "offset"
     DRIFT = "drift"
+    SPLINE = "spline"
 
     @property
-    def basis_size(self) -> int:
-        """Basis functions per axis: 0, 1 or 2 (``auto``: 0 until it has chosen)."""
-        return {"auto": 0, "none": 0, "offset": 1, "drift": 2}[self.value]
-
-    @property
-    def per_strip(self) -> int:
-        """Parameters per strip: three per basis function."""
-        return 3 * self.basis_size
+    def estimated(self) -> bool:
+        """The model has parameters (``auto`` has none until it has chosen)."""
+        return self in (TrajectoryModel.OFFSET, TrajectoryModel.DRIFT, TrajectoryModel.SPLINE)
 
 
 #: ``auto`` takes the trajectory errors where the adjustment without them leaves a sigma0 this
 #: many times that with them: the strips disagree by more than their noise.
 AUTO_SIGMA0_RATIO = 1.1
+#: The interpolation of a spline strip's error, as the calibration file names it.
+SPLINE_INTERPOLATION = ("cubic B-spline (scipy.interpolate.BSpline(knots, coefficients, 3)) "
+                        "at t clipped to [knots[3], knots[-4]]")
 
 
 @dataclass(frozen=True)
@@ -46,31 +48,23 @@ class TrajectoryErrorSettings:
     """The model and the navigation solution's accuracy (its priors); metres, seconds."""
 
     model: TrajectoryModel = TrajectoryModel.AUTO
-    #: Sigma of a strip's offset, horizontal and vertical, m.
+    #: Sigma of a strip's offset (a spline coefficient's), horizontal and vertical, m.
     offset_sigma_horizontal_m: float = 0.05
     offset_sigma_vertical_m: float = 0.05
-    #: Sigma of a strip's drift rate, per axis, m/s.
+    #: Sigma of a strip's drift rate per axis, m/s (a spline: of the change from one
+    #: coefficient to the next, per second of knot interval).
     drift_sigma_m_per_s: float = 0.002
     #: A-priori sigma of one correspondence, m: weighs the priors until the adjustment has
     #: its own sigma0.
     observation_sigma_m: float = 0.03
+    #: Time between a spline's knots, s.
+    knot_interval_s: float = 20.0
 
-    def prior_sigmas(self) -> np.ndarray:
-        """Sigma of each parameter of a strip, in parameter order (m, then m/s)."""
-        offset = [self.offset_sigma_horizontal_m] * 2 + [self.offset_sigma_vertical_m]
-        drift = [self.drift_sigma_m_per_s] * 3
-        return np.array((offset + drift)[:self.model.per_strip])
-
-
-def basis(model: TrajectoryModel, dt: np.ndarray) -> np.ndarray:
-    """Basis values ``(n, basis_size)`` at times ``dt`` (s) from the strip's reference time."""
-    dt = np.asarray(dt, dtype=np.float64).reshape(-1)
-    out = np.empty((dt.shape[0], model.basis_size))
-    if model.basis_size:
-        out[:, 0] = 1.0
-    if model.basis_size > 1:
-        out[:, 1] = dt
-    return out
+    @property
+    def offset_sigmas(self) -> np.ndarray:
+        """Sigma of an offset along map x, y, z, m."""
+        h, v = self.offset_sigma_horizontal_m, self.offset_sigma_vertical_m
+        return np.array([h, h, v])
 
 
 @dataclass
@@ -106,65 +100,133 @@ class TrajectoryRows:
 
 
 @dataclass
-class TrajectoryState:
-    """The current estimate of every strip's error: reference times ``t_ref`` (S,) s and
-    parameters ``params`` (S, per_strip), strips in the calibration's order."""
+class StripBasis:
+    """The basis of one strip's error: its reference time (s) and, for a spline, its knots."""
 
     model: TrajectoryModel
-    t_ref: list[float] = field(default_factory=list)
-    params: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    t_ref: float
+    knots: np.ndarray | None = None
 
-    def __post_init__(self) -> None:
-        if self.params.shape != (len(self.t_ref), self.model.per_strip):
-            self.params = np.zeros((len(self.t_ref), self.model.per_strip))
+    @classmethod
+    def over(cls, model: TrajectoryModel, t0: float, t1: float,
+             knot_interval_s: float) -> StripBasis:
+        """The basis of a strip flown from ``t0`` to ``t1`` (s)."""
+        knots = None
+        if model is TrajectoryModel.SPLINE:
+            spans = max(1, math.ceil((t1 - t0) / knot_interval_s - 1e-9))
+            knots = t0 + knot_interval_s * np.arange(-3, spans + 4, dtype=np.float64)
+        return cls(model, 0.5 * (t0 + t1), knots)
+
+    @property
+    def size(self) -> int:
+        """Basis functions (each with a 3-vector coefficient)."""
+        if self.knots is not None:
+            return self.knots.shape[0] - 4
+        return {TrajectoryModel.OFFSET: 1, TrajectoryModel.DRIFT: 2}.get(self.model, 0)
+
+    def values(self, t: np.ndarray) -> np.ndarray:
+        """Basis values ``(n, size)`` at absolute times ``t`` (s)."""
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        if self.knots is not None:
+            inside = np.clip(t, self.knots[3], self.knots[-4])
+            return BSpline.design_matrix(inside, self.knots, 3).toarray()
+        out = np.ones((t.shape[0], self.size))
+        if self.size > 1:
+            out[:, 1] = t - self.t_ref
+        return out
+
+    def error(self, coefficients: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``e(t)`` (n, 3) of ``coefficients`` (size * 3,) at times ``t`` (s), map frame, m."""
+        return self.values(t) @ np.asarray(coefficients, dtype=np.float64).reshape(-1, 3)
+
+    def prior(self, settings: TrajectoryErrorSettings) -> sparse.csr_matrix:
+        """The priors' information (size * 3, size * 3) in units of 1/sigma^2: each
+        offset-like coefficient observed as 0 with the offset sigmas, a drift with the drift
+        sigma, and each spline coefficient's change from the one before with the drift sigma
+        times the knot interval (a random walk)."""
+        m = 3 * self.size
+        offsets = np.tile(1.0 / settings.offset_sigmas ** 2, self.size)
+        if self.knots is None:
+            if self.size > 1:
+                offsets[3:] = 1.0 / settings.drift_sigma_m_per_s ** 2
+            return sparse.diags(offsets).tocsr()
+        step = settings.drift_sigma_m_per_s * float(self.knots[1] - self.knots[0])
+        diff = sparse.eye(m - 3, m, k=3) - sparse.eye(m - 3, m)
+        return (sparse.diags(offsets) + diff.T @ diff / step ** 2).tocsr()
+
+
+@dataclass
+class TrajectoryState:
+    """The current estimate of every strip's error, strips in the calibration's order: their
+    bases and one vector of all their coefficients (``starts``: where each strip's begin)."""
+
+    model: TrajectoryModel
+    knot_interval_s: float = 20.0
+    bases: list[StripBasis] = field(default_factory=list)
+    params: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    starts: list[int] = field(default_factory=lambda: [0])
 
     @property
     def active(self) -> bool:
         """Errors are modelled at all (``auto`` models none until it has chosen)."""
-        return self.model.per_strip > 0
+        return self.model.estimated
 
-    def add_strip(self, t_ref: float) -> None:
-        """A new strip, its error zero about ``t_ref`` (s)."""
-        self.t_ref.append(float(t_ref))
-        self.params = np.vstack([self.params, np.zeros((1, self.model.per_strip))])
+    @property
+    def t_ref(self) -> list[float]:
+        """Each strip's reference (mid) time, s."""
+        return [b.t_ref for b in self.bases]
+
+    def add_strip(self, t0: float, t1: float) -> None:
+        """A new strip flown from ``t0`` to ``t1`` (s), its error zero."""
+        basis = StripBasis.over(self.model, t0, t1, self.knot_interval_s)
+        self.bases.append(basis)
+        self.starts.append(self.starts[-1] + 3 * basis.size)
+        self.params = np.concatenate([self.params, np.zeros(3 * basis.size)])
+
+    def strip_params(self, k: int) -> np.ndarray:
+        """Strip ``k``'s coefficients (a view)."""
+        return self.params[self.starts[k]:self.starts[k + 1]]
 
     def error(self, k: int, t: np.ndarray) -> np.ndarray:
         """``e_k(t)`` (n, 3), map frame, m, at times ``t`` (s) of strip ``k``."""
-        return error_at(self.model, self.params[k], t - self.t_ref[k])
+        return self.bases[k].error(self.strip_params(k), t)
 
     def projected(self, rows: TrajectoryRows) -> np.ndarray:
         """``n . (e_a(t_a) - e_b(t_b))`` of each row at the current estimate, m."""
-        return error_columns(self, rows) @ self.params.ravel() if len(rows) else np.empty(0)
+        return error_columns(self, rows) @ self.params if len(rows) else np.empty(0)
+
+    def prior(self, settings: TrajectoryErrorSettings) -> sparse.csr_matrix:
+        """The priors' information of every coefficient (block diagonal, 1/sigma^2)."""
+        if not self.bases:
+            return sparse.csr_matrix((0, 0))
+        return sparse.block_diag([b.prior(settings) for b in self.bases], format="csr")
+
+    def prior_sigmas(self, settings: TrajectoryErrorSettings) -> np.ndarray:
+        """A scale of each coefficient (m, m/s): the offsets' and drifts' prior sigmas."""
+        out = []
+        for b in self.bases:
+            scale = np.tile(settings.offset_sigmas, b.size)
+            if b.knots is None and b.size > 1:
+                scale[3:] = settings.drift_sigma_m_per_s
+            out.append(scale)
+        return np.concatenate(out) if out else np.zeros(0)
 
 
-def error_at(model: TrajectoryModel, params: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """``e(t)`` (n, 3) of one strip's ``params`` at ``dt`` (s) from its reference time."""
-    b = basis(model, dt)
-    return b @ np.asarray(params, dtype=np.float64).reshape(model.basis_size, 3)
-
-
-def error_columns(state: TrajectoryState, rows: TrajectoryRows):  # -> scipy.sparse matrix
-    """The trajectory columns of the correspondences (k, S * per_strip), sparse CSR: a point
-    of strip ``a`` adds ``+n b(t_a)``, the patch of strip ``b`` ``-n b(t_b)``."""
-    from scipy import sparse
-
-    model, m, nb = state.model, state.model.per_strip, state.model.basis_size
+def error_columns(state: TrajectoryState, rows: TrajectoryRows) -> sparse.csr_matrix:
+    """The trajectory columns of the correspondences (k, all coefficients), sparse CSR: a
+    point of strip ``a`` adds ``+n b(t_a)``, the patch of strip ``b`` ``-n b(t_b)``."""
     k = len(rows)
     cols, vals, row_idx = [], [], []
-    t_ref = np.asarray([*state.t_ref, 0.0])  # (index -1: no strip)
     for strips, times, sign in ((rows.strip_a, rows.t_a, 1.0), (rows.strip_b, rows.t_b, -1.0)):
-        has = strips >= 0
-        if not has.any():
-            continue
-        r = np.flatnonzero(has)
-        b = basis(model, times[has] - t_ref[strips[has]])  # (h, nb)
-        coef = sign * b[:, :, None] * rows.normal[has][:, None, :]  # (h, nb, 3)
-        base = strips[has, None, None] * m + np.arange(nb)[None, :, None] * 3 + \
-            np.arange(3)[None, None, :]
-        row_idx.append(np.broadcast_to(r[:, None, None], coef.shape).ravel())
-        cols.append(base.ravel())
-        vals.append(coef.ravel())
-    shape = (k, len(state.t_ref) * m)
+        for s in np.unique(strips[strips >= 0]):
+            r = np.flatnonzero(strips == s)
+            b = state.bases[int(s)].values(times[r])  # (h, size)
+            coef = sign * b[:, :, None] * rows.normal[r][:, None, :]  # (h, size, 3)
+            row_idx.append(np.broadcast_to(r[:, None, None], coef.shape).ravel())
+            cols.append((state.starts[int(s)] + np.arange(coef.shape[1] * 3)
+                         .reshape(1, -1, 3)).repeat(r.size, axis=0).ravel())
+            vals.append(coef.ravel())
+    shape = (k, state.params.shape[0])
     if not vals:
         return sparse.csr_matrix(shape)
     return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(row_idx),
@@ -173,22 +235,42 @@ def error_columns(state: TrajectoryState, rows: TrajectoryRows):  # -> scipy.spa
 
 @dataclass
 class StripError:
-    """One strip's estimated error (the calibration file's ``trajectory.strips``)."""
+    """One strip's estimated error (the calibration file's ``trajectory.strips``): its
+    basis, coefficients (size, 3) and their sigmas; ``offset`` and ``drift`` (m, m/s) are
+    the offset and drift models' coefficients, a spline's value at ``t_ref`` and no drift."""
 
     strip_id: int
-    t_ref: float
-    offset: np.ndarray
-    offset_sigma: np.ndarray
-    drift: np.ndarray | None = None
-    drift_sigma: np.ndarray | None = None
+    basis: StripBasis
+    coefficients: np.ndarray
+    sigma: np.ndarray
+
+    @property
+    def t_ref(self) -> float:
+        return self.basis.t_ref
+
+    @property
+    def offset(self) -> np.ndarray:
+        """The error at ``t_ref``, m."""
+        return self.error(np.array([self.t_ref]))[0]
+
+    @property
+    def offset_sigma(self) -> np.ndarray:
+        """Its sigma (a spline's from the coefficients' sigmas alone), m."""
+        b = self.basis.values(np.array([self.t_ref]))[0]
+        return np.sqrt((b[:, None] ** 2 * self.sigma ** 2).sum(axis=0))
+
+    @property
+    def drift(self) -> np.ndarray | None:
+        """The drift rate (m/s) of the drift model, else None."""
+        return self.coefficients[1] if self.basis.model is TrajectoryModel.DRIFT else None
+
+    @property
+    def drift_sigma(self) -> np.ndarray | None:
+        return self.sigma[1] if self.basis.model is TrajectoryModel.DRIFT else None
 
     def error(self, t: np.ndarray) -> np.ndarray:
         """``e(t)`` (n, 3) at absolute times ``t`` (s), map frame, m."""
-        t = np.asarray(t, dtype=np.float64).reshape(-1)
-        out = np.broadcast_to(self.offset, (t.shape[0], 3)).copy()
-        if self.drift is not None:
-            out += (t - self.t_ref)[:, None] * self.drift[None, :]
-        return out
+        return self.basis.error(self.coefficients.ravel(), t)
 
 
 @dataclass
@@ -201,22 +283,18 @@ class TrajectoryEstimate:
     @classmethod
     def from_state(cls, state: TrajectoryState, strip_ids: Sequence[int],
                    sigma: np.ndarray) -> TrajectoryEstimate:
-        """The estimate of ``state`` with standard deviations ``sigma`` (S, per_strip)."""
+        """The estimate of ``state`` with standard deviations ``sigma`` (all coefficients)."""
         out = {}
         for k, sid in enumerate(strip_ids):
-            p, s = state.params[k], sigma[k]
-            drift = state.model is TrajectoryModel.DRIFT
-            out[int(sid)] = StripError(int(sid), state.t_ref[k], p[:3].copy(), s[:3].copy(),
-                                       p[3:6].copy() if drift else None,
-                                       s[3:6].copy() if drift else None)
+            part = slice(state.starts[k], state.starts[k + 1])
+            out[int(sid)] = StripError(int(sid), state.bases[k],
+                                       state.params[part].reshape(-1, 3).copy(),
+                                       sigma[part].reshape(-1, 3).copy())
         return cls(state.model, out)
 
     def error(self, strip_id: int, t: np.ndarray) -> np.ndarray:
         """``e_s(t)`` (n, 3) of strip ``strip_id`` (zero for a strip not estimated)."""
-        se = self.strips.get(int(strip_id))
-        if se is None:
-            return np.zeros((np.asarray(t).reshape(-1).shape[0], 3))
-        return se.error(t)
+        return self.errors(strip_id, t)
 
     def errors(self, strip_id: np.ndarray | int, t: np.ndarray) -> np.ndarray:
         """``e_s(t)`` (n, 3) of points of strips ``strip_id`` (one id, or one per point) at
@@ -240,13 +318,13 @@ class TrajectoryEstimate:
 
 __all__ = [
     "AUTO_SIGMA0_RATIO",
+    "SPLINE_INTERPOLATION",
+    "StripBasis",
     "StripError",
     "TrajectoryErrorSettings",
     "TrajectoryEstimate",
     "TrajectoryModel",
     "TrajectoryRows",
     "TrajectoryState",
-    "basis",
-    "error_at",
     "error_columns",
 ]

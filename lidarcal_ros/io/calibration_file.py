@@ -15,7 +15,13 @@ from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
 from lidarcal_ros.core.georeferencing import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.trajectory_errors import StripError, TrajectoryEstimate, TrajectoryModel
+from lidarcal_ros.core.trajectory_errors import (
+    SPLINE_INTERPOLATION,
+    StripBasis,
+    StripError,
+    TrajectoryEstimate,
+    TrajectoryModel,
+)
 from lidarcal_ros.core.units import finite_or_none
 from lidarcal_ros.errors import ConfigError, OutputError
 from lidarcal_ros.io.output_files import os_reason, write_text
@@ -114,19 +120,27 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
 
 def trajectory_document(estimate: TrajectoryEstimate) -> dict[str, Any]:
     """interface.md's ``trajectory`` block: each strip's error ``e_s(t)`` (delivered - true,
-    map frame, m; drift in m/s about ``t_ref``, s) and its sigmas."""
+    map frame, m; drift in m/s about ``t_ref``, s; a spline's knots, coefficients and
+    interpolation) and its sigmas."""
     strips: dict[str, Any] = {}
     for sid in sorted(estimate.strips):
         se = estimate.strips[sid]
-        entry: dict[str, Any] = {"t_ref": float(se.t_ref),
-                                 "offset": [float(v) for v in se.offset],
-                                 "offset_sigma": [finite_or_none(float(v))
-                                                  for v in se.offset_sigma]}
+        entry: dict[str, Any] = {"t_ref": float(se.t_ref), "offset": _floats(se.offset),
+                                 "offset_sigma": _floats(se.offset_sigma)}
         if se.drift is not None and se.drift_sigma is not None:
-            entry["drift"] = [float(v) for v in se.drift]
-            entry["drift_sigma"] = [finite_or_none(float(v)) for v in se.drift_sigma]
+            entry["drift"] = _floats(se.drift)
+            entry["drift_sigma"] = _floats(se.drift_sigma)
+        if se.basis.knots is not None:
+            entry["knots"] = _floats(se.basis.knots)
+            entry["coefficients"] = [_floats(c) for c in se.coefficients]
+            entry["coefficient_sigma"] = [_floats(c) for c in se.sigma]
+            entry["interpolation"] = SPLINE_INTERPOLATION
         strips[str(sid)] = entry
     return {"model": estimate.model.value, "strips": strips}
+
+
+def _floats(values: Any) -> list[float | None]:
+    return [finite_or_none(float(v)) for v in np.asarray(values).ravel()]
 
 
 def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
@@ -135,8 +149,9 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
     Raises
     ------
     ConfigError
-        A model other than offset or drift, a strip id that is not a whole number, a missing
-        or non-finite ``t_ref``, ``offset`` or ``drift``; one line naming the key.
+        A model other than offset, drift or spline, a strip id that is not a whole number, a
+        missing or non-finite ``t_ref``, ``offset``, ``drift``, ``knots`` or
+        ``coefficients``; one line naming the key.
     """
     if not isinstance(block, Mapping):
         raise ConfigError(f"{path}: trajectory must be a mapping with model and strips")
@@ -144,8 +159,8 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
         model = TrajectoryModel(block.get("model"))
     except ValueError:
         model = TrajectoryModel.NONE
-    if model not in (TrajectoryModel.OFFSET, TrajectoryModel.DRIFT):
-        raise ConfigError(f"{path}: trajectory.model must be offset or drift, got "
+    if not model.estimated:
+        raise ConfigError(f"{path}: trajectory.model must be offset, drift or spline, got "
                           f"{block.get('model')!r}")
     raw = block.get("strips")
     if not isinstance(raw, Mapping):
@@ -160,23 +175,35 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
         if not isinstance(entry, Mapping):
             raise ConfigError(f"{where} must be a mapping with t_ref and offset")
 
-        def vector(name: str, size: int, entry: Mapping[str, Any] = entry,
+        def vector(name: str, size: int | None, entry: Mapping[str, Any] = entry,
                    where: str = where) -> np.ndarray:
             value = entry.get(name)
             try:
-                out = np.array(value, dtype=np.float64).reshape(size)
+                out = np.array(value, dtype=np.float64).reshape(-1 if size is None else size)
             except (TypeError, ValueError):
-                raise ConfigError(f"{where}.{name} must be {size} finite numbers, got "
-                                  f"{value!r}") from None
-            if not np.isfinite(out).all():
-                raise ConfigError(f"{where}.{name} must be {size} finite numbers, got "
-                                  f"{value!r}")
+                out = np.array([np.nan])
+            if not out.size or not np.isfinite(out).all():
+                raise ConfigError(f"{where}.{name} must be {size or 'a list of'} finite "
+                                  f"numbers, got {value!r}")
             return out
 
         t_ref = float(vector("t_ref", 1)[0])
-        offset = vector("offset", 3)
-        drift = vector("drift", 3) if model is TrajectoryModel.DRIFT else None
-        strips[sid] = StripError(sid, t_ref, offset, np.full(3, np.nan), drift)
+        if model is TrajectoryModel.SPLINE:
+            knots = vector("knots", None)
+            coefficients = vector("coefficients", None)
+            if knots.size < 5 or np.any(np.diff(knots) <= 0) or \
+                    coefficients.size != 3 * (knots.size - 4):
+                raise ConfigError(f"{where}: a cubic spline of {knots.size} increasing knots "
+                                  f"takes {3 * max(knots.size - 4, 0)} coefficients, got "
+                                  f"{coefficients.size}")
+            basis = StripBasis(model, t_ref, knots)
+        else:
+            coefficients = vector("offset", 3)
+            if model is TrajectoryModel.DRIFT:
+                coefficients = np.concatenate([coefficients, vector("drift", 3)])
+            basis = StripBasis(model, t_ref)
+        strips[sid] = StripError(sid, basis, coefficients.reshape(-1, 3),
+                                 np.full((coefficients.size // 3, 3), np.nan))
     return TrajectoryEstimate(model, strips)
 
 
