@@ -27,9 +27,9 @@ surface (within 5 mm).
 
 With ``--trajectory-errors`` the delivered trajectory errs per strip as a typical
 post-processed GNSS/INS solution does (the simulator's ``TYPICAL_TRAJECTORY_ERRORS``: offsets
-4 cm horizontal / 5 cm vertical, drift 1 cm per 10 s, a 1 cm slow oscillation; method.md
+4 cm horizontal / 5 cm vertical, drift 1 cm per 10 s, a 1 cm slow oscillation; docs/method.md
 section 11), and each mission is calibrated with every ``--trajectory-models`` (default
-``none drift auto``) in the same run; six control points. The checks then are method.md
+``none drift auto``) in the same run; six control points. The checks then are docs/method.md
 section 11's: boresight within 1 arcsec, dr within 1 cm, dS within 1e-5, every estimated bias
 within 3 sigma; the corrected points' median vertical error within 5 mm and their rms90
 within 1.25 times that of the same mission simulated without trajectory errors and
@@ -132,7 +132,7 @@ def rms90(dz: np.ndarray) -> float:
 def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[str, float],
                    model: str, trajectory_models: list[str]) -> int:
     """Calibrate ``sim`` (with trajectory errors) with each of ``trajectory_models``, against
-    ``ideal`` (the same mission without them, the trajectory taken as exact): method.md
+    ``ideal`` (the same mission without them, the trajectory taken as exact): docs/method.md
     section 11's checks (module docstring); the number of failed checks."""
     failures = 0
     floor = calibrate(ideal.mission, CalibrationSettings(model=model, solve_for=SOLVE_ALL))

@@ -145,3 +145,10 @@ def test_interface_documents_every_key_of_the_calibration_file() -> None:
             f"calibration file key {key!r} is not in docs/interface.md's table")
 
 
+def test_no_citation_of_a_document_outside_the_repository() -> None:
+    """The method and contract pages of the project's shared folder are not part of a clone:
+    the package cites docs/ (data read from there, the test vectors and LAS samples, may
+    stay: docs/method.md, "Test vectors")."""
+    out = subprocess.run(["git", "grep", "-n", "-E", r"shared/(method|interface)\.md"],
+                         cwd=ROOT, capture_output=True, text=True).stdout
+    assert not out, out
