@@ -27,9 +27,9 @@ surface (within 5 mm).
 
 With ``--trajectory-errors`` the delivered trajectory errs per strip as a typical
 post-processed GNSS/INS solution does (the simulator's ``TYPICAL_TRAJECTORY_ERRORS``: offsets
-4 cm horizontal / 5 cm vertical, drift 1 cm per 10 s, a 1 cm slow oscillation; method.md
+4 cm horizontal / 5 cm vertical, drift 1 cm per 10 s, a 1 cm slow oscillation; docs/method.md
 section 11), and each mission is calibrated with every ``--trajectory-models`` (default
-``none drift auto``) in the same run; six control points. The checks then are method.md
+``none drift auto``) in the same run; six control points. The checks then are docs/method.md
 section 11's: boresight within 1 arcsec, dr within 1 cm, dS within 1e-5, every estimated bias
 within 3 sigma; the corrected points' median vertical error within 5 mm and their rms90
 within 1.25 times that of the same mission simulated without trajectory errors and
@@ -69,7 +69,7 @@ from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 ARCSEC = math.pi / 180 / 3600
 TOL = {"dX": 0.01, "dY": 0.01, "dZ": 0.01, "dr": 0.01, "dS": 1e-5,
        "domega": ARCSEC, "dphi": ARCSEC, "dkappa": ARCSEC}
-#: method.md section 11's bars with trajectory errors: dphi, dr and dS; every other estimated
+#: docs/method.md section 11's bars with trajectory errors: dphi, dr and dS; every other estimated
 #: bias within 3 sigma (weakly determined ones honestly wide).
 TRAJECTORY_TOL = {"dphi": ARCSEC, "dr": 0.01, "dS": 1e-5}
 SLACK = {"dX": 1e-3, "dY": 1e-3, "dZ": 1e-3, "dr": 1e-3, "dS": 1e-6,
@@ -137,7 +137,7 @@ def rms90(dz: np.ndarray) -> float:
 def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[str, float],
                    model: str, trajectory_models: list[str]) -> int:
     """Calibrate ``sim`` (with trajectory errors) with each of ``trajectory_models``, against
-    ``ideal`` (the same mission without them, the trajectory taken as exact): method.md
+    ``ideal`` (the same mission without them, the trajectory taken as exact): docs/method.md
     section 11's checks (module docstring); the number of failed checks."""
     failures = 0
     floor = calibrate(ideal.mission, CalibrationSettings(model=model, solve_for=SOLVE_ALL))

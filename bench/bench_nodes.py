@@ -962,7 +962,7 @@ def main() -> int:
     parser.add_argument("--memory-passes", type=int, default=4)
     parser.add_argument("--dds-profile", type=Path,
                         help="Fast DDS profile for every process (default: the project's "
-                        "config/loopback.xml); e.g. ../shared/dds/loopback.xml to see the "
+                        "config/loopback.xml); e.g. a copy without its segment size to see the "
                         "cost of Fast DDS's default 512 KiB shared-memory segment")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()

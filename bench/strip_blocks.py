@@ -1,4 +1,4 @@
-"""The adjustment with every strip's trajectory errors (method.md section 11) against the
+"""The adjustment with every strip's trajectory errors (docs/method.md section 11) against the
 number of strips: time and memory of the reduced solve (core/strip_blocks.py) for a block of
 parallel lines in rows with cross lines, against the dense solve of the whole system measured
 in the same run.

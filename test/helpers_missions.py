@@ -70,7 +70,7 @@ def write_params_file(path: Path, values: dict[str, Any], *, section: str = "/**
 
 def write_calibration_yaml(path: Path, biases: dict[str, float], *, drop: str | None = None,
                            override: dict[str, float] | None = None) -> Path:
-    """A calibration file of interface.md with the given bias values."""
+    """A calibration file of docs/interface.md with the given bias values."""
     values = {**biases, **(override or {})}
     doc = {"lidarcal_calibration": {
         "biases": {n: {"value": float(values[n]), "sigma": None, "estimated": n != "dZ"}
@@ -435,7 +435,7 @@ def with_trajectory_errors(mission: Mission, *, seed: int, offset_m: Sequence[fl
         0.04, 0.04, 0.05), drift_m_per_s: float = 0.001, oscillation_m: float = 0.01,
         period_s: float = 60.0) -> tuple[Mission, dict[int, Callable[[np.ndarray], np.ndarray]]]:
     """Each strip's points and the trajectory while it was flown moved by a trajectory error
-    ``e_s(t)`` (method.md section 11: a random offset, drift and slow oscillation about the
+    ``e_s(t)`` (docs/method.md section 11: a random offset, drift and slow oscillation about the
     strip's mid time), as a navigation solution's error moves them; with ``e_s`` by strip id."""
     out = _copy(mission)
     rng = np.random.default_rng(seed)

@@ -1,4 +1,4 @@
-"""End-to-end calibration on simulated missions with known biases (method.md sections 4-7).
+"""End-to-end calibration on simulated missions with known biases (docs/method.md sections 4-7).
 
 The simulator ray-casts with exact rotations; the calibration sees only points, times and
 trajectory positions, as from a bag.
@@ -96,7 +96,7 @@ def test_projected_crs_magnitudes_give_the_same_estimate(paper_run: tuple) -> No
     assert np.all(diff <= 0.05 * np.nan_to_num(result.solution.sigma, nan=1.0)), diff
 
 
-# ---------------------------------------------------------------- method.md section 7
+# ---------------------------------------------------------------- docs/method.md section 7
 def test_remark1_strips_alone_cannot_see_dz() -> None:
     sim = _small(biases=BIASES, n_control=0)
     res = calibrate(sim.mission, CalibrationSettings(solve_for=ALL, max_iterations=3))

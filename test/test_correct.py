@@ -161,7 +161,7 @@ def test_range_and_scan_angle(corrected: dict[str, Any]) -> None:
 # ------------------------------------------------------------------ reflectance
 def test_reflectance_matches_the_truth(corrected: dict[str, Any]) -> None:
     """With the sensor's calibration constant the reflectance is the Lambertian reflectance
-    the simulator gave each surface, without any further scale (method.md section 8; the
+    the simulator gave each surface, without any further scale (docs/method.md section 8; the
     meaning pinned in lidarcal_ros.core.radiometry)."""
     p, tr = corrected["points"], corrected["truth"]
     sel = (tr["incidence"] < math.radians(60)) & np.isfinite(p["reflectance"])

@@ -53,7 +53,7 @@ def _quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, fl
 
 
 def test_kappa_is_the_yaw_less_a_quarter_turn_whatever_the_roll_and_pitch() -> None:
-    # Body x forward (REP-103): yaw 90 degrees flies north, method.md's kappa 0; yaw 0 flies
+    # Body x forward (REP-103): yaw 90 degrees flies north, docs/method.md's kappa 0; yaw 0 flies
     # east, kappa -90 degrees (forward = (-sin kappa, cos kappa)).
     assert heading_from_quaternion(*_quaternion(0, 0, math.pi / 2)) == pytest.approx(0.0)
     assert heading_from_quaternion(*_quaternion(0, 0, 0.3)) == pytest.approx(0.3 - math.pi / 2)

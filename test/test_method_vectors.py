@@ -1,4 +1,4 @@
-"""Pin every sign of method.md with the shared test vectors."""
+"""Pin every sign of docs/method.md with the shared test vectors."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`lidarcal plan`: method.md section 7 from the normal matrix of a simulated plan."""
+"""`lidarcal plan`: docs/method.md section 7 from the normal matrix of a simulated plan."""
 
 from __future__ import annotations
 
@@ -223,7 +223,7 @@ def test_bad_dsm_one_line(tmp_path: Path, capsys) -> None:
 
 
 def test_a_banked_turn_over_one_track_shows_dkappa() -> None:
-    """Lines all on one track cannot see dkappa (method.md section 7, remark 6); a banked
+    """Lines all on one track cannot see dkappa (docs/method.md section 7, remark 6); a banked
     turn across them can, by the rigorous model's normal matrix (the poses' INS attitude,
     section 10), better than by the level model's; the report names the model."""
     turn = {"id": 7, "start": [-150, -HALF], "end": [150, HALF], "height": 1150,
@@ -254,7 +254,7 @@ def _rotated(lines: list[dict], heading_deg: float) -> list[dict]:
 
 
 def test_the_contract_example_plan_prints_its_table(tmp_path: Path, capsys) -> None:
-    """interface.md's example: lines 3-4 east-west (a level pose heading east is the identity
+    """docs/interface.md's example: lines 3-4 east-west (a level pose heading east is the identity
     quaternion), with and without its control point."""
     lines = [{"id": 1, "start": [0, -HALF], "end": [0, HALF], "height": 1150},
              {"id": 2, "start": [0, HALF], "end": [0, -HALF], "height": 1150},
@@ -325,7 +325,7 @@ def test_a_plan_of_one_line_due_east() -> None:
 
 
 def test_what_a_plan_separates_with_trajectory_errors(tmp_path: Path, capsys) -> None:
-    """The same correspondences analysed with each strip's drift estimated too (method.md
+    """The same correspondences analysed with each strip's drift estimated too (docs/method.md
     section 11): the lever arm, a constant shift of each straight strip, is lost to the
     strips' offsets and the advice says so; dphi stays; crossing lines keep dkappa; the
     predicted sigmas are no smaller than with the trajectory as exact."""

@@ -507,7 +507,7 @@ def test_a_thinned_report_uses_and_says_the_calibration_s_thinning(reported: Rep
 
 
 def test_the_report_says_where_the_heading_comes_from(reported: Reported) -> None:
-    # the small mission's poses carry identity orientations: the track, as method.md
+    # the small mission's poses carry identity orientations: the track, as docs/method.md
     assert dict(reported.content.facts)["heading"] == (
         "from the track (the poses carry no orientation)")
 

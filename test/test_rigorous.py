@@ -1,4 +1,4 @@
-"""The rigorous model of method.md section 10 (``core.attitude``, ``core.georeferencing``):
+"""The rigorous model of docs/method.md section 10 (``core.attitude``, ``core.georeferencing``):
 every number of the shared ``rigorous_vectors.json``, the interpolation of the attitude, and
 which model a strip gets and why."""
 

@@ -51,7 +51,7 @@ ZERO = dict.fromkeys(PARAMETER_NAMES, 0.0)
 
 
 def design_matrix(x, z, kappa, beta):
-    """method.md section 3, written out independently of lidarcal_ros.core.model."""
+    """docs/method.md section 3, written out independently of lidarcal_ros.core.model."""
     c, s = np.cos(kappa), np.sin(kappa)
     sb, cb = np.sin(beta), np.cos(beta)
     a = np.zeros((len(x), 3, 8))

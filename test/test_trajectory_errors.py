@@ -1,4 +1,4 @@
-"""Per-strip trajectory errors estimated with the biases (method.md section 11)."""
+"""Per-strip trajectory errors estimated with the biases (docs/method.md section 11)."""
 
 from __future__ import annotations
 
@@ -180,7 +180,7 @@ def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool) -> None:
     ideal = calibrate(sim.mission, _settings(TrajectoryModel.NONE))
     dz_ideal = _vertical_errors(sim, sim.mission.strips, ideal, sim.mission.trajectory)
     assert _rms90(dz) < 1.25 * _rms90(dz_ideal)
-    # as exact, the same mission is off by centimetres (the defect method.md section 11 fixes)
+    # as exact, the same mission is off by centimetres (the defect docs/method.md section 11 fixes)
     assert exact.trajectory is None
     dz_exact = _vertical_errors(sim, mission.strips, exact, mission.trajectory)
     assert _rms90(dz_exact) > 2 * _rms90(dz)
@@ -206,7 +206,7 @@ def test_auto_keeps_an_exact_trajectory_exact_and_takes_a_drifting_one() -> None
 
 def test_offsets_alone_and_the_file_round_trip(tmp_path: Path) -> None:
     """Offsets only (3 per strip): the strips' offsets in the calibration file as
-    interface.md writes them, read back equal; the correction of a cloud removes them."""
+    docs/interface.md writes them, read back equal; the correction of a cloud removes them."""
     sim = _simulated(False)
     mission, _ = with_trajectory_errors(sim.mission, seed=5, drift_m_per_s=0.0,
                                         oscillation_m=0.0)

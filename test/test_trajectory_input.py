@@ -128,7 +128,7 @@ def test_auto_switches_to_the_publishers_type(probe: tuple[Any, Any],
             pub.publish(_odometry(k))
         _spin_until(executor, lambda: len(samples) == 5, 10, "5 samples")
         assert samples[-1][:3] == (2004.0, (2.0, -20.0, 800.0), "map")
-        # the orientation as published (its heading: method.md's kappa = yaw - 90 degrees)
+        # the orientation as published (its heading: docs/method.md's kappa = yaw - 90 degrees)
         kappa = headings_from_quaternions(np.array(samples[-1][3]))[0]
         assert math.degrees(kappa) == pytest.approx(-184.0 + 360.0)
         assert traj.errors == 0

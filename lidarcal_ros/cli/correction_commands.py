@@ -20,7 +20,7 @@ __all__ = ["add_correct_command", "cmd_correct"]
 
 def add_correct_command(sub: Any) -> None:
     p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
-                       description="Move every point by the estimated biases (method.md eq. "
+                       description="Move every point by the estimated biases (docs/method.md eq. "
                        "[13]) and turn its intensity into reflectance (radar equation); write "
                        "a bag (corrected clouds beside the input topics) or LAS/LAZ 1.4.",
                        epilog="Corrected clouds carry every input field, x, y, z corrected, "

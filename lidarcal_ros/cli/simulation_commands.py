@@ -54,7 +54,7 @@ def add_simulate_command(sub: Any) -> None:
                    "turning lines; otherwise identity orientation, positions only)")
     p.add_argument("--trajectory-errors", default=None, metavar="SPEC",
                    help="deliver the trajectory with per-strip errors, as a GNSS/INS solution "
-                   "errs (method.md section 11): each strip's points and trajectory carry "
+                   "errs (docs/method.md section 11): each strip's points and trajectory carry "
                    "e_s(t) = offset + drift (t - t_mid) + a slow oscillation, drawn per strip "
                    "and axis and recorded in the truth. 'typical': offsets 4 cm horizontal / "
                    "5 cm vertical sigma, drift 1 cm per 10 s sigma, a 1 cm oscillation of "
@@ -258,8 +258,8 @@ def add_plan_command(sub: Any) -> None:
                        "the normal matrix the calibration would see and report, per parameter, "
                        "whether it can be estimated, its predicted sigma and its largest "
                        "correlation, with advice in words.")
-    p.add_argument("plan", type=Path, help="flight plan YAML (interface.md)")
-    p.add_argument("--json", action="store_true", help="print JSON (interface.md format)")
+    p.add_argument("plan", type=Path, help="flight plan YAML (docs/interface.md)")
+    p.add_argument("--json", action="store_true", help="print JSON (docs/interface.md format)")
     p.add_argument("--seed", type=int, default=0, help="terrain seed (default 0)")
     p.set_defaults(func=cmd_plan)
 

@@ -1,4 +1,4 @@
-"""The modified least-squares adjustment of method.md section 6 and its observability analysis.
+"""The modified least-squares adjustment of docs/method.md section 6 and its observability analysis.
 
 Each point-to-patch correspondence is one scalar equation ``y = a . delta + e`` with
 ``y = n^T (X_A - X_B)`` and ``a = n^T (A_A - A_B)``: the weight matrix ``P' = P_W n n^T`` keeps
@@ -105,7 +105,7 @@ class Observations:
         Spatial cell of the observation: observations in one cell share errors (the same
         patches and points serve several strip pairs), see :func:`cluster_robust_sigma`.
     trajectory : TrajectoryRows, optional
-        The trajectory terms of each row, where trajectory errors are estimated (method.md
+        The trajectory terms of each row, where trajectory errors are estimated (docs/method.md
         section 11).
     """
 

@@ -1,14 +1,14 @@
 """The INS attitude of the trajectory: quaternions, rotations and their interpolation.
 
-Conventions (method.md section 10)
-----------------------------------
+Conventions (docs/method.md section 10)
+---------------------------------------
 A trajectory pose's orientation is REP-103's: the unit quaternion ``q = (x, y, z, w)`` rotates
-the body frame (x forward, y left, z up) into the map frame (x east, y north, z up). Method.md's
-body frame is right-forward-up, so the rotation from it to the map is
+the body frame (x forward, y left, z up) into the map frame (x east, y north, z up).
+docs/method.md's body frame is right-forward-up, so the rotation from it to the map is
 
 ``R_ins = R(q) P^T`` with ``P = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]``
 
-and, for a heading ``kappa`` (method.md's: the forward axis points along ``(-sin kappa,
+and, for a heading ``kappa`` (docs/method.md's: the forward axis points along ``(-sin kappa,
 cos kappa)``), a pitch (nose up positive, about the body's right axis) and a roll (right wing
 down positive, about the forward axis), ``R_ins = Rz(kappa) Rx(pitch) Ry(roll)``. A level pose
 gives ``R_ins = R_kappa``, the rotation of sections 2-4.
@@ -27,7 +27,7 @@ import numpy as np
 
 from lidarcal_ros.core.jit import compiled, inlined
 
-#: Method.md's body axes (right, forward, up) in REP-103's (forward, left, up):
+#: docs/method.md's body axes (right, forward, up) in REP-103's (forward, left, up):
 #: ``v_rep = P v_method``.
 P_BODY = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
@@ -78,7 +78,7 @@ def rotation_matrices(q: np.ndarray) -> np.ndarray:
 
 
 def body_rotations(q: np.ndarray) -> np.ndarray:
-    """``R_ins = R(q) P^T`` (n, 3, 3): method.md's body frame (right, forward, up) -> map.
+    """``R_ins = R(q) P^T`` (n, 3, 3): docs/method.md's body frame (right, forward, up) -> map.
 
     Its columns are the body's right, forward and up axes in the map frame: ``R(q)``'s
     columns are REP-103's forward, left and up, and right = -left.
@@ -120,7 +120,7 @@ def body_rotations_from_attitude(roll: np.ndarray | float, pitch: np.ndarray | f
     """``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (n, 3, 3) straight from the angles (radians,
     broadcast against each other; module docstring): the rotation of the poses of
     :func:`quaternions_from_attitude`, without the round trip through a quaternion, so that a
-    level pose (roll = pitch = 0) gives exactly method.md's ``R_kappa``."""
+    level pose (roll = pitch = 0) gives exactly docs/method.md's ``R_kappa``."""
     roll, pitch, kappa = np.broadcast_arrays(
         *(np.asarray(a, dtype=np.float64).reshape(-1) for a in (roll, pitch, kappa)))
     cr, sr = np.cos(roll), np.sin(roll)
@@ -327,7 +327,7 @@ def interpolated_frames(t: np.ndarray, xyz: np.ndarray, segment: np.ndarray,
                         traj_t: np.ndarray, traj_xyz: np.ndarray, traj_q: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Firing position, ``R_ins`` and the laser vector ``rho_hat = R_ins^T (X - X_o)`` of
-    each point (method.md section 10) from the trajectory samples around its time.
+    each point (docs/method.md section 10) from the trajectory samples around its time.
 
     The position is interpolated linearly (an aircraft's acceleration moves it by well under
     a millimetre from the chord between samples 20 ms apart), the attitude by a cubic

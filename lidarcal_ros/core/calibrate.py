@@ -1,4 +1,4 @@
-"""The quasi-rigorous calibration procedure (method.md sections 4-7): :func:`calibrate` a
+"""The quasi-rigorous calibration procedure (docs/method.md sections 4-7): :func:`calibrate` a
 mission, or drive a :class:`Calibrator` strip by strip; :class:`CalibrationSettings` are its
 options.
 
@@ -139,7 +139,7 @@ class CalibrationSettings:
     workers: int = 2
     #: When a parameter is reported as not separable or not observable.
     limits: ObservabilityLimits = field(default_factory=ObservabilityLimits)
-    #: Per-strip trajectory errors estimated with the biases (method.md section 11).
+    #: Per-strip trajectory errors estimated with the biases (docs/method.md section 11).
     trajectory: TrajectoryErrorSettings = field(
         default_factory=lambda: TrajectoryErrorSettings(TrajectoryModel.NONE))
 
@@ -309,7 +309,7 @@ class Calibrator:
 
     @property
     def trajectory(self) -> TrajectoryState:
-        """Every strip's trajectory error as estimated so far (method.md section 11)."""
+        """Every strip's trajectory error as estimated so far (docs/method.md section 11)."""
         return self.matcher.trajectory
 
     def run(self, *, max_iterations: int | None = None,
@@ -552,7 +552,7 @@ class Calibrator:
 
     def pair_discrepancies(self, delta: np.ndarray) -> list[PairDiscrepancies]:
         """Per strip pair holding its points, the normal discrepancy of every matched sample
-        point after correcting both strips by ``delta`` (8 biases, SI, method.md order):
+        point after correcting both strips by ``delta`` (8 biases, SI, docs/method.md order):
         at zero the discrepancies "before" calibration, at the estimate those "after".
 
         The points and the matching threshold are those of the QA of :meth:`run`, so the

@@ -1,4 +1,4 @@
-"""The adjustment side of a calibration's match-and-solve iteration (method.md sections 6-7).
+"""The adjustment side of a calibration's match-and-solve iteration (docs/method.md sections 6-7).
 
 Each iteration of :meth:`~lidarcal_ros.core.calibrate.Calibrator.iterate` matches, then:
 solves for the increment to the estimate with robust weights (:func:`robust_solve`), narrows
@@ -38,7 +38,7 @@ from lidarcal_ros.core.trajectory_errors import (
 
 @dataclass
 class TrajectoryTerms:
-    """The trajectory errors :func:`robust_solve` estimates with the biases (method.md section
+    """The trajectory errors :func:`robust_solve` estimates with the biases (docs/method.md section
     11), and what it leaves of them: the blocks of its last solve and the parameters'
     increment (all coefficients)."""
 
@@ -78,7 +78,7 @@ class Iteration:
         The re-matching noise of ``step`` (:func:`rematching_noise`, SI; NaN where not
         estimated or at the first iteration).
     trajectory : TrajectoryTerms, optional
-        The trajectory errors solved for with the biases (method.md section 11).
+        The trajectory errors solved for with the biases (docs/method.md section 11).
     """
 
     number: int

@@ -117,7 +117,7 @@ class CalibrationResult:
     #: CPU seconds of the calibration's threads in each of its stages
     #: (:class:`~lidarcal_ros.core.calibration_threads.StageClock`).
     stage_seconds: dict[str, float] = field(default_factory=dict)
-    #: Each strip's trajectory error estimated with the biases (method.md section 11), or
+    #: Each strip's trajectory error estimated with the biases (docs/method.md section 11), or
     #: None where the trajectory was taken as exact.
     trajectory: TrajectoryEstimate | None = None
     #: The trajectory model that ran, and where ``auto`` chose it, why.

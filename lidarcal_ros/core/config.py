@@ -120,7 +120,7 @@ SCHEMA: dict[str, ParameterSpec] = {
     "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
                                                   "Where ~/save writes the calibration"),
     "calibration.trajectory.model": ParameterSpec(
-        "auto", "str", "Per-strip trajectory errors estimated with the biases (method.md "
+        "auto", "str", "Per-strip trajectory errors estimated with the biases (docs/method.md "
         "section 11): 'none' (the trajectory as exact), 'offset' (3 per strip), 'drift' "
         "(offset and linear drift, 6 per strip), 'spline' (a cubic B-spline in time per axis, "
         "knots calibration.trajectory.knot_interval_s apart), 'auto' (drift where it fits the "
@@ -140,12 +140,12 @@ SCHEMA: dict[str, ParameterSpec] = {
     "matching.trajectory_window_s": float_parameter(
         0.5, "Half-width of the local-trajectory window, s", 0.01, 60.0),
     "matching.heading_source": ParameterSpec(
-        "auto", "str", "Heading of the local trajectory: 'track' (method.md: the direction of "
+        "auto", "str", "Heading of the local trajectory: 'track' (docs/method.md: the direction of "
         "the fitted line), 'attitude' (the trajectory's orientation: a crabbing aircraft), "
         "'auto' (the orientation where the trajectory has one that agrees with the track "
         "within 20 degrees, else the track)", choices=("auto", "track", "attitude")),
     "matching.model": ParameterSpec(
-        "auto", "str", "Point-positioning model: 'level' (method.md sections 2-4: a level "
+        "auto", "str", "Point-positioning model: 'level' (docs/method.md sections 2-4: a level "
         "platform), 'rigorous' (section 10: the poses' full INS attitude, roll, pitch and "
         "heading, interpolated to each firing time), 'auto' (rigorous where the poses carry "
         "a usable attitude at 10 Hz or more, else level)", choices=("auto", "level", "rigorous")),

@@ -1,4 +1,4 @@
-"""Compiled per-point loops of the correction: the biases removed from each return (method.md
+"""Compiled per-point loops of the correction: the biases removed from each return (docs/method.md
 eq. [13]), its beam quantities and reflectance, and the rows of the corrected cloud
 (:mod:`lidarcal_ros.pipeline.correction`); eq. [13] alone for
 :func:`lidarcal_ros.core.model.point_offsets`, which shares the body-frame displacement of the
@@ -35,7 +35,7 @@ def _body_offset(d: tuple[float, float, float, float, float, float, float, float
                  z: float, beta: float, sin_beta: float, cos_beta: float
                  ) -> tuple[float, float, float]:
     """``C @ delta`` of one point: the displacement the biases cause in the body frame
-    (right, forward, up), m; the columns ``C`` of method.md section 10, as
+    (right, forward, up), m; the columns ``C`` of docs/method.md section 10, as
     :func:`lidarcal_ros.core.model.point_offsets` documents."""
     right = d[0] + z * d[4] - sin_beta * d[6] + z * beta * d[7]
     fwd = d[1] - z * d[3] + x * d[5]
@@ -47,7 +47,7 @@ def _body_offset(d: tuple[float, float, float, float, float, float, float, float
 def _bias_offset(d: tuple[float, float, float, float, float, float, float, float], x: float,
                  z: float, beta: float, sin_beta: float, cos_beta: float, c: float, s: float
                  ) -> tuple[float, float, float]:
-    """``A @ delta`` of one point (method.md eq. [8], map frame, m): the body-frame
+    """``A @ delta`` of one point (docs/method.md eq. [8], map frame, m): the body-frame
     displacement rotated by the heading ``(c, s)``."""
     right, fwd, up = _body_offset(d, x, z, beta, sin_beta, cos_beta)
     return c * right - s * fwd, s * right + c * fwd, up
@@ -60,7 +60,7 @@ def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarr
     """``A @ delta`` of each point (map frame, m), or ``base - A @ delta`` (eq. [13]) when
     ``base`` has a row per point (an empty ``base``: the offsets).
 
-    The body-frame displacement (right, forward, up), rotated by kappa (method.md eq. [8]),
+    The body-frame displacement (right, forward, up), rotated by kappa (docs/method.md eq. [8]),
     or by each point's ``rotation`` (n, 3, 3; section 10) when it has a row per point, as
     :func:`lidarcal_ros.core.model.point_offsets` documents.
     """
@@ -205,7 +205,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
     """Correct each return and derive its beam quantities and reflectance, in one compiled
     call (:func:`lidarcal_ros.pipeline.correction.correct_columns`, whose module docstring gives
     the steps): the firing position and body frame of each point (a window's line and
-    heading, method.md section 4, or the INS attitude interpolated between samples, section
+    heading, docs/method.md section 4, or the INS attitude interpolated between samples, section
     10, :func:`lidarcal_ros.core.attitude.interpolated_frames`), ``beta = atan(x / z)``,
     eq. [13] as :func:`bias_offsets`, then range, scan angle, incidence and
     :meth:`lidarcal_ros.core.radiometry.RadiometricModel.reflectance` (in float32, operation
@@ -243,7 +243,7 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
         The trajectory's samples: (s,), (s, 3), (s, 4) float64 (unit quaternions in one
         hemisphere, :class:`~lidarcal_ros.core.mission.Trajectory`).
     delta : (8,) float64
-        Biases to remove (method.md order, SI).
+        Biases to remove (docs/method.md order, SI).
     normals : (n, 3) float64
         Unit surface normals, map frame (NaN: none).
     rough : (n,) bool, or empty

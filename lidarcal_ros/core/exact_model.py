@@ -2,7 +2,7 @@
 pulse of known true geometry.
 
 The simulator (:mod:`lidarcal_ros.core.simulate`) uses *exact* geometry (rotations, ranges,
-mirror angles), not the linearised bias model of method.md section 3
+mirror angles), not the linearised bias model of docs/method.md section 3
 (:mod:`lidarcal_ros.core.model`), so that it tests the calibration rather than agreeing with
 it by construction.
 
@@ -19,9 +19,9 @@ identity boresight, mirror scale 1, no range offset. The system georeferences wi
   ``X_b = X_o + R_ins [dX, dY, dZ] + R_ins R_B rho``, ``rho = -r [sin beta, 0, cos beta]``,
   with the exact boresight ``R_B = Rz(dkappa) Ry(dphi) Rx(domega)``
   (``scipy Rotation.from_euler("xyz", [domega, dphi, dkappa])``), whose small-angle form is
-  method.md's ``I + skew``.
+  docs/method.md's ``I + skew``.
 
-``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (body right-forward-up to map, method.md section 10,
+``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (body right-forward-up to map, docs/method.md section 10,
 :mod:`lidarcal_ros.core.attitude`) and ``X_o`` are the exact attitude and position of the
 flight at the firing time (:mod:`lidarcal_ros.core.flight_path`: straight lines or turns,
 crabbed into the wind, banked, in rough air), not interpolated from the trajectory's samples.
@@ -46,7 +46,7 @@ def georeference(
     biases: dict[str, float],
     range_noise: np.ndarray | float = 0.0,
 ) -> np.ndarray:
-    """Point reported by the biased system for a pulse of known true geometry (method.md
+    """Point reported by the biased system for a pulse of known true geometry (docs/method.md
     section 10: ``X_b = X_o + R_ins [dX, dY, dZ] + R_ins R_B rho``,
     ``rho = -(r_true + dr + noise) [sin((1 + dS) theta), 0, cos((1 + dS) theta)]``).
 

@@ -7,7 +7,7 @@ sways a little. :class:`FlightLine` gives the IMU origin and the attitude at any
 (the simulator georeferences every pulse with them, not with interpolated samples), and what
 the planning of a mission needs (where the swath surely lies, how far it may reach).
 
-Angles and frames are method.md's (section 10, :mod:`lidarcal_ros.core.attitude`): the body
+Angles and frames are docs/method.md's (section 10, :mod:`lidarcal_ros.core.attitude`): the body
 frame is right-forward-up; ``kappa`` is the heading of the forward axis, counterclockwise from
 map north (forward ``(-sin kappa, cos kappa)``, right ``(cos kappa, sin kappa)``), so a left
 turn makes it grow; roll is right wing down positive, pitch nose up positive, and

@@ -2,11 +2,11 @@
 
 Two models give it (``matching.model``; :mod:`lidarcal_ros.core.local_trajectory` chooses):
 
-``level`` (method.md sections 2-4)
+``level`` (docs/method.md sections 2-4)
     The platform is taken as level: the body frame (right, forward, up) is the map frame
     turned by the heading ``kappa``, ``R_kappa``, and the firing position comes from a line
     fitted to the trajectory positions around the firing time.
-``rigorous`` (method.md section 10)
+``rigorous`` (docs/method.md section 10)
     The body frame is the INS attitude interpolated to the firing time, ``R_ins`` (roll,
     pitch and heading), and the firing position is interpolated between trajectory samples.
 
@@ -30,7 +30,7 @@ RIGOROUS = "rigorous"
 
 @dataclass
 class LaserGeometry:
-    """Per-point quantities of method.md sections 4 and 10 (all (n,) float64 unless stated).
+    """Per-point quantities of docs/method.md sections 4 and 10 (all (n,) float64 unless stated).
 
     Attributes
     ----------
@@ -83,7 +83,7 @@ class LaserGeometry:
         Float64 sine and cosine cost some 10 ns a point each, more than the rest of eq. [13]
         together, so the heading's come once per trajectory window and the mirror angle's
         from the coordinates: ``sin beta = -x / r``, ``cos beta = -z / r`` with ``r`` the
-        :attr:`range` (method.md section 10: ``sb = -x / r``, ``cb = -z / r``).
+        :attr:`range` (docs/method.md section 10: ``sb = -x / r``, ``cb = -z / r``).
         """
         if self.cos_kappa is None or self.sin_kappa is None:
             self.cos_kappa = np.cos(self.kappa)
@@ -143,7 +143,7 @@ def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
     correction is seen from.
 
     The level model's ``x`` is the horizontal distance across the heading and ``z`` the
-    height difference (method.md section 4); the rigorous model's ``(x, y, z)`` is
+    height difference (docs/method.md section 4); the rigorous model's ``(x, y, z)`` is
     ``R_ins^T (X - X_o)`` (section 10).
     """
     rel = xyz - frame.origin

@@ -1,10 +1,10 @@
-"""Which point-positioning model a strip gets, the rigorous model's geometry (method.md
+"""Which point-positioning model a strip gets, the rigorous model's geometry (docs/method.md
 section 10), and the QA of the laser vectors it recovers.
 
 ``matching.model`` chooses:
 
 ``level``
-    method.md sections 2-4: a level platform, the heading from the local trajectory's line
+    docs/method.md sections 2-4: a level platform, the heading from the local trajectory's line
     (or from the orientation's yaw, ``matching.heading_source``).
 ``rigorous``
     section 10: the INS attitude (roll, pitch, heading) of the poses, interpolated to each
@@ -245,7 +245,7 @@ def attitude_segments(t: np.ndarray, trajectory: Trajectory, *, source: str = "p
 def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                       window_s: float = 0.5, min_samples: int = 2,
                       source: str = "points") -> LaserGeometry:
-    """Method.md section 10: the firing position and ``R_ins`` interpolated to each firing
+    """docs/method.md section 10: the firing position and ``R_ins`` interpolated to each firing
     time (:func:`~lidarcal_ros.core.attitude.interpolated_frames`), and the laser vector
     ``rho_hat = R_ins^T (X - X_o)``.
 
@@ -333,7 +333,7 @@ MAX_OUTSIDE_FOV = 0.01
 @dataclass
 class LaserVectorQA:
     """What the recovered laser vectors ``rho_hat`` of a strip say about the data
-    (method.md section 10).
+    (docs/method.md section 10).
 
     Attributes
     ----------

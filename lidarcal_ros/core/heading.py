@@ -1,6 +1,6 @@
 """The heading ``kappa`` of the local trajectory: from the track, or from the IMU's attitude.
 
-Method.md section 4 takes ``kappa`` from the ground track of the trajectory's positions. An
+docs/method.md section 4 takes ``kappa`` from the ground track of the trajectory's positions. An
 aircraft flying in a crosswind *crabs*: its body (and the scanner, fixed to it) points a few
 degrees off the track, so the scan plane is not perpendicular to the track, and a heading from
 the track puts every return's ``x`` and every bias direction off by the crab angle
@@ -10,7 +10,7 @@ trajectory carries the IMU's orientation, its yaw gives the heading of the body 
 ``matching.heading_source`` chooses:
 
 ``track``
-    method.md as written: the heading of each window's fitted line.
+    docs/method.md as written: the heading of each window's fitted line.
 ``attitude``
     the orientation's heading, averaged over the window's samples (a circular mean); a
     window whose samples lack an orientation is an error.
@@ -21,11 +21,11 @@ trajectory carries the IMU's orientation, its yaw gives the heading of the body 
     A trajectory with identity orientations (the contract allows them) has none, so it is
     the track.
 
-Conventions. ``kappa`` is method.md's: ``R_kappa`` maps the body frame (right, forward, up)
+Conventions. ``kappa`` is docs/method.md's: ``R_kappa`` maps the body frame (right, forward, up)
 to the map (east, north, up), so the body's forward axis points along ``(-sin kappa, cos
 kappa)``. An orientation quaternion is REP-103's: it rotates the body frame (x forward, y left,
 z up) into the map frame, so its yaw ``psi`` is the angle from east to the forward axis and
-``kappa = psi - pi/2``. This module serves the level model (method.md sections 2-4), which
+``kappa = psi - pi/2``. This module serves the level model (docs/method.md sections 2-4), which
 uses the heading alone; the rigorous model (:mod:`lidarcal_ros.core.georeferencing`) uses the
 whole attitude.
 """
@@ -157,7 +157,7 @@ def describe_heading_use(heading_from: dict[int, str],
                          crab_deg: dict[int, float] | None = None) -> str | None:
     """One line on where the strips' headings came from (strip id -> ``track`` or
     ``attitude``) and the range of their crab (strip id -> deg, NaN: unknown), or None where
-    every one came from the track (method.md as written)."""
+    every one came from the track (docs/method.md as written)."""
     attitude = sorted(k for k, v in heading_from.items() if v == "attitude")
     if not attitude:
         return None

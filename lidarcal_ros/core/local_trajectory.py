@@ -1,4 +1,4 @@
-"""Method.md section 4: laser-frame quantities recovered from points and trajectory positions.
+"""docs/method.md section 4: laser-frame quantities recovered from points and trajectory positions.
 
 For a point fired at time ``t``, a straight line (position linear in time) is fitted by least
 squares to the trajectory samples in ``(t - window, t + window)``. Its position at ``t`` is the
@@ -196,7 +196,7 @@ def windows_cover_points(
 
 @dataclass(frozen=True)
 class WindowLines:
-    """The local trajectory of each point: the line fitted to its window (method.md section 4).
+    """The local trajectory of each point: the line fitted to its window (docs/method.md section 4).
 
     Points sharing the same trajectory samples share a window, so there are a few windows
     per chunk of points, not one per point.
@@ -299,7 +299,7 @@ def laser_geometry(
     source: str = "points",
     heading_source: str = "auto",
 ) -> LaserGeometry:
-    """Recover ``x, z, kappa, beta`` for each point (method.md section 4).
+    """Recover ``x, z, kappa, beta`` for each point (docs/method.md section 4).
 
     Parameters
     ----------
@@ -316,7 +316,7 @@ def laser_geometry(
     source : str
         Name used in error messages (e.g. ``"strip 3"``).
     heading_source : str
-        Where ``kappa`` comes from: ``track`` (method.md), ``attitude`` (the trajectory's
+        Where ``kappa`` comes from: ``track`` (docs/method.md), ``attitude`` (the trajectory's
         orientation) or ``auto`` (:mod:`lidarcal_ros.core.heading`).
 
     Raises

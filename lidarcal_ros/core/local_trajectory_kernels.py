@@ -1,7 +1,7 @@
 """Compiled loops of the local trajectory (:mod:`lidarcal_ros.core.local_trajectory`): which
 points lie below the trajectory, the trajectory window of each point of a time-ordered chunk,
 and the firing position and laser-frame geometry of each point from its window's line
-(method.md section 4).
+(docs/method.md section 4).
 
 Each replaces a handful of numpy passes over (n,) and (n, 3) temporaries by one pass
 (compiled as :mod:`lidarcal_ros.core.jit` says), with the arithmetic of the numpy it replaces
@@ -22,7 +22,7 @@ def _laser_frame(ti: float, px: float, py: float, pz: float, w: int, t_mean: np.
                  p_mean: np.ndarray, velocity: np.ndarray, c: float, s: float
                  ) -> tuple[float, float, float, float, float]:
     """The firing position ``p_mean + velocity (t - t_mean)`` of window ``w`` at time ``ti``
-    and the point's ``x`` (across track, heading ``(c, s)``) and ``z`` from it (method.md
+    and the point's ``x`` (across track, heading ``(c, s)``) and ``z`` from it (docs/method.md
     section 4): ``ox, oy, oz, x, z``, m."""
     dt = ti - t_mean[w]
     ox = p_mean[w, 0] + velocity[w, 0] * dt
@@ -154,7 +154,7 @@ def window_geometry(t: np.ndarray, xyz: np.ndarray, window: np.ndarray, t_mean: 
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                np.ndarray, np.ndarray, np.ndarray]:
     """Firing position and laser-frame geometry of each point from the line fitted to its
-    trajectory window (method.md section 4).
+    trajectory window (docs/method.md section 4).
 
     Parameters
     ----------

@@ -48,7 +48,7 @@ class Trajectory:
     full_attitude : bool
         The orientation carries roll and pitch as measured (an INS); False where only a
         heading was known and the poses were levelled (an ASCII trajectory's heading column):
-        the rigorous model (method.md section 10) then has nothing to add. Set False on
+        the rigorous model (docs/method.md section 10) then has nothing to add. Set False on
         construction, whatever was given, where every orientation is level to 1e-9 rad (no
         INS flies that level; a bag keeps no word of how its poses were made).
     """
@@ -78,7 +78,7 @@ class Trajectory:
 
     @property
     def heading(self) -> np.ndarray | None:
-        """The body's heading ``kappa`` at each sample (rad, method.md's convention: the yaw
+        """The body's heading ``kappa`` at each sample (rad, docs/method.md's convention: the yaw
         of the forward axis, :func:`~lidarcal_ros.core.attitude.headings_from_quaternions`),
         NaN where a sample has no orientation; None without orientation."""
         if self.orientation is None:

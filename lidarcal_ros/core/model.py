@@ -1,4 +1,4 @@
-"""The bias model of method.md sections 2-3 and 10: design matrix and point correction.
+"""The bias model of docs/method.md sections 2-3 and 10: design matrix and point correction.
 
 All functions are vectorised over points. ``x`` and ``z`` are the point's lateral and vertical
 coordinates in the laser frame (metres; ``z`` negative), ``kappa`` the heading (radians, map
@@ -24,7 +24,7 @@ from lidarcal_ros.core.params import N_PARAMETERS
 def design_matrix(
     x: np.ndarray, z: np.ndarray, kappa: np.ndarray, beta: np.ndarray
 ) -> np.ndarray:
-    """Impact of the eight biases on each point, method.md eq. [8].
+    """Impact of the eight biases on each point, docs/method.md eq. [8].
 
     Parameters
     ----------
@@ -91,7 +91,7 @@ def normal_design_rows(
 
 def body_normal_rows(normal_body: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
                      sin_beta: np.ndarray, cos_beta: np.ndarray) -> np.ndarray:
-    """``n_b^T C`` for each point, ``C`` the (3, 8) columns of method.md section 10 in the
+    """``n_b^T C`` for each point, ``C`` the (3, 8) columns of docs/method.md section 10 in the
     body frame and ``n_b = R^T n`` the patch normal in it: the design row of a point-to-patch
     observation in either model (``A = R C``, so ``n^T A = (R^T n)^T C``).
 
@@ -124,7 +124,7 @@ def body_normal_rows(normal_body: np.ndarray, x: np.ndarray, z: np.ndarray, beta
 def body_columns(x: np.ndarray, z: np.ndarray, beta: np.ndarray, sin_beta: np.ndarray,
                  cos_beta: np.ndarray) -> np.ndarray:
     """The derivative of a point with respect to the biases in the body frame (right,
-    forward, up), method.md section 10: (n, 3, 8), ``A = R @ columns``."""
+    forward, up), docs/method.md section 10: (n, 3, 8), ``A = R @ columns``."""
     n = np.shape(x)[0]
     cols = np.zeros((n, 3, N_PARAMETERS))
     cols[:, 0, 0] = cols[:, 1, 1] = cols[:, 2, 2] = 1.0
@@ -228,7 +228,7 @@ def correct_points(
     *,
     trig: Trig | None = None,
 ) -> np.ndarray:
-    """Method.md eq. [13]: ``X_corrected = X_biased - A @ delta_hat``.
+    """docs/method.md eq. [13]: ``X_corrected = X_biased - A @ delta_hat``.
 
     Parameters
     ----------
@@ -253,7 +253,7 @@ def correct_points(
 def boresight_matrix(domega: float, dphi: float, dkappa: float) -> np.ndarray:
     """Exact boresight rotation ``Rz(dkappa) Ry(dphi) Rx(domega)`` (body frame).
 
-    Its small-angle form is method.md's ``R_B = I + skew(domega, dphi, dkappa)``; this order is
+    Its small-angle form is docs/method.md's ``R_B = I + skew(domega, dphi, dkappa)``; this order is
     the one that reproduces the ``exact_offset`` of the shared test vectors.
     """
     cw, sw = np.cos(domega), np.sin(domega)
@@ -268,7 +268,7 @@ def boresight_matrix(domega: float, dphi: float, dkappa: float) -> np.ndarray:
 def correct_points_exact(
     xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray
 ) -> np.ndarray:
-    """Remove the biases exactly: invert the biased georeferencing of method.md eq. [1]-[2]
+    """Remove the biases exactly: invert the biased georeferencing of docs/method.md eq. [1]-[2]
     (section 10's form in the rigorous model).
 
     The delivered point is ``X_b = X_o + R d + R R_B rho_b`` with the recorded range and

@@ -1,4 +1,4 @@
-"""The eight system parameters of method.md section 1: names, order, units.
+"""The eight system parameters of docs/method.md section 1: names, order, units.
 
 A bias is ``nominal value used by the system - true value``. Files and messages carry SI units
 (metres, radians, dimensionless); reports show angles in arcseconds.

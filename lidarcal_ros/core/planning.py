@@ -5,7 +5,7 @@ correspondences the calibration would form are matched exactly as ``lidarcal cal
 and the normal matrix they give is analysed with the a-priori noise: per parameter whether it
 can be estimated, its predicted standard deviation and its largest correlation. The verdict
 comes from the normal matrix, not from rules; the advice in words then names the line or
-control that would fix what cannot be seen (method.md section 7).
+control that would fix what cannot be seen (docs/method.md section 7).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from lidarcal_ros.errors import CalibrationError, ConfigError
 logger = logging.getLogger(__name__)
 
 TERRAINS = ("built-up", "flat")
-#: The keys of a plan file, and of its ``sensor`` mapping (interface.md "Flight plan").
+#: The keys of a plan file, and of its ``sensor`` mapping (docs/interface.md "Flight plan").
 PLAN_KEYS = ("sensor", "terrain", "terrain_cell_m", "terrain_origin", "lines", "control",
              "model")
 SENSOR_KEYS = ("fov_deg", "range_noise_m", "density", "speed_mps")
@@ -56,7 +56,7 @@ MAX_SIMULATED_POINTS = 20_000_000
 
 @dataclass
 class FlightPlan:
-    """A flight plan (interface.md "Flight plan"); map frame, metres."""
+    """A flight plan (docs/interface.md "Flight plan"); map frame, metres."""
 
     lines: list[dict[str, Any]]
     terrain: str = "built-up"
@@ -203,11 +203,11 @@ class PlanReport:
     #: The model the predictions are of, and why (``describe_models`` of the strips).
     model: str = ""
     #: The same predictions where each strip's trajectory drift is estimated with the biases
-    #: (method.md section 11; priors of 5 cm and 2 mm/s), empty without correspondences.
+    #: (docs/method.md section 11; priors of 5 cm and 2 mm/s), empty without correspondences.
     with_trajectory_errors: dict[str, ParameterPrediction] = field(default_factory=dict)
 
     def to_json_dict(self) -> dict[str, Any]:
-        """interface.md's ``lidarcal plan --json``, plus ``with_trajectory_errors``."""
+        """docs/interface.md's ``lidarcal plan --json``, plus ``with_trajectory_errors``."""
         out: dict[str, Any] = {"parameters": _json_parameters(self.parameters),
                                "advice": list(self.advice)}
         out["strip_pairs"] = self.strip_pairs
@@ -253,7 +253,7 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     # attitude": the level model is then the same geometry.
     level = plan.model == LEVEL or sim.mission.trajectory.orientation is None
     # The correspondences carry their trajectory terms: the same matches serve the analysis
-    # with the trajectory as exact and with each strip's drift (method.md section 11).
+    # with the trajectory as exact and with each strip's drift (docs/method.md section 11).
     drift = TrajectoryErrorSettings(TrajectoryModel.DRIFT)
     settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
                                    model=LEVEL if level else RIGOROUS, fov_deg=plan.fov_deg,
@@ -389,7 +389,7 @@ def _advice(plan: FlightPlan, parameters: dict[str, ParameterPrediction],
 
 
 def _line_geometry(plan: FlightPlan) -> dict[str, bool]:
-    """Which line arrangements the plan holds (method.md section 7)."""
+    """Which line arrangements the plan holds (docs/method.md section 7)."""
     dirs = []
     for ln in plan.lines:
         d = np.subtract(ln["end"], ln["start"])

@@ -1,4 +1,4 @@
-"""Radiometric correction: recorded intensity to reflectance (method.md section 8).
+"""Radiometric correction: recorded intensity to reflectance (docs/method.md section 8).
 
 For an extended Lambertian target filling the footprint the radar equation reduces to
 ``I ~ P_t * rho * cos(theta) * eta_atm(r) / r^2``, so the *normalised intensity*

@@ -10,7 +10,7 @@ A :class:`SimulationSpec` holds the seed, the biases and five parts:
 - :class:`NoiseSpec`: range, intensity and trajectory noise and their seed;
 - :class:`SiteSpec`: the surface (generated or given), where it lies, its control points and
   its air;
-- :class:`TrajectoryErrorSpec`: the errors of the delivered trajectory, per strip (method.md
+- :class:`TrajectoryErrorSpec`: the errors of the delivered trajectory, per strip (docs/method.md
   section 11).
 
 Build one from its parts, or from flat keywords (:meth:`SimulationSpec.from_options`: each
@@ -97,7 +97,7 @@ class FlightSpec:
         ``asin(w_right / speed_mps)`` (``w_right`` the wind's component to the right of the
         track), opposite on lines flown the other way. The points are georeferenced with that
         heading, as the system's IMU gives it; the trajectory's positions do not show it, and
-        the quasi-rigorous method takes the heading from the track (method.md section 4), so
+        the quasi-rigorous method takes the heading from the track (docs/method.md section 4), so
         without the attitude on the trajectory (``SensorSpec.attitude``) a crab it cannot see
         is what this simulates.
     rough_air : RoughAir, optional
@@ -246,7 +246,7 @@ class SiteSpec:
 
 @dataclass(frozen=True)
 class TrajectoryErrorSpec:
-    """The errors of the delivered trajectory (GNSS/INS), drawn per strip (method.md section
+    """The errors of the delivered trajectory (GNSS/INS), drawn per strip (docs/method.md section
     11): strip ``s`` is georeferenced with ``X_o,true(t) + e_s(t)``, so its points and its
     trajectory carry, per map axis ``k`` (metres, delivered - true),
 

@@ -1,4 +1,4 @@
-"""The biases' normal equations with every strip's trajectory parameters reduced out (method.md
+"""The biases' normal equations with every strip's trajectory parameters reduced out (docs/method.md
 section 11: a Schur complement over the strip blocks, sparse, so the cost grows with the strips
 and their overlaps, not with their square)."""
 

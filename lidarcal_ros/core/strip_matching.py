@@ -4,7 +4,7 @@
 (:mod:`lidarcal_ros.core.strip_pairs`); it prepares each strip once, builds each TIN once,
 corrects the points by an estimate (once per strip and estimate), matches a pair's points or
 the control points to the corrected TIN patches, chooses each pair's sample points at their
-first matching, and turns matches into the correspondences the adjustment takes (method.md
+first matching, and turns matches into the correspondences the adjustment takes (docs/method.md
 eq. [11] for strip pairs, [12] for control points). The per-strip and per-pair work runs in
 the calibration's worker threads.
 """
@@ -66,7 +66,7 @@ class PairMatcher:
         self.footprint = FootprintGrid(settings.overlap_cell_m)
         self.strips: list[PreparedStrip] = []
         self.pairs: list[StripPair] = []
-        #: Every strip's trajectory error as estimated so far (method.md section 11).
+        #: Every strip's trajectory error as estimated so far (docs/method.md section 11).
         self.trajectory = TrajectoryState(settings.trajectory.model,
                                           settings.trajectory.knot_interval_s)
 
@@ -177,7 +177,7 @@ class PairMatcher:
                 corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
                                                               delta)
                 if np.any(error):
-                    # method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
+                    # docs/method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
                     # geometry stays that of the delivered positions
                     e = self.trajectory.error(k, ps.strip.t)
                     corrected -= e

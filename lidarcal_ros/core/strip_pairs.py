@@ -1,4 +1,4 @@
-"""The strips of a calibration and the overlapping pairs they form (method.md section 5).
+"""The strips of a calibration and the overlapping pairs they form (docs/method.md section 5).
 
 What the calibration keeps of each strip (:class:`PreparedStrip`: its laser-frame geometry,
 footprint cells, sampling priority, positioning model) and of each strip pair

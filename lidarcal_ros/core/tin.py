@@ -1,6 +1,6 @@
 """Triangulated irregular network (TIN) of one strip and point-to-patch matching.
 
-A strip's TIN is the Delaunay triangulation of its points' XY (method.md section 6). The
+A strip's TIN is the Delaunay triangulation of its points' XY (docs/method.md section 6). The
 connectivity is computed once from the delivered coordinates: the bias corrections applied
 between iterations move points by centimetres to decimetres and vary smoothly across a strip,
 so the triangles stay valid and only their vertex coordinates (hence normals) are updated.
@@ -229,7 +229,7 @@ def match_to_tin(
     vertex_shift: np.ndarray | None = None,
     start: np.ndarray | None = None,
 ) -> PatchMatches:
-    """Match points to the closest usable patch of a TIN (method.md section 6).
+    """Match points to the closest usable patch of a TIN (docs/method.md section 6).
 
     A patch qualifies if the foot of the point's normal falls inside it; of the triangle
     containing the point's XY and its three neighbours, the qualifying usable patch with the

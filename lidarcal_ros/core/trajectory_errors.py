@@ -1,4 +1,4 @@
-"""Per-strip trajectory errors estimated with the biases (method.md section 11).
+"""Per-strip trajectory errors estimated with the biases (docs/method.md section 11).
 
 The error of strip ``s`` is ``e_s(t) = sum_j b_j(t) c_s[j]`` (map frame, metres, delivered -
 true; ``c_s[j]`` a 3-vector): ``offset`` has the basis ``[1]``, ``drift`` ``[1, t - t_s]``

@@ -19,7 +19,7 @@ iterated with ``R_i`` from the previous solution, and rays whose normalised resi
 
 The position found is where the biased rays cross: the IMU origin plus the lever arm (and
 its bias), a few centimetres to decimetres away, which the quasi-rigorous method, needing
-positions to metres, tolerates (method.md section 4: the trajectory enters only the design
+positions to metres, tolerates (docs/method.md section 4: the trajectory enters only the design
 matrix). Along the track the position comes from where each ray's scan plane cuts the ground
 track, across and up from the crossing of the fan: a linear scanner's fan of +-25 degrees
 fixes the height about twice less well than the across-track position.

@@ -115,7 +115,7 @@ def recover_bag(source: str | os.PathLike[str], output: str | os.PathLike[str], 
     overwrite : bool, keyword-only
         Replace an existing output.
     points_topic, trajectory_topic, time_field : str, keyword-only
-        Where the strips and the trajectory are (interface.md), and the points' time field
+        Where the strips and the trajectory are (docs/interface.md), and the points' time field
         (``t`` also finds the aliases ``time``, ``timestamp``, ``gps_time``).
 
     Returns

@@ -1,4 +1,4 @@
-"""The calibration file of interface.md (YAML, SI units)."""
+"""The calibration file of docs/interface.md (YAML, SI units)."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ class CalibrationRecord:
     #: The point-positioning model the biases were estimated with: ``level``, ``rigorous``,
     #: ``mixed`` (strips of both), or None where the file does not say.
     model: str | None = None
-    #: Each strip's trajectory error (method.md section 11), where the file holds one.
+    #: Each strip's trajectory error (docs/method.md section 11), where the file holds one.
     trajectory: TrajectoryEstimate | None = None
 
     @property
@@ -119,8 +119,8 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
 
 
 def trajectory_document(estimate: TrajectoryEstimate) -> dict[str, Any]:
-    """interface.md's ``trajectory`` block: each strip's error ``e_s(t)`` (delivered - true,
-    map frame, m; drift in m/s about ``t_ref``, s; a spline's knots, coefficients and
+    """docs/interface.md's ``trajectory`` block: each strip's error ``e_s(t)`` (delivered -
+    true, map frame, m; drift in m/s about ``t_ref``, s; a spline's knots, coefficients and
     interpolation) and its sigmas."""
     strips: dict[str, Any] = {}
     for sid in sorted(estimate.strips):

@@ -13,7 +13,7 @@ written with the LAS *withheld* flag set. The CRS, when known, goes into an OGC 
 Conventions
 -----------
 - Scan angle: LAS counts degrees in steps of 0.006, negative to the left of the flight
-  direction; lidarcal's ``scan_angle`` (method.md's ``beta``) is positive to the left, so the
+  direction; lidarcal's ``scan_angle`` (docs/method.md's ``beta``) is positive to the left, so the
   LAS value is ``-degrees(scan_angle) / 0.006``.
 - GPS time: bag times are ROS times (UNIX epoch, UTC). Times after the GPS epoch
   (1980-01-06) are written as Adjusted Standard GPS Time (``GPS seconds - 1e9``, leap seconds

@@ -1,4 +1,4 @@
-"""Flight plans (interface.md "Flight plan") from YAML, with the DSM they name read in."""
+"""Flight plans (docs/interface.md "Flight plan") from YAML, with the DSM they name read in."""
 
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ class BiasEntry:
     Attributes
     ----------
     name : str
-        Parameter key (method.md section 1).
+        Parameter key (docs/method.md section 1).
     value : float
         Estimate or fixed value, SI units (m, rad, 1).
     sigma : float or None
@@ -305,7 +305,7 @@ class ReportContent:
     calibration_facts : list of (str, str)
         The calibration's lines (file, sigma0, redundancy, ...).
     biases : list of BiasEntry
-        The eight parameters in method.md order.
+        The eight parameters in docs/method.md order.
     correlation_names : list of str
         Estimated parameters, in the order of ``correlation``'s rows.
     correlation : (m, m) float64

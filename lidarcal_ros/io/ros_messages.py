@@ -19,7 +19,7 @@ a 10 x 8 row-major matrix (:data:`ESTIMATE_ROWS` x :data:`PARAMETER_NAMES`):
   estimated.
 
 :func:`estimate_matrix` builds the data from a :class:`CalibrationResult`,
-:func:`parse_estimate` reads it back. The calibration YAML of interface.md is published beside
+:func:`parse_estimate` reads it back. The calibration YAML of docs/interface.md is published beside
 it as ``std_msgs/String`` on ``/lidar/calibration/yaml`` (transient-local).
 
 Diagnostics
@@ -313,7 +313,7 @@ def parse_estimate(data: Sequence[float] | np.ndarray, labels: Sequence[str] = (
 
 
 def calibration_yaml(result: Any) -> str:
-    """The calibration file of interface.md as YAML text."""
+    """The calibration file of docs/interface.md as YAML text."""
     from lidarcal_ros.io.calibration_file import calibration_document
 
     return yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)

@@ -75,7 +75,7 @@ def project(
 
 
 def map_heading(traj: TrajectoryFile, source_crs: Any, target_crs: Any) -> np.ndarray | None:
-    """Method.md's ``kappa`` (rad) of each sample in the map (``target_crs``; None: the
+    """docs/method.md's ``kappa`` (rad) of each sample in the map (``target_crs``; None: the
     file's own), from the file's heading; None when it has none.
 
     A heading clockwise from north is ``-kappa`` (the body's forward axis points along

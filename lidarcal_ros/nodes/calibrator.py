@@ -22,7 +22,7 @@ Publishes
     (SI units; layout in :mod:`lidarcal_ros.io.ros_messages`); the label of ``layout.dim[0]``
     ends in ``;converged=true`` or ``;converged=false``.
 ``/lidar/calibration/yaml`` (``std_msgs/String``, transient-local, depth 1)
-    The calibration file of interface.md (``converged`` says whether it is).
+    The calibration file of docs/interface.md (``converged`` says whether it is).
 ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every second and after each solve)
     ``lidarcal: strips A&B`` per overlapping pair (RMS discrepancy after calibration against
     ``qa.rmsdz_warn_m`` / ``qa.max_difference_m``, USGS LBS QL2 8 cm / 16 cm: OK, WARN, ERROR;

@@ -6,7 +6,7 @@ Subscribes (raw CDR) to the points (``topics.points``; each cloud taken from DDS
 into the correction's shared memory, :mod:`~lidarcal_ros.nodes.serialized_subscription`) and
 the trajectory (``topics.trajectory``), and to the calibrator's estimate
 (``/lidar/calibration/estimate``, transient-local); publishes each chunk corrected on
-``topics.corrected`` with every input field, ``x, y, z`` corrected (method.md eq. [13])
+``topics.corrected`` with every input field, ``x, y, z`` corrected (docs/method.md eq. [13])
 and the FLOAT32 ``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus UINT8
 ``correction_flags`` (:mod:`lidarcal_ros.core.flags`). Header stamp and frame are the input's. The
 ``reflectance`` is the Lambertian reflectance (0-1) when ``radiometry.calibration_constant``

@@ -1,4 +1,4 @@
-"""The fixed topics of the node suite (interface.md), their QoS, the diagnostics message."""
+"""The fixed topics of the node suite (docs/interface.md), their QoS, the diagnostics message."""
 
 from __future__ import annotations
 

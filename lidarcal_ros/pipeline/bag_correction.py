@@ -214,7 +214,7 @@ def correct_bag(
     bag_path : path
         rosbag2 directory or ``.mcap`` with the topics of ``config``.
     calibration : path or CalibrationRecord
-        Calibration file of interface.md.
+        Calibration file of docs/interface.md.
     output : path
         ``.las``/``.laz``: LAS 1.4 point format 6 (:mod:`lidarcal_ros.io.las`); otherwise a
         rosbag2 bag (bare MCAP for ``.mcap``) with the corrected clouds on

@@ -244,7 +244,7 @@ def format_report(
 
 def trajectory_lines(result: CalibrationResult) -> list[str]:
     """The trajectory model (and why, where ``auto`` chose it), then each strip's estimated
-    error at its mid time and its drift (method.md section 11), in cm and cm/s."""
+    error at its mid time and its drift (docs/method.md section 11), in cm and cm/s."""
     lines = [f"trajectory errors: {result.trajectory_choice}"]
     est = result.trajectory
     if est is None:

@@ -1,7 +1,7 @@
 """Apply a calibration and the radiometric model to points: the correction of each point
 that `lidarcal correct`, the corrector node and the QA report share.
 
-Per point (method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
+Per point (docs/method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
 (:func:`lidarcal_ros.core.correction_kernels.correct_returns`):
 
 1. the local trajectory gives ``x, z, kappa, beta`` and the firing position ``X_o(t)``
@@ -9,7 +9,7 @@ Per point (method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
 2. the point is moved by the estimated biases, ``X_c = X_b - A(x, z, kappa, beta) delta``
    (eq. [13], :func:`lidarcal_ros.core.model.correct_points`);
 3. ``range = |X_c - X_o|`` (m), laser direction ``l = (X_c - X_o) / range``, and
-   ``scan_angle = atan(x_c / z_c)`` (rad, method.md's ``beta`` of the corrected point, positive
+   ``scan_angle = atan(x_c / z_c)`` (rad, docs/method.md's ``beta`` of the corrected point, positive
    to the left of the flight direction). This is the physical mirror angle: the recorded one
    divided by the scale ``1 + dS``, i.e. ``(1 - dS) beta`` to first order. The firing point is
    taken at the IMU origin: the lever arm itself (not only its bias) is unknown to the
@@ -98,7 +98,7 @@ class CorrectionSettings:
     Attributes
     ----------
     delta : (8,) float64
-        Biases (method.md order, SI) to remove.
+        Biases (docs/method.md order, SI) to remove.
     radiometry : RadiometricModel
     window_s : float
         Half-width of the local-trajectory window, s (``matching.trajectory_window_s``).
@@ -125,7 +125,7 @@ class CorrectionSettings:
     model: str = "auto"
     time_field: str = "t"
     coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M
-    #: Each strip's trajectory error, removed with the biases (method.md section 11).
+    #: Each strip's trajectory error, removed with the biases (docs/method.md section 11).
     trajectory_errors: TrajectoryEstimate | None = None
 
     @classmethod
@@ -435,7 +435,7 @@ def correct_columns(
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     t = np.ascontiguousarray(t, dtype=np.float64)
     if settings.trajectory_errors is not None and strip_id is not None and t.size:
-        # X_b - e_s(t) (method.md section 11); the firing positions stay the delivered ones,
+        # X_b - e_s(t) (docs/method.md section 11); the firing positions stay the delivered ones,
         # which moves each laser vector by e (centimetres of hundreds of metres: below 1e-4
         # of the biases' correction and of the range)
         xyz = xyz - settings.trajectory_errors.errors(strip_id, t)
@@ -497,7 +497,7 @@ def correct_cloud(
     Parameters
     ----------
     points : structured array
-        Fields of interface.md (``x, y, z``, time, optional ``intensity``, ``strip_id``).
+        Fields of docs/interface.md (``x, y, z``, time, optional ``intensity``, ``strip_id``).
     trajectory : Trajectory
     settings : CorrectionSettings
     context : (m, 3) float64, optional

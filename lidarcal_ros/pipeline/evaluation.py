@@ -63,7 +63,7 @@ class CheckPointResidual:
 class Evaluation:
     """Everything ``lidarcal evaluate`` reports.
 
-    ``delta``: the biases evaluated (SI, method.md order), None where not known.
+    ``delta``: the biases evaluated (SI, docs/method.md order), None where not known.
     """
 
     pairs: list[PairAlignment]
@@ -187,7 +187,7 @@ def evaluate_mission(
     ----------
     mission : Mission
     delta : (8,) float64
-        Estimated biases, SI units (method.md section 1).
+        Estimated biases, SI units (docs/method.md section 1).
     settings : CalibrationSettings
         Overlap and TIN rules (as the calibration used them).
     check_points : ControlPoints, optional

@@ -3,7 +3,7 @@
 :func:`write_bag` merges the read pass's sorted runs by time, gives each point its strip id
 and its time on the bag's clock, and writes one ``PointCloud2`` per strip and
 ``chunk_seconds`` of scanning with the trajectory's poses in log-time order, all in the map
-frame (shared/interface.md). On the way it fills in the strips' exact counts and spans, checks
+frame (docs/interface.md). On the way it fills in the strips' exact counts and spans, checks
 each against the trajectory (a strip not covered aborts the bag), and feeds the last returns
 to the overlap QA grid.
 """

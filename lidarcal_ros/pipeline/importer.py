@@ -1,7 +1,7 @@
 """``lidarcal import``: LAS/LAZ flight lines and a trajectory file into a mission bag.
 
 What a survey delivers (LAS 1.0-1.4 / LAZ files, an Applanix SBET or an ASCII trajectory, or
-no trajectory at all) becomes a bag of the lidarcal contract (shared/interface.md): strips as
+no trajectory at all) becomes a bag of the lidarcal contract (docs/interface.md): strips as
 ``sensor_msgs/PointCloud2`` chunks on ``/lidar/points`` with ``x, y, z, t`` FLOAT64,
 ``intensity`` FLOAT32, ``strip_id`` UINT16, ``return_number``, ``number_of_returns`` and
 ``classification`` UINT8, and the trajectory as ``geometry_msgs/PoseStamped`` on
@@ -32,14 +32,14 @@ Trajectory positions
     (``trajectory_crs`` overrides: the datum of the GNSS processing), projected with pyproj to
     the points' CRS. Against a 2-D projected CRS heights stay ellipsoidal: LAS heights
     delivered in a geoid-based datum then sit N (the geoid undulation, tens of metres) away,
-    which shifts ``z`` of method.md section 4 by N out of about 1000 m, about 3 % of the
+    which shifts ``z`` of docs/method.md section 4 by N out of about 1000 m, about 3 % of the
     design matrix and nothing of the observations: harmless for the estimate, but a
     compound CRS (``--crs EPSG:32633+5773``) converts them properly when PROJ has the geoid
     model (else: a one-line error). ASCII x, y, z are taken to be in the points' CRS unless
     ``trajectory_crs`` says otherwise.
 Trajectory attitude
     An SBET's roll, pitch and true heading, or an ASCII trajectory's roll, pitch and heading
-    columns, become the poses' orientation (REP-103 quaternions, method.md section 10), the
+    columns, become the poses' orientation (REP-103 quaternions, docs/method.md section 10), the
     heading turned from true to the map's grid north by the meridian convergence; with a
     heading only the poses are level (``full_attitude`` False); without one they carry none
     (identity). :func:`lidarcal_ros.io.trajectory_crs.map_orientation` has the conventions.

@@ -229,7 +229,7 @@ class LiveCorrector:
             self._settings_changed = True
 
     def set_estimate(self, delta: np.ndarray, source: str) -> None:
-        """New biases (method.md order, SI) from ``source``: applied from the next cloud on."""
+        """New biases (docs/method.md order, SI) from ``source``: applied from the next cloud on."""
         with self._lock:
             self._delta = delta
             self.estimate_source = source
@@ -515,5 +515,5 @@ class LiveCorrector:
 
 
 def _fixed_biases(config: FlightConfig) -> np.ndarray:
-    """The configuration's ``calibration.fixed.*`` biases (method.md order, SI)."""
+    """The configuration's ``calibration.fixed.*`` biases (docs/method.md order, SI)."""
     return np.array([config[f"calibration.fixed.{n}"] for n in PARAMETER_NAMES])

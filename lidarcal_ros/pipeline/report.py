@@ -102,7 +102,7 @@ def geometric_sections(
     ----------
     mission : Mission
     delta : (8,) float64
-        The calibration's biases, SI, method.md order.
+        The calibration's biases, SI, docs/method.md order.
     config : FlightConfig
         Matching options and QA thresholds (those of the calibration for the same sample).
     coverage : mapping, optional

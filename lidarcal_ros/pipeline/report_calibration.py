@@ -52,7 +52,7 @@ class ReportCalibration:
 
 
 def read_report_calibration(path: str | Path) -> ReportCalibration:
-    """Read a calibration file (interface.md) with the keys the report shows beyond the
+    """Read a calibration file (docs/interface.md) with the keys the report shows beyond the
     biases: correlation matrix, reasons for parameters not estimable, pair coverage.
 
     Raises
