@@ -190,6 +190,20 @@ class StripError:
             out += (t - self.t_ref)[:, None] * self.drift[None, :]
         return out
 
+    def sigma(self, t: np.ndarray) -> np.ndarray:
+        """Standard deviation of ``e(t)`` (n, 3) per axis at absolute times ``t`` (s), m:
+        ``sqrt(offset_sigma^2 + (t - t_ref)^2 drift_sigma^2)``, the covariance of offset and
+        drift left out (the file does not hold it; about ``t_ref``, the strip's mid time,
+        it is small). NaN where a sigma is not known."""
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        var = np.broadcast_to(np.asarray(self.offset_sigma, dtype=np.float64) ** 2,
+                              (t.shape[0], 3)).copy()
+        if self.drift is not None:
+            drift_sigma = (np.full(3, np.nan) if self.drift_sigma is None
+                           else np.asarray(self.drift_sigma, dtype=np.float64))
+            var += (t - self.t_ref)[:, None] ** 2 * drift_sigma[None, :] ** 2
+        return np.sqrt(var)
+
 
 @dataclass
 class TrajectoryEstimate:
@@ -238,9 +252,100 @@ class TrajectoryEstimate:
         return max(float(np.linalg.norm(s.offset)) for s in self.strips.values())
 
 
+#: Where a trajectory sample's correction comes from (:func:`trajectory_corrections`): its
+#: strip's ``e_s(t)``; interpolated between the strips before and after it (a turn);
+#: held at the nearest strip's end (before the first strip or after the last).
+IN_STRIP, BETWEEN_STRIPS, BEYOND_STRIPS = 0, 1, 2
+
+
+@dataclass
+class TrajectoryCorrection:
+    """The error removed from each trajectory sample: ``errors`` (n, 3) m, map frame
+    (delivered - true), and ``source`` (n,) int8 (:data:`IN_STRIP`, :data:`BETWEEN_STRIPS`,
+    :data:`BEYOND_STRIPS`)."""
+
+    errors: np.ndarray
+    source: np.ndarray
+
+    def counts(self) -> tuple[int, int, int]:
+        """Samples in a strip, between strips, beyond the first or last strip."""
+        return tuple(int(np.count_nonzero(self.source == k))  # type: ignore[return-value]
+                     for k in (IN_STRIP, BETWEEN_STRIPS, BEYOND_STRIPS))
+
+
+def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[float, float]],
+                           t: np.ndarray) -> TrajectoryCorrection:
+    """The error ``e_hat(t)`` to remove from trajectory samples at times ``t`` (s), so that
+    ``X_o,delivered(t) - e_hat(t)`` is the corrected trajectory (method.md section 11).
+
+    Parameters
+    ----------
+    estimate : TrajectoryEstimate
+    spans : dict of strip id -> (first, last) time, s
+        When each strip was flown (its points' times). A strip of ``spans`` without an
+        estimate has zero error, as its points were left (the corrected trajectory stays
+        where the corrected points say the sensor was).
+    t : (n,) float64
+        Sample times, s.
+
+    Notes
+    -----
+    During a strip (``first <= t <= last``; where spans overlap, the strip that started
+    later): ``e_s(t)``. Between two strips (a turn: nothing observed it): linear in time from
+    the earlier strip's error at its end to the later strip's at its start, so the corrected
+    trajectory stays continuous. Before the first strip and after the last: the nearest
+    strip's error at its end, held (a drift is not extrapolated). A non-finite time gets
+    zero.
+    """
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    n = t.shape[0]
+    errors = np.zeros((n, 3))
+    source = np.full(n, BEYOND_STRIPS, dtype=np.int8)
+    usable = {int(k): (float(a), float(b)) for k, (a, b) in spans.items()
+              if math.isfinite(a) and math.isfinite(b) and a <= b}
+    if not usable or not n:
+        return TrajectoryCorrection(errors, source)
+    ids = sorted(usable, key=lambda k: (usable[k][0], k))
+    start = np.array([usable[k][0] for k in ids])
+    end = np.array([usable[k][1] for k in ids])
+    at_start = np.vstack([estimate.error(k, start[i:i + 1]) for i, k in enumerate(ids)])
+    at_end = np.vstack([estimate.error(k, end[i:i + 1]) for i, k in enumerate(ids)])
+    finite = np.isfinite(t)
+    inside = np.zeros(n, dtype=bool)
+    for i, k in enumerate(ids):  # (in order of start: a later strip overrides an overlap)
+        on = finite & (t >= start[i]) & (t <= end[i])
+        if on.any():
+            errors[on] = estimate.error(k, t[on])
+            inside |= on
+    source[inside] = IN_STRIP
+    rest = finite & ~inside
+    if rest.any():
+        tr = t[rest]
+        by_end = np.argsort(end, kind="stable")
+        before = np.searchsorted(end[by_end], tr, side="left") - 1  # last strip ended before
+        after = np.searchsorted(start, tr, side="right")  # first strip starting after
+        has_before, has_after = before >= 0, after < len(ids)
+        prev = by_end[np.clip(before, 0, None)]
+        nxt = np.clip(after, None, len(ids) - 1)
+        e_prev, e_next = at_end[prev], at_start[nxt]
+        t0, t1 = end[prev], start[nxt]
+        both = has_before & has_after
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(both & (t1 > t0), (tr - t0) / (t1 - t0), 0.0)
+        e = np.where(has_before[:, None], e_prev, e_next)
+        e = np.where(both[:, None], e_prev + w[:, None] * (e_next - e_prev), e)
+        errors[rest] = e
+        source[np.flatnonzero(rest)[both]] = BETWEEN_STRIPS
+    return TrajectoryCorrection(errors, source)
+
+
 __all__ = [
     "AUTO_SIGMA0_RATIO",
+    "BETWEEN_STRIPS",
+    "BEYOND_STRIPS",
+    "IN_STRIP",
     "StripError",
+    "TrajectoryCorrection",
     "TrajectoryErrorSettings",
     "TrajectoryEstimate",
     "TrajectoryModel",
@@ -249,4 +354,5 @@ __all__ = [
     "basis",
     "error_at",
     "error_columns",
+    "trajectory_corrections",
 ]

@@ -136,7 +136,8 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
     ------
     ConfigError
         A model other than offset or drift, a strip id that is not a whole number, a missing
-        or non-finite ``t_ref``, ``offset`` or ``drift``; one line naming the key.
+        or non-finite ``t_ref``, ``offset`` or ``drift``, a negative or infinite sigma; one
+        line naming the key. (A sigma that is null or absent is read as NaN: not known.)
     """
     if not isinstance(block, Mapping):
         raise ConfigError(f"{path}: trajectory must be a mapping with model and strips")
@@ -173,10 +174,29 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
                                   f"{value!r}")
             return out
 
+        def sigmas(name: str, entry: Mapping[str, Any] = entry,
+                   where: str = where) -> np.ndarray:
+            # (null: not known, NaN; absent as a whole: all NaN)
+            value = entry.get(name)
+            if value is None:
+                return np.full(3, np.nan)
+            try:
+                out = np.array([np.nan if v is None else v for v in value],
+                               dtype=np.float64).reshape(3)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{where}.{name} must be 3 numbers >= 0 or null, got "
+                                  f"{value!r}") from None
+            if (out < 0).any() or np.isinf(out).any():
+                raise ConfigError(f"{where}.{name} must be 3 numbers >= 0 or null, got "
+                                  f"{value!r}")
+            return out
+
         t_ref = float(vector("t_ref", 1)[0])
         offset = vector("offset", 3)
-        drift = vector("drift", 3) if model is TrajectoryModel.DRIFT else None
-        strips[sid] = StripError(sid, t_ref, offset, np.full(3, np.nan), drift)
+        drifting = model is TrajectoryModel.DRIFT
+        strips[sid] = StripError(sid, t_ref, offset, sigmas("offset_sigma"),
+                                 vector("drift", 3) if drifting else None,
+                                 sigmas("drift_sigma") if drifting else None)
     return TrajectoryEstimate(model, strips)
 
 
