@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,9 +19,9 @@ from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import TYPICAL_TRAJECTORY_ERRORS, SimulationSpec
 from lidarcal_ros.core.trajectory_errors import (
-    BETWEEN_STRIPS,
-    BEYOND_STRIPS,
-    IN_STRIP,
+    POSE_BETWEEN_STRIPS,
+    POSE_BEYOND_STRIPS,
+    POSE_IN_STRIP,
     StripError,
     TrajectoryEstimate,
     TrajectoryModel,
@@ -80,7 +81,7 @@ def _poses(bag: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, lis
     with AnyReader([bag]) as reader:
         connections = [c for c in reader.connections if c.topic in (DELIVERED, CORRECTED)]
         for conn, _ns, raw in reader.messages(connections=connections):
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)
             t, xyz, q, types = out.setdefault(conn.topic, ([], [], [], []))
             t.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
             p, o = msg.pose.position, msg.pose.orientation
@@ -262,15 +263,15 @@ def test_corrections_in_strips_between_and_beyond() -> None:
                      [0.0, 0.1, 0.0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
     want[0] = a.error(np.array([10.0]))[0]  # (held at the first strip's start)
     np.testing.assert_allclose(got.errors, want, atol=1e-12)
-    assert got.source.tolist() == [BEYOND_STRIPS, IN_STRIP, IN_STRIP, IN_STRIP,
-                                   BETWEEN_STRIPS, IN_STRIP, BETWEEN_STRIPS, IN_STRIP,
-                                   BEYOND_STRIPS, BEYOND_STRIPS]
+    inside, between, beyond = POSE_IN_STRIP, POSE_BETWEEN_STRIPS, POSE_BEYOND_STRIPS
+    assert got.source.tolist() == [beyond, inside, inside, inside, between, inside, between,
+                                   inside, beyond, beyond]
     assert got.counts() == (5, 2, 3)
     overlap = trajectory_corrections(estimate, {1: (10.0, 45.0), 2: (40.0, 50.0)},
                                      np.array([42.0]))
     np.testing.assert_allclose(overlap.errors[0], b.error(np.array([42.0]))[0])
     none = trajectory_corrections(estimate, {}, np.array([1.0, 2.0]))
-    assert not none.errors.any() and (none.source == BEYOND_STRIPS).all()
+    assert not none.errors.any() and (none.source == POSE_BEYOND_STRIPS).all()
 
 
 def test_strip_sigma_grows_with_time_from_t_ref() -> None:
@@ -307,7 +308,7 @@ def test_ascii_trajectory_with_attitude_reads_back_as_written(tmp_path: Path) ->
     level = Trajectory(t, xyz, quaternions_from_attitude(0.0 * kappa, 0.0 * kappa, kappa))
     assert not level.full_attitude
     back = read_ascii_trajectory(write_ascii_trajectory(tmp_path / "level.csv", level))
-    assert back.attitude == "heading"
+    assert back.attitude == "heading" and back.heading_deg is not None
     # (heading clockwise from north = -kappa)
     np.testing.assert_allclose(np.cos(np.radians(back.heading_deg) + kappa), 1.0, atol=1e-12)
 
@@ -322,7 +323,7 @@ def test_an_odometry_pose_keeps_all_but_its_position() -> None:
     types = store.types
     header = types["std_msgs/msg/Header"](
         stamp=types["builtin_interfaces/msg/Time"](sec=17, nanosec=5), frame_id="map")
-    pose = types["geometry_msgs/msg/Pose"](
+    pose: Any = types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=1.0, y=2.0, z=3.0),
         orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.6, w=0.8))
     cov = np.arange(36, dtype=np.float64)
@@ -336,7 +337,7 @@ def test_an_odometry_pose_keeps_all_but_its_position() -> None:
     raw = bytes(store.serialize_cdr(odom, ODOMETRY))
     out = moved_message(ODOMETRY, raw, (4.0, 5.0, 6.0), store.deserialize_cdr,
                         store.serialize_cdr)
-    back = store.deserialize_cdr(out, ODOMETRY)
+    back: Any = store.deserialize_cdr(out, ODOMETRY)
     p = back.pose.pose.position
     assert (p.x, p.y, p.z) == (4.0, 5.0, 6.0)
     assert back.child_frame_id == "base_link" and back.header.stamp.nanosec == 5

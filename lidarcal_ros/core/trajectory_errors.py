@@ -255,14 +255,14 @@ class TrajectoryEstimate:
 #: Where a trajectory sample's correction comes from (:func:`trajectory_corrections`): its
 #: strip's ``e_s(t)``; interpolated between the strips before and after it (a turn);
 #: held at the nearest strip's end (before the first strip or after the last).
-IN_STRIP, BETWEEN_STRIPS, BEYOND_STRIPS = 0, 1, 2
+POSE_IN_STRIP, POSE_BETWEEN_STRIPS, POSE_BEYOND_STRIPS = 0, 1, 2
 
 
 @dataclass
 class TrajectoryCorrection:
     """The error removed from each trajectory sample: ``errors`` (n, 3) m, map frame
-    (delivered - true), and ``source`` (n,) int8 (:data:`IN_STRIP`, :data:`BETWEEN_STRIPS`,
-    :data:`BEYOND_STRIPS`)."""
+    (delivered - true), and ``source`` (n,) int8 (:data:`POSE_IN_STRIP`,
+    :data:`POSE_BETWEEN_STRIPS`, :data:`POSE_BEYOND_STRIPS`)."""
 
     errors: np.ndarray
     source: np.ndarray
@@ -270,7 +270,7 @@ class TrajectoryCorrection:
     def counts(self) -> tuple[int, int, int]:
         """Samples in a strip, between strips, beyond the first or last strip."""
         return tuple(int(np.count_nonzero(self.source == k))  # type: ignore[return-value]
-                     for k in (IN_STRIP, BETWEEN_STRIPS, BEYOND_STRIPS))
+                     for k in (POSE_IN_STRIP, POSE_BETWEEN_STRIPS, POSE_BEYOND_STRIPS))
 
 
 def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[float, float]],
@@ -300,7 +300,7 @@ def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     n = t.shape[0]
     errors = np.zeros((n, 3))
-    source = np.full(n, BEYOND_STRIPS, dtype=np.int8)
+    source = np.full(n, POSE_BEYOND_STRIPS, dtype=np.int8)
     usable = {int(k): (float(a), float(b)) for k, (a, b) in spans.items()
               if math.isfinite(a) and math.isfinite(b) and a <= b}
     if not usable or not n:
@@ -317,7 +317,7 @@ def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[
         if on.any():
             errors[on] = estimate.error(k, t[on])
             inside |= on
-    source[inside] = IN_STRIP
+    source[inside] = POSE_IN_STRIP
     rest = finite & ~inside
     if rest.any():
         tr = t[rest]
@@ -335,15 +335,15 @@ def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[
         e = np.where(has_before[:, None], e_prev, e_next)
         e = np.where(both[:, None], e_prev + w[:, None] * (e_next - e_prev), e)
         errors[rest] = e
-        source[np.flatnonzero(rest)[both]] = BETWEEN_STRIPS
+        source[np.flatnonzero(rest)[both]] = POSE_BETWEEN_STRIPS
     return TrajectoryCorrection(errors, source)
 
 
 __all__ = [
     "AUTO_SIGMA0_RATIO",
-    "BETWEEN_STRIPS",
-    "BEYOND_STRIPS",
-    "IN_STRIP",
+    "POSE_BETWEEN_STRIPS",
+    "POSE_BEYOND_STRIPS",
+    "POSE_IN_STRIP",
     "StripError",
     "TrajectoryCorrection",
     "TrajectoryErrorSettings",

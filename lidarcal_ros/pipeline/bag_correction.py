@@ -48,7 +48,7 @@ from lidarcal_ros.core.jit import start_without_blas
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.radiometry import describe_alpha
 from lidarcal_ros.core.trajectory_errors import (
-    BEYOND_STRIPS,
+    POSE_BEYOND_STRIPS,
     TrajectoryCorrection,
     trajectory_corrections,
 )
@@ -408,7 +408,8 @@ def _trajectory_correction(corrector: StreamCorrector, t: np.ndarray) -> Traject
     ``e_hat_s`` over the strips' times seen by ``corrector`` (zero without an estimate)."""
     estimate = corrector.settings.trajectory_errors
     if estimate is None:
-        return TrajectoryCorrection(np.zeros((len(t), 3)), np.full(len(t), BEYOND_STRIPS, np.int8))
+        return TrajectoryCorrection(np.zeros((len(t), 3)),
+                                    np.full(len(t), POSE_BEYOND_STRIPS, np.int8))
     return trajectory_corrections(estimate, corrector.strip_spans, t)
 
 
@@ -491,9 +492,9 @@ def _check_topics(bag: Any, points_topic: str, trajectory_topic: str,
                            f"{' or '.join(types)}")
         if bag.topics[topic].count == 0:
             raise BagError(f"{bag.path}: topic {topic} has no messages")
-    for topic in (corrected_topic, moved_topic):
-        if topic is not None and topic in bag.topics:
-            raise BagError(f"{bag.path}: already has topic {topic}; a corrected bag cannot "
+    for new in (corrected_topic, moved_topic):
+        if new is not None and new in bag.topics:
+            raise BagError(f"{bag.path}: already has topic {new}; a corrected bag cannot "
                            "be corrected again into the same topic")
     if moved_topic is not None and moved_topic in (points_topic, trajectory_topic,
                                                    corrected_topic):

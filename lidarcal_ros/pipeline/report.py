@@ -202,7 +202,7 @@ def trajectory_section(mission: Mission, calibration: ReportCalibration
     estimate = calibration.record.trajectory
     if estimate is None:
         return None
-    spans = {}
+    spans: dict[int, tuple[float, float]] = {}
     for strip in mission.strips:
         t = strip.t[np.isfinite(strip.t)]
         if t.size:
