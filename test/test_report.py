@@ -44,7 +44,7 @@ from lidarcal_ros.io.html_report import figure_ids, render_html
 from lidarcal_ros.io.las import parse_crs
 from lidarcal_ros.io.report_content import ReportContent
 from lidarcal_ros.pipeline.correction import CorrectionSettings
-from lidarcal_ros.pipeline.report import build_report
+from lidarcal_ros.pipeline.report import build_report, trajectory_section
 from lidarcal_ros.pipeline.report_block import FOOTPRINT_CELL_M, block_grids, block_pass
 from lidarcal_ros.pipeline.report_calibration import read_report_calibration
 from lidarcal_ros.pipeline.report_radiometry import (
@@ -567,10 +567,58 @@ def test_html_is_one_self_contained_file_with_every_section(reported: Reported,
         assert img["src"].startswith("data:image/png;base64,"), img["id"]
         assert img.get("alt"), img["id"]
     assert list(page.text) == list(SECTIONS)
+    # (no trajectory errors in this calibration: no such section, nor a link to it)
+    assert reported.content.trajectory is None and 'href="#trajectory"' not in text
     for b in reported.content.biases:
         assert f"<td>{b.name}</td>" in text
     for c in reported.content.control:
         assert f"<td>{c.control_id}</td>" in text
+
+
+def test_trajectory_errors_get_a_section_with_each_strip(reported: Reported, tmp_path: Path
+                                                          ) -> None:
+    """A calibration holding trajectory errors: a section after the calibration's with the
+    model as the file says it, a figure of each strip's E, N, U error over time, and a row per
+    strip with its offset and drift and their sigmas (cm, mm/s), read from the file; a strip
+    of the file the bag lacks is listed as such."""
+    from lidarcal_ros.core.trajectory_errors import StripError, TrajectoryEstimate, TrajectoryModel
+    from lidarcal_ros.io.calibration_file import trajectory_document
+
+    mission = reported.mission.mission
+    strips = {}
+    for k, strip in enumerate(mission.strips):
+        t_ref = 0.5 * float(strip.t.min() + strip.t.max())
+        strips[strip.strip_id] = StripError.linear(
+            strip.strip_id, t_ref, np.array([0.01 * k, -0.02, 0.03]),
+            np.array([0.02, 0.02, 0.01]), np.array([0.001, 0.0, -0.0005 * k]),
+            np.array([0.0015, 0.0015, 0.0008]))
+    strips[99] = StripError.linear(99, 1e9, np.zeros(3), np.full(3, 0.05), np.zeros(3),
+                                   np.full(3, 0.002))
+    doc = yaml.safe_load(reported.calibration.read_text())
+    doc["lidarcal_calibration"]["trajectory"] = trajectory_document(
+        TrajectoryEstimate(TrajectoryModel.DRIFT, strips))
+    doc["lidarcal_calibration"]["trajectory_model"] = "auto: drift (a reason)"
+    path = tmp_path / "with_trajectory.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    section = trajectory_section(mission, read_report_calibration(path))
+    assert section is not None and section.choice == "auto: drift (a reason)"
+    assert set(section.spans) == {s.strip_id for s in mission.strips}
+    content = dataclasses.replace(reported.content, trajectory=section)
+    text = render_html(content)
+    page = _parse(text)
+    assert list(page.text) == [*SECTIONS[:4], "trajectory", *SECTIONS[4:]]
+    assert 'href="#trajectory"' in text and "auto: drift (a reason)" in page.text["trajectory"]
+    ids = [img.get("id") for img in page.images]
+    assert set(ids) == figure_ids(content) and "fig-trajectory-errors" in ids
+    rows = page.table("trajectory", "strip")
+    assert rows["strip"][3:] == ["offset E (cm)", "offset N (cm)", "offset U (cm)",
+                                 "drift E (mm/s)", "drift N (mm/s)", "drift U (mm/s)"]
+    for k, strip in enumerate(mission.strips):
+        row = rows[str(strip.strip_id)]
+        assert row[3:6] == [f"+{k:.1f} \u00b1 2.0", "-2.0 \u00b1 2.0", "+3.0 \u00b1 1.0"]
+        assert row[6] == "+1.00 \u00b1 1.50" and row[8].endswith("\u00b1 0.80")
+    assert rows["99"][1] == "not in the bag"
+    assert "covariance of offset and drift left out" in text
 
 
 def test_progress_is_reported_and_quiet_off_a_terminal(reported: Reported) -> None:

@@ -46,6 +46,13 @@ def add_correct_command(sub: Any) -> None:
     p.add_argument("--trajectory", help="trajectory topic (default from config)")
     p.add_argument("--corrected", help="output topic of the corrected clouds (default from "
                    "config)")
+    p.add_argument("--trajectory-corrected", help="output topic of the corrected trajectory "
+                   "(default from config; written where the calibration holds trajectory "
+                   "errors)")
+    p.add_argument("--trajectory-out", type=Path, metavar="FILE",
+                   help="also write the corrected trajectory (delivered less each strip's "
+                   "estimated trajectory error; interpolated between strips) as ASCII "
+                   "time,x,y,z[,roll,pitch,heading], as lidarcal import reads it")
     p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
     p.add_argument("--workers", type=int, default=2,
                    help="threads correcting batches in parallel (default 2; 1: all in one "
@@ -67,7 +74,9 @@ def cmd_correct(args: argparse.Namespace) -> int:
     config = load_flight_config(args.config)
     overrides = {}
     for opt, name in (("points", "topics__points"), ("trajectory", "topics__trajectory"),
-                      ("corrected", "topics__corrected"), ("time_field", "time_field")):
+                      ("corrected", "topics__corrected"),
+                      ("trajectory_corrected", "topics__trajectory_corrected"),
+                      ("time_field", "time_field")):
         if getattr(args, opt):
             overrides[name] = getattr(args, opt)
     config = config.with_values(**overrides)
@@ -78,11 +87,15 @@ def cmd_correct(args: argparse.Namespace) -> int:
     out = args.output
     check_output(out, overwrite=args.overwrite,
                   directory=output_kind(out) == "bag" and out.suffix != ".mcap")
+    if args.trajectory_out is not None:
+        check_output(args.trajectory_out, overwrite=args.overwrite)
     progress, close = progress_bar(not args.quiet)
     try:
         report = correct_bag(args.bag, calibration, args.output, config,
                              CorrectOptions(crs=crs, overwrite=args.overwrite,
-                                            workers=args.workers), progress=progress)
+                                            workers=args.workers,
+                                            trajectory_out=args.trajectory_out),
+                             progress=progress)
     finally:
         close()
     for line in report.lines():

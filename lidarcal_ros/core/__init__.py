@@ -169,9 +169,10 @@ _EXPORTS = {
     ),
     "trajectory_buffer": ("TrajectoryBuffer",),
     "trajectory_errors": (
-        "AUTO_SIGMA0_RATIO", "StripError", "TrajectoryErrorSettings", "TrajectoryEstimate",
-        "TrajectoryModel", "TrajectoryRows", "TrajectoryState", "basis", "error_at",
-        "error_columns",
+        "AUTO_SIGMA0_RATIO", "POSE_BETWEEN_STRIPS", "POSE_BEYOND_STRIPS", "POSE_IN_STRIP",
+        "SPLINE_INTERPOLATION", "StripBasis", "StripError", "TrajectoryCorrection",
+        "TrajectoryErrorSettings", "TrajectoryEstimate", "TrajectoryModel", "TrajectoryRows",
+        "TrajectoryState", "error_columns", "trajectory_corrections",
     ),
     "trajectory_estimation": ("EstimatedTrajectory", "StripEstimate", "estimate_trajectory"),
     "trajectory_fallback": ("level_fallback",),

@@ -69,6 +69,9 @@ SCHEMA: dict[str, ParameterSpec] = {
                                            read_only=True),
     "topics.corrected": ParameterSpec("/lidar/points_corrected", "str",
                                       "Corrected clouds (PointCloud2)", read_only=True),
+    "topics.trajectory_corrected": ParameterSpec(
+        "/lidar/trajectory_corrected", "str", "Corrected trajectory (the input trajectory's "
+        "type, less each strip's trajectory error) in a corrected bag", read_only=True),
     "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
     "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
     "sensor.fov_deg": float_parameter(

@@ -244,6 +244,22 @@ class StripError:
     coefficients: np.ndarray
     sigma: np.ndarray
 
+    @classmethod
+    def linear(cls, strip_id: int, t_ref: float, offset: np.ndarray,
+               offset_sigma: np.ndarray, drift: np.ndarray | None = None,
+               drift_sigma: np.ndarray | None = None) -> StripError:
+        """An offset (m) about ``t_ref`` (s), with a drift (m/s) where given; sigmas alike
+        (NaN where not known)."""
+        rows = [np.asarray(offset, dtype=np.float64)]
+        sigmas = [np.asarray(offset_sigma, dtype=np.float64)]
+        if drift is not None:
+            rows.append(np.asarray(drift, dtype=np.float64))
+            sigmas.append(np.full(3, np.nan) if drift_sigma is None
+                          else np.asarray(drift_sigma, dtype=np.float64))
+        model = TrajectoryModel.DRIFT if drift is not None else TrajectoryModel.OFFSET
+        return cls(int(strip_id), StripBasis(model, float(t_ref)), np.vstack(rows),
+                   np.vstack(sigmas))
+
     @property
     def t_ref(self) -> float:
         return self.basis.t_ref
@@ -271,6 +287,15 @@ class StripError:
     def error(self, t: np.ndarray) -> np.ndarray:
         """``e(t)`` (n, 3) at absolute times ``t`` (s), map frame, m."""
         return self.basis.error(self.coefficients.ravel(), t)
+
+    def sigma_at(self, t: np.ndarray) -> np.ndarray:
+        """Standard deviation of ``e(t)`` (n, 3) per axis at absolute times ``t`` (s), m:
+        ``sqrt(sum_j b_j(t)^2 sigma_j^2)`` (the drift model's ``sqrt(offset_sigma^2 + (t -
+        t_ref)^2 drift_sigma^2)``), the covariances of the coefficients left out (the file
+        does not hold them; about ``t_ref``, the strip's mid time, they are small). NaN where
+        a sigma is not known."""
+        b = self.basis.values(t)
+        return np.sqrt(b ** 2 @ self.sigma ** 2)
 
 
 @dataclass
@@ -316,15 +341,107 @@ class TrajectoryEstimate:
         return max(float(np.linalg.norm(s.offset)) for s in self.strips.values())
 
 
+#: Where a trajectory sample's correction comes from (:func:`trajectory_corrections`): its
+#: strip's ``e_s(t)``; interpolated between the strips before and after it (a turn);
+#: held at the nearest strip's end (before the first strip or after the last).
+POSE_IN_STRIP, POSE_BETWEEN_STRIPS, POSE_BEYOND_STRIPS = 0, 1, 2
+
+
+@dataclass
+class TrajectoryCorrection:
+    """The error removed from each trajectory sample: ``errors`` (n, 3) m, map frame
+    (delivered - true), and ``source`` (n,) int8 (:data:`POSE_IN_STRIP`,
+    :data:`POSE_BETWEEN_STRIPS`, :data:`POSE_BEYOND_STRIPS`)."""
+
+    errors: np.ndarray
+    source: np.ndarray
+
+    def counts(self) -> tuple[int, int, int]:
+        """Samples in a strip, between strips, beyond the first or last strip."""
+        return tuple(int(np.count_nonzero(self.source == k))  # type: ignore[return-value]
+                     for k in (POSE_IN_STRIP, POSE_BETWEEN_STRIPS, POSE_BEYOND_STRIPS))
+
+
+def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[float, float]],
+                           t: np.ndarray) -> TrajectoryCorrection:
+    """The error ``e_hat(t)`` to remove from trajectory samples at times ``t`` (s), so that
+    ``X_o,delivered(t) - e_hat(t)`` is the corrected trajectory (docs/method.md section 11).
+
+    Parameters
+    ----------
+    estimate : TrajectoryEstimate
+    spans : dict of strip id -> (first, last) time, s
+        When each strip was flown (its points' times). A strip of ``spans`` without an
+        estimate has zero error, as its points were left (the corrected trajectory stays
+        where the corrected points say the sensor was).
+    t : (n,) float64
+        Sample times, s.
+
+    Notes
+    -----
+    During a strip (``first <= t <= last``; where spans overlap, the strip that started
+    later): ``e_s(t)``. Between two strips (a turn: nothing observed it): linear in time from
+    the earlier strip's error at its end to the later strip's at its start, so the corrected
+    trajectory stays continuous. Before the first strip and after the last: the nearest
+    strip's error at its end, held (a drift is not extrapolated). A non-finite time gets
+    zero.
+    """
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    n = t.shape[0]
+    errors = np.zeros((n, 3))
+    source = np.full(n, POSE_BEYOND_STRIPS, dtype=np.int8)
+    usable = {int(k): (float(a), float(b)) for k, (a, b) in spans.items()
+              if math.isfinite(a) and math.isfinite(b) and a <= b}
+    if not usable or not n:
+        return TrajectoryCorrection(errors, source)
+    ids = sorted(usable, key=lambda k: (usable[k][0], k))
+    start = np.array([usable[k][0] for k in ids])
+    end = np.array([usable[k][1] for k in ids])
+    at_start = np.vstack([estimate.error(k, start[i:i + 1]) for i, k in enumerate(ids)])
+    at_end = np.vstack([estimate.error(k, end[i:i + 1]) for i, k in enumerate(ids)])
+    finite = np.isfinite(t)
+    inside = np.zeros(n, dtype=bool)
+    for i, k in enumerate(ids):  # (in order of start: a later strip overrides an overlap)
+        on = finite & (t >= start[i]) & (t <= end[i])
+        if on.any():
+            errors[on] = estimate.error(k, t[on])
+            inside |= on
+    source[inside] = POSE_IN_STRIP
+    rest = finite & ~inside
+    if rest.any():
+        tr = t[rest]
+        by_end = np.argsort(end, kind="stable")
+        before = np.searchsorted(end[by_end], tr, side="left") - 1  # last strip ended before
+        after = np.searchsorted(start, tr, side="right")  # first strip starting after
+        has_before, has_after = before >= 0, after < len(ids)
+        prev = by_end[np.clip(before, 0, None)]
+        nxt = np.clip(after, None, len(ids) - 1)
+        e_prev, e_next = at_end[prev], at_start[nxt]
+        t0, t1 = end[prev], start[nxt]
+        both = has_before & has_after
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(both & (t1 > t0), (tr - t0) / (t1 - t0), 0.0)
+        e = np.where(has_before[:, None], e_prev, e_next)
+        e = np.where(both[:, None], e_prev + w[:, None] * (e_next - e_prev), e)
+        errors[rest] = e
+        source[np.flatnonzero(rest)[both]] = POSE_BETWEEN_STRIPS
+    return TrajectoryCorrection(errors, source)
+
+
 __all__ = [
     "AUTO_SIGMA0_RATIO",
+    "POSE_BETWEEN_STRIPS",
+    "POSE_BEYOND_STRIPS",
+    "POSE_IN_STRIP",
     "SPLINE_INTERPOLATION",
     "StripBasis",
     "StripError",
+    "TrajectoryCorrection",
     "TrajectoryErrorSettings",
     "TrajectoryEstimate",
     "TrajectoryModel",
     "TrajectoryRows",
     "TrajectoryState",
     "error_columns",
+    "trajectory_corrections",
 ]

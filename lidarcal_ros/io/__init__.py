@@ -69,6 +69,7 @@ _EXPORTS = {
     "report_content": (
         "BiasEntry", "EvaluationSection", "FlightMap", "InputFile", "MapRaster", "PairSection",
         "Provenance", "RadiometrySection", "ReportContent", "SlopeClass", "StripRow",
+        "TrajectorySection",
     ),
     "report_figures": (
         "DIFFERENCE_CMAP", "FIGURE_DPI", "PAIR_POINTS_PER_CELL", "correlation_figure",
@@ -78,6 +79,7 @@ _EXPORTS = {
     "report_sections": (
         "block_html", "calibration_html", "control_html", "evaluation_html", "pairs_html",
         "provenance_html", "quality_html", "radiometry_html", "summary_html", "swath_html",
+        "trajectory_html",
     ),
     "ros_messages": (
         "CloudMessage", "ESTIMATE_COLUMN_LABEL", "ESTIMATE_ROWS", "ESTIMATE_ROW_LABEL",
@@ -95,9 +97,11 @@ _EXPORTS = {
         "SBET_DTYPE", "SBET_FIELDS", "SBET_RECORD_BYTES", "TIME_BASES", "TimeBase",
         "TrajectoryFile", "TrajectoryFileError", "WEEK_S", "gps_to_unix", "gps_week_of_unix",
         "read_ascii_trajectory", "read_sbet", "read_trajectory_file", "to_gps_seconds",
-        "write_sbet",
+        "write_ascii_trajectory", "write_sbet",
     ),
-    "trajectory_messages": ("TRAJECTORY_TYPES", "TrajectorySamples", "trajectory_sample"),
+    "trajectory_messages": (
+        "TRAJECTORY_TYPES", "TrajectorySamples", "moved_message", "trajectory_sample",
+    ),
     "yaml_file": ("read_yaml",),
 }
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

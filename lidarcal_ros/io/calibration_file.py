@@ -151,7 +151,8 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
     ConfigError
         A model other than offset, drift or spline, a strip id that is not a whole number, a
         missing or non-finite ``t_ref``, ``offset``, ``drift``, ``knots`` or
-        ``coefficients``; one line naming the key.
+        ``coefficients``, a negative or infinite sigma; one line naming the key. (A sigma
+        that is null or absent is read as NaN: not known.)
     """
     if not isinstance(block, Mapping):
         raise ConfigError(f"{path}: trajectory must be a mapping with model and strips")
@@ -187,23 +188,42 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
                                   f"numbers, got {value!r}")
             return out
 
+        def sigmas(name: str, rows: int, entry: Mapping[str, Any] = entry,
+                   where: str = where) -> np.ndarray:
+            # (null: not known, NaN; absent as a whole: all NaN)
+            value = entry.get(name)
+            if value is None:
+                return np.full((rows, 3), np.nan)
+            try:
+                out = np.array([np.nan if v is None else v for v in np.ravel(
+                    np.array(value, dtype=object))], dtype=np.float64).reshape(rows, 3)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{where}.{name} must be {3 * rows} numbers >= 0 or null, "
+                                  f"got {value!r}") from None
+            if (out < 0).any() or np.isinf(out).any():
+                raise ConfigError(f"{where}.{name} must be {3 * rows} numbers >= 0 or null, "
+                                  f"got {value!r}")
+            return out
+
         t_ref = float(vector("t_ref", 1)[0])
         if model is TrajectoryModel.SPLINE:
             knots = vector("knots", None)
-            coefficients = vector("coefficients", None)
+            coefficients = vector("coefficients", None).reshape(-1, 3)
             if knots.size < 5 or np.any(np.diff(knots) <= 0) or \
-                    coefficients.size != 3 * (knots.size - 4):
+                    coefficients.shape[0] != knots.size - 4:
                 raise ConfigError(f"{where}: a cubic spline of {knots.size} increasing knots "
                                   f"takes {3 * max(knots.size - 4, 0)} coefficients, got "
                                   f"{coefficients.size}")
             basis = StripBasis(model, t_ref, knots)
+            sigma = sigmas("coefficient_sigma", coefficients.shape[0])
         else:
-            coefficients = vector("offset", 3)
+            coefficients = vector("offset", 3)[None, :]
+            sigma = sigmas("offset_sigma", 1)
             if model is TrajectoryModel.DRIFT:
-                coefficients = np.concatenate([coefficients, vector("drift", 3)])
+                coefficients = np.vstack([coefficients, vector("drift", 3)])
+                sigma = np.vstack([sigma, sigmas("drift_sigma", 1)])
             basis = StripBasis(model, t_ref)
-        strips[sid] = StripError(sid, basis, coefficients.reshape(-1, 3),
-                                 np.full((coefficients.size // 3, 3), np.nan))
+        strips[sid] = StripError(sid, basis, coefficients, sigma)
     return TrajectoryEstimate(model, strips)
 
 

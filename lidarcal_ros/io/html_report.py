@@ -18,6 +18,9 @@ Sections, in the order a LiDAR processor reads them:
   ground, density);
 - the calibration: its facts, the bias table (estimate, sigma, unit, or why a parameter was
   not estimated), the correlation matrix;
+- where the calibration holds trajectory errors (docs/method.md section 11): the model, each
+  strip's estimated error over time (E, N, U with its sigma band) and a table of offsets and
+  drifts with their sigmas;
 - swath-to-swath height differences over the block before and after (mosaics on one colour
   scale, per pair RMSDz and largest |dz|), then per strip pair the normal discrepancies of the
   calibration's sample points (maps on one scale, histograms);
@@ -32,8 +35,9 @@ Sections, in the order a LiDAR processor reads them:
 The inline script marks every ``<img>`` that decoded (``data-rendered="1"``) and writes
 ``data-figures-total`` and ``data-figures-rendered`` on ``<body>`` once the page has loaded,
 so a headless browser can tell that every figure rendered. Every section is a ``<section>``
-with an ``id`` (``summary``, ``quality``, ``block``, ``calibration``, ``swath``,
-``pairs``, ``evaluation``, ``control``, ``radiometry``, ``provenance``).
+with an ``id`` (``summary``, ``quality``, ``block``, ``calibration``, ``trajectory`` where
+there are trajectory errors, ``swath``, ``pairs``, ``evaluation``, ``control``,
+``radiometry``, ``provenance``).
 """
 
 
@@ -57,6 +61,7 @@ from lidarcal_ros.io.report_sections import (
     radiometry_html,
     summary_html,
     swath_html,
+    trajectory_html,
 )
 
 __all__ = ["figure_ids", "render_html", "write_html_report"]
@@ -97,7 +102,8 @@ window.addEventListener("load", function () {
 """
 
 _SECTIONS = (("summary", "Summary"), ("quality", "Quality level"), ("block", "Block"),
-             ("calibration", "Calibration"), ("swath", "Swath differences"),
+             ("calibration", "Calibration"), ("trajectory", "Trajectory errors"),
+             ("swath", "Swath differences"),
              ("pairs", "Strip pairs"), ("evaluation", "Accuracy"),
              ("control", "Control points"), ("radiometry", "Radiometry"),
              ("provenance", "Provenance"))
@@ -114,16 +120,20 @@ def figure_ids(content: ReportContent) -> set[str]:
         ids.add("fig-swath-dz")
     if content.radiometry is not None:
         ids |= {"fig-vmr-slope", "fig-reflectance-map"}
+    if content.trajectory is not None:
+        ids.add("fig-trajectory-errors")
     return ids
 
 
 def render_html(content: ReportContent, *, progress: Progress | None = None) -> str:
     """The report as one HTML document (module docstring)."""
     draw = FigureRenderer(len(figure_ids(content)), progress)
-    nav = "".join(f'<a href="#{key}">{escape(name)}</a>' for key, name in _SECTIONS)
+    nav = "".join(f'<a href="#{key}">{escape(name)}</a>' for key, name in _SECTIONS
+                  if key != "trajectory" or content.trajectory is not None)
     parts = [f"<h1>{escape(content.title)}</h1>", f"<nav>{nav}</nav>",
              summary_html(content), quality_html(content), block_html(content, draw),
-             calibration_html(content, draw), swath_html(content, draw),
+             calibration_html(content, draw), trajectory_html(content, draw),
+             swath_html(content, draw),
              pairs_html(content, draw), evaluation_html(content.evaluation),
              control_html(content.control), radiometry_html(content, draw),
              provenance_html(content.provenance)]

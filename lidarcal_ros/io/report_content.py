@@ -15,10 +15,12 @@ from lidarcal_ros.core.calibration_result import ControlResidual, PairDiscrepanc
 from lidarcal_ros.core.evaluation import AccuracySummary, RigidFit
 from lidarcal_ros.core.quality_level import QualityAssessment
 from lidarcal_ros.core.swath_differences import SwathDifferences
+from lidarcal_ros.core.trajectory_errors import TrajectoryEstimate
 
 __all__ = [
     "BiasEntry", "EvaluationSection", "FlightMap", "InputFile", "MapRaster", "PairSection",
     "Provenance", "RadiometrySection", "ReportContent", "SlopeClass", "StripRow",
+    "TrajectorySection",
 ]
 
 
@@ -294,6 +296,32 @@ class EvaluationSection:
 
 
 @dataclass
+class TrajectorySection:
+    """Each strip's estimated trajectory error (the calibration file's ``trajectory`` block,
+    docs/method.md section 11).
+
+    Attributes
+    ----------
+    estimate : TrajectoryEstimate
+        ``e_s(t)`` by strip id (delivered - true, map frame, m) with its sigmas.
+    choice : str
+        How the model was chosen, as the file says (``trajectory_model``; '' where absent).
+    spans : dict of int -> (float, float)
+        When each strip of the mission was flown (its points' first and last time, s).
+    t0 : float
+        Origin of the figure's time axis (the first strip's start), s.
+    start : str
+        ``t0`` in words (UTC where absolute).
+    """
+
+    estimate: TrajectoryEstimate
+    choice: str
+    spans: dict[int, tuple[float, float]]
+    t0: float
+    start: str
+
+
+@dataclass
 class ReportContent:
     """Everything the HTML report shows.
 
@@ -329,6 +357,8 @@ class ReportContent:
     smooth_slope_deg : float
         Steepest ground of the swath differences, degrees.
     warnings : list of str
+    trajectory : TrajectorySection or None
+        None where the calibration holds no trajectory errors.
     """
 
     title: str
@@ -352,3 +382,4 @@ class ReportContent:
     qa_error_m: float = 0.16
     smooth_slope_deg: float = 10.0
     warnings: list[str] = field(default_factory=list)
+    trajectory: TrajectorySection | None = None

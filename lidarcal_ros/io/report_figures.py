@@ -24,7 +24,13 @@ if TYPE_CHECKING:
 
     from lidarcal_ros.core.calibration_result import PairDiscrepancies
     from lidarcal_ros.core.swath_differences import SwathDifferences
-    from lidarcal_ros.io.report_content import FlightMap, MapRaster, PairSection, SlopeClass
+    from lidarcal_ros.io.report_content import (
+        FlightMap,
+        MapRaster,
+        PairSection,
+        SlopeClass,
+        TrajectorySection,
+    )
 
 #: Resolution of the embedded PNG figures, dots per inch.
 FIGURE_DPI = 90
@@ -331,6 +337,43 @@ def pair_figure(section: PairSection, crs: str) -> Figure:
     a, b = section.strips
     fig.suptitle(f"strips {a} & {b}: points of strip {after.points_strip} on the TIN of "
                  f"strip {after.tin_strip}, mean per {cell:.1f} m cell", fontsize=10)
+    return fig
+
+
+#: Samples of each strip's error curve in the trajectory figure.
+TRAJECTORY_CURVE_SAMPLES = 100
+
+
+def trajectory_figure(section: TrajectorySection) -> Figure:
+    """Each strip's estimated trajectory error ``e_s(t)`` (E, N, U; cm) over the time its
+    points were flown, with the band of one sigma about it, one panel per axis."""
+    fig = new_figure(11.0, 6.8, constrained=True)
+    axes = fig.subplots(3, 1, sharex=True)
+    estimate = section.estimate
+    for k, sid in enumerate(sorted(estimate.strips)):
+        se = estimate.strips[sid]
+        lo, hi = section.spans.get(sid, (se.t_ref, se.t_ref))
+        t = np.linspace(lo, hi, TRAJECTORY_CURVE_SAMPLES if hi > lo else 1)
+        e, s = se.error(t) * 100.0, se.sigma_at(t) * 100.0
+        x = t - section.t0
+        colour = f"C{k % 10}"
+        for axis, ax in enumerate(axes):
+            if x.size > 1:
+                ax.plot(x, e[:, axis], color=colour, linewidth=1.5)
+            else:  # (a strip of the file the mission does not hold: its t_ref)
+                ax.plot(x, e[:, axis], "o", color=colour, markersize=4)
+            if np.isfinite(s[:, axis]).all():
+                ax.fill_between(x, e[:, axis] - s[:, axis], e[:, axis] + s[:, axis],
+                                color=colour, alpha=0.2, linewidth=0)
+        axes[0].annotate(str(sid), (float(x[len(x) // 2]), 1.0), xycoords=("data", "axes fraction"),
+                         xytext=(0, 2), textcoords="offset points", ha="center", va="bottom",
+                         fontsize=8, fontweight="bold", color=colour)
+    for ax, name in zip(axes, ("E (x)", "N (y)", "U (z)"), strict=True):
+        ax.axhline(0.0, color="black", linewidth=0.6)
+        ax.set_ylabel(f"{name} error (cm)", fontsize=_SMALL)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, linewidth=0.3, alpha=0.5)
+    axes[-1].set_xlabel(f"time since {section.start} (s)", fontsize=_SMALL)
     return fig
 
 

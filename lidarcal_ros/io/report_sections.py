@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
+
 from lidarcal_ros.core.calibration_result import ControlResidual
 from lidarcal_ros.core.evaluation import RIGID_NAMES, RigidFit
 from lidarcal_ros.core.params import display_value
@@ -29,6 +31,7 @@ from lidarcal_ros.io.report_content import BiasEntry, EvaluationSection, Provena
 __all__ = [
     "block_html", "calibration_html", "control_html", "evaluation_html", "pairs_html",
     "provenance_html", "quality_html", "radiometry_html", "summary_html", "swath_html",
+    "trajectory_html",
 ]
 
 
@@ -145,6 +148,62 @@ def calibration_html(content: ReportContent, draw: FigureRenderer) -> str:
     else:
         parts.append("<p>Fewer than two parameters estimated: no correlations.</p>")
     return html_section("calibration", "Calibration", parts)
+
+
+def _with_sigma(values: np.ndarray, sigmas: np.ndarray | None, scale: float, digits: int
+                ) -> list[str]:
+    """``value &plusmn; sigma`` per axis, scaled (cm, mm/s), sigma left out where unknown."""
+    out = []
+    for k in range(3):
+        text = f"{values[k] * scale:+.{digits}f}"
+        if sigmas is not None and math.isfinite(float(sigmas[k])):
+            text += f" &plusmn; {sigmas[k] * scale:.{digits}f}"
+        out.append(text)
+    return out
+
+
+def trajectory_html(content: ReportContent, draw: FigureRenderer) -> str:
+    """Each strip's estimated trajectory error: the model, its curves over time with their
+    sigma band, and per strip offset and drift with their sigmas ('' without the block)."""
+    section = content.trajectory
+    if section is None:
+        return ""
+    estimate = section.estimate
+    drift = estimate.model.value == "drift"
+    parts = [facts_table([("trajectory model", escape(section.choice)),
+                          ("strips", str(len(estimate.strips)))]),
+             draw.figure("fig-trajectory-errors",
+                         "each strip's estimated trajectory error over time, E, N, U",
+                         figures.trajectory_figure(section),
+                         "Each strip's estimated trajectory error e_s(t) (delivered - true, "
+                         "map frame: E = x, N = y, U = z; cm) over the time its points were "
+                         "flown (number: strip id), shaded: one sigma, sqrt(offset_sigma^2 + "
+                         "(t - t_ref)^2 drift_sigma^2) per axis, the covariance of offset and "
+                         "drift left out (the file does not hold it).")]
+    rows = []
+    for sid in sorted(estimate.strips):
+        se = estimate.strips[sid]
+        lo, hi = section.spans.get(sid, (math.nan, math.nan))
+        flown = (f"{lo - section.t0:.1f} - {hi - section.t0:.1f}" if math.isfinite(lo)
+                 else "not in the bag")
+        row = [str(sid), flown, f"{se.t_ref - section.t0:.1f}",
+               *_with_sigma(se.offset, se.offset_sigma, 100.0, 1)]
+        if drift and se.drift is not None:
+            row += _with_sigma(se.drift, se.drift_sigma, 1000.0, 2)
+        rows.append(row)
+    header = ["strip", "flown (s)", "t_ref (s)", "offset E (cm)", "offset N (cm)",
+              "offset U (cm)"]
+    if drift:
+        header += ["drift E (mm/s)", "drift N (mm/s)", "drift U (mm/s)"]
+    parts.append(html_table(header, rows, set(range(1, len(header)))))
+    parts.append(note(
+        f"Times in seconds since {escape(section.start)}; t_ref is the strip's reference time "
+        "(its mid time), about which the drift runs. lidarcal correct removes e_s(t) from each "
+        "point of strip s and, on --trajectory-out and /lidar/trajectory_corrected, from the "
+        "trajectory. The horizontal offsets also take what the data cannot tell them from: "
+        "the lever arm, and boresight angles held at their values (docs/method.md section 11); "
+        "their sigmas do not include a bias held wrong."))
+    return html_section("trajectory", "Trajectory errors: each strip's correction", parts)
 
 
 def swath_html(content: ReportContent, draw: FigureRenderer) -> str:

@@ -44,14 +44,18 @@ import logging
 import math
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from lidarcal_ros.errors import InputError, TrajectoryError
+from lidarcal_ros.errors import InputError, OutputError, TrajectoryError
 from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, GPS_EPOCH_UNIX, adjusted_gps_to_unix
+
+if TYPE_CHECKING:
+    from lidarcal_ros.core.mission import Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -452,6 +456,50 @@ def _check_times(p: Path, t: np.ndarray) -> None:
                                   "a trajectory needs each sample at its own time")
 
 
+def write_ascii_trajectory(path: str | os.PathLike[str], trajectory: Trajectory, *,
+                           comments: Sequence[str] = (), overwrite: bool = False) -> Path:
+    """Write ``trajectory`` as an ASCII trajectory that :func:`read_ascii_trajectory` (and
+    ``lidarcal import``) reads: ``#`` comment lines, a header line, then one sample per line.
+
+    Columns: ``time`` (the trajectory's clock, s: UNIX seconds for a bag's stamps), ``x``,
+    ``y``, ``z`` (map frame, m); where the trajectory has an attitude, ``roll``, ``pitch``
+    and ``heading`` in degrees (roll right wing down and pitch nose up positive, heading
+    clockwise from the map's grid north, as an SBET's: the inverse of the import's
+    conversion), or ``heading`` alone where its poses were levelled from a heading (``nan``
+    for a sample without one). Atomic (:func:`~lidarcal_ros.io.output_files.write_text`).
+
+    Raises
+    ------
+    OutputError
+        ``path`` exists and ``overwrite`` is False, or it cannot be written (one line).
+    """
+    from lidarcal_ros.core.attitude import attitude_from_quaternions
+    from lidarcal_ros.io.output_files import EXISTS, write_text
+
+    p = Path(path)
+    if (p.exists() or p.is_symlink()) and not overwrite:
+        raise OutputError(f"{p}: {EXISTS}")
+    columns = [trajectory.t, trajectory.xyz[:, 0], trajectory.xyz[:, 1], trajectory.xyz[:, 2]]
+    names = ["time", "x", "y", "z"]
+    formats = ["%.6f", "%.4f", "%.4f", "%.4f"]
+    if trajectory.orientation is not None:
+        roll, pitch, kappa = attitude_from_quaternions(trajectory.orientation)
+        heading = np.mod(-np.degrees(kappa), 360.0)  # (kappa counter-clockwise from north)
+        if trajectory.full_attitude:
+            columns += [np.degrees(roll), np.degrees(pitch)]
+            names += ["roll", "pitch"]
+            formats += ["%.6f", "%.6f"]
+        columns.append(heading)
+        names.append("heading")
+        formats.append("%.6f")
+    buffer = io.StringIO()
+    for line in comments:
+        buffer.write(f"# {line}\n")
+    buffer.write(",".join(names) + "\n")
+    np.savetxt(buffer, np.column_stack(columns), fmt=formats, delimiter=",")
+    return write_text(p, buffer.getvalue(), what="trajectory")
+
+
 def _check_file(path: str | os.PathLike[str]) -> Path:
     p = Path(path)
     if not p.exists():
@@ -490,4 +538,4 @@ def read_trajectory_file(
 __all__ = ["SBET_DTYPE", "SBET_FIELDS", "SBET_RECORD_BYTES", "TIME_BASES", "WEEK_S", "TimeBase",
            "TrajectoryFile", "TrajectoryFileError", "gps_to_unix", "gps_week_of_unix",
            "read_ascii_trajectory", "read_sbet", "read_trajectory_file", "to_gps_seconds",
-           "write_sbet"]
+           "write_ascii_trajectory", "write_sbet"]

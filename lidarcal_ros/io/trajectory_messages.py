@@ -71,17 +71,16 @@ class TrajectorySamples:
         from them (the same numbers as its decoded message gives, a tenth of the time: the
         poses of a long mission number tens of thousands), any other through
         ``decode(bytes, msgtype)``."""
-        if msgtype == POSE_STAMPED and len(raw) >= 16 and raw[1] == 1:  # CDR, little-endian
+        body = _pose_body_offset(raw) if msgtype == POSE_STAMPED else None
+        if body is not None:  # CDR, little-endian
             sec, nanosec, size = _POSE_HEADER.unpack_from(raw, 4)
             end = 16 + size  # of the frame id, its NUL included
-            body = 4 + (end - 4 + 7) // 8 * 8
-            if size and body + _POSE_BODY.size == len(raw) and raw[end - 1] == 0:
-                x, y, z, qx, qy, qz, qw = _POSE_BODY.unpack_from(raw, body)
-                self.t.append(float(sec) + int(nanosec) * 1e-9)  # (stamp_seconds)
-                self.xyz.append((x, y, z))
-                self.orientation.append((qx, qy, qz, qw))
-                self.frames.add(bytes(raw[16:end - 1]).decode())
-                return
+            x, y, z, qx, qy, qz, qw = _POSE_BODY.unpack_from(raw, body)
+            self.t.append(float(sec) + int(nanosec) * 1e-9)  # (stamp_seconds)
+            self.xyz.append((x, y, z))
+            self.orientation.append((qx, qy, qz, qw))
+            self.frames.add(bytes(raw[16:end - 1]).decode())
+            return
         self.add(msgtype, decode(memoryview(raw), msgtype))
 
     def __len__(self) -> int:
@@ -105,4 +104,36 @@ class TrajectorySamples:
                                        source=source)
 
 
-__all__ = ["TRAJECTORY_TYPES", "TrajectorySamples", "trajectory_sample"]
+def _pose_body_offset(raw: bytes | memoryview) -> int | None:
+    """Where a little-endian CDR ``PoseStamped``'s position starts in ``raw`` (None where
+    ``raw`` is not one as :meth:`TrajectorySamples.add_raw` reads it)."""
+    if len(raw) < 16 or raw[1] != 1:
+        return None
+    _sec, _nanosec, size = _POSE_HEADER.unpack_from(raw, 4)
+    end = 16 + size
+    body = 4 + (end - 4 + 7) // 8 * 8
+    if size and body + _POSE_BODY.size == len(raw) and raw[end - 1] == 0:
+        return body
+    return None
+
+
+def moved_message(msgtype: str, raw: bytes | memoryview, xyz: tuple[float, float, float],
+                  decode: Callable[[memoryview, str], Any],
+                  encode: Callable[[Any, str], Any]) -> bytes:
+    """The CDR bytes of trajectory message ``raw`` (one of :data:`TRAJECTORY_TYPES`) with its
+    position set to ``xyz`` (m), everything else (stamp, frame, orientation, twist,
+    covariances) as it was: a little-endian ``PoseStamped`` patched in its bytes, any other
+    through ``decode(bytes, msgtype)`` and ``encode(message, msgtype)``."""
+    if msgtype == POSE_STAMPED:
+        body = _pose_body_offset(raw)
+        if body is not None:
+            out = bytearray(raw)
+            struct.pack_into("<3d", out, body, *xyz)
+            return bytes(out)
+    msg = decode(memoryview(raw), msgtype)
+    pos, _q = TRAJECTORY_TYPES[msgtype](msg)
+    pos.x, pos.y, pos.z = (float(v) for v in xyz)
+    return bytes(encode(msg, msgtype))
+
+
+__all__ = ["TRAJECTORY_TYPES", "TrajectorySamples", "moved_message", "trajectory_sample"]

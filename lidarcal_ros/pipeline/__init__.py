@@ -97,12 +97,13 @@ _EXPORTS = {
     ),
     "report": (
         "ReportInputs", "build_report", "evaluation_section", "geometric_sections",
-        "quality_assessment", "read_evaluation", "report_mission",
+        "quality_assessment", "read_evaluation", "report_mission", "trajectory_section",
     ),
     "report_block": (
         "BlockPass", "EXCLUDED_FLAGS", "FOOTPRINT_CELL_M", "MAP_MAX_CELLS",
         "MAP_STRIP_SPACINGS", "SWATH_CELL_SPACINGS", "SWATH_MAX_CELLS", "StripFootprint",
         "TRAJECTORY_MAP_POINTS", "block_grids", "block_pass", "cell_sums", "flight_map",
+        "time_text",
     ),
     "report_calibration": ("ReportCalibration", "read_report_calibration"),
     "report_provenance": ("configuration_table", "describe_inputs"),

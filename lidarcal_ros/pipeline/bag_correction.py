@@ -11,8 +11,15 @@ first. What comes out is written in order:
 
 - a bag: every input message passed through unchanged and each corrected cloud on
   ``topics.corrected``, in the input's (log-time) order; each corrected cloud is built in the
-  bytes of its output message;
-- LAS/LAZ: the corrected clouds in runs of at least :data:`LAS_RUN_POINTS` points.
+  bytes of its output message; where the calibration holds trajectory errors, the corrected
+  trajectory on ``topics.trajectory_corrected`` (after the clouds: the strips' times are known
+  only once every cloud is read; each message at its input's log time);
+- LAS/LAZ: the corrected clouds in runs of at least :data:`LAS_RUN_POINTS` points;
+- with :attr:`CorrectOptions.trajectory_out`, the corrected trajectory as an ASCII file.
+
+The corrected trajectory is ``X_o,delivered(t) - e_hat_s(t)`` (docs/method.md section 11), the
+strips' times those of their points; between strips (turns) the error is interpolated
+(:func:`~lidarcal_ros.core.trajectory_errors.trajectory_corrections`).
 
 It returns a :class:`CorrectionReport` (counts, models, warnings) for the command to print.
 """
@@ -40,6 +47,11 @@ from lidarcal_ros.core.heading import check_orientation
 from lidarcal_ros.core.jit import start_without_blas
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.radiometry import describe_alpha
+from lidarcal_ros.core.trajectory_errors import (
+    POSE_BEYOND_STRIPS,
+    TrajectoryCorrection,
+    trajectory_corrections,
+)
 from lidarcal_ros.errors import BagError, InputError, LidarcalError, one_line
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
 from lidarcal_ros.io.cloud_columns import resolve_time_field
@@ -77,6 +89,8 @@ class CorrectionReport:
     frame_id: str = ""
     atmosphere: str = ""
     reflectance: str = ""
+    #: What was written of the corrected trajectory ('' where nothing).
+    trajectory: str = ""
     warnings: list[str] = field(default_factory=list)
 
     def lines(self) -> list[str]:
@@ -96,6 +110,8 @@ class CorrectionReport:
                    f"volume (canopy) returns: {s.volume}; "
                    f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
                    f"without intensity: {s.no_intensity}")
+        if self.trajectory:
+            out.append(f"corrected trajectory: {self.trajectory}")
         out.extend(f"warning: {w}" for w in self.warnings)
         return out
 
@@ -182,6 +198,11 @@ class CorrectOptions:
         trajectory comes after its clouds). None: ``4 * batch_points``, at least
         :data:`MIN_HELD_POINTS`; 0: always the trajectory first (two passes). The output
         is the same.
+    trajectory_out : Path or None
+        Also write the corrected trajectory here, ASCII ``time,x,y,z[,roll,pitch,heading]``
+        (:func:`~lidarcal_ros.io.trajectory_files.write_ascii_trajectory`; ``overwrite``
+        applies to it too); the delivered one, with a warning, where the calibration holds
+        no trajectory errors.
     """
 
     crs: Any = None
@@ -189,6 +210,7 @@ class CorrectOptions:
     batch_points: int = DEFAULT_BATCH_POINTS
     workers: int = 1
     max_held_points: int | None = None
+    trajectory_out: Path | None = None
 
     @property
     def held_points_bound(self) -> int:
@@ -250,9 +272,16 @@ def correct_bag(
     points_topic = config["topics.points"]
     traj_topic = config["topics.trajectory"]
     corrected_topic = config["topics.corrected"]
+    # (written where there is something to correct it by)
+    moved_topic = (str(config["topics.trajectory_corrected"])
+                   if kind == "bag" and record.trajectory is not None else None)
     bag_path = Path(bag_path)
     if out_path.resolve() == bag_path.resolve():
         raise InputError(f"{out_path}: output would overwrite the input bag")
+    if options.trajectory_out is not None and Path(options.trajectory_out).resolve() in (
+            bag_path.resolve(), out_path.resolve()):
+        raise InputError(f"{options.trajectory_out}: the trajectory output would overwrite "
+                         "the input bag or the corrected output")
     warnings: list[str] = []
     if options.crs is not None and kind == "bag":
         warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
@@ -260,10 +289,10 @@ def correct_bag(
 
     with open_bag(bag_path) as bag:
         _check_topics(bag, points_topic, traj_topic,
-                      corrected_topic if kind == "bag" else None)
+                      corrected_topic if kind == "bag" else None, moved_topic)
         run = functools.partial(_correct_once, bag, _Request(
             settings, config, options, out_path, (points_topic, traj_topic, corrected_topic),
-            progress, warnings, warm_up))
+            moved_topic, progress, warnings, warm_up))
         report = None
         if options.held_points_bound:
             try:
@@ -283,13 +312,15 @@ def correct_bag(
 @dataclass(frozen=True)
 class _Request:
     """What :func:`correct_bag` was asked, checked: the settings, the output, the topics
-    (clouds, trajectory, corrected clouds), the warnings so far and the warm-up thread."""
+    (clouds, trajectory, corrected clouds; the corrected trajectory's, None where it is not
+    written), the warnings so far and the warm-up thread."""
 
     settings: CorrectionSettings
     config: FlightConfig
     options: CorrectOptions
     out_path: Path
     topics: tuple[str, str, str]
+    moved_topic: str | None
     progress: Callable[[str, float], None] | None
     warnings: list[str]
     warm_up: threading.Thread
@@ -308,10 +339,13 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
     samples = TrajectorySamples()
     if progress:
         progress("correcting" if single_pass else "reading trajectory", 0.0)
+    poses = _PoseMessages() if request.moved_topic is not None else None
     if not single_pass:
         add = _pose_reader(bag, traj_topic, samples)
-        for _topic, msgtype, _ns, raw in prefetched(lambda: bag.messages([traj_topic])):
+        for _topic, msgtype, ns, raw in prefetched(lambda: bag.messages([traj_topic])):
             add(msgtype, raw)
+            if poses is not None:
+                poses.add(ns, msgtype, raw)
         trajectory, frame = _checked_trajectory(bag, traj_topic, samples, settings)
     meaning = settings.radiometry.meaning
     if not settings.radiometry.absolute:
@@ -343,7 +377,7 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
                               atmosphere=describe_alpha(settings.radiometry),
                               reflectance=meaning, warnings=list(request.warnings))
     job = _Job(bag, corrector, gate, out_path, points_topic, traj_topic, corrected_topic,
-               options.overwrite, n_clouds, progress, report)
+               options.overwrite, n_clouds, progress, report, request.moved_topic, poses)
     try:
         corrector.start()  # the workers start while the clouds are read
         if kind == "las":
@@ -353,13 +387,97 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
     finally:
         corrector.close()
     report.frame_id = gate.frame or ""
+    if options.trajectory_out is not None:
+        _write_trajectory_file(job, Path(options.trajectory_out), options.overwrite)
     return report
 
 
+class _PoseMessages:
+    """The trajectory messages of the input as read (log time ns, type, CDR bytes), kept
+    for the corrected trajectory topic (some 100 bytes a PoseStamped)."""
+
+    def __init__(self) -> None:
+        self.messages: list[tuple[int, str, bytes]] = []
+
+    def add(self, ns: int, msgtype: str, raw: Any) -> None:
+        self.messages.append((int(ns), msgtype, bytes(raw)))
+
+
+def _trajectory_correction(corrector: StreamCorrector, t: np.ndarray) -> TrajectoryCorrection:
+    """The error to remove from trajectory samples at ``t`` (s): the calibration's
+    ``e_hat_s`` over the strips' times seen by ``corrector`` (zero without an estimate)."""
+    estimate = corrector.settings.trajectory_errors
+    if estimate is None:
+        return TrajectoryCorrection(np.zeros((len(t), 3)),
+                                    np.full(len(t), POSE_BEYOND_STRIPS, np.int8))
+    return trajectory_corrections(estimate, corrector.strip_spans, t)
+
+
+def _describe_correction(correction: TrajectoryCorrection, where: str) -> str:
+    inside, between, beyond = correction.counts()
+    moved = np.linalg.norm(correction.errors, axis=1)
+    largest = float(moved.max()) * 100 if moved.size else 0.0
+    return (f"{len(moved)} poses -> {where} ({inside} in a strip: its e_s(t) removed, "
+            f"{between} between strips: interpolated, {beyond} before the first or after the "
+            f"last strip: the nearest strip's end held; largest move {largest:.1f} cm)")
+
+
+def _write_trajectory_file(job: _Job, path: Path, overwrite: bool) -> None:
+    """The corrected trajectory of ``job`` (its whole trajectory, screened) as ASCII."""
+    from lidarcal_ros.io.trajectory_files import write_ascii_trajectory
+
+    trajectory = job.corrector.trajectory
+    correction = _trajectory_correction(job.corrector, trajectory.t)
+    moved = Trajectory(trajectory.t, trajectory.xyz - correction.errors,
+                       trajectory.orientation, full_attitude=trajectory.full_attitude)
+    report = job.report
+    comments = [f"lidarcal corrected trajectory of {job.bag.path} ({job.trajectory_topic}), "
+                f"frame '{report.frame_id}'",
+                "time: the bag's clock (UNIX seconds); x, y, z: metres; roll, pitch, heading: "
+                "degrees (heading clockwise from grid north)",
+                "x, y, z = delivered - e_hat_s(t) (docs/method.md section 11); between strips "
+                "interpolated linearly, before the first and after the last strip held"]
+    if job.corrector.settings.trajectory_errors is None:
+        report.warnings.append(f"{path}: the calibration holds no trajectory errors: the "
+                               "trajectory is written as delivered")
+        logger.warning("%s", report.warnings[-1])
+        comments[-1] = "x, y, z as delivered: the calibration holds no trajectory errors"
+    write_ascii_trajectory(path, moved, comments=comments, overwrite=overwrite)
+    text = _describe_correction(correction, str(path))
+    report.trajectory = f"{report.trajectory}; {text}" if report.trajectory else text
+
+
+def _write_moved_poses(job: _Job, writer: Any) -> None:
+    """Every trajectory message of the input again on the corrected trajectory's topic,
+    its position less the error of its time, at its input's log time."""
+    from lidarcal_ros.io.trajectory_messages import TrajectorySamples, moved_message
+
+    assert job.moved_topic is not None and job.poses is not None
+    bag, topic = job.bag, job.trajectory_topic
+    decode = functools.partial(bag.deserialize, topic=topic)
+    parsed = TrajectorySamples()
+    for _ns, msgtype, raw in job.poses.messages:
+        parsed.add_raw(msgtype, raw, decode)
+    t = np.asarray(parsed.t, dtype=np.float64)
+    xyz = np.asarray(parsed.xyz, dtype=np.float64).reshape(-1, 3)
+    correction = _trajectory_correction(job.corrector, t)
+    moved = xyz - correction.errors
+    msgdef = bag.topics[topic].msgdef or None
+    encode = bag.typestore.serialize_cdr
+    for k, (ns, msgtype, raw) in enumerate(job.poses.messages):
+        if not np.isfinite(moved[k]).all():  # (a pose the trajectory left out: as it came)
+            out = raw
+        else:
+            out = moved_message(msgtype, raw, (float(moved[k, 0]), float(moved[k, 1]),
+                                               float(moved[k, 2])), decode, encode)
+        writer.write_raw(job.moved_topic, msgtype, ns, out, msgdef=msgdef)
+    job.report.trajectory = _describe_correction(correction, job.moved_topic)
+
+
 def _check_topics(bag: Any, points_topic: str, trajectory_topic: str,
-                  corrected_topic: str | None) -> None:
+                  corrected_topic: str | None, moved_topic: str | None = None) -> None:
     """Refuse a bag without the clouds or the trajectory (or with them of the wrong type or
-    empty), or one that already holds ``corrected_topic``."""
+    empty), or one that already holds ``corrected_topic`` or ``moved_topic``."""
     from lidarcal_ros.io.bag_format import POINTCLOUD2
     from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
 
@@ -374,9 +492,14 @@ def _check_topics(bag: Any, points_topic: str, trajectory_topic: str,
                            f"{' or '.join(types)}")
         if bag.topics[topic].count == 0:
             raise BagError(f"{bag.path}: topic {topic} has no messages")
-    if corrected_topic in bag.topics:
-        raise BagError(f"{bag.path}: already has topic {corrected_topic}; a corrected "
-                       "bag cannot be corrected again into the same topic")
+    for new in (corrected_topic, moved_topic):
+        if new is not None and new in bag.topics:
+            raise BagError(f"{bag.path}: already has topic {new}; a corrected bag cannot "
+                           "be corrected again into the same topic")
+    if moved_topic is not None and moved_topic in (points_topic, trajectory_topic,
+                                                   corrected_topic):
+        raise BagError(f"{bag.path}: the corrected trajectory's topic {moved_topic} is "
+                       "another input or output topic")
 
 
 def _warn_of_what_was_left(report: CorrectionReport, bag_path: Path, crs: Any) -> None:
@@ -425,6 +548,10 @@ class _Job:
     progress : callable(stage, fraction) or None
     report : CorrectionReport
         Filled in as the clouds are written.
+    moved_topic : str or None
+        The corrected trajectory's topic (bag output; None: not written).
+    poses : _PoseMessages or None
+        The trajectory messages read so far (where ``moved_topic`` is written).
     """
 
     bag: Any
@@ -438,6 +565,8 @@ class _Job:
     n_clouds: int
     progress: Callable[[str, float], None] | None
     report: CorrectionReport
+    moved_topic: str | None = None
+    poses: _PoseMessages | None = None
 
     @property
     def cloud_topics(self) -> list[str]:
@@ -582,7 +711,10 @@ def _correct_to_bag(job: _Job) -> None:
                    typestore=bag.typestore) as writer:
         # Where the input allows it, its chunks are copied as they are: every input message
         # is then in the output, and only the clouds are read.
-        copied = writer.copy_chunks_of(bag, {corrected_topic: POINTCLOUD2})
+        new_topics = {corrected_topic: POINTCLOUD2}
+        if job.moved_topic is not None:
+            new_topics[job.moved_topic] = bag.topics[job.trajectory_topic].msgtype
+        copied = writer.copy_chunks_of(bag, new_topics)
         if copied is not None:
             report.passthrough_messages = copied.messages
 
@@ -634,12 +766,16 @@ def _correct_to_bag(job: _Job) -> None:
                     progress("correcting", seen / job.n_clouds)
             elif topic == job.trajectory_topic and gate.reading:
                 gate.pose(msgtype, raw)
+                if job.poses is not None:
+                    job.poses.add(ns, msgtype, raw)
             emit((held[0], 1) if held else (math.inf, 0))
         for tag, covered in gate.finish():
             collect(corrector.push(covered, tag))
         collect(corrector.flush())
         emit((math.inf, 0))
         _check_something_corrected(corrector.stats, bag.path, points_topic)
+        if job.moved_topic is not None:
+            _write_moved_poses(job, writer)
 
 
 def warm_up_compiled_loops() -> None:

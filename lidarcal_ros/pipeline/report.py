@@ -62,7 +62,13 @@ from lidarcal_ros.core.swath_differences import (
     swath_differences,
 )
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.report_content import EvaluationSection, PairSection, Provenance, ReportContent
+from lidarcal_ros.io.report_content import (
+    EvaluationSection,
+    PairSection,
+    Provenance,
+    ReportContent,
+    TrajectorySection,
+)
 from lidarcal_ros.pipeline.calibration import load_mission, qa_level
 from lidarcal_ros.pipeline.correction import CorrectionSettings
 from lidarcal_ros.pipeline.evaluation import Evaluation, evaluate_mission
@@ -73,6 +79,7 @@ from lidarcal_ros.pipeline.report_block import (
     block_grids,
     block_pass,
     flight_map,
+    time_text,
 )
 from lidarcal_ros.pipeline.report_calibration import ReportCalibration, read_report_calibration
 from lidarcal_ros.pipeline.report_provenance import configuration_table, describe_inputs
@@ -80,7 +87,7 @@ from lidarcal_ros.pipeline.report_radiometry import radiometry_section
 
 __all__ = [
     "ReportInputs", "build_report", "evaluation_section", "geometric_sections",
-    "quality_assessment", "read_evaluation", "report_mission",
+    "quality_assessment", "read_evaluation", "report_mission", "trajectory_section",
 ]
 
 logger = logging.getLogger(__name__)
@@ -188,6 +195,25 @@ class ReportInputs:
     provenance: Provenance | None = None
 
 
+def trajectory_section(mission: Mission, calibration: ReportCalibration
+                       ) -> TrajectorySection | None:
+    """Each strip's estimated trajectory error over the times its points were flown; None
+    where the calibration holds no trajectory errors."""
+    estimate = calibration.record.trajectory
+    if estimate is None:
+        return None
+    spans: dict[int, tuple[float, float]] = {}
+    for strip in mission.strips:
+        t = strip.t[np.isfinite(strip.t)]
+        if t.size:
+            lo, hi = spans.get(strip.strip_id, (math.inf, -math.inf))
+            spans[strip.strip_id] = (min(lo, float(t.min())), max(hi, float(t.max())))
+    starts = [a for a, _ in spans.values()] or [se.t_ref for se in estimate.strips.values()]
+    t0 = min(starts) if starts else 0.0
+    return TrajectorySection(estimate, calibration.trajectory_model or estimate.model.value,
+                             spans, t0, time_text(t0))
+
+
 def report_mission(
     mission: Mission,
     calibration: ReportCalibration,
@@ -259,7 +285,8 @@ def report_mission(
         evaluation=evaluated, provenance=inputs.provenance, crs=inputs.crs,
         qa_warn_m=float(config["qa.rmsdz_warn_m"]),
         qa_error_m=float(config["qa.max_difference_m"]),
-        smooth_slope_deg=SMOOTH_SLOPE_DEG, warnings=calibration.warnings)
+        smooth_slope_deg=SMOOTH_SLOPE_DEG, warnings=calibration.warnings,
+        trajectory=trajectory_section(mission, calibration))
 
 
 def read_evaluation(path: str | Path, delta: np.ndarray) -> Evaluation:

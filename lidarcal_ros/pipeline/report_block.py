@@ -47,7 +47,7 @@ from lidarcal_ros.pipeline.correction import (
 __all__ = [
     "EXCLUDED_FLAGS", "FOOTPRINT_CELL_M", "MAP_MAX_CELLS", "MAP_STRIP_SPACINGS",
     "SWATH_CELL_SPACINGS", "SWATH_MAX_CELLS", "TRAJECTORY_MAP_POINTS", "BlockPass",
-    "StripFootprint", "block_grids", "block_pass", "cell_sums", "flight_map",
+    "StripFootprint", "block_grids", "block_pass", "cell_sums", "flight_map", "time_text",
 ]
 
 #: Most cells along the longer side of the intensity and reflectance maps.
@@ -114,7 +114,7 @@ class BlockPass:
     n_radiometric: int = 0
 
 
-def _time_text(t: float) -> str:
+def time_text(t: float) -> str:
     """A time as UTC (absolute) or seconds (relative)."""
     if t > _ABSOLUTE_TIME_S:
         stamp = datetime.datetime.fromtimestamp(t, tz=datetime.UTC)
@@ -137,7 +137,7 @@ def _strip_row(strip_id: int, t: np.ndarray, z: np.ndarray, trajectory: Trajecto
     else:
         length = heading = height = math.nan
     duration = t1 - t0
-    return StripRow(strip_id, int(t.size), _time_text(t0), duration, length, heading,
+    return StripRow(strip_id, int(t.size), time_text(t0), duration, length, heading,
                     length / duration if duration > 0 else math.nan, height,
                     t.size / footprint.area_m2 if footprint.area_m2 > 0 else math.nan)
 

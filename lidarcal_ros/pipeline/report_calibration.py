@@ -39,6 +39,9 @@ class ReportCalibration:
     coverage : dict
         ``(strip, strip) -> overlap fraction`` of the pairs the file lists.
     warnings : list of str
+    trajectory_model : str
+        The file's ``trajectory_model``: how the trajectory errors were modelled and why
+        ('' where the file does not say).
     """
 
     path: Path
@@ -49,6 +52,7 @@ class ReportCalibration:
     facts: list[tuple[str, str]]
     coverage: dict[tuple[int, int], float]
     warnings: list[str]
+    trajectory_model: str = ""
 
 
 def read_report_calibration(path: str | Path) -> ReportCalibration:
@@ -105,7 +109,9 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
     for strip in body.get("strips") or []:
         if isinstance(strip, Mapping):
             warnings.extend(f"strip {strip.get('id')}: {w}" for w in strip.get("warnings") or [])
-    return ReportCalibration(path, record, biases, names, matrix, facts, coverage, warnings)
+    choice = body.get("trajectory_model")
+    return ReportCalibration(path, record, biases, names, matrix, facts, coverage, warnings,
+                             str(choice) if choice is not None else "")
 
 
 def _correlation_matrix(path: Path, doc: Any) -> tuple[list[str], np.ndarray]:

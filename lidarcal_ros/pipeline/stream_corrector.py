@@ -146,6 +146,9 @@ class StreamCorrector:
         self._tasks: list[NormalsTask] = []
         self._unbinned: list[HeldCloud] = []  # queued, not yet given to the strips' grids
         self._unbinned_points = 0
+        #: When each strip was flown so far: strip id (-1: clouds without one) -> its points'
+        #: earliest and latest time, s (the corrected trajectory's strips).
+        self.strip_spans: dict[int, tuple[float, float]] = {}
 
     @property
     def held_points(self) -> int:
@@ -316,6 +319,8 @@ class StreamCorrector:
                 if math.isfinite(t_hi):
                     strip.t_last = (max(strip.t_last, t_hi) if math.isfinite(strip.t_last)
                                     else t_hi)
+                    lo, hi = self.strip_spans.get(strip_id, (t_lo, t_hi))
+                    self.strip_spans[strip_id] = (min(lo, t_lo), max(hi, t_hi))
                 batches.setdefault(strip_id, []).append(((m, idx), xyz, t))
         for strip_id in list(batches):
             bin_strip(strip_id)
