@@ -151,17 +151,20 @@ def _rms90(dz: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sort(dz ** 2)[:int(0.9 * dz.size)])))
 
 
-@pytest.mark.parametrize("rough", [False, True], ids=["level", "rough-air"])
-def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool) -> None:
+@pytest.mark.parametrize(("rough", "model"), [
+    (False, TrajectoryModel.DRIFT), (False, TrajectoryModel.SPLINE),
+    (True, TrajectoryModel.SPLINE)], ids=["level-drift", "level-spline", "rough-air-spline"])
+def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool,
+                                                          model: TrajectoryModel) -> None:
     """Offsets (4 cm horizontal, 5 cm vertical), drifts (1 cm per 10 s) and a slow 1 cm
-    oscillation per strip: the drift model recovers dphi within 1 arcsec, dr within 1 cm,
-    every estimated bias within 3 sigma, and corrects the points to within 5 mm (median) of
-    the true surface with an rms90 within 1.25 times the error-free mission's; the trajectory
+    oscillation per strip: the model recovers dphi within 1 arcsec, dr within 1 cm, every
+    estimated bias within 3 sigma, and corrects the points to within 5 mm (median) of the
+    true surface with an rms90 within 1.25 times the error-free mission's; the trajectory
     taken as exact misses dr and the surface by centimetres."""
     sim = _simulated(rough)
     mission, errors = with_trajectory_errors(sim.mission, seed=11)
     exact = calibrate(mission, _settings(TrajectoryModel.NONE))
-    drift = calibrate(mission, _settings(TrajectoryModel.DRIFT))
+    drift = calibrate(mission, _settings(model))
     sol = drift.solution
     truth = np.array([sim.biases.get(n, 0.0) for n in PARAMETER_NAMES])
     i = {n: PARAMETER_NAMES.index(n) for n in PARAMETER_NAMES}
@@ -170,7 +173,7 @@ def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool) -> None:
     for name in sol.estimated:
         k = i[name]
         assert abs(sol.delta[k] - truth[k]) < 3 * sol.sigma[k], name
-    assert drift.trajectory is not None and drift.trajectory.model is TrajectoryModel.DRIFT
+    assert drift.trajectory is not None and drift.trajectory.model is model
     # the strips' vertical offsets are seen (the horizontal ones take the lever arm too)
     for sid, se in drift.trajectory.strips.items():
         true_z = errors[sid](np.array([se.t_ref]))[0, 2]
@@ -190,7 +193,7 @@ def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool) -> None:
 def test_auto_keeps_an_exact_trajectory_exact_and_takes_a_drifting_one() -> None:
     """``auto`` (the flight configuration's default): a mission without trajectory errors
     gets the estimate of the trajectory taken as exact, to the bit; one with errors the
-    drift model; the choice is said in words."""
+    spline model; the choice is said in words."""
     sim = _simulated(False)
     auto = _settings(TrajectoryModel.AUTO)
     ideal = calibrate(sim.mission, auto)
@@ -201,7 +204,8 @@ def test_auto_keeps_an_exact_trajectory_exact_and_takes_a_drifting_one() -> None
         ideal.trajectory_choice
     drifting, _ = with_trajectory_errors(sim.mission, seed=11)
     chosen = calibrate(drifting, auto)
-    assert chosen.trajectory is not None and chosen.trajectory_choice.startswith("auto: drift")
+    assert chosen.trajectory is not None and \
+        chosen.trajectory_choice.startswith("auto: spline")
 
 
 def test_offsets_alone_and_the_file_round_trip(tmp_path: Path) -> None:
@@ -230,6 +234,32 @@ def test_offsets_alone_and_the_file_round_trip(tmp_path: Path) -> None:
                                np.broadcast_to(record.trajectory.strips[strip.strip_id].offset,
                                                plain.xyz.shape), atol=2e-5)
     # (the laser vectors stay the delivered positions': micrometres of the biases' correction)
+
+
+def test_a_spline_through_the_file_and_the_correction(tmp_path: Path) -> None:
+    """A spline calibration's block (knots, coefficients, their sigmas) written and read
+    back gives the same e_s(t) at every time of the strip, and the correction removes it."""
+    sim = _simulated(False)
+    mission, _ = with_trajectory_errors(sim.mission, seed=5)
+    result = calibrate(mission, _settings(TrajectoryModel.SPLINE))
+    assert result.trajectory is not None
+    record = read_calibration(write_calibration(tmp_path / "cal.yaml", result))
+    assert record.trajectory is not None and record.trajectory.model is TrajectoryModel.SPLINE
+    for strip in mission.strips:
+        se, back = result.trajectory.strips[strip.strip_id], \
+            record.trajectory.strips[strip.strip_id]
+        np.testing.assert_allclose(back.error(strip.t), se.error(strip.t), atol=1e-12)
+        np.testing.assert_allclose(back.sigma, se.sigma)
+        assert back.basis.knots is not None and np.isfinite(back.sigma_at(strip.t)).all()
+    strip = mission.strips[1]
+    plain = correct_columns(strip.xyz, strip.t, None, mission.trajectory,
+                            CorrectionSettings(delta=record.delta))
+    moved = correct_columns(strip.xyz, strip.t, None, mission.trajectory,
+                            CorrectionSettings(delta=record.delta,
+                                               trajectory_errors=record.trajectory),
+                            strip_id=strip.strip_id)
+    np.testing.assert_allclose(plain.xyz - moved.xyz, record.trajectory.errors(
+        strip.strip_id, strip.t), atol=2e-5)
 
 
 @pytest.mark.parametrize(("block", "message"), [
