@@ -104,8 +104,19 @@ class PairMatcher:
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
-        self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority, choice,
-                                         qa, speed))
+        return self.add_prepared(PreparedStrip(strip, geom, density, keys, cells, priority,
+                                               choice, qa, speed))
+
+    def add_prepared(self, ps: PreparedStrip) -> list[tuple[int, int]]:
+        """Hold a strip another matcher of the same settings prepared (its TIN and geometry
+        shared: a live ``auto`` calibration runs two trajectory models over the same strips)
+        and find its pairs with the strips already held; :meth:`add_strip` says what it
+        returns and raises."""
+        if any(held.strip_id == ps.strip_id for held in self.strips):
+            raise CalibrationError(f"strip {ps.strip_id} added twice")
+        s = self.settings
+        strip = ps.strip
+        self.strips.append(ps)
         self.trajectory.add_strip(0.5 * (float(strip.t.min()) + float(strip.t.max()))
                                   if len(strip) else 0.0)
         new = len(self.strips) - 1
@@ -125,15 +136,16 @@ class PairMatcher:
 
         Returns the number of points released.
         """
-        for ps in self.strips:
-            if ps.strip_id == strip_id and not ps.dropped:
-                k = self.strips.index(ps)
+        for k, ps in enumerate(self.strips):
+            if ps.strip_id == strip_id:
                 for pair in self.pairs:
                     if k in (pair.a, pair.b) and pair.frozen is None:
                         pair.frozen_delta = pair.last_delta if pair.last_delta is not None \
                             else delta.copy()
                         pair.frozen = pair.last if pair.last is not None else \
                             Observations.empty()
+                if ps.dropped:  # (released already through another matcher sharing it)
+                    return 0
                 n = len(ps.strip)
                 ps.dropped = True
                 ps.tin = None
@@ -160,8 +172,12 @@ class PairMatcher:
                        not self.strips[k].dropped}, key=lambda k: -len(self.strips[k].strip))
         self.workers.map(self.tin, todo, "building TINs" if todo else None)
 
-    def corrected(self, k: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Corrected coordinates of strip k and the shift ``delivered - corrected``.
+    def corrected(self, k: int, delta: np.ndarray, *,
+                  delivered: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Corrected coordinates of strip k and the shift ``delivered - corrected``: by the
+        estimate ``delta`` and the strip's trajectory error as estimated, or with
+        ``delivered`` by ``delta`` alone (the strips as delivered at ``delta`` zero: what a
+        pair's sample points are chosen on, whatever the errors estimated by then).
 
         Also re-evaluates the strip's laser-frame geometry (x, z, beta) at the corrected
         points: the design rows are the Jacobian at the current estimate. Evaluated at the
@@ -169,13 +185,14 @@ class PairMatcher:
         would appear not to cancel, and mimic dphi.
         """
         ps = self.strips[k]
-        error = self.trajectory.params[k] if self.trajectory.active else np.zeros(0)
+        error = self.trajectory.params[k] if self.trajectory.active and not delivered \
+            else np.zeros(0)
         key = np.asarray(delta, dtype=np.float64).tobytes() + error.tobytes()
         if ps.corrected is None or ps.corrected[0] != key:
             with self.clock("corrections"):
                 corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
                                                               delta)
-                if np.any(error):
+                if error.size and np.any(error):
                     # method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
                     # geometry stays that of the delivered positions
                     e = self.trajectory.error(k, ps.strip.t)
@@ -194,7 +211,7 @@ class PairMatcher:
         corrected points and ``delivered - corrected``), within ``threshold`` metres."""
         a_xyz, _ = corrected[pair.a]
         b_xyz, b_shift = corrected[pair.b]
-        shift = b_shift if np.any(delta) or self._moved(pair.b) else None
+        shift = b_shift if np.any(delta) or (self._moved(pair.b) and np.any(b_shift)) else None
         # The sample is matched every iteration: start each search at its last patch.
         on_sample = points_idx is pair.sample
         start = pair.last_triangle if on_sample else None
@@ -307,8 +324,8 @@ class PairMatcher:
             tin = self.tin(k)
             with self.clock("matching"):
                 m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
-                                 vertex_shift=shift if np.any(delta) or self._moved(k)
-                                 else None)
+                                 vertex_shift=shift if np.any(delta) or
+                                 (self._moved(k) and np.any(shift)) else None)
             if not m.valid.any():
                 continue
             ok = m.valid
@@ -332,7 +349,7 @@ class PairMatcher:
         s = self.settings
         zero = np.zeros(N_PARAMETERS)
         self.build_tins(p.b for p in pairs)
-        delivered = self.corrected_many(self.used_strips(pairs), zero)
+        delivered = self.corrected_many(self.used_strips(pairs), zero, delivered=True)
 
         def choose(pair: StripPair) -> None:
             m = self.match_pair(pair, pair.candidates, zero, delivered, s.max_normal_distance_m)
@@ -367,12 +384,12 @@ class PairMatcher:
         return self.corrected_many((k for k in range(len(self.strips))
                                     if not self.strips[k].dropped), delta)
 
-    def corrected_many(self, strips: Iterable[int], delta: np.ndarray
-                       ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def corrected_many(self, strips: Iterable[int], delta: np.ndarray, *,
+                       delivered: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """:meth:`corrected` of ``strips`` (in the threads)."""
         ks = sorted(set(strips))
-        return dict(zip(ks, self.workers.map(lambda k: self.corrected(k, delta), ks),
-                        strict=True))
+        return dict(zip(ks, self.workers.map(
+            lambda k: self.corrected(k, delta, delivered=delivered), ks), strict=True))
 
     def used_strips(self, pairs: Sequence[StripPair]) -> set[int]:
         """The strips (indices) of ``pairs``."""

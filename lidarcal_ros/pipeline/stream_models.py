@@ -1,0 +1,195 @@
+"""The calibrators a live calibration runs for its trajectory model (method.md section 11).
+
+A model set (``none``, ``offset``, ``drift``) runs one :class:`~lidarcal_ros.core.calibrate.
+Calibrator`. ``auto`` runs two over the same prepared strips (their TINs and geometry shared):
+the trajectory as exact, whose estimate is published until the other wins, and each strip's
+drift; once both have converged on the strips held they are compared as ``lidarcal calibrate``
+compares them (:func:`~lidarcal_ros.core.calibrate.choose_trajectory_model`), and the one
+chosen is published from then on. Both converged on every strip of a mission, the choice and
+the estimate are the batch calibration's. Their checkpoint states
+(:class:`~lidarcal_ros.pipeline.stream_checkpoint.ModelState`) name strips by id: after a
+restart, a strip released under the memory budget before it keeps its trajectory error as
+estimated then (its points are gone, so it is no longer among the strips held).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from lidarcal_ros.core.adjustment import Observations
+from lidarcal_ros.core.calibrate import (
+    CalibrationSettings,
+    Calibrator,
+    choose_trajectory_model,
+    with_trajectory_model,
+)
+from lidarcal_ros.core.calibration_result import CalibrationResult
+from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
+from lidarcal_ros.core.trajectory_errors import TrajectoryModel, TrajectoryRows, TrajectoryState
+from lidarcal_ros.errors import CalibrationError
+from lidarcal_ros.pipeline.stream_checkpoint import ModelState
+
+__all__ = ["ModelCalibrators"]
+
+#: What an ``auto`` estimate says of its model before the two models were compared.
+NOT_COMPARED = "auto: none (each strip's drift is tried once the estimate has converged)"
+
+
+class ModelCalibrators:
+    """The calibrator whose estimate is published (:attr:`active`) and, for ``auto``, the
+    other model's (:attr:`rival`); module docstring.
+
+    Parameters
+    ----------
+    settings : CalibrationSettings
+    control : ControlPoints, optional
+    """
+
+    def __init__(self, settings: CalibrationSettings, *,
+                 control: ControlPoints | None = None) -> None:
+        self.active: Calibrator
+        self.rival: Calibrator | None = None
+        if settings.trajectory.model is TrajectoryModel.AUTO:
+            self.active = Calibrator(with_trajectory_model(settings, TrajectoryModel.NONE),
+                                     control=control)
+            self.rival = Calibrator(with_trajectory_model(settings, TrajectoryModel.DRIFT),
+                                    control=control)
+            #: The ``trajectory_choice`` of the estimates published.
+            self.choice = NOT_COMPARED
+        else:
+            self.active = Calibrator(settings, control=control)
+            self.choice = settings.trajectory.model.value
+
+    @property
+    def calibrators(self) -> list[Calibrator]:
+        """The active calibrator, then the rival if any."""
+        return [self.active] + ([self.rival] if self.rival is not None else [])
+
+    def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+        """Prepare a strip once for every calibrator; the pairs it forms
+        (:meth:`Calibrator.add_strip`, which says what it raises)."""
+        formed = self.active.add_strip(strip, trajectory)
+        if self.rival is not None:
+            self.rival.add_prepared_strip(self.active.strips[-1])
+        return formed
+
+    def drop_strip(self, strip_id: int) -> int:
+        """Release a strip's points in every calibrator (each matches the strip's pairs it
+        never matched first: the points are shared); the points released."""
+        for cal in self.calibrators:
+            cal.match_before_release(strip_id)
+        return sum(cal.drop_strip(strip_id) for cal in self.calibrators)
+
+    def set_control(self, control: ControlPoints | None) -> None:
+        """Control points for every calibrator's runs from now on."""
+        for cal in self.calibrators:
+            cal.set_control(control)
+
+    def label(self, result: CalibrationResult) -> CalibrationResult:
+        """``result`` of the active calibrator, its ``trajectory_choice`` said."""
+        result.trajectory_choice = self.choice
+        return result
+
+    def choose(self, active: CalibrationResult,
+               rival: CalibrationResult | CalibrationError) -> CalibrationResult:
+        """``auto``: of the active calibrator's result and the rival's (or why the rival
+        determined nothing), the one ``lidarcal calibrate`` would choose; its calibrator is
+        the active one from now on."""
+        assert self.rival is not None
+        if self.active.settings.trajectory.model is TrajectoryModel.NONE:
+            chosen = choose_trajectory_model(active, rival)
+        elif isinstance(rival, CalibrationError):
+            # (batch would fail: the trajectory as exact determines nothing, the drift does)
+            chosen = active
+            chosen.trajectory_choice = f"auto: drift (the trajectory as exact: {rival})"
+        else:
+            chosen = choose_trajectory_model(rival, active)
+        if chosen is not active:
+            self.active, self.rival = self.rival, self.active
+        self.choice = chosen.trajectory_choice
+        return chosen
+
+    # ------------------------------------------------------------------ checkpoints
+    def states(self) -> list[ModelState]:
+        """Every calibrator's state for a checkpoint, the active one's first."""
+        return [_state_of(cal) for cal in self.calibrators]
+
+    def restore(self, states: Sequence[ModelState], choice: str) -> None:
+        """Take the calibrators' states back from a checkpoint (the strips held added first):
+        each calibrator the state of its model (another model's estimate where the checkpoint
+        holds none of its own), the one published first active again."""
+        if not states:
+            return
+        if self.rival is not None and states[0].model == self.rival.settings.trajectory.model.value:
+            self.active, self.rival = self.rival, self.active
+        if self.rival is not None and choice.startswith("auto"):
+            self.choice = choice
+        for cal in self.calibrators:
+            model = cal.settings.trajectory.model.value
+            _restore(cal, next((s for s in states if s.model == model), states[0]))
+
+
+def _state_of(cal: Calibrator) -> ModelState:
+    """A calibrator's :class:`ModelState`: its frozen correspondences' strips by id."""
+    ids = np.array([ps.strip_id for ps in cal.strips], dtype=np.int64)
+    frozen = cal.frozen_observations()
+    rows = frozen.trajectory
+    if rows is not None:
+        by_id = np.append(ids, -1)  # (index -1: no strip)
+        frozen = Observations(frozen.rows, frozen.y, frozen.weights, frozen.group,
+                              frozen.cluster, TrajectoryRows(
+                                  by_id[rows.strip_a], rows.t_a, by_id[rows.strip_b], rows.t_b,
+                                  rows.normal, rows.applied))
+    return ModelState(cal.settings.trajectory.model.value, cal.delta.copy(),
+                      float(cal.threshold), frozen, ids, np.array(cal.trajectory.t_ref),
+                      cal.trajectory.params.copy())
+
+
+def _restore(cal: Calibrator, state: ModelState) -> None:
+    """Set ``cal``'s estimate, threshold, trajectory errors and frozen correspondences to
+    ``state``'s (strips by id; those no longer held keep their saved error, fixed)."""
+    cal.delta = np.array(state.delta, dtype=np.float64)
+    cal.threshold = state.threshold
+    traj = cal.trajectory
+    same = state.model == cal.settings.trajectory.model.value and traj.active
+    saved = {int(sid): k for k, sid in enumerate(state.trajectory_ids)}
+    held = [ps.strip_id for ps in cal.strips]
+    if same:
+        for k, sid in enumerate(held):
+            if sid in saved:
+                traj.params[k] = state.params[saved[sid]]
+    frozen = state.frozen
+    rows = frozen.trajectory
+    if rows is not None:
+        rows = _renumbered(rows, held, state) if same else None
+        frozen = Observations(frozen.rows, frozen.y, frozen.weights, frozen.group,
+                              frozen.cluster, rows)
+    cal.restore_frozen(frozen)  # (expressed at the saved estimate and trajectory errors)
+
+
+def _renumbered(rows: TrajectoryRows, held: list[int], state: ModelState) -> TrajectoryRows:
+    """Trajectory terms naming strips by id, by index into the strips ``held``; a side whose
+    strip is not held any more observes its error no more: that error's part of ``applied``,
+    at ``state``'s estimate of it, goes (it stays in the discrepancy as applied)."""
+    index = {sid: k for k, sid in enumerate(held)}
+    saved = {int(sid): k for k, sid in enumerate(state.trajectory_ids)}
+
+    def lookup(ids: np.ndarray, table: dict[int, int]) -> np.ndarray:
+        uniq, inverse = np.unique(ids, return_inverse=True)
+        return np.array([table.get(int(u), -1) for u in uniq], dtype=np.int64)[inverse] \
+            if ids.size else ids.astype(np.int64)
+
+    a, b = lookup(rows.strip_a, index), lookup(rows.strip_b, index)
+    gone_a, gone_b = (rows.strip_a >= 0) & (a < 0), (rows.strip_b >= 0) & (b < 0)
+    applied = rows.applied
+    if gone_a.any() or gone_b.any():
+        model = TrajectoryModel(state.model)
+        before = TrajectoryState(model, [float(t) for t in state.t_ref], state.params)
+        part = before.projected(TrajectoryRows(
+            np.where(gone_a, lookup(rows.strip_a, saved), -1), rows.t_a,
+            np.where(gone_b, lookup(rows.strip_b, saved), -1), rows.t_b, rows.normal,
+            np.zeros(len(rows))))
+        applied = applied - part
+    return TrajectoryRows(a, rows.t_a, b, rows.t_b, rows.normal, applied)
