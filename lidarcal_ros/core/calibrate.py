@@ -251,6 +251,11 @@ class Calibrator:
         self.trajectory.params = np.zeros_like(self.trajectory.params)
         self.unit_sigma = self.settings.trajectory.observation_sigma_m
 
+    def add_released_strip(self, strip_id: int) -> PreparedStrip:
+        """Hold a strip released before a restart for its trajectory error alone
+        (:meth:`PairMatcher.add_released`)."""
+        return self.matcher.add_released(strip_id)
+
     def add_prepared_strip(self, ps: PreparedStrip) -> list[tuple[int, int]]:
         """Hold a strip another calibrator of the same settings prepared, sharing its TIN
         and geometry (:meth:`PairMatcher.add_prepared`); the pairs it forms."""
@@ -671,16 +676,17 @@ class Calibrator:
         stats.sort(key=lambda p: (p.strip_a, p.strip_b))
         residuals = self.control_residuals(delta, corrected)
         n_ctrl = int(np.count_nonzero((obs.group < 0) & (obs.weights > 0)))
+        held = [ps for ps in self.strips if not ps.placeholder]
         return CalibrationResult(
             solution=sol, iterations=iterations, converged=converged, pairs=stats,
             control=residuals, n_pair_correspondences=int(np.count_nonzero(
                 (obs.group >= 0) & (obs.weights > 0))),
             n_control_correspondences=n_ctrl, history=history,
             dropped_non_finite=self.dropped_non_finite, thinned_points=self.thinned_points,
-            heading_from={ps.strip.strip_id: ps.geometry0.heading_from for ps in self.strips},
-            crab_deg={ps.strip.strip_id: ps.geometry0.crab_deg for ps in self.strips},
-            models={ps.strip.strip_id: ps.choice for ps in self.strips},
-            laser_qa={ps.strip.strip_id: ps.laser_qa for ps in self.strips},
+            heading_from={ps.strip_id: ps.geometry0.heading_from for ps in held},
+            crab_deg={ps.strip_id: ps.geometry0.crab_deg for ps in held},
+            models={ps.strip_id: ps.choice for ps in held},
+            laser_qa={ps.strip_id: ps.laser_qa for ps in held},
             stage_seconds=dict(self.clock.seconds),
         )
 

@@ -11,6 +11,7 @@ the calibration's worker threads.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
@@ -18,7 +19,13 @@ import numpy as np
 
 from lidarcal_ros.core.adjustment import Observations
 from lidarcal_ros.core.calibration_threads import StageClock, WorkerPool
-from lidarcal_ros.core.georeferencing import laser_vector_qa, strip_geometry
+from lidarcal_ros.core.geometry import LEVEL, LaserGeometry
+from lidarcal_ros.core.georeferencing import (
+    LaserVectorQA,
+    ModelChoice,
+    laser_vector_qa,
+    strip_geometry,
+)
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.core.model import add_geometry_normal_rows, exact_correction
 from lidarcal_ros.core.params import N_PARAMETERS
@@ -106,6 +113,19 @@ class PairMatcher:
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
         return self.add_prepared(PreparedStrip(strip, geom, density, keys, cells, priority,
                                                choice, qa, speed))
+
+    def add_released(self, strip_id: int) -> PreparedStrip:
+        """Hold a strip released before a restart, for its trajectory error alone (a
+        placeholder: no points, no pairs; its error's reference time is the caller's to set);
+        returns it."""
+        empty = np.empty(0, dtype=np.int64)
+        ps = PreparedStrip(Strip(strip_id, np.empty((0, 3)), np.empty(0)), LaserGeometry.empty(),
+                           0.0, empty, empty.copy(), np.empty(0),
+                           ModelChoice(LEVEL, "released before a restart"),
+                           LaserVectorQA(*(math.nan,) * 5), math.nan, dropped=True,
+                           placeholder=True)
+        self.add_prepared(ps)
+        return ps
 
     def add_prepared(self, ps: PreparedStrip) -> list[tuple[int, int]]:
         """Hold a strip another matcher of the same settings prepared (its TIN and geometry

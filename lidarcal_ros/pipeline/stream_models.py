@@ -7,9 +7,10 @@ drift; once both have converged on the strips held they are compared as ``lidarc
 compares them (:func:`~lidarcal_ros.core.calibrate.choose_trajectory_model`), and the one
 chosen is published from then on. Both converged on every strip of a mission, the choice and
 the estimate are the batch calibration's. Their checkpoint states
-(:class:`~lidarcal_ros.pipeline.stream_checkpoint.ModelState`) name strips by id: after a
-restart, a strip released under the memory budget before it keeps its trajectory error as
-estimated then (its points are gone, so it is no longer among the strips held).
+(:class:`~lidarcal_ros.pipeline.stream_checkpoint.ModelState`) name strips by id; after a
+restart a strip released under the memory budget before it is held again without points
+(:meth:`ModelCalibrators.add_released`), in its place, so that its trajectory error is still
+estimated from the correspondences frozen with it.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from lidarcal_ros.core.calibrate import (
 )
 from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
-from lidarcal_ros.core.trajectory_errors import TrajectoryModel, TrajectoryRows, TrajectoryState
-from lidarcal_ros.errors import CalibrationError
+from lidarcal_ros.core.trajectory_errors import TrajectoryModel, TrajectoryRows
+from lidarcal_ros.errors import CalibrationError, InputError
 from lidarcal_ros.pipeline.stream_checkpoint import ModelState
 
 __all__ = ["ModelCalibrators"]
@@ -74,6 +75,13 @@ class ModelCalibrators:
         if self.rival is not None:
             self.rival.add_prepared_strip(self.active.strips[-1])
         return formed
+
+    def add_released(self, strip_id: int) -> None:
+        """Hold a strip released before a restart, for its trajectory error alone
+        (:meth:`Calibrator.add_released_strip`), in every calibrator."""
+        ps = self.active.add_released_strip(strip_id)
+        if self.rival is not None:
+            self.rival.add_prepared_strip(ps)
 
     def drop_strip(self, strip_id: int) -> int:
         """Release a strip's points in every calibrator (each matches the strip's pairs it
@@ -149,47 +157,40 @@ def _state_of(cal: Calibrator) -> ModelState:
 
 def _restore(cal: Calibrator, state: ModelState) -> None:
     """Set ``cal``'s estimate, threshold, trajectory errors and frozen correspondences to
-    ``state``'s (strips by id; those no longer held keep their saved error, fixed)."""
+    ``state``'s (strips by id; another model's: its estimate and threshold, and its frozen
+    correspondences without their trajectory terms)."""
     cal.delta = np.array(state.delta, dtype=np.float64)
     cal.threshold = state.threshold
     traj = cal.trajectory
     same = state.model == cal.settings.trajectory.model.value and traj.active
     saved = {int(sid): k for k, sid in enumerate(state.trajectory_ids)}
     held = [ps.strip_id for ps in cal.strips]
-    if same:
-        for k, sid in enumerate(held):
-            if sid in saved:
+    for k, sid in enumerate(held):
+        if sid in saved:
+            traj.t_ref[k] = float(state.t_ref[saved[sid]])
+            if same:
                 traj.params[k] = state.params[saved[sid]]
     frozen = state.frozen
     rows = frozen.trajectory
     if rows is not None:
-        rows = _renumbered(rows, held, state) if same else None
+        rows = _renumbered(rows, held) if same else None
         frozen = Observations(frozen.rows, frozen.y, frozen.weights, frozen.group,
                               frozen.cluster, rows)
     cal.restore_frozen(frozen)  # (expressed at the saved estimate and trajectory errors)
 
 
-def _renumbered(rows: TrajectoryRows, held: list[int], state: ModelState) -> TrajectoryRows:
-    """Trajectory terms naming strips by id, by index into the strips ``held``; a side whose
-    strip is not held any more observes its error no more: that error's part of ``applied``,
-    at ``state``'s estimate of it, goes (it stays in the discrepancy as applied)."""
+def _renumbered(rows: TrajectoryRows, held: list[int]) -> TrajectoryRows:
+    """Trajectory terms naming strips by id, by index into the strips ``held``."""
     index = {sid: k for k, sid in enumerate(held)}
-    saved = {int(sid): k for k, sid in enumerate(state.trajectory_ids)}
+    uniq = np.unique(np.concatenate([rows.strip_a, rows.strip_b]))
+    missing = [int(u) for u in uniq if u >= 0 and int(u) not in index]
+    if missing:
+        raise InputError(f"checkpoint: frozen correspondences of strips {missing}, which it "
+                         "does not hold")
 
-    def lookup(ids: np.ndarray, table: dict[int, int]) -> np.ndarray:
+    def lookup(ids: np.ndarray) -> np.ndarray:
         uniq, inverse = np.unique(ids, return_inverse=True)
-        return np.array([table.get(int(u), -1) for u in uniq], dtype=np.int64)[inverse] \
-            if ids.size else ids.astype(np.int64)
+        return np.array([index.get(int(u), -1) for u in uniq], dtype=np.int64)[inverse]
 
-    a, b = lookup(rows.strip_a, index), lookup(rows.strip_b, index)
-    gone_a, gone_b = (rows.strip_a >= 0) & (a < 0), (rows.strip_b >= 0) & (b < 0)
-    applied = rows.applied
-    if gone_a.any() or gone_b.any():
-        model = TrajectoryModel(state.model)
-        before = TrajectoryState(model, [float(t) for t in state.t_ref], state.params)
-        part = before.projected(TrajectoryRows(
-            np.where(gone_a, lookup(rows.strip_a, saved), -1), rows.t_a,
-            np.where(gone_b, lookup(rows.strip_b, saved), -1), rows.t_b, rows.normal,
-            np.zeros(len(rows))))
-        applied = applied - part
-    return TrajectoryRows(a, rows.t_a, b, rows.t_b, rows.normal, applied)
+    return TrajectoryRows(lookup(rows.strip_a), rows.t_a, lookup(rows.strip_b), rows.t_b,
+                          rows.normal, rows.applied)

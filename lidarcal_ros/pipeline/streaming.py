@@ -642,9 +642,16 @@ class StreamingCalibration:
         self.uncovered_strips = list(state.uncovered_strips)
         self.rejected_strips = list(state.rejected_strips)
         self.dropped_strips = list(state.dropped_strips)
-        for strip in state.closed:
-            self._closed.append(strip)
-            self._models.add_strip(strip, self.trajectory)
+        # in the calibration's order, strips released before in their places (their
+        # trajectory errors' frozen correspondences name them)
+        closed = {strip.strip_id: strip for strip in state.closed}
+        order = [int(i) for i in state.models[0].trajectory_ids] if state.models else []
+        for sid in order + [s.strip_id for s in state.closed if s.strip_id not in order]:
+            if sid not in closed:
+                self._models.add_released(sid)
+                continue
+            self._closed.append(closed[sid])
+            self._models.add_strip(closed[sid], self.trajectory)
         for strip in state.open:
             self._open.add(strip.strip_id, strip.xyz, strip.t, strip.intensity)
         # estimates, thresholds, trajectory errors, frozen correspondences
