@@ -28,7 +28,10 @@ def sim() -> SimulatedMission:
                                                         attitude=True))
 
 
-def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> int:
+def _feed(stream: StreamingCalibration, events, *, stop: int | None = None,
+          refine_steps: int = 0) -> int:
+    """Feed ``events`` (up to ``stop``), taking the refinement ``refine_steps`` steps further
+    after each cloud; returns the strips' quick updates."""
     updates = 0
     for t, kind, payload in events[:stop]:
         if kind == "pose":
@@ -38,6 +41,8 @@ def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> i
             stream.add_cloud(payload, "map")
             if stream.update() is not None:
                 updates += 1
+            for _ in range(refine_steps):
+                stream.refine_step()
     return updates
 
 
@@ -361,19 +366,6 @@ def test_strips_the_input_delivered_in_part_are_named(sim: SimulatedMission) -> 
     assert "partial_strips" not in calibration_document(whole.solve())["lidarcal_calibration"]
 
 
-def _feed_and_refine(stream: StreamingCalibration, events, steps: int = 8) -> None:
-    """Feed ``events``, taking the refinement ``steps`` steps further after each cloud."""
-    for t, kind, payload in events:
-        if kind == "pose":
-            stream.add_trajectory(np.array([t]), payload[0][None, :], "map",
-                                  payload[1][None, :])
-            continue
-        stream.add_cloud(payload, "map")
-        stream.update()
-        for _ in range(steps):
-            stream.refine_step()
-
-
 def _trajectory_within(result: Any, reference: Any, fraction: float) -> None:
     """Every strip's trajectory offset and drift within ``fraction`` of the reference's
     sigmas."""
@@ -405,7 +397,7 @@ def test_auto_takes_the_drift_live_as_offline_and_a_checkpoint_keeps_it(
     events = stream_events(mission)
     stream = StreamingCalibration(config, control=mission.control)
     cut = len(events) * 2 // 3
-    _feed_and_refine(stream, events[:cut])
+    _feed(stream, events[:cut], refine_steps=8)
     path = stream.save_checkpoint(tmp_path / "auto.npz")
     resumed = StreamingCalibration.load_checkpoint(path, config)
     for before, after in zip(stream._models.calibrators, resumed._models.calibrators,
@@ -417,7 +409,7 @@ def test_auto_takes_the_drift_live_as_offline_and_a_checkpoint_keeps_it(
     assert any(np.any(cal.trajectory.params) for cal in stream._models.calibrators)
     assert resumed._models.choice == stream._models.choice
     for live in (stream, resumed):
-        _feed_and_refine(live, events[cut:])
+        _feed(live, events[cut:], refine_steps=8)
         live.update(np.inf)
         result = live.converge()
         assert result is not None and result.converged
@@ -445,7 +437,7 @@ def test_drift_under_a_memory_budget_resumes_with_the_frozen_trajectory_terms(
     config = FlightConfig().with_values(calibration__trajectory__model="drift")
     budget = int(3.5 * len(mission.strips[0]))
     stream = StreamingCalibration(config, control=mission.control, max_points=budget)
-    _feed_and_refine(stream, stream_events(mission), steps=4)
+    _feed(stream, stream_events(mission), refine_steps=4)
     stream.update(np.inf)
     assert stream.dropped_strips
     frozen = stream._calibrator.frozen_observations()
