@@ -290,6 +290,9 @@ def test_replayed_mission_gives_the_offline_estimate(replayed: Replayed) -> None
     assert level == 0 and float(values["rms_before"]) > float(values["rms_after"])
     assert "lidarcal: observability" in suite.probe.diagnostics
     assert "lidarcal: convergence" in suite.probe.diagnostics
+    # an ideal mission: auto keeps the trajectory exact, and says so
+    level, message, values = suite.probe.diagnostics["lidarcal: trajectory"]
+    assert level == 0 and message.startswith("taken as exact (auto: none")
 
     assert "15 strip pairs" in replayed.solve.message
     assert cal.calibration.solves >= 1

@@ -28,7 +28,10 @@ def sim() -> SimulatedMission:
                                                         attitude=True))
 
 
-def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> int:
+def _feed(stream: StreamingCalibration, events, *, stop: int | None = None,
+          refine_steps: int = 0) -> int:
+    """Feed ``events`` (up to ``stop``), taking the refinement ``refine_steps`` steps further
+    after each cloud; returns the strips' quick updates."""
     updates = 0
     for t, kind, payload in events[:stop]:
         if kind == "pose":
@@ -38,6 +41,8 @@ def _feed(stream: StreamingCalibration, events, *, stop: int | None = None) -> i
             stream.add_cloud(payload, "map")
             if stream.update() is not None:
                 updates += 1
+            for _ in range(refine_steps):
+                stream.refine_step()
     return updates
 
 
@@ -119,6 +124,9 @@ def test_the_stream_converges_by_itself_to_the_offline_estimate(
     _within(result, offline, 0.01)
     assert result.solution.sigma == pytest.approx(offline.solution.sigma, rel=0.05,
                                                   nan_ok=True)
+    # auto, as offline: the drift compared and not taken, in the same words
+    assert result.trajectory_choice == offline.trajectory_choice
+    assert result.trajectory_choice.startswith("auto: none (sigma0")
     assert len(result.pairs) == len(offline.pairs)
     with pytest.raises(AssertionError):
         _within(last_quick, offline, 0.01)
@@ -356,3 +364,135 @@ def test_strips_the_input_delivered_in_part_are_named(sim: SimulatedMission) -> 
     doc = calibration_document(result)["lidarcal_calibration"]
     assert doc["partial_strips"] == {str(k): v for k, v in stream.partial_strips.items()}
     assert "partial_strips" not in calibration_document(whole.solve())["lidarcal_calibration"]
+
+
+def _trajectory_within(result: Any, reference: Any, fraction: float) -> None:
+    """Every strip's trajectory offset and drift within ``fraction`` of the reference's
+    sigmas."""
+    assert result.trajectory is not None and reference.trajectory is not None
+    assert sorted(result.trajectory.strips) == sorted(reference.trajectory.strips)
+    for sid, ref in reference.trajectory.strips.items():
+        got = result.trajectory.strips[sid]
+        assert np.all(np.abs(got.offset - ref.offset) <= fraction * ref.offset_sigma), sid
+        assert np.all(np.abs(got.drift - ref.drift) <= fraction * ref.drift_sigma), sid
+
+
+def test_auto_takes_the_drift_live_as_offline_and_a_checkpoint_keeps_it(
+        sim: SimulatedMission, tmp_path: Path) -> None:
+    """A mission whose trajectory errs per strip (offsets, drifts, a slow oscillation), the
+    flight configuration's default ``auto``: live, the estimate converged on every strip takes
+    each strip's drift, as ``lidarcal calibrate`` does, says why in the same words, and equals
+    the offline estimate, biases and trajectory errors, within 0.1 sigma; the calibration file
+    and the estimate topic's YAML carry the trajectory block. A checkpoint written mid-mission
+    keeps both models' trajectory errors; resumed, it ends at the same estimate."""
+    from helpers_missions import with_trajectory_errors
+
+    from lidarcal_ros.core.trajectory_errors import TrajectoryModel
+    from lidarcal_ros.io.calibration_file import calibration_document
+
+    mission, _ = with_trajectory_errors(sim.mission, seed=11)
+    config = FlightConfig()
+    offline = calibrate(mission, config.calibration_settings())
+    assert offline.trajectory_choice.startswith("auto: drift")
+    events = stream_events(mission)
+    stream = StreamingCalibration(config, control=mission.control)
+    cut = len(events) * 2 // 3
+    _feed(stream, events[:cut], refine_steps=8)
+    path = stream.save_checkpoint(tmp_path / "auto.npz")
+    resumed = StreamingCalibration.load_checkpoint(path, config)
+    for before, after in zip(stream._models.calibrators, resumed._models.calibrators,
+                             strict=True):
+        assert after.settings.trajectory.model is before.settings.trajectory.model
+        assert after.trajectory.t_ref == before.trajectory.t_ref
+        np.testing.assert_array_equal(after.trajectory.params, before.trajectory.params)
+        np.testing.assert_array_equal(after.delta, before.delta)
+    assert any(np.any(cal.trajectory.params) for cal in stream._models.calibrators)
+    assert resumed._models.choice == stream._models.choice
+    for live in (stream, resumed):
+        _feed(live, events[cut:], refine_steps=8)
+        live.update(np.inf)
+        result = live.converge()
+        assert result is not None and result.converged
+        assert result.trajectory_choice == offline.trajectory_choice
+        assert result.trajectory is not None
+        assert result.trajectory.model is TrajectoryModel.DRIFT
+        _within(result, offline, 0.1)
+        _trajectory_within(result, offline, 0.1)
+    assert result is not None and offline.trajectory is not None
+    doc = calibration_document(result)["lidarcal_calibration"]
+    assert doc["trajectory_model"] == offline.trajectory_choice
+    assert sorted(int(k) for k in doc["trajectory"]["strips"]) == \
+        sorted(offline.trajectory.strips)
+
+
+def test_drift_under_a_memory_budget_resumes_with_the_frozen_trajectory_terms(
+        sim: SimulatedMission, tmp_path: Path) -> None:
+    """``drift`` set, a budget that releases the oldest strips: their pairs' correspondences
+    keep their trajectory terms, a checkpoint keeps them (strips by id), the strips released
+    are held again without points in their places, and the resumed calibration converges
+    where the uninterrupted one does, the released strips' trajectory errors included."""
+    from helpers_missions import with_trajectory_errors
+
+    mission, _ = with_trajectory_errors(sim.mission, seed=11)
+    config = FlightConfig().with_values(calibration__trajectory__model="drift")
+    budget = int(3.5 * len(mission.strips[0]))
+    stream = StreamingCalibration(config, control=mission.control, max_points=budget)
+    _feed(stream, stream_events(mission), refine_steps=4)
+    stream.update(np.inf)
+    assert stream.dropped_strips
+    frozen = stream._calibrator.frozen_observations()
+    assert frozen.trajectory is not None and len(frozen) > 0
+    released = np.isin([ps.strip_id for ps in stream._calibrator.strips], stream.dropped_strips)
+    assert np.any(released[frozen.trajectory.strip_b])  # (patches of released strips)
+    resumed = StreamingCalibration.load_checkpoint(
+        stream.save_checkpoint(tmp_path / "drift.npz"), config, max_points=budget)
+    assert resumed.strip_ids == stream.strip_ids and resumed.n_points == stream.n_points
+    before, after = stream._calibrator, resumed._calibrator
+    assert [ps.strip_id for ps in after.strips] == [ps.strip_id for ps in before.strips]
+    assert after.trajectory.t_ref == before.trajectory.t_ref
+    np.testing.assert_array_equal(after.trajectory.params, before.trajectory.params)
+    again = after.frozen_observations()
+    assert again.trajectory is not None
+    np.testing.assert_allclose(again.y, frozen.y, atol=1e-12)
+    for name in ("strip_a", "strip_b", "applied"):
+        np.testing.assert_array_equal(getattr(again.trajectory, name),
+                                      getattr(frozen.trajectory, name))
+    reference = stream.converge()
+    result = resumed.converge()
+    assert reference is not None and result is not None
+    assert result.trajectory_choice == "drift"
+    _within(result, reference, 0.1)
+    _trajectory_within(result, reference, 0.1)
+    assert result.trajectory is not None
+    assert set(stream.dropped_strips) <= set(result.trajectory.strips)
+    assert not set(stream.dropped_strips) & set(result.models)  # (no points, no geometry)
+
+
+def test_the_trajectory_status_warns_of_a_strip_off_by_20_cm(sim: SimulatedMission) -> None:
+    """``lidarcal: trajectory``: one strip and its trajectory 20 cm too high (a GNSS height
+    jump) is named with its offset against the 5 cm configured (WARN beyond 3x, ERROR beyond
+    6x: the same offset against 3 cm configured); the ideal mission, where ``auto`` keeps the
+    trajectory exact, is OK."""
+    from helpers_missions import shift_strip
+
+    from lidarcal_ros.core.trajectory_errors import TrajectoryErrorSettings
+    from lidarcal_ros.io.ros_messages import ERROR, OK, WARN
+    from lidarcal_ros.pipeline.calibrator_statuses import trajectory_status
+
+    config = FlightConfig()
+    settings = config.calibration_settings()
+    ideal = trajectory_status(calibrate(sim.mission, settings), settings.trajectory)
+    assert ideal.level == OK and ideal.message.startswith("taken as exact (auto: none")
+    shifted = calibrate(shift_strip(sim.mission, 3, (0.0, 0.0, 0.20)), settings)
+    assert shifted.trajectory_choice.startswith("auto: drift")
+    status = trajectory_status(shifted, settings.trajectory)
+    assert status.level == WARN and status.name == "lidarcal: trajectory"
+    line = next(part for part in status.message.split("; ") if part.startswith("strip 3:"))
+    assert line.startswith("strip 3: trajectory vertical offset ")
+    assert 17.0 <= float(line.split("offset ")[1].split(" cm")[0]) <= 21.0
+    assert "more than 3x the 5 cm configured" in line and "a GNSS problem?" in line
+    assert "offset E" in status.values["strip_3"]
+    assert not any(part.startswith(f"strip {sid}: trajectory vertical")
+                   for part in status.message.split("; ") for sid in (1, 2, 4, 5, 6))
+    tight = TrajectoryErrorSettings(settings.trajectory.model, offset_sigma_vertical_m=0.03)
+    assert trajectory_status(shifted, tight).level == ERROR

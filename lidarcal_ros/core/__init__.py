@@ -18,7 +18,10 @@ _EXPORTS = {
         "normalise_quaternions", "pose_on_segment", "quaternions_from_attitude",
         "quaternions_from_headings", "rotation_matrices", "segment_spline", "slerp",
     ),
-    "calibrate": ("CalibrationSettings", "Calibrator", "Progress"),
+    "calibrate": (
+        "CalibrationSettings", "Calibrator", "Progress", "choose_trajectory_model",
+        "with_trajectory_model",
+    ),
     "calibration_iteration": (
         "CYCLE_FACTOR", "Convergence", "Iteration", "MatchedSet", "NOISE_Z",
         "SETTLED_MAX_SIGMA", "TrajectoryTerms", "allow_for_shared_errors", "has_converged",

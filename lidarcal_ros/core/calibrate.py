@@ -242,12 +242,56 @@ class Calibrator:
         what it raises)."""
         return self.matcher.add_strip(strip, trajectory)
 
+    def restart(self) -> None:
+        """Back to where a new calibrator starts, the strips and pairs kept: the estimate at
+        zero, the first matching threshold, every strip's trajectory error at zero and the
+        priors weighed with the configured observation sigma (a full solve from scratch)."""
+        self.delta = np.zeros(N_PARAMETERS)
+        self.threshold = self.settings.max_normal_distance_m
+        self.trajectory.params = np.zeros_like(self.trajectory.params)
+        self.unit_sigma = self.settings.trajectory.observation_sigma_m
+
+    def add_released_strip(self, strip_id: int, span: tuple[float, float]) -> PreparedStrip:
+        """Hold a strip released before a restart, flown over ``span`` (first and last time,
+        s), for its trajectory error alone (:meth:`PairMatcher.add_released`)."""
+        return self.matcher.add_released(strip_id, *span)
+
+    def add_prepared_strip(self, ps: PreparedStrip, *,
+                           span: tuple[float, float] | None = None) -> list[tuple[int, int]]:
+        """Hold a strip another calibrator of the same settings prepared, sharing its TIN
+        and geometry (:meth:`PairMatcher.add_prepared`, ``span`` as there); the pairs it
+        forms."""
+        return self.matcher.add_prepared(ps, span=span)
+
     def drop_strip(self, strip_id: int) -> int:
-        """Release a strip's points (memory budget); its pairs keep their last observations.
+        """Release a strip's points (memory budget); its pairs keep their last observations
+        (:meth:`match_before_release` first).
 
         Returns the number of points released.
         """
+        self.match_before_release(strip_id)
         return self.matcher.drop_strip(strip_id, self.delta)
+
+    def match_before_release(self, strip_id: int) -> None:
+        """Match the pairs of a strip about to be released that were never matched (their
+        samples chosen, matched at the current estimate): released, they keep those
+        correspondences instead of none (a calibrator whose runs have not come to them: the
+        rival model of a live ``auto`` calibration)."""
+        held = [k for k, ps in enumerate(self.strips) if ps.strip_id == strip_id and
+                not ps.dropped]
+        pending = [p for p in self.pairs if held and held[0] in (p.a, p.b) and
+                   p.frozen is None and p.last is None]
+        if not pending:
+            return
+        delta = self.delta.copy()
+        with self.workers.threads():
+            self.matcher.choose_samples([p for p in pending if p.sample is None])
+            corrected = self.matcher.corrected_many(self.matcher.used_strips(pending), delta)
+            for pair in pending:
+                assert pair.sample is not None
+                m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
+                pair.last = self.matcher.pair_observations(pair, pair.sample, m)
+                pair.last_delta = delta
 
     def _kept(self) -> list[tuple[Observations, np.ndarray]]:
         """Correspondences kept without re-matching, each with the estimate it was matched at."""
@@ -605,7 +649,8 @@ class Calibrator:
             if control is None or not len(control):
                 return []
             zero = np.zeros(N_PARAMETERS)
-            delivered = self.matcher.corrected_many(range(len(self.strips)), zero)
+            delivered = self.matcher.corrected_many(range(len(self.strips)), zero,
+                                                    delivered=True)
             self._control_before = self.matcher.control_observations(
                 control, zero, delivered, self.settings.max_normal_distance_m)[1]
         return self._control_before
@@ -650,16 +695,17 @@ class Calibrator:
         stats.sort(key=lambda p: (p.strip_a, p.strip_b))
         residuals = self.control_residuals(delta, corrected)
         n_ctrl = int(np.count_nonzero((obs.group < 0) & (obs.weights > 0)))
+        held = [ps for ps in self.strips if not ps.placeholder]
         return CalibrationResult(
             solution=sol, iterations=iterations, converged=converged, pairs=stats,
             control=residuals, n_pair_correspondences=int(np.count_nonzero(
                 (obs.group >= 0) & (obs.weights > 0))),
             n_control_correspondences=n_ctrl, history=history,
             dropped_non_finite=self.dropped_non_finite, thinned_points=self.thinned_points,
-            heading_from={ps.strip.strip_id: ps.geometry0.heading_from for ps in self.strips},
-            crab_deg={ps.strip.strip_id: ps.geometry0.crab_deg for ps in self.strips},
-            models={ps.strip.strip_id: ps.choice for ps in self.strips},
-            laser_qa={ps.strip.strip_id: ps.laser_qa for ps in self.strips},
+            heading_from={ps.strip_id: ps.geometry0.heading_from for ps in held},
+            crab_deg={ps.strip_id: ps.geometry0.crab_deg for ps in held},
+            models={ps.strip_id: ps.choice for ps in held},
+            laser_qa={ps.strip_id: ps.laser_qa for ps in held},
             stage_seconds=dict(self.clock.seconds),
         )
 
@@ -684,14 +730,32 @@ def calibrate(
         return _calibrate_once(mission, settings, progress)
     # auto: the trajectory as exact, then with each strip's spline; the spline is kept where
     # it fits clearly better (the strips disagree by more than their noise)
-    exact = _calibrate_once(mission, replace(settings, trajectory=replace(
-        settings.trajectory, model=TrajectoryModel.NONE)), progress)
+    exact = _calibrate_once(mission, with_trajectory_model(settings, TrajectoryModel.NONE),
+                            progress)
     try:
-        spline = _calibrate_once(mission, replace(settings, trajectory=replace(
-            settings.trajectory, model=TrajectoryModel.SPLINE)), progress)
+        spline: CalibrationResult | CalibrationError = _calibrate_once(
+            mission, with_trajectory_model(settings, TrajectoryModel.SPLINE), progress)
     except CalibrationError as exc:  # (NothingEstimated too)
+        spline = exc
+    return choose_trajectory_model(exact, spline)
+
+
+def with_trajectory_model(settings: CalibrationSettings,
+                          model: TrajectoryModel) -> CalibrationSettings:
+    """``settings`` with the trajectory errors modelled by ``model`` (the same priors)."""
+    return replace(settings, trajectory=replace(settings.trajectory, model=model))
+
+
+def choose_trajectory_model(exact: CalibrationResult,
+                            spline: CalibrationResult | CalibrationError) -> CalibrationResult:
+    """``auto``'s choice between the calibration with the trajectory as exact and that with
+    each strip's spline (or why the latter failed): the spline where it leaves a sigma0
+    :data:`~lidarcal_ros.core.trajectory_errors.AUTO_SIGMA0_RATIO` times smaller (the strips
+    disagree by more than their noise). The result chosen, its ``trajectory_choice`` saying
+    which and why."""
+    if isinstance(spline, CalibrationError):
         exact.trajectory_choice = (f"auto: none (with each strip's trajectory error the data "
-                                   f"determine nothing: {exc})")
+                                   f"determine nothing: {spline})")
         return exact
     s_exact, s_spline = exact.solution.sigma0, spline.solution.sigma0
     better = bool(s_exact > AUTO_SIGMA0_RATIO * s_spline)
@@ -717,4 +781,5 @@ def _calibrate_once(mission: Mission, settings: CalibrationSettings,
     return result
 
 
-__all__ = ["CalibrationSettings", "Calibrator", "Progress", "calibrate"]
+__all__ = ["CalibrationSettings", "Calibrator", "Progress", "calibrate", "choose_trajectory_model",
+           "with_trajectory_model"]

@@ -11,6 +11,7 @@ the calibration's worker threads.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
@@ -18,7 +19,13 @@ import numpy as np
 
 from lidarcal_ros.core.adjustment import Observations
 from lidarcal_ros.core.calibration_threads import StageClock, WorkerPool
-from lidarcal_ros.core.georeferencing import laser_vector_qa, strip_geometry
+from lidarcal_ros.core.geometry import LEVEL, LaserGeometry
+from lidarcal_ros.core.georeferencing import (
+    LaserVectorQA,
+    ModelChoice,
+    laser_vector_qa,
+    strip_geometry,
+)
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.core.model import add_geometry_normal_rows, exact_correction
 from lidarcal_ros.core.params import N_PARAMETERS
@@ -105,10 +112,37 @@ class PairMatcher:
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
-        self.strips.append(PreparedStrip(strip, geom, density, keys, cells, priority, choice,
-                                         qa, speed))
-        self.trajectory.add_strip(float(np.nanmin(strip.t)) if len(strip) else 0.0,
-                                  float(np.nanmax(strip.t)) if len(strip) else 0.0)
+        return self.add_prepared(PreparedStrip(strip, geom, density, keys, cells, priority,
+                                               choice, qa, speed))
+
+    def add_released(self, strip_id: int, t0: float, t1: float) -> PreparedStrip:
+        """Hold a strip released before a restart, flown from ``t0`` to ``t1`` (s), for its
+        trajectory error alone (a placeholder: no points, no pairs); returns it."""
+        empty = np.empty(0, dtype=np.int64)
+        ps = PreparedStrip(Strip(strip_id, np.empty((0, 3)), np.empty(0)), LaserGeometry.empty(),
+                           0.0, empty, empty.copy(), np.empty(0),
+                           ModelChoice(LEVEL, "released before a restart"),
+                           LaserVectorQA(*(math.nan,) * 5), math.nan, dropped=True,
+                           placeholder=True)
+        self.add_prepared(ps, span=(t0, t1))
+        return ps
+
+    def add_prepared(self, ps: PreparedStrip, *,
+                     span: tuple[float, float] | None = None) -> list[tuple[int, int]]:
+        """Hold a strip another matcher of the same settings prepared (its TIN and geometry
+        shared: a live ``auto`` calibration runs two trajectory models over the same strips)
+        and find its pairs with the strips already held; :meth:`add_strip` says what it
+        returns and raises. ``span``: the strip's first and last time (s), where its points
+        are not held."""
+        if any(held.strip_id == ps.strip_id for held in self.strips):
+            raise CalibrationError(f"strip {ps.strip_id} added twice")
+        s = self.settings
+        strip = ps.strip
+        self.strips.append(ps)
+        if span is None:
+            span = ((float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip)
+                    else (0.0, 0.0))
+        self.trajectory.add_strip(*span)
         new = len(self.strips) - 1
         formed = []
         for other in range(new):
@@ -126,15 +160,16 @@ class PairMatcher:
 
         Returns the number of points released.
         """
-        for ps in self.strips:
-            if ps.strip_id == strip_id and not ps.dropped:
-                k = self.strips.index(ps)
+        for k, ps in enumerate(self.strips):
+            if ps.strip_id == strip_id:
                 for pair in self.pairs:
                     if k in (pair.a, pair.b) and pair.frozen is None:
                         pair.frozen_delta = pair.last_delta if pair.last_delta is not None \
                             else delta.copy()
                         pair.frozen = pair.last if pair.last is not None else \
                             Observations.empty()
+                if ps.dropped:  # (released already through another matcher sharing it)
+                    return 0
                 n = len(ps.strip)
                 ps.dropped = True
                 ps.tin = None
@@ -161,8 +196,12 @@ class PairMatcher:
                        not self.strips[k].dropped}, key=lambda k: -len(self.strips[k].strip))
         self.workers.map(self.tin, todo, "building TINs" if todo else None)
 
-    def corrected(self, k: int, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Corrected coordinates of strip k and the shift ``delivered - corrected``.
+    def corrected(self, k: int, delta: np.ndarray, *,
+                  delivered: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Corrected coordinates of strip k and the shift ``delivered - corrected``: by the
+        estimate ``delta`` and the strip's trajectory error as estimated, or with
+        ``delivered`` by ``delta`` alone (the strips as delivered at ``delta`` zero: what a
+        pair's sample points are chosen on, whatever the errors estimated by then).
 
         Also re-evaluates the strip's laser-frame geometry (x, z, beta) at the corrected
         points: the design rows are the Jacobian at the current estimate. Evaluated at the
@@ -170,13 +209,14 @@ class PairMatcher:
         would appear not to cancel, and mimic dphi.
         """
         ps = self.strips[k]
-        error = self.trajectory.strip_params(k) if self.trajectory.active else np.zeros(0)
+        error = self.trajectory.strip_params(k) if self.trajectory.active and not delivered \
+            else np.zeros(0)
         key = np.asarray(delta, dtype=np.float64).tobytes() + error.tobytes()
         if ps.corrected is None or ps.corrected[0] != key:
             with self.clock("corrections"):
                 corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
                                                               delta)
-                if np.any(error):
+                if error.size and np.any(error):
                     # docs/method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
                     # geometry stays that of the delivered positions
                     e = self.trajectory.error(k, ps.strip.t)
@@ -195,7 +235,7 @@ class PairMatcher:
         corrected points and ``delivered - corrected``), within ``threshold`` metres."""
         a_xyz, _ = corrected[pair.a]
         b_xyz, b_shift = corrected[pair.b]
-        shift = b_shift if np.any(delta) or self._moved(pair.b) else None
+        shift = b_shift if np.any(delta) or (self._moved(pair.b) and np.any(b_shift)) else None
         # The sample is matched every iteration: start each search at its last patch.
         on_sample = points_idx is pair.sample
         start = pair.last_triangle if on_sample else None
@@ -308,8 +348,8 @@ class PairMatcher:
             tin = self.tin(k)
             with self.clock("matching"):
                 m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
-                                 vertex_shift=shift if np.any(delta) or self._moved(k)
-                                 else None)
+                                 vertex_shift=shift if np.any(delta) or
+                                 (self._moved(k) and np.any(shift)) else None)
             if not m.valid.any():
                 continue
             ok = m.valid
@@ -333,7 +373,7 @@ class PairMatcher:
         s = self.settings
         zero = np.zeros(N_PARAMETERS)
         self.build_tins(p.b for p in pairs)
-        delivered = self.corrected_many(self.used_strips(pairs), zero)
+        delivered = self.corrected_many(self.used_strips(pairs), zero, delivered=True)
 
         def choose(pair: StripPair) -> None:
             m = self.match_pair(pair, pair.candidates, zero, delivered, s.max_normal_distance_m)
@@ -368,12 +408,12 @@ class PairMatcher:
         return self.corrected_many((k for k in range(len(self.strips))
                                     if not self.strips[k].dropped), delta)
 
-    def corrected_many(self, strips: Iterable[int], delta: np.ndarray
-                       ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def corrected_many(self, strips: Iterable[int], delta: np.ndarray, *,
+                       delivered: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """:meth:`corrected` of ``strips`` (in the threads)."""
         ks = sorted(set(strips))
-        return dict(zip(ks, self.workers.map(lambda k: self.corrected(k, delta), ks),
-                        strict=True))
+        return dict(zip(ks, self.workers.map(
+            lambda k: self.corrected(k, delta, delivered=delivered), ks), strict=True))
 
     def used_strips(self, pairs: Sequence[StripPair]) -> set[int]:
         """The strips (indices) of ``pairs``."""

@@ -90,6 +90,9 @@ class PreparedStrip:
     #: ``delivered - corrected`` and their geometry.
     corrected: tuple[bytes, np.ndarray, np.ndarray, LaserGeometry] | None = None
     dropped: bool = False  # points released (memory budget); its pairs are frozen
+    #: Released before a restart: held for its trajectory error alone (no points, no pairs,
+    #: not in a result's strips).
+    placeholder: bool = False
 
     def __post_init__(self) -> None:
         self.geometry = self.geometry0

@@ -106,6 +106,8 @@ class StripBasis:
     model: TrajectoryModel
     t_ref: float
     knots: np.ndarray | None = None
+    #: The strip's first and last time (s) where known (NaN: read from a file).
+    span: tuple[float, float] = (math.nan, math.nan)
 
     @classmethod
     def over(cls, model: TrajectoryModel, t0: float, t1: float,
@@ -115,7 +117,7 @@ class StripBasis:
         if model is TrajectoryModel.SPLINE:
             spans = max(1, math.ceil((t1 - t0) / knot_interval_s - 1e-9))
             knots = t0 + knot_interval_s * np.arange(-3, spans + 4, dtype=np.float64)
-        return cls(model, 0.5 * (t0 + t1), knots)
+        return cls(model, 0.5 * (t0 + t1), knots, (float(t0), float(t1)))
 
     @property
     def size(self) -> int:
@@ -175,6 +177,11 @@ class TrajectoryState:
     def t_ref(self) -> list[float]:
         """Each strip's reference (mid) time, s."""
         return [b.t_ref for b in self.bases]
+
+    @property
+    def spans(self) -> np.ndarray:
+        """Each strip's first and last time (S, 2), s."""
+        return np.array([b.span for b in self.bases]).reshape(-1, 2)
 
     def add_strip(self, t0: float, t1: float) -> None:
         """A new strip flown from ``t0`` to ``t1`` (s), its error zero."""

@@ -22,13 +22,16 @@ Publishes
     (SI units; layout in :mod:`lidarcal_ros.io.ros_messages`); the label of ``layout.dim[0]``
     ends in ``;converged=true`` or ``;converged=false``.
 ``/lidar/calibration/yaml`` (``std_msgs/String``, transient-local, depth 1)
-    The calibration file of docs/interface.md (``converged`` says whether it is).
+    The calibration file of docs/interface.md (``converged`` says whether it is; the trajectory
+    model and, where estimated, each strip's trajectory error).
 ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every second and after each solve)
     ``lidarcal: strips A&B`` per overlapping pair (RMS discrepancy after calibration against
     ``qa.rmsdz_warn_m`` / ``qa.max_difference_m``, USGS LBS QL2 8 cm / 16 cm: OK, WARN, ERROR;
     values coverage, rms_before, rms_after, p95_after), ``lidarcal: convergence`` (WARN
     while not converged; ``refining`` says whether the background convergence is under way),
     ``lidarcal: observability`` (parameters not estimable, with the reason),
+    ``lidarcal: trajectory`` (each strip's estimated trajectory error against the navigation
+    accuracy configured: WARN beyond 3x, ERROR beyond 6x its a-priori sigma),
     ``lidarcal: memory`` (points held, points and strips released under the budget) and
     ``lidarcal: input`` (clouds, malformed clouds skipped and why, queue).
 

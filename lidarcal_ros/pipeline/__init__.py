@@ -36,7 +36,8 @@ _EXPORTS = {
         "UPDATE_PERIOD_S",
     ),
     "calibrator_statuses": (
-        "InputCounts", "ServiceCounts", "operating_statuses", "refinement_status",
+        "InputCounts", "ServiceCounts", "TRAJECTORY_ERROR_FACTOR", "TRAJECTORY_WARN_FACTOR",
+        "operating_statuses", "refinement_status", "trajectory_status",
     ),
     "cloud_backlog": (
         "MAX_PUSH_POINTS", "Region", "TRAJECTORY_MARGIN_S", "WaitingCloud", "WaitingClouds",
@@ -112,13 +113,15 @@ _EXPORTS = {
         "slope_class_statistics",
     ),
     "stream_checkpoint": (
-        "CHECKPOINT_VERSION", "StreamCheckpoint", "read_checkpoint", "write_checkpoint",
+        "CHECKPOINT_VERSION", "ModelState", "StreamCheckpoint", "read_checkpoint",
+        "write_checkpoint",
     ),
     "stream_corrector": ("DEFAULT_BATCH_POINTS", "StreamCorrector", "iter_corrected"),
     "stream_inputs": (
         "BYTES_PER_HELD_POINT", "FIRST_AUTO_CELL_M", "MAX_AUTO_CELL_M", "OpenStrip",
         "OpenStrips", "TrajectorySamples", "default_point_budget",
     ),
+    "stream_models": ("ModelCalibrators",),
     "streaming": ("StreamingCalibration",),
     "strip_coverage": ("HOLE_FRACTION", "JOIN_S", "MIN_HOLE_S", "StripCoverage"),
     "throttled_log": ("ThrottledLog",),

@@ -20,7 +20,8 @@ Scheduling
     on the same data.
 Results
     Every estimate (quick, converged, or asked for) goes to the ``on_result`` callback with
-    its QA statuses ready (:meth:`CalibrationService.statuses`), then to the checkpoint file
+    its QA statuses ready (:meth:`CalibrationService.statuses`; among them each strip's
+    trajectory error, ``lidarcal: trajectory``), then to the checkpoint file
     when one is set. A checkpoint found at start is resumed from, and converged again.
 Shutdown
     :meth:`CalibrationService.close` converges first (at most :data:`SHUTDOWN_CONVERGE_S`)
@@ -53,6 +54,7 @@ from lidarcal_ros.pipeline.calibrator_statuses import (
     ServiceCounts,
     operating_statuses,
     refinement_status,
+    trajectory_status,
 )
 from lidarcal_ros.pipeline.stream_inputs import default_point_budget
 from lidarcal_ros.pipeline.streaming import StreamingCalibration
@@ -509,6 +511,7 @@ class CalibrationService:
         statuses = qa_statuses(result, warn_m=cfg["qa.rmsdz_warn_m"],
                                error_m=cfg["qa.max_difference_m"],
                                solve_for=cfg["calibration.solve_for"])
+        statuses.append(trajectory_status(result, cfg.calibration_settings().trajectory))
         with self._qa_lock:
             self._qa = statuses
         self._on_result(result)

@@ -3,9 +3,11 @@
 ``lidarcal: memory`` (points held against the budget, thinning, strips released),
 ``lidarcal: input`` (clouds, points and poses received; what was skipped, left out or refused,
 and why; the strips seen only in part), ``lidarcal: state`` (estimates, checkpoints, the
-normal equations) and, while there is no estimate, ``lidarcal: convergence``; and the
+normal equations) and, while there is no estimate, ``lidarcal: convergence``; the
 convergence status of the latest estimate while the background refinement works on it
-(:func:`refinement_status`). Levels and the status record are
+(:func:`refinement_status`); and with each estimate ``lidarcal: trajectory`` (each strip's
+estimated trajectory error against the navigation accuracy configured,
+:func:`trajectory_status`). Levels and the status record are
 :mod:`lidarcal_ros.io.ros_messages`'.
 """
 
@@ -15,10 +17,22 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lidarcal_ros.io.ros_messages import OK, WARN, StatusSpec
+from lidarcal_ros.core.calibration_result import CalibrationResult
+from lidarcal_ros.core.trajectory_errors import StripError, TrajectoryErrorSettings
+from lidarcal_ros.io.ros_messages import ERROR, OK, WARN, StatusSpec
 from lidarcal_ros.pipeline.streaming import StreamingCalibration
 
-__all__ = ["InputCounts", "ServiceCounts", "operating_statuses", "refinement_status"]
+__all__ = ["TRAJECTORY_ERROR_FACTOR", "TRAJECTORY_WARN_FACTOR", "InputCounts", "ServiceCounts",
+           "operating_statuses", "refinement_status", "trajectory_status"]
+
+#: A strip's estimated trajectory offset (horizontal or vertical) or drift rate beyond this
+#: many times its configured a-priori sigma is a WARN: a 3-sigma event of a navigation solution
+#: as accurate as configured (about 1 % of strips horizontally), worth a look at its GNSS.
+TRAJECTORY_WARN_FACTOR = 3.0
+#: Beyond this many times, an ERROR: the navigation solution is not what is configured (a lost
+#: fix, a wrong antenna height, a float solution); corrected points are only as good as the
+#: estimate, and the priors, sized for the configured accuracy, hold it back.
+TRAJECTORY_ERROR_FACTOR = 6.0
 
 
 @dataclass
@@ -143,3 +157,76 @@ def input_status(stream: StreamingCalibration, received: InputCounts,
         "rejected_strips": ",".join(str(i) for i, _ in rejected),
         "partial_strips": "; ".join(f"{i}: {text}" for i, text in partial.items()),
         "last_rejection": rejected[-1][1] if rejected else ""})
+
+
+def trajectory_status(result: CalibrationResult,
+                      settings: TrajectoryErrorSettings) -> StatusSpec:
+    """``lidarcal: trajectory``: the trajectory model (and why, where ``auto`` chose it) and
+    each strip's estimated error (docs/method.md section 11), its horizontal and vertical offset
+    and drift rate against ``settings``' a-priori sigmas (the navigation accuracy configured):
+    WARN beyond :data:`TRAJECTORY_WARN_FACTOR` times, ERROR beyond
+    :data:`TRAJECTORY_ERROR_FACTOR` times, naming the strip (and the biases not estimated,
+    which the strips' offsets take up where they are flagged). OK with the trajectory as
+    exact."""
+    values = {"model": result.trajectory_choice,
+              "warn_factor": f"{TRAJECTORY_WARN_FACTOR:g}",
+              "error_factor": f"{TRAJECTORY_ERROR_FACTOR:g}"}
+    est = result.trajectory
+    if est is None:
+        return StatusSpec(OK, "lidarcal: trajectory",
+                          f"taken as exact ({result.trajectory_choice})", values)
+    level, worst, flagged = OK, 0.0, []
+    for sid in sorted(est.strips):
+        se = est.strips[sid]
+        values[f"strip_{sid}"] = _strip_error_text(se)
+        for what, size, sigma, key in _strip_error_sizes(se, settings):
+            ratio = size / sigma
+            worst = max(worst, ratio)
+            if ratio > TRAJECTORY_WARN_FACTOR:
+                error = ratio > TRAJECTORY_ERROR_FACTOR
+                level = max(level, ERROR if error else WARN)
+                unit = "cm/s" if what == "drift" else "cm"
+                flagged.append(
+                    f"strip {sid}: trajectory {what} {size * 100:.1f} {unit}, more than "
+                    f"{TRAJECTORY_ERROR_FACTOR if error else TRAJECTORY_WARN_FACTOR:g}x the "
+                    f"{sigma * 100:g} {unit} configured ({key}): a GNSS problem?")
+    values["largest_ratio"] = f"{worst:.2f}"
+    values["largest_offset_m"] = f"{est.largest_offset_m():.4f}"
+    if flagged:
+        message = "; ".join(flagged)
+        held = [name for name, st in result.solution.status.items()
+                if st.state == "not_estimable"]
+        if held:  # (docs/method.md section 11: a lever arm held fixed is a shift of each strip)
+            message += (f" (or the biases not estimated, {', '.join(held)}, held at their "
+                        "fixed values and taken up by the strips' offsets)")
+    else:
+        message = (f"{len(est.strips)} strips' errors within {TRAJECTORY_WARN_FACTOR:g}x the "
+                   f"navigation accuracy configured (largest offset "
+                   f"{est.largest_offset_m() * 100:.1f} cm; {result.trajectory_choice})")
+    return StatusSpec(level, "lidarcal: trajectory", message, values)
+
+
+def _strip_error_sizes(se: StripError, settings: TrajectoryErrorSettings
+                       ) -> list[tuple[str, float, float, str]]:
+    """(what, size, a-priori sigma, configuration key) of a strip's horizontal offset, vertical
+    offset and drift rate (m, m/s)."""
+    key = "calibration.trajectory."
+    out = [("horizontal offset", float(np.hypot(se.offset[0], se.offset[1])),
+            settings.offset_sigma_horizontal_m, key + "offset_sigma_horizontal_m"),
+           ("vertical offset", abs(float(se.offset[2])), settings.offset_sigma_vertical_m,
+            key + "offset_sigma_vertical_m")]
+    if se.drift is not None:
+        out.append(("drift", float(np.max(np.abs(se.drift))), settings.drift_sigma_m_per_s,
+                    key + "drift_sigma_m_per_s"))
+    return out
+
+
+def _strip_error_text(se: StripError) -> str:
+    """A strip's error in words: offset E N U +- sigma (cm), drift (cm/s)."""
+    o, s = se.offset * 100, se.offset_sigma * 100
+    text = (f"offset E {o[0]:+.1f} N {o[1]:+.1f} U {o[2]:+.1f} cm (+- {s[0]:.1f} {s[1]:.1f} "
+            f"{s[2]:.1f}) at t {se.t_ref:.1f} s")
+    if se.drift is not None:
+        d = se.drift * 100
+        text += f", drift {d[0]:+.2f} {d[1]:+.2f} {d[2]:+.2f} cm/s"
+    return text

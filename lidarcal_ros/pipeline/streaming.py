@@ -21,6 +21,12 @@ fixed point. :meth:`StreamingCalibration.solve` runs the full adjustment from ze
 ``lidarcal calibrate`` does. Checkpoints keep whether the estimate was converged and the
 matching threshold; a calibration resumed from one converges again before its first result.
 
+Trajectory errors (docs/method.md section 11, ``calibration.trajectory.model``): a model set is
+estimated strip by strip with the biases; ``auto`` runs the trajectory as exact and each
+strip's spline side by side over the same prepared strips, converges the second after the first
+and publishes the one ``lidarcal calibrate`` would choose (:mod:`~lidarcal_ros.pipeline.
+stream_models`): converged on every strip, the choice and the estimate are the batch ones.
+
 Memory: points are held under a budget; past it the oldest complete strip is released first,
 its strip pairs keeping their last correspondences (frozen), and the count is reported. Where
 the strips still being flown hold more than the budget on their own (a dense sensor on a long
@@ -64,6 +70,7 @@ from lidarcal_ros.pipeline.stream_checkpoint import (
     write_checkpoint,
 )
 from lidarcal_ros.pipeline.stream_inputs import OpenStrips, TrajectorySamples, default_point_budget
+from lidarcal_ros.pipeline.stream_models import ModelCalibrators
 from lidarcal_ros.pipeline.strip_coverage import StripCoverage
 
 __all__ = ["StreamingCalibration"]
@@ -78,6 +85,9 @@ class _Refinement:
     iterations: Iterator[Iteration | None]
     completed: int = 0  # iterations
     seconds: float = 0.0  # spent in its steps, s
+    #: ``auto``: the active calibrator's result and whether it converged, once concluded,
+    #: while the rival model's iterations run.
+    first: tuple[CalibrationResult, bool] | None = None
 
 
 class StreamingCalibration:
@@ -129,7 +139,7 @@ class StreamingCalibration:
     _now: float  # newest point time, s
     _late_strips: set[int]
     _coverage: StripCoverage
-    _calibrator: Calibrator
+    _models: ModelCalibrators
 
     def __init__(
         self,
@@ -154,8 +164,13 @@ class StreamingCalibration:
         self.reset()
 
     # ------------------------------------------------------------------ inputs
-    def _new_calibrator(self) -> Calibrator:
-        return Calibrator(self.config.calibration_settings(), control=self._control)
+    def _new_models(self) -> ModelCalibrators:
+        return ModelCalibrators(self.config.calibration_settings(), control=self._control)
+
+    @property
+    def _calibrator(self) -> Calibrator:
+        """The calibrator whose estimate is published (:class:`ModelCalibrators`)."""
+        return self._models.active
 
     def _check_frame(self, frame_id: str, what: str) -> None:
         if self.frame_id is None:
@@ -221,7 +236,7 @@ class StreamingCalibration:
                                                                             control.xyz):
             return
         self._control = control
-        self._calibrator.set_control(control)
+        self._models.set_control(control)
         self._data_changed()
 
     def update_config(self, config: FlightConfig) -> None:
@@ -300,7 +315,7 @@ class StreamingCalibration:
                 self._thin_open_strips()
                 return
             oldest = held[0].strip_id
-            n = self._calibrator.drop_strip(oldest)
+            n = self._models.drop_strip(oldest)
             self.dropped_points += n
             self.dropped_strips.append(oldest)
             self._closed = [s for s in self._closed if s.strip_id != oldest]
@@ -354,7 +369,7 @@ class StreamingCalibration:
                                 f"point of it for strip_gap_s = {self.strip_gap_s:g} s); "
                                 "its later points are left out")
         try:
-            formed = self._calibrator.add_strip(strip, self.trajectory)
+            formed = self._models.add_strip(strip, self.trajectory)
         except (TrajectoryError, CalibrationError) as exc:
             return self._reject(strip, str(exc))
         self._closed.append(strip)
@@ -411,9 +426,18 @@ class StreamingCalibration:
             if self._covered(self._open.last_t(sid)):
                 self._close(sid)
         self._data_changed(refine=False)
-        self._calibrator.delta = np.zeros_like(self._calibrator.delta)
-        self._calibrator.threshold = self._calibrator.settings.max_normal_distance_m
-        result = self._solve(max_iterations=None)
+        self._pass_counters()
+        for cal in self._models.calibrators:
+            cal.restart()
+        result = self._calibrator.run()
+        rival = self._models.rival
+        if rival is not None:  # auto: both models from scratch, chosen as batch chooses
+            try:
+                other: CalibrationResult | CalibrationError = rival.run()
+            except CalibrationError as exc:
+                other = exc
+            result = self._models.choose(result, other)
+        result = self._adopt(result)
         # Not converged within calibration.max_iterations: the refinement may go on.
         self.converged = result.converged
         self._refinement_wanted = not result.converged
@@ -427,10 +451,14 @@ class StreamingCalibration:
 
     def _pass_counters(self) -> None:
         """The input counters the calibration's results report."""
-        self._calibrator.dropped_non_finite = self.dropped_non_finite
-        self._calibrator.thinned_points = self.thinned_points
+        for cal in self._models.calibrators:
+            cal.dropped_non_finite = self.dropped_non_finite
+            cal.thinned_points = self.thinned_points
 
     def _adopt(self, result: CalibrationResult) -> CalibrationResult:
+        """``result`` (the active calibrator's) becomes the latest, its trajectory model
+        said."""
+        self._models.label(result)
         result.partial_strips = self.partial_strips
         self.latest = result
         self.waiting_for = ""
@@ -476,9 +504,16 @@ class StreamingCalibration:
         refinement = self._refinement
         if refinement is None:
             refinement = self._refinement = _Refinement(self._calibrator.iterate())
+        rival = refinement.first is not None
+        calibrator = self._models.rival if rival else self._calibrator
+        assert calibrator is not None
         try:
             done = next(refinement.iterations)
         except CalibrationError as exc:
+            if refinement.first is not None:  # the rival model determines nothing
+                first, converged = refinement.first
+                return self._refined(refinement, self._models.choose(first, exc), converged,
+                                     started)
             self._data_changed(refine=False)
             self.waiting_for = str(exc)
             logger.info("not refined: %s", exc)
@@ -493,13 +528,31 @@ class StreamingCalibration:
             refinement.seconds += time.perf_counter() - started
             return None
         self._pass_counters()
-        result = self._adopt(self._calibrator.conclude(done))
-        self.converged = done.converged
+        result = calibrator.conclude(done)
+        if refinement.first is None and self._models.rival is not None:
+            # auto: the other model converges next, on the same strips, for the comparison
+            refinement.first = (result, done.converged)
+            refinement.iterations = self._models.rival.iterate()
+            refinement.completed = 0
+            refinement.seconds += time.perf_counter() - started
+            return None
+        converged = done.converged
+        if refinement.first is not None:
+            first, first_converged = refinement.first
+            result = self._models.choose(first, result)
+            converged = first_converged if result is first else done.converged
+        return self._refined(refinement, result, converged, started)
+
+    def _refined(self, refinement: _Refinement, result: CalibrationResult, converged: bool,
+                 started: float) -> CalibrationResult:
+        """The refinement ended with ``result`` (the active calibrator's): adopt it."""
+        result = self._adopt(result)
+        self.converged = converged
         self._refinement, self._refinement_wanted = None, False
         self.refinement_seconds = refinement.seconds + time.perf_counter() - started
-        logger.info("refined: %s after %d iterations (%.2f s)",
-                    "converged" if done.converged else "NOT converged", done.number,
-                    self.refinement_seconds)
+        logger.info("refined: %s after %d iterations (%.2f s); trajectory errors: %s",
+                    "converged" if converged else "NOT converged", result.iterations,
+                    self.refinement_seconds, result.trajectory_choice)
         return result
 
     def converge(self, timeout_s: float = np.inf) -> CalibrationResult | None:
@@ -537,14 +590,15 @@ class StreamingCalibration:
         self.uncovered_points = 0
         self.uncovered_strips = []
         self.rejected_strips = []
-        self._calibrator = self._new_calibrator()
+        self._models = self._new_models()
 
     def _rebuild(self) -> None:
-        cal = self._new_calibrator()
+        models = self._new_models()
         for strip in self._closed:
-            cal.add_strip(strip, self.trajectory)
-        cal.delta = self._calibrator.delta
-        self._calibrator = cal
+            models.add_strip(strip, self.trajectory)
+        for cal in models.calibrators:
+            cal.delta = self._calibrator.delta.copy()
+        self._models = models
         self._data_changed()
 
     # ------------------------------------------------------------------ checkpoints
@@ -553,9 +607,8 @@ class StreamingCalibration:
         return write_checkpoint(path, StreamCheckpoint(
             frame_id=self.frame_id, trajectory=self._samples.arrays(),
             closed=list(self._closed), open=list(self._open.strips()),
-            delta=self._calibrator.delta, threshold=self._calibrator.threshold,
-            converged=self.converged, frozen=self._calibrator.frozen_observations(),
-            normal_equations=self.normal_equations, control=self._control,
+            models=self._models.states(), trajectory_choice=self._models.choice,
+            converged=self.converged, normal_equations=self.normal_equations, control=self._control,
             dropped_points=self.dropped_points, dropped_non_finite=self.dropped_non_finite,
             thinned_points=self.thinned_points, auto_thinning_cell_m=self.auto_thinning_cell_m,
             uncovered_points=self.uncovered_points,
@@ -589,18 +642,26 @@ class StreamingCalibration:
         self.uncovered_strips = list(state.uncovered_strips)
         self.rejected_strips = list(state.rejected_strips)
         self.dropped_strips = list(state.dropped_strips)
-        for strip in state.closed:
-            self._closed.append(strip)
-            self._calibrator.add_strip(strip, self.trajectory)
+        # in the calibration's order, strips released before in their places (their
+        # trajectory errors' frozen correspondences name them)
+        closed = {strip.strip_id: strip for strip in state.closed}
+        order = [int(i) for i in state.models[0].trajectory_ids] if state.models else []
+        spans = {sid: (float(a), float(b)) for sid, (a, b) in
+                 zip(order, state.models[0].spans, strict=True)} if state.models else {}
+        for sid in order + [s.strip_id for s in state.closed if s.strip_id not in order]:
+            if sid not in closed:
+                self._models.add_released(sid, spans[sid])
+                continue
+            self._closed.append(closed[sid])
+            self._models.add_strip(closed[sid], self.trajectory)
         for strip in state.open:
             self._open.add(strip.strip_id, strip.xyz, strip.t, strip.intensity)
-        self._calibrator.delta = np.array(state.delta)
-        self._calibrator.restore_frozen(state.frozen)  # expressed at the saved estimate
-        self._calibrator.threshold = state.threshold
+        # estimates, thresholds, trajectory errors, frozen correspondences
+        self._models.restore(state.models, state.trajectory_choice)
         self.converged = state.converged
         # No result survives a restart: converge again (at once where it was converged) for
         # one to publish.
-        self._refinement_wanted = bool(self._closed) or len(state.frozen) > 0
+        self._refinement_wanted = bool(self._closed) or any(len(m.frozen) for m in state.models)
         self.normal_equations = state.normal_equations
         if self._closed:
             self._now = max(float(s.t[-1]) for s in self._closed)
