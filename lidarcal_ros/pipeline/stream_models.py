@@ -1,9 +1,10 @@
 """The calibrators a live calibration runs for its trajectory model (docs/method.md section 11).
 
-A model set (``none``, ``offset``, ``drift``, ``spline``) runs one :class:`~lidarcal_ros.core.calibrate.
-Calibrator`. ``auto`` runs two over the same prepared strips (their TINs and geometry shared):
-the trajectory as exact, whose estimate is published until the other wins, and each strip's
-spline; once both have converged on the strips held they are compared as ``lidarcal calibrate``
+A model set (``none``, ``offset``, ``drift``, ``spline``) runs one
+:class:`~lidarcal_ros.core.calibrate.Calibrator`. ``auto`` runs two over the same prepared
+strips (their TINs and geometry shared): the trajectory as exact, whose estimate is published
+until the other wins, and each strip's spline; once both have converged on the strips held
+they are compared as ``lidarcal calibrate``
 compares them (:func:`~lidarcal_ros.core.calibrate.choose_trajectory_model`), and the one
 chosen is published from then on. Both converged on every strip of a mission, the choice and
 the estimate are the batch calibration's. Their checkpoint states
