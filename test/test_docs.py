@@ -69,7 +69,7 @@ def test_the_script_refuses_a_file_without_markers() -> None:
 
 def _method_sections() -> set[int]:
     return {int(m.group(1)) for m in re.finditer(r"^## (\d+)\. ",
-                                                 (DOCS / "docs/method.md").read_text(), re.M)}
+                                                 (DOCS / "method.md").read_text(), re.M)}
 
 
 def test_method_has_the_twelve_sections_the_code_cites() -> None:
@@ -104,7 +104,7 @@ def _table_rows(text: str) -> dict[str, str]:
 
 
 def test_interface_names_every_correction_flag() -> None:
-    rows = _table_rows((DOCS / "docs/interface.md").read_text())
+    rows = _table_rows((DOCS / "interface.md").read_text())
     bits = {name: value for name, value in vars(flags).items() if name.startswith("FLAG_")}
     assert len(bits) >= 6
     for name, value in bits.items():
@@ -112,7 +112,7 @@ def test_interface_names_every_correction_flag() -> None:
 
 
 def test_interface_names_every_exit_status() -> None:
-    rows = _table_rows((DOCS / "docs/interface.md").read_text())
+    rows = _table_rows((DOCS / "interface.md").read_text())
     for status in EXIT_STATUSES:
         assert str(status) in rows, f"exit status {status} has no row in docs/interface.md"
 
@@ -138,7 +138,7 @@ def _calibration_file_keys() -> set[str]:
 def test_interface_documents_every_key_of_the_calibration_file() -> None:
     keys = _calibration_file_keys()
     assert {"biases", "trajectory", "partial_strips", "convergence"} <= keys
-    text = (DOCS / "docs/interface.md").read_text()
+    text = (DOCS / "interface.md").read_text()
     table = "\n".join(line for line in text.splitlines() if line.startswith("| `"))
     for key in keys:
         assert f"`{key}`" in table or f"`{key}." in table, (

@@ -367,21 +367,20 @@ def test_strips_the_input_delivered_in_part_are_named(sim: SimulatedMission) -> 
 
 
 def _trajectory_within(result: Any, reference: Any, fraction: float) -> None:
-    """Every strip's trajectory offset and drift within ``fraction`` of the reference's
-    sigmas."""
+    """Every strip's trajectory error coefficients (offset, drift or spline) within
+    ``fraction`` of the reference's sigmas."""
     assert result.trajectory is not None and reference.trajectory is not None
     assert sorted(result.trajectory.strips) == sorted(reference.trajectory.strips)
     for sid, ref in reference.trajectory.strips.items():
         got = result.trajectory.strips[sid]
-        assert np.all(np.abs(got.offset - ref.offset) <= fraction * ref.offset_sigma), sid
-        assert np.all(np.abs(got.drift - ref.drift) <= fraction * ref.drift_sigma), sid
+        assert np.all(np.abs(got.coefficients - ref.coefficients) <= fraction * ref.sigma), sid
 
 
-def test_auto_takes_the_drift_live_as_offline_and_a_checkpoint_keeps_it(
+def test_auto_takes_the_spline_live_as_offline_and_a_checkpoint_keeps_it(
         sim: SimulatedMission, tmp_path: Path) -> None:
     """A mission whose trajectory errs per strip (offsets, drifts, a slow oscillation), the
     flight configuration's default ``auto``: live, the estimate converged on every strip takes
-    each strip's drift, as ``lidarcal calibrate`` does, says why in the same words, and equals
+    each strip's spline, as ``lidarcal calibrate`` does, says why in the same words, and equals
     the offline estimate, biases and trajectory errors, within 0.1 sigma; the calibration file
     and the estimate topic's YAML carry the trajectory block. A checkpoint written mid-mission
     keeps both models' trajectory errors; resumed, it ends at the same estimate."""
@@ -393,7 +392,7 @@ def test_auto_takes_the_drift_live_as_offline_and_a_checkpoint_keeps_it(
     mission, _ = with_trajectory_errors(sim.mission, seed=11)
     config = FlightConfig()
     offline = calibrate(mission, config.calibration_settings())
-    assert offline.trajectory_choice.startswith("auto: drift")
+    assert offline.trajectory_choice.startswith("auto: spline")
     events = stream_events(mission)
     stream = StreamingCalibration(config, control=mission.control)
     cut = len(events) * 2 // 3
@@ -415,7 +414,7 @@ def test_auto_takes_the_drift_live_as_offline_and_a_checkpoint_keeps_it(
         assert result is not None and result.converged
         assert result.trajectory_choice == offline.trajectory_choice
         assert result.trajectory is not None
-        assert result.trajectory.model is TrajectoryModel.DRIFT
+        assert result.trajectory.model is TrajectoryModel.SPLINE
         _within(result, offline, 0.1)
         _trajectory_within(result, offline, 0.1)
     assert result is not None and offline.trajectory is not None
@@ -484,7 +483,7 @@ def test_the_trajectory_status_warns_of_a_strip_off_by_20_cm(sim: SimulatedMissi
     ideal = trajectory_status(calibrate(sim.mission, settings), settings.trajectory)
     assert ideal.level == OK and ideal.message.startswith("taken as exact (auto: none")
     shifted = calibrate(shift_strip(sim.mission, 3, (0.0, 0.0, 0.20)), settings)
-    assert shifted.trajectory_choice.startswith("auto: drift")
+    assert shifted.trajectory_choice.startswith("auto: spline")
     status = trajectory_status(shifted, settings.trajectory)
     assert status.level == WARN and status.name == "lidarcal: trajectory"
     line = next(part for part in status.message.split("; ") if part.startswith("strip 3:"))

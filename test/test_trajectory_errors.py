@@ -259,7 +259,7 @@ def test_a_spline_through_the_file_and_the_correction(tmp_path: Path) -> None:
                                                trajectory_errors=record.trajectory),
                             strip_id=strip.strip_id)
     np.testing.assert_allclose(plain.xyz - moved.xyz, record.trajectory.errors(
-        strip.strip_id, strip.t), atol=2e-5)
+        strip.strip_id, strip.t), atol=1e-4)  # (laser vectors from the delivered positions)
 
 
 @pytest.mark.parametrize(("block", "message"), [
