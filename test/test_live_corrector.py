@@ -7,14 +7,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 from typing import Any
 
 import helpers_missions
-from helpers_missions import MissionFiles
+import numpy as np
+import yaml
+from helpers_missions import MissionFiles, write_calibration_yaml
 from helpers_wait import wait_until as _wait
 
 from lidarcal_ros.core.config import CORRECTOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.io.bag_reader import open_bag
 from lidarcal_ros.io.ros_messages import parse_cloud
 from lidarcal_ros.pipeline import live_corrector
@@ -268,3 +272,55 @@ def test_a_trajectory_without_clouds_is_handed_on_not_hoarded() -> None:
         assert len(live.trajectory) < fed / 2  # its own buffer keeps ~30 s, not everything
     finally:
         live.close()
+
+
+def test_a_calibration_file_with_trajectory_errors_is_applied_live(
+        small_mission: MissionFiles, tmp_path: Path) -> None:
+    """The corrector given a calibration file whose strips carry trajectory errors (an offset
+    and a drift each, docs/method.md section 11) removes ``e_s(t)`` from every point by its
+    strip: its clouds equal those corrected with the biases alone, less the errors (to the
+    micrometres the delivered laser vectors leave); a new estimate from the topic (biases
+    only) applies the biases alone."""
+    from lidarcal_ros.core.trajectory_errors import StripError, TrajectoryEstimate, TrajectoryModel
+    from lidarcal_ros.io.calibration_file import trajectory_document
+
+    clouds = _clouds(small_mission)[:4]
+    frame = parse_cloud(clouds[0]).frame_id
+    points = [parse_cloud(raw).points for raw in clouds]
+    strips = {int(sid) for p in points for sid in np.unique(p["strip_id"])}
+    estimate = TrajectoryEstimate(TrajectoryModel.DRIFT, {
+        sid: StripError.linear(sid, float(points[0]["t"][0]), np.array([0.03, -0.02, 0.05]),
+                               np.full(3, 0.01), np.array([0.001, 0.0, -0.002]),
+                               np.full(3, 0.001)) for sid in strips})
+    zero = {name: 0.0 for name in PARAMETER_NAMES}
+    path = write_calibration_yaml(tmp_path / "cal.yaml", zero)
+    doc = yaml.safe_load(path.read_text())
+    doc["lidarcal_calibration"]["trajectory"] = trajectory_document(estimate)
+    path.write_text(yaml.safe_dump(doc))
+
+    def corrected(calibration: str, moved: bool) -> list[np.ndarray]:
+        published: list[bytes] = []
+        live = LiveCorrector(FlightConfig(), _options(max_trajectory_wait_s=600.0),
+                             publish=lambda cdr: published.append(bytes(cdr)),
+                             calibration=calibration)
+        try:
+            assert (live.settings.trajectory_errors is not None) == moved
+            for raw in clouds:
+                live.add_cloud(raw)
+            _add_trajectory(live, small_mission, frame)
+            _wait(lambda: len(published) == len(clouds), 30, "the clouds to be corrected")
+            if moved:
+                live.set_estimate(np.zeros(8), "topic")
+                assert live.settings.trajectory_errors is None
+        finally:
+            live.close()
+        return [parse_cloud(raw).points for raw in published]
+
+    plain = write_calibration_yaml(tmp_path / "plain.yaml", zero)
+    for with_errors, without, delivered in zip(corrected(str(path), True),
+                                               corrected(str(plain), False),
+                                               points, strict=True):
+        xyz = np.column_stack([with_errors[c] for c in "xyz"])
+        ref = np.column_stack([without[c] for c in "xyz"])
+        want = estimate.errors(delivered["strip_id"], delivered["t"])
+        np.testing.assert_allclose(ref - xyz, want, atol=1e-4)

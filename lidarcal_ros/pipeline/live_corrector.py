@@ -33,7 +33,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -42,6 +42,7 @@ from lidarcal_ros.core.georeferencing import describe_model_policy
 from lidarcal_ros.core.heading import describe_heading_policy
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory_buffer import TrajectoryBuffer
+from lidarcal_ros.core.trajectory_errors import TrajectoryEstimate
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.calibration_file import read_calibration
 from lidarcal_ros.io.cloud_columns import resolve_time_field, time_span
@@ -152,12 +153,16 @@ class LiveCorrector:
         self._waiting = WaitingClouds()
         self._closing = False
         self.estimate_source = "configuration"
+        #: Each strip's trajectory error removed with the biases (the calibration file's,
+        #: docs/method.md section 11), or None.
+        self._trajectory_errors: TrajectoryEstimate | None = None
         if calibration:
-            self._delta = read_calibration(calibration).delta  # one line at start-up
+            record = read_calibration(calibration)  # one line at start-up
+            self._delta, self._trajectory_errors = record.delta, record.trajectory
             self.estimate_source = str(calibration)
         else:
             self._delta = _fixed_biases(config)
-        self.settings = CorrectionSettings.from_config(config, self._delta)
+        self.settings = self._settings_of(config)
         if config["radiometry.reference_target"] and not self.settings.radiometry.absolute:
             logger.warning(
                 "radiometry.reference_target is not used live (it needs the whole mission: "
@@ -225,15 +230,23 @@ class LiveCorrector:
             self._delta = _fixed_biases(config)
         with self._lock:
             self.config = config
-            self.settings = CorrectionSettings.from_config(config, self._delta)
+            self.settings = self._settings_of(config)
             self._settings_changed = True
 
-    def set_estimate(self, delta: np.ndarray, source: str) -> None:
-        """New biases (docs/method.md order, SI) from ``source``: applied from the next cloud on."""
+    def _settings_of(self, config: FlightConfig) -> CorrectionSettings:
+        """The correction's settings: ``config``'s, the biases and trajectory errors held."""
+        return replace(CorrectionSettings.from_config(config, self._delta),
+                       trajectory_errors=self._trajectory_errors)
+
+    def set_estimate(self, delta: np.ndarray, source: str,
+                     trajectory_errors: TrajectoryEstimate | None = None) -> None:
+        """New biases (docs/method.md order, SI) and each strip's trajectory error (none:
+        the trajectory as exact) from ``source``: applied from the next cloud on."""
         with self._lock:
             self._delta = delta
+            self._trajectory_errors = trajectory_errors
             self.estimate_source = source
-            self.settings = CorrectionSettings.from_config(self.config, self._delta)
+            self.settings = self._settings_of(self.config)
             self._settings_changed = True
 
     def set_options(self, options: CorrectorOptions) -> None:
