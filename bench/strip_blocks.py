@@ -39,12 +39,13 @@ ROW = 20  # strips per row of the block
 STRIP_S = 60.0  # seconds of a strip
 
 
-def block(strips: int, per_pair: int, seed: int = 0) -> tuple[Observations, TrajectoryState]:
+def block(strips: int, per_pair: int, model: TrajectoryModel,
+          seed: int = 0) -> tuple[Observations, TrajectoryState]:
     """Correspondences of a block of ``strips`` (module docstring)."""
     rng = np.random.default_rng(seed)
-    state = TrajectoryState(TrajectoryModel.DRIFT)
+    state = TrajectoryState(model)
     for k in range(strips):
-        state.add_strip(k * 90.0)
+        state.add_strip(k * 90.0 - STRIP_S / 2, k * 90.0 + STRIP_S / 2)
     pairs = [(k, k + 1) for k in range(strips - 1) if (k + 1) % ROW]
     pairs += [(k, k + ROW) for k in range(0, strips - ROW, 4)]
     a = np.repeat([p[0] for p in pairs], per_pair)
@@ -64,7 +65,7 @@ def block(strips: int, per_pair: int, seed: int = 0) -> tuple[Observations, Traj
 
 def reduced_solve(obs: Observations, state: TrajectoryState) -> tuple[float, float]:
     """Seconds and peak MiB of the reduced solve with every trajectory sigma."""
-    settings = TrajectoryErrorSettings(TrajectoryModel.DRIFT)
+    settings = TrajectoryErrorSettings(state.model)
     assert obs.trajectory is not None
     tracemalloc.start()
     t0 = time.perf_counter()
@@ -81,7 +82,7 @@ def reduced_solve(obs: Observations, state: TrajectoryState) -> tuple[float, flo
 
 def dense_solve(obs: Observations, state: TrajectoryState) -> tuple[float, float]:
     """Seconds and peak MiB of the same system solved densely (the baseline)."""
-    settings = TrajectoryErrorSettings(TrajectoryModel.DRIFT)
+    settings = TrajectoryErrorSettings(state.model)
     assert obs.trajectory is not None
     tracemalloc.start()
     t0 = time.perf_counter()
@@ -89,8 +90,7 @@ def dense_solve(obs: Observations, state: TrajectoryState) -> tuple[float, float
     full_t = t.toarray()
     top = obs.rows.T @ obs.rows
     side = obs.rows.T @ full_t
-    corner = full_t.T @ full_t + np.diag(np.tile((0.02 / settings.prior_sigmas()) ** 2,
-                                                 len(state.t_ref)))
+    corner = full_t.T @ full_t + state.prior(settings).toarray() * 0.02 ** 2
     n_mat = np.block([[top, side], [side.T, corner]])
     u = np.concatenate([obs.rows.T @ obs.y, full_t.T @ obs.y])
     inverse = np.linalg.inv(n_mat)  # (every sigma, as the reduced solve gives)
@@ -105,13 +105,14 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--strips", type=int, nargs="+", default=[10, 30, 100, 300, 1000])
     parser.add_argument("--per-pair", type=int, default=2000)
+    parser.add_argument("--model", default="drift", choices=("offset", "drift", "spline"))
     args = parser.parse_args()
     print(f"machine: {machine.describe()}")
     print(f"{'strips':>6} {'corresp.':>9} {'unknowns':>8} {'reduced s':>9} {'MiB':>6} "
           f"{'dense s':>8} {'MiB':>6} {'dense/red.':>10} {'ms/strip':>8}")
     for strips in args.strips:
-        obs, state = block(strips, args.per_pair)
-        unknowns = 8 + 6 * strips
+        obs, state = block(strips, args.per_pair, TrajectoryModel(args.model))
+        unknowns = 8 + state.params.shape[0]
         red_s, red_mb = reduced_solve(obs, state)
         if unknowns <= 3000:
             den_s, den_mb = dense_solve(obs, state)
