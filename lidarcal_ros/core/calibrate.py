@@ -728,13 +728,22 @@ def calibrate(
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
         return _calibrate_once(mission, settings, progress)
-    # auto: the trajectory as exact, then with each strip's spline; the spline is kept where
-    # it fits clearly better (the strips disagree by more than their noise)
-    exact = _calibrate_once(mission, with_trajectory_model(settings, TrajectoryModel.NONE),
-                            progress)
+    # auto: the trajectory as exact, then with each strip's spline over the same prepared
+    # strips (their TINs and geometry shared, as the live calibration shares them); the
+    # spline is kept where it fits clearly better (the strips disagree by more than their
+    # noise)
+    first = Calibrator.from_mission(mission, with_trajectory_model(settings,
+                                                                   TrajectoryModel.NONE),
+                                    progress=progress)
+    exact = _run(first)
+    second = Calibrator(with_trajectory_model(settings, TrajectoryModel.SPLINE),
+                        control=mission.control, progress=progress)
+    second.dropped_non_finite, second.thinned_points = first.dropped_non_finite, \
+        first.thinned_points
+    for ps in first.strips:
+        second.add_prepared_strip(ps)
     try:
-        spline: CalibrationResult | CalibrationError = _calibrate_once(
-            mission, with_trajectory_model(settings, TrajectoryModel.SPLINE), progress)
+        spline: CalibrationResult | CalibrationError = _run(second)
     except CalibrationError as exc:  # (NothingEstimated too)
         spline = exc
     return choose_trajectory_model(exact, spline)
@@ -770,14 +779,19 @@ def choose_trajectory_model(exact: CalibrationResult,
 def _calibrate_once(mission: Mission, settings: CalibrationSettings,
                     progress: Progress | None) -> CalibrationResult:
     """:func:`calibrate` with one trajectory model."""
-    cal = Calibrator.from_mission(mission, settings, progress=progress)
+    return _run(Calibrator.from_mission(mission, settings, progress=progress))
+
+
+def _run(cal: Calibrator) -> CalibrationResult:
+    """:meth:`Calibrator.run`, its ``trajectory_choice`` its model (:func:`calibrate` says
+    what it raises)."""
     try:
         result = cal.run()
     except NothingEstimated:
         raise
     except CalibrationError as exc:
         raise NothingEstimated(str(exc), cal.unestimated_result(str(exc))) from None
-    result.trajectory_choice = settings.trajectory.model.value
+    result.trajectory_choice = cal.settings.trajectory.model.value
     return result
 
 

@@ -33,6 +33,7 @@ from lidarcal_ros.core.trajectory_errors import (
     TrajectoryErrorSettings,
     TrajectoryRows,
     TrajectoryState,
+    error_columns,
 )
 
 
@@ -129,6 +130,9 @@ def robust_solve(
                   for i, name in enumerate(PARAMETER_NAMES)}
     base_w = obs.weights.copy()
     sol = None
+    # the trajectory columns once: the robust weights change, the rows do not
+    columns = error_columns(trajectory.state, obs.trajectory) \
+        if trajectory is not None and obs.trajectory is not None else None
     for _ in range(6):
         if trajectory is None or obs.trajectory is None:
             sol = solve(NormalEquations.from_observations(obs), solve_for=solve_for,
@@ -136,7 +140,7 @@ def robust_solve(
             v = obs.residuals(sol.delta)
         else:
             blocks = StripBlocks(obs, obs.trajectory, trajectory.state, trajectory.settings,
-                                 trajectory.unit_sigma)
+                                 trajectory.unit_sigma, columns=columns)
             sol = solve(blocks.reduced, solve_for=solve_for, fixed=fixed_step, limits=limits)
             trajectory.blocks, trajectory.step = blocks, blocks.tau_step(sol.delta)
             v = blocks.residuals(obs, sol.delta, trajectory.step)

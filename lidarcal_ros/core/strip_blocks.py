@@ -38,17 +38,21 @@ class StripBlocks:
     settings : TrajectoryErrorSettings
     unit_sigma : float
         Sigma of a correspondence of weight 1, m.
+    columns : scipy.sparse matrix, optional
+        :func:`~lidarcal_ros.core.trajectory_errors.error_columns` of ``rows``, where known.
     """
 
     def __init__(self, obs: Observations, rows: TrajectoryRows, state: TrajectoryState,
-                 settings: TrajectoryErrorSettings, unit_sigma: float) -> None:
+                 settings: TrajectoryErrorSettings, unit_sigma: float, *,
+                 columns: sparse.csr_matrix | None = None) -> None:
         w = obs.weights
         a = obs.rows
-        self.t = error_columns(state, rows)
+        # (``columns``: the rows' trajectory columns already built, for another weighting)
+        self.t = error_columns(state, rows) if columns is None else columns
         tw = sparse.csr_matrix(self.t.multiply(w[:, None]))
         prior = state.prior(settings) * unit_sigma ** 2
         tau = state.params
-        n_tt = (tw.T @ self.t + prior).tocsc()
+        n_tt = (_gram(self.t, w, rows, state.starts) + prior).tocsc()
         n_ts = np.asarray(tw.T @ a)  # (M, 8)
         u_t = tw.T @ obs.y - prior @ tau
         self._lu = sparse_linalg.splu(n_tt)
@@ -92,6 +96,42 @@ class StripBlocks:
             xs = self._x[:, idx]
             var += np.einsum("ij,jk,ik->i", xs, sol.covariance, xs)
         return np.sqrt(np.maximum(var, 0.0))
+
+
+def _gram(t: sparse.csr_matrix, w: np.ndarray, rows: TrajectoryRows,
+          starts: list[int]) -> sparse.csr_matrix:
+    """``t^T diag(w) t``, a block per pair of strips: each correspondence's columns are two
+    strips' (one for a control point's), so the rows of one pair of strips form a dense block
+    whose product BLAS makes (scipy's sparse product of the whole took seconds)."""
+    size = t.shape[1]
+    strips = len(starts) - 1
+    used = np.flatnonzero(w != 0)
+    if not used.size:
+        return sparse.csr_matrix((size, size))
+    # one integer per pair of strips (-1: none), sorted once
+    key = (rows.strip_a[used] + 1) * (strips + 1) + rows.strip_b[used] + 1
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    cut = np.flatnonzero(np.diff(key)) + 1
+    out_i, out_j, out_v = [], [], []
+    for lo, hi in zip(np.r_[0, cut], np.r_[cut, key.size], strict=True):
+        a, b = divmod(int(key[lo]), strips + 1)
+        a, b = a - 1, b - 1
+        r = used[order[lo:hi]]
+        cols = np.concatenate([np.arange(starts[k], starts[k + 1])
+                               for k in sorted({int(a), int(b)}) if k >= 0])
+        if not cols.size:
+            continue
+        dense = t[r][:, cols].toarray()
+        block = (dense * w[r, None]).T @ dense
+        out_i.append(np.repeat(cols, cols.size))
+        out_j.append(np.tile(cols, cols.size))
+        out_v.append(block.ravel())
+    if not out_v:
+        return sparse.csr_matrix((size, size))
+    return sparse.csr_matrix((np.concatenate(out_v), (np.concatenate(out_i),
+                                                      np.concatenate(out_j))),
+                             shape=(size, size))
 
 
 __all__ = ["StripBlocks"]
