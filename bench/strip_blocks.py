@@ -20,6 +20,8 @@ import argparse
 import sys
 import time
 import tracemalloc
+from collections.abc import Callable
+from functools import partial
 
 import machine  # bench/machine.py: this script's folder is on sys.path
 import numpy as np
@@ -63,42 +65,39 @@ def block(strips: int, per_pair: int, model: TrajectoryModel,
     return obs, state
 
 
-def reduced_solve(obs: Observations, state: TrajectoryState) -> tuple[float, float]:
-    """Seconds and peak MiB of the reduced solve with every trajectory sigma."""
-    settings = TrajectoryErrorSettings(state.model)
-    assert obs.trajectory is not None
+def measured(work: Callable[[], object]) -> tuple[float, float]:
+    """Seconds and peak MiB (Python's allocations, numpy's included) of ``work()``."""
     tracemalloc.start()
     t0 = time.perf_counter()
-    blocks = StripBlocks(obs, obs.trajectory, state, settings, unit_sigma=0.02)
+    work()
+    seconds = time.perf_counter() - t0
+    peak = tracemalloc.get_traced_memory()[1] / 2**20
+    tracemalloc.stop()
+    return seconds, peak
+
+
+def reduced_solve(obs: Observations, state: TrajectoryState) -> None:
+    """The reduced solve with every trajectory sigma."""
+    assert obs.trajectory is not None
+    blocks = StripBlocks(obs, obs.trajectory, state, TrajectoryErrorSettings(state.model),
+                         unit_sigma=0.02)
     sol = solve(blocks.reduced, solve_for=PARAMETER_NAMES,
                 limits=ObservabilityLimits(max_sigma={}))
     blocks.tau_step(sol.delta)
     blocks.tau_sigma(sol)
-    seconds = time.perf_counter() - t0
-    peak = tracemalloc.get_traced_memory()[1] / 2**20
-    tracemalloc.stop()
-    return seconds, peak
 
 
-def dense_solve(obs: Observations, state: TrajectoryState) -> tuple[float, float]:
-    """Seconds and peak MiB of the same system solved densely (the baseline)."""
-    settings = TrajectoryErrorSettings(state.model)
+def dense_solve(obs: Observations, state: TrajectoryState) -> None:
+    """The same system solved densely, every sigma (the baseline)."""
     assert obs.trajectory is not None
-    tracemalloc.start()
-    t0 = time.perf_counter()
-    t = error_columns(state, obs.trajectory)
-    full_t = t.toarray()
+    full_t = error_columns(state, obs.trajectory).toarray()
     top = obs.rows.T @ obs.rows
     side = obs.rows.T @ full_t
-    corner = full_t.T @ full_t + state.prior(settings).toarray() * 0.02 ** 2
+    prior = state.prior(TrajectoryErrorSettings(state.model)).toarray()
+    corner = full_t.T @ full_t + prior * 0.02 ** 2
     n_mat = np.block([[top, side], [side.T, corner]])
     u = np.concatenate([obs.rows.T @ obs.y, full_t.T @ obs.y])
-    inverse = np.linalg.inv(n_mat)  # (every sigma, as the reduced solve gives)
-    inverse @ u
-    seconds = time.perf_counter() - t0
-    peak = tracemalloc.get_traced_memory()[1] / 2**20
-    tracemalloc.stop()
-    return seconds, peak
+    np.linalg.inv(n_mat) @ u
 
 
 def main() -> int:
@@ -113,9 +112,9 @@ def main() -> int:
     for strips in args.strips:
         obs, state = block(strips, args.per_pair, TrajectoryModel(args.model))
         unknowns = 8 + state.params.shape[0]
-        red_s, red_mb = reduced_solve(obs, state)
+        red_s, red_mb = measured(partial(reduced_solve, obs, state))
         if unknowns <= 3000:
-            den_s, den_mb = dense_solve(obs, state)
+            den_s, den_mb = measured(partial(dense_solve, obs, state))
             dense = f"{den_s:8.2f} {den_mb:6.0f} {den_s / red_s:10.1f}"
         else:
             dense = f"{'-':>8} {'-':>6} {'-':>10}"

@@ -19,6 +19,7 @@ from lidarcal_ros.core.adjustment import (
 from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.calibration_result import CalibrationResult
 from lidarcal_ros.core.flight_path import RoughAir
+from lidarcal_ros.core.mission import Mission, Strip
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation_spec import DEFAULT_BIASES, SimulationSpec
@@ -31,7 +32,11 @@ from lidarcal_ros.core.trajectory_errors import (
     error_columns,
 )
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.calibration_file import read_calibration, write_calibration
+from lidarcal_ros.io.calibration_file import (
+    CalibrationRecord,
+    read_calibration,
+    write_calibration,
+)
 from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
 
 ALL = tuple(n for n in PARAMETER_NAMES if n != "dZ")
@@ -223,17 +228,7 @@ def test_offsets_alone_and_the_file_round_trip(tmp_path: Path) -> None:
         back = record.trajectory.strips[sid]
         np.testing.assert_allclose(back.offset, se.offset)
         assert back.t_ref == se.t_ref and back.drift is None
-    strip = mission.strips[0]
-    plain = correct_columns(strip.xyz, strip.t, None, mission.trajectory,
-                            CorrectionSettings(delta=record.delta))
-    moved = correct_columns(strip.xyz, strip.t, None, mission.trajectory,
-                            CorrectionSettings(delta=record.delta,
-                                               trajectory_errors=record.trajectory),
-                            strip_id=strip.strip_id)
-    np.testing.assert_allclose(plain.xyz - moved.xyz,
-                               np.broadcast_to(record.trajectory.strips[strip.strip_id].offset,
-                                               plain.xyz.shape), atol=2e-5)
-    # (the laser vectors stay the delivered positions': micrometres of the biases' correction)
+    _removed_by_the_correction(mission, mission.strips[0], record, atol=2e-5)
 
 
 def test_a_spline_through_the_file_and_the_correction(tmp_path: Path) -> None:
@@ -251,15 +246,23 @@ def test_a_spline_through_the_file_and_the_correction(tmp_path: Path) -> None:
         np.testing.assert_allclose(back.error(strip.t), se.error(strip.t), atol=1e-12)
         np.testing.assert_allclose(back.sigma, se.sigma)
         assert back.basis.knots is not None and np.isfinite(back.sigma_at(strip.t)).all()
-    strip = mission.strips[1]
+    _removed_by_the_correction(mission, mission.strips[1], record, atol=1e-4)
+
+
+def _removed_by_the_correction(mission: Mission, strip: Strip, record: CalibrationRecord, *,
+                               atol: float) -> None:
+    """The correction of ``strip`` with ``record``'s trajectory errors moves each point by
+    ``-e_s(t)`` from its correction with the biases alone (to ``atol`` m: the laser vectors
+    stay the delivered positions', micrometres of the biases' correction)."""
+    assert record.trajectory is not None
     plain = correct_columns(strip.xyz, strip.t, None, mission.trajectory,
                             CorrectionSettings(delta=record.delta))
     moved = correct_columns(strip.xyz, strip.t, None, mission.trajectory,
                             CorrectionSettings(delta=record.delta,
                                                trajectory_errors=record.trajectory),
                             strip_id=strip.strip_id)
-    np.testing.assert_allclose(plain.xyz - moved.xyz, record.trajectory.errors(
-        strip.strip_id, strip.t), atol=1e-4)  # (laser vectors from the delivered positions)
+    np.testing.assert_allclose(plain.xyz - moved.xyz,
+                               record.trajectory.errors(strip.strip_id, strip.t), atol=atol)
 
 
 @pytest.mark.parametrize(("block", "message"), [
