@@ -28,7 +28,7 @@ from lidarcal_ros.core.adjustment import (
     solve,
 )
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
-from lidarcal_ros.core.strip_blocks import StripBlocks
+from lidarcal_ros.core.strip_blocks import StripBlocks, strip_gram
 from lidarcal_ros.core.trajectory_errors import (
     TrajectoryErrorSettings,
     TrajectoryRows,
@@ -133,14 +133,23 @@ def robust_solve(
     # the trajectory columns once: the robust weights change, the rows do not
     columns = error_columns(trajectory.state, obs.trajectory) \
         if trajectory is not None and obs.trajectory is not None else None
+    base_gram = None
     for _ in range(6):
         if trajectory is None or obs.trajectory is None:
             sol = solve(NormalEquations.from_observations(obs), solve_for=solve_for,
                         fixed=fixed_step, limits=limits)
             v = obs.residuals(sol.delta)
         else:
+            assert columns is not None
+            starts = trajectory.state.starts
+            if base_gram is None:
+                base_gram = strip_gram(columns, base_w, obs.trajectory, starts)
+            # the outliers' rows taken out of the Gram of all (they are few)
+            out = np.where((base_w > 0) & (obs.weights == 0), base_w, 0.0)
+            gram = base_gram - strip_gram(columns, out, obs.trajectory, starts) \
+                if out.any() else base_gram
             blocks = StripBlocks(obs, obs.trajectory, trajectory.state, trajectory.settings,
-                                 trajectory.unit_sigma, columns=columns)
+                                 trajectory.unit_sigma, columns=columns, gram=gram)
             sol = solve(blocks.reduced, solve_for=solve_for, fixed=fixed_step, limits=limits)
             trajectory.blocks, trajectory.step = blocks, blocks.tau_step(sol.delta)
             v = blocks.residuals(obs, sol.delta, trajectory.step)

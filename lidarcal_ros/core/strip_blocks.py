@@ -40,11 +40,14 @@ class StripBlocks:
         Sigma of a correspondence of weight 1, m.
     columns : scipy.sparse matrix, optional
         :func:`~lidarcal_ros.core.trajectory_errors.error_columns` of ``rows``, where known.
+    gram : scipy.sparse matrix, optional
+        :func:`strip_gram` of ``columns`` with the observations' weights, where known.
     """
 
     def __init__(self, obs: Observations, rows: TrajectoryRows, state: TrajectoryState,
                  settings: TrajectoryErrorSettings, unit_sigma: float, *,
-                 columns: sparse.csr_matrix | None = None) -> None:
+                 columns: sparse.csr_matrix | None = None,
+                 gram: sparse.csr_matrix | None = None) -> None:
         w = obs.weights
         a = obs.rows
         # (``columns``: the rows' trajectory columns already built, for another weighting)
@@ -52,7 +55,9 @@ class StripBlocks:
         tw = sparse.csr_matrix(self.t.multiply(w[:, None]))
         prior = state.prior(settings) * unit_sigma ** 2
         tau = state.params
-        n_tt = (_gram(self.t, w, rows, state.starts) + prior).tocsc()
+        if gram is None:
+            gram = strip_gram(self.t, w, rows, state.starts)
+        n_tt = (gram + prior).tocsc()
         n_ts = np.asarray(tw.T @ a)  # (M, 8)
         u_t = tw.T @ obs.y - prior @ tau
         self._lu = sparse_linalg.splu(n_tt)
@@ -98,7 +103,7 @@ class StripBlocks:
         return np.sqrt(np.maximum(var, 0.0))
 
 
-def _gram(t: sparse.csr_matrix, w: np.ndarray, rows: TrajectoryRows,
+def strip_gram(t: sparse.csr_matrix, w: np.ndarray, rows: TrajectoryRows,
           starts: list[int]) -> sparse.csr_matrix:
     """``t^T diag(w) t``, a block per pair of strips: each correspondence's columns are two
     strips' (one for a control point's), so the rows of one pair of strips form a dense block
@@ -134,4 +139,4 @@ def _gram(t: sparse.csr_matrix, w: np.ndarray, rows: TrajectoryRows,
                              shape=(size, size))
 
 
-__all__ = ["StripBlocks"]
+__all__ = ["StripBlocks", "strip_gram"]
