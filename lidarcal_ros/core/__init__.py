@@ -139,7 +139,7 @@ _EXPORTS = {
         "BIAS_CONVENTION", "line_attitude_record", "line_summary", "rough_air_record",
         "truth_config",
     ),
-    "strip_blocks": ("StripBlocks",),
+    "strip_blocks": ("StripBlocks", "strip_gram"),
     "strip_matching": ("PairMatcher",),
     "strip_normals": (
         "NormalsTask", "STREAM_START_POINTS", "STREAM_START_SECONDS", "StripNormals",
