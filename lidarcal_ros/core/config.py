@@ -126,9 +126,8 @@ SCHEMA: dict[str, ParameterSpec] = {
         "auto", "str", "Per-strip trajectory errors estimated with the biases (docs/method.md "
         "section 11): 'none' (the trajectory as exact), 'offset' (3 per strip), 'drift' "
         "(offset and linear drift, 6 per strip), 'spline' (a cubic B-spline in time per axis, "
-        "knots calibration.trajectory.knot_interval_s apart), 'auto' (drift where it fits the "
-        "data clearly better than none; a batch calibration decides, the live calibrator runs "
-        "none)",
+        "knots calibration.trajectory.knot_interval_s apart), 'auto' (spline where it fits the "
+        "data clearly better than none; both are calibrated and compared, live as in batch)",
         choices=tuple(m.value for m in TrajectoryModel)),
     "calibration.trajectory.offset_sigma_horizontal_m": float_parameter(
         0.05, "A-priori sigma of a strip's horizontal trajectory offset (the navigation "

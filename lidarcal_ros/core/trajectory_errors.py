@@ -22,7 +22,7 @@ class TrajectoryModel(enum.Enum):
     """How each strip's trajectory error is parametrised (``calibration.trajectory.model``)."""
 
     #: ``spline`` where it fits the data clearly better than ``none``
-    #: (:data:`AUTO_SIGMA0_RATIO`), decided by a batch calibration; ``none`` strip by strip.
+    #: (:data:`AUTO_SIGMA0_RATIO`): both are calibrated and compared, batch and live alike.
     AUTO = "auto"
     NONE = "none"
     OFFSET = "offset"
@@ -324,10 +324,6 @@ class TrajectoryEstimate:
                                        sigma[part].reshape(-1, 3).copy())
         return cls(state.model, out)
 
-    def error(self, strip_id: int, t: np.ndarray) -> np.ndarray:
-        """``e_s(t)`` (n, 3) of strip ``strip_id`` (zero for a strip not estimated)."""
-        return self.errors(strip_id, t)
-
     def errors(self, strip_id: np.ndarray | int, t: np.ndarray) -> np.ndarray:
         """``e_s(t)`` (n, 3) of points of strips ``strip_id`` (one id, or one per point) at
         times ``t`` (s); zero for strips not estimated."""
@@ -404,14 +400,14 @@ def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[
     ids = sorted(usable, key=lambda k: (usable[k][0], k))
     start = np.array([usable[k][0] for k in ids])
     end = np.array([usable[k][1] for k in ids])
-    at_start = np.vstack([estimate.error(k, start[i:i + 1]) for i, k in enumerate(ids)])
-    at_end = np.vstack([estimate.error(k, end[i:i + 1]) for i, k in enumerate(ids)])
+    at_start = np.vstack([estimate.errors(k, start[i:i + 1]) for i, k in enumerate(ids)])
+    at_end = np.vstack([estimate.errors(k, end[i:i + 1]) for i, k in enumerate(ids)])
     finite = np.isfinite(t)
     inside = np.zeros(n, dtype=bool)
     for i, k in enumerate(ids):  # (in order of start: a later strip overrides an overlap)
         on = finite & (t >= start[i]) & (t <= end[i])
         if on.any():
-            errors[on] = estimate.error(k, t[on])
+            errors[on] = estimate.errors(k, t[on])
             inside |= on
     source[inside] = POSE_IN_STRIP
     rest = finite & ~inside
