@@ -19,8 +19,8 @@ track, cannot see: the checks above then say how far that carries the estimate. 
 calibration takes it (``matching.heading_source`` ``auto``).
 
 With ``--rough-air`` the missions are flown in the turbulence of the simulator's preset
-(:class:`~lidarcal_ros.core.flight_path.RoughAir`: roll +-4 deg, pitch +-2.5 deg, 1 deg of
-heading wobble, a 5 deg crab, the INS attitude on the trajectory at 50 Hz), and each is
+(:class:`~lidarcal_ros.core.simulation.flight_path.RoughAir`: roll +-4 deg, pitch +-2.5 deg, 1 deg
+of heading wobble, a 5 deg crab, the INS attitude on the trajectory at 50 Hz), and each is
 calibrated with every model of ``--models`` (default ``rigorous level``) in the same run; a
 further check per model: the median vertical error of the corrected points against the true
 surface (within 5 mm).
@@ -48,23 +48,23 @@ from dataclasses import fields
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import CalibrationSettings, calibrate
-from lidarcal_ros.core.calibration_result import CalibrationResult
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, calibrate
+from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
-from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
 from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
-from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
-from lidarcal_ros.core.simulation_spec import (
+from lidarcal_ros.core.simulation.flight_path import RoughAir, crosswind_for_crab
+from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation.spec import (
     DEFAULT_BIASES,
     TYPICAL_TRAJECTORY_ERRORS,
     SimulationSpec,
 )
-from lidarcal_ros.core.trajectory_errors import (
+from lidarcal_ros.core.trajectory.strip_errors import (
     TrajectoryErrorSettings,
     TrajectoryEstimate,
     TrajectoryModel,
 )
-from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
+from lidarcal_ros.pipeline.correction.apply import CorrectionSettings, correct_columns
 
 ARCSEC = math.pi / 180 / 3600
 TOL = {"dX": 0.01, "dY": 0.01, "dZ": 0.01, "dr": 0.01, "dS": 1e-5,

@@ -4,8 +4,9 @@ Same data, same local trajectories, same design rows (evaluated at the corrected
 exact bias removal between iterations (Gauss-Newton: each iteration solves for the increment
 that removes the normal discrepancies left by the current estimate), same least-squares solver
 and robust re-weighting as ``lidarcal calibrate`` (it imports
-:mod:`lidarcal_ros.core.local_trajectory`, :mod:`lidarcal_ros.core.model` and
-:func:`lidarcal_ros.core.adjustment.solve`), but the matching is done the obvious way:
+:mod:`lidarcal_ros.core.georeferencing.local_trajectory`,
+:mod:`lidarcal_ros.core.georeferencing.bias_model` and
+:func:`lidarcal_ros.core.adjustment.least_squares.solve`), but the matching is done the obvious way:
 
 - every iteration, every strip's TIN is rebuilt from the *corrected* coordinates with
   ``scipy.spatial.Delaunay`` (qhull), and its triangles are judged again (edge length, slope,
@@ -40,12 +41,17 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import Delaunay
 
-from lidarcal_ros.core.adjustment import NormalEquations, Observations, Solution, solve
-from lidarcal_ros.core.calibrate import CalibrationSettings
-from lidarcal_ros.core.geometry import LaserGeometry
-from lidarcal_ros.core.local_trajectory import laser_geometry
+from lidarcal_ros.core.adjustment.least_squares import (
+    NormalEquations,
+    Observations,
+    Solution,
+    solve,
+)
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
+from lidarcal_ros.core.georeferencing.bias_model import correct_points_exact, normal_design_rows
+from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry
+from lidarcal_ros.core.georeferencing.local_trajectory import laser_geometry
 from lidarcal_ros.core.mission import Mission
-from lidarcal_ros.core.model import correct_points_exact, normal_design_rows
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 
 # ---------------------------------------------------------------------------- TIN, matching
@@ -370,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.pipeline.calibration import load_mission
+    from lidarcal_ros.pipeline.calibration.procedure import load_mission
 
     started = time.perf_counter()
     config = load_flight_config(None)

@@ -72,12 +72,12 @@ def run_lidarcal(meta: dict, repeats: int, work: Path) -> dict[str, Any]:
 # ---------------------------------------------------------------------------- scaling
 def scaling_worker(spec: MissionSpec) -> None:
     """In a child: bag reading and the calibration of one mission in process, the CPU
-    seconds of each stage (:class:`~lidarcal_ros.core.calibration_threads.StageClock`). One
+    seconds of each stage (:class:`~lidarcal_ros.core.calibration.threads.StageClock`). One
     JSON line."""
     import resource
 
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
+    from lidarcal_ros.pipeline.calibration.procedure import calibrate_mission, load_mission
 
     meta = benchlib.prepare_mission(spec, quiet=True)
     config = load_flight_config(None)
@@ -177,12 +177,12 @@ def throughput_worker(args: argparse.Namespace) -> None:
     sys.path.insert(0, str(BENCH))
     import baseline
 
-    from lidarcal_ros.core.local_trajectory import laser_geometry
-    from lidarcal_ros.core.model import point_offsets
+    from lidarcal_ros.core.calibration.tin import Tin, TinQuality, match_to_tin
+    from lidarcal_ros.core.georeferencing.bias_model import point_offsets
+    from lidarcal_ros.core.georeferencing.local_trajectory import laser_geometry
     from lidarcal_ros.core.params import as_vector
-    from lidarcal_ros.core.tin import Tin, TinQuality, match_to_tin
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.pipeline.calibration import load_mission
+    from lidarcal_ros.pipeline.calibration.procedure import load_mission
 
     meta = json.loads(Path(args.meta).read_text())
     config = load_flight_config(None)
@@ -310,7 +310,7 @@ def profile_worker(args: argparse.Namespace) -> None:
     import pstats
 
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.pipeline.calibration import calibrate_mission, load_mission
+    from lidarcal_ros.pipeline.calibration.procedure import calibrate_mission, load_mission
 
     meta = json.loads(Path(args.meta).read_text())
     config = load_flight_config(None)

@@ -20,7 +20,7 @@ Figures (bench/README.md, "Correction")
   correction, one thread), alternately, ``--repeats`` times each; min and median.
 - **the numerics in memory** (stage figures, not goals): points per second of the whole
   per-point correction on the clouds of a mission already in memory
-  (:class:`~lidarcal_ros.pipeline.stream_corrector.StreamCorrector`: column extraction, local
+  (:class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector`: column extraction, local
   trajectory, eq. [13], normals with the look-ahead, incidence, radar equation, the
   corrected arrays), in one thread, with two worker threads, and as the corrector node runs
   it (one cloud at a time), against a baseline doing the same steps the obvious way
@@ -98,7 +98,7 @@ def run_correct(meta: dict[str, Any], out: Path, workers: int = 2,
 
 
 def run_floor(meta: dict[str, Any], out: Path) -> dict[str, Any]:
-    from lidarcal_ros.io.mcap_chunk_writer import ZSTD_LEVEL
+    from lidarcal_ros.io.bag.chunk_writer import ZSTD_LEVEL
 
     remove(out)
     log = WORK / f"floor{out.suffix}.log"
@@ -175,9 +175,9 @@ def throughput_worker(spec: MissionSpec, repeats: int, baseline_points: int) -> 
     from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.core.config import FlightConfig
     from lidarcal_ros.core.params import as_vector
-    from lidarcal_ros.io.mission_bag import strip_point_array, time_chunk_bounds
-    from lidarcal_ros.pipeline.correction import CorrectionSettings
-    from lidarcal_ros.pipeline.stream_corrector import DEFAULT_BATCH_POINTS, StreamCorrector
+    from lidarcal_ros.io.bag.mission_bag import strip_point_array, time_chunk_bounds
+    from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
+    from lidarcal_ros.pipeline.correction.stream import DEFAULT_BATCH_POINTS, StreamCorrector
 
     tune_allocator()  # as `lidarcal correct` does
     sim = benchlib.simulate(spec)
@@ -243,8 +243,8 @@ def baseline_strip(mission: Any, k: int, settings: Any) -> Any:
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from lidarcal_ros.core.local_trajectory import laser_geometry
-    from lidarcal_ros.core.model import correct_points
+    from lidarcal_ros.core.georeferencing.bias_model import correct_points
+    from lidarcal_ros.core.georeferencing.local_trajectory import laser_geometry
 
     strip = mission.strips[k]
     xyz, t = strip.xyz, strip.t

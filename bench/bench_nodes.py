@@ -10,7 +10,7 @@ Sections (every figure measured in this run; the typed-rclpy path is measured be
 CDR path under the same load):
 
 codec      per-chunk cost of getting a PointCloud2 in and out of Python: raw CDR (rosbags
-           ``deserialize_cdr`` view, :func:`lidarcal_ros.io.ros_messages.cloud_cdr`) against
+           ``deserialize_cdr`` view, :func:`lidarcal_ros.io.cloud.messages.cloud_cdr`) against
            rclpy's typed messages (``deserialize_message`` + ``np.frombuffer``, building a
            ``sensor_msgs.msg.PointCloud2`` + ``serialize_message``), no DDS.
 corrector  sustained throughput of ``lidarcal_corrector`` through DDS: a source process offers
@@ -80,7 +80,7 @@ TRAJ_HZ = 200.0
 # ---------------------------------------------------------------------------- synthetic data
 def synthetic_chunk(k: int, n: int, dt: float, t0: float, rng: np.random.Generator) -> np.ndarray:
     """Chunk ``k`` of ``n`` points covering mission time ``[t0 + k dt, t0 + (k+1) dt)``."""
-    from lidarcal_ros.io.pointcloud import make_point_dtype
+    from lidarcal_ros.io.cloud.pointcloud import make_point_dtype
 
     pts = np.zeros(n, dtype=make_point_dtype())
     t = t0 + (k + np.sort(rng.random(n))) * dt
@@ -120,7 +120,7 @@ def pose_quaternion(t: float, attitude: str) -> tuple[float, float, float, float
 
 
 def pose_cdr(t: float, attitude: str = "none") -> bytes:
-    from lidarcal_ros.io.ros_messages import serialize, typestore
+    from lidarcal_ros.io.cloud.messages import serialize, typestore
 
     types = typestore().types
     qx, qy, qz, qw = pose_quaternion(t, attitude)
@@ -155,7 +155,7 @@ def _source_main(argv: list[str]) -> int:
     from rclpy.context import Context
     from sensor_msgs.msg import PointCloud2
 
-    from lidarcal_ros.io.ros_messages import cloud_cdr
+    from lidarcal_ros.io.cloud.messages import cloud_cdr
     from lidarcal_ros.nodes.topics import stream_qos
 
     ctx = Context()
@@ -268,12 +268,12 @@ def _relay_main(argv: list[str]) -> int:
     from sensor_msgs.msg import PointCloud2
 
     from lidarcal_ros.core.allocator import tune_allocator
-    from lidarcal_ros.io.pointcloud import make_point_dtype
-    from lidarcal_ros.io.ros_messages import cloud_cdr
+    from lidarcal_ros.io.cloud.messages import cloud_cdr
+    from lidarcal_ros.io.cloud.pointcloud import make_point_dtype
     from lidarcal_ros.nodes.process import run_main
     from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
     from lidarcal_ros.nodes.topics import stream_qos
-    from lidarcal_ros.pipeline.corrected_cloud import corrected_dtype
+    from lidarcal_ros.pipeline.correction.corrected_cloud import corrected_dtype
 
     tune_allocator(single_arena=False)  # as the corrector's node process
     layout = corrected_dtype(make_point_dtype())
@@ -494,9 +494,9 @@ def bench_codec(points: int, repeats: int) -> dict[str, Any]:
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import PointCloud2, PointField
 
-    from lidarcal_ros.io.pointcloud import array_to_cloud_parts, cloud_to_array
-    from lidarcal_ros.io.ros_messages import cloud_cdr, parse_cloud
-    from lidarcal_ros.pipeline.corrected_cloud import corrected_dtype
+    from lidarcal_ros.io.cloud.messages import cloud_cdr, parse_cloud
+    from lidarcal_ros.io.cloud.pointcloud import array_to_cloud_parts, cloud_to_array
+    from lidarcal_ros.pipeline.correction.corrected_cloud import corrected_dtype
 
     rng = np.random.default_rng(1)
     pts = synthetic_chunk(0, points, 0.05, T0, rng)
@@ -738,8 +738,8 @@ def bench_calibrator(rate: float, context: Any) -> dict[str, Any]:
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
 
-    from lidarcal_ros.io.bag_reader import open_bag
-    from lidarcal_ros.io.ros_messages import parse_cloud
+    from lidarcal_ros.io.bag.reader import open_bag
+    from lidarcal_ros.io.cloud.messages import parse_cloud
     from lidarcal_ros.nodes.topics import latched_qos
 
     env = _env()
@@ -880,7 +880,7 @@ def bench_calibrator_rate(rate: float, seconds: float, chunk_s: float, thinning_
 
 
 def bag_duration(path: Path) -> float:
-    from lidarcal_ros.io.bag_reader import open_bag
+    from lidarcal_ros.io.bag.reader import open_bag
 
     with open_bag(path) as bag:
         return (bag.end_ns - bag.start_ns) / 1e9

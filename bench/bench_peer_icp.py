@@ -59,11 +59,11 @@ from scipy.spatial.transform import Rotation
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad, as_vector
-from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
-from lidarcal_ros.core.simulation_spec import DEFAULT_BIASES, SimulationSpec
-from lidarcal_ros.core.surface import TREE
-from lidarcal_ros.pipeline.calibration import calibrate_mission
-from lidarcal_ros.pipeline.correction import CorrectionSettings, correct_columns
+from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation.spec import DEFAULT_BIASES, SimulationSpec
+from lidarcal_ros.core.simulation.surface import TREE
+from lidarcal_ros.pipeline.calibration.procedure import calibrate_mission
+from lidarcal_ros.pipeline.correction.apply import CorrectionSettings, correct_columns
 
 ARCSEC = math.pi / 180.0 / 3600.0
 
@@ -457,8 +457,8 @@ def run_lidarcal_cli(sim: SimulatedMission) -> MethodResult:
 def corrected_points(bag: Path, sim: SimulatedMission) -> list[np.ndarray]:
     """The corrected x, y, z of every strip of ``sim`` read back from a corrected bag, in the
     simulation's order (each strip's clouds in log-time order, which is its time order)."""
-    from lidarcal_ros.io.bag_reader import open_bag
-    from lidarcal_ros.io.pointcloud import cloud_to_array
+    from lidarcal_ros.io.bag.reader import open_bag
+    from lidarcal_ros.io.cloud.pointcloud import cloud_to_array
 
     parts: dict[int, list[np.ndarray]] = {}
     times: dict[int, list[np.ndarray]] = {}

@@ -85,10 +85,10 @@ MISSION_10M_DENSE = MissionSpec(1.6, 1000.0)
 
 
 def simulate(spec: MissionSpec) -> Any:
-    """The :class:`~lidarcal_ros.core.simulate.SimulatedMission` of a spec (in memory)."""
-    from lidarcal_ros.core.flight_path import RoughAir, crosswind_for_crab
-    from lidarcal_ros.core.simulate import simulate_mission
-    from lidarcal_ros.core.simulation_spec import SimulationSpec
+    """The simulated mission of a spec, in memory (:mod:`lidarcal_ros.core.simulation`)."""
+    from lidarcal_ros.core.simulation.flight_path import RoughAir, crosswind_for_crab
+    from lidarcal_ros.core.simulation.simulate import simulate_mission
+    from lidarcal_ros.core.simulation.spec import SimulationSpec
 
     extra: dict[str, Any] = {}
     if spec.rough_air:
@@ -132,8 +132,8 @@ def prepare_mission(spec: MissionSpec, *, quiet: bool = False) -> dict[str, Any]
 
 
 def _prepare_worker(spec: MissionSpec, where: Path) -> None:
-    from lidarcal_ros.io.control import write_control_csv
-    from lidarcal_ros.io.mission_bag import write_mission_bag
+    from lidarcal_ros.io.bag.mission_bag import write_mission_bag
+    from lidarcal_ros.io.survey.control import write_control_csv
 
     started = time.perf_counter()
     sim = simulate(spec)

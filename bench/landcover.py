@@ -20,11 +20,11 @@ import time
 import numpy as np
 
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.landcover import classify_cells
 from lidarcal_ros.core.params import as_vector
-from lidarcal_ros.core.simulate import simulate_mission
-from lidarcal_ros.core.simulation_spec import SimulationSpec
-from lidarcal_ros.pipeline.correction import CorrectionSettings, NormalsFit, correct_columns
+from lidarcal_ros.core.qa.landcover import classify_cells
+from lidarcal_ros.core.simulation.simulate import simulate_mission
+from lidarcal_ros.core.simulation.spec import SimulationSpec
+from lidarcal_ros.pipeline.correction.apply import CorrectionSettings, NormalsFit, correct_columns
 
 NAMES = ["soil", "grass", "asphalt", "roof", "tree"]
 MERGE = [3, 2, 1, 1, 0]

@@ -11,14 +11,14 @@ point spacings:
 Each mission (``SimulationSpec.from_options(scenario=S, density=D, seed=N,
 line_length_m=L)``; ``--scenarios`` takes ``S:D:N``) is simulated once and corrected once
 per cell rule with its true biases and the simulator's calibration constant (reflectance
-absolute), through :class:`~lidarcal_ros.pipeline.stream_corrector.StreamCorrector` in clouds
+absolute), through :class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector` in clouds
 of 50 ms of scanning pushed one at a time, as the corrector node receives them: without
 look-ahead (each cloud's normals from the points up to it, the live path) unless
 ``--lookahead``.
 
-Rules (``--rules``): ``shipped`` is :func:`lidarcal_ros.core.normals.cell_size` as it is
-(:data:`~lidarcal_ros.core.normals.CELL_SPACINGS` spacings while the cell side stays within a
-metre, 1.5 where sparser); a number is that many point spacings along and across track
+Rules (``--rules``): ``shipped`` is :func:`lidarcal_ros.core.normals.grid_normals.cell_size` as it
+is (:data:`~lidarcal_ros.core.normals.grid_normals.CELL_SPACINGS` spacings while the cell side stays
+within a metre, 1.5 where sparser); a number is that many point spacings along and across track
 whatever the cell's size.
 
 Figures per mission and rule (bench/README.md, "Normals: cell size against truth")
@@ -50,17 +50,17 @@ from typing import Any
 import machine  # bench/machine.py: this script's folder is on sys.path
 import numpy as np
 
-import lidarcal_ros.core.normals as normals
+import lidarcal_ros.core.normals.grid_normals as normals
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.flags import FLAG_NO_NORMAL, FLAG_ROUGH
 from lidarcal_ros.core.params import as_vector
-from lidarcal_ros.core.scanning import INTENSITY_K
-from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
-from lidarcal_ros.core.simulation_spec import SCENARIOS, SimulationSpec
-from lidarcal_ros.core.surface import ROOF
-from lidarcal_ros.io.mission_bag import strip_point_array
-from lidarcal_ros.pipeline.correction import CorrectionSettings, trajectory_heading
-from lidarcal_ros.pipeline.stream_corrector import StreamCorrector
+from lidarcal_ros.core.simulation.scanning import INTENSITY_K
+from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation.spec import SCENARIOS, SimulationSpec
+from lidarcal_ros.core.simulation.surface import ROOF
+from lidarcal_ros.io.bag.mission_bag import strip_point_array
+from lidarcal_ros.pipeline.correction.apply import CorrectionSettings, trajectory_heading
+from lidarcal_ros.pipeline.correction.stream import StreamCorrector
 
 SHIPPED = "shipped"
 DEFAULT_RULES = [SHIPPED, "1.5", "2.0", "2.5", "3.0"]

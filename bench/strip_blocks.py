@@ -1,6 +1,6 @@
 """The adjustment with every strip's trajectory errors (docs/method.md section 11) against the
-number of strips: time and memory of the reduced solve (core/strip_blocks.py) for a block of
-parallel lines in rows with cross lines, against the dense solve of the whole system measured
+number of strips: time and memory of the reduced solve (core/adjustment/strip_blocks.py) for a block
+of parallel lines in rows with cross lines, against the dense solve of the whole system measured
 in the same run.
 
     .venv/bin/python bench/strip_blocks.py [--strips 10 30 100 300 1000] [--per-pair 2000]
@@ -26,10 +26,10 @@ from functools import partial
 import machine  # bench/machine.py: this script's folder is on sys.path
 import numpy as np
 
-from lidarcal_ros.core.adjustment import ObservabilityLimits, Observations, solve
+from lidarcal_ros.core.adjustment.least_squares import ObservabilityLimits, Observations, solve
+from lidarcal_ros.core.adjustment.strip_blocks import StripBlocks
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.strip_blocks import StripBlocks
-from lidarcal_ros.core.trajectory_errors import (
+from lidarcal_ros.core.trajectory.strip_errors import (
     TrajectoryErrorSettings,
     TrajectoryModel,
     TrajectoryRows,

@@ -14,10 +14,8 @@ Layout (imports only run downward):
 ``ros``
     What a process must set before rclpy starts (DDS confined to this machine); no rclpy.
 
-Each layer package exports its modules' public names (``from lidarcal_ros.core import
-Calibrator``), importing a module only when one of its names is asked for
-(:mod:`lidarcal_ros.exports`). Errors derive from :class:`lidarcal_ros.errors.LidarcalError`.
-ARCHITECTURE.md says where to add an input format, an output or a node.
+Errors derive from :class:`lidarcal_ros.errors.LidarcalError`. ARCHITECTURE.md shows the tree
+and says where to add an input format, an output or a node.
 """
 
 __version__ = "0.2.3"

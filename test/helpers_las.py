@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lidarcal_ros.core.exact_model import biased_from_pulse
 from lidarcal_ros.core.mission import Mission
-from lidarcal_ros.core.simulate import SimulatedMission
-from lidarcal_ros.io.las import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
-from lidarcal_ros.io.trajectory_files import WEEK_S, write_sbet
+from lidarcal_ros.core.simulation.exact_model import biased_from_pulse
+from lidarcal_ros.core.simulation.simulate import SimulatedMission
+from lidarcal_ros.io.survey.las_writer import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
+from lidarcal_ros.io.survey.trajectory_files import WEEK_S, write_sbet
 
 #: CRS of the tiles and SBETs written (UTM 33N).
 CRS = "EPSG:32633"

@@ -37,12 +37,12 @@ import yaml
 
 from lidarcal_ros.core.mission import Mission, Strip, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.simulate import SimulatedMission, simulate_mission
-from lidarcal_ros.core.simulation_spec import SimulationSpec
-from lidarcal_ros.io.bag_format import seconds_to_ns
-from lidarcal_ros.io.bag_writer import BagWriter
-from lidarcal_ros.io.cloud_columns import CloudColumns
-from lidarcal_ros.pipeline.calibration import write_simulation
+from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
+from lidarcal_ros.core.simulation.spec import SimulationSpec
+from lidarcal_ros.io.bag.format import seconds_to_ns
+from lidarcal_ros.io.bag.writer import BagWriter
+from lidarcal_ros.io.cloud.columns import CloudColumns
+from lidarcal_ros.pipeline.calibration.procedure import write_simulation
 
 #: A six-strip "paper" mission over 250 m lines, about 160 000 points: simulates in < 1 s.
 SMALL_MISSION: dict[str, Any] = {"scenario": "paper", "density": 0.1, "line_length_m": 250.0,

@@ -66,8 +66,8 @@ def add_import_command(sub: Any) -> None:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Run ``lidarcal import`` with the parsed ``args``; its exit status."""
-    from lidarcal_ros.pipeline.import_options import ImportOptions
-    from lidarcal_ros.pipeline.importer import import_mission
+    from lidarcal_ros.pipeline.importing.importer import import_mission
+    from lidarcal_ros.pipeline.importing.options import ImportOptions
 
     check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
     options = ImportOptions(
@@ -109,7 +109,7 @@ def add_recover_command(sub: Any) -> None:
 
 def cmd_recover(args: argparse.Namespace) -> int:
     """Run ``lidarcal recover`` with the parsed ``args``; its exit status."""
-    from lidarcal_ros.io.bag_recovery import recover_bag
+    from lidarcal_ros.io.bag.recovery import recover_bag
 
     if args.output.resolve() != args.bag.resolve():  # (recover_bag names that mistake)
         check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")

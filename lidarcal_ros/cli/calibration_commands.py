@@ -55,11 +55,11 @@ def add_calibrate_command(sub: Any) -> None:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Run ``lidarcal calibrate`` with the parsed ``args``; its exit status."""
-    from lidarcal_ros.core.calibration_result import NothingEstimated
+    from lidarcal_ros.core.calibration.result import NothingEstimated
     from lidarcal_ros.core.params import parse_parameter_list
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.pipeline.calibration import (
+    from lidarcal_ros.pipeline.calibration.procedure import (
         Truth,
         calibrate_mission,
         convergence_warning,
@@ -148,8 +148,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.io.control import read_control_csv
-    from lidarcal_ros.pipeline.calibration import load_mission
+    from lidarcal_ros.io.survey.control import read_control_csv
+    from lidarcal_ros.pipeline.calibration.procedure import load_mission
     from lidarcal_ros.pipeline.evaluation import evaluate_mission, format_evaluation
 
     if args.max_points < 100:
@@ -199,9 +199,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     import shlex
 
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.io.html_report import write_html_report
-    from lidarcal_ros.io.las import parse_crs
-    from lidarcal_ros.pipeline.report import build_report
+    from lidarcal_ros.io.report.page import write_html_report
+    from lidarcal_ros.io.survey.las_writer import parse_crs
+    from lidarcal_ros.pipeline.report.build import build_report
 
     check_output(args.output, overwrite=args.overwrite)
     config = load_flight_config(args.config)

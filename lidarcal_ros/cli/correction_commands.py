@@ -67,8 +67,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from lidarcal_ros.core.allocator import tune_allocator
     from lidarcal_ros.io.calibration_file import read_calibration
     from lidarcal_ros.io.config_file import load_flight_config
-    from lidarcal_ros.io.las import parse_crs
-    from lidarcal_ros.pipeline.bag_correction import CorrectOptions, correct_bag, output_kind
+    from lidarcal_ros.io.survey.las_writer import parse_crs
+    from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag, output_kind
 
     tune_allocator()
     config = load_flight_config(args.config)

@@ -78,7 +78,7 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from lidarcal_ros.io.bag_reader import open_bag
+    from lidarcal_ros.io.bag.reader import open_bag
     from lidarcal_ros.pipeline.replay import Pacer, replay, replay_window
 
     if not (math.isfinite(args.rate) and args.rate > 0):
@@ -216,7 +216,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         extra += ["--params-file", str(args.config)]
     check_ros_parameters(args.ros_args)
     if args.control is not None:
-        from lidarcal_ros.io.control import read_control_csv
+        from lidarcal_ros.io.survey.control import read_control_csv
 
         read_control_csv(args.control)
         extra += ["-p", f"calibration.control_points_file:={args.control.resolve()}"]

@@ -87,7 +87,7 @@ _ROUGH_AIR_KEYS: dict[str, tuple[str, type]] = {
 
 def _parse_rough_air(text: str) -> Any:
     """The RoughAir of ``--rough-air [SPEC]``: the reported one with SPEC's changes."""
-    from lidarcal_ros.core.flight_path import REPORTED_ROUGH_AIR
+    from lidarcal_ros.core.simulation.flight_path import REPORTED_ROUGH_AIR
 
     changes: dict[str, Any] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
@@ -147,7 +147,7 @@ def _trajectory_error_value(key: str, text: str) -> float | int:
 def _parse_trajectory_errors(text: str) -> Any:
     """The TrajectoryErrorSpec of ``--trajectory-errors SPEC``: ``typical``, and/or KEY=VALUE
     changes (to no error, or to the typical given first)."""
-    from lidarcal_ros.core.simulation_spec import TYPICAL_TRAJECTORY_ERRORS, TrajectoryErrorSpec
+    from lidarcal_ros.core.simulation.spec import TYPICAL_TRAJECTORY_ERRORS, TrajectoryErrorSpec
 
     parts = [p.strip() for p in text.split(",") if p.strip()]
     base = TrajectoryErrorSpec()
@@ -181,7 +181,7 @@ _TRAJECTORY_ERROR_HINTS = {"length": "a length (e.g. 4cm, 0.04)",
 
 def _read_flight_lines(path: Path) -> list[dict[str, Any]]:
     """The validated lines of ``--lines YAML`` (a list, or a mapping with ``lines``)."""
-    from lidarcal_ros.core.simulation_spec import normalise_lines
+    from lidarcal_ros.core.simulation.spec import normalise_lines
     from lidarcal_ros.io.yaml_file import read_yaml
 
     doc = read_yaml(path, what="flight lines")
@@ -197,9 +197,9 @@ def _read_flight_lines(path: Path) -> list[dict[str, Any]]:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Run ``lidarcal simulate`` with the parsed ``args``; its exit status."""
-    from lidarcal_ros.core.flight_path import REPORTED_CRAB_DEG
-    from lidarcal_ros.core.simulate import simulate_mission
-    from lidarcal_ros.core.simulation_spec import (
+    from lidarcal_ros.core.simulation.flight_path import REPORTED_CRAB_DEG
+    from lidarcal_ros.core.simulation.simulate import simulate_mission
+    from lidarcal_ros.core.simulation.spec import (
         DEFAULT_BIASES,
         FOV_DEG,
         FlightSpec,
@@ -211,7 +211,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         crab_wind,
         scenario_lines,
     )
-    from lidarcal_ros.pipeline.calibration import (
+    from lidarcal_ros.pipeline.calibration.procedure import (
         parse_biases,
         simulation_paths,
         write_simulation,
@@ -270,7 +270,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
     from lidarcal_ros.core.params import display_value
     from lidarcal_ros.core.planning import predict
-    from lidarcal_ros.io.plan_file import read_flight_plan
+    from lidarcal_ros.io.survey.plan_file import read_flight_plan
 
     report = predict(read_flight_plan(args.plan), seed=args.seed)
     if args.json:

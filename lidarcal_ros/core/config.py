@@ -13,13 +13,13 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from lidarcal_ros.core.adjustment import DEFAULT_MAX_SIGMA, ObservabilityLimits
+from lidarcal_ros.core.adjustment.least_squares import DEFAULT_MAX_SIGMA, ObservabilityLimits
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.trajectory_errors import TrajectoryErrorSettings, TrajectoryModel
+from lidarcal_ros.core.trajectory.strip_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import ConfigError
 
 if TYPE_CHECKING:  # (imported where used: the correction reads configurations too)
-    from lidarcal_ros.core.calibrate import CalibrationSettings
+    from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 
 OptionsT = TypeVar("OptionsT")
 
@@ -452,7 +452,7 @@ class FlightConfig:
 
     def calibration_settings(self) -> CalibrationSettings:
         """The adjustment options this configuration sets."""
-        from lidarcal_ros.core.calibrate import CalibrationSettings
+        from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 
         values = self.values
         fixed = {n: float(values[f"calibration.fixed.{n}"]) for n in PARAMETER_NAMES}

@@ -11,7 +11,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lidarcal_ros.core.attitude import headings_from_quaternions, normalise_quaternions
+from lidarcal_ros.core.georeferencing.attitude import (
+    headings_from_quaternions,
+    normalise_quaternions,
+)
 from lidarcal_ros.errors import TrajectoryError
 
 logger = logging.getLogger(__name__)
@@ -41,8 +44,8 @@ class Trajectory:
     orientation : (n, 4) float64 or None
         The INS attitude at each sample: unit quaternions ``(x, y, z, w)`` rotating REP-103's
         body frame (x forward, y left, z up) into the map frame
-        (:mod:`lidarcal_ros.core.attitude`), a row of NaN where a sample has none (identity,
-        zero or not finite); None when no sample has one (positions only, as the
+        (:mod:`lidarcal_ros.core.georeferencing.attitude`), a row of NaN where a sample has none
+        (identity, zero or not finite); None when no sample has one (positions only, as the
         quasi-rigorous method needs). Normalised on construction, consecutive rows in one
         hemisphere.
     full_attitude : bool
@@ -79,8 +82,9 @@ class Trajectory:
     @property
     def heading(self) -> np.ndarray | None:
         """The body's heading ``kappa`` at each sample (rad, docs/method.md's convention: the yaw
-        of the forward axis, :func:`~lidarcal_ros.core.attitude.headings_from_quaternions`),
-        NaN where a sample has no orientation; None without orientation."""
+        of the forward axis,
+        :func:`~lidarcal_ros.core.georeferencing.attitude.headings_from_quaternions`), NaN where a
+        sample has no orientation; None without orientation."""
         if self.orientation is None:
             return None
         if self._heading is None:
@@ -128,7 +132,7 @@ class Trajectory:
         positions (n, 3) contiguous float64; unit quaternions in one hemisphere from row to
         row, or None; ``full_attitude`` decided; the headings of the quaternions if known),
         taken as they are: no copy, no check. For a keeper of samples that derives each
-        sample's values once (:class:`~lidarcal_ros.core.trajectory_buffer.TrajectoryBuffer`)
+        sample's values once (:class:`~lidarcal_ros.core.trajectory.buffer.TrajectoryBuffer`)
         rather than all of them at every new sample."""
         traj = cls.__new__(cls)
         traj.t, traj.xyz, traj.orientation = t, xyz, orientation

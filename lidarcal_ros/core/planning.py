@@ -18,16 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.adjustment import NormalEquations, ObservabilityLimits, solve
-from lidarcal_ros.core.calibrate import CalibrationSettings, Calibrator
-from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
-from lidarcal_ros.core.georeferencing import MODELS, describe_models
+from lidarcal_ros.core.adjustment.least_squares import NormalEquations, ObservabilityLimits, solve
+from lidarcal_ros.core.adjustment.strip_blocks import StripBlocks
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Calibrator
+from lidarcal_ros.core.calibration.pairs import outside_strips
+from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS
+from lidarcal_ros.core.georeferencing.rigorous import MODELS, describe_models
 from lidarcal_ros.core.mission import Strip
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.raster_terrain import RasterTerrain
-from lidarcal_ros.core.scanning import swath_width
-from lidarcal_ros.core.simulate import simulate_mission
-from lidarcal_ros.core.simulation_spec import (
+from lidarcal_ros.core.simulation.raster_terrain import RasterTerrain
+from lidarcal_ros.core.simulation.scanning import swath_width
+from lidarcal_ros.core.simulation.simulate import simulate_mission
+from lidarcal_ros.core.simulation.spec import (
     FlightSpec,
     NoiseSpec,
     SensorSpec,
@@ -35,9 +37,7 @@ from lidarcal_ros.core.simulation_spec import (
     SiteSpec,
     normalise_lines,
 )
-from lidarcal_ros.core.strip_blocks import StripBlocks
-from lidarcal_ros.core.strip_pairs import outside_strips
-from lidarcal_ros.core.trajectory_errors import TrajectoryErrorSettings, TrajectoryModel
+from lidarcal_ros.core.trajectory.strip_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)
@@ -65,7 +65,7 @@ class FlightPlan:
     density: float = 1.0
     speed_mps: float = 60.0
     control: list[tuple[float, float, float]] = field(default_factory=list)
-    #: ``terrain`` names a DSM file: its grid, once read (:func:`lidarcal_ros.io.plan_file.
+    #: ``terrain`` names a DSM file: its grid, once read (:func:`lidarcal_ros.io.survey.plan_file.
     #: read_flight_plan`), and the ``.npy`` georeference options of the plan.
     dsm: RasterTerrain | None = None
     terrain_cell_m: float | None = None
@@ -237,7 +237,8 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     if plan.uses_dsm:
         if plan.dsm is None:
             raise ConfigError(f"terrain '{plan.terrain}': the DSM has not been read "
-                              "(read the plan with lidarcal_ros.io.plan_file.read_flight_plan)")
+                              "(read the plan with lidarcal_ros.io.survey.plan_file"
+                               ".read_flight_plan)")
         _check_dsm_covers(plan, plan.dsm)
     sim = simulate_mission(SimulationSpec(
         seed=seed, biases={},

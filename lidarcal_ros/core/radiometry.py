@@ -444,7 +444,8 @@ class RadiometricModel:
 
     def kernel_constants(self) -> tuple[np.float32, np.float32, np.float32, np.float32]:
         """The float32 constants of :meth:`reflectance` (and of the compiled correction,
-        :func:`lidarcal_ros.core.correction_kernels.correct_returns`, which repeats its arithmetic).
+        :func:`lidarcal_ros.core.georeferencing.correction_kernels.correct_returns`, which repeats
+        its arithmetic).
 
         Returns
         -------

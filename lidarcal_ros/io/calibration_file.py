@@ -11,11 +11,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.calibration_result import CalibrationResult
-from lidarcal_ros.core.geometry import LEVEL, RIGOROUS
-from lidarcal_ros.core.georeferencing import describe_models, models_summary
+from lidarcal_ros.core.calibration.result import CalibrationResult
+from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS
+from lidarcal_ros.core.georeferencing.rigorous import describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.core.trajectory_errors import (
+from lidarcal_ros.core.trajectory.strip_errors import (
     SPLINE_INTERPOLATION,
     StripBasis,
     StripError,

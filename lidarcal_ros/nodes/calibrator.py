@@ -5,7 +5,7 @@
 Subscribes (raw CDR) to the strips (``topics.points``), the trajectory (``topics.trajectory``)
 and the control points (``topics.control_points``, transient-local; or the CSV of
 ``calibration.control_points_file``) and hands them to
-:class:`lidarcal_ros.pipeline.calibration_service.CalibrationService`: a strip is complete once
+:class:`lidarcal_ros.pipeline.calibration.service.CalibrationService`: a strip is complete once
 no point of it arrived for ``strip_gap_s`` seconds of point (or trajectory) time, or once no
 input at all arrived for ``idle_close_s`` wall seconds (the end of a mission or a replay). Each
 complete strip is paired with the earlier strips it overlaps, its correspondences join the normal
@@ -19,7 +19,7 @@ Publishes
 ---------
 ``/lidar/calibration/estimate`` (``std_msgs/Float64MultiArray``, transient-local, depth 1)
     10 x 8 matrix: values, sigmas, covariance of ``dX, dY, dZ, domega, dphi, dkappa, dr, dS``
-    (SI units; layout in :mod:`lidarcal_ros.io.ros_messages`); the label of ``layout.dim[0]``
+    (SI units; layout in :mod:`lidarcal_ros.io.cloud.messages`); the label of ``layout.dim[0]``
     ends in ``;converged=true`` or ``;converged=false``.
 ``/lidar/calibration/yaml`` (``std_msgs/String``, transient-local, depth 1)
     The calibration file of docs/interface.md (``converged`` says whether it is; the trajectory
@@ -39,7 +39,7 @@ Services (``std_srvs/Trigger``)
     ``~/solve``: full solve over everything accumulated (what ``lidarcal calibrate`` computes on
     the same data), published as above. ``~/reset``: forget everything, the checkpoint file
     too (the latest estimate stays latched until the next solve). ``~/save``: converge first
-    (at most :data:`~lidarcal_ros.pipeline.calibration_service.SAVE_CONVERGE_S`; the message
+    (at most :data:`~lidarcal_ros.pipeline.calibration.service.SAVE_CONVERGE_S`; the message
     says if cut short), then write the calibration
     file to ``calibration.calibration_file``; the message names the path.
 
@@ -47,7 +47,7 @@ Node-specific parameters: ``memory_budget_points`` (points held; past it the old
 strip is released first and reported; 0, the default, sizes it to about half of the machine's
 memory), ``strip_gap_s``, ``idle_close_s``, ``checkpoint_file``
 (written after every estimate published and on shutdown, which converges first for at most
-:data:`~lidarcal_ros.pipeline.calibration_service.SHUTDOWN_CONVERGE_S`; read at start, so a
+:data:`~lidarcal_ros.pipeline.calibration.service.SHUTDOWN_CONVERGE_S`; read at start, so a
 restarted calibrator resumes with its accumulated normal equations, converges again and
 publishes), ``queue_depth``, ``trajectory_type``
 (:data:`lidarcal_ros.core.config.NODE_PARAMETERS`).
@@ -70,12 +70,12 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
-from lidarcal_ros.core.calibration_result import CalibrationResult
+from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.cloud_columns import extract_columns, extract_xyz
-from lidarcal_ros.io.ros_messages import (
+from lidarcal_ros.io.cloud.columns import extract_columns, extract_xyz
+from lidarcal_ros.io.cloud.messages import (
     ESTIMATE_COLUMN_LABEL,
     ESTIMATE_ROWS,
     WARN,
@@ -98,7 +98,7 @@ from lidarcal_ros.nodes.topics import (
     stream_qos,
 )
 from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
-from lidarcal_ros.pipeline.calibration_service import CalibrationService, CalibratorOptions
+from lidarcal_ros.pipeline.calibration.service import CalibrationService, CalibratorOptions
 
 __all__ = ["CALIBRATOR_PARAMETERS", "CalibratorNode"]
 

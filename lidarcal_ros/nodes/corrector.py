@@ -23,17 +23,17 @@ corrector uses the file named by its ``calibration`` parameter, else the configu
 Every input point comes out exactly once, in the order received. A chunk is corrected once
 the trajectory covers it (a sample past its last point time) or after
 ``max_trajectory_wait_s``. The normals come from one grid per strip that every chunk's points
-join (:class:`~lidarcal_ros.core.strip_normals.StripNormals`): by default (``lookahead`` false) a
-chunk is corrected at once, its points seeing the earlier chunks as neighbours; with
+join (:class:`~lidarcal_ros.core.normals.strip_normals.StripNormals`): by default (``lookahead``
+false) a chunk is corrected at once, its points seeing the earlier chunks as neighbours; with
 ``lookahead`` true it waits until the next chunks cover the grid rows beyond it (about three
 rows, a few chunks), which gives exactly the normals of ``lidarcal correct`` at that cost in
 latency. Held chunks are corrected without look-ahead once no chunk came for
 ``flush_timeout_s``. A malformed chunk (bad layout, missing field, wrong frame) is logged and
 skipped; the node keeps running.
 
-The work is :class:`~lidarcal_ros.pipeline.live_corrector.LiveCorrector`'s (waiting for the
+The work is :class:`~lidarcal_ros.pipeline.correction.live.LiveCorrector`'s (waiting for the
 trajectory, the backlog bound, the time-out, the diagnostics); the numerics run in a child
-process (``separate_process``, :mod:`~lidarcal_ros.pipeline.correction_process`): this
+process (``separate_process``, :mod:`~lidarcal_ros.pipeline.correction.process`): this
 process only takes messages off DDS and publishes, so that its callbacks (hundreds of
 trajectory samples a second) never wait for the interpreter lock of the numerics. The clouds
 go there and back through shared memory (``shared_memory_mib``; pipes where a host has none:
@@ -64,7 +64,7 @@ from std_msgs.msg import Float64MultiArray
 
 from lidarcal_ros.core.config import CORRECTOR_NODE, NODE_PARAMETERS, node_options
 from lidarcal_ros.core.params import format_value
-from lidarcal_ros.io.ros_messages import StatusSpec, parse_estimate, warm_up_cloud_codec
+from lidarcal_ros.io.cloud.messages import StatusSpec, parse_estimate, warm_up_cloud_codec
 from lidarcal_ros.nodes.parameters import FlightParameters
 from lidarcal_ros.nodes.process import run_main
 from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
@@ -77,8 +77,8 @@ from lidarcal_ros.nodes.topics import (
     stream_qos,
 )
 from lidarcal_ros.nodes.trajectory_input import TrajectoryInput
-from lidarcal_ros.pipeline.correction_process import InboundRegion
-from lidarcal_ros.pipeline.live_corrector import CorrectorOptions, LiveCorrector
+from lidarcal_ros.pipeline.correction.live import CorrectorOptions, LiveCorrector
+from lidarcal_ros.pipeline.correction.process import InboundRegion
 
 __all__ = ["CORRECTOR_PARAMETERS", "CorrectorNode"]
 

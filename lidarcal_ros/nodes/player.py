@@ -25,7 +25,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from lidarcal_ros.core.config import SCHEMA
-from lidarcal_ros.io.bag_reader import BagReader
+from lidarcal_ros.io.bag.reader import BagReader
 from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
 from lidarcal_ros.nodes.suite import SUITE_TOPIC, read_suite_state
 from lidarcal_ros.nodes.topics import latched_qos, stream_qos

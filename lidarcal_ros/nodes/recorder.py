@@ -2,7 +2,7 @@
 
 Subscribes raw (CDR bytes as received) to each topic once a publisher of it appears on the
 graph, with the type that publisher offers, and writes the bytes with
-:class:`lidarcal_ros.io.bag_writer.BagWriter` stamped with the receive time. A topic whose
+:class:`lidarcal_ros.io.bag.writer.BagWriter` stamped with the receive time. A topic whose
 publishers all offer transient-local durability (the estimate, the calibration YAML, control
 points) is subscribed transient-local, so its latest message is recorded even if it was
 published before the recorder started, and is recorded as offered transient-local (``ros2 bag
@@ -20,8 +20,8 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from lidarcal_ros.io.bag_format import normalize_msgtype
-from lidarcal_ros.io.bag_writer import BagWriter
+from lidarcal_ros.io.bag.format import normalize_msgtype
+from lidarcal_ros.io.bag.writer import BagWriter
 from lidarcal_ros.nodes.player import message_class
 
 __all__ = ["DEFAULT_TOPICS", "RECORDER_NODE", "RecorderNode"]

@@ -8,7 +8,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from lidarcal_ros.io.ros_messages import StatusSpec
+from lidarcal_ros.io.cloud.messages import StatusSpec
 
 __all__ = ["DIAGNOSTICS_TOPIC", "ESTIMATE_TOPIC", "YAML_TOPIC", "diagnostic_array",
            "latched_qos", "stream_qos"]

@@ -31,7 +31,7 @@ class TrajectoryInput:
 
     Calls ``on_sample(t_seconds, (x, y, z), frame_id, orientation)`` for each sample (raw CDR
     decoded with rosbags; ``orientation`` its quaternion ``(x, y, z, w)``, NaN where the type
-    has none: :func:`~lidarcal_ros.io.trajectory_messages.trajectory_sample`). With
+    has none: :func:`~lidarcal_ros.io.cloud.trajectory_messages.trajectory_sample`). With
     ``msgtype`` ``auto`` the subscription is made at once for the contract's
     type (``geometry_msgs/msg/PoseStamped``), and the publishers on the topic are looked up
     every 0.5 s until one appears: if they use another accepted type, the subscription
@@ -53,8 +53,8 @@ class TrajectoryInput:
         self.subscription: Any = None
         self.errors = 0
         self._timer: Any = None
-        from lidarcal_ros.io.bag_format import POSE_STAMPED, normalize_msgtype
-        from lidarcal_ros.io.trajectory_messages import TRAJECTORY_TYPES
+        from lidarcal_ros.io.bag.format import POSE_STAMPED, normalize_msgtype
+        from lidarcal_ros.io.cloud.trajectory_messages import TRAJECTORY_TYPES
 
         self._getters = TRAJECTORY_TYPES
         if msgtype and msgtype != "auto":
@@ -113,8 +113,8 @@ class TrajectoryInput:
             self.node.get_logger().info(f"trajectory: {self.topic} ({msgtype})")
 
     def _on_raw(self, raw: bytes, msgtype: str) -> None:
-        from lidarcal_ros.io.ros_messages import deserialize
-        from lidarcal_ros.io.trajectory_messages import trajectory_sample
+        from lidarcal_ros.io.cloud.messages import deserialize
+        from lidarcal_ros.io.cloud.trajectory_messages import trajectory_sample
 
         try:
             msg = deserialize(raw, msgtype)

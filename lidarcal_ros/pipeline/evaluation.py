@@ -5,7 +5,7 @@ For each overlapping strip pair, the rigid transformation that co-aligns the pai
 Habib et al. 2011) with the strips as delivered and as corrected by the estimate (eq. [13],
 as ``lidarcal correct`` applies it); for check points not used in the adjustment, the
 residuals of the strips' surfaces and their RMSE (Table 4). Numerics in
-:mod:`lidarcal_ros.core.evaluation`.
+:mod:`lidarcal_ros.core.qa.accuracy`.
 """
 
 from __future__ import annotations
@@ -18,22 +18,22 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.calibrate import CalibrationSettings
-from lidarcal_ros.core.evaluation import (
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
+from lidarcal_ros.core.calibration.pairs import footprint_keys
+from lidarcal_ros.core.calibration.tin import Tin
+from lidarcal_ros.core.georeferencing.bias_model import correct_geometry
+from lidarcal_ros.core.mission import ControlPoints, Mission
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
+from lidarcal_ros.core.qa.accuracy import (
     RIGID_NAMES,
     AccuracySummary,
     RigidFit,
     rigid_icp,
     tin_heights,
 )
-from lidarcal_ros.core.mission import ControlPoints, Mission
-from lidarcal_ros.core.model import correct_geometry
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
-from lidarcal_ros.core.strip_pairs import footprint_keys
-from lidarcal_ros.core.tin import Tin
 from lidarcal_ros.core.units import finite_or_none, format_cm
 from lidarcal_ros.errors import CalibrationError, ConfigError
-from lidarcal_ros.pipeline.correction import flagged_geometry
+from lidarcal_ros.pipeline.correction.apply import flagged_geometry
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,1 @@
+"""The least-squares adjustment: normal equations, observability, strip blocks."""

@@ -1,0 +1,466 @@
+"""The modified least-squares adjustment of docs/method.md section 6 and its observability analysis.
+
+Each point-to-patch correspondence is one scalar equation ``y = a . delta + e`` with
+``y = n^T (X_A - X_B)`` and ``a = n^T (A_A - A_B)``: the weight matrix ``P' = P_W n n^T`` keeps
+only the patch-normal component. The normal equations ``N = sum w a a^T``, ``u = sum w a y`` and
+``sum w y^2`` are sums over correspondences, so they can be accumulated message by message,
+tile by tile, or summed across workers (:class:`NormalEquations` supports ``+``).
+
+Observability is decided on the normal matrix, not by rules: a parameter without effect, in a
+near null space, nearly perfectly correlated with another, or whose standard deviation exceeds
+what a calibration can use, is reported as not estimable with the reason in words, and is held
+at its fixed value while the others are solved.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_INDEX, PARAMETER_NAMES, as_vector
+from lidarcal_ros.core.trajectory.strip_errors import TrajectoryRows
+from lidarcal_ros.errors import CalibrationError
+
+logger = logging.getLogger(__name__)
+
+#: A bias of this size is "typical": used to tell a column with no effect from a small one.
+REFERENCE_MAGNITUDE = np.array([0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4, 0.1, 1e-4])
+
+#: Default largest standard deviation for which a parameter counts as determined (SI units):
+#: 2 cm for lengths, 5 arcsec for angles, 2e-5 for the scale: a few times the accuracy a
+#: calibration is expected to reach (1 cm, 1 arcsec, 1e-5).
+DEFAULT_MAX_SIGMA = {
+    "dX": 0.02, "dY": 0.02, "dZ": 0.02,
+    "domega": 2.5e-5, "dphi": 2.5e-5, "dkappa": 2.5e-5,
+    "dr": 0.02, "dS": 2e-5,
+}
+
+
+@dataclass
+class NormalEquations:
+    """Accumulated normal equations over all eight parameters.
+
+    Attributes
+    ----------
+    n : (8, 8) float64
+        ``sum w a a^T``.
+    u : (8,) float64
+        ``sum w a y``.
+    yy : float
+        ``sum w y^2`` (for the residual sum of squares without storing observations).
+    count : int
+        Number of scalar observations (rank of ``P'``: one per correspondence).
+    """
+
+    n: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMETERS, N_PARAMETERS)))
+    u: np.ndarray = field(default_factory=lambda: np.zeros(N_PARAMETERS))
+    yy: float = 0.0
+    count: int = 0
+
+    def add(self, rows: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None) -> None:
+        """Add observations ``y = rows @ delta`` with weights (default 1); zero weights skip."""
+        rows = np.asarray(rows, dtype=np.float64).reshape(-1, N_PARAMETERS)
+        y = np.asarray(y, dtype=np.float64).ravel()
+        w = np.ones_like(y) if weights is None else np.asarray(weights, dtype=np.float64)
+        wr = rows * w[:, None]
+        self.n += wr.T @ rows
+        self.u += wr.T @ y
+        self.yy += float(np.dot(w * y, y))
+        self.count += int(np.count_nonzero(w))
+
+    def __add__(self, other: NormalEquations) -> NormalEquations:
+        return NormalEquations(
+            self.n + other.n, self.u + other.u, self.yy + other.yy, self.count + other.count
+        )
+
+    def residual_square_sum(self, delta: np.ndarray) -> float:
+        """``v^T P v`` for the full parameter vector ``delta``."""
+        return float(self.yy - 2.0 * delta @ self.u + delta @ self.n @ delta)
+
+    @classmethod
+    def from_observations(cls, obs: Observations) -> NormalEquations:
+        neq = cls()
+        neq.add(obs.rows, obs.y, obs.weights)
+        return neq
+
+
+@dataclass
+class Observations:
+    """Scalar point-to-patch observations kept for robust re-weighting and QA.
+
+    Attributes
+    ----------
+    rows : (k, 8) float64
+        Design rows ``a``.
+    y : (k,) float64
+        Observed normal discrepancies ``n^T (X_A - X_B)`` in delivered coordinates, metres.
+    weights : (k,) float64
+        Current weights (robust zeros included).
+    group : (k,) int64
+        Index of the strip pair (>= 0) or ``-1 - control_index`` for control observations.
+    cluster : (k,) int64
+        Spatial cell of the observation: observations in one cell share errors (the same
+        patches and points serve several strip pairs), see :func:`cluster_robust_sigma`.
+    trajectory : TrajectoryRows, optional
+        The trajectory terms of each row, where trajectory errors are estimated (docs/method.md
+        section 11).
+    """
+
+    rows: np.ndarray
+    y: np.ndarray
+    weights: np.ndarray
+    group: np.ndarray
+    cluster: np.ndarray
+    trajectory: TrajectoryRows | None = None
+
+    @classmethod
+    def empty(cls) -> Observations:
+        return cls(np.empty((0, N_PARAMETERS)), np.empty(0), np.empty(0),
+                   np.empty(0, np.int64), np.empty(0, np.int64))
+
+    @classmethod
+    def concatenate(cls, parts: Iterable[Observations]) -> Observations:
+        parts = list(parts)
+        if not parts:
+            return cls.empty()
+        trajectory = None
+        if any(p.trajectory is not None for p in parts):
+            # (rows kept without their trajectory terms get none: they observe no error)
+            trajectory = TrajectoryRows.concatenate(
+                p.trajectory if p.trajectory is not None else TrajectoryRows.none(len(p))
+                for p in parts)
+        return cls(
+            np.concatenate([p.rows for p in parts]),
+            np.concatenate([p.y for p in parts]),
+            np.concatenate([p.weights for p in parts]),
+            np.concatenate([p.group for p in parts]),
+            np.concatenate([p.cluster for p in parts]),
+            trajectory,
+        )
+
+    def __len__(self) -> int:
+        return int(self.y.shape[0])
+
+    def residuals(self, delta: np.ndarray) -> np.ndarray:
+        """``y - a . delta``: the normal discrepancy left after correcting by ``delta``."""
+        return self.y - self.rows @ delta
+
+
+@dataclass
+class ParameterStatus:
+    """What the adjustment could say about one parameter.
+
+    ``state`` is ``"estimated"``, ``"fixed"`` (not asked for) or ``"not_estimable"``; ``reason``
+    explains the latter in words.
+    """
+
+    state: str
+    reason: str = ""
+
+
+@dataclass
+class Solution:
+    """Result of one adjustment.
+
+    Attributes
+    ----------
+    delta : (8,) float64
+        Estimated values for estimated parameters, the fixed values otherwise (SI).
+    sigma : (8,) float64
+        Standard deviations (a-posteriori), NaN for parameters not estimated.
+    estimated : tuple of str
+        Names of estimated parameters, in :data:`PARAMETER_NAMES` order.
+    covariance : (m, m) float64
+        Covariance of the estimated parameters, ``sigma0^2 N^-1``.
+    correlation : (m, m) float64
+    sigma0 : float
+        A-posteriori standard deviation of unit weight, metres.
+    redundancy : int
+        ``q - m``.
+    status : dict of ParameterStatus
+    """
+
+    delta: np.ndarray
+    sigma: np.ndarray
+    estimated: tuple[str, ...]
+    covariance: np.ndarray
+    correlation: np.ndarray
+    sigma0: float
+    redundancy: int
+    status: dict[str, ParameterStatus]
+    warnings: list[str] = field(default_factory=list)
+
+    def correlated_pairs(self, threshold: float = 0.5) -> list[tuple[str, str, float]]:
+        """Pairs of estimated parameters with |correlation| above ``threshold``."""
+        out = []
+        m = len(self.estimated)
+        for i in range(m):
+            for j in range(i + 1, m):
+                r = float(self.correlation[i, j])
+                if abs(r) > threshold:
+                    out.append((self.estimated[i], self.estimated[j], r))
+        return sorted(out, key=lambda item: -abs(item[2]))
+
+
+@dataclass
+class ObservabilityLimits:
+    """Thresholds of the observability analysis.
+
+    Attributes
+    ----------
+    max_correlation : float
+        Above this |correlation| two parameters are not separable.
+    min_eigenvalue : float
+        Smallest eigenvalue of the unit-diagonal normal matrix counted as non-singular.
+    max_sigma : dict
+        Largest standard deviation (SI) for which a parameter counts as determined.
+    min_effect_m : float
+        RMS effect (metres) of a typical bias below which a parameter is invisible.
+    """
+
+    max_correlation: float = 0.999
+    min_eigenvalue: float = 1e-9
+    max_sigma: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_MAX_SIGMA))
+    min_effect_m: float = 1e-6
+
+
+def _names(indices: Iterable[int]) -> str:
+    return ", ".join(PARAMETER_NAMES[i] for i in indices)
+
+
+def solve(
+    neq: NormalEquations,
+    *,
+    solve_for: Sequence[str],
+    fixed: Mapping[str, float] | None = None,
+    limits: ObservabilityLimits | None = None,
+    sigma0_apriori: float | None = None,
+) -> Solution:
+    """Solve the normal equations for the parameters in ``solve_for``.
+
+    Parameters not in ``solve_for`` are held at ``fixed`` (default 0). Parameters the data
+    cannot determine are held at their fixed value too and reported as not estimable.
+
+    Parameters
+    ----------
+    neq : NormalEquations
+    solve_for : sequence of str
+        Parameter names to estimate.
+    fixed : mapping, optional
+        Values (SI) of parameters held fixed, e.g. a surveyed ``dZ``.
+    limits : ObservabilityLimits, optional
+    sigma0_apriori : float, optional
+        If given, use it instead of the a-posteriori sigma0 for the covariance (flight
+        planning, where there are no residuals yet).
+
+    Raises
+    ------
+    CalibrationError
+        If there are no observations, or nothing is left to estimate.
+    """
+    limits = limits or ObservabilityLimits()
+    if neq.count == 0:
+        raise CalibrationError("no correspondences: nothing to adjust")
+    unknown = [name for name in solve_for if name not in PARAMETER_INDEX]
+    if unknown:
+        raise CalibrationError(f"unknown parameter(s) to solve for: {', '.join(unknown)}")
+    base = as_vector(dict(fixed or {}))
+    status: dict[str, ParameterStatus] = {
+        name: ParameterStatus("fixed") for name in PARAMETER_NAMES
+    }
+    active = [PARAMETER_INDEX[name] for name in PARAMETER_NAMES if name in solve_for]
+    if not active:
+        raise CalibrationError("nothing to estimate: no parameter is to be solved for")
+
+    def drop(indices: Iterable[int], reason: str) -> None:
+        for i in indices:
+            status[PARAMETER_NAMES[i]] = ParameterStatus("not_estimable", reason)
+            if i in active:
+                active.remove(i)
+
+    # (a) No effect at all on the observations.
+    diag = np.diag(neq.n)
+    effect = np.sqrt(np.maximum(diag, 0.0) / max(neq.count, 1)) * REFERENCE_MAGNITUDE
+    for i in list(active):
+        if effect[i] < limits.min_effect_m:
+            drop([i], f"{PARAMETER_NAMES[i]} has no effect on the observations of this data "
+                      f"({_no_effect_hint(PARAMETER_NAMES[i])})")
+
+    warnings: list[str] = []
+    for _ in range(2 * N_PARAMETERS):
+        if not active:
+            break
+        idx = np.array(active)
+        n_sub = neq.n[np.ix_(idx, idx)]
+        scale = 1.0 / np.sqrt(np.diag(n_sub))
+        c = n_sub * scale[:, None] * scale[None, :]
+        # (b) Rank deficiency: a combination of parameters with (almost) no effect.
+        eigval, eigvec = np.linalg.eigh(c)
+        if eigval[0] < limits.min_eigenvalue:
+            vec = eigvec[:, 0]
+            involved = [int(idx[j]) for j in np.flatnonzero(np.abs(vec) > 0.25)]
+            drop(involved, f"{_names(involved)} cannot be told apart on this data: "
+                           "their effects on the overlaps are the same "
+                           "(rank-deficient normal matrix)")
+            continue
+        cinv = np.linalg.inv(c)
+        d = np.sqrt(np.diag(cinv))
+        corr = cinv / d[:, None] / d[None, :]
+        # (c) Near-perfect correlation.
+        off = np.abs(corr - np.eye(len(idx)))
+        worst = np.unravel_index(np.argmax(off), off.shape)
+        if off[worst] > limits.max_correlation:
+            pi, pj = int(idx[worst[0]]), int(idx[worst[1]])
+            drop([pi, pj], f"{PARAMETER_NAMES[pi]} and {PARAMETER_NAMES[pj]} are correlated "
+                           f"{float(off[worst]):.4f}: only their combination is determined"
+                           f"{_correlation_hint(PARAMETER_NAMES[pi], PARAMETER_NAMES[pj])}")
+            continue
+        # Solve with the fixed parameters moved to the right-hand side.
+        rhs = neq.u[idx] - neq.n[np.ix_(idx, np.arange(N_PARAMETERS))] @ _zero_at(base, idx)
+        delta = base.copy()
+        delta[idx] = scale * (cinv @ (scale * rhs))
+        q = neq.count
+        redundancy = q - len(idx)
+        if redundancy <= 0:
+            k = len(idx)
+            raise CalibrationError(
+                f"{q} correspondence{'' if q == 1 else 's'} for {k} "
+                f"parameter{'' if k == 1 else 's'}: too few to estimate "
+                f"{'it' if k == 1 else 'them'} with any check (redundancy {redundancy})"
+            )
+        vtpv = max(neq.residual_square_sum(delta), 0.0)
+        sigma0 = float(np.sqrt(vtpv / redundancy))
+        s0 = sigma0_apriori if sigma0_apriori is not None else sigma0
+        cov = (s0**2) * cinv * scale[:, None] * scale[None, :]
+        sig = np.sqrt(np.diag(cov))
+        # (d) Determined too weakly to be of use.
+        weak = [int(idx[j]) for j in range(len(idx))
+                if sig[j] > limits.max_sigma.get(PARAMETER_NAMES[idx[j]], np.inf)]
+        if weak:
+            for i in weak:
+                drop([i], "the data flown determines it too weakly to be useful "
+                          f"({_weak_hint(PARAMETER_NAMES[i])})")
+            continue
+        for name, _, r in _pairs(idx, corr, 0.9):
+            warnings.append(f"{name} strongly correlated ({r:+.2f})")
+        sigma = np.full(N_PARAMETERS, np.nan)
+        sigma[idx] = sig
+        for i in idx:
+            status[PARAMETER_NAMES[i]] = ParameterStatus("estimated")
+        return Solution(
+            delta=delta, sigma=sigma, estimated=tuple(PARAMETER_NAMES[i] for i in idx),
+            covariance=cov, correlation=corr, sigma0=sigma0, redundancy=redundancy,
+            status=status, warnings=warnings,
+        )
+    reasons = "; ".join(f"{k}: {v.reason}" for k, v in status.items() if v.reason)
+    raise CalibrationError(f"nothing left to estimate ({reasons})")
+
+
+def _zero_at(vector: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    out = vector.copy()
+    out[idx] = 0.0
+    return out
+
+
+def _pairs(idx: np.ndarray, corr: np.ndarray, threshold: float) -> list[tuple[str, str, float]]:
+    out = []
+    for i in range(len(idx)):
+        for j in range(i + 1, len(idx)):
+            if abs(corr[i, j]) > threshold:
+                out.append((f"{PARAMETER_NAMES[idx[i]]}/{PARAMETER_NAMES[idx[j]]}",
+                            PARAMETER_NAMES[idx[j]], float(corr[i, j])))
+    return out
+
+
+def _no_effect_hint(name: str) -> str:
+    if name == "dZ":
+        return "strips alone cannot see dZ: it cancels between strips; add vertical control"
+    if name == "dkappa":
+        return ("dkappa cancels on lines flown along one track and on flat ground: it needs "
+                "same-direction lines with an offset, or crossing lines, over sloped surfaces")
+    if name in ("dX", "dY", "domega"):
+        return "horizontal effects need sloped surfaces in the overlaps"
+    return "no correspondence is sensitive to it"
+
+
+def _correlation_hint(a: str, b: str) -> str:
+    pair = {a, b}
+    if pair == {"dZ", "dr"}:
+        return "; fix dZ to its surveyed value and solve dr"
+    if pair == {"dkappa", "dS"}:
+        return "; opposite parallel lines show both alike: add a same-direction or crossing line"
+    if pair == {"domega", "dY"}:
+        return "; fly two heights or add sloped features"
+    return ""
+
+
+def _weak_hint(name: str) -> str:
+    if name == "dkappa":
+        return "dkappa needs lines flown in the same direction with an offset, or crossing lines"
+    if name in ("dY", "domega"):
+        return (f"{name} needs sloped features of varied aspect in the overlaps and lines at "
+                "two flying heights")
+    if name in ("dX", "dphi"):
+        return f"{name} needs opposite lines over sloped features"
+    if name in ("dr", "dZ"):
+        return f"{name} needs vertical control or lines at different heights"
+    return "dS needs data spread across the swath"
+
+
+def cluster_robust_sigma(sol: Solution, obs: Observations, step: np.ndarray) -> np.ndarray:
+    """Standard deviations that allow for errors shared within spatial clusters.
+
+    Every overlapping strip pair is used, so the same points and patches (and their noise)
+    enter several observations: the formal ``sigma0^2 N^-1`` then claims more independent
+    information than the data hold. The cluster-robust ("sandwich") covariance
+    ``N^-1 (sum_c s_c s_c^T) N^-1`` with ``s_c = sum_{i in c} w_i a_i v_i`` over spatial
+    clusters ``c`` does not assume independence within a cluster.
+
+    Parameters
+    ----------
+    sol : Solution
+        The adjustment's result (``step`` solved from ``obs``).
+    obs : Observations
+    step : (8,) float64
+        The increment the last solve found (residuals are ``y - a . step``).
+
+    Returns
+    -------
+    (m,) float64
+        Cluster-robust standard deviations of ``sol.estimated`` (small-sample corrected).
+    """
+    idx = np.array([PARAMETER_INDEX[n] for n in sol.estimated])
+    w = obs.weights
+    used = w > 0
+    a = obs.rows[used][:, idx]
+    v = obs.residuals(step)[used]
+    score = a * (w[used] * v)[:, None]
+    _, inverse = np.unique(obs.cluster[used], return_inverse=True)
+    n_clusters = int(inverse.max()) + 1 if inverse.size else 0
+    if n_clusters <= len(idx) + 1:
+        return np.full(len(idx), np.nan)
+    s = np.zeros((n_clusters, len(idx)))
+    np.add.at(s, inverse.ravel(), score)
+    meat = s.T @ s
+    n_mat = (a * w[used][:, None]).T @ a
+    n_inv = np.linalg.inv(n_mat)
+    cov = n_inv @ meat @ n_inv
+    q = int(used.sum())
+    factor = n_clusters / (n_clusters - 1) * (q - 1) / max(q - len(idx), 1)
+    return np.sqrt(np.maximum(np.diag(cov) * factor, 0.0))
+
+
+__all__ = [
+    "DEFAULT_MAX_SIGMA",
+    "REFERENCE_MAGNITUDE",
+    "NormalEquations",
+    "ObservabilityLimits",
+    "Observations",
+    "ParameterStatus",
+    "Solution",
+    "cluster_robust_sigma",
+    "solve",
+]

@@ -1,0 +1,1 @@
+"""The calibration procedure: strip pairs, TIN matching, iteration, result."""

@@ -1,0 +1,423 @@
+"""The matching side of a calibration: strips, their pairs, TINs and point-to-patch matches.
+
+:class:`PairMatcher` holds the strips of a calibration and the pairs they form
+(:mod:`lidarcal_ros.core.calibration.pairs`); it prepares each strip once, builds each TIN once,
+corrects the points by an estimate (once per strip and estimate), matches a pair's points or
+the control points to the corrected TIN patches, chooses each pair's sample points at their
+first matching, and turns matches into the correspondences the adjustment takes (docs/method.md
+eq. [11] for strip pairs, [12] for control points). The per-strip and per-pair work runs in
+the calibration's worker threads.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from lidarcal_ros.core.adjustment.least_squares import Observations
+from lidarcal_ros.core.calibration.pairs import (
+    FootprintGrid,
+    PreparedStrip,
+    StripPair,
+    find_pair,
+    footprint_keys,
+    ground_speed,
+    stratified_sample,
+)
+from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
+from lidarcal_ros.core.calibration.tin import PatchMatches, Tin, match_to_tin
+from lidarcal_ros.core.georeferencing.bias_model import add_geometry_normal_rows, exact_correction
+from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, LaserGeometry
+from lidarcal_ros.core.georeferencing.rigorous import (
+    LaserVectorQA,
+    ModelChoice,
+    laser_vector_qa,
+    strip_geometry,
+)
+from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
+from lidarcal_ros.core.params import N_PARAMETERS
+from lidarcal_ros.core.trajectory.strip_errors import TrajectoryRows, TrajectoryState
+from lidarcal_ros.errors import CalibrationError
+
+if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
+    from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
+
+
+class PairMatcher:
+    """The strips of a calibration, their pairs, and the matching of both.
+
+    Parameters
+    ----------
+    settings : CalibrationSettings
+    clock : StageClock
+        Where the CPU time of each stage is summed.
+    workers : WorkerPool
+        The threads the per-strip and per-pair work runs in.
+
+    Attributes
+    ----------
+    strips : list of PreparedStrip
+        In the order added.
+    pairs : list of StripPair
+        In the order formed (``StripPair.index``).
+    """
+
+    def __init__(self, settings: CalibrationSettings, clock: StageClock,
+                 workers: WorkerPool) -> None:
+        self.settings = settings
+        self.clock = clock
+        self.workers = workers
+        self.footprint = FootprintGrid(settings.overlap_cell_m)
+        self.strips: list[PreparedStrip] = []
+        self.pairs: list[StripPair] = []
+        #: Every strip's trajectory error as estimated so far (docs/method.md section 11).
+        self.trajectory = TrajectoryState(settings.trajectory.model,
+                                          settings.trajectory.knot_interval_s)
+
+    @property
+    def n_points(self) -> int:
+        """Points held (dropped strips excluded)."""
+        return sum(len(ps.strip) for ps in self.strips if not ps.dropped)
+
+    def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+        """Prepare a strip (local trajectory, footprint, sampling priority) and find its
+        pairs with the strips already held.
+
+        Returns the ``(strip_id, strip_id)`` pairs it forms.
+
+        Raises
+        ------
+        TrajectoryError
+            The trajectory does not cover the strip's points.
+        CalibrationError
+            A strip with this id is already held.
+        """
+        with self.clock("local trajectories"):
+            return self._add_strip(strip, trajectory)
+
+    def _add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+        s = self.settings
+        if any(ps.strip_id == strip.strip_id for ps in self.strips):
+            raise CalibrationError(f"strip {strip.strip_id} added twice")
+        geom, choice = strip_geometry(strip.t, strip.xyz, trajectory,
+                                      window_s=s.trajectory_window_s,
+                                      source=f"strip {strip.strip_id}",
+                                      heading_source=s.heading_source, model=s.model)
+        speed = ground_speed(trajectory, strip.t)
+        qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
+        keys = self.footprint.keys(strip.xyz[:, :2])
+        cells = np.unique(keys)
+        density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
+        priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
+        return self.add_prepared(PreparedStrip(strip, geom, density, keys, cells, priority,
+                                               choice, qa, speed))
+
+    def add_released(self, strip_id: int, t0: float, t1: float) -> PreparedStrip:
+        """Hold a strip released before a restart, flown from ``t0`` to ``t1`` (s), for its
+        trajectory error alone (a placeholder: no points, no pairs); returns it."""
+        empty = np.empty(0, dtype=np.int64)
+        ps = PreparedStrip(Strip(strip_id, np.empty((0, 3)), np.empty(0)), LaserGeometry.empty(),
+                           0.0, empty, empty.copy(), np.empty(0),
+                           ModelChoice(LEVEL, "released before a restart"),
+                           LaserVectorQA(*(math.nan,) * 5), math.nan, dropped=True,
+                           placeholder=True)
+        self.add_prepared(ps, span=(t0, t1))
+        return ps
+
+    def add_prepared(self, ps: PreparedStrip, *,
+                     span: tuple[float, float] | None = None) -> list[tuple[int, int]]:
+        """Hold a strip another matcher of the same settings prepared (its TIN and geometry
+        shared: a live ``auto`` calibration runs two trajectory models over the same strips)
+        and find its pairs with the strips already held; :meth:`add_strip` says what it
+        returns and raises. ``span``: the strip's first and last time (s), where its points
+        are not held."""
+        if any(held.strip_id == ps.strip_id for held in self.strips):
+            raise CalibrationError(f"strip {ps.strip_id} added twice")
+        s = self.settings
+        strip = ps.strip
+        self.strips.append(ps)
+        if span is None:
+            span = ((float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip)
+                    else (0.0, 0.0))
+        self.trajectory.add_strip(*span)
+        new = len(self.strips) - 1
+        formed = []
+        for other in range(new):
+            pair = find_pair(self.strips, other, new, index=len(self.pairs),
+                             footprint=self.footprint, min_overlap_cells=s.min_overlap_cells,
+                             max_candidates=s.max_candidates_per_pair)
+            if pair is not None:
+                self.pairs.append(pair)
+                formed.append((self.strips[other].strip_id, strip.strip_id))
+        return formed
+
+    def drop_strip(self, strip_id: int, delta: np.ndarray) -> int:
+        """Release a strip's points (memory budget); its pairs keep their last observations
+        (none matched yet: no observation, at the current estimate ``delta``).
+
+        Returns the number of points released.
+        """
+        for k, ps in enumerate(self.strips):
+            if ps.strip_id == strip_id:
+                for pair in self.pairs:
+                    if k in (pair.a, pair.b) and pair.frozen is None:
+                        pair.frozen_delta = pair.last_delta if pair.last_delta is not None \
+                            else delta.copy()
+                        pair.frozen = pair.last if pair.last is not None else \
+                            Observations.empty()
+                if ps.dropped:  # (released already through another matcher sharing it)
+                    return 0
+                n = len(ps.strip)
+                ps.dropped = True
+                ps.tin = None
+                empty = np.empty((0, 3))
+                ps.strip = Strip(ps.strip_id, empty, np.empty(0))
+                ps.geometry0 = ps.geometry = ps.geometry0.take(np.zeros(0, dtype=np.int64))
+                ps.corrected = None
+                ps.point_cells = np.empty(0, dtype=np.int64)
+                ps.priority = np.empty(0)
+                return n
+        return 0
+
+    def tin(self, k: int) -> Tin:
+        """The TIN of strip ``k``, built at the first call."""
+        ps = self.strips[k]
+        if ps.tin is None:
+            with self.clock("TINs"):
+                ps.tin = Tin(ps.strip.xyz, self.settings.tin_quality(ps.density))
+        return ps.tin
+
+    def build_tins(self, strips: Iterable[int]) -> None:
+        """Build the TINs of ``strips`` not built yet (largest first, in the threads)."""
+        todo = sorted({k for k in strips if self.strips[k].tin is None and
+                       not self.strips[k].dropped}, key=lambda k: -len(self.strips[k].strip))
+        self.workers.map(self.tin, todo, "building TINs" if todo else None)
+
+    def corrected(self, k: int, delta: np.ndarray, *,
+                  delivered: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Corrected coordinates of strip k and the shift ``delivered - corrected``: by the
+        estimate ``delta`` and the strip's trajectory error as estimated, or with
+        ``delivered`` by ``delta`` alone (the strips as delivered at ``delta`` zero: what a
+        pair's sample points are chosen on, whatever the errors estimated by then).
+
+        Also re-evaluates the strip's laser-frame geometry (x, z, beta) at the corrected
+        points: the design rows are the Jacobian at the current estimate. Evaluated at the
+        delivered points instead, effects that cancel between opposite lines (dr, dS, dkappa)
+        would appear not to cancel, and mimic dphi.
+        """
+        ps = self.strips[k]
+        error = self.trajectory.strip_params(k) if self.trajectory.active and not delivered \
+            else np.zeros(0)
+        key = np.asarray(delta, dtype=np.float64).tobytes() + error.tobytes()
+        if ps.corrected is None or ps.corrected[0] != key:
+            with self.clock("corrections"):
+                corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
+                                                              delta)
+                if error.size and np.any(error):
+                    # docs/method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
+                    # geometry stays that of the delivered positions
+                    e = self.trajectory.error(k, ps.strip.t)
+                    corrected -= e
+                    shift += e
+            ps.corrected = (key, corrected, shift, geometry)
+        _, corrected, shift, ps.geometry = ps.corrected
+        return corrected, shift
+
+    def match_pair(
+        self, pair: StripPair, points_idx: np.ndarray, delta: np.ndarray,
+        corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float,
+    ) -> PatchMatches:
+        """Match the points ``points_idx`` of the pair's strip ``a`` to the TIN of its strip
+        ``b``, both corrected by the estimate ``delta`` (``corrected``: by strip, the
+        corrected points and ``delivered - corrected``), within ``threshold`` metres."""
+        a_xyz, _ = corrected[pair.a]
+        b_xyz, b_shift = corrected[pair.b]
+        shift = b_shift if np.any(delta) or (self._moved(pair.b) and np.any(b_shift)) else None
+        # The sample is matched every iteration: start each search at its last patch.
+        on_sample = points_idx is pair.sample
+        start = pair.last_triangle if on_sample else None
+        tin = self.tin(pair.b)
+        with self.clock("matching"):
+            m = match_to_tin(a_xyz[points_idx], tin, b_xyz, max_normal_distance=threshold,
+                             vertex_shift=shift, start=start)
+        if on_sample:
+            pair.last_triangle = m.triangle
+        return m
+
+    def _moved(self, k: int) -> bool:
+        """Strip ``k``'s points are moved by a trajectory error estimated for it."""
+        return self.trajectory.active and bool(np.any(self.trajectory.strip_params(k)))
+
+    def _patch_terms(
+        self, k: int, m: PatchMatches
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For the valid matches to strip ``k``'s patches: the observed normals, ``n^T A_B``
+        interpolated at the foot of the normal (barycentric), the observed discrepancy (the
+        patch distance along the observed normal) and the time of the foot (s, barycentric)."""
+        ok = m.valid
+        tin = self.tin(k)
+        with self.clock("design rows"):
+            n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
+            w = m.weights[ok]
+            verts = tin.simplices[m.triangle[ok]]
+            geometry = self.strips[k].geometry
+            rows = np.zeros((int(ok.sum()), N_PARAMETERS))
+            for v in range(3):
+                add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
+            y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+            t_foot = (self.strips[k].strip.t[verts] * w).sum(axis=1)
+        return n, rows, y, t_foot
+
+    def _trajectory_rows(self, a: int, t_a: np.ndarray, b: int, t_b: np.ndarray,
+                         n: np.ndarray) -> TrajectoryRows | None:
+        """The trajectory terms of correspondences of strip ``a``'s points at ``t_a`` (``a``
+        -1: control points) against strip ``b``'s patches with feet at ``t_b``, normals ``n``;
+        None where trajectory errors are not estimated."""
+        if not self.trajectory.active:
+            return None
+        k = t_b.shape[0]
+        rows = TrajectoryRows(np.full(k, a, np.int64), t_a, np.full(k, b, np.int64), t_b, n,
+                              np.zeros(k))
+        rows.applied = self.trajectory.projected(rows)
+        return rows
+
+    def pair_observations(
+        self, pair: StripPair, points_idx: np.ndarray, m: PatchMatches
+    ) -> Observations:
+        """The correspondences (eq. [11]) of the valid matches ``m`` of the pair's points
+        ``points_idx``."""
+        sa = self.strips[pair.a]
+        idx = points_idx[m.valid]
+        # eq. [11]: the discrepancy n . (X_A - X_B) left by the current estimate; the
+        # adjustment solves for the increment that removes it (Gauss-Newton).
+        n, patch_rows, y, t_foot = self._patch_terms(pair.b, m)
+        with self.clock("design rows"):
+            rows = np.zeros_like(patch_rows)
+            add_geometry_normal_rows(rows, n, sa.geometry, idx)
+            rows -= patch_rows
+            cluster = self._cluster_of(sa.strip.xyz[idx])
+        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster,
+                            self._trajectory_rows(pair.a, sa.strip.t[idx], pair.b, t_foot, n))
+
+    def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
+        """Spatial cluster (cell of ``cluster_cell_m``) of observations at ``xyz``."""
+        return footprint_keys(xyz[:, :2], self.settings.cluster_cell_m)
+
+    @staticmethod
+    def _observed_normal(normal: np.ndarray, sloped: np.ndarray) -> np.ndarray:
+        """Normals of patches that are not clearly sloped set exactly vertical.
+
+        On flat ground a triangle tilts only by the noise of its vertices; that tilt would
+        lend the horizontal parameters an information that is noise (and bias them toward
+        zero), so such patches observe vertical effects only (see ``TinQuality``).
+        """
+        out = normal.copy()
+        out[~sloped] = (0.0, 0.0, 1.0)
+        return out
+
+    def _select_sample(self, pair: StripPair, m: PatchMatches) -> np.ndarray:
+        """Stratify matched candidates by patch slope and aspect; cap each class."""
+        with self.clock("sample selection"):
+            return stratified_sample(m, pair.candidates, self.strips[pair.a].priority,
+                                     per_class_cap=self.settings.per_class_cap,
+                                     flat_class_factor=self.settings.flat_class_factor)
+
+    def control_observations(
+        self, control: ControlPoints, delta: np.ndarray,
+        corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float,
+    ) -> tuple[Observations, list[tuple[int, int, float]]]:
+        """Match the control points to the TINs of the strips whose footprint holds them
+        (:meth:`match_pair`'s arguments): their correspondences (eq. [12]), and (control
+        index, strip index, normal distance in metres) of each match."""
+        parts = []
+        found: list[tuple[int, int, float]] = []
+        cp_cells = self.footprint.keys(control.xyz[:, :2])
+        self.build_tins(k for k, ps in enumerate(self.strips)
+                        if not ps.dropped and np.isin(cp_cells, ps.cells).any())
+        for k, ps in enumerate(self.strips):
+            if ps.dropped:
+                continue
+            inside = np.isin(cp_cells, ps.cells)
+            if not inside.any():
+                continue
+            cps = np.flatnonzero(inside)
+            xyz, shift = corrected[k]
+            tin = self.tin(k)
+            with self.clock("matching"):
+                m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
+                                 vertex_shift=shift if np.any(delta) or
+                                 (self._moved(k) and np.any(shift)) else None)
+            if not m.valid.any():
+                continue
+            ok = m.valid
+            # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
+            n, patch_rows, y, t_foot = self._patch_terms(k, m)
+            rows = -patch_rows
+            weights = np.full(y.size, self.settings.control_weight)
+            parts.append(Observations(rows, y, weights, -1 - cps[ok],
+                                      self._cluster_of(control.xyz[cps[ok]]),
+                                      self._trajectory_rows(-1, np.zeros(y.size), k, t_foot,
+                                                            n)))
+            for c, d in zip(cps[ok], m.distance[ok]):
+                found.append((int(c), k, float(d)))
+        return Observations.concatenate(parts), found
+
+    def choose_samples(self, pairs: Sequence[StripPair]) -> None:
+        """Match pairs met for the first time once at zero correction: choose their sample
+        points and keep their "before" discrepancies."""
+        if not pairs:
+            return
+        s = self.settings
+        zero = np.zeros(N_PARAMETERS)
+        self.build_tins(p.b for p in pairs)
+        delivered = self.corrected_many(self.used_strips(pairs), zero, delivered=True)
+
+        def choose(pair: StripPair) -> None:
+            m = self.match_pair(pair, pair.candidates, zero, delivered, s.max_normal_distance_m)
+            pair.sample = self._select_sample(pair, m)
+            before = m.take(np.isin(pair.candidates, pair.sample)).distance
+            pair.before = before[np.isfinite(before)]
+
+        self.workers.map(choose, pairs, "choosing sample points")
+
+    def match_samples(
+        self, delta: np.ndarray
+    ) -> tuple[list[tuple[StripPair, PatchMatches]], dict[int, tuple[np.ndarray, np.ndarray]]]:
+        """Match the sample points of every pair holding its points at the estimate ``delta``
+        (first threshold), choosing the samples of pairs met for the first time.
+
+        Returns the matches of each pair and the corrected strips (see :meth:`corrected`).
+        """
+        s = self.settings
+        live = [p for p in self.pairs if p.frozen is None]
+        # Samples first: choosing them leaves every strip's geometry at the delivered points.
+        self.choose_samples([p for p in live if p.sample is None])
+        corrected = self.corrected_all(delta)
+
+        def match(pair: StripPair) -> PatchMatches:
+            assert pair.sample is not None
+            return self.match_pair(pair, pair.sample, delta, corrected, s.max_normal_distance_m)
+
+        return list(zip(live, self.workers.map(match, live), strict=True)), corrected
+
+    def corrected_all(self, delta: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`corrected` of every strip that holds its points."""
+        return self.corrected_many((k for k in range(len(self.strips))
+                                    if not self.strips[k].dropped), delta)
+
+    def corrected_many(self, strips: Iterable[int], delta: np.ndarray, *,
+                       delivered: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`corrected` of ``strips`` (in the threads)."""
+        ks = sorted(set(strips))
+        return dict(zip(ks, self.workers.map(
+            lambda k: self.corrected(k, delta, delivered=delivered), ks), strict=True))
+
+    def used_strips(self, pairs: Sequence[StripPair]) -> set[int]:
+        """The strips (indices) of ``pairs``."""
+        return {k for p in pairs for k in (p.a, p.b)}
+
+
+__all__ = ["PairMatcher"]

@@ -1,0 +1,1 @@
+"""Point positioning: the bias model, the rigorous model, the local trajectory."""

@@ -1,0 +1,168 @@
+"""The laser geometry of each point: firing position, body frame and laser-frame coordinates.
+
+Two models give it (``matching.model``; :mod:`lidarcal_ros.core.georeferencing.local_trajectory`
+chooses):
+
+``level`` (docs/method.md sections 2-4)
+    The platform is taken as level: the body frame (right, forward, up) is the map frame
+    turned by the heading ``kappa``, ``R_kappa``, and the firing position comes from a line
+    fitted to the trajectory positions around the firing time.
+``rigorous`` (docs/method.md section 10)
+    The body frame is the INS attitude interpolated to the firing time, ``R_ins`` (roll,
+    pitch and heading), and the firing position is interpolated between trajectory samples.
+
+Either way the point is ``X = X_o + R rho`` with ``rho = (x, y, z)`` in the body frame: ``x``
+across track (positive right), ``y`` along track (about 0 for a linear scanner), ``z``
+vertical (negative: the ground is below). The level model leaves ``y`` out (section 4 recovers
+``x`` and ``z`` only), the rigorous one keeps it (section 10's ``rho_hat``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: The two point-positioning models.
+LEVEL = "level"
+RIGOROUS = "rigorous"
+
+
+@dataclass
+class LaserGeometry:
+    """Per-point quantities of docs/method.md sections 4 and 10 (all (n,) float64 unless stated).
+
+    Attributes
+    ----------
+    x : lateral body-frame coordinate of the point seen from the firing position, metres,
+        positive right of the flight direction.
+    z : vertical body-frame coordinate, metres (negative: ground below the sensor).
+    kappa : heading, radians, ``atan2(-d_x, d_y)`` of the body's forward axis ``d``.
+    beta : mirror angle, radians, ``atan2(-x, -z)`` (``atan(x / z)`` for ``z < 0``).
+    origin : (n, 3) firing position ``X_o(t)`` in the map frame, metres.
+    rotation : (n, 3, 3) or None
+        ``R_ins``, body (right, forward, up) to map, of each point (``rigorous``); None for
+        ``level``, whose rotation is ``R_kappa``.
+    y : (n,) or None
+        Forward body-frame coordinate, metres (``rigorous``: a QA figure, about 0 for a
+        linear scanner); None for ``level``.
+    model : ``level`` or ``rigorous``.
+    """
+
+    x: np.ndarray
+    z: np.ndarray
+    kappa: np.ndarray
+    beta: np.ndarray
+    origin: np.ndarray
+    #: ``cos kappa``, ``sin kappa`` when known (one per trajectory window, spread to the
+    #: points); else computed on first use by :meth:`trig`.
+    cos_kappa: np.ndarray | None = None
+    sin_kappa: np.ndarray | None = None
+    #: ``sin beta``, ``cos beta`` when known; else computed on first use by :meth:`trig`.
+    sin_beta: np.ndarray | None = None
+    cos_beta: np.ndarray | None = None
+    #: Where ``kappa`` came from: ``track`` or ``attitude``
+    #: (:mod:`lidarcal_ros.core.georeferencing.heading`), and the median crab, deg (NaN: no attitude
+    #: to compare the track with).
+    heading_from: str = "track"
+    crab_deg: float = math.nan
+    rotation: np.ndarray | None = None
+    y: np.ndarray | None = None
+    model: str = LEVEL
+
+    @property
+    def range(self) -> np.ndarray:
+        """Range from the firing position, metres: ``sqrt(x^2 + z^2)`` (``level``),
+        ``|rho|`` (``rigorous``)."""
+        if self.y is None:
+            return np.hypot(self.x, self.z)
+        return np.sqrt(self.x * self.x + self.y * self.y + self.z * self.z)
+
+    def trig(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``cos kappa, sin kappa, sin beta, cos beta`` per point.
+
+        Float64 sine and cosine cost some 10 ns a point each, more than the rest of eq. [13]
+        together, so the heading's come once per trajectory window and the mirror angle's
+        from the coordinates: ``sin beta = -x / r``, ``cos beta = -z / r`` with ``r`` the
+        :attr:`range` (docs/method.md section 10: ``sb = -x / r``, ``cb = -z / r``).
+        """
+        if self.cos_kappa is None or self.sin_kappa is None:
+            self.cos_kappa = np.cos(self.kappa)
+            self.sin_kappa = np.sin(self.kappa)
+        if self.sin_beta is None or self.cos_beta is None:
+            inv_r = 1.0 / self.range
+            self.sin_beta, self.cos_beta = -self.x * inv_r, -self.z * inv_r
+        return self.cos_kappa, self.sin_kappa, self.sin_beta, self.cos_beta
+
+    def to_body(self, v: np.ndarray) -> np.ndarray:
+        """Map-frame vectors (n, 3) in the body frame (right, forward, up): ``R^T v``."""
+        if self.rotation is not None:
+            return np.einsum("nji,nj->ni", self.rotation, v)
+        c, s, _, _ = self.trig()
+        out = np.empty_like(v, dtype=np.float64)
+        out[:, 0] = c * v[:, 0] + s * v[:, 1]
+        out[:, 1] = -s * v[:, 0] + c * v[:, 1]
+        out[:, 2] = v[:, 2]
+        return out
+
+    def to_map(self, v: np.ndarray) -> np.ndarray:
+        """Body-frame vectors (n, 3) in the map frame: ``R v``."""
+        if self.rotation is not None:
+            return np.einsum("nij,nj->ni", self.rotation, v)
+        c, s, _, _ = self.trig()
+        out = np.empty_like(v, dtype=np.float64)
+        out[:, 0] = c * v[:, 0] - s * v[:, 1]
+        out[:, 1] = s * v[:, 0] + c * v[:, 1]
+        out[:, 2] = v[:, 2]
+        return out
+
+    def take(self, index: np.ndarray) -> LaserGeometry:
+        """A subset of the points (fancy or boolean index)."""
+        def part(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[index]
+
+        return LaserGeometry(
+            self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
+            cos_kappa=part(self.cos_kappa), sin_kappa=part(self.sin_kappa),
+            sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
+            heading_from=self.heading_from, crab_deg=self.crab_deg,
+            rotation=part(self.rotation), y=part(self.y), model=self.model,
+        )
+
+    @classmethod
+    def empty(cls, model: str = LEVEL) -> LaserGeometry:
+        """No points."""
+        e = np.empty(0)
+        return cls(e, e, e, e, np.empty((0, 3)), model=model,
+                   rotation=np.empty((0, 3, 3)) if model == RIGOROUS else None,
+                   y=e if model == RIGOROUS else None)
+
+
+def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
+    """The laser geometry of points ``xyz`` (n, 3, map frame, m) seen from the firing
+    positions and body frames of ``frame`` (one per point): where a point moved by the
+    correction is seen from.
+
+    The level model's ``x`` is the horizontal distance across the heading and ``z`` the
+    height difference (docs/method.md section 4); the rigorous model's ``(x, y, z)`` is
+    ``R_ins^T (X - X_o)`` (section 10).
+    """
+    rel = xyz - frame.origin
+    c, s = frame.cos_kappa, frame.sin_kappa
+    if c is None or s is None:
+        c, s, _, _ = frame.trig()
+    if frame.rotation is not None:
+        rho = np.einsum("nji,nj->ni", frame.rotation, rel)
+        x, y, z = rho[:, 0], rho[:, 1], rho[:, 2]
+    else:
+        x, y, z = rel[:, 0] * c + rel[:, 1] * s, None, rel[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.arctan(x / z)
+    return LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
+                         cos_kappa=c, sin_kappa=s, heading_from=frame.heading_from,
+                         crab_deg=frame.crab_deg, rotation=frame.rotation, y=y,
+                         model=frame.model)
+
+
+__all__ = ["LEVEL", "RIGOROUS", "LaserGeometry", "geometry_at"]

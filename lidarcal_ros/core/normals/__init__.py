@@ -1,0 +1,1 @@
+"""Surface normals of strips by plane fits over a grid."""

@@ -1,0 +1,1 @@
+"""Quality measures of a mission: accuracy, swath differences, quality level, land cover."""

@@ -1,0 +1,1 @@
+"""Simulated missions with known biases: terrain, flight, scanner, truth."""

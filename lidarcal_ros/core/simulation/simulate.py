@@ -1,0 +1,369 @@
+"""Simulated airborne linear-scanner LiDAR missions with known system biases.
+
+:func:`simulate_mission` flies the lines of a
+:class:`~lidarcal_ros.core.simulation.spec.SimulationSpec` one after the other over a surface
+with a scanner whose biases are known, and returns the mission as the system would deliver it
+(strips of biased points, the trajectory, control points) with its truth. The parts live
+beside it:
+
+- :mod:`~lidarcal_ros.core.simulation.spec`: every option of a mission;
+- :mod:`~lidarcal_ros.core.simulation.flight_path`: each line's flight (position and attitude at any
+  time: straight or turning, crabbed into the wind, banked, in rough air);
+- :mod:`~lidarcal_ros.core.simulation.terrain`, :mod:`~lidarcal_ros.core.simulation.raster_terrain`
+and
+  :mod:`~lidarcal_ros.core.simulation.ray_casting`: the surface and where each pulse meets it;
+- :mod:`~lidarcal_ros.core.simulation.scanning`: one line's pulses, from firing to the recorded
+point and
+  intensity, with the exact bias model of :mod:`~lidarcal_ros.core.simulation.exact_model`;
+- :mod:`~lidarcal_ros.core.simulation.trajectory_errors`: the errors of the delivered
+  trajectory, per strip;
+- :mod:`~lidarcal_ros.core.simulation.truth`: what the truth records.
+
+Here: the mission's assembly. The lines are scheduled one after the other (each trajectory
+``LEAD_S`` before its first pulse to ``LEAD_S`` after its last, ``TURN_S`` between one
+trajectory and the next), the terrain is generated over the lines' footprint with the control
+points where every strip surely sees them, and all measurement noise is drawn from one
+generator in flight order (range and intensity noise of a line, then its trajectory's), so that
+a spec gives the same mission to the bit. The trajectory errors come from a generator of their
+own and are added last (to the points and trajectory samples of their strip), so a mission with
+them differs from the same mission without them by exactly ``e_s(t)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.georeferencing.attitude import quaternions_from_attitude
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
+from lidarcal_ros.core.radiometry import atmospheric_alpha
+from lidarcal_ros.core.simulation.flight_path import FlightLine, RoughAir, Turbulence
+from lidarcal_ros.core.simulation.scanning import LineScan, Scanner, pulse_and_scan_rates, scan_line
+from lidarcal_ros.core.simulation.spec import LEAD_S, TURN_S, SimulationSpec
+from lidarcal_ros.core.simulation.surface import Surface
+from lidarcal_ros.core.simulation.terrain import Terrain
+from lidarcal_ros.core.simulation.trajectory_errors import (
+    StripTrajectoryError,
+    draw_trajectory_errors,
+    trajectory_errors_record,
+)
+from lidarcal_ros.core.simulation.truth import line_summary, truth_config
+from lidarcal_ros.errors import ConfigError
+
+#: How far (m) the terrain's objects stay from a control point.
+CONTROL_CLEAR_RADIUS_M = 15.0
+
+
+@dataclass
+class SimulatedMission:
+    """A simulated mission and its truth.
+
+    Per-strip lists are in the order of ``mission.strips``; local truths are in map
+    coordinates (``origin`` added) like the mission. ``lines`` says what each line flew
+    (:func:`~lidarcal_ros.core.simulation.truth.line_summary`), ``config`` is the record of
+    the whole (:func:`~lidarcal_ros.core.simulation.truth.truth_config`). ``flight_lines``
+    are the flights themselves (:meth:`pose`).
+
+    The mission is as delivered: its points and trajectory carry each strip's trajectory error
+    (``trajectory_errors``, by strip id; zero unless the spec asked for some), which
+    ``true_trajectory`` (the same samples, trajectory noise included) does not.
+    """
+
+    mission: Mission
+    biases: dict[str, float]
+    true_xyz: list[np.ndarray]
+    surface_class: list[np.ndarray]
+    incidence_true: list[np.ndarray]
+    reflectance_true: list[np.ndarray]
+    range_true: list[np.ndarray]
+    terrain: Surface
+    lines: list[dict[str, Any]]
+    config: dict[str, Any]
+    scan_angle_true: list[np.ndarray] = field(default_factory=list)
+    on_wall: list[np.ndarray] = field(default_factory=list)
+    flight_lines: list[FlightLine] = field(default_factory=list)
+    trajectory_errors: dict[int, StripTrajectoryError] = field(default_factory=dict)
+    true_trajectory: Trajectory | None = None
+
+    def trajectory_error(self, strip_id: int, t: np.ndarray | float) -> np.ndarray:
+        """The true error ``e_s`` (delivered - true, map frame, metres; (n, 3)) of strip
+        ``strip_id``'s trajectory at absolute times ``t`` (s): what its points carry at their
+        firing times."""
+        try:
+            error = self.trajectory_errors[int(strip_id)]
+        except KeyError:
+            raise ConfigError(f"no strip {strip_id} in the simulated mission; strips: "
+                              f"{', '.join(map(str, self.trajectory_errors))}") from None
+        return error.at(t)
+
+    def pose(self, index: int, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The exact IMU origin (n, 3, map frame) and ``R_ins`` (n, 3, 3) of strip ``index``
+        at absolute times ``t`` (s), from the flight itself, not the trajectory's samples.
+
+        The line's clock starts at its first pulse; absolute stamps near a GPS-like ``t0``
+        resolve it to about 1e-7 s (some micrometres at flying speed): a mission simulated with
+        a small ``t0`` gives poses exact to rounding.
+        """
+        fl = self.flight_lines[index]
+        state = fl.state(np.asarray(t, dtype=np.float64) - self.lines[index]["t_first"])
+        xyz = state.position
+        xyz[:, 0] += self.config["origin"][0]
+        xyz[:, 1] += self.config["origin"][1]
+        return xyz, np.broadcast_to(state.rotation(), (xyz.shape[0], 3, 3))
+
+
+def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
+    """Simulate the linear-scanner mission of ``spec`` with its known biases (the model:
+    :mod:`~lidarcal_ros.core.simulation.exact_model`).
+
+    Raises
+    ------
+    ConfigError
+        What only the flight reveals: a line whose turn cannot join its ends, whose crosswind
+        is too strong or whose beams would point too far from the vertical; control points
+        that the strips cannot all see.
+    """
+    flight, sensor = spec.flight, spec.sensor
+    plan = spec.line_specs()
+    ref_height = max(ln["height"] for ln in plan)
+    prf, scan_hz = pulse_and_scan_rates(sensor.density, flight.speed_mps, sensor.fov_deg,
+                                        ref_height)
+    half_fov = math.radians(sensor.fov_deg) / 2.0
+    scanner = Scanner(prf_hz=prf, scan_rate_hz=scan_hz, half_fov_rad=half_fov,
+                      biases=dict(spec.biases),
+                      atmospheric_alpha_per_m=atmospheric_alpha(spec.site.visibility_km),
+                      range_noise_m=spec.noise.range_noise_m,
+                      intensity_noise=spec.noise.intensity_noise)
+    flights = [FlightLine.from_spec(ln, speed_mps=flight.speed_mps, wind=flight.wind_mps,
+                                    half_fov=half_fov, rough_air=flight.rough_air)
+               for ln in plan]
+    terrain, control_xy = _site(spec, flights, half_fov)
+    times = _schedule(flights, prf, spec.trajectory_rate_hz, flight.t0)
+    errors = draw_trajectory_errors(spec.trajectory_errors, spec.trajectory_error_seed, [
+        (fl.line_id, tm.t_mid(prf), (tm.t_line, tm.t_line + float(tm.tr[-1])))
+        for fl, tm in zip(flights, times, strict=True)])
+    flights, turbulence = _into_the_air(flights, times, flight.t0, flight.rough_air, spec.seed)
+    manoeuvres = any(fl.turn_rate != 0.0 or fl.roll_offset != 0.0 for fl in flights)
+    attitude = ((flight.rough_air is not None or manoeuvres) if sensor.attitude is None
+                else bool(sensor.attitude))
+    recorder = _Recorder(terrain, scanner, np.random.default_rng([spec.noise_seed, 0x5EED]),
+                         spec.site.origin, spec.noise.trajectory_noise_m, attitude,
+                         sensor.fov_deg)
+    for fl, tm, error in zip(flights, times, errors, strict=True):
+        recorder.fly(fl, tm, error if spec.trajectory_errors.active else None)
+
+    control = None
+    if control_xy.shape[0]:
+        ox, oy = spec.site.origin
+        cz = terrain.height_local(control_xy[:, 0], control_xy[:, 1])
+        cxyz = np.column_stack([control_xy[:, 0] + ox, control_xy[:, 1] + oy, cz])
+        control = ControlPoints([f"C{i + 1}" for i in range(len(cxyz))], cxyz)
+    mission = Mission(trajectory=recorder.trajectory(), strips=recorder.strips, control=control)
+    true_trajectory = (recorder.trajectory(true=True) if spec.trajectory_errors.active
+                       else mission.trajectory)
+    scans = recorder.scans
+    config = truth_config(spec, scanner, terrain=terrain, lines=recorder.lines,
+                          attitude=attitude, turbulence=turbulence,
+                          n_points=int(sum(len(st) for st in recorder.strips)))
+    config["trajectory_errors"] = trajectory_errors_record(spec.trajectory_errors,
+                                                           spec.trajectory_error_seed, errors)
+    return SimulatedMission(
+        mission=mission, biases=dict(spec.biases), true_xyz=[s.xyz_t for s in scans],
+        surface_class=[s.cls for s in scans], incidence_true=[s.incidence for s in scans],
+        reflectance_true=[s.reflectance for s in scans],
+        range_true=[s.range_true for s in scans], terrain=terrain, lines=recorder.lines,
+        config=config, scan_angle_true=[s.theta for s in scans],
+        on_wall=[s.on_wall for s in scans], flight_lines=flights,
+        trajectory_errors={err.strip_id: err for err in errors}, true_trajectory=true_trajectory,
+    )
+
+
+# ---------------------------------------------------------------------- the site
+
+
+def _site(spec: SimulationSpec, flights: list[FlightLine], half_fov: float
+          ) -> tuple[Surface, np.ndarray]:
+    """The surface to scan (the given one, or a terrain generated over the lines' footprint,
+    open ground kept around the control points) and the control points' local (x, y) (k, 2)."""
+    extent = _terrain_extent(flights, half_fov)
+    site = spec.site
+    if site.control_xy is not None:
+        control_xy = np.asarray(site.control_xy, dtype=np.float64).reshape(-1, 2)
+    else:
+        control_xy = _control_locations(flights, half_fov, site.n_control, extent)
+    terrain = site.terrain
+    if terrain is None:
+        terrain = Terrain(extent, seed=spec.seed, kind=spec.terrain_kind, keep_clear=control_xy,
+                          clear_radius=CONTROL_CLEAR_RADIUS_M, origin=site.origin)
+    return terrain, control_xy
+
+
+def _in_footprints(x: np.ndarray, y: np.ndarray, flights: list[FlightLine], half_fov: float,
+                   margin: float) -> np.ndarray:
+    ok = np.ones(x.shape, dtype=bool)
+    for fl in flights:
+        ok &= fl.covers(x, y, half_fov, margin)
+    return ok
+
+
+def _control_locations(
+    flights: list[FlightLine], half_fov: float, n: int, extent: Sequence[float]
+) -> np.ndarray:
+    if n <= 0:
+        return np.zeros((0, 2))
+    xmin, xmax, ymin, ymax = extent
+    # a 5 m grid anchored at the local origin (the centre of the named scenarios)
+    gx, gy = np.meshgrid(np.arange(math.ceil(xmin / 5.0), math.floor(xmax / 5.0) + 1) * 5.0,
+                         np.arange(math.ceil(ymin / 5.0), math.floor(ymax / 5.0) + 1) * 5.0)
+    gx, gy = gx.ravel(), gy.ravel()
+    for margin in (60.0, 40.0, 25.0):
+        ok = _in_footprints(gx, gy, flights, half_fov, margin)
+        if ok.any():
+            break
+    if not ok.any():
+        raise ConfigError("control points: no area is seen by every strip")
+    cx, cy = gx[ok], gy[ok]
+    centre = np.array([cx.mean(), cy.mean()])
+    d = np.hypot(cx - centre[0], cy - centre[1])
+    chosen = [int(np.argmin(d))]
+    dmin = np.hypot(cx - cx[chosen[0]], cy - cy[chosen[0]])
+    while len(chosen) < n:
+        j = int(np.argmax(dmin))
+        if dmin[j] < 40.0:
+            raise ConfigError(f"control points: the common area cannot hold {n} points 40 m apart")
+        chosen.append(j)
+        dmin = np.minimum(dmin, np.hypot(cx - cx[j], cy - cy[j]))
+    return np.stack([cx[chosen], cy[chosen]], axis=1)
+
+
+def _terrain_extent(flights: list[FlightLine], half_fov: float) -> tuple[float, ...]:
+    pts = np.vstack([fl.outline(half_fov) for fl in flights])
+    xs, ys = pts[:, 0].tolist(), pts[:, 1].tolist()
+    return (math.floor(min(xs)), math.ceil(max(xs)), math.floor(min(ys)), math.ceil(max(ys)))
+
+
+# ---------------------------------------------------------------------- the schedule
+
+
+@dataclass(frozen=True)
+class _LineTimes:
+    """When a line is flown: its trajectory starts at ``t_line`` (absolute, s), its ``n``
+    pulses are fired from ``t_line + LEAD_S`` to ``t_line + t_last_rel``, its samples are at
+    ``t_line + tr``."""
+
+    t_line: float
+    n: int
+    t_last_rel: float
+    tr: np.ndarray
+
+    def pulse_times(self, prf: float) -> np.ndarray:
+        """The absolute firing times (s) at ``prf`` (Hz)."""
+        return (self.t_line + LEAD_S) + np.arange(self.n, dtype=np.float64) / prf
+
+    def t_mid(self, prf: float) -> float:
+        """Halfway between the first and the last pulse (absolute, s)."""
+        first = self.t_line + LEAD_S
+        return 0.5 * (first + (first + (self.n - 1) / prf))
+
+
+def _schedule(flights: list[FlightLine], prf: float, rate: float, t0: float
+              ) -> list[_LineTimes]:
+    """One line after the other, ``TURN_S`` between the end of one trajectory and the next."""
+    out = []
+    t_line = float(t0)
+    for fl in flights:
+        n = int(math.floor(fl.duration * prf)) + 1
+        t_last_rel = LEAD_S + (n - 1) / prf
+        n_traj = int(math.floor((t_last_rel + LEAD_S) * rate)) + 1
+        tr = np.arange(n_traj, dtype=np.float64) / rate
+        out.append(_LineTimes(t_line, n, t_last_rel, tr))
+        t_line = float(t_line + tr[-1] + TURN_S)
+    return out
+
+
+def _into_the_air(flights: list[FlightLine], times: list[_LineTimes], t0: float,
+                  rough_air: RoughAir | None, seed: int) -> tuple[list[FlightLine],
+                                                                  Turbulence | None]:
+    """The lines on the mission's clock, in its rough air (scaled over the trajectory's
+    samples, :class:`~lidarcal_ros.core.simulation.flight_path.RoughAir`)."""
+    flights = [replace(fl, time_offset=(tm.t_line - t0) + LEAD_S)
+               for fl, tm in zip(flights, times, strict=True)]
+    if rough_air is None:
+        return flights, None
+    raw = Turbulence.draw(rough_air, seed if rough_air.seed is None else rough_air.seed)
+    sample_times = np.concatenate([fl.time_offset + (tm.tr - LEAD_S)
+                                   for fl, tm in zip(flights, times, strict=True)])
+    turbulence = raw.scaled(rough_air.peaks, sample_times)
+    return [replace(fl, turbulence=turbulence) for fl in flights], turbulence
+
+
+# ---------------------------------------------------------------------- flying the lines
+
+
+@dataclass
+class _Recorder:
+    """What the system records as the lines are flown one after the other, and the truth."""
+
+    terrain: Surface
+    scanner: Scanner
+    rng: np.random.Generator
+    origin: tuple[float, float]
+    trajectory_noise_m: float
+    attitude: bool
+    fov_deg: float
+    strips: list[Strip] = field(default_factory=list)
+    scans: list[LineScan] = field(default_factory=list)
+    lines: list[dict[str, Any]] = field(default_factory=list)
+    _t: list[np.ndarray] = field(default_factory=list)
+    _xyz: list[np.ndarray] = field(default_factory=list)
+    _xyz_true: list[np.ndarray] = field(default_factory=list)
+    _q: list[np.ndarray] = field(default_factory=list)
+
+    def fly(self, fl: FlightLine, tm: _LineTimes, error: StripTrajectoryError | None) -> None:
+        """Scan a line, then sample its trajectory (exact poses, ``LEAD_S`` before its first
+        pulse to ``LEAD_S`` after its last, with the trajectory noise); with an ``error``, the
+        points and the samples as georeferenced with the delivered trajectory (+ ``e_s(t)``;
+        the samples without it kept for :meth:`trajectory` ``true``)."""
+        ox, oy = self.origin
+        scan = scan_line(fl, tm.n, self.terrain, self.scanner, self.rng)
+        for arr in (scan.xyz_b, scan.xyz_t):
+            arr[:, 0] += ox
+            arr[:, 1] += oy
+        t_abs = tm.pulse_times(self.scanner.prf_hz)
+        if error is not None:
+            # the system georeferences with X_o,true + e_s: each point moves with its position
+            scan.xyz_b += error.at(t_abs)
+        self.strips.append(Strip(strip_id=fl.line_id, xyz=scan.xyz_b, t=t_abs,
+                                 intensity=scan.intensity))
+        self.scans.append(scan)
+        state = fl.state(tm.tr - LEAD_S)
+        pos = state.position
+        pos[:, 0] += ox
+        pos[:, 1] += oy
+        if self.trajectory_noise_m > 0:
+            pos += self.rng.normal(0.0, self.trajectory_noise_m, pos.shape)
+        t_samples = tm.t_line + tm.tr
+        self._t.append(t_samples)
+        self._xyz_true.append(pos)
+        self._xyz.append(pos if error is None else pos + error.at(t_samples))
+        if self.attitude:
+            self._q.append(quaternions_from_attitude(
+                *(np.broadcast_to(v, tm.tr.shape) for v in (state.roll, state.pitch,
+                                                             state.kappa))))
+        over_line = (tm.tr >= LEAD_S) & (tm.tr <= tm.t_last_rel)
+        self.lines.append(line_summary(fl, state, over_line, t_abs, self.origin,
+                                       self.fov_deg))
+
+    def trajectory(self, *, true: bool = False) -> Trajectory:
+        """The samples of every line flown so far, as delivered (``true``: without the
+        trajectory errors)."""
+        return Trajectory(np.concatenate(self._t),
+                          np.concatenate(self._xyz_true if true else self._xyz),
+                          np.concatenate(self._q) if self.attitude else None)
+
+
+__all__ = ["CONTROL_CLEAR_RADIUS_M", "SimulatedMission", "simulate_mission"]

@@ -1,0 +1,1 @@
+"""The trajectory: live buffer, per-strip errors, rebuilding it from returns."""

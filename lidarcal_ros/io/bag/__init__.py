@@ -1,0 +1,1 @@
+"""rosbag2 MCAP bags: reading, writing, chunk copies, recovery, missions."""

@@ -1,0 +1,383 @@
+"""A mission (strips of points, trajectory, control points) read from and written to a bag of
+the lidarcal contract.
+
+:func:`read_mission` reads the points topic (``PointCloud2`` chunks, gathered into strips by
+:class:`~lidarcal_ros.io.cloud.strip_accumulator.StripAccumulator`), the trajectory topic
+(:mod:`lidarcal_ros.io.cloud.trajectory_messages`) and the control points of a bag;
+:func:`write_mission_bag` writes a mission so, the points of each strip cut into time-ordered
+chunks (:func:`strip_point_array`, :func:`time_chunk_bounds`). Coordinates are metres in the
+map frame (``header.frame_id``); mission times are float seconds on the bag's clock.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip
+from lidarcal_ros.errors import BagError, ConfigError, InputError
+from lidarcal_ros.io.bag.format import POINTCLOUD2, seconds_to_ns
+from lidarcal_ros.io.bag.reader import BagReader, open_bag
+from lidarcal_ros.io.bag.writer import BagWriter
+from lidarcal_ros.io.cloud.columns import (
+    DEFAULT_COORDINATE_TOLERANCE_M,
+    extract_xyz,
+    float32_warning,
+)
+from lidarcal_ros.io.cloud.pointcloud import cloud_to_array, make_point_dtype
+from lidarcal_ros.io.cloud.strip_accumulator import StripAccumulator, is_nondecreasing
+from lidarcal_ros.io.cloud.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
+
+logger = logging.getLogger(__name__)
+
+#: The point fields a written strip always has (an extra field may not take their names).
+_WRITTEN_CORE = frozenset({"x", "y", "z", "t", "intensity", "strip_id"})
+
+
+def _present(bag: BagReader) -> str:
+    return ", ".join(bag.topics) or "none"
+
+
+def read_mission(
+    path: str | os.PathLike[str],
+    *,
+    points_topic: str = "/lidar/points",
+    trajectory_topic: str = "/lidar/trajectory",
+    control_topic: str | None = "/lidar/control_points",
+    time_field: str = "t",
+    thinning_cell_m: float = 0.0,
+    box: tuple[float, float, float, float] | None = None,
+    coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M,
+) -> Mission:
+    """Read a mission bag into memory.
+
+    Parameters
+    ----------
+    path : path-like
+        rosbag2 directory or bare ``.mcap`` file.
+    points_topic : str, keyword-only
+        ``sensor_msgs/PointCloud2`` chunks with ``x, y, z`` (map frame, m), a FLOAT64 time
+        field (absolute s) and ``strip_id``/``point_source_id``.
+    trajectory_topic : str, keyword-only
+        ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry`` (also
+        ``PoseWithCovarianceStamped``, ``PointStamped``): IMU origin in the map frame.
+    control_topic : str or None, keyword-only
+        ``PointCloud2`` with ``x, y, z`` control points; the last message is used. Ignored
+        when absent from the bag or None.
+    time_field : str, keyword-only
+        Time field of the clouds (see :func:`~lidarcal_ros.io.cloud.columns.extract_columns`).
+    thinning_cell_m : float, keyword-only
+        Keep only the first point of each square cell of this size (m) per strip in each
+        cloud (:mod:`lidarcal_ros.core.calibration.thinning`; counted in ``thinned_points``); 0
+        keeps every point.
+    box : (xmin, ymin, xmax, ymax), keyword-only, optional
+        Keep only the points inside this box of the map frame (m): a part of a mission
+        read without holding the rest.
+    coordinate_tolerance_m : float, keyword-only
+        The coarsest rounding step of FLOAT32 ``x, y, z`` accepted (m; the range noise):
+        coarser is refused, a step above a tenth of it is warned about
+        (:func:`~lidarcal_ros.io.cloud.columns.extract_columns`).
+
+    Returns
+    -------
+    Mission
+        Strips sorted by ``strip_id``, points within a strip sorted by time; fields other
+        than x, y, z, time, intensity and strip id go to ``Strip.extra`` in their own dtype
+        (a strip keeps a field only if all its points have it). Points with a non-finite
+        x, y, z or t are dropped and counted in ``dropped_non_finite``.
+
+    Raises
+    ------
+    BagError
+        Bag unreadable, a required topic missing or of the wrong type.
+    CloudFormatError
+        A cloud lacks a required field.
+    InputError
+        Clouds and trajectory are in different frames.
+    """
+    with open_bag(path) as bag:
+        for topic in (points_topic, trajectory_topic):
+            if topic not in bag.topics:
+                raise BagError(
+                    f"{bag.path}: topic {topic} not found; topics present: {_present(bag)}"
+                )
+        _expect_type(bag, points_topic, (POINTCLOUD2,))
+        _expect_type(bag, trajectory_topic, tuple(TRAJECTORY_TYPES))
+        use_control = control_topic is not None and control_topic in bag.topics
+        if use_control:
+            assert control_topic is not None
+            _expect_type(bag, control_topic, (POINTCLOUD2,))
+        wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
+
+        acc = StripAccumulator(points_topic, time_field, thinning_cell_m, box,
+                                coordinate_tolerance_m)
+        samples = TrajectorySamples()
+        decode_pose = functools.partial(bag.deserialize, topic=trajectory_topic)
+        control_msg: Any = None
+        for topic, msgtype, _log_ns, raw in bag.messages([t for t in wanted if t]):
+            is_pose = topic == trajectory_topic
+            ok_type = msgtype in TRAJECTORY_TYPES if is_pose else msgtype == POINTCLOUD2
+            if not ok_type:
+                raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+            if is_pose:
+                samples.add_raw(msgtype, raw, decode_pose)
+                continue
+            msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
+            if topic == points_topic:
+                acc.add(msg)
+            else:
+                control_msg = msg
+        if not acc.n_messages:
+            raise BagError(f"{bag.path}: topic {points_topic} has no messages")
+        if not samples:
+            raise BagError(f"{bag.path}: topic {trajectory_topic} has no messages")
+        frame = _check_frames(bag.path, points_topic, acc.frames, trajectory_topic,
+                              samples.frames)
+        control = None
+        if control_msg is not None:
+            assert control_topic is not None
+            control = _control_from_cloud(bag.path, control_topic, control_msg, frame,
+                                          coordinate_tolerance_m)
+        strips, dropped = acc.strips()
+        if not strips and not acc.outside_box:  # (a box may hold nothing: its reader says)
+            raise InputError(
+                f"{bag.path}: all {dropped} points on {points_topic} have a non-finite x, y, z "
+                "or t" if dropped else
+                f"{bag.path}: all {acc.n_messages} clouds on {points_topic} are empty")
+        trajectory = samples.trajectory(f"{bag.path}: trajectory {trajectory_topic}")
+    note = float32_warning(acc.coordinate_step_m, coordinate_tolerance_m)
+    if note:
+        logger.warning("%s: %s: %s", path, points_topic, note)
+    if dropped:
+        logger.warning("%s: dropped %d points with non-finite x, y, z or t", path, dropped)
+    return Mission(trajectory, strips, control, frame, dropped, acc.thinned)
+
+
+def _expect_type(bag: BagReader, topic: str, types: Sequence[str]) -> None:
+    got = bag.topics[topic].msgtype
+    if got not in types:
+        raise BagError(
+            f"{bag.path}: topic {topic} has type {got}; expected {' or '.join(types)}"
+        )
+
+
+def _check_frames(
+    path: Path, points_topic: str, cloud_frames: set[str], traj_topic: str, traj_frames: set[str]
+) -> str:
+    if len(cloud_frames) > 1:
+        raise InputError(
+            f"{path}: clouds on {points_topic} are in several frames: {sorted(cloud_frames)}"
+        )
+    if len(traj_frames) > 1:
+        raise InputError(
+            f"{path}: poses on {traj_topic} are in several frames: {sorted(traj_frames)}"
+        )
+    cloud_frame = next(iter(cloud_frames))
+    traj_frame = next(iter(traj_frames))
+    if cloud_frame != traj_frame:
+        raise InputError(
+            f"{path}: clouds on {points_topic} are in frame '{cloud_frame}' but the "
+            f"trajectory on {traj_topic} is in frame '{traj_frame}'"
+        )
+    return cloud_frame
+
+
+def _control_from_cloud(path: Path, topic: str, msg: Any, frame: str,
+                        coordinate_tolerance_m: float) -> ControlPoints | None:
+    if msg.header.frame_id != frame:
+        raise InputError(
+            f"{path}: control points on {topic} are in frame '{msg.header.frame_id}' but "
+            f"the clouds are in '{frame}'"
+        )
+    xyz = extract_xyz(cloud_to_array(msg, source=topic), source=topic,
+                      coordinate_tolerance_m=coordinate_tolerance_m)
+    ok = np.isfinite(xyz).all(axis=1)
+    if not ok.all():
+        logger.warning("%s: dropped %d non-finite control points", topic, int((~ok).sum()))
+        xyz = xyz[ok]
+    if not len(xyz):
+        logger.warning("%s: control point cloud is empty", topic)
+        return None
+    return ControlPoints([f"C{i + 1}" for i in range(len(xyz))], xyz)
+
+
+def strip_point_array(
+    strip: Strip, floats: dict[str, np.ndarray], where: str
+) -> np.ndarray:
+    """The strip as one structured array of the lidarcal output layout.
+
+    Parameters
+    ----------
+    strip : Strip
+    floats : dict of str to (n,) array
+        Further FLOAT32 fields of the strip's points.
+    where : str
+        Named in error lines (file and strip).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``x, y, z, t`` FLOAT64 (map frame, m; s), ``intensity`` FLOAT32 (if the strip has
+        it), ``strip_id`` UINT16, then ``floats`` and the strip's extra fields in their own
+        dtype (:func:`~lidarcal_ros.io.cloud.pointcloud.make_point_dtype`), in the strip's order.
+
+    Raises
+    ------
+    InputError
+        A column of the wrong shape, a strip id beyond UINT16, an extra field that is not
+        numbers or clashes with another field.
+    """
+    n = len(strip)
+    if strip.xyz.shape != (n, 3):
+        raise InputError(f"{where}: xyz has shape {strip.xyz.shape}, expected ({n}, 3)")
+    if not 0 <= strip.strip_id <= np.iinfo(np.uint16).max:
+        raise InputError(f"{where}: strip_id {strip.strip_id} does not fit UINT16")
+    base = make_point_dtype(tuple(floats), intensity=strip.intensity is not None)
+    spec: list[tuple[Any, ...]] = [(name, base.fields[name][0]) for name in base.names or ()]  # type: ignore[index]
+    natives: dict[str, np.ndarray] = {}
+    for name, values in strip.extra.items():
+        if name in _WRITTEN_CORE or name in floats:
+            raise InputError(f"{where}: extra field '{name}' clashes with another field")
+        arr = np.asarray(values)
+        if arr.dtype == np.bool_:
+            arr = arr.astype(np.uint8)
+        if arr.shape[:1] != (n,) or arr.ndim > 2 or arr.dtype.kind not in "iuf":
+            raise InputError(
+                f"{where}: extra field '{name}' has shape {arr.shape} and dtype {arr.dtype}; "
+                f"expected ({n},) or ({n}, k) numbers"
+            )
+        natives[name] = arr
+        spec.append((name, arr.dtype.newbyteorder("<"), arr.shape[1:]))
+    dtype = np.dtype(spec, align=True) if natives else base
+    out = np.empty(n, dtype=dtype)
+    out["x"], out["y"], out["z"] = strip.xyz[:, 0], strip.xyz[:, 1], strip.xyz[:, 2]
+    out["t"] = strip.t
+    if strip.intensity is not None:
+        out["intensity"] = strip.intensity
+    out["strip_id"] = strip.strip_id
+    for name, values in {**floats, **natives}.items():
+        if np.shape(values)[:1] != (n,):
+            raise InputError(f"{where}: extra field '{name}' has {len(values)} values, not {n}")
+        out[name] = values
+    return out
+
+
+def time_chunk_bounds(t: np.ndarray, chunk_seconds: float) -> list[int]:
+    """Boundaries of consecutive ``chunk_seconds`` windows over sorted times (NaN last)."""
+    n_finite = int(np.count_nonzero(np.isfinite(t)))
+    if n_finite == 0:
+        return [0, int(t.size)]
+    tf = t[:n_finite]
+    edges = tf[0] + chunk_seconds * np.arange(1, np.floor((tf[-1] - tf[0]) / chunk_seconds) + 1)
+    cuts = np.unique(np.searchsorted(tf, edges, side="left"))
+    cuts = cuts[(cuts > 0) & (cuts < n_finite)]
+    return [0, *cuts.tolist(), int(t.size)]
+
+
+def write_mission_bag(
+    path: str | os.PathLike[str],
+    mission: Mission,
+    *,
+    chunk_seconds: float = 0.1,
+    points_topic: str = "/lidar/points",
+    trajectory_topic: str = "/lidar/trajectory",
+    control_topic: str = "/lidar/control_points",
+    overwrite: bool = False,
+    extra_point_fields: dict[str, list[np.ndarray]] | None = None,
+) -> Path:
+    """Write a mission as a bag of the lidarcal contract.
+
+    Parameters
+    ----------
+    path : path-like
+        Output rosbag2 directory (or bare ``.mcap`` file).
+    mission : Mission
+    chunk_seconds : float, keyword-only
+        Duration of scanning per PointCloud2 chunk, seconds.
+    points_topic, trajectory_topic, control_topic : str, keyword-only
+    overwrite : bool, keyword-only
+        Replace an existing output.
+    extra_point_fields : dict of str to list of arrays, keyword-only
+        Further FLOAT32 point fields, one array per strip (in ``mission.strips`` order).
+        ``Strip.extra`` arrays are written too, in their own dtype.
+
+    Returns
+    -------
+    pathlib.Path
+        The written bag.
+
+    Notes
+    -----
+    Each strip becomes time-ordered chunks with fields ``x, y, z, t`` FLOAT64,
+    ``intensity`` FLOAT32 (if present), ``strip_id`` UINT16 and the extras, stamped with the
+    chunk's first point time, in ``mission.frame_id``. The trajectory is written as
+    PoseStamped, with its orientation where it has one, else the identity; the
+    control points as one transient-local
+    PointCloud2 (x, y, z) at the start. All messages are in log-time order.
+    """
+    if not chunk_seconds > 0:
+        raise ConfigError(f"chunk_seconds must be positive, got {chunk_seconds}")
+    extras = extra_point_fields or {}
+    for name, per_strip in extras.items():
+        if len(per_strip) != len(mission.strips):
+            raise InputError(
+                f"{path}: extra field '{name}' has {len(per_strip)} arrays for "
+                f"{len(mission.strips)} strips"
+            )
+    frame = mission.frame_id
+    # (stamp_ns, kind: 0 pose / 1 cloud, index) events, sorted once.
+    events: list[tuple[int, int, int]] = []
+    clouds: list[np.ndarray] = []
+    for k, strip in enumerate(mission.strips):
+        where = f"{path}: strip {strip.strip_id}"
+        t = np.asarray(strip.t, dtype=np.float64)
+        sorted_ = bool(np.isfinite(t).all()) and is_nondecreasing(t)
+        order = None if sorted_ else np.argsort(t, kind="stable")  # NaN times go last
+        floats = {name: np.asarray(v[k], dtype=np.float32) for name, v in extras.items()}
+        points = strip_point_array(strip, floats, where)
+        if order is not None:
+            points = points[order]
+        if len(points) and not np.isfinite(points["t"][0]):
+            raise InputError(f"{where}: no finite point time")
+        if len(points) and points["t"][0] < 0:
+            raise InputError(f"{where}: negative point time {points['t'][0]}")
+        bounds = time_chunk_bounds(points["t"], chunk_seconds)
+        for a, b in itertools.pairwise(bounds):
+            if b > a:
+                clouds.append(points[a:b])
+                events.append((seconds_to_ns(points["t"][a]), 1, len(clouds) - 1))
+    traj = mission.trajectory
+    for i in range(len(traj)):
+        if not traj.t[i] >= 0:
+            raise InputError(f"{path}: trajectory time {traj.t[i]} is negative or not finite")
+        events.append((seconds_to_ns(traj.t[i]), 0, i))
+    events.sort()
+    start_ns = events[0][0] if events else 0
+
+    latched = [control_topic] if mission.control is not None else []
+    with BagWriter(path, overwrite=overwrite, latched_topics=latched) as writer:
+        if mission.control is not None and len(mission.control):
+            xyz = np.asarray(mission.control.xyz, dtype=np.float64).reshape(-1, 3)
+            cp = np.empty(len(xyz), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+            cp["x"], cp["y"], cp["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            writer.write_cloud(control_topic, start_ns, frame, cp)
+        for stamp, kind, key in events:
+            if kind == 1:
+                writer.write_cloud(points_topic, stamp, frame, clouds[key])
+            else:
+                writer.write_trajectory_pose(trajectory_topic, stamp, frame, traj, key)
+    logger.info(
+        "%s: wrote %d strips (%d chunks), %d poses", path, len(mission.strips),
+        len(clouds), len(traj),
+    )
+    return Path(path)
+
+
+__all__ = ["read_mission", "strip_point_array", "time_chunk_bounds", "write_mission_bag"]

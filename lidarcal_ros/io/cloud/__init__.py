@@ -1,0 +1,1 @@
+"""PointCloud2 and the other ROS messages as numpy and CDR bytes, without rclpy."""

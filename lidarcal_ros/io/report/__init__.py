@@ -1,0 +1,1 @@
+"""The HTML calibration report: its content, figures, sections and page."""

@@ -1,0 +1,1 @@
+"""Survey files: LAS/LAZ, trajectory files, control points, DSMs, flight plans."""

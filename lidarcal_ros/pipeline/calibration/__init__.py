@@ -1,0 +1,1 @@
+"""Calibration of a mission, batch and live (the calibrator node's work)."""

@@ -1,0 +1,571 @@
+"""The live calibrator's work without ROS: one worker thread drives a streaming calibration.
+
+:class:`CalibrationService` is what ``lidarcal_calibrator`` runs; the node only decodes
+messages, hands them over and publishes what comes back. Everything that touches the
+:class:`~lidarcal_ros.pipeline.calibration.streaming.StreamingCalibration` happens in the service's
+worker thread, in the order it was asked for: callers queue typed jobs (:class:`AddCloud`,
+:class:`AddPose`, :class:`SetControl`, ..., the requests :class:`Solve`, :class:`Reset`,
+:class:`Save` with a reply), so input keeps flowing while a solve runs.
+
+Scheduling
+    Poses that arrive one after another are added to the stream in one batch. After a cloud
+    (when nothing else waits), and whenever nothing arrived for a moment, the stream is asked
+    to close its idle strips, at most every :data:`UPDATE_PERIOD_S` of wall time: a strip is
+    complete once no point of it arrived for ``strip_gap_s`` seconds of point (or trajectory)
+    time, or once no input at all arrived for ``idle_close_s`` wall seconds (the end of a
+    mission or a replay). Each complete strip gives a quick estimate (not converged).
+    Whenever no input is waiting, the worker then takes the estimate to convergence a step at
+    a time (:meth:`StreamingCalibration.refine_step`), input taken in between: with no
+    request, the estimate published after the last strip is what ``lidarcal calibrate`` gives
+    on the same data.
+Results
+    Every estimate (quick, converged, or asked for) goes to the ``on_result`` callback with
+    its QA statuses ready (:meth:`CalibrationService.statuses`; among them each strip's
+    trajectory error, ``lidarcal: trajectory``), then to the checkpoint file
+    when one is set. A checkpoint found at start is resumed from, and converged again.
+Shutdown
+    :meth:`CalibrationService.close` converges first (at most :data:`SHUTDOWN_CONVERGE_S`)
+    and writes a last checkpoint.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.calibration.result import CalibrationResult
+from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
+from lidarcal_ros.core.mission import ControlPoints
+from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.io.cloud.columns import CloudColumns
+from lidarcal_ros.io.cloud.messages import ERROR, StatusSpec, qa_statuses
+from lidarcal_ros.pipeline.calibration.statuses import (
+    InputCounts,
+    ServiceCounts,
+    operating_statuses,
+    refinement_status,
+    trajectory_status,
+)
+from lidarcal_ros.pipeline.calibration.stream_inputs import default_point_budget
+from lidarcal_ros.pipeline.calibration.streaming import StreamingCalibration
+from lidarcal_ros.pipeline.throttled_log import ThrottledLog
+
+__all__ = [
+    "REQUEST_TIMEOUT_S", "SAVE_CONVERGE_S", "SHUTDOWN_CONVERGE_S", "UPDATE_PERIOD_S",
+    "AddCloud", "AddPose", "CalibrationService", "CalibratorOptions", "Job",
+    "ReadControlFile", "Reset", "Save", "SetConfig", "SetControl", "SetOptions", "Solve",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Least wall time between two looks for complete strips, s.
+UPDATE_PERIOD_S = 0.2
+#: How long a request waits for the worker (a full solve of a large mission takes minutes), s.
+REQUEST_TIMEOUT_S = 600.0
+#: Longest wall time :meth:`CalibrationService.save` and shutdown spend converging the
+#: estimate first, s.
+SAVE_CONVERGE_S = 300.0
+SHUTDOWN_CONVERGE_S = 5.0
+#: How long the worker waits for a job before it looks for idle strips, s.
+_IDLE_WAIT_S = 0.05
+
+
+@dataclass(frozen=True)
+class CalibratorOptions:
+    """The calibrator's own settings: the node parameters of the same names
+    (:data:`lidarcal_ros.core.config.NODE_PARAMETERS`, where they are described)."""
+
+    #: Points held at most (0:
+    #: :func:`~lidarcal_ros.pipeline.calibration.stream_inputs.default_point_budget`).
+    memory_budget_points: int
+    #: Seconds of point time without a point of a strip after which it is complete.
+    strip_gap_s: float
+    #: Wall seconds without any input after which every open strip is complete (0: never).
+    idle_close_s: float
+    #: Checkpoint written after each estimate and read at start ('' = none).
+    checkpoint_file: str
+
+    @classmethod
+    def from_parameters(cls, values: Mapping[str, Any]) -> CalibratorOptions:
+        """From the node's parameter values (the parameters' defaults where not given)."""
+        return node_options(cls, CALIBRATOR_NODE, values)
+
+    @property
+    def max_points(self) -> int:
+        """The memory budget in points."""
+        return int(self.memory_budget_points) or default_point_budget()
+
+
+# ---------------------------------------------------------------------------- jobs
+@dataclass(frozen=True)
+class AddCloud:
+    """A decoded cloud (map frame ``frame_id``)."""
+
+    columns: CloudColumns
+    frame_id: str
+
+
+@dataclass(frozen=True)
+class AddPose:
+    """One trajectory sample: time (s), IMU position (m), quaternion xyzw (NaN: none)."""
+
+    t: float
+    xyz: tuple[float, float, float]
+    frame_id: str
+    orientation: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class SetControl:
+    """Control points, and where they came from (for the log)."""
+
+    control: ControlPoints
+    source: str
+
+
+@dataclass(frozen=True)
+class ReadControlFile:
+    """Control points from a CSV file ``id,x,y,z``."""
+
+    path: str
+
+
+@dataclass(frozen=True)
+class SetConfig:
+    """A new flight configuration, with the names of the parameters that changed."""
+
+    config: FlightConfig
+    changed: frozenset[str]
+
+
+@dataclass(frozen=True)
+class SetOptions:
+    """New options of the calibrator itself."""
+
+    options: CalibratorOptions
+
+
+@dataclass(frozen=True)
+class Solve:
+    """Request: the full adjustment over everything held (``lidarcal calibrate``'s)."""
+
+
+@dataclass(frozen=True)
+class Reset:
+    """Request: forget everything, the checkpoint file too."""
+
+
+@dataclass(frozen=True)
+class Save:
+    """Request: converge, then write the calibration file (``calibration.calibration_file``)."""
+
+
+@dataclass(frozen=True)
+class _Idle:
+    """Nothing arrived for a moment (the worker's own job)."""
+
+
+Job = (AddCloud | AddPose | SetControl | ReadControlFile | SetConfig | SetOptions | Solve
+       | Reset | Save | _Idle)
+
+
+class CalibrationService:
+    """Live calibration in a worker thread (module docstring).
+
+    Parameters
+    ----------
+    config : FlightConfig
+    options : CalibratorOptions
+    on_result : callable, optional
+        Called in the worker thread with every estimate, its QA statuses already in
+        :meth:`statuses`.
+
+    The worker starts with :meth:`start`; every method may be called from any thread.
+    """
+
+    def __init__(self, config: FlightConfig, options: CalibratorOptions, *,
+                 on_result: Callable[[CalibrationResult], None] | None = None) -> None:
+        self.config = config
+        self.options = options
+        self._on_result = on_result or (lambda result: None)
+        self._jobs: queue.Queue[tuple[Job, Future[Any] | None]] = queue.Queue()
+        self._closing = threading.Event()
+        self._worker = threading.Thread(target=self._work, name="lidarcal-calibrator",
+                                        daemon=True)
+        self._last_input = time.monotonic()
+        self._idle_closed = True
+        self._point_end = -math.inf  # newest point time, s
+        self._traj_end = -math.inf  # newest trajectory time, s
+        self._last_update = 0.0
+        self._qa: list[StatusSpec] = []
+        self._qa_lock = threading.Lock()
+        self._throttled = ThrottledLog(logger)
+        self.input = InputCounts()
+        #: Estimates given to ``on_result``, and the seconds the last one took.
+        self.solves = 0
+        self.last_solve_s = math.nan
+        #: Checkpoints written, and the checkpoint resumed from at start ('' = none).
+        self.checkpoints = 0
+        self.resumed_from = ""
+        self._stream = self._open_stream()
+        if config["calibration.control_points_file"]:
+            self._submit(ReadControlFile(config["calibration.control_points_file"]))
+
+    def _open_stream(self) -> StreamingCalibration:
+        """The checkpoint's calibration if there is a checkpoint to resume from, else a new
+        one."""
+        kwargs: dict[str, Any] = {"max_points": self.options.max_points,
+                                  "strip_gap_s": float(self.options.strip_gap_s)}
+        path = self.options.checkpoint_file
+        if path and Path(path).is_file():
+            try:
+                stream = StreamingCalibration.load_checkpoint(path, self.config, **kwargs)
+            except LidarcalError as exc:
+                logger.error("checkpoint not used: %s; starting afresh", exc)
+            else:
+                self.resumed_from = str(path)
+                logger.info("resumed from %s: strips %s, %d points, %d observations in the "
+                            "normal equations", path, stream.strip_ids, stream.n_points,
+                            stream.normal_equations.count)
+                return stream
+        return StreamingCalibration(self.config, **kwargs)
+
+    # -- state ----------------------------------------------------------------------------
+    @property
+    def stream(self) -> StreamingCalibration:
+        """The calibration the worker drives (to read; change it through jobs)."""
+        return self._stream
+
+    @property
+    def queued_jobs(self) -> int:
+        """Jobs waiting for the worker."""
+        return self._jobs.qsize()
+
+    # -- input (any thread) -----------------------------------------------------------------
+    def start(self) -> None:
+        """Start the worker."""
+        self._worker.start()
+
+    def _submit(self, job: Job, *, reply: bool = False) -> Future[Any] | None:
+        future: Future[Any] | None = Future() if reply else None
+        self._jobs.put((job, future))
+        return future
+
+    def add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
+        """A decoded cloud (it needs ``strip_id``)."""
+        self.input.clouds += 1
+        self.input.points += len(columns)
+        self._submit(AddCloud(columns, frame_id))
+
+    def cloud_skipped(self, reason: str) -> None:
+        """Count a cloud that could not be decoded."""
+        self.input.skipped += 1
+        self.input.last_error = reason
+
+    def add_pose(self, t: float, xyz: tuple[float, float, float], frame_id: str,
+                 orientation: tuple[float, ...]) -> None:
+        """A trajectory sample (seconds; map frame, m; quaternion xyzw, NaN: none)."""
+        self.input.poses += 1
+        self._submit(AddPose(t, xyz, frame_id, orientation))
+
+    def set_control(self, control: ControlPoints, source: str) -> None:
+        """Control points for the solves to come (``source`` names them in the log)."""
+        self._submit(SetControl(control, source))
+
+    def set_config(self, config: FlightConfig, changed: set[str]) -> None:
+        """A new flight configuration (``changed``: the names that changed)."""
+        self._submit(SetConfig(config, frozenset(changed)))
+
+    def set_options(self, options: CalibratorOptions) -> None:
+        """New options of the calibrator itself."""
+        self._submit(SetOptions(options))
+
+    # -- requests (any thread; they wait for the worker) ------------------------------------
+    def _request(self, job: Solve | Reset | Save) -> str:
+        future = self._submit(job, reply=True)
+        assert future is not None
+        return str(future.result(timeout=REQUEST_TIMEOUT_S))
+
+    def solve(self) -> str:
+        """The full solve over everything held, published as any estimate; returns what to
+        tell of it.
+
+        Raises
+        ------
+        LidarcalError
+            Nothing to solve (why).
+        """
+        return self._request(Solve())
+
+    def reset(self) -> str:
+        """Forget everything accumulated, the checkpoint file too; returns what was done."""
+        return self._request(Reset())
+
+    def save(self) -> str:
+        """Converge (at most :data:`SAVE_CONVERGE_S`), then write the calibration file;
+        returns its path and, if cut short, that the estimate is not converged.
+
+        Raises
+        ------
+        LidarcalError
+            No estimate yet, or the file cannot be written.
+        """
+        return self._request(Save())
+
+    # -- the worker -------------------------------------------------------------------------
+    def _work(self) -> None:
+        poses: list[AddPose] = []
+        while not self._closing.is_set():
+            job: Job
+            future: Future[Any] | None
+            try:
+                if self._stream.refinement_pending:  # spare time goes to the refinement
+                    job, future = self._jobs.get_nowait()
+                else:
+                    job, future = self._jobs.get(timeout=_IDLE_WAIT_S)
+            except queue.Empty:
+                job, future = _Idle(), None
+            if isinstance(job, AddPose):
+                poses.append(job)
+                self._last_input = time.monotonic()
+                continue
+            if poses:
+                try:
+                    self._add_poses(poses)
+                except Exception as exc:  # report, keep the worker alive
+                    self._report_failure("trajectory", exc)
+                poses = []
+            try:
+                reply = self._run(job)
+            except Exception as exc:
+                if future is not None:  # the requester hears of it
+                    future.set_exception(exc)
+                else:
+                    text = self._report_failure(type(job).__name__, exc)
+                    if isinstance(job, AddCloud):
+                        self.cloud_skipped(text)
+                continue
+            if future is not None:
+                future.set_result(reply)
+
+    @staticmethod
+    def _report_failure(what: str, exc: Exception) -> str:
+        """Log a job's failure in one line; returns the reason."""
+        text = str(exc) if isinstance(exc, LidarcalError) else f"{type(exc).__name__}: {exc}"
+        logger.error("calibrator: %s: %s", what, text)
+        return text
+
+    def _add_poses(self, poses: list[AddPose]) -> None:
+        t = np.array([p.t for p in poses])
+        self._stream.add_trajectory(t, np.array([p.xyz for p in poses]), poses[-1].frame_id,
+                                    np.array([p.orientation for p in poses]))
+        self._traj_end = max(self._traj_end, float(t.max()))
+
+    def _run(self, job: Job) -> str | None:
+        """Do one job; returns the reply of a request."""
+        match job:
+            case AddCloud(columns, frame_id):
+                self._add_cloud(columns, frame_id)
+            case _Idle():
+                self._on_idle()
+            case SetControl(control, source):
+                self._stream.set_control(control)
+                logger.info("%d control points (%s)", len(control), source)
+            case ReadControlFile(path):
+                self._read_control_file(path)
+            case SetConfig(config, changed):
+                self.config = config
+                self._stream.update_config(config)
+                if "calibration.control_points_file" in changed and \
+                        config["calibration.control_points_file"]:
+                    self._read_control_file(config["calibration.control_points_file"])
+            case SetOptions(options):
+                self.options = options
+                self._stream.max_points = options.max_points
+                self._stream.strip_gap_s = float(options.strip_gap_s)
+            case Solve():
+                return self._solve()
+            case Reset():
+                return self._reset()
+            case Save():
+                return self._save()
+        return None
+
+    def _read_control_file(self, path: str) -> None:
+        from lidarcal_ros.io.survey.control import read_control_csv
+
+        control = read_control_csv(path)
+        self._stream.set_control(control)
+        logger.info("%d control points from %s", len(control), path)
+
+    def _add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
+        self._stream.add_cloud(columns, frame_id)
+        self._last_input = time.monotonic()
+        self._idle_closed = False
+        finite = columns.t[np.isfinite(columns.t)]
+        if finite.size:
+            self._point_end = max(self._point_end, float(finite.max()))
+        if self._jobs.empty():
+            self._update(None)
+
+    def _on_idle(self) -> None:
+        """Nothing arrived for a moment: close the strips idle long enough (all of them
+        after ``idle_close_s`` without input), then take the refinement a step further."""
+        idle = self.options.idle_close_s
+        if (not self._idle_closed and idle > 0
+                and time.monotonic() - self._last_input >= idle):
+            self._idle_closed = True
+            self._update(math.inf)
+        elif self._jobs.empty():
+            self._update(None)
+        if self._jobs.empty():
+            result = self._stream.refine_step()
+            if result is not None:
+                self._publish(result, self._stream.refinement_seconds)
+
+    def _update(self, now_s: float | None) -> None:
+        """Let the stream close idle strips and re-solve (at most every
+        :data:`UPDATE_PERIOD_S` unless ``now_s`` is given)."""
+        if now_s is None:
+            now_s = max(self._point_end, self._traj_end)
+            if not math.isfinite(now_s) or \
+                    time.monotonic() - self._last_update < UPDATE_PERIOD_S:
+                return
+        self._last_update = time.monotonic()
+        started = time.perf_counter()
+        try:
+            result = self._stream.update(now_s)
+        except LidarcalError as exc:  # e.g. no trajectory yet: keep accumulating
+            self._throttled.log(logging.WARNING, 10.0, f"not updated: {exc}")
+            return
+        if result is not None:
+            self._publish(result, time.perf_counter() - started)
+
+    def _converge(self, timeout_s: float) -> str:
+        """Finish converging (at most ``timeout_s``) and publish; returns what to tell of it
+        ('' when the estimate is converged)."""
+        started = time.monotonic()
+        result = self._stream.converge(timeout_s)
+        if result is not None:
+            self._publish(result, self._stream.refinement_seconds)
+        if self._stream.converged:
+            return ""
+        if self._stream.refinement_pending:
+            return (f"NOT converged: convergence cut short after "
+                    f"{time.monotonic() - started:.0f} s")
+        latest = self._stream.latest
+        iterations = latest.iterations if latest is not None else 0
+        return f"NOT converged after {iterations} iterations"
+
+    def _solve(self) -> str:
+        started = time.perf_counter()
+        result = self._stream.solve()
+        self._publish(result, time.perf_counter() - started)
+        return (f"solved: {len(result.pairs)} strip pairs, {result.iterations} iterations, "
+                f"{'converged' if result.converged else 'NOT converged'}, sigma0 "
+                f"{result.solution.sigma0 * 100:.2f} cm")
+
+    def _reset(self) -> str:
+        self._stream.reset()
+        self._point_end = self._traj_end = -math.inf
+        with self._qa_lock:
+            self._qa = []
+        message = "reset: everything accumulated was forgotten"
+        path = self.options.checkpoint_file
+        if path:
+            # A restart must not bring back what was reset (the next checkpoint is written
+            # only by the next solve): the checkpoint goes with the rest.
+            try:
+                Path(path).unlink(missing_ok=True)
+            except OSError as exc:
+                raise LidarcalError(f"reset, but checkpoint {path} not removed: {exc}") \
+                    from None
+            message += f"; checkpoint {path} removed"
+        return message
+
+    def _save(self) -> str:
+        from lidarcal_ros.io.calibration_file import write_calibration
+
+        convergence = self._converge(SAVE_CONVERGE_S)
+        result = self._stream.latest
+        if result is None:
+            raise LidarcalError("no estimate yet: " + (self._stream.waiting_for or "no data"))
+        path = write_calibration(self.config["calibration.calibration_file"], result)
+        return f"calibration written to {Path(path).resolve()}" + (
+            f" ({convergence})" if convergence else "")
+
+    def _publish(self, result: CalibrationResult, seconds: float) -> None:
+        """Hand an estimate on (its QA statuses first), then checkpoint."""
+        self.solves += 1
+        self.last_solve_s = seconds
+        cfg = self.config
+        statuses = qa_statuses(result, warn_m=cfg["qa.rmsdz_warn_m"],
+                               error_m=cfg["qa.max_difference_m"],
+                               solve_for=cfg["calibration.solve_for"])
+        statuses.append(trajectory_status(result, cfg.calibration_settings().trajectory))
+        with self._qa_lock:
+            self._qa = statuses
+        self._on_result(result)
+        if self.options.checkpoint_file:
+            self._checkpoint(self.options.checkpoint_file)
+
+    def _checkpoint(self, path: str) -> None:
+        try:
+            self._stream.save_checkpoint(path)
+            self.checkpoints += 1
+        except (OSError, LidarcalError) as exc:
+            self._throttled.log(logging.ERROR, 30.0, f"checkpoint {path} not written: {exc}")
+
+    # -- statuses ---------------------------------------------------------------------------
+    def estimate_statuses(self) -> list[StatusSpec]:
+        """The QA statuses of the latest estimate (strip pairs, estimate, convergence,
+        observability...), the convergence saying whether a refinement is under way."""
+        with self._qa_lock:
+            return [refinement_status(self._stream, s) if s.name == "lidarcal: convergence"
+                    else s for s in self._qa]
+
+    def statuses(self) -> list[StatusSpec]:
+        """Everything the calibrator reports: :meth:`estimate_statuses`, then
+        :meth:`operating_statuses` (an ERROR status if those fail)."""
+        statuses = self.estimate_statuses()
+        try:
+            statuses += self.operating_statuses()
+        except Exception as exc:  # a report must not take the calibrator down
+            statuses.append(StatusSpec(ERROR, "lidarcal: state", f"{type(exc).__name__}: {exc}"))
+        return statuses
+
+    def operating_statuses(self) -> list[StatusSpec]:
+        """Memory, input and state statuses (the QA statuses come with each estimate), and
+        the convergence status while there is no estimate."""
+        with self._qa_lock:
+            no_estimate = not self._qa
+        return operating_statuses(self._stream, self.input, ServiceCounts(
+            self.solves, self.last_solve_s, self.checkpoints, self.resumed_from,
+            self.queued_jobs), no_estimate=no_estimate)
+
+    # -- shutdown ---------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop the worker, converge (at most :data:`SHUTDOWN_CONVERGE_S`) and write a last
+        checkpoint."""
+        self._closing.set()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10.0)
+        written = self.checkpoints
+        if not self._worker.is_alive() and self._stream.refinement_pending:
+            convergence = self._converge(SHUTDOWN_CONVERGE_S)
+            if convergence:
+                logger.warning("shutdown: the estimate is %s (a restart from the checkpoint "
+                               "converges it)", convergence)
+        path = self.options.checkpoint_file
+        if path and self._stream.strip_ids and self.checkpoints == written:
+            self._checkpoint(path)

@@ -1,0 +1,1 @@
+"""Correction of clouds and bags, batch and live (the corrector node's work)."""

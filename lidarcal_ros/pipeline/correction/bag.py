@@ -1,0 +1,802 @@
+"""``lidarcal correct``: every cloud of a mission bag corrected into a bag or a LAS/LAZ file.
+
+:func:`correct_bag` checks the bag's topics, then reads it once: the trajectory is gathered
+as it comes, and each cloud is streamed through a
+:class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector` (read ahead in a thread,
+batches corrected in worker threads) once the trajectory covers it
+(:class:`~lidarcal_ros.pipeline.correction.trajectory_gate.TrajectoryGate`), with the result that
+reading the whole trajectory first gives. Where a bag does not allow that (its
+trajectory comes after its clouds, or out of time order) it is read again, the trajectory
+first. What comes out is written in order:
+
+- a bag: every input message passed through unchanged and each corrected cloud on
+  ``topics.corrected``, in the input's (log-time) order; each corrected cloud is built in the
+  bytes of its output message; where the calibration holds trajectory errors, the corrected
+  trajectory on ``topics.trajectory_corrected`` (after the clouds: the strips' times are known
+  only once every cloud is read; each message at its input's log time);
+- LAS/LAZ: the corrected clouds in runs of at least :data:`LAS_RUN_POINTS` points;
+- with :attr:`CorrectOptions.trajectory_out`, the corrected trajectory as an ASCII file.
+
+The corrected trajectory is ``X_o,delivered(t) - e_hat_s(t)`` (docs/method.md section 11), the
+strips' times those of their points; between strips (turns) the error is interpolated
+(:func:`~lidarcal_ros.core.trajectory.strip_errors.trajectory_corrections`).
+
+It returns a :class:`CorrectionReport` (counts, models, warnings) for the command to print.
+"""
+
+from __future__ import annotations
+
+import functools
+import heapq
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.georeferencing.heading import check_orientation
+from lidarcal_ros.core.georeferencing.rigorous import check_model_setting
+from lidarcal_ros.core.jit import start_without_blas
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.radiometry import describe_alpha
+from lidarcal_ros.core.trajectory.strip_errors import (
+    POSE_BEYOND_STRIPS,
+    TrajectoryCorrection,
+    trajectory_corrections,
+)
+from lidarcal_ros.errors import BagError, InputError, LidarcalError, one_line
+from lidarcal_ros.io.bag.prefetch import WriteBehind, prefetched
+from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
+from lidarcal_ros.io.cloud.columns import resolve_time_field
+from lidarcal_ros.io.cloud.pointcloud import cloud_to_array, make_point_dtype
+from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
+from lidarcal_ros.pipeline.correction.corrected_cloud import CorrectionStats
+from lidarcal_ros.pipeline.correction.stream import DEFAULT_BATCH_POINTS, StreamCorrector
+from lidarcal_ros.pipeline.correction.trajectory_gate import RereadBag, TrajectoryGate
+
+__all__ = [
+    "FOREIGN_OUTPUT_SUFFIXES", "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport",
+    "correct_bag", "output_kind",
+    "warm_up_compiled_loops",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Points per LAS write (corrected clouds are gathered into runs of this size).
+LAS_RUN_POINTS = 100_000
+#: Fewest points held waiting for the trajectory before a bag is read again, trajectory first
+#: (:attr:`CorrectOptions.max_held_points`; some 40 MB of clouds).
+MIN_HELD_POINTS = 1_000_000
+
+@dataclass
+class CorrectionReport:
+    """What :func:`correct_bag` did."""
+
+    output: Path
+    kind: str
+    stats: CorrectionStats
+    passthrough_messages: int = 0
+    las_skipped_non_finite: int = 0
+    seconds: float = 0.0
+    frame_id: str = ""
+    atmosphere: str = ""
+    reflectance: str = ""
+    #: What was written of the corrected trajectory ('' where nothing).
+    trajectory: str = ""
+    warnings: list[str] = field(default_factory=list)
+
+    def lines(self) -> list[str]:
+        """A short human-readable summary."""
+        s = self.stats
+        rate = s.points / self.seconds if self.seconds > 0 else math.nan
+        out = [f"corrected {s.points} points in {s.clouds} clouds -> {self.output} "
+               f"({self.kind}, {self.seconds:.1f} s, {rate / 1e6:.2f} M points/s)"]
+        if self.kind == "bag":
+            out.append(f"passed through {self.passthrough_messages} other messages")
+        out.append(self.atmosphere)
+        out.append("model: " + s.describe_models())
+        if self.reflectance:
+            out.append(f"reflectance: {self.reflectance}")
+        out.append("incidence: " + s.describe_incidence())
+        out.append(f"grazing incidence (clamped): {s.grazing}; rough surface: {s.rough}; "
+                   f"volume (canopy) returns: {s.volume}; "
+                   f"no normal: {s.no_normal}; not corrected (trajectory): {s.not_corrected}; "
+                   f"without intensity: {s.no_intensity}")
+        if self.trajectory:
+            out.append(f"corrected trajectory: {self.trajectory}")
+        out.extend(f"warning: {w}" for w in self.warnings)
+        return out
+
+
+#: Suffixes of point, text and archive formats that ``lidarcal correct`` does not write: an
+#: output named so is refused rather than written as a rosbag2 directory of that name.
+FOREIGN_OUTPUT_SUFFIXES = frozenset({
+    ".asc", ".bag", ".csv", ".db3", ".e57", ".gz", ".h5", ".json", ".npy", ".npz", ".pcd",
+    ".ply", ".pts", ".tif", ".tiff", ".txt", ".xyz", ".yaml", ".yml", ".zip",
+})
+
+
+def output_kind(path: str | Path) -> str:
+    """``las`` for ``.las``/``.laz``, else ``bag`` (``.mcap`` file or rosbag2 directory).
+
+    Raises
+    ------
+    InputError
+        A suffix of :data:`FOREIGN_OUTPUT_SUFFIXES` (``out.txt``, ``out.ply``, ...): a format
+        lidarcal does not write.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix in FOREIGN_OUTPUT_SUFFIXES:
+        raise InputError(f"{path}: lidarcal correct does not write {suffix} files; name the "
+                         "output .las or .laz (LAS 1.4), .mcap, or a directory for a rosbag2 "
+                         "bag")
+    return "las" if suffix in (".las", ".laz") else "bag"
+
+
+def _pose_reader(bag: Any, topic: str, samples: Any) -> Callable[[str, Any], None]:
+    """``add(msgtype, raw)``: a trajectory message's CDR bytes into ``samples``
+    (:class:`~lidarcal_ros.io.cloud.trajectory_messages.TrajectorySamples`), refusing another
+    type."""
+    from lidarcal_ros.io.cloud.trajectory_messages import TRAJECTORY_TYPES
+
+    decode = functools.partial(bag.deserialize, topic=topic)
+
+    def add(msgtype: str, raw: Any) -> None:
+        if msgtype not in TRAJECTORY_TYPES:
+            raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+        samples.add_raw(msgtype, raw, decode)
+
+    return add
+
+
+def _whole_trajectory(bag: Any, topic: str, samples: Any) -> Trajectory:
+    if not samples:
+        raise BagError(f"{bag.path}: topic {topic} has no messages")
+    return samples.trajectory(f"{bag.path}: trajectory {topic}")
+
+
+def _checked_trajectory(bag: Any, topic: str, samples: Any,
+                        settings: CorrectionSettings) -> tuple[Trajectory, str]:
+    """The whole trajectory of ``samples`` and its frame, refused as :func:`correct_bag`
+    refuses it (several frames, no orientation where the settings need one)."""
+    trajectory = _whole_trajectory(bag, topic, samples)
+    if len(samples.frames) > 1:
+        raise InputError(f"{bag.path}: poses on {topic} are in several frames: "
+                         f"{sorted(samples.frames)}")
+    check_orientation(settings.heading_source, trajectory, f"{bag.path}: {topic}")
+    check_model_setting(settings.model, trajectory, f"{bag.path}: {topic}")
+    return trajectory, next(iter(samples.frames))
+
+
+@dataclass(frozen=True)
+class CorrectOptions:
+    """How :func:`correct_bag` writes and works.
+
+    Attributes
+    ----------
+    crs : pyproj.CRS or None
+        CRS of the map frame, written into LAS output (ignored, with a warning, for bags).
+    overwrite : bool
+        Replace an existing output.
+    batch_points : int
+        Points corrected together (memory is about 1 kB per point of batch).
+    workers : int
+        Batches corrected in parallel (reading and writing stay in the calling thread:
+        they are mostly Python code, and threads of their own only contend for the
+        interpreter lock).
+    max_held_points : int or None
+        Most points of clouds held while the trajectory read so far does not cover them
+        (the bag read once); beyond, the bag is read again with its trajectory first (its
+        trajectory comes after its clouds). None: ``4 * batch_points``, at least
+        :data:`MIN_HELD_POINTS`; 0: always the trajectory first (two passes). The output
+        is the same.
+    trajectory_out : Path or None
+        Also write the corrected trajectory here, ASCII ``time,x,y,z[,roll,pitch,heading]``
+        (:func:`~lidarcal_ros.io.survey.trajectory_files.write_ascii_trajectory`; ``overwrite``
+        applies to it too); the delivered one, with a warning, where the calibration holds
+        no trajectory errors.
+    """
+
+    crs: Any = None
+    overwrite: bool = False
+    batch_points: int = DEFAULT_BATCH_POINTS
+    workers: int = 1
+    max_held_points: int | None = None
+    trajectory_out: Path | None = None
+
+    @property
+    def held_points_bound(self) -> int:
+        """:attr:`max_held_points`, None resolved."""
+        if self.max_held_points is not None:
+            return max(int(self.max_held_points), 0)
+        return max(4 * self.batch_points, MIN_HELD_POINTS)
+
+
+def correct_bag(
+    bag_path: str | Path,
+    calibration: str | Path | CalibrationRecord,
+    output: str | Path,
+    config: FlightConfig | None = None,
+    options: CorrectOptions = CorrectOptions(),  # (frozen: shared safely)
+    *,
+    progress: Callable[[str, float], None] | None = None,
+) -> CorrectionReport:
+    """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
+
+    Parameters
+    ----------
+    bag_path : path
+        rosbag2 directory or ``.mcap`` with the topics of ``config``.
+    calibration : path or CalibrationRecord
+        Calibration file of docs/interface.md.
+    output : path
+        ``.las``/``.laz``: LAS 1.4 point format 6 (:mod:`lidarcal_ros.io.survey.las_writer`);
+        otherwise a rosbag2 bag (bare MCAP for ``.mcap``) with the corrected clouds on
+        ``topics.corrected`` and every input message passed through unchanged.
+    config : FlightConfig, optional
+        Defaults when None.
+    options : CorrectOptions
+    progress : callable(stage, fraction), optional
+
+    Returns
+    -------
+    CorrectionReport
+
+    Raises
+    ------
+    BagError, CloudFormatError, InputError, ConfigError, TrajectoryError
+        One line naming the file, topic or field at fault.
+    """
+    from lidarcal_ros.io.bag.reader import open_bag
+
+    started = time.perf_counter()
+    # The compiled loops load while the bag is read (their first call in a process costs
+    # some 0.5 s; reading is mostly decompression, which leaves the interpreter free).
+    warm_up = threading.Thread(target=warm_up_compiled_loops, name="lidarcal-warm-up",
+                               daemon=True)
+    warm_up.start()
+    config = config or FlightConfig()
+    record = (calibration if isinstance(calibration, CalibrationRecord)
+              else read_calibration(calibration))
+    settings = CorrectionSettings.from_config(config, record)
+    out_path = Path(output)
+    kind = output_kind(out_path)
+    points_topic = config["topics.points"]
+    traj_topic = config["topics.trajectory"]
+    corrected_topic = config["topics.corrected"]
+    # (written where there is something to correct it by)
+    moved_topic = (str(config["topics.trajectory_corrected"])
+                   if kind == "bag" and record.trajectory is not None else None)
+    bag_path = Path(bag_path)
+    if out_path.resolve() == bag_path.resolve():
+        raise InputError(f"{out_path}: output would overwrite the input bag")
+    if options.trajectory_out is not None and Path(options.trajectory_out).resolve() in (
+            bag_path.resolve(), out_path.resolve()):
+        raise InputError(f"{options.trajectory_out}: the trajectory output would overwrite "
+                         "the input bag or the corrected output")
+    warnings: list[str] = []
+    if options.crs is not None and kind == "bag":
+        warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
+        logger.warning("%s", warnings[-1])
+
+    with open_bag(bag_path) as bag:
+        _check_topics(bag, points_topic, traj_topic,
+                      corrected_topic if kind == "bag" else None, moved_topic)
+        run = functools.partial(_correct_once, bag, _Request(
+            settings, config, options, out_path, (points_topic, traj_topic, corrected_topic),
+            moved_topic, progress, warnings, warm_up))
+        report = None
+        if options.held_points_bound:
+            try:
+                report = run(single_pass=True)
+            except (RereadBag, LidarcalError) as exc:
+                # An error is raised again by the second pass, after what reading the
+                # trajectory first finds wrong: the same error as always.
+                logger.info("%s: reading the bag again, trajectory first (%s)", bag_path,
+                            one_line(exc))
+        if report is None:
+            report = run(single_pass=False)
+    _warn_of_what_was_left(report, bag_path, options.crs)
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+@dataclass(frozen=True)
+class _Request:
+    """What :func:`correct_bag` was asked, checked: the settings, the output, the topics
+    (clouds, trajectory, corrected clouds; the corrected trajectory's, None where it is not
+    written), the warnings so far and the warm-up thread."""
+
+    settings: CorrectionSettings
+    config: FlightConfig
+    options: CorrectOptions
+    out_path: Path
+    topics: tuple[str, str, str]
+    moved_topic: str | None
+    progress: Callable[[str, float], None] | None
+    warnings: list[str]
+    warm_up: threading.Thread
+
+
+def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> CorrectionReport:
+    """:func:`correct_bag` after its checks: the trajectory read first, or (``single_pass``)
+    with the clouds; RereadBag where one pass cannot give the result of two."""
+    from lidarcal_ros.io.cloud.trajectory_messages import TrajectorySamples
+
+    settings, options, out_path, progress = (request.settings, request.options,
+                                             request.out_path, request.progress)
+    points_topic, traj_topic, corrected_topic = request.topics
+    kind = output_kind(out_path)
+    trajectory, frame = Trajectory(np.zeros(0), np.zeros((0, 3))), ""
+    samples = TrajectorySamples()
+    if progress:
+        progress("correcting" if single_pass else "reading trajectory", 0.0)
+    poses = _PoseMessages() if request.moved_topic is not None else None
+    if not single_pass:
+        add = _pose_reader(bag, traj_topic, samples)
+        for _topic, msgtype, ns, raw in prefetched(lambda: bag.messages([traj_topic])):
+            add(msgtype, raw)
+            if poses is not None:
+                poses.add(ns, msgtype, raw)
+        trajectory, frame = _checked_trajectory(bag, traj_topic, samples, settings)
+    meaning = settings.radiometry.meaning
+    if not settings.radiometry.absolute:
+        from lidarcal_ros.pipeline.correction.reflectance import (
+            measure_target_in_bag,
+            target_of,
+            with_constant,
+        )
+
+        if target_of(request.config) is not None:
+            request.warm_up.join()  # (it hides scipy.linalg a moment; the target may need it)
+        target = measure_target_in_bag(bag.path, settings, request.config)
+        if target is not None:
+            settings = with_constant(settings, target.constant)
+            meaning = f"{settings.radiometry.meaning} The {target.describe()}."
+    corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
+                                workers=options.workers, source=points_topic,
+                                keep_tallies=kind == "bag")
+    source = str(bag.path)
+    gate = (TrajectoryGate(corrector, samples, _pose_reader(bag, traj_topic, samples),
+                           functools.partial(_checked_trajectory, bag, traj_topic, samples,
+                                             settings),
+                           source=source, topic=points_topic,
+                           max_held_points=options.held_points_bound)
+            if single_pass else
+            TrajectoryGate.known(corrector, frame, source=source, topic=points_topic))
+    n_clouds = max(bag.topics[points_topic].count, 1)
+    report = CorrectionReport(out_path, kind, corrector.stats, frame_id=frame,
+                              atmosphere=describe_alpha(settings.radiometry),
+                              reflectance=meaning, warnings=list(request.warnings))
+    job = _Job(bag, corrector, gate, out_path, points_topic, traj_topic, corrected_topic,
+               options.overwrite, n_clouds, progress, report, request.moved_topic, poses)
+    try:
+        corrector.start()  # the workers start while the clouds are read
+        if kind == "las":
+            _correct_to_las(job, options.crs)
+        else:
+            _correct_to_bag(job)
+    finally:
+        corrector.close()
+    report.frame_id = gate.frame or ""
+    if options.trajectory_out is not None:
+        _write_trajectory_file(job, Path(options.trajectory_out), options.overwrite)
+    return report
+
+
+class _PoseMessages:
+    """The trajectory messages of the input as read (log time ns, type, CDR bytes), kept
+    for the corrected trajectory topic (some 100 bytes a PoseStamped)."""
+
+    def __init__(self) -> None:
+        self.messages: list[tuple[int, str, bytes]] = []
+
+    def add(self, ns: int, msgtype: str, raw: Any) -> None:
+        self.messages.append((int(ns), msgtype, bytes(raw)))
+
+
+def _trajectory_correction(corrector: StreamCorrector, t: np.ndarray) -> TrajectoryCorrection:
+    """The error to remove from trajectory samples at ``t`` (s): the calibration's
+    ``e_hat_s`` over the strips' times seen by ``corrector`` (zero without an estimate)."""
+    estimate = corrector.settings.trajectory_errors
+    if estimate is None:
+        return TrajectoryCorrection(np.zeros((len(t), 3)),
+                                    np.full(len(t), POSE_BEYOND_STRIPS, np.int8))
+    return trajectory_corrections(estimate, corrector.strip_spans, t)
+
+
+def _describe_correction(correction: TrajectoryCorrection, where: str) -> str:
+    inside, between, beyond = correction.counts()
+    moved = np.linalg.norm(correction.errors, axis=1)
+    largest = float(moved.max()) * 100 if moved.size else 0.0
+    return (f"{len(moved)} poses -> {where} ({inside} in a strip: its e_s(t) removed, "
+            f"{between} between strips: interpolated, {beyond} before the first or after the "
+            f"last strip: the nearest strip's end held; largest move {largest:.1f} cm)")
+
+
+def _write_trajectory_file(job: _Job, path: Path, overwrite: bool) -> None:
+    """The corrected trajectory of ``job`` (its whole trajectory, screened) as ASCII."""
+    from lidarcal_ros.io.survey.trajectory_files import write_ascii_trajectory
+
+    trajectory = job.corrector.trajectory
+    correction = _trajectory_correction(job.corrector, trajectory.t)
+    moved = Trajectory(trajectory.t, trajectory.xyz - correction.errors,
+                       trajectory.orientation, full_attitude=trajectory.full_attitude)
+    report = job.report
+    comments = [f"lidarcal corrected trajectory of {job.bag.path} ({job.trajectory_topic}), "
+                f"frame '{report.frame_id}'",
+                "time: the bag's clock (UNIX seconds); x, y, z: metres; roll, pitch, heading: "
+                "degrees (heading clockwise from grid north)",
+                "x, y, z = delivered - e_hat_s(t) (docs/method.md section 11); between strips "
+                "interpolated linearly, before the first and after the last strip held"]
+    if job.corrector.settings.trajectory_errors is None:
+        report.warnings.append(f"{path}: the calibration holds no trajectory errors: the "
+                               "trajectory is written as delivered")
+        logger.warning("%s", report.warnings[-1])
+        comments[-1] = "x, y, z as delivered: the calibration holds no trajectory errors"
+    write_ascii_trajectory(path, moved, comments=comments, overwrite=overwrite)
+    text = _describe_correction(correction, str(path))
+    report.trajectory = f"{report.trajectory}; {text}" if report.trajectory else text
+
+
+def _write_moved_poses(job: _Job, writer: Any) -> None:
+    """Every trajectory message of the input again on the corrected trajectory's topic,
+    its position less the error of its time, at its input's log time."""
+    from lidarcal_ros.io.cloud.trajectory_messages import TrajectorySamples, moved_message
+
+    assert job.moved_topic is not None and job.poses is not None
+    bag, topic = job.bag, job.trajectory_topic
+    decode = functools.partial(bag.deserialize, topic=topic)
+    parsed = TrajectorySamples()
+    for _ns, msgtype, raw in job.poses.messages:
+        parsed.add_raw(msgtype, raw, decode)
+    t = np.asarray(parsed.t, dtype=np.float64)
+    xyz = np.asarray(parsed.xyz, dtype=np.float64).reshape(-1, 3)
+    correction = _trajectory_correction(job.corrector, t)
+    moved = xyz - correction.errors
+    msgdef = bag.topics[topic].msgdef or None
+    encode = bag.typestore.serialize_cdr
+    for k, (ns, msgtype, raw) in enumerate(job.poses.messages):
+        if not np.isfinite(moved[k]).all():  # (a pose the trajectory left out: as it came)
+            out = raw
+        else:
+            out = moved_message(msgtype, raw, (float(moved[k, 0]), float(moved[k, 1]),
+                                               float(moved[k, 2])), decode, encode)
+        writer.write_raw(job.moved_topic, msgtype, ns, out, msgdef=msgdef)
+    job.report.trajectory = _describe_correction(correction, job.moved_topic)
+
+
+def _check_topics(bag: Any, points_topic: str, trajectory_topic: str,
+                  corrected_topic: str | None, moved_topic: str | None = None) -> None:
+    """Refuse a bag without the clouds or the trajectory (or with them of the wrong type or
+    empty), or one that already holds ``corrected_topic`` or ``moved_topic``."""
+    from lidarcal_ros.io.bag.format import POINTCLOUD2
+    from lidarcal_ros.io.cloud.trajectory_messages import TRAJECTORY_TYPES
+
+    for topic, types in ((points_topic, (POINTCLOUD2,)),
+                         (trajectory_topic, tuple(TRAJECTORY_TYPES))):
+        if topic not in bag.topics:
+            raise BagError(f"{bag.path}: topic {topic} not found; topics present: "
+                           f"{', '.join(bag.topics) or 'none'}")
+        got = bag.topics[topic].msgtype
+        if got not in types:
+            raise BagError(f"{bag.path}: topic {topic} has type {got}; expected "
+                           f"{' or '.join(types)}")
+        if bag.topics[topic].count == 0:
+            raise BagError(f"{bag.path}: topic {topic} has no messages")
+    for new in (corrected_topic, moved_topic):
+        if new is not None and new in bag.topics:
+            raise BagError(f"{bag.path}: already has topic {new}; a corrected bag cannot "
+                           "be corrected again into the same topic")
+    if moved_topic is not None and moved_topic in (points_topic, trajectory_topic,
+                                                   corrected_topic):
+        raise BagError(f"{bag.path}: the corrected trajectory's topic {moved_topic} is "
+                       "another input or output topic")
+
+
+def _warn_of_what_was_left(report: CorrectionReport, bag_path: Path, crs: Any) -> None:
+    """The report's (and the log's) warnings of points left uncorrected or without
+    reflectance, and of a LAS/LAZ file without a CRS."""
+    s, kind, out_path = report.stats, report.kind, report.output
+    if s.not_corrected > s.non_finite:
+        report.warnings.append(
+            f"{s.not_corrected - s.non_finite} of {s.points} points not covered by the "
+            "trajectory (or not below it): left uncorrected, flagged "
+            f"{FLAG_NOT_CORRECTED} in correction_flags")
+        logger.warning("%s: %s", bag_path, report.warnings[-1])
+    if s.non_finite and kind == "bag":
+        report.warnings.append(
+            f"{s.non_finite} of {s.points} points with a non-finite x, y or z: passed on as "
+            f"delivered, flagged {FLAG_NOT_CORRECTED} in correction_flags")
+        logger.warning("%s: %s", bag_path, report.warnings[-1])
+    if s.no_intensity:
+        report.warnings.append(f"{s.no_intensity} points without intensity: reflectance NaN")
+    if crs is None and kind == "las":
+        report.warnings.append("written without a CRS: the LAS/LAZ file does not say where "
+                               "its map frame is (give it with --crs, e.g. --crs EPSG:32633)")
+        logger.warning("%s: %s", out_path, report.warnings[-1])
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One :func:`correct_bag`: what its LAS and its bag writer share.
+
+    Attributes
+    ----------
+    bag : AnyReader-like
+        The open input bag (:func:`lidarcal_ros.io.bag.reader.open_bag`).
+    corrector : StreamCorrector
+    gate : TrajectoryGate
+        Hands each cloud to the corrector once the trajectory covers it (and checks its
+        frame); reads the trajectory messages (:attr:`TrajectoryGate.reading`).
+    out_path : Path
+        The output file or directory.
+    points_topic, trajectory_topic, corrected_topic : str
+        The input clouds' topic, the trajectory's, and the corrected clouds' (bag output).
+    overwrite : bool
+        Replace an existing output.
+    n_clouds : int
+        Clouds on ``points_topic`` (for ``progress``).
+    progress : callable(stage, fraction) or None
+    report : CorrectionReport
+        Filled in as the clouds are written.
+    moved_topic : str or None
+        The corrected trajectory's topic (bag output; None: not written).
+    poses : _PoseMessages or None
+        The trajectory messages read so far (where ``moved_topic`` is written).
+    """
+
+    bag: Any
+    corrector: StreamCorrector
+    gate: TrajectoryGate
+    out_path: Path
+    points_topic: str
+    trajectory_topic: str
+    corrected_topic: str
+    overwrite: bool
+    n_clouds: int
+    progress: Callable[[str, float], None] | None
+    report: CorrectionReport
+    moved_topic: str | None = None
+    poses: _PoseMessages | None = None
+
+    @property
+    def cloud_topics(self) -> list[str]:
+        """The topics read for the correction: the clouds, and the trajectory where the gate
+        reads it as it comes."""
+        return ([self.points_topic, self.trajectory_topic] if self.gate.reading
+                else [self.points_topic])
+
+
+def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str) -> tuple[Any, np.ndarray]:
+    from lidarcal_ros.io.bag.format import POINTCLOUD2
+
+    if msgtype != POINTCLOUD2:
+        raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+    # (through a memoryview: rosbags would copy bytes to cut off their CDR header)
+    msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
+    return msg, cloud_to_array(msg, source=topic)
+
+
+def _correct_to_las(job: _Job, crs: Any) -> None:
+    """Correct the clouds of ``job`` into a LAS/LAZ file (``crs``: pyproj.CRS or None)."""
+    from lidarcal_ros.io.survey.las_writer import LasChunkWriter
+
+    bag, corrector, gate, out_path, points_topic = (job.bag, job.corrector, job.gate,
+                                                    job.out_path, job.points_topic)
+    progress, report = job.progress, job.report
+
+    seen = 0
+    time_field: str | None = None
+    # Corrected clouds are written in runs of at least this many points (fewer, larger LAZ
+    # chunks); clouds of one layout only in a run.
+    run: list[np.ndarray] = []
+    run_points = 0
+
+    def write_parts(parts: list[np.ndarray]) -> None:
+        writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
+
+    # The runs are compressed (lazrs, which releases the interpreter lock) in a thread of
+    # their own while this one reads, decodes and corrects the next clouds.
+    with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
+                        overwrite=job.overwrite,
+                        reflectance_description=corrector.settings.radiometry.las_description,
+                        ) as writer, WriteBehind(write_parts, name="lidarcal-las") as write_run:
+
+        def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
+            # A run ends at the first cloud that brings it to LAS_RUN_POINTS, whichever
+            # batches the clouds came back in: the file's chunks (and laspy's extra-bytes
+            # minima and maxima, which it takes per write) are then the same on every run.
+            nonlocal run, run_points
+            for _tag, corrected in done:
+                if run and corrected.dtype != run[0].dtype:
+                    write_run(run)
+                    run, run_points = [], 0
+                run.append(corrected)
+                run_points += len(corrected)
+                if run_points >= LAS_RUN_POINTS:
+                    write_run(run)
+                    run, run_points = [], 0
+            if run and final:
+                write_run(run)
+                run, run_points = [], 0
+
+        topics = job.cloud_topics
+        for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages(topics)):
+            if topic != points_topic:
+                gate.pose(msgtype, raw)
+                continue
+            msg, points = _cloud_points(bag, msgtype, raw, topic)
+            if time_field is None and len(points):
+                time_field = resolve_time_field(points, corrector.settings.time_field,
+                                                source=topic)
+                writer.time_field = time_field
+            for _tag, ready in gate.cloud(None, msg, points):
+                write(corrector.push(ready, None))
+            seen += 1
+            if progress and seen % 50 == 0:
+                progress("correcting", seen / job.n_clouds)
+        for _tag, ready in gate.finish():
+            write(corrector.push(ready, None))
+        write(corrector.flush(), final=True)
+        write_run.finish()
+        _check_something_corrected(corrector.stats, bag.path, points_topic)
+    report.las_skipped_non_finite = writer.stats.skipped_non_finite
+    for count, why in ((writer.stats.skipped_non_finite, "with non-finite coordinates"),
+                       (writer.stats.skipped_out_of_range, "more than 2147 km from the others "
+                        "(beyond LAS's 32-bit coordinates)")):
+        if count:
+            report.warnings.append(f"{count} points {why} cannot be stored in LAS: skipped")
+            logger.warning("%s: %s", out_path, report.warnings[-1])
+
+
+def _check_something_corrected(stats: CorrectionStats, bag_path: Path, topic: str) -> None:
+    """Refuse a correction without a single finite point (every cloud empty, or every point
+    non-finite): there is no result, and the output is not kept."""
+    if stats.points == 0:
+        raise InputError(f"{bag_path}: all {stats.clouds} clouds on {topic} are empty; "
+                         "nothing to correct")
+    if stats.non_finite == stats.points:
+        raise InputError(f"{bag_path}: all {stats.points} points on {topic} have a non-finite "
+                         "x, y or z; nothing to correct")
+
+
+def _correct_to_bag(job: _Job) -> None:
+    """Correct the clouds of ``job`` into a bag, every other message passed through."""
+    from lidarcal_ros.io.bag.format import POINTCLOUD2
+    from lidarcal_ros.io.bag.writer import BagWriter
+    from lidarcal_ros.io.cloud.messages import cloud_header_cdr, stamp_ns
+    from lidarcal_ros.io.cloud.pointcloud import point_fields
+
+    bag, corrector, gate, points_topic, corrected_topic = (
+        job.bag, job.corrector, job.gate, job.points_topic, job.corrected_topic)
+    progress, report = job.progress, job.report
+
+    latched = [t for t, info in bag.topics.items() if info.transient_local]
+    # Output queue keyed by (input sequence number, 0 = passed through / 1 = corrected).
+    # Passed-through messages are ready at once, corrected clouds when their batch is
+    # released; everything before the oldest cloud still held is written, so the output
+    # keeps the input's (log-time) order.
+    ready: list[tuple[int, int, Any]] = []
+    held: deque[int] = deque()
+    clouds: dict[int, tuple[int, Any]] = {}  # input sequence number -> log time, message
+    # Each corrected cloud is built in the bytes of its message (the input's header, then
+    # the points, 8-byte aligned, then is_dense), which the writer then copies once.
+    messages: dict[int, np.ndarray] = {}
+    skipped_topics: set[str] = set()
+    seen = 0
+
+    def place(k_: int, n_: int, dtype_: np.dtype[Any]) -> np.ndarray:
+        """(from the worker threads)"""
+        _ns, msg_ = clouds[k_]
+        head = cloud_header_cdr(stamp_ns(msg_.header.stamp), msg_.header.frame_id,
+                                point_fields(dtype_), dtype_.itemsize, n_)
+        pad = (-len(head)) % 8
+        size = len(head) + n_ * dtype_.itemsize + 1
+        buf = np.empty(pad + size, dtype=np.uint8)
+        buf[pad:pad + len(head)] = np.frombuffer(head, dtype=np.uint8)
+        messages[k_] = buf[pad:]
+        return buf[pad + len(head):pad + size - 1].view(dtype_)
+
+    corrector.place = place
+    with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched,
+                   typestore=bag.typestore) as writer:
+        # Where the input allows it, its chunks are copied as they are: every input message
+        # is then in the output, and only the clouds are read.
+        new_topics = {corrected_topic: POINTCLOUD2}
+        if job.moved_topic is not None:
+            new_topics[job.moved_topic] = bag.topics[job.trajectory_topic].msgtype
+        copied = writer.copy_chunks_of(bag, new_topics)
+        if copied is not None:
+            report.passthrough_messages = copied.messages
+
+        def write_corrected(ns_: int, message: np.ndarray) -> None:
+            writer.write_raw(corrected_topic, POINTCLOUD2, ns_, message.data)
+
+        def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
+            if topic_ in skipped_topics:
+                return
+            try:
+                writer.write_raw(topic_, msgtype_, ns_, raw_,
+                                 msgdef=bag.topics[topic_].msgdef or None)
+            except BagError as exc:
+                skipped_topics.add(topic_)
+                report.warnings.append(f"topic {topic_} not passed through ({exc})")
+                logger.warning("%s", report.warnings[-1])
+                return
+            report.passthrough_messages += 1
+
+        def emit(limit: tuple[float, int]) -> None:
+            while ready and (ready[0][0], ready[0][1]) < limit:
+                _, kind_, payload = heapq.heappop(ready)
+                (write_corrected if kind_ == 1 else write_raw)(*payload)
+
+        def collect(done: list[tuple[Any, np.ndarray]]) -> None:
+            for k_, _corrected in done:
+                ns_, _msg = clouds.pop(k_)
+                message = messages.pop(k_)
+                message[-1] = corrector.tallies.pop(k_).dense
+                heapq.heappush(ready, (k_, 1, (ns_, message)))
+                held.remove(k_)
+
+        # (the chunks copied: the clouds, and the trajectory where the gate reads it)
+        read_topics = None if copied is None else job.cloud_topics
+        read = functools.partial(bag.messages, read_topics)
+        # (clouds alone: fewer of them read ahead hold as many bytes as the mixed messages)
+        for k, (topic, msgtype, ns, raw) in enumerate(
+                prefetched(read, batch=8 if read_topics == [points_topic] else 32)):
+            if copied is None:  # (copied, the input's messages are in the output already)
+                heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
+            if topic == points_topic:
+                msg, points = _cloud_points(bag, msgtype, raw, topic)
+                held.append(k)
+                clouds[k] = (ns, msg)
+                for tag, covered in gate.cloud(k, msg, points):
+                    collect(corrector.push(covered, tag))
+                seen += 1
+                if progress and seen % 50 == 0:
+                    progress("correcting", seen / job.n_clouds)
+            elif topic == job.trajectory_topic and gate.reading:
+                gate.pose(msgtype, raw)
+                if job.poses is not None:
+                    job.poses.add(ns, msgtype, raw)
+            emit((held[0], 1) if held else (math.inf, 0))
+        for tag, covered in gate.finish():
+            collect(corrector.push(covered, tag))
+        collect(corrector.flush())
+        emit((math.inf, 0))
+        _check_something_corrected(corrector.stats, bag.path, points_topic)
+        if job.moved_topic is not None:
+            _write_moved_poses(job, writer)
+
+
+def warm_up_compiled_loops() -> None:
+    """Correct a small synthetic cloud (of the lidarcal layout, read-only as a decoded one
+    is), so that the compiled loops of the correction are loaded, and numba initialised, now
+    rather than by the first cloud (numba started without its BLAS check:
+    :func:`~lidarcal_ros.core.jit.start_without_blas`)."""
+    start_without_blas()
+    n = 64
+    tt = np.linspace(0.0, 2.0, 41)
+    trajectory = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt,
+                                                 np.full_like(tt, 1000.0)]))
+    points = np.zeros(n, dtype=make_point_dtype())
+    points["x"] = np.linspace(-300.0, 300.0, n)
+    points["y"] = np.linspace(55.0, 65.0, n)
+    points["t"] = np.linspace(0.9, 1.1, n)
+    points["intensity"] = 100.0
+    points["strip_id"] = 1
+    cloud = np.frombuffer(points.tobytes(), dtype=points.dtype)
+    corrector = StreamCorrector(trajectory, CorrectionSettings(delta=np.zeros(8)),
+                                source="warm-up")
+    corrector.push(cloud)
+    corrector.flush()
+

@@ -1,0 +1,1 @@
+"""``lidarcal import``: LAS/LAZ flight lines and a trajectory into a bag."""

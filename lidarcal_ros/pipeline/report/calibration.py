@@ -1,0 +1,133 @@
+"""The calibration file as ``lidarcal report`` shows it: the biases with their state (estimated,
+fixed, not estimable and why), the correlation matrix, the adjustment's facts and the pairs'
+coverage (:func:`read_report_calibration`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.calibration_file import ROOT_KEY, CalibrationRecord, read_calibration
+from lidarcal_ros.io.report.content import BiasEntry
+from lidarcal_ros.io.yaml_file import read_yaml
+
+__all__ = ["ReportCalibration", "read_report_calibration"]
+
+
+@dataclass
+class ReportCalibration:
+    """A calibration file as the report shows it.
+
+    Attributes
+    ----------
+    path : Path
+    record : CalibrationRecord
+        The biases (SI) as ``lidarcal correct`` reads them.
+    biases : list of BiasEntry
+        The eight parameters with their state and, where not estimable, the reason.
+    correlation_names : list of str
+    correlation : (m, m) float64
+        Correlations of the estimated parameters (empty when the file has none).
+    facts : list of (str, str)
+        sigma0, redundancy, iterations, convergence, correspondences, as in the file.
+    coverage : dict
+        ``(strip, strip) -> overlap fraction`` of the pairs the file lists.
+    warnings : list of str
+    trajectory_model : str
+        The file's ``trajectory_model``: how the trajectory errors were modelled and why
+        ('' where the file does not say).
+    """
+
+    path: Path
+    record: CalibrationRecord
+    biases: list[BiasEntry]
+    correlation_names: list[str]
+    correlation: np.ndarray
+    facts: list[tuple[str, str]]
+    coverage: dict[tuple[int, int], float]
+    warnings: list[str]
+    trajectory_model: str = ""
+
+
+def read_report_calibration(path: str | Path) -> ReportCalibration:
+    """Read a calibration file (docs/interface.md) with the keys the report shows beyond the
+    biases: correlation matrix, reasons for parameters not estimable, pair coverage.
+
+    Raises
+    ------
+    ConfigError
+        A required key is missing or malformed (see
+        :func:`~lidarcal_ros.io.calibration_file.read_calibration`), or the correlation
+        matrix does not match its names.
+    """
+    path = Path(path)
+    record = read_calibration(path)
+    body = read_yaml(path, what="calibration")[ROOT_KEY]
+    entries = body["biases"]
+    biases = []
+    for name in PARAMETER_NAMES:
+        entry = entries[name]
+        reason = entry.get("not_estimable")
+        if record.estimated[name]:
+            state = "estimated"
+        elif reason:
+            state = "not_estimable"
+        else:
+            state = "fixed"
+        biases.append(BiasEntry(name, record.values[name],
+                                record.sigmas[name] if state == "estimated" else None,
+                                state, str(reason) if reason else ""))
+    names, matrix = _correlation_matrix(path, body.get("correlation"))
+    facts = [("calibration file", str(path))]
+    if record.sigma0 is not None:
+        facts.append(("sigma0 (a posteriori)", f"{record.sigma0 * 100:.2f} cm"))
+    for key, label in (("redundancy", "redundancy"), ("iterations", "iterations")):
+        if isinstance(body.get(key), int):
+            facts.append((label, str(body[key])))
+    if isinstance(body.get("converged"), bool):
+        facts.append(("converged", "yes" if body["converged"] else "NO"))
+    if body.get("model_detail"):
+        facts.append(("point-positioning model", str(body["model_detail"])))
+    corr = body.get("correspondences")
+    if isinstance(corr, Mapping):
+        facts.append(("correspondences", f"{corr.get('strip_pairs', '?')} strip-pair, "
+                                         f"{corr.get('control', '?')} control"))
+    coverage = {}
+    for pair in body.get("strip_pairs") or []:
+        strips = pair.get("strips") if isinstance(pair, Mapping) else None
+        value = pair.get("coverage") if isinstance(pair, Mapping) else None
+        if isinstance(strips, list) and len(strips) == 2 and isinstance(value, (int, float)):
+            a, b = sorted(int(s) for s in strips)
+            coverage[(a, b)] = float(value)
+    warnings = [str(w) for w in body.get("warnings") or []]
+    for strip in body.get("strips") or []:
+        if isinstance(strip, Mapping):
+            warnings.extend(f"strip {strip.get('id')}: {w}" for w in strip.get("warnings") or [])
+    choice = body.get("trajectory_model")
+    return ReportCalibration(path, record, biases, names, matrix, facts, coverage, warnings,
+                             str(choice) if choice is not None else "")
+
+
+def _correlation_matrix(path: Path, doc: Any) -> tuple[list[str], np.ndarray]:
+    """Names and matrix of the file's ``correlation`` (empty if absent)."""
+    if doc is None:
+        return [], np.zeros((0, 0))
+    names = doc.get("names") if isinstance(doc, Mapping) else None
+    rows = doc.get("matrix") if isinstance(doc, Mapping) else None
+    if not isinstance(names, list) or not all(n in PARAMETER_NAMES for n in names):
+        raise ConfigError(f"{path}: correlation.names must list parameter names, got {names!r}")
+    try:
+        matrix = np.array(rows, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{path}: correlation.matrix is not a matrix of numbers") from None
+    if matrix.shape != (len(names), len(names)):
+        raise ConfigError(f"{path}: correlation.matrix is {matrix.shape}, expected "
+                          f"{len(names)} x {len(names)} for its names")
+    return [str(n) for n in names], matrix
+
