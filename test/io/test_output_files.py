@@ -1,0 +1,60 @@
+"""io/output_files.py: outputs refused before any work, written whole or not at all."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from lidarcal_ros.errors import OutputError
+from lidarcal_ros.io.output_files import check_output, temporary_beside, write_text
+
+
+def test_an_existing_output_needs_overwrite(tmp_path: Path) -> None:
+    path = tmp_path / "out.yaml"
+    path.write_text("old")
+    with pytest.raises(OutputError, match="exists \\(use --overwrite to replace it\\)"):
+        check_output(path, overwrite=False)
+    assert check_output(path, overwrite=True) == path
+    assert path.read_text() == "old"  # checking never touches the output
+
+
+def test_a_directory_where_a_file_goes_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(OutputError, match="is a directory"):
+        check_output(tmp_path, overwrite=True)
+    assert check_output(tmp_path / "bag", overwrite=False, directory=True) == tmp_path / "bag"
+
+
+def test_a_missing_parent_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(OutputError) as raised:
+        check_output(tmp_path / "no" / "such" / "out.las", overwrite=False)
+    assert "\n" not in str(raised.value) and "out.las" in str(raised.value)
+
+
+def test_write_text_replaces_whole_and_leaves_no_temporary(tmp_path: Path) -> None:
+    path = tmp_path / "calibration.yaml"
+    path.write_text("previous\n")
+    assert write_text(path, "new\n", what="calibration") == path
+    assert path.read_text() == "new\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.yaml"]
+
+
+def test_a_failed_write_keeps_the_previous_output(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "calibration.yaml"
+    path.write_text("previous\n")
+
+    def full_disk(*_args: object, **_kwargs: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", full_disk)
+    with pytest.raises(OutputError, match="No space left on device"):
+        write_text(path, "new\n", what="calibration")
+    assert path.read_text() == "previous\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.yaml"]
+
+
+def test_the_temporary_is_hidden_beside_the_output(tmp_path: Path) -> None:
+    temporary = temporary_beside(tmp_path / "out.laz")
+    assert temporary.parent == tmp_path and temporary.name.startswith(".")
