@@ -114,6 +114,9 @@ SCHEMA: dict[str, ParameterSpec] = {
         3.0, "Outlier rejection at this many robust sigmas", 1.5, 20.0),
     "calibration.control_weight": float_parameter(
         1.0, "Weight of a control observation relative to a strip-pair one", 0.0, 1e6),
+    "calibration.control_plane_points": int_parameter(
+        24, "Points of the least-squares plane a control point is compared with (its nearest "
+        "in the strip); 0 compares it with the TIN facet under it", 0, 1000),
     "calibration.max_correlation": float_parameter(
         0.999, "Above this |correlation| two parameters are reported as not separable", 0.5, 1.0),
     "calibration.thinning_cell_m": float_parameter(
@@ -403,6 +406,10 @@ def cross_check(values: Mapping[str, Any], *, has_control: bool | None = None) -
             parse_target_box(box)
         except ConfigError as exc:
             return str(exc)
+    plane_points = values.get("calibration.control_plane_points", 24)
+    if 0 < plane_points < 3:
+        return (f"calibration.control_plane_points: {plane_points} points make no plane; "
+                "give 3 or more, or 0 for the TIN facet")
     warn = values.get("qa.rmsdz_warn_m", 0.08)
     err = values.get("qa.max_difference_m", 0.16)
     if warn > err:
@@ -476,6 +483,7 @@ class FlightConfig:
             convergence_fraction=values["calibration.convergence_fraction"],
             robust_k=values["calibration.robust_k"],
             control_weight=values["calibration.control_weight"],
+            control_plane_points=values["calibration.control_plane_points"],
             limits=ObservabilityLimits(max_correlation=values["calibration.max_correlation"],
                                        max_sigma=dict(DEFAULT_MAX_SIGMA)),
             trajectory=TrajectoryErrorSettings(

@@ -133,6 +133,8 @@ class CalibrationSettings:
     robust_k: float = 3.0
     #: Weight of a control observation relative to a strip-pair one.
     control_weight: float = 1.0
+    #: Points of the plane a control point is compared with (0: the TIN facet under it).
+    control_plane_points: int = 24
     #: Seed of the sampling priorities (with each strip's id).
     seed: int = 0
     #: Threads the calibration runs strips and strip pairs in (TINs, corrections, matching);

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import Observations
+from lidarcal_ros.core.calibration.control_surface import ControlSurface, fit_control_planes
 from lidarcal_ros.core.calibration.pairs import (
     FootprintGrid,
     PreparedStrip,
@@ -45,6 +46,10 @@ from lidarcal_ros.errors import CalibrationError
 if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
     from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 
+
+#: Key offsets of a footprint cell and its eight neighbours (:func:`footprint_keys`).
+_NEIGHBOUR_CELL_OFFSETS = np.array([dx * (1 << 32) + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)],
+                                   dtype=np.int64)
 
 class PairMatcher:
     """The strips of a calibration, their pairs, and the matching of both.
@@ -254,22 +259,59 @@ class PairMatcher:
     def _patch_terms(
         self, k: int, m: PatchMatches
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """For the valid matches to strip ``k``'s patches: the observed normals, ``n^T A_B``
-        interpolated at the foot of the normal (barycentric), the observed discrepancy (the
-        patch distance along the observed normal) and the time of the foot (s, barycentric)."""
+        """:meth:`_surface_terms` of the valid matches to strip ``k``'s TIN facets (the foot
+        barycentric in its triangle)."""
         ok = m.valid
         tin = self.tin(k)
+        return self._surface_terms(k, tin.simplices[m.triangle[ok]], m.weights[ok],
+                                   m.normal[ok], m.distance[ok], tin.sloped[m.triangle[ok]])
+
+    def _surface_terms(
+        self, k: int, verts: np.ndarray, w: np.ndarray, normal: np.ndarray,
+        distance: np.ndarray, sloped: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For correspondences with strip ``k``'s surface, its foot ``sum w_j X_j`` over the
+        points ``verts`` (q, K) with weights ``w`` (q, K), its normal and signed distance (m):
+        the observed normals (vertical unless ``sloped``), ``n^T A_B`` at the foot, the
+        observed discrepancy (the distance along the observed normal) and the time of the
+        foot (s)."""
         with self.clock("design rows"):
-            n = self._observed_normal(m.normal[ok], tin.sloped[m.triangle[ok]])
-            w = m.weights[ok]
-            verts = tin.simplices[m.triangle[ok]]
+            n = self._observed_normal(normal, sloped)
             geometry = self.strips[k].geometry
-            rows = np.zeros((int(ok.sum()), N_PARAMETERS))
-            for v in range(3):
+            rows = np.zeros((verts.shape[0], N_PARAMETERS))
+            for v in range(verts.shape[1]):
                 add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
-            y = m.distance[ok] * (n * m.normal[ok]).sum(axis=1)
+            y = distance * (n * normal).sum(axis=1)
             t_foot = (self.strips[k].strip.t[verts] * w).sum(axis=1)
         return n, rows, y, t_foot
+
+    def _plane_terms(
+        self, k: int, plane: ControlSurface
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_surface_terms` of control points on the planes of strip ``k``'s points
+        (the foot a least-squares combination of the plane's neighbours)."""
+        flat = plane.normal[:, 2] >= math.cos(math.radians(self.settings.flat_slope_deg))
+        return self._surface_terms(k, plane.neighbours, plane.weights, plane.normal,
+                                   plane.distance, ~flat)
+
+    def _control_surface(self, k: int, control: np.ndarray, xyz: np.ndarray,
+                         threshold: float) -> ControlSurface:
+        """The planes of strip ``k``'s points (``xyz``: corrected) under the ``control``
+        points, valid only within ``threshold`` metres of them; none where
+        ``control_plane_points`` is 0."""
+        ps, k_points = self.strips[k], self.settings.control_plane_points
+        if k_points == 0:
+            return fit_control_planes(control, xyz, np.empty(0, np.int64), k=3, max_radius=0.0)
+        cell = self.settings.overlap_cell_m
+        near_cells = np.unique((self.footprint.keys(control[:, :2])[:, None]
+                                + _NEIGHBOUR_CELL_OFFSETS[None, :]).ravel())
+        candidates = np.flatnonzero(np.isin(ps.point_cells, near_cells))
+        # Twice the radius that holds k points at the strip's density: sparser than that
+        # (a gap, the strip's edge) the neighbours would not surround the control point.
+        radius = min(2.0 * math.sqrt(k_points / (math.pi * ps.density)), cell)
+        surface = fit_control_planes(control, xyz, candidates, k=k_points, max_radius=radius)
+        surface.valid[np.abs(surface.distance) > threshold] = False
+        return surface
 
     def _trajectory_rows(self, a: int, t_a: np.ndarray, b: int, t_b: np.ndarray,
                          n: np.ndarray) -> TrajectoryRows | None:
@@ -352,17 +394,23 @@ class PairMatcher:
                                  (self._moved(k) and np.any(shift)) else None)
             if not m.valid.any():
                 continue
-            ok = m.valid
-            # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate
-            n, patch_rows, y, t_foot = self._patch_terms(k, m)
-            rows = -patch_rows
-            weights = np.full(y.size, self.settings.control_weight)
-            parts.append(Observations(rows, y, weights, -1 - cps[ok],
-                                      self._cluster_of(control.xyz[cps[ok]]),
-                                      self._trajectory_rows(-1, np.zeros(y.size), k, t_foot,
-                                                            n)))
-            for c, d in zip(cps[ok], m.distance[ok]):
-                found.append((int(c), k, float(d)))
+            # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate: on the plane of the
+            # control point's neighbours where they make one, else on the TIN facet.
+            plane = self._control_surface(k, control.xyz[cps], xyz, threshold)
+            on_plane = plane.valid & m.valid
+            on_facet = m.valid & ~on_plane
+            for ok, terms, distance in (
+                    (on_plane, self._plane_terms(k, plane.take(on_plane)), plane.distance),
+                    (on_facet, self._patch_terms(k, m.take(on_facet)), m.distance)):
+                if not ok.any():
+                    continue
+                n, patch_rows, y, t_foot = terms
+                weights = np.full(y.size, self.settings.control_weight)
+                parts.append(Observations(-patch_rows, y, weights, -1 - cps[ok],
+                                          self._cluster_of(control.xyz[cps[ok]]),
+                                          self._trajectory_rows(-1, np.zeros(y.size), k,
+                                                                t_foot, n)))
+                found.extend((int(c), k, float(d)) for c, d in zip(cps[ok], distance[ok]))
         return Observations.concatenate(parts), found
 
     def choose_samples(self, pairs: Sequence[StripPair]) -> None:

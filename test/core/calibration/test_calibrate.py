@@ -87,6 +87,22 @@ def test_control_residuals_shrink(paper_run: tuple) -> None:
     assert np.sqrt(np.mean(after**2)) < 0.04
 
 
+def test_control_is_compared_with_the_plane_of_its_neighbours(paper_run: tuple) -> None:
+    """The plane of a control point's 24 nearest points carries about 1/sqrt(24) of the range
+    noise (2 cm), a TIN facet (``control_plane_points`` 0) that of its three vertices: the
+    residuals' scatter after calibration (their spread about their mean, which the datum
+    takes) shrinks accordingly, and the estimate stays within its sigmas."""
+    sim, result = paper_run
+    facet = calibrate(sim.mission, CalibrationSettings(control_plane_points=0))
+    on_plane = np.array([c.after for c in result.control])
+    on_facet = np.array([c.after for c in facet.control])
+    assert on_plane.size == on_facet.size == 6
+    assert np.std(on_plane) < 0.005
+    assert np.std(on_plane) < 0.6 * np.std(on_facet)
+    sigma = np.nan_to_num(result.solution.sigma, nan=0.0)
+    assert np.all(np.abs(facet.solution.delta - result.solution.delta) <= 2 * sigma + 1e-12)
+
+
 def test_projected_crs_magnitudes_give_the_same_estimate(paper_run: tuple) -> None:
     _, result = paper_run
     shifted = _small(biases=BIASES, seed=17, line_length_m=300.0,
