@@ -1,21 +1,9 @@
 """lidarcal_ros: quasi-rigorous airborne LiDAR calibration and radiometric correction for ROS 2.
 
-Layout (imports only run downward):
-
-``core``
-    Pure numerics (numpy/scipy, no rclpy): local trajectory, bias model, TIN matching,
-    least-squares adjustment, observability, radiometry, simulator.
-``io``
-    Clouds, bags, calibration/config/control files. Depends on ``core`` only.
-``pipeline``
-    The one procedure both the CLI and the nodes drive (batch and streaming).
-``cli`` / ``nodes``
-    Thin front ends: argument parsing / rclpy message plumbing.
-``ros``
-    What a process must set before rclpy starts (DDS confined to this machine); no rclpy.
-
-Errors derive from :class:`lidarcal_ros.errors.LidarcalError`. ARCHITECTURE.md shows the tree
-and says where to add an input format, an output or a node.
+Layers, imports only downward: ``core`` (numerics) < ``io`` (files, bags, messages) <
+``pipeline`` (the procedures) < ``cli`` / ``nodes`` (front ends); ``ros`` is what a process sets
+before rclpy starts. Errors derive from :class:`lidarcal_ros.errors.LidarcalError`.
+ARCHITECTURE.md shows the tree and where to add things.
 """
 
 __version__ = "0.2.3"

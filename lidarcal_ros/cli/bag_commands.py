@@ -1,5 +1,4 @@
-"""``lidarcal import`` (LAS/LAZ strips and a trajectory into a mission bag) and ``lidarcal
-recover`` (a damaged bag's readable messages into a new bag)."""
+"""``lidarcal import`` (survey deliveries into a mission bag) and ``lidarcal recover``."""
 
 from __future__ import annotations
 

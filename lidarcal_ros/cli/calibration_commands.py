@@ -1,6 +1,4 @@
-"""``lidarcal calibrate`` (estimate the biases of a mission bag), ``lidarcal evaluate``
-(relative and absolute accuracy before and after a calibration) and ``lidarcal report``
-(the HTML QA report of a calibration)."""
+"""``lidarcal calibrate``, ``lidarcal evaluate`` and ``lidarcal report``."""
 
 from __future__ import annotations
 

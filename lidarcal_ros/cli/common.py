@@ -1,5 +1,5 @@
-"""What several ``lidarcal`` commands share: the ``-q/--quiet`` option, the bag and
-calibration arguments, and the progress bar on stderr."""
+"""What several ``lidarcal`` commands share: quiet option, bag and calibration arguments, progress.
+"""
 
 from __future__ import annotations
 

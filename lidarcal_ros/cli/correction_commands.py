@@ -1,5 +1,4 @@
-"""``lidarcal correct``: apply a calibration to a mission bag and correct intensity to
-reflectance, into a bag or LAS/LAZ."""
+"""``lidarcal correct``: a calibration and the radiometric model applied to a mission bag."""
 
 from __future__ import annotations
 

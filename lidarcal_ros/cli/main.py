@@ -1,29 +1,8 @@
-"""``lidarcal``: simulate, calibrate (and more) from the command line.
+"""``lidarcal``: the command line's parser and the running of one command.
 
-This module builds the parser and runs a command; each command group is a module of its own
-(:mod:`~lidarcal_ros.cli.simulation_commands`, :mod:`~lidarcal_ros.cli.calibration_commands`,
-:mod:`~lidarcal_ros.cli.correction_commands`, :mod:`~lidarcal_ros.cli.bag_commands`,
-:mod:`~lidarcal_ros.cli.ros_commands`), what they share in :mod:`~lidarcal_ros.cli.common`.
-
-Exit statuses (:data:`~lidarcal_ros.cli.exit_status.EXIT_STATUSES`, also in ``lidarcal --help``):
-
-- 0: success.
-- 1: bad input, or an output that cannot be written: one line on stderr,
-  ``lidarcal COMMAND: error: REASON``, naming the file, topic, field or parameter at fault
-  (and, for a failed write, the operating system's reason). No output is left half-written.
-- 2: usage error (argparse).
-- 3: an unexpected exception (a bug), also in one line; ``-vv`` adds its traceback.
-- 4: ``calibrate`` wrote a calibration whose adjustment did not converge
-  (``converged: false`` in the file, a warning line on stderr saying why; an estimate
-  converged within the re-matching noise is success, 0).
-- 5: ``calibrate --write-identity`` could estimate nothing and wrote a calibration that moves
-  no point (a warning line on stderr says why).
-- 130: interrupted (Ctrl-C).
-
-Where a command goes on despite something wrong (points dropped, a control point unused, a
-file without a CRS), it says so in a warning line, ``lidarcal COMMAND: warning: ...``, with
-the count. Every command that writes refuses an existing output unless given
-``--overwrite``, in the same words.
+Each command group is a module of its own beside this one, what they share is
+:mod:`~lidarcal_ros.cli.common`. Exit statuses: :data:`~lidarcal_ros.cli.exit_status.EXIT_STATUSES`
+and docs/interface.md, "Exit statuses".
 """
 
 from __future__ import annotations
@@ -109,7 +88,7 @@ def command_log_lines(command: str, verbose: int) -> Iterator[None]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``lidarcal`` console script (exit statuses: module docstring)."""
+    """Entry point of the ``lidarcal`` console script (exit statuses: docs/interface.md)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # (a report records it)

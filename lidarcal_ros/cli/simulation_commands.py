@@ -1,5 +1,5 @@
-"""``lidarcal simulate`` (a synthetic mission with known biases) and ``lidarcal plan``
-(which parameters a flight plan's lines can recover, from a simulation of them)."""
+"""``lidarcal simulate`` (a mission with known biases) and ``lidarcal plan`` (what a plan can see).
+"""
 
 from __future__ import annotations
 

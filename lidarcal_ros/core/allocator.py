@@ -1,16 +1,6 @@
 """Process-wide tuning of glibc's allocator for streams of large, short-lived buffers.
 
-Every cloud that passes through lidarcal is a buffer of several MB: a ``bytes`` taken from
-DDS, numpy temporaries of the correction, the corrected message. glibc serves allocations
-above ``M_MMAP_THRESHOLD`` (128 KiB, raised dynamically only up to 32 MiB and only after a
-free) with a fresh ``mmap`` and returns them with ``munmap``, so each buffer is faulted in
-page by page and zeroed by the kernel. On this 2-core machine a raw DDS subscription that
-takes 9.6 MB clouds spent 2.15 s of CPU per GB taken that way (1.1M page faults in 8 s),
-against 0.50 s per GB with the settings below (bench/README.md, "Nodes").
-
-It lives in ``core``, the lowest layer that uses it: the normals fault in their grids with
-:func:`populate_in_background`; the correction, the nodes and the CLI tune the allocator with
-:func:`tune_allocator`.
+Why, with figures: docs/internals.md, "Memory allocator".
 """
 
 from __future__ import annotations

@@ -1,7 +1,6 @@
-"""The ``correction_flags`` bits of a corrected point (the README's table of topics): why a
-derived field is missing or uncertain. Shared by the compiled correction
-(:mod:`lidarcal_ros.core.georeferencing.correction_kernels`), the pipeline that fills the field and
-the writers that act on it (LAS withholds the points not corrected).
+"""The ``correction_flags`` bits of a corrected point: why a derived field is missing or uncertain.
+
+The table: docs/interface.md, "Corrected clouds". LAS output withholds the points not corrected.
 """
 
 #: Geometry not corrected: non-finite input, time not covered by the trajectory, or point

@@ -1,11 +1,7 @@
 """Flight planning: which parameters a planned flight will be able to calibrate.
 
-The planned lines are simulated over the chosen terrain (noise-free, no biases), the
-correspondences the calibration would form are matched exactly as ``lidarcal calibrate`` does,
-and the normal matrix they give is analysed with the a-priori noise: per parameter whether it
-can be estimated, its predicted standard deviation and its largest correlation. The verdict
-comes from the normal matrix, not from rules; the advice in words then names the line or
-control that would fix what cannot be seen (docs/method.md section 7).
+The planned lines simulated and matched as ``lidarcal calibrate`` would, the normal matrix
+analysed (docs/method.md section 7; docs/internals.md, "Flight planning").
 """
 
 from __future__ import annotations

@@ -1,62 +1,7 @@
 """Radiometric correction: recorded intensity to reflectance (docs/method.md section 8).
 
-For an extended Lambertian target filling the footprint the radar equation reduces to
-``I ~ P_t * rho * cos(theta) * eta_atm(r) / r^2``, so the *normalised intensity*
-
-``I_n = I * (r / r_ref)^2 / cos(theta) / eta_atm(r) * (P_ref / P_t)``
-
-is the intensity the sensor would have recorded from the same surface at the reference range
-``r_ref``, at normal incidence, through a clear atmosphere (``eta_atm = 1``) and at the
-reference power. Here ``r`` is the range (m) from the firing point to the (corrected) point,
-``theta`` the incidence angle between the laser direction and the local surface normal,
-``eta_atm(r) = exp(-2 alpha r)`` the two-way transmittance and ``P_ref / P_t`` the
-transmitted-power normalisation.
-
-What the ``reflectance`` field holds
-------------------------------------
-``reflectance = I_n / C``, with ``C`` the calibration constant: the intensity the sensor
-records from a Lambertian target of reflectance 1 at ``r_ref``, normal incidence, clear air
-and reference power (``radiometry.calibration_constant``, intensity units). With ``C`` known
-(from the sensor's radiometric calibration, or measured on a reference target of known
-reflectance: :func:`constant_from_target`) the field is the *Lambertian reflectance* of the
-surface, dimensionless (0-1 for natural surfaces; above 1 for retro-reflectors and
-specular returns). Without it ``C`` is taken as 1 and the field is ``I_n`` itself, a
-*relative* reflectance in intensity units, proportional to the true one by an unknown factor
-the same for the whole mission (:attr:`RadiometricModel.meaning` says which in words).
-
-Incidence on vegetation
------------------------
-``cos(theta)`` belongs to an extended target, a surface filling the footprint (Höfle and
-Pfeifer 2007; Wagner 2010; the review of Kashani et al. 2015). A canopy is a volume of leaves
-and twigs smaller than the footprint: its cross-section does not follow the cosine of any
-surface normal, and the plane fitted to a crown's neighbourhood has no physical meaning
-(dividing by its cosine would make grazing angles, clamped, dominate a forest's
-reflectance). The rule, per point:
-
-- a *volume return*, one that is not the last return of its pulse (``return_number <
-  number_of_returns``: the beam went on past it, so it did not fill the footprint;
-  :func:`volume_returns`), gets no incidence correction (``cos`` taken as 1, the usual
-  practice for canopy returns) and flag ``FLAG_VOLUME``; its incidence is undefined (NaN);
-- every other return (last or single: the ground under the canopy, roofs, crowns dense
-  enough to stop the beam) keeps ``cos(theta)`` of its surface normal, fitted to the last and
-  single returns of its strip only (a grid holding the canopy above the ground would tilt
-  the terrain's planes), clamped and bounded as :meth:`RadiometricModel.reflectance` says.
-
-Clouds without ``return_number``/``number_of_returns`` (the simulator's, many drivers') have
-no volume returns: every point keeps its surface normal.
-
-Atmosphere
-----------
-The extinction coefficient follows Kim et al. (2001) from the visibility ``V`` (km) of the day:
-``alpha = 3.912 / V * (lambda / 550 nm)^-q`` per km, ``q = 1.6`` (V > 50 km), ``1.3``
-(6 < V <= 50), ``0.16 V + 0.34`` (1 < V <= 6), ``V - 0.5`` (0.5 < V <= 1), else 0. Kim's relation
-is taken as the extinction at standard air density (15 deg C, 101.325 kPa); the day's
-temperature and pressure rescale its molecular (Rayleigh) part, ``sigma_R(lambda) = 0.01162
-km^-1 (550 nm / lambda)^4`` (Bucholtz 1995, sea level, 15 deg C), by the air-density ratio
-``rho_air / rho_0 = (P / P_0) (T_0 / T)``. At 1064 nm this term is below 1e-4 km^-1 (a
-change of transmittance under 0.02% over 1 km); it matters only at short wavelengths.
-
-All functions are vectorised over points and pure numpy.
+Range in metres, angles in radians, the extinction coefficient per metre; vectorised over points,
+pure numpy. What the ``reflectance`` field holds: docs/correction.md, "The reflectance".
 """
 
 from __future__ import annotations
@@ -162,7 +107,7 @@ def extinction_coefficient(
     temperature_c: float = 15.0,
     pressure_kpa: float = P0_KPA,
 ) -> float:
-    """The day's extinction coefficient per metre (module docstring).
+    """The day's extinction coefficient per metre (docs/method.md section 8).
 
     Kim's coefficient at standard air, with its molecular part rescaled to the day's air
     density: ``alpha_Kim(V, lambda) + sigma_R(lambda, T, P) - sigma_R(lambda, 15 C, 101.325 kPa)``
@@ -206,7 +151,7 @@ def power_ratio(
 
 def volume_returns(return_number: np.ndarray | None,
                    number_of_returns: np.ndarray | None) -> np.ndarray | None:
-    """The volume returns of a cloud (module docstring): not the last return of their pulse.
+    """The volume returns of a cloud (docs/method.md section 8): not the last return of their pulse.
 
     Parameters
     ----------
@@ -260,7 +205,7 @@ class RadiometricModel:
     reference_range_m : float
         Range the reflectance is normalised to, m (``radiometry.reference_range_m``).
     calibration_constant : float
-        ``C`` of the module docstring: the intensity of a Lambertian target of reflectance 1
+        ``C`` of docs/method.md section 8: the intensity of a Lambertian target of reflectance 1
         at ``reference_range_m``, normal incidence, clear air and reference power
         (``radiometry.calibration_constant``, intensity units); 0 when not known (the
         reflectance is then relative, in intensity units).
@@ -371,8 +316,8 @@ class RadiometricModel:
 
     @property
     def incidence_rule(self) -> str:
-        """The incidence rule of the reflectance in one line (module docstring, "Incidence on
-        vegetation"), for logs and diagnostics."""
+        """The incidence rule of the reflectance in one line (docs/method.md section 8,
+        "Volume returns"), for logs and diagnostics."""
         return (f"cos of the surface normal's incidence, at least {self.min_cos_incidence:g} "
                 f"(grazing, flagged), where the normal is rough or grazing at most "
                 f"{self.uncertain_incidence_max_deg:g} deg; none (cos 1) for volume returns, "
@@ -391,7 +336,7 @@ class RadiometricModel:
         uncertain: np.ndarray | None = None,
         volume: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Reflectance of each point (module docstring) and its grazing flag.
+        """Reflectance of each point (docs/method.md section 8) and its grazing flag.
 
         Parameters
         ----------

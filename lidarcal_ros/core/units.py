@@ -1,8 +1,7 @@
-"""The unit formatters every output shares (metres shown in centimetres, numbers and shares
-in text, missing values (NaN, inf) written as such) and the parser of values given with a unit.
+"""The unit formatters every output shares, and the parser of values given with a unit.
 
-Angles and the eight biases have their own display rules (arcseconds, cm, the scale
-factor), in :mod:`lidarcal_ros.core.params` (``format_value``, ``format_estimate``).
+Metres shown in centimetres, missing values written as such; the biases' own display rules are
+in :mod:`lidarcal_ros.core.params`.
 """
 
 from __future__ import annotations

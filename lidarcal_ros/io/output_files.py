@@ -1,11 +1,6 @@
 """Outputs that are either complete or absent, refused alike by every command.
 
-Every command that writes checks its output first with :func:`check_output` (one wording for
-an existing output, a missing or read-only directory), writes beside it under a hidden
-temporary name (:func:`temporary_beside`) and renames the result into place only once it is
-complete, so a failure (disk full, an error half-way) leaves neither a partial file nor a
-damaged previous output. Write failures become one :class:`~lidarcal_ros.errors.OutputError`
-line naming the output and the operating system's reason (:func:`os_reason`).
+docs/internals.md, "Bags" ("Outputs complete or absent").
 """
 
 from __future__ import annotations

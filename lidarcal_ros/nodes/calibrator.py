@@ -2,58 +2,9 @@
 
     ros2 run lidarcal_ros lidarcal_calibrator --ros-args --params-file config/flight_config.yaml
 
-Subscribes (raw CDR) to the strips (``topics.points``), the trajectory (``topics.trajectory``)
-and the control points (``topics.control_points``, transient-local; or the CSV of
-``calibration.control_points_file``) and hands them to
-:class:`lidarcal_ros.pipeline.calibration.service.CalibrationService`: a strip is complete once
-no point of it arrived for ``strip_gap_s`` seconds of point (or trajectory) time, or once no
-input at all arrived for ``idle_close_s`` wall seconds (the end of a mission or a replay). Each
-complete strip is paired with the earlier strips it overlaps, its correspondences join the normal
-equations and the estimate is re-solved quickly (two iterations, the new pairs re-matched:
-published, not converged). Whenever no input is waiting, the worker then takes the estimate to
-convergence a step at a time (every pair re-matched; one pair's matching or one adjustment per
-step, input taken in between) and publishes it once converged: with no service call, the
-estimate latched after the last strip is what ``lidarcal calibrate`` gives on the same bag.
-
-Publishes
----------
-``/lidar/calibration/estimate`` (``std_msgs/Float64MultiArray``, transient-local, depth 1)
-    10 x 8 matrix: values, sigmas, covariance of ``dX, dY, dZ, domega, dphi, dkappa, dr, dS``
-    (SI units; layout in :mod:`lidarcal_ros.io.cloud.messages`); the label of ``layout.dim[0]``
-    ends in ``;converged=true`` or ``;converged=false``.
-``/lidar/calibration/yaml`` (``std_msgs/String``, transient-local, depth 1)
-    The calibration file of docs/interface.md (``converged`` says whether it is; the trajectory
-    model and, where estimated, each strip's trajectory error).
-``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``, every second and after each solve)
-    ``lidarcal: strips A&B`` per overlapping pair (RMS discrepancy after calibration against
-    ``qa.rmsdz_warn_m`` / ``qa.max_difference_m``, USGS LBS QL2 8 cm / 16 cm: OK, WARN, ERROR;
-    values coverage, rms_before, rms_after, p95_after), ``lidarcal: convergence`` (WARN
-    while not converged; ``refining`` says whether the background convergence is under way),
-    ``lidarcal: observability`` (parameters not estimable, with the reason),
-    ``lidarcal: trajectory`` (each strip's estimated trajectory error against the navigation
-    accuracy configured: WARN beyond 3x, ERROR beyond 6x its a-priori sigma),
-    ``lidarcal: memory`` (points held, points and strips released under the budget) and
-    ``lidarcal: input`` (clouds, malformed clouds skipped and why, queue).
-
-Services (``std_srvs/Trigger``)
-    ``~/solve``: full solve over everything accumulated (what ``lidarcal calibrate`` computes on
-    the same data), published as above. ``~/reset``: forget everything, the checkpoint file
-    too (the latest estimate stays latched until the next solve). ``~/save``: converge first
-    (at most :data:`~lidarcal_ros.pipeline.calibration.service.SAVE_CONVERGE_S`; the message
-    says if cut short), then write the calibration
-    file to ``calibration.calibration_file``; the message names the path.
-
-Node-specific parameters: ``memory_budget_points`` (points held; past it the oldest complete
-strip is released first and reported; 0, the default, sizes it to about half of the machine's
-memory), ``strip_gap_s``, ``idle_close_s``, ``checkpoint_file``
-(written after every estimate published and on shutdown, which converges first for at most
-:data:`~lidarcal_ros.pipeline.calibration.service.SHUTDOWN_CONVERGE_S`; read at start, so a
-restarted calibrator resumes with its accumulated normal equations, converges again and
-publishes), ``queue_depth``, ``trajectory_type``
-(:data:`lidarcal_ros.core.config.NODE_PARAMETERS`).
-
-All work on the calibration happens in the service's worker thread; the subscription callbacks
-only decode and hand over, so input keeps flowing while a solve runs.
+The node decodes, hands over to a
+:class:`~lidarcal_ros.pipeline.calibration.service.CalibrationService` and publishes. Its
+topics, services, statuses and how it works: docs/nodes.md, "``lidarcal_calibrator``".
 """
 
 from __future__ import annotations
@@ -106,7 +57,7 @@ CALIBRATOR_PARAMETERS = NODE_PARAMETERS[CALIBRATOR_NODE]
 
 
 class CalibratorNode(Node):
-    """Live calibration node (module docstring)."""
+    """Live calibration node (docs/nodes.md)."""
 
     def __init__(self, *, context: Any = None, node_name: str = CALIBRATOR_NODE,
                  **kwargs: Any) -> None:

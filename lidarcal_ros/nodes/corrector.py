@@ -1,52 +1,10 @@
-"""``lidarcal_corrector``: applies the latest estimate and the radiometric model to each chunk.
+"""``lidarcal_corrector``: applies the latest estimate and the radiometric model to each cloud.
 
     ros2 run lidarcal_ros lidarcal_corrector --ros-args --params-file config/flight_config.yaml
 
-Subscribes (raw CDR) to the points (``topics.points``; each cloud taken from DDS straight
-into the correction's shared memory, :mod:`~lidarcal_ros.nodes.serialized_subscription`) and
-the trajectory (``topics.trajectory``), and to the calibrator's estimate
-(``/lidar/calibration/estimate``, transient-local); publishes each chunk corrected on
-``topics.corrected`` with every input field, ``x, y, z`` corrected (docs/method.md eq. [13])
-and the FLOAT32 ``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus UINT8
-``correction_flags`` (:mod:`lidarcal_ros.core.flags`). Header stamp and frame are the input's. The
-``reflectance`` is the Lambertian reflectance (0-1) when ``radiometry.calibration_constant``
-is set, else relative (intensity normalised to ``radiometry.reference_range_m``; intensity
-units: :mod:`lidarcal_ros.core.radiometry`); a ``radiometry.reference_target`` needs the
-whole mission, so the node does not use it (``lidarcal report`` and ``lidarcal correct`` derive
-the constant from it).
-
-A new estimate is used from the next chunk on, without a restart; so are accepted changes of
-the flight configuration (atmosphere, radiometry, time field...). Until an estimate arrives the
-corrector uses the file named by its ``calibration`` parameter, else the configuration's
-``calibration.fixed.*`` values.
-
-Every input point comes out exactly once, in the order received. A chunk is corrected once
-the trajectory covers it (a sample past its last point time) or after
-``max_trajectory_wait_s``. The normals come from one grid per strip that every chunk's points
-join (:class:`~lidarcal_ros.core.normals.strip_normals.StripNormals`): by default (``lookahead``
-false) a chunk is corrected at once, its points seeing the earlier chunks as neighbours; with
-``lookahead`` true it waits until the next chunks cover the grid rows beyond it (about three
-rows, a few chunks), which gives exactly the normals of ``lidarcal correct`` at that cost in
-latency. Held chunks are corrected without look-ahead once no chunk came for
-``flush_timeout_s``. A malformed chunk (bad layout, missing field, wrong frame) is logged and
-skipped; the node keeps running.
-
-The work is :class:`~lidarcal_ros.pipeline.correction.live.LiveCorrector`'s (waiting for the
-trajectory, the backlog bound, the time-out, the diagnostics); the numerics run in a child
-process (``separate_process``, :mod:`~lidarcal_ros.pipeline.correction.process`): this
-process only takes messages off DDS and publishes, so that its callbacks (hundreds of
-trajectory samples a second) never wait for the interpreter lock of the numerics. The clouds
-go there and back through shared memory (``shared_memory_mib``; pipes where a host has none:
-diagnostics key ``transport``): each is taken from DDS into the inbound ring, and published
-from the outbound ring where it was corrected
-(:mod:`~lidarcal_ros.nodes.serialized_publisher`), so the node copies none.
-
-Node-specific parameters: ``calibration`` (YAML path), ``queue_depth``, ``best_effort``,
-``trajectory_type`` (``auto`` or a type), ``trajectory_buffer_s``, ``max_trajectory_wait_s``,
-``flush_timeout_s``, ``lookahead``, ``workers``, ``batch_points``, ``separate_process``,
-``shared_memory_mib``.
-Diagnostics (``lidarcal: corrector``) report clouds and points in and out, skipped chunks,
-points not covered by the trajectory and the latency.
+The work is :class:`~lidarcal_ros.pipeline.correction.live.LiveCorrector`'s; this process only
+takes clouds off DDS into shared memory and publishes. Topics and behaviour: docs/nodes.md,
+"``lidarcal_corrector``"; how it is built: docs/correction.md, "The live corrector".
 """
 
 from __future__ import annotations
@@ -86,7 +44,7 @@ CORRECTOR_PARAMETERS = NODE_PARAMETERS[CORRECTOR_NODE]
 
 
 class CorrectorNode(Node):
-    """Corrects point-cloud chunks with the latest estimate (module docstring)."""
+    """Corrects point-cloud chunks with the latest estimate (docs/nodes.md)."""
 
     def __init__(self, *, context: Any = None, node_name: str = CORRECTOR_NODE,
                  **kwargs: Any) -> None:

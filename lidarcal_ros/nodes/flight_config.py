@@ -2,14 +2,7 @@
 
     ros2 run lidarcal_ros lidarcal_flight_config --ros-args --params-file config/flight_config.yaml
 
-Holds every parameter of :data:`lidarcal_ros.core.config.SCHEMA` (names with dots, e.g.
-``calibration.solve_for``, ``atmosphere.visibility_km``). ``ros2 param set`` on it is validated
-(type, range, choices, cross-checks such as dZ solved without control) and refused with the
-reason; accepted values are followed live by ``lidarcal_calibrator`` and ``lidarcal_corrector``
-(they listen to its ``/parameter_events``).
-
-It subscribes to the control-point topic (transient-local) only to know whether control points
-exist, for the cross-checks.
+Its checks and who follows it: docs/nodes.md, "``lidarcal_flight_config``".
 """
 
 from __future__ import annotations

@@ -1,18 +1,8 @@
 """The parameters of a node: the flight configuration and the node's own, as ROS 2 parameters.
 
-:class:`FlightParameters` declares every parameter of :data:`lidarcal_ros.core.config.SCHEMA`
-on a node (dotted names as in the schema, e.g. ``calibration.solve_for``) with a
-``ParameterDescriptor`` (description, ``FloatingPointRange`` / ``IntegerRange``, read-only),
-plus the node's own (:data:`lidarcal_ros.core.config.NODE_PARAMETERS`). A value set at run time
-is checked by :func:`~lidarcal_ros.core.config.coerce` and
-:func:`~lidarcal_ros.core.config.cross_check` (the checks ``lidarcal calibrate --config``
-applies) and refused with the reason in ``SetParametersResult.reason``; an accepted change
-updates :attr:`FlightParameters.config` and calls the node's listeners.
-
-The calibrator and the corrector follow the flight-configuration node
-(``lidarcal_flight_config``): they listen to ``/parameter_events`` from it and, once its
-parameter services are up, fetch its current values; every accepted change there is applied to
-their own parameters through the same validation.
+:class:`FlightParameters` declares them with descriptors, checks a value set at run time as
+``lidarcal calibrate --config`` does, and follows ``lidarcal_flight_config``'s accepted changes
+(docs/nodes.md, "Parameters").
 """
 
 from __future__ import annotations
@@ -100,7 +90,7 @@ Listener = Callable[[FlightConfig, set[str]], None]
 
 
 class FlightParameters:
-    """The flight configuration of a node as ROS 2 parameters (module docstring).
+    """The flight configuration of a node as ROS 2 parameters (docs/nodes.md, "Parameters").
 
     Parameters
     ----------

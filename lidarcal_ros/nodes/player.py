@@ -1,16 +1,8 @@
 """``lidarcal replay``: publish a bag's messages on live topics with their original timing.
 
-The timing (rate, loop, start, duration, ``/clock``) is :mod:`lidarcal_ros.pipeline.replay`;
-this module only creates the publishers: one per topic, of the bag's message type, publishing
-the CDR bytes of the bag as they are (no deserialisation). QoS follows what the bag recorded:
-transient-local topics (control points) are published transient-local with the depth of their
-message count (up to 100), other topics reliable (best effort if every recorded publisher was),
-keep-last ``queue`` deep.
-
-Before the first message the player waits for its subscribers
-(:meth:`PlayerNode.wait_for_subscribers`): on the topics the suite listens to (points and
-trajectory, :meth:`PlayerNode.wait_topics`), and for a ``lidarcal run`` it sees to have its
-suite up (its state on :data:`~lidarcal_ros.nodes.suite.SUITE_TOPIC`).
+The timing is :mod:`lidarcal_ros.pipeline.replay`'s; this module makes the publishers, one per
+topic with the bag's type and QoS, and waits for the subscribers (docs/nodes.md, "The helper
+nodes of the CLI").
 """
 
 from __future__ import annotations
@@ -49,7 +41,7 @@ def message_class(msgtype: str) -> Any:
 
 
 def topic_qos(info: Any, queue: int) -> QoSProfile:
-    """QoS to publish a bag topic with (module docstring)."""
+    """QoS to publish a bag topic with (docs/nodes.md)."""
     from rosbags.interfaces import QosReliability
 
     best_effort = bool(info.qos) and all(

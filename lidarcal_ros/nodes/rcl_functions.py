@@ -1,8 +1,7 @@
-"""The rcl and rcutils C functions the nodes call through :mod:`ctypes`
-(:mod:`~lidarcal_ros.nodes.serialized_publisher`,
-:mod:`~lidarcal_ros.nodes.serialized_subscription`): looked up in the libraries rclpy has
-loaded into this process, never in others found on a path, so that they are the very rcl
-rclpy runs on. rclpy must be imported first; before that there is nothing to find.
+"""The rcl and rcutils C functions the nodes call through :mod:`ctypes`.
+
+Looked up in the libraries rclpy has loaded into this process, never in others found on a path,
+so that they are the very rcl rclpy runs on; rclpy must be imported first.
 """
 
 from __future__ import annotations

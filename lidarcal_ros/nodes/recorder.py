@@ -1,13 +1,7 @@
 """``lidarcal record`` (and ``lidarcal run --record``): write live topics to an MCAP bag.
 
-Subscribes raw (CDR bytes as received) to each topic once a publisher of it appears on the
-graph, with the type that publisher offers, and writes the bytes with
-:class:`lidarcal_ros.io.bag.writer.BagWriter` stamped with the receive time. A topic whose
-publishers all offer transient-local durability (the estimate, the calibration YAML, control
-points) is subscribed transient-local, so its latest message is recorded even if it was
-published before the recorder started, and is recorded as offered transient-local (``ros2 bag
-play`` re-latches it). :meth:`RecorderNode.close` finishes the bag (index,
-``metadata.yaml``): a bag stopped by SIGINT or SIGTERM is complete.
+What it subscribes to and how latched topics are kept: docs/nodes.md, "The helper nodes of the
+CLI".
 """
 
 from __future__ import annotations
@@ -34,7 +28,7 @@ DEFAULT_TOPICS = ("/lidar/points_corrected", "/lidar/calibration/estimate",
 
 
 class RecorderNode(Node):
-    """Records ``topics`` into the bag at ``output`` (module docstring)."""
+    """Records ``topics`` into the bag at ``output`` (docs/nodes.md)."""
 
     def __init__(self, output: str | Path, topics: Sequence[str] = DEFAULT_TOPICS, *,
                  overwrite: bool = False, queue: int = 1000, context: Any = None,

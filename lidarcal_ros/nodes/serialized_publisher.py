@@ -1,18 +1,7 @@
 """Publishing serialized (CDR) messages straight from the memory that holds them.
 
-rclpy publishes a serialized message only from a Python :class:`bytes`, and copies that into
-a C++ string before it hands it to rcl: a corrected cloud held in a shared-memory ring would
-be copied twice (into the ``bytes``, then into the string) before DDS copies it once more
-into its own segment, and rclpy holds the interpreter lock all the while. At 4M points/s
-those two copies, 13 MB each, cost about a tenth of a core.
-
-:class:`SerializedPublisher` gives rcl the buffer itself: rcl's public C function
-``rcl_publish_serialized_message`` (``rcl/publisher.h``) called through :mod:`ctypes` with
-the address of the publisher that rclpy documents (``Publisher.handle.pointer``, "the address
-of the entity") and an ``rcutils_uint8_array_t`` (``rcutils/types/uint8_array.h``) that points
-at the caller's bytes. DDS makes the one copy it always makes; ctypes lets the interpreter
-lock go during the call. Where the library or the address is not to be had (another rclpy,
-another platform), it publishes as rclpy does, from a ``bytes`` copy of the buffer.
+rcl's ``rcl_publish_serialized_message`` through :mod:`ctypes`, else rclpy's copy; why:
+docs/internals.md, "ROS messages without copies".
 """
 
 from __future__ import annotations
@@ -45,7 +34,7 @@ def rcl_serialized_publish() -> Any:
 
 class SerializedPublisher:
     """Publishes serialized messages on an rclpy publisher from any contiguous buffer
-    (module docstring).
+    (docs/internals.md).
 
     Parameters
     ----------

@@ -1,20 +1,7 @@
 """Taking serialized (CDR) messages straight into memory the caller provides.
 
-rclpy hands a raw subscription each message as a Python :class:`bytes`: DDS copies the
-payload into rcl's buffer, rclpy copies that into the ``bytes``, and the corrector node then
-copied it once more into the shared-memory ring its numerics process reads. At 4M points/s
-those last two copies of 8 MB a chunk cost a few percent of a core and hold the interpreter
-lock.
-
-:class:`SerializedSubscription` takes each message with rcl's public
-``rcl_take_serialized_message`` (``rcl/subscription.h``) through :mod:`ctypes`, into an
-``rcutils_uint8_array_t`` whose allocator is the caller's: rmw asks it for exactly the
-message's size before copying, and the caller answers with a place of its own (a region of
-the shared-memory ring). The subscription itself is made by rclpy (it is on the graph, with
-its QoS event handlers), but rclpy's executor does not take its messages: this
-:class:`~rclpy.waitable.Waitable` puts it in the executor's wait set and takes them. Where
-rcl's function or the handles' addresses are not to be had, it is a plain rclpy raw
-subscription and the callback gets ``bytes``.
+rcl's ``rcl_take_serialized_message`` through :mod:`ctypes`, else a plain raw subscription; why:
+docs/internals.md, "ROS messages without copies".
 """
 
 from __future__ import annotations

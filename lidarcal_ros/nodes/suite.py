@@ -1,11 +1,6 @@
 """When the suite of ``lidarcal run`` is up (graph queries); its state on ``/lidarcal/suite``.
 
-A node of the suite is up once the ROS graph shows it with every input subscription and
-service it makes (:data:`SUITE_NODES`; they are created in its constructor, the services of the
-calibrator last). :class:`SuiteMonitor` (node ``lidarcal_run``, in the process of ``lidarcal
-run``) looks every 0.1 s, publishes the suite's state (JSON text, transient-local: a replay
-started later reads it) and prints one line once every node is up. ``lidarcal replay`` waits
-for the state ``up`` while it sees a ``lidarcal run`` still starting (:func:`read_suite_state`).
+What "up" means: docs/nodes.md, "The helper nodes of the CLI".
 """
 
 from __future__ import annotations
@@ -77,7 +72,7 @@ def read_suite_state(text: str) -> dict[str, Any]:
 
 
 class SuiteMonitor(Node):
-    """Watches the graph until every node of ``names`` is up (module docstring).
+    """Watches the graph until every node of ``names`` is up (docs/nodes.md).
 
     Parameters
     ----------

@@ -1,11 +1,6 @@
-"""The paper's accuracy measures on a mission, before and after a calibration
-(``lidarcal evaluate``).
+"""``lidarcal evaluate``: the paper's accuracy measures on a mission, before and after calibration.
 
-For each overlapping strip pair, the rigid transformation that co-aligns the pair (Table 3 of
-Habib et al. 2011) with the strips as delivered and as corrected by the estimate (eq. [13],
-as ``lidarcal correct`` applies it); for check points not used in the adjustment, the
-residuals of the strips' surfaces and their RMSE (Table 4). Numerics in
-:mod:`lidarcal_ros.core.qa.accuracy`.
+Numerics in :mod:`lidarcal_ros.core.qa.accuracy` (docs/method.md section 9).
 """
 
 from __future__ import annotations

@@ -1,20 +1,7 @@
 """Timing of ``lidarcal replay``: which bag message goes out when, without ROS.
 
-A bag message logged at ``t`` (bag time, ns) is published at wall time
-``wall0 + (t - window_start) / rate``; ``--start S`` and ``--duration D`` (seconds from the bag's
-first message) cut the window; ``--loop`` starts again from the window start with a new
-``wall0``. Messages of latched (transient-local) topics logged before the window start are
-published at once when the window starts, the last one of each topic, so that a replay started
-in the middle of a mission still delivers its control points. With ``--clock`` the bag time of
-the replay is published every ``1 / clock_hz`` wall seconds (and once before the first message of
-each pass), for nodes with ``use_sim_time``; on a loop the clock jumps back, as with
-``ros2 bag play --loop``.
-
-Before the first message, :func:`wait_for_subscribers` waits until the topics the suite listens
-to have their subscribers and a ``lidarcal run`` seen has its nodes up.
-
-:func:`replay` takes the message source, a publish function and (for tests) the clock and sleep
-functions, so everything here runs without rclpy; ``lidarcal replay`` wires it to publishers.
+Bag times in nanoseconds, wall times in seconds; the rules (window, loop, latched topics,
+``/clock``): docs/nodes.md, "The helper nodes of the CLI".
 """
 
 from __future__ import annotations

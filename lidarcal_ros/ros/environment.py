@@ -1,25 +1,6 @@
 """Keep ROS 2 / DDS traffic on this machine: environment set-up done before rclpy starts.
 
-Every process of lidarcal_ros that starts rclpy (nodes, CLI commands that publish, tests) calls
-:func:`configure_ros_environment` first. It sets
-
-* ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (and drops ``ROS_STATIC_PEERS`` and
-  ``ROS_DISCOVERY_SERVER``, which would reach other hosts);
-* ``FASTDDS_DEFAULT_PROFILES_FILE`` to the loopback-only Fast DDS profile (shared memory and UDP
-  on 127.0.0.1 only, no built-in transports), unless it already names an existing file, and
-  ``SKIP_DEFAULT_XML=1`` so a stray ``DEFAULT_FASTDDS_PROFILES.xml`` in the working directory
-  is not loaded on top of it;
-* ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp`` (the profile is a Fast DDS one; another RMW would
-  ignore it, so one is refused);
-* ``ROS_DOMAIN_ID``: the given one, else the one already set, else one derived from the pid
-  (1..100).
-
-The profile is ``config/loopback.xml`` of the project, found by :func:`loopback_profile_path`
-whether the package runs from a source checkout (editable install), a colcon install or a plain
-pip install. If it cannot be found, :class:`RuntimeError` is raised rather than letting rclpy
-start with the default, unconfined transports.
-
-This module never imports rclpy (the settings must be in place before rclpy starts).
+What it sets: docs/internals.md, "DDS on this machine only". Never imports rclpy.
 """
 
 from __future__ import annotations

@@ -1,15 +1,7 @@
 """The modified least-squares adjustment of docs/method.md section 6 and its observability analysis.
 
-Each point-to-patch correspondence is one scalar equation ``y = a . delta + e`` with
-``y = n^T (X_A - X_B)`` and ``a = n^T (A_A - A_B)``: the weight matrix ``P' = P_W n n^T`` keeps
-only the patch-normal component. The normal equations ``N = sum w a a^T``, ``u = sum w a y`` and
-``sum w y^2`` are sums over correspondences, so they can be accumulated message by message,
-tile by tile, or summed across workers (:class:`NormalEquations` supports ``+``).
-
-Observability is decided on the normal matrix, not by rules: a parameter without effect, in a
-near null space, nearly perfectly correlated with another, or whose standard deviation exceeds
-what a calibration can use, is reported as not estimable with the reason in words, and is held
-at its fixed value while the others are solved.
+Normal equations accumulate by ``+`` (docs/internals.md, "The calibration"); a parameter that
+cannot be estimated is held at its fixed value with the reason in words.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
-"""The biases' normal equations with every strip's trajectory parameters reduced out (docs/method.md
-section 11: a Schur complement over the strip blocks, sparse, so the cost grows with the strips
-and their overlaps, not with their square)."""
+"""The biases' normal equations with every strip's trajectory parameters reduced out.
+
+A sparse Schur complement over the strip blocks (docs/method.md section 11).
+"""
 
 from __future__ import annotations
 

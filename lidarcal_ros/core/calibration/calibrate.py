@@ -1,19 +1,8 @@
-"""The quasi-rigorous calibration procedure (docs/method.md sections 4-7): :func:`calibrate` a
-mission, or drive a :class:`Calibrator` strip by strip; :class:`CalibrationSettings` are its
-options.
+"""The quasi-rigorous calibration procedure (docs/method.md sections 4-7).
 
-``match -> solve -> correct -> match again`` until the corrections to the parameters are
-negligible. What is computed once per mission: the laser-frame geometry of every point, one TIN
-per strip, the overlap between strips and the candidate points of each overlap. What each
-iteration does: correct vertex coordinates (a linear function of the estimate), re-match the
-selected sample points to the corrected TINs, re-solve with robust weights.
-
-The calibrator holds the estimate and runs the iterations; the pieces are beside it:
-:mod:`~lidarcal_ros.core.calibration.pairs` (strips, overlaps, pairs, sample selection),
-:mod:`~lidarcal_ros.core.calibration.matching` (TINs, corrections, matching, observation rows),
-:mod:`~lidarcal_ros.core.calibration.iteration` (robust solve, threshold, convergence),
-:mod:`~lidarcal_ros.core.calibration.result` (the result and its QA) and
-:mod:`~lidarcal_ros.core.calibration.threads` (worker threads, CPU time per stage).
+:func:`calibrate` a mission, or drive a :class:`Calibrator` strip by strip;
+:class:`CalibrationSettings` are its options. Its parts are the modules beside it
+(docs/internals.md, "The calibration").
 """
 
 from __future__ import annotations

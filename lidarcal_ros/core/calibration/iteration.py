@@ -1,15 +1,7 @@
 """The adjustment side of a calibration's match-and-solve iteration (docs/method.md sections 6-7).
 
-Each iteration of :meth:`~lidarcal_ros.core.calibration.calibrate.Calibrator.iterate` matches, then:
-solves for the increment to the estimate with robust weights (:func:`robust_solve`), narrows
-the matching threshold to the residuals (:func:`next_threshold`) and judges convergence
-(:func:`judge_convergence`: every step below a fraction of its sigma, the estimate settled into
-a cycle of the discrete matching, :func:`matching_cycle`, or steps that stopped shrinking and
-are what the correspondences that changed between matchings move the estimate by,
-:class:`MatchedSet` and :func:`rematching_noise`). Correspondences kept without
-re-matching are re-expressed at each new estimate (:func:`reexpress_observations`); the last
-solution's sigmas are widened for the errors the observations share
-(:func:`allow_for_shared_errors`). :class:`Iteration` records one iteration.
+The robust solve, the next matching threshold and the convergence judgement (docs/internals.md,
+"The calibration").
 """
 
 from __future__ import annotations

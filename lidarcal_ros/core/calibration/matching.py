@@ -1,12 +1,7 @@
 """The matching side of a calibration: strips, their pairs, TINs and point-to-patch matches.
 
-:class:`PairMatcher` holds the strips of a calibration and the pairs they form
-(:mod:`lidarcal_ros.core.calibration.pairs`); it prepares each strip once, builds each TIN once,
-corrects the points by an estimate (once per strip and estimate), matches a pair's points or
-the control points to the corrected TIN patches, chooses each pair's sample points at their
-first matching, and turns matches into the correspondences the adjustment takes (docs/method.md
-eq. [11] for strip pairs, [12] for control points). The per-strip and per-pair work runs in
-the calibration's worker threads.
+:class:`PairMatcher` turns matches into the rows the adjustment takes (docs/method.md eq. [11]
+for strip pairs, [12] for control points).
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
 """The strips of a calibration and the overlapping pairs they form (docs/method.md section 5).
 
-What the calibration keeps of each strip (:class:`PreparedStrip`: its laser-frame geometry,
-footprint cells, sampling priority, positioning model) and of each strip pair
-(:class:`StripPair`: its candidate points, sample and latest correspondences); how two strips'
-footprints make a pair (:func:`find_pair`); how a pair's sample points are chosen so that
-slopes and aspects are well represented (:func:`stratified_sample`); and what is said of the
-strips where no pair forms (:func:`no_overlap_reason`, :func:`height_agreement`).
-
-Footprints are sparse square cells keyed in absolute map coordinates
-(:func:`footprint_keys`), so that strips arriving one by one share one grid.
+Footprints are sparse square cells keyed in absolute map coordinates, so that strips arriving
+one by one share one grid.
 """
 
 from __future__ import annotations

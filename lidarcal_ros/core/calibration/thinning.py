@@ -1,21 +1,6 @@
 """Thinning of a strip's points to one per map cell before calibration.
 
-The quasi-rigorous method needs surfaces, not every return: its patches are triangles of one
-strip's points and its candidates a capped random sample of the other's
-(``matching.max_candidates_per_pair``). A sensor firing millions of pulses a second gives
-tens of points per square metre, and a calibration holds some 700 bytes per point it loads
-(points, triangles, their planes and neighbours): a mission of a few hundred million points
-does not fit in memory, nor does a live strip of a few minutes. Keeping the first point of
-each ``cell x cell`` square of the map, per strip, bounds the density (``1 / cell^2``) while
-keeping the surface's shape down to the cell's size.
-
-The thinning is done per cloud, in arrival order, the same way by ``lidarcal calibrate`` (per
-message of the bag) and by the calibrator node (per message on the topic), so that both see
-the same points. A cell cut by the boundary of two clouds may keep a point from each.
-
-The choice is one compiled pass over the points
-(:mod:`lidarcal_ros.core.calibration.thinning_kernels`): a flag per cell of the cloud's box where
-that is small enough, else a hash table of the cells met.
+Why, and why per cloud in arrival order: docs/internals.md, "The calibration".
 """
 
 from __future__ import annotations

@@ -1,7 +1,6 @@
-"""Compiled passes of the thinning (:func:`lidarcal_ros.core.calibration.thinning.first_per_cell`):
-which points are the first of their map cell, in one pass over the points, with a flag per cell of
-the cloud's box where that is small enough (:func:`first_in_grid`), else a hash table of the
-cells met (:func:`first_in_cells`). Compiled as :mod:`lidarcal_ros.core.jit` says.
+"""Compiled passes of the thinning: which points are the first of their map cell, in one pass.
+
+A flag per cell of the cloud's box where that is small enough, else a hash table of the cells.
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
 """Triangulated irregular network (TIN) of one strip and point-to-patch matching.
 
-A strip's TIN is the Delaunay triangulation of its points' XY (docs/method.md section 6). The
-connectivity is computed once from the delivered coordinates: the bias corrections applied
-between iterations move points by centimetres to decimetres and vary smoothly across a strip,
-so the triangles stay valid and only their vertex coordinates (hence normals) are updated.
-That is what keeps re-matching cheap: no triangulation is rebuilt per iteration.
-
-Triangle quality is also judged once: a patch must be small (no long edges across data gaps),
-not steeper than a wall limit, and coplanar with its neighbours, which rejects triangles across
-walls, ridges, eaves and tree crowns where interpolation between vertices is not the surface.
+Delaunay of the points' XY (docs/method.md section 6), triangulated once: later iterations move
+its vertices and keep its triangles.
 """
 
 from __future__ import annotations

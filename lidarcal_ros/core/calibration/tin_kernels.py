@@ -1,12 +1,6 @@
-"""Compiled per-triangle and per-point loops of a TIN (:mod:`lidarcal_ros.core.calibration.tin`):
-the quality of its triangles, the grid that locates points in it, the point location itself and
-the point-to-patch matching.
+"""Compiled loops of a TIN: triangle quality, the locating grid, point location and matching.
 
-In numpy each of these is a dozen passes over (n, 3) or (m, 3, 3) temporaries, run on every
-strip at every iteration of the calibration; here each is one pass (compiled as
-:mod:`lidarcal_ros.core.jit` says; ``nogil``: the calibration runs them for several strips
-at once in threads). Every function states the numpy expression it replaces and does its
-arithmetic in the same order, so results agree with it to the last bits or close.
+The rules of compiled loops: docs/internals.md, "Compiled loops".
 """
 
 from __future__ import annotations

@@ -1,22 +1,7 @@
 """The INS attitude of the trajectory: quaternions, rotations and their interpolation.
 
-Conventions (docs/method.md section 10)
----------------------------------------
-A trajectory pose's orientation is REP-103's: the unit quaternion ``q = (x, y, z, w)`` rotates
-the body frame (x forward, y left, z up) into the map frame (x east, y north, z up).
-docs/method.md's body frame is right-forward-up, so the rotation from it to the map is
-
-``R_ins = R(q) P^T`` with ``P = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]``
-
-and, for a heading ``kappa`` (docs/method.md's: the forward axis points along ``(-sin kappa,
-cos kappa)``), a pitch (nose up positive, about the body's right axis) and a roll (right wing
-down positive, about the forward axis), ``R_ins = Rz(kappa) Rx(pitch) Ry(roll)``. A level pose
-gives ``R_ins = R_kappa``, the rotation of sections 2-4.
-
-An orientation is *absent* where the pose's quaternion is zero or not finite, and where it is the
-identity in a trajectory whose every pose is the identity (the contract allows that: "orientation
-may be identity"): such a sample is a row of NaN. Among poses that carry an attitude the identity
-is a real one, a level pose heading east.
+Conventions: docs/method.md section 10 (REP-103 quaternions, ``R_ins = R(q) P^T``). An absent
+orientation (zero, not finite, or the identity where every pose is the identity) is a NaN row.
 """
 
 from __future__ import annotations
@@ -94,7 +79,7 @@ def body_rotations(q: np.ndarray) -> np.ndarray:
 def quaternions_from_attitude(roll: np.ndarray | float, pitch: np.ndarray | float,
                               kappa: np.ndarray | float) -> np.ndarray:
     """Quaternions ``(n, 4)`` xyzw of poses with ``R_ins = Rz(kappa) Rx(pitch) Ry(roll)``
-    (radians, arrays of one length or scalars; module docstring).
+    (radians, arrays of one length or scalars; docs/method.md section 10).
 
     ``R(q) = R_ins P = Rz(kappa + pi/2) Ry'(...)``: in REP-103's axes the roll is about x
     (forward) and the pitch about -y (the left axis: nose up is a negative rotation about it),
@@ -118,7 +103,7 @@ def quaternions_from_attitude(roll: np.ndarray | float, pitch: np.ndarray | floa
 def body_rotations_from_attitude(roll: np.ndarray | float, pitch: np.ndarray | float,
                                  kappa: np.ndarray | float) -> np.ndarray:
     """``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (n, 3, 3) straight from the angles (radians,
-    broadcast against each other; module docstring): the rotation of the poses of
+    broadcast against each other; docs/method.md section 10): the rotation of the poses of
     :func:`quaternions_from_attitude`, without the round trip through a quaternion, so that a
     level pose (roll = pitch = 0) gives exactly docs/method.md's ``R_kappa``."""
     roll, pitch, kappa = np.broadcast_arrays(

@@ -1,15 +1,7 @@
 """The bias model of docs/method.md sections 2-3 and 10: design matrix and point correction.
 
-All functions are vectorised over points. ``x`` and ``z`` are the point's lateral and vertical
-coordinates in the laser frame (metres; ``z`` negative), ``kappa`` the heading (radians, map
-frame, ``kappa = atan2(-d_x, d_y)``), ``beta`` the mirror angle (radians). The parameter order is
-:data:`lidarcal_ros.core.params.PARAMETER_NAMES`.
-
-The functions of ``x, z, kappa, beta`` are the level model of sections 2-4 (the shared test
-vectors pin them); those of a
-:class:`~lidarcal_ros.core.georeferencing.laser_geometry.LaserGeometry` serve either model: the
-body-frame columns of section 10 turned into the map frame by the point's rotation (``R_kappa``
-level, ``R_ins`` rigorous).
+Vectorised over points; ``x``, ``z`` in metres (laser frame, ``z`` negative), ``kappa`` and
+``beta`` in radians; parameters in :data:`lidarcal_ros.core.params.PARAMETER_NAMES` order.
 """
 
 from __future__ import annotations

@@ -1,21 +1,8 @@
-"""Compiled per-point loops of the calibration's model
-(:mod:`lidarcal_ros.core.georeferencing.bias_model`): the exact removal of the biases with the laser
-geometry of the corrected points (:mod:`lidarcal_ros.core.georeferencing.laser_geometry`), and the
-point-to-patch design rows (:mod:`lidarcal_ros.core.calibration.calibrate`). The TIN's loops are in
-:mod:`lidarcal_ros.core.calibration.tin_kernels`; eq. [13] in one pass, which the correction shares,
-is
-:func:`lidarcal_ros.core.georeferencing.correction_kernels.bias_offsets`.
+"""Compiled per-point loops of the calibration's model: bias removal and point-to-patch rows.
 
-In numpy each of these is a dozen passes over (n, 3) or (n, 3, 3) temporaries, run on every
-strip at every iteration; here each is one pass (compiled as :mod:`lidarcal_ros.core.jit`
-says; ``nogil``: the calibration runs them for several strips at once in threads). Every
-function states the numpy expression it replaces and does its arithmetic in the same order, so
-results agree with it to the last bits or close (transcendental functions come from libm
-rather than numpy's loops): the tests hold them to 1e-9 m.
-
-Both point-positioning models run through the same loops: a ``rotation`` with a row per
-point is the rigorous model's body frame ``R_ins`` (section 10), an empty one means the level
-model's ``R_kappa``, given by ``cos_kappa`` and ``sin_kappa``.
+Both positioning models run through them: a ``rotation`` with a row per point is ``R_ins``
+(docs/method.md section 10), an empty one means ``R_kappa`` (sections 2-4). The rules of
+compiled loops: docs/internals.md, "Compiled loops".
 """
 
 from __future__ import annotations

@@ -1,15 +1,8 @@
-"""Compiled per-point loops of the correction: the biases removed from each return (docs/method.md
-eq. [13]), its beam quantities and reflectance, and the rows of the corrected cloud
-(:mod:`lidarcal_ros.pipeline.correction.apply`); eq. [13] alone for
-:func:`lidarcal_ros.core.georeferencing.bias_model.point_offsets`, which shares the body-frame
-displacement of the biases with the correction (one definition of it, in one file: numba's on-disk
-cache of a compiled function is invalidated by changes to its own file only).
+"""Compiled per-point loops of the correction: biases removed, beam quantities, reflectance, rows.
 
-In numpy each step is several passes over (n, 3) temporaries; here the points go through in
-blocks that stay in the first caches (compiled as :mod:`lidarcal_ros.core.jit` says), the
-arithmetic written without branches so that the compiler runs several points at a time in
-vector registers: the same operations in the same order as the numpy they replace, hence the
-same results (to the documented polynomial arctangent and arc cosine).
+Eq. [13] of docs/method.md is defined here once, also for
+:func:`lidarcal_ros.core.georeferencing.bias_model.point_offsets`. Why in blocks and without
+branches: docs/correction.md, "Per point".
 """
 
 from __future__ import annotations
@@ -203,11 +196,11 @@ def correct_returns(t: np.ndarray, xyz: np.ndarray, ok: np.ndarray, window: np.n
                                 np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                 np.ndarray]) -> None:
     """Correct each return and derive its beam quantities and reflectance, in one compiled
-    call (:func:`lidarcal_ros.pipeline.correction.apply.correct_columns`, whose module docstring
-    gives the steps): the firing position and body frame of each point (a window's line and
-    heading, docs/method.md section 4, or the INS attitude interpolated between samples, section
-    10, :func:`lidarcal_ros.core.georeferencing.attitude.interpolated_frames`), ``beta = atan(x /
-    z)``, eq. [13] as :func:`bias_offsets`, then range, scan angle, incidence and
+    call (:func:`lidarcal_ros.pipeline.correction.apply.correct_columns`; docs/correction.md,
+    "Per point", gives the steps): the firing position and body frame of each point (a window's
+    line and heading, docs/method.md section 4, or the INS attitude interpolated between samples,
+    section 10, :func:`lidarcal_ros.core.georeferencing.attitude.interpolated_frames`),
+    ``beta = atan(x / z)``, eq. [13] as :func:`bias_offsets`, then range, scan angle, incidence and
     :meth:`lidarcal_ros.core.radiometry.RadiometricModel.reflectance` (in float32, operation
     for operation) and the ``correction_flags`` bits (:mod:`lidarcal_ros.core.flags`).
 

@@ -1,33 +1,8 @@
 """The heading ``kappa`` of the local trajectory: from the track, or from the IMU's attitude.
 
-docs/method.md section 4 takes ``kappa`` from the ground track of the trajectory's positions. An
-aircraft flying in a crosswind *crabs*: its body (and the scanner, fixed to it) points a few
-degrees off the track, so the scan plane is not perpendicular to the track, and a heading from
-the track puts every return's ``x`` and every bias direction off by the crab angle
-(bench/README.md, "Crab": errors of 1-2 cm and several arcseconds at 5 degrees). Where the
-trajectory carries the IMU's orientation, its yaw gives the heading of the body itself.
-
-``matching.heading_source`` chooses:
-
-``track``
-    docs/method.md as written: the heading of each window's fitted line.
-``attitude``
-    the orientation's heading, averaged over the window's samples (a circular mean); a
-    window whose samples lack an orientation is an error.
-``auto`` (default)
-    the orientation's heading where every window has one and the two agree within
-    :data:`MAX_CRAB_DEG` in the median (a larger median difference is a body frame of
-    another convention, or a wrong orientation: logged, and the track used); else the track.
-    A trajectory with identity orientations (the contract allows them) has none, so it is
-    the track.
-
-Conventions. ``kappa`` is docs/method.md's: ``R_kappa`` maps the body frame (right, forward, up)
-to the map (east, north, up), so the body's forward axis points along ``(-sin kappa, cos
-kappa)``. An orientation quaternion is REP-103's: it rotates the body frame (x forward, y left,
-z up) into the map frame, so its yaw ``psi`` is the angle from east to the forward axis and
-``kappa = psi - pi/2``. This module serves the level model (docs/method.md sections 2-4), which
-uses the heading alone; the rigorous model (:mod:`lidarcal_ros.core.georeferencing.rigorous`) uses
-the whole attitude.
+``matching.heading_source`` chooses (docs/method.md section 4); ``kappa`` in radians, the
+forward axis along ``(-sin kappa, cos kappa)``. Why a crabbing aircraft needs the attitude:
+docs/internals.md, "Point positioning".
 """
 
 from __future__ import annotations
@@ -95,7 +70,7 @@ def median_crab_deg(track: np.ndarray, attitude: np.ndarray | None) -> float:
 
 def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
                    source: str = "points") -> np.ndarray:
-    """The heading of each window (rad) by ``matching.heading_source`` (module docstring).
+    """The heading of each window (rad) by ``matching.heading_source`` (docs/method.md section 4).
 
     Parameters
     ----------

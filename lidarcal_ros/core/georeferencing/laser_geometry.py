@@ -1,20 +1,7 @@
 """The laser geometry of each point: firing position, body frame and laser-frame coordinates.
 
-Two models give it (``matching.model``; :mod:`lidarcal_ros.core.georeferencing.local_trajectory`
-chooses):
-
-``level`` (docs/method.md sections 2-4)
-    The platform is taken as level: the body frame (right, forward, up) is the map frame
-    turned by the heading ``kappa``, ``R_kappa``, and the firing position comes from a line
-    fitted to the trajectory positions around the firing time.
-``rigorous`` (docs/method.md section 10)
-    The body frame is the INS attitude interpolated to the firing time, ``R_ins`` (roll,
-    pitch and heading), and the firing position is interpolated between trajectory samples.
-
-Either way the point is ``X = X_o + R rho`` with ``rho = (x, y, z)`` in the body frame: ``x``
-across track (positive right), ``y`` along track (about 0 for a linear scanner), ``z``
-vertical (negative: the ground is below). The level model leaves ``y`` out (section 4 recovers
-``x`` and ``z`` only), the rigorous one keeps it (section 10's ``rho_hat``).
+``X = X_o + R rho``, ``rho = (x, y, z)`` in the body frame (right, forward, up), metres;
+``R`` is ``R_kappa`` (level model, docs/method.md sections 2-4) or ``R_ins`` (section 10).
 """
 
 from __future__ import annotations

@@ -1,17 +1,6 @@
-"""docs/method.md section 4: laser-frame quantities recovered from points and trajectory positions.
+"""Laser-frame quantities recovered from points and trajectory positions (docs/method.md section 4).
 
-For a point fired at time ``t``, a straight line (position linear in time) is fitted by least
-squares to the trajectory samples in ``(t - window, t + window)``. Its position at ``t`` is the
-firing point ``X_o(t)``; its ground direction gives the heading ``kappa``; the point's signed
-horizontal distance to the line (positive to the right of the flight direction) is ``x``; its
-height above ``X_o(t)`` is ``z`` (negative); ``beta = atan(x / z)``.
-
-Points sharing the same set of trajectory samples share one line fit, so the fits are computed
-once per distinct window, not once per point.
-
-Where the trajectory carries the IMU's orientation, ``kappa`` may come from it instead of the
-track, which is what a crabbing aircraft needs (``heading_source``;
-:mod:`lidarcal_ros.core.georeferencing.heading`).
+One line fit per distinct window of trajectory samples, not one per point.
 """
 
 from __future__ import annotations

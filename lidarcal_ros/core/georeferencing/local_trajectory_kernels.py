@@ -1,11 +1,6 @@
-"""Compiled loops of the local trajectory
-(:mod:`lidarcal_ros.core.georeferencing.local_trajectory`): which points lie below the trajectory,
-the trajectory window of each point of a time-ordered chunk, and the firing position and laser-frame
-geometry of each point from its window's line (docs/method.md section 4).
+"""Compiled loops of the local trajectory: points below it, windows, firing positions, geometry.
 
-Each replaces a handful of numpy passes over (n,) and (n, 3) temporaries by one pass
-(compiled as :mod:`lidarcal_ros.core.jit` says), with the arithmetic of the numpy it replaces
-in the same order, so that the results agree to the last bits.
+docs/method.md section 4; the rules of compiled loops: docs/internals.md, "Compiled loops".
 """
 
 from __future__ import annotations

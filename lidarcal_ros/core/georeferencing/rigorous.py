@@ -1,27 +1,6 @@
-"""Which point-positioning model a strip gets, the rigorous model's geometry (docs/method.md
-section 10), and the QA of the laser vectors it recovers.
+"""Which point-positioning model a strip gets, the rigorous model's geometry, the laser-vector QA.
 
-``matching.model`` chooses:
-
-``level``
-    docs/method.md sections 2-4: a level platform, the heading from the local trajectory's line
-    (or from the orientation's yaw, ``matching.heading_source``).
-``rigorous``
-    section 10: the INS attitude (roll, pitch, heading) of the poses, interpolated to each
-    firing time (slerp), and the firing position interpolated between samples. Refused, in
-    one line, where the poses carry no usable attitude.
-``auto`` (default)
-    ``rigorous`` where the poses carry a usable full attitude over the strip, else
-    ``level``; the reason is kept (:class:`ModelChoice`) and reported.
-
-A usable attitude: every pose around the strip has an orientation that is not the identity
-(the contract allows identity: "orientation is not needed"), roll and pitch were measured
-(not a heading levelled on import, :attr:`~lidarcal_ros.core.mission.Trajectory.full_attitude`),
-the samples come at :data:`MIN_ATTITUDE_RATE_HZ` or faster (slower, slerp between them misses
-the aircraft's motion in turbulence), and the body frame is REP-103's (x forward, y left,
-z up): its up axis within :data:`MAX_TILT_DEG` of the vertical and its heading within
-:data:`~lidarcal_ros.core.georeferencing.heading.MAX_CRAB_DEG` of the track in the median. A body
-frame of another convention (NED's z down, y forward) fails one of these by far.
+``matching.model`` and what makes an attitude usable: docs/method.md section 10.
 """
 
 from __future__ import annotations
@@ -91,7 +70,7 @@ def check_model_setting(mode: str, trajectory: Trajectory, where: str) -> None:
 
 def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str = "auto",
                  heading_source: str = "auto", source: str = "points") -> ModelChoice:
-    """The model the points fired between ``t_lo`` and ``t_hi`` (s) get (module docstring).
+    """The model the points fired between ``t_lo`` and ``t_hi`` (s) get (docs/method.md section 10).
 
     Raises
     ------

@@ -1,45 +1,7 @@
 """Local surface normals of a LiDAR strip by grid plane fits (for the incidence angle).
 
-Per-point k-nearest-neighbour searches are too slow for a stream of millions of points per
-second, so the neighbourhood is a grid: the points are binned into cells of two point spacings
-(1.5 where points are so sparse that two would exceed a metre) in a frame aligned with the
-flight line (``u`` along, ``v`` across, metres), the first and second moments of each cell are
-summed (the ten sums of a cell side by side), and a plane is fitted to every 2x2 block of
-cells (least-squares height plane; principal components for the few blocks whose points do
-not spread in both horizontal directions, e.g. walls). Each cell takes the plane of the most
-planar of the four blocks that contain it (smallest residual variance), so a cell beside a
-roof ridge or a building edge takes the block lying on its own side where there is one; a
-cell whose four blocks are all degenerate (fewer than ``min_points`` points, or all on one
-scan line) falls back to the 3x3 block centred on it, then to the 5x5 one, and failing that
-gets no normal (NaN).
-
-Every point takes the plane of its cell, unless it lies off that plane (further than three
-times the typical residual, at least 5 cm) or the plane fits its block badly: then it takes,
-among the planes of the nine 2x2 blocks around its cell, the one that is nearest to it (squared
-distance plus the block's residual variance). This keeps normals sharp up to about a point
-spacing from edges and ridges. A point whose best plane still fits badly is reported *rough*
-(vegetation, edges): its normal, hence its incidence angle, is uncertain. Tree crowns, whose
-bumps are smaller than the blocks, get the normal of the block they fall in: irregular, as the
-surface is, and rough.
-
-A linear (zig-zag) scanner samples anisotropically: points follow each other closely along a
-sweep while the sweeps are further apart (twice their mean distance near the swath edges,
-where consecutive sweeps meet). :func:`cell_size` therefore measures the spacing across track
-from consecutive pulses and the spacing along track from the area per point, and the cells
-are rectangles of two of each (:data:`CELL_SPACINGS`); a 2x2 block then always spans two
-sweeps.
-
-Cost (compiled loops, :mod:`lidarcal_ros.core.normals.grid_normals_kernels`): one pass over the
-points to bin them, one over the cells (about one cell per four points) to fit the blocks and choose
-each cell's plane, one over the points for their normals; a nine-plane search for the few per
-cent of points near edges.
-
-This module holds the public entry (:func:`grid_normals`, the cell size, the result); the
-steps from binned points to normals are :mod:`lidarcal_ros.core.normals.grid_planes`, the same steps
-on a grid that advances with a strip as its points arrive
-:class:`lidarcal_ros.core.normals.strip_normals.StripNormals`.
-
-Normals are returned in the map frame, unit length, oriented upward (``n_z >= 0``).
+:func:`grid_normals` is the entry; the method, its cells and its cost: docs/correction.md,
+"Surface normals". Normals in the map frame, unit length, upward (``n_z >= 0``).
 """
 
 from __future__ import annotations
@@ -213,7 +175,7 @@ def grid_normals(
     t: np.ndarray | None = None,
     min_points: int = MIN_BLOCK_POINTS,
 ) -> GridNormals:
-    """Upward unit normals of the surface around each point (module docstring).
+    """Upward unit normals of the surface around each point (docs/correction.md, "Surface normals").
 
     Parameters
     ----------

@@ -1,19 +1,8 @@
-"""Compiled loops of the grid normals (:mod:`lidarcal_ros.core.normals.grid_normals`): the points
-binned into a grid of moment sums, the plane fits of its blocks, the plane of each cell and the
-normal of each point.
+"""Compiled loops of the grid normals: binning, block plane fits, each cell's plane, each normal.
 
-In numpy these stream temporaries through memory: ten weighted ``bincount`` passes per
-binning, a copy of the grid per block sum, (n, 3) intermediates and masks per point. Here each
-is one pass (compiled as :mod:`lidarcal_ros.core.jit` says). The busiest, :func:`fit_blocks`,
-is written so that the compiler can vectorise it (no branch, indices counted from a tile's
-start): the arithmetic of several blocks at a time in one register, the same operations in
-the same order, hence the same results. Every function states the numpy expression it
-replaces; the arithmetic is done in the same order, so results agree with it to the last bits
-or close (transcendental functions come from libm rather than numpy's SIMD loops).
-
-Frames: ``u`` along track, ``v`` across track (right), ``z`` up, metres, relative to the
-grid's origin; a moment grid is ``(rows, columns, 10)``, the sums ``n, u, v, z, uu, uv, uz,
-vv, vz, zz`` of a cell side by side, and a lone set of sums is a ``(10,)`` column.
+Each function states the numpy expression it replaces and keeps its order of arithmetic
+(compiled as :mod:`lidarcal_ros.core.jit` says). Frames: ``u`` along track, ``v`` across
+(right), ``z`` up, metres from the grid's origin; a moment grid is ``(rows, columns, 10)``.
 """
 
 from __future__ import annotations

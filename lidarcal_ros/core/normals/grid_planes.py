@@ -1,17 +1,7 @@
-"""Plane fits over a grid of moment sums: the grid-normals method of
-:mod:`lidarcal_ros.core.normals.grid_normals` from binned points to each point's normal.
+"""Plane fits over a grid of moment sums: the steps of the grid normals, from cells to normals.
 
-The points (flight frame ``u`` along, ``v`` across, ``z`` up, m) are binned into a grid of
-cells holding the ten moment sums ``n, u, v, z, uu, uv, uz, vv, vz, zz`` of their points
-(:func:`dense_moment_grid`); every 2x2 block of cells gets a plane fit from its summed moments
-(least-squares height plane, principal components where the points do not spread in both
-horizontal directions); each cell takes the plane of the best of its four blocks, failing
-those of the 3x3 and 5x5 blocks around it (:func:`plane_table`); each point the plane of its
-cell, or near an edge the nearest of the nine planes around it (:func:`normals_from_planes`).
-A grid that would be mostly empty is compacted first (:func:`sparse_grid_normals`). The loops
-are compiled (:mod:`lidarcal_ros.core.normals.grid_normals_kernels`);
-:class:`~lidarcal_ros.core.normals.strip_normals.StripNormals` runs the same steps on a grid that
-advances along a strip.
+Flight frame (``u`` along, ``v`` across, ``z`` up, metres); the method: docs/correction.md,
+"Surface normals".
 """
 
 from __future__ import annotations
@@ -170,7 +160,8 @@ class CellPlanes:
 def plane_table(moments: np.ndarray, iu: np.ndarray, iv: np.ndarray, row0: int, col0: int,
                 min_points: int, min_spread: float, rows: tuple[int, int] | None = None
                 ) -> CellPlanes:
-    """The planes of the cells of a dense grid, for its points (module docstring).
+    """The planes of the cells of a dense grid, for its points (docs/correction.md, "Surface
+    normals").
 
     Parameters
     ----------
@@ -236,7 +227,7 @@ def dense_grid_normals(
     z: np.ndarray, min_points: int, min_spread: float, heading: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normals (map frame), validity and roughness of points from the moment sums of a
-    dense grid of cells (module docstring), the edge tolerance from the median residual of
+    dense grid of cells (docs/correction.md), the edge tolerance from the median residual of
     the grid's blocks.
 
     Parameters

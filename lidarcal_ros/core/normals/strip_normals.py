@@ -1,7 +1,6 @@
-"""Grid normals of a strip computed as its points arrive (:class:`StripNormals`): the
-method of :mod:`lidarcal_ros.core.normals.grid_normals` on a grid of moment sums that advances along
-track with the strip, each point binned once and evaluated once, with the normals of
-:func:`~lidarcal_ros.core.normals.grid_normals.grid_normals` over the whole strip.
+"""Grid normals of a strip computed as its points arrive, on a grid that advances along track.
+
+Each point is binned once and evaluated once; the normals are those of the whole strip's grid.
 """
 
 from __future__ import annotations

@@ -1,27 +1,6 @@
 """The paper's accuracy measures: relative (strip-to-strip rigid fit) and absolute (check points).
 
-Relative accuracy (Habib et al. 2011, Table 3)
-    For two overlapping strips, the rigid 3D transformation (three shifts, three rotations)
-    that co-aligns them, found by point-to-patch ICP: the points of one strip are matched to
-    the TIN patches of the other (the same matching as the calibration,
-    :func:`~lidarcal_ros.core.calibration.tin.match_to_tin`), and the six parameters minimise the
-    squared normal distances; matching and solving alternate until the step is negligible.
-    Before calibration the transformation is large (a boresight bias tilts and shifts one
-    strip against the other); after it, it should be near zero. As in the calibration,
-    patches that are not clearly sloped contribute along the vertical only (a flat patch's
-    tilt is its vertices' noise), so over flat overlaps the horizontal shifts and the
-    rotation about the vertical cannot be seen: they are reported as undetermined, not as
-    zero.
-
-    The transformation moves the points of strip ``a`` onto strip ``b``:
-    ``p' = R (p - c) + c + t`` with ``c`` the centroid of the matched points of ``a``,
-    ``R = Rz(kappa) Ry(phi) Rx(omega)`` (map frame, radians), ``t`` in metres.
-
-Absolute accuracy (Table 4)
-    Check points (surveyed, not used in the adjustment): the height of each strip's TIN at
-    the point's XY (barycentric interpolation in the triangle holding it, usable patches
-    only) minus the surveyed height; per point the mean over the strips that see it; RMSE,
-    mean, standard deviation and largest absolute residual.
+The transformation and the residuals: docs/internals.md, "Quality measures".
 """
 
 from __future__ import annotations
@@ -46,7 +25,7 @@ _WEAK_EIGEN = 1e-6
 
 @dataclass
 class RigidFit:
-    """Rigid transformation co-aligning one strip pair (module docstring).
+    """Rigid transformation co-aligning one strip pair (docs/internals.md, "Quality measures").
 
     Attributes
     ----------
@@ -165,7 +144,7 @@ def rigid_icp(
             centroid = moved[ok].mean(axis=0)
         normal = m.normal[ok].copy()
         flat = ~tin.sloped[m.triangle[ok]]
-        # Flat patches observe along the vertical only (module docstring); the distance
+        # Flat patches observe along the vertical only (docs/internals.md); the distance
         # along the vertical is the normal distance over n_z.
         d = m.distance[ok].copy()
         d[flat] = d[flat] / normal[flat, 2]

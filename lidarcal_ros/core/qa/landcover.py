@@ -1,28 +1,6 @@
 """Land-cover classification from LiDAR rasters (the paper's Tables 6 and 7).
 
-Habib et al. judged the radiometric correction by what it does for a classification: a
-Gaussian maximum-likelihood classifier on rasters of surface height plus intensity, once with
-raw intensity and once with corrected reflectance. Raw intensity of the same surface differs
-between strips (range squared, incidence, atmosphere), so classes overlap; reflectance should
-separate them better.
-
-Rasters
-    Points are binned into square cells (map frame). Height: the normalised DSM, the highest
-    point of each cell minus the ground, the ground being the DSM's grey-scale opening with
-    a window wider than the largest building (objects narrower than the window vanish, a
-    plane or a ramp stays as it is), so that roofs and crowns stand out and terrain slope
-    does not. Radiometry: the mean intensity or reflectance of
-    the cell's points. Cells without points are left out.
-
-Classifier
-    Per class, the mean vector and covariance of its training cells; each cell goes to the
-    class of largest Gaussian log-likelihood (equal priors). Classes may be trained as
-    spectral subclasses and merged into information classes for the accuracy figures
-    (e.g. roofs and asphalt into built-up, which is bimodal in height).
-
-Accuracy
-    The confusion matrix (rows: reference, columns: classified), overall accuracy and
-    Cohen's kappa.
+Rasters, classifier and accuracy: docs/internals.md, "Quality measures".
 """
 
 from __future__ import annotations
@@ -90,7 +68,7 @@ class Raster:
 
     def normalised_dsm(self, flat: np.ndarray, z: np.ndarray, ground_window_m: float
                        ) -> np.ndarray:
-        """Highest point per occupied cell minus the ground (module docstring), metres."""
+        """Highest point per occupied cell minus the ground (docs/internals.md), metres."""
         size = self.shape[0] * self.shape[1]
         top = np.full(size, -np.inf)
         np.maximum.at(top, flat, z)
@@ -104,7 +82,7 @@ class Raster:
 
 @dataclass
 class GaussianML:
-    """Gaussian maximum-likelihood classifier (module docstring).
+    """Gaussian maximum-likelihood classifier (docs/internals.md, "Quality measures").
 
     Attributes
     ----------

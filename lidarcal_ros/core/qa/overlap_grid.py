@@ -1,13 +1,6 @@
 """Swath-to-swath height agreement on a grid, without patches or a trajectory.
 
-Per strip and square cell, the count, mean and spread of the heights of the points it holds
-(last returns, where the caller has them: the ground under vegetation). Two strips are
-compared on the cells both cover where both are smooth (standard deviation of the heights
-within ``max_std_m``): the median and the robust RMS of their mean-height differences. It
-needs neither the TIN patches of the calibration (a forest may hold none) nor a trajectory,
-and its memory grows with the area flown over the cell's area (32 bytes a cell and strip),
-not with the points, so the importer keeps it while streaming and the calibration reports it
-where it could estimate nothing.
+Memory grows with the area flown, not the points (docs/internals.md, "Quality measures").
 """
 
 from __future__ import annotations

@@ -1,12 +1,6 @@
 """Which quality level of the USGS Lidar Base Specification (LBS) a mission meets.
 
-The LBS sets per quality level (QL) thresholds on the data's relative vertical accuracy
-between overlapping swaths (interswath: RMSDz and the largest difference, on level open
-ground), its absolute vertical accuracy in non-vegetated terrain (NVA, RMSEz at check points)
-and its aggregate nominal pulse density (ANPD). A mission meets a level when every assessed
-measure is within that level's threshold; a measure that could not be assessed (no check
-points) is named as such and does not decide. Intraswath smooth-surface precision is not
-assessed here.
+The measures assessed: docs/internals.md, "Quality measures".
 """
 
 from __future__ import annotations

@@ -1,24 +1,7 @@
 """Strip-to-strip height differences over the whole block (the "dz image" of LiDAR QA).
 
-Every strip becomes a surface on one grid over the block: per cell, the mean height of the
-strip's points there, each point's height carried to the cell centre along its own surface
-normal (``z - (n_x (c_x - x) + n_y (c_y - y)) / n_z``) so that a slope within the cell does not
-turn into a difference between strips that sample it at different places. Only *smooth*
-cells count: every point of the strip in the cell has a trusted normal (not a rough
-neighbourhood: no vegetation, edge or wall) on a slope below :data:`SMOOTH_SLOPE_DEG`, and
-their heights at the centre agree within :data:`MAX_CELL_SPREAD_M` (a cell holding a roof and
-the ground beside it, each smooth, is two surfaces, not one; a single point cannot show that,
-so a cell needs :data:`MIN_CELL_POINTS`), its eight neighbours that hold points of the strip
-count too, and its height does not step from theirs by more than the bound slope allows (a
-few points of a sparse strip may all fall on the ground part of a cell on a roof's edge, those
-of another strip all on the roof part). Where two
-strips both have a smooth cell, their difference ``dz`` is the swath-to-swath (interswath)
-height difference of the USGS Lidar Base Specification (its RMSDz and maximum |dz|).
-
-The block mosaic shows per cell the difference of the two strips whose heights differ most
-there (with two strips, their difference), signed later-flown minus earlier-flown.
-
-Everything is numpy; the grid and the surfaces hold a few arrays of the covered cells only.
+Which cells count as smooth, and the mosaic's sign: docs/internals.md, "Quality measures".
+Map frame, metres; numpy only.
 """
 
 from __future__ import annotations
@@ -98,7 +81,7 @@ class CellHeights:
 
 def cell_heights(grid: BlockGrid, xyz: np.ndarray, normals: np.ndarray,
                  smooth: np.ndarray) -> CellHeights:
-    """A strip's surface on ``grid`` (module docstring).
+    """A strip's surface on ``grid`` (docs/internals.md, "Quality measures").
 
     Parameters
     ----------
@@ -212,7 +195,7 @@ class SwathDifferences:
     ----------
     grid : BlockGrid
     before, after : (ny, nx) float32
-        The block mosaics (module docstring), metres; NaN where fewer than two strips have a
+        The block mosaics (docs/internals.md), metres; NaN where fewer than two strips have a
         smooth cell.
     pairs : list of PairDifference
         Pairs with at least one common smooth cell, by strip ids.

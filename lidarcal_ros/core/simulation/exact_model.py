@@ -1,32 +1,7 @@
-"""The exact bias model of the simulated system: the point a biased system reports for a
-pulse of known true geometry.
+"""The exact bias model of the simulated system: what a biased system reports for a pulse.
 
-The simulator (:mod:`lidarcal_ros.core.simulation.simulate`) uses *exact* geometry (rotations,
-ranges, mirror angles), not the linearised bias model of docs/method.md section 3
-(:mod:`lidarcal_ros.core.georeferencing.bias_model`), so that it tests the calibration rather than
-agreeing with it by construction.
-
-Bias convention (pinned by ``vectors/method_vectors.json``)
------------------------------------------------------------
-A bias is ``nominal - true``. The simulated *true* system is the ideal one: zero lever arm,
-identity boresight, mirror scale 1, no range offset. The system georeferences with the
-*nominal* values, which are therefore the biases themselves:
-
-- a pulse fired at time ``t`` with physical mirror angle ``theta`` leaves the IMU origin
-  ``X_o(t)`` along ``R_ins(t) [-sin theta, 0, -cos theta]`` and meets the terrain at ``P`` (true
-  point) after ``r_true`` metres;
-- the system records ``r = r_true + dr (+ noise)`` and ``beta = (1 + dS) * theta`` and reports
-  ``X_b = X_o + R_ins [dX, dY, dZ] + R_ins R_B rho``, ``rho = -r [sin beta, 0, cos beta]``,
-  with the exact boresight ``R_B = Rz(dkappa) Ry(dphi) Rx(domega)``
-  (``scipy Rotation.from_euler("xyz", [domega, dphi, dkappa])``), whose small-angle form is
-  docs/method.md's ``I + skew``.
-
-``R_ins = Rz(kappa) Rx(pitch) Ry(roll)`` (body right-forward-up to map, docs/method.md section 10,
-:mod:`lidarcal_ros.core.georeferencing.attitude`) and ``X_o`` are the exact attitude and position of
-the flight at the firing time (:mod:`lidarcal_ros.core.simulation.flight_path`: straight lines or
-turns, crabbed into the wind, banked, in rough air), not interpolated from the trajectory's samples.
-A level flight has ``R_ins = R_kappa = [[c, -s, 0], [s, c, 0], [0, 0, 1]]``, flight direction
-``(-sin kappa, cos kappa)``: sections 2-4's model.
+Exact geometry, not docs/method.md section 3's linearisation; the bias convention
+(``nominal - true``): docs/internals.md, "The simulator".
 """
 
 from __future__ import annotations
@@ -129,7 +104,7 @@ def biased_point_exact(
     """Exact biased point for a true point observed from ``trajectory_position`` at ``kappa``.
 
     Inverts the true pulse (``rho = R_kappa^T (P - X_o)``, ``theta = atan2(-rho_x, -rho_z)``,
-    ``r = |rho|``) and re-georeferences it with the biased system (module docstring).
+    ``r = |rho|``) and re-georeferences it with the biased system (docs/internals.md).
     Vectorised: ``(3,)`` or ``(n, 3)`` points, scalar or ``(n,)`` kappa.
     """
     single = np.asarray(true_point).ndim == 1

@@ -1,22 +1,7 @@
 """The flight of a simulated line as analytic functions of time.
 
-A line is flown straight or as a constant-rate (coordinated) turn; along it the sensor holds
-the attitude the air gives it: crabbed into the crosswind, banked by the turn or by a constant
-roll, and, in rough air, wobbling in roll, pitch and heading while the IMU origin heaves and
-sways a little. :class:`FlightLine` gives the IMU origin and the attitude at any time, exactly
-(the simulator georeferences every pulse with them, not with interpolated samples), and what
-the planning of a mission needs (where the swath surely lies, how far it may reach).
-
-Angles and frames are docs/method.md's (section 10,
-:mod:`lidarcal_ros.core.georeferencing.attitude`): the body frame is right-forward-up; ``kappa`` is
-the heading of the forward axis, counterclockwise from map north (forward ``(-sin kappa, cos
-kappa)``, right ``(cos kappa, sin kappa)``), so a left turn makes it grow; roll is right wing down
-positive, pitch nose up positive, and ``R_ins = Rz(kappa) Rx(pitch) Ry(roll)``. Positions are local
-map coordinates, metres.
-
-Times: ``tau`` is seconds since the line's first pulse. Rough air is a function of the
-mission's time (seconds since its first trajectory sample, ``time_offset + tau``), so that it
-runs on from line to line.
+Attitude as docs/method.md section 10 (``R_ins = Rz(kappa) Rx(pitch) Ry(roll)``); positions in
+local map coordinates, metres; ``tau`` seconds since the line's first pulse.
 """
 
 from __future__ import annotations

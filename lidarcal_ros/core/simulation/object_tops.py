@@ -1,11 +1,6 @@
 """Conservative rasters of the highest object top, for finding where a ray may meet an object.
 
-The ray caster (:mod:`lidarcal_ros.core.simulation.ray_casting`) marches a ray only through the
-stretch where it may be below the top of a building or a tree: :class:`ObjectTops` tells it, for any
-horizontal position, a height that no object there exceeds. Two rasters over the terrain's
-extent (local coordinates): a fine one (cells of at least 1 m, about 12 million at most),
-each cell the highest top of any object whose bounding square touches it or a neighbour, and a
-coarse one (32 fine cells a side) whose maximum over a square of any reach is cached.
+Local coordinates; a fine raster and a coarse one whose maxima are cached.
 """
 
 from __future__ import annotations

@@ -1,12 +1,6 @@
 """Rays cast into a simulated surface: where each pulse meets the ground, a roof, a crown or a wall.
 
-:func:`cast_rays` intersects downward rays with a
-:class:`~lidarcal_ros.core.simulation.surface.Surface`: the surface's own ground hit (Newton on the
-analytic ground, a march over a gridded DSM), the object-top rasters
-(:class:`~lidarcal_ros.core.simulation.object_tops.ObjectTops`) to find the stretch of each ray that
-may meet an object, a march of at most 0.5 m along the ray through that stretch, then bisection to
-below 1e-6 m. Rays that meet a building or crown wall stop on the wall. Everything is in the
-surface's local frame.
+The search: docs/internals.md, "The simulator". Everything in the surface's local frame.
 """
 
 from __future__ import annotations

@@ -1,14 +1,6 @@
-"""The simulated scanner firing one line's pulses: where each meets the surface, what the biased
-system reports, and the intensity it records.
+"""The simulated scanner: one line's pulses, what the biased system reports, and the intensity.
 
-A linear (oscillating-mirror) scanner fires at a constant pulse rate; its mirror angle follows
-a triangle wave across the field of view. Each pulse leaves the IMU origin at its exact pose
-(:class:`~lidarcal_ros.core.simulation.flight_path.FlightLine`) along ``R_ins [-sin theta, 0, -cos
-theta]``, meets the surface (:func:`~lidarcal_ros.core.simulation.ray_casting.cast_rays`), and is
-georeferenced by the biased system (:func:`~lidarcal_ros.core.simulation.exact_model.georeference`).
-Its intensity follows the radar equation ``I = K rho cos(inc) exp(-2 alpha r) / r^2``
-(reflectance ``rho``, incidence ``inc``, range ``r``, atmospheric extinction ``alpha``), with
-relative noise.
+A linear scanner at a constant pulse rate; the exact bias model of :mod:`.exact_model`.
 """
 
 from __future__ import annotations
@@ -134,7 +126,7 @@ class LineScan:
 
 def scan_line(flight: FlightLine, n: int, surface: Surface, scanner: Scanner,
               rng: np.random.Generator) -> LineScan:
-    """Fire the line's ``n`` pulses (module docstring), the first at the line's start; the
+    """Fire the line's ``n`` pulses (docs/internals.md), the first at the line's start; the
     range and intensity noise from ``rng``, block by block. Local coordinates."""
     out = LineScan.empty(n)
     for i0 in range(0, n, PULSE_BLOCK):

@@ -1,32 +1,7 @@
 """Simulated airborne linear-scanner LiDAR missions with known system biases.
 
-:func:`simulate_mission` flies the lines of a
-:class:`~lidarcal_ros.core.simulation.spec.SimulationSpec` one after the other over a surface
-with a scanner whose biases are known, and returns the mission as the system would deliver it
-(strips of biased points, the trajectory, control points) with its truth. The parts live
-beside it:
-
-- :mod:`~lidarcal_ros.core.simulation.spec`: every option of a mission;
-- :mod:`~lidarcal_ros.core.simulation.flight_path`: each line's flight (position and attitude at any
-  time: straight or turning, crabbed into the wind, banked, in rough air);
-- :mod:`~lidarcal_ros.core.simulation.terrain`, :mod:`~lidarcal_ros.core.simulation.raster_terrain`
-and
-  :mod:`~lidarcal_ros.core.simulation.ray_casting`: the surface and where each pulse meets it;
-- :mod:`~lidarcal_ros.core.simulation.scanning`: one line's pulses, from firing to the recorded
-point and
-  intensity, with the exact bias model of :mod:`~lidarcal_ros.core.simulation.exact_model`;
-- :mod:`~lidarcal_ros.core.simulation.trajectory_errors`: the errors of the delivered
-  trajectory, per strip;
-- :mod:`~lidarcal_ros.core.simulation.truth`: what the truth records.
-
-Here: the mission's assembly. The lines are scheduled one after the other (each trajectory
-``LEAD_S`` before its first pulse to ``LEAD_S`` after its last, ``TURN_S`` between one
-trajectory and the next), the terrain is generated over the lines' footprint with the control
-points where every strip surely sees them, and all measurement noise is drawn from one
-generator in flight order (range and intensity noise of a line, then its trajectory's), so that
-a spec gives the same mission to the bit. The trajectory errors come from a generator of their
-own and are added last (to the points and trajectory samples of their strip), so a mission with
-them differs from the same mission without them by exactly ``e_s(t)``.
+:func:`simulate_mission` assembles a mission from the modules beside it; how it stays
+reproducible to the bit: docs/internals.md, "The simulator".
 """
 
 from __future__ import annotations

@@ -1,30 +1,8 @@
-"""What a simulated mission is: every option of
-:func:`~lidarcal_ros.core.simulation.simulate.simulate_mission`.
+"""What a simulated mission is: every option of ``simulate_mission``, in five parts.
 
-A :class:`SimulationSpec` holds the seed, the biases and five parts:
-
-- :class:`FlightSpec`: the lines (a named scenario's or given ones), the speed, the wind, rough
-  air and the clock;
-- :class:`SensorSpec`: the point density and field of view of the scanner, the rate and the
-  attitude of the trajectory it records;
-- :class:`NoiseSpec`: range, intensity and trajectory noise and their seed;
-- :class:`SiteSpec`: the surface (generated or given), where it lies, its control points and
-  its air;
-- :class:`TrajectoryErrorSpec`: the errors of the delivered trajectory, per strip (docs/method.md
-  section 11).
-
-Build one from its parts, or from flat keywords (:meth:`SimulationSpec.from_options`: each
-keyword names a field of one part, as the truth file's ``config`` names it)::
-
-    spec = SimulationSpec(seed=5, sensor=SensorSpec(density=0.3),
-                          flight=FlightSpec(line_length_m=200.0))
-    spec = SimulationSpec.from_options(seed=5, density=0.3, line_length_m=200.0)
-
-Every part checks its values when made (ConfigError, one line); a spec that exists can be
-simulated, but for what only the flight reveals (a turn too tight for its ends, control points
-the strips cannot all see).
-
-Coordinates are local (the area's centre at (0, 0)) until ``SiteSpec.origin`` is added.
+:class:`SimulationSpec` holds the seed, the biases, a :class:`FlightSpec`, :class:`SensorSpec`,
+:class:`NoiseSpec`, :class:`SiteSpec` and :class:`TrajectoryErrorSpec`; build one from its parts
+or with :meth:`SimulationSpec.from_options`. Local coordinates until ``SiteSpec.origin``.
 """
 
 from __future__ import annotations

@@ -1,19 +1,7 @@
 """The surface a simulated mission scans: its classes, and what the simulator asks of it.
 
-A :class:`Surface` is a 2.5-D height field ``z = height(x, y)`` (ground, roofs, crowns) with
-vertical walls where it jumps, a class and a Lambertian reflectance at every position. Two
-kinds: the analytic terrain (:class:`~lidarcal_ros.core.simulation.terrain.Terrain`: undulating
-ground, land cover, buildings, trees, generated from a seed) and a gridded DSM of a real site
-(:class:`~lidarcal_ros.core.simulation.raster_terrain.RasterTerrain`).
-
-Frames: the map-frame methods (:meth:`Surface.height`, ...) take map coordinates; the
-``*_local`` methods, which the simulator and the ray caster
-(:mod:`lidarcal_ros.core.simulation.ray_casting`) use, take local coordinates, map minus ``origin``:
-the frame the surface is generated in, around (0, 0), where centimetre geometry keeps its
-precision at projected-CRS magnitudes.
-
-Surface classes: 0 ground-soil, 1 grass, 2 asphalt, 3 roof (buildings, walls included),
-4 tree crown.
+Map-frame methods take map coordinates, ``*_local`` ones map minus ``origin``. Classes: 0
+ground-soil, 1 grass, 2 asphalt, 3 roof, 4 tree crown.
 """
 
 from __future__ import annotations

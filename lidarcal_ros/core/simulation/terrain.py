@@ -1,19 +1,7 @@
 """The analytic terrain of simulated LiDAR missions: a built-up or flat area from a seed.
 
-A :class:`Terrain` is a :class:`~lidarcal_ros.core.simulation.surface.Surface` built over a
-rectangular extent:
-
-- gently undulating ground (:class:`Ground`: a sum of a few long-wavelength sinusoids, a few
-  metres over hundreds of metres; exactly ``z = 0`` for the ``flat`` kind);
-- land cover on the ground (:class:`LandCover`): irregular patches (a jittered-grid Voronoi
-  diagram) of soil, grass and asphalt, and straight asphalt roads;
-- buildings and trees (:mod:`lidarcal_ros.core.simulation.terrain_objects`), placed off the roads
-and
-  away from the places kept clear (control points).
-
-The surface is generated in local coordinates around (0, 0); the map-frame methods subtract
-the terrain's ``origin`` (:mod:`lidarcal_ros.core.simulation.surface`). Rays are cast into it by
-:func:`~lidarcal_ros.core.simulation.ray_casting.cast_rays`.
+Ground, land cover, buildings and trees in local coordinates around (0, 0)
+(docs/internals.md, "The simulator").
 """
 
 from __future__ import annotations
@@ -200,7 +188,7 @@ class LandCover:
 
 
 class Terrain(Surface):
-    """The analytic DSM of the module docstring.
+    """The analytic surface: undulating ground, land cover, buildings and trees from a seed.
 
     Parameters
     ----------

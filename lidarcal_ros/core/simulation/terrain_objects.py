@@ -1,17 +1,7 @@
-"""The buildings and trees of the analytic terrain (:mod:`lidarcal_ros.core.simulation.terrain`).
+"""The buildings and trees of the analytic terrain, each kind on its own jittered grid.
 
-Each kind stands on its own jittered grid, at most one object per cell, so that a query is
-O(1): a position's cell index gives the one object that may hold it.
-
-- :class:`Buildings`: 56 m cells, any azimuth, 12-40 m by 10-24 m footprints, 4-20 m eaves
-  and gable, hip, shed (mono-pitch) or flat roofs;
-- :class:`Trees`: 24 m cells, bumpy semi-ellipsoid crowns (2.5-6 m semi-axes) on a short
-  "crown wall" 1-4 m above the ground, kept away from buildings.
-
-Both are drawn from the terrain's random generator in a fixed order (the same seed, the same
-objects) and kept clear of roads, control points and the edge of the terrain's extent.
-Coordinates are the terrain's local ones, metres; per-object arrays are flat, in the grid's
-row-major order. ``k`` arguments are flat object indices (from ``lookup``).
+At most one object per cell, so a query is O(1); local coordinates, metres; ``k`` arguments
+are flat object indices.
 """
 
 from __future__ import annotations
@@ -145,7 +135,7 @@ class _Objects:
 
 @dataclass(frozen=True)
 class Buildings(_Objects):
-    """Buildings on a jittered grid (module docstring), their azimuth that of the long side.
+    """Buildings on a jittered grid (docs/internals.md), their azimuth that of the long side.
 
     Attributes
     ----------
@@ -316,7 +306,7 @@ class Buildings(_Objects):
 
 @dataclass(frozen=True)
 class Trees(_Objects):
-    """Trees on a jittered grid (module docstring), their azimuth that of the crown's first
+    """Trees on a jittered grid (docs/internals.md), their azimuth that of the crown's first
     semi-axis.
 
     Attributes

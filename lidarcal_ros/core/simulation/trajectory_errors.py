@@ -1,6 +1,7 @@
-"""The trajectory errors of a simulated mission (docs/method.md section 11): each strip's
-``e_s(t)``, drawn from a :class:`~lidarcal_ros.core.simulation.spec.TrajectoryErrorSpec`,
-evaluated at any time and recorded for the truth file (and read back from it)."""
+"""The trajectory errors of a simulated mission: each strip's ``e_s(t)``, drawn and recorded.
+
+docs/method.md section 11.
+"""
 
 from __future__ import annotations
 

@@ -1,8 +1,6 @@
-"""What a simulated mission records as its truth: what each line flew, and the record of the whole
-(``SimulatedMission.config``, the ``config`` of the truth file a simulation writes).
+"""What a simulated mission records as its truth: each line flown, and the record of the whole.
 
-Plain values only (floats, ints, strings, lists and dicts of them), map coordinates, angles in
-degrees where the key says so.
+Plain values only, map coordinates, angles in degrees where the key says so.
 """
 
 from __future__ import annotations

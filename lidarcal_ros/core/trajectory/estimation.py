@@ -1,47 +1,8 @@
 """Rebuilding the flight path from multiple returns, where no trajectory was delivered.
 
-The first and the last return of one pulse lie on the laser ray, which starts at the sensor.
-Rays of pulses fired close in time therefore pass near one point that moves slowly along the
-flight line: the sensor. For each flight line (split into segments of at most ``segment_s``
-seconds) the sensor position is modelled as a polynomial in time (a straight line by
-default) and found by weighted least squares, minimising the perpendicular distances of the
-model position at each ray's time to that ray::
-
-    minimise  sum_i  w_i | (I - d_i d_i^T) (P(t_i) - a_i) |^2,   P(t) = sum_k c_k L_k(tau)
-
-where ``a_i`` is the first return, ``d_i`` the unit ray direction (towards the sensor),
-``L_k`` Legendre polynomials of the segment's normalised time ``tau`` in [-1, 1]. The
-direction of a ray is known to about ``sqrt(2) sigma_p / s_i`` (``s_i`` the separation of the
-two returns, ``sigma_p`` the point noise across the ray), so its distance to the sensor, at
-range ``R_i``, to ``sqrt(2) sigma_p R_i / s_i``: ``w_i = 1 / (sigma_p^2 (1 + 2 R_i^2 / s_i^2))``,
-iterated with ``R_i`` from the previous solution, and rays whose normalised residual exceeds
-``robust_k`` robust standard deviations are dropped.
-
-The position found is where the biased rays cross: the IMU origin plus the lever arm (and
-its bias), a few centimetres to decimetres away, which the quasi-rigorous method, needing
-positions to metres, tolerates (docs/method.md section 4: the trajectory enters only the design
-matrix). Along the track the position comes from where each ray's scan plane cuts the ground
-track, across and up from the crossing of the fan: a linear scanner's fan of +-25 degrees
-fixes the height about twice less well than the across-track position.
-
-Quality per segment: rays used, RMS ray-to-sensor distance (m), condition number of the
-normal matrix, a-posteriori standard deviation of the position (m, the largest over the
-segment), and the sensor's height above the returns.
-
-Weak segments: where the rays alone rebuild a segment poorly (few of them, or a fan only a
-few degrees wide, as where a tile holds one edge of a line's swath: the rays then cross
-nowhere in particular), the segment is fitted again as level flight, its height taken from
-the segments rebuilt well (of its own line first, else of the other lines) and carried into
-the stated sigma as a considered parameter; where its own fan is wide enough to fix its
-height and that disagrees with theirs, its own is kept (a line flown at another altitude).
-The quasi-rigorous method needs positions to metres only, so such a line, flagged, serves
-better than its points left out (:func:`estimate_trajectory`).
-
-Modules: :mod:`lidarcal_ros.core.trajectory.rays` (rays from multiple returns and the bounded
-set an estimate keeps), :mod:`lidarcal_ros.core.trajectory.segments` (one segment's fit, its
-grade, the settings), :mod:`lidarcal_ros.core.trajectory.fallback` (the level-flight fallback
-of weak segments); this one divides strips into segments, samples the fits and says per strip
-what became of it.
+Each strip is cut into segments, each fitted to its rays (:mod:`.segments`), the weak ones
+flown level (:mod:`.fallback`). Map frame, metres, seconds. The model, its weights and what the
+position found is: docs/import.md, "Without a trajectory".
 """
 
 from __future__ import annotations
@@ -119,7 +80,7 @@ def estimate_trajectory(
     spans: dict[int, tuple[float, float]],
     settings: EstimateSettings | None = None,
 ) -> EstimatedTrajectory:
-    """Rebuild the sensor path of each strip from its rays (module docstring).
+    """Rebuild the sensor path of each strip from its rays (docs/import.md, "Without a trajectory").
 
     A segment the rays alone rebuild poorly (position sigma over ``max_sigma_m``, too few
     rays, the sensor not above the returns, no speed) is not dropped: it is fitted again as

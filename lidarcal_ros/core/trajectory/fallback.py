@@ -1,13 +1,6 @@
 """The fallback for a segment its rays alone rebuild poorly: level flight at a lent altitude.
 
-Where the rays of a segment rebuild it poorly (few of them, or a fan only a few degrees wide,
-as where a tile holds one edge of a line's swath: the rays then cross nowhere in particular),
-:func:`level_fallback` fits it again as level flight, its height taken from the segments
-rebuilt well (of its own line first, else of the other lines) and carried into the stated
-sigma as a considered parameter; where its own fan is wide enough to fix its height and that
-disagrees with theirs, its own is kept (a line flown at another altitude). The quasi-rigorous
-method needs positions to metres only, so such a line, flagged, serves better than its
-points left out (:mod:`lidarcal_ros.core.trajectory.estimation`).
+When it applies and why: docs/import.md, "Weak segments".
 """
 
 from __future__ import annotations
@@ -51,7 +44,7 @@ def _altitude_prior(strip_id: int, good: list[SegmentQuality], fraction: float
                     ) -> tuple[float, float, tuple[int, ...]] | None:
     """Altitude (m), its standard deviation (m) and the strips it comes from, for a weak
     segment of ``strip_id``: its own strip's segments rebuilt well if any, else every
-    other strip's (module docstring); None without any."""
+    other strip's (docs/import.md, "Weak segments"); None without any."""
     pool = [q for q in good if q.strip_id == strip_id] or good
     if not pool:
         return None

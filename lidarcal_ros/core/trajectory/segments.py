@@ -1,12 +1,7 @@
 """One segment of a flight line rebuilt from its rays: the least-squares fit and its grade.
 
-A segment's sensor path ``P(t) = sum_k c_k L_k(tau)`` (Legendre polynomials of the segment's
-normalised time) is fitted to the perpendicular distances of the rays
-(:func:`fit_segment`, the model and weights in :mod:`lidarcal_ros.core.trajectory.estimation`),
-optionally as level flight at a height given from elsewhere (the weak-segment fallback of
-:mod:`lidarcal_ros.core.trajectory.fallback`); :func:`grade` says whether the fit is an
-aircraft's path and how well the rays fix it (:class:`SegmentQuality`). :class:`EstimateSettings`
-holds every setting of the estimate.
+``P(t) = sum_k c_k L_k(tau)`` (Legendre polynomials of the segment's normalised time), map
+frame, metres (docs/import.md, "Without a trajectory").
 """
 
 from __future__ import annotations

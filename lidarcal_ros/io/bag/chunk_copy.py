@@ -1,17 +1,6 @@
 """Copying the compressed chunks of indexed MCAP files into a bag being written.
 
-A bag that passes every message of another through (``lidarcal correct``) would otherwise
-decompress each chunk of the input, cut out its messages, and compress them again into new
-chunks. Where the input allows it, its chunk records are copied as they are instead (with
-the message index records that follow each), the output's channels and schemas for those
-messages are the input's records under the input's ids, and only the messages new to the
-output go into new chunks. Readers of MCAP take the messages through the chunk index in
-log-time order whatever the order of the chunks in the file, so the output holds, topic by
-topic, the same messages in the same order as when they are written one by one.
-
-:func:`plan_chunk_copy` decides whether an open input bag can be copied this way (else the
-messages are written one by one), :func:`adopt_and_copy` does it into a
-:class:`~lidarcal_ros.io.bag.chunk_writer.BagWriterBackend`.
+When it applies and why the output is the same: docs/internals.md, "Bags".
 """
 
 from __future__ import annotations

@@ -1,18 +1,6 @@
 """Reading the messages of an indexed MCAP file chunk by chunk, decompressed ahead in threads.
 
-rosbags reads an MCAP file's chunks one at a time, in the thread that takes the messages:
-each chunk is decompressed (zstd, most of the time of reading a bag of points), then its
-records copied twice on their way out. Where the chunks follow each other in time (the file
-of any recorder: each chunk's messages no earlier than the last of the chunk before), the
-same messages come out in the same order when the chunks are read in turn: here the next
-chunks are decompressed in a pool of threads (zstd releases the interpreter lock) while the
-caller works on the messages of the current one, whose records are cut out of it with one
-copy each. The chunks of a file whose chunks overlap in time (a corrected bag: the input's
-chunks copied, the corrected clouds' beside them) are decompressed in the order of their
-first messages and merged.
-
-:class:`~lidarcal_ros.io.bag.reader.BagReader` reads each file of a bag through
-:func:`chunk_messages`; its writing counterpart is :mod:`lidarcal_ros.io.bag.chunk_writer`.
+docs/internals.md, "Bags".
 """
 
 from __future__ import annotations

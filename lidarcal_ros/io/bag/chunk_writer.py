@@ -1,25 +1,6 @@
-"""The MCAP storage of the bags lidarcal writes: rosbags' writer, its chunks compressed in
-threads.
+"""The MCAP storage of the bags lidarcal writes: rosbags' writer, its chunks compressed in threads.
 
-rosbags writes an MCAP file chunk by chunk: each message is copied into the chunk's buffer,
-and a full chunk is compressed (zstd) in the calling thread before it takes the next message.
-A corrected mission is mostly point bytes, and copying and compressing them was most of the
-time of writing one. Here a chunk is a list of its records' parts (the messages' own bytes,
-not copied), a full chunk goes to a small pool of threads that compress it straight from its
-parts (zstd releases the interpreter lock while it works), and the compressed chunks are
-written to the file in order while the caller goes on filling the next one; at most a few
-chunks wait. Chunks are compressed at zstd level -3 (one of zstd's fast levels: on point
-clouds twice as fast to write and read as level 1 and some 7% larger; rosbags' level 3 is a
-further 9% smaller at a fifth of the speed), with a checksum of their content, which readers
-verify (MCAP's own CRC is left 0, as rosbags leaves it: a damaged chunk of point bytes,
-mostly literals at fast levels, would otherwise decompress into wrong points). The file is
-rosbags' in every other respect (records, indexes, summary, the rosbag2 metadata), and
-readers of MCAP read it as any other: messages in log-time order through the chunk index.
-
-:class:`BagWriterBackend` is rosbags' :class:`~rosbags.rosbag2.Writer` with this storage for
-MCAP; :class:`lidarcal_ros.io.bag.writer.BagWriter` writes through it. Its reading counterpart
-is :mod:`lidarcal_ros.io.bag.chunk_reader`; :mod:`lidarcal_ros.io.bag.chunk_copy` puts
-another file's chunks into it as they are.
+The compression level and the checksum: docs/internals.md, "Bags".
 """
 
 from __future__ import annotations
@@ -119,7 +100,7 @@ def chunk_index_record(start: int, end: int, offset: int, length: int,
 
 class ThreadedMcapStorage(McapWriter):
     """rosbags' MCAP storage writer whose chunks are lists of parts compressed in threads
-    (module docstring); the records it writes are rosbags'."""
+    (docs/internals.md, "Bags"); the records it writes are rosbags'."""
 
     def __init__(self, path: Path, compression: CompressionMode) -> None:
         super().__init__(path, compression)

@@ -1,9 +1,6 @@
-"""What the bag reader and the bag writer share: the message types lidarcal reads and writes,
-their names, the standard typestore, the QoS profile recorded with a topic, and the conversions
-between float seconds and the integer nanoseconds of bags and message stamps.
+"""What the bag reader and writer share: message types, typestore, QoS records, time conversions.
 
-Times: bag log times and header stamps are integer nanoseconds; mission times are float seconds
-on the same clock.
+Bag log times and header stamps are integer nanoseconds; mission times float seconds.
 """
 
 from __future__ import annotations

@@ -1,12 +1,7 @@
-"""A mission (strips of points, trajectory, control points) read from and written to a bag of
-the lidarcal contract.
+"""A mission (strips of points, trajectory, control points) read from and written to a bag.
 
-:func:`read_mission` reads the points topic (``PointCloud2`` chunks, gathered into strips by
-:class:`~lidarcal_ros.io.cloud.strip_accumulator.StripAccumulator`), the trajectory topic
-(:mod:`lidarcal_ros.io.cloud.trajectory_messages`) and the control points of a bag;
-:func:`write_mission_bag` writes a mission so, the points of each strip cut into time-ordered
-chunks (:func:`strip_point_array`, :func:`time_chunk_bounds`). Coordinates are metres in the
-map frame (``header.frame_id``); mission times are float seconds on the bag's clock.
+Coordinates in metres in the map frame (``header.frame_id``); times float seconds on the
+bag's clock.
 """
 
 from __future__ import annotations

@@ -1,16 +1,7 @@
 """Reading rosbag2 bags with MCAP storage, without ROS.
 
-Reading accepts a rosbag2 directory (``metadata.yaml`` plus ``*.mcap``, also zstd-compressed
-files or messages) or a bare ``.mcap`` file, also when schema names lack ``/msg/``
-(``sensor_msgs/PointCloud2``). What cannot be read is refused in one line naming the file and
-the reason: a missing path, sqlite3 storage, metadata that is not rosbag2's, channels that do
-not hold CDR-encoded ROS 2 messages, a truncated or corrupt file (with how many messages were
-readable before the damage: ``lidarcal recover`` keeps them, reading the file with
-:class:`ReadableMcap`), an undecodable message.
-
-Messages come out in log-time order, merged across the bag's files, as CDR bytes; the chunks of
-an indexed file are decompressed ahead in threads (:mod:`lidarcal_ros.io.bag.chunk_reader`).
-Times are integer nanoseconds.
+What is accepted and refused: docs/internals.md, "Bags". Messages as CDR bytes in log-time
+order; times integer nanoseconds.
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
 """Recovery of a damaged mission bag: every message readable before the damage, in a new bag.
 
-A recorder that loses power in flight leaves an MCAP file without its summary and footer, often
-cut inside a chunk, and a rosbag2 directory without ``metadata.yaml`` (rosbag2 writes it when
-the recording ends). :class:`~lidarcal_ros.io.bag.reader.BagReader` refuses such a bag, as it
-must: it cannot know what is missing. :func:`recover_bag` reads the files record by record from the
-start (the ``mcap`` library's stream reader needs no summary), keeps every message up to the
-first damaged record of each file, and writes them to a complete bag that every command reads.
+docs/internals.md, "Bags".
 """
 
 from __future__ import annotations

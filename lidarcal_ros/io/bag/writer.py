@@ -1,16 +1,7 @@
 """Writing rosbag2 bags with MCAP storage, without ROS.
 
-:class:`BagWriter` produces a rosbag2 directory (metadata version 8, MCAP storage, zstd-compressed
-chunks, compressed in threads by :mod:`lidarcal_ros.io.bag.chunk_writer`) that ``ros2 bag play``
-and Foxglove open, or a bare MCAP file when the path ends in ``.mcap``. The output is complete
-or absent: it is written under a hidden name beside its path and moved into place when
-finished (a live recording, which a power loss may cut, is written in place instead). An
-existing output is replaced only when asked and only if it looks like a bag. A bag that passes
-every message of another through takes that bag's compressed chunks as they are, where it
-allows that (:meth:`BagWriter.copy_chunks_of`, :mod:`lidarcal_ros.io.bag.chunk_copy`).
-
-Times: log times and header stamps are integer nanoseconds. Coordinates are metres in the
-frame named by ``header.frame_id``.
+A rosbag2 directory or a bare ``.mcap``, complete or absent (docs/internals.md, "Bags"). Times
+integer nanoseconds; coordinates metres in ``header.frame_id``.
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
 """The columns lidarcal works on, read from the fields of a cloud's structured points.
 
-:func:`extract_columns` interprets a structured point array (a view of a PointCloud2, see
-:mod:`lidarcal_ros.io.cloud.pointcloud`) as :class:`CloudColumns`: ``x, y, z`` (FLOAT64, or FLOAT32
-refused where its rounding step exceeds the range noise), the firing time (``t`` or one alias),
-intensity, strip id, return numbers, each field of an accepted type or refused in one line
-naming it. Coordinates are metres in the cloud's ``header.frame_id``; times absolute seconds on
-the trajectory's clock.
+Each field of an accepted type or refused in one line naming it. Metres in the cloud's
+``header.frame_id``; times absolute seconds on the trajectory's clock.
 """
 
 from __future__ import annotations

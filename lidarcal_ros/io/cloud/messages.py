@@ -1,34 +1,7 @@
 """ROS 2 messages of the node suite as raw CDR and plain Python, without rclpy.
 
-The nodes move point clouds as serialised CDR bytes (``raw=True`` subscriptions, publishing
-``bytes``): a cloud is parsed into a zero-copy numpy view of its point bytes
-(:func:`parse_cloud`, rosbags' ``deserialize_cdr``) and a corrected cloud is serialised with
-one copy of its points (:func:`cloud_cdr`). Everything here is testable without ROS.
-
-The estimate message
---------------------
-``std_msgs/Float64MultiArray`` on ``/lidar/calibration/estimate`` (transient-local, depth 1),
-a 10 x 8 row-major matrix (:data:`ESTIMATE_ROWS` x :data:`PARAMETER_NAMES`):
-
-* ``layout.dim[0]``: label ``"value,sigma,covariance[dX..dS];converged=true"`` (``false``
-  for an estimate not converged: :func:`estimate_row_label`), size 10, stride 80;
-* ``layout.dim[1]``: label ``"dX,dY,dZ,domega,dphi,dkappa,dr,dS"``, size 8, stride 8;
-* row 0: the values (SI: m, rad, 1; the fixed value for parameters not estimated);
-* row 1: the standard deviations (NaN for parameters not estimated);
-* rows 2-9: the 8 x 8 covariance (SI^2), zero in the rows and columns of parameters not
-  estimated.
-
-:func:`estimate_matrix` builds the data from a :class:`CalibrationResult`,
-:func:`parse_estimate` reads it back. The calibration YAML of docs/interface.md is published beside
-it as ``std_msgs/String`` on ``/lidar/calibration/yaml`` (transient-local).
-
-Diagnostics
------------
-:func:`qa_statuses` turns a result into the ``diagnostic_msgs/DiagnosticStatus`` contents
-(level, name, message, key-values) the calibrator publishes on ``/diagnostics``: one status per
-strip pair (``lidarcal: strips 5&6``, RMS after calibration against the USGS Lidar Base
-Specification QL2 thresholds of the configuration, 8 cm WARN / 16 cm ERROR), convergence and
-observability.
+Clouds parsed into zero-copy numpy views and serialised with one copy; the estimate message
+(docs/interface.md, "The estimate message"); the calibrator's QA statuses (docs/nodes.md).
 """
 
 from __future__ import annotations
@@ -246,7 +219,7 @@ def is_dense_byte(points: np.ndarray) -> bytes:
 
 # ---------------------------------------------------------------------------- estimate
 def estimate_matrix(result: Any) -> np.ndarray:
-    """The 10 x 8 estimate matrix (module docstring) of a CalibrationResult."""
+    """The 10 x 8 estimate matrix of a CalibrationResult (docs/interface.md)."""
     sol = result.solution
     out = np.zeros((len(ESTIMATE_ROWS), N_PARAMETERS), dtype=np.float64)
     out[0] = np.asarray(sol.delta, dtype=np.float64)

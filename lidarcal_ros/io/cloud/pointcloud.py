@@ -1,13 +1,7 @@
 """``sensor_msgs/PointCloud2`` bytes <-> numpy structured arrays, without ROS.
 
-Works on any object with the attributes of a ``sensor_msgs/msg/PointCloud2`` (messages
-deserialized by rosbags, rclpy or mcap-ros2, or a simple namespace) and on raw parts: the
-PointField datatype codes, the structured dtype of a cloud's layout (checked: no unknown
-type, no field beyond ``point_step`` or overlapping another), a zero-copy view of its points,
-the parts of a cloud for a structured array, and the point layout lidarcal writes. What the
-fields mean (coordinates, times, strip ids) is read by :mod:`lidarcal_ros.io.cloud.columns`.
-Points are in the cloud's ``header.frame_id`` (the map frame, metres); times are absolute
-seconds on the trajectory's clock.
+Any object with a PointCloud2's attributes; layouts checked; zero-copy views. Points in the
+cloud's ``header.frame_id`` (map frame, metres).
 """
 
 from __future__ import annotations

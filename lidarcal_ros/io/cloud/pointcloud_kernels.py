@@ -1,12 +1,4 @@
-"""Compiled scans of the fields of a structured point cloud
-(:mod:`lidarcal_ros.io.cloud.pointcloud`,
-:mod:`lidarcal_ros.io.cloud.messages`): the coordinates and columns gathered, the range of the
-times and whether every coordinate is finite, each in one pass over the rows.
-
-A cloud's fields are strided views into its rows: numpy reads the rows once per field and
-per operation, these loops once (compiled as :mod:`lidarcal_ros.core.jit` says), with the
-results of the numpy expressions each function states.
-"""
+"""Compiled scans of the fields of a structured point cloud, each in one pass over the rows."""
 
 from __future__ import annotations
 

@@ -1,26 +1,6 @@
 """Byte regions handed between two processes through one shared-memory file.
 
-The corrector node passes each point cloud to its correction process and takes the corrected
-cloud back. Through a pipe, every cloud of several MB is copied into the kernel and out again,
-in 1 MB turns that each wake the other process; through a :class:`SharedRing` the writer
-copies it once into shared memory and sends only where it lies, and the reader uses it in
-place.
-
-One process creates the ring (:meth:`SharedRing.create`) and writes; the other maps it
-(:meth:`SharedRing.attach`) and reads. The writer alone keeps the book of what is in use: it
-allocates a region (:meth:`~SharedRing.allocate`), fills it, names ``(offset, size)`` to the
-reader by its own channel, and frees the region (:meth:`~SharedRing.free`) when the reader
-says it is done with it. Regions are handed out in ring order and their space comes back once
-every older region is freed too, so allocation is a comparison of two offsets. When the ring
-has no room, :meth:`~SharedRing.allocate` returns None and the caller sends the bytes its
-usual way: a full ring slows nothing down, and it never blocks.
-
-The file lives in ``/dev/shm`` (memory) where it exists. Its space is reserved when it is
-created (``posix_fallocate``), so that a full ``/dev/shm`` refuses the ring at start with an
-``OSError`` rather than killing a process with SIGBUS at its first write; the file is unlinked
-as soon as both sides have mapped it (:meth:`~SharedRing.unlink`). Its name carries the
-creating process's id, so that the file of a process killed before that point is removed when
-the next ring is created.
+Who allocates and frees, and why it never blocks: docs/correction.md, "Shared memory".
 """
 
 from __future__ import annotations
@@ -42,7 +22,8 @@ _NO_FALLOCATE = {errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL}
 
 
 class SharedRing:
-    """A shared-memory byte ring (module docstring). Use :meth:`create` or :meth:`attach`.
+    """A shared-memory byte ring (docs/correction.md, "Shared memory"). Use :meth:`create` or
+    :meth:`attach`.
 
     Parameters
     ----------

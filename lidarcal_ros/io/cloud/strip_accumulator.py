@@ -1,11 +1,7 @@
 """The points of a mission's cloud messages gathered into strips.
 
-:class:`StripAccumulator` takes the ``PointCloud2`` chunks of a points topic one by one
-(optionally only the points inside a box of the map frame, thinned to the first point per
-cell) and, at the end, groups their points into :class:`~lidarcal_ros.core.mission.Strip`
-objects by strip id, sorted by time within each, with the points whose ``x, y, z`` or ``t`` is
-not finite dropped and counted. Coordinates are metres in the clouds' frame, times absolute
-seconds.
+Grouped by strip id, time-sorted, non-finite points dropped and counted; metres in the clouds'
+frame, times absolute seconds.
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
-"""Trajectory messages (``PoseStamped``, ``Odometry``, ``PoseWithCovarianceStamped``,
-``PointStamped``) as samples of a :class:`~lidarcal_ros.core.mission.Trajectory`.
+"""Trajectory messages (poses, odometry, points) as samples of a mission's ``Trajectory``.
 
-Used alike on the messages of a bag and on those a node receives. Positions are metres in the
-message's ``header.frame_id`` (the map frame), times the header stamps in float seconds,
-orientations quaternions ``(x, y, z, w)`` (NaN where the message type has none).
+Positions metres in ``header.frame_id``, times float seconds, orientations ``(x, y, z, w)``
+(NaN where the type has none).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""What the calibration report holds (:class:`ReportContent` and the parts it is made of),
-filled by :mod:`lidarcal_ros.pipeline.report.build` and rendered by
-:mod:`lidarcal_ros.io.report.page` and :mod:`lidarcal_ros.io.report.figures`. Lengths in metres,
-angles in radians (SI) unless a field says otherwise; map positions in the map frame.
+"""What the calibration report holds: :class:`ReportContent` and the parts it is made of.
+
+Lengths in metres, angles in radians unless a field says otherwise; map positions in the map
+frame.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""The pieces the HTML report is built of: escaped text, tables, notes, sections and
-figures embedded as base64 PNG (:class:`FigureRenderer`). Cells and inner parts are HTML
-already: escape text with :func:`escape` before.
+"""The pieces the HTML report is built of: escaped text, tables, notes, sections, figures.
+
+Cells and inner parts are HTML already: escape text with :func:`escape` before.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""The figures of the HTML report (:mod:`lidarcal_ros.io.report.page`), drawn with
-matplotlib's Agg canvas (no pyplot, no display, no global state) and encoded as PNG.
+"""The figures of the HTML report, drawn with matplotlib's Agg canvas and encoded as PNG.
 
-Maps are in map-frame coordinates, axes labelled with the CRS when it is known; every map
-that compares a state before calibration with one after shares one colour scale between
-the two panels, so that what looks alike is alike.
+Map-frame coordinates; before and after share one colour scale.
 """
 
 from __future__ import annotations

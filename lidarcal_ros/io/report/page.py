@@ -1,43 +1,6 @@
 """The calibration report as one self-contained HTML file (``lidarcal report``).
 
-What the report holds is described by
-:class:`~lidarcal_ros.io.report.content.ReportContent` (filled by
-:mod:`lidarcal_ros.pipeline.report.build`); this module lays out the page (style sheet, script,
-navigation) and writes it, :mod:`lidarcal_ros.io.report.sections` renders each section with
-the pieces of :mod:`lidarcal_ros.io.report.elements`, and the figures come from
-:mod:`lidarcal_ros.io.report.figures`. The file has every figure as a base64 PNG ``<img>``
-with an ``id`` and an ``alt`` text, and the style sheet and a small script inline: nothing
-is fetched, so it reads offline and can be mailed as it is.
-
-Sections, in the order a LiDAR processor reads them:
-
-- a summary: mission, the USGS LBS quality level met, the calibration;
-- quality level: each LBS measure against the thresholds of QL0-QL3;
-- the block: flight lines, trajectory, control and check points on a map (map coordinates,
-  CRS named), and a table per strip (time, points, length, heading, speed, height above
-  ground, density);
-- the calibration: its facts, the bias table (estimate, sigma, unit, or why a parameter was
-  not estimated), the correlation matrix;
-- where the calibration holds trajectory errors (docs/method.md section 11): the model, each
-  strip's estimated error over time (E, N, U with its sigma band) and a table of offsets and
-  drifts with their sigmas;
-- swath-to-swath height differences over the block before and after (mosaics on one colour
-  scale, per pair RMSDz and largest |dz|), then per strip pair the normal discrepancies of the
-  calibration's sample points (maps on one scale, histograms);
-- relative and absolute accuracy as ``lidarcal evaluate`` measures them: the rigid
-  transformation co-aligning each pair (point-to-patch ICP) and the check-point residuals;
-- the control-point residuals;
-- the radiometric correction: what the reflectance is, the variance-to-mean ratio against
-  terrain slope before and after (the paper's Fig. 5), maps of intensity and reflectance;
-- provenance: lidarcal version, date, command, every input with its size and SHA-256, the
-  flight configuration.
-
-The inline script marks every ``<img>`` that decoded (``data-rendered="1"``) and writes
-``data-figures-total`` and ``data-figures-rendered`` on ``<body>`` once the page has loaded,
-so a headless browser can tell that every figure rendered. Every section is a ``<section>``
-with an ``id`` (``summary``, ``quality``, ``block``, ``calibration``, ``trajectory`` where
-there are trajectory errors, ``swath``, ``pairs``, ``evaluation``, ``control``,
-``radiometry``, ``provenance``).
+Its sections, their ids and the rendering check: docs/internals.md, "The HTML report".
 """
 
 
@@ -126,7 +89,7 @@ def figure_ids(content: ReportContent) -> set[str]:
 
 
 def render_html(content: ReportContent, *, progress: Progress | None = None) -> str:
-    """The report as one HTML document (module docstring)."""
+    """The report as one HTML document (docs/internals.md, "The HTML report")."""
     draw = FigureRenderer(len(figure_ids(content)), progress)
     nav = "".join(f'<a href="#{key}">{escape(name)}</a>' for key, name in _SECTIONS
                   if key != "trajectory" or content.trajectory is not None)

@@ -1,8 +1,4 @@
-"""The sections of the HTML report, one function each, in the order of the page: each takes
-the :class:`~lidarcal_ros.io.report.content.ReportContent` (or its part) and, where it has
-figures, the :class:`~lidarcal_ros.io.report.elements.FigureRenderer`, and returns the
-section's HTML (``<section id="...">``).
-"""
+"""The sections of the HTML report, one function each, in the order of the page."""
 
 from __future__ import annotations
 

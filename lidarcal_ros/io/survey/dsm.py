@@ -1,18 +1,6 @@
 """Digital surface models for flight planning: GeoTIFF or NumPy ``.npy`` grids.
 
-GeoTIFF
-    One band of heights (metres), square cells, north up; georeferenced by the GeoTIFF tags
-    ``ModelPixelScale`` and ``ModelTiepoint`` (read with tifffile; a ``ModelTransformation``
-    with rotation is refused). ``PixelIsPoint`` rasters are shifted by half a cell so that
-    the grid's edges are cell edges. The GDAL no-data value becomes NaN (filled from the
-    nearest valid cell by :class:`~lidarcal_ros.core.simulation.raster_terrain.RasterTerrain`).
-``.npy``
-    A 2-D array of heights, row 0 the northern edge. It carries no georeference: the cell
-    size (default 1 m) and the map position of the north-west corner come from the flight
-    plan (``terrain_cell_m``, ``terrain_origin: [west, north]``); without the latter the grid
-    is centred on the planned lines.
-
-The map frame is the plan's (metres); the DSM must be in it.
+Heights in metres in the plan's map frame; the formats: docs/internals.md, "Flight planning".
 """
 
 from __future__ import annotations
@@ -44,7 +32,7 @@ def read_dsm(
     north_west: tuple[float, float] | None = None,
     centre: tuple[float, float] | None = None,
 ) -> RasterTerrain:
-    """Read a DSM (module docstring).
+    """Read a DSM (docs/internals.md, "Flight planning").
 
     Parameters
     ----------

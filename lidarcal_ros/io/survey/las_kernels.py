@@ -1,10 +1,6 @@
-"""The point records of a LAS/LAZ chunk in one compiled pass
-(:mod:`lidarcal_ros.io.survey.las_writer`).
+"""The point records of a LAS/LAZ chunk in one compiled pass (for the LAS writer).
 
-Filling laspy's record field by field from a corrected cloud is some twenty numpy passes over
-the points (scaling, rounding, clipping, bit fields, the extra bytes), as long as compressing
-them again; here each point's record is written in one pass, with the same arithmetic as the
-numpy it replaces (the tests compare the records byte for byte).
+The same arithmetic as the numpy it replaces; the tests compare the records byte for byte.
 """
 
 from __future__ import annotations

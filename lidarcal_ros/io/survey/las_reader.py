@@ -1,17 +1,7 @@
 """Reading LAS 1.0-1.4 and LAZ flight lines, chunk by chunk (laspy with the lazrs backend).
 
-What lidarcal needs from a delivered point file is read here and nothing more: coordinates,
-GPS time, intensity, point source id, return number and count, classification. Every failure
-(missing file, not a LAS file, a point format without GPS time, corrupt or truncated LAZ data)
-becomes a one-line :class:`~lidarcal_ros.errors.InputError` naming the file.
-
-Units and frames
-----------------
-Coordinates are returned as stored (scaled and offset), in the file's CRS and its linear unit
-(metres, or feet for many US state-plane deliveries: :func:`crs_units` gives the factors to
-metres). GPS times are returned raw: seconds of the GPS week when the header's global
-encoding bit 0 is clear, Adjusted Standard GPS Time (GPS seconds - 1e9) when it is set
-(:attr:`LasFileInfo.gps_time_type`).
+Coordinates are returned as stored, in the file's CRS and linear unit (:func:`crs_units` gives
+the factors to metres); GPS times raw, in the base the header names (docs/import.md).
 """
 
 from __future__ import annotations

@@ -1,30 +1,7 @@
 """Writing corrected clouds as LAS 1.4 / LAZ (point format 6), chunk by chunk.
 
-Each point record holds X, Y, Z (scale 0.001 m, offsets chosen from the first chunk: its
-median X and Y rounded down to a kilometre, Z 0), the intensity, return number and count, the
-scan angle, the point source id (strip), the GPS time, and extra-bytes dimensions (LAS 1.4
-"extra bytes" VLR) ``reflectance`` (float32; :mod:`lidarcal_ros.core.radiometry` defines it:
-the Lambertian reflectance when a calibration constant is known, else the intensity normalised
-to the reference range, normal incidence and clear air; its description says which),
-``range`` (float32, m), ``incidence`` (float32, rad) and ``correction_flags`` (uint8, the bits
-of :mod:`lidarcal_ros.core.flags`). Points whose geometry could not be corrected are
-written with the LAS *withheld* flag set. The CRS, when known, goes into an OGC WKT VLR.
-
-Conventions
------------
-- Scan angle: LAS counts degrees in steps of 0.006, negative to the left of the flight
-  direction; lidarcal's ``scan_angle`` (docs/method.md's ``beta``) is positive to the left, so the
-  LAS value is ``-degrees(scan_angle) / 0.006``.
-- GPS time: bag times are ROS times (UNIX epoch, UTC). Times after the GPS epoch
-  (1980-01-06) are written as Adjusted Standard GPS Time (``GPS seconds - 1e9``, leap seconds
-  applied) with global-encoding bit 0 set; earlier (relative) times are written unchanged with
-  the bit clear (GPS week time). :func:`unix_to_adjusted_gps` and
-  :func:`adjusted_gps_to_unix` convert.
-- Intensity: UINT16 values are kept, UINT8 scaled by 257 (to the 16-bit range, as LAS asks),
-  FLOAT32 rounded and clipped to 0..65535 (a warning says how many were clipped).
-- Return number and number of returns default to 1 when the cloud has none; they are clipped
-  to 1..15. Points with a non-finite coordinate, or more than about 2147 km from the offsets
-  (beyond LAS's 32-bit coordinates), cannot be stored in LAS and are skipped (and counted).
+The record's fields and the conventions of scan angle, GPS time and intensity: docs/correction.md,
+"LAS and LAZ".
 """
 
 from __future__ import annotations

@@ -1,40 +1,7 @@
 """Trajectory files as delivered after a flight: Applanix SBET and ASCII ``time,x,y,z``.
 
-SBET
-----
-Binary, little-endian, 17 float64 per record (136 bytes): time (GPS seconds of the week),
-latitude (rad), longitude (rad), altitude (m, ellipsoidal), x/y/z velocity (m/s), roll,
-pitch, platform heading (rad), wander angle (rad), x/y/z acceleration (m/s^2), x/y/z angular
-rate (rad/s). Time, latitude, longitude, altitude and the attitude are used: roll, pitch and
-the true heading (platform heading less wander angle, clockwise from true north) of the NED
-body frame (x forward, y right, z down), ``C_b^n = Rz(heading) Ry(pitch) Rx(roll)``: roll right
-wing down positive, pitch nose up positive. A file whose headings and wander angles are all
-zero has no attitude, one whose rolls and pitches are all zero (converters that fill only the
-heading) a heading only. Positions are geographic on the ellipsoid of the GNSS processing
-(WGS 84 / ITRF by default: EPSG:4979).
-
-ASCII
------
-One sample per line, ``time,x,y,z[,roll,pitch,heading,...]``, comma, semicolon or
-whitespace separated; blank lines and lines starting with ``#`` or ``%`` are skipped. An
-optional header line names the columns (case-insensitive): ``time``/``t``/``gps_time``/
-``timestamp``/``sow``; ``x``/``easting``, ``y``/``northing``, ``z``/``height``/``h``/``alt``/
-``altitude``/``elevation``; or ``lat``/``latitude`` and ``lon``/``long``/``longitude``
-(degrees: geographic); ``heading`` (degrees clockwise from north: true north for geographic
-positions, grid north for projected ones), ``roll`` and ``pitch`` (degrees, as an SBET's: right
-wing down and nose up positive) if present; a unit ``(deg)`` or ``[deg]`` after a name is
-allowed. Without a header the first four columns are time, x, y, z, the fifth to seventh
-roll, pitch and heading. Roll and pitch join the heading into the full attitude; a roll or
-pitch column that is not numbers, not finite or lacks its partner leaves the heading alone
-(a warning says so), and roll and pitch without a heading give positions only.
-
-Time bases
-----------
-``week`` (GPS seconds of the week, 0-604800), ``adjusted`` (Adjusted Standard GPS Time, GPS
-seconds - 1e9), ``gps`` (GPS seconds since 1980-01-06) and ``unix`` (UTC seconds since 1970,
-the ROS clock). :func:`to_gps_seconds` and :func:`gps_to_unix` convert between them.
-
-The positions and attitude in the map's CRS: :mod:`lidarcal_ros.io.survey.trajectory_crs`.
+Their records, columns and time bases: docs/import.md, "Trajectory files" and "GPS time". The
+positions and attitude in the map's CRS: :mod:`lidarcal_ros.io.survey.trajectory_crs`.
 """
 
 from __future__ import annotations
@@ -191,7 +158,7 @@ def gps_to_unix(gps_seconds: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- SBET
 def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
-    """Read an Applanix SBET (module docstring).
+    """Read an Applanix SBET (docs/import.md, "Trajectory files").
 
     Returns
     -------
@@ -253,7 +220,7 @@ def write_sbet(
     altitude_m: np.ndarray,
     **fields: np.ndarray,
 ) -> Path:
-    """Write an SBET (module docstring); fields not given are zero.
+    """Write an SBET (docs/import.md); fields not given are zero.
 
     Parameters
     ----------
@@ -298,7 +265,7 @@ def _is_number(text: str) -> bool:
 
 
 def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
-    """Read an ASCII trajectory (module docstring).
+    """Read an ASCII trajectory (docs/import.md, "Trajectory files").
 
     Raises
     ------

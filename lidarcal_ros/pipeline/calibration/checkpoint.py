@@ -1,15 +1,7 @@
 """Checkpoint files of the live calibration: everything it needs to resume, in one ``.npz``.
 
-:class:`StreamCheckpoint` is what a
-:class:`~lidarcal_ros.pipeline.calibration.streaming.StreamingCalibration` keeps across a restart:
-the trajectory samples, the strips complete and being flown, for each trajectory model it runs
-(:class:`ModelState`: one, or two for ``auto``) the current estimate with its matching threshold,
-every strip's trajectory error and the frozen correspondences of strips released under the memory
-budget with their trajectory terms, whether the estimate was converged, the accumulated normal
-equations, the control points and the counters its statuses report. :func:`write_checkpoint` writes
-it beside its path and renames it into place (a reader never sees half a file);
-:func:`read_checkpoint` reads it back, also from files of earlier versions of the same format
-version, which lack some counters.
+What it holds: docs/nodes.md, "How the calibrator works". Files of earlier versions of the same
+format version, which lack some counters, are read too.
 """
 
 from __future__ import annotations
@@ -61,7 +53,7 @@ class ModelState:
 
 @dataclass
 class StreamCheckpoint:
-    """The state of a live calibration (module docstring); map frame, m, s, SI units."""
+    """The state of a live calibration (docs/nodes.md); map frame, m, s, SI units."""
 
     frame_id: str | None
     #: Trajectory samples as received: times (n,), positions (n, 3), quaternions xyzw (n, 4).

@@ -1,31 +1,8 @@
 """The live calibrator's work without ROS: one worker thread drives a streaming calibration.
 
-:class:`CalibrationService` is what ``lidarcal_calibrator`` runs; the node only decodes
-messages, hands them over and publishes what comes back. Everything that touches the
-:class:`~lidarcal_ros.pipeline.calibration.streaming.StreamingCalibration` happens in the service's
-worker thread, in the order it was asked for: callers queue typed jobs (:class:`AddCloud`,
-:class:`AddPose`, :class:`SetControl`, ..., the requests :class:`Solve`, :class:`Reset`,
-:class:`Save` with a reply), so input keeps flowing while a solve runs.
-
-Scheduling
-    Poses that arrive one after another are added to the stream in one batch. After a cloud
-    (when nothing else waits), and whenever nothing arrived for a moment, the stream is asked
-    to close its idle strips, at most every :data:`UPDATE_PERIOD_S` of wall time: a strip is
-    complete once no point of it arrived for ``strip_gap_s`` seconds of point (or trajectory)
-    time, or once no input at all arrived for ``idle_close_s`` wall seconds (the end of a
-    mission or a replay). Each complete strip gives a quick estimate (not converged).
-    Whenever no input is waiting, the worker then takes the estimate to convergence a step at
-    a time (:meth:`StreamingCalibration.refine_step`), input taken in between: with no
-    request, the estimate published after the last strip is what ``lidarcal calibrate`` gives
-    on the same data.
-Results
-    Every estimate (quick, converged, or asked for) goes to the ``on_result`` callback with
-    its QA statuses ready (:meth:`CalibrationService.statuses`; among them each strip's
-    trajectory error, ``lidarcal: trajectory``), then to the checkpoint file
-    when one is set. A checkpoint found at start is resumed from, and converged again.
-Shutdown
-    :meth:`CalibrationService.close` converges first (at most :data:`SHUTDOWN_CONVERGE_S`)
-    and writes a last checkpoint.
+:class:`CalibrationService` is what ``lidarcal_calibrator`` runs; callers queue typed jobs
+(:class:`AddCloud`, ..., :class:`Solve`, :class:`Reset`, :class:`Save`). Its scheduling, results
+and shutdown: docs/nodes.md, "How the calibrator works".
 """
 
 from __future__ import annotations
@@ -180,7 +157,7 @@ Job = (AddCloud | AddPose | SetControl | ReadControlFile | SetConfig | SetOption
 
 
 class CalibrationService:
-    """Live calibration in a worker thread (module docstring).
+    """Live calibration in a worker thread (docs/nodes.md, "How the calibrator works").
 
     Parameters
     ----------

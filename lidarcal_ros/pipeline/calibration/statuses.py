@@ -1,14 +1,6 @@
 """What the live calibrator reports about itself on ``/diagnostics``, beside each estimate's QA.
 
-``lidarcal: memory`` (points held against the budget, thinning, strips released),
-``lidarcal: input`` (clouds, points and poses received; what was skipped, left out or refused,
-and why; the strips seen only in part), ``lidarcal: state`` (estimates, checkpoints, the
-normal equations) and, while there is no estimate, ``lidarcal: convergence``; the
-convergence status of the latest estimate while the background refinement works on it
-(:func:`refinement_status`); and with each estimate ``lidarcal: trajectory`` (each strip's
-estimated trajectory error against the navigation accuracy configured,
-:func:`trajectory_status`). Levels and the status record are
-:mod:`lidarcal_ros.io.cloud.messages`'.
+The statuses: docs/nodes.md, "``lidarcal_calibrator``".
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
-"""What the live calibration holds before a strip is complete: the strips being flown and the
-trajectory samples, plus the memory budget that bounds them.
+"""What the live calibration holds before a strip is complete, and the memory budget bounding it.
 
-A strip being flown (:class:`OpenStrip`) is held as the chunks it arrived in. Where the strips
-being flown hold more than the memory budget on their own (a dense sensor on a long line,
-without ``calibration.thinning_cell_m``), :meth:`OpenStrips.thin_to` thins every cloud's part
-as that setting does, at the coarsest of twice the cell in force until they fit, so that the
-calibration goes on with fewer points instead of running out of memory.
+The strips being flown (:class:`OpenStrip`, as the chunks they arrived in) and the trajectory
+samples; past the budget they are thinned (docs/nodes.md, "How the calibrator works").
 """
 
 from __future__ import annotations

@@ -1,17 +1,7 @@
 """The calibrators a live calibration runs for its trajectory model (docs/method.md section 11).
 
-A model set (``none``, ``offset``, ``drift``, ``spline``) runs one
-:class:`~lidarcal_ros.core.calibration.calibrate.Calibrator`. ``auto`` runs two over the same
-prepared strips (their TINs and geometry shared): the trajectory as exact, whose estimate is
-published until the other wins, and each strip's spline; once both have converged on the strips held
-they are compared as ``lidarcal calibrate``
-compares them (:func:`~lidarcal_ros.core.calibration.calibrate.choose_trajectory_model`), and the
-one chosen is published from then on. Both converged on every strip of a mission, the choice and
-the estimate are the batch calibration's. Their checkpoint states
-(:class:`~lidarcal_ros.pipeline.calibration.checkpoint.ModelState`) name strips by id; after a
-restart a strip released under the memory budget before it is held again without points
-(:meth:`ModelCalibrators.add_released`), in its place, so that its trajectory error is still
-estimated from the correspondences frozen with it.
+One for a model set, two for ``auto``, compared as ``lidarcal calibrate`` compares them
+(docs/nodes.md, "How the calibrator works").
 """
 
 from __future__ import annotations
@@ -41,7 +31,7 @@ NOT_COMPARED = "auto: none (each strip's spline is tried once the estimate has c
 
 class ModelCalibrators:
     """The calibrator whose estimate is published (:attr:`active`) and, for ``auto``, the
-    other model's (:attr:`rival`); module docstring.
+    other model's (:attr:`rival`); docs/nodes.md.
 
     Parameters
     ----------

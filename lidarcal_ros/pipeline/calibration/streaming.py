@@ -1,49 +1,8 @@
 """Live calibration: a mission fed message by message (the calibrator node's core).
 
-Clouds arrive as chunks; a strip is complete once no point of it has arrived for
-``strip_gap_s`` seconds of point time (and the trajectory covers its end). Each completed strip
-is prepared once (local trajectory, footprint), paired with the strips before it, and the
-adjustment is re-run from the current estimate: the new correspondences join the normal
-equations without re-preparing anything older. That quick update re-matches only the new
-strip's pairs, two iterations, so its estimate is not converged.
-
-Convergence goes on in the background (:meth:`StreamingCalibration.refine_step`, called
-whenever the caller has nothing else to do): from the current estimate and matching threshold,
-every pair is re-matched and the adjustment re-solved, iteration after iteration, until an
-iteration moves no parameter by more than ``calibration.convergence_fraction`` of its sigma
-(from the second on, as ``lidarcal calibrate`` decides) or ``calibration.max_iterations`` pass.
-Each step is one strip pair's matching or one adjustment, so the caller can take input between
-them. Whatever changes the data (a strip closed, a strip released under the memory budget,
-control points, the configuration) makes the estimate not converged and starts the refinement
-afresh from the estimate reached. The converged estimate is the one ``lidarcal calibrate``
-gives on the same strips: the same sample points, thresholds and control, converged to the same
-fixed point. :meth:`StreamingCalibration.solve` runs the full adjustment from zero exactly as
-``lidarcal calibrate`` does. Checkpoints keep whether the estimate was converged and the
-matching threshold; a calibration resumed from one converges again before its first result.
-
-Trajectory errors (docs/method.md section 11, ``calibration.trajectory.model``): a model set is
-estimated strip by strip with the biases; ``auto`` runs the trajectory as exact and each
-strip's spline side by side over the same prepared strips, converges the second after the first
-and publishes the one ``lidarcal calibrate`` would choose (:mod:`~lidarcal_ros.pipeline.
-stream_models`): converged on every strip, the choice and the estimate are the batch ones.
-
-Memory: points are held under a budget; past it the oldest complete strip is released first,
-its strip pairs keeping their last correspondences (frozen), and the count is reported. Where
-the strips still being flown hold more than the budget on their own (a dense sensor on a long
-line, without ``calibration.thinning_cell_m``), their points are thinned as that setting
-does, at the coarsest of twice the cell in force until they hold at most half the budget, and
-every later cloud at that cell: the calibration goes on with fewer points instead of running
-out of memory (:attr:`StreamingCalibration.auto_thinning_cell_m`, reported).
-
-Strips the input delivered only in part (begun before the input, holes between clouds) are
-named with what is missing (:attr:`StreamingCalibration.partial_strips`, rules in
-:mod:`lidarcal_ros.pipeline.calibration.strip_coverage`), in every result and in a warning as each
-closes.
-
-What is held before a strip is complete (the strips being flown, the trajectory samples) and
-the budget's default are :mod:`lidarcal_ros.pipeline.calibration.stream_inputs`; the checkpoint file
-is
-:mod:`lidarcal_ros.pipeline.calibration.checkpoint`.
+:class:`StreamingCalibration`: strips completed as they end, quick updates, convergence in the
+background, the memory budget, strips seen in part (docs/nodes.md, "How the calibrator works").
+Trajectory errors: docs/method.md section 11.
 """
 
 from __future__ import annotations
@@ -86,7 +45,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class _Refinement:
-    """A background convergence under way (module docstring)."""
+    """A background convergence under way (docs/nodes.md)."""
 
     iterations: Iterator[Iteration | None]
     completed: int = 0  # iterations
@@ -112,7 +71,7 @@ class StreamingCalibration:
 
     #: The map frame of the points and the trajectory (None until the first message).
     frame_id: str | None
-    #: Points and strips released under the memory budget (module docstring).
+    #: Points and strips released under the memory budget (docs/nodes.md).
     dropped_points: int
     dropped_strips: list[int]
     #: Points left out for a non-finite coordinate or time.
@@ -121,11 +80,11 @@ class StreamingCalibration:
     #: automatic one).
     thinned_points: int
     #: Thinning cell (m) the budget forced because the open strips alone held more than it
-    #: (module docstring); 0 while it did not.
+    #: (docs/nodes.md); 0 while it did not.
     auto_thinning_cell_m: float
     #: The latest estimate (None: none yet).
     latest: CalibrationResult | None
-    #: Whether :attr:`latest` is converged on the strips held (module docstring).
+    #: Whether :attr:`latest` is converged on the strips held (docs/nodes.md).
     converged: bool
     #: The normal equations of :attr:`latest`.
     normal_equations: NormalEquations
@@ -268,7 +227,7 @@ class StreamingCalibration:
 
     @property
     def partial_strips(self) -> dict[int, str]:
-        """The strips received only in part, with what is missing (module docstring)."""
+        """The strips received only in part, with what is missing (docs/nodes.md)."""
         return self._coverage.partial_strips
 
     @property
@@ -331,7 +290,7 @@ class StreamingCalibration:
 
     def _thin_open_strips(self) -> None:
         """The open strips alone hold more than the budget: thin them, and what comes later,
-        at twice the cell in force until they hold at most half of it (module docstring)."""
+        at twice the cell in force until they hold at most half of it (docs/nodes.md)."""
         before = self.n_points
         cell, removed = self._open.thin_to(self.max_points // 2 - self._calibrator.n_points,
                                            self.thinning_cell_m)
@@ -495,7 +454,7 @@ class StreamingCalibration:
         self._refinement_wanted = refine
 
     def refine_step(self) -> CalibrationResult | None:
-        """Take the background convergence one step further (module docstring): one strip
+        """Take the background convergence one step further (docs/nodes.md): one strip
         pair's matching or one adjustment, from the estimate reached.
 
         Returns the result once an iteration ended (converged: :attr:`converged` then True;

@@ -1,20 +1,7 @@
 """Strips the live input delivered only in part: begun before the input, or with holes.
 
-Two signs, from point and trajectory times alone (seconds, the points' time base):
-
-- **Begun before the input.** A strip flown from its start has the aircraft on the trajectory
-  before its first point (the turn onto the line; the simulator's missions carry 2 s of
-  trajectory before each strip). A calibrator that subscribes to streams already flowing (it
-  came up after the replay, or after the sensor's driver) receives both from the same moment,
-  in the middle of a strip: the first point received of that strip comes less than
-  :data:`JOIN_S` after the first pose received, or before it. Its beginning is missing.
-- **Holes.** Within a strip the clouds follow each other without a gap in point time; a cloud
-  whose first point comes more than :data:`HOLE_FRACTION` of the strip's median cloud span
-  after the strip's previous point means a cloud or more was lost (a queue overflowed, a
-  subscriber stalled). Judged from the strip's third cloud on (a median of two spans).
-
-A strip missed whole (the input began in the turn after it) leaves no sign in what arrives;
-the replay's wait for its subscribers is what prevents it.
+The two signs and their thresholds: docs/nodes.md, "How the calibrator works". Times in seconds,
+the points' time base.
 """
 
 from __future__ import annotations

@@ -1,46 +1,8 @@
-"""Apply a calibration and the radiometric model to points: the correction of each point
-that `lidarcal correct`, the corrector node and the QA report share.
+"""The correction of a set of points: a calibration and the radiometric model applied to them.
 
-Per point (docs/method.md sections 2-4 and 8), steps 1-3 and 5 in one compiled pass
-(:func:`lidarcal_ros.core.georeferencing.correction_kernels.correct_returns`):
-
-1. the local trajectory gives ``x, z, kappa, beta`` and the firing position ``X_o(t)``
-   (:func:`lidarcal_ros.core.georeferencing.local_trajectory.laser_geometry`);
-2. the point is moved by the estimated biases, ``X_c = X_b - A(x, z, kappa, beta) delta``
-   (eq. [13], :func:`lidarcal_ros.core.georeferencing.bias_model.correct_points`);
-3. ``range = |X_c - X_o|`` (m), laser direction ``l = (X_c - X_o) / range``, and
-   ``scan_angle = atan(x_c / z_c)`` (rad, docs/method.md's ``beta`` of the corrected point, positive
-   to the left of the flight direction). This is the physical mirror angle: the recorded one
-   divided by the scale ``1 + dS``, i.e. ``(1 - dS) beta`` to first order. The firing point is
-   taken at the IMU origin: the lever arm itself (not only its bias) is unknown to the
-   quasi-rigorous method; at airborne ranges it changes angles by < 1e-3 rad;
-4. the local surface normal from a grid plane fit over the point's neighbourhood in its own
-   strip (:mod:`lidarcal_ros.core.normals.grid_normals`; volume returns, those that are not the last
-   of their pulse, are left out of the grid), ``incidence = arccos |n . l|`` (rad);
-5. ``reflectance`` by the radar equation (:mod:`lidarcal_ros.core.radiometry`), with
-   ``cos(incidence)`` clamped at ``radiometry.min_cos_incidence``; where the normal is
-   uncertain (flagged rough or grazing) the incidence term is bounded at
-   ``radiometry.uncertain_incidence_max_deg`` (60 deg): at building edges a plane mixing roof
-   and ground gives a steep incidence that the surface does not have, and dividing by its
-   cosine would make the point several times too bright (the incidence field keeps the
-   estimate; the flags say it is uncertain). A volume return (canopy: not the last return of
-   its pulse) takes no incidence correction, ``cos`` 1, and NaN incidence (the rule and why:
-   :mod:`lidarcal_ros.core.radiometry`, "Incidence on vegetation").
-
-Normals are fitted to the delivered (uncorrected) coordinates: the correction is a smooth field
-(its gradient is of the order of the boresight angles and ``dS``, below 1e-3), so it would turn
-the normals by less than 0.1 deg, and this way the context points of neighbouring chunks need
-no correction of their own and points the trajectory does not cover still help their neighbours.
-
-Output: every input field, ``x, y, z`` corrected (in their own type), and the FLOAT32 fields
-``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus the UINT8 ``correction_flags``
-(bits below). Nothing is silently wrong: a point that cannot be corrected keeps its delivered
-coordinates, gets NaN in the four derived fields and a flag, and is counted.
-
-This module corrects a set of points at once (:func:`correct_columns`, :func:`correct_cloud`);
-the corrected cloud's layout and rows are :mod:`~lidarcal_ros.pipeline.correction.corrected_cloud`,
-the stream of clouds :mod:`~lidarcal_ros.pipeline.correction.stream`, ``lidarcal correct`` on a bag
-:mod:`~lidarcal_ros.pipeline.correction.bag`.
+What ``lidarcal correct``, the corrector node and the QA report share (:func:`correct_columns`,
+:func:`correct_cloud`); the steps per point: docs/correction.md, "Per point" (docs/method.md
+sections 2-4 and 8). Map frame, metres, radians.
 """
 
 from __future__ import annotations
@@ -399,7 +361,7 @@ def correct_columns(
     volume: np.ndarray | None = None,
     strip_id: np.ndarray | int | None = None,
 ) -> CorrectedColumns:
-    """Correct the geometry and compute reflectance of a set of points (module docstring).
+    """Correct the geometry and compute reflectance of a set of points (docs/correction.md).
 
     Parameters
     ----------

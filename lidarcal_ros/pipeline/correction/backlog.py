@@ -1,17 +1,6 @@
-"""The clouds a live corrector has received and not yet handed to the correction: which
-wait for the trajectory, which are ready, which are dropped from a backlog.
+"""The clouds a live corrector holds before the correction: waiting, ready, or dropped.
 
-Waiting for the trajectory
-    A cloud is ready once the trajectory covers it (a sample :data:`TRAJECTORY_MARGIN_S` past
-    its last point time), in the order received; a cloud stops waiting only once the
-    trajectory has stalled for ``max_trajectory_wait_s`` (not while samples still arrive late
-    behind a backlog), and is then corrected with what there is (points not covered are
-    flagged). Every cloud ready at once goes in one push, up to :data:`MAX_PUSH_POINTS`
-    (:func:`take_ready`).
-Backlog
-    Above ``max_backlog_mib`` of waiting clouds the oldest are dropped and counted
-    (:meth:`WaitingClouds.drop_oldest`): for QA in flight the present matters more than the
-    past.
+The rules: docs/correction.md, "The live corrector".
 """
 
 from __future__ import annotations

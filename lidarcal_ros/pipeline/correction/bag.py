@@ -1,27 +1,7 @@
 """``lidarcal correct``: every cloud of a mission bag corrected into a bag or a LAS/LAZ file.
 
-:func:`correct_bag` checks the bag's topics, then reads it once: the trajectory is gathered
-as it comes, and each cloud is streamed through a
-:class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector` (read ahead in a thread,
-batches corrected in worker threads) once the trajectory covers it
-(:class:`~lidarcal_ros.pipeline.correction.trajectory_gate.TrajectoryGate`), with the result that
-reading the whole trajectory first gives. Where a bag does not allow that (its
-trajectory comes after its clouds, or out of time order) it is read again, the trajectory
-first. What comes out is written in order:
-
-- a bag: every input message passed through unchanged and each corrected cloud on
-  ``topics.corrected``, in the input's (log-time) order; each corrected cloud is built in the
-  bytes of its output message; where the calibration holds trajectory errors, the corrected
-  trajectory on ``topics.trajectory_corrected`` (after the clouds: the strips' times are known
-  only once every cloud is read; each message at its input's log time);
-- LAS/LAZ: the corrected clouds in runs of at least :data:`LAS_RUN_POINTS` points;
-- with :attr:`CorrectOptions.trajectory_out`, the corrected trajectory as an ASCII file.
-
-The corrected trajectory is ``X_o,delivered(t) - e_hat_s(t)`` (docs/method.md section 11), the
-strips' times those of their points; between strips (turns) the error is interpolated
-(:func:`~lidarcal_ros.core.trajectory.strip_errors.trajectory_corrections`).
-
-It returns a :class:`CorrectionReport` (counts, models, warnings) for the command to print.
+:func:`correct_bag` does it and returns a :class:`CorrectionReport`; how it reads the bag once
+and what it writes: docs/correction.md, "``lidarcal correct`` on a bag".
 """
 
 from __future__ import annotations

@@ -1,13 +1,7 @@
-"""One batch of a stream's clouds: their normals delivered, the batch corrected, each cloud
-built into its rows.
+"""One batch of a stream's clouds: their normals delivered, the batch corrected, each cloud built.
 
-The :class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector` decides which clouds go
-together (:class:`CorrectionBatch`) and when; :func:`run_batch` does the work, in the calling
-thread or a worker thread. A batch of one cloud (the node's usual batch) is corrected
-straight into the cloud's rows
-(:func:`~lidarcal_ros.pipeline.correction.corrected_cloud.row_target`); a larger one into columns
-that are then built into each cloud's rows
-(:func:`~lidarcal_ros.pipeline.correction.corrected_cloud.build_corrected`). The bytes are the same.
+The :class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector` chooses the batches;
+:func:`run_batch` does the work, in the calling thread or a worker thread.
 """
 
 from __future__ import annotations

@@ -1,15 +1,7 @@
-"""The corrected cloud: its layout, its rows built from the correction's columns, and what it
-holds, counted while it is built.
+"""The corrected cloud: its layout, its rows built from the correction's columns, its tallies.
 
-A corrected cloud has every input field, ``x, y, z`` corrected (in their own type), and the
-:data:`ADDED_FIELDS`: FLOAT32 ``reflectance``, ``range``, ``incidence``, ``scan_angle`` plus
-the UINT8 ``correction_flags`` (:mod:`lidarcal_ros.core.flags`). :func:`corrected_dtype`
-gives the layout, :func:`build_corrected` the rows from a :class:`CorrectedColumns`, and
-:func:`row_target` where the compiled correction writes the rows itself (one pass less over
-the points: :func:`lidarcal_ros.pipeline.correction.apply.correct_columns` with ``rows``). Every
-byte of a row is written, so the bytes do not depend on the buffer they are built in.
-:class:`CloudTally` counts each cloud's flags in the same pass; :class:`CorrectionStats` adds
-the tallies of a stream.
+Every input field, ``x, y, z`` corrected, and the :data:`ADDED_FIELDS` (docs/interface.md,
+"Corrected clouds").
 """
 
 from __future__ import annotations

@@ -1,28 +1,7 @@
-"""The live corrector's work without ROS: clouds wait for the trajectory, then go to the
-correction in order; what comes back is published.
+"""The live corrector's work without ROS: clouds wait for the trajectory, are corrected, go out.
 
-:class:`LiveCorrector` is what ``lidarcal_corrector`` runs; the node only declares its
-parameters, hands over the raw clouds, the trajectory samples and the estimates, and
-publishes the bytes that come back (``publish``). One worker thread does the rest:
-
-Waiting for the trajectory
-    A cloud is handed to the correction once the trajectory covers it, in the order
-    received, or once the trajectory has stalled for ``max_trajectory_wait_s``
-    (:func:`~lidarcal_ros.pipeline.correction.backlog.take_ready`).
-Backlog
-    Above ``max_backlog_mib`` of waiting clouds the oldest are dropped, counted and reported
-    (:meth:`~lidarcal_ros.pipeline.correction.backlog.WaitingClouds.drop_oldest`).
-Time-out
-    Once no cloud came for ``flush_timeout_s``, what the correction holds for look-ahead is
-    corrected without it.
-Runner
-    The correction runs in a child process
-    (:class:`~lidarcal_ros.pipeline.correction.process.CorrectionProcess`) or in this process
-    (:class:`~lidarcal_ros.pipeline.correction.service.LocalCorrection`); a child that died is
-    replaced, and given the whole trajectory kept, at the next hand-over.
-
-Every cloud comes out exactly once (published, or skipped with a reason), in the order
-received. :meth:`LiveCorrector.status` assembles the diagnostics.
+:class:`LiveCorrector` is what ``lidarcal_corrector`` runs (docs/correction.md, "The live
+corrector").
 """
 
 from __future__ import annotations
@@ -123,7 +102,7 @@ class CorrectorStats:
 
 
 class LiveCorrector:
-    """The live correction of clouds as they arrive (module docstring).
+    """The live correction of clouds as they arrive (docs/correction.md).
 
     Parameters
     ----------

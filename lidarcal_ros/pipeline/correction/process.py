@@ -1,20 +1,6 @@
-"""The live correction in a child process, the clouds carried there and back through shared
-memory.
+"""The live correction in a child process, the clouds carried there and back in shared memory.
 
-The corrector node does two kinds of work: the ROS side (taking messages off DDS, hundreds
-of trajectory samples a second, parameters, publishing) and the numerics (a
-:class:`~lidarcal_ros.pipeline.correction.service.CorrectionEngine`). In one Python process
-they share one interpreter lock, and a numerics thread that holds it between its numpy calls
-delays every callback of the executor by up to the interpreter's switch interval: at a few
-hundred trajectory samples a second the trajectory then falls seconds behind the points,
-and the points wait for it. :class:`CorrectionProcess` therefore runs the numerics in a
-child process (spawned, not forked: the node process runs threads). The clouds travel to it
-and back through two shared-memory rings (:mod:`~lidarcal_ros.io.cloud.shared_ring`): received into
-the inbound ring by the node's subscription (:meth:`CorrectionProcess.inbound_region`), or
-copied there, read in place, and only their place on the request pipe; each corrected cloud
-is built straight into the outbound ring behind its message header. A cloud that finds no
-room, or a host without shared memory, goes through the pipe itself. The interface is that of
-:class:`~lidarcal_ros.pipeline.correction.service.LocalCorrection`.
+Why a child process, and how the clouds travel: docs/correction.md, "The live corrector".
 """
 
 from __future__ import annotations
@@ -141,7 +127,7 @@ def _attach(rings: _Rings) -> tuple[SharedRing | None, SharedRing | None]:
 def _child_main(inbox: Any, outbox: Any, freed: Any, settings: CorrectionSettings,
                 options: ServiceOptions, rings: _Rings) -> None:
     """The child process: requests from ``inbox``, results to ``outbox``, the outbound
-    regions the node process is done with from ``freed`` (module docstring)."""
+    regions the node process is done with from ``freed`` (docs/correction.md)."""
     inbound, outbound = _attach(rings)
     outbox.send(("mapped", inbound is not None))
     # glibc's threshold for giving back free heap stays high here: a lower one returned the
@@ -313,7 +299,7 @@ def _create_rings(size: int) -> tuple[SharedRing | None, SharedRing | None]:
 
 
 class CorrectionProcess:
-    """The correction in a child process with its own interpreter lock (module docstring).
+    """The correction in a child process with its own interpreter lock (docs/correction.md).
 
     Clouds go to the child and back through two shared-memory rings
     (:mod:`~lidarcal_ros.io.cloud.shared_ring`): one copy into the ring, read in place, and only

@@ -1,17 +1,6 @@
-"""The calibration constant of the reflectance from a reference target of known reflectance.
+"""The calibration constant of the reflectance, measured on a reference target of known reflectance.
 
-``radiometry.reference_target`` is a box of the map frame over one surface whose Lambertian
-reflectance ``radiometry.reference_target_reflectance`` is known (a sports ground, a car park
-measured with a field spectrometer). The points inside it whose reflectance is trusted
-(corrected, last or single returns, with an intensity and a normal that is neither rough nor
-grazing, incidence below
-:data:`TARGET_MAX_INCIDENCE_DEG`) give ``C = median(relative reflectance) / known``
-(:func:`~lidarcal_ros.core.radiometry.constant_from_target`), the intensity of a
-reflectance-1 target at the reference range: the calibration constant that makes the
-reflectance absolute (:mod:`lidarcal_ros.core.radiometry`).
-
-``lidarcal report`` measures the target on the mission it holds; ``lidarcal correct`` reads
-only the target and its surroundings (:func:`measure_target_in_bag`) before correcting.
+The target and which of its points count: docs/correction.md, "The reflectance".
 """
 
 from __future__ import annotations
@@ -95,7 +84,8 @@ def target_of(config: FlightConfig) -> tuple[tuple[float, float, float, float], 
 
 def trusted_in_box(xyz: np.ndarray, flags: np.ndarray, incidence: np.ndarray,
                    box: tuple[float, float, float, float]) -> np.ndarray:
-    """Points inside ``box`` whose reflectance is trusted (module docstring)."""
+    """Points inside ``box`` whose reflectance is trusted (docs/correction.md, "The
+    reflectance")."""
     x0, y0, x1, y1 = box
     x, y = xyz[:, 0], xyz[:, 1]
     with np.errstate(invalid="ignore"):

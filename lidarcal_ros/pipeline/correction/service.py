@@ -1,17 +1,7 @@
 """The correction behind the live corrector node: clouds in and out as CDR bytes.
 
-:class:`CorrectionEngine` is the numerics of the live correction: a trajectory buffer, a
-:class:`~lidarcal_ros.pipeline.correction.stream.StreamCorrector` and the clouds' CDR parsed
-in place. Two runners run it: :class:`LocalCorrection` in the calling thread (tests, and hosts
-where a child process is not wanted), and
-:class:`~lidarcal_ros.pipeline.correction.process.CorrectionProcess` in a child process with
-its own interpreter lock (the node's default: there the numerics never delay the node's
-callbacks).
-
-Both take the trajectory samples (:meth:`poses`), clouds (:meth:`push`), a time-out
-(:meth:`release`: correct what is held without waiting for look-ahead), settings and the
-look-ahead switch, and report every cloud exactly once, in the order pushed, to
-``on_result(tag, cdr, points, not_corrected, seconds)`` or ``on_error(tag, reason)``.
+:class:`CorrectionEngine` is the numerics; :class:`LocalCorrection` runs it in the calling
+thread, :class:`~lidarcal_ros.pipeline.correction.process.CorrectionProcess` in a child process.
 """
 
 from __future__ import annotations

@@ -1,15 +1,7 @@
-"""Correct a stream of clouds one after another, with neighbours across cloud boundaries:
-what the corrector node (one cloud at a time, as it arrives) and ``lidarcal correct`` (chunk
-by chunk from a bag) both run.
+"""Correction of a stream of clouds one after another, with neighbours across cloud boundaries.
 
-:class:`StreamCorrector` takes clouds one at a time. The points of each strip join one grid
-of cells (:class:`~lidarcal_ros.core.normals.strip_normals.StripNormals`), each point binned and
-evaluated once, so the normals do not depend on how the stream is cut into clouds: a cloud is
-released once the clouds after it cover the grid rows its normals read (the look-ahead), or at once
-without look-ahead. Clouds are corrected in batches (``batch_points``; 0 = each cloud as soon
-as it can be, as the node does; :mod:`~lidarcal_ros.pipeline.correction.batch`), in the
-calling thread or in worker threads. Memory holds the clouds waiting for their look-ahead and
-a few grid rows, whatever the mission length.
+What the corrector node and ``lidarcal correct`` both run (docs/correction.md, "A stream of
+clouds").
 """
 
 from __future__ import annotations
@@ -69,7 +61,7 @@ class _Strip:
 
 
 class StreamCorrector:
-    """Correct a stream of clouds, with neighbours across cloud boundaries (module docstring).
+    """Correct a stream of clouds, with neighbours across cloud boundaries (docs/correction.md).
 
     Parameters
     ----------

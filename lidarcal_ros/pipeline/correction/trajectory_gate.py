@@ -1,27 +1,7 @@
-"""The clouds of a bag handed to the correction once the trajectory covers them, so that
-``lidarcal correct`` reads a bag whose trajectory comes interleaved with its clouds once.
+"""The clouds of a bag handed to the correction once the trajectory read so far covers them.
 
-:class:`TrajectoryGate` takes the bag's messages in order: trajectory messages into
-:class:`~lidarcal_ros.io.cloud.trajectory_messages.TrajectorySamples` (and a
-:class:`~lidarcal_ros.core.trajectory.buffer.TrajectoryBuffer`, which keeps the samples in
-time order and derives each one's values once), clouds into a queue. A cloud leaves the queue,
-in the order read, once the trajectory read so far holds :data:`REACH_SAMPLES` samples later
-than its last point time plus the reach of the correction around a point (the
-local-trajectory window, ``matching.trajectory_window_s``, and the span the model choice
-judges, :data:`~lidarcal_ros.core.georeferencing.rigorous.MODEL_SPAN_PAD_S`), and at least
-``matching.min_samples`` in all; the corrector is then given that trajectory (taken again
-from the samples only when a batch's worth of points waits: a few times per mission, not per
-cloud). If the samples come in time order, the ones a cloud's correction reads are those of
-the whole trajectory, and so is the result.
-
-Whether they did is checked when the bag has been read: the whole trajectory is made and
-checked as when it is read first (screening warnings, frames, orientation and model
-settings; ``whole``), and each trajectory the corrector was given must be its beginning, bit
-for bit, with the same attitude flags (an orientation at all, roll and pitch measured).
-The clouds still queued (not covered before the end) are then corrected with the whole
-trajectory. Where the check fails, or more than ``max_held_points`` points wait (a
-trajectory written after the clouds), :class:`RereadBag` is raised: the caller reads the
-bag again, the trajectory first.
+So that ``lidarcal correct`` reads a bag whose trajectory comes with its clouds once
+(docs/correction.md, "The trajectory gate").
 """
 
 from __future__ import annotations

@@ -1,72 +1,8 @@
 """``lidarcal import``: LAS/LAZ flight lines and a trajectory file into a mission bag.
 
-What a survey delivers (LAS 1.0-1.4 / LAZ files, an Applanix SBET or an ASCII trajectory, or
-no trajectory at all) becomes a bag of the lidarcal contract (docs/interface.md): strips as
-``sensor_msgs/PointCloud2`` chunks on ``/lidar/points`` with ``x, y, z, t`` FLOAT64,
-``intensity`` FLOAT32, ``strip_id`` UINT16, ``return_number``, ``number_of_returns`` and
-``classification`` UINT8, and the trajectory as ``geometry_msgs/PoseStamped`` on
-``/lidar/trajectory`` (the INS attitude where the file has one, else identity), all in one
-map frame.
-
-:func:`import_mission` is the one entry point, told what to do by an :class:`ImportOptions`
-(:mod:`.import_options`, whose fields the rules below name). Its stages are modules of their
-own: :mod:`.import_points` (headers, CRS and units, the one read pass over the points, the
-sorted runs), :mod:`.import_time_bases` (*GPS time*), :mod:`.import_strips` (*Strips*),
-:mod:`.import_trajectory` (the trajectory file in the map frame, or the estimate),
-:mod:`.import_writer` (the bag) and :mod:`.import_report` (what was written).
-
-Rules
------
-Strips
-    From ``point_source_id``. Points whose id is 0 while other points have ids, and all the
-    points when every point has one and the same id, are split into strips at gaps in GPS
-    time longer than ``strip_gap_s``; such strips are numbered 1, 2, ... in time order (or
-    after the largest id present). A strip may span several files, a file hold several
-    strips.
-Coordinates
-    Converted to metres: the horizontal unit of the points' CRS (from the LAS header, or
-    ``crs``) gives the factor, heights use the vertical unit of a compound CRS, else the
-    horizontal one. Geographic (lat/lon) point clouds are refused.
-Trajectory positions
-    SBET (and ASCII with lat/lon columns) are geographic, EPSG:4979 by default
-    (``trajectory_crs`` overrides: the datum of the GNSS processing), projected with pyproj to
-    the points' CRS. Against a 2-D projected CRS heights stay ellipsoidal: LAS heights
-    delivered in a geoid-based datum then sit N (the geoid undulation, tens of metres) away,
-    which shifts ``z`` of docs/method.md section 4 by N out of about 1000 m, about 3 % of the
-    design matrix and nothing of the observations: harmless for the estimate, but a
-    compound CRS (``--crs EPSG:32633+5773``) converts them properly when PROJ has the geoid
-    model (else: a one-line error). ASCII x, y, z are taken to be in the points' CRS unless
-    ``trajectory_crs`` says otherwise.
-Trajectory attitude
-    An SBET's roll, pitch and true heading, or an ASCII trajectory's roll, pitch and heading
-    columns, become the poses' orientation (REP-103 quaternions, docs/method.md section 10), the
-    heading turned from true to the map's grid north by the meridian convergence; with a
-    heading only the poses are level (``full_attitude`` False); without one they carry none
-    (identity). :func:`lidarcal_ros.io.survey.trajectory_crs.map_orientation` has the conventions.
-GPS time
-    LAS global-encoding bit 0 set: Adjusted Standard GPS Time (GPS seconds - 1e9); clear: GPS
-    seconds of the week. SBET times are week seconds. ASCII times are read as whichever of
-    week seconds, adjusted standard, GPS or UNIX seconds (``trajectory_time``, default: all
-    plausible ones for their magnitude) overlaps the points' times, the GPS week of week
-    seconds being taken from the absolute side (the week the points or the trajectory fall
-    in, trying the neighbouring weeks for flights across a week boundary), or from
-    ``gps_week``. When points and trajectory are both in week seconds they are consistent
-    as they are and the bag keeps week seconds (``gps_week`` makes them absolute; the LAS
-    creation date, a processing date, only breaks ties). Whenever an absolute time is known
-    the bag's clock is UNIX (UTC) seconds, the ROS clock, leap seconds applied, as
-    ``lidarcal correct`` expects when it writes LAS again. Neither reading overlapping, or a
-    strip not covered by trajectory samples: a one-line error.
-Trajectory estimate
-    Without a trajectory file, rays from the first and last returns of multi-return pulses
-    rebuild the sensor path per strip (:mod:`lidarcal_ros.core.trajectory.estimation`), with a
-    quality figure per segment. A strip its rays rebuild poorly is kept, flown level at the
-    altitude of the strips rebuilt well, with its sigma stated; the report says per strip
-    what happened, and only a strip that even that cannot place is left out, with a warning
-    saying why.
-Memory
-    Points are read in chunks and, past ``memory_points``, spilled to sorted run files
-    beside the output and merged by time (an external sort), so memory does not grow with
-    the number of points. Rays kept for an estimate grow with the flight's duration only.
+:func:`import_mission` runs the stages (the modules beside this one) as an
+:class:`~lidarcal_ros.pipeline.importing.options.ImportOptions` says. The rules for strips,
+coordinates, trajectory files, time bases and the trajectory estimate: docs/import.md.
 """
 
 from __future__ import annotations
@@ -117,7 +53,7 @@ def import_mission(
     options: ImportOptions | None = None,
     progress: Progress | None = None,
 ) -> ImportReport:
-    """Import LAS/LAZ strips and a trajectory into a mission bag (module docstring).
+    """Import LAS/LAZ strips and a trajectory into a mission bag (docs/import.md).
 
     Parameters
     ----------

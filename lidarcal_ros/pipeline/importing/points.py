@@ -1,13 +1,7 @@
-"""An import's points: the LAS headers' CRS and units, one pass over the points, and the
-time-sorted runs the points wait in until the bag is written.
+"""An import's points: the LAS headers' CRS and units, the read pass, the time-sorted runs.
 
-:func:`read_points` reads every file in chunks once: it converts coordinates to metres,
-keeps the returns asked for in :data:`POINT_DTYPE` rows in a :class:`RunStore` (in memory,
-spilled as sorted run files beside the output past ``memory_points``: an external sort, so
-memory does not grow with the number of points), and gathers what the strips and the
-trajectory need later (:class:`PointsRead`): per point source id its count, time span, files
-and the time bins it occupies, and for a trajectory estimate the rays of multi-return pulses.
-:func:`merged_windows` gives the runs back merged by time.
+Coordinates are converted to metres on reading; past ``memory_points`` the runs are spilled to
+files beside the output (docs/import.md, "Memory").
 """
 
 from __future__ import annotations
@@ -287,7 +281,7 @@ class PointsRead:
 
 def read_points(infos: list[LasFileInfo], store: RunStore, frame: PointsFrame,
                 options: ImportOptions, progress: Progress) -> PointsRead:
-    """Read every point once into ``store`` and gather :class:`PointsRead` (module docstring).
+    """Read every point once into ``store`` and gather :class:`PointsRead` (docs/import.md).
 
     Raises
     ------

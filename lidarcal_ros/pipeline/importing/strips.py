@@ -1,13 +1,4 @@
-"""An import's strips: which points make up which flight line.
-
-Strips come from ``point_source_id``. Points whose id is 0 while other points have ids, and
-all the points when every point has one and the same id, are split into strips at gaps in GPS
-time longer than ``strip_gap_s``; such strips are numbered 1, 2, ... in time order (or after
-the largest id present). :class:`StripMap` maps (point source id, raw time) to the strip id;
-:func:`assemble_strips` makes, from what the read pass gathered, the strips' summaries and
-their spans (to the read pass's time bins: exact counts and spans come while the bag is
-written).
-"""
+"""An import's strips: which points make up which flight line (docs/import.md, "Strips")."""
 
 from __future__ import annotations
 
@@ -45,7 +36,7 @@ class StripSummary:
 
 
 class StripMap:
-    """Raw (point_source_id, raw time) -> strip id (module docstring).
+    """Raw (point_source_id, raw time) -> strip id (docs/import.md, "Strips").
 
     Parameters
     ----------
@@ -150,7 +141,7 @@ class StripAssembly:
 
 
 def assemble_strips(read: PointsRead, strip_gap_s: float) -> StripAssembly:
-    """The strips of the points read (module docstring)."""
+    """The strips of the points read (docs/import.md, "Strips")."""
     strip_map = StripMap(read.occupancy, read.gap_bin, strip_gap_s)
     summaries: dict[int, StripSummary] = {}
     for psid, source in read.sources.items():

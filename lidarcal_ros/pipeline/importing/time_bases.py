@@ -1,13 +1,4 @@
-"""How an import's point and trajectory times meet on the bag's clock.
-
-LAS GPS time is Adjusted Standard GPS Time (global-encoding bit 0 set: GPS seconds - 1e9) or
-GPS seconds of the week (bit clear); SBET times are week seconds; ASCII trajectory times are
-read as whichever of week seconds, adjusted standard, GPS or UNIX seconds overlaps the
-points' times. :func:`reconcile_times` chooses that reading and the GPS week of week-second
-times (from the absolute side, the neighbouring weeks tried for flights across a week
-boundary, or given); the :class:`TimeRule` it returns converts raw times to the bag's clock:
-UNIX (UTC) seconds whenever an absolute time is known, else week seconds unchanged. The rules
-in full: :mod:`lidarcal_ros.pipeline.importing.importer`, *GPS time*.
+"""How an import's point and trajectory times meet on the bag's clock (docs/import.md, "GPS time").
 """
 
 from __future__ import annotations
@@ -168,7 +159,7 @@ def reconcile_times(
     creation_week: int | None = None,
     where: str = "trajectory",
 ) -> TimeRule:
-    """Choose how point and trajectory times meet (module docstring).
+    """Choose how point and trajectory times meet (docs/import.md, "GPS time").
 
     Parameters
     ----------

@@ -1,13 +1,6 @@
 """An import's trajectory: a delivered file in the map frame, or one rebuilt from the points.
 
-A trajectory file (SBET or ASCII) is read before the points, so that a bad file fails fast:
-:func:`read_delivered_trajectory` projects its positions to the points' CRS in metres and turns
-its attitude into the map's quaternions (the rules: :mod:`lidarcal_ros.pipeline.importing.importer`,
-*Trajectory positions* and *Trajectory attitude*). Once the time rule is known,
-:func:`trajectory_from_file` puts its samples on the bag's clock, screens them, keeps those
-near the points at ``trajectory_rate_hz`` and checks they cover every strip;
-:func:`trajectory_from_rays` rebuilds it from the rays of multi-return pulses instead
-(:mod:`lidarcal_ros.core.trajectory.estimation`). Either gives a :class:`BagTrajectory`.
+The rules for positions, attitude and the estimate: docs/import.md.
 """
 
 from __future__ import annotations
@@ -93,7 +86,7 @@ class BagTrajectory:
 # ---------------------------------------------------------------------------- from a file
 def read_delivered_trajectory(path: str | os.PathLike[str], trajectory_crs: str | None,
                           frame: PointsFrame) -> DeliveredTrajectory:
-    """Read a trajectory file and bring it into the map frame (module docstring).
+    """Read a trajectory file and bring it into the map frame (docs/import.md, "Trajectory files").
 
     Parameters
     ----------

@@ -1,11 +1,6 @@
 """Writing an import's bag: the points merged by time into clouds, the poses between them.
 
-:func:`write_bag` merges the read pass's sorted runs by time, gives each point its strip id
-and its time on the bag's clock, and writes one ``PointCloud2`` per strip and
-``chunk_seconds`` of scanning with the trajectory's poses in log-time order, all in the map
-frame (docs/interface.md). On the way it fills in the strips' exact counts and spans, checks
-each against the trajectory (a strip not covered aborts the bag), and feeds the last returns
-to the overlap QA grid.
+Map frame, metres; times on the bag's clock (docs/interface.md, docs/import.md).
 """
 
 from __future__ import annotations
@@ -45,7 +40,7 @@ class BagWritten:
 def write_bag(output: Path, read: PointsRead, strips: StripAssembly, rule: TimeRule,
               trajectory: BagTrajectory, options: ImportOptions, progress: Progress
               ) -> BagWritten:
-    """Merge the runs by time and write clouds and poses in log-time order (module docstring).
+    """Merge the runs by time and write clouds and poses in log-time order (docs/import.md).
 
     Only the strips in ``strips.summaries`` are written; their counts and spans are filled in.
 

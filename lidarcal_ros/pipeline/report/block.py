@@ -1,13 +1,4 @@
-"""The block pass of ``lidarcal report``: every strip once through the correction ``lidarcal
-correct`` applies, keeping what the report needs of it (:func:`block_pass`), on the grids of
-:func:`block_grids`; and the block map of the flight lines (:func:`flight_map`).
-
-Per strip the pass keeps the cells of its surface as delivered and as corrected (whose
-differences between strips are the swath-to-swath height differences), its footprint, its row
-of the block table, the points of the slope statistics and the sums of the intensity and
-reflectance maps (:mod:`lidarcal_ros.pipeline.report.radiometry` makes them the radiometric
-section).
-"""
+"""The block pass of ``lidarcal report``: every strip once through the correction, what it keeps."""
 
 from __future__ import annotations
 
@@ -88,7 +79,7 @@ class StripFootprint:
 
 @dataclass
 class BlockPass:
-    """What one correction pass over every strip gives the report (module docstring).
+    """What one correction pass over every strip gives the report (docs/internals.md).
 
     Attributes
     ----------
@@ -151,7 +142,7 @@ def block_pass(
     map_grid: BlockGrid,
     progress: Progress | None = None,
 ) -> BlockPass:
-    """Correct every strip once and keep what the report needs of it (module docstring).
+    """Correct every strip once and keep what the report needs of it (docs/internals.md).
 
     Parameters
     ----------

@@ -1,38 +1,7 @@
-"""What ``lidarcal report`` shows, computed from a mission bag, a calibration file and the
-flight configuration with the procedures calibration, correction and evaluation use
-themselves.
+"""What ``lidarcal report`` shows, computed from a mission bag, a calibration and a configuration.
 
-- Pairs: a :class:`~lidarcal_ros.core.calibration.calibrate.Calibrator` over the mission chooses the
-  same sample points as ``lidarcal calibrate`` (same configuration, same seeds) and matches
-  them at zero biases ("before") and at the calibration file's estimate ("after"): per strip
-  pair, the signed normal discrepancy of every matched point with its map position, whose
-  robust RMS is the calibration's own pair QA; and the control-point residuals
-  (:func:`geometric_sections`, here).
-- The calibration file's biases, correlations and facts
-  (:mod:`lidarcal_ros.pipeline.report.calibration`).
-- The block pass (:mod:`lidarcal_ros.pipeline.report.block`): every strip once through
-  :func:`~lidarcal_ros.pipeline.correction.apply.correct_columns` (the correction ``lidarcal
-  correct`` applies) with the surface normals it needs fitted once
-  (:func:`~lidarcal_ros.core.normals.grid_normals.grid_normals`). From it: the strip's surface on
-  the block's grid as delivered and as corrected, whose differences between strips are the
-  swath-to-swath height differences (:mod:`lidarcal_ros.core.qa.swath_differences`); the
-  terrain slope of each point, with which the variance-to-mean ratio of the recorded
-  intensity (before) and of the reflectance (after) per slope class; maps of both on one
-  grid (:mod:`lidarcal_ros.pipeline.report.radiometry`); and the strip's row of the block
-  table.
-- Accuracy: ``lidarcal evaluate``'s co-alignment of each pair and check-point residuals
-  (:func:`~lidarcal_ros.pipeline.evaluation.evaluate_mission`), or its saved JSON.
-- The USGS LBS quality level (:mod:`lidarcal_ros.core.qa.quality_level`) from the swath
-  differences after calibration, the aggregate density and the check points.
-- Provenance: version, date, command, inputs with size and SHA-256, the configuration
-  (:mod:`lidarcal_ros.pipeline.report.provenance`).
-
-:func:`build_report` reads the inputs and :func:`report_mission` puts the parts together into
-the :class:`~lidarcal_ros.io.report.content.ReportContent` that
-:mod:`lidarcal_ros.io.report.page` renders.
-
-Everything stays in memory beside the mission: per strip the cells of its surface, the
-points of the slope statistics and the sums of the maps.
+With the procedures calibration, correction and evaluation use themselves (docs/internals.md,
+"The HTML report").
 """
 
 from __future__ import annotations
@@ -226,7 +195,7 @@ def report_mission(
     *,
     progress: Progress | None = None,
 ) -> ReportContent:
-    """The report of a mission under a calibration (module docstring)."""
+    """The report of a mission under a calibration (docs/internals.md, "The HTML report")."""
     inputs = inputs or ReportInputs()
     delta = calibration.record.delta
     pairs, control = geometric_sections(mission, delta, config, coverage=calibration.coverage,

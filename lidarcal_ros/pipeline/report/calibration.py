@@ -1,6 +1,4 @@
-"""The calibration file as ``lidarcal report`` shows it: the biases with their state (estimated,
-fixed, not estimable and why), the correlation matrix, the adjustment's facts and the pairs'
-coverage (:func:`read_report_calibration`)."""
+"""The calibration file as ``lidarcal report`` shows it: biases, correlations, facts, coverage."""
 
 from __future__ import annotations
 

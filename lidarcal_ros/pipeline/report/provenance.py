@@ -1,5 +1,4 @@
-"""The provenance of ``lidarcal report``: every input with its size and SHA-256, and every
-flight-configuration parameter with whether it differs from the default."""
+"""The provenance of ``lidarcal report``: the inputs with size and SHA-256, the configuration."""
 
 from __future__ import annotations
 

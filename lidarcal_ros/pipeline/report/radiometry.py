@@ -1,6 +1,4 @@
-"""The radiometric section of ``lidarcal report``: the variance-to-mean ratio of the recorded
-intensity and of the reflectance per terrain-slope class (the paper's Fig. 5), and their
-maps, from the block pass (:mod:`lidarcal_ros.pipeline.report.block`)."""
+"""The radiometric section of ``lidarcal report``: variance-to-mean ratio per slope class, maps."""
 
 from __future__ import annotations
 
