@@ -65,6 +65,18 @@ def _points(rng: np.random.Generator, mounting: Mounting, n: int) -> np.ndarray:
     return (body - mounting.lever_arm) @ mounting.body_rotation  # P R_bs p = rho
 
 
+def _scene(seed: int, n: int
+           ) -> tuple[Trajectory, Mounting, np.ndarray, np.ndarray, SensorGeoreference]:
+    """A trajectory, a mounting, ``n`` points' times and sensor-frame coordinates, and the
+    points georeferenced."""
+    rng = np.random.default_rng(seed)
+    traj = _trajectory(rng)
+    mount = _mounting(rng)
+    t = _times(rng, traj, n)
+    p = _points(rng, mount, n)
+    return traj, mount, t, p, georeference(p, t, traj, mount)
+
+
 # ------------------------------------------------------------------ the mounting
 
 def test_quaternions_are_rep103_xyzw_as_scipy() -> None:
@@ -172,13 +184,7 @@ def _delivered(delta: np.ndarray, p_true: np.ndarray, t: np.ndarray, traj: Traje
 
 @pytest.mark.parametrize("seed", [3, 4, 5])
 def test_columns_are_the_derivatives_of_the_georeferencing(seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    traj = _trajectory(rng)
-    true = _mounting(rng)
-    n = 40
-    t = _times(rng, traj, n)
-    p = _points(rng, true, n)
-    geo = georeference(p, t, traj, true)
+    traj, true, t, p, geo = _scene(seed, 40)
     assert np.abs(geo.rho[:, 1]).min() > 0.0 and np.abs(geo.rho[:, 1]).max() > 20.0
     a = design_matrix(geo)
     for k in range(N_PARAMETERS - 1):  # dS: not a parameter of a general scanner
@@ -224,13 +230,7 @@ def test_with_y_zero_the_columns_are_section_10s() -> None:
 def test_timing_column_is_the_derivative_in_time(seed: int) -> None:
     """``dt`` (delivered - true time): the pose looked up ``dt`` late moves the point by
     ``dt (v + w x (X - X_mb))``; central differences of the georeferencing in time."""
-    rng = np.random.default_rng(seed)
-    traj = _trajectory(rng)
-    mount = _mounting(rng)
-    n = 60
-    t = _times(rng, traj, n)
-    p = _points(rng, mount, n)
-    geo = georeference(p, t, traj, mount)
+    traj, mount, t, p, geo = _scene(seed, 60)
     v, w = body_rates(t, traj)
     column = timing_column(geo, v, w)
     h = 2.0**-14  # s: exact steps at 1.7e9 s, whose float64 spacing is 2.4e-7 s
