@@ -11,15 +11,18 @@ import argparse
 import atexit
 import logging
 import os
+import signal
 import sys
 import threading
+from types import FrameType
 from typing import NoReturn
 
 from lidarcal_ros.errors import LidarcalError
 
 __all__ = [
     "EXIT_BAD_INPUT", "EXIT_INTERNAL_ERROR", "EXIT_INTERRUPTED", "EXIT_NOTHING_ESTIMATED",
-    "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_USAGE", "end_process", "run_command",
+    "EXIT_NOT_CONVERGED", "EXIT_OK", "EXIT_STATUSES", "EXIT_TERMINATED", "EXIT_USAGE",
+    "Terminated", "end_process", "run_command",
 ]
 
 logger = logging.getLogger("lidarcal")
@@ -32,6 +35,7 @@ EXIT_NOT_CONVERGED = 4
 #: ``calibrate --write-identity`` estimated nothing and wrote a calibration moving no point.
 EXIT_NOTHING_ESTIMATED = 5
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 128 + signal.SIGTERM
 
 #: What each exit status means (``lidarcal --help`` prints this).
 EXIT_STATUSES: dict[int, str] = {
@@ -43,15 +47,47 @@ EXIT_STATUSES: dict[int, str] = {
                         "with converged: false, and why)",
     EXIT_NOTHING_ESTIMATED: "calibrate --write-identity: nothing could be estimated "
                             "(calibration written that moves no point)",
-    EXIT_INTERRUPTED: "interrupted",
+    EXIT_INTERRUPTED: "interrupted (SIGINT, Ctrl-C; no output left)",
+    EXIT_TERMINATED: "terminated (SIGTERM; no output left)",
 }
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds the command as Ctrl-C does, so that every output in progress
+    is removed on the way out."""
+
+
+def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+    raise Terminated
+
+
+
+
+def _signal_within(exc: BaseException) -> BaseException | None:
+    """The Ctrl-C or SIGTERM an exception wraps (a compiled loop's dispatcher reports the
+    signal's exception, raised while it ran, as the cause of a SystemError); None if none."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt | Terminated):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return None
 
 
 def run_command(args: argparse.Namespace) -> int:
     """Run the command ``args.func`` of the parsed ``args``; its exit status, with what it
     raises told in one line on stderr (a traceback only at ``-vv``, for a bug)."""
+    # A batch command's SIGTERM (a job scheduler's stop, `kill`) ends it as Ctrl-C does, not
+    # with the default handler's instant death that would leave temporary files behind.
+    on_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main else None
     try:
         return int(args.func(args))
+    except Terminated:
+        print(f"lidarcal {args.command}: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except LidarcalError as exc:
         print(f"lidarcal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -65,11 +101,20 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"lidarcal {args.command}: error: {where}{os_reason(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:  # a bug: still one line, traceback with -vv
+        stop = _signal_within(exc)
+        if stop is not None:  # the signal, re-raised by numba's dispatcher as SystemError
+            word, status = ("terminated", EXIT_TERMINATED) if isinstance(stop, Terminated) \
+                else ("interrupted", EXIT_INTERRUPTED)
+            print(f"lidarcal {args.command}: {word}", file=sys.stderr)
+            return status
         logger.debug("traceback", exc_info=True)
         text = " ".join(str(exc).split())
         print(f"lidarcal {args.command}: internal error: {type(exc).__name__}: {text} "
               "(rerun with -vv for the traceback)", file=sys.stderr)
         return EXIT_INTERNAL_ERROR
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def end_process(status: int) -> NoReturn:

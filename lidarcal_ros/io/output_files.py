@@ -64,7 +64,8 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
         probe.touch()
     except OSError as exc:
         raise OutputError(f"{path}: cannot write in {parent} ({os_reason(exc)})") from None
-    remove_quietly(probe)
+    finally:  # also when a signal arrives between the two
+        remove_quietly(probe)
     return path
 
 

@@ -157,6 +157,9 @@ class BagWriter:
         except (WriterError, OSError) as err:
             self._discard()
             raise OutputError(f"{self.path}: cannot create bag ({os_reason(err)})") from None
+        except BaseException:  # Ctrl-C, SIGTERM: the staging directory goes too
+            self._discard()
+            raise
         self._writer = writer
         return self
 
@@ -429,6 +432,9 @@ class BagWriter:
         except Exception as err:  # surface as one line, leaving nothing partial
             self._discard()
             raise OutputError(f"{self.path}: cannot finish bag ({os_reason(err)})") from None
+        except BaseException:  # Ctrl-C, SIGTERM
+            self._discard()
+            raise
         remove_quietly(self._staging)
 
     def abort(self) -> None:

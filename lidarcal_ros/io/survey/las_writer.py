@@ -279,6 +279,9 @@ class LasChunkWriter:
                                       do_compress=self.compress, closefd=True)
         except Exception as exc:
             raise self._failure("cannot create", exc) from None
+        except BaseException:  # Ctrl-C, SIGTERM: leave nothing behind either
+            self.abort()
+            raise
 
     def _failure(self, what: str, exc: BaseException) -> OutputError:
         """The one-line error of a failed write (the operating system's reason where the LAZ
@@ -298,6 +301,9 @@ class LasChunkWriter:
             self._tmp.replace(self.path)
         except Exception as exc:
             raise self._failure("cannot finish", exc) from None
+        except BaseException:  # Ctrl-C, SIGTERM
+            self._discard()
+            raise
 
     def abort(self) -> None:
         """Stop writing and remove the partial file."""
