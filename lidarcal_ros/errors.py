@@ -15,6 +15,19 @@ def one_line(err: BaseException) -> str:
     return text or type(err).__name__
 
 
+#: Longest message a user is shown; the rest of a longer one (a megabyte topic name, fifty
+#: thousand unknown keys) is cut, its length said.
+MAX_MESSAGE_CHARS = 400
+
+
+def brief(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """``text`` as one line of at most about ``limit`` characters."""
+    text = " ".join(text.split())
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}... ({len(text)} characters)"
+
+
 class LidarcalError(Exception):
     """Root of every lidarcal_ros error."""
 
@@ -50,6 +63,15 @@ class CalibrationError(LidarcalError):
 
 
 __all__ = [
-    "BagError", "CalibrationError", "CloudFormatError", "ConfigError", "InputError",
-    "LidarcalError", "OutputError", "TrajectoryError", "one_line",
+    "MAX_MESSAGE_CHARS",
+    "BagError",
+    "CalibrationError",
+    "CloudFormatError",
+    "ConfigError",
+    "InputError",
+    "LidarcalError",
+    "OutputError",
+    "TrajectoryError",
+    "brief",
+    "one_line",
 ]

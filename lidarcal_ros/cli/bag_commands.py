@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from lidarcal_ros.cli.common import add_quiet_option, progress_bar
+from lidarcal_ros.cli.common import add_quiet_option, other_paths, progress_bar
 from lidarcal_ros.io.output_files import check_output
 
 __all__ = ["add_import_command", "add_recover_command", "cmd_import", "cmd_recover"]
@@ -68,7 +68,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     from lidarcal_ros.pipeline.importing.importer import import_mission
     from lidarcal_ros.pipeline.importing.options import ImportOptions
 
-    check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
+    check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap",
+                 inputs=other_paths(args, "output"))
     options = ImportOptions(
         trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
         trajectory_time=args.trajectory_time, gps_week=args.gps_week,
@@ -111,7 +112,8 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.bag.recovery import recover_bag
 
     if args.output.resolve() != args.bag.resolve():  # (recover_bag names that mistake)
-        check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
+        check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap",
+                 inputs=other_paths(args, "output"))
     recovered = recover_bag(args.bag, args.output, overwrite=args.overwrite,
                             points_topic=args.points, trajectory_topic=args.trajectory,
                             time_field=args.time_field)

@@ -11,6 +11,7 @@ from typing import Any
 from lidarcal_ros.cli.common import (
     add_bag_and_calibration_arguments,
     add_quiet_option,
+    other_paths,
     progress_bar,
 )
 from lidarcal_ros.cli.exit_status import EXIT_NOT_CONVERGED, EXIT_NOTHING_ESTIMATED, EXIT_OK
@@ -66,7 +67,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         load_mission,
     )
 
-    check_output(args.output, overwrite=args.overwrite)
+    check_output(args.output, overwrite=args.overwrite, inputs=other_paths(args, "output"))
     config = load_flight_config(args.config)
     overrides = {}
     if args.points:
@@ -201,7 +202,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.survey.las_writer import parse_crs
     from lidarcal_ros.pipeline.report.build import build_report
 
-    check_output(args.output, overwrite=args.overwrite)
+    check_output(args.output, overwrite=args.overwrite, inputs=other_paths(args, "output"))
     config = load_flight_config(args.config)
     crs = parse_crs(args.crs) if args.crs else None
     started = time.perf_counter()

@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_bag_and_calibration_arguments", "add_quiet_option", "progress_bar"]
+__all__ = ["add_bag_and_calibration_arguments", "add_quiet_option", "other_paths",
+           "progress_bar"]
 
 
 def add_quiet_option(p: Any) -> None:
@@ -21,6 +22,16 @@ def add_bag_and_calibration_arguments(p: Any) -> None:
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
     p.add_argument("--calibration", required=True, type=Path,
                    help="calibration YAML (lidarcal calibrate)")
+
+
+def other_paths(args: Any, output: str) -> list[Path]:
+    """Every path of the parsed ``args`` but the one of the argument ``output``: the inputs
+    and other outputs an output must not overwrite (``-o ctl.csv --control ctl.csv``)."""
+    paths = []
+    for name, value in vars(args).items():
+        values = value if isinstance(value, list | tuple) else [value]
+        paths += [v for v in values if isinstance(v, Path) and name != output]
+    return paths
 
 
 def progress_bar(enabled: bool) -> tuple[Any, Any]:

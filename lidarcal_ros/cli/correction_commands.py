@@ -9,6 +9,7 @@ from typing import Any
 from lidarcal_ros.cli.common import (
     add_bag_and_calibration_arguments,
     add_quiet_option,
+    other_paths,
     progress_bar,
 )
 from lidarcal_ros.errors import ConfigError
@@ -84,10 +85,11 @@ def cmd_correct(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     out = args.output
-    check_output(out, overwrite=args.overwrite,
-                  directory=output_kind(out) == "bag" and out.suffix != ".mcap")
+    check_output(out, overwrite=args.overwrite, inputs=other_paths(args, "output"),
+                 directory=output_kind(out) == "bag" and out.suffix != ".mcap")
     if args.trajectory_out is not None:
-        check_output(args.trajectory_out, overwrite=args.overwrite)
+        check_output(args.trajectory_out, overwrite=args.overwrite,
+                     inputs=other_paths(args, "trajectory_out"))
     progress, close = progress_bar(not args.quiet)
     try:
         report = correct_bag(args.bag, calibration, args.output, config,

@@ -17,7 +17,7 @@ import threading
 from types import FrameType
 from typing import NoReturn
 
-from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.errors import LidarcalError, brief
 
 __all__ = [
     "EXIT_BAD_INPUT", "EXIT_INTERNAL_ERROR", "EXIT_INTERRUPTED", "EXIT_NOTHING_ESTIMATED",
@@ -89,7 +89,7 @@ def run_command(args: argparse.Namespace) -> int:
         print(f"lidarcal {args.command}: terminated", file=sys.stderr)
         return EXIT_TERMINATED
     except LidarcalError as exc:
-        print(f"lidarcal {args.command}: error: {exc}", file=sys.stderr)
+        print(f"lidarcal {args.command}: error: {brief(str(exc))}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print(f"lidarcal {args.command}: interrupted", file=sys.stderr)
@@ -98,7 +98,8 @@ def run_command(args: argparse.Namespace) -> int:
         from lidarcal_ros.io.output_files import os_reason
 
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"lidarcal {args.command}: error: {where}{os_reason(exc)}", file=sys.stderr)
+        print(f"lidarcal {args.command}: error: {brief(where + os_reason(exc))}",
+              file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:  # a bug: still one line, traceback with -vv
         stop = _signal_within(exc)
@@ -108,7 +109,7 @@ def run_command(args: argparse.Namespace) -> int:
             print(f"lidarcal {args.command}: {word}", file=sys.stderr)
             return status
         logger.debug("traceback", exc_info=True)
-        text = " ".join(str(exc).split())
+        text = brief(str(exc))
         print(f"lidarcal {args.command}: internal error: {type(exc).__name__}: {text} "
               "(rerun with -vv for the traceback)", file=sys.stderr)
         return EXIT_INTERNAL_ERROR

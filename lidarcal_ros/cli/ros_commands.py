@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from lidarcal_ros.cli.common import other_paths
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
 
@@ -221,7 +222,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         read_control_csv(args.control)
         extra += ["-p", f"calibration.control_points_file:={args.control.resolve()}"]
     if args.record is not None:
-        check_output(args.record, overwrite=args.overwrite,
+        check_output(args.record, overwrite=args.overwrite, inputs=other_paths(args, "record"),
                      directory=args.record.suffix != ".mcap")
 
     from lidarcal_ros.ros.environment import configure_ros_environment
@@ -385,7 +386,8 @@ def add_record_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap")
+    check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap",
+                 inputs=other_paths(args, "output"))
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration must be a positive number of seconds, got "
                           f"{args.duration}")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+from collections.abc import Iterable
 from pathlib import Path
 
 from lidarcal_ros.errors import OutputError, one_line
@@ -24,8 +25,16 @@ def os_reason(exc: BaseException) -> str:
     return one_line(exc)
 
 
+def overlapping(output: Path, source: Path) -> bool:
+    """Whether writing ``output`` would replace or move ``source``: the same path (through
+    links too), or one inside the other (a file in a bag directory)."""
+    out, src = output.resolve(), source.resolve()
+    return out == src or out in src.parents or src in out.parents
+
+
 def check_output(path: str | os.PathLike[str], *, overwrite: bool,
-                 directory: bool = False) -> Path:
+                 directory: bool = False,
+                 inputs: Iterable[str | os.PathLike[str]] = ()) -> Path:
     """Refuse, before any work, an output that cannot be written.
 
     Parameters
@@ -37,6 +46,9 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     directory : bool, keyword-only
         The output is a directory (a rosbag2 bag); otherwise an existing directory there is
         refused.
+    inputs : iterable of path-like, keyword-only
+        The command's inputs (and its other outputs): an output that is one of them, or holds
+        or lies inside one, is refused, whatever ``overwrite``.
 
     Returns
     -------
@@ -45,11 +57,15 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     Raises
     ------
     OutputError
-        The output exists and ``overwrite`` is False; it is a directory where a file is
-        written; its parent directory is missing or not writable (the operating system's
-        reason: permission denied, read-only file system...).
+        The output is an input; it exists and ``overwrite`` is False; it is a directory where
+        a file is written; its parent directory is missing or not writable (the operating
+        system's reason: permission denied, read-only file system...).
     """
     path = Path(path)
+    for source in inputs:
+        if overlapping(path, Path(source)):
+            raise OutputError(f"{path}: is also an input ({source}); write the output "
+                              "elsewhere")
     if path.is_dir() and not directory:
         raise OutputError(f"{path}: is a directory; -o/--output takes a file name here")
     if (path.exists() or path.is_symlink()) and not overwrite:
@@ -115,5 +131,6 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
 
 
 __all__ = [
-    "EXISTS", "check_output", "os_reason", "remove_quietly", "temporary_beside", "write_text",
+    "EXISTS", "check_output", "os_reason", "overlapping", "remove_quietly", "temporary_beside",
+    "write_text",
 ]
