@@ -28,7 +28,7 @@ from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
-from lidarcal_ros.errors import BagError, one_line
+from lidarcal_ros.errors import BagError, ConfigError, brief, one_line
 from lidarcal_ros.io.bag.chunk_reader import chunk_messages
 from lidarcal_ros.io.bag.format import add_standard_types, empty_typestore, normalize_msgtype
 
@@ -212,10 +212,10 @@ class BagReader:
                     "(ros2 bag convert)"
                 )
             raise BagError(f"{path}: not a rosbag2 bag (no metadata.yaml and no .mcap file)")
-        from ruamel.yaml import YAML
+        from lidarcal_ros.io.yaml_file import read_yaml
 
         try:
-            doc = YAML(typ="safe").load(meta.read_text())
+            doc = read_yaml(meta, what="bag metadata")
             if not isinstance(doc, dict) or "rosbag2_bagfile_information" not in doc:
                 raise BagError(f"{meta}: not rosbag2 bag metadata (no "
                                "'rosbag2_bagfile_information'; delete it to read the .mcap "
@@ -228,7 +228,9 @@ class BagReader:
             topics = info.get("topics_with_message_count", []) or []
         except BagError:
             raise
-        except Exception as err:  # any YAML or layout problem
+        except ConfigError as err:  # not YAML, or beyond the bounds of any YAML read
+            raise BagError(str(err)) from None
+        except Exception as err:  # any layout problem
             raise BagError(f"{meta}: unreadable bag metadata ({one_line(err)})") from None
         if storage != "mcap":
             raise BagError(
@@ -237,6 +239,10 @@ class BagReader:
             )
         if mode not in ("", "none") and fmt != "zstd":
             raise BagError(f"{path}: compression format '{fmt}' is not supported")
+        escaping = [x for x in rel if Path(x).is_absolute() or ".." in Path(x).parts]
+        if escaping:
+            raise BagError(f"{meta}: names file(s) outside the bag: {brief(', '.join(escaping))}; "
+                           "refused")
         files = [path / Path(x).name for x in rel]
         missing = [str(f) for f in files if not f.exists()]
         if missing:
