@@ -17,7 +17,7 @@ def one_line(err: BaseException) -> str:
 
 #: Longest message a user is shown; the rest of a longer one (a megabyte topic name, fifty
 #: thousand unknown keys) is cut, its length said.
-MAX_MESSAGE_CHARS = 400
+MAX_MESSAGE_CHARS = 2000
 
 
 def brief(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:

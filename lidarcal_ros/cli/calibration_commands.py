@@ -94,7 +94,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         unestimated, result = exc, exc.result
     finally:
         close()
-    path = write_calibration(args.output, result) \
+    path = write_calibration(args.output, result, overwrite=args.overwrite) \
         if unestimated is None or args.write_identity else None
     elapsed = time.perf_counter() - started
     n_ctrl = len(mission.control) if mission.control is not None else 0

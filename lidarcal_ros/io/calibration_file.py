@@ -244,10 +244,12 @@ def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
     return entry
 
 
-def write_calibration(path: str | Path, result: CalibrationResult) -> Path:
+def write_calibration(path: str | Path, result: CalibrationResult, *,
+                      overwrite: bool = True) -> Path:
     """Write the calibration file (completely or not at all: a reader never sees half a
     file, a failure leaves a previous file untouched); returns its path. A missing parent
-    directory is created (a node's ``calibration_file``).
+    directory is created (a node's ``calibration_file``). Without ``overwrite`` a file that
+    appeared there while the command ran is refused, not replaced.
 
     Raises
     ------
@@ -260,7 +262,7 @@ def write_calibration(path: str | Path, result: CalibrationResult) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{path}: cannot write calibration ({os_reason(exc)})") from None
-    return write_text(path, text, what="calibration")
+    return write_text(path, text, what="calibration", overwrite=overwrite)
 
 
 def read_calibration(path: str | Path) -> CalibrationRecord:

@@ -6,6 +6,7 @@ docs/internals.md, "Bags" ("Outputs complete or absent").
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 from collections.abc import Iterable
@@ -15,6 +16,9 @@ from lidarcal_ros.errors import OutputError, one_line
 
 #: The refusal of an existing output, the same for every command.
 EXISTS = "exists (use --overwrite to replace it)"
+#: The refusal of an output another writer made while this command ran.
+APPEARED = ("appeared while this command was writing it (another writer?); left as it is, "
+            "this command's output discarded")
 
 
 def os_reason(exc: BaseException) -> str:
@@ -101,7 +105,39 @@ def remove_quietly(path: Path) -> None:
             path.unlink(missing_ok=True)
 
 
-def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
+def install(new: Path, path: Path, *, overwrite: bool) -> None:
+    """Move the complete output ``new`` (a file or a directory) to ``path``.
+
+    Without ``overwrite`` an output that appeared at ``path`` while the command ran (a second
+    writer of the same output) is left as it is and the move refused (``FileExistsError``),
+    where a plain rename would silently replace it; with ``overwrite`` what is there is
+    replaced only now, and put back if the move fails.
+    """
+    if not overwrite:
+        if new.is_dir():
+            if path.exists() or path.is_symlink():
+                raise FileExistsError(errno.EEXIST, "appeared while writing", str(path))
+            new.rename(path)  # a non-empty directory there since the check: refused too
+        else:
+            os.link(new, path)  # refuses an existing path, unlike rename
+            new.unlink()
+        return
+    old = None
+    if path.is_dir() and not path.is_symlink():
+        old = path.with_name(f".{path.name}.lidarcal-old-{os.getpid()}")
+        path.rename(old)
+    try:
+        new.replace(path)
+    except OSError:
+        if old is not None:
+            old.rename(path)
+        raise
+    if old is not None:
+        remove_quietly(old)
+
+
+def write_text(path: str | os.PathLike[str], text: str, *, what: str,
+               overwrite: bool = True) -> Path:
     """Write a text file completely or not at all.
 
     Parameters
@@ -111,6 +147,9 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
         Written as UTF-8.
     what : str
         What the file is, for the error line (``calibration``, ``report``...).
+    overwrite : bool, keyword-only
+        Replace a file at ``path``; otherwise one that appeared since the command checked
+        its output is refused (:func:`install`).
 
     Raises
     ------
@@ -123,14 +162,20 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
     try:
         with open(tmp, "w", encoding="utf-8") as stream:
             stream.write(text)
-        tmp.replace(path)
+        install(tmp, path, overwrite=overwrite)
+    except FileExistsError:
+        remove_quietly(tmp)
+        raise OutputError(f"{path}: {APPEARED}") from None
     except OSError as exc:
         remove_quietly(tmp)
         raise OutputError(f"{path}: cannot write {what} ({os_reason(exc)})") from None
+    except BaseException:  # Ctrl-C, SIGTERM
+        remove_quietly(tmp)
+        raise
     return path
 
 
 __all__ = [
-    "EXISTS", "check_output", "os_reason", "overlapping", "remove_quietly", "temporary_beside",
-    "write_text",
+    "APPEARED", "EXISTS", "check_output", "install", "os_reason", "overlapping", "remove_quietly",
+    "temporary_beside", "write_text",
 ]

@@ -248,8 +248,8 @@ def test_a_single_strip_or_strips_apart_are_named(capsys, tmp_path, small_missio
         (without_control(subset(mission, [1])),
          "no overlap between strips: the mission has 1 strip (id 1), and no control points"),
         (subset(mission, [1]), "no overlap between strips: the mission has 1 strip (id 1), "
-                               "and 1 control point alone cannot calibrate: 1 correspondence "
-                               "for 1 parameter: too few to estimate it with any check"),
+                               "and 1 control point alone cannot calibrate: nothing left to "
+                               "estimate (dX: dX has no effect"),
         (without_control(shift_strip(subset(mission, [1, 3]), 3, (5000.0, 0.0, 0.0))),
          "no overlap between strips: none of the 2 strips (1, 3) overlaps another (their "
          "footprints are 4"),

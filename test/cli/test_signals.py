@@ -86,3 +86,22 @@ def test_a_signal_while_calibrating_leaves_no_output(long_mission: MissionFiles,
     assert proc.returncode == status, err
     assert err.splitlines()[-1] == f"lidarcal calibrate: {word}", err
     assert list(out_dir.iterdir()) == []
+
+
+def test_two_writers_of_one_output(long_mission: MissionFiles, tmp_path: Path) -> None:
+    """Two ``lidarcal correct`` to one output at once: one writes it, the other is refused in
+    one line (the output exists, or appeared while it wrote) and leaves nothing."""
+    calibration = write_calibration_yaml(tmp_path / "calibration.yaml",
+                                         dict.fromkeys(PARAMETER_NAMES, 0.0))
+    out = tmp_path / "out" / "corrected.laz"
+    out.parent.mkdir()
+    args = [sys.executable, "-m", "lidarcal_ros", "correct", str(long_mission.bag),
+            "--calibration", str(calibration), "-o", str(out), "--crs", "EPSG:32633"]
+    procs = [subprocess.Popen(args, cwd=tmp_path, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = sorted((p.wait(timeout=120), p.stderr.read() if p.stderr else "") for p in procs)
+    (ok, _), (refused, err) = results
+    assert (ok, refused) == (0, 1), results
+    assert f"lidarcal correct: error: {out}: " in err and \
+        ("exists" in err or "appeared while" in err), err
+    assert [p.name for p in out.parent.iterdir()] == ["corrected.laz"]

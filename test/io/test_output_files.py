@@ -58,3 +58,41 @@ def test_a_failed_write_keeps_the_previous_output(tmp_path: Path,
 def test_the_temporary_is_hidden_beside_the_output(tmp_path: Path) -> None:
     temporary = temporary_beside(tmp_path / "out.laz")
     assert temporary.parent == tmp_path and temporary.name.startswith(".")
+
+
+def test_an_output_that_appears_meanwhile_is_not_replaced(tmp_path: Path) -> None:
+    """Without overwrite, a file another writer put at the output while this one wrote is
+    left as it is, and this one's output discarded (no temporary left)."""
+    path = tmp_path / "calibration.yaml"
+    check_output(path, overwrite=False)
+    path.write_text("the other writer's\n")
+    with pytest.raises(OutputError, match="appeared while this command was writing it"):
+        write_text(path, "mine\n", what="calibration", overwrite=False)
+    assert path.read_text() == "the other writer's\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.yaml"]
+
+
+def test_a_bag_that_appears_meanwhile_is_not_replaced(tmp_path: Path) -> None:
+    from lidarcal_ros.io.bag.writer import BagWriter
+
+    path = tmp_path / "out_bag"
+    with pytest.raises(OutputError, match="appeared while"):
+        with BagWriter(path) as writer:
+            writer.add_topic("/lidar/trajectory", "geometry_msgs/msg/PoseStamped")
+            path.mkdir()
+            (path / "theirs.mcap").write_bytes(b"theirs")
+    assert [p.name for p in path.iterdir()] == ["theirs.mcap"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out_bag"]
+
+
+def test_install_with_overwrite_replaces_a_directory(tmp_path: Path) -> None:
+    from lidarcal_ros.io.output_files import install
+
+    new, path = tmp_path / ".new", tmp_path / "bag"
+    new.mkdir()
+    (new / "a.mcap").write_bytes(b"new")
+    path.mkdir()
+    (path / "b.mcap").write_bytes(b"old")
+    install(new, path, overwrite=True)
+    assert [p.name for p in path.iterdir()] == ["a.mcap"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]

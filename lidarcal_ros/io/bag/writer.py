@@ -34,7 +34,14 @@ from lidarcal_ros.io.bag.format import (
     standard_typestore,
 )
 from lidarcal_ros.io.cloud.pointcloud import array_to_cloud_parts
-from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
+from lidarcal_ros.io.output_files import (
+    APPEARED,
+    EXISTS,
+    install,
+    os_reason,
+    remove_quietly,
+    temporary_beside,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -54,22 +61,6 @@ def _check_replaceable(path: Path) -> None:
             )
     elif path.suffix != ".mcap":
         raise OutputError(f"{path}: refusing to overwrite a file that is not an .mcap")
-
-
-def _install(new: Path, path: Path) -> None:
-    """Move a complete output ``new`` to ``path``, replacing what was there only now."""
-    old = None
-    if path.exists() or path.is_symlink():
-        old = path.with_name(f".{path.name}.lidarcal-old-{os.getpid()}")
-        path.rename(old)
-    try:
-        new.rename(path)
-    except OSError:
-        if old is not None:
-            old.rename(path)
-        raise
-    if old is not None:
-        remove_quietly(old)
 
 
 class BagWriter:
@@ -427,8 +418,11 @@ class BagWriter:
         try:
             writer.close()
             if self._staged:
-                _install(self._target / f"{self._target.name}.mcap" if self._bare
-                         else self._target, self.path)
+                install(self._target / f"{self._target.name}.mcap" if self._bare
+                        else self._target, self.path, overwrite=self.overwrite)
+        except FileExistsError:
+            self._discard()
+            raise OutputError(f"{self.path}: {APPEARED}") from None
         except Exception as err:  # surface as one line, leaving nothing partial
             self._discard()
             raise OutputError(f"{self.path}: cannot finish bag ({os_reason(err)})") from None

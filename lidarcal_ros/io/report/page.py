@@ -121,6 +121,6 @@ def write_html_report(path: str | Path, content: ReportContent, *, overwrite: bo
     if (path.exists() or path.is_symlink()) and not overwrite:
         raise OutputError(f"{path}: {EXISTS}")
     text = render_html(content, progress=progress)
-    write_text(path, text, what="the report")
+    write_text(path, text, what="the report", overwrite=overwrite)
     logger.info("report written to %s (%d bytes)", path, len(text))
     return path

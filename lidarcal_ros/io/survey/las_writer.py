@@ -20,7 +20,14 @@ import numpy as np
 
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.errors import ConfigError, OutputError
-from lidarcal_ros.io.output_files import EXISTS, os_reason, remove_quietly, temporary_beside
+from lidarcal_ros.io.output_files import (
+    APPEARED,
+    EXISTS,
+    install,
+    os_reason,
+    remove_quietly,
+    temporary_beside,
+)
 from lidarcal_ros.io.survey import las_kernels
 from lidarcal_ros.io.survey.las_reader import quiet_laspy_errors
 
@@ -204,6 +211,7 @@ class LasChunkWriter:
             raise OutputError(f"{self.path}: {EXISTS}")
         if not self.path.parent.is_dir():
             raise OutputError(f"{self.path}: directory {self.path.parent} does not exist")
+        self._overwrite = overwrite
         self.compress = suffix == ".laz"
         self.time_field = time_field
         self.crs = crs
@@ -298,7 +306,10 @@ class LasChunkWriter:
         writer, self._writer = self._writer, None
         try:
             writer.close()
-            self._tmp.replace(self.path)
+            install(self._tmp, self.path, overwrite=self._overwrite)
+        except FileExistsError:
+            self._discard()
+            raise OutputError(f"{self.path}: {APPEARED}") from None
         except Exception as exc:
             raise self._failure("cannot finish", exc) from None
         except BaseException:  # Ctrl-C, SIGTERM

@@ -468,7 +468,7 @@ def write_ascii_trajectory(path: str | os.PathLike[str], trajectory: Trajectory,
         buffer.write(f"# {line}\n")
     buffer.write(",".join(names) + "\n")
     np.savetxt(buffer, np.column_stack(columns), fmt=formats, delimiter=",")
-    return write_text(p, buffer.getvalue(), what="trajectory")
+    return write_text(p, buffer.getvalue(), what="trajectory", overwrite=overwrite)
 
 
 def _check_file(path: str | os.PathLike[str]) -> Path:

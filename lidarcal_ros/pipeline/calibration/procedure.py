@@ -420,7 +420,8 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
             write_control_csv(paths["control"], sim.mission.control)
             written.append(paths["control"])
         write_text(paths["truth"], yaml.safe_dump(truth_document(sim.biases, sim.config),
-                                                  sort_keys=False), what="truth file")
+                                                  sort_keys=False), what="truth file",
+                   overwrite=overwrite)
     except BaseException:
         for path in written:
             remove_quietly(path)
