@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import shutil
 from collections.abc import Iterable
@@ -79,7 +80,7 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
         raise OutputError(f"{path}: {parent} is not a directory" if parent.exists() else
                           f"{path}: directory {parent} does not exist")
     # What creating the output will meet (permissions, a read-only file system...).
-    probe = path.with_name(f".{path.name}.lidarcal-probe-{os.getpid()}")
+    probe = hidden_beside(path, "probe")
     try:
         probe.touch()
     except OSError as exc:
@@ -89,11 +90,21 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     return path
 
 
+def hidden_beside(path: Path, kind: str) -> Path:
+    """A hidden name of this process in ``path``'s directory: ``.NAME.lidarcal-KIND-PID``, or
+    where that would pass the file system's 255 bytes (a legal long name), one with a digest
+    of the name in its place."""
+    name = f".{path.name}.lidarcal-{kind}-{os.getpid()}"
+    if len(name.encode()) > 255:
+        digest = hashlib.sha1(path.name.encode(), usedforsecurity=False).hexdigest()[:16]
+        name = f".lidarcal-{kind}-{os.getpid()}-{digest}"
+    return path.with_name(name)
+
+
 def temporary_beside(path: str | os.PathLike[str]) -> Path:
     """A hidden name in ``path``'s directory (same file system: the rename is atomic) under
     which the output is written until it is complete."""
-    path = Path(path)
-    return path.with_name(f".{path.name}.lidarcal-tmp-{os.getpid()}")
+    return hidden_beside(Path(path), "tmp")
 
 
 def remove_quietly(path: Path) -> None:
@@ -124,7 +135,7 @@ def install(new: Path, path: Path, *, overwrite: bool) -> None:
         return
     old = None
     if path.is_dir() and not path.is_symlink():
-        old = path.with_name(f".{path.name}.lidarcal-old-{os.getpid()}")
+        old = hidden_beside(path, "old")
         path.rename(old)
     try:
         new.replace(path)
@@ -176,6 +187,6 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str,
 
 
 __all__ = [
-    "APPEARED", "EXISTS", "check_output", "install", "os_reason", "overlapping", "remove_quietly",
-    "temporary_beside", "write_text",
+    "APPEARED", "EXISTS", "check_output", "hidden_beside", "install", "os_reason", "overlapping",
+    "remove_quietly", "temporary_beside", "write_text",
 ]

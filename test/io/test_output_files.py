@@ -96,3 +96,13 @@ def test_install_with_overwrite_replaces_a_directory(tmp_path: Path) -> None:
     install(new, path, overwrite=True)
     assert [p.name for p in path.iterdir()] == ["a.mcap"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
+
+
+@pytest.mark.parametrize("name", ["a" * 250 + ".laz", "ü" * 120 + ".yaml", "x" * 255])
+def test_long_and_unicode_names_are_written(tmp_path: Path, name: str) -> None:
+    """A legal name of up to 255 bytes: its hidden temporary must not pass the limit."""
+    path = tmp_path / name
+    check_output(path, overwrite=False)
+    write_text(path, "done\n", what="calibration", overwrite=False)
+    assert path.read_text() == "done\n"
+    assert [p.name for p in tmp_path.iterdir()] == [name]
