@@ -23,7 +23,7 @@ MAX_MODULES_PER_FOLDER = 15
 
 
 def layer_of(module: str) -> str:
-    """The layer of a dotted module name under lidarcal_ros (``lidarcal_ros.io.bag.reader`` -> io)."""
+    """The layer of a dotted module name under lidarcal_ros (``lidarcal_ros.io.bag.reader``: io)."""
     return module.split(".")[1]
 
 
