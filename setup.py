@@ -39,6 +39,8 @@ class BuildPyWithProfile(build_py):
         return not getattr(self, "editable_mode", False)
 
     def run(self) -> None:
+        """Build as build_py does, then (not in editable mode) copy config/loopback.xml into the
+        built package."""
         super().run()
         if self._ships_profile():
             target = os.path.join(self.build_lib, PROFILE_IN_PACKAGE)
@@ -46,6 +48,7 @@ class BuildPyWithProfile(build_py):
             shutil.copyfile(os.path.join(HERE, PROFILE_SOURCE), target)
 
     def get_outputs(self, include_bytecode: bool = True) -> list[str]:
+        """build_py's outputs, with the packaged config/loopback.xml where it is shipped."""
         outputs = list(super().get_outputs(include_bytecode))
         if self._ships_profile():
             outputs.append(os.path.join(self.build_lib, PROFILE_IN_PACKAGE))

@@ -83,6 +83,8 @@ MAX_MEDIAN_DZ_M = 0.005
 
 
 def random_biases(rng: np.random.Generator) -> dict[str, float]:
+    """Random biases in the module docstring's ranges (SI): lever arm and dr within +-0.2 m (dZ
+    0), boresight within +-150 arcsec (rad), dS within +-2e-4."""
     return {"dX": rng.uniform(-0.2, 0.2), "dY": rng.uniform(-0.2, 0.2), "dZ": 0.0,
             "domega": rng.uniform(-150, 150) * ARCSEC, "dphi": rng.uniform(-150, 150) * ARCSEC,
             "dkappa": rng.uniform(-150, 150) * ARCSEC, "dr": rng.uniform(-0.2, 0.2),
@@ -167,6 +169,8 @@ def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[
 
 
 def main() -> int:
+    """Calibrate the missions of the command line and print the checks; exit status 1 if any
+    acceptance fails, else 0."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[101, 102, 103])
     ap.add_argument("--density", type=float, default=0.3)

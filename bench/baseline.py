@@ -163,6 +163,7 @@ class Timer:
         self.total: dict[str, float] = {}
 
     def add(self, phase: str, started: float) -> None:
+        """Add the wall time since ``started`` (``time.perf_counter``, s) to ``phase``."""
         self.total[phase] = self.total.get(phase, 0.0) + time.perf_counter() - started
 
 
@@ -368,6 +369,8 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Calibrate a bag with the baseline for a fixed number of iterations and write its estimate,
+    phase times (s) and point count as JSON; exit status 0."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("bag", type=Path)
     ap.add_argument("--control", type=Path, help="control points CSV id,x,y,z")

@@ -94,6 +94,8 @@ def scaling_worker(spec: MissionSpec) -> None:
 
 
 def run_scaling(specs: list[MissionSpec], work: Path) -> list[dict[str, Any]]:
+    """The in-process calibration (bag read + calibrate) of each mission, each in a fresh
+    process: its figures (points, s, MiB) and the process's wall time."""
     out = []
     for spec in specs:
         benchlib.prepare_mission(spec)
@@ -292,6 +294,8 @@ def throughput_worker(args: argparse.Namespace) -> None:
 
 
 def run_throughput(meta_path: Path, n: int, repeats: int, work: Path) -> dict[str, Any]:
+    """The matching microbenchmark on the mission of ``meta_path``, in a fresh single-threaded
+    process: its figures (CPU s, matched fractions)."""
     log = work / "throughput.log"
     cmd = [PYTHON, str(Path(__file__).resolve()), "_throughput", "--meta", str(meta_path),
            "--n", str(n), "--repeats", str(repeats)]
@@ -304,7 +308,7 @@ def run_throughput(meta_path: Path, n: int, repeats: int, work: Path) -> dict[st
 
 # ---------------------------------------------------------------------------- profile worker
 def profile_worker(args: argparse.Namespace) -> None:
-    """cProfile of the in-process calibration (bag read + calibrate), top functions."""
+    """Profile (cProfile) of the in-process calibration (bag read + calibrate), top functions."""
     import cProfile
     import io
     import pstats
@@ -335,6 +339,8 @@ def profile_worker(args: argparse.Namespace) -> None:
 
 # ---------------------------------------------------------------------------- report
 def fmt_num(v: float | None, kind: str) -> str:
+    """A figure for the tables by ``kind``: ``s`` seconds, ``mib`` MiB, ``rate`` million a
+    second, else as it is; ``-`` for None or not finite."""
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     if kind == "s":
@@ -347,6 +353,7 @@ def fmt_num(v: float | None, kind: str) -> str:
 
 
 def print_table(rows: list[list[str]], header: list[str]) -> None:
+    """Print ``rows`` under ``header`` as a text table, columns padded to their widest cell."""
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
     line = " | ".join(h.ljust(w) for h, w in zip(header, widths))
     print(line)
@@ -356,6 +363,8 @@ def print_table(rows: list[list[str]], header: list[str]) -> None:
 
 
 def show_param(name: str, value: float | None) -> str:
+    """A bias (SI) for the tables: arcsec for the boresight angles, ppm for dS, cm otherwise;
+    ``-`` for None."""
     if value is None:
         return "-"
     if name in ("domega", "dphi", "dkappa"):
@@ -421,6 +430,8 @@ def end_to_end(missions: list[tuple[str, MissionSpec]], repeats: int, work: Path
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark (or, with ``_scaling``, ``_throughput`` or ``_profile`` first, one of
+    its child workers) and print its figures; exit status 0."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "_scaling":
         scaling_worker(MissionSpec(**json.loads(argv[1])))
@@ -499,6 +510,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def print_matching(tp: dict[str, Any]) -> None:
+    """Print the matching microbenchmark's figures ``tp``: points matched a second per core, TIN
+    build times (s), matched fractions."""
     n_q = tp["n_queries"]
     rand = tp["random_order"]
     rows = [
@@ -521,6 +534,8 @@ def print_matching(tp: dict[str, Any]) -> None:
 
 def print_baseline(lc: dict[str, Any], base: dict[str, Any], meta: dict[str, Any],
                    limit: float) -> None:
+    """Print the baseline's end-to-end time and peak memory beside lidarcal's (``> limit`` s if
+    it timed out) and both estimates beside the truth of ``meta``."""
     timed_out = bool(base.get("timed_out"))
     wall = f"> {limit:.0f} s" if timed_out else fmt_num(base.get("wall_s"), "s")
     ratio = lc["wall_s"] and (limit if timed_out else base["wall_s"]) / lc["wall_s"]

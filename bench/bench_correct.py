@@ -70,12 +70,14 @@ def calibration_of(meta: dict[str, Any]) -> Path:
 
 
 def output_size_mib(path: Path) -> float:
+    """The size of an output file, or of the files of a bag directory, MiB."""
     if path.is_file():
         return path.stat().st_size / 2**20
     return sum(f.stat().st_size for f in path.iterdir()) / 2**20
 
 
 def remove(path: Path) -> None:
+    """Delete an output file or directory, if there is one."""
     if path.is_dir():
         shutil.rmtree(path)
     elif path.exists():
@@ -85,6 +87,8 @@ def remove(path: Path) -> None:
 # ---------------------------------------------------------------------------- end to end
 def run_correct(meta: dict[str, Any], out: Path, workers: int = 2,
                 log: Path | None = None) -> dict[str, Any]:
+    """Time ``lidarcal correct`` of the mission ``meta`` to ``out`` (its suffix says the format)
+    in a child process: its figures (s, MiB), with the output's size; the output is deleted."""
     remove(out)
     log = log or WORK / f"correct{out.suffix}.log"
     res = run_child([benchlib.LIDARCAL, "correct", meta["bag"], "--calibration",
@@ -98,6 +102,8 @@ def run_correct(meta: dict[str, Any], out: Path, workers: int = 2,
 
 
 def run_floor(meta: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Time bench/io_floor.py on the mission ``meta`` to ``out`` in a child process: its figures
+    (s, MiB), with the output's size; the output is deleted."""
     from lidarcal_ros.io.bag.chunk_writer import ZSTD_LEVEL
 
     remove(out)
@@ -112,7 +118,7 @@ def run_floor(meta: dict[str, Any], out: Path) -> dict[str, Any]:
 
 
 def floor_comparison(specs: list[MissionSpec], repeats: int) -> list[dict[str, Any]]:
-    """lidarcal correct and the I/O floor, alternately, per mission and output format."""
+    """``lidarcal correct`` and the I/O floor, alternately, per mission and output format."""
     rows = []
     for spec in specs:
         meta = benchlib.prepare_mission(spec)
@@ -278,6 +284,8 @@ def reflectance_error(sim: Any, refl: dict[int, Any], strips: Any) -> float:
 
 
 def throughput(spec: MissionSpec, repeats: int, baseline_points: int) -> None:
+    """Measure and print the numerics in memory (points a second and reflectance error of
+    lidarcal's corrector and of the baseline) on the mission ``spec``, in a child process."""
     print(f"\nthe numerics in memory (stage figures): {spec.describe()} "
           f"(~{spec.approx_points / 1e6:.1f}M points)", flush=True)
     log = WORK / "throughput.log"
@@ -305,6 +313,8 @@ def throughput(spec: MissionSpec, repeats: int, baseline_points: int) -> None:
 
 # ---------------------------------------------------------------------------- memory
 def memory(specs: tuple[MissionSpec, MissionSpec]) -> list[str]:
+    """Measure and print the peak memory of ``lidarcal correct`` on the two missions (MCAP and
+    LAZ outputs, one and two workers); the goals not met, in words."""
     print("\npeak memory of lidarcal correct, same density, two mission lengths:", flush=True)
     peaks = []
     for spec in specs:
@@ -333,6 +343,8 @@ def memory(specs: tuple[MissionSpec, MissionSpec]) -> list[str]:
 
 # ---------------------------------------------------------------------------- driver
 def main() -> int:
+    """Run the sections of the command line (or, with ``_throughput`` first, the child worker)
+    and print their figures and goals; exit status 0."""
     if len(sys.argv) > 1 and sys.argv[1] == "_throughput":
         throughput_worker(MissionSpec(**json.loads(sys.argv[2])), int(sys.argv[3]),
                           int(sys.argv[4]))

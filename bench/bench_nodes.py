@@ -120,6 +120,8 @@ def pose_quaternion(t: float, attitude: str) -> tuple[float, float, float, float
 
 
 def pose_cdr(t: float, attitude: str = "none") -> bytes:
+    """The CDR of the synthetic source's ``PoseStamped`` at time ``t`` (s): map frame, along +y
+    at the flight speed and height, oriented as ``attitude`` says (``ATTITUDES``)."""
     from lidarcal_ros.io.cloud.messages import serialize, typestore
 
     types = typestore().types
@@ -425,6 +427,7 @@ class CpuSampler:
             self._stop.wait(period)
 
     def stop(self) -> None:
+        """Stop sampling and wait for the sampling thread."""
         self._stop.set()
         self._thread.join()
 
@@ -488,6 +491,8 @@ def _spin_in_thread(context: Any, nodes: list[Any]) -> tuple[threading.Event, th
 
 # ---------------------------------------------------------------------------- codec
 def bench_codec(points: int, repeats: int) -> dict[str, Any]:
+    """The codec section: median seconds per chunk of ``points`` points of each way in (raw CDR,
+    typed rclpy) and out, with the bytes in and out; no DDS."""
     from lidarcal_ros.ros.environment import configure_ros_environment
 
     configure_ros_environment()
@@ -543,6 +548,8 @@ def bench_codec(points: int, repeats: int) -> dict[str, Any]:
 def bench_corrector(rates: list[float], seconds: float, chunk_s: float, variant: str,
                     context: Any, attitude: str = "none", history: float = 0.0
                     ) -> list[dict[str, Any]]:
+    """The corrector section for one ``variant``: per offered rate (points/s), the rate out, the
+    chunk latencies (s), the CPU per point (ns) and whether the node keeps up."""
     results = []
     env = _env()
     typed = variant == "typed"
@@ -734,6 +741,9 @@ def bench_transport(rate: float, seconds: float, chunk_s: float,
 
 # ---------------------------------------------------------------------------- calibrator
 def bench_calibrator(rate: float, context: Any) -> dict[str, Any]:
+    """The calibrator section: ``lidarcal run`` fed the sample mission replayed at ``rate``; when
+    each strip's estimate appears after the strip's end in the replay, and the last estimate's
+    lag behind the replay's end (wall s)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Float64MultiArray
@@ -880,6 +890,7 @@ def bench_calibrator_rate(rate: float, seconds: float, chunk_s: float, thinning_
 
 
 def bag_duration(path: Path) -> float:
+    """The time from a bag's first message to its last, s."""
     from lidarcal_ros.io.bag.reader import open_bag
 
     with open_bag(path) as bag:
@@ -888,6 +899,8 @@ def bag_duration(path: Path) -> float:
 
 # ---------------------------------------------------------------------------- memory
 def bench_memory(rate: float, passes: int) -> dict[str, Any]:
+    """The memory section: the largest resident memory (MiB) of the calibrator and corrector
+    processes in each of ``passes`` passes of the sample mission replayed in a loop at ``rate``."""
     env = _env()
     procs = {name: subprocess.Popen(
         [PYTHON, "-m", f"lidarcal_ros.nodes.{name}", "--ros-args", "-p",
@@ -923,6 +936,8 @@ def bench_memory(rate: float, passes: int) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- main
 def main() -> int:
+    """Run the sections of the command line and print their figures, or be one of the child
+    processes the benchmark starts; the exit status."""
     if len(sys.argv) > 1 and sys.argv[1] == "_source":
         return _source_main(sys.argv[2:])
     if len(sys.argv) > 1 and sys.argv[1] == "_typed_corrector":

@@ -802,6 +802,8 @@ def import_open3d() -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run lidarcal and the ICP variants on the missions of the command line and print the
+    comparison; exit status 0."""
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--quick", action="store_true",
                     help="small missions (density 0.15, 400 m lines)")

@@ -30,6 +30,7 @@ UNITS = {"dX": (100.0, "cm"), "dY": (100.0, "cm"), "dZ": (100.0, "cm"), "domega"
 
 
 def read_biases(path: Path) -> dict[str, tuple[float, float | None]]:
+    """Each bias of a calibration file: its value (SI) and its sigma (None where not estimated)."""
     import yaml
 
     biases = yaml.safe_load(path.read_text())["lidarcal_calibration"]["biases"]
@@ -37,6 +38,8 @@ def read_biases(path: Path) -> dict[str, tuple[float, float | None]]:
 
 
 def calibrate(bag: str, cell: float, work: Path) -> dict[str, Any]:
+    """Run ``lidarcal calibrate`` on ``bag`` with ``calibration.thinning_cell_m`` = ``cell`` (m;
+    0: no thinning) in a child process: its figures (s, MiB), the points left out and the biases."""
     config = work / f"thinning_{cell:g}.yaml"
     config.write_text("/**:\n  ros__parameters:\n    calibration:\n"
                       f"      thinning_cell_m: {cell!r}\n")
@@ -54,6 +57,8 @@ def calibrate(bag: str, cell: float, work: Path) -> dict[str, Any]:
 
 
 def main() -> int:
+    """Calibrate the mission without thinning and with each cell size and print the comparison;
+    exit status 0."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--density", type=float, default=1.0)
     ap.add_argument("--line-length", type=float, default=500.0)

@@ -60,14 +60,18 @@ class MissionSpec:
 
     @property
     def key(self) -> str:
+        """The mission's name in the cache and the reference: density, line length (m), seed,
+        rough air."""
         return (f"paper_d{self.density:g}_L{self.line_length_m:g}_s{self.seed}"
                 + ("_rough" if self.rough_air else ""))
 
     @property
     def approx_points(self) -> int:
+        """About how many points the mission holds (six strips as wide as the 1150 m swath)."""
         return int(N_STRIPS * self.density * SWATH_HIGH_M * self.line_length_m)
 
     def describe(self) -> str:
+        """The mission in words, for the benchmarks' output."""
         return (f"paper scenario, density {self.density:g}, {self.line_length_m:g} m lines, "
                 f"seed {self.seed}" + (", rough air + 5 deg crab, INS attitude"
                                        if self.rough_air else ""))
@@ -255,6 +259,7 @@ def _hwm_mib(pid: int) -> float:
 
 
 def tail(path: Path, n: int = 15) -> str:
+    """The last ``n`` lines of a log file (empty if it cannot be read)."""
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
     except OSError:
@@ -270,6 +275,7 @@ def median_min(values: list[float]) -> str:
 
 
 def load_average() -> float:
+    """The machine's load average over the last minute."""
     return os.getloadavg()[0]
 
 
@@ -299,7 +305,7 @@ def store_reference(key: str, estimate: dict[str, dict[str, float | None]],
 
 def compare_with_reference(key: str, estimate: dict[str, dict[str, float | None]],
                            tolerance_sigma: float = 0.1) -> tuple[bool | None, list[str]]:
-    """Every estimate within ``tolerance_sigma`` of the reference's sigma of it?
+    """Whether every estimate is within ``tolerance_sigma`` of the reference's sigma of it.
 
     Returns
     -------

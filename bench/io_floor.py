@@ -45,6 +45,8 @@ def cloud_array(msg) -> np.ndarray:
 
 
 def output_dtype(dtype: np.dtype) -> np.dtype:
+    """The corrected layout of a cloud of ``dtype``: its fields, then the fields of
+    :data:`ADDED`, each aligned to its size from the next 4 bytes on, rows padded to 8 bytes."""
     names, formats, offsets = list(dtype.names), [dtype.fields[n][0] for n in dtype.names], \
         [dtype.fields[n][1] for n in dtype.names]
     pos = (dtype.itemsize + 3) // 4 * 4
@@ -74,6 +76,8 @@ def fill_added(rows: np.ndarray, arr: np.ndarray) -> None:
 
 
 def to_mcap(bag: Path, out: Path, zstd_level: int) -> int:
+    """Copy the bag to an MCAP bag at ``out`` with, beside each cloud, one of the corrected
+    layout (zstd at ``zstd_level``); the number of points."""
     from rosbags.rosbag2 import Reader, Writer
     from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
     from rosbags.typesys import Stores, get_typestore
@@ -120,6 +124,8 @@ def to_mcap(bag: Path, out: Path, zstd_level: int) -> int:
 
 
 def to_laz(bag: Path, out: Path, zstd_level: int) -> int:
+    """Write the bag's points to a LAZ 1.4 file (point format 6 with the corrected fields as
+    extra bytes) at ``out``; the number of points (``zstd_level`` unused)."""
     import laspy
     from rosbags.rosbag2 import Reader
     from rosbags.typesys import Stores, get_typestore
@@ -176,6 +182,8 @@ def to_laz(bag: Path, out: Path, zstd_level: int) -> int:
 
 
 def main(argv: list[str]) -> int:
+    """Write the I/O floor output of the command line's bag; exit status 0, or 2 for a usage
+    error."""
     if len(argv) not in (2, 3) or argv[0] in ("-h", "--help"):
         print("usage: io_floor.py BAG OUT.mcap|OUT.laz [ZSTD_LEVEL]", file=sys.stderr)
         return 2

@@ -32,6 +32,7 @@ MERGED = ["tree", "built-up", "grass", "soil"]
 
 
 def main() -> None:
+    """Correct and classify each mission of the command line and print both confusion tables."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="3,4", help="simulation seeds, comma-separated")
     ap.add_argument("--density", type=float, default=0.5, help="points per m^2 at 1150 m")

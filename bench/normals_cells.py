@@ -86,6 +86,8 @@ class Scenario:
 
     @classmethod
     def parse(cls, text: str, line_length_m: float) -> Scenario:
+        """The mission of ``scenario:density:seed`` with lines of ``line_length_m`` (m); a usage
+        error names what is wrong."""
         try:
             scenario, density, seed = text.split(":")
             parsed = cls(scenario, float(density), int(seed), line_length_m)
@@ -100,10 +102,12 @@ class Scenario:
         return parsed
 
     def describe(self) -> str:
+        """The mission in words, for the output."""
         return (f"{self.scenario} scenario, density {self.density:g}, seed {self.seed}, "
                 f"{self.line_length_m:g} m lines")
 
     def simulate(self) -> SimulatedMission:
+        """The simulated mission."""
         return simulate_mission(SimulationSpec.from_options(
             scenario=self.scenario, density=self.density, seed=self.seed,
             line_length_m=self.line_length_m))
@@ -194,6 +198,7 @@ def score(sim: SimulatedMission, corrected: np.ndarray) -> dict[str, Any]:
 
 
 def print_header() -> None:
+    """Print the two header lines of the results table."""
     print(f"\n{'rule':>8} {'cell m':>10} {'reflectance error %':>20} {'roof %':>12} "
           f"{'incidence deg':>13} {'rough':>6} {'no':>6}")
     print(f"{'':>8} {'':>10} {'med / p90 / p99':>20} {'med / p90':>12} {'med / p90':>13} "
@@ -201,6 +206,7 @@ def print_header() -> None:
 
 
 def print_row(rule: str, sides: list[float], s: dict[str, Any]) -> None:
+    """Print one rule's row: its cell sides (m) and its error figures ``s`` (percent, degrees)."""
     name = rule if rule == SHIPPED else f"{float(rule):g} sp"
     cell = f"{min(sides):.2f}-{max(sides):.2f}"
     refl = " / ".join(f"{v:.2f}" for v in s["refl"])
@@ -211,6 +217,8 @@ def print_row(rule: str, sides: list[float], s: dict[str, Any]) -> None:
 
 
 def main() -> None:
+    """Correct each mission of the command line with each cell rule and print the errors against
+    the truth."""
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--scenarios", nargs="+", default=None, metavar="S:D:N",
                     help="missions as scenario:density:seed (default: "

@@ -101,6 +101,8 @@ def dense_solve(obs: Observations, state: TrajectoryState) -> None:
 
 
 def main() -> int:
+    """Time the reduced and the dense solve for each number of strips of the command line and
+    print them; exit status 0."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--strips", type=int, nargs="+", default=[10, 30, 100, 300, 1000])
     parser.add_argument("--per-pair", type=int, default=2000)

@@ -25,6 +25,8 @@ NODE_EXECUTABLES = ("lidarcal_calibrator", "lidarcal_corrector", "lidarcal_fligh
 
 
 def generate_launch_description() -> LaunchDescription:
+    """The three lidarcal nodes, each given the ``params_file`` argument (default: the package's
+    config/flight_config.yaml), DDS confined to this machine."""
     # Confine this launch process (it may start rclpy itself) and, through the environment the
     # nodes inherit, every node; one domain id for all so the nodes see each other.
     ros_environment = configure_ros_environment()

@@ -95,6 +95,8 @@ def replaced(text: str) -> str:
 
 
 def main(argv: list[str]) -> int:
+    """Print the tables, or rewrite them in docs/nodes.md with ``--write`` (``argv`` as
+    ``sys.argv``); exit status 0, or 2 for a usage error."""
     if argv[1:] == ["--write"]:
         NODES_MD.write_text(replaced(NODES_MD.read_text()))
         print(f"wrote the parameter tables of {NODES_MD.relative_to(ROOT)}")

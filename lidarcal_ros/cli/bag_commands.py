@@ -13,6 +13,7 @@ __all__ = ["add_import_command", "add_recover_command", "cmd_import", "cmd_recov
 
 
 def add_import_command(sub: Any) -> None:
+    """The ``lidarcal import`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("import", help="LAS/LAZ strips and a trajectory into a mission bag",
                        description="Bring LAS/LAZ flight lines (LAS 1.0-1.4, any number of "
                        "files) and an Applanix SBET, an ASCII trajectory time,x,y,z[,...], or "
@@ -88,6 +89,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def add_recover_command(sub: Any) -> None:
+    """The ``lidarcal recover`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("recover", help="a damaged bag's readable messages into a new bag",
                        description="Read a bag whose recording was cut (no MCAP summary or "
                        "footer, no metadata.yaml) from the start, and write every message "

@@ -27,6 +27,7 @@ logger = logging.getLogger("lidarcal")
 
 
 def add_calibrate_command(sub: Any) -> None:
+    """The ``lidarcal calibrate`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("calibrate", help="estimate the system biases from a mission bag",
                        description="Quasi-rigorous calibration (Habib et al. 2011) of a "
                        "mission bag; writes the calibration file and prints a report.")
@@ -124,6 +125,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def add_evaluate_command(sub: Any) -> None:
+    """The ``lidarcal evaluate`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("evaluate", help="relative and absolute accuracy before and after a "
                        "calibration",
                        description="The paper's accuracy measures: per overlapping strip pair "
@@ -164,6 +166,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def add_report_command(sub: Any) -> None:
+    """The ``lidarcal report`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("report", help="self-contained HTML QA report of a calibration",
                        description="One HTML file, figures embedded, readable offline: the "
                        "USGS LBS quality level met; the flight lines, trajectory, control and "

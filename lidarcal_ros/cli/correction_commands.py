@@ -19,6 +19,7 @@ __all__ = ["add_correct_command", "cmd_correct"]
 
 
 def add_correct_command(sub: Any) -> None:
+    """The ``lidarcal correct`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("correct", help="apply a calibration and correct intensity to reflectance",
                        description="Move every point by the estimated biases (docs/method.md eq. "
                        "[13]) and turn its intensity into reflectance (radar equation); write "

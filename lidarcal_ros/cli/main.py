@@ -66,6 +66,8 @@ class CommandLogFormatter(logging.Formatter):
         self.names = names
 
     def formatMessage(self, record: logging.LogRecord) -> str:
+        """The record's line: the command prefix, the level in lower case, the logger's name when
+        verbose, the message."""
         name = f"{record.name}: " if self.names else ""
         return f"{self.prefix}{record.levelname.lower()}: {name}{record.getMessage()}"
 

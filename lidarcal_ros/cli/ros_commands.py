@@ -46,6 +46,7 @@ def _start_ros(argv: list[str]) -> tuple[Any, Any]:
 
 # ---------------------------------------------------------------------------- replay
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``lidarcal replay`` (times in seconds)."""
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
     p.add_argument("--rate", type=float, default=1.0,
                    help="speed factor of the original timing (default 1; 10 = ten times faster)")
@@ -79,6 +80,7 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    """Run ``lidarcal replay`` with the parsed ``args``; its exit status."""
     from lidarcal_ros.io.bag.reader import open_bag
     from lidarcal_ros.pipeline.replay import Pacer, replay, replay_window
 
@@ -168,6 +170,7 @@ NODE_CHOICES = ("flight_config", "calibrator", "corrector")
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``lidarcal run``."""
     p.add_argument("--config", type=Path,
                    help="flight configuration (ROS 2 parameters file), for every node")
     p.add_argument("--control", type=Path, help="control points CSV id,x,y,z")
@@ -203,6 +206,7 @@ def check_ros_parameters(ros_args: list[str]) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    """Run ``lidarcal run`` with the parsed ``args``; its exit status."""
     from lidarcal_ros.io.config_file import load_flight_config
 
     started = time.monotonic()  # (the ready line's seconds)
@@ -373,6 +377,7 @@ def supervise(commands: list[list[str]], *, grace_s: float = 15.0,
 
 # ---------------------------------------------------------------------------- record
 def add_record_arguments(p: argparse.ArgumentParser) -> None:
+    """The arguments of ``lidarcal record`` (duration in seconds)."""
     p.add_argument("-o", "--output", required=True, type=Path,
                    help="output bag: .mcap file or rosbag2 directory")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
@@ -386,6 +391,7 @@ def add_record_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    """Run ``lidarcal record`` with the parsed ``args``; its exit status."""
     check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap",
                  inputs=other_paths(args, "output"))
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
@@ -420,6 +426,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- the subcommands
 def add_replay_command(sub: Any) -> None:
+    """The ``lidarcal replay`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("replay", help="publish a bag to live topics with its original timing",
                        description="Publish a bag's messages (raw CDR) on their topics with "
                        "the original timing scaled by --rate; --clock publishes /clock for "
@@ -429,6 +436,7 @@ def add_replay_command(sub: Any) -> None:
 
 
 def add_run_command(sub: Any) -> None:
+    """The ``lidarcal run`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("run", help="start the node suite (calibrator, corrector, flight config)",
                        description="Start lidarcal_flight_config, lidarcal_calibrator and "
                        "lidarcal_corrector in this process; Ctrl-C or SIGTERM stops them "
@@ -438,6 +446,7 @@ def add_run_command(sub: Any) -> None:
 
 
 def add_record_command(sub: Any) -> None:
+    """The ``lidarcal record`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("record", help="record live topics (default: the outputs) to MCAP",
                        description="Record topics (raw CDR, with their types and durability) "
                        "into a rosbag2 MCAP bag; Ctrl-C or SIGTERM finishes the bag.")

@@ -15,6 +15,7 @@ __all__ = ["add_plan_command", "add_simulate_command", "cmd_plan", "cmd_simulate
 
 
 def add_simulate_command(sub: Any) -> None:
+    """The ``lidarcal simulate`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("simulate", help="synthetic mission with known biases",
                        description="Ray-cast a linear scanner over built-up terrain with known "
                        "biases; write a mission bag, control points (CSV) and the truth (YAML).")
@@ -253,6 +254,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def add_plan_command(sub: Any) -> None:
+    """The ``lidarcal plan`` command and its arguments, on the subparsers ``sub``."""
     p = sub.add_parser("plan", help="which parameters a flight plan can recover",
                        description="Simulate a flight plan's lines over the chosen terrain, form "
                        "the normal matrix the calibration would see and report, per parameter, "

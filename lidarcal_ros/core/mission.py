@@ -281,6 +281,7 @@ class Mission:
 
     @property
     def n_points(self) -> int:
+        """The number of points over all strips."""
         return sum(len(s) for s in self.strips)
 
 

@@ -46,6 +46,7 @@ class CalibrationRecord:
 
     @property
     def delta(self) -> np.ndarray:
+        """The values (8,) in ``PARAMETER_NAMES`` order, SI units."""
         return np.array([self.values[n] for n in PARAMETER_NAMES])
 
 

@@ -170,6 +170,8 @@ class FlightParameters:
         return check_value(name, self.extra[name], value)
 
     def has_control(self) -> bool:
+        """Whether control points are available: a control points file configured, or the node's
+        ``has_control`` says so."""
         return bool(self.config["calibration.control_points_file"]) or bool(self._has_control())
 
     def __getitem__(self, name: str) -> Any:

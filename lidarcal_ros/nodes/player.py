@@ -93,14 +93,18 @@ class PlayerNode(Node):
 
     @property
     def topics(self) -> list[str]:
+        """The topics replayed (those with a publisher), sorted."""
         return sorted(self.publishers_by_topic)
 
     def publish(self, topic: str, _msgtype: str, _ns: int, raw: bytes | memoryview) -> None:
+        """Publish the CDR bytes ``raw`` of a bag message on ``topic`` as they are (topics not
+        replayed: nothing)."""
         pub = self._serialized.get(topic)
         if pub is not None:
             pub.publish(raw)
 
     def publish_clock(self, ns: int) -> None:
+        """Publish the bag time ``ns`` (nanoseconds) on /clock, where ``clock`` was asked for."""
         if self.clock_publisher is None:
             return
         msg = self._clock_cls()

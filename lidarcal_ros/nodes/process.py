@@ -33,6 +33,8 @@ class Shutdown:
         self._previous: dict[int, Any] = {}
 
     def install(self) -> Shutdown:
+        """Handle SIGINT and SIGTERM with this (from the main thread only: elsewhere nothing
+        changes); itself."""
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._previous[sig] = signal.signal(sig, self._handle)
@@ -43,12 +45,14 @@ class Shutdown:
         self.event.set()
 
     def restore(self) -> None:
+        """Put back the signal handlers :meth:`install` replaced."""
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
 
     @property
     def requested(self) -> bool:
+        """Whether a shutdown was asked for (a signal, or the event set)."""
         return self.event.is_set()
 
 

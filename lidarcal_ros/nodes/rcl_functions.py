@@ -80,7 +80,7 @@ class _ErrorString(ctypes.Structure):
 
 
 def take_rcl_error(ret: int) -> str:
-    """rcl's message for the call that just failed with ``ret`` (``rcl error N`` where it
+    """The rcl message for the call that just failed with ``ret`` (``rcl error N`` where it
     cannot be read), its error state cleared as rclpy clears it after a failure."""
     get = c_function("librcutils.so", "rcutils_get_error_string", [], _ErrorString)
     reset = c_function("librcutils.so", "rcutils_reset_error", [], None)

@@ -25,7 +25,7 @@ __all__ = ["SerializedPublisher", "rcl_serialized_publish"]
 
 @functools.cache
 def rcl_serialized_publish() -> Any:
-    """rcl's ``rcl_publish_serialized_message`` as a ctypes function, or None
+    """The rcl function ``rcl_publish_serialized_message`` through ctypes, or None
     (:func:`~lidarcal_ros.nodes.rcl_functions.c_function`; looked up once)."""
     return c_function("librcl.so", "rcl_publish_serialized_message",
                       [ctypes.c_void_p, ctypes.POINTER(SerializedMessage), ctypes.c_void_p],

@@ -39,7 +39,7 @@ _RCL_RET_SUBSCRIPTION_TAKE_FAILED = 401
 
 @functools.cache
 def rcl_serialized_take() -> Any:
-    """rcl's ``rcl_take_serialized_message`` as a ctypes function, or None
+    """The rcl function ``rcl_take_serialized_message`` through ctypes, or None
     (:func:`~lidarcal_ros.nodes.rcl_functions.c_function`; looked up once)."""
     return c_function("librcl.so", "rcl_take_serialized_message",
                       [ctypes.c_void_p, ctypes.POINTER(SerializedMessage), ctypes.c_void_p,
@@ -141,13 +141,16 @@ class SerializedSubscription(Waitable[Any]):
         self.subscription.handle.__exit__(*exc)
 
     def get_num_entities(self) -> NumberOfEntities:
+        """One subscription for the wait set."""
         return NumberOfEntities(num_subs=1)
 
     def add_to_wait_set(self, wait_set: Any) -> None:
+        """Add the subscription to ``wait_set`` (nothing if it was destroyed)."""
         if self._index >= 0:
             self._index = wait_set.add_subscription(self.subscription.handle)
 
     def is_ready(self, wait_set: Any) -> bool:
+        """Whether ``wait_set`` says a message is waiting on the subscription."""
         return self._index >= 0 and bool(wait_set.is_ready("subscription", self._index))
 
     def take_data(self) -> tuple[memoryview, Any] | None:
@@ -174,12 +177,13 @@ class SerializedSubscription(Waitable[Any]):
         return None
 
     async def execute(self, taken_data: tuple[memoryview, Any] | None) -> None:
+        """Hand a taken message (its bytes and ``allocate``'s token) to the callback."""
         if taken_data is not None:
             self._callback(*taken_data)
 
     # -- the allocator rmw calls -------------------------------------------------------------
     def _reallocate(self, pointer: int | None, size: int, _state: int | None) -> int | None:
-        """rmw's request for the message's buffer (from none): the caller's memory. Never
+        """The request of rmw for the message's buffer (from none): the caller's memory. Never
         raises (the exception would be lost inside the C call): None refuses."""
         try:
             if pointer or self._received is not None:

@@ -27,6 +27,7 @@ class ReplayWindow:
 
     @property
     def duration_s(self) -> float:
+        """The window's length, s (0 when empty)."""
         return max(self.end_ns - self.start_ns, 0) / _NS
 
 
@@ -65,6 +66,7 @@ class ReplayStats:
     interrupted: bool = False
 
     def count(self, topic: str) -> None:
+        """Count one message published on ``topic``."""
         self.messages += 1
         self.per_topic[topic] = self.per_topic.get(topic, 0) + 1
 
@@ -108,9 +110,11 @@ class Pacer:
         self._tick(self.wall0)
 
     def bag_time_ns(self, wall: float) -> int:
+        """The bag time (ns) due at wall time ``wall`` (s, of ``now``) in this pass."""
         return self.bag0_ns + round((wall - self.wall0) * self.rate * _NS)
 
     def wall_time(self, bag_ns: int) -> float:
+        """The wall time (s, of ``now``) at which bag time ``bag_ns`` (ns) is due in this pass."""
         return self.wall0 + (bag_ns - self.bag0_ns) / _NS / self.rate
 
     def _tick(self, wall: float) -> None:
@@ -134,6 +138,8 @@ class Pacer:
                 return True, 0.0
 
     def stop(self) -> None:
+        """Ask for a stop: a wait of :meth:`until` on the pacer's own event (the default
+        ``wait``) ends at once."""
         self._stop.set()
 
 
@@ -226,6 +232,8 @@ class SubscriberWait:
 
     @property
     def ready(self) -> bool:
+        """Whether the replay may start: every topic has its subscribers, no suite is still
+        starting, no stop was asked for."""
         return not self.missing and not self.suite_starting and not self.stopped
 
 

@@ -447,7 +447,7 @@ def test_an_imported_trajectory_with_conflicting_or_equal_times(capsys, tmp_path
 
 
 def test_a_truncated_laz_is_one_line(capsys, tmp_path) -> None:
-    """laspy logs a LAZ failure before raising it: only lidarcal's own line is printed."""
+    """A LAZ failure is logged by laspy before it is raised: only lidarcal's own line is printed."""
     data = _write_laz(tmp_path / "whole.laz").read_bytes()
     cut = tmp_path / "cut.laz"
     cut.write_bytes(data[: len(data) // 2])

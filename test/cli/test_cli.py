@@ -602,7 +602,7 @@ def test_simulate_refuses_existing_bag_subprocess(tmp_path):
 
 
 def test_progress_on_a_terminal_and_quiet_otherwise(tmp_path, small_mission):
-    """calibrate and correct show a progress bar on a terminal, none with --quiet or when
+    """``calibrate`` and ``correct`` show a progress bar on a terminal, none with --quiet or when
     stderr is not a terminal."""
     base = ["calibrate", small_mission.bag, "--config", small_mission.fast_config,
             "--control", small_mission.control_csv, "-o"]

@@ -103,7 +103,7 @@ def test_start_without_blas_after_scipy_linalg() -> None:
 
 
 def test_start_without_blas_holds_the_compiler_lock() -> None:
-    """numba's registries load under its compiler lock, as its own compilations load them: a
+    """The registries of numba load under its compiler lock, as its own compilations load them: a
     kernel compiled meanwhile in another thread (the correction's reading thread compiles
     while the warm-up thread starts numba) must not be typed against half-loaded ones."""
     script = textwrap.dedent("""

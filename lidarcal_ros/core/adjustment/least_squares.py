@@ -74,6 +74,7 @@ class NormalEquations:
 
     @classmethod
     def from_observations(cls, obs: Observations) -> NormalEquations:
+        """The normal equations of ``obs`` (its rows, misclosures and weights)."""
         neq = cls()
         neq.add(obs.rows, obs.y, obs.weights)
         return neq
@@ -110,11 +111,14 @@ class Observations:
 
     @classmethod
     def empty(cls) -> Observations:
+        """No observation at all (arrays of length 0)."""
         return cls(np.empty((0, N_PARAMETERS)), np.empty(0), np.empty(0),
                    np.empty(0, np.int64), np.empty(0, np.int64))
 
     @classmethod
     def concatenate(cls, parts: Iterable[Observations]) -> Observations:
+        """The observations of ``parts`` one after the other (no part: :meth:`empty`); trajectory
+        terms are kept if any part has them, the rows of the others get none."""
         parts = list(parts)
         if not parts:
             return cls.empty()

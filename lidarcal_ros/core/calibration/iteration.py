@@ -305,7 +305,7 @@ def judge_convergence(history: list[np.ndarray], steps: list[np.ndarray],
     """Whether the iterations so far (``history``: the estimate after each, SI; per
     iteration its ``steps``, its formal ``sigmas``, the re-matching ``noises`` of its step
     (:func:`rematching_noise`) and the correspondences ``changed`` since the one before) have
-    converged:
+    converged.
 
     - every estimated parameter's last step below ``fraction`` of its sigma
       (:func:`has_converged`), or a :func:`matching_cycle`: converged;

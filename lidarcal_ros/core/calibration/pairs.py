@@ -92,6 +92,7 @@ class PreparedStrip:
 
     @property
     def strip_id(self) -> int:
+        """The strip's id."""
         return self.strip.strip_id
 
 

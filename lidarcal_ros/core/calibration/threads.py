@@ -31,6 +31,8 @@ class StageClock:
 
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
+        """A context in which the calling thread's CPU time counts to ``stage`` (the stage it was
+        in pauses until the context ends)."""
         local = self._local
         outer: str | None = getattr(local, "stage", None)
         now = time.thread_time()

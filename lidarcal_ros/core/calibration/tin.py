@@ -207,6 +207,7 @@ class PatchMatches:
     distance: np.ndarray
 
     def take(self, index: np.ndarray) -> PatchMatches:
+        """The matches of the query points ``index`` selects (an index array or mask)."""
         return PatchMatches(
             self.valid[index], self.triangle[index], self.normal[index],
             self.weights[index], self.distance[index],

@@ -265,6 +265,8 @@ class AccuracySummary:
 
     @classmethod
     def of(cls, residuals: np.ndarray) -> AccuracySummary:
+        """The statistics of the finite ``residuals`` (metres); n 0 and NaN statistics when none
+        is finite, std 0 for one."""
         r = np.asarray(residuals, dtype=np.float64)
         r = r[np.isfinite(r)]
         if r.size == 0:

@@ -142,6 +142,8 @@ class Accuracy:
     @classmethod
     def of(cls, reference: np.ndarray, classified: np.ndarray, names: Sequence[str]
            ) -> Accuracy:
+        """The confusion matrix, overall accuracy and kappa of the ``classified`` class indices
+        against the ``reference`` ones (both into ``names``)."""
         c = len(names)
         conf = np.zeros((c, c), dtype=np.int64)
         np.add.at(conf, (reference, classified), 1)
@@ -166,6 +168,7 @@ class Accuracy:
         return out
 
     def conf_row(self, i: int) -> list[int]:
+        """Row ``i`` of the confusion matrix (reference class ``i``) as ints."""
         return [int(v) for v in self.confusion[i]]
 
     def producer(self, i: int) -> float:

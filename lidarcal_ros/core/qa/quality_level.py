@@ -68,9 +68,11 @@ class Criterion:
 
     @property
     def assessed(self) -> bool:
+        """Whether the measure has a value (it is finite)."""
         return math.isfinite(self.value)
 
     def threshold(self, level: QualityLevel) -> float:
+        """The level's threshold for this measure (SI, as ``value``)."""
         return float(getattr(level, self.attribute))
 
     def met(self, level: QualityLevel) -> bool | None:

@@ -76,6 +76,7 @@ class CellHeights:
 
     @classmethod
     def empty(cls) -> CellHeights:
+        """No cell at all."""
         return cls(np.zeros(0, dtype=np.int64), np.zeros(0))
 
 
@@ -168,6 +169,7 @@ class PairDifference:
 
     @property
     def strips(self) -> tuple[int, int]:
+        """The pair's strip ids, smaller first."""
         a, b = sorted((self.earlier, self.later))
         return a, b
 
@@ -182,6 +184,7 @@ class DzStatistics:
 
     @classmethod
     def of(cls, dz: np.ndarray) -> DzStatistics:
+        """The statistics of the differences ``dz`` (metres; NaN when there are none)."""
         if not dz.size:
             return cls(0, math.nan, math.nan)
         return cls(int(dz.size), float(np.sqrt(np.mean(dz * dz))), float(np.max(np.abs(dz))))

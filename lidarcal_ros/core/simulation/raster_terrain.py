@@ -74,6 +74,7 @@ class RasterTerrain(Surface):
         return r0, c0, fr - r0, fc - c0
 
     def ground_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The height interpolated bilinearly between cell centres at local (x, y) (n,), metres."""
         r0, c0, v, u = self._grid(x, y)
         z = self._z
         top = z[r0, c0] * (1 - u) + z[r0, c0 + 1] * u
@@ -89,29 +90,35 @@ class RasterTerrain(Surface):
         return dz_du / self._cell, -dz_dv / self._cell
 
     def height_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The height at local (x, y) (n,), metres: the ground, as the DSM has no objects."""
         return self.ground_local(x, y)
 
     def class_and_reflectance_local(self, x: np.ndarray, y: np.ndarray
                                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Open soil and its reflectance everywhere (n,): a DSM has no classes."""
         n = np.asarray(x).size
         return np.full(n, SOIL, dtype=np.int8), np.full(n, CLASS_REFLECTANCE[SOIL])
 
     def normal_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Upward unit normal (n, 3) of the interpolated height field at local (x, y) (n,)."""
         gx, gy = self._ground_grad_local(x, y)
         n = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
     def wall_normal_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(0, 0, 1) for every local (x, y) (n,): a DSM has no walls."""
         out = np.zeros((np.asarray(x).size, 3))
         out[:, 2] = 1.0
         return out
 
     @property
     def n_buildings(self) -> int:
+        """0: a DSM has no buildings of its own."""
         return 0
 
     @property
     def n_trees(self) -> int:
+        """0: a DSM has no trees of its own."""
         return 0
 
     @property

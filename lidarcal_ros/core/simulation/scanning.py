@@ -118,6 +118,7 @@ class LineScan:
 
     @classmethod
     def empty(cls, n: int) -> LineScan:
+        """A scan of ``n`` pulses, its arrays allocated and not filled."""
         return cls(np.empty((n, 3)), np.empty((n, 3)), np.empty(n, dtype=np.int8),
                    np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32), np.empty(n),
                    np.empty(n, dtype=np.float32), np.empty(n, dtype=bool),

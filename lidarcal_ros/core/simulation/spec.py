@@ -226,7 +226,9 @@ class SiteSpec:
 @dataclass(frozen=True)
 class TrajectoryErrorSpec:
     """The errors of the delivered trajectory (GNSS/INS), drawn per strip (docs/method.md section
-    11): strip ``s`` is georeferenced with ``X_o,true(t) + e_s(t)``, so its points and its
+    11).
+
+    Strip ``s`` is georeferenced with ``X_o,true(t) + e_s(t)``, so its points and its
     trajectory carry, per map axis ``k`` (metres, delivered - true),
 
     ``e_s,k(t) = o_s,k + (t - t_s) v_s,k + a sin(2 pi (t - t_s) / P + phi_s,k)``

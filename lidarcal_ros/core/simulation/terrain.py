@@ -260,6 +260,7 @@ class Terrain(Surface):
     # ------------------------------------------------------------------ local queries
 
     def height_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Surface height (ground, roofs, crowns) at local (x, y) (n,), metres."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         y = np.ascontiguousarray(y, dtype=np.float64)
         h = self._ground.height(x, y)
@@ -274,10 +275,13 @@ class Terrain(Surface):
         return h
 
     def ground_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bare-ground height (buildings and trees ignored) at local (x, y) (n,), metres."""
         return self._ground.height(x, y)
 
     def class_and_reflectance_local(self, x: np.ndarray, y: np.ndarray
                                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Class code (int8) and Lambertian reflectance (the class's, times the object's or
+        patch's factor) at local (x, y) (n,)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         y = np.ascontiguousarray(y, dtype=np.float64)
         cls, fac = self._cover.cover(x, y)
@@ -305,6 +309,8 @@ class Terrain(Surface):
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
     def wall_normal_local(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Horizontal outward normal (n, 3) of the nearest wall of the building or tree at local
+        (x, y) (n,); (0, 0, 1) where there is none."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         y = np.ascontiguousarray(y, dtype=np.float64)
         n = np.zeros((x.size, 3))
@@ -318,6 +324,8 @@ class Terrain(Surface):
         return n
 
     def ground_hit(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Distance (n,) along each downward unit ray (origins and directions (n, 3), local) to
+        the ground, objects ignored, metres."""
         if self.kind == "flat":
             return (origins[:, 2] - 0.0) / -directions[:, 2]
         return self._ground.ray_hit(origins, directions)
@@ -330,13 +338,17 @@ class Terrain(Surface):
 
     @property
     def n_buildings(self) -> int:
+        """How many buildings stand on the terrain."""
         return self._buildings.count
 
     @property
     def n_trees(self) -> int:
+        """How many trees stand on the terrain."""
         return self._trees.count
 
     def describe(self) -> dict[str, object]:
+        """Summary for a truth file: kind, seed, extent and places kept clear (local), origin,
+        object and road counts; metres."""
         return {
             "kind": self.kind, "seed": self.seed, "extent_local": list(self.extent),
             "origin": list(self.origin), "n_buildings": self.n_buildings,

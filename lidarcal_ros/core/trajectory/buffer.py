@@ -201,6 +201,7 @@ class TrajectoryBuffer:
             self.trajectory()
 
     def trajectory(self) -> Trajectory:
+        """The trajectory of every sample received so far (the pending ones merged in)."""
         # One rebuild at a time: two threads rebuilding from the same old trajectory would
         # each drop the other's new samples.
         with self._rebuild_lock:

@@ -269,6 +269,7 @@ class StripError:
 
     @property
     def t_ref(self) -> float:
+        """The reference time of the strip's basis, s."""
         return self.basis.t_ref
 
     @property
@@ -289,6 +290,7 @@ class StripError:
 
     @property
     def drift_sigma(self) -> np.ndarray | None:
+        """The sigma (m/s) of the drift rate of the drift model, else None."""
         return self.sigma[1] if self.basis.model is TrajectoryModel.DRIFT else None
 
     def error(self, t: np.ndarray) -> np.ndarray:

@@ -227,6 +227,8 @@ class ThreadedMcapStorage(McapWriter):
         super().close(version, metadata)
 
     def abort(self) -> None:
+        """Stop the compressing threads (chunks not yet compressed are dropped), then abort as
+        rosbags does."""
         self._stop()
         super().abort()
 

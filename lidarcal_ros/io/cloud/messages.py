@@ -203,8 +203,8 @@ def cloud_cdr_parts(
 
 
 def is_dense_byte(points: np.ndarray) -> bytes:
-    """PointCloud2's ``is_dense`` as it is serialised: ``b"\\x01"`` when every ``x, y, z``
-    of ``points`` (those present) is finite, else ``b"\\x00"``."""
+    r"""PointCloud2's ``is_dense`` as it is serialised: ``b"\x01"`` when every ``x, y, z``
+    of ``points`` (those present) is finite, else ``b"\x00"``."""
     names = points.dtype.names or ()
     present = [points[c] for c in "xyz" if c in names]
     if len(present) == 3 and all(p.dtype.kind == "f" and p.dtype.isnative for p in present):
@@ -251,10 +251,13 @@ class Estimate:
 
     @property
     def delta(self) -> np.ndarray:
+        """The values (8,) in ``PARAMETER_NAMES`` order, SI units."""
         return np.array([self.values[n] for n in PARAMETER_NAMES])
 
     @property
     def estimated(self) -> tuple[str, ...]:
+        """The names of the parameters estimated (those with a sigma), in ``PARAMETER_NAMES``
+        order."""
         return tuple(n for n in PARAMETER_NAMES if self.sigmas[n] is not None)
 
 

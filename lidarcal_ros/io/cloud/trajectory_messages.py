@@ -57,6 +57,7 @@ class TrajectorySamples:
         self.frames: set[str] = set()
 
     def add(self, msgtype: str, msg: Any) -> None:
+        """Add a decoded message of type ``msgtype`` (one of :data:`TRAJECTORY_TYPES`)."""
         t, xyz, q = trajectory_sample(msgtype, msg)
         self.t.append(t)
         self.xyz.append(xyz)

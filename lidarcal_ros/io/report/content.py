@@ -71,6 +71,7 @@ class PairSection:
 
     @property
     def strips(self) -> tuple[int, int]:
+        """The pair's two strip ids, smaller first."""
         return self.after.strips
 
 

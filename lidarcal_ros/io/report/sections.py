@@ -385,7 +385,7 @@ def _file_size_text(n: int) -> str:
 
 
 def provenance_html(provenance: Provenance | None) -> str:
-    """lidarcal's version, the date, the command, the inputs and the configuration."""
+    """The lidarcal version, the date, the command, the inputs and the configuration."""
     if provenance is None:
         return html_section("provenance", "Provenance", ["<p>Not recorded.</p>"])
     facts = [("lidarcal", provenance.version), ("generated (UTC)", provenance.generated)]

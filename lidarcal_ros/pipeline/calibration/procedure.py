@@ -153,6 +153,8 @@ class Truth:
 
     @classmethod
     def read(cls, path: str | Path) -> Truth:
+        """The truth YAML at ``path`` (written by ``lidarcal simulate``; biases SI, 0 where not
+        given); a ConfigError names what is wrong."""
         path = Path(path)
         doc = read_yaml(path, what="truth file")
         biases = doc.get("biases") if isinstance(doc, Mapping) else None

@@ -59,6 +59,8 @@ class OpenStrip:
     n: int = 0
 
     def add(self, xyz: np.ndarray, t: np.ndarray, intensity: np.ndarray | None) -> None:
+        """Hold a chunk: points ``xyz`` (n, 3) (map frame, m), their times ``t`` (s) and
+        intensities (None: the strip then keeps none)."""
         self.xyz.append(np.ascontiguousarray(xyz, dtype=np.float64))
         self.t.append(np.ascontiguousarray(t, dtype=np.float64))
         if intensity is None:

@@ -142,6 +142,7 @@ class ServedFrames:
 
     @property
     def rigorous(self) -> bool:
+        """Whether the points got the rigorous model (no local-trajectory lines)."""
         return self.lines is None
 
 

@@ -24,7 +24,8 @@ MAX_PUSH_POINTS = 400_000
 class Region(Protocol):
     """Where a cloud was received in place (shared memory), given back if it is dropped."""
 
-    def release(self) -> None: ...
+    def release(self) -> None:
+        """Give the memory back."""
 
 
 @dataclass
@@ -80,6 +81,7 @@ class WaitingClouds:
         return iter(self._clouds)
 
     def append(self, cloud: WaitingCloud) -> None:
+        """Add ``cloud``, the newest, counting its bytes."""
         self._clouds.append(cloud)
         self.bytes += cloud.size
 

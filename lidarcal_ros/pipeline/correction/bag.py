@@ -675,7 +675,8 @@ def _correct_to_bag(job: _Job) -> None:
     seen = 0
 
     def place(k_: int, n_: int, dtype_: np.dtype[Any]) -> np.ndarray:
-        """(from the worker threads)"""
+        """The points of cloud ``k_`` (``n_`` of ``dtype_``), a view into the bytes of its
+        corrected message, which this allocates (called from the worker threads)."""
         _ns, msg_ = clouds[k_]
         head = cloud_header_cdr(stamp_ns(msg_.header.stamp), msg_.header.frame_id,
                                 point_fields(dtype_), dtype_.itemsize, n_)

@@ -145,10 +145,13 @@ class CloudTally:
 
     @classmethod
     def empty(cls) -> CloudTally:
+        """A tally of no point."""
         return cls(np.zeros(257, dtype=np.int64))
 
     @property
     def points(self) -> int:
+        """The points of the cloud (each has a ``correction_flags`` byte), non-finite ones
+        included."""
         return int(self.counts[:256].sum())
 
     @property

@@ -448,9 +448,11 @@ class CorrectionProcess:
         """Nothing to do: the child sends the results of its worker threads by itself."""
 
     def set_settings(self, settings: CorrectionSettings) -> None:
+        """Use new settings (calibration, radiometry) from the child's next batch on."""
         self._send(("settings", settings))
 
     def set_lookahead(self, lookahead: bool) -> None:
+        """Wait for look-ahead (or not) from the child's next cloud on."""
         self._send(("lookahead", bool(lookahead)))
 
     def set_trajectory_keep(self, seconds: float) -> None:

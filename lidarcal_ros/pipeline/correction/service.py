@@ -254,9 +254,11 @@ class LocalCorrection:
             self._emit(self.engine.collect())
 
     def set_settings(self, settings: CorrectionSettings) -> None:
+        """Use new settings (calibration, radiometry) from the next batch on."""
         self.engine.corrector.set_settings(settings)
 
     def set_lookahead(self, lookahead: bool) -> None:
+        """Wait for look-ahead (or not) from the next cloud on."""
         self.engine.corrector.set_lookahead(lookahead)
 
     def set_trajectory_keep(self, seconds: float) -> None:

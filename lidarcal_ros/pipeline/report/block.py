@@ -74,6 +74,7 @@ class StripFootprint:
 
     @property
     def area_m2(self) -> float:
+        """The area of the strip's footprint cells, m^2."""
         return float(self.keys.size) * FOOTPRINT_CELL_M**2
 
 

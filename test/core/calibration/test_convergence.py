@@ -265,7 +265,7 @@ small_mission = helpers_missions.small_mission
 
 # ---------------------------------------------------------------------------- real tile
 def test_real_megaplot_forest_converges_with_its_outcome_stated(capsys, tmp_path) -> None:
-    """lidR's Megaplot.laz (two forest passes, trajectory rebuilt from multiple returns):
+    """The lidR sample Megaplot.laz (two forest passes, trajectory rebuilt from multiple returns):
     with patches loosened until the canopy matches (bends to 60 deg, edges of 12 spacings,
     3 m), calibrate ends with exit status 0 and a stated outcome in fewer than the ten
     iterations the steps alone needed."""

@@ -254,7 +254,7 @@ def test_nan_positions_and_conflicting_repeats_are_counted(capsys, caplog, tmp_p
                                                            small_mission) -> None:
     """The poses with NaN positions are left out, and both poses of each stamp repeated
     elsewhere (which one is right is unknown), in one warning line; every point is kept, and
-    the poses kept are the originals. (Poses all at one stamp: test_bad_inputs.)"""
+    the poses kept are the originals (poses all at one stamp: test_bad_inputs)."""
     spoiled_mission, spoiled = _oddities(small_mission.mission)
     bag = write_mission_bag(tmp_path / "odd", spoiled_mission)
     with caplog.at_level(logging.WARNING, logger="lidarcal_ros.core.mission"):
@@ -281,7 +281,7 @@ def test_nan_positions_and_conflicting_repeats_are_counted(capsys, caplog, tmp_p
 # ---------------------------------------------------------------------------- real tile
 def test_real_megaplot_both_passes_kept_calibrated_or_reported_and_corrected(
         capsys, tmp_path) -> None:
-    """lidR's Megaplot.laz (forest, UTM 17N, no trajectory): pass 2 holds one edge of its
+    """The lidR sample Megaplot.laz (forest, UTM 17N, no trajectory): pass 2 holds one edge of its
     swath (multiple returns 13-16 deg off nadir), which its rays cannot place in height.
     Both passes are kept, pass 2 at pass 1's altitude with its sigma stated; the forest
     offers no plane patch, so calibrate estimates nothing, says how well the passes agree

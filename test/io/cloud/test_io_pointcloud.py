@@ -252,7 +252,7 @@ def test_time_span_skips_nan_and_says_nan_when_there_is_no_time() -> None:
 
 
 def test_extracted_columns_carry_their_time_span_and_whether_all_is_finite() -> None:
-    """(Found in the extraction's pass, so that the correction need not look again.)"""
+    """Both are found in the extraction's pass, so that the correction need not look again."""
     from lidarcal_ros.io.cloud.columns import time_span
 
     pts = np.zeros(40, dtype=make_point_dtype())
@@ -280,7 +280,7 @@ def test_extracted_columns_carry_their_time_span_and_whether_all_is_finite() -> 
 
 
 def test_big_endian_fields_are_read_and_judged_like_little_endian_ones() -> None:
-    """(The compiled loops take native byte order; other clouds go the numpy way.)"""
+    """The compiled loops take native byte order; other clouds go the numpy way."""
     from lidarcal_ros.io.cloud.columns import extract_xyz
     from lidarcal_ros.io.cloud.messages import is_dense_byte
 

@@ -144,7 +144,7 @@ def test_a_new_service_resumes_from_the_checkpoint_and_converges_again(
 
 
 def test_requests_save_solve_and_reset(fed: Fed) -> None:
-    """(The last test of the module: it empties the fed service.)"""
+    """The last test of the module: it empties the fed service."""
     service = fed.service
     saved = service.save()
     path = Path(fed.config["calibration.calibration_file"])

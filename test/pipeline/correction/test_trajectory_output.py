@@ -229,8 +229,8 @@ def test_a_calibrated_drift_corrects_the_trajectory_s_heights(
         drifting: Drifting, capsys: pytest.CaptureFixture[str]) -> None:
     """``lidarcal calibrate`` (default: auto, drift chosen) then ``correct``: the corrected
     trajectory's heights are within 1 cm (median) of the true ones, the delivered ones
-    centimetres off. (Horizontally the strips' offsets also carry the lever arm and boresight
-    held fixed where the data cannot determine them, docs/method.md section 11: no claim.)"""
+    centimetres off. No claim horizontally: there the strips' offsets also carry the lever arm
+    and boresight held fixed where the data cannot determine them (docs/method.md section 11)."""
     cal, text = drifting.workdir / "calibrated.yaml", drifting.workdir / "calibrated.csv"
     proc = run_process("calibrate", drifting.bag, "-o", cal, "-q", cwd=Path.cwd())
     assert proc.returncode == 0, proc.stderr

@@ -163,7 +163,7 @@ FRD_FROM_FLU = np.diag([1.0, -1.0, -1.0])
 
 def rotations_from_ned_euler(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray,
                              turn: np.ndarray | float = 0.0) -> Any:
-    """scipy Rotations of REP-103 body -> ENU of NED Euler angles (rad; Applanix:
+    """SciPy Rotations of REP-103 body -> ENU of NED Euler angles (rad; Applanix:
     ``C_b^n = Rz(heading) Ry(pitch) Rx(roll)``), then turned counterclockwise about the
     vertical by ``turn`` (rad: true north to a map's grid north). Independent of
     :mod:`lidarcal_ros.core.georeferencing.attitude`."""
@@ -576,7 +576,7 @@ def test_not_an_sbet(exported, tmp_path) -> None:
 
 # ---------------------------------------------------------------------------- real data
 def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
-    """laspy's simple.las (LAS 1.2, week time, 9 point source ids, no CRS): reading and
+    """The laspy sample simple.las (LAS 1.2, week time, 9 point source ids, no CRS): reading and
     strip splitting; an ASCII trajectory made up to cover it."""
     path = real_las_file("simple.las")
     import laspy
@@ -619,9 +619,9 @@ def _made_up_trajectory(path: Path, csv: Path, *, gap_s: float = 10.0,
 
 
 def test_real_laspy_lambert93_adjusted_time_and_overlap_qa(tmp_path) -> None:
-    """laspy's append-bug.laz (LAS 1.4 format 8, adjusted standard time, RGF93 / Lambert-93,
-    ids 712, 800-802): strips from ids, the week-second trajectory met through the points'
-    absolute time, UNIX times in the bag, and the one real overlap (800 / 801, a strip of
+    """The laspy sample append-bug.laz (LAS 1.4 format 8, adjusted standard time, RGF93 /
+    Lambert-93, ids 712, 800-802): strips from ids, the week-second trajectory met through the
+    points' absolute time, UNIX times in the bag, and the one real overlap (800 / 801, a strip of
     tile edge) checked by the swath-to-swath QA."""
     import laspy
 
@@ -650,7 +650,7 @@ def test_real_laspy_lambert93_adjusted_time_and_overlap_qa(tmp_path) -> None:
 
 
 def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
-    """laspy's file_with_both_wkt_and_geotiff_vlrs.las (NAD83(2011) Nebraska in US feet,
+    """The laspy sample file_with_both_wkt_and_geotiff_vlrs.las (NAD83(2011) Nebraska in US feet,
     both a WKT and GeoTIFF keys, point source id 0, single returns): the header's week-time
     flag contradicts times of 3.3e8 s, which are read as adjusted standard time; strips come
     from time gaps; coordinates become metres."""
@@ -690,7 +690,7 @@ def test_real_truncated_laz_one_line(tmp_path, capsys) -> None:
 
 
 def test_real_lidr_megaplot_strips_from_time_gaps(tmp_path) -> None:
-    """lidR's Megaplot.laz (UTM 17N, week time): point source id 0 everywhere, two passes
+    """The lidR sample Megaplot.laz (UTM 17N, week time): point source id 0 everywhere, two passes
     542 s apart become strips 1 and 2."""
     path = real_las_file("Megaplot.laz")
     t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
@@ -706,7 +706,7 @@ def test_real_lidr_megaplot_strips_from_time_gaps(tmp_path) -> None:
 
 
 def test_real_lidr_mixed_conifer_overlap_qa(tmp_path) -> None:
-    """lidR's MixedConifer.laz: four passes over a forest plot (ids 0, week time); the
+    """The lidR sample MixedConifer.laz: four passes over a forest plot (ids 0, week time); the
     swath-to-swath QA of last returns on smooth 2 m cells finds the overlaps consistent
     to a few centimetres."""
     path = real_las_file("MixedConifer.laz")
@@ -722,7 +722,7 @@ def test_real_lidr_mixed_conifer_overlap_qa(tmp_path) -> None:
 
 
 def test_real_topography_trajectory_estimate(tmp_path) -> None:
-    """lidR's Topography.laz (adjusted standard time, up to 6 returns, MTM zone 7): a
+    """The lidR sample Topography.laz (adjusted standard time, up to 6 returns, MTM zone 7): a
     sensor path is rebuilt from its multiple returns, high above the ground and moving at
     an aircraft's speed."""
     path = real_las_file("Topography.laz")
@@ -739,7 +739,7 @@ def test_real_topography_trajectory_estimate(tmp_path) -> None:
 
 
 def test_real_autzen_feet_to_metres(tmp_path) -> None:
-    """laspy's autzen_trim.laz: Oregon Lambert in international feet, week time, one id
+    """The laspy sample autzen_trim.laz: Oregon Lambert in international feet, week time, one id
     (7326): coordinates become metres and the rebuilt sensor flies some 800 m up."""
     path = real_las_file("autzen_trim.laz")
     report = import_mission([path], tmp_path / "bag", ImportOptions(trajectory="estimate"))
