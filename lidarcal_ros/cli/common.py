@@ -1,5 +1,4 @@
-"""What several ``lidarcal`` commands share: quiet option, bag and calibration arguments, progress.
-"""
+"""What several ``lidarcal`` commands share: options, bag and calibration arguments, progress."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""``lidarcal simulate`` (a mission with known biases) and ``lidarcal plan`` (what a plan can see).
-"""
+"""``lidarcal simulate`` (a mission with known biases), ``lidarcal plan`` (what a plan can see)."""
 
 from __future__ import annotations
 

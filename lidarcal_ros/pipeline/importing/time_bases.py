@@ -1,5 +1,4 @@
-"""How an import's point and trajectory times meet on the bag's clock (docs/import.md, "GPS time").
-"""
+"""How the point and trajectory times of an import meet on the bag's clock (docs/import.md)."""
 
 from __future__ import annotations
 
