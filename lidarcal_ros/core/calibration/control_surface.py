@@ -48,14 +48,6 @@ class ControlSurface:
                               self.normal[index], self.distance[index])
 
 
-def plane_weights(dxy: np.ndarray) -> np.ndarray:
-    """The weights ``w`` (k,) with ``sum w_i z_i`` the height at the origin of the plane
-    fitted to points at horizontal offsets ``dxy`` (k, 2) from it: the first row of the
-    least-squares solution ``(A^T A)^-1 A^T``, ``A = [1, dx, dy]``."""
-    design = np.column_stack([np.ones(len(dxy)), dxy])
-    return np.linalg.solve(design.T @ design, design.T)[0]
-
-
 def fit_control_planes(control: np.ndarray, points: np.ndarray, candidates: np.ndarray, *,
                        k: int, max_radius: float) -> ControlSurface:
     """The plane under each control point through its ``k`` nearest points (horizontally).
@@ -73,31 +65,37 @@ def fit_control_planes(control: np.ndarray, points: np.ndarray, candidates: np.n
     max_radius : float
         Farthest neighbour accepted, metres: beyond it the control point has no plane.
     """
+    from scipy.spatial import cKDTree
+
     m = control.shape[0]
     out = ControlSurface(np.zeros(m, dtype=bool), np.full((m, k), -1, dtype=np.int64),
                          np.zeros((m, k)), np.zeros((m, 3)), np.full(m, np.nan))
-    if candidates.size < k:
+    if candidates.size < k or m == 0:
         return out
     near = points[candidates]
-    for i in range(m):
-        d2 = ((near[:, :2] - control[i, :2]) ** 2).sum(axis=1)
-        nearest = np.argpartition(d2, k - 1)[:k]
-        if d2[nearest].max() > max_radius**2:
-            continue
-        dxy = near[nearest, :2] - control[i, :2]
-        z = near[nearest, 2]
-        design = np.column_stack([np.ones(k), dxy])
-        coef, *_ = np.linalg.lstsq(design, z, rcond=None)
-        rms = float(np.sqrt(((design @ coef - z) ** 2).sum() / max(k - 3, 1)))
-        if rms > PLANE_MAX_RMS_M:
-            continue
-        normal = np.array([-coef[1], -coef[2], 1.0]) / np.hypot(np.hypot(coef[1], coef[2]), 1.0)
-        out.valid[i] = True
-        out.neighbours[i] = candidates[nearest]
-        out.weights[i] = plane_weights(dxy)
-        out.normal[i] = normal
-        out.distance[i] = (control[i, 2] - coef[0]) * normal[2]
+    dist, nearest = cKDTree(near[:, :2]).query(control[:, :2], k=k)
+    dist, nearest = dist.reshape(m, k), nearest.reshape(m, k)
+    inside = dist[:, -1] <= max_radius
+    dxy = near[nearest, :2] - control[:, None, :2]  # (m, k, 2), about each control point
+    design = np.concatenate([np.ones((m, k, 1)), dxy], axis=2)  # (m, k, 3)
+    normal_matrix = np.einsum("mki,mkj->mij", design, design)
+    solvable = inside & (np.abs(np.linalg.det(normal_matrix)) > 1e-12)
+    normal_matrix[~solvable] = np.eye(3)
+    inverse = np.linalg.inv(normal_matrix)
+    weights = np.einsum("mj,mkj->mk", inverse[:, 0, :], design)  # first row of (A^T A)^-1 A^T
+    z = near[nearest, 2]
+    coef = np.einsum("mij,mkj,mk->mi", inverse, design, z)
+    residual = np.einsum("mkj,mj->mk", design, coef) - z
+    rms = np.sqrt((residual**2).sum(axis=1) / max(k - 3, 1))
+    valid = solvable & (rms <= PLANE_MAX_RMS_M)
+    tilt = np.hypot(np.hypot(coef[:, 1], coef[:, 2]), 1.0)
+    normal = np.column_stack([-coef[:, 1], -coef[:, 2], np.ones(m)]) / tilt[:, None]
+    out.valid[:] = valid
+    out.neighbours[valid] = candidates[nearest[valid]]
+    out.weights[valid] = weights[valid]
+    out.normal[valid] = normal[valid]
+    out.distance[valid] = (control[valid, 2] - coef[valid, 0]) * normal[valid, 2]
     return out
 
 
-__all__ = ["PLANE_MAX_RMS_M", "ControlSurface", "fit_control_planes", "plane_weights"]
+__all__ = ["PLANE_MAX_RMS_M", "ControlSurface", "fit_control_planes"]

@@ -352,7 +352,7 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
         k = int(np.argmax(above))
         raise TrajectoryError(
             f"{source}: point at t={t[k]:.3f} s is not below the trajectory "
-            f"(z={geometry.z[k]:.2f} m); wrong trajectory or time base?"
+            f"(z={geometry.z[k]:.6g} m); wrong trajectory or time base?"
         )
     return geometry
 

@@ -261,7 +261,7 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
         k = int(np.argmax(above))
         raise TrajectoryError(
             f"{source}: point at t={t[k]:.3f} s is not below the trajectory "
-            f"(z={z[k]:.2f} m); wrong trajectory or time base?")
+            f"(z={z[k]:.6g} m); wrong trajectory or time base?")
     beta = np.arctan2(-x, -z)
     # The heading of the body's forward axis (R_ins's second column) on the horizontal.
     kappa = np.arctan2(-rotation[:, 0, 1], rotation[:, 1, 1])

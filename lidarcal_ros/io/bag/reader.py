@@ -196,6 +196,9 @@ class BagReader:
         else:
             files = [path]
         for file in files:
+            if not file.is_file():  # a FIFO, socket or device would block or never end
+                raise BagError(f"{file}: not a regular file (a FIFO, socket or device); "
+                               "refused")
             self._open_file(file)
         self._collect_topics(meta_qos)
 

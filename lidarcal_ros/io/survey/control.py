@@ -20,6 +20,11 @@ COLUMNS: tuple[str, ...] = ("id", "x", "y", "z")
 MAX_COORDINATE_M = 1e8
 
 
+#: Most control points a file may hold: control fixes a datum with tens to thousands of
+#: points; beyond this it is a surface, and every iteration would match all of it.
+MAX_CONTROL_POINTS = 100_000
+
+
 def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
     """Read control points.
 
@@ -63,7 +68,12 @@ def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
             f"(found: {header.strip()})"
         )
     col = {c: names.index(c) for c in COLUMNS}
+    if len(lines) - 1 > MAX_CONTROL_POINTS:
+        raise InputError(f"{p}: {len(lines) - 1:,} control points; at most "
+                         f"{MAX_CONTROL_POINTS:,} are taken (thin the file, or give check points "
+                         "to lidarcal evaluate)")
     ids: list[str] = []
+    seen: set[str] = set()
     xyz: list[tuple[float, float, float]] = []
     for no, line in lines[1:]:
         cells = [c.strip() for c in line.split(",")]
@@ -74,8 +84,9 @@ def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
         pid = cells[col["id"]]
         if not pid:
             raise InputError(f"{p}: line {no}: empty id")
-        if pid in ids:
+        if pid in seen:
             raise InputError(f"{p}: line {no}: duplicate id '{pid}'")
+        seen.add(pid)
         coords = []
         for c in ("x", "y", "z"):
             value = cells[col[c]]

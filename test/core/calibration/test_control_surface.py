@@ -5,11 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lidarcal_ros.core.calibration.control_surface import (
-    PLANE_MAX_RMS_M,
-    fit_control_planes,
-    plane_weights,
-)
+from lidarcal_ros.core.calibration.control_surface import PLANE_MAX_RMS_M, fit_control_planes
 
 
 def scattered(rng: np.random.Generator, n: int, half_width: float) -> np.ndarray:
@@ -17,14 +13,19 @@ def scattered(rng: np.random.Generator, n: int, half_width: float) -> np.ndarray
     return rng.uniform(-half_width, half_width, size=(n, 2))
 
 
-def test_plane_weights_reproduce_any_plane_at_the_origin() -> None:
+def test_the_weights_reproduce_any_plane_under_the_control_point() -> None:
+    """The foot ``sum w_i X_i`` lies right under the control point and on the plane: the
+    weights sum to one and cancel the neighbours' horizontal offsets."""
     rng = np.random.default_rng(1)
-    dxy = scattered(rng, 24, 2.0)
-    w = plane_weights(dxy)
+    xy = scattered(rng, 200, 5.0)
+    points = np.column_stack([xy, 3.5 + 0.2 * xy[:, 0] - 0.7 * xy[:, 1]])
+    control = np.array([[0.3, -0.4, 10.0]])
+    surface = fit_control_planes(control, points, np.arange(len(points)), k=24,
+                                 max_radius=5.0)
+    w = surface.weights[0]
     assert w.sum() == pytest.approx(1.0, abs=1e-12)
-    np.testing.assert_allclose(w @ dxy, 0.0, atol=1e-12)  # the foot is above the origin
-    z = 3.5 + 0.2 * dxy[:, 0] - 0.7 * dxy[:, 1]
-    assert w @ z == pytest.approx(3.5, abs=1e-12)
+    foot = w @ points[surface.neighbours[0]]
+    np.testing.assert_allclose(foot, [0.3, -0.4, 3.5 + 0.2 * 0.3 + 0.7 * 0.4], atol=1e-12)
 
 
 @pytest.mark.parametrize("slope", [(0.0, 0.0), (0.3, -0.1), (-0.8, 0.5)])

@@ -46,3 +46,29 @@ def test_hostile_metadata_is_refused_in_one_line(bag_copy: Path, text: str,
     with pytest.raises(BagError, match=expected) as raised, BagReader(bag_copy):
         pass
     assert "\n" not in str(raised.value)
+
+
+@pytest.mark.parametrize("where", ["the bag path", "the bag's storage file"])
+def test_a_fifo_is_refused_not_read_forever(bag_copy: Path, where: str) -> None:
+    """A FIFO would block the reader for ever (no writer) or feed it without end: refused in
+    one line (checked in a child process, so a regression fails rather than hangs)."""
+    import os
+    import subprocess
+    import sys
+
+    if where == "the bag path":
+        target = bag_copy.parent / "fifo"
+        os.mkfifo(target)
+        opened = target
+    else:
+        storage = next(bag_copy.glob("*.mcap"))
+        storage.unlink()
+        os.mkfifo(storage)
+        opened, target = bag_copy, storage
+    code = ("from lidarcal_ros.io.bag.reader import BagReader\n"
+            "from lidarcal_ros.errors import BagError\n"
+            f"try:\n    BagReader({str(opened)!r}).__enter__()\n"
+            "except BagError as e:\n    print(e)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, check=True).stdout
+    assert out.strip() == f"{target}: not a regular file (a FIFO, socket or device); refused"
