@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -277,82 +278,153 @@ def solve(
             if i in active:
                 active.remove(i)
 
-    # (a) No effect at all on the observations.
-    diag = np.diag(neq.n)
-    effect = np.sqrt(np.maximum(diag, 0.0) / max(neq.count, 1)) * REFERENCE_MAGNITUDE
-    for i in list(active):
-        if effect[i] < limits.min_effect_m:
-            drop([i], f"{PARAMETER_NAMES[i]} has no effect on the observations of this data "
-                      f"({_no_effect_hint(PARAMETER_NAMES[i])})")
-
-    warnings: list[str] = []
+    for i, reason in _without_effect(neq, active, limits):
+        drop([i], reason)
+    # Each pass drops what one check finds and starts again on the parameters left.
     for _ in range(2 * N_PARAMETERS):
         if not active:
             break
         idx = np.array(active)
-        n_sub = neq.n[np.ix_(idx, idx)]
-        scale = 1.0 / np.sqrt(np.diag(n_sub))
-        c = n_sub * scale[:, None] * scale[None, :]
-        # (b) Rank deficiency: a combination of parameters with (almost) no effect.
-        eigval, eigvec = np.linalg.eigh(c)
-        if eigval[0] < limits.min_eigenvalue:
-            vec = eigvec[:, 0]
-            involved = [int(idx[j]) for j in np.flatnonzero(np.abs(vec) > 0.25)]
-            drop(involved, f"{_names(involved)} cannot be told apart on this data: "
-                           "their effects on the overlaps are the same "
-                           "(rank-deficient normal matrix)")
+        scaled = _ScaledSystem.of(neq, idx)
+        found = _rank_deficiency(scaled, limits)
+        if found is not None:
+            drop(*found)
             continue
-        cinv = np.linalg.inv(c)
-        d = np.sqrt(np.diag(cinv))
-        corr = cinv / d[:, None] / d[None, :]
-        # (c) Near-perfect correlation.
-        off = np.abs(corr - np.eye(len(idx)))
-        worst = np.unravel_index(np.argmax(off), off.shape)
-        if off[worst] > limits.max_correlation:
-            pi, pj = int(idx[worst[0]]), int(idx[worst[1]])
-            drop([pi, pj], f"{PARAMETER_NAMES[pi]} and {PARAMETER_NAMES[pj]} are correlated "
-                           f"{float(off[worst]):.4f}: only their combination is determined"
-                           f"{_correlation_hint(PARAMETER_NAMES[pi], PARAMETER_NAMES[pj])}")
+        found = _near_perfect_correlation(scaled, limits)
+        if found is not None:
+            drop(*found)
             continue
-        # Solve with the fixed parameters moved to the right-hand side.
-        rhs = neq.u[idx] - neq.n[np.ix_(idx, np.arange(N_PARAMETERS))] @ _zero_at(base, idx)
-        delta = base.copy()
-        delta[idx] = scale * (cinv @ (scale * rhs))
-        q = neq.count
-        redundancy = q - len(idx)
-        if redundancy <= 0:
-            k = len(idx)
-            raise CalibrationError(
-                f"{q} correspondence{'' if q == 1 else 's'} for {k} "
-                f"parameter{'' if k == 1 else 's'}: too few to estimate "
-                f"{'it' if k == 1 else 'them'} with any check (redundancy {redundancy})"
-            )
-        vtpv = max(neq.residual_square_sum(delta), 0.0)
-        sigma0 = float(np.sqrt(vtpv / redundancy))
-        s0 = sigma0_apriori if sigma0_apriori is not None else sigma0
-        cov = (s0**2) * cinv * scale[:, None] * scale[None, :]
-        sig = np.sqrt(np.diag(cov))
-        # (d) Determined too weakly to be of use.
-        weak = [int(idx[j]) for j in range(len(idx))
-                if sig[j] > limits.max_sigma.get(PARAMETER_NAMES[idx[j]], np.inf)]
+        fit = _estimate(neq, scaled, base, sigma0_apriori)
+        weak = _too_weak(idx, fit.sigma, limits)
         if weak:
-            for i in weak:
-                drop([i], "the data flown determines it too weakly to be useful "
-                          f"({_weak_hint(PARAMETER_NAMES[i])})")
+            for i, reason in weak:
+                drop([i], reason)
             continue
-        for name, _, r in _pairs(idx, corr, 0.9):
-            warnings.append(f"{name} strongly correlated ({r:+.2f})")
+        warnings = [f"{name} strongly correlated ({r:+.2f})"
+                    for name, _, r in _pairs(idx, scaled.correlation, 0.9)]
         sigma = np.full(N_PARAMETERS, np.nan)
-        sigma[idx] = sig
+        sigma[idx] = fit.sigma
         for i in idx:
             status[PARAMETER_NAMES[i]] = ParameterStatus("estimated")
         return Solution(
-            delta=delta, sigma=sigma, estimated=tuple(PARAMETER_NAMES[i] for i in idx),
-            covariance=cov, correlation=corr, sigma0=sigma0, redundancy=redundancy,
-            status=status, warnings=warnings,
+            delta=fit.delta, sigma=sigma, estimated=tuple(PARAMETER_NAMES[i] for i in idx),
+            covariance=fit.covariance, correlation=scaled.correlation, sigma0=fit.sigma0,
+            redundancy=fit.redundancy, status=status, warnings=warnings,
         )
     reasons = "; ".join(f"{k}: {v.reason}" for k, v in status.items() if v.reason)
     raise CalibrationError(f"nothing left to estimate ({reasons})")
+
+
+@dataclass(frozen=True)
+class _ScaledSystem:
+    """The normal matrix of the parameters ``idx``, scaled to a unit diagonal (``c``), its
+    inverse and the correlations it implies."""
+
+    idx: np.ndarray
+    scale: np.ndarray  # 1 / sqrt(diag N)
+    c: np.ndarray
+
+    @classmethod
+    def of(cls, neq: NormalEquations, idx: np.ndarray) -> _ScaledSystem:
+        """The scaled system of ``neq`` over the parameters ``idx``."""
+        n_sub = neq.n[np.ix_(idx, idx)]
+        scale = 1.0 / np.sqrt(np.diag(n_sub))
+        return cls(idx, scale, n_sub * scale[:, None] * scale[None, :])
+
+    @cached_property
+    def cinv(self) -> np.ndarray:
+        """``c^-1``, taken once the rank is known to be full."""
+        return np.linalg.inv(self.c)
+
+    @cached_property
+    def correlation(self) -> np.ndarray:
+        """The parameters' correlation matrix."""
+        d = np.sqrt(np.diag(self.cinv))
+        return self.cinv / d[:, None] / d[None, :]
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """A solution of the scaled system: the estimate (SI, fixed parameters included), its
+    sigma0, redundancy, covariance and sigmas of the parameters solved for."""
+
+    delta: np.ndarray
+    sigma0: float
+    redundancy: int
+    covariance: np.ndarray
+    sigma: np.ndarray
+
+
+def _without_effect(neq: NormalEquations, active: Sequence[int],
+                    limits: ObservabilityLimits) -> list[tuple[int, str]]:
+    """(a) The parameters with no effect at all on the observations, and why."""
+    diag = np.diag(neq.n)
+    effect = np.sqrt(np.maximum(diag, 0.0) / max(neq.count, 1)) * REFERENCE_MAGNITUDE
+    return [(i, f"{PARAMETER_NAMES[i]} has no effect on the observations of this data "
+                f"({_no_effect_hint(PARAMETER_NAMES[i])})")
+            for i in active if effect[i] < limits.min_effect_m]
+
+
+def _rank_deficiency(scaled: _ScaledSystem, limits: ObservabilityLimits
+                     ) -> tuple[list[int], str] | None:
+    """(b) A combination of parameters with (almost) no effect: those involved, and why."""
+    eigval, eigvec = np.linalg.eigh(scaled.c)
+    if eigval[0] >= limits.min_eigenvalue:
+        return None
+    involved = [int(scaled.idx[j]) for j in np.flatnonzero(np.abs(eigvec[:, 0]) > 0.25)]
+    return involved, (f"{_names(involved)} cannot be told apart on this data: their effects "
+                      "on the overlaps are the same (rank-deficient normal matrix)")
+
+
+def _near_perfect_correlation(scaled: _ScaledSystem, limits: ObservabilityLimits
+                              ) -> tuple[list[int], str] | None:
+    """(c) The most correlated pair, where beyond ``max_correlation``, and why."""
+    off = np.abs(scaled.correlation - np.eye(len(scaled.idx)))
+    worst = np.unravel_index(np.argmax(off), off.shape)
+    if off[worst] <= limits.max_correlation:
+        return None
+    pi, pj = int(scaled.idx[worst[0]]), int(scaled.idx[worst[1]])
+    return [pi, pj], (f"{PARAMETER_NAMES[pi]} and {PARAMETER_NAMES[pj]} are correlated "
+                      f"{float(off[worst]):.4f}: only their combination is determined"
+                      f"{_correlation_hint(PARAMETER_NAMES[pi], PARAMETER_NAMES[pj])}")
+
+
+def _estimate(neq: NormalEquations, scaled: _ScaledSystem, base: np.ndarray,
+              sigma0_apriori: float | None) -> _Fit:
+    """Solve with the fixed parameters (``base``) moved to the right-hand side.
+
+    Raises
+    ------
+    CalibrationError
+        No redundancy: as many parameters as correspondences, or more.
+    """
+    idx, scale, cinv = scaled.idx, scaled.scale, scaled.cinv
+    rhs = neq.u[idx] - neq.n[np.ix_(idx, np.arange(N_PARAMETERS))] @ _zero_at(base, idx)
+    delta = base.copy()
+    delta[idx] = scale * (cinv @ (scale * rhs))
+    q = neq.count
+    redundancy = q - len(idx)
+    if redundancy <= 0:
+        k = len(idx)
+        raise CalibrationError(
+            f"{q} correspondence{'' if q == 1 else 's'} for {k} "
+            f"parameter{'' if k == 1 else 's'}: too few to estimate "
+            f"{'it' if k == 1 else 'them'} with any check (redundancy {redundancy})"
+        )
+    vtpv = max(neq.residual_square_sum(delta), 0.0)
+    sigma0 = float(np.sqrt(vtpv / redundancy))
+    s0 = sigma0_apriori if sigma0_apriori is not None else sigma0
+    cov = (s0**2) * cinv * scale[:, None] * scale[None, :]
+    return _Fit(delta, sigma0, redundancy, cov, np.sqrt(np.diag(cov)))
+
+
+def _too_weak(idx: np.ndarray, sigma: np.ndarray,
+              limits: ObservabilityLimits) -> list[tuple[int, str]]:
+    """(d) The parameters determined too weakly to be of use, and why."""
+    return [(int(idx[j]), "the data flown determines it too weakly to be useful "
+                          f"({_weak_hint(PARAMETER_NAMES[idx[j]])})")
+            for j in range(len(idx))
+            if sigma[j] > limits.max_sigma.get(PARAMETER_NAMES[idx[j]], np.inf)]
 
 
 def _zero_at(vector: np.ndarray, idx: np.ndarray) -> np.ndarray:
