@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -368,6 +368,36 @@ class Calibrator:
                 if done is not None and (done.ended or done.number >= limit):
                     return self.conclude(done)
 
+    def _matched_pairs(
+        self, live: Sequence[StripPair], delta: np.ndarray,
+        corrected: dict[int, tuple[np.ndarray, np.ndarray]], iteration: int,
+    ) -> Iterator[tuple[StripPair, Observations, np.ndarray]]:
+        """Each live pair's sample matched at ``delta``: the pair, its observations and the
+        patch of each sample point (-1: none). Within :meth:`run` every pair is matched at
+        once in the threads; otherwise one by one as the caller takes them, so that it can
+        pause between pairs. ``corrected`` (by strip) gains the strips corrected on the way."""
+
+        def observe(pair: StripPair) -> tuple[Observations, np.ndarray]:
+            assert pair.sample is not None
+            for k in (pair.a, pair.b):
+                if k not in corrected:
+                    corrected[k] = self.matcher.corrected(k, delta)
+            m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
+            return (self.matcher.pair_observations(pair, pair.sample, m),
+                    np.where(m.valid, m.triangle, -1))
+
+        label = f"iteration {iteration}: matching"
+        if self.workers.running:
+            # Every strip corrected first, so that the threads only read ``corrected``.
+            corrected.update(self.matcher.corrected_many(self.matcher.used_strips(live), delta))
+            for pair, (last, patches) in zip(live, self.workers.map(observe, live, label),
+                                             strict=True):
+                yield pair, last, patches
+            return
+        for p_i, pair in enumerate(live):
+            self._progress(label, p_i / max(len(live), 1))
+            yield (pair, *observe(pair))
+
     def iterate(self, *, new_pairs_only: bool = False) -> Iterator[Iteration | None]:
         """Match and adjust from the current estimate, iteration after iteration, for as long
         as the caller takes items (:meth:`run`'s options).
@@ -416,35 +446,11 @@ class Calibrator:
                      for obs, at in frozen]
             # Each live pair's (index, first row, patch of each sample point or -1).
             layout: list[tuple[int, int, np.ndarray]] = []
-            if self.workers.running:  # (run(): every pair at once, in the threads)
-                corrected = self.matcher.corrected_many(self.matcher.used_strips(live), delta)
-
-                def observe(pair: StripPair, delta: np.ndarray = delta,
-                            corrected: dict[int, tuple[np.ndarray, np.ndarray]] = corrected
-                            ) -> tuple[Observations, np.ndarray]:
-                    assert pair.sample is not None
-                    m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
-                    return (self.matcher.pair_observations(pair, pair.sample, m),
-                            np.where(m.valid, m.triangle, -1))
-
-                matched = self.workers.map(observe, live, f"iteration {iteration}: matching")
-                for pair, (last, patches) in zip(live, matched, strict=True):
-                    pair.last = last
-                    pair.last_delta = delta.copy()
-                    layout.append((pair.index, sum(map(len, parts)), patches))
-                    parts.append(last)
-                    yield None
-            for p_i, pair in enumerate(() if self.workers.running else live):
-                self._progress(f"iteration {iteration}: matching", p_i / max(len(live), 1))
-                assert pair.sample is not None
-                for k in (pair.a, pair.b):
-                    if k not in corrected:
-                        corrected[k] = self.matcher.corrected(k, delta)
-                m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
-                pair.last = self.matcher.pair_observations(pair, pair.sample, m)
+            for pair, last, patches in self._matched_pairs(live, delta, corrected, iteration):
+                pair.last = last
                 pair.last_delta = delta.copy()
-                layout.append((pair.index, sum(map(len, parts)), np.where(m.valid, m.triangle, -1)))
-                parts.append(pair.last)
+                layout.append((pair.index, sum(map(len, parts)), patches))
+                parts.append(last)
                 yield None
             if control is not None and len(control):
                 corrected.update(self.matcher.corrected_many(
