@@ -341,9 +341,11 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
         if target is not None:
             settings = with_constant(settings, target.constant)
             meaning = f"{settings.radiometry.meaning} The {target.describe()}."
+    messages = _CorrectedMessages() if kind == "bag" else None
     corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
                                 workers=options.workers, source=points_topic,
-                                keep_tallies=kind == "bag")
+                                keep_tallies=kind == "bag",
+                                place=None if messages is None else messages.place)
     source = str(bag.path)
     gate = (TrajectoryGate(corrector, samples, _pose_reader(bag, traj_topic, samples),
                            functools.partial(_checked_trajectory, bag, traj_topic, samples,
@@ -357,7 +359,8 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
                               atmosphere=describe_alpha(settings.radiometry),
                               reflectance=meaning, warnings=list(request.warnings))
     job = _Job(bag, corrector, gate, out_path, points_topic, traj_topic, corrected_topic,
-               options.overwrite, n_clouds, progress, report, request.moved_topic, poses)
+               options.overwrite, n_clouds, progress, report, request.moved_topic, poses,
+               messages)
     try:
         corrector.start()  # the workers start while the clouds are read
         if kind == "las":
@@ -532,6 +535,8 @@ class _Job:
         The corrected trajectory's topic (bag output; None: not written).
     poses : _PoseMessages or None
         The trajectory messages read so far (where ``moved_topic`` is written).
+    messages : _CorrectedMessages or None
+        Where the corrected clouds are built (bag output; the corrector's placer).
     """
 
     bag: Any
@@ -547,6 +552,7 @@ class _Job:
     report: CorrectionReport
     moved_topic: str | None = None
     poses: _PoseMessages | None = None
+    messages: _CorrectedMessages | None = None
 
     @property
     def cloud_topics(self) -> list[str]:
@@ -649,111 +655,158 @@ def _check_something_corrected(stats: CorrectionStats, bag_path: Path, topic: st
                          "x, y or z; nothing to correct")
 
 
+class _CorrectedMessages:
+    """The corrected clouds of a bag output, each built in the bytes of its message (the
+    input's header, then the points, 8-byte aligned, then ``is_dense``), which the writer
+    then copies once; keyed by the cloud's input sequence number."""
+
+    def __init__(self) -> None:
+        self._clouds: dict[int, tuple[int, Any]] = {}  # log time ns, input message
+        self._messages: dict[int, np.ndarray] = {}
+
+    def hold(self, k: int, ns: int, msg: Any) -> None:
+        """Cloud ``k`` (log time ``ns``, the decoded input ``msg``) went to the correction."""
+        self._clouds[k] = (ns, msg)
+
+    def place(self, k: int, n: int, dtype: np.dtype[Any]) -> np.ndarray:
+        """The points of cloud ``k`` (``n`` of ``dtype``), a view into the bytes of its
+        corrected message, which this allocates (called from the corrector's threads)."""
+        from lidarcal_ros.io.cloud.messages import cloud_header_cdr, stamp_ns
+        from lidarcal_ros.io.cloud.pointcloud import point_fields
+
+        _ns, msg = self._clouds[k]
+        head = cloud_header_cdr(stamp_ns(msg.header.stamp), msg.header.frame_id,
+                                point_fields(dtype), dtype.itemsize, n)
+        pad = (-len(head)) % 8
+        size = len(head) + n * dtype.itemsize + 1
+        buf = np.empty(pad + size, dtype=np.uint8)
+        buf[pad:pad + len(head)] = np.frombuffer(head, dtype=np.uint8)
+        self._messages[k] = buf[pad:]
+        return buf[pad + len(head):pad + size - 1].view(dtype)
+
+    def release(self, k: int, dense: bool) -> tuple[int, np.ndarray]:
+        """Cloud ``k``'s log time and finished message bytes (``is_dense`` set), let go."""
+        ns, _msg = self._clouds.pop(k)
+        message = self._messages.pop(k)
+        message[-1] = dense
+        return ns, message
+
+
+class _OrderedOutput:
+    """The output bag's messages in the input's (log-time) order.
+
+    Messages are queued by (input sequence number, 0 passed through / 1 corrected): passed
+    through ones are ready at once, corrected clouds when their batch comes back; whatever
+    comes before the oldest cloud still held is written.
+    """
+
+    def __init__(self, writer: Any, bag: Any, corrected_topic: str,
+                 report: CorrectionReport) -> None:
+        self._writer, self._bag, self._report = writer, bag, report
+        self._corrected_topic = corrected_topic
+        self._ready: list[tuple[int, int, Any]] = []
+        self._held: deque[int] = deque()
+        self._skipped_topics: set[str] = set()
+
+    def pass_through(self, k: int, topic: str, msgtype: str, ns: int, raw: bytes) -> None:
+        """Input message ``k``, written as it is."""
+        heapq.heappush(self._ready, (k, 0, (topic, msgtype, ns, raw)))
+
+    def hold(self, k: int) -> None:
+        """Input message ``k`` is a cloud being corrected: nothing after it is written yet."""
+        self._held.append(k)
+
+    def corrected(self, k: int, ns: int, message: np.ndarray) -> None:
+        """Cloud ``k`` corrected: its message bytes (log time ``ns``)."""
+        heapq.heappush(self._ready, (k, 1, (ns, message)))
+        self._held.remove(k)
+
+    def emit(self) -> None:
+        """Write every message before the oldest cloud still held."""
+        self._emit((self._held[0], 1) if self._held else (math.inf, 0))
+
+    def emit_all(self) -> None:
+        """Write every message queued."""
+        self._emit((math.inf, 0))
+
+    def _emit(self, limit: tuple[float, int]) -> None:
+        from lidarcal_ros.io.bag.format import POINTCLOUD2
+
+        ready = self._ready
+        while ready and (ready[0][0], ready[0][1]) < limit:
+            _, kind, payload = heapq.heappop(ready)
+            if kind == 1:
+                ns, message = payload
+                self._writer.write_raw(self._corrected_topic, POINTCLOUD2, ns, message.data)
+            else:
+                self._write_raw(*payload)
+
+    def _write_raw(self, topic: str, msgtype: str, ns: int, raw: bytes) -> None:
+        if topic in self._skipped_topics:
+            return
+        try:
+            self._writer.write_raw(topic, msgtype, ns, raw,
+                                   msgdef=self._bag.topics[topic].msgdef or None)
+        except BagError as exc:
+            self._skipped_topics.add(topic)
+            self._report.warnings.append(f"topic {topic} not passed through ({exc})")
+            logger.warning("%s", self._report.warnings[-1])
+            return
+        self._report.passthrough_messages += 1
+
+
 def _correct_to_bag(job: _Job) -> None:
     """Correct the clouds of ``job`` into a bag, every other message passed through."""
     from lidarcal_ros.io.bag.format import POINTCLOUD2
     from lidarcal_ros.io.bag.writer import BagWriter
-    from lidarcal_ros.io.cloud.messages import cloud_header_cdr, stamp_ns
-    from lidarcal_ros.io.cloud.pointcloud import point_fields
 
-    bag, corrector, gate, points_topic, corrected_topic = (
-        job.bag, job.corrector, job.gate, job.points_topic, job.corrected_topic)
-    progress, report = job.progress, job.report
-
+    bag, corrector, gate, points_topic = job.bag, job.corrector, job.gate, job.points_topic
+    messages = job.messages
+    assert messages is not None  # (a bag output's corrector places into them)
     latched = [t for t, info in bag.topics.items() if info.transient_local]
-    # Output queue keyed by (input sequence number, 0 = passed through / 1 = corrected).
-    # Passed-through messages are ready at once, corrected clouds when their batch is
-    # released; everything before the oldest cloud still held is written, so the output
-    # keeps the input's (log-time) order.
-    ready: list[tuple[int, int, Any]] = []
-    held: deque[int] = deque()
-    clouds: dict[int, tuple[int, Any]] = {}  # input sequence number -> log time, message
-    # Each corrected cloud is built in the bytes of its message (the input's header, then
-    # the points, 8-byte aligned, then is_dense), which the writer then copies once.
-    messages: dict[int, np.ndarray] = {}
-    skipped_topics: set[str] = set()
-    seen = 0
-
-    def place(k_: int, n_: int, dtype_: np.dtype[Any]) -> np.ndarray:
-        """The points of cloud ``k_`` (``n_`` of ``dtype_``), a view into the bytes of its
-        corrected message, which this allocates (called from the worker threads)."""
-        _ns, msg_ = clouds[k_]
-        head = cloud_header_cdr(stamp_ns(msg_.header.stamp), msg_.header.frame_id,
-                                point_fields(dtype_), dtype_.itemsize, n_)
-        pad = (-len(head)) % 8
-        size = len(head) + n_ * dtype_.itemsize + 1
-        buf = np.empty(pad + size, dtype=np.uint8)
-        buf[pad:pad + len(head)] = np.frombuffer(head, dtype=np.uint8)
-        messages[k_] = buf[pad:]
-        return buf[pad + len(head):pad + size - 1].view(dtype_)
-
-    corrector.place = place
     with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched,
                    typestore=bag.typestore) as writer:
         # Where the input allows it, its chunks are copied as they are: every input message
         # is then in the output, and only the clouds are read.
-        new_topics = {corrected_topic: POINTCLOUD2}
+        new_topics = {job.corrected_topic: POINTCLOUD2}
         if job.moved_topic is not None:
             new_topics[job.moved_topic] = bag.topics[job.trajectory_topic].msgtype
         copied = writer.copy_chunks_of(bag, new_topics)
         if copied is not None:
-            report.passthrough_messages = copied.messages
-
-        def write_corrected(ns_: int, message: np.ndarray) -> None:
-            writer.write_raw(corrected_topic, POINTCLOUD2, ns_, message.data)
-
-        def write_raw(topic_: str, msgtype_: str, ns_: int, raw_: bytes) -> None:
-            if topic_ in skipped_topics:
-                return
-            try:
-                writer.write_raw(topic_, msgtype_, ns_, raw_,
-                                 msgdef=bag.topics[topic_].msgdef or None)
-            except BagError as exc:
-                skipped_topics.add(topic_)
-                report.warnings.append(f"topic {topic_} not passed through ({exc})")
-                logger.warning("%s", report.warnings[-1])
-                return
-            report.passthrough_messages += 1
-
-        def emit(limit: tuple[float, int]) -> None:
-            while ready and (ready[0][0], ready[0][1]) < limit:
-                _, kind_, payload = heapq.heappop(ready)
-                (write_corrected if kind_ == 1 else write_raw)(*payload)
+            job.report.passthrough_messages = copied.messages
+        output = _OrderedOutput(writer, bag, job.corrected_topic, job.report)
 
         def collect(done: list[tuple[Any, np.ndarray]]) -> None:
-            for k_, _corrected in done:
-                ns_, _msg = clouds.pop(k_)
-                message = messages.pop(k_)
-                message[-1] = corrector.tallies.pop(k_).dense
-                heapq.heappush(ready, (k_, 1, (ns_, message)))
-                held.remove(k_)
+            for k, _corrected in done:
+                output.corrected(k, *messages.release(k, corrector.tallies.pop(k).dense))
 
         # (the chunks copied: the clouds, and the trajectory where the gate reads it)
         read_topics = None if copied is None else job.cloud_topics
         read = functools.partial(bag.messages, read_topics)
+        seen = 0
         # (clouds alone: fewer of them read ahead hold as many bytes as the mixed messages)
         for k, (topic, msgtype, ns, raw) in enumerate(
                 prefetched(read, batch=8 if read_topics == [points_topic] else 32)):
             if copied is None:  # (copied, the input's messages are in the output already)
-                heapq.heappush(ready, (k, 0, (topic, msgtype, ns, raw)))
+                output.pass_through(k, topic, msgtype, ns, raw)
             if topic == points_topic:
                 msg, points = _cloud_points(bag, msgtype, raw, topic)
-                held.append(k)
-                clouds[k] = (ns, msg)
+                output.hold(k)
+                messages.hold(k, ns, msg)
                 for tag, covered in gate.cloud(k, msg, points):
                     collect(corrector.push(covered, tag))
                 seen += 1
-                if progress and seen % 50 == 0:
-                    progress("correcting", seen / job.n_clouds)
+                if job.progress and seen % 50 == 0:
+                    job.progress("correcting", seen / job.n_clouds)
             elif topic == job.trajectory_topic and gate.reading:
                 gate.pose(msgtype, raw)
                 if job.poses is not None:
                     job.poses.add(ns, msgtype, raw)
-            emit((held[0], 1) if held else (math.inf, 0))
+            output.emit()
         for tag, covered in gate.finish():
             collect(corrector.push(covered, tag))
         collect(corrector.flush())
-        emit((math.inf, 0))
+        output.emit_all()
         _check_something_corrected(corrector.stats, bag.path, points_topic)
         if job.moved_topic is not None:
             _write_moved_poses(job, writer)
