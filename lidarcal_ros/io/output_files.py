@@ -85,13 +85,17 @@ def remove_quietly(path: Path) -> None:
 
 
 def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
-    """Write a text file completely or not at all.
+    """Write a text file completely or not at all (UTF-8; :func:`write_bytes`)."""
+    return write_bytes(path, text.encode("utf-8"), what=what)
+
+
+def write_bytes(path: str | os.PathLike[str], data: bytes, *, what: str) -> Path:
+    """Write a file completely or not at all.
 
     Parameters
     ----------
     path : path-like
-    text : str
-        Written as UTF-8.
+    data : bytes
     what : str
         What the file is, for the error line (``calibration``, ``report``...).
 
@@ -104,8 +108,8 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
     path = Path(path)
     tmp = temporary_beside(path)
     try:
-        with open(tmp, "w", encoding="utf-8") as stream:
-            stream.write(text)
+        with open(tmp, "wb") as stream:
+            stream.write(data)
         tmp.replace(path)
     except OSError as exc:
         remove_quietly(tmp)
@@ -114,5 +118,6 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str) -> Path:
 
 
 __all__ = [
-    "EXISTS", "check_output", "os_reason", "remove_quietly", "temporary_beside", "write_text",
+    "EXISTS", "check_output", "os_reason", "remove_quietly", "temporary_beside", "write_bytes",
+    "write_text",
 ]
