@@ -35,6 +35,11 @@ def add_import_command(sub: Any) -> None:
                    metavar="SBET|CSV|estimate",
                    help="SBET (.out), ASCII trajectory, or 'estimate' to rebuild it from "
                    "multiple returns (default)")
+    p.add_argument("--trajectory-accuracy", metavar="SMRMSG|none",
+                   help="the SBET's accuracy file (Applanix smrmsg): per-epoch position "
+                   "sigmas carried in the bag (PoseWithCovarianceStamped) and used as the "
+                   "strips' trajectory-error priors (default: smrmsg_NAME.out beside "
+                   "sbet_NAME.out where there is one; none: not)")
     p.add_argument("--crs", help="CRS of the points, e.g. EPSG:32633 (default: LAS header)")
     p.add_argument("--trajectory-crs",
                    help="CRS of the trajectory positions (default EPSG:4979 for SBET and "
@@ -73,6 +78,7 @@ def cmd_import(args: argparse.Namespace) -> int:
                  inputs=other_paths(args, "output"))
     options = ImportOptions(
         trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
+        trajectory_accuracy=args.trajectory_accuracy,
         trajectory_time=args.trajectory_time, gps_week=args.gps_week,
         strip_gap_s=args.strip_gap, returns=args.returns, frame_id=args.frame,
         points_topic=args.points, trajectory_topic=args.trajectory_topic,

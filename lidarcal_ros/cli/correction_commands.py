@@ -42,7 +42,8 @@ def add_correct_command(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, type=Path,
                    help="output: .mcap or a directory (rosbag2), or .las/.laz")
     p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
-    p.add_argument("--crs", help="CRS of the map frame for LAS/LAZ output, e.g. EPSG:32633")
+    p.add_argument("--crs", help="CRS of the map frame, e.g. EPSG:32633: written into LAS/LAZ "
+                   "output; an SBET --trajectory-out needs it")
     p.add_argument("--points", help="points topic (default from config)")
     p.add_argument("--trajectory", help="trajectory topic (default from config)")
     p.add_argument("--corrected", help="output topic of the corrected clouds (default from "
@@ -52,8 +53,10 @@ def add_correct_command(sub: Any) -> None:
                    "errors)")
     p.add_argument("--trajectory-out", type=Path, metavar="FILE",
                    help="also write the corrected trajectory (delivered less each strip's "
-                   "estimated trajectory error; interpolated between strips) as ASCII "
-                   "time,x,y,z[,roll,pitch,heading], as lidarcal import reads it")
+                   "estimated trajectory error; interpolated between strips) as lidarcal "
+                   "import reads it: FILE.out or FILE.sbet an Applanix SBET (WGS 84 latitude, "
+                   "longitude, ellipsoidal height from --crs; GPS week seconds), else ASCII "
+                   "time,x,y,z[,roll,pitch,heading]")
     p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
     p.add_argument("--workers", type=int, default=2,
                    help="threads correcting batches in parallel (default 2; 1: all in one "

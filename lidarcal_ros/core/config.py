@@ -134,9 +134,11 @@ SCHEMA: dict[str, ParameterSpec] = {
         choices=tuple(m.value for m in TrajectoryModel)),
     "calibration.trajectory.offset_sigma_horizontal_m": float_parameter(
         0.05, "A-priori sigma of a strip's horizontal trajectory offset (the navigation "
-        "solution's accuracy), m", 1e-4, 10.0),
+        "solution's accuracy), m; where the trajectory carries per-epoch sigmas (an SBET's "
+        "smrmsg) a strip's own come from them instead", 1e-4, 10.0),
     "calibration.trajectory.offset_sigma_vertical_m": float_parameter(
-        0.05, "A-priori sigma of a strip's vertical trajectory offset, m", 1e-4, 10.0),
+        0.05, "A-priori sigma of a strip's vertical trajectory offset, m (per-epoch sigmas "
+        "of the trajectory take its place, as the horizontal's)", 1e-4, 10.0),
     "calibration.trajectory.drift_sigma_m_per_s": float_parameter(
         0.002, "A-priori sigma of a strip's trajectory drift rate, per axis, m/s (spline: of "
         "the change between knots, per second)", 1e-6, 1.0),

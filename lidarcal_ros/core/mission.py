@@ -31,6 +31,18 @@ def _tilted(q: np.ndarray) -> bool:
     return not bool(np.nanmax(tilt) < 0.5e-9 and np.nanmin(upright) > 0.0)
 
 
+def _usable_sigmas(sigma: np.ndarray, n: int) -> np.ndarray | None:
+    """Position sigmas (n, 3) as a trajectory holds them: NaN where not finite or not above
+    zero, None where none is left."""
+    out = np.array(sigma, dtype=np.float64)
+    if out.size != 3 * n:
+        raise TrajectoryError(f"trajectory has {n} stamps but {out.size / 3:g} position sigmas")
+    out = out.reshape(n, 3)
+    with np.errstate(invalid="ignore"):
+        out[~(out > 0.0) | ~np.isfinite(out)] = np.nan
+    return None if not out.size or np.isnan(out).all() else out
+
+
 @dataclass
 class Trajectory:
     """Positions of the IMU origin over time, and its attitude where known.
@@ -54,12 +66,19 @@ class Trajectory:
         the rigorous model (docs/method.md section 10) then has nothing to add. Set False on
         construction, whatever was given, where every orientation is level to 1e-9 rad (no
         INS flies that level; a bag keeps no word of how its poses were made).
+    position_sigma : (n, 3) float64 or None
+        The navigation solution's one-sigma accuracy of each position along map x, y, z (E, N,
+        U), metres (an SBET's ``smrmsg``, a PoseWithCovarianceStamped's covariance), NaN
+        where a sample has none (not finite, or not above zero); None when no sample has one.
+        The priors of the strips' trajectory errors come from it where given
+        (docs/method.md section 11).
     """
 
     t: np.ndarray
     xyz: np.ndarray
     orientation: np.ndarray | None = None
     full_attitude: bool = True
+    position_sigma: np.ndarray | None = None
     _heading: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -78,6 +97,8 @@ class Trajectory:
             self.orientation = None if not q.size or np.isnan(q).all() else q
         if self.orientation is not None and self.full_attitude:
             self.full_attitude = _tilted(self.orientation)
+        if self.position_sigma is not None:
+            self.position_sigma = _usable_sigmas(self.position_sigma, self.t.shape[0])
 
     @property
     def heading(self) -> np.ndarray | None:
@@ -94,10 +115,11 @@ class Trajectory:
     @classmethod
     def from_samples(cls, t: np.ndarray, xyz: np.ndarray,
                      orientation: np.ndarray | None = None, *,
-                     full_attitude: bool = True, source: str | None = None) -> Trajectory:
+                     full_attitude: bool = True, source: str | None = None,
+                     position_sigma: np.ndarray | None = None) -> Trajectory:
         """Build from unordered samples: sorts by time, drops non-finite stamps or positions
         and repeated stamps (the first sample of a stamp, in the given order, is kept; a
-        sample's orientation may be NaN: it has none).
+        sample's orientation, or its ``position_sigma`` row, may be NaN: it has none).
 
         ``source`` (a reader's name for the samples, e.g. ``"BAG: trajectory /lidar/trajectory"``)
         screens the samples of a file as a whole (:func:`screen_samples`): every sample of a
@@ -122,12 +144,15 @@ class Trajectory:
         if order.size:
             ts = t[order]
             order = order[np.concatenate(([True], np.diff(ts) > 0))]
+        sigma = (None if position_sigma is None
+                 else np.asarray(position_sigma, dtype=np.float64).reshape(-1, 3)[order])
         return cls(t[order], xyz[order], None if q is None else q[order],
-                   full_attitude=full_attitude)
+                   full_attitude=full_attitude, position_sigma=sigma)
 
     @classmethod
     def of_normalised(cls, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None,
-                      full_attitude: bool, heading: np.ndarray | None = None) -> Trajectory:
+                      full_attitude: bool, heading: np.ndarray | None = None, *,
+                      position_sigma: np.ndarray | None = None) -> Trajectory:
         """A trajectory of arrays already as construction makes them (times (n,) and
         positions (n, 3) contiguous float64; unit quaternions in one hemisphere from row to
         row, or None; ``full_attitude`` decided; the headings of the quaternions if known),
@@ -137,6 +162,7 @@ class Trajectory:
         traj = cls.__new__(cls)
         traj.t, traj.xyz, traj.orientation = t, xyz, orientation
         traj.full_attitude = full_attitude
+        traj.position_sigma = position_sigma
         traj._heading = heading
         return traj
 
@@ -144,14 +170,21 @@ class Trajectory:
         """The samples at ``index`` (a slice, or indices in time order)."""
         t = np.ascontiguousarray(self.t[index])
         xyz = np.ascontiguousarray(self.xyz[index])
+        sigma = None
+        if self.position_sigma is not None:
+            sigma = np.ascontiguousarray(self.position_sigma[index])
+            sigma = None if not sigma.size or np.isnan(sigma).all() else sigma
         if self.orientation is None:
-            return Trajectory.of_normalised(t, xyz, None, self.full_attitude)
+            return Trajectory.of_normalised(t, xyz, None, self.full_attitude,
+                                            position_sigma=sigma)
         # Taken as normalised: an identity row of this trajectory is a level pose heading
         # east even where the part taken holds nothing else.
         q = np.ascontiguousarray(self.orientation[index])
         if not q.size or np.isnan(q).all():
-            return Trajectory.of_normalised(t, xyz, None, self.full_attitude)
-        return Trajectory.of_normalised(t, xyz, q, self.full_attitude and _tilted(q))
+            return Trajectory.of_normalised(t, xyz, None, self.full_attitude,
+                                            position_sigma=sigma)
+        return Trajectory.of_normalised(t, xyz, q, self.full_attitude and _tilted(q),
+                                        position_sigma=sigma)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])

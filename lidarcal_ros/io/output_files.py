@@ -149,13 +149,18 @@ def install(new: Path, path: Path, *, overwrite: bool) -> None:
 
 def write_text(path: str | os.PathLike[str], text: str, *, what: str,
                overwrite: bool = True) -> Path:
-    """Write a text file completely or not at all.
+    """Write a text file completely or not at all (UTF-8; :func:`write_bytes`)."""
+    return write_bytes(path, text.encode("utf-8"), what=what, overwrite=overwrite)
+
+
+def write_bytes(path: str | os.PathLike[str], data: bytes, *, what: str,
+                overwrite: bool = True) -> Path:
+    """Write a file completely or not at all.
 
     Parameters
     ----------
     path : path-like
-    text : str
-        Written as UTF-8.
+    data : bytes
     what : str
         What the file is, for the error line (``calibration``, ``report``...).
     overwrite : bool, keyword-only
@@ -171,8 +176,8 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str,
     path = Path(path)
     tmp = temporary_beside(path)
     try:
-        with open(tmp, "w", encoding="utf-8") as stream:
-            stream.write(text)
+        with open(tmp, "wb") as stream:
+            stream.write(data)
         install(tmp, path, overwrite=overwrite)
     except FileExistsError:
         remove_quietly(tmp)
@@ -188,5 +193,5 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str,
 
 __all__ = [
     "APPEARED", "EXISTS", "check_output", "hidden_beside", "install", "os_reason", "overlapping",
-    "remove_quietly", "temporary_beside", "write_text",
+    "remove_quietly", "temporary_beside", "write_bytes", "write_text",
 ]

@@ -35,7 +35,11 @@ from lidarcal_ros.core.georeferencing.rigorous import (
 )
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.core.params import N_PARAMETERS
-from lidarcal_ros.core.trajectory.strip_errors import TrajectoryRows, TrajectoryState
+from lidarcal_ros.core.trajectory.strip_errors import (
+    TrajectoryRows,
+    TrajectoryState,
+    strip_offset_sigmas,
+)
 from lidarcal_ros.errors import CalibrationError
 
 if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
@@ -112,8 +116,10 @@ class PairMatcher:
         cells = np.unique(keys)
         density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
         priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
-        return self.add_prepared(PreparedStrip(strip, geom, density, keys, cells, priority,
-                                               choice, qa, speed))
+        span = (float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip) else None
+        return self.add_prepared(PreparedStrip(
+            strip, geom, density, keys, cells, priority, choice, qa, speed,
+            navigation_sigmas=None if span is None else strip_offset_sigmas(trajectory, *span)))
 
     def add_released(self, strip_id: int, t0: float, t1: float) -> PreparedStrip:
         """Hold a strip released before a restart, flown from ``t0`` to ``t1`` (s), for its
@@ -142,7 +148,7 @@ class PairMatcher:
         if span is None:
             span = ((float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip)
                     else (0.0, 0.0))
-        self.trajectory.add_strip(*span)
+        self.trajectory.add_strip(*span, navigation_sigmas=ps.navigation_sigmas)
         new = len(self.strips) - 1
         formed = []
         for other in range(new):

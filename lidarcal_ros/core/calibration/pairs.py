@@ -86,6 +86,9 @@ class PreparedStrip:
     #: Released before a restart: held for its trajectory error alone (no points, no pairs,
     #: not in a result's strips).
     placeholder: bool = False
+    #: Sigmas (m, x y z) of its trajectory offset from the navigation solution's accuracy
+    #: over its span (docs/method.md section 11), None where the trajectory has none.
+    navigation_sigmas: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.geometry = self.geometry0

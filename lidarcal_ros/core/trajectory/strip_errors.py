@@ -3,19 +3,24 @@
 The error of strip ``s`` is ``e_s(t) = sum_j b_j(t) c_s[j]`` (map frame, metres, delivered -
 true; ``c_s[j]`` a 3-vector): ``offset`` has the basis ``[1]``, ``drift`` ``[1, t - t_s]``
 (``t_s`` the strip's mid time, s), ``spline`` the cubic B-splines of uniform knots
-``knot_interval_s`` apart over the strip (times beyond its ends clipped to them).
+``knot_interval_s`` apart over the strip (times beyond its ends clipped to them). A strip's
+offset priors come from the trajectory's per-epoch position sigmas over its span where it
+has them (:func:`strip_offset_sigmas`), else from the settings.
 """
 
 from __future__ import annotations
 
 import enum
 import math
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import sparse
 from scipy.interpolate import BSpline
+
+from lidarcal_ros.core.mission import Trajectory
 
 
 class TrajectoryModel(enum.Enum):
@@ -67,6 +72,37 @@ class TrajectoryErrorSettings:
         return np.array([h, h, v])
 
 
+#: The least offset sigma (m) a strip's prior takes from the trajectory's own sigmas: a file
+#: too optimistic (a sigma of a millimetre) would make the strips rigid, their true errors
+#: then pushed into the biases.
+NAVIGATION_SIGMA_FLOOR_M = 0.005
+
+
+def strip_offset_sigmas(trajectory: Trajectory, t0: float, t1: float) -> np.ndarray | None:
+    """The sigmas (m) of the offset of a strip flown from ``t0`` to ``t1`` (s) along map x,
+    y, z from the trajectory's per-epoch position sigmas (docs/method.md section 11):
+    horizontal ``sqrt(mean((s_E^2 + s_N^2) / 2))``, vertical ``sqrt(mean(s_U^2))`` over the
+    samples in the span (the sigmas interpolated at its mid time where no sample falls in
+    it), at least :data:`NAVIGATION_SIGMA_FLOOR_M`; NaN for a component no sample has; None
+    where the trajectory carries no sigmas or none reaches the span."""
+    sigma = trajectory.position_sigma
+    if sigma is None or not len(trajectory):
+        return None
+    inside = (trajectory.t >= t0) & (trajectory.t <= t1)
+    if inside.any():
+        rows = sigma[inside]
+    else:
+        mid = 0.5 * (t0 + t1)
+        rows = np.array([[np.interp(mid, trajectory.t, sigma[:, k]) for k in range(3)]])
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (a component no sample has: NaN)
+        h = math.sqrt(float(np.nanmean(0.5 * (rows[:, 0] ** 2 + rows[:, 1] ** 2))))
+        v = math.sqrt(float(np.nanmean(rows[:, 2] ** 2)))
+    if math.isnan(h) and math.isnan(v):
+        return None
+    return np.maximum(np.array([h, h, v]), NAVIGATION_SIGMA_FLOOR_M)  # (NaN stays NaN)
+
+
 @dataclass
 class TrajectoryRows:
     """What a correspondence needs of the trajectory errors: the strips (indices, -1 for a
@@ -108,16 +144,27 @@ class StripBasis:
     knots: np.ndarray | None = None
     #: The strip's first and last time (s) where known (NaN: read from a file).
     span: tuple[float, float] = (math.nan, math.nan)
+    #: Sigmas (m) of its offset along x, y, z from the navigation solution's own accuracy
+    #: (:func:`strip_offset_sigmas`; NaN, or None, where it has none: the settings').
+    navigation_sigmas: np.ndarray | None = None
 
     @classmethod
-    def over(cls, model: TrajectoryModel, t0: float, t1: float,
-             knot_interval_s: float) -> StripBasis:
+    def over(cls, model: TrajectoryModel, t0: float, t1: float, knot_interval_s: float, *,
+             navigation_sigmas: np.ndarray | None = None) -> StripBasis:
         """The basis of a strip flown from ``t0`` to ``t1`` (s)."""
         knots = None
         if model is TrajectoryModel.SPLINE:
             spans = max(1, math.ceil((t1 - t0) / knot_interval_s - 1e-9))
             knots = t0 + knot_interval_s * np.arange(-3, spans + 4, dtype=np.float64)
-        return cls(model, 0.5 * (t0 + t1), knots, (float(t0), float(t1)))
+        return cls(model, 0.5 * (t0 + t1), knots, (float(t0), float(t1)), navigation_sigmas)
+
+    def offset_sigmas(self, settings: TrajectoryErrorSettings) -> np.ndarray:
+        """Sigma (m) of its offset along x, y, z: the navigation solution's over the strip
+        where known, else the settings'."""
+        if self.navigation_sigmas is None:
+            return settings.offset_sigmas
+        return np.where(np.isfinite(self.navigation_sigmas), self.navigation_sigmas,
+                        settings.offset_sigmas)
 
     @property
     def size(self) -> int:
@@ -147,7 +194,7 @@ class StripBasis:
         sigma, and each spline coefficient's change from the one before with the drift sigma
         times the knot interval (a random walk)."""
         m = 3 * self.size
-        offsets = np.tile(1.0 / settings.offset_sigmas ** 2, self.size)
+        offsets = np.tile(1.0 / self.offset_sigmas(settings) ** 2, self.size)
         if self.knots is None:
             if self.size > 1:
                 offsets[3:] = 1.0 / settings.drift_sigma_m_per_s ** 2
@@ -183,9 +230,12 @@ class TrajectoryState:
         """Each strip's first and last time (S, 2), s."""
         return np.array([b.span for b in self.bases]).reshape(-1, 2)
 
-    def add_strip(self, t0: float, t1: float) -> None:
-        """A new strip flown from ``t0`` to ``t1`` (s), its error zero."""
-        basis = StripBasis.over(self.model, t0, t1, self.knot_interval_s)
+    def add_strip(self, t0: float, t1: float, *,
+                  navigation_sigmas: np.ndarray | None = None) -> None:
+        """A new strip flown from ``t0`` to ``t1`` (s), its error zero; its offset priors
+        ``navigation_sigmas`` (m, x y z) where the trajectory gives them."""
+        basis = StripBasis.over(self.model, t0, t1, self.knot_interval_s,
+                                navigation_sigmas=navigation_sigmas)
         self.bases.append(basis)
         self.starts.append(self.starts[-1] + 3 * basis.size)
         self.params = np.concatenate([self.params, np.zeros(3 * basis.size)])
@@ -212,7 +262,7 @@ class TrajectoryState:
         """A scale of each coefficient (m, m/s): the offsets' and drifts' prior sigmas."""
         out = []
         for b in self.bases:
-            scale = np.tile(settings.offset_sigmas, b.size)
+            scale = np.tile(b.offset_sigmas(settings), b.size)
             if b.knots is None and b.size > 1:
                 scale[3:] = settings.drift_sigma_m_per_s
             out.append(scale)
@@ -435,6 +485,7 @@ def trajectory_corrections(estimate: TrajectoryEstimate, spans: dict[int, tuple[
 
 __all__ = [
     "AUTO_SIGMA0_RATIO",
+    "NAVIGATION_SIGMA_FLOOR_M",
     "POSE_BETWEEN_STRIPS",
     "POSE_BEYOND_STRIPS",
     "POSE_IN_STRIP",
@@ -448,5 +499,6 @@ __all__ = [
     "TrajectoryRows",
     "TrajectoryState",
     "error_columns",
+    "strip_offset_sigmas",
     "trajectory_corrections",
 ]

@@ -21,6 +21,7 @@ from rosbags.typesys.store import Typestore
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 
 #: Nanoseconds in a second (bag log times and stamps are integer nanoseconds).
@@ -88,6 +89,7 @@ def stamp_seconds(stamp: Any) -> float:
     return float(stamp.sec) + int(stamp.nanosec) * 1e-9
 
 
-__all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED", "add_standard_types",
+__all__ = ["NS_PER_SECOND", "ODOMETRY", "POINTCLOUD2", "POSE_STAMPED",
+           "POSE_WITH_COVARIANCE_STAMPED", "add_standard_types",
            "empty_typestore", "make_qos", "normalize_msgtype", "ns_to_seconds", "seconds_to_ns",
            "stamp_seconds", "standard_typestore"]

@@ -28,6 +28,7 @@ from lidarcal_ros.io.bag.format import (
     NS_PER_SECOND,
     POINTCLOUD2,
     POSE_STAMPED,
+    POSE_WITH_COVARIANCE_STAMPED,
     add_standard_types,
     make_qos,
     normalize_msgtype,
@@ -398,11 +399,31 @@ class BagWriter:
     def write_trajectory_pose(self, topic: str, stamp_ns: int, frame_id: str,
                               trajectory: Trajectory, index: int) -> None:
         """Write sample ``index`` of ``trajectory`` as a PoseStamped: its position, and its
-        orientation where it has one, else the identity."""
+        orientation where it has one, else the identity. A trajectory with position sigmas
+        is written as PoseWithCovarianceStamped instead (every sample: one type a topic),
+        the covariance diagonal in x, y, z (map E, N, U; m^2), zero where a sample has no
+        sigma and for the orientation (unknown)."""
         q = None if trajectory.orientation is None else trajectory.orientation[index]
-        self.write_pose(topic, stamp_ns, frame_id, trajectory.xyz[index],
-                        quaternion_xyzw=IDENTITY_XYZW if q is None or np.isnan(q).any()
-                        else tuple(float(v) for v in q))
+        quaternion = (IDENTITY_XYZW if q is None or np.isnan(q).any()
+                      else tuple(float(v) for v in q))
+        if trajectory.position_sigma is None:
+            self.write_pose(topic, stamp_ns, frame_id, trajectory.xyz[index],
+                            quaternion_xyzw=quaternion)
+            return
+        sigma = trajectory.position_sigma[index]
+        covariance = np.zeros(36)
+        covariance[[0, 7, 14]] = np.where(np.isfinite(sigma), sigma, 0.0) ** 2
+        types = self._types
+        x, y, z = (float(v) for v in trajectory.xyz[index])
+        qx, qy, qz, qw = quaternion
+        msg = types[POSE_WITH_COVARIANCE_STAMPED](
+            header=self._header(stamp_ns, frame_id),
+            pose=types["geometry_msgs/msg/PoseWithCovariance"](
+                pose=types["geometry_msgs/msg/Pose"](
+                    position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                    orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)),
+                covariance=covariance))
+        self.write_message(topic, POSE_WITH_COVARIANCE_STAMPED, stamp_ns, msg)
 
     def close(self) -> None:
         """Finish the bag (index, metadata.yaml) and move it into place.

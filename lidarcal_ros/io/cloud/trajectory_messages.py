@@ -1,7 +1,8 @@
 """Trajectory messages (poses, odometry, points) as samples of a mission's ``Trajectory``.
 
 Positions metres in ``header.frame_id``, times float seconds, orientations ``(x, y, z, w)``
-(NaN where the type has none).
+(NaN where the type has none); a PoseWithCovarianceStamped's position sigmas (m) from its
+covariance's diagonal.
 """
 
 from __future__ import annotations
@@ -14,15 +15,19 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.mission import Trajectory
-from lidarcal_ros.io.bag.format import ODOMETRY, POSE_STAMPED, stamp_seconds
+from lidarcal_ros.io.bag.format import (
+    ODOMETRY,
+    POSE_STAMPED,
+    POSE_WITH_COVARIANCE_STAMPED,
+    stamp_seconds,
+)
 
 #: Trajectory message types accepted (in a bag and on a topic), with how to get the position and the
 #: orientation (None: the type has none).
 TRAJECTORY_TYPES: dict[str, Callable[[Any], tuple[Any, Any]]] = {
     POSE_STAMPED: lambda m: (m.pose.position, m.pose.orientation),
     ODOMETRY: lambda m: (m.pose.pose.position, m.pose.pose.orientation),
-    "geometry_msgs/msg/PoseWithCovarianceStamped":
-        lambda m: (m.pose.pose.position, m.pose.pose.orientation),
+    POSE_WITH_COVARIANCE_STAMPED: lambda m: (m.pose.pose.position, m.pose.pose.orientation),
     "geometry_msgs/msg/PointStamped": lambda m: (m.point, None),
 }
 
@@ -39,7 +44,20 @@ def trajectory_sample(msgtype: str, msg: Any
             quat)
 
 
+def position_sigma(msgtype: str, msg: Any) -> tuple[float, float, float]:
+    """The position sigmas (m) along x, y, z of a trajectory message: the square roots of a
+    PoseWithCovarianceStamped's covariance diagonal (the navigation solution's accuracy, as
+    ``lidarcal import`` writes it from an ``smrmsg``); NaN where not above zero, and for
+    every other type (an Odometry's covariance is the odometry's, often a placeholder)."""
+    if msgtype != POSE_WITH_COVARIANCE_STAMPED:
+        return _NO_SIGMA
+    cov = msg.pose.covariance
+    return tuple(math.sqrt(v) if v > 0.0 and math.isfinite(v) else math.nan  # type: ignore[return-value]
+                 for v in (float(cov[0]), float(cov[7]), float(cov[14])))
+
+
 _NO_ORIENTATION = (math.nan, math.nan, math.nan, math.nan)
+_NO_SIGMA = (math.nan, math.nan, math.nan)
 #: A PoseStamped in CDR after its encapsulation: stamp (sec, nanosec), the frame id's length;
 #: then, 8-byte aligned, position and orientation.
 _POSE_HEADER = struct.Struct("<iII")
@@ -55,10 +73,18 @@ class TrajectorySamples:
         self.xyz: list[tuple[float, float, float]] = []
         self.orientation: list[tuple[float, ...]] = []
         self.frames: set[str] = set()
+        #: Position sigmas (m) of the samples, NaN where a message carries none; None while
+        #: no message carried one (the rows before the first are filled in then).
+        self.sigma: list[tuple[float, float, float]] | None = None
 
     def add(self, msgtype: str, msg: Any) -> None:
         """Add a decoded message of type ``msgtype`` (one of :data:`TRAJECTORY_TYPES`)."""
         t, xyz, q = trajectory_sample(msgtype, msg)
+        sigma = position_sigma(msgtype, msg)
+        if self.sigma is None and not all(math.isnan(v) for v in sigma):
+            self.sigma = [_NO_SIGMA] * len(self.t)
+        if self.sigma is not None:
+            self.sigma.append(sigma)
         self.t.append(t)
         self.xyz.append(xyz)
         self.orientation.append(q)
@@ -75,6 +101,8 @@ class TrajectorySamples:
             sec, nanosec, size = _POSE_HEADER.unpack_from(raw, 4)
             end = 16 + size  # of the frame id, its NUL included
             x, y, z, qx, qy, qz, qw = _POSE_BODY.unpack_from(raw, body)
+            if self.sigma is not None:
+                self.sigma.append(_NO_SIGMA)
             self.t.append(float(sec) + int(nanosec) * 1e-9)  # (stamp_seconds)
             self.xyz.append((x, y, z))
             self.orientation.append((qx, qy, qz, qw))
@@ -100,7 +128,9 @@ class TrajectorySamples:
         return Trajectory.from_samples(np.asarray(self.t, dtype=np.float64),
                                        np.asarray(self.xyz, dtype=np.float64),
                                        np.asarray(self.orientation).reshape(-1, 4),
-                                       source=source)
+                                       source=source,
+                                       position_sigma=None if self.sigma is None
+                                       else np.asarray(self.sigma).reshape(-1, 3))
 
 
 def _pose_body_offset(raw: bytes | memoryview) -> int | None:
@@ -135,4 +165,5 @@ def moved_message(msgtype: str, raw: bytes | memoryview, xyz: tuple[float, float
     return bytes(encode(msg, msgtype))
 
 
-__all__ = ["TRAJECTORY_TYPES", "TrajectorySamples", "moved_message", "trajectory_sample"]
+__all__ = ["TRAJECTORY_TYPES", "TrajectorySamples", "moved_message", "position_sigma",
+           "trajectory_sample"]

@@ -44,6 +44,16 @@ SBET_FIELDS: tuple[str, ...] = (
 SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 SBET_RECORD_BYTES = SBET_DTYPE.itemsize  # 136
 
+#: An Applanix ``smrmsg`` accuracy file's record: 10 little-endian float64 (the SBET's time,
+#: position RMS north, east, down in m, velocity RMS m/s, roll, pitch, heading RMS arc-min).
+SMRMSG_FIELDS: tuple[str, ...] = (
+    "time", "north_position_rms", "east_position_rms", "down_position_rms",
+    "north_velocity_rms", "east_velocity_rms", "down_velocity_rms",
+    "roll_rms", "pitch_rms", "heading_rms",
+)
+SMRMSG_DTYPE = np.dtype([(name, "<f8") for name in SMRMSG_FIELDS])
+SMRMSG_RECORD_BYTES = SMRMSG_DTYPE.itemsize  # 80
+
 _SBET_SUFFIXES = {".out", ".sbet", ".bin", ".smrmsg"}
 _ASCII_SUFFIXES = {".csv", ".txt", ".asc", ".pos", ".xyz", ".tsv", ".dat"}
 _TIME_NAMES = {"time", "t", "gps_time", "gpstime", "timestamp", "sow", "seconds", "gps_seconds"}
@@ -232,20 +242,122 @@ def write_sbet(
     **fields : (n,) float64
         Further SBET fields by name (``roll``, ``heading``, ...).
     """
-    unknown = [k for k in fields if k not in SBET_FIELDS]
+    return _write_records(path, SBET_DTYPE, "SBET", fields, time=t, latitude=latitude_rad,
+                          longitude=longitude_rad, altitude=altitude_m)
+
+
+def _write_records(path: str | os.PathLike[str], dtype: np.dtype, what: str,
+                   fields: dict[str, np.ndarray], **columns: np.ndarray) -> Path:
+    """Records of ``dtype`` from ``columns`` and the further ``fields`` (refused where
+    ``dtype`` has no such field), the rest zero, written to ``path`` as they are."""
+    unknown = [k for k in fields if k not in (dtype.names or ())]
     if unknown:
-        raise InputError(f"{path}: unknown SBET field(s) {', '.join(unknown)}")
-    t = np.asarray(t, dtype=np.float64)
-    rec = np.zeros(t.shape[0], dtype=SBET_DTYPE)
-    rec["time"] = t
-    rec["latitude"] = latitude_rad
-    rec["longitude"] = longitude_rad
-    rec["altitude"] = altitude_m
-    for name, values in fields.items():
+        raise InputError(f"{path}: unknown {what} field(s) {', '.join(unknown)}")
+    rec = np.zeros(np.asarray(columns["time"]).shape[0], dtype=dtype)
+    for name, values in {**columns, **fields}.items():
         rec[name] = values
     p = Path(path)
     rec.tofile(p)
     return p
+
+
+# ---------------------------------------------------------------------------- smrmsg
+@dataclass
+class TrajectoryAccuracy:
+    """An SBET's accuracy file (``smrmsg``): per epoch, the position RMS of the solution.
+
+    Attributes
+    ----------
+    path : Path
+    t : (n,) float64
+        Times, seconds, the SBET's (GPS seconds of the week), increasing.
+    position_rms : (n, 3) float64
+        One-sigma position accuracy north, east, down, metres.
+    """
+
+    path: Path
+    t: np.ndarray
+    position_rms: np.ndarray
+
+    def enu_at(self, t: np.ndarray, *, where: str) -> np.ndarray:
+        """The position sigmas (n, 3) east, north, up (m) at times ``t`` (s, the file's time
+        base), linear between epochs; within one epoch interval beyond the file's ends the
+        end value held.
+
+        Raises
+        ------
+        TrajectoryFileError
+            ``t`` reaches further beyond the file's first or last epoch: one line naming
+            ``where`` (the trajectory) and both spans.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        step = float(np.median(np.diff(self.t))) if self.t.size > 1 else 0.0
+        lo, hi = float(np.nanmin(t)), float(np.nanmax(t))
+        if lo < self.t[0] - step or hi > self.t[-1] + step:
+            raise TrajectoryFileError(
+                f"{self.path}: accuracy epochs span {self.t[0]:.3f}-{self.t[-1]:.3f} s but "
+                f"{where} spans {lo:.3f}-{hi:.3f} s; it does not cover the trajectory")
+        north, east, down = (np.interp(t, self.t, self.position_rms[:, k]) for k in range(3))
+        return np.column_stack([east, north, down])
+
+
+def read_smrmsg(path: str | os.PathLike[str]) -> TrajectoryAccuracy:
+    """Read an Applanix ``smrmsg`` accuracy file (records of :data:`SMRMSG_FIELDS`).
+
+    Raises
+    ------
+    TrajectoryFileError
+        Missing file; a size that is not a whole number of 80-byte records (truncated, or
+        not an smrmsg: an SBET's records are 136 bytes); no records; a time or position RMS
+        not finite, or an RMS negative (with its record); times not increasing.
+    """
+    p = _check_file(path)
+    size = p.stat().st_size
+    if size == 0 or size % SMRMSG_RECORD_BYTES:
+        raise TrajectoryFileError(
+            f"{p}: not an smrmsg accuracy file: {size} bytes is not a whole number of "
+            f"{SMRMSG_RECORD_BYTES}-byte records (truncated?)")
+    try:
+        records = np.fromfile(p, dtype=SMRMSG_DTYPE)
+    except (OSError, ValueError) as exc:
+        raise TrajectoryFileError(f"{p}: cannot read ({exc})") from None
+    t = np.array(records["time"])
+    rms = np.column_stack([records[name] for name in SMRMSG_FIELDS[1:4]])
+    bad = ~(np.isfinite(t) & np.isfinite(rms).all(axis=1) & (rms >= 0.0).all(axis=1))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise TrajectoryFileError(
+            f"{p}: smrmsg record {k} has time {float(t[k])!r} and position RMS north, east, "
+            f"down {', '.join(repr(float(v)) for v in rms[k])} m; each must be a finite "
+            "number, the RMS not negative")
+    steps = np.diff(t)
+    if (steps <= 0).any():
+        k = int(np.argmax(steps <= 0)) + 1
+        raise TrajectoryFileError(f"{p}: smrmsg record {k} at {float(t[k]):.3f} s does not "
+                                  f"follow record {k - 1} at {float(t[k - 1]):.3f} s")
+    return TrajectoryAccuracy(p, t, rms)
+
+
+def write_smrmsg(path: str | os.PathLike[str], t: np.ndarray, north_m: np.ndarray,
+                 east_m: np.ndarray, down_m: np.ndarray, **fields: np.ndarray) -> Path:
+    """Write an ``smrmsg`` (:data:`SMRMSG_FIELDS`; times the SBET's, position RMS in m);
+    fields not given are zero."""
+    return _write_records(path, SMRMSG_DTYPE, "smrmsg", fields, time=t,
+                          north_position_rms=north_m, east_position_rms=east_m,
+                          down_position_rms=down_m)
+
+
+def smrmsg_beside(trajectory: str | os.PathLike[str]) -> Path | None:
+    """The accuracy file POSPac writes beside an SBET: ``smrmsg_NAME.out`` for
+    ``sbet_NAME.out`` (the prefix in any case), where it exists; else None."""
+    p = Path(trajectory)
+    if not p.name.lower().startswith("sbet"):
+        return None
+    for prefix in ("smrmsg", "SMRMSG", "Smrmsg"):
+        candidate = p.with_name(prefix + p.name[4:])
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 # ---------------------------------------------------------------------------- ASCII
@@ -506,7 +618,9 @@ def read_trajectory_file(
     return traj
 
 
-__all__ = ["SBET_DTYPE", "SBET_FIELDS", "SBET_RECORD_BYTES", "TIME_BASES", "WEEK_S", "TimeBase",
+__all__ = ["SBET_DTYPE", "SBET_FIELDS", "SBET_RECORD_BYTES", "SMRMSG_DTYPE", "SMRMSG_FIELDS",
+           "SMRMSG_RECORD_BYTES", "TIME_BASES", "WEEK_S", "TimeBase", "TrajectoryAccuracy",
            "TrajectoryFile", "TrajectoryFileError", "gps_to_unix", "gps_week_of_unix",
-           "read_ascii_trajectory", "read_sbet", "read_trajectory_file", "to_gps_seconds",
-           "write_ascii_trajectory", "write_sbet"]
+           "read_ascii_trajectory", "read_sbet", "read_smrmsg", "read_trajectory_file",
+           "smrmsg_beside", "to_gps_seconds", "write_ascii_trajectory", "write_sbet",
+           "write_smrmsg"]

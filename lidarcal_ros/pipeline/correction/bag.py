@@ -44,7 +44,7 @@ from lidarcal_ros.pipeline.correction.trajectory_gate import RereadBag, Trajecto
 
 __all__ = [
     "FOREIGN_OUTPUT_SUFFIXES", "LAS_RUN_POINTS", "CorrectOptions", "CorrectionReport",
-    "correct_bag", "output_kind",
+    "correct_bag", "is_sbet_output", "output_kind",
     "warm_up_compiled_loops",
 ]
 
@@ -179,10 +179,12 @@ class CorrectOptions:
         :data:`MIN_HELD_POINTS`; 0: always the trajectory first (two passes). The output
         is the same.
     trajectory_out : Path or None
-        Also write the corrected trajectory here, ASCII ``time,x,y,z[,roll,pitch,heading]``
-        (:func:`~lidarcal_ros.io.survey.trajectory_files.write_ascii_trajectory`; ``overwrite``
-        applies to it too); the delivered one, with a warning, where the calibration holds
-        no trajectory errors.
+        Also write the corrected trajectory here (``overwrite`` applies to it too): an
+        Applanix SBET where it ends in ``.out`` or ``.sbet`` (needs ``crs``:
+        :func:`~lidarcal_ros.io.survey.trajectory_crs.write_sbet_trajectory`), else ASCII
+        ``time,x,y,z[,roll,pitch,heading]``
+        (:func:`~lidarcal_ros.io.survey.trajectory_files.write_ascii_trajectory`); the
+        delivered one, with a warning, where the calibration holds no trajectory errors.
     """
 
     crs: Any = None
@@ -263,8 +265,17 @@ def correct_bag(
         raise InputError(f"{options.trajectory_out}: the trajectory output would overwrite "
                          "the input bag or the corrected output")
     warnings: list[str] = []
-    if options.crs is not None and kind == "bag":
-        warnings.append("--crs applies to LAS/LAZ output only; ignored for a bag")
+    sbet_out = options.trajectory_out is not None and is_sbet_output(options.trajectory_out)
+    if sbet_out and options.crs is None:
+        raise InputError(f"--trajectory-out {options.trajectory_out}: an SBET needs the map's "
+                         "CRS; give --crs EPSG:...")
+    if sbet_out:
+        from lidarcal_ros.io.survey.trajectory_crs import check_map_crs
+
+        check_map_crs(options.crs, where="--crs")
+    if options.crs is not None and kind == "bag" and not sbet_out:
+        warnings.append("--crs applies to LAS/LAZ output and an SBET --trajectory-out only; "
+                        "ignored for a bag")
         logger.warning("%s", warnings[-1])
 
     with open_bag(bag_path) as bag:
@@ -371,7 +382,7 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
         corrector.close()
     report.frame_id = gate.frame or ""
     if options.trajectory_out is not None:
-        _write_trajectory_file(job, Path(options.trajectory_out), options.overwrite)
+        _write_trajectory_file(job, Path(options.trajectory_out), options)
     return report
 
 
@@ -405,8 +416,10 @@ def _describe_correction(correction: TrajectoryCorrection, where: str) -> str:
             f"last strip: the nearest strip's end held; largest move {largest:.1f} cm)")
 
 
-def _write_trajectory_file(job: _Job, path: Path, overwrite: bool) -> None:
-    """The corrected trajectory of ``job`` (its whole trajectory, screened) as ASCII."""
+def _write_trajectory_file(job: _Job, path: Path, options: CorrectOptions) -> None:
+    """The corrected trajectory of ``job`` (its whole trajectory, screened) as ASCII, or as
+    an SBET (:func:`is_sbet_output`) in the geographic coordinates of ``options.crs``."""
+    from lidarcal_ros.io.survey.trajectory_crs import write_sbet_trajectory
     from lidarcal_ros.io.survey.trajectory_files import write_ascii_trajectory
 
     trajectory = job.corrector.trajectory
@@ -425,9 +438,20 @@ def _write_trajectory_file(job: _Job, path: Path, overwrite: bool) -> None:
                                "trajectory is written as delivered")
         logger.warning("%s", report.warnings[-1])
         comments[-1] = "x, y, z as delivered: the calibration holds no trajectory errors"
-    write_ascii_trajectory(path, moved, comments=comments, overwrite=overwrite)
-    text = _describe_correction(correction, str(path))
+    where = str(path)
+    if is_sbet_output(path):
+        _, week = write_sbet_trajectory(path, moved, options.crs, overwrite=options.overwrite)
+        where = (f"{path} (SBET, {options.crs.name} to WGS 84"
+                 + (f", GPS week {week}" if week is not None else "") + ")")
+    else:
+        write_ascii_trajectory(path, moved, comments=comments, overwrite=options.overwrite)
+    text = _describe_correction(correction, where)
     report.trajectory = f"{report.trajectory}; {text}" if report.trajectory else text
+
+
+def is_sbet_output(path: str | Path) -> bool:
+    """``--trajectory-out`` names an SBET (``.out``, ``.sbet``), not an ASCII file."""
+    return Path(path).suffix.lower() in (".out", ".sbet")
 
 
 def _write_moved_poses(job: _Job, writer: Any) -> None:

@@ -96,7 +96,8 @@ def import_mission(
     given = None  # (read before the points: a bad file fails fast)
     if not options.estimates_trajectory:
         assert options.trajectory is not None
-        given = read_delivered_trajectory(options.trajectory, options.trajectory_crs, frame)
+        given = read_delivered_trajectory(options.trajectory, options.trajectory_crs, frame,
+                                          accuracy=options.trajectory_accuracy)
     store = RunStore(options.memory_points, out.parent)
     try:
         read = read_points(infos, store, frame, options, report_progress)

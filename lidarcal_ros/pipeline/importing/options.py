@@ -51,6 +51,10 @@ class ImportOptions:
     trajectory_crs : str or None
         CRS of the trajectory positions (default EPSG:4979 for SBET and lat/lon columns, the
         points' CRS for ASCII x, y, z).
+    trajectory_accuracy : path-like, ``"none"`` or None
+        The trajectory file's accuracy file (Applanix ``smrmsg``: per-epoch position RMS, on
+        the file's clock); None: ``smrmsg_NAME.out`` beside ``sbet_NAME.out`` where there is
+        one (POSPac's names); ``"none"``: none.
     trajectory_time : ``"auto"``, ``"week"``, ``"adjusted"``, ``"gps"`` or ``"unix"``
         Time base of the trajectory file (``auto``: an SBET's week seconds, an ASCII file's
         by magnitude and overlap with the points).
@@ -88,6 +92,7 @@ class ImportOptions:
     # the trajectory
     trajectory: str | os.PathLike[str] | None = "estimate"
     trajectory_crs: str | None = None
+    trajectory_accuracy: str | os.PathLike[str] | None = None
     trajectory_time: TrajectoryTime = "auto"
     gps_week: int | None = None
     trajectory_rate_hz: float = 50.0
@@ -108,6 +113,10 @@ class ImportOptions:
             raise ConfigError(f"--trajectory-time: unknown time base '{self.trajectory_time}'")
         if not self.strip_gap_s > 0:
             raise ConfigError(f"--strip-gap must be positive, got {self.strip_gap_s}")
+        if self.trajectory_accuracy is not None and self.estimates_trajectory and \
+                str(self.trajectory_accuracy) != "none":
+            raise ConfigError(f"--trajectory-accuracy {self.trajectory_accuracy}: needs a "
+                              "trajectory file (--trajectory SBET), not an estimate")
         if not self.chunk_seconds > 0:
             raise ConfigError(f"chunk_seconds must be positive, got {self.chunk_seconds}")
 

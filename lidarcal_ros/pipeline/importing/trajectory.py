@@ -6,6 +6,7 @@ The rules for positions, attitude and the estimate: docs/import.md.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +24,12 @@ from lidarcal_ros.core.trajectory.estimation import (
 )
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.survey.trajectory_crs import map_orientation, project
-from lidarcal_ros.io.survey.trajectory_files import TrajectoryFile, read_trajectory_file
+from lidarcal_ros.io.survey.trajectory_files import (
+    TrajectoryFile,
+    read_smrmsg,
+    read_trajectory_file,
+    smrmsg_beside,
+)
 from lidarcal_ros.pipeline.importing.points import PointsFrame, PointsRead
 from lidarcal_ros.pipeline.importing.strips import StripAssembly, StripSummary
 from lidarcal_ros.pipeline.importing.time_bases import TimeRule
@@ -47,12 +53,20 @@ class DeliveredTrajectory:
         Map-frame quaternions (x, y, z, w) where the file has attitude.
     full_attitude : bool
         ``orientation`` carries roll and pitch, not the heading alone.
+    position_sigma : (n, 3) float64 or None
+        Each sample's position sigma east, north, up (m) from the accuracy file, where one
+        was given or found (the meridian convergence between true and grid north, a few
+        degrees, left out of the horizontal pair).
+    accuracy : Path or None
+        That accuracy file.
     """
 
     file: TrajectoryFile
     xyz: np.ndarray
     orientation: np.ndarray | None
     full_attitude: bool
+    position_sigma: np.ndarray | None = None
+    accuracy: Path | None = None
 
 
 @dataclass
@@ -85,7 +99,9 @@ class BagTrajectory:
 
 # ---------------------------------------------------------------------------- from a file
 def read_delivered_trajectory(path: str | os.PathLike[str], trajectory_crs: str | None,
-                          frame: PointsFrame) -> DeliveredTrajectory:
+                          frame: PointsFrame, *,
+                          accuracy: str | os.PathLike[str] | None = None
+                          ) -> DeliveredTrajectory:
     """Read a trajectory file and bring it into the map frame (docs/import.md, "Trajectory files").
 
     Parameters
@@ -95,18 +111,37 @@ def read_delivered_trajectory(path: str | os.PathLike[str], trajectory_crs: str 
         CRS of its positions (default EPSG:4979 for geographic ones, else the points').
     frame : PointsFrame
         The points' CRS and units: the map frame.
+    accuracy : path-like, ``"none"`` or None, keyword-only
+        Its accuracy file (``smrmsg``); None: the one beside an SBET by POSPac's names
+        (:func:`~lidarcal_ros.io.survey.trajectory_files.smrmsg_beside`) where there is one.
 
     Raises
     ------
     TrajectoryError, InputError
-        An unreadable file, or geographic positions without a CRS of the points.
+        An unreadable file, or geographic positions without a CRS of the points; an
+        accuracy file unreadable, truncated, holding a non-finite value, or not covering
+        the trajectory's times.
     """
     traj_file = read_trajectory_file(Path(str(path)))
     traj_crs = _trajectory_crs(trajectory_crs, traj_file)
     xyz = _trajectory_in_map(traj_file, frame.crs, traj_crs, frame.unit_factors)
     orientation, full_attitude = map_orientation(
         traj_file, traj_crs, frame.crs if traj_crs else None)
-    return DeliveredTrajectory(traj_file, xyz, orientation, full_attitude)
+    found = _accuracy_file(accuracy, traj_file)
+    sigma = None
+    if found is not None:
+        sigma = read_smrmsg(found).enu_at(traj_file.t, where=str(traj_file.path))
+        logger.info("%s: position sigmas from %s", traj_file.path, found)
+    return DeliveredTrajectory(traj_file, xyz, orientation, full_attitude, sigma, found)
+
+
+def _accuracy_file(accuracy: str | os.PathLike[str] | None, traj: TrajectoryFile
+                   ) -> Path | None:
+    """The accuracy file to read: the one given, none for ``"none"``, else an SBET's
+    ``smrmsg`` beside it."""
+    if accuracy is not None:
+        return None if str(accuracy) == "none" else Path(accuracy)
+    return smrmsg_beside(traj.path) if traj.kind == "sbet" else None
 
 
 def _trajectory_crs(text: str | None, traj: TrajectoryFile) -> Any:
@@ -174,10 +209,17 @@ def trajectory_from_file(given: DeliveredTrajectory, raw_t: np.ndarray, rule: Ti
     whole = Trajectory.from_samples(
         t_clock[usable], given.xyz[usable],
         None if given.orientation is None else given.orientation[usable],
-        full_attitude=given.full_attitude)
+        full_attitude=given.full_attitude,
+        position_sigma=None if given.position_sigma is None else given.position_sigma[usable])
     inside = np.flatnonzero((whole.t >= c0 - _MARGIN_S) & (whole.t <= c1 + _MARGIN_S))
     traj = whole.take(inside[_decimate(whole.t[inside], rate_hz)])
     kind, attitude_range = _trajectory_kind(traj, given.file)
+    if given.accuracy is not None and traj.position_sigma is not None:
+        h = np.hypot(traj.position_sigma[:, 0], traj.position_sigma[:, 1]) / math.sqrt(2.0)
+        v = traj.position_sigma[:, 2]
+        kind += (f"; position sigmas from {given.accuracy.name} (horizontal "
+                 f"{np.nanmin(h) * 100:.1f}-{np.nanmax(h) * 100:.1f} cm, vertical "
+                 f"{np.nanmin(v) * 100:.1f}-{np.nanmax(v) * 100:.1f} cm)")
     check_coverage(traj, strips.surely_inside(rule), where)  # fail fast, before writing
     return BagTrajectory(traj, kind, where, attitude_range)
 

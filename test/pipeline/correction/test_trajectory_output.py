@@ -28,8 +28,20 @@ from lidarcal_ros.core.trajectory.strip_errors import (
     trajectory_corrections,
 )
 from lidarcal_ros.io.calibration_file import read_calibration, trajectory_document
-from lidarcal_ros.io.survey.trajectory_crs import map_orientation
-from lidarcal_ros.io.survey.trajectory_files import read_ascii_trajectory, write_ascii_trajectory
+from lidarcal_ros.io.survey.trajectory_crs import (
+    SBET_CRS,
+    map_orientation,
+    project,
+    write_sbet_trajectory,
+)
+from lidarcal_ros.io.survey.trajectory_files import (
+    SBET_FIELDS,
+    WEEK_S,
+    gps_to_unix,
+    read_ascii_trajectory,
+    read_sbet,
+    write_ascii_trajectory,
+)
 from lidarcal_ros.pipeline.calibration.procedure import write_simulation
 
 DELIVERED, CORRECTED = "/lidar/trajectory", "/lidar/trajectory_corrected"
@@ -350,3 +362,113 @@ def test_an_odometry_pose_keeps_all_but_its_position() -> None:
                             store.serialize_cdr)
     pose.position.x, pose.position.y, pose.position.z = 4.0, 5.0, 6.0
     assert patched == bytes(store.serialize_cdr(stamped, POSE_STAMPED))
+
+
+# ---------------------------------------------------------------------- SBET output
+def _from_sbet(path: Path, map_crs: str) -> tuple[Any, np.ndarray, np.ndarray | None, bool]:
+    """An SBET read back as ``lidarcal import`` reads one: the file, its positions in the
+    map (m) and its map-frame orientation (the import's own conversion)."""
+    import pyproj
+
+    back = read_sbet(path)
+    source, target = pyproj.CRS(SBET_CRS), pyproj.CRS(map_crs)
+    q, full = map_orientation(back, source, target)
+    return back, project(back, source, target), q, full
+
+
+def test_an_sbet_trajectory_out_reads_back_as_the_corrected_positions(
+        drifting: Drifting, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--trajectory-out X.out --crs EPSG:32633``: an SBET whose records, read back and
+    projected to the map by the import's own path, are the corrected topic's positions
+    (1 mm) at its stamps (GPS week seconds, 1 us); the layout checked with numpy alone (17
+    little-endian float64 a record, time increasing, velocities the positions' rate).
+    Without ``--crs``: refused in one line before any work, nothing written."""
+    out, sbet = drifting.workdir / "sbet.mcap", drifting.workdir / "corrected.out"
+    rc, stdout, err = run(capsys, "correct", drifting.bag, "--calibration",
+                          drifting.calibration, "-o", out, "--trajectory-out", sbet,
+                          "--crs", "EPSG:32633", "-q")
+    assert rc == 0, err
+    assert f"-> {sbet} (SBET" in stdout and "GPS week" in stdout
+    assert "--crs applies" not in stdout + err
+    t, xyz2, _q, _types = _poses(out)[CORRECTED]
+    back, xyz, q, _full = _from_sbet(sbet, "EPSG:32633")
+    assert q is None and back.heading_deg is None  # (this mission has no attitude)
+    np.testing.assert_allclose(xyz, xyz2, rtol=0, atol=1e-3)
+    week = int(np.floor((t[0] - 315_964_800 + 18) / WEEK_S))
+    np.testing.assert_allclose(gps_to_unix(back.t + week * WEEK_S), t, rtol=0, atol=1e-6)
+    raw = np.fromfile(sbet, dtype="<f8")
+    assert raw.size == 17 * len(t) and len(SBET_FIELDS) == 17
+    records = raw.reshape(-1, 17)
+    assert np.all(np.diff(records[:, 0]) > 0) and 0 <= records[0, 0] < WEEK_S
+    np.testing.assert_allclose(np.degrees(records[:, 1:3]), np.column_stack([back.b, back.a]))
+    speed = np.hypot(records[:, 4], records[:, 5])
+    track = np.hypot(*np.gradient(xyz2[:, :2], t, axis=0).T)
+    np.testing.assert_allclose(speed, track, rtol=1e-6)
+    assert not records[:, 7:].any()  # (no attitude, wander angle, accelerations or rates)
+    refused = drifting.workdir / "refused.out"
+    rc, _, err = run(capsys, "correct", drifting.bag, "--calibration", drifting.calibration,
+                     "-o", drifting.workdir / "refused.mcap", "--trajectory-out", refused, "-q")
+    assert one_line_error(rc, err, "correct") == (
+        f"--trajectory-out {refused}: an SBET needs the map's CRS; give --crs EPSG:...")
+    assert not refused.exists() and not (drifting.workdir / "refused.mcap").exists()
+    rc, _, err = run(capsys, "correct", drifting.bag, "--calibration", drifting.calibration,
+                     "-o", drifting.workdir / "refused.mcap", "--trajectory-out", refused,
+                     "--crs", "EPSG:4326", "-q")
+    assert "is not projected" in one_line_error(rc, err, "correct")
+    assert not refused.exists() and not (drifting.workdir / "refused.mcap").exists()
+
+
+def test_an_sbet_with_attitude_reads_back_as_written(tmp_path: Path) -> None:
+    """Roll, pitch and heading in UTM 33N 2 degrees off its central meridian (a meridian
+    convergence of some 1.5 degrees): read back and turned into the map's quaternions by the
+    import's conversion, the same orientation (1e-9 rad) and positions (1 mm); the SBET's
+    heading is the true one (grid heading less the convergence); a heading-only trajectory
+    comes back heading only, one without orientation positions only; an existing file is
+    refused without ``overwrite``."""
+    rng = np.random.default_rng(5)
+    n = 40
+    t = 1.7e9 + np.arange(n) * 0.005
+    roll, pitch = rng.uniform(-0.2, 0.2, n), rng.uniform(-0.1, 0.1, n)
+    kappa = rng.uniform(-3.0, 3.0, n)
+    xyz = np.column_stack([352_000.0 + 50.0 * np.arange(n) * 0.005, 5_400_000.0 + np.zeros(n),
+                           rng.uniform(900, 1100, n)])
+    q = quaternions_from_attitude(roll, pitch, kappa)
+    path, week = write_sbet_trajectory(tmp_path / "t.sbet", Trajectory(t, xyz, q), _utm33())
+    assert week is not None and week > 2000
+    back, xyz_back, q_back, full = _from_sbet(path, "EPSG:32633")
+    assert full and q_back is not None and back.attitude == "roll, pitch, heading"
+    np.testing.assert_allclose(xyz_back, xyz, rtol=0, atol=1e-3)
+    r2, p2, k2 = (np.asarray(v) for v in _attitude(q_back))
+    np.testing.assert_allclose(r2, roll, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(p2, pitch, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (k2 - kappa))), 0.0, rtol=0, atol=1e-9)
+    # the file's heading is true north's: the grid heading less the convergence (~ -1.5 deg)
+    turn = np.angle(np.exp(1j * (np.radians(back.heading_deg) + kappa)))
+    assert np.all(np.abs(np.degrees(turn) + 1.5) < 0.2)
+    # the track flown east along grid x: the velocity east of true north, 50 m/s
+    records = np.fromfile(path, dtype="<f8").reshape(-1, 17)
+    # (UNIX stamps hold 0.24 us: 5 ms apart, a rate to 1e-4)
+    np.testing.assert_allclose(np.hypot(records[:, 4], records[:, 5]), 50.0, rtol=1e-4)
+    assert np.all(records[:, 4] > 0.0)  # (grid east is north of true east west of the CM)
+    level = Trajectory(t, xyz, quaternions_from_attitude(0 * kappa, 0 * kappa, kappa))
+    path, _ = write_sbet_trajectory(tmp_path / "level.out", level, _utm33())
+    back, _, q_back, full = _from_sbet(path, "EPSG:32633")
+    assert back.attitude == "heading" and not full and q_back is not None
+    none, _ = write_sbet_trajectory(tmp_path / "none.out", Trajectory(t, xyz), _utm33())
+    assert read_sbet(none).attitude == "none"
+    from lidarcal_ros.errors import OutputError
+
+    with pytest.raises(OutputError, match="exists"):
+        write_sbet_trajectory(none, Trajectory(t, xyz), _utm33())
+
+
+def _utm33() -> Any:
+    import pyproj
+
+    return pyproj.CRS("EPSG:32633")
+
+
+def _attitude(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    from lidarcal_ros.core.georeferencing.attitude import attitude_from_quaternions
+
+    return attitude_from_quaternions(q)
