@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.georeferencing.heading import describe_heading_use
+from lidarcal_ros.core.georeferencing.heading import HeadingSource, describe_heading_use
 from lidarcal_ros.core.georeferencing.rigorous import describe_models
 from lidarcal_ros.core.params import (
     N_PARAMETERS,
@@ -330,7 +330,7 @@ class StatusSpec:
     values: dict[str, str] = field(default_factory=dict)
 
 
-def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
+def estimate_status(solution: Any, heading_from: dict[int, HeadingSource] | None = None,
                     crab_deg: dict[int, float] | None = None,
                     models: dict[int, Any] | None = None) -> StatusSpec:
     """The biases as a crew reads them (``lidarcal: estimate``): the message lists the

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.io.cloud.messages import (
     ERROR,
@@ -39,10 +40,12 @@ def test_the_estimate_reads_in_arcsec_and_cm() -> None:
     assert status.values["dkappa"] == "not estimable: lines along one track"
     assert list(status.values) == list(PARAMETER_NAMES)
     # where the headings came from, when the result says
-    with_heading = estimate_status(_solution(), {1: "attitude", 2: "attitude"})
+    with_heading = estimate_status(_solution(), {1: HeadingSource.ATTITUDE,
+                                                 2: HeadingSource.ATTITUDE})
     assert with_heading.values["heading"] == (
         "heading from the poses' orientation (IMU) for every strip")
-    assert estimate_status(_solution(), {1: "track"}).values["heading"] == "from the track"
+    by_track = estimate_status(_solution(), {1: HeadingSource.TRACK})
+    assert by_track.values["heading"] == "from the track"
 
 
 def _pair(a: int, b: int, level: int, rms: float) -> StatusSpec:
