@@ -18,7 +18,12 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.adjustment.least_squares import NormalEquations, ObservabilityLimits, solve
+from lidarcal_ros.core.adjustment.least_squares import (
+    NormalEquations,
+    ObservabilityLimits,
+    ParameterState,
+    solve,
+)
 from lidarcal_ros.core.adjustment.strip_blocks import StripBlocks
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Calibrator
 from lidarcal_ros.core.calibration.pairs import outside_strips
@@ -303,7 +308,7 @@ def _predictions(neq: NormalEquations, sigma_obs: float,
     est = list(sol.estimated)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
-        if st.state != "estimated":
+        if st.state != ParameterState.ESTIMATED:
             parameters[name] = ParameterPrediction(False, None, None, None, st.reason)
             continue
         j = est.index(name)

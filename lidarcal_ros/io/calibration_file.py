@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import MIXED, describe_models, models_summary
@@ -61,9 +62,9 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         entry: dict[str, Any] = {
             "value": float(sol.delta[i]),
             "sigma": finite_or_none(float(sol.sigma[i])),
-            "estimated": st.state == "estimated",
+            "estimated": st.state == ParameterState.ESTIMATED,
         }
-        if st.state == "not_estimable":
+        if st.state == ParameterState.NOT_ESTIMABLE:
             entry["not_estimable"] = st.reason
         biases[name] = entry
     doc: dict[str, Any] = {

@@ -28,6 +28,7 @@ from lidarcal_ros.core.adjustment.least_squares import (
     NormalEquations,
     ObservabilityLimits,
     Observations,
+    ParameterState,
     ParameterStatus,
     Solution,
 )
@@ -565,8 +566,9 @@ class Calibrator:
         with self.workers.threads():
             self.matcher.choose_samples([p for p in self.pairs if p.frozen is None and
                                   p.sample is None])
-        status = {name: ParameterStatus("not_estimable", reason) if name in s.solve_for
-                  else ParameterStatus("fixed") for name in PARAMETER_NAMES}
+        status = {name: ParameterStatus(ParameterState.NOT_ESTIMABLE, reason)
+                  if name in s.solve_for else ParameterStatus(ParameterState.FIXED)
+                  for name in PARAMETER_NAMES}
         sol = Solution(delta=delta, sigma=np.full(N_PARAMETERS, np.nan), estimated=(),
                        covariance=np.zeros((0, 0)), correlation=np.zeros((0, 0)),
                        sigma0=float("nan"), redundancy=0, status=status)

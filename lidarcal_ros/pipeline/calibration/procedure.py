@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.calibrate import Progress, calibrate
 from lidarcal_ros.core.calibration.pairs import outside_strips
 from lidarcal_ros.core.calibration.result import CalibrationResult
@@ -201,13 +202,13 @@ def format_report(
     lines.append(header)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
-        if st.state == "estimated":
+        if st.state == ParameterState.ESTIMATED:
             sigma = "+- " + _fmt(name, sol.sigma[i], False)
             row = f"{name:<9} {_fmt(name, sol.delta[i]):>15} {sigma:>17}"
             if truth is not None:
                 err = (sol.delta[i] - truth.biases[name]) / sol.sigma[i]
                 row += f" {_fmt(name, truth.biases[name]):>15} {err:>+11.2f}"
-        elif st.state == "fixed":
+        elif st.state == ParameterState.FIXED:
             row = f"{name:<9} {'fixed at ' + _fmt(name, sol.delta[i]).strip():>33}"
             if truth is not None:
                 row += f" {_fmt(name, truth.biases[name]):>15}"
