@@ -51,6 +51,7 @@ import numpy as np
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.params import PARAMETER_NAMES, display_value
 from lidarcal_ros.core.simulation.flight_path import RoughAir, crosswind_for_crab
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
@@ -112,7 +113,7 @@ def check_estimate(res: CalibrationResult, biases: dict[str, float],
     return failures
 
 
-def vertical_errors(sim: SimulatedMission, delta: np.ndarray, model: str,
+def vertical_errors(sim: SimulatedMission, delta: np.ndarray, model: PositioningModel,
                     trajectory: TrajectoryEstimate | None = None) -> np.ndarray:
     """(corrected - true) height of every corrected point, m (``trajectory``: each strip's
     trajectory error removed too)."""
@@ -126,7 +127,8 @@ def vertical_errors(sim: SimulatedMission, delta: np.ndarray, model: str,
     return np.concatenate(dz)
 
 
-def median_vertical_error(sim: SimulatedMission, delta: np.ndarray, model: str) -> float:
+def median_vertical_error(sim: SimulatedMission, delta: np.ndarray,
+                          model: PositioningModel) -> float:
     """Median of (corrected - true) height of every corrected point, m."""
     return float(np.median(vertical_errors(sim, delta, model)))
 
@@ -137,7 +139,7 @@ def rms90(dz: np.ndarray) -> float:
 
 
 def trajectory_run(sim: SimulatedMission, ideal: SimulatedMission, biases: dict[str, float],
-                   model: str, trajectory_models: list[str]) -> int:
+                   model: PositioningModel, trajectory_models: list[str]) -> int:
     """Calibrate ``sim`` (with trajectory errors) with each of ``trajectory_models``, against
     ``ideal`` (the same mission without them, the trajectory taken as exact): docs/method.md
     section 11's checks (module docstring); the number of failed checks."""
@@ -188,12 +190,13 @@ def main() -> int:
     ap.add_argument("--trajectory-models", nargs="+", default=["none", "drift", "auto"],
                     choices=[m.value for m in TrajectoryModel])
     ap.add_argument("--models", nargs="+", default=None,
-                    choices=("auto", "level", "rigorous"),
+                    type=PositioningModel, choices=list(PositioningModel),
                     help="matching.model of each calibration (default: auto; with "
                          "--rough-air: rigorous level)")
     args = ap.parse_args()
     wind = tuple(float(v) for v in args.wind.split(","))
-    models = args.models or (["rigorous", "level"] if args.rough_air else ["auto"])
+    models = args.models or ([PositioningModel.RIGOROUS, PositioningModel.LEVEL]
+                             if args.rough_air else [PositioningModel.AUTO])
     failures = 0
     for seed in args.seeds:
         biases = random_biases(np.random.default_rng(seed + 7919))

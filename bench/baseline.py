@@ -233,7 +233,7 @@ def run(mission: Mission, s: CalibrationSettings, iterations: int) -> dict:
 
     strips: list[_Strip] = []
     for st in mission.strips:
-        geom = laser_geometry(st.t, st.xyz, mission.trajectory, window_s=s.trajectory_window_s)
+        geom = laser_geometry(st.t, st.xyz, mission.trajectory, window=s.window)
         raster = np.zeros(shape, dtype=bool)
         raster[index(st.xyz[:, :2])] = True
         strips.append(_Strip(st.xyz, geom, raster,

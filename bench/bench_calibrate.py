@@ -251,7 +251,7 @@ def throughput_worker(args: argparse.Namespace) -> None:
     # Later iterations: vertices corrected by the simulated biases, queries located through
     # the vertex shift (two point locations per query).
     delta = as_vector(meta["biases"])
-    g = laser_geometry(strip.t, xyz, mission.trajectory, window_s=s.trajectory_window_s)
+    g = laser_geometry(strip.t, xyz, mission.trajectory, window=s.window)
     shift = point_offsets(delta, g.x, g.z, g.kappa, g.beta)
     corrected = xyz - shift
     t_ls, reps_ls, m_s = timed(

@@ -254,7 +254,7 @@ def baseline_strip(mission: Any, k: int, settings: Any) -> Any:
 
     strip = mission.strips[k]
     xyz, t = strip.xyz, strip.t
-    geo = laser_geometry(t, xyz, mission.trajectory, window_s=settings.window_s)
+    geo = laser_geometry(t, xyz, mission.trajectory, window=settings.window)
     xc = correct_points(xyz, settings.delta, geo.x, geo.z, geo.kappa, geo.beta)
     rel = xc - geo.origin
     r = np.linalg.norm(rel, axis=1)

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from lidarcal_ros.core.adjustment.least_squares import DEFAULT_MAX_SIGMA, ObservabilityLimits
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import ConfigError
@@ -150,12 +152,13 @@ SCHEMA: dict[str, ParameterSpec] = {
         "auto", "str", "Heading of the local trajectory: 'track' (docs/method.md: the direction of "
         "the fitted line), 'attitude' (the trajectory's orientation: a crabbing aircraft), "
         "'auto' (the orientation where the trajectory has one that agrees with the track "
-        "within 20 degrees, else the track)", choices=("auto", "track", "attitude")),
+        "within 20 degrees, else the track)", choices=tuple(m.value for m in HeadingSource)),
     "matching.model": ParameterSpec(
         "auto", "str", "Point-positioning model: 'level' (docs/method.md sections 2-4: a level "
         "platform), 'rigorous' (section 10: the poses' full INS attitude, roll, pitch and "
         "heading, interpolated to each firing time), 'auto' (rigorous where the poses carry "
-        "a usable attitude at 10 Hz or more, else level)", choices=("auto", "level", "rigorous")),
+        "a usable attitude at 10 Hz or more, else level)",
+        choices=tuple(m.value for m in PositioningModel)),
     "matching.max_normal_distance_m": float_parameter(
         2.0, "Largest point-to-patch distance accepted at the first iteration, metres", 0.01, 50.0),
     "matching.min_normal_distance_m": float_parameter(0.15, "Smallest matching threshold later "
@@ -462,15 +465,16 @@ class FlightConfig:
     def calibration_settings(self) -> CalibrationSettings:
         """The adjustment options this configuration sets."""
         from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
+        from lidarcal_ros.core.georeferencing.local_trajectory import TrajectoryWindow
 
         values = self.values
         fixed = {n: float(values[f"calibration.fixed.{n}"]) for n in PARAMETER_NAMES}
         return CalibrationSettings(
             solve_for=tuple(values["calibration.solve_for"]),
             fixed=fixed,
-            trajectory_window_s=values["matching.trajectory_window_s"],
-            heading_source=values["matching.heading_source"],
-            model=values["matching.model"],
+            window=TrajectoryWindow(values["matching.trajectory_window_s"]),
+            heading_source=HeadingSource(values["matching.heading_source"]),
+            model=PositioningModel(values["matching.model"]),
             fov_deg=values["sensor.fov_deg"],
             max_normal_distance_m=values["matching.max_normal_distance_m"],
             min_normal_distance_m=values["matching.min_normal_distance_m"],

@@ -14,12 +14,17 @@ from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.adjustment.least_squares import NormalEquations, ObservabilityLimits, solve
+from lidarcal_ros.core.adjustment.least_squares import (
+    NormalEquations,
+    ObservabilityLimits,
+    ParameterState,
+    solve,
+)
 from lidarcal_ros.core.adjustment.strip_blocks import StripBlocks
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Calibrator
 from lidarcal_ros.core.calibration.pairs import outside_strips
-from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS
-from lidarcal_ros.core.georeferencing.rigorous import MODELS, describe_models
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
+from lidarcal_ros.core.georeferencing.rigorous import describe_models
 from lidarcal_ros.core.mission import Strip
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.raster_terrain import RasterTerrain
@@ -71,7 +76,7 @@ class FlightPlan:
     #: the INS attitude the lines are flown with (a real INS never records an exactly level
     #: flight, so ``auto`` will run the rigorous model on every strip), ``level`` for
     #: positions only.
-    model: str = "auto"
+    model: PositioningModel = PositioningModel.AUTO
 
     @property
     def uses_dsm(self) -> bool:
@@ -146,10 +151,12 @@ class FlightPlan:
             lines = normalise_lines([dict(ln) for ln in raw_lines])
         except ConfigError as exc:
             raise ConfigError(f"{source}: {exc}") from None
-        model = doc.get("model", "auto")
-        if model not in MODELS:
-            raise ConfigError(f"{source}: model must be one of {', '.join(MODELS)}, "
-                              f"got {model!r}")
+        given = doc.get("model", PositioningModel.AUTO.value)
+        try:
+            model = PositioningModel(given)
+        except ValueError:
+            raise ConfigError(f"{source}: model must be one of {', '.join(PositioningModel)}, "
+                              f"got {given!r}") from None
         top = max(ln["height"] for ln in lines)
         points = sum(math.dist(ln["start"], ln["end"]) for ln in lines) * \
             swath_width(top, fov) * min(density, MAX_SIMULATED_DENSITY)
@@ -174,7 +181,7 @@ class FlightPlan:
                                   f"[x, y, z], got {c!r}")
             control.append((x, y, z))
         return cls(lines, terrain, fov, noise, density, speed, control,
-                   terrain_cell_m=cell_m, terrain_origin=origin, model=str(model))
+                   terrain_cell_m=cell_m, terrain_origin=origin, model=model)
 
 
 @dataclass
@@ -240,7 +247,7 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
         seed=seed, biases={},
         flight=FlightSpec(lines=plan.lines, speed_mps=plan.speed_mps),
         sensor=SensorSpec(density=simulated_density, fov_deg=plan.fov_deg,
-                          attitude=plan.model != LEVEL),
+                          attitude=plan.model != PositioningModel.LEVEL),
         noise=NoiseSpec(range_noise_m=0.0, intensity_noise=0.0),
         site=SiteSpec(terrain_kind=None if plan.uses_dsm else plan.terrain,
                       terrain=plan.dsm if plan.uses_dsm else None, n_control=0,
@@ -248,12 +255,13 @@ def predict(plan: FlightPlan, *, seed: int = 0) -> PlanReport:
     ))
     # Level lines all flown due east are poses of the identity, which alone read as "no
     # attitude": the level model is then the same geometry.
-    level = plan.model == LEVEL or sim.mission.trajectory.orientation is None
+    level = plan.model == PositioningModel.LEVEL or sim.mission.trajectory.orientation is None
     # The correspondences carry their trajectory terms: the same matches serve the analysis
     # with the trajectory as exact and with each strip's drift (docs/method.md section 11).
     drift = TrajectoryErrorSettings(TrajectoryModel.DRIFT)
     settings = CalibrationSettings(solve_for=PARAMETER_NAMES, limits=ObservabilityLimits(),
-                                   model=LEVEL if level else RIGOROUS, fov_deg=plan.fov_deg,
+                                   model=(PositioningModel.LEVEL if level
+                                          else PositioningModel.RIGOROUS), fov_deg=plan.fov_deg,
                                    trajectory=drift)
     unseen = _unseen_control(plan, sim.mission.strips, settings.overlap_cell_m)
     cal = Calibrator.from_mission(sim.mission, settings)
@@ -296,7 +304,7 @@ def _predictions(neq: NormalEquations, sigma_obs: float,
     est = list(sol.estimated)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
-        if st.state != "estimated":
+        if st.state != ParameterState.ESTIMATED:
             parameters[name] = ParameterPrediction(False, None, None, None, st.reason)
             continue
         j = est.index(name)

@@ -11,9 +11,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.result import CalibrationResult
-from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS
-from lidarcal_ros.core.georeferencing.rigorous import describe_models, models_summary
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
+from lidarcal_ros.core.georeferencing.rigorous import MIXED, describe_models, models_summary
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory.strip_errors import (
     SPLINE_INTERPOLATION,
@@ -28,6 +29,9 @@ from lidarcal_ros.io.output_files import os_reason, write_text
 from lidarcal_ros.io.yaml_file import read_yaml
 
 ROOT_KEY = "lidarcal_calibration"
+#: The file's ``model`` (plain strings: YAML writes no enum).
+_LEVEL = PositioningModel.LEVEL.value
+_FILE_MODELS = (_LEVEL, PositioningModel.RIGOROUS.value, MIXED)
 
 
 @dataclass
@@ -59,9 +63,9 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         entry: dict[str, Any] = {
             "value": float(sol.delta[i]),
             "sigma": finite_or_none(float(sol.sigma[i])),
-            "estimated": st.state == "estimated",
+            "estimated": st.state == ParameterState.ESTIMATED,
         }
-        if st.state == "not_estimable":
+        if st.state == ParameterState.NOT_ESTIMABLE:
             entry["not_estimable"] = st.reason
         biases[name] = entry
     doc: dict[str, Any] = {
@@ -75,8 +79,8 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
         "iterations": int(result.iterations),
         "converged": bool(result.converged),
         "convergence": result.convergence,
-        "model": models_summary(result.models) if result.models else LEVEL,
-        "model_detail": describe_models(result.models) if result.models else LEVEL,
+        "model": models_summary(result.models) if result.models else _LEVEL,
+        "model_detail": describe_models(result.models) if result.models else _LEVEL,
         "correspondences": {
             "strip_pairs": int(result.n_pair_correspondences),
             "control": int(result.n_control_correspondences),
@@ -231,7 +235,7 @@ def read_trajectory_block(path: Path, block: Any) -> TrajectoryEstimate:
 def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
     """A strip's model, the reason for it, and its laser-vector QA."""
     choice = result.models[strip_id]
-    entry: dict[str, Any] = {"id": int(strip_id), "model": choice.model,
+    entry: dict[str, Any] = {"id": int(strip_id), "model": choice.model.value,
                              "model_reason": choice.reason}
     qa = result.laser_qa.get(strip_id)
     if qa is not None:
@@ -302,7 +306,7 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
             raise ConfigError(f"{path}: biases.{name}.estimated is not true or false: {flag!r}")
         estimated[name] = flag
     model = body.get("model")
-    if model is not None and model not in (LEVEL, RIGOROUS, "mixed"):
+    if model is not None and model not in _FILE_MODELS:
         raise ConfigError(f"{path}: model {model!r} is not one of level, rigorous, mixed")
     trajectory = body.get("trajectory")
     return CalibrationRecord(values, sigmas, estimated,

@@ -150,7 +150,7 @@ def corrected_strips(
     out = []
     for strip in mission.strips:
         ok, geo = flagged_geometry(strip.t, strip.xyz, mission.trajectory,
-                                   window_s=settings.trajectory_window_s,
+                                   window=settings.window,
                                    source=f"strip {strip.strip_id}",
                                    heading_source=settings.heading_source,
                                    model=settings.model)

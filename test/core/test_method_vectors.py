@@ -14,7 +14,7 @@ from lidarcal_ros.core.georeferencing.bias_model import (
     normal_design_rows,
     point_offsets,
 )
-from lidarcal_ros.core.georeferencing.local_trajectory import laser_geometry
+from lidarcal_ros.core.georeferencing.local_trajectory import TrajectoryWindow, laser_geometry
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES, as_vector
 from lidarcal_ros.errors import TrajectoryError
@@ -71,7 +71,7 @@ def test_local_trajectory(vectors: dict) -> None:
     traj = Trajectory(samples[:, 0], samples[:, 1:])
     t = np.array([p["t"] for p in lt["points"]])
     xyz = np.array([p["point"] for p in lt["points"]])
-    g = laser_geometry(t, xyz, traj, window_s=0.5)
+    g = laser_geometry(t, xyz, traj, window=TrajectoryWindow(window_s=0.5))
     for i, p in enumerate(lt["points"]):
         e = p["expected"]
         assert g.x[i] == pytest.approx(e["x"], abs=1e-6)

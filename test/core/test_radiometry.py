@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.georeferencing.local_trajectory import covered_by_trajectory
+from lidarcal_ros.core.georeferencing.local_trajectory import (
+    TrajectoryWindow,
+    covered_by_trajectory,
+)
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.normals import strip_normals as strip_normals_module
 from lidarcal_ros.core.normals.grid_normals import (
@@ -357,7 +360,7 @@ def test_coverage_rule_matches_laser_geometry() -> None:
     tt = np.concatenate([np.arange(0.0, 10.0, 0.02), np.arange(12.0, 20.0, 0.02)])
     traj = Trajectory(tt, np.column_stack([np.zeros_like(tt), 60.0 * tt, np.full_like(tt, 1e3)]))
     t = np.linspace(-1.0, 21.0, 2000)
-    cov = covered_by_trajectory(t, traj, window_s=0.5)
+    cov = covered_by_trajectory(t, traj, window=TrajectoryWindow(window_s=0.5))
     assert not cov[(t > 10.5) & (t < 11.5)].any()
     assert not cov[t < 0].any() and not cov[t > 19.98].any()
     assert cov[(t > 0.1) & (t < 9.9)].all()

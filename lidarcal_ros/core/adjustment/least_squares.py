@@ -6,6 +6,7 @@ cannot be estimated is held at its fixed value with the reason in words.
 
 from __future__ import annotations
 
+import enum
 import logging
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -146,15 +147,22 @@ class Observations:
         return self.y - self.rows @ delta
 
 
+class ParameterState(enum.StrEnum):
+    """What the adjustment made of one parameter."""
+
+    ESTIMATED = "estimated"
+    #: Held at its given value: not asked for.
+    FIXED = "fixed"
+    #: Asked for, but the observations do not determine it (:attr:`ParameterStatus.reason`).
+    NOT_ESTIMABLE = "not_estimable"
+
+
 @dataclass
 class ParameterStatus:
-    """What the adjustment could say about one parameter.
+    """What the adjustment could say about one parameter: its ``state``, and for
+    ``NOT_ESTIMABLE`` the ``reason`` in words."""
 
-    ``state`` is ``"estimated"``, ``"fixed"`` (not asked for) or ``"not_estimable"``; ``reason``
-    explains the latter in words.
-    """
-
-    state: str
+    state: ParameterState
     reason: str = ""
 
 
@@ -266,7 +274,7 @@ def solve(
         raise CalibrationError(f"unknown parameter(s) to solve for: {', '.join(unknown)}")
     base = as_vector(dict(fixed or {}))
     status: dict[str, ParameterStatus] = {
-        name: ParameterStatus("fixed") for name in PARAMETER_NAMES
+        name: ParameterStatus(ParameterState.FIXED) for name in PARAMETER_NAMES
     }
     active = [PARAMETER_INDEX[name] for name in PARAMETER_NAMES if name in solve_for]
     if not active:
@@ -274,7 +282,7 @@ def solve(
 
     def drop(indices: Iterable[int], reason: str) -> None:
         for i in indices:
-            status[PARAMETER_NAMES[i]] = ParameterStatus("not_estimable", reason)
+            status[PARAMETER_NAMES[i]] = ParameterStatus(ParameterState.NOT_ESTIMABLE, reason)
             if i in active:
                 active.remove(i)
 
@@ -305,7 +313,7 @@ def solve(
         sigma = np.full(N_PARAMETERS, np.nan)
         sigma[idx] = fit.sigma
         for i in idx:
-            status[PARAMETER_NAMES[i]] = ParameterStatus("estimated")
+            status[PARAMETER_NAMES[i]] = ParameterStatus(ParameterState.ESTIMATED)
         return Solution(
             delta=fit.delta, sigma=sigma, estimated=tuple(PARAMETER_NAMES[i] for i in idx),
             covariance=fit.covariance, correlation=scaled.correlation, sigma0=fit.sigma0,
@@ -527,6 +535,7 @@ __all__ = [
     "NormalEquations",
     "ObservabilityLimits",
     "Observations",
+    "ParameterState",
     "ParameterStatus",
     "Solution",
     "cluster_robust_sigma",

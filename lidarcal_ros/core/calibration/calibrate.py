@@ -17,6 +17,7 @@ from lidarcal_ros.core.adjustment.least_squares import (
     NormalEquations,
     ObservabilityLimits,
     Observations,
+    ParameterState,
     ParameterStatus,
     Solution,
 )
@@ -49,6 +50,9 @@ from lidarcal_ros.core.calibration.result import (
 )
 from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import TinQuality
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
+from lidarcal_ros.core.georeferencing.local_trajectory import DEFAULT_WINDOW, TrajectoryWindow
 from lidarcal_ros.core.georeferencing.rigorous import laser_vector_qa
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, display_value
@@ -79,15 +83,14 @@ class CalibrationSettings:
     solve_for: tuple[str, ...] = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
     #: Value of each bias not estimated, SI units (0 where not given).
     fixed: dict[str, float] = field(default_factory=dict)
-    #: Half-width of the local-trajectory window, s
-    #: (:mod:`lidarcal_ros.core.georeferencing.local_trajectory`).
-    trajectory_window_s: float = 0.5
-    #: Heading of the local trajectory: ``auto``, ``track`` or ``attitude``
-    #: (:mod:`lidarcal_ros.core.georeferencing.heading`).
-    heading_source: str = "auto"
-    #: ``matching.model``: ``auto``, ``level`` or ``rigorous``
-    #: (:mod:`lidarcal_ros.core.georeferencing.rigorous`).
-    model: str = "auto"
+    #: The local-trajectory window (``matching.trajectory_window_s``;
+    #: :mod:`lidarcal_ros.core.georeferencing.local_trajectory`).
+    window: TrajectoryWindow = DEFAULT_WINDOW
+    #: Heading of the local trajectory (``matching.heading_source``;
+    #: :mod:`lidarcal_ros.core.georeferencing.heading`).
+    heading_source: HeadingSource = HeadingSource.AUTO
+    #: ``matching.model`` (:mod:`lidarcal_ros.core.georeferencing.rigorous`).
+    model: PositioningModel = PositioningModel.AUTO
     #: The scanner's full field of view, deg (``sensor.fov_deg``): the laser-vector QA.
     fov_deg: float = 50.0
     #: Largest point-to-patch distance matched at the first iteration, m.
@@ -560,8 +563,9 @@ class Calibrator:
         with self.workers.threads():
             self.matcher.choose_samples([p for p in self.pairs if p.frozen is None and
                                   p.sample is None])
-        status = {name: ParameterStatus("not_estimable", reason) if name in s.solve_for
-                  else ParameterStatus("fixed") for name in PARAMETER_NAMES}
+        status = {name: ParameterStatus(ParameterState.NOT_ESTIMABLE, reason)
+                  if name in s.solve_for else ParameterStatus(ParameterState.FIXED)
+                  for name in PARAMETER_NAMES}
         sol = Solution(delta=delta, sigma=np.full(N_PARAMETERS, np.nan), estimated=(),
                        covariance=np.zeros((0, 0)), correlation=np.zeros((0, 0)),
                        sigma0=float("nan"), redundancy=0, status=status)

@@ -26,7 +26,7 @@ from lidarcal_ros.core.calibration.pairs import (
 from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import PatchMatches, Tin, match_to_tin
 from lidarcal_ros.core.georeferencing.bias_model import add_geometry_normal_rows, exact_correction
-from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, LaserGeometry
+from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import (
     LaserVectorQA,
     ModelChoice,
@@ -107,7 +107,7 @@ class PairMatcher:
         if any(ps.strip_id == strip.strip_id for ps in self.strips):
             raise CalibrationError(f"strip {strip.strip_id} added twice")
         geom, choice = strip_geometry(strip.t, strip.xyz, trajectory,
-                                      window_s=s.trajectory_window_s,
+                                      window=s.window,
                                       source=f"strip {strip.strip_id}",
                                       heading_source=s.heading_source, model=s.model)
         speed = ground_speed(trajectory, strip.t)
@@ -127,7 +127,7 @@ class PairMatcher:
         empty = np.empty(0, dtype=np.int64)
         ps = PreparedStrip(Strip(strip_id, np.empty((0, 3)), np.empty(0)), LaserGeometry.empty(),
                            0.0, empty, empty.copy(), np.empty(0),
-                           ModelChoice(LEVEL, "released before a restart"),
+                           ModelChoice(PositioningModel.LEVEL, "released before a restart"),
                            LaserVectorQA(*(math.nan,) * 5), math.nan, dropped=True,
                            placeholder=True)
         self.add_prepared(ps, span=(t0, t1))

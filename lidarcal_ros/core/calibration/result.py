@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import Solution
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
 from lidarcal_ros.core.georeferencing.rigorous import LaserVectorQA, ModelChoice
 from lidarcal_ros.core.qa.overlap_grid import PairQA
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryEstimate
@@ -96,9 +97,9 @@ class CalibrationResult:
     #: Strips a live input delivered only in part, with what is missing, by strip id
     #: (:mod:`lidarcal_ros.pipeline.calibration.strip_coverage`; empty offline).
     partial_strips: dict[int, str] = field(default_factory=dict)
-    #: Where each strip's heading came from (``track`` or ``attitude``), and its median crab
+    #: Where each strip's heading came from (``TRACK`` or ``ATTITUDE``), and its median crab
     #: (attitude less track, deg; NaN without attitude), by strip id.
-    heading_from: dict[int, str] = field(default_factory=dict)
+    heading_from: dict[int, HeadingSource] = field(default_factory=dict)
     crab_deg: dict[int, float] = field(default_factory=dict)
     #: The point-positioning model of each strip and why (:mod:`~lidarcal_ros.core.
     #: georeferencing`), and the QA of its laser vectors, by strip id.

@@ -7,6 +7,7 @@ docs/internals.md, "Point positioning".
 
 from __future__ import annotations
 
+import enum
 import logging
 import math
 
@@ -17,7 +18,15 @@ from lidarcal_ros.errors import ConfigError, TrajectoryError
 
 logger = logging.getLogger(__name__)
 
-HEADING_SOURCES: tuple[str, ...] = ("auto", "track", "attitude")
+
+class HeadingSource(enum.StrEnum):
+    """Where a heading comes from: the values of ``matching.heading_source`` (module
+    docstring), and ``TRACK`` or ``ATTITUDE``, where a strip's heading came from."""
+
+    AUTO = "auto"
+    TRACK = "track"
+    ATTITUDE = "attitude"
+
 
 #: Largest median |attitude - track| heading difference (deg) that ``auto`` takes for a crab:
 #: an aircraft crabs by up to about 15 degrees in strong winds; a body frame of another
@@ -68,7 +77,7 @@ def median_crab_deg(track: np.ndarray, attitude: np.ndarray | None) -> float:
     return float(np.degrees(np.median(wrap_angle(attitude - track))))
 
 
-def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
+def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: HeadingSource, *,
                    source: str = "points") -> np.ndarray:
     """The heading of each window (rad) by ``matching.heading_source`` (docs/method.md section 4).
 
@@ -79,8 +88,7 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
     attitude : (k,) float64 or None
         The windows' heading from the orientation (:func:`window_headings`; NaN where
         missing), or None when the trajectory has no orientation.
-    mode : str
-        ``auto``, ``track`` or ``attitude``.
+    mode : HeadingSource
     source : str
         Named in messages.
 
@@ -94,13 +102,10 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
     TrajectoryError
         ``attitude`` asked for where the trajectory has no orientation.
     """
-    if mode not in HEADING_SOURCES:
-        raise TrajectoryError(f"heading source '{mode}' is not one of "
-                              f"{', '.join(HEADING_SOURCES)}")
-    if mode == "track" or track.size == 0:
+    if mode == HeadingSource.TRACK or track.size == 0:
         return track
     missing = attitude is None or bool(np.isnan(attitude).any())
-    if mode == "attitude":
+    if mode == HeadingSource.ATTITUDE:
         if missing:
             raise TrajectoryError(
                 f"{source}: matching.heading_source is 'attitude' but the trajectory has no "
@@ -120,23 +125,23 @@ def choose_heading(track: np.ndarray, attitude: np.ndarray | None, mode: str, *,
     return attitude
 
 
-def check_orientation(mode: str, trajectory: Trajectory, where: str) -> None:
+def check_orientation(mode: HeadingSource, trajectory: Trajectory, where: str) -> None:
     """Refuse at once what ``attitude`` would refuse strip by strip: a trajectory without
     orientation (ConfigError naming ``where``)."""
-    if mode == "attitude" and trajectory.heading is None:
+    if mode == HeadingSource.ATTITUDE and trajectory.heading is None:
         raise ConfigError(f"{where}: matching.heading_source is 'attitude' but the trajectory's "
                           "poses carry no orientation (identity); use 'track' or 'auto'")
 
 
-def describe_heading_use(heading_from: dict[int, str],
+def describe_heading_use(heading_from: dict[int, HeadingSource],
                          crab_deg: dict[int, float] | None = None) -> str | None:
     """One line on where the strips' headings came from (strip id -> ``track`` or
     ``attitude``) and the range of their crab (strip id -> deg, NaN: unknown), or None where
     every one came from the track (docs/method.md as written)."""
-    attitude = sorted(k for k, v in heading_from.items() if v == "attitude")
+    attitude = sorted(k for k, v in heading_from.items() if v == HeadingSource.ATTITUDE)
     if not attitude:
         return None
-    track = sorted(k for k, v in heading_from.items() if v != "attitude")
+    track = sorted(k for k, v in heading_from.items() if v != HeadingSource.ATTITUDE)
     text = ("heading from the poses' orientation (IMU) for every strip" if not track else
             f"heading from the poses' orientation (IMU) for strips "
             f"{', '.join(map(str, attitude))}; from the track for {', '.join(map(str, track))}")
@@ -146,13 +151,13 @@ def describe_heading_use(heading_from: dict[int, str],
     return text
 
 
-def describe_heading_policy(mode: str, has_orientation: bool) -> str:
+def describe_heading_policy(mode: HeadingSource, has_orientation: bool) -> str:
     """What ``matching.heading_source`` makes of a trajectory with or without orientation."""
-    if mode == "track":
+    if mode == HeadingSource.TRACK:
         return "from the track (matching.heading_source track)"
     if not has_orientation:
         return "from the track (the poses carry no orientation)"
-    if mode == "attitude":
+    if mode == HeadingSource.ATTITUDE:
         return "from the poses' orientation (matching.heading_source attitude)"
     return (f"from the poses' orientation where it agrees with the track within "
             f"{MAX_CRAB_DEG:g} deg, else from the track (matching.heading_source auto)")
@@ -165,7 +170,7 @@ def _log_once(message: str) -> None:
 
 
 __all__ = [
-    "HEADING_SOURCES", "MAX_CRAB_DEG", "check_orientation", "choose_heading",
+    "MAX_CRAB_DEG", "HeadingSource", "check_orientation", "choose_heading",
     "describe_heading_policy", "describe_heading_use", "median_crab_deg", "window_headings",
     "wrap_angle",
 ]

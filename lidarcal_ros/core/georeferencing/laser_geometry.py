@@ -6,14 +6,24 @@
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-#: The two point-positioning models.
-LEVEL = "level"
-RIGOROUS = "rigorous"
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
+
+
+class PositioningModel(enum.StrEnum):
+    """The point-positioning model: the values of ``matching.model``
+    (:mod:`lidarcal_ros.core.georeferencing.rigorous`), and ``LEVEL`` or ``RIGOROUS``, the
+    model a strip got."""
+
+    #: ``rigorous`` where the poses carry a usable attitude, else ``level``.
+    AUTO = "auto"
+    LEVEL = "level"
+    RIGOROUS = "rigorous"
 
 
 @dataclass
@@ -52,11 +62,11 @@ class LaserGeometry:
     #: Where ``kappa`` came from: ``track`` or ``attitude``
     #: (:mod:`lidarcal_ros.core.georeferencing.heading`), and the median crab, deg (NaN: no attitude
     #: to compare the track with).
-    heading_from: str = "track"
+    heading_from: HeadingSource = HeadingSource.TRACK
     crab_deg: float = math.nan
     rotation: np.ndarray | None = None
     y: np.ndarray | None = None
-    model: str = LEVEL
+    model: PositioningModel = PositioningModel.LEVEL
 
     @property
     def range(self) -> np.ndarray:
@@ -118,12 +128,13 @@ class LaserGeometry:
         )
 
     @classmethod
-    def empty(cls, model: str = LEVEL) -> LaserGeometry:
+    def empty(cls, model: PositioningModel = PositioningModel.LEVEL) -> LaserGeometry:
         """No points."""
         e = np.empty(0)
+        rigorous = model == PositioningModel.RIGOROUS
         return cls(e, e, e, e, np.empty((0, 3)), model=model,
-                   rotation=np.empty((0, 3, 3)) if model == RIGOROUS else None,
-                   y=e if model == RIGOROUS else None)
+                   rotation=np.empty((0, 3, 3)) if rigorous else None,
+                   y=e if rigorous else None)
 
 
 def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
@@ -152,4 +163,4 @@ def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
                          model=frame.model)
 
 
-__all__ = ["LEVEL", "RIGOROUS", "LaserGeometry", "geometry_at"]
+__all__ = ["LaserGeometry", "PositioningModel", "geometry_at"]

@@ -14,6 +14,7 @@ from typing import Literal
 import numpy as np
 
 from lidarcal_ros.core.georeferencing.heading import (
+    HeadingSource,
     choose_heading,
     median_crab_deg,
     window_headings,
@@ -32,6 +33,21 @@ logger = logging.getLogger(__name__)
 
 #: Windows processed per block when fitting lines (bounds the memory of the ragged gather).
 _FIT_BLOCK_SAMPLES = 4_000_000
+
+
+@dataclass(frozen=True)
+class TrajectoryWindow:
+    """The trajectory samples that serve a point fired at ``t``: those in ``(t - window_s,
+    t + window_s)``, at least ``min_samples`` of them, bracketing ``t``."""
+
+    #: Half-width ``Dt`` of the window, s (``matching.trajectory_window_s``).
+    window_s: float = 0.5
+    #: Fewest samples a window may hold; fewer is a trajectory gap at that time.
+    min_samples: int = 2
+
+
+#: The window by default (``matching.trajectory_window_s``'s default).
+DEFAULT_WINDOW = TrajectoryWindow()
 
 
 def _fit_windows(
@@ -75,11 +91,12 @@ def _fit_windows(
 
 
 def covered_by_trajectory(
-    t: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5, min_samples: int = 2
+    t: np.ndarray, trajectory: Trajectory, *, window: TrajectoryWindow = DEFAULT_WINDOW
 ) -> np.ndarray:
     """Which firing times the local trajectory covers: at least ``min_samples`` samples within
     ``(t - window_s, t + window_s)`` bracketing ``t`` (the rule of
     :func:`laser_geometry`, which raises where it fails)."""
+    window_s, min_samples = window.window_s, window.min_samples
     t = np.asarray(t, dtype=np.float64)
     traj_t = trajectory.t
     if len(traj_t) < min_samples or t.size == 0:
@@ -103,8 +120,9 @@ MIN_DEPTH_M = 1.0
 
 
 def served_by_trajectory(
-    t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *, window_s: float = 0.5,
-    min_samples: int = 2, min_depth_m: float = MIN_DEPTH_M, all_finite: bool = False,
+    t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
+    window: TrajectoryWindow = DEFAULT_WINDOW, min_depth_m: float = MIN_DEPTH_M,
+    all_finite: bool = False,
 ) -> np.ndarray:
     """Which points the local trajectory can serve: finite point and time, covered
     (:func:`covered_by_trajectory`), and at least ``min_depth_m`` below the trajectory's
@@ -127,7 +145,7 @@ def served_by_trajectory(
     (n,) bool
     """
     ok = np.ones(t.shape[0], dtype=bool) if all_finite else np.isfinite(t) & finite_rows(xyz)
-    ok &= covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
+    ok &= covered_by_trajectory(t, trajectory, window=window)
     if ok.any():
         ok &= below_line(t, xyz[:, 2], trajectory.t, trajectory.xyz[:, 2],
                          min_depth_m)  # (the heights read in place)
@@ -207,8 +225,8 @@ class WindowLines:
     kappa, cos_kappa, sin_kappa : (k,) float64
         Its heading (rad), cosine and sine: ``atan2(-v_x, v_y)``, or the orientation's
         (:mod:`lidarcal_ros.core.georeferencing.heading`).
-    heading_from : str
-        Which: ``track`` or ``attitude``.
+    heading_from : HeadingSource
+        Which: ``TRACK`` or ``ATTITUDE``.
     crab_deg : float
         The median of the attitude's heading less the track's, deg (NaN: no attitude).
     """
@@ -220,7 +238,7 @@ class WindowLines:
     kappa: np.ndarray
     cos_kappa: np.ndarray
     sin_kappa: np.ndarray
-    heading_from: str = "track"
+    heading_from: HeadingSource = HeadingSource.TRACK
     crab_deg: float = math.nan
 
 
@@ -228,10 +246,9 @@ def window_lines(
     t: np.ndarray,
     trajectory: Trajectory,
     *,
-    window_s: float = 0.5,
-    min_samples: int = 2,
+    window: TrajectoryWindow = DEFAULT_WINDOW,
     source: str = "points",
-    heading_source: str = "auto",
+    heading_source: HeadingSource = HeadingSource.AUTO,
 ) -> WindowLines:
     """The local-trajectory line of each firing time (the first half of
     :func:`laser_geometry`, whose parameters these are).
@@ -243,6 +260,7 @@ def window_lines(
         stationary there.
     """
     n = t.shape[0]
+    window_s, min_samples = window.window_s, window.min_samples
     if len(trajectory) < min_samples:
         raise TrajectoryError(
             f"{source}: trajectory has {len(trajectory)} samples, need at least {min_samples}"
@@ -270,14 +288,14 @@ def window_lines(
     if np.any(speed_h <= 1e-6):
         raise TrajectoryError(f"{source}: trajectory is stationary; heading undefined")
     kappa = np.arctan2(-vel[:, 0], vel[:, 1])
-    heading_from, crab = "track", math.nan
-    if heading_source != "track":
+    heading_from, crab = HeadingSource.TRACK, math.nan
+    if heading_source != HeadingSource.TRACK:
         attitude = (None if trajectory.heading is None
                     else window_headings(trajectory.heading, win_start, win_stop))
         crab = median_crab_deg(kappa, attitude)
         kappa = choose_heading(kappa, attitude, heading_source, source=source)
         if kappa is attitude:
-            heading_from = "attitude"
+            heading_from = HeadingSource.ATTITUDE
     return WindowLines(np.asarray(inv, dtype=np.int64), t_mean, p_mean, vel, kappa,
                        np.cos(kappa), np.sin(kappa), heading_from, crab)
 
@@ -287,10 +305,9 @@ def laser_geometry(
     xyz: np.ndarray,
     trajectory: Trajectory,
     *,
-    window_s: float = 0.5,
-    min_samples: int = 2,
+    window: TrajectoryWindow = DEFAULT_WINDOW,
     source: str = "points",
-    heading_source: str = "auto",
+    heading_source: HeadingSource = HeadingSource.AUTO,
 ) -> LaserGeometry:
     """Recover ``x, z, kappa, beta`` for each point (docs/method.md section 4).
 
@@ -302,13 +319,12 @@ def laser_geometry(
         Points in the map frame, metres.
     trajectory : Trajectory
         IMU-origin positions.
-    window_s : float
-        Half-width ``Dt`` of the time window of samples fitted, seconds.
-    min_samples : int
-        Fewest samples a window may hold; fewer means a trajectory gap at that time.
+    window : TrajectoryWindow
+        The samples fitted: within ``window_s`` (the half-width ``Dt``, s) of the firing
+        time, ``min_samples`` at least (fewer means a trajectory gap at that time).
     source : str
         Name used in error messages (e.g. ``"strip 3"``).
-    heading_source : str
+    heading_source : HeadingSource
         Where ``kappa`` comes from: ``track`` (docs/method.md), ``attitude`` (the trajectory's
         orientation) or ``auto`` (:mod:`lidarcal_ros.core.georeferencing.heading`).
 
@@ -321,8 +337,8 @@ def laser_geometry(
     xyz = np.asarray(xyz, dtype=np.float64)
     if t.shape[0] == 0:
         return LaserGeometry.empty()
-    lines = window_lines(t, trajectory, window_s=window_s, min_samples=min_samples,
-                         source=source, heading_source=heading_source)
+    lines = window_lines(t, trajectory, window=window, source=source,
+                         heading_source=heading_source)
     return geometry_on_lines(t, xyz, lines, source=source)
 
 
@@ -358,6 +374,7 @@ def geometry_on_lines(t: np.ndarray, xyz: np.ndarray, lines: WindowLines, *,
 
 
 __all__ = [
-    "MIN_DEPTH_M", "WindowLines", "covered_by_trajectory", "geometry_on_lines", "laser_geometry",
-    "served_by_trajectory", "window_lines", "windows_cover_points",
+    "DEFAULT_WINDOW", "MIN_DEPTH_M", "TrajectoryWindow", "WindowLines", "covered_by_trajectory",
+    "geometry_on_lines", "laser_geometry", "served_by_trajectory", "window_lines",
+    "windows_cover_points",
 ]

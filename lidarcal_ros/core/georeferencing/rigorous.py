@@ -12,16 +12,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidarcal_ros.core.georeferencing.attitude import body_rotations, interpolated_frames
-from lidarcal_ros.core.georeferencing.heading import MAX_CRAB_DEG, wrap_angle
-from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS, LaserGeometry
-from lidarcal_ros.core.georeferencing.local_trajectory import covered_by_trajectory, laser_geometry
+from lidarcal_ros.core.georeferencing.heading import MAX_CRAB_DEG, HeadingSource, wrap_angle
+from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
+from lidarcal_ros.core.georeferencing.local_trajectory import (
+    DEFAULT_WINDOW,
+    TrajectoryWindow,
+    covered_by_trajectory,
+    laser_geometry,
+)
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.errors import ConfigError, TrajectoryError
 
 logger = logging.getLogger(__name__)
 
-#: The values of ``matching.model``.
-MODELS: tuple[str, ...] = ("auto", LEVEL, RIGOROUS)
 #: Slowest trajectory (samples per second) whose attitude the rigorous model interpolates:
 #: an aircraft in turbulence changes its attitude by degrees within a second.
 MIN_ATTITUDE_RATE_HZ = 10.0
@@ -42,7 +45,8 @@ class ModelChoice:
 
     Attributes
     ----------
-    model : ``level`` or ``rigorous``.
+    model : PositioningModel
+        ``LEVEL`` or ``RIGOROUS``.
     reason : str
         In words, e.g. ``"INS attitude at 50 Hz"`` or ``"the poses carry no orientation"``.
     rate_hz : float
@@ -52,59 +56,56 @@ class ModelChoice:
         from the samples themselves (NaN without attitude).
     """
 
-    model: str
+    model: PositioningModel
     reason: str
     rate_hz: float = math.nan
     interpolation_error_rad: float = math.nan
 
 
-def check_model_setting(mode: str, trajectory: Trajectory, where: str) -> None:
+def check_model_setting(mode: PositioningModel, trajectory: Trajectory, where: str) -> None:
     """Refuse at once what ``rigorous`` would refuse strip by strip: a trajectory without
     orientation (ConfigError naming ``where``)."""
-    if mode not in MODELS:
-        raise ConfigError(f"matching.model '{mode}' is not one of {', '.join(MODELS)}")
-    if mode == RIGOROUS and trajectory.orientation is None:
+    if mode == PositioningModel.RIGOROUS and trajectory.orientation is None:
         raise ConfigError(f"{where}: matching.model is 'rigorous' but the trajectory's poses "
                           "carry no orientation (identity); use 'level' or 'auto'")
 
 
-def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str = "auto",
-                 heading_source: str = "auto", source: str = "points") -> ModelChoice:
+def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *,
+                 mode: PositioningModel = PositioningModel.AUTO,
+                 heading_source: HeadingSource = HeadingSource.AUTO,
+                 source: str = "points") -> ModelChoice:
     """The model the points fired between ``t_lo`` and ``t_hi`` (s) get (docs/method.md section 10).
 
     Raises
     ------
     TrajectoryError
         ``rigorous`` asked for where the attitude is missing, levelled or too sparse.
-    ConfigError
-        An unknown ``mode``.
     """
-    if mode not in MODELS:
-        raise ConfigError(f"matching.model '{mode}' is not one of {', '.join(MODELS)}")
-    if mode == LEVEL:
-        return ModelChoice(LEVEL, "matching.model level")
+    level, rigorous = PositioningModel.LEVEL, PositioningModel.RIGOROUS
+    if mode == level:
+        return ModelChoice(level, "matching.model level")
     span = _span(trajectory, t_lo, t_hi)
     rate = _rate_hz(span.t)
-    refusal = _missing_attitude(span, rate, levelled_ok=mode == RIGOROUS)
+    refusal = _missing_attitude(span, rate, levelled_ok=mode == rigorous)
     if refusal is not None:
-        if mode == RIGOROUS:
+        if mode == rigorous:
             raise TrajectoryError(f"{source}: matching.model is 'rigorous' but {refusal}")
         if "Hz" in refusal:
             _log_once(f"{source}: {refusal}: level model")
-        return ModelChoice(LEVEL, refusal, rate)
-    if mode == "auto" and heading_source == "track":
-        return ModelChoice(LEVEL, "matching.heading_source track", rate)
+        return ModelChoice(level, refusal, rate)
+    if mode == PositioningModel.AUTO and heading_source == HeadingSource.TRACK:
+        return ModelChoice(level, "matching.heading_source track", rate)
     assert span.orientation is not None
     odd = _other_convention(span)
     if odd is not None:
-        if mode == RIGOROUS:
+        if mode == rigorous:
             _log_once(f"{source}: {odd}; rigorous model as asked (matching.model rigorous)")
         else:
             _log_once(f"{source}: {odd}: level model with the track's heading; set "
                       "matching.model to 'rigorous' to use the attitude anyway")
-            return ModelChoice(LEVEL, odd, rate)
+            return ModelChoice(level, odd, rate)
     error = _interpolation_error(span)
-    return ModelChoice(RIGOROUS, f"INS attitude at {rate:.0f} Hz", rate, error)
+    return ModelChoice(rigorous, f"INS attitude at {rate:.0f} Hz", rate, error)
 
 
 def _span(trajectory: Trajectory, t_lo: float, t_hi: float) -> Trajectory:
@@ -222,7 +223,7 @@ def attitude_segments(t: np.ndarray, trajectory: Trajectory, *, source: str = "p
 
 
 def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
-                      window_s: float = 0.5, min_samples: int = 2,
+                      window: TrajectoryWindow = DEFAULT_WINDOW,
                       source: str = "points") -> LaserGeometry:
     """docs/method.md section 10: the firing position and ``R_ins`` interpolated to each firing
     time (:func:`~lidarcal_ros.core.georeferencing.attitude.interpolated_frames`), and the laser
@@ -242,16 +243,17 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = t.shape[0]
     if n == 0:
-        return LaserGeometry.empty(RIGOROUS)
+        return LaserGeometry.empty(PositioningModel.RIGOROUS)
     q = trajectory.orientation
     if q is None:
         raise TrajectoryError(f"{source}: the trajectory has no orientation")
-    covered = covered_by_trajectory(t, trajectory, window_s=window_s, min_samples=min_samples)
+    covered = covered_by_trajectory(t, trajectory, window=window)
     if not covered.all():
         k = int(np.argmin(covered))
         raise TrajectoryError(
             f"{source}: trajectory gap at t={t[k]:.3f} s ({int((~covered).sum())} of {n} "
-            f"points not covered by >= {min_samples} samples within +-{window_s:g} s)")
+            f"points not covered by >= {window.min_samples} samples within "
+            f"+-{window.window_s:g} s)")
     segment = attitude_segments(t, trajectory, source=source)
     origin, rotation, rho = interpolated_frames(t, xyz, segment, trajectory.t, trajectory.xyz,
                                                 q)
@@ -269,32 +271,31 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
     track = np.arctan2(-v[:, 0], v[:, 1])
     crab = float(np.degrees(np.median(wrap_angle(kappa - track))))
     return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
-                         heading_from="attitude", crab_deg=crab, rotation=rotation, y=y,
-                         model=RIGOROUS)
+                         heading_from=HeadingSource.ATTITUDE, crab_deg=crab,
+                         rotation=rotation, y=y, model=PositioningModel.RIGOROUS)
 
 
 def strip_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
-                   window_s: float = 0.5, min_samples: int = 2, source: str = "points",
-                   heading_source: str = "auto", model: str = "auto"
+                   window: TrajectoryWindow = DEFAULT_WINDOW, source: str = "points",
+                   heading_source: HeadingSource = HeadingSource.AUTO,
+                   model: PositioningModel = PositioningModel.AUTO
                    ) -> tuple[LaserGeometry, ModelChoice]:
     """The laser geometry of a strip's points by the model ``matching.model`` chooses for
     it (:func:`choose_model`), and that choice.
 
     Parameters are those of
     :func:`~lidarcal_ros.core.georeferencing.local_trajectory.laser_geometry`, plus ``model``
-    (``auto``, ``level`` or ``rigorous``).
+    (``matching.model``).
     """
     t = np.asarray(t, dtype=np.float64)
     if t.size == 0:
-        return LaserGeometry.empty(), ModelChoice(LEVEL, "no points")
+        return LaserGeometry.empty(), ModelChoice(PositioningModel.LEVEL, "no points")
     choice = choose_model(trajectory, float(np.min(t)), float(np.max(t)), mode=model,
                           heading_source=heading_source, source=source)
-    if choice.model == RIGOROUS:
-        geometry = rigorous_geometry(t, xyz, trajectory, window_s=window_s,
-                                     min_samples=min_samples, source=source)
+    if choice.model == PositioningModel.RIGOROUS:
+        geometry = rigorous_geometry(t, xyz, trajectory, window=window, source=source)
     else:
-        geometry = laser_geometry(t, xyz, trajectory, window_s=window_s,
-                                  min_samples=min_samples, source=source,
+        geometry = laser_geometry(t, xyz, trajectory, window=window, source=source,
                                   heading_source=heading_source)
     return geometry, choice
 
@@ -379,7 +380,7 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
     if outside > MAX_OUTSIDE_FOV:
         reach = (f"{100.0 * outside:.1f}% of the scan angles lie beyond the field of view "
                  f"(+-{half:g} deg; {lo:+.1f} to {hi:+.1f} deg)")
-        if geometry.model == RIGOROUS:
+        if geometry.model == PositioningModel.RIGOROUS:
             warnings.append(f"{reach}: sensor.fov_deg, or the body convention?")
         else:
             warnings.append(f"{reach}: the platform rolls, and the level model reads its roll "
@@ -392,7 +393,7 @@ def describe_models(choices: dict[int, ModelChoice]) -> str:
     attitude at 50 Hz) for every strip"``."""
     if not choices:
         return "no strip"
-    groups: dict[tuple[str, str], list[int]] = {}
+    groups: dict[tuple[PositioningModel, str], list[int]] = {}
     for sid, c in sorted(choices.items()):
         groups.setdefault((c.model, c.reason), []).append(sid)
     if len(groups) == 1:
@@ -402,8 +403,8 @@ def describe_models(choices: dict[int, ModelChoice]) -> str:
                      f"{', '.join(map(str, ids))}" for (model, reason), ids in groups.items())
 
 
-def describe_model_policy(mode: str, trajectory: Trajectory, *,
-                          heading_source: str = "auto") -> str:
+def describe_model_policy(mode: PositioningModel, trajectory: Trajectory, *,
+                          heading_source: HeadingSource = HeadingSource.AUTO) -> str:
     """What ``matching.model`` makes of the newest second of ``trajectory`` (a live node's
     status), e.g. ``"rigorous (INS attitude at 50 Hz)"``."""
     if len(trajectory) < 2:
@@ -417,12 +418,17 @@ def describe_model_policy(mode: str, trajectory: Trajectory, *,
     return f"{c.model} ({c.reason})"
 
 
+#: The model of a calibration whose strips got both.
+MIXED = "mixed"
+
+
 def models_summary(choices: dict[int, ModelChoice]) -> str:
-    """``level``, ``rigorous`` or ``mixed``: the model of a calibration as a whole."""
+    """``level``, ``rigorous`` or :data:`MIXED`: the model of a calibration as a whole (a
+    plain string, as the calibration file writes it)."""
     models = {c.model for c in choices.values()}
     if len(models) == 1:
-        return models.pop()
-    return "mixed" if models else LEVEL
+        return models.pop().value
+    return MIXED if models else PositioningModel.LEVEL.value
 
 
 def _log_once(message: str) -> None:
@@ -432,7 +438,7 @@ def _log_once(message: str) -> None:
 
 
 __all__ = [
-    "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "MODEL_SPAN_PAD_S", "LaserVectorQA",
+    "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MIXED", "MODEL_SPAN_PAD_S", "LaserVectorQA",
     "ModelChoice",
     "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
     "describe_models",

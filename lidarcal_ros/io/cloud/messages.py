@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.georeferencing.heading import describe_heading_use
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
+from lidarcal_ros.core.georeferencing.heading import HeadingSource, describe_heading_use
 from lidarcal_ros.core.georeferencing.rigorous import describe_models
 from lidarcal_ros.core.params import (
     N_PARAMETERS,
@@ -306,7 +307,7 @@ class StatusSpec:
     values: dict[str, str] = field(default_factory=dict)
 
 
-def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
+def estimate_status(solution: Any, heading_from: dict[int, HeadingSource] | None = None,
                     crab_deg: dict[int, float] | None = None,
                     models: dict[int, Any] | None = None) -> StatusSpec:
     """The biases as a crew reads them (``lidarcal: estimate``): the message lists the
@@ -321,10 +322,10 @@ def estimate_status(solution: Any, heading_from: dict[int, str] | None = None,
     for i, name in enumerate(PARAMETER_NAMES):
         status = solution.status[name]
         value = float(solution.delta[i])
-        if status.state == "estimated":
+        if status.state == ParameterState.ESTIMATED:
             text = format_estimate(name, value, float(solution.sigma[i]))
             estimated.append(f"{name} {text}")
-        elif status.state == "fixed":
+        elif status.state == ParameterState.FIXED:
             text = f"fixed at {format_value(name, value)}"
         else:
             text = f"not estimable: {status.reason}"
@@ -402,8 +403,9 @@ def qa_statuses(
          "control_correspondences": str(int(result.n_control_correspondences))}))
     wanted = set(solve_for) or set(PARAMETER_NAMES)
     missing = {n: st.reason for n, st in sol.status.items()
-               if st.state == "not_estimable" and n in wanted}
-    values = {n: (st.state if st.state != "not_estimable" else f"not estimable: {st.reason}")
+               if st.state == ParameterState.NOT_ESTIMABLE and n in wanted}
+    values = {n: (str(st.state) if st.state != ParameterState.NOT_ESTIMABLE
+                  else f"not estimable: {st.reason}")
               for n, st in sol.status.items()}
     for a, b, r in sol.correlated_pairs(0.9):
         values[f"correlation {a}/{b}"] = f"{r:+.3f}"

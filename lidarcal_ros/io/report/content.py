@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.result import ControlResidual, PairDiscrepancies
 from lidarcal_ros.core.qa.accuracy import AccuracySummary, RigidFit
 from lidarcal_ros.core.qa.quality_level import QualityAssessment
@@ -36,8 +37,8 @@ class BiasEntry:
         Estimate or fixed value, SI units (m, rad, 1).
     sigma : float or None
         Standard deviation, SI units; None where not estimated.
-    state : str
-        ``estimated``, ``fixed`` (held at ``value``, not solved for) or ``not_estimable``.
+    state : ParameterState
+        ``FIXED``: held at ``value``, not solved for.
     reason : str
         Why a parameter was not estimable (words from the observability analysis).
     """
@@ -45,7 +46,7 @@ class BiasEntry:
     name: str
     value: float
     sigma: float | None
-    state: str
+    state: ParameterState
     reason: str = ""
 
 

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.result import ControlResidual
 from lidarcal_ros.core.params import display_value
 from lidarcal_ros.core.qa.accuracy import RIGID_NAMES, RigidFit
@@ -119,8 +120,8 @@ def _bias_rows(biases: Sequence[BiasEntry]) -> list[list[str]]:
     for b in biases:
         value, unit = _bias_display(b.name, b.value)
         sigma = _bias_display(b.name, b.sigma)[0].lstrip("+") if b.sigma is not None else ""
-        state = {"estimated": "estimated",
-                 "fixed": "fixed (not solved for)"}.get(b.state, "not estimable")
+        state = {ParameterState.ESTIMATED: "estimated",
+                 ParameterState.FIXED: "fixed (not solved for)"}.get(b.state, "not estimable")
         if b.reason:
             state += f": {escape(b.reason)}"
         rows.append([escape(b.name), value, sigma, unit, state])

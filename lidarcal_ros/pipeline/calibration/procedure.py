@@ -17,12 +17,17 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.calibrate import Progress, calibrate
 from lidarcal_ros.core.calibration.pairs import outside_strips
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.georeferencing.heading import check_orientation, describe_heading_use
-from lidarcal_ros.core.georeferencing.laser_geometry import RIGOROUS
+from lidarcal_ros.core.georeferencing.heading import (
+    HeadingSource,
+    check_orientation,
+    describe_heading_use,
+)
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import check_model_setting, describe_models
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.params import PARAMETER_NAMES, format_value
@@ -62,8 +67,9 @@ def load_mission(
         box=box,
         coordinate_tolerance_m=config["sensor.range_noise_m"],
     )
-    check_orientation(config["matching.heading_source"], mission.trajectory, str(bag))
-    check_model_setting(config["matching.model"], mission.trajectory, str(bag))
+    check_orientation(HeadingSource(config["matching.heading_source"]), mission.trajectory,
+                      str(bag))
+    check_model_setting(PositioningModel(config["matching.model"]), mission.trajectory, str(bag))
     csv = control_csv or config["calibration.control_points_file"] or None
     if csv:
         mission.control = read_control_csv(csv)
@@ -198,13 +204,13 @@ def format_report(
     lines.append(header)
     for i, name in enumerate(PARAMETER_NAMES):
         st = sol.status[name]
-        if st.state == "estimated":
+        if st.state == ParameterState.ESTIMATED:
             sigma = "+- " + _fmt(name, sol.sigma[i], False)
             row = f"{name:<9} {_fmt(name, sol.delta[i]):>15} {sigma:>17}"
             if truth is not None:
                 err = (sol.delta[i] - truth.biases[name]) / sol.sigma[i]
                 row += f" {_fmt(name, truth.biases[name]):>15} {err:>+11.2f}"
-        elif st.state == "fixed":
+        elif st.state == ParameterState.FIXED:
             row = f"{name:<9} {'fixed at ' + _fmt(name, sol.delta[i]).strip():>33}"
             if truth is not None:
                 row += f" {_fmt(name, truth.biases[name]):>15}"
@@ -234,7 +240,8 @@ def format_report(
     if result.models:
         lines.append("model: " + describe_models(result.models))
     lines.extend(trajectory_lines(result))
-    if not result.models or any(c.model != RIGOROUS for c in result.models.values()):
+    if not result.models or any(c.model != PositioningModel.RIGOROUS
+                                for c in result.models.values()):
         heading = describe_heading_use(result.heading_from, result.crab_deg)
         if heading:
             lines.append(heading)

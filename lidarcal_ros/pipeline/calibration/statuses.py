@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.trajectory.strip_errors import StripError, TrajectoryErrorSettings
 from lidarcal_ros.io.cloud.messages import ERROR, OK, WARN, StatusSpec
@@ -187,7 +188,7 @@ def trajectory_status(result: CalibrationResult,
     if flagged:
         message = "; ".join(flagged)
         held = [name for name, st in result.solution.status.items()
-                if st.state == "not_estimable"]
+                if st.state == ParameterState.NOT_ESTIMABLE]
         if held:  # (docs/method.md section 11: a lever arm held fixed is a shift of each strip)
             message += (f" (or the biases not estimated, {', '.join(held)}, held at their "
                         "fixed values and taken up by the strips' offsets)")

@@ -315,7 +315,7 @@ class StreamingCalibration:
             logger.warning("strip %d seen in part: %s", strip_id, missing)
         served = served_by_trajectory(
             strip.t, strip.xyz, self.trajectory,
-            window_s=self._calibrator.settings.trajectory_window_s)
+            window=self._calibrator.settings.window)
         if not served.all():
             n_out = int((~served).sum())
             self.uncovered_points += n_out

@@ -17,8 +17,11 @@ import numpy as np
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.georeferencing import correction_kernels
-from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS, LaserGeometry
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
+from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
 from lidarcal_ros.core.georeferencing.local_trajectory import (
+    DEFAULT_WINDOW,
+    TrajectoryWindow,
     WindowLines,
     geometry_on_lines,
     served_by_trajectory,
@@ -62,16 +65,13 @@ class CorrectionSettings:
     delta : (8,) float64
         Biases (docs/method.md order, SI) to remove.
     radiometry : RadiometricModel
-    window_s : float
-        Half-width of the local-trajectory window, s (``matching.trajectory_window_s``).
-    min_samples : int
-        Fewest trajectory samples in a window.
-    heading_source : str
+    window : TrajectoryWindow
+        The local-trajectory window (``matching.trajectory_window_s``).
+    heading_source : HeadingSource
         ``matching.heading_source`` (:mod:`lidarcal_ros.core.georeferencing.heading`).
-    model : str
-        ``matching.model``: ``auto``, ``level`` or ``rigorous``
-        (:mod:`lidarcal_ros.core.georeferencing.rigorous`); a calibration file that says which model
-        estimated its biases decides it (:meth:`from_config`).
+    model : PositioningModel
+        ``matching.model`` (:mod:`lidarcal_ros.core.georeferencing.rigorous`); a calibration
+        file that says which model estimated its biases decides it (:meth:`from_config`).
     time_field : str
         Cloud field holding the firing time (``time_field``; aliases accepted).
     coordinate_tolerance_m : float
@@ -81,10 +81,9 @@ class CorrectionSettings:
 
     delta: np.ndarray
     radiometry: RadiometricModel = field(default_factory=RadiometricModel)
-    window_s: float = 0.5
-    min_samples: int = 2
-    heading_source: str = "auto"
-    model: str = "auto"
+    window: TrajectoryWindow = DEFAULT_WINDOW
+    heading_source: HeadingSource = HeadingSource.AUTO
+    model: PositioningModel = PositioningModel.AUTO
     time_field: str = "t"
     coordinate_tolerance_m: float = DEFAULT_COORDINATE_TOLERANCE_M
     #: Each strip's trajectory error, removed with the biases (docs/method.md section 11).
@@ -102,17 +101,17 @@ class CorrectionSettings:
         """
         delta = (calibration.delta if isinstance(calibration, CalibrationRecord)
                  else np.asarray(calibration, dtype=np.float64))
-        model = str(config["matching.model"])
-        if isinstance(calibration, CalibrationRecord) and calibration.model in (LEVEL,
-                                                                              RIGOROUS):
-            model = calibration.model
+        model = PositioningModel(config["matching.model"])
+        if isinstance(calibration, CalibrationRecord) and calibration.model in (
+                PositioningModel.LEVEL, PositioningModel.RIGOROUS):
+            model = PositioningModel(calibration.model)
         if delta.shape != (8,) or not np.isfinite(delta).all():
             raise ConfigError(f"calibration: expected 8 finite biases, got {delta}")
         return cls(
             delta=np.asarray(delta, dtype=np.float64),
             radiometry=RadiometricModel.from_config(config),
-            window_s=float(config["matching.trajectory_window_s"]),
-            heading_source=str(config["matching.heading_source"]),
+            window=TrajectoryWindow(float(config["matching.trajectory_window_s"])),
+            heading_source=HeadingSource(config["matching.heading_source"]),
             model=model,
             time_field=str(config["time_field"]),
             coordinate_tolerance_m=float(config["sensor.range_noise_m"]),
@@ -151,12 +150,11 @@ def served_frames(
     xyz: np.ndarray,
     trajectory: Trajectory,
     *,
-    window_s: float = 0.5,
-    min_samples: int = 2,
+    window: TrajectoryWindow = DEFAULT_WINDOW,
     source: str = "cloud",
     all_finite: bool = False,
-    heading_source: str = "auto",
-    model: str = "auto",
+    heading_source: HeadingSource = HeadingSource.AUTO,
+    model: PositioningModel = PositioningModel.AUTO,
 ) -> tuple[np.ndarray, ServedFrames | None]:
     """The points the trajectory can serve
     (:func:`~lidarcal_ros.core.georeferencing.local_trajectory.served_by_trajectory`;
@@ -173,19 +171,18 @@ def served_frames(
     frames : ServedFrames or None
         For the points ``ok`` (in order); None when there are none.
     """
-    ok = served_by_trajectory(t, xyz, trajectory, window_s=window_s,
-                              min_samples=min_samples, all_finite=all_finite)
+    ok = served_by_trajectory(t, xyz, trajectory, window=window, all_finite=all_finite)
     if not ok.any():
         return ok, None
     ts = t if ok.all() else t[ok]
     try:
         choice = choose_model(trajectory, float(ts[0]), float(ts[-1]), mode=model,
                               heading_source=heading_source, source=source)
-        if choice.model == RIGOROUS:
+        if choice.model == PositioningModel.RIGOROUS:
             segment = attitude_segments(ts, trajectory, source=source)
             return ok, ServedFrames(segment, None, choice)
-        lines = window_lines(ts, trajectory, window_s=window_s, min_samples=min_samples,
-                             source=source, heading_source=heading_source)
+        lines = window_lines(ts, trajectory, window=window, source=source,
+                             heading_source=heading_source)
     except TrajectoryError as exc:
         UNCORRECTED_WARNINGS.left_uncorrected(ok, source, exc)
         return ok, None
@@ -197,25 +194,23 @@ def flagged_geometry(
     xyz: np.ndarray,
     trajectory: Trajectory,
     *,
-    window_s: float = 0.5,
-    min_samples: int = 2,
+    window: TrajectoryWindow = DEFAULT_WINDOW,
     source: str = "cloud",
-    heading_source: str = "auto",
-    model: str = "auto",
+    heading_source: HeadingSource = HeadingSource.AUTO,
+    model: PositioningModel = PositioningModel.AUTO,
 ) -> tuple[np.ndarray, LaserGeometry]:
     """The laser geometry of the points :func:`served_frames` serves (in order, for the
     points ``ok``; :func:`~lidarcal_ros.core.georeferencing.rigorous.rigorous_geometry` or
     :func:`~lidarcal_ros.core.georeferencing.local_trajectory.geometry_on_lines`), flagging the
     others instead of raising."""
-    ok, frames = served_frames(t, xyz, trajectory, window_s=window_s,
-                               min_samples=min_samples, source=source,
+    ok, frames = served_frames(t, xyz, trajectory, window=window, source=source,
                                heading_source=heading_source, model=model)
     if frames is not None:
         sel = slice(None) if ok.all() else ok
         try:
             if frames.lines is None:
-                return ok, rigorous_geometry(t[sel], xyz[sel], trajectory, window_s=window_s,
-                                             min_samples=min_samples, source=source)
+                return ok, rigorous_geometry(t[sel], xyz[sel], trajectory, window=window,
+                                             source=source)
             return ok, geometry_on_lines(t[sel], xyz[sel], frames.lines, source=source)
         except TrajectoryError as exc:
             UNCORRECTED_WARNINGS.left_uncorrected(ok, source, exc)
@@ -413,8 +408,7 @@ def correct_columns(
     out_xyz = np.empty((m, 3))
     if n == 0:
         return CorrectedColumns(out_xyz, rng, inc, scan, refl, flags)
-    ok, frames = served_frames(t, xyz, trajectory, window_s=settings.window_s,
-                               min_samples=settings.min_samples, source=source,
+    ok, frames = served_frames(t, xyz, trajectory, window=settings.window, source=source,
                                all_finite=all_finite, heading_source=settings.heading_source,
                                model=settings.model)
     gn = normals if isinstance(normals, GridNormals) else _fitted_normals(

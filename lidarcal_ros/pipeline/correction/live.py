@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.georeferencing.heading import describe_heading_policy
+from lidarcal_ros.core.georeferencing.heading import HeadingSource, describe_heading_policy
 from lidarcal_ros.core.georeferencing.rigorous import describe_model_policy
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory.buffer import TrajectoryBuffer
@@ -284,7 +284,7 @@ class LiveCorrector:
             msg += f"; {s.skipped} malformed clouds skipped (last: {s.last_error})"
         if s.not_corrected:
             msg += f"; {s.not_corrected} points not covered by the trajectory"
-        heading_source = str(self.config["matching.heading_source"])
+        heading_source = HeadingSource(self.config["matching.heading_source"])
         return StatusSpec(level, "lidarcal: corrector", msg, {
             "clouds_in": str(s.clouds_in), "points_in": str(s.points_in),
             "clouds_out": str(s.clouds_out), "points_out": str(s.points_out),

@@ -82,8 +82,9 @@ class TrajectoryGate:
         self._fed = 0  # samples given to the buffer
         self._newest = -math.inf  # latest sample time read, s
         self._given: Trajectory | None = None  # the corrector's trajectory
-        self._reach_s = max(corrector.settings.window_s, MODEL_SPAN_PAD_S)
-        self._least_samples = max(REACH_SAMPLES, corrector.settings.min_samples)
+        window = corrector.settings.window
+        self._reach_s = max(window.window_s, MODEL_SPAN_PAD_S)
+        self._least_samples = max(REACH_SAMPLES, window.min_samples)
         self._queue: deque[_Queued] = deque()
         self._queued_points = 0
         self._time_field: str | None = None

@@ -21,7 +21,7 @@ from lidarcal_ros import __version__
 from lidarcal_ros.core.calibration.calibrate import Calibrator, Progress
 from lidarcal_ros.core.calibration.result import ControlResidual
 from lidarcal_ros.core.config import FlightConfig
-from lidarcal_ros.core.georeferencing.heading import describe_heading_policy
+from lidarcal_ros.core.georeferencing.heading import HeadingSource, describe_heading_policy
 from lidarcal_ros.core.mission import ControlPoints, Mission
 from lidarcal_ros.core.params import N_PARAMETERS
 from lidarcal_ros.core.qa.quality_level import QualityAssessment, assess
@@ -231,7 +231,7 @@ def report_mission(
                     f"{n_check} check point{'' if n_check == 1 else 's'}"),
         ("flown", f"{min(starts)} (first point)" if starts else "n/a"),
         ("map frame", f"'{mission.frame_id}', " + (inputs.crs or "CRS not given")),
-        ("heading", describe_heading_policy(str(config["matching.heading_source"]),
+        ("heading", describe_heading_policy(HeadingSource(config["matching.heading_source"]),
                                             mission.trajectory.heading is not None)),
         ("reflectance", settings.radiometry.meaning),
     ]

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.calibration_file import ROOT_KEY, CalibrationRecord, read_calibration
@@ -73,13 +74,14 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
         entry = entries[name]
         reason = entry.get("not_estimable")
         if record.estimated[name]:
-            state = "estimated"
+            state = ParameterState.ESTIMATED
         elif reason:
-            state = "not_estimable"
+            state = ParameterState.NOT_ESTIMABLE
         else:
-            state = "fixed"
+            state = ParameterState.FIXED
         biases.append(BiasEntry(name, record.values[name],
-                                record.sigmas[name] if state == "estimated" else None,
+                                record.sigmas[name] if state == ParameterState.ESTIMATED
+                                else None,
                                 state, str(reason) if reason else ""))
     names, matrix = _correlation_matrix(path, body.get("correlation"))
     facts = [("calibration file", str(path))]

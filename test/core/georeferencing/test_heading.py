@@ -21,6 +21,7 @@ from lidarcal_ros.core.georeferencing.attitude import (
     quaternions_from_headings,
 )
 from lidarcal_ros.core.georeferencing.heading import (
+    HeadingSource,
     choose_heading,
     describe_heading_policy,
     describe_heading_use,
@@ -95,20 +96,22 @@ def test_auto_takes_an_agreeing_attitude_and_refuses_another_convention(
         caplog: pytest.LogCaptureFixture) -> None:
     track = np.radians([0.0, 180.0, 0.5])
     crabbed = track + np.radians([4.8, -4.8, 4.8])
-    assert np.array_equal(choose_heading(track, crabbed, "auto"), crabbed)
-    assert np.array_equal(choose_heading(track, crabbed, "track"), track)
-    assert np.array_equal(choose_heading(track, None, "auto"), track)
-    assert np.array_equal(choose_heading(track, np.array([0.1, np.nan, 0.2]), "auto"), track)
+    assert np.array_equal(choose_heading(track, crabbed, HeadingSource.AUTO), crabbed)
+    assert np.array_equal(choose_heading(track, crabbed, HeadingSource.TRACK), track)
+    assert np.array_equal(choose_heading(track, None, HeadingSource.AUTO), track)
+    assert np.array_equal(
+        choose_heading(track, np.array([0.1, np.nan, 0.2]), HeadingSource.AUTO), track)
     # a body frame of another convention (y forward): 90 degrees off the track
     with caplog.at_level(logging.WARNING, logger="lidarcal_ros.core.georeferencing.heading"):
-        assert np.array_equal(choose_heading(track, track + math.pi / 2, "auto"), track)
+        assert np.array_equal(
+            choose_heading(track, track + math.pi / 2, HeadingSource.AUTO), track)
     assert "disagrees with the track by 90 degrees" in caplog.text
     # forced: used as given
-    assert np.array_equal(choose_heading(track, track + math.pi / 2, "attitude"),
+    assert np.array_equal(choose_heading(track, track + math.pi / 2, HeadingSource.ATTITUDE),
                           track + math.pi / 2)
     with pytest.raises(TrajectoryError, match="'attitude' but the trajectory has no "
                        "orientation"):
-        choose_heading(track, None, "attitude", source="strip 3")
+        choose_heading(track, None, HeadingSource.ATTITUDE, source="strip 3")
 
 
 def test_window_lines_take_the_heading_the_mode_asks_for() -> None:
@@ -117,21 +120,24 @@ def test_window_lines_take_the_heading_the_mode_asks_for() -> None:
     crab = math.radians(4.0)
     traj = Trajectory(t, xyz, quaternions_from_headings(np.full(t.size, crab)))
     pts = np.linspace(1.0, 9.0, 50)
-    assert np.allclose(window_lines(pts, traj, heading_source="auto").kappa, crab)
-    assert np.allclose(window_lines(pts, traj, heading_source="track").kappa, 0.0, atol=1e-9)
+    assert np.allclose(window_lines(pts, traj, heading_source=HeadingSource.AUTO).kappa, crab)
+    assert np.allclose(window_lines(pts, traj, heading_source=HeadingSource.TRACK).kappa, 0.0,
+                       atol=1e-9)
     bare = Trajectory(t, xyz)
     assert np.allclose(window_lines(pts, bare).kappa, 0.0, atol=1e-9)
     with pytest.raises(TrajectoryError, match=r"strip 9: matching\.heading_source"):
-        window_lines(pts, bare, heading_source="attitude", source="strip 9")
+        window_lines(pts, bare, heading_source=HeadingSource.ATTITUDE, source="strip 9")
 
 
 def test_the_words_for_which_heading_was_used() -> None:
-    assert describe_heading_use({1: "attitude", 2: "track", 3: "attitude"}) == (
+    assert describe_heading_use({1: HeadingSource.ATTITUDE, 2: HeadingSource.TRACK,
+                                 3: HeadingSource.ATTITUDE}) == (
         "heading from the poses' orientation (IMU) for strips 1, 3; from the track for 2")
-    assert describe_heading_policy("auto", False) == (
+    assert describe_heading_policy(HeadingSource.AUTO, False) == (
         "from the track (the poses carry no orientation)")
-    assert describe_heading_policy("track", True).endswith("(matching.heading_source track)")
-    assert "within 20 deg" in describe_heading_policy("auto", True)
+    assert describe_heading_policy(HeadingSource.TRACK, True).endswith(
+        "(matching.heading_source track)")
+    assert "within 20 deg" in describe_heading_policy(HeadingSource.AUTO, True)
 
 
 # ---------------------------------------------------------------- carried through
@@ -201,7 +207,7 @@ def test_calibration_of_a_crabbed_mission_is_unbiased_with_the_attitude(
     assert mission.trajectory.heading is not None
     assert {round(abs(ln["crab_deg"]), 1) for ln in crabbed.sim.lines} == {4.8}
     by_attitude = calibrate(mission, CalibrationSettings())  # auto
-    by_track = calibrate(mission, CalibrationSettings(heading_source="track"))
+    by_track = calibrate(mission, CalibrationSettings(heading_source=HeadingSource.TRACK))
     attitude_errors = _errors_in_sigmas(by_attitude, crabbed.sim.biases)
     track_errors = _errors_in_sigmas(by_track, crabbed.sim.biases)
     assert max(attitude_errors.values()) < 3.0, attitude_errors
@@ -230,8 +236,8 @@ def test_correction_of_a_crabbed_mission_lands_on_the_truth_with_the_attitude(
     sim = crabbed.sim
     delta = np.array([sim.biases[n] for n in PARAMETER_NAMES])
     strip, truth = sim.mission.strips[0], sim.true_xyz[0]
-    worst = {}
-    for mode in ("auto", "track"):
+    worst: dict[str, float] = {}
+    for mode in (HeadingSource.AUTO, HeadingSource.TRACK):
         settings = CorrectionSettings(delta=delta, heading_source=mode)
         res = correct_columns(strip.xyz, strip.t, strip.intensity, sim.mission.trajectory,
                               settings)
@@ -254,7 +260,7 @@ def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
     with caplog.at_level(logging.WARNING, logger="lidarcal_ros.pipeline.correction.apply"):
         for _ in range(5):
             ok, lines = correction.served_frames(pts_t, xyz, bare, source=source,
-                                                 heading_source="attitude")
+                                                 heading_source=HeadingSource.ATTITUDE)
             assert lines is None and not ok.any()
         assert len(caplog.records) == 1
         assert "'attitude' but the trajectory has no orientation" in caplog.text
@@ -263,6 +269,7 @@ def test_a_stream_left_uncorrected_for_want_of_orientation_warns_now_and_then(
         # as if the quiet time had passed
         monkeypatch.setattr(warnings, "clock",
                             lambda: time.monotonic() + correction.UNCORRECTED_WARNING_S)
-        correction.served_frames(pts_t, xyz, bare, source=source, heading_source="attitude")
+        correction.served_frames(pts_t, xyz, bare, source=source,
+                                 heading_source=HeadingSource.ATTITUDE)
     assert len(caplog.records) == 2
     assert "(and 4 more clouds since the last warning)" in caplog.records[-1].getMessage()

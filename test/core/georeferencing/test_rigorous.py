@@ -31,7 +31,12 @@ from lidarcal_ros.core.georeferencing.bias_model import (
     geometry_normal_rows,
     geometry_offsets,
 )
-from lidarcal_ros.core.georeferencing.laser_geometry import RIGOROUS, LaserGeometry, geometry_at
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
+from lidarcal_ros.core.georeferencing.laser_geometry import (
+    LaserGeometry,
+    PositioningModel,
+    geometry_at,
+)
 from lidarcal_ros.core.georeferencing.rigorous import (
     choose_model,
     laser_vector_qa,
@@ -92,7 +97,7 @@ def test_recovered_laser_vector_and_rows(vectors: dict[str, Any]) -> None:
         xb = np.array(pulse["X_biased"])
         g = _pulse_geometry(pulse, xb)
         rec = pulse["recovered"]
-        assert g.model == RIGOROUS
+        assert g.model == PositioningModel.RIGOROUS
         np.testing.assert_allclose([g.x[0], g.y[0], g.z[0]],  # type: ignore[index]
                                    [rec["x"], rec["y"], rec["z"]], atol=1e-9)
         assert g.range[0] == pytest.approx(rec["r"], abs=1e-9)
@@ -209,20 +214,20 @@ def test_model_choice_and_its_reasons() -> None:
     c = choose_model(traj, 5.0, 15.0)
     assert c.model == "rigorous" and c.reason == "INS attitude at 50 Hz"
     assert c.interpolation_error_rad < 5e-7
-    assert choose_model(traj, 5.0, 15.0, mode="level").model == "level"
-    assert choose_model(traj, 5.0, 15.0, heading_source="track").model == "level"
+    assert choose_model(traj, 5.0, 15.0, mode=PositioningModel.LEVEL).model == "level"
+    assert choose_model(traj, 5.0, 15.0, heading_source=HeadingSource.TRACK).model == "level"
     bare = Trajectory(traj.t, traj.xyz)
     assert choose_model(bare, 5, 15).reason == "the poses carry no orientation"
     with pytest.raises(TrajectoryError, match=r"strip 4: matching\.model is 'rigorous' but "
                        r"the poses carry no orientation"):
-        choose_model(bare, 5, 15, mode="rigorous", source="strip 4")
+        choose_model(bare, 5, 15, mode=PositioningModel.RIGOROUS, source="strip 4")
     levelled = _rough_trajectory(full=False)
     assert "heading only" in choose_model(levelled, 5, 15).reason
     sparse = _rough_trajectory(5.0)
     c = choose_model(sparse, 5, 15)
     assert c.model == "level" and "5.0 Hz" in c.reason and "10 Hz" in c.reason
     with pytest.raises(TrajectoryError, match=r"5\.0 Hz"):
-        choose_model(sparse, 5, 15, mode="rigorous")
+        choose_model(sparse, 5, 15, mode=PositioningModel.RIGOROUS)
     # A NED-like body frame (z down): the body's up axis points down
     ned = Trajectory(traj.t, traj.xyz, quaternions_from_attitude(
         np.full(traj.t.size, math.pi), 0.0, np.radians(5.0)))
@@ -270,7 +275,7 @@ def test_strip_geometry_dispatches_by_model() -> None:
     pts = np.column_stack([np.linspace(-200, 200, 100), 60 * tp, np.zeros(100)])
     g, c = strip_geometry(tp, pts, traj)
     assert (g.model, c.model) == ("rigorous", "rigorous") and g.rotation is not None
-    g, c = strip_geometry(tp, pts, traj, model="level")
+    g, c = strip_geometry(tp, pts, traj, model=PositioningModel.LEVEL)
     assert (g.model, c.model) == ("level", "level") and g.rotation is None
 
 
@@ -312,11 +317,11 @@ def test_rough_air_needs_the_rigorous_model(
     for name, (err, in_sigmas) in errors.items():
         assert abs(err) <= TOLERANCE[name] and abs(in_sigmas) <= 3.0, (name, errors)
     assert not any(qa.warnings for qa in rigorous.laser_qa.values())
-    level = calibrate(mission, CalibrationSettings(model="level"))
+    level = calibrate(mission, CalibrationSettings(model=PositioningModel.LEVEL))
     level_errors = _errors(level, rough.sim.biases)
     assert max(abs(s) for _, s in level_errors.values()) > 4.0, level_errors
     # the corrected points, with the rigorous estimate and model
-    settings = CorrectionSettings(delta=rigorous.solution.delta, model="rigorous")
+    settings = CorrectionSettings(delta=rigorous.solution.delta, model=PositioningModel.RIGOROUS)
     dz = []
     for strip, truth in zip(mission.strips, rough.sim.true_xyz, strict=True):
         res = correct_columns(strip.xyz, strip.t, strip.intensity, mission.trajectory,
@@ -340,7 +345,7 @@ def test_level_missions_give_the_same_estimate_with_either_model(
     assert not mission.trajectory.full_attitude
     auto = calibrate(mission, CalibrationSettings())
     assert {c.model for c in auto.models.values()} == {"level"}
-    rigorous = calibrate(mission, CalibrationSettings(model="rigorous"))
+    rigorous = calibrate(mission, CalibrationSettings(model=PositioningModel.RIGOROUS))
     assert {c.model for c in rigorous.models.values()} == {"rigorous"}
     sa, sr = auto.solution, rigorous.solution
     for i, name in enumerate(PARAMETER_NAMES):

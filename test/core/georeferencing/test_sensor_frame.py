@@ -15,7 +15,7 @@ from lidarcal_ros.core.georeferencing.bias_model import (
     boresight_matrix,
     geometry_design_matrix,
 )
-from lidarcal_ros.core.georeferencing.laser_geometry import RIGOROUS, LaserGeometry
+from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
 from lidarcal_ros.core.georeferencing.sensor_frame import (
     Mounting,
     SensorGeoreference,
@@ -219,7 +219,7 @@ def test_with_y_zero_the_columns_are_section_10s() -> None:
     rotation = Rotation.random(n, random_state=7).as_matrix()
     origin = rng.normal(size=(n, 3))
     geometry = LaserGeometry(x=x, z=z, kappa=np.zeros(n), beta=beta, origin=origin,
-                             rotation=rotation, y=np.zeros(n), model=RIGOROUS)
+                             rotation=rotation, y=np.zeros(n), model=PositioningModel.RIGOROUS)
     geo = SensorGeoreference(xyz=origin, origin=origin, rotation=rotation, rho=rho,
                              lever_arm=np.zeros(3))
     np.testing.assert_allclose(design_matrix(geo, linear_scanner=True),

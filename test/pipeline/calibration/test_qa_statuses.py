@@ -7,6 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState
+from lidarcal_ros.core.georeferencing.heading import HeadingSource
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.io.cloud.messages import (
     ERROR,
@@ -23,9 +25,11 @@ def _solution() -> SimpleNamespace:
                       arcsec_to_rad(45.58), 0.1179, 1.0e-4])
     sigma = np.array([0.0004, 0.0014, math.nan, arcsec_to_rad(0.34), arcsec_to_rad(0.04),
                       math.nan, 0.0031, 1.6e-6])
-    states = {name: SimpleNamespace(state="estimated", reason="") for name in PARAMETER_NAMES}
-    states["dZ"] = SimpleNamespace(state="fixed", reason="")
-    states["dkappa"] = SimpleNamespace(state="not_estimable", reason="lines along one track")
+    states = {name: SimpleNamespace(state=ParameterState.ESTIMATED, reason="")
+              for name in PARAMETER_NAMES}
+    states["dZ"] = SimpleNamespace(state=ParameterState.FIXED, reason="")
+    states["dkappa"] = SimpleNamespace(state=ParameterState.NOT_ESTIMABLE,
+                                        reason="lines along one track")
     return SimpleNamespace(delta=delta, sigma=sigma, status=states)
 
 
@@ -39,10 +43,12 @@ def test_the_estimate_reads_in_arcsec_and_cm() -> None:
     assert status.values["dkappa"] == "not estimable: lines along one track"
     assert list(status.values) == list(PARAMETER_NAMES)
     # where the headings came from, when the result says
-    with_heading = estimate_status(_solution(), {1: "attitude", 2: "attitude"})
+    with_heading = estimate_status(_solution(), {1: HeadingSource.ATTITUDE,
+                                                 2: HeadingSource.ATTITUDE})
     assert with_heading.values["heading"] == (
         "heading from the poses' orientation (IMU) for every strip")
-    assert estimate_status(_solution(), {1: "track"}).values["heading"] == "from the track"
+    by_track = estimate_status(_solution(), {1: HeadingSource.TRACK})
+    assert by_track.values["heading"] == "from the track"
 
 
 def _pair(a: int, b: int, level: int, rms: float) -> StatusSpec:

@@ -34,7 +34,10 @@ from lidarcal_ros.core.flags import (
     FLAG_NOT_CORRECTED,
     FLAG_ROUGH,
 )
-from lidarcal_ros.core.georeferencing.local_trajectory import covered_by_trajectory
+from lidarcal_ros.core.georeferencing.local_trajectory import (
+    TrajectoryWindow,
+    covered_by_trajectory,
+)
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.scanning import INTENSITY_K
 from lidarcal_ros.core.simulation.surface import ASPHALT, GRASS, SOIL
@@ -503,7 +506,8 @@ def test_trajectory_gap_points_are_flagged_and_counted(
     assert main(["correct", str(bag), "--calibration", str(cal), "-o", str(out)]) == 0
     stdout = capsys.readouterr().out
     t_all = np.concatenate([s.t for s in mission.strips])
-    expected = int((~covered_by_trajectory(t_all, mission.trajectory, window_s=0.5)).sum())
+    window = TrajectoryWindow(window_s=0.5)
+    expected = int((~covered_by_trajectory(t_all, mission.trajectory, window=window)).sum())
     assert expected > 100
     assert f"not corrected (trajectory): {expected}" in stdout
     _, clouds, _ = read_mcap_topics(out)

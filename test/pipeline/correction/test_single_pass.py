@@ -30,6 +30,7 @@ from helpers_missions import (
 )
 
 from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.mission import Mission, Trajectory
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.pipeline.correction import trajectory_gate
@@ -211,9 +212,9 @@ def test_rough_air_rigorous_one_pass_equals_two(
     assert one.report.stats.not_corrected < 0.01 * one.report.stats.points
 
 
-@pytest.mark.parametrize("model", ["level", "rigorous"])
+@pytest.mark.parametrize("model", [PositioningModel.LEVEL, PositioningModel.RIGOROUS])
 def test_gate_gives_each_cloud_the_samples_of_the_whole_trajectory(
-        mission_factory: Callable[..., MissionFiles], model: str) -> None:
+        mission_factory: Callable[..., MissionFiles], model: PositioningModel) -> None:
     """Clouds of 20 ms corrected as soon as the gate lets them through (no batches, no
     look-ahead for the normals: nothing but the gate's reach keeps a cloud from the end of
     the trajectory read so far), the trajectory growing pose by pose as a bag interleaves
@@ -228,7 +229,7 @@ def test_gate_gives_each_cloud_the_samples_of_the_whole_trajectory(
 
     files = (mission_factory(density=0.15, line_length_m=600.0, seed=3, rough_air=RoughAir(),
                              wind_mps=crosswind_for_crab(5.0, 60.0))
-             if model == "rigorous" else mission_factory())
+             if model == PositioningModel.RIGOROUS else mission_factory())
     mission = files.sim.mission
     traj = mission.trajectory
     q = (traj.orientation if traj.orientation is not None
