@@ -7,6 +7,7 @@ pure numpy. What the ``reflectance`` field holds: docs/correction.md, "The refle
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -20,8 +21,34 @@ T0_K = 288.15
 P0_KPA = 101.325
 #: Rayleigh (molecular) extinction at 550 nm, standard air, per km (Bucholtz 1995).
 RAYLEIGH_550_PER_KM = 0.01162
+
+
+class PowerModel(enum.StrEnum):
+    """How the transmitted power varies (``radiometry.power_model``)."""
+
+    #: The same power on every pulse.
+    CONSTANT = "constant"
+    #: Constant mean power: the pulse energy falls as the repetition frequency rises.
+    PULSE_RATE = "pulse_rate"
+
+
 #: Power models accepted in the flight configuration (``radiometry.power_model``).
-POWER_MODELS = ("constant", "pulse_rate")
+POWER_MODELS = tuple(PowerModel)
+
+
+def parse_power_model(value: str) -> PowerModel:
+    """``radiometry.power_model`` as a :class:`PowerModel`.
+
+    Raises
+    ------
+    ConfigError
+        Not one of the models.
+    """
+    try:
+        return PowerModel(value)
+    except ValueError:
+        raise ConfigError(f"radiometry.power_model: '{value}' is not one of "
+                          f"{', '.join(POWER_MODELS)}") from None
 
 
 def kim_q(visibility_km: float) -> float:
@@ -125,7 +152,7 @@ def two_way_transmittance(range_m: np.ndarray, alpha_per_m: float) -> np.ndarray
 
 
 def power_ratio(
-    model: str, pulse_rate_hz: float, reference_pulse_rate_hz: float
+    model: PowerModel | str, pulse_rate_hz: float, reference_pulse_rate_hz: float
 ) -> float:
     """Transmitted-power normalisation ``P_ref / P_t``.
 
@@ -138,15 +165,13 @@ def power_ratio(
     ConfigError
         Unknown model or non-positive rate.
     """
-    if model == "constant":
+    if parse_power_model(model) is PowerModel.CONSTANT:
         return 1.0
-    if model == "pulse_rate":
-        if not (pulse_rate_hz > 0 and reference_pulse_rate_hz > 0):
-            raise ConfigError(
-                f"pulse rates must be positive, got {pulse_rate_hz} and {reference_pulse_rate_hz}"
-            )
-        return float(pulse_rate_hz) / float(reference_pulse_rate_hz)
-    raise ConfigError(f"radiometry.power_model: '{model}' is not one of {', '.join(POWER_MODELS)}")
+    if not (pulse_rate_hz > 0 and reference_pulse_rate_hz > 0):
+        raise ConfigError(
+            f"pulse rates must be positive, got {pulse_rate_hz} and {reference_pulse_rate_hz}"
+        )
+    return float(pulse_rate_hz) / float(reference_pulse_rate_hz)
 
 
 def volume_returns(return_number: np.ndarray | None,
@@ -209,7 +234,7 @@ class RadiometricModel:
         at ``reference_range_m``, normal incidence, clear air and reference power
         (``radiometry.calibration_constant``, intensity units); 0 when not known (the
         reflectance is then relative, in intensity units).
-    power_model : str
+    power_model : PowerModel
         ``constant`` or ``pulse_rate`` (``radiometry.power_model``).
     pulse_rate_hz, reference_pulse_rate_hz : float
         Pulse repetition frequency of the mission and of the reference power, Hz.
@@ -229,7 +254,7 @@ class RadiometricModel:
     pressure_kpa: float = 101.81
     reference_range_m: float = 1000.0
     calibration_constant: float = 0.0
-    power_model: str = "constant"
+    power_model: PowerModel = PowerModel.CONSTANT
     pulse_rate_hz: float = 70000.0
     reference_pulse_rate_hz: float = 70000.0
     min_cos_incidence: float = 0.1
@@ -265,7 +290,7 @@ class RadiometricModel:
             pressure_kpa=float(config["atmosphere.pressure_kpa"]),
             reference_range_m=float(config["radiometry.reference_range_m"]),
             calibration_constant=float(config["radiometry.calibration_constant"]),
-            power_model=str(config["radiometry.power_model"]),
+            power_model=parse_power_model(str(config["radiometry.power_model"])),
             pulse_rate_hz=float(config["sensor.pulse_rate_hz"]),
             reference_pulse_rate_hz=float(config["radiometry.reference_pulse_rate_hz"]),
             min_cos_incidence=float(config["radiometry.min_cos_incidence"]),
@@ -461,6 +486,7 @@ __all__ = [
     "POWER_MODELS",
     "RAYLEIGH_550_PER_KM",
     "T0_K",
+    "PowerModel",
     "RadiometricModel",
     "atmospheric_alpha",
     "constant_from_target",
@@ -468,6 +494,7 @@ __all__ = [
     "describe_alpha",
     "extinction_coefficient",
     "kim_q",
+    "parse_power_model",
     "power_ratio",
     "rayleigh_alpha",
     "two_way_transmittance",

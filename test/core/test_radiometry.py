@@ -25,6 +25,7 @@ from lidarcal_ros.core.normals.grid_normals import (
 from lidarcal_ros.core.normals.grid_planes import smallest_eigen
 from lidarcal_ros.core.normals.strip_normals import StripNormals
 from lidarcal_ros.core.radiometry import (
+    PowerModel,
     RadiometricModel,
     atmospheric_alpha,
     constant_from_target,
@@ -221,8 +222,8 @@ def test_uncertain_normals_bound_the_incidence_term() -> None:
 
 
 def test_pulse_rate_power_model() -> None:
-    base = RadiometricModel(power_model="constant", pulse_rate_hz=140e3)
-    prf = RadiometricModel(power_model="pulse_rate", pulse_rate_hz=140e3,
+    base = RadiometricModel(power_model=PowerModel.CONSTANT, pulse_rate_hz=140e3)
+    prf = RadiometricModel(power_model=PowerModel.PULSE_RATE, pulse_rate_hz=140e3,
                            reference_pulse_rate_hz=70e3)
     args = (np.array([100.0]), np.array([1000.0]), np.array([1.0]))
     assert prf.reflectance(*args)[0][0] == pytest.approx(2.0 * base.reflectance(*args)[0][0])

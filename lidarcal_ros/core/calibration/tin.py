@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -94,7 +95,8 @@ class Tin:
         return self._locator.locate(xy - self.origin[:2], start)
 
 
-def delaunay(xy: np.ndarray, *, backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+def delaunay(xy: np.ndarray, *, backend: Literal["auto", "triangle", "scipy"] = "auto"
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Delaunay triangulation of 2-D points.
 
     Parameters
