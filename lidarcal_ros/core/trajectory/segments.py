@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -133,7 +134,7 @@ class SegmentQuality:
     altitude_m: float = math.nan
     altitude_sigma_m: float = math.nan
     fan_deg: float = math.nan
-    model: str = "rays"
+    model: Literal["rays", "level"] = "rays"
     altitude_from: tuple[int, ...] = ()
     weak: bool = False
     level: str = "ERROR"
