@@ -13,7 +13,12 @@ import numpy as np
 
 from lidarcal_ros.core.georeferencing.attitude import body_rotations, interpolated_frames
 from lidarcal_ros.core.georeferencing.heading import MAX_CRAB_DEG, wrap_angle
-from lidarcal_ros.core.georeferencing.laser_geometry import LEVEL, RIGOROUS, LaserGeometry
+from lidarcal_ros.core.georeferencing.laser_geometry import (
+    LEVEL,
+    RIGOROUS,
+    LaserGeometry,
+    ScannerKind,
+)
 from lidarcal_ros.core.georeferencing.local_trajectory import covered_by_trajectory, laser_geometry
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.errors import ConfigError, TrajectoryError
@@ -31,6 +36,11 @@ MAX_TILT_DEG = 60.0
 #: Trajectory kept around a strip's time span when judging its attitude, s (the model of a
 #: point reads the samples this far from it).
 MODEL_SPAN_PAD_S = 1.0
+
+#: What a general scanner's strips are not checked for, said in their model choice: its laser
+#: vectors point anywhere (docs/method.md section 12) and a multirotor may fly sideways.
+GENERAL_SKIPS = ("general scanner: the heading is not compared with the track, nor the "
+                 "points required below the trajectory")
 
 #: Messages already logged (a stream asks once per chunk; one line is enough).
 _LOGGED: set[str] = set()
@@ -69,8 +79,12 @@ def check_model_setting(mode: str, trajectory: Trajectory, where: str) -> None:
 
 
 def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str = "auto",
-                 heading_source: str = "auto", source: str = "points") -> ModelChoice:
+                 heading_source: str = "auto", source: str = "points",
+                 scanner: ScannerKind = ScannerKind.LINEAR) -> ModelChoice:
     """The model the points fired between ``t_lo`` and ``t_hi`` (s) get (docs/method.md section 10).
+
+    A ``GENERAL`` scanner's (section 12) needs ``mode`` ``rigorous``; its heading is not
+    compared with the track (:data:`GENERAL_SKIPS`, said in the choice's reason).
 
     Raises
     ------
@@ -81,6 +95,10 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str 
     """
     if mode not in MODELS:
         raise ConfigError(f"matching.model '{mode}' is not one of {', '.join(MODELS)}")
+    general = scanner is ScannerKind.GENERAL
+    if general and mode != RIGOROUS:
+        raise ConfigError(f"{source}: a general scanner's laser vectors need matching.model "
+                          f"'rigorous', not '{mode}'")
     if mode == LEVEL:
         return ModelChoice(LEVEL, "matching.model level")
     span = _span(trajectory, t_lo, t_hi)
@@ -95,7 +113,7 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str 
     if mode == "auto" and heading_source == "track":
         return ModelChoice(LEVEL, "matching.heading_source track", rate)
     assert span.orientation is not None
-    odd = _other_convention(span)
+    odd = _other_convention(span, compare_track=not general)
     if odd is not None:
         if mode == RIGOROUS:
             _log_once(f"{source}: {odd}; rigorous model as asked (matching.model rigorous)")
@@ -104,7 +122,8 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *, mode: str 
                       "matching.model to 'rigorous' to use the attitude anyway")
             return ModelChoice(LEVEL, odd, rate)
     error = _interpolation_error(span)
-    return ModelChoice(RIGOROUS, f"INS attitude at {rate:.0f} Hz", rate, error)
+    reason = f"INS attitude at {rate:.0f} Hz" + (f"; {GENERAL_SKIPS}" if general else "")
+    return ModelChoice(RIGOROUS, reason, rate, error)
 
 
 def _span(trajectory: Trajectory, t_lo: float, t_hi: float) -> Trajectory:
@@ -137,8 +156,10 @@ def _missing_attitude(span: Trajectory, rate: float, *, levelled_ok: bool) -> st
     return None
 
 
-def _other_convention(span: Trajectory) -> str | None:
-    """Words on an orientation that is not REP-103's body frame, or None."""
+def _other_convention(span: Trajectory, *, compare_track: bool = True) -> str | None:
+    """Words on an orientation that is not REP-103's body frame, or None; ``compare_track``:
+    a heading off the track by more than a crab is one (not for a platform that may fly
+    sideways)."""
     assert span.orientation is not None
     q = span.orientation
     x, y = q[:, 0], q[:, 1]
@@ -148,6 +169,8 @@ def _other_convention(span: Trajectory) -> str | None:
         return (f"the poses' orientation tilts the body's up axis by up to {tilt:.0f} deg "
                 f"(more than the {MAX_TILT_DEG:g} a survey flight banks): its body frame is "
                 "not REP-103's (x forward, y left, z up)?")
+    if not compare_track:
+        return None
     track = _track_heading(span)
     heading = span.heading
     assert heading is not None
@@ -223,10 +246,13 @@ def attitude_segments(t: np.ndarray, trajectory: Trajectory, *, source: str = "p
 
 def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                       window_s: float = 0.5, min_samples: int = 2,
-                      source: str = "points") -> LaserGeometry:
+                      source: str = "points",
+                      scanner: ScannerKind = ScannerKind.LINEAR) -> LaserGeometry:
     """docs/method.md section 10: the firing position and ``R_ins`` interpolated to each firing
     time (:func:`~lidarcal_ros.core.georeferencing.attitude.interpolated_frames`), and the laser
-    vector ``rho_hat = R_ins^T (X - X_o)``.
+    vector ``rho_hat = R_ins^T (X - X_o)``; for a ``GENERAL`` scanner (section 12: the
+    trajectory that of the sensor's origin) that is the laser vector itself, and a point may
+    lie above the sensor.
 
     The points must be covered as the level model would need them
     (:func:`~lidarcal_ros.core.georeferencing.local_trajectory.covered_by_trajectory`), so that both
@@ -235,14 +261,14 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
     Raises
     ------
     TrajectoryError
-        A point not covered, between samples without orientation, or not below its firing
-        position.
+        A point not covered, between samples without orientation, or (a linear scanner's)
+        not below its firing position.
     """
     t = np.asarray(t, dtype=np.float64)
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = t.shape[0]
     if n == 0:
-        return LaserGeometry.empty(RIGOROUS)
+        return LaserGeometry.empty(RIGOROUS, scanner)
     q = trajectory.orientation
     if q is None:
         raise TrajectoryError(f"{source}: the trajectory has no orientation")
@@ -257,7 +283,7 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                                                 q)
     x, y, z = rho[:, 0], rho[:, 1], rho[:, 2]
     above = z >= 0
-    if above.any():
+    if above.any() and scanner is ScannerKind.LINEAR:
         k = int(np.argmax(above))
         raise TrajectoryError(
             f"{source}: point at t={t[k]:.3f} s is not below the trajectory "
@@ -270,28 +296,31 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
     crab = float(np.degrees(np.median(wrap_angle(kappa - track))))
     return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
                          heading_from="attitude", crab_deg=crab, rotation=rotation, y=y,
-                         model=RIGOROUS)
+                         model=RIGOROUS, scanner=scanner)
 
 
 def strip_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                    window_s: float = 0.5, min_samples: int = 2, source: str = "points",
-                   heading_source: str = "auto", model: str = "auto"
+                   heading_source: str = "auto", model: str = "auto",
+                   scanner: ScannerKind = ScannerKind.LINEAR
                    ) -> tuple[LaserGeometry, ModelChoice]:
     """The laser geometry of a strip's points by the model ``matching.model`` chooses for
     it (:func:`choose_model`), and that choice.
 
     Parameters are those of
     :func:`~lidarcal_ros.core.georeferencing.local_trajectory.laser_geometry`, plus ``model``
-    (``auto``, ``level`` or ``rigorous``).
+    (``auto``, ``level`` or ``rigorous``) and ``scanner`` (:class:`ScannerKind`; ``GENERAL``
+    needs ``rigorous``).
     """
     t = np.asarray(t, dtype=np.float64)
     if t.size == 0:
         return LaserGeometry.empty(), ModelChoice(LEVEL, "no points")
     choice = choose_model(trajectory, float(np.min(t)), float(np.max(t)), mode=model,
-                          heading_source=heading_source, source=source)
+                          heading_source=heading_source, source=source, scanner=scanner)
     if choice.model == RIGOROUS:
         geometry = rigorous_geometry(t, xyz, trajectory, window_s=window_s,
-                                     min_samples=min_samples, source=source)
+                                     min_samples=min_samples, source=source,
+                                     scanner=scanner)
     else:
         geometry = laser_geometry(t, xyz, trajectory, window_s=window_s,
                                   min_samples=min_samples, source=source,
@@ -328,6 +357,8 @@ class LaserVectorQA:
     warnings : list of str
         One line each: a timing offset, a lever arm, a wrong body convention, a wrong field
         of view.
+    skipped : str
+        What was not checked and why, in words ("" where all was).
     """
 
     along_median_m: float
@@ -336,6 +367,12 @@ class LaserVectorQA:
     scan_max_deg: float
     outside_fov: float
     warnings: list[str] = field(default_factory=list)
+    skipped: str = ""
+
+
+#: What the QA of a general scanner's laser vectors leaves out (:attr:`LaserVectorQA.skipped`).
+GENERAL_QA_SKIPS = ("along-track lean and spread and the field of view not checked: a "
+                    "general scanner's laser vectors point anywhere (docs/method.md section 12)")
 
 
 def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
@@ -356,6 +393,9 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
         Ground speed over the strip, m/s: turns an along-track offset into a time.
     """
     beta = np.degrees(geometry.beta[np.isfinite(geometry.beta)])
+    if geometry.scanner is ScannerKind.GENERAL:  # no along-track part, no scan angle to judge
+        return LaserVectorQA(math.nan, math.nan, math.nan, math.nan, math.nan,
+                             skipped=GENERAL_QA_SKIPS)
     if not beta.size:
         return LaserVectorQA(math.nan, math.nan, math.nan, math.nan, math.nan)
     lo, hi = (float(v) for v in np.percentile(beta, [0.5, 99.5]))
@@ -432,8 +472,8 @@ def _log_once(message: str) -> None:
 
 
 __all__ = [
-    "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS", "MODEL_SPAN_PAD_S", "LaserVectorQA",
-    "ModelChoice",
+    "GENERAL_QA_SKIPS", "GENERAL_SKIPS", "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MODELS",
+    "MODEL_SPAN_PAD_S", "LaserVectorQA", "ModelChoice",
     "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
     "describe_models",
     "laser_vector_qa", "models_summary", "rigorous_geometry", "strip_geometry",
