@@ -304,6 +304,7 @@ def test_a_general_scanners_rows_and_offsets_are_section_12s(seed: int) -> None:
     geo = _scene(seed, 40)[-1]
     origin = geo.xyz - np.einsum("nij,nj->ni", geo.rotation, geo.rho)
     geometry = _general_geometry(geo, origin)
+    assert geometry.y is not None
     np.testing.assert_allclose(geometry.y, geo.rho[:, 1], atol=1e-9)
     a = design_matrix(geo)
     np.testing.assert_allclose(geometry_design_matrix(geometry), a, atol=1e-9)
@@ -363,6 +364,7 @@ def test_a_general_scanners_exact_correction_is_the_calibrated_mounting(seed: in
     np.testing.assert_allclose(shift, delivered.xyz - truth, atol=1e-9)
     assert np.abs(shift).max() > 0.1
     assert geometry.scanner is ScannerKind.GENERAL
+    assert geometry.y is not None and frame.rotation is not None
     np.testing.assert_allclose(np.column_stack([geometry.x, geometry.y, geometry.z]),
                                np.einsum("nji,nj->ni", frame.rotation, truth - origin),
                                atol=1e-9)
