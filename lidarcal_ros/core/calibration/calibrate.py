@@ -51,7 +51,7 @@ from lidarcal_ros.core.calibration.result import (
 from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import TinQuality
 from lidarcal_ros.core.georeferencing.heading import HeadingSource
-from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel, ScannerKind
 from lidarcal_ros.core.georeferencing.local_trajectory import DEFAULT_WINDOW, TrajectoryWindow
 from lidarcal_ros.core.georeferencing.rigorous import laser_vector_qa
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
@@ -63,7 +63,7 @@ from lidarcal_ros.core.trajectory.strip_errors import (
     TrajectoryModel,
     TrajectoryState,
 )
-from lidarcal_ros.errors import CalibrationError
+from lidarcal_ros.errors import CalibrationError, ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -93,6 +93,10 @@ class CalibrationSettings:
     model: PositioningModel = PositioningModel.AUTO
     #: The scanner's full field of view, deg (``sensor.fov_deg``): the laser-vector QA.
     fov_deg: float = 50.0
+    #: What the laser vectors may be (docs/method.md section 12): ``GENERAL`` for clouds
+    #: georeferenced from the sensor's frame (any scanner; the trajectory that of the
+    #: sensor's origin), with ``model`` ``rigorous`` and no ``dS``.
+    scanner: ScannerKind = ScannerKind.LINEAR
     #: Largest point-to-patch distance matched at the first iteration, m.
     max_normal_distance_m: float = 2.0
     #: Smallest matching threshold later iterations shrink to, m.
@@ -140,6 +144,10 @@ class CalibrationSettings:
 
     def __post_init__(self) -> None:
         self.solve_for = tuple(n for n in PARAMETER_NAMES if n in self.solve_for)
+        if self.scanner is ScannerKind.GENERAL and ("dS" in self.solve_for
+                                                    or self.fixed.get("dS", 0.0)):
+            raise ConfigError("calibration: dS (a mirror's scale) is no parameter of a general "
+                              "scanner; leave it out of solve_for and fixed")
 
     def tin_quality(self, density: float) -> TinQuality:
         """Patch rules for a strip of ``density`` points per m^2 (edges up to

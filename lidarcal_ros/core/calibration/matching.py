@@ -109,7 +109,8 @@ class PairMatcher:
         geom, choice = strip_geometry(strip.t, strip.xyz, trajectory,
                                       window=s.window,
                                       source=f"strip {strip.strip_id}",
-                                      heading_source=s.heading_source, model=s.model)
+                                      heading_source=s.heading_source, model=s.model,
+                                      scanner=s.scanner)
         speed = ground_speed(trajectory, strip.t)
         qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
         keys = self.footprint.keys(strip.xyz[:, :2])

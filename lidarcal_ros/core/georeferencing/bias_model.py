@@ -10,8 +10,12 @@ import numpy as np
 
 from lidarcal_ros.core.georeferencing import bias_model_kernels as calibration_kernels
 from lidarcal_ros.core.georeferencing.correction_kernels import bias_offsets
-from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry
+from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, ScannerKind
 from lidarcal_ros.core.params import N_PARAMETERS
+
+#: Empty arrays: no rotation per point (the level model), no column per point.
+_NO_ROTATION = np.zeros((0, 3, 3))
+_NO_COLUMN = np.zeros(0)
 
 
 def design_matrix(
@@ -83,10 +87,14 @@ def normal_design_rows(
 
 
 def body_normal_rows(normal_body: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
-                     sin_beta: np.ndarray, cos_beta: np.ndarray) -> np.ndarray:
+                     sin_beta: np.ndarray, cos_beta: np.ndarray, *,
+                     y: np.ndarray | None = None) -> np.ndarray:
     """``n_b^T C`` for each point, ``C`` the (3, 8) columns of docs/method.md section 10 in the
     body frame and ``n_b = R^T n`` the patch normal in it: the design row of a point-to-patch
     observation in either model (``A = R C``, so ``n^T A = (R^T n)^T C``).
+
+    With ``y`` (a general scanner's forward coordinate, m), section 12's columns:
+    ``domega [0, -z, y]``, ``dkappa [-y, x, 0]``, ``dr rho / |rho|`` and no ``dS`` (0).
 
     Parameters
     ----------
@@ -111,13 +119,19 @@ def body_normal_rows(normal_body: np.ndarray, x: np.ndarray, z: np.ndarray, beta
     rows[:, 5] = x * n_fwd
     rows[:, 6] = -sin_beta * n_right - cos_beta * n_up
     rows[:, 7] = beta * (z * n_right - x * n_up)
+    if y is not None:  # (added last: y = 0 leaves the rows above to the bit)
+        rows[:, 3] += y * n_up
+        rows[:, 5] -= y * n_right
+        rows[:, 6] += y / np.sqrt(x * x + y * y + z * z) * n_fwd
+        rows[:, 7] = 0.0
     return rows
 
 
 def body_columns(x: np.ndarray, z: np.ndarray, beta: np.ndarray, sin_beta: np.ndarray,
-                 cos_beta: np.ndarray) -> np.ndarray:
+                 cos_beta: np.ndarray, *, y: np.ndarray | None = None) -> np.ndarray:
     """The derivative of a point with respect to the biases in the body frame (right,
-    forward, up), docs/method.md section 10: (n, 3, 8), ``A = R @ columns``."""
+    forward, up), docs/method.md section 10: (n, 3, 8), ``A = R @ columns``; with ``y`` (a
+    general scanner's forward coordinate, m) section 12's (as :func:`body_normal_rows`)."""
     n = np.shape(x)[0]
     cols = np.zeros((n, 3, N_PARAMETERS))
     cols[:, 0, 0] = cols[:, 1, 1] = cols[:, 2, 2] = 1.0
@@ -129,6 +143,11 @@ def body_columns(x: np.ndarray, z: np.ndarray, beta: np.ndarray, sin_beta: np.nd
     cols[:, 2, 6] = -cos_beta
     cols[:, 0, 7] = beta * z
     cols[:, 2, 7] = -beta * x
+    if y is not None:
+        cols[:, 2, 3] = y
+        cols[:, 0, 5] = -y
+        cols[:, 1, 6] = y / np.sqrt(x * x + y * y + z * z)
+        cols[:, :, 7] = 0.0
     return cols
 
 
@@ -136,7 +155,7 @@ def geometry_design_matrix(geometry: LaserGeometry) -> np.ndarray:
     """``A`` (n, 3, 8) of each point of ``geometry`` in either model: ``R`` times the body
     columns (:func:`body_columns`)."""
     _, _, sb, cb = geometry.trig()
-    cols = body_columns(geometry.x, geometry.z, geometry.beta, sb, cb)
+    cols = body_columns(geometry.x, geometry.z, geometry.beta, sb, cb, y=_general_y(geometry))
     if geometry.rotation is None:  # R_kappa: the rows of eq. [8]
         return design_matrix(geometry.x, geometry.z, geometry.kappa, geometry.beta)
     return np.einsum("nij,njk->nik", geometry.rotation, cols)
@@ -147,7 +166,12 @@ def geometry_normal_rows(normal: np.ndarray, geometry: LaserGeometry) -> np.ndar
     (n, 3, map frame): :func:`body_normal_rows` of the normal turned into the body frame."""
     _, _, sb, cb = geometry.trig()
     return body_normal_rows(geometry.to_body(normal), geometry.x, geometry.z, geometry.beta,
-                            sb, cb)
+                            sb, cb, y=_general_y(geometry))
+
+
+def _general_y(geometry: LaserGeometry) -> np.ndarray | None:
+    """A general scanner's ``y`` (section 12's columns), or None (section 10's)."""
+    return geometry.y if geometry.scanner is ScannerKind.GENERAL else None
 
 
 Trig = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -175,13 +199,14 @@ def point_offsets(
 
 def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
              beta: np.ndarray, trig: Trig | None, base: np.ndarray,
-             rotation: np.ndarray | None = None) -> np.ndarray:
+             rotation: np.ndarray | None = None, y: np.ndarray = _NO_COLUMN) -> np.ndarray:
     """:func:`point_offsets`, or ``base - `` them (one pass:
     :func:`~lidarcal_ros.core.georeferencing.correction_kernels.bias_offsets`).
 
     Body frame: the displacement to the right is ``dX + z dphi - sin(beta) dr + z beta dS``,
     forward ``dY - z domega + x dkappa``, up ``dZ - x dphi - cos(beta) dr - x beta dS``;
-    rotated into the map frame by the heading kappa (level) or ``rotation`` (rigorous).
+    rotated into the map frame by the heading kappa (level) or ``rotation`` (rigorous); a
+    general scanner's ``y`` (rigorous) adds section 12's terms.
     """
     if trig is None:
         trig = (np.cos(kappa), np.sin(kappa), np.sin(beta), np.cos(beta))
@@ -189,17 +214,15 @@ def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
     rot = _NO_ROTATION if rotation is None else np.ascontiguousarray(rotation,
                                                                      dtype=np.float64)
     return bias_offsets(np.asarray(delta, dtype=np.float64),
-                        np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64),
+                        np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64),
+                        np.asarray(z, dtype=np.float64),
                         np.asarray(beta, dtype=np.float64), c, s, sb, cb, base, rot)
-
-
-_NO_ROTATION = np.zeros((0, 3, 3))
 
 
 def geometry_offsets(delta: np.ndarray, geometry: LaserGeometry) -> np.ndarray:
     """``A @ delta`` (n, 3, map frame, m) of each point of ``geometry``, either model."""
     return _offsets(delta, geometry.x, geometry.z, geometry.kappa, geometry.beta,
-                    geometry.trig(), np.empty((0, 3)), geometry.rotation)
+                    geometry.trig(), np.empty((0, 3)), geometry.rotation, geometry.general_y)
 
 
 def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
@@ -209,7 +232,7 @@ def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
     if xyz.shape != (np.shape(geometry.x)[0], 3):
         raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(geometry.x)[0]} points")
     return _offsets(delta, geometry.x, geometry.z, geometry.kappa, geometry.beta,
-                    geometry.trig(), xyz, geometry.rotation)
+                    geometry.trig(), xyz, geometry.rotation, geometry.general_y)
 
 
 def correct_points(
@@ -272,7 +295,9 @@ def correct_points_exact(
     ``1 + dS``. Undoing them: ``rho_b = R_B^T (R^T (X_b - X_o) - d)``,
     ``r_true = |rho_b| - dr``, ``theta = beta / (1 + dS)``, and the true point is
     ``X_o + R (-r_true) [sin theta, 0, cos theta]``, keeping the (small) along-track
-    component of ``rho_b``.
+    component of ``rho_b``. A general scanner's (``frame.scanner``; section 12) laser vector
+    is any direction: ``rho_b = R_B^T R^T (X_b - X_o)``, the true point ``X_o + R (rho_b (1 -
+    dr / |rho_b|) - d)``, no ``dS``.
 
     Agrees with eq. [13] to second order in the biases; used while iterating so that large
     biases (150 arcsec, 0.2 m) leave no linearisation error.
@@ -317,6 +342,9 @@ def exact_correction(
     if c is None or s is None:
         c, s, _, _ = frame.trig()
     rigorous = frame.rotation is not None
+    general = frame.scanner is ScannerKind.GENERAL
+    if general and not rigorous:
+        raise ValueError("a general scanner's laser vectors need the rigorous model")
     corrected = np.empty((n, 3))
     shift = np.empty((n, 3))
     x, z, beta, sb, cb = (np.empty(n) for _ in range(5))
@@ -325,16 +353,14 @@ def exact_correction(
         xyz, np.ascontiguousarray(frame.origin, dtype=np.float64),
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
-        d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb)
+        d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb, general)
     geometry = LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
                              cos_kappa=c, sin_kappa=s, sin_beta=sb, cos_beta=cb,
                              heading_from=frame.heading_from, crab_deg=frame.crab_deg,
                              rotation=frame.rotation, y=y if rigorous else None,
-                             model=frame.model)
+                             model=frame.model, scanner=frame.scanner)
     return corrected, shift, geometry
 
-
-_NO_COLUMN = np.zeros(0)
 
 
 def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: LaserGeometry,
@@ -348,7 +374,7 @@ def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: Lase
         np.ascontiguousarray(normal, dtype=np.float64),
         np.ascontiguousarray(index, dtype=np.int64),
         _NO_COLUMN if weight is None else np.ascontiguousarray(weight, dtype=np.float64),
-        geometry.x, geometry.z, geometry.beta, sb, cb, c, s,
+        geometry.x, geometry.general_y, geometry.z, geometry.beta, sb, cb, c, s,
         _NO_ROTATION if geometry.rotation is None else geometry.rotation, out)
 
 

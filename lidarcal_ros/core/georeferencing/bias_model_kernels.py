@@ -44,7 +44,8 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
                                   delta: np.ndarray, boresight: np.ndarray,
                                   corrected: np.ndarray, shift: np.ndarray, x: np.ndarray,
                                   y: np.ndarray, z: np.ndarray, beta: np.ndarray,
-                                  sin_beta: np.ndarray, cos_beta: np.ndarray) -> None:
+                                  sin_beta: np.ndarray, cos_beta: np.ndarray,
+                                  general: bool) -> None:
     """The biases removed exactly and the laser geometry of the corrected points, in one
     pass: :func:`lidarcal_ros.core.georeferencing.bias_model.correct_points_exact` followed by
     :func:`lidarcal_ros.core.georeferencing.laser_geometry.geometry_at` and its :meth:`trig`.
@@ -56,6 +57,12 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
     across the heading, ``z`` the height difference, ``y`` not kept), ``beta = atan(x / z)``
     and ``sin beta = -x / r``, ``cos beta = -z / r`` with ``r`` the range (``hypot(x, z)``
     level, ``|(x, y, z)|`` rigorous).
+
+    A ``general`` scanner (rigorous; docs/method.md section 12) has no mirror angle: the
+    recorded laser vector is ``rho = R_B^T R^T (X_b - X_o)``, the range is shortened along
+    it, ``rho (1 - dr / |rho|)``, and the lever-arm bias moves the origin:
+    the corrected point is ``X_o + R (rho (1 - dr / |rho|) - d)``, exactly the georeferencing
+    with the mounting of ``mounting_from_biases``; ``dS`` does not enter.
 
     Parameters
     ----------
@@ -74,6 +81,8 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
     x, y, z, beta, sin_beta, cos_beta : (n,) float64
         Receive the geometry of the corrected points (``y`` only for the rigorous model:
         pass an empty array for the level one).
+    general : bool
+        A general scanner's correction (above) instead of a linear one's.
     """
     n = xyz.shape[0]
     rigorous = rotation.shape[0] == n and n > 0
@@ -83,16 +92,24 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
         ox, oy, oz = origin[i, 0], origin[i, 1], origin[i, 2]
         qx, qy, qz = _to_body(rigorous, rotation, cos_kappa, sin_kappa, i,
                               xyz[i, 0] - ox, xyz[i, 1] - oy, xyz[i, 2] - oz)
-        qx -= d0
-        qy -= d1
-        qz -= d2
-        rx = qx * b[0, 0] + qy * b[1, 0] + qz * b[2, 0]
-        ry = qx * b[0, 1] + qy * b[1, 1] + qz * b[2, 1]
-        rz = qx * b[0, 2] + qy * b[1, 2] + qz * b[2, 2]
-        r_true = math.hypot(rx, rz) - d6
-        theta = math.atan2(-rx, -rz) / (1.0 + d7)
-        mx, my, mz = _to_map(rigorous, rotation, cos_kappa, sin_kappa, i,
-                             -r_true * math.sin(theta), ry, -r_true * math.cos(theta))
+        if general:
+            rx = qx * b[0, 0] + qy * b[1, 0] + qz * b[2, 0]
+            ry = qx * b[0, 1] + qy * b[1, 1] + qz * b[2, 1]
+            rz = qx * b[0, 2] + qy * b[1, 2] + qz * b[2, 2]
+            f = 1.0 - d6 / math.sqrt(rx * rx + ry * ry + rz * rz)
+            mx, my, mz = _to_map(True, rotation, cos_kappa, sin_kappa, i,
+                                 rx * f - d0, ry * f - d1, rz * f - d2)
+        else:
+            qx -= d0
+            qy -= d1
+            qz -= d2
+            rx = qx * b[0, 0] + qy * b[1, 0] + qz * b[2, 0]
+            ry = qx * b[0, 1] + qy * b[1, 1] + qz * b[2, 1]
+            rz = qx * b[0, 2] + qy * b[1, 2] + qz * b[2, 2]
+            r_true = math.hypot(rx, rz) - d6
+            theta = math.atan2(-rx, -rz) / (1.0 + d7)
+            mx, my, mz = _to_map(rigorous, rotation, cos_kappa, sin_kappa, i,
+                                 -r_true * math.sin(theta), ry, -r_true * math.cos(theta))
         cx, cy, cz = ox + mx, oy + my, oz + mz
         corrected[i, 0], corrected[i, 1], corrected[i, 2] = cx, cy, cz
         shift[i, 0] = xyz[i, 0] - cx
@@ -116,9 +133,9 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
 
 @compiled
 def add_normal_rows(normal: np.ndarray, index: np.ndarray, weight: np.ndarray,
-                    x: np.ndarray, z: np.ndarray, beta: np.ndarray, sin_beta: np.ndarray,
-                    cos_beta: np.ndarray, cos_kappa: np.ndarray, sin_kappa: np.ndarray,
-                    rotation: np.ndarray, out: np.ndarray) -> None:
+                    x: np.ndarray, y: np.ndarray, z: np.ndarray, beta: np.ndarray,
+                    sin_beta: np.ndarray, cos_beta: np.ndarray, cos_kappa: np.ndarray,
+                    sin_kappa: np.ndarray, rotation: np.ndarray, out: np.ndarray) -> None:
     """``out += weight * n^T A`` of point ``index[i]`` of a strip for each observation ``i``
     (:func:`lidarcal_ros.core.georeferencing.bias_model.geometry_normal_rows` of
     ``geometry.take(index)``, times the weights): the normal turned into the body frame, ``n_b = R^T
@@ -135,11 +152,16 @@ def add_normal_rows(normal: np.ndarray, index: np.ndarray, weight: np.ndarray,
         Factor of each row (empty: 1).
     x, z, beta, sin_beta, cos_beta, cos_kappa, sin_kappa : (n,) float64; rotation : (n, 3, 3)
         The strip's geometry (rotation empty for the level model).
+    y : (n,) float64, or empty
+        The forward coordinate of a general scanner's laser vector, m (docs/method.md section
+        12: ``domega [0, -z, y]``, ``dkappa [-y, x, 0]``, ``dr rho / |rho|``, ``dS`` 0);
+        empty: a linear scanner's (section 10's columns, ``y`` taken as 0).
     out : (k, 8) float64
         Rows to add to.
     """
     k = normal.shape[0]
     rigorous = rotation.shape[0] == x.shape[0] and x.shape[0] > 0
+    general = y.shape[0] == x.shape[0] and x.shape[0] > 0
     weighted = weight.shape[0] == k
     for i in range(k):
         p = index[i]
@@ -147,8 +169,12 @@ def add_normal_rows(normal: np.ndarray, index: np.ndarray, weight: np.ndarray,
                               normal[i, 0], normal[i, 1], normal[i, 2])
         xp, zp = x[p], z[p]
         lean = zp * nr - xp * nu
-        row = (nr, nf, nu, -zp * nf, lean, xp * nf, -sin_beta[p] * nr - cos_beta[p] * nu,
-               beta[p] * lean)
+        # section 12's y terms added last, so that y = 0 leaves section 10's row to the bit
+        yp = y[p] if general else 0.0
+        along = yp / math.sqrt(xp * xp + yp * yp + zp * zp) if general else 0.0
+        row = (nr, nf, nu, -zp * nf + yp * nu, lean, xp * nf - yp * nr,
+               -sin_beta[p] * nr - cos_beta[p] * nu + along * nf,
+               0.0 if general else beta[p] * lean)
         if weighted:
             w = weight[i]
             for j in range(8):

@@ -37,6 +37,17 @@ def _body_offset(d: tuple[float, float, float, float, float, float, float, float
 
 
 @inlined
+def _general_body_offset(d: tuple[float, float, float, float, float, float, float, float],
+                         x: float, y: float, z: float, beta: float, sin_beta: float,
+                         cos_beta: float, along: float) -> tuple[float, float, float]:
+    """:func:`_body_offset` with a general laser vector's ``y`` (docs/method.md section 12:
+    ``domega [0, -z, y]``, ``dkappa [-y, x, 0]``, ``dr`` along ``rho``, ``along = y / |rho|``),
+    its terms added last so that ``y = 0`` gives :func:`_body_offset` to the bit."""
+    right, fwd, up = _body_offset(d, x, z, beta, sin_beta, cos_beta)
+    return right - y * d[5], fwd + along * d[6], up + y * d[3]
+
+
+@inlined
 def _bias_offset(d: tuple[float, float, float, float, float, float, float, float], x: float,
                  z: float, beta: float, sin_beta: float, cos_beta: float, c: float, s: float
                  ) -> tuple[float, float, float]:
@@ -47,24 +58,35 @@ def _bias_offset(d: tuple[float, float, float, float, float, float, float, float
 
 
 @compiled
-def bias_offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, beta: np.ndarray,
-                 cos_kappa: np.ndarray, sin_kappa: np.ndarray, sin_beta: np.ndarray,
-                 cos_beta: np.ndarray, base: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+def bias_offsets(delta: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                 beta: np.ndarray, cos_kappa: np.ndarray, sin_kappa: np.ndarray,
+                 sin_beta: np.ndarray, cos_beta: np.ndarray, base: np.ndarray,
+                 rotation: np.ndarray) -> np.ndarray:
     """``A @ delta`` of each point (map frame, m), or ``base - A @ delta`` (eq. [13]) when
     ``base`` has a row per point (an empty ``base``: the offsets).
 
     The body-frame displacement (right, forward, up), rotated by kappa (docs/method.md eq. [8]),
     or by each point's ``rotation`` (n, 3, 3; section 10) when it has a row per point, as
-    :func:`lidarcal_ros.core.georeferencing.bias_model.point_offsets` documents.
+    :func:`lidarcal_ros.core.georeferencing.bias_model.point_offsets` documents. ``y`` with a
+    row per point (rigorous): a general scanner's forward coordinate (section 12's columns,
+    :func:`_general_body_offset`); empty: 0.
     """
     n = x.shape[0]
     out = np.empty((n, 3))
     d = (delta[0], delta[1], delta[2], delta[3], delta[4], delta[5], delta[6], delta[7])
     corrected = base.shape[0] == n and n > 0
     rigorous = rotation.shape[0] == n and n > 0
+    general = rigorous and y.shape[0] == n
     for i in range(n):
         if rigorous:
-            right, fwd, up = _body_offset(d, x[i], z[i], beta[i], sin_beta[i], cos_beta[i])
+            if general:
+                yi = y[i]
+                along = yi / math.sqrt(x[i] * x[i] + yi * yi + z[i] * z[i])
+                right, fwd, up = _general_body_offset(d, x[i], yi, z[i], beta[i],
+                                                      sin_beta[i], cos_beta[i], along)
+            else:
+                right, fwd, up = _body_offset(d, x[i], z[i], beta[i], sin_beta[i],
+                                              cos_beta[i])
             r = rotation[i]
             ox = r[0, 0] * right + r[0, 1] * fwd + r[0, 2] * up
             oy = r[1, 0] * right + r[1, 1] * fwd + r[1, 2] * up

@@ -26,6 +26,19 @@ class PositioningModel(enum.StrEnum):
     RIGOROUS = "rigorous"
 
 
+class ScannerKind(enum.StrEnum):
+    """What the laser vector of a point may be (docs/method.md sections 10 and 12).
+
+    ``LINEAR``: a line scanner's, ``rho = -r [sin beta, 0, cos beta]`` (its along-track part
+    a small error); the bias columns of section 10 and the mirror scale ``dS``.
+    ``GENERAL``: any direction (spinning multi-beam, Palmer, Livox; clouds in the sensor's
+    frame): section 12's columns with ``y``, the range along ``rho``, no ``dS``.
+    """
+
+    LINEAR = "linear"
+    GENERAL = "general"
+
+
 @dataclass
 class LaserGeometry:
     """Per-point quantities of docs/method.md sections 4 and 10 (all (n,) float64 unless stated).
@@ -45,6 +58,9 @@ class LaserGeometry:
         Forward body-frame coordinate, metres (``rigorous``: a QA figure, about 0 for a
         linear scanner); None for ``level``.
     model : ``level`` or ``rigorous``.
+    scanner : ScannerKind
+        ``GENERAL`` (rigorous only): ``y`` is part of the laser vector and enters the bias
+        columns and the correction; ``LINEAR``: it does not.
     """
 
     x: np.ndarray
@@ -67,6 +83,7 @@ class LaserGeometry:
     rotation: np.ndarray | None = None
     y: np.ndarray | None = None
     model: PositioningModel = PositioningModel.LEVEL
+    scanner: ScannerKind = ScannerKind.LINEAR
 
     @property
     def range(self) -> np.ndarray:
@@ -125,16 +142,26 @@ class LaserGeometry:
             sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
             heading_from=self.heading_from, crab_deg=self.crab_deg,
             rotation=part(self.rotation), y=part(self.y), model=self.model,
+            scanner=self.scanner,
         )
 
     @classmethod
-    def empty(cls, model: PositioningModel = PositioningModel.LEVEL) -> LaserGeometry:
+    def empty(cls, model: PositioningModel = PositioningModel.LEVEL,
+              scanner: ScannerKind = ScannerKind.LINEAR) -> LaserGeometry:
         """No points."""
         e = np.empty(0)
         rigorous = model == PositioningModel.RIGOROUS
         return cls(e, e, e, e, np.empty((0, 3)), model=model,
                    rotation=np.empty((0, 3, 3)) if rigorous else None,
-                   y=e if rigorous else None)
+                   y=e if rigorous else None, scanner=scanner)
+
+    @property
+    def general_y(self) -> np.ndarray:
+        """``y`` where it enters the bias columns (a ``GENERAL`` scanner's), else an empty
+        array (the compiled loops' way of saying "0 for every point")."""
+        if self.scanner is ScannerKind.GENERAL and self.y is not None:
+            return self.y
+        return _NO_Y
 
 
 def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
@@ -160,7 +187,9 @@ def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
     return LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
                          cos_kappa=c, sin_kappa=s, heading_from=frame.heading_from,
                          crab_deg=frame.crab_deg, rotation=frame.rotation, y=y,
-                         model=frame.model)
+                         model=frame.model, scanner=frame.scanner)
 
 
-__all__ = ["LaserGeometry", "PositioningModel", "geometry_at"]
+_NO_Y = np.zeros(0)
+
+__all__ = ["LaserGeometry", "PositioningModel", "ScannerKind", "geometry_at"]

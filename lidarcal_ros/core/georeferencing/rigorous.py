@@ -13,7 +13,11 @@ import numpy as np
 
 from lidarcal_ros.core.georeferencing.attitude import body_rotations, interpolated_frames
 from lidarcal_ros.core.georeferencing.heading import MAX_CRAB_DEG, HeadingSource, wrap_angle
-from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
+from lidarcal_ros.core.georeferencing.laser_geometry import (
+    LaserGeometry,
+    PositioningModel,
+    ScannerKind,
+)
 from lidarcal_ros.core.georeferencing.local_trajectory import (
     DEFAULT_WINDOW,
     TrajectoryWindow,
@@ -34,6 +38,11 @@ MAX_TILT_DEG = 60.0
 #: Trajectory kept around a strip's time span when judging its attitude, s (the model of a
 #: point reads the samples this far from it).
 MODEL_SPAN_PAD_S = 1.0
+
+#: What a general scanner's strips are not checked for, said in their model choice: its laser
+#: vectors point anywhere (docs/method.md section 12) and a multirotor may fly sideways.
+GENERAL_SKIPS = ("general scanner: the heading is not compared with the track, nor the "
+                 "points required below the trajectory")
 
 #: Messages already logged (a stream asks once per chunk; one line is enough).
 _LOGGED: set[str] = set()
@@ -73,8 +82,12 @@ def check_model_setting(mode: PositioningModel, trajectory: Trajectory, where: s
 def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *,
                  mode: PositioningModel = PositioningModel.AUTO,
                  heading_source: HeadingSource = HeadingSource.AUTO,
-                 source: str = "points") -> ModelChoice:
+                 source: str = "points",
+                 scanner: ScannerKind = ScannerKind.LINEAR) -> ModelChoice:
     """The model the points fired between ``t_lo`` and ``t_hi`` (s) get (docs/method.md section 10).
+
+    A ``GENERAL`` scanner's (section 12) needs ``mode`` ``rigorous``; its heading is not
+    compared with the track (:data:`GENERAL_SKIPS`, said in the choice's reason).
 
     Raises
     ------
@@ -82,6 +95,10 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *,
         ``rigorous`` asked for where the attitude is missing, levelled or too sparse.
     """
     level, rigorous = PositioningModel.LEVEL, PositioningModel.RIGOROUS
+    general = scanner is ScannerKind.GENERAL
+    if general and mode != rigorous:
+        raise ConfigError(f"{source}: a general scanner's laser vectors need matching.model "
+                          f"'rigorous', not '{mode}'")
     if mode == level:
         return ModelChoice(level, "matching.model level")
     span = _span(trajectory, t_lo, t_hi)
@@ -96,7 +113,7 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *,
     if mode == PositioningModel.AUTO and heading_source == HeadingSource.TRACK:
         return ModelChoice(level, "matching.heading_source track", rate)
     assert span.orientation is not None
-    odd = _other_convention(span)
+    odd = _other_convention(span, compare_track=not general)
     if odd is not None:
         if mode == rigorous:
             _log_once(f"{source}: {odd}; rigorous model as asked (matching.model rigorous)")
@@ -105,7 +122,8 @@ def choose_model(trajectory: Trajectory, t_lo: float, t_hi: float, *,
                       "matching.model to 'rigorous' to use the attitude anyway")
             return ModelChoice(level, odd, rate)
     error = _interpolation_error(span)
-    return ModelChoice(rigorous, f"INS attitude at {rate:.0f} Hz", rate, error)
+    reason = f"INS attitude at {rate:.0f} Hz" + (f"; {GENERAL_SKIPS}" if general else "")
+    return ModelChoice(rigorous, reason, rate, error)
 
 
 def _span(trajectory: Trajectory, t_lo: float, t_hi: float) -> Trajectory:
@@ -138,8 +156,10 @@ def _missing_attitude(span: Trajectory, rate: float, *, levelled_ok: bool) -> st
     return None
 
 
-def _other_convention(span: Trajectory) -> str | None:
-    """Words on an orientation that is not REP-103's body frame, or None."""
+def _other_convention(span: Trajectory, *, compare_track: bool = True) -> str | None:
+    """Words on an orientation that is not REP-103's body frame, or None; ``compare_track``:
+    a heading off the track by more than a crab is one (not for a platform that may fly
+    sideways)."""
     assert span.orientation is not None
     q = span.orientation
     x, y = q[:, 0], q[:, 1]
@@ -149,6 +169,8 @@ def _other_convention(span: Trajectory) -> str | None:
         return (f"the poses' orientation tilts the body's up axis by up to {tilt:.0f} deg "
                 f"(more than the {MAX_TILT_DEG:g} a survey flight banks): its body frame is "
                 "not REP-103's (x forward, y left, z up)?")
+    if not compare_track:
+        return None
     track = _track_heading(span)
     heading = span.heading
     assert heading is not None
@@ -224,10 +246,13 @@ def attitude_segments(t: np.ndarray, trajectory: Trajectory, *, source: str = "p
 
 def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                       window: TrajectoryWindow = DEFAULT_WINDOW,
-                      source: str = "points") -> LaserGeometry:
+                      source: str = "points",
+                      scanner: ScannerKind = ScannerKind.LINEAR) -> LaserGeometry:
     """docs/method.md section 10: the firing position and ``R_ins`` interpolated to each firing
     time (:func:`~lidarcal_ros.core.georeferencing.attitude.interpolated_frames`), and the laser
-    vector ``rho_hat = R_ins^T (X - X_o)``.
+    vector ``rho_hat = R_ins^T (X - X_o)``; for a ``GENERAL`` scanner (section 12: the
+    trajectory that of the sensor's origin) that is the laser vector itself, and a point may
+    lie above the sensor.
 
     The points must be covered as the level model would need them
     (:func:`~lidarcal_ros.core.georeferencing.local_trajectory.covered_by_trajectory`), so that both
@@ -236,14 +261,14 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
     Raises
     ------
     TrajectoryError
-        A point not covered, between samples without orientation, or not below its firing
-        position.
+        A point not covered, between samples without orientation, or (a linear scanner's)
+        not below its firing position.
     """
     t = np.asarray(t, dtype=np.float64)
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = t.shape[0]
     if n == 0:
-        return LaserGeometry.empty(PositioningModel.RIGOROUS)
+        return LaserGeometry.empty(PositioningModel.RIGOROUS, scanner)
     q = trajectory.orientation
     if q is None:
         raise TrajectoryError(f"{source}: the trajectory has no orientation")
@@ -259,7 +284,7 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                                                 q)
     x, y, z = rho[:, 0], rho[:, 1], rho[:, 2]
     above = z >= 0
-    if above.any():
+    if above.any() and scanner is ScannerKind.LINEAR:
         k = int(np.argmax(above))
         raise TrajectoryError(
             f"{source}: point at t={t[k]:.3f} s is not below the trajectory "
@@ -272,28 +297,32 @@ def rigorous_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
     crab = float(np.degrees(np.median(wrap_angle(kappa - track))))
     return LaserGeometry(x=x, z=z, kappa=kappa, beta=beta, origin=origin,
                          heading_from=HeadingSource.ATTITUDE, crab_deg=crab,
-                         rotation=rotation, y=y, model=PositioningModel.RIGOROUS)
+                         rotation=rotation, y=y, model=PositioningModel.RIGOROUS,
+                         scanner=scanner)
 
 
 def strip_geometry(t: np.ndarray, xyz: np.ndarray, trajectory: Trajectory, *,
                    window: TrajectoryWindow = DEFAULT_WINDOW, source: str = "points",
                    heading_source: HeadingSource = HeadingSource.AUTO,
-                   model: PositioningModel = PositioningModel.AUTO
+                   model: PositioningModel = PositioningModel.AUTO,
+                   scanner: ScannerKind = ScannerKind.LINEAR
                    ) -> tuple[LaserGeometry, ModelChoice]:
     """The laser geometry of a strip's points by the model ``matching.model`` chooses for
     it (:func:`choose_model`), and that choice.
 
     Parameters are those of
     :func:`~lidarcal_ros.core.georeferencing.local_trajectory.laser_geometry`, plus ``model``
-    (``matching.model``).
+    (``matching.model``) and ``scanner`` (:class:`ScannerKind`; ``GENERAL`` needs
+    ``rigorous``).
     """
     t = np.asarray(t, dtype=np.float64)
     if t.size == 0:
         return LaserGeometry.empty(), ModelChoice(PositioningModel.LEVEL, "no points")
     choice = choose_model(trajectory, float(np.min(t)), float(np.max(t)), mode=model,
-                          heading_source=heading_source, source=source)
+                          heading_source=heading_source, source=source, scanner=scanner)
     if choice.model == PositioningModel.RIGOROUS:
-        geometry = rigorous_geometry(t, xyz, trajectory, window=window, source=source)
+        geometry = rigorous_geometry(t, xyz, trajectory, window=window, source=source,
+                                     scanner=scanner)
     else:
         geometry = laser_geometry(t, xyz, trajectory, window=window, source=source,
                                   heading_source=heading_source)
@@ -329,6 +358,8 @@ class LaserVectorQA:
     warnings : list of str
         One line each: a timing offset, a lever arm, a wrong body convention, a wrong field
         of view.
+    skipped : str
+        What was not checked and why, in words ("" where all was).
     """
 
     along_median_m: float
@@ -337,6 +368,12 @@ class LaserVectorQA:
     scan_max_deg: float
     outside_fov: float
     warnings: list[str] = field(default_factory=list)
+    skipped: str = ""
+
+
+#: What the QA of a general scanner's laser vectors leaves out (:attr:`LaserVectorQA.skipped`).
+GENERAL_QA_SKIPS = ("along-track lean and spread and the field of view not checked: a "
+                    "general scanner's laser vectors point anywhere (docs/method.md section 12)")
 
 
 def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
@@ -357,6 +394,9 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
         Ground speed over the strip, m/s: turns an along-track offset into a time.
     """
     beta = np.degrees(geometry.beta[np.isfinite(geometry.beta)])
+    if geometry.scanner is ScannerKind.GENERAL:  # no along-track part, no scan angle to judge
+        return LaserVectorQA(math.nan, math.nan, math.nan, math.nan, math.nan,
+                             skipped=GENERAL_QA_SKIPS)
     if not beta.size:
         return LaserVectorQA(math.nan, math.nan, math.nan, math.nan, math.nan)
     lo, hi = (float(v) for v in np.percentile(beta, [0.5, 99.5]))
@@ -438,8 +478,8 @@ def _log_once(message: str) -> None:
 
 
 __all__ = [
-    "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MIXED", "MODEL_SPAN_PAD_S", "LaserVectorQA",
-    "ModelChoice",
+    "GENERAL_QA_SKIPS", "GENERAL_SKIPS", "MAX_TILT_DEG", "MIN_ATTITUDE_RATE_HZ", "MIXED",
+    "MODEL_SPAN_PAD_S", "LaserVectorQA", "ModelChoice",
     "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
     "describe_models",
     "laser_vector_qa", "models_summary", "rigorous_geometry", "strip_geometry",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 from helpers_missions import MissionFiles, mission_factory  # noqa: F401  (fixture)
 from helpers_paths import SHARED
 
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 from lidarcal_ros.core.georeferencing.attitude import (
     attitude_from_quaternions,
     body_rotations,
@@ -35,9 +37,12 @@ from lidarcal_ros.core.georeferencing.heading import HeadingSource
 from lidarcal_ros.core.georeferencing.laser_geometry import (
     LaserGeometry,
     PositioningModel,
+    ScannerKind,
     geometry_at,
 )
 from lidarcal_ros.core.georeferencing.rigorous import (
+    GENERAL_QA_SKIPS,
+    GENERAL_SKIPS,
     choose_model,
     laser_vector_qa,
     rigorous_geometry,
@@ -45,7 +50,7 @@ from lidarcal_ros.core.georeferencing.rigorous import (
 )
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
-from lidarcal_ros.errors import TrajectoryError
+from lidarcal_ros.errors import ConfigError, TrajectoryError
 
 VECTORS = SHARED / "vectors" / "rigorous_vectors.json"
 
@@ -277,6 +282,41 @@ def test_strip_geometry_dispatches_by_model() -> None:
     assert (g.model, c.model) == ("rigorous", "rigorous") and g.rotation is not None
     g, c = strip_geometry(tp, pts, traj, model=PositioningModel.LEVEL)
     assert (g.model, c.model) == ("level", "level") and g.rotation is None
+
+
+def test_a_general_scanner_skips_the_checks_made_for_a_linear_one() -> None:
+    """A general scanner's strips (docs/method.md section 12): a heading off the track (a
+    multirotor flying sideways) is no wrong convention, points may lie above the sensor and
+    the laser vectors' along-track part is no error; each skipped check is said in words;
+    the level model and dS are refused in one line."""
+    traj = _rough_trajectory()
+    sideways = Trajectory(traj.t, traj.xyz, quaternions_from_attitude(
+        np.radians(4.0) * np.sin(0.9 * traj.t), 0.0, np.radians(70.0)))
+    assert "disagrees with the track" in choose_model(sideways, 5, 15).reason
+    c = choose_model(sideways, 5, 15, mode=PositioningModel.RIGOROUS, scanner=ScannerKind.GENERAL)
+    assert c.model == "rigorous" and c.reason == f"INS attitude at 50 Hz; {GENERAL_SKIPS}"
+    with pytest.raises(ConfigError, match=r"strip 2: a general scanner's laser vectors need "
+                       r"matching\.model 'rigorous', not 'auto'"):
+        choose_model(traj, 5, 15, scanner=ScannerKind.GENERAL, source="strip 2")
+    tp = np.linspace(3.0, 17.0, 100)
+    # a spinning scanner's returns: ahead, behind, and some above the sensor (1000 m up)
+    pts = np.column_stack([np.linspace(-200, 200, 100), 60 * tp + np.linspace(-80, 80, 100),
+                           np.where(np.arange(100) % 10 == 0, 1020.0, 0.0)])
+    with pytest.raises(TrajectoryError, match="not below the trajectory"):
+        strip_geometry(tp, pts, traj, model=PositioningModel.RIGOROUS)
+    g, c = strip_geometry(tp, pts, traj, model=PositioningModel.RIGOROUS,
+                          scanner=ScannerKind.GENERAL)
+    assert g.scanner is ScannerKind.GENERAL and g.y is not None and np.ptp(g.y) > 100.0
+    assert GENERAL_SKIPS in c.reason
+    qa = laser_vector_qa(g, fov_deg=30.0, speed_mps=60.0)
+    assert not qa.warnings and qa.skipped == GENERAL_QA_SKIPS
+    linear = laser_vector_qa(replace(g, scanner=ScannerKind.LINEAR), fov_deg=30.0,
+                             speed_mps=60.0)
+    assert any("along track" in w for w in linear.warnings) and not linear.skipped
+    with pytest.raises(ConfigError, match=r"dS .* no parameter of a general scanner"):
+        CalibrationSettings(scanner=ScannerKind.GENERAL)
+    assert "dS" not in CalibrationSettings(scanner=ScannerKind.GENERAL,
+                                           solve_for=("dX", "dr")).solve_for
 
 
 # ---------------------------------------------------------------- what it is for

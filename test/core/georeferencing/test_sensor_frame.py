@@ -1,9 +1,11 @@
 """Clouds in the sensor's frame (docs/method.md section 12): the mounting's conventions against
 scipy, direct georeferencing against an independent evaluation, the general columns and the
-timing column against central differences of the georeferencing itself, and the calibrated
-mounting's round trip."""
+timing column against central differences of the georeferencing itself, the calibrated
+mounting's round trip, and the calibration's kernels with a general scanner's laser vectors."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,11 +13,20 @@ from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.georeferencing.attitude import P_BODY
 from lidarcal_ros.core.georeferencing.bias_model import (
+    add_geometry_normal_rows,
     body_columns,
     boresight_matrix,
+    correct_geometry,
+    exact_correction,
     geometry_design_matrix,
+    geometry_normal_rows,
+    geometry_offsets,
 )
-from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
+from lidarcal_ros.core.georeferencing.laser_geometry import (
+    LaserGeometry,
+    PositioningModel,
+    ScannerKind,
+)
 from lidarcal_ros.core.georeferencing.sensor_frame import (
     Mounting,
     SensorGeoreference,
@@ -276,3 +287,91 @@ def test_calibrated_mounting_round_trip(seed: int) -> None:
 def test_bad_biases_are_refused() -> None:
     with pytest.raises(ConfigError, match="8 finite numbers"):
         mounting_from_biases(Mounting(np.eye(3), np.zeros(3)), [0.0] * 7)
+
+
+# ------------------------------------------------------------------ the calibration's kernels
+
+def _general_geometry(geo: SensorGeoreference, origin: np.ndarray) -> LaserGeometry:
+    """The rigorous model's geometry of georeferenced points seen from ``origin`` (the
+    sensor's origin per point), as a general scanner's."""
+    rho = np.einsum("nji,nj->ni", geo.rotation, geo.xyz - origin)
+    x, y, z = rho.T
+    return LaserGeometry(x=x, z=z, kappa=np.zeros(x.size), beta=np.arctan(x / z),
+                         origin=origin, rotation=geo.rotation, y=y, model=PositioningModel.RIGOROUS,
+                         scanner=ScannerKind.GENERAL)
+
+
+@pytest.mark.parametrize("seed", [13, 14])
+def test_a_general_scanners_rows_and_offsets_are_section_12s(seed: int) -> None:
+    """The compiled rows and offsets of the calibration (eq. [11], [13]) with a general laser
+    vector are ``n^T R_ins C(rho)`` and ``R_ins C(rho) delta`` of section 12's columns."""
+    geo = _scene(seed, 40)[-1]
+    origin = geo.xyz - np.einsum("nij,nj->ni", geo.rotation, geo.rho)
+    geometry = _general_geometry(geo, origin)
+    assert geometry.y is not None
+    np.testing.assert_allclose(geometry.y, geo.rho[:, 1], atol=1e-9)
+    a = design_matrix(geo)
+    np.testing.assert_allclose(geometry_design_matrix(geometry), a, atol=1e-9)
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=(40, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    expected = np.einsum("ni,nik->nk", normal, a)
+    np.testing.assert_allclose(geometry_normal_rows(normal, geometry), expected, atol=1e-9)
+    rows = np.zeros((40, N_PARAMETERS))
+    add_geometry_normal_rows(rows, normal, geometry, np.arange(40))
+    np.testing.assert_allclose(rows, expected, atol=1e-9)
+    delta = np.array([0.03, -0.04, 0.02, 0.004, -0.005, 0.006, 0.015, 0.0])
+    np.testing.assert_allclose(geometry_offsets(delta, geometry), a @ delta, atol=1e-9)
+    np.testing.assert_allclose(correct_geometry(geo.xyz, delta, geometry),
+                               geo.xyz - a @ delta, atol=1e-9)
+    # the y terms are no small matter here: a linear scanner's rows miss by metres
+    linear = replace(geometry, scanner=ScannerKind.LINEAR)
+    assert np.abs(geometry_offsets(delta, linear) - a @ delta).max() > 0.1
+
+
+def test_with_y_zero_a_general_scanners_rows_are_a_linear_ones_to_the_bit() -> None:
+    """The y terms are added last: with ``y = 0`` the compiled rows (but ``dS``'s, no
+    parameter of a general scanner) and offsets are section 10's, bit for bit."""
+    geo = _scene(15, 50)[-1]
+    general = replace(_general_geometry(geo, geo.origin), y=np.zeros(50))
+    linear = replace(general, scanner=ScannerKind.LINEAR)
+    normal = np.tile([0.1, -0.2, 0.97], (50, 1))
+    rows_general, rows_linear = np.zeros((50, N_PARAMETERS)), np.zeros((50, N_PARAMETERS))
+    add_geometry_normal_rows(rows_general, normal, general, np.arange(50))
+    add_geometry_normal_rows(rows_linear, normal, linear, np.arange(50))
+    assert np.array_equal(rows_general[:, :7], rows_linear[:, :7])
+    assert not rows_general[:, 7].any() and rows_linear[:, 7].any()
+    delta = np.array([0.03, -0.04, 0.02, 0.004, -0.005, 0.006, 0.015, 0.0])
+    assert np.array_equal(geometry_offsets(delta, general), geometry_offsets(delta, linear))
+
+
+@pytest.mark.parametrize("seed", [16, 17])
+def test_a_general_scanners_exact_correction_is_the_calibrated_mounting(seed: int) -> None:
+    """Points georeferenced with the nominal mounting (from the trajectory of its origin),
+    corrected exactly by the biases ``nominal - true``, are the points the true mounting and
+    range give: the calibration's correction and ``mounting_from_biases`` agree exactly."""
+    rng = np.random.default_rng(seed)
+    traj = _trajectory(rng)
+    true = _mounting(rng)
+    delta = np.array([0.04, -0.03, 0.05, 0.006, -0.004, 0.007, 0.02, 0.0])
+    nominal = mounting_with_biases(true, delta)
+    t = _times(rng, traj, 40)
+    p_true = _points(rng, true, 40)
+    r = np.linalg.norm(p_true, axis=1)
+    p_measured = p_true * (1.0 + delta[PARAMETER_INDEX["dr"]] / r)[:, None]
+    truth = georeference(p_true, t, traj, true).xyz
+    delivered = georeference(p_measured, t, traj, nominal)
+    origin = delivered.origin + delivered.rotation @ nominal.lever_arm
+    frame = _general_geometry(delivered, origin)
+    corrected, shift, geometry = exact_correction(delivered.xyz, frame, delta)
+    np.testing.assert_allclose(corrected, truth, atol=1e-9)
+    np.testing.assert_allclose(shift, delivered.xyz - truth, atol=1e-9)
+    assert np.abs(shift).max() > 0.1
+    assert geometry.scanner is ScannerKind.GENERAL
+    assert geometry.y is not None and frame.rotation is not None
+    np.testing.assert_allclose(np.column_stack([geometry.x, geometry.y, geometry.z]),
+                               np.einsum("nji,nj->ni", frame.rotation, truth - origin),
+                               atol=1e-9)
+    # first order: eq. [13] with section 12's columns, within the square of the biases
+    first = correct_geometry(delivered.xyz, delta, frame)
+    assert np.abs(first - truth).max() < 120.0 * np.abs(delta[3:6]).sum() ** 2 + 1e-3

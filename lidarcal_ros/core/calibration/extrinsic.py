@@ -1,0 +1,184 @@
+"""The mounting of a scanner calibrated from clouds in its own frame (docs/method.md section 12).
+
+:func:`calibrate_mounting` takes what a ROS payload records (points in the sensor's frame with
+absolute times, the INS's poses of ``base_link``, the nominal mounting ``base_link ->
+sensor``), splits the flight into lines, georeferences every point with the nominal
+mounting, calibrates the strips with the rigorous model and a general scanner's columns, and
+returns the calibrated mounting (:func:`~lidarcal_ros.core.georeferencing.sensor_frame.
+mounting_from_biases`) with its sigmas.
+
+The trajectory given to the calibration is that of the sensor's origin, ``X_mb + R_mb t_bs``
+at each pose, and the points are georeferenced from it with the mounting's rotation alone:
+the rigorous model's laser vector ``R_ins^T (X - X_o)`` is then the sensor's ``P R_bs p``
+exactly (the same interpolation both ways), and the lever-arm biases ``dX, dY, dZ`` are the
+error of ``P t_bs``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from itertools import pairwise
+
+import numpy as np
+
+from lidarcal_ros.core.adjustment.least_squares import ObservabilityLimits
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Progress, calibrate
+from lidarcal_ros.core.calibration.result import CalibrationResult
+from lidarcal_ros.core.georeferencing.attitude import P_BODY, rotation_matrices
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel, ScannerKind
+from lidarcal_ros.core.georeferencing.sensor_frame import (
+    Mounting,
+    georeference,
+    mounting_from_biases,
+)
+from lidarcal_ros.core.mission import Mission, Strip, Trajectory
+from lidarcal_ros.core.params import PARAMETER_INDEX
+from lidarcal_ros.core.trajectory.lines import line_of, straight_lines
+from lidarcal_ros.errors import ConfigError, TrajectoryError
+
+#: The biases a mounting calibration estimates by default: the lever arm across and along
+#: the track, the boresight and the range. ``dZ`` moves every strip alike (vertical lever
+#: arm; observable with control only): held at the nominal; ``dS`` is no parameter of a
+#: general scanner.
+MOUNTING_SOLVE_FOR = ("dX", "dY", "domega", "dphi", "dkappa", "dr")
+
+
+def mounting_settings(**options: object) -> CalibrationSettings:
+    """The calibration settings of a mounting (:func:`calibrate_mounting`): ``options`` over
+    :data:`MOUNTING_SOLVE_FOR` and no largest sigma of a usable bias (an airborne
+    calibration holds a bias at 0 where its sigma says it is of no use; a mounting's bias
+    held at 0 is the nominal's error, tenths of a degree: worse than any estimate)."""
+    base: dict[str, object] = {"solve_for": MOUNTING_SOLVE_FOR,
+                               "limits": ObservabilityLimits(max_sigma={})}
+    return CalibrationSettings(**{**base, **options})  # type: ignore[arg-type]
+
+
+@dataclass
+class MountingCalibration:
+    """A calibrated mounting (:func:`calibrate_mounting`).
+
+    Attributes
+    ----------
+    mounting : Mounting
+        The calibrated ``base_link -> sensor`` transform (REP-103).
+    nominal : Mounting
+        The one the clouds were georeferenced with.
+    range_offset_m : float
+        ``dr``: subtract it from every range (no part of a transform), m.
+    delta, sigma : (8,) float64
+        The biases ``nominal - true`` (docs/method.md order, SI) and their sigmas (NaN: not
+        estimated, held at ``settings.fixed``).
+    translation_sigma_m : (3,) float64
+        Sigmas of the calibrated ``t_bs`` along ``base_link``'s x, y, z, m (NaN: held).
+    rotation_sigma_rad : (3,) float64
+        Sigmas of the calibrated rotation about ``base_link``'s x, y, z, rad (NaN: held).
+    lines : (k, 2) float64
+        The lines flown (first and last time, s) whose points made the strips, strip ids
+        their indices.
+    result : CalibrationResult
+        The calibration of the strips (QA, convergence, warnings).
+    """
+
+    mounting: Mounting
+    nominal: Mounting
+    range_offset_m: float
+    delta: np.ndarray
+    sigma: np.ndarray
+    translation_sigma_m: np.ndarray
+    rotation_sigma_rad: np.ndarray
+    lines: np.ndarray
+    result: CalibrationResult
+
+
+def sensor_trajectory(trajectory: Trajectory, mounting: Mounting) -> Trajectory:
+    """The trajectory of the sensor's origin: ``X_mb + R_mb t_bs`` at each pose of
+    ``base_link``, the orientation kept (map frame, m)."""
+    q = trajectory.orientation
+    if q is None:
+        raise TrajectoryError("sensor-frame clouds need the orientation of base_link on the "
+                              "trajectory; its poses carry none")
+    if np.isnan(q[:, 0]).any():
+        raise TrajectoryError(f"{int(np.isnan(q[:, 0]).sum())} of {len(trajectory)} poses "
+                              "carry no orientation: the sensor's origin is unknown there")
+    xyz = trajectory.xyz + rotation_matrices(q) @ mounting.translation
+    return Trajectory(trajectory.t, xyz, q)
+
+
+def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory,
+                       nominal: Mounting, *, settings: CalibrationSettings | None = None,
+                       lines: np.ndarray | None = None,
+                       progress: Progress | None = None) -> MountingCalibration:
+    """Calibrate the mounting ``base_link -> sensor`` from clouds in the sensor's frame
+    (module docstring; docs/method.md section 12).
+
+    Parameters
+    ----------
+    points : (n, 3) float32 or float64
+        The points in the sensor's frame, m.
+    t : (n,) float64
+        Their absolute times on the trajectory's clock, s.
+    trajectory : Trajectory
+        The INS's poses of ``base_link`` (orientation required), map frame.
+    nominal : Mounting
+        The mounting the robot's description has.
+    settings : CalibrationSettings, keyword-only, optional
+        Options of the calibration (default: :func:`mounting_settings`); its ``scanner`` is
+        taken as ``GENERAL`` and ``model`` as ``rigorous``.
+    lines : (k, 2) float64, keyword-only, optional
+        The lines' time spans, s (default:
+        :func:`~lidarcal_ros.core.trajectory.lines.straight_lines` of ``trajectory``); the
+        points outside them (turns) are left out.
+
+    Raises
+    ------
+    ConfigError
+        Points and times that disagree, ``dS`` asked for.
+    TrajectoryError
+        No orientation, points outside the trajectory's span.
+    CalibrationError
+        Fewer than two lines, nothing estimable (:func:`~lidarcal_ros.core.calibration.
+        calibrate.calibrate`).
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    if t.shape[0] != p.shape[0]:
+        raise ConfigError(f"mounting calibration: {p.shape[0]} points but {t.shape[0]} times")
+    base = settings or mounting_settings()
+    s = replace(base, scanner=ScannerKind.GENERAL, model=PositioningModel.RIGOROUS)
+    origin = sensor_trajectory(trajectory, nominal)
+    spans = straight_lines(trajectory) if lines is None else \
+        np.asarray(lines, dtype=np.float64).reshape(-1, 2)
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(t) & (np.einsum("ij,ij->i", p, p) > 0.0)
+    label = np.where(ok, line_of(t, spans), -1)
+    keep = np.flatnonzero(label >= 0)
+    # the rotation alone: the sensor's origin is the trajectory's (module docstring)
+    geo = georeference(p[keep], t[keep], origin, Mounting(nominal.rotation, np.zeros(3)),
+                       source="sensor-frame points")
+    order = np.argsort(label[keep], kind="stable")
+    bounds = np.searchsorted(label[keep][order], np.arange(len(spans) + 1))
+    strips = [Strip(k, geo.xyz[order[a:b]], t[keep][order[a:b]])
+              for k, (a, b) in enumerate(pairwise(bounds)) if b > a]
+    result = calibrate(Mission(origin, strips, frame_id="map"), s, progress=progress)
+    sol = result.solution
+    delta, sigma = sol.delta.copy(), sol.sigma.copy()
+    translation_sigma, rotation_sigma = _mounting_sigmas(sigma)
+    return MountingCalibration(
+        mounting=mounting_from_biases(nominal, delta), nominal=nominal,
+        range_offset_m=float(delta[PARAMETER_INDEX["dr"]]), delta=delta, sigma=sigma,
+        translation_sigma_m=translation_sigma, rotation_sigma_rad=rotation_sigma,
+        lines=spans, result=result)
+
+
+def _mounting_sigmas(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sigmas of the calibrated translation (m) and rotation (rad) along and about
+    ``base_link``'s axes from those of the biases (``sigma``, (8,)): ``t_bs`` moves by ``-P^T
+    [dX, dY, dZ]`` and the rotation by ``-P^T [domega, dphi, dkappa]`` to first order
+    (docs/method.md section 12), ``P`` a signed permutation: each axis of ``base_link`` takes
+    the sigma of one body axis (x forward: ``dY``, ``dphi``; y left: ``dX``, ``domega``; z
+    up: ``dZ``, ``dkappa``)."""
+    body_axis = np.argmax(np.abs(P_BODY), axis=0)
+    return sigma[0:3][body_axis], sigma[3:6][body_axis]
+
+
+__all__ = ["MOUNTING_SOLVE_FOR", "MountingCalibration", "calibrate_mounting",
+           "mounting_settings", "sensor_trajectory"]
