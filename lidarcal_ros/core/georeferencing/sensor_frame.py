@@ -1,21 +1,9 @@
-"""Clouds in the sensor's frame (docs/method.md section 12): the mounting, direct georeferencing,
-the general design columns, the calibrated mounting and the timing column.
+"""Clouds in the sensor's frame: the mounting, direct georeferencing, the calibrated mounting.
 
-Frames
-------
-A lidar driver publishes each point ``p`` in the sensor's frame; the robot describes the
-mounting ``base_link -> sensor`` as REP-103's static transform ``(R_bs, t_bs)``: a point of the
-sensor frame is ``t_bs + R_bs p`` in ``base_link`` (x forward, y left, z up). The trajectory
-gives the pose of ``base_link`` in the map, ``(R_mb(t), X_mb(t))``
-(:mod:`lidarcal_ros.core.georeferencing.attitude`), so
-
-``X = X_mb(t) + R_mb(t) (t_bs + R_bs p)``.
-
-docs/method.md's body frame is right-forward-up: ``R_ins = R_mb P^T`` (section 10), the laser
-vector (sensor origin to point) ``rho = P R_bs p`` and the lever arm ``P t_bs``, so that
-``X = X_mb + R_ins (P t_bs + rho)``. The biases (``nominal - true``,
-:mod:`lidarcal_ros.core.params`) move a point by ``A delta`` with ``A = R_ins C(rho)``
-(:func:`general_columns`).
+docs/method.md section 12: a point ``p`` of the sensor frame is ``X = X_mb(t) + R_mb(t) (t_bs
++ R_bs p)`` with REP-103's mounting ``base_link -> sensor`` ``(R_bs, t_bs)``; in the method's
+right-forward-up body frame the laser vector is ``rho = P R_bs p``, the lever arm ``P t_bs``,
+and the biases move a point by ``R_ins C(rho) delta`` (:func:`general_columns`).
 """
 
 from __future__ import annotations

@@ -1,19 +1,9 @@
 """A simulated UAV payload: a spinning multi-beam lidar on a multirotor, sensor-frame clouds.
 
-:func:`simulate_uav_payload` flies a multirotor over the analytic terrain
-(:class:`~lidarcal_ros.core.simulation.terrain.Terrain`) along parallel lines 55-80 m above the
-ground, joined by smooth 180-degree turns, with a Velodyne VLP-16 or an Ouster OS1-32-like
-scanner (:data:`LAYOUTS`) mounted with its spin axis along the track, tilted. It returns what
-such a payload records (docs/interface.md, docs/method.md section 12): clouds of one revolution
-(0.1 s) in the sensor's frame with each point's time relative to its cloud's stamp in the
-driver's units, the INS's poses of ``base_link`` at 100 Hz (with the noise of a tactical-grade
-unit), the nominal mounting, and the truth (the true mounting off the nominal by tenths of a
-degree and centimetres, a range bias, the noise-free trajectory, each point's true position).
-
-Frames: map coordinates are the terrain's local ones (origin (0, 0)), metres, z up; ``base_link``
-and the mounting are REP-103's (:mod:`lidarcal_ros.core.georeferencing.sensor_frame`). The flight
-is an analytic function of time (:class:`UavFlight`): every firing is cast from the exact pose
-at its time, and the trajectory's samples are that function sampled.
+A VLP-16 or OS1-32-like scanner (:data:`LAYOUTS`) tilted on a multirotor flying lines 55-80 m
+over the analytic terrain, joined by turns: clouds of one revolution with the drivers' time
+fields, the INS's noisy poses of ``base_link`` at 100 Hz, the nominal mounting and the truth
+(docs/method.md section 12). Map frame local to the terrain, metres; mountings REP-103.
 """
 
 from __future__ import annotations
