@@ -264,7 +264,10 @@ def replayed(suite: Suite) -> Replayed:
           "every cloud corrected in a thread")
     cal = suite.cal.calibration
     _wait(lambda: cal.stream.strip_ids == [1, 2, 3, 4, 5, 6] and not cal.stream.open_strip_ids
-          and cal.queued_jobs == 0, 90, "the calibrator to close all six strips")
+          and cal.queued_jobs == 0, 90, "the calibrator to close all six strips",
+          state=lambda: f"strips {cal.stream.strip_ids}, open {cal.stream.open_strip_ids}, "
+                        f"queued jobs {cal.queued_jobs}, diagnostics "
+                        f"{suite.probe.diagnostics.get('lidarcal: input')}")
     _wait(lambda: "lidarcal: strips 1&2" in suite.probe.diagnostics, 30, "pair diagnostics")
     with suite.probe.lock:
         corrected = list(suite.probe.corrected)
