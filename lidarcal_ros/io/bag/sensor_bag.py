@@ -8,6 +8,7 @@ Points metres in the sensor's frame, times absolute float seconds on the stamps'
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from dataclasses import dataclass
@@ -107,10 +108,11 @@ def _first_header_frame(bag: BagReader, topic: str) -> str | None:
 
 
 def sensor_frame_of(path: str | os.PathLike[str], *, points_topic: str,
-                    trajectory_topic: str) -> str | None:
+                    trajectory_topic: str, map_frame: str = "map") -> str | None:
     """The clouds' frame where the bag's clouds are in another frame than its trajectory
-    (the sensor's: docs/method.md section 12); None where they share one (a mission bag of
-    map-frame clouds) or a topic is missing or empty (the mission reader says so)."""
+    and than ``map_frame`` (the sensor's: docs/method.md section 12); None where they are
+    in either (a mission bag of map-frame clouds, whose reader refuses frames that
+    disagree) or a topic is missing or empty (the mission reader says so)."""
     with open_bag(path) as bag:
         if points_topic not in bag.topics or trajectory_topic not in bag.topics:
             return None
@@ -118,7 +120,8 @@ def sensor_frame_of(path: str | os.PathLike[str], *, points_topic: str,
             return None
         cloud = _first_header_frame(bag, points_topic)
         pose = _first_header_frame(bag, trajectory_topic)
-    return cloud if cloud is not None and pose is not None and cloud != pose else None
+    sensor = cloud is not None and pose is not None and cloud not in (pose, map_frame)
+    return cloud if sensor else None
 
 
 def _compose(first: Mounting, second: Mounting) -> Mounting:
@@ -220,6 +223,7 @@ def read_sensor_bag(
         intensity_parts: list[np.ndarray] | None = []
         reading: TimeReading | None = None
         child_frame = ""
+        decode_pose = functools.partial(bag.deserialize, topic=trajectory_topic)
         topics = [points_topic, trajectory_topic] + ([tf_topic] if use_tf else [])
         for topic, msgtype, _log, raw in bag.messages(topics):
             if topic == trajectory_topic:
@@ -228,8 +232,7 @@ def read_sensor_bag(
                     child_frame = str(msg.child_frame_id)
                     samples.add(msgtype, msg)
                 else:
-                    samples.add_raw(msgtype, raw, lambda r, m, _t=topic: bag.deserialize(
-                        r, m, topic=_t))
+                    samples.add_raw(msgtype, raw, decode_pose)
                 continue
             msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
             if topic == tf_topic:
@@ -249,7 +252,6 @@ def read_sensor_bag(
             if reading is None:
                 reading = time_reading(points, stamp, field=time_field,
                                        convention=time_convention, source=source)
-                logger.warning("%s: %s", source, reading.describe())
             elif reading.field not in (points.dtype.names or ()):
                 raise InputError(f"{source}: a cloud at {stamp:.3f} s lacks the time field "
                                  f"'{reading.field}' of the first")
@@ -294,6 +296,8 @@ def read_sensor_bag(
                    else f"no {tf_topic} in the bag")
                 + " and sensor_frame.mounting is not set")
         mounting, source_words = found, tf_topic
+    # said once the bag is accepted (a refusal stays one line)
+    logger.warning("%s: %s: %s", where, points_topic, reading.describe())
     counts = [len(p) for p in t_parts]
     return SensorBag(
         path=Path(path), points_topic=points_topic, trajectory_topic=trajectory_topic,

@@ -78,10 +78,11 @@ def _time_field(config: FlightConfig, given: str | None) -> str | None:
 def load_sensor_bag(bag: str | Path, config: FlightConfig, *,
                     time_field: str | None = None) -> SensorBag | None:
     """The bag's clouds in the sensor's frame with the configuration's topics and
-    ``sensor_frame.*`` parameters; None where the clouds are in the trajectory's frame (a
-    mission bag of map-frame clouds, read as before)."""
+    ``sensor_frame.*`` parameters; None where the clouds are in the trajectory's frame or
+    the map frame (``frame_id``): a mission bag of map-frame clouds, read as before."""
     points, trajectory = config["topics.points"], config["topics.trajectory"]
-    if sensor_frame_of(bag, points_topic=points, trajectory_topic=trajectory) is None:
+    if sensor_frame_of(bag, points_topic=points, trajectory_topic=trajectory,
+                       map_frame=config["frame_id"]) is None:
         return None
     return read_sensor_bag(
         bag, points_topic=points, trajectory_topic=trajectory,

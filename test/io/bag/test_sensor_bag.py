@@ -35,7 +35,7 @@ from lidarcal_ros.io.bag.sensor_bag import (
 from lidarcal_ros.io.cloud.sensor_time import time_reading
 
 POINTS = {"vlp16": "/velodyne_points", "os1-32": "/ouster/points"}
-TOPICS = {"trajectory_topic": "/ins/odometry"}
+ODOM = "/ins/odometry"
 
 
 @functools.cache
@@ -66,7 +66,8 @@ def test_a_payload_bag_reads_back_as_written(tmp_path: Path, layout: str,
         assert types == {POINTS[layout]: "sensor_msgs/msg/PointCloud2",
                          "/ins/odometry": "nav_msgs/msg/Odometry",
                          "/tf_static": "tf2_msgs/msg/TFMessage"}
-        qos = {c.topic: c.ext.offered_qos_profiles[0].durability for c in reader.connections}
+        qos = {c.topic: c.ext.offered_qos_profiles[0].durability  # type: ignore[union-attr]
+               for c in reader.connections}
         assert qos["/tf_static"] == QosDurability.TRANSIENT_LOCAL
         assert qos[POINTS[layout]] == QosDurability.VOLATILE
         seen: dict[str, object] = {}
@@ -84,8 +85,9 @@ def test_a_payload_bag_reads_back_as_written(tmp_path: Path, layout: str,
     assert (transform.header.frame_id, transform.child_frame_id) == ("base_link",
                                                                      m.clouds.frame_id)
     # lidarcal: every point at its time, in the sensor's frame, the mounting from /tf_static
-    assert sensor_frame_of(path, points_topic=POINTS[layout], **TOPICS) == m.clouds.frame_id
-    bag = read_sensor_bag(path, points_topic=POINTS[layout], **TOPICS)
+    frame = sensor_frame_of(path, points_topic=POINTS[layout], trajectory_topic=ODOM)
+    assert frame == m.clouds.frame_id
+    bag = read_sensor_bag(path, points_topic=POINTS[layout], trajectory_topic=ODOM)
     assert (bag.frame_id, bag.map_frame, bag.base_frame) == (m.clouds.frame_id, "map",
                                                              "base_link")
     assert bag.time.field == time_field
@@ -97,9 +99,9 @@ def test_a_payload_bag_reads_back_as_written(tmp_path: Path, layout: str,
     # FLOAT32 s and UINT32 ns exactly; FLOAT64 s to its rounding at 1.7e9 s
     np.testing.assert_allclose(bag.t, m.clouds.absolute_times(), rtol=0, atol=1e-6)
     np.testing.assert_allclose(bag.trajectory.xyz, m.trajectory.xyz, rtol=0, atol=1e-12)
-    assert bag.trajectory.orientation is not None
-    assert np.abs(np.abs(np.einsum("ij,ij->i", bag.trajectory.orientation,
-                                   m.trajectory.orientation)) - 1.0).max() < 1e-12
+    q, q_true = bag.trajectory.orientation, m.trajectory.orientation
+    assert q is not None and q_true is not None
+    assert np.abs(np.abs(np.einsum("ij,ij->i", q, q_true)) - 1.0).max() < 1e-12
     assert bag.mounting_source == "/tf_static"
     np.testing.assert_allclose(bag.mounting.rotation, m.nominal.rotation, atol=1e-12)
     np.testing.assert_allclose(bag.mounting.translation, m.nominal.translation, atol=1e-12)
@@ -108,7 +110,7 @@ def test_a_payload_bag_reads_back_as_written(tmp_path: Path, layout: str,
 def test_the_time_convention_given_overrides_the_guess(tmp_path: Path) -> None:
     path = _write(tmp_path, "vlp16", SensorTimeFormat.TIMESTAMP_RELATIVE)
     m = _mission("vlp16")
-    wrong = read_sensor_bag(path, points_topic=POINTS["vlp16"], **TOPICS,
+    wrong = read_sensor_bag(path, points_topic=POINTS["vlp16"], trajectory_topic=ODOM,
                             time_convention=TimeConvention.ABSOLUTE)
     assert not wrong.time.relative and not wrong.time.assumed
     assert np.abs(wrong.t - m.clouds.absolute_times()).min() > 1e9  # offsets taken as times
@@ -143,7 +145,7 @@ def test_metadata_as_ros2_bag_record_writes_it(tmp_path: Path, form: str) -> Non
     with open_bag(path) as bag:
         assert bag.topics["/tf_static"].transient_local
         assert not bag.topics["/ouster/points"].transient_local
-    bag_read = read_sensor_bag(path, points_topic="/ouster/points", **TOPICS)
+    bag_read = read_sensor_bag(path, points_topic="/ouster/points", trajectory_topic=ODOM)
     assert bag_read.frame_id == "os_sensor" and bag_read.n_points == _mission(
         "os1-32").clouds.xyz.shape[0]
 
@@ -162,7 +164,7 @@ def test_a_trajectory_without_orientation_is_refused_in_one_line(tmp_path: Path)
     path = write_sensor_bag(tmp_path / "b", m.clouds, flat, m.nominal)
     with pytest.raises(TrajectoryError, match=r"trajectory /ins/odometry carries no "
                        r"orientation \(identity or zero quaternions throughout\)") as err:
-        read_sensor_bag(path, points_topic="/velodyne_points", **TOPICS)
+        read_sensor_bag(path, points_topic="/velodyne_points", trajectory_topic=ODOM)
     assert "\n" not in str(err.value)
 
 
@@ -172,14 +174,14 @@ def test_no_mounting_is_refused_and_the_configuration_gives_one(tmp_path: Path) 
     path = _write(tmp_path / "no_tf", "vlp16", tf_topic="/tf_elsewhere")
     with pytest.raises(BagError, match=r"no mounting base_link -> velodyne: no /tf_static in "
                        r"the bag and sensor_frame.mounting is not set") as err:
-        read_sensor_bag(path, points_topic="/velodyne_points", **TOPICS)
+        read_sensor_bag(path, points_topic="/velodyne_points", trajectory_topic=ODOM)
     assert "\n" not in str(err.value)
-    given = read_sensor_bag(path, points_topic="/velodyne_points", **TOPICS,
+    given = read_sensor_bag(path, points_topic="/velodyne_points", trajectory_topic=ODOM,
                             mounting=m.truth_mounting)
     assert given.mounting is m.truth_mounting and "configuration" in given.mounting_source
     # the Odometry's child_frame_id names the body frame, not the configuration's
     other = _write(tmp_path, "vlp16", base_frame="body")  # /tf_static: body -> velodyne
-    assert read_sensor_bag(other, points_topic="/velodyne_points", **TOPICS,
+    assert read_sensor_bag(other, points_topic="/velodyne_points", trajectory_topic=ODOM,
                            base_frame="imu_link").base_frame == "body"
 
 
