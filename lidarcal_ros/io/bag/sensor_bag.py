@@ -30,6 +30,7 @@ from lidarcal_ros.io.bag.format import (
     seconds_to_ns,
     stamp_seconds,
 )
+from lidarcal_ros.io.bag.mission_bag import expect_topic_type
 from lidarcal_ros.io.bag.reader import BagReader, open_bag
 from lidarcal_ros.io.bag.writer import BagWriter
 from lidarcal_ros.io.cloud.columns import extract_xyz
@@ -206,13 +207,8 @@ def read_sensor_bag(
             if topic not in bag.topics:
                 raise BagError(f"{where}: topic {topic} not found; topics present: "
                                f"{', '.join(bag.topics) or 'none'}")
-        if bag.topics[points_topic].msgtype != POINTCLOUD2:
-            raise BagError(f"{where}: topic {points_topic} has type "
-                           f"{bag.topics[points_topic].msgtype}; expected {POINTCLOUD2}")
-        pose_type = bag.topics[trajectory_topic].msgtype
-        if pose_type not in TRAJECTORY_TYPES:
-            raise BagError(f"{where}: topic {trajectory_topic} has type {pose_type}; expected "
-                           f"{' or '.join(TRAJECTORY_TYPES)}")
+        expect_topic_type(bag, points_topic, (POINTCLOUD2,))
+        expect_topic_type(bag, trajectory_topic, tuple(TRAJECTORY_TYPES))
         use_tf = tf_topic in bag.topics and bag.topics[tf_topic].msgtype == TF_MESSAGE
         samples = TrajectorySamples()
         transforms: dict[str, tuple[str, Mounting]] = {}
