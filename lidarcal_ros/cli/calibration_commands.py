@@ -39,7 +39,9 @@ def add_calibrate_command(sub: Any) -> None:
                    help="comma-separated parameters to estimate, e.g. dX,dY,domega,dphi")
     p.add_argument("--points", help="points topic (default from config)")
     p.add_argument("--trajectory", help="trajectory topic (default from config)")
-    p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...)")
+    p.add_argument("--time-field", help="time field of the clouds (t, time, gps_time...; "
+                   "clouds in the sensor's frame: time, t, timestamp, offset_time, found by "
+                   "name when not given)")
     p.add_argument("--truth", type=Path, help="truth YAML of a simulation, shown beside")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--write-identity", action="store_true",
@@ -67,6 +69,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         format_report,
         load_mission,
     )
+    from lidarcal_ros.pipeline.calibration.sensor_frame import load_sensor_bag
 
     check_output(args.output, overwrite=args.overwrite, inputs=other_paths(args, "output"))
     config = load_flight_config(args.config)
@@ -86,6 +89,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError(f"--solve-for: {exc}") from None
     truth = Truth.read(args.truth) if args.truth else None
     started = time.perf_counter()
+    sensor = load_sensor_bag(args.bag, config)
+    if sensor is not None:
+        return _calibrate_mounting(args, config, sensor, solve_for, truth, started)
     progress, close = progress_bar(not args.quiet)
     unestimated: NothingEstimated | None = None
     try:
@@ -117,6 +123,48 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         logger.warning("nothing could be estimated (%s); %s moves no point", unestimated.reason,
                        path)
         return EXIT_NOTHING_ESTIMATED
+    warning = convergence_warning(result, config)
+    if warning:
+        logger.warning("%s: %s", path, warning)
+        return EXIT_NOT_CONVERGED
+    return EXIT_OK
+
+
+def _calibrate_mounting(args: argparse.Namespace, config: Any, sensor: Any,
+                        solve_for: tuple[str, ...] | None, truth: Any, started: float) -> int:
+    """``lidarcal calibrate`` of clouds in the sensor's frame (docs/method.md section 12): the
+    mounting calibrated, the file with its ``extrinsic`` block and the URDF joint beside it."""
+    from lidarcal_ros.io.calibration_file import calibration_document, urdf_path
+    from lidarcal_ros.pipeline.calibration.procedure import convergence_warning, format_report
+    from lidarcal_ros.pipeline.calibration.sensor_frame import (
+        calibrate_sensor_bag,
+        extrinsic_of,
+        format_mounting,
+        truth_mounting,
+        write_mounting_calibration,
+    )
+
+    check_output(urdf_path(args.output), overwrite=args.overwrite)
+    progress, close = progress_bar(not args.quiet)
+    try:
+        cal = calibrate_sensor_bag(sensor, solve_for=solve_for, progress=progress)
+    finally:
+        close()
+    path = write_mounting_calibration(args.output, sensor, cal, overwrite=args.overwrite)
+    result = cal.result
+    title = (f"{args.bag}: {len(cal.lines)} lines, {sensor.n_points} points in "
+             f"{sensor.frame_id}, {len(result.pairs)} overlapping pairs "
+             f"({time.perf_counter() - started:.1f} s)")
+    if args.json:
+        import json
+
+        print(json.dumps(calibration_document(result, extrinsic=extrinsic_of(sensor, cal)),
+                         indent=1))
+    else:
+        print(format_report(result, config, title=title, truth=truth))
+        true = truth_mounting(args.truth) if args.truth else None
+        print("\n".join(format_mounting(sensor, cal, true)))
+        print(f"calibration written to {path}, URDF joint to {urdf_path(path)}")
     warning = convergence_warning(result, config)
     if warning:
         logger.warning("%s: %s", path, warning)

@@ -61,6 +61,29 @@ def add_simulate_command(sub: Any) -> None:
                    "period 60 s; or KEY=VALUE settings (those not given 0, or as typical "
                    "after 'typical,'), e.g. 'offset_h=4cm,offset_v=5cm,drift=1cm/10s,"
                    "oscillation=1cm,period=60s,seed=3' (default: no error)")
+    uav = p.add_argument_group(
+        "UAV payload", "--uav flies a spinning multi-beam lidar on a multirotor instead "
+        "(docs/method.md section 12) and writes its recording as ros2 bag record does: the "
+        "driver's clouds in the sensor's frame on /velodyne_points, nav_msgs/Odometry of "
+        "base_link on /ins/odometry at 100 Hz, the nominal mounting on /tf_static; OUT_truth.yaml "
+        "holds the biases and the true mounting. --seed applies; the linear scanner's options "
+        "do not")
+    uav.add_argument("--uav", action="store_true", help="simulate a UAV payload")
+    uav.add_argument("--layout", default="vlp16", choices=("vlp16", "os1-32"),
+                     help="the scanner: Velodyne VLP-16 (frame velodyne, time FLOAT32 s) or "
+                     "Ouster OS1-32 (frame os_sensor, t UINT32 ns) (default vlp16)")
+    uav.add_argument("--uav-lines", type=int, default=4, help="lines flown (default 4)")
+    uav.add_argument("--uav-line-length", type=float, default=200.0,
+                     help="metres (default 200)")
+    uav.add_argument("--columns", type=int, default=None,
+                     help="firings of each beam per revolution (default: the layout's; fewer "
+                     "make a lighter bag)")
+    uav.add_argument("--exact-ins", action="store_true",
+                     help="an INS without error (default: a tactical-grade one's)")
+    uav.add_argument("--time-format", default="driver",
+                     choices=("driver", "timestamp-absolute", "timestamp-relative"),
+                     help="per-point time: the layout's driver field, or Hesai's/Livox's "
+                     "timestamp FLOAT64 s, absolute or after the stamp (default driver)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_simulate)
 
@@ -195,8 +218,40 @@ def _read_flight_lines(path: Path) -> list[dict[str, Any]]:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def _simulate_uav(args: argparse.Namespace) -> int:
+    """``lidarcal simulate --uav``: a UAV payload's recording and its truth."""
+    from lidarcal_ros.core.params import PARAMETER_NAMES
+    from lidarcal_ros.core.simulation.uav_payload import UavPayloadSpec, simulate_uav_payload
+    from lidarcal_ros.io.bag.sensor_bag import SensorTimeFormat
+    from lidarcal_ros.pipeline.calibration.procedure import parse_biases
+    from lidarcal_ros.pipeline.calibration.sensor_frame import write_uav_simulation
+
+    biases = None
+    if args.biases is not None:
+        values = parse_biases(args.biases)
+        biases = tuple(values.get(n, 0.0) for n in PARAMETER_NAMES)
+    exact = {"ins_position_sigma_m": (0.0, 0.0, 0.0),
+             "ins_attitude_sigma_deg": (0.0, 0.0, 0.0)} if args.exact_ins else {}
+    spec = UavPayloadSpec(layout=args.layout, seed=args.seed, n_lines=args.uav_lines,
+                          line_length_m=args.uav_line_length, columns=args.columns,
+                          biases=biases, **exact)  # type: ignore[arg-type]
+    started = time.perf_counter()
+    mission = simulate_uav_payload(spec)
+    paths = write_uav_simulation(args.output, mission,
+                                 time_format=SensorTimeFormat(args.time_format),
+                                 overwrite=args.overwrite)
+    print(f"simulated {mission.clouds.xyz.shape[0]} points in {len(mission.clouds)} clouds of "
+          f"a {mission.scanner.name} in frame {mission.clouds.frame_id}, {spec.n_lines} lines "
+          f"({time.perf_counter() - started:.1f} s)")
+    for label, path in paths.items():
+        print(f"  {label}: {path}")
+    return 0
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Run ``lidarcal simulate`` with the parsed ``args``; its exit status."""
+    if args.uav:
+        return _simulate_uav(args)
     from lidarcal_ros.core.simulation.flight_path import REPORTED_CRAB_DEG
     from lidarcal_ros.core.simulation.simulate import simulate_mission
     from lidarcal_ros.core.simulation.spec import (

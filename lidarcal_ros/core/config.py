@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from lidarcal_ros.core.adjustment.least_squares import DEFAULT_MAX_SIGMA, ObservabilityLimits
 from lidarcal_ros.core.georeferencing.heading import HeadingSource
 from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
+from lidarcal_ros.core.georeferencing.sensor_frame import TimeConvention
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import ConfigError
@@ -74,6 +75,21 @@ SCHEMA: dict[str, ParameterSpec] = {
     "topics.trajectory_corrected": ParameterSpec(
         "/lidar/trajectory_corrected", "str", "Corrected trajectory (the input trajectory's "
         "type, less each strip's trajectory error) in a corrected bag", read_only=True),
+    "topics.tf_static": ParameterSpec(
+        "/tf_static", "str", "Static transforms (tf2_msgs/TFMessage, transient local): the "
+        "nominal mounting of clouds in the sensor's frame", read_only=True),
+    "sensor_frame.base_frame": ParameterSpec(
+        "base_link", "str", "The frame whose poses the trajectory gives (REP-105 base_link) "
+        "when the clouds are in the sensor's frame (docs/method.md section 12); an "
+        "Odometry's child_frame_id takes its place where set"),
+    "sensor_frame.mounting": ParameterSpec(
+        "", "str", "Nominal mounting base_link -> sensor frame 'x,y,z,qx,qy,qz,qw' (m; "
+        "quaternion as on /tf_static) for clouds in the sensor's frame; used instead of "
+        "/tf_static where set; '' = from /tf_static"),
+    "sensor_frame.time_convention": ParameterSpec(
+        "auto", "str", "Per-point time of clouds in the sensor's frame: 'relative' to "
+        "header.stamp, 'absolute', or 'auto' (from the first cloud's values against its "
+        "stamp; the assumption is printed)", choices=tuple(c.value for c in TimeConvention)),
     "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
     "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
     "sensor.fov_deg": float_parameter(

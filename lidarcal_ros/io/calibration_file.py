@@ -15,6 +15,7 @@ from lidarcal_ros.core.adjustment.least_squares import ParameterState
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import MIXED, describe_models, models_summary
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory.strip_errors import (
     SPLINE_INTERPOLATION,
@@ -47,6 +48,9 @@ class CalibrationRecord:
     model: str | None = None
     #: Each strip's trajectory error (docs/method.md section 11), where the file holds one.
     trajectory: TrajectoryEstimate | None = None
+    #: The calibrated mounting of clouds in the sensor's frame (docs/method.md section 12),
+    #: where the file holds one.
+    extrinsic: Extrinsic | None = None
 
     @property
     def delta(self) -> np.ndarray:
@@ -54,8 +58,52 @@ class CalibrationRecord:
         return np.array([self.values[n] for n in PARAMETER_NAMES])
 
 
-def calibration_document(result: CalibrationResult) -> dict[str, Any]:
-    """The YAML document (a dict) for a calibration result."""
+@dataclass(frozen=True)
+class Extrinsic:
+    """The calibration file's ``extrinsic`` block: the calibrated mounting ``parent ->
+    child`` (REP-103; docs/interface.md) and the nominal one it was calibrated from."""
+
+    parent: str
+    child: str
+    mounting: Mounting
+    nominal: Mounting
+
+    def document(self) -> dict[str, Any]:
+        """The block as docs/interface.md writes it (translation m, rotation ``[qx, qy, qz,
+        qw]``)."""
+        def transform(m: Mounting) -> dict[str, list[float]]:
+            return {"translation": [float(v) for v in m.translation],
+                    "rotation": [float(v) for v in m.quaternion]}
+
+        return {"parent": self.parent, "child": self.child, **transform(self.mounting),
+                "nominal": transform(self.nominal)}
+
+    def urdf_joint(self) -> str:
+        """The calibrated mounting as a URDF ``<joint>`` (fixed; ``origin`` xyz in m, rpy
+        in rad: roll, pitch, yaw about the parent's fixed x, y, z axes)."""
+        from scipy.spatial.transform import Rotation
+
+        xyz = " ".join(f"{v:.6f}" for v in self.mounting.translation)
+        rpy = " ".join(f"{v:.9f}" for v in
+                       Rotation.from_matrix(self.mounting.rotation).as_euler("xyz"))
+        return (f'<!-- lidarcal: the calibrated mounting {self.parent} -> {self.child} -->\n'
+                f'<joint name="{self.parent}_to_{self.child}" type="fixed">\n'
+                f'  <parent link="{self.parent}"/>\n'
+                f'  <child link="{self.child}"/>\n'
+                f'  <origin xyz="{xyz}" rpy="{rpy}"/>\n'
+                f'</joint>\n')
+
+
+def urdf_path(calibration: str | Path) -> Path:
+    """Where the URDF joint of a calibration file goes: ``CAL.urdf.xml`` beside it."""
+    path = Path(calibration)
+    return path.with_name(f"{path.stem}.urdf.xml")
+
+
+def calibration_document(result: CalibrationResult, *,
+                         extrinsic: Extrinsic | None = None) -> dict[str, Any]:
+    """The YAML document (a dict) for a calibration result (with the ``extrinsic`` block of
+    clouds in the sensor's frame where given)."""
     sol = result.solution
     biases: dict[str, Any] = {}
     for i, name in enumerate(PARAMETER_NAMES):
@@ -118,6 +166,8 @@ def calibration_document(result: CalibrationResult) -> dict[str, Any]:
                                  sorted(result.partial_strips.items())}
     if result.dropped_non_finite:
         doc["dropped_non_finite_points"] = int(result.dropped_non_finite)
+    if extrinsic is not None:
+        doc["extrinsic"] = extrinsic.document()
     if sol.warnings:
         doc["warnings"] = list(sol.warnings)
     return {ROOT_KEY: doc}
@@ -250,11 +300,12 @@ def _strip_entry(strip_id: int, result: CalibrationResult) -> dict[str, Any]:
 
 
 def write_calibration(path: str | Path, result: CalibrationResult, *,
-                      overwrite: bool = True) -> Path:
+                      overwrite: bool = True, extrinsic: Extrinsic | None = None) -> Path:
     """Write the calibration file (completely or not at all: a reader never sees half a
     file, a failure leaves a previous file untouched); returns its path. A missing parent
     directory is created (a node's ``calibration_file``). Without ``overwrite`` a file that
-    appeared there while the command ran is refused, not replaced.
+    appeared there while the command ran is refused, not replaced. With ``extrinsic`` the
+    file holds its block and the URDF joint is written beside it (:func:`urdf_path`).
 
     Raises
     ------
@@ -262,11 +313,15 @@ def write_calibration(path: str | Path, result: CalibrationResult, *,
         The file cannot be written; one line with the operating system's reason.
     """
     path = Path(path)
-    text = yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)
+    text = yaml.safe_dump(calibration_document(result, extrinsic=extrinsic), sort_keys=False,
+                          width=120)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{path}: cannot write calibration ({os_reason(exc)})") from None
+    if extrinsic is not None:
+        write_text(urdf_path(path), extrinsic.urdf_joint(), what="URDF joint",
+                   overwrite=overwrite)
     return write_text(path, text, what="calibration", overwrite=overwrite)
 
 
@@ -309,10 +364,34 @@ def read_calibration(path: str | Path) -> CalibrationRecord:
     if model is not None and model not in _FILE_MODELS:
         raise ConfigError(f"{path}: model {model!r} is not one of level, rigorous, mixed")
     trajectory = body.get("trajectory")
+    extrinsic = body.get("extrinsic")
     return CalibrationRecord(values, sigmas, estimated,
                              _sigma(path, "sigma0", body.get("sigma0")), model,
                              None if trajectory is None else
-                             read_trajectory_block(path, trajectory))
+                             read_trajectory_block(path, trajectory),
+                             None if extrinsic is None else read_extrinsic(path, extrinsic))
+
+
+def _transform(path: Path, key: str, block: Any) -> Mounting:
+    """A ``{translation, rotation}`` mapping of the file as a Mounting."""
+    if not isinstance(block, Mapping):
+        raise ConfigError(f"{path}: {key} must be a mapping with translation and rotation")
+    try:
+        return Mounting.from_quaternion(np.asarray(block.get("translation"), dtype=np.float64),
+                                        np.asarray(block.get("rotation"), dtype=np.float64))
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{path}: {key}: translation [x, y, z] (m) and rotation [qx, qy, qz, "
+                          f"qw] expected ({exc})") from None
+
+
+def read_extrinsic(path: Path, block: Any) -> Extrinsic:
+    """The ``extrinsic`` block of a calibration file (:meth:`Extrinsic.document`)."""
+    if not isinstance(block, Mapping) or not all(
+            isinstance(block.get(k), str) and block.get(k) for k in ("parent", "child")):
+        raise ConfigError(f"{path}: extrinsic must name its parent and child frames")
+    return Extrinsic(block["parent"], block["child"],
+                     _transform(path, "extrinsic", block),
+                     _transform(path, "extrinsic.nominal", block.get("nominal")))
 
 
 def _sigma(path: Path, key: str, value: Any) -> float | None:
@@ -344,9 +423,12 @@ def _check_units(path: Path, name: str, value: float) -> None:
 __all__ = [
     "ROOT_KEY",
     "CalibrationRecord",
+    "Extrinsic",
     "calibration_document",
     "read_calibration",
+    "read_extrinsic",
     "read_trajectory_block",
     "trajectory_document",
+    "urdf_path",
     "write_calibration",
 ]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -28,6 +29,16 @@ from lidarcal_ros.errors import ConfigError, TrajectoryError
 
 #: Largest departure of a mounting's rotation from orthonormal (``|R^T R - I|``, max entry).
 ORTHONORMAL_TOLERANCE = 1e-6
+
+
+class TimeConvention(StrEnum):
+    """What a driver's per-point time is measured from: ``relative`` to the cloud's
+    ``header.stamp``, ``absolute`` (the stamps' clock), or ``auto`` (decided from the first
+    cloud's values against its stamp)."""
+
+    AUTO = "auto"
+    RELATIVE = "relative"
+    ABSOLUTE = "absolute"
 
 
 # ------------------------------------------------------------------ the mounting
@@ -378,7 +389,16 @@ def timing_column(geo: SensorGeoreference, v: np.ndarray, w: np.ndarray) -> np.n
 
 
 __all__ = [
-    "ORTHONORMAL_TOLERANCE", "Mounting", "SensorGeoreference", "body_rates", "design_matrix",
-    "general_columns", "georeference", "mounting_from_biases", "mounting_with_biases",
-    "quaternion_from_matrix", "timing_column",
+    "ORTHONORMAL_TOLERANCE",
+    "Mounting",
+    "SensorGeoreference",
+    "TimeConvention",
+    "body_rates",
+    "design_matrix",
+    "general_columns",
+    "georeference",
+    "mounting_from_biases",
+    "mounting_with_biases",
+    "quaternion_from_matrix",
+    "timing_column",
 ]

@@ -103,12 +103,12 @@ def read_mission(
                 raise BagError(
                     f"{bag.path}: topic {topic} not found; topics present: {_present(bag)}"
                 )
-        _expect_type(bag, points_topic, (POINTCLOUD2,))
-        _expect_type(bag, trajectory_topic, tuple(TRAJECTORY_TYPES))
+        expect_topic_type(bag, points_topic, (POINTCLOUD2,))
+        expect_topic_type(bag, trajectory_topic, tuple(TRAJECTORY_TYPES))
         use_control = control_topic is not None and control_topic in bag.topics
         if use_control:
             assert control_topic is not None
-            _expect_type(bag, control_topic, (POINTCLOUD2,))
+            expect_topic_type(bag, control_topic, (POINTCLOUD2,))
         wanted = [points_topic, trajectory_topic] + ([control_topic] if use_control else [])
 
         acc = StripAccumulator(points_topic, time_field, thinning_cell_m, box,
@@ -155,7 +155,9 @@ def read_mission(
     return Mission(trajectory, strips, control, frame, dropped, acc.thinned)
 
 
-def _expect_type(bag: BagReader, topic: str, types: Sequence[str]) -> None:
+def expect_topic_type(bag: BagReader, topic: str, types: Sequence[str]) -> None:
+    """Refuse (BagError, one line) a ``topic`` of the bag whose type is not one of
+    ``types``."""
     got = bag.topics[topic].msgtype
     if got not in types:
         raise BagError(
@@ -375,4 +377,5 @@ def write_mission_bag(
     return Path(path)
 
 
-__all__ = ["read_mission", "strip_point_array", "time_chunk_bounds", "write_mission_bag"]
+__all__ = ["expect_topic_type", "read_mission", "strip_point_array", "time_chunk_bounds",
+           "write_mission_bag"]

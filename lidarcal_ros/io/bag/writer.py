@@ -225,6 +225,12 @@ class BagWriter:
         self._add_standard_types()
         return self._typestore.types
 
+    @property
+    def message_classes(self) -> dict[str, Any]:
+        """The message classes by type name (``pkg/msg/Type``) to build what
+        :meth:`write_message` writes; the standard ROS 2 ones among them."""
+        return self._types
+
     def copy_chunks_of(self, bag: Any, new_topics: dict[str, str]) -> ChunkCopy | None:
         """Pass every message of an open input bag through by copying its compressed
         chunks (:mod:`lidarcal_ros.io.bag.chunk_copy`), where it allows that.

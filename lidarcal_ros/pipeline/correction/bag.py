@@ -202,6 +202,21 @@ class CorrectOptions:
         return max(4 * self.batch_points, MIN_HELD_POINTS)
 
 
+def _refuse_sensor_frame(bag: Path, points_topic: str, trajectory_topic: str,
+                         map_frame: str) -> None:
+    """Clouds in the sensor's frame (docs/method.md section 12) are calibrated, not yet
+    corrected: refused in one line rather than read as map-frame clouds."""
+    from lidarcal_ros.io.bag.sensor_bag import sensor_frame_of
+
+    frame = sensor_frame_of(bag, points_topic=points_topic, trajectory_topic=trajectory_topic,
+                            map_frame=map_frame)
+    if frame is not None:
+        raise InputError(
+            f"{bag}: clouds on {points_topic} are in the sensor's frame '{frame}'; lidarcal "
+            "correct takes map-frame clouds only (lidarcal calibrate calibrates these: its "
+            "extrinsic block and URDF joint hold the mounting)")
+
+
 def correct_bag(
     bag_path: str | Path,
     calibration: str | Path | CalibrationRecord,
@@ -260,6 +275,7 @@ def correct_bag(
     bag_path = Path(bag_path)
     if out_path.resolve() == bag_path.resolve():
         raise InputError(f"{out_path}: output would overwrite the input bag")
+    _refuse_sensor_frame(bag_path, points_topic, traj_topic, config["frame_id"])
     if options.trajectory_out is not None and Path(options.trajectory_out).resolve() in (
             bag_path.resolve(), out_path.resolve()):
         raise InputError(f"{options.trajectory_out}: the trajectory output would overwrite "

@@ -1,0 +1,196 @@
+"""Clouds in the sensor's frame through the calibration (docs/method.md section 12).
+
+A bag's driver clouds, the INS's poses of ``base_link`` and the nominal mounting read with the
+configuration's topics and ``sensor_frame.*`` parameters; the mounting calibrated
+(:func:`~lidarcal_ros.core.calibration.extrinsic.calibrate_mounting`), written as the
+calibration file's biases and ``extrinsic`` block with a URDF joint beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from lidarcal_ros.core.calibration.calibrate import Progress
+from lidarcal_ros.core.calibration.extrinsic import (
+    MOUNTING_SOLVE_FOR,
+    MountingCalibration,
+    calibrate_mounting,
+    mounting_settings,
+)
+from lidarcal_ros.core.config import SCHEMA, FlightConfig
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
+from lidarcal_ros.core.params import PARAMETER_NAMES
+from lidarcal_ros.core.simulation.uav_payload import UavPayloadMission
+from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.bag.sensor_bag import (
+    SensorBag,
+    SensorTimeFormat,
+    read_sensor_bag,
+    sensor_frame_of,
+    write_sensor_bag,
+)
+from lidarcal_ros.io.calibration_file import Extrinsic, read_extrinsic, write_calibration
+from lidarcal_ros.io.output_files import check_output, remove_quietly, write_text
+from lidarcal_ros.io.yaml_file import read_yaml
+from lidarcal_ros.pipeline.calibration.procedure import simulation_paths, truth_document
+
+logger = logging.getLogger(__name__)
+
+
+def parse_mounting(text: str) -> Mounting | None:
+    """``sensor_frame.mounting``: ``'x,y,z,qx,qy,qz,qw'`` (m; a TF quaternion) as a Mounting,
+    None for ``''``.
+
+    Raises
+    ------
+    ConfigError
+        Not seven numbers, or a zero quaternion; one line naming the parameter.
+    """
+    if not text.strip():
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 7:
+        raise ConfigError(f"sensor_frame.mounting: expected 'x,y,z,qx,qy,qz,qw' (m, quaternion), "
+                          f"got '{text}'")
+    try:
+        return Mounting.from_quaternion(values[:3], values[3:])
+    except ConfigError as exc:
+        raise ConfigError(f"sensor_frame.mounting: {exc}") from None
+
+
+def _time_field(config: FlightConfig, given: str | None) -> str | None:
+    """The driver's time field: as given, or the configuration's where it is not the map-frame
+    default (``t``, which an Ouster has but a Velodyne has not): else found by name."""
+    if given:
+        return given
+    field = config["time_field"]
+    return None if field == SCHEMA["time_field"].default else field
+
+
+def load_sensor_bag(bag: str | Path, config: FlightConfig, *,
+                    time_field: str | None = None) -> SensorBag | None:
+    """The bag's clouds in the sensor's frame with the configuration's topics and
+    ``sensor_frame.*`` parameters; None where the clouds are in the trajectory's frame or
+    the map frame (``frame_id``): a mission bag of map-frame clouds, read as before."""
+    points, trajectory = config["topics.points"], config["topics.trajectory"]
+    if sensor_frame_of(bag, points_topic=points, trajectory_topic=trajectory,
+                       map_frame=config["frame_id"]) is None:
+        return None
+    return read_sensor_bag(
+        bag, points_topic=points, trajectory_topic=trajectory,
+        tf_topic=config["topics.tf_static"], base_frame=config["sensor_frame.base_frame"],
+        time_field=_time_field(config, time_field),
+        time_convention=config["sensor_frame.time_convention"],
+        mounting=parse_mounting(config["sensor_frame.mounting"]))
+
+
+def calibrate_sensor_bag(data: SensorBag, *, solve_for: tuple[str, ...] | None = None,
+                         progress: Progress | None = None) -> MountingCalibration:
+    """Calibrate the mounting of a bag's sensor-frame clouds: the biases of ``solve_for``
+    (default :data:`~lidarcal_ros.core.calibration.extrinsic.MOUNTING_SOLVE_FOR`; ``dS`` is
+    no parameter of such clouds)."""
+    names = MOUNTING_SOLVE_FOR if solve_for is None else \
+        tuple(n for n in PARAMETER_NAMES if n in solve_for)
+    logger.info("%s: %d points in %s, mounting %s -> %s from %s", data.path, data.n_points,
+                data.frame_id, data.base_frame, data.frame_id, data.mounting_source)
+    return calibrate_mounting(data.xyz, data.t, data.trajectory, data.mounting,
+                              settings=mounting_settings(solve_for=names), progress=progress)
+
+
+def extrinsic_of(data: SensorBag, cal: MountingCalibration) -> Extrinsic:
+    """The calibration file's ``extrinsic`` block of a calibrated bag."""
+    return Extrinsic(data.base_frame, data.frame_id, cal.mounting, cal.nominal)
+
+
+def write_mounting_calibration(path: str | Path, data: SensorBag, cal: MountingCalibration,
+                               *, overwrite: bool = True) -> Path:
+    """Write the calibration file of a mounting (the biases as any calibration's, the
+    ``extrinsic`` block) and the URDF joint beside it; the file's path."""
+    return write_calibration(path, cal.result, overwrite=overwrite,
+                             extrinsic=extrinsic_of(data, cal))
+
+
+def format_mounting(data: SensorBag, cal: MountingCalibration,
+                    truth: Mounting | None = None) -> list[str]:
+    """Lines saying the calibrated mounting against the nominal (and the truth where known):
+    translation mm, rotation arcsec about ``base_link``'s axes, with sigmas."""
+    arcsec = np.degrees(1.0) * 3600.0
+
+    def rotation_angle(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1, 1)))
+                     * 3600.0)
+
+    t, s_t = cal.mounting.translation, cal.translation_sigma_m
+    moved = rotation_angle(cal.nominal.rotation, cal.mounting.rotation)
+    shift_mm = float(np.linalg.norm(t - cal.nominal.translation)) * 1e3
+    lines = [f"mounting {data.base_frame} -> {data.frame_id} (nominal from "
+             f"{data.mounting_source}):",
+             "  translation " + ", ".join(f"{v:+.4f}" for v in t) + " m  (sigma "
+             + ", ".join("held" if not np.isfinite(v) else f"{v * 1e3:.1f}" for v in s_t)
+             + " mm)",
+             "  rotation [qx, qy, qz, qw] " + ", ".join(f"{v:+.6f}" for v in
+                                                         cal.mounting.quaternion)
+             + "  (sigma " + ", ".join("held" if not np.isfinite(v) else f"{v * arcsec:.1f}"
+                                       for v in cal.rotation_sigma_rad) + " arcsec)",
+             f"  moved from the nominal by {moved:.0f} arcsec and {shift_mm:.1f} mm; "
+             f"range offset dr {cal.range_offset_m * 1e3:+.1f} mm"]
+    if truth is not None:
+        d = (t - truth.translation) * 1e3
+        lines.append(f"  against the truth: rotation "
+                     f"{rotation_angle(truth.rotation, cal.mounting.rotation):.1f} arcsec, "
+                     f"translation {d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f} mm")
+    return lines
+
+
+
+
+# ------------------------------------------------------------------ the simulated payload
+
+def write_uav_simulation(output: str | Path, mission: UavPayloadMission, *,
+                         time_format: SensorTimeFormat = SensorTimeFormat.DRIVER,
+                         overwrite: bool = False) -> dict[str, Path]:
+    """Write a simulated UAV payload (:func:`~lidarcal_ros.core.simulation.uav_payload.
+    simulate_uav_payload`) as ``ros2 bag record`` records it (the clouds on
+    ``/velodyne_points``, ``/ins/odometry``, ``/tf_static`` with the nominal mounting) and
+    the truth beside it (``OUT_truth.yaml``: the biases, the true and nominal mountings, the
+    spec); all or, where one fails, none of them."""
+    paths = simulation_paths(output)
+    paths.pop("control")
+    for key, path in paths.items():
+        check_output(path, overwrite=overwrite, directory=key == "bag")
+    spec = {k: (list(v) if isinstance(v, tuple) else v)
+            for k, v in dataclasses.asdict(mission.spec).items()}
+    doc = truth_document(dict(zip(PARAMETER_NAMES, mission.biases.tolist(), strict=True)),
+                         {"uav_payload": spec})
+    doc["mounting"] = Extrinsic("base_link", mission.clouds.frame_id, mission.truth_mounting,
+                                mission.nominal).document()
+    write_sensor_bag(paths["bag"], mission.clouds, mission.trajectory, mission.nominal,
+                     time_format=time_format, overwrite=overwrite)
+    try:
+        write_text(paths["truth"], yaml.safe_dump(doc, sort_keys=False), what="truth file",
+                   overwrite=overwrite)
+    except BaseException:
+        remove_quietly(paths["bag"])
+        raise
+    return paths
+
+
+def truth_mounting(path: str | Path) -> Mounting | None:
+    """The true mounting of a simulated payload's truth file (``mounting``:
+    :func:`write_uav_simulation`); None where the file has none."""
+    doc = read_yaml(Path(path), what="truth file")
+    block = doc.get("mounting") if isinstance(doc, dict) else None
+    return None if block is None else read_extrinsic(Path(path), block).mounting
+
+
+__all__ = ["calibrate_sensor_bag", "extrinsic_of", "format_mounting", "load_sensor_bag",
+           "parse_mounting", "truth_mounting", "write_mounting_calibration",
+           "write_uav_simulation"]

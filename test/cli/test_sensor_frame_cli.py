@@ -1,0 +1,76 @@
+"""``lidarcal simulate --uav``, ``calibrate`` and ``correct`` of clouds in the sensor's frame:
+the issue's command line, end to end on a small payload, and its refusals one line each."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from helpers_cli import one_line_error, run
+
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.simulation.uav_payload import UavPayloadSpec, simulate_uav_payload
+from lidarcal_ros.io.bag.sensor_bag import write_sensor_bag
+from lidarcal_ros.io.calibration_file import read_calibration, urdf_path
+from lidarcal_ros.pipeline.calibration.sensor_frame import truth_mounting
+
+ARCSEC = math.radians(1.0 / 3600.0)
+
+
+def test_simulate_then_calibrate_an_ouster_payload(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    bag, cal = tmp_path / "uav", tmp_path / "cal.yaml"
+    rc, out, _ = run(capsys, "simulate", "--uav", "--layout", "os1-32", "--seed", "2",
+                     "--columns", "64", "--uav-line-length", "120", "--exact-ins", "-o", bag)
+    assert rc == 0 and "frame os_sensor" in out
+    truth = tmp_path / "uav_truth.yaml"
+    doc = yaml.safe_load(truth.read_text())
+    assert doc["mounting"]["child"] == "os_sensor" and "uav_payload" in doc["simulation"]
+    rc, out, err = run(capsys, "calibrate", bag, "--points", "/velodyne_points",
+                       "--trajectory", "/ins/odometry", "--truth", truth, "-o", cal, "-q")
+    assert rc == 0, err
+    assert "per-point time from field 't' (UINT32): ns after header.stamp (assumed" in err
+    assert "mounting base_link -> os_sensor (nominal from /tf_static)" in out
+    record = read_calibration(cal)
+    assert record.extrinsic is not None and record.extrinsic.child == "os_sensor"
+    true = truth_mounting(truth)
+    assert true is not None
+    r = record.extrinsic.mounting.rotation
+    angle = math.acos(min(1.0, (np.trace(r.T @ true.rotation) - 1.0) / 2.0))
+    assert angle < 15 * ARCSEC
+    assert np.abs(record.extrinsic.mounting.translation - true.translation)[:2].max() < 0.005
+    assert urdf_path(cal).read_text().count("<joint ") == 1
+    # correct: refused in one line for now
+    rc, _, err = run(capsys, "correct", bag, "--calibration", cal, "--points",
+                     "/velodyne_points", "--trajectory", "/ins/odometry", "-o",
+                     tmp_path / "out.mcap")
+    assert "in the sensor's frame 'os_sensor'; lidarcal correct takes map-frame clouds only" \
+        in one_line_error(rc, err, "correct")
+
+
+@pytest.fixture(scope="module")
+def payload() -> object:
+    return simulate_uav_payload(UavPayloadSpec(seed=3, columns=16, n_lines=2,
+                                               line_length_m=40.0))
+
+
+def test_calibrate_refusals_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                         payload: object) -> None:
+    m = payload
+    args = ("--points", "/velodyne_points", "--trajectory", "/ins/odometry", "-o",
+            tmp_path / "cal.yaml")
+    flat = write_sensor_bag(tmp_path / "flat", m.clouds,  # type: ignore[attr-defined]
+                            Trajectory(m.trajectory.t, m.trajectory.xyz),  # type: ignore[attr-defined]
+                            m.nominal)  # type: ignore[attr-defined]
+    rc, _, err = run(capsys, "calibrate", flat, *args)
+    assert "trajectory /ins/odometry carries no orientation" in one_line_error(rc, err)
+    no_tf = write_sensor_bag(tmp_path / "no_tf", m.clouds, m.trajectory,  # type: ignore[attr-defined]
+                             m.nominal, tf_topic="/tf")  # type: ignore[attr-defined]
+    rc, _, err = run(capsys, "calibrate", no_tf, *args)
+    assert "no mounting base_link -> velodyne" in one_line_error(rc, err)
+    rc, _, err = run(capsys, "calibrate", no_tf, *args, "--time-field", "stamp")
+    assert "no per-point time field (stamp); fields present: x, y, z, intensity, time, ring" \
+        in one_line_error(rc, err)
