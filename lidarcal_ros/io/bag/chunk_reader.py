@@ -13,7 +13,9 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from rosbags.rosbag2.storage_mcap import ChunkInfo, McapReader, decompress
+from rosbags.rosbag2.storage_mcap import ChunkInfo, McapReader
+
+from lidarcal_ros.io.bag.mcap_bounds import decompress_chunk
 
 #: Threads decompressing chunks, and chunks decompressed ahead of the caller.
 DECOMPRESS_THREADS = min(2, os.cpu_count() or 1)
@@ -70,7 +72,7 @@ def _decompressed(reader: McapReader, chunks: list[ChunkInfo]
                 if chunk is None:
                     break
                 data, crc = _chunk_bytes(reader, chunk)
-                ahead.append((chunk, pool.submit(decompress, data, chunk.compression,
+                ahead.append((chunk, pool.submit(decompress_chunk, data, chunk.compression,
                                                  chunk.uncompressed_size, crc)))
             if not ahead:
                 return

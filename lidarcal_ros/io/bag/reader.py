@@ -9,7 +9,6 @@ from __future__ import annotations
 import heapq
 import logging
 import os
-import sys
 import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -25,12 +24,20 @@ from rosbags.interfaces import (
     QosDurability,
 )
 from rosbags.rosbag2.errors import ReaderError
-from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import get_types_from_idl, get_types_from_msg
 
 from lidarcal_ros.errors import BagError, ConfigError, brief, one_line
 from lidarcal_ros.io.bag.chunk_reader import chunk_messages
 from lidarcal_ros.io.bag.format import add_standard_types, empty_typestore, normalize_msgtype
+from lidarcal_ros.io.bag.mcap_bounds import (
+    CHUNK_LIMIT,
+    BeyondLimitError,
+    BoundedFile,
+    BoundedMcapReader,
+    bounded_decompress,
+    chunk_records,
+    decompress_file,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -70,16 +77,8 @@ class TopicInfo:
 @dataclass
 class _File:
     path: Path
-    reader: McapReader
+    reader: BoundedMcapReader
     connections: list[Connection] = field(default_factory=list)
-
-
-def _zstd_decompress(data: bytes) -> bytes:
-    if sys.version_info >= (3, 14):  # pragma: no cover
-        from compression import zstd
-    else:
-        from backports import zstd
-    return bytes(zstd.decompress(data))
 
 
 class ReadableMcap:
@@ -98,12 +97,11 @@ class ReadableMcap:
     def messages(self) -> Iterator[tuple[Any, Any, Any]]:
         """``(channel, schema or None, message)`` records in file order."""
         from mcap.records import Channel, Message, Schema
-        from mcap.stream_reader import StreamReader
 
         schemas: dict[int, Any] = {}
         channels: dict[int, Any] = {}
-        with self.path.open("rb") as stream:
-            records = iter(StreamReader(stream, record_size_limit=self.RECORD_LIMIT).records)
+        with BoundedFile(self.path) as stream:
+            records = chunk_records(stream, limit=self.RECORD_LIMIT)
             while True:
                 # Only the reader's own failures are damage, not those of the consumer.
                 try:
@@ -126,14 +124,12 @@ def _foreign_encodings(path: Path) -> str:
     """The channels of an MCAP file that do not hold CDR-encoded ROS 2 messages, as
     ``topic (encoding), ...`` ('' when every one does, or none can be read)."""
     from mcap.records import Channel, Schema
-    from mcap.stream_reader import StreamReader
 
     schemas: dict[int, str] = {}
     foreign: dict[str, str] = {}
     try:
-        with path.open("rb") as stream:
-            for record in StreamReader(stream, record_size_limit=ReadableMcap.RECORD_LIMIT
-                                       ).records:
+        with BoundedFile(path) as stream:
+            for record in chunk_records(stream, limit=ReadableMcap.RECORD_LIMIT):
                 if isinstance(record, Schema):
                     schemas[record.id] = record.encoding
                 elif isinstance(record, Channel):
@@ -255,7 +251,12 @@ class BagReader:
             unpacked = []
             for f in files:
                 out = Path(self._tmpdir.name) / f.name.removesuffix(".zstd")
-                out.write_bytes(_zstd_decompress(f.read_bytes()))
+                try:
+                    decompress_file(f, out)
+                except BeyondLimitError as err:
+                    raise BagError(f"{err}; refused") from None
+                except ReaderError as err:
+                    raise BagError(str(err)) from None
                 unpacked.append(out)
             files = unpacked
         self._message_compressed = mode == "message"
@@ -285,7 +286,7 @@ class BagReader:
             raise BagError(f"{path}: empty file, not an MCAP bag")
         if not head.startswith(_MCAP_MAGIC):
             raise BagError(f"{path}: not an MCAP file (bad magic bytes)")
-        reader = McapReader(path)
+        reader = BoundedMcapReader(path)
         try:
             reader.open()
         except Exception as err:  # a foreign encoding, else damage
@@ -295,6 +296,8 @@ class BagReader:
                 raise BagError(f"{path}: not a ROS 2 bag: messages on {foreign} are not "
                                "CDR-encoded ROS 2 messages (lidarcal reads the bags of ros2 "
                                "bag record -s mcap)") from None
+            if isinstance(err, BeyondLimitError):
+                raise BagError(f"{path}: {text}; refused") from None
             if isinstance(err, ReaderError) and "Profile is not ros2" in text:
                 raise BagError(f"{path}: MCAP profile is not 'ros2'; not a ROS 2 bag") from None
             raise BagError(_damage_message(path, text)) from None
@@ -421,9 +424,11 @@ class BagReader:
             try:
                 conn, timestamp, data = next(source)
                 if self._message_compressed:
-                    data = _zstd_decompress(data)
+                    data = bounded_decompress(data, "zstd", CHUNK_LIMIT, what="a message")
             except StopIteration:
                 return
+            except BeyondLimitError as err:
+                raise BagError(f"{file.path}: {one_line(err)}; refused") from None
             except Exception as err:  # damage inside the file
                 raise BagError(
                     f"{file.path}: truncated or corrupt MCAP ({one_line(err)}); "
@@ -432,7 +437,7 @@ class BagReader:
             count += 1
             yield conn.topic, self._connection_types[(index, conn.id)], timestamp, data
 
-    def indexed_files(self) -> list[McapReader] | None:
+    def indexed_files(self) -> list[BoundedMcapReader] | None:
         """The open readers of the bag's MCAP files, whose chunks hold its messages as
         :meth:`messages` yields them; None when the messages are compressed one by one."""
         return None if self._message_compressed else [file.reader for file in self._files]

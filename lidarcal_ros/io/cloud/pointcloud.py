@@ -57,6 +57,10 @@ DATATYPE_NAMES: dict[int, str] = {
 
 FieldTuple = tuple[str, int, int, int]
 
+#: Largest point_step taken, bytes: a driver's point is some 16-100 bytes, and numpy's dtypes
+#: stop at 2**31 (a point_step of 2**32 - 1 was an internal error, found by the fuzzer).
+MAX_POINT_STEP = 1 << 20
+
 
 def _field_parts(field: Any) -> FieldTuple:
     """``(name, offset, datatype, count)`` of a PointField-like object or a tuple."""
@@ -99,8 +103,9 @@ def cloud_dtype(
     formats: list[Any] = []
     offsets: list[int] = []
     spans: list[tuple[int, int, str]] = []
-    if point_step <= 0:
-        raise CloudFormatError(f"point_step must be positive, got {point_step}")
+    if not 0 < point_step <= MAX_POINT_STEP:
+        raise CloudFormatError(f"point_step must be 1 to {MAX_POINT_STEP} bytes, got "
+                               f"{point_step}")
     for raw in fields:
         name, offset, datatype, count = _field_parts(raw)
         if not name:

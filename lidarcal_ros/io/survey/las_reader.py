@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime
 import logging
 import os
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,11 +114,53 @@ class LasChunk:
                         self.number_of_returns[index], self.classification[index])
 
 
+#: Smallest VLR and EVLR (their headers), bytes.
+_VLR_BYTES, _EVLR_BYTES = 54, 60
+
+
 def _check_path(path: Path) -> None:
     if not path.exists():
         raise LasFileError(f"{path}: LAS/LAZ file not found")
     if path.is_dir():
         raise LasFileError(f"{path}: is a directory, not a LAS/LAZ file")
+    _check_counts(path)
+
+
+def _check_counts(path: Path) -> None:
+    """Refuse a header whose counts of VLRs, EVLRs or (uncompressed) points claim more than
+    the file holds, before laspy loops over them (4,294,967,295 VLRs took minutes) or
+    streams a point count the file cannot hold. Files that are not LAS are left to laspy."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(375)
+            size = os.fstat(f.fileno()).st_size
+    except OSError as exc:
+        raise LasFileError(f"{path}: cannot read ({exc.strerror or one_line(exc)})") from None
+    if len(head) < 227 or head[:4] != b"LASF":
+        return
+    minor = head[25]
+    header_size, points_at, vlrs = struct.unpack_from("<HII", head, 94)
+    record_format, record_bytes, legacy_count = struct.unpack_from("<BHI", head, 104)
+    if points_at > size:
+        raise LasFileError(f"{path}: the header places the points at byte {points_at}, beyond "
+                           f"the file's {size} bytes (truncated?)")
+    room = points_at - header_size
+    if vlrs * _VLR_BYTES > max(room, 0):
+        raise LasFileError(f"{path}: the header claims {vlrs} VLRs; the {max(room, 0)} bytes "
+                           f"between the header and the points hold at most "
+                           f"{max(room, 0) // _VLR_BYTES}; refused")
+    count = legacy_count
+    if minor >= 4 and len(head) >= 255:
+        evlr_at, evlrs, count = struct.unpack_from("<QIQ", head, 235)
+        if evlrs and (evlr_at > size or evlrs * _EVLR_BYTES > size - evlr_at):
+            raise LasFileError(f"{path}: the header claims {evlrs} extended VLRs from byte "
+                               f"{evlr_at}; the file's {size} bytes hold at most "
+                               f"{max(size - evlr_at, 0) // _EVLR_BYTES}; refused")
+    compressed = bool(record_format & 0xC0)  # LAZ sets bit 7 (some writers bit 6)
+    if not compressed and count * record_bytes > size - points_at:
+        raise LasFileError(f"{path}: truncated: the header claims {count} points of "
+                           f"{record_bytes} bytes, the file holds {size - points_at} bytes of "
+                           f"points ({(size - points_at) // max(record_bytes, 1)} points)")
 
 
 def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:

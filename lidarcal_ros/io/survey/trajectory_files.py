@@ -43,6 +43,9 @@ SBET_FIELDS: tuple[str, ...] = (
 )
 SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 SBET_RECORD_BYTES = SBET_DTYPE.itemsize  # 136
+#: Most records an SBET or smrmsg may hold: 69 hours at 200 Hz (an SBET of 6.8 GB, some 3 GB
+#: of columns once read). More is not a flight: a sparse file, or a file that is not one.
+MAX_TRAJECTORY_RECORDS = 50_000_000
 
 #: An Applanix ``smrmsg`` accuracy file's record: 10 little-endian float64 (the SBET's time,
 #: position RMS north, east, down in m, velocity RMS m/s, roll, pitch, heading RMS arc-min).
@@ -167,6 +170,13 @@ def gps_to_unix(gps_seconds: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- SBET
+def _check_record_count(p: Path, records: int, what: str) -> None:
+    if records > MAX_TRAJECTORY_RECORDS:
+        raise TrajectoryFileError(
+            f"{p}: {records} {what} records, more than the {MAX_TRAJECTORY_RECORDS} of 69 hours "
+            "at 200 Hz; refused (a sparse or foreign file?)")
+
+
 def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     """Read an Applanix SBET (docs/import.md, "Trajectory files").
 
@@ -178,9 +188,9 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
     Raises
     ------
     TrajectoryFileError
-        Missing file, a size that is not a whole number of 136-byte records, no records,
-        records that are not SBET (latitude/longitude out of range, non-finite time), or
-        records all at one time.
+        Missing file, a size that is not a whole number of 136-byte records, no records or
+        more than :data:`MAX_TRAJECTORY_RECORDS`, records that are not SBET
+        (latitude/longitude out of range, non-finite time), or records all at one time.
     """
     p = _check_file(path)
     size = p.stat().st_size
@@ -189,6 +199,7 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
             f"{p}: not an SBET: {size} bytes is not a whole number of {SBET_RECORD_BYTES}-byte "
             "records"
         )
+    _check_record_count(p, size // SBET_RECORD_BYTES, "SBET")
     try:
         records = np.memmap(p, dtype=SBET_DTYPE, mode="r")
     except (OSError, ValueError) as exc:
@@ -317,6 +328,7 @@ def read_smrmsg(path: str | os.PathLike[str]) -> TrajectoryAccuracy:
         raise TrajectoryFileError(
             f"{p}: not an smrmsg accuracy file: {size} bytes is not a whole number of "
             f"{SMRMSG_RECORD_BYTES}-byte records (truncated?)")
+    _check_record_count(p, size // SMRMSG_RECORD_BYTES, "smrmsg")
     try:
         records = np.fromfile(p, dtype=SMRMSG_DTYPE)
     except (OSError, ValueError) as exc:
