@@ -7,7 +7,8 @@
 
 Each size is the paper's six strips at 0.5 points/m^2 (the 1150 m lines), lines as long as
 the size needs, written by ``lidarcal simulate`` (cached under bench/.cache/scale/). Each
-``lidarcal calibrate`` runs in a fresh process, as a user runs it; time per point and peak
+``lidarcal calibrate`` runs in a fresh process, as a user runs it (after one unmeasured run
+that compiles the per-point loops); time per point and peak
 resident memory are printed with their ratios to the 1M-point run of the same invocation.
 ``--stages`` runs the calibration in this process and samples its resident memory every
 20 ms, per stage of its progress (what grows with the points).
@@ -79,6 +80,8 @@ def sizes(max_points: float) -> list[float]:
 def scaling(max_points: float) -> None:
     """The table of time per point and peak memory against the 1M-point run."""
     rows = []
+    # a first run unmeasured: it compiles the per-point loops (numba's cache), some 10 s
+    calibrate(mission(1e6))
     for size in sizes(max_points):
         bag = mission(size)
         run = calibrate(bag)
