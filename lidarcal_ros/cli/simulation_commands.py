@@ -253,7 +253,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.uav:
         return _simulate_uav(args)
     from lidarcal_ros.core.simulation.flight_path import REPORTED_CRAB_DEG
-    from lidarcal_ros.core.simulation.simulate import simulate_mission
+    from lidarcal_ros.core.simulation.simulate import stream_mission
     from lidarcal_ros.core.simulation.spec import (
         DEFAULT_BIASES,
         FOV_DEG,
@@ -269,7 +269,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from lidarcal_ros.pipeline.calibration.procedure import (
         parse_biases,
         simulation_paths,
-        write_simulation,
+        write_simulation_stream,
     )
 
     for key, path in simulation_paths(args.output).items():
@@ -298,9 +298,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         site=SiteSpec(n_control=args.control, origin=origin),
         trajectory_errors=trajectory_errors)
     started = time.perf_counter()
-    sim = simulate_mission(spec)
-    paths = write_simulation(args.output, sim, overwrite=args.overwrite)
-    print(f"simulated {sim.mission.n_points} points in {len(sim.mission.strips)} strips "
+    # a line at a time, a block of points at a time: a mission of any size in bounded memory
+    stream = stream_mission(spec)
+    paths, n_points = write_simulation_stream(args.output, stream, overwrite=args.overwrite)
+    print(f"simulated {n_points} points in {len(spec.line_specs())} strips "
           f"({time.perf_counter() - started:.1f} s)")
     for label, path in paths.items():
         print(f"  {label}: {path}")

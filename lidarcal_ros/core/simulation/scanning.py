@@ -6,6 +6,7 @@ A linear scanner at a constant pulse rate; the exact bias model of :mod:`.exact_
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -130,44 +131,77 @@ def scan_line(flight: FlightLine, n: int, surface: Surface, scanner: Scanner,
     """Fire the line's ``n`` pulses (docs/internals.md), the first at the line's start; the
     range and intensity noise from ``rng``, block by block. Local coordinates."""
     out = LineScan.empty(n)
+    for i0, block in scan_blocks(flight, n, surface, scanner, rng):
+        sl = slice(i0, i0 + len(block.xyz_b))
+        for name in LineScan.__dataclass_fields__:
+            getattr(out, name)[sl] = getattr(block, name)
+    return out
+
+
+def scan_blocks(flight: FlightLine, n: int, surface: Surface, scanner: Scanner,
+                rng: np.random.Generator) -> Iterator[tuple[int, LineScan]]:
+    """:func:`scan_line` one block of :data:`PULSE_BLOCK` pulses at a time: ``(i0, scan)``,
+    the block's first pulse index and its pulses (the same values, drawn in the same order),
+    so a line of any length is fired in bounded memory."""
     for i0 in range(0, n, PULSE_BLOCK):
-        i1 = min(i0 + PULSE_BLOCK, n)
-        trel = np.arange(i0, i1, dtype=np.float64) / scanner.prf_hz
-        theta = scanner.half_fov_rad * triangle(trel * scanner.scan_rate_hz)
-        m = i1 - i0
-        state = flight.state(trel)
-        r_ins = state.rotation()
-        st, ct = np.sin(theta), np.cos(theta)
-        d = np.empty((m, 3))
-        for j in range(3):  # R_ins times the body's beam (-sin theta, 0, -cos theta)
-            d[:, j] = r_ins[:, j, 0] * -st + r_ins[:, j, 2] * -ct
-        hits = cast_rays(surface, state.position, d)
-        noise = rng.normal(0.0, scanner.range_noise_m, m) if scanner.range_noise_m > 0 else 0.0
-        xb = georeference(state.position, r_ins, hits.t, theta, scanner.biases, noise)
-        # The class from just inside what was hit (a wall's object, not the ground before it);
-        # a wall's normal is horizontal, the height field's is not.
-        cl, rho = surface.class_and_reflectance_local(hits.inside[:, 0], hits.inside[:, 1])
-        nrm = surface.normal_local(hits.xyz[:, 0], hits.xyz[:, 1])
-        if hits.on_wall.any():
-            w = hits.on_wall
-            nrm[w] = surface.wall_normal_local(hits.inside[w, 0], hits.inside[w, 1])
-        cos_inc = np.clip(np.abs(np.einsum("ij,ij->i", nrm, d)), 0.0, 1.0)
-        amp = (INTENSITY_K * rho * cos_inc * np.exp(-2.0 * scanner.atmospheric_alpha_per_m
-                                                    * hits.t) / hits.t**2)
-        if scanner.intensity_noise > 0:
-            amp *= 1.0 + scanner.intensity_noise * rng.standard_normal(m)
-        sl = slice(i0, i1)
-        out.xyz_b[sl] = xb
-        out.xyz_t[sl] = hits.xyz
-        out.cls[sl] = cl
-        out.incidence[sl] = np.arccos(cos_inc)
-        out.reflectance[sl] = rho
-        out.range_true[sl] = hits.t
-        out.theta[sl] = theta
-        out.on_wall[sl] = hits.on_wall
-        out.intensity[sl] = np.maximum(amp, 0.0)
+        yield i0, _scan_block(flight, i0, min(i0 + PULSE_BLOCK, n), surface, scanner, rng)
+
+
+def skip_noise(n: int, scanner: Scanner, rng: np.random.Generator) -> None:
+    """Draw from ``rng`` what firing ``n`` pulses draws (:func:`scan_blocks`), and nothing else:
+    ``rng`` left where a scan of the line would leave it."""
+    for i0 in range(0, n, PULSE_BLOCK):
+        _draw_noise(min(i0 + PULSE_BLOCK, n) - i0, scanner, rng)
+
+
+def _draw_noise(m: int, scanner: Scanner, rng: np.random.Generator
+                ) -> tuple[np.ndarray | float, np.ndarray | None]:
+    """A block's range noise (m) and relative intensity noise, in the order they are drawn."""
+    noise = rng.normal(0.0, scanner.range_noise_m, m) if scanner.range_noise_m > 0 else 0.0
+    inoise = rng.standard_normal(m) if scanner.intensity_noise > 0 else None
+    return noise, inoise
+
+
+def _scan_block(flight: FlightLine, i0: int, i1: int, surface: Surface, scanner: Scanner,
+                rng: np.random.Generator) -> LineScan:
+    """Pulses ``i0`` to ``i1`` (excluded) of the line."""
+    trel = np.arange(i0, i1, dtype=np.float64) / scanner.prf_hz
+    theta = scanner.half_fov_rad * triangle(trel * scanner.scan_rate_hz)
+    m = i1 - i0
+    state = flight.state(trel)
+    r_ins = state.rotation()
+    st, ct = np.sin(theta), np.cos(theta)
+    d = np.empty((m, 3))
+    for j in range(3):  # R_ins times the body's beam (-sin theta, 0, -cos theta)
+        d[:, j] = r_ins[:, j, 0] * -st + r_ins[:, j, 2] * -ct
+    hits = cast_rays(surface, state.position, d)
+    noise, inoise = _draw_noise(m, scanner, rng)
+    xb = georeference(state.position, r_ins, hits.t, theta, scanner.biases, noise)
+    # The class from just inside what was hit (a wall's object, not the ground before it);
+    # a wall's normal is horizontal, the height field's is not.
+    cl, rho = surface.class_and_reflectance_local(hits.inside[:, 0], hits.inside[:, 1])
+    nrm = surface.normal_local(hits.xyz[:, 0], hits.xyz[:, 1])
+    if hits.on_wall.any():
+        w = hits.on_wall
+        nrm[w] = surface.wall_normal_local(hits.inside[w, 0], hits.inside[w, 1])
+    cos_inc = np.clip(np.abs(np.einsum("ij,ij->i", nrm, d)), 0.0, 1.0)
+    amp = (INTENSITY_K * rho * cos_inc * np.exp(-2.0 * scanner.atmospheric_alpha_per_m
+                                                * hits.t) / hits.t**2)
+    if inoise is not None:
+        amp *= 1.0 + scanner.intensity_noise * inoise
+    out = LineScan.empty(m)
+    out.xyz_b[:] = xb
+    out.xyz_t[:] = hits.xyz
+    out.cls[:] = cl
+    out.incidence[:] = np.arccos(cos_inc)
+    out.reflectance[:] = rho
+    out.range_true[:] = hits.t
+    out.theta[:] = theta
+    out.on_wall[:] = hits.on_wall
+    out.intensity[:] = np.maximum(amp, 0.0)
     return out
 
 
 __all__ = ["INTENSITY_K", "PULSE_BLOCK", "WAVELENGTH_NM", "LineScan", "Scanner",
-           "pulse_and_scan_rates", "scan_line", "swath_width", "triangle"]
+           "pulse_and_scan_rates", "scan_blocks", "scan_line", "skip_noise", "swath_width",
+           "triangle"]

@@ -6,18 +6,30 @@ reproducible to the bit: docs/internals.md, "The simulator".
 
 from __future__ import annotations
 
+import copy
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.georeferencing.attitude import quaternions_from_attitude
+from lidarcal_ros.core.georeferencing.attitude import (
+    normalise_quaternions,
+    quaternions_from_attitude,
+)
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.radiometry import atmospheric_alpha
 from lidarcal_ros.core.simulation.flight_path import FlightLine, RoughAir, Turbulence
-from lidarcal_ros.core.simulation.scanning import LineScan, Scanner, pulse_and_scan_rates, scan_line
+from lidarcal_ros.core.simulation.scanning import (
+    LineScan,
+    Scanner,
+    pulse_and_scan_rates,
+    scan_blocks,
+    scan_line,
+    skip_noise,
+)
 from lidarcal_ros.core.simulation.spec import LEAD_S, TURN_S, SimulationSpec
 from lidarcal_ros.core.simulation.surface import Surface
 from lidarcal_ros.core.simulation.terrain import Terrain
@@ -102,6 +114,155 @@ def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
         is too strong or whose beams would point too far from the vertical; control points
         that the strips cannot all see.
     """
+    setup = _prepare(spec)
+    recorder = _Recorder(setup.terrain, setup.scanner,
+                         np.random.default_rng([spec.noise_seed, 0x5EED]), spec.site.origin,
+                         spec.noise.trajectory_noise_m, setup.attitude, spec.sensor.fov_deg)
+    for fl, tm, error in setup.lines():
+        recorder.fly(fl, tm, error)
+    mission = Mission(trajectory=recorder.trajectory(), strips=recorder.strips,
+                      control=setup.control())
+    true_trajectory = (recorder.trajectory(true=True) if spec.trajectory_errors.active
+                       else mission.trajectory)
+    scans = recorder.scans
+    terrain, flights, errors = setup.terrain, setup.flights, setup.errors
+    config = setup.truth(recorder.lines, int(sum(len(st) for st in recorder.strips)))
+    return SimulatedMission(
+        mission=mission, biases=dict(spec.biases), true_xyz=[s.xyz_t for s in scans],
+        surface_class=[s.cls for s in scans], incidence_true=[s.incidence for s in scans],
+        reflectance_true=[s.reflectance for s in scans],
+        range_true=[s.range_true for s in scans], terrain=terrain, lines=recorder.lines,
+        config=config, scan_angle_true=[s.theta for s in scans],
+        on_wall=[s.on_wall for s in scans], flight_lines=flights,
+        trajectory_errors={err.strip_id: err for err in errors}, true_trajectory=true_trajectory,
+    )
+
+
+# ---------------------------------------------------------------------- streaming
+
+
+@dataclass
+class StreamedLine:
+    """One line of a :class:`MissionStream`, as delivered: its trajectory's samples
+    (``trajectory``, map frame, its orientation where the mission has one) and its points,
+    :meth:`blocks` at a time.
+
+    ``t_first`` and ``t_last`` are the absolute times (s) of its first and last pulses,
+    ``n_points`` their number.
+    """
+
+    strip_id: int
+    trajectory: Trajectory
+    t_first: float
+    t_last: float
+    n_points: int
+    _blocks: Callable[[], Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]]
+
+    def blocks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The line's points in firing order, ``(t, xyz, intensity)`` a block of
+        :data:`~lidarcal_ros.core.simulation.scanning.PULSE_BLOCK` pulses at a time (absolute
+        s; map frame, m; float32): the values :func:`simulate_mission` gives the strip."""
+        return self._blocks()
+
+
+@dataclass
+class MissionStream:
+    """A simulated mission made a line at a time (:func:`stream_mission`): the control points
+    and biases up front, :meth:`lines` in flight order, the truth's record (``config``, as
+    :class:`SimulatedMission`'s) once every line has been made."""
+
+    control: ControlPoints | None
+    biases: dict[str, float]
+    _setup: _Setup
+    config: dict[str, Any] | None = None
+
+    def lines(self) -> Iterator[StreamedLine]:
+        """The lines in flight order; each line's :meth:`StreamedLine.blocks` may be read
+        (once) at any time, and holds only its own generator's state."""
+        setup = self._setup
+        spec = setup.spec
+        rng = np.random.default_rng([spec.noise_seed, 0x5EED])
+        recorder = _Recorder(setup.terrain, setup.scanner, rng, spec.site.origin,
+                             spec.noise.trajectory_noise_m, setup.attitude, spec.sensor.fov_deg)
+        n_points = 0
+        for fl, tm, error in setup.lines():
+            # The points draw their noise before the line's trajectory does (simulate_mission's
+            # order): the trajectory drawn after skipping the points' draws, the points later
+            # from a copy of the generator where the line began; the same values, bit for bit.
+            at_line = copy.deepcopy(rng.bit_generator.state)
+            skip_noise(tm.n, setup.scanner, rng)
+            trajectory = recorder.sample(fl, tm, error)
+            summary = recorder.lines[-1]
+            yield StreamedLine(fl.line_id, trajectory, summary["t_first"], summary["t_last"],
+                               tm.n, functools.partial(recorder.points, fl, tm, error, at_line))
+            n_points += tm.n
+            recorder.forget_samples()
+        self.config = setup.truth(recorder.lines, n_points)
+
+
+def stream_mission(spec: SimulationSpec) -> MissionStream:
+    """:func:`simulate_mission`'s mission made a line at a time, a block of points at a time,
+    in memory that does not grow with the mission (the terrain and each line's trajectory
+    samples aside): the same points, trajectory, control points and truth, bit for bit.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`simulate_mission`.
+    """
+    setup = _prepare(spec)
+    return MissionStream(setup.control(), dict(spec.biases), setup)
+
+
+# ---------------------------------------------------------------------- the setup
+
+
+@dataclass
+class _Setup:
+    """What a mission's flight needs before the first pulse: the scanner, the lines on the
+    mission's clock, the site, the trajectory errors and the turbulence."""
+
+    spec: SimulationSpec
+    prf: float
+    scanner: Scanner
+    flights: list[FlightLine]
+    terrain: Surface
+    control_xy: np.ndarray
+    times: list[_LineTimes]
+    errors: list[StripTrajectoryError]
+    turbulence: Turbulence | None
+    attitude: bool
+
+    def lines(self) -> Iterator[tuple[FlightLine, _LineTimes, StripTrajectoryError | None]]:
+        """Each line, its times and its trajectory error (None where the spec has none)."""
+        active = self.spec.trajectory_errors.active
+        for fl, tm, error in zip(self.flights, self.times, self.errors, strict=True):
+            yield fl, tm, error if active else None
+
+    def control(self) -> ControlPoints | None:
+        """The control points on the terrain (map frame), or None."""
+        if not self.control_xy.shape[0]:
+            return None
+        ox, oy = self.spec.site.origin
+        cxy = self.control_xy
+        cz = self.terrain.height_local(cxy[:, 0], cxy[:, 1])
+        cxyz = np.column_stack([cxy[:, 0] + ox, cxy[:, 1] + oy, cz])
+        return ControlPoints([f"C{i + 1}" for i in range(len(cxyz))], cxyz)
+
+    def truth(self, lines: list[dict[str, Any]], n_points: int) -> dict[str, Any]:
+        """The truth's record (:func:`~lidarcal_ros.core.simulation.truth.truth_config`) of
+        the lines flown."""
+        spec = self.spec
+        config = truth_config(spec, self.scanner, terrain=self.terrain, lines=lines,
+                              attitude=self.attitude, turbulence=self.turbulence,
+                              n_points=n_points)
+        config["trajectory_errors"] = trajectory_errors_record(
+            spec.trajectory_errors, spec.trajectory_error_seed, self.errors)
+        return config
+
+
+def _prepare(spec: SimulationSpec) -> _Setup:
+    """The scanner, lines, site, schedule, trajectory errors and air of ``spec``."""
     flight, sensor = spec.flight, spec.sensor
     plan = spec.line_specs()
     ref_height = max(ln["height"] for ln in plan)
@@ -125,36 +286,8 @@ def simulate_mission(spec: SimulationSpec) -> SimulatedMission:
     manoeuvres = any(fl.turn_rate != 0.0 or fl.roll_offset != 0.0 for fl in flights)
     attitude = ((flight.rough_air is not None or manoeuvres) if sensor.attitude is None
                 else bool(sensor.attitude))
-    recorder = _Recorder(terrain, scanner, np.random.default_rng([spec.noise_seed, 0x5EED]),
-                         spec.site.origin, spec.noise.trajectory_noise_m, attitude,
-                         sensor.fov_deg)
-    for fl, tm, error in zip(flights, times, errors, strict=True):
-        recorder.fly(fl, tm, error if spec.trajectory_errors.active else None)
-
-    control = None
-    if control_xy.shape[0]:
-        ox, oy = spec.site.origin
-        cz = terrain.height_local(control_xy[:, 0], control_xy[:, 1])
-        cxyz = np.column_stack([control_xy[:, 0] + ox, control_xy[:, 1] + oy, cz])
-        control = ControlPoints([f"C{i + 1}" for i in range(len(cxyz))], cxyz)
-    mission = Mission(trajectory=recorder.trajectory(), strips=recorder.strips, control=control)
-    true_trajectory = (recorder.trajectory(true=True) if spec.trajectory_errors.active
-                       else mission.trajectory)
-    scans = recorder.scans
-    config = truth_config(spec, scanner, terrain=terrain, lines=recorder.lines,
-                          attitude=attitude, turbulence=turbulence,
-                          n_points=int(sum(len(st) for st in recorder.strips)))
-    config["trajectory_errors"] = trajectory_errors_record(spec.trajectory_errors,
-                                                           spec.trajectory_error_seed, errors)
-    return SimulatedMission(
-        mission=mission, biases=dict(spec.biases), true_xyz=[s.xyz_t for s in scans],
-        surface_class=[s.cls for s in scans], incidence_true=[s.incidence for s in scans],
-        reflectance_true=[s.reflectance for s in scans],
-        range_true=[s.range_true for s in scans], terrain=terrain, lines=recorder.lines,
-        config=config, scan_angle_true=[s.theta for s in scans],
-        on_wall=[s.on_wall for s in scans], flight_lines=flights,
-        trajectory_errors={err.strip_id: err for err in errors}, true_trajectory=true_trajectory,
-    )
+    return _Setup(spec, prf, scanner, flights, terrain, control_xy, times, errors, turbulence,
+                  attitude)
 
 
 # ---------------------------------------------------------------------- the site
@@ -237,7 +370,12 @@ class _LineTimes:
 
     def pulse_times(self, prf: float) -> np.ndarray:
         """The absolute firing times (s) at ``prf`` (Hz)."""
-        return (self.t_line + LEAD_S) + np.arange(self.n, dtype=np.float64) / prf
+        return self.pulse_times_at(0, self.n, prf)
+
+    def pulse_times_at(self, i0: int, i1: int, prf: float) -> np.ndarray:
+        """The absolute firing times (s) at ``prf`` (Hz) of pulses ``i0`` to ``i1`` (excluded):
+        the same values as those of :meth:`pulse_times`."""
+        return (self.t_line + LEAD_S) + np.arange(i0, i1, dtype=np.float64) / prf
 
     def t_mid(self, prf: float) -> float:
         """Halfway between the first and the last pulse (absolute, s)."""
@@ -297,24 +435,52 @@ class _Recorder:
     _xyz: list[np.ndarray] = field(default_factory=list)
     _xyz_true: list[np.ndarray] = field(default_factory=list)
     _q: list[np.ndarray] = field(default_factory=list)
+    _q_last: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
     def fly(self, fl: FlightLine, tm: _LineTimes, error: StripTrajectoryError | None) -> None:
-        """Scan a line, then sample its trajectory (exact poses, ``LEAD_S`` before its first
-        pulse to ``LEAD_S`` after its last, with the trajectory noise); with an ``error``, the
-        points and the samples as georeferenced with the delivered trajectory (+ ``e_s(t)``;
-        the samples without it kept for :meth:`trajectory` ``true``)."""
-        ox, oy = self.origin
+        """Scan a line, then sample its trajectory (:meth:`sample`); with an ``error``, the
+        points as georeferenced with the delivered trajectory (+ ``e_s(t)``)."""
         scan = scan_line(fl, tm.n, self.terrain, self.scanner, self.rng)
-        for arr in (scan.xyz_b, scan.xyz_t):
-            arr[:, 0] += ox
-            arr[:, 1] += oy
         t_abs = tm.pulse_times(self.scanner.prf_hz)
-        if error is not None:
-            # the system georeferences with X_o,true + e_s: each point moves with its position
-            scan.xyz_b += error.at(t_abs)
+        self._delivered(scan, t_abs, error)
         self.strips.append(Strip(strip_id=fl.line_id, xyz=scan.xyz_b, t=t_abs,
                                  intensity=scan.intensity))
         self.scans.append(scan)
+        self.sample(fl, tm, error)
+
+    def points(self, fl: FlightLine, tm: _LineTimes, error: StripTrajectoryError | None,
+               state: Mapping[str, Any]) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """:meth:`fly`'s points of a line a block at a time, ``(t, xyz, intensity)``, their
+        noise drawn from a generator of the recorder's kind in ``state`` (where the line
+        began)."""
+        bit_generator = type(self.rng.bit_generator)()
+        bit_generator.state = state
+        rng = np.random.Generator(bit_generator)
+        prf = self.scanner.prf_hz
+        for i0, scan in scan_blocks(fl, tm.n, self.terrain, self.scanner, rng):
+            t_abs = tm.pulse_times_at(i0, i0 + len(scan.intensity), prf)
+            self._delivered(scan, t_abs, error)
+            yield t_abs, scan.xyz_b, scan.intensity
+
+    def _delivered(self, scan: LineScan, t_abs: np.ndarray,
+                   error: StripTrajectoryError | None) -> None:
+        """Move a scan (local) to the map; the delivered points with the trajectory error."""
+        ox, oy = self.origin
+        for arr in (scan.xyz_b, scan.xyz_t):
+            arr[:, 0] += ox
+            arr[:, 1] += oy
+        if error is not None:
+            # the system georeferences with X_o,true + e_s: each point moves with its position
+            scan.xyz_b += error.at(t_abs)
+
+    def sample(self, fl: FlightLine, tm: _LineTimes, error: StripTrajectoryError | None
+               ) -> Trajectory:
+        """Sample a line's trajectory (exact poses, ``LEAD_S`` before its first pulse to
+        ``LEAD_S`` after its last, with the trajectory noise drawn from the recorder's
+        generator; with an ``error``, + ``e_s(t)``, the samples without it kept for
+        :meth:`trajectory` ``true``) and record what the line flew; the line's samples as
+        delivered."""
+        ox, oy = self.origin
         state = fl.state(tm.tr - LEAD_S)
         pos = state.position
         pos[:, 0] += ox
@@ -330,8 +496,28 @@ class _Recorder:
                 *(np.broadcast_to(v, tm.tr.shape) for v in (state.roll, state.pitch,
                                                              state.kappa))))
         over_line = (tm.tr >= LEAD_S) & (tm.tr <= tm.t_last_rel)
-        self.lines.append(line_summary(fl, state, over_line, t_abs, self.origin,
+        prf = self.scanner.prf_hz
+        pulses = (float(tm.pulse_times_at(0, 1, prf)[0]),
+                  float(tm.pulse_times_at(tm.n - 1, tm.n, prf)[0]), tm.n)
+        self.lines.append(line_summary(fl, state, over_line, pulses, self.origin,
                                        self.fov_deg))
+        q = None
+        if self.attitude:
+            # the sign the whole trajectory's normalisation gives the line (the previous line's
+            # last orientation leads); the values normalised once, by Trajectory, as there
+            q = self._q[-1]
+            lead = normalise_quaternions(np.vstack([self._q_last, q[:1]]))[-1]
+            q = -q if float(lead @ q[0]) < 0.0 else q
+        trajectory = Trajectory(t_samples, self._xyz[-1], q)
+        if trajectory.orientation is not None:
+            self._q_last = trajectory.orientation[-1:]
+        return trajectory
+
+    def forget_samples(self) -> None:
+        """Drop the trajectory samples kept for :meth:`trajectory` (a stream's lines carry
+        their own)."""
+        for kept in (self._t, self._xyz, self._xyz_true, self._q):
+            kept.clear()
 
     def trajectory(self, *, true: bool = False) -> Trajectory:
         """The samples of every line flown so far, as delivered (``true``: without the
@@ -341,4 +527,5 @@ class _Recorder:
                           np.concatenate(self._q) if self.attitude else None)
 
 
-__all__ = ["CONTROL_CLEAR_RADIUS_M", "SimulatedMission", "simulate_mission"]
+__all__ = ["CONTROL_CLEAR_RADIUS_M", "MissionStream", "SimulatedMission", "StreamedLine",
+           "simulate_mission", "stream_mission"]

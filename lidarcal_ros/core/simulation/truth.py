@@ -28,7 +28,7 @@ def _span_deg(values: np.ndarray) -> list[float]:
 
 
 def line_summary(flight: FlightLine, state: FlightState, over_line: np.ndarray,
-                 t_pulses: np.ndarray, origin: tuple[float, float], fov_deg: float
+                 pulses: tuple[float, float, int], origin: tuple[float, float], fov_deg: float
                  ) -> dict[str, Any]:
     """What was flown on a line (map coordinates): its geometry and manoeuvre, the times of its
     first and last pulses, and its attitude over them.
@@ -40,8 +40,8 @@ def line_summary(flight: FlightLine, state: FlightState, over_line: np.ndarray,
         The flight at the trajectory's samples of the line.
     over_line : (n_samples,) bool
         The samples from the first pulse to the last.
-    t_pulses : (n_pulses,) float64
-        Absolute firing times, seconds.
+    pulses : (t_first, t_last, n_pulses)
+        The absolute firing times (s) of the first and last pulses, and their number.
     origin : (x0, y0)
         Local to map coordinates, metres.
     fov_deg : float
@@ -77,9 +77,9 @@ def line_summary(flight: FlightLine, state: FlightState, over_line: np.ndarray,
         "crab_deg": math.degrees(crab_mid),
         "length_m": float(flight.length),
         "swath_width_m": swath_width(flight.height, fov_deg),
-        "t_first": float(t_pulses[0]),
-        "t_last": float(t_pulses[-1]),
-        "n_pulses": int(t_pulses.shape[0]),
+        "t_first": float(pulses[0]),
+        "t_last": float(pulses[1]),
+        "n_pulses": int(pulses[2]),
         "turn_deg_s": math.degrees(flight.turn_rate),
         "bank_deg": math.degrees(flight.bank),
         "roll_offset_deg": math.degrees(flight.roll_offset),

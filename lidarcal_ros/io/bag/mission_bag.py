@@ -9,14 +9,15 @@ from __future__ import annotations
 import functools
 import itertools
 import logging
+import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from lidarcal_ros.core.mission import ControlPoints, Mission, Strip
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.errors import BagError, ConfigError, InputError
 from lidarcal_ros.io.bag.format import POINTCLOUD2, seconds_to_ns
 from lidarcal_ros.io.bag.reader import BagReader, open_bag
@@ -253,7 +254,7 @@ def strip_point_array(
         natives[name] = arr
         spec.append((name, arr.dtype.newbyteorder("<"), arr.shape[1:]))
     dtype = np.dtype(spec, align=True) if natives else base
-    out = np.empty(n, dtype=dtype)
+    out = np.zeros(n, dtype=dtype)  # zeroed padding: the same points, the same bytes
     out["x"], out["y"], out["z"] = strip.xyz[:, 0], strip.xyz[:, 1], strip.xyz[:, 2]
     out["t"] = strip.t
     if strip.intensity is not None:
@@ -360,11 +361,7 @@ def write_mission_bag(
 
     latched = [control_topic] if mission.control is not None else []
     with BagWriter(path, overwrite=overwrite, latched_topics=latched) as writer:
-        if mission.control is not None and len(mission.control):
-            xyz = np.asarray(mission.control.xyz, dtype=np.float64).reshape(-1, 3)
-            cp = np.empty(len(xyz), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
-            cp["x"], cp["y"], cp["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-            writer.write_cloud(control_topic, start_ns, frame, cp)
+        _write_control(writer, control_topic, start_ns, frame, mission.control)
         for stamp, kind, key in events:
             if kind == 1:
                 writer.write_cloud(points_topic, stamp, frame, clouds[key])
@@ -377,5 +374,161 @@ def write_mission_bag(
     return Path(path)
 
 
-__all__ = ["expect_topic_type", "read_mission", "strip_point_array", "time_chunk_bounds",
-           "write_mission_bag"]
+def _write_control(writer: BagWriter, topic: str, stamp_ns: int, frame: str,
+                   control: ControlPoints | None) -> None:
+    """The control points as one PointCloud2 (x, y, z FLOAT64), if there are any."""
+    if control is None or not len(control):
+        return
+    xyz = np.asarray(control.xyz, dtype=np.float64).reshape(-1, 3)
+    cp = np.empty(len(xyz), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    cp["x"], cp["y"], cp["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    writer.write_cloud(topic, stamp_ns, frame, cp)
+
+
+class StreamedStrip(Protocol):
+    """A strip given a block of points at a time (``write_mission_stream``): its id, the
+    trajectory samples flown with it (map frame), the times of its first and last points (s)
+    and ``blocks()``: ``(t, xyz, intensity)`` in time order (s; map frame, m)."""
+
+    strip_id: int
+    trajectory: Trajectory
+    t_first: float
+    t_last: float
+
+    def blocks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The strip's points, a block at a time."""
+        ...
+
+
+def write_mission_stream(
+    path: str | os.PathLike[str],
+    strips: Iterable[StreamedStrip],
+    *,
+    control: ControlPoints | None = None,
+    frame_id: str = "map",
+    chunk_seconds: float = 0.1,
+    points_topic: str = "/lidar/points",
+    trajectory_topic: str = "/lidar/trajectory",
+    control_topic: str = "/lidar/control_points",
+    overwrite: bool = False,
+) -> tuple[Path, int]:
+    """Write a mission given strip by strip and block by block as :func:`write_mission_bag`
+    writes it whole (the same messages in the same order, for strips flown one after the other),
+    holding one block and one chunk of points at a time.
+
+    Parameters
+    ----------
+    strips : iterable of StreamedStrip
+        In time order: a strip's points and samples all after the previous strip's; within
+        a strip, finite non-decreasing point times.
+    control, frame_id, chunk_seconds, points_topic, trajectory_topic, control_topic, overwrite
+        As :func:`write_mission_bag` (``control`` and ``frame_id`` its mission's).
+
+    Returns
+    -------
+    (pathlib.Path, int)
+        The written bag and the number of points in it.
+
+    Raises
+    ------
+    InputError
+        Strips out of time order, point times not finite and non-decreasing, or a negative
+        time.
+    """
+    if not chunk_seconds > 0:
+        raise ConfigError(f"chunk_seconds must be positive, got {chunk_seconds}")
+    latched = [control_topic] if control is not None else []
+    n_points = n_chunks = n_poses = 0
+    last_ns = -1
+    with BagWriter(path, overwrite=overwrite, latched_topics=latched) as writer:
+        for strip in strips:
+            out = _StripOut(writer, strip, f"{path}: strip {strip.strip_id}", frame_id,
+                            points_topic, trajectory_topic)
+            if out.first_ns < last_ns:
+                raise InputError(f"{out.where}: begins before the previous strip ends")
+            if last_ns < 0:
+                _write_control(writer, control_topic, out.first_ns, frame_id, control)
+            last_ns = out.write(chunk_seconds)
+            n_points, n_chunks, n_poses = (n_points + out.n_points, n_chunks + out.n_chunks,
+                                           n_poses + out.n_poses)
+    logger.info("%s: wrote %d chunks, %d poses", path, n_chunks, n_poses)
+    return Path(path), n_points
+
+
+class _StripOut:
+    """One streamed strip into a bag: its chunks of points and its poses, in stamp order."""
+
+    def __init__(self, writer: BagWriter, strip: StreamedStrip, where: str, frame_id: str,
+                 points_topic: str, trajectory_topic: str) -> None:
+        self.writer, self.strip, self.where, self.frame_id = writer, strip, where, frame_id
+        self.points_topic, self.trajectory_topic = points_topic, trajectory_topic
+        t = strip.trajectory.t
+        if len(t) and not (np.isfinite(t).all() and t.min() >= 0):
+            raise InputError(f"{where}: trajectory time {t.min()} is negative or not finite")
+        if not (math.isfinite(strip.t_first) and strip.t_first >= 0):
+            raise InputError(f"{where}: first point time {strip.t_first} is negative or not "
+                             "finite")
+        if not strip.t_last >= strip.t_first:
+            raise InputError(f"{where}: point times not finite and non-decreasing (last "
+                             f"{strip.t_last}, first {strip.t_first})")
+        self.pose_ns = [seconds_to_ns(v) for v in t]
+        self.first_ns = min([seconds_to_ns(strip.t_first), *self.pose_ns[:1]])
+        self._poses = iter(sorted(range(len(t)), key=self.pose_ns.__getitem__))
+        self._pending = next(self._poses, None)
+        self._held: list[np.ndarray] = []
+        self.n_points = self.n_chunks = self.n_poses = 0
+
+    def write(self, chunk_seconds: float) -> int:
+        """Write the strip; the stamp (ns) of its last message."""
+        strip = self.strip
+        # write_mission_bag's chunks: cut at t_first + k chunk_seconds (a point at an edge
+        # opens the next chunk), empty ones left out
+        n_edges = math.floor((strip.t_last - strip.t_first) / chunk_seconds)
+        edges = strip.t_first + chunk_seconds * np.arange(1, n_edges + 1)
+        held_chunk = -1
+        previous = -math.inf
+        for t, xyz, intensity in strip.blocks():
+            if not len(t):
+                continue
+            if not (np.isfinite(t).all() and t[0] >= previous and is_nondecreasing(t)):
+                raise InputError(f"{self.where}: point times not finite and non-decreasing")
+            previous = float(t[-1])
+            block = Strip(strip_id=strip.strip_id, xyz=xyz, t=t, intensity=intensity)
+            points = strip_point_array(block, {}, self.where)
+            chunk = np.searchsorted(edges, t, side="right")
+            cuts = np.flatnonzero(np.diff(chunk)) + 1
+            for a, b in itertools.pairwise([0, *cuts.tolist(), len(t)]):
+                if chunk[a] != held_chunk and self._held:
+                    self._write_chunk()
+                self._held.append(points[a:b])
+                held_chunk = int(chunk[a])
+            self.n_points += len(t)
+        if self._held:
+            self._write_chunk()
+        self._write_poses_until(None)
+        return max([seconds_to_ns(previous) if previous > -math.inf else self.first_ns,
+                    *self.pose_ns[-1:]])
+
+    def _write_chunk(self) -> None:
+        points = self._held[0]
+        if len(self._held) > 1:  # copied field by field into zeros: padding as in one piece
+            points = np.zeros(sum(map(len, self._held)), dtype=points.dtype)
+            points[:] = np.concatenate(self._held)
+        stamp = seconds_to_ns(points["t"][0])
+        self._write_poses_until(stamp)  # a pose before a cloud of the same stamp
+        self.writer.write_cloud(self.points_topic, stamp, self.frame_id, points)
+        self._held.clear()
+        self.n_chunks += 1
+
+    def _write_poses_until(self, stamp_ns: int | None) -> None:
+        while self._pending is not None and (stamp_ns is None
+                                             or self.pose_ns[self._pending] <= stamp_ns):
+            self.writer.write_trajectory_pose(self.trajectory_topic, self.pose_ns[self._pending],
+                                              self.frame_id, self.strip.trajectory,
+                                              self._pending)
+            self._pending = next(self._poses, None)
+            self.n_poses += 1
+
+
+__all__ = ["StreamedStrip", "expect_topic_type", "read_mission", "strip_point_array",
+           "time_chunk_bounds", "write_mission_bag", "write_mission_stream"]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -414,22 +414,58 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
         One of the outputs exists and ``overwrite`` is False, or cannot be written.
     """
     from lidarcal_ros.io.bag.mission_bag import write_mission_bag
+
+    def bag(path: Path) -> dict[str, Any]:
+        write_mission_bag(path, sim.mission, overwrite=overwrite)
+        return truth_document(sim.biases, sim.config)
+
+    return _write_simulation_files(output, sim.mission.control, bag, overwrite=overwrite)
+
+
+def write_simulation_stream(output: str | Path, stream: Any, *, overwrite: bool = False
+                            ) -> tuple[dict[str, Path], int]:
+    """Write a :class:`~lidarcal_ros.core.simulation.simulate.MissionStream` as the contract's
+    files, a block of points at a time (memory that does not grow with the mission), the same
+    files :func:`write_simulation` writes of the same spec's mission; and the number of points.
+
+    Raises
+    ------
+    OutputError
+        As :func:`write_simulation`.
+    """
+    from lidarcal_ros.io.bag.mission_bag import write_mission_stream
+
+    n_points = 0
+
+    def bag(path: Path) -> dict[str, Any]:
+        nonlocal n_points
+        n_points = write_mission_stream(path, stream.lines(), control=stream.control,
+                                        overwrite=overwrite)[1]
+        return truth_document(stream.biases, stream.config)
+
+    return _write_simulation_files(output, stream.control, bag, overwrite=overwrite), n_points
+
+
+def _write_simulation_files(output: str | Path, control: Any,
+                            write_bag: Callable[[Path], dict[str, Any]], *, overwrite: bool
+                            ) -> dict[str, Path]:
+    """The bag (``write_bag``, which returns the truth document), the control points and the
+    truth file, all or none."""
     from lidarcal_ros.io.survey.control import write_control_csv
 
     paths = simulation_paths(output)
     for key in ("bag", "control", "truth"):
         check_output(paths[key], overwrite=overwrite, directory=key == "bag")
-    if sim.mission.control is None or not len(sim.mission.control):
+    if control is None or not len(control):
         paths.pop("control")
     written: list[Path] = []
     try:
-        write_mission_bag(paths["bag"], sim.mission, overwrite=overwrite)
+        truth = write_bag(paths["bag"])
         written.append(paths["bag"])
         if "control" in paths:
-            write_control_csv(paths["control"], sim.mission.control)
+            write_control_csv(paths["control"], control)
             written.append(paths["control"])
-        write_text(paths["truth"], yaml.safe_dump(truth_document(sim.biases, sim.config),
-                                                  sort_keys=False), what="truth file",
+        write_text(paths["truth"], yaml.safe_dump(truth, sort_keys=False), what="truth file",
                    overwrite=overwrite)
     except BaseException:
         for path in written:
@@ -442,5 +478,5 @@ __all__ = [
     "Truth", "calibrate_mission", "convergence_warning", "format_agreement", "format_report",
     "load_mission", "parse_biases", "qa_level", "simulation_paths", "trajectory_lines",
     "truth_document",
-    "unused_control", "write_simulation",
+    "unused_control", "write_simulation", "write_simulation_stream",
 ]

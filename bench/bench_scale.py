@@ -1,0 +1,161 @@
+"""How `lidarcal simulate` and `lidarcal calibrate` grow with the mission (bench/README.md,
+"Scaling to large missions"; issue 31).
+
+    .venv/bin/python bench/bench_scale.py                     # 1M and 4M points
+    .venv/bin/python bench/bench_scale.py --max-points 100e6  # 1M, 4M, 16M, 64M, 100M
+    .venv/bin/python bench/bench_scale.py --stages BAG        # calibrate's memory per stage
+
+Each size is the paper's six strips at 0.5 points/m^2 (the 1150 m lines), lines as long as
+the size needs, written by ``lidarcal simulate`` (cached under bench/.cache/scale/). Each
+``lidarcal calibrate`` runs in a fresh process, as a user runs it (after one unmeasured run
+that compiles the per-point loops); time per point and peak
+resident memory are printed with their ratios to the 1M-point run of the same invocation.
+``--stages`` runs the calibration in this process and samples its resident memory every
+20 ms, per stage of its progress (what grows with the points).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import machine
+from benchlib import BENCH, PYTHON, ROOT, run_child, tail
+
+DENSITY = 0.5
+#: Points of the six strips per metre of line at DENSITY (measured: 6.435M points a km of
+#: line at 1 point/m^2).
+POINTS_PER_M = 6435.0 * DENSITY
+CACHE = BENCH / ".cache" / "scale"
+
+
+def mission(points: float) -> Path:
+    """The bag of about ``points`` points (simulated once, streaming, then cached)."""
+    length = round(points / POINTS_PER_M)
+    bag = CACHE / f"paper_d{DENSITY:g}_L{length}"
+    if not (bag / "metadata.yaml").is_file():
+        CACHE.mkdir(parents=True, exist_ok=True)
+        run = run_child([PYTHON, "-m", "lidarcal_ros", "simulate", "-o", str(bag),
+                         "--density", str(DENSITY), "--line-length", str(length),
+                         "--overwrite"], log=CACHE / f"{bag.name}.simulate.log")
+        if run["rc"]:
+            raise SystemExit(f"simulate failed:\n{tail(CACHE / f'{bag.name}.simulate.log')}")
+        print(f"  simulated {bag.name}: {run['wall_s']:.0f} s, peak {run['peak_mib']:.0f} MiB")
+    return bag
+
+
+def n_points(bag: Path) -> int:
+    """The points of a simulated bag, from its truth file."""
+    import yaml
+
+    truth = yaml.safe_load(Path(f"{bag}_truth.yaml").read_text())
+    return int(truth["simulation"]["n_points"])
+
+
+def calibrate(bag: Path) -> dict[str, Any]:
+    """``lidarcal calibrate`` of ``bag`` in a fresh process."""
+    log = CACHE / f"{bag.name}.calibrate.log"
+    run = run_child([PYTHON, "-m", "lidarcal_ros", "calibrate", str(bag), "-o",
+                     str(CACHE / f"{bag.name}.calibration.yaml"), "--overwrite",
+                     "--control", f"{bag}_control.csv"], log=log)
+    if run["rc"]:
+        raise SystemExit(f"calibrate failed:\n{tail(log)}")
+    return run
+
+
+def sizes(max_points: float) -> list[float]:
+    """1M, then x4 up to ``max_points`` (which is included)."""
+    out = [1e6]
+    while out[-1] * 4 < max_points:
+        out.append(out[-1] * 4)
+    if max_points > out[-1]:
+        out.append(max_points)
+    return out
+
+
+def scaling(max_points: float) -> None:
+    """The table of time per point and peak memory against the 1M-point run."""
+    rows = []
+    # a first run unmeasured: it compiles the per-point loops (numba's cache), some 10 s
+    calibrate(mission(1e6))
+    for size in sizes(max_points):
+        bag = mission(size)
+        run = calibrate(bag)
+        n = n_points(bag)
+        rows.append((n, run))
+        print(f"  {n / 1e6:7.2f}M points: {run['wall_s']:7.1f} s wall, {run['cpu_s']:7.1f} s CPU,"
+              f" peak {run['peak_mib']:7.0f} MiB", flush=True)
+    n0, r0 = rows[0]
+    print("\n| points | wall | ns/point | x 1M | CPU | peak RSS | x 1M | bytes/point |")
+    print("|---|---|---|---|---|---|---|---|")
+    for n, r in rows:
+        per = r["wall_s"] / n * 1e9
+        per0 = r0["wall_s"] / n0 * 1e9
+        print(f"| {n:,} | {r['wall_s']:.1f} s | {per:.0f} | {per / per0:.2f} | "
+              f"{r['cpu_s']:.1f} s | {r['peak_mib']:.0f} MiB | "
+              f"{r['peak_mib'] / r0['peak_mib']:.2f} | {r['peak_mib'] * 2**20 / n:.0f} |")
+
+
+def stages(bag: Path) -> None:
+    """Resident memory per stage of one calibration of ``bag`` (in this process)."""
+    from lidarcal_ros.core.config import FlightConfig
+    from lidarcal_ros.pipeline.calibration.procedure import calibrate_mission, load_mission
+
+    def rss_mib() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+    stage = ["start"]
+    peaks: dict[str, list[float]] = {}
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.wait(0.02):
+            entry = peaks.setdefault(stage[0], [time.perf_counter(), 0.0, 0.0])
+            entry[1] = max(entry[1], rss_mib())
+            entry[2] = time.perf_counter()
+
+    def progress(name: str, _fraction: float) -> None:
+        stage[0] = name.split(": ")[-1] if name.startswith("iteration") else name
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    started = time.perf_counter()
+    config = FlightConfig()
+    stage[0] = "reading the bag"
+    mission_ = load_mission(bag, config, control_csv=f"{bag}_control.csv")
+    n = mission_.n_points
+    calibrate_mission(mission_, config, progress=progress)
+    done.set()
+    sampler.join()
+    print(f"{bag.name}: {n:,} points, {time.perf_counter() - started:.1f} s")
+    print("| stage (first seen in order) | seconds | peak RSS | bytes/point |")
+    print("|---|---|---|---|")
+    for name, (t0, peak, t1) in peaks.items():
+        print(f"| {name} | {t1 - t0:.1f} | {peak:.0f} MiB | {peak * 2**20 / n:.0f} |")
+
+
+def main() -> None:
+    """Parse the options and run."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--max-points", type=float, default=4e6,
+                        help="the largest mission (default 4e6)")
+    parser.add_argument("--stages", type=Path, default=None, metavar="BAG",
+                        help="calibrate's memory per stage of BAG, in this process")
+    args = parser.parse_args()
+    os.chdir(ROOT)
+    print(machine.describe())
+    print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
+    if args.stages is not None:
+        stages(args.stages)
+    else:
+        scaling(args.max_points)
+    print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()
