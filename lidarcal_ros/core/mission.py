@@ -192,10 +192,11 @@ class Trajectory:
 
 #: Samples at one stamp further apart than this (m) conflict: which one is right is unknown.
 CONFLICT_M = 0.001
-#: A stamp this much (s) earlier than one read before it is sorted into place (messages
-#: reordered on their way); more is a clock that stepped back (a reset, a leap second, two
-#: sources on one topic), after which two paths share the same times.
-REORDER_S = 0.1
+#: A stamp up to this much (s) earlier than one read before it is sorted into place (messages
+#: reordered or late on their way, as live samples can be); more is a clock that stepped back
+#: (a reset, a leap second of 1 s, two sources on one topic), after which two paths share
+#: the same times. Half a second: the default trajectory window, and half a leap second.
+REORDER_S = 0.5
 
 
 def stepped_back(t: np.ndarray, xyz: np.ndarray, source: str) -> None:
