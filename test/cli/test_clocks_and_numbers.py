@@ -107,20 +107,20 @@ def test_stamps_jumping_forward_stay_a_gap(capsys, tmp_path, small_mission) -> N
 
 def test_reordered_or_repeated_stamps_are_no_clock_step() -> None:
     """Two poses swapped (a step back of one period, under REORDER_S) are sorted into place;
-    a pose read again at its stamp and place is no step; a pose REORDER_S * 2 late is."""
-    t = np.arange(20) * 0.02
-    xyz = np.column_stack([t * 60.0, np.zeros(20), np.full(20, 1000.0)])
-    swapped = np.r_[0:5, 6, 5, 7:20]
+    a pose read again at its stamp and place is no step; a pose 2 * REORDER_S late is."""
+    t = np.arange(100) * 0.02
+    xyz = np.column_stack([t * 60.0, np.zeros(100), np.full(100, 1000.0)])
+    swapped = np.r_[0:5, 6, 5, 7:100]
     assert screen_samples(t[swapped], xyz[swapped], "T").all()
-    again = np.r_[0:20, 3]
+    again = np.r_[0:100, 3]
     assert screen_samples(t[again], xyz[again], "T").all()
-    late = np.r_[0:16, 4, 16:20]  # t=0.08 read after t=0.30
-    assert 0.30 - 0.08 > REORDER_S
-    with pytest.raises(TrajectoryError, match=r"^T: stamps go backwards at pose 17 of 21: "
-                                              r"t=0\.080 s after t=0\.300 s, 0\.220 s back "
+    late = np.r_[0:90, 4, 90:100]  # t=0.08 read after t=1.78
+    assert 1.78 - 0.08 > 2 * REORDER_S
+    xyz_late = xyz[late].copy()
+    xyz_late[90] += [5.0, 0.0, 0.0]  # not the same place: a second source?
+    with pytest.raises(TrajectoryError, match=r"^T: stamps go backwards at pose 91 of 101: "
+                                              r"t=0\.080 s after t=1\.780 s, 1\.700 s back "
                                               r"\(1 poses"):
-        xyz_late = xyz[late].copy()
-        xyz_late[16] += [5.0, 0.0, 0.0]  # not the same place: a second source?
         screen_samples(t[late], xyz_late, "T")
 
 
@@ -148,3 +148,31 @@ def test_points_whose_times_go_backwards_within_a_cloud_are_corrected_alike(
         clouds.append(np.column_stack([las.x, las.y, las.z, las.gps_time])[key])
     assert clouds[0].shape == clouds[1].shape and clouds[0].shape[0] == mission.n_points
     assert np.array_equal(clouds[0], clouds[1])
+
+
+# ---------------------------------------------------------------------------- configuration
+@pytest.mark.parametrize("text", ["1e400", "inf", "nan", ".nan", "-.inf"])
+def test_configuration_numbers_that_are_not_finite_are_refused(capsys, tmp_path, small_mission,
+                                                               text) -> None:
+    """``1e400`` (inf once read), ``inf``, ``nan`` and YAML's ``.nan`` / ``-.inf`` in a flight
+    configuration: one line naming the file and the parameter, before any work."""
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(f"/**:\n  ros__parameters:\n    sensor:\n      range_noise_m: {text}\n")
+    rc, _, err = run(capsys, "calibrate", small_mission.bag, "-o", tmp_path / "cal.yaml",
+                     "--config", cfg)
+    reason = one_line_error(rc, err)
+    assert reason.startswith(f"{cfg}: sensor.range_noise_m: "), reason
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cfg.yaml"]
+
+
+@pytest.mark.parametrize("text", ["1e400", "inf", "nan", "-1e999"])
+def test_option_numbers_that_are_not_finite_are_refused(capsys, tmp_path, text) -> None:
+    """A numeric option given "nan", "inf" or "1e400" (which ``float`` reads as inf): the
+    option named, exit 2 (argparse's), nothing written."""
+    with pytest.raises(SystemExit) as stop:
+        run(capsys, "simulate", "-o", tmp_path / "sim", f"--density={text}")
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == (f"lidarcal simulate: error: argument --density: expected "
+                                    f"a finite number, got {text!r}")
+    assert not list(tmp_path.iterdir())
