@@ -208,6 +208,10 @@ class TrajectorySamples:
         index = np.flatnonzero(np.isfinite(t))
         newest = np.maximum.accumulate(np.concatenate(([self._newest], t[index])))
         back = np.flatnonzero(t[index] < newest[:-1] - REORDER_S)
+        if back.size:  # a late repeat of a stamp held (left out when formed) is no step
+            held = np.concatenate([*self._t, t])
+            first = np.array([np.flatnonzero(held == v)[0] for v in t[index[back]]])
+            back = back[first >= len(held) - t.size + index[back]]
         q = None if orientation is None else np.asarray(orientation).reshape(-1, 4)
         if back.size:  # the first step back: held from its stamp on is the old clock's
             at = int(index[back[0]])
