@@ -197,11 +197,15 @@ CONFLICT_M = 0.001
 #: (a reset, a leap second of 1 s, two sources on one topic), after which two paths share
 #: the same times. Half a second: the default trajectory window, and half a leap second.
 REORDER_S = 0.5
+#: A pose read after later ones but within this (m) of the path the others draw at its stamp
+#: was only logged late; a clock that stepped back puts it on another stretch of flight.
+LATE_POSE_M = 1.0
 
 
 def stepped_back(t: np.ndarray, xyz: np.ndarray, source: str) -> None:
     """Refuse samples whose stamps step back, in the order read, by more than
-    :data:`REORDER_S` (a sample read again at the same stamp and position is no step).
+    :data:`REORDER_S` (a sample read again at the same stamp and position, or one within
+    :data:`LATE_POSE_M` of the path the others draw at its stamp, is no step).
 
     Sorting such samples would interleave two stretches of flight: the trajectory would zigzag
     between them and be reported, wrongly, as gaps or as points outside it.
@@ -226,6 +230,11 @@ def stepped_back(t: np.ndarray, xyz: np.ndarray, source: str) -> None:
     first = order[np.searchsorted(t[finite][order], t[at])]
     repeat = (t[finite[first]] == t[at]) & (finite[first] < at) & (
         np.linalg.norm(xyz[finite[first]] - xyz[at], axis=1) <= CONFLICT_M)
+    # a pose logged late where the path runs through it (a recorder's lag) is no step either
+    ahead = finite[~back]
+    at_t = np.column_stack([np.interp(t[at], t[ahead], xyz[ahead, c]) for c in range(3)])
+    late = np.linalg.norm(at_t - xyz[at], axis=1) <= LATE_POSE_M
+    repeat |= late
     if repeat.all():
         return
     i = int(np.flatnonzero(back)[~repeat][0])
@@ -363,5 +372,6 @@ class Mission:
         return sum(len(s) for s in self.strips)
 
 
-__all__ = ["CONFLICT_M", "REORDER_S", "ControlPoints", "Mission", "Strip", "Trajectory",
+__all__ = ["CONFLICT_M", "LATE_POSE_M", "REORDER_S", "ControlPoints", "Mission", "Strip",
+           "Trajectory",
            "screen_samples", "stepped_back"]
