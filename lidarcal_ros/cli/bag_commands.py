@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from lidarcal_ros.cli.common import add_quiet_option, other_paths, progress_bar
+from lidarcal_ros.cli.common import add_quiet_option, finite_float, other_paths, progress_bar
 from lidarcal_ros.io.output_files import check_output
 
 __all__ = ["add_import_command", "add_recover_command", "cmd_import", "cmd_recover"]
@@ -49,7 +49,7 @@ def add_import_command(sub: Any) -> None:
                    help="time base of the trajectory file (default: SBET week seconds, ASCII "
                    "by magnitude and overlap with the points)")
     p.add_argument("--gps-week", type=int, help="GPS week of week-second times")
-    p.add_argument("--strip-gap", type=float, default=10.0,
+    p.add_argument("--strip-gap", type=finite_float, default=10.0,
                    help="GPS-time gap separating strips without point source ids, s "
                    "(default 10)")
     p.add_argument("--returns", default="all", choices=("all", "first", "last"),
@@ -58,11 +58,11 @@ def add_import_command(sub: Any) -> None:
     p.add_argument("--frame", default="map", help="map frame id (default map)")
     p.add_argument("--points", default="/lidar/points", help="points topic")
     p.add_argument("--trajectory-topic", default="/lidar/trajectory", help="trajectory topic")
-    p.add_argument("--trajectory-rate", type=float, default=50.0,
+    p.add_argument("--trajectory-rate", type=finite_float, default=50.0,
                    help="trajectory samples kept per second, 0 for all (default 50)")
     p.add_argument("--memory-points", type=int, default=2_000_000,
                    help="points held in memory before spilling sorted runs to disk")
-    p.add_argument("--qa-cell", type=float, default=2.0,
+    p.add_argument("--qa-cell", type=finite_float, default=2.0,
                    help="cell of the swath-to-swath overlap QA grid, m (default 2; 0: none)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_quiet_option(p)

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_bag_and_calibration_arguments", "add_quiet_option", "other_paths",
-           "progress_bar"]
+__all__ = ["add_bag_and_calibration_arguments", "add_quiet_option", "finite_float",
+           "other_paths", "progress_bar"]
+
+
+def finite_float(text: str) -> float:
+    """An option's number, refused unless finite: Python's ``float`` reads "nan", "inf" and
+    "1e400" (inf) without a word, and none of them is a rate, a span or a size."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
 
 
 def add_quiet_option(p: Any) -> None:

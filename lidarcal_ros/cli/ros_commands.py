@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from lidarcal_ros.cli.common import other_paths
+from lidarcal_ros.cli.common import finite_float, other_paths
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
 
@@ -48,22 +48,22 @@ def _start_ros(argv: list[str]) -> tuple[Any, Any]:
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     """The arguments of ``lidarcal replay`` (times in seconds)."""
     p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
-    p.add_argument("--rate", type=float, default=1.0,
+    p.add_argument("--rate", type=finite_float, default=1.0,
                    help="speed factor of the original timing (default 1; 10 = ten times faster)")
     p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
     p.add_argument("--clock", action="store_true",
                    help="publish the bag time on /clock (for nodes with use_sim_time)")
-    p.add_argument("--clock-hz", type=float, default=40.0,
+    p.add_argument("--clock-hz", type=finite_float, default=40.0,
                    help="/clock messages per wall second (default 40)")
-    p.add_argument("--start", type=float, default=0.0,
+    p.add_argument("--start", type=finite_float, default=0.0,
                    help="start this many seconds after the bag's first message")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--duration", type=finite_float, default=None,
                    help="replay this many seconds of the bag (default: to the end)")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help="replay only these topics (default: all)")
     p.add_argument("--queue", type=int, default=100,
                    help="keep-last depth of the publishers (default 100)")
-    p.add_argument("--wait-for-subscribers", type=float, default=30.0, metavar="SECONDS",
+    p.add_argument("--wait-for-subscribers", type=finite_float, default=30.0, metavar="SECONDS",
                    help="before the first message, wait up to this long until each played "
                    "topic the suite listens to (points, trajectory) has --min-subscribers, no "
                    "new subscriber came for 1 s and a `lidarcal run` seen has its suite up; "
@@ -73,7 +73,7 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="start at once, without waiting for subscribers")
     p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
                    help="subscribers each waited-for topic needs (default 1)")
-    p.add_argument("--delay", type=float, default=0.0, metavar="SECONDS",
+    p.add_argument("--delay", type=finite_float, default=0.0, metavar="SECONDS",
                    help="then wait this much longer before the first message (default 0)")
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
                    help="rclpy arguments (e.g. remappings -r /lidar/points:=/other)")
@@ -383,7 +383,7 @@ def add_record_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help="topics to record (default: corrected points, estimate, calibration "
                    "YAML, diagnostics)")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--duration", type=finite_float, default=None,
                    help="stop after this many seconds (default: until Ctrl-C / SIGTERM)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lidarcal_ros.cli.common import finite_float
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
 
@@ -23,12 +24,12 @@ def add_simulate_command(sub: Any) -> None:
     p.add_argument("--scenario", default="paper", choices=("paper", "flat", "one_track"),
                    help="flight configuration and terrain (default: paper)")
     p.add_argument("--seed", type=int, default=0, help="random seed (terrain, noise)")
-    p.add_argument("--density", type=float, default=1.0,
+    p.add_argument("--density", type=finite_float, default=1.0,
                    help="points per m^2 at the 1150 m lines (default 1.0)")
-    p.add_argument("--line-length", type=float, default=1000.0, help="metres (default 1000)")
+    p.add_argument("--line-length", type=finite_float, default=1000.0, help="metres (default 1000)")
     p.add_argument("--biases", default=None,
                    help="e.g. 'dX=0.05,domega=-29arcsec,dr=11.8cm' (default: paper-like)")
-    p.add_argument("--range-noise", type=float, default=0.02, help="metres (default 0.02)")
+    p.add_argument("--range-noise", type=finite_float, default=0.02, help="metres (default 0.02)")
     p.add_argument("--control", type=int, default=1, help="number of control points")
     p.add_argument("--origin", default="0,0",
                    help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")

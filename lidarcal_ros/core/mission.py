@@ -192,6 +192,58 @@ class Trajectory:
 
 #: Samples at one stamp further apart than this (m) conflict: which one is right is unknown.
 CONFLICT_M = 0.001
+#: A stamp up to this much (s) earlier than one read before it is sorted into place (messages
+#: reordered or late on their way, as live samples can be); more is a clock that stepped back
+#: (a reset, a leap second of 1 s, two sources on one topic), after which two paths share
+#: the same times. Half a second: the default trajectory window, and half a leap second.
+REORDER_S = 0.5
+#: A pose read after later ones but within this (m) of the path the others draw at its stamp
+#: was only logged late; a clock that stepped back puts it on another stretch of flight.
+LATE_POSE_M = 1.0
+
+
+def stepped_back(t: np.ndarray, xyz: np.ndarray, source: str) -> None:
+    """Refuse samples whose stamps step back, in the order read, by more than
+    :data:`REORDER_S` (a sample read again at the same stamp and position, or one within
+    :data:`LATE_POSE_M` of the path the others draw at its stamp, is no step).
+
+    Sorting such samples would interleave two stretches of flight: the trajectory would zigzag
+    between them and be reported, wrongly, as gaps or as points outside it.
+
+    Raises
+    ------
+    TrajectoryError
+        One line naming ``source``, the first stamp that went back, from what and by how
+        much, and how many samples went back.
+    """
+    finite = np.flatnonzero(np.isfinite(t) & np.isfinite(xyz).all(axis=1))
+    if finite.size < 2:
+        return
+    ts = t[finite]
+    newest = np.maximum.accumulate(ts)
+    back = np.concatenate(([False], ts[1:] < newest[:-1] - REORDER_S))
+    if not back.any():
+        return
+    # a message recorded twice: the same stamp at the same place as an earlier sample
+    at = finite[back]
+    order = np.argsort(t[finite], kind="stable")
+    first = order[np.searchsorted(t[finite][order], t[at])]
+    repeat = (t[finite[first]] == t[at]) & (finite[first] < at) & (
+        np.linalg.norm(xyz[finite[first]] - xyz[at], axis=1) <= CONFLICT_M)
+    # a pose logged late where the path runs through it (a recorder's lag) is no step either
+    ahead = finite[~back]
+    at_t = np.column_stack([np.interp(t[at], t[ahead], xyz[ahead, c]) for c in range(3)])
+    late = np.linalg.norm(at_t - xyz[at], axis=1) <= LATE_POSE_M
+    repeat |= late
+    if repeat.all():
+        return
+    i = int(np.flatnonzero(back)[~repeat][0])
+    k = int(finite[i])
+    raise TrajectoryError(
+        f"{source}: stamps go backwards at pose {k + 1} of {t.size}: t={t[k]:.3f} s after "
+        f"t={newest[i - 1]:.3f} s, {newest[i - 1] - t[k]:.3f} s back "
+        f"({int(np.count_nonzero(~repeat))} poses earlier than one read before them); a "
+        "trajectory's clock must run forward (clock reset, or two sources on one topic?)")
 
 
 def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
@@ -219,8 +271,9 @@ def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
     Raises
     ------
     TrajectoryError
-        Two or more samples all at one stamp (the stamps were not set), or fewer than two
-        usable samples at distinct stamps: one line naming ``source`` and the counts.
+        Two or more samples all at one stamp (the stamps were not set), stamps that step
+        back in the order given (:func:`stepped_back`), or fewer than two usable samples at
+        distinct stamps: one line naming ``source`` and the counts.
     """
     finite = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
     keep = finite.copy()
@@ -231,6 +284,7 @@ def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
         raise TrajectoryError(
             f"{source}: all {order.size} poses carry the same stamp t={ts[0]:.3f} s; a "
             "trajectory needs each pose at its own time (header.stamp not set?)")
+    stepped_back(t, xyz, source)
     # each sorted sample against the first of its stamp
     first = np.concatenate(([True], np.diff(ts) > 0)) if order.size else np.ones(0, bool)
     head = order[np.maximum.accumulate(np.where(first, np.arange(order.size), 0))]
@@ -318,4 +372,6 @@ class Mission:
         return sum(len(s) for s in self.strips)
 
 
-__all__ = ["CONFLICT_M", "ControlPoints", "Mission", "Strip", "Trajectory", "screen_samples"]
+__all__ = ["CONFLICT_M", "LATE_POSE_M", "REORDER_S", "ControlPoints", "Mission", "Strip",
+           "Trajectory",
+           "screen_samples", "stepped_back"]

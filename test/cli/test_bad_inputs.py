@@ -272,12 +272,14 @@ def test_trajectory_screening_counts_what_it_leaves_out(caplog) -> None:
     keep = screen_samples(t, xyz, "BAG: /traj")
     assert keep.all() and not caplog.records
     # a message recorded twice is harmless; a stamp at two places drops both; NaN dropped
-    t2 = np.concatenate([t, [3.0, 5.0, 7.0]])
-    xyz2 = np.concatenate([xyz, [xyz[3], xyz[5] + [2.5, 0, 0], xyz[7]]])
-    xyz2[8] = np.nan
+    # (each repeat read after its first: in time order, no clock stepping back)
+    order = np.argsort(np.concatenate([t, [3.0, 5.0, 7.0]]), kind="stable")
+    t2 = np.concatenate([t, [3.0, 5.0, 7.0]])[order]
+    xyz2 = np.concatenate([xyz, [xyz[3], xyz[5] + [2.5, 0, 0], xyz[7]]])[order]
+    xyz2[11] = np.nan  # (t = 8)
     with caplog.at_level("WARNING"):
         keep = screen_samples(t2, xyz2, "BAG: /traj")
-    assert np.flatnonzero(~keep).tolist() == [5, 8, 11]
+    assert np.flatnonzero(~keep).tolist() == [6, 7, 11]
     (record,) = caplog.records
     assert record.getMessage() == (
         "BAG: /traj: 3 of 13 poses left out: 1 with a non-finite stamp or position; 2 at 1 "
@@ -428,8 +430,9 @@ def test_an_imported_trajectory_with_conflicting_or_equal_times(capsys, tmp_path
     xyz = np.column_stack([500_000.0 + 5.0 * (t - t[0]), np.full(t.size, 5_000_100.0),
                            np.full(t.size, 1000.0)])
     twice = np.arange(5, t.size, 40)
-    csv = _ascii_trajectory(tmp_path / "traj.csv", np.concatenate([t, t[twice]]),
-                            np.concatenate([xyz, xyz[twice] + [3.0, 0.0, 0.0]]))
+    order = np.argsort(np.concatenate([t, t[twice]]), kind="stable")  # each after its first
+    csv = _ascii_trajectory(tmp_path / "traj.csv", np.concatenate([t, t[twice]])[order],
+                            np.concatenate([xyz, xyz[twice] + [3.0, 0.0, 0.0]])[order])
     rc, _, err = run(capsys, "import", strip, "--trajectory", csv, "-o", tmp_path / "bag")
     assert rc == 0, err
     assert warning_lines(err, "import") == [

@@ -13,7 +13,7 @@ from lidarcal_ros.core.georeferencing.attitude import (
     headings_from_quaternions,
     normalise_quaternions,
 )
-from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.mission import REORDER_S, Trajectory
 
 __all__ = ["TrajectoryBuffer"]
 
@@ -134,6 +134,12 @@ class TrajectoryBuffer:
     s is 120 000 samples, which a corrector asks for 20 times a second), otherwise all are
     sorted again. Samples are merged, and old ones dropped, at the latest every
     ``_MAX_PENDING`` samples, whether or not anyone reads the trajectory.
+
+    A sample more than :data:`~lidarcal_ros.core.mission.REORDER_S` older than the newest is
+    a clock that stepped back (a reset, a replay looping): the samples held from its stamp on
+    belong to the old clock and are dropped, so that the points of the new clock are
+    georeferenced by its own samples, never by the flight the old clock saw at those times
+    (:attr:`steps_back` counts the steps, :attr:`last_step_back` says the latest).
     """
 
     def __init__(self, keep_s: float = 600.0) -> None:
@@ -151,14 +157,37 @@ class TrajectoryBuffer:
         self.last_arrival = -math.inf  # monotonic clock of the last sample received
         self.samples = 0
         self.oriented_samples = 0  # of them with an orientation (not the identity)
-        #: Samples left out: a non-finite stamp or position, or a stamp already held.
+        #: Samples left out: a non-finite stamp or position, a stamp already held, or a
+        #: stamp the clock stepped back over.
         self.left_out = 0
+        #: Times the stamps stepped back by more than REORDER_S, and the latest as words.
+        self.steps_back = 0
+        self.last_step_back = ""
+        # (index in the pending samples, stamp): held samples from the stamp on are dropped
+        self._cuts: list[tuple[int, float]] = []
+
+    def _held(self, t: float) -> bool:
+        """A sample at stamp ``t`` is held (merged or pending; lock held): a late repeat,
+        left out when merged, is no step back."""
+        rows = self._rows
+        k = int(np.searchsorted(rows.t[rows.lo:rows.hi], t))
+        return (k < rows.hi - rows.lo and rows.t[rows.lo + k] == t) or t in self._pending_t
+
+    def _step_back(self, at: int, t: float) -> None:
+        """Note a clock stepping back to ``t`` (s) at pending sample ``at`` (lock held)."""
+        self.steps_back += 1
+        self.last_step_back = (f"stamps went backwards at t={t:.3f} s, {self.end - t:.3f} s "
+                               f"back from t={self.end:.3f} s")
+        self._cuts.append((at, t))
+        self.end = t
 
     def add(self, t: float, xyz: tuple[float, float, float], frame_id: str | None = None,
             orientation: tuple[float, ...] = _NO_ORIENTATION) -> None:
         """Add one sample: time (s), position (m), and its orientation quaternion
         ``(x, y, z, w)`` (NaN or the identity: none)."""
         with self._lock:
+            if t < self.end - REORDER_S and not self._held(t):
+                self._step_back(len(self._pending_t), t)
             self._pending_t.append(t)
             self._pending_xyz.append(xyz)
             self._pending_q.append(orientation)
@@ -183,6 +212,16 @@ class TrajectoryBuffer:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         finite = t[np.isfinite(t)]
         with self._lock:
+            newest = np.maximum.accumulate(np.concatenate(([self.end], finite)))
+            if np.any(finite < newest[:-1] - REORDER_S):
+                base = len(self._pending_t)
+                for k in np.flatnonzero(np.isfinite(t)).tolist():  # each step, in order
+                    tk = float(t[k])
+                    if tk < self.end - REORDER_S and not self._held(tk):
+                        self._step_back(base + k, tk)
+                    self.end = max(self.end, tk)
+            else:
+                self.end = float(newest[-1])
             self._pending_t.extend(t.tolist())
             self._pending_xyz.extend(xyz.tolist())
             if orientation is None:
@@ -194,8 +233,6 @@ class TrajectoryBuffer:
                     np.isfinite(q).all(axis=1) & np.any(q[:, :3] != 0.0, axis=1)))
             self.samples += int(t.size)
             self.last_arrival = time.monotonic()
-            if finite.size and float(finite.max()) > self.end:
-                self.end = float(finite.max())
             merge = len(self._pending_t) > _MAX_PENDING
         if merge:
             self.trajectory()
@@ -215,7 +252,18 @@ class TrajectoryBuffer:
             x_new = np.asarray(self._pending_xyz, dtype=np.float64).reshape(-1, 3)
             q_new = np.asarray(self._pending_q, dtype=np.float64).reshape(-1, 4)
             self._pending_t, self._pending_xyz, self._pending_q = [], [], []
+            cuts, self._cuts = self._cuts, []
         rows = self._rows
+        if cuts:  # the samples of the old clock from each step's stamp on are dropped
+            keep_old, keep_new = np.ones(len(self._traj), bool), np.ones(t_new.shape[0], bool)
+            for at, t_cut in cuts:
+                keep_old &= self._traj.t < t_cut
+                keep_new[:at] &= ~(t_new[:at] >= t_cut)
+            old = self._traj.take(np.flatnonzero(keep_old))
+            self.left_out += int(np.count_nonzero(~keep_old) + np.count_nonzero(~keep_new))
+            t_new, x_new, q_new = t_new[keep_new], x_new[keep_new], q_new[keep_new]
+            rows = self._rows = _Rows(old)
+            self._traj = old
         if (np.isfinite(t_new).all() and np.isfinite(x_new).all()
                 and bool(np.all(np.diff(t_new) > 0)) and t_new[0] > rows.last_t):
             rows.append(t_new, x_new, q_new)

@@ -344,9 +344,16 @@ class CalibrationService:
 
     def _add_poses(self, poses: list[AddPose]) -> None:
         t = np.array([p.t for p in poses])
+        steps = self._stream.clock_steps[0]
         self._stream.add_trajectory(t, np.array([p.xyz for p in poses]), poses[-1].frame_id,
                                     np.array([p.orientation for p in poses]))
-        self._traj_end = max(self._traj_end, float(t.max()))
+        steps_now, last = self._stream.clock_steps
+        if steps_now > steps:  # the old clock's poses from there on were dropped
+            logger.error("calibrator: trajectory: pose %s; the poses of the old clock from "
+                         "there on are dropped", last)
+            self._traj_end = self._stream.newest_pose
+        else:
+            self._traj_end = max(self._traj_end, float(t.max()))
 
     def _run(self, job: Job) -> str | None:
         """Do one job; returns the reply of a request."""

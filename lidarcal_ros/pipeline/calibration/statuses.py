@@ -120,8 +120,12 @@ def input_status(stream: StreamingCalibration, received: InputCounts,
     uncovered, left_out = s.uncovered_points, s.uncovered_strips
     rejected, late = s.rejected_strips, s.late_points
     partial = s.partial_strips
-    level = WARN if inp.skipped or uncovered or rejected or late or partial else OK
+    steps, last_step = s.clock_steps
+    level = WARN if inp.skipped or uncovered or rejected or late or partial or steps else OK
     message = f"{inp.clouds} clouds, {inp.points} points, {inp.poses} poses"
+    if steps:
+        message += (f"; pose {last_step} ({steps} step(s) back; the old clock's poses "
+                    "dropped)")
     if inp.skipped:
         message += f"; {inp.skipped} malformed clouds skipped (last: {inp.last_error})"
     if uncovered:
@@ -140,7 +144,7 @@ def input_status(stream: StreamingCalibration, received: InputCounts,
         message += (f"; {s.poses_left_out} poses left out (a non-finite stamp or position, or "
                     "a stamp already received)")
     return StatusSpec(level, "lidarcal: input", message, {
-        "poses_left_out": str(s.poses_left_out),
+        "poses_left_out": str(s.poses_left_out), "clock_steps_back": str(steps),
         "clouds": str(inp.clouds), "points": str(inp.points),
         "poses": str(inp.poses), "skipped_clouds": str(inp.skipped),
         "last_error": inp.last_error, "queued_jobs": str(queued_jobs),

@@ -6,6 +6,7 @@ samples; past the budget they are thinned (docs/nodes.md, "How the calibrator wo
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -13,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidarcal_ros.core.calibration.thinning import first_per_cell
-from lidarcal_ros.core.mission import Strip, Trajectory
+from lidarcal_ros.core.mission import REORDER_S, Strip, Trajectory
 from lidarcal_ros.errors import InputError
 
 __all__ = [
@@ -170,15 +171,65 @@ class TrajectorySamples:
         self._q: list[np.ndarray] = []
         self._trajectory: Trajectory | None = None
         #: Samples left out of :attr:`trajectory`: a non-finite stamp or position, or a stamp
-        #: already held (counted when the trajectory is formed).
+        #: already held (counted when the trajectory is formed), or dropped by a clock that
+        #: stepped back.
         self.left_out = 0
+        self._dropped = 0
+        self._newest = -math.inf
+        #: Times the stamps stepped back, and the latest in words.
+        self.steps_back = 0
+        self.last_step_back = ""
+
+    def _cut(self, t_cut: float) -> None:
+        """Drop the samples held from ``t_cut`` (s) on: the clock stepped back to it."""
+        t, xyz, q = self.arrays()
+        keep = ~(t >= t_cut)
+        self.steps_back += 1
+        self.last_step_back = (f"stamps went backwards at t={t_cut:.3f} s, "
+                               f"{self._newest - t_cut:.3f} s back from t={self._newest:.3f} s")
+        self._dropped += int(np.count_nonzero(~keep))
+        self._t, self._xyz, self._q = [t[keep]], [xyz[keep]], [q[keep]]
+        self._newest = float(t[keep].max()) if keep.any() else -math.inf
 
     def __bool__(self) -> bool:
         return bool(self._t)
 
     def add(self, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None) -> None:
-        """Add samples: times (n,), positions (n, 3), quaternions (n, 4) or None."""
+        """Add samples: times (n,), positions (n, 3), quaternions (n, 4) or None.
+
+        A stamp more than :data:`~lidarcal_ros.core.mission.REORDER_S` before the newest
+        held is a clock that stepped back: the samples held from that stamp on are the old
+        clock's and are dropped (counted in :attr:`left_out`, said in
+        :attr:`last_step_back`), as the corrector's buffer does
+        (:class:`~lidarcal_ros.core.trajectory.buffer.TrajectoryBuffer`).
+        """
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        index = np.flatnonzero(np.isfinite(t))
+        newest = np.maximum.accumulate(np.concatenate(([self._newest], t[index])))
+        back = np.flatnonzero(t[index] < newest[:-1] - REORDER_S)
+        if back.size:  # a late repeat of a stamp held (left out when formed) is no step
+            held = np.concatenate([*self._t, t])
+            first = np.array([np.flatnonzero(held == v)[0] for v in t[index[back]]])
+            back = back[first >= len(held) - t.size + index[back]]
+        q = None if orientation is None else np.asarray(orientation).reshape(-1, 4)
+        if back.size:  # the first step back: held from its stamp on is the old clock's
+            at = int(index[back[0]])
+            self._append(t[:at], xyz[:at], None if q is None else q[:at])
+            self._newest = float(newest[back[0]])
+            self._cut(float(t[at]))
+            self.add(t[at:], xyz[at:], None if q is None else q[at:])  # (later steps)
+            return
+        self._newest = float(newest[-1])
+        self._append(t, xyz, q)
+
+    @property
+    def newest(self) -> float:
+        """The newest stamp held, s (-inf: none)."""
+        return self._newest
+
+    def _append(self, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None) -> None:
+        """Hold samples as given (no check)."""
         self._t.append(t)
         self._xyz.append(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
         self._q.append(np.full((t.shape[0], 4), np.nan) if orientation is None
@@ -205,5 +256,5 @@ class TrajectorySamples:
                 raise InputError("no trajectory received yet")
             t, xyz, q = self.arrays()
             self._trajectory = Trajectory.from_samples(t, xyz, q)
-            self.left_out = int(t.shape[0]) - len(self._trajectory)
+            self.left_out = self._dropped + int(t.shape[0]) - len(self._trajectory)
         return self._trajectory

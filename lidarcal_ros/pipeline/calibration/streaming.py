@@ -226,6 +226,17 @@ class StreamingCalibration:
         return self._samples.left_out
 
     @property
+    def clock_steps(self) -> tuple[int, str]:
+        """How often the pose stamps stepped back (the old clock's samples dropped), and the
+        latest in words."""
+        return self._samples.steps_back, self._samples.last_step_back
+
+    @property
+    def newest_pose(self) -> float:
+        """The newest pose stamp held, s (-inf: none)."""
+        return self._samples.newest
+
+    @property
     def partial_strips(self) -> dict[int, str]:
         """The strips received only in part, with what is missing (docs/nodes.md)."""
         return self._coverage.partial_strips

@@ -193,7 +193,13 @@ class LiveCorrector:
                  orientation: tuple[float, ...]) -> None:
         """A trajectory sample: time (s), IMU position (map frame, m), quaternion xyzw
         (NaN: none)."""
+        steps = self.trajectory.steps_back
         self.trajectory.add(t, xyz, frame_id, orientation)
+        if self.trajectory.steps_back > steps:
+            self._throttled.log(logging.ERROR, _LOG_EVERY_S,
+                                f"{self.config['topics.trajectory']}: pose "
+                                f"{self.trajectory.last_step_back}; the poses of the old "
+                                "clock from there on are dropped")
         with self._lock:
             self._poses_t.append(t)
             self._poses_xyz.append(xyz)
@@ -274,9 +280,13 @@ class LiveCorrector:
         lat = np.asarray(s.latencies, dtype=np.float64)
         p50 = float(np.percentile(lat, 50)) if lat.size else math.nan
         p99 = float(np.percentile(lat, 99)) if lat.size else math.nan
-        level = WARN if s.skipped or s.not_corrected or s.dropped else OK
+        steps = self.trajectory.steps_back
+        level = WARN if s.skipped or s.not_corrected or s.dropped or steps else OK
         msg = (f"{s.clouds_out} clouds ({s.points_out} points) corrected, "
                f"latency p99 {p99 * 1000:.0f} ms")
+        if steps:
+            msg += (f"; pose {self.trajectory.last_step_back} ({steps} step(s) back; the old "
+                    "clock's poses dropped)")
         if s.dropped:
             msg += (f"; {s.dropped} clouds dropped ({s.dropped_bytes / 2**20:.0f} MiB): "
                     "backlog above max_backlog_mib")
@@ -296,6 +306,7 @@ class LiveCorrector:
             "estimate_source": self.estimate_source, "transport": self.transport,
             "incidence": self.settings.radiometry.incidence_rule,
             "poses_left_out": str(self.trajectory.left_out),
+            "clock_steps_back": str(steps),
             "heading": describe_heading_policy(heading_source,
                                                self.trajectory.oriented_samples > 0),
             "model": describe_model_policy(self.settings.model, self.trajectory.trajectory(),

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from lidarcal_ros.core.trajectory import buffer as trajectory_buffer
 from lidarcal_ros.core.trajectory.buffer import TrajectoryBuffer
@@ -157,3 +160,59 @@ def test_the_identity_is_a_level_pose_heading_east_among_poses_with_attitude() -
     for k in range(n):
         bare.add(float(t[k]), tuple(xyz[k]), orientation=IDENTITY_XYZW)
     assert bare.trajectory().orientation is None
+
+
+def _flight(t: np.ndarray) -> np.ndarray:
+    """Positions of a straight line at 60 m/s (m)."""
+    return np.column_stack([60.0 * t, np.zeros(t.size), np.full(t.size, 1000.0)])
+
+
+@pytest.mark.parametrize("one_by_one", [True, False])
+def test_a_clock_stepping_back_restarts_the_buffer_from_its_stamp(one_by_one: bool) -> None:
+    """10 s of poses, then the clock steps back 4 s and runs on (a second flight at those
+    stamps, 500 m away): the old clock's poses from the step on are dropped, counted and
+    said, so that the stamps 6-10 s carry the new flight only; swapped neighbours are not a
+    step."""
+    from lidarcal_ros.core.trajectory.buffer import TrajectoryBuffer
+
+    old_t = np.arange(0.0, 10.0, 0.1)
+    new_t = np.arange(6.05, 12.0, 0.1)  # (no stamp of the old clock's)
+    new_xyz = _flight(new_t + 0.0) + np.array([0.0, 500.0, 0.0])
+    t = np.concatenate([old_t, new_t])
+    xyz = np.concatenate([_flight(old_t), new_xyz])
+    t[[3, 7]] = t[[7, 3]]  # reordered on the way (0.4 s): sorted, no step
+    buffer = TrajectoryBuffer(keep_s=math.inf)
+    if one_by_one:
+        for ti, p in zip(t, xyz):
+            buffer.add(float(ti), tuple(p))
+    else:
+        buffer.add_many(t[:50], xyz[:50])
+        buffer.add_many(t[50:], xyz[50:])
+    traj = buffer.trajectory()
+    assert buffer.steps_back == 1
+    assert buffer.last_step_back == "stamps went backwards at t=6.050 s, 3.850 s back from " \
+                                    "t=9.900 s"
+    old_kept = old_t < 6.05
+    assert len(traj) == int(old_kept.sum()) + new_t.size
+    assert buffer.left_out == int((~old_kept).sum())
+    later = traj.t >= 6.05
+    np.testing.assert_allclose(traj.xyz[later], new_xyz)
+    assert np.all(np.diff(traj.t) > 0)
+
+
+def test_the_calibrators_samples_drop_the_old_clock_alike() -> None:
+    """The live calibrator's samples: the same step in one array or in two."""
+    from lidarcal_ros.pipeline.calibration.stream_inputs import TrajectorySamples
+
+    old_t, new_t = np.arange(0.0, 10.0, 0.1), np.arange(6.05, 12.0, 0.1)
+    t = np.concatenate([old_t, new_t])
+    xyz = np.concatenate([_flight(old_t), _flight(new_t + 0.0) + np.array([0.0, 500.0, 0.0])])
+    for parts in ([slice(0, None)], [slice(0, 70), slice(70, None)]):
+        samples = TrajectorySamples()
+        for sl in parts:
+            samples.add(t[sl], xyz[sl], None)
+        traj = samples.trajectory
+        assert samples.steps_back == 1 and samples.newest == pytest.approx(11.95)
+        assert "stamps went backwards at t=6.050 s, 3.850 s back" in samples.last_step_back
+        assert samples.left_out == 39
+        np.testing.assert_allclose(traj.xyz[traj.t >= 6.05, 1], 500.0)
