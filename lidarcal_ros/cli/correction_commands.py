@@ -77,6 +77,8 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag, output_kind
     from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
 
+    if args.dask is not None:
+        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     tune_allocator()
     config = load_flight_config(args.config)
     overrides = {}
@@ -91,8 +93,6 @@ def cmd_correct(args: argparse.Namespace) -> int:
     crs = parse_crs(args.crs) if args.crs else None
     if args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
-    if args.dask is not None:
-        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     out = args.output
     check_output(out, overwrite=args.overwrite, inputs=other_paths(args, "output"),
                  directory=output_kind(out) == "bag" and out.suffix != ".mcap")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import warnings
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -194,9 +195,15 @@ def _start_local(workers: int, timeout_s: float) -> DaskExecutor:
     _quiet_dask()
 
     # Processes (the correction's Python holds the interpreter lock), one thread each,
-    # listening on the loopback only, no dashboard; the nannies restart a dead worker.
+    # listening on the loopback only, no dashboard (and no page at all on the HTTP port a
+    # scheduler and its workers open anyway, there too); the nannies restart a dead worker.
     with dask.config.set({"distributed.worker.daemon": True,
-                          "distributed.comm.timeouts.connect": f"{timeout_s}s"}):
+                          "distributed.scheduler.http.routes": [],
+                          "distributed.worker.http.routes": [],
+                          "distributed.comm.timeouts.connect": f"{timeout_s}s"}), \
+            warnings.catch_warnings():
+        # (that port is the HTTP server's, serving nothing: another one is as good)
+        warnings.filterwarnings("ignore", message="Port .* is already in use")
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                host="127.0.0.1", dashboard_address=None,
                                memory_limit=_local_memory_limit(workers),

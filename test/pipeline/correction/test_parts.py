@@ -1,0 +1,149 @@
+"""``lidarcal correct`` in parts (``--dask``): through a two-worker local Dask cluster, and
+in this process, the output's bytes are the serial run's (bag and LAZ); a worker killed in
+its task is replaced and the part run again, the output unchanged; where the mission is cut.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+import signal
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import cloudpickle
+import helpers_missions
+import pytest
+from helpers_missions import MissionFiles, write_calibration_yaml
+
+from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag
+from lidarcal_ros.pipeline.correction.parts import CloudSpan, plan_parts
+from lidarcal_ros.pipeline.executor import (
+    DaskExecutor,
+    Executor,
+    SerialExecutor,
+    TaskFuture,
+    open_executor,
+)
+
+mission_factory = helpers_missions.mission_factory
+small_mission = helpers_missions.small_mission
+
+# (the workers unpickle this module's functions by value: they cannot import a test module)
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[DaskExecutor]:
+    """One two-worker local cluster for the module (starting one takes seconds)."""
+    with open_executor("local:2") as executor:
+        assert isinstance(executor, DaskExecutor)
+        yield executor
+
+
+@pytest.fixture(scope="module")
+def calibration(small_mission: MissionFiles, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small mission's true biases as a calibration file."""
+    return write_calibration_yaml(tmp_path_factory.mktemp("cal") / "cal.yaml",
+                                  small_mission.sim.biases)
+
+
+def _corrected(bag: Path, calibration: Path, folder: Path, name: str,
+               executor: Executor | None = None) -> bytes:
+    """The bytes of ``name`` (a .mcap's, a .laz's) corrected in ``folder`` (the same name
+    for every run: a bag's metadata holds its file name)."""
+    folder.mkdir()
+    out = folder / name
+    correct_bag(bag, calibration, out, options=CorrectOptions(batch_points=20_000),
+                executor=executor)
+    assert not [p for p in folder.iterdir() if p.name.startswith(".")], "parts left behind"
+    return out.read_bytes()
+
+
+@pytest.mark.parametrize("name", ["out.mcap", "out.laz"])
+def test_two_workers_write_the_serial_bytes(
+        small_mission: MissionFiles, calibration: Path, cluster: DaskExecutor, name: str,
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", name)
+    with caplog.at_level(logging.INFO, logger="lidarcal_ros.pipeline.correction.parts"):
+        parted = _corrected(small_mission.bag, calibration, tmp_path / "dask", name, cluster)
+    found = re.search(r"in (\d+) parts on Dask local cluster, 2 worker processes", caplog.text)
+    assert found and int(found[1]) >= 2  # (cut between strips: the parts meet)
+    assert parted == serial
+
+
+def test_parts_in_this_process_write_the_serial_bytes(
+        small_mission: MissionFiles, calibration: Path, tmp_path: Path) -> None:
+    serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", "out.las")
+    parted = _corrected(small_mission.bag, calibration, tmp_path / "parts", "out.las",
+                        SerialExecutor())
+    assert parted == serial
+
+
+def _dies_once(marker: str, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``, but the first call anywhere (no ``marker`` file yet) kills its own
+    worker process instead."""
+    try:
+        os.close(os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return fn(*args)
+    os.kill(os.getpid(), signal.SIGKILL)
+    raise AssertionError("not reached")
+
+
+class _KillingExecutor:
+    """``inner``, whose first task kills the worker it runs on."""
+
+    def __init__(self, inner: DaskExecutor, marker: Path) -> None:
+        self.inner, self.marker = inner, marker
+        self.workers, self.description = inner.workers, inner.description
+
+    def submit(self, fn: Callable[..., Any], *args: Any, key: str) -> TaskFuture[Any]:
+        return self.inner.submit(_dies_once, str(self.marker), fn, *args, key=key)
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_killed_worker_is_replaced_and_the_output_unchanged(
+        small_mission: MissionFiles, calibration: Path, cluster: DaskExecutor,
+        tmp_path: Path) -> None:
+    serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", "out.mcap")
+    marker = tmp_path / "killed"
+    parted = _corrected(small_mission.bag, calibration, tmp_path / "dask", "out.mcap",
+                        _KillingExecutor(cluster, marker))
+    assert marker.exists()  # (a worker did die)
+    assert parted == serial
+
+
+# -------------------------------------------------------------------------- plan_parts
+def _clouds(*spans: tuple[float, float], points: int = 100) -> list[CloudSpan]:
+    return [CloudSpan(points, lo, hi) for lo, hi in spans]
+
+
+def test_parts_are_cut_only_at_pauses_longer_than_the_grids_gap() -> None:
+    clouds = _clouds((0, 1), (1, 2), (4.5, 5), (5, 6), (8.01, 9), (9, 10))
+    # pauses: 2.5 s before cloud 2, 2.01 s before cloud 4; 2 s exactly is no cut
+    assert plan_parts(clouds, 3) == [(0, 2), (2, 4), (4, 6)]
+    assert plan_parts(clouds, 2) == [(0, 4), (4, 6)]
+    assert plan_parts(clouds, 1) == [(0, 6)]
+    assert plan_parts(_clouds((0, 1), (3, 4)), 2) == [(0, 2)]
+
+
+def test_an_earlier_cloud_reaching_past_the_pause_prevents_the_cut() -> None:
+    # cloud 1 ends at 9 s: the pause between clouds 2 and 3 (6 -> 7.5 s) is then none
+    clouds = _clouds((0, 1), (1, 9), (5, 6), (9.5, 10))
+    assert plan_parts(clouds, 4) == [(0, 4)]
+
+
+def test_empty_clouds_and_unknown_times() -> None:
+    empty = CloudSpan(0, math.nan, math.nan)
+    clouds = [*_clouds((0, 1)), empty, *_clouds((5, 6))]
+    assert plan_parts(clouds, 2) == [(0, 1), (1, 3)]  # (an empty cloud holds no grid)
+    unknown = CloudSpan(10, math.nan, math.nan)
+    assert plan_parts([*_clouds((0, 1)), unknown, *_clouds((5, 6))], 2) == [(0, 3)]
+    assert plan_parts([], 2) == []
