@@ -8,6 +8,7 @@ out of its ``with`` block.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -160,6 +161,11 @@ class DaskExecutor:
     def close(self) -> None:
         """Close the client, then stop the local cluster (its processes) if this made one."""
         client, cluster, self.client, self.cluster = self.client, self.cluster, None, None
+        if client is None and cluster is None:
+            return
+        # What Dask says while its processes end (heartbeats unanswered, exit codes already
+        # read after a Ctrl-C reached them too) is no news about the command's work.
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
         try:
             if client is not None:
                 client.close()
@@ -188,9 +194,21 @@ def _quiet_dask() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
+def _abandon(cluster: Any) -> None:
+    """Stop what there is of a local cluster whose start was interrupted, and keep Dask's
+    exit handler from trying again (it fails, with a traceback, on workers not yet started);
+    its worker processes are daemons: they end with this process whatever happens here."""
+    cluster.shutdown_on_close = False
+    for name in ("distributed", "asyncio"):  # (its start's tasks, failed, as the loop ends)
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    with contextlib.suppress(Exception):
+        cluster.close(timeout=5)
+
+
 def _start_local(workers: int, timeout_s: float) -> DaskExecutor:
     import dask
     from distributed import Client, LocalCluster
+    from distributed.deploy.spec import SpecCluster
 
     _quiet_dask()
 
@@ -204,10 +222,16 @@ def _start_local(workers: int, timeout_s: float) -> DaskExecutor:
             warnings.catch_warnings():
         # (that port is the HTTP server's, serving nothing: another one is as good)
         warnings.filterwarnings("ignore", message="Port .* is already in use")
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None,
-                               memory_limit=_local_memory_limit(workers),
-                               silence_logs=logging.ERROR)
+        started = set(SpecCluster._instances)
+        try:
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=None,
+                                   memory_limit=_local_memory_limit(workers),
+                                   silence_logs=logging.CRITICAL)
+        except BaseException:  # (Ctrl-C, SIGTERM while it starts: no object to close)
+            for half_built in set(SpecCluster._instances) - started:
+                _abandon(half_built)
+            raise
         try:
             client = Client(cluster, timeout=timeout_s)
         except BaseException:

@@ -10,6 +10,7 @@ import math
 import os
 import re
 import signal
+import subprocess
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -19,6 +20,7 @@ import cloudpickle
 import helpers_missions
 import pytest
 from helpers_missions import MissionFiles, write_calibration_yaml
+from helpers_wait import wait_until
 
 from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag
 from lidarcal_ros.pipeline.correction.parts import CloudSpan, plan_parts
@@ -147,3 +149,38 @@ def test_empty_clouds_and_unknown_times() -> None:
     unknown = CloudSpan(10, math.nan, math.nan)
     assert plan_parts([*_clouds((0, 1)), unknown, *_clouds((5, 6))], 2) == [(0, 3)]
     assert plan_parts([], 2) == []
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_ends_the_command_and_its_cluster(
+        small_mission: MissionFiles, calibration: Path, tmp_path: Path,
+        sig: signal.Signals) -> None:
+    out = tmp_path / "out.mcap"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "lidarcal_ros", "correct", str(small_mission.bag),
+         "--calibration", str(calibration), "-o", str(out), "-q", "--dask", "local:2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    wait_until(lambda: len(_children(process.pid)) >= 2 or process.poll() is not None,
+               30.0, "the cluster's worker processes")
+    children = _children(process.pid)
+    process.send_signal(sig)
+    _out, err = process.communicate(timeout=60)
+    assert process.returncode == (128 + sig if sig == signal.SIGTERM else 130)
+    assert err.strip() == ("lidarcal correct: terminated" if sig == signal.SIGTERM
+                           else "lidarcal correct: interrupted")
+    wait_until(lambda: not [c for c in children if _running(c)], 10.0, "workers to end")
+    assert list(tmp_path.iterdir()) == []  # no output, no parts
+
+
+def _children(pid: int) -> list[str]:
+    found = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True)
+    return found.stdout.split()
+
+
+def _running(pid: str) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+    return "zombie" not in status
