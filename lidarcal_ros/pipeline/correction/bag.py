@@ -6,6 +6,7 @@ and what it writes: docs/correction.md, "``lidarcal correct`` on a bag".
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import heapq
 import logging
@@ -13,7 +14,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -819,14 +820,15 @@ class _OrderedOutput:
         self._report.passthrough_messages += 1
 
 
-def _correct_to_bag(job: _Job) -> None:
-    """Correct the clouds of ``job`` into a bag, every other message passed through."""
+@contextlib.contextmanager
+def bag_output(job: _Job) -> Iterator[tuple[Any, Any, _OrderedOutput]]:
+    """The output bag of ``job`` open: its writer, the input's chunks copied into it (None
+    where they are not: every message is then passed through one by one) and the
+    :class:`_OrderedOutput` the messages go through."""
     from lidarcal_ros.io.bag.format import POINTCLOUD2
     from lidarcal_ros.io.bag.writer import BagWriter
 
-    bag, corrector, gate, points_topic = job.bag, job.corrector, job.gate, job.points_topic
-    messages = job.messages
-    assert messages is not None  # (a bag output's corrector places into them)
+    bag = job.bag
     latched = [t for t, info in bag.topics.items() if info.transient_local]
     with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched,
                    typestore=bag.typestore) as writer:
@@ -838,7 +840,15 @@ def _correct_to_bag(job: _Job) -> None:
         copied = writer.copy_chunks_of(bag, new_topics)
         if copied is not None:
             job.report.passthrough_messages = copied.messages
-        output = _OrderedOutput(writer, bag, job.corrected_topic, job.report)
+        yield writer, copied, _OrderedOutput(writer, bag, job.corrected_topic, job.report)
+
+
+def _correct_to_bag(job: _Job) -> None:
+    """Correct the clouds of ``job`` into a bag, every other message passed through."""
+    bag, corrector, gate, points_topic = job.bag, job.corrector, job.gate, job.points_topic
+    messages = job.messages
+    assert messages is not None  # (a bag output's corrector places into them)
+    with bag_output(job) as (writer, copied, output):
 
         def collect(done: list[tuple[Any, np.ndarray]]) -> None:
             for k, _corrected in done:

@@ -263,20 +263,8 @@ def _cloud_span(bag: Any, msgtype: str, raw: bytes, topic: str, time_field: str)
 def _assemble_bag(job: Any, parts: _Parts) -> None:
     """The output bag from the parts: the calls to the writer
     :func:`~lidarcal_ros.pipeline.correction.bag.correct_bag` makes, in its order."""
-    from lidarcal_ros.io.bag.format import POINTCLOUD2
-    from lidarcal_ros.io.bag.writer import BagWriter
-
     bag = job.bag
-    latched = [t for t, info in bag.topics.items() if info.transient_local]
-    with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched,
-                   typestore=bag.typestore) as writer:
-        new_topics = {job.corrected_topic: POINTCLOUD2}
-        if job.moved_topic is not None:
-            new_topics[job.moved_topic] = bag.topics[job.trajectory_topic].msgtype
-        copied = writer.copy_chunks_of(bag, new_topics)
-        if copied is not None:
-            job.report.passthrough_messages = copied.messages
-        output = bag_correction._OrderedOutput(writer, bag, job.corrected_topic, job.report)
+    with bag_correction.bag_output(job) as (writer, copied, output):
         if copied is not None:  # (the other messages are in the output already)
             for k, cloud in enumerate(parts):
                 output.hold(k)

@@ -5,6 +5,7 @@ its task is replaced and the part run again, the output unchanged; where the mis
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -18,10 +19,22 @@ from typing import Any
 
 import cloudpickle
 import helpers_missions
+import numpy as np
 import pytest
+import yaml
 from helpers_missions import MissionFiles, write_calibration_yaml
 from helpers_wait import wait_until
 
+from lidarcal_ros.core.simulation.simulate import simulate_mission
+from lidarcal_ros.core.simulation.spec import TYPICAL_TRAJECTORY_ERRORS, SimulationSpec
+from lidarcal_ros.core.trajectory.strip_errors import (
+    StripError,
+    TrajectoryEstimate,
+    TrajectoryModel,
+)
+from lidarcal_ros.io.bag.writer import BagWriter
+from lidarcal_ros.io.calibration_file import trajectory_document
+from lidarcal_ros.pipeline.calibration.procedure import write_simulation
 from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag
 from lidarcal_ros.pipeline.correction.parts import CloudSpan, plan_parts
 from lidarcal_ros.pipeline.executor import (
@@ -82,6 +95,53 @@ def test_parts_in_this_process_write_the_serial_bytes(
         small_mission: MissionFiles, calibration: Path, tmp_path: Path) -> None:
     serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", "out.las")
     parted = _corrected(small_mission.bag, calibration, tmp_path / "parts", "out.las",
+                        SerialExecutor())
+    assert parted == serial
+
+
+@pytest.fixture(scope="module")
+def drifting(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A small mission flown with typical trajectory errors, and a calibration holding each
+    strip's true offset and drift: the output gets the corrected trajectory, made from the
+    strips' time spans the parts gather."""
+    work = tmp_path_factory.mktemp("drifting")
+    spec = SimulationSpec.from_options(**helpers_missions.SMALL_MISSION)
+    sim = simulate_mission(dataclasses.replace(spec,
+                                                trajectory_errors=TYPICAL_TRAJECTORY_ERRORS))
+    bag = write_simulation(work / "mission", sim)["bag"]
+    estimate = TrajectoryEstimate(TrajectoryModel.DRIFT, {
+        sid: StripError.linear(sid, err.t_ref, np.array(err.offset), np.full(3, 0.01),
+                               np.array(err.drift), np.full(3, 0.001))
+        for sid, err in sim.trajectory_errors.items()})
+    doc = yaml.safe_load(write_calibration_yaml(work / "plain.yaml", sim.biases).read_text())
+    doc["lidarcal_calibration"]["trajectory"] = trajectory_document(estimate)
+    doc["lidarcal_calibration"]["trajectory_model"] = "drift"
+    calibration = work / "cal.yaml"
+    calibration.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return bag, calibration
+
+
+def test_the_corrected_trajectory_from_parts_is_the_serial_one(
+        drifting: tuple[Path, Path], cluster: DaskExecutor, tmp_path: Path) -> None:
+    bag, calibration = drifting
+    outputs = {}
+    for label, executor in (("serial", None), ("dask", cluster)):
+        folder = tmp_path / label
+        folder.mkdir()
+        report = correct_bag(bag, calibration, folder / "out.mcap",
+                             options=CorrectOptions(trajectory_out=folder / "trajectory.csv"),
+                             executor=executor)
+        assert "poses -> /lidar/trajectory_corrected" in report.trajectory
+        outputs[label] = [(folder / n).read_bytes() for n in ("out.mcap", "trajectory.csv")]
+    assert outputs["dask"] == outputs["serial"]
+
+
+def test_parts_pass_every_message_through_where_chunks_are_not_copied(
+        small_mission: MissionFiles, calibration: Path, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(BagWriter, "copy_chunks_of", lambda self, bag, new_topics: None)
+    serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", "out.mcap")
+    parted = _corrected(small_mission.bag, calibration, tmp_path / "parts", "out.mcap",
                         SerialExecutor())
     assert parted == serial
 
