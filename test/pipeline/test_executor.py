@@ -13,6 +13,7 @@ import pytest
 from distributed.comm.utils import get_tcp_server_addresses
 from helpers_cli import one_line_error, run
 
+import lidarcal_ros
 from lidarcal_ros.errors import ConfigError, InputError
 from lidarcal_ros.pipeline.executor import (
     DaskExecutor,
@@ -136,3 +137,22 @@ def test_the_command_refuses_a_bad_value_before_any_work(
     rc, _out, err = run(capsys, "correct", tmp_path / "missing", "--calibration", cal,
                         "-o", tmp_path / "out.laz", "--dask", "local:0")
     assert "--dask local:0: N must be 1 to" in one_line_error(rc, err, "correct")
+
+
+def test_workers_of_another_version_are_refused(
+        cluster: DaskExecutor, monkeypatch: pytest.MonkeyPatch) -> None:
+    address = cluster.client.scheduler.address
+    monkeypatch.setattr(lidarcal_ros, "__version__", "0.0.1")
+    with pytest.raises(ConfigError, match=f"--dask {address}: workers run lidarcal_ros "
+                       r"\d+\.\d+\.\d+, this is 0\.0\.1: install the same version"):
+        open_executor(address)
+
+
+@pytest.mark.filterwarnings("ignore:Port .* is already in use")
+def test_a_scheduler_without_workers_is_refused() -> None:
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=0, processes=False, protocol="tcp://", host="127.0.0.1",
+                      dashboard_address=None) as empty:
+        with pytest.raises(ConfigError, match="the scheduler has no worker"):
+            open_executor(empty.scheduler_address, timeout_s=0.5)

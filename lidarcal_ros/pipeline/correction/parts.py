@@ -16,6 +16,7 @@ import logging
 import math
 import os
 import shutil
+import socket
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ import numpy as np
 
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.radiometry import describe_alpha
+from lidarcal_ros.errors import InputError
 from lidarcal_ros.io.bag.prefetch import WriteBehind
 from lidarcal_ros.io.cloud.columns import resolve_time_field
 from lidarcal_ros.pipeline.correction import bag as bag_correction
@@ -114,6 +116,12 @@ def _correct_part(task: _PartTask) -> _PartResult:
     :func:`correct_bag` corrects them, their bytes written to ``task.path`` atomically."""
     from lidarcal_ros.io.bag.reader import open_bag
 
+    for path, what in ((task.bag, "the input"), (os.path.dirname(task.path), "the output's "
+                                                 "folder")):
+        if not os.path.exists(path):
+            raise InputError(f"{path}: not found on Dask worker {socket.gethostname()}: the "
+                             f"workers must see {what} at the same path (a shared file "
+                             "system)")
     messages = bag_correction._CorrectedMessages() if task.kind == "bag" else None
     corrector = StreamCorrector(task.trajectory, task.settings, batch_points=task.batch_points,
                                 source=task.points_topic, keep_tallies=messages is not None,

@@ -25,6 +25,7 @@ import yaml
 from helpers_missions import MissionFiles, write_calibration_yaml
 from helpers_wait import wait_until
 
+from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.simulation.simulate import simulate_mission
 from lidarcal_ros.core.simulation.spec import TYPICAL_TRAJECTORY_ERRORS, SimulationSpec
 from lidarcal_ros.core.trajectory.strip_errors import (
@@ -32,11 +33,18 @@ from lidarcal_ros.core.trajectory.strip_errors import (
     TrajectoryEstimate,
     TrajectoryModel,
 )
+from lidarcal_ros.errors import InputError
 from lidarcal_ros.io.bag.writer import BagWriter
 from lidarcal_ros.io.calibration_file import trajectory_document
 from lidarcal_ros.pipeline.calibration.procedure import write_simulation
+from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
 from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag
-from lidarcal_ros.pipeline.correction.parts import CloudSpan, plan_parts
+from lidarcal_ros.pipeline.correction.parts import (
+    CloudSpan,
+    _correct_part,
+    _PartTask,
+    plan_parts,
+)
 from lidarcal_ros.pipeline.executor import (
     DaskExecutor,
     Executor,
@@ -144,6 +152,25 @@ def test_parts_pass_every_message_through_where_chunks_are_not_copied(
     parted = _corrected(small_mission.bag, calibration, tmp_path / "parts", "out.mcap",
                         SerialExecutor())
     assert parted == serial
+
+
+def test_a_scheduler_by_its_address_and_a_path_its_workers_do_not_see(
+        small_mission: MissionFiles, calibration: Path, cluster: DaskExecutor,
+        tmp_path: Path) -> None:
+    serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", "out.laz")
+    with open_executor(cluster.client.scheduler.address) as remote:
+        assert remote.description.startswith("Dask scheduler tcp://127.0.0.1:")
+        parted = _corrected(small_mission.bag, calibration, tmp_path / "remote", "out.laz",
+                            remote)
+        assert parted == serial
+        # (a worker that does not see the part's folder: as on a machine without the share)
+        nowhere = Trajectory(np.zeros(0), np.zeros((0, 3)))
+        task = _PartTask(str(small_mission.bag), "/lidar/points", "map", nowhere,
+                         CorrectionSettings(delta=np.zeros(8)), "las", 1000, 0, 1,
+                         str(tmp_path / "elsewhere" / "part-00000"))
+        with pytest.raises(InputError, match=r"elsewhere: not found on Dask worker .*: the "
+                           r"workers must see the output's folder at the same path"):
+            remote.submit(_correct_part, task, key="unseen").result()
 
 
 def _dies_once(marker: str, fn: Callable[..., Any], *args: Any) -> Any:
