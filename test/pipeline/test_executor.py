@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Iterator
 from typing import Any
 
+import helpers_dask
 import pytest
 from distributed.comm.utils import get_tcp_server_addresses
 from helpers_cli import one_line_error, run
@@ -24,12 +24,7 @@ from lidarcal_ros.pipeline.executor import (
     parse_dask_option,
 )
 
-
-@pytest.fixture(scope="module")
-def cluster() -> Iterator[DaskExecutor]:
-    with open_executor("local:2") as executor:
-        assert isinstance(executor, DaskExecutor)
-        yield executor
+cluster = helpers_dask.cluster
 
 
 def _refuse(value: int) -> int:

@@ -13,11 +13,12 @@ import re
 import signal
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import cloudpickle
+import helpers_dask
 import helpers_missions
 import numpy as np
 import pytest
@@ -59,13 +60,7 @@ small_mission = helpers_missions.small_mission
 # (the workers unpickle this module's functions by value: they cannot import a test module)
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
-
-@pytest.fixture(scope="module")
-def cluster() -> Iterator[DaskExecutor]:
-    """One two-worker local cluster for the module (starting one takes seconds)."""
-    with open_executor("local:2") as executor:
-        assert isinstance(executor, DaskExecutor)
-        yield executor
+cluster = helpers_dask.cluster
 
 
 @pytest.fixture(scope="module")

@@ -5,10 +5,10 @@ runs in both."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import helpers_dask
 import pytest
 from helpers_cli import one_line_error, run
 from helpers_las import add_first_returns, plain_strips, write_las_tiles, write_mission_sbet
@@ -16,19 +16,14 @@ from helpers_las import add_first_returns, plain_strips, write_las_tiles, write_
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation.spec import SimulationSpec
 from lidarcal_ros.errors import InputError
-from lidarcal_ros.pipeline.executor import DaskExecutor, Executor, SerialExecutor, open_executor
+from lidarcal_ros.pipeline.executor import DaskExecutor, Executor, SerialExecutor
 from lidarcal_ros.pipeline.importing.importer import import_mission
 from lidarcal_ros.pipeline.importing.options import ImportOptions
 
 #: Runs of at most this many points: the serial and the parted import spill at other places.
 MEMORY_POINTS = 20_000
 
-
-@pytest.fixture(scope="module")
-def cluster() -> Iterator[DaskExecutor]:
-    with open_executor("local:2") as executor:
-        assert isinstance(executor, DaskExecutor)
-        yield executor
+cluster = helpers_dask.cluster
 
 
 @pytest.fixture(scope="module")
