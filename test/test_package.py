@@ -52,6 +52,8 @@ THIRD_PARTY: dict[str, tuple[str, str | None]] = {
     "PIL": ("python3-pil", "pillow"),
     "ruamel": ("python3-ruamel.yaml", "ruamel.yaml"),
     "backports": ("python3-backports-zstd-pip", "backports.zstd"),  # only backports.zstd
+    "dask": ("python3-dask-pip", "dask"),
+    "distributed": ("python3-distributed-pip", "distributed"),
     "launch": ("launch", None),
     "launch_ros": ("launch_ros", None),
 }

@@ -6,7 +6,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from lidarcal_ros.cli.common import add_quiet_option, finite_float, other_paths, progress_bar
+from lidarcal_ros.cli.common import (
+    add_dask_option,
+    add_quiet_option,
+    finite_float,
+    other_paths,
+    progress_bar,
+)
 from lidarcal_ros.io.output_files import check_output
 
 __all__ = ["add_import_command", "add_recover_command", "cmd_import", "cmd_recover"]
@@ -65,15 +71,19 @@ def add_import_command(sub: Any) -> None:
     p.add_argument("--qa-cell", type=finite_float, default=2.0,
                    help="cell of the swath-to-swath overlap QA grid, m (default 2; 0: none)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_dask_option(p)
     add_quiet_option(p)
     p.set_defaults(func=cmd_import)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Run ``lidarcal import`` with the parsed ``args``; its exit status."""
+    from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
     from lidarcal_ros.pipeline.importing.importer import import_mission
     from lidarcal_ros.pipeline.importing.options import ImportOptions
 
+    if args.dask is not None:
+        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap",
                  inputs=other_paths(args, "output"))
     options = ImportOptions(
@@ -86,7 +96,10 @@ def cmd_import(args: argparse.Namespace) -> int:
         qa_cell_m=args.qa_cell, overwrite=args.overwrite)
     progress, close = progress_bar(not args.quiet)
     try:
-        report = import_mission(args.inputs, args.output, options, progress)
+        # (the cluster, if any, is shut down on every way out: errors, Ctrl-C, SIGTERM)
+        with open_executor(args.dask) as executor:
+            report = import_mission(args.inputs, args.output, options, progress,
+                                    executor=None if args.dask is None else executor)
     finally:
         close()
     for line in report.lines():

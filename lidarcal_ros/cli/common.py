@@ -8,8 +8,17 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_bag_and_calibration_arguments", "add_quiet_option", "finite_float",
-           "other_paths", "progress_bar"]
+__all__ = ["add_bag_and_calibration_arguments", "add_dask_option", "add_quiet_option",
+           "finite_float", "other_paths", "progress_bar"]
+
+
+def add_dask_option(p: Any) -> None:
+    """``--dask local[:N]|tcp://HOST:PORT`` of the commands that can run on a Dask cluster."""
+    p.add_argument("--dask", metavar="local[:N]|tcp://HOST:PORT",
+                   help="run the work in parts on Dask: local:N starts N worker processes on "
+                   "this machine (127.0.0.1 only; local: one per core), tcp://HOST:PORT uses "
+                   "a running scheduler whose workers share this command's paths and have "
+                   "this package installed (README, 'On a Dask cluster'); the same output")
 
 
 def finite_float(text: str) -> float:

@@ -8,6 +8,7 @@ from typing import Any
 
 from lidarcal_ros.cli.common import (
     add_bag_and_calibration_arguments,
+    add_dask_option,
     add_quiet_option,
     other_paths,
     progress_bar,
@@ -62,6 +63,7 @@ def add_correct_command(sub: Any) -> None:
                    help="threads correcting batches in parallel (default 2; 1: all in one "
                    "thread)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_dask_option(p)
     add_quiet_option(p)
     p.set_defaults(func=cmd_correct)
 
@@ -73,7 +75,10 @@ def cmd_correct(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.survey.las_writer import parse_crs
     from lidarcal_ros.pipeline.correction.bag import CorrectOptions, correct_bag, output_kind
+    from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
 
+    if args.dask is not None:
+        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     tune_allocator()
     config = load_flight_config(args.config)
     overrides = {}
@@ -96,11 +101,14 @@ def cmd_correct(args: argparse.Namespace) -> int:
                      inputs=other_paths(args, "trajectory_out"))
     progress, close = progress_bar(not args.quiet)
     try:
-        report = correct_bag(args.bag, calibration, args.output, config,
-                             CorrectOptions(crs=crs, overwrite=args.overwrite,
-                                            workers=args.workers,
-                                            trajectory_out=args.trajectory_out),
-                             progress=progress)
+        # (the cluster, if any, is shut down on every way out: errors, Ctrl-C, SIGTERM)
+        with open_executor(args.dask) as executor:
+            report = correct_bag(args.bag, calibration, args.output, config,
+                                 CorrectOptions(crs=crs, overwrite=args.overwrite,
+                                                workers=args.workers,
+                                                trajectory_out=args.trajectory_out),
+                                 progress=progress,
+                                 executor=None if args.dask is None else executor)
     finally:
         close()
     for line in report.lines():

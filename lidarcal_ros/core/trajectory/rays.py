@@ -193,6 +193,13 @@ class RayCollector:
         self._kept = len(rays)
         self._pending = 0
 
+    def merge(self, other: RayCollector) -> None:
+        """Offer the rays ``other`` kept (offered after this one's, the same budget): the
+        best of each bin are kept whether they came through one collector or two, since a
+        collector of fewer bins keeps at least as many per bin."""
+        for part in other._parts:
+            self.add(part)
+
     def rays(self) -> Rays:
         """The rays kept, in time order."""
         self._compact()

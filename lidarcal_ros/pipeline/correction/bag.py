@@ -6,6 +6,7 @@ and what it writes: docs/correction.md, "``lidarcal correct`` on a bag".
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import heapq
 import logging
@@ -13,10 +14,10 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,6 +48,10 @@ __all__ = [
     "correct_bag", "is_sbet_output", "output_kind",
     "warm_up_compiled_loops",
 ]
+
+if TYPE_CHECKING:
+    from lidarcal_ros.io.survey.las_writer import LasStats
+    from lidarcal_ros.pipeline.executor import Executor
 
 logger = logging.getLogger(__name__)
 
@@ -225,6 +230,7 @@ def correct_bag(
     options: CorrectOptions = CorrectOptions(),  # (frozen: shared safely)
     *,
     progress: Callable[[str, float], None] | None = None,
+    executor: Executor | None = None,
 ) -> CorrectionReport:
     """Correct every cloud of a mission bag; write a bag or a LAS/LAZ file.
 
@@ -242,6 +248,9 @@ def correct_bag(
         Defaults when None.
     options : CorrectOptions
     progress : callable(stage, fraction), optional
+    executor : Executor, optional
+        Correct the clouds in parts there (``--dask``: :mod:`lidarcal_ros.pipeline.correction.
+        parts`; the same output); None: in this process, the bag read once where it can be.
 
     Returns
     -------
@@ -297,11 +306,16 @@ def correct_bag(
     with open_bag(bag_path) as bag:
         _check_topics(bag, points_topic, traj_topic,
                       corrected_topic if kind == "bag" else None, moved_topic)
-        run = functools.partial(_correct_once, bag, _Request(
-            settings, config, options, out_path, (points_topic, traj_topic, corrected_topic),
-            moved_topic, progress, warnings, warm_up))
+        request = _Request(settings, config, options, out_path,
+                           (points_topic, traj_topic, corrected_topic), moved_topic, progress,
+                           warnings, warm_up)
+        run = functools.partial(_correct_once, bag, request)
         report = None
-        if options.held_points_bound:
+        if executor is not None:
+            from lidarcal_ros.pipeline.correction.parts import correct_in_parts
+
+            report = correct_in_parts(bag, request, executor)
+        elif options.held_points_bound:
             try:
                 report = run(single_pass=True)
             except (RereadBag, LidarcalError) as exc:
@@ -354,20 +368,7 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
             if poses is not None:
                 poses.add(ns, msgtype, raw)
         trajectory, frame = _checked_trajectory(bag, traj_topic, samples, settings)
-    meaning = settings.radiometry.meaning
-    if not settings.radiometry.absolute:
-        from lidarcal_ros.pipeline.correction.reflectance import (
-            measure_target_in_bag,
-            target_of,
-            with_constant,
-        )
-
-        if target_of(request.config) is not None:
-            request.warm_up.join()  # (it hides scipy.linalg a moment; the target may need it)
-        target = measure_target_in_bag(bag.path, settings, request.config)
-        if target is not None:
-            settings = with_constant(settings, target.constant)
-            meaning = f"{settings.radiometry.meaning} The {target.describe()}."
+    settings, meaning = radiometry_of(bag, request, settings)
     messages = _CorrectedMessages() if kind == "bag" else None
     corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
                                 workers=options.workers, source=points_topic,
@@ -400,6 +401,27 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
     if options.trajectory_out is not None:
         _write_trajectory_file(job, Path(options.trajectory_out), options)
     return report
+
+
+def radiometry_of(bag: Any, request: _Request, settings: CorrectionSettings
+                  ) -> tuple[CorrectionSettings, str]:
+    """``settings`` with the calibration constant a reference target in ``bag`` gives (where
+    the configuration names one), and what the reflectance then means."""
+    meaning = settings.radiometry.meaning
+    if not settings.radiometry.absolute:
+        from lidarcal_ros.pipeline.correction.reflectance import (
+            measure_target_in_bag,
+            target_of,
+            with_constant,
+        )
+
+        if target_of(request.config) is not None:
+            request.warm_up.join()  # (it hides scipy.linalg a moment; the target may need it)
+        target = measure_target_in_bag(bag.path, settings, request.config)
+        if target is not None:
+            settings = with_constant(settings, target.constant)
+            meaning = f"{settings.radiometry.meaning} The {target.describe()}."
+    return settings, meaning
 
 
 class _PoseMessages:
@@ -622,39 +644,14 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
 
     seen = 0
     time_field: str | None = None
-    # Corrected clouds are written in runs of at least this many points (fewer, larger LAZ
-    # chunks); clouds of one layout only in a run.
-    run: list[np.ndarray] = []
-    run_points = 0
-
-    def write_parts(parts: list[np.ndarray]) -> None:
-        writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
-
     # The runs are compressed (lazrs, which releases the interpreter lock) in a thread of
     # their own while this one reads, decodes and corrects the next clouds.
     with LasChunkWriter(out_path, time_field=corrector.settings.time_field, crs=crs,
                         overwrite=job.overwrite,
                         reflectance_description=corrector.settings.radiometry.las_description,
-                        ) as writer, WriteBehind(write_parts, name="lidarcal-las") as write_run:
-
-        def write(done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
-            # A run ends at the first cloud that brings it to LAS_RUN_POINTS, whichever
-            # batches the clouds came back in: the file's chunks (and laspy's extra-bytes
-            # minima and maxima, which it takes per write) are then the same on every run.
-            nonlocal run, run_points
-            for _tag, corrected in done:
-                if run and corrected.dtype != run[0].dtype:
-                    write_run(run)
-                    run, run_points = [], 0
-                run.append(corrected)
-                run_points += len(corrected)
-                if run_points >= LAS_RUN_POINTS:
-                    write_run(run)
-                    run, run_points = [], 0
-            if run and final:
-                write_run(run)
-                run, run_points = [], 0
-
+                        ) as writer, WriteBehind(_write_parts(writer),
+                                                 name="lidarcal-las") as write_run:
+        runs = LasRuns(write_run)
         topics = job.cloud_topics
         for topic, msgtype, _ns, raw in prefetched(lambda: bag.messages(topics)):
             if topic != points_topic:
@@ -666,18 +663,62 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
                                                 source=topic)
                 writer.time_field = time_field
             for _tag, ready in gate.cloud(None, msg, points):
-                write(corrector.push(ready, None))
+                runs.add(corrector.push(ready, None))
             seen += 1
             if progress and seen % 50 == 0:
                 progress("correcting", seen / job.n_clouds)
         for _tag, ready in gate.finish():
-            write(corrector.push(ready, None))
-        write(corrector.flush(), final=True)
+            runs.add(corrector.push(ready, None))
+        runs.add(corrector.flush(), final=True)
         write_run.finish()
         _check_something_corrected(corrector.stats, bag.path, points_topic)
-    report.las_skipped_non_finite = writer.stats.skipped_non_finite
-    for count, why in ((writer.stats.skipped_non_finite, "with non-finite coordinates"),
-                       (writer.stats.skipped_out_of_range, "more than 2147 km from the others "
+    las_warnings(report, writer.stats, out_path)
+
+
+def _write_parts(writer: Any) -> Callable[[list[np.ndarray]], None]:
+    """``write(parts)``: a run of corrected clouds into the LAS ``writer``, as one chunk."""
+
+    def write_parts(parts: list[np.ndarray]) -> None:
+        writer.write(np.concatenate(parts) if len(parts) > 1 else parts[0])
+
+    return write_parts
+
+
+class LasRuns:
+    """Corrected clouds gathered into runs for a LAS/LAZ writer: a run ends at the first
+    cloud that brings it to :data:`LAS_RUN_POINTS` (or at a change of layout), whichever
+    batches the clouds came back in, so that the file's chunks (and laspy's extra-bytes
+    minima and maxima, which it takes per write) are the same on every run."""
+
+    def __init__(self, write_run: Callable[[list[np.ndarray]], None]) -> None:
+        self._write_run = write_run
+        self._run: list[np.ndarray] = []
+        self._points = 0
+
+    def add(self, done: list[tuple[Any, np.ndarray]], *, final: bool = False) -> None:
+        """Add the corrected clouds ``done`` (``(tag, array)``, in order); ``final``: write
+        what is left too."""
+        for _tag, corrected in done:
+            if self._run and corrected.dtype != self._run[0].dtype:
+                self._flush()
+            self._run.append(corrected)
+            self._points += len(corrected)
+            if self._points >= LAS_RUN_POINTS:
+                self._flush()
+        if self._run and final:
+            self._flush()
+
+    def _flush(self) -> None:
+        self._write_run(self._run)
+        self._run, self._points = [], 0
+
+
+def las_warnings(report: CorrectionReport, stats: LasStats, out_path: Path) -> None:
+    """The report's warnings of points a LAS/LAZ writer could not store (``stats``: its
+    counts)."""
+    report.las_skipped_non_finite = stats.skipped_non_finite
+    for count, why in ((stats.skipped_non_finite, "with non-finite coordinates"),
+                       (stats.skipped_out_of_range, "more than 2147 km from the others "
                         "(beyond LAS's 32-bit coordinates)")):
         if count:
             report.warnings.append(f"{count} points {why} cannot be stored in LAS: skipped")
@@ -795,14 +836,15 @@ class _OrderedOutput:
         self._report.passthrough_messages += 1
 
 
-def _correct_to_bag(job: _Job) -> None:
-    """Correct the clouds of ``job`` into a bag, every other message passed through."""
+@contextlib.contextmanager
+def bag_output(job: _Job) -> Iterator[tuple[Any, Any, _OrderedOutput]]:
+    """The output bag of ``job`` open: its writer, the input's chunks copied into it (None
+    where they are not: every message is then passed through one by one) and the
+    :class:`_OrderedOutput` the messages go through."""
     from lidarcal_ros.io.bag.format import POINTCLOUD2
     from lidarcal_ros.io.bag.writer import BagWriter
 
-    bag, corrector, gate, points_topic = job.bag, job.corrector, job.gate, job.points_topic
-    messages = job.messages
-    assert messages is not None  # (a bag output's corrector places into them)
+    bag = job.bag
     latched = [t for t, info in bag.topics.items() if info.transient_local]
     with BagWriter(job.out_path, overwrite=job.overwrite, latched_topics=latched,
                    typestore=bag.typestore) as writer:
@@ -814,7 +856,15 @@ def _correct_to_bag(job: _Job) -> None:
         copied = writer.copy_chunks_of(bag, new_topics)
         if copied is not None:
             job.report.passthrough_messages = copied.messages
-        output = _OrderedOutput(writer, bag, job.corrected_topic, job.report)
+        yield writer, copied, _OrderedOutput(writer, bag, job.corrected_topic, job.report)
+
+
+def _correct_to_bag(job: _Job) -> None:
+    """Correct the clouds of ``job`` into a bag, every other message passed through."""
+    bag, corrector, gate, points_topic = job.bag, job.corrector, job.gate, job.points_topic
+    messages = job.messages
+    assert messages is not None  # (a bag output's corrector places into them)
+    with bag_output(job) as (writer, copied, output):
 
         def collect(done: list[tuple[Any, np.ndarray]]) -> None:
             for k, _corrected in done:

@@ -89,6 +89,16 @@ class CorrectionStats:
         return ", ".join([f"{first} for {_percent(share)} of the points",
                           *(f"{name} {_percent(share)}" for name, share in rest)])
 
+    def merge(self, other: CorrectionStats) -> None:
+        """Add the counts of ``other`` (a later part of the same stream)."""
+        for name in ("clouds", "points", "not_corrected", "grazing", "no_normal",
+                     "no_intensity", "rough", "volume", "non_finite", "seconds"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        for name, k in other.incidence_rules.items():
+            self.incidence_rules[name] = self.incidence_rules.get(name, 0) + k
+        for model, k in other.model_points.items():
+            self.add_model(model, other.model_reason[model], k)
+
     def add(self, tally: CloudTally) -> None:
         """Count a corrected cloud (or several: tallies add up)."""
         for name, any_of, none_of in INCIDENCE_RULES:

@@ -37,7 +37,7 @@ from lidarcal_ros.pipeline.correction.batch import (
 )
 from lidarcal_ros.pipeline.correction.corrected_cloud import CloudTally, CorrectionStats
 
-__all__ = ["DEFAULT_BATCH_POINTS", "StreamCorrector", "iter_corrected"]
+__all__ = ["DEFAULT_BATCH_POINTS", "MAX_GRID_GAP_S", "StreamCorrector", "iter_corrected"]
 
 logger = logging.getLogger(__name__)
 
@@ -47,9 +47,10 @@ DEFAULT_BATCH_POINTS = 200_000
 #: points stop advancing along track (they would otherwise wait for ever).
 _MAX_LOOKAHEAD_POINTS = 500_000
 #: A strip's normals grid is restarted after a turn of more than this (rad) or a gap in time
-#: of more than this (s): the grid is aligned with the flight line.
+#: of more than this (s): the grid is aligned with the flight line. (A pause of more than
+#: MAX_GRID_GAP_S in the clouds is where ``lidarcal correct --dask`` cuts a mission in parts.)
 _MAX_GRID_TURN_RAD = math.radians(15.0)
-_MAX_GRID_GAP_S = 2.0
+MAX_GRID_GAP_S = 2.0
 
 
 @dataclass
@@ -328,7 +329,7 @@ class StreamCorrector:
         if not math.isfinite(turn):  # (grid not started yet)
             turn = 0.0
         gap = t_lo - strip.t_last if math.isfinite(t_lo + strip.t_last) else 0.0
-        return turn > _MAX_GRID_TURN_RAD or gap > _MAX_GRID_GAP_S
+        return turn > _MAX_GRID_TURN_RAD or gap > MAX_GRID_GAP_S
 
     def _finish_strip(self, strip_id: int) -> None:
         strip = self._strips.pop(strip_id)
@@ -350,7 +351,7 @@ class StreamCorrector:
         # would otherwise wait for a look-ahead that never comes, and hold up the output).
         newest = max((s.t_last for s in self._strips.values()), default=math.nan)
         for strip_id, s in list(self._strips.items()):
-            if newest - s.t_last > _MAX_GRID_GAP_S:
+            if newest - s.t_last > MAX_GRID_GAP_S:
                 self._finish_strip(strip_id)
         for s in self._strips.values():
             # A strip whose points stop advancing along track (hovering, stalled times)

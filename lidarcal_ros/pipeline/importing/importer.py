@@ -16,6 +16,7 @@ import numpy as np
 
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.survey.las_reader import inspect_las
+from lidarcal_ros.pipeline.executor import Executor
 from lidarcal_ros.pipeline.importing.options import ImportOptions
 from lidarcal_ros.pipeline.importing.points import (
     PointsRead,
@@ -52,6 +53,8 @@ def import_mission(
     output: str | os.PathLike[str],
     options: ImportOptions | None = None,
     progress: Progress | None = None,
+    *,
+    executor: Executor | None = None,
 ) -> ImportReport:
     """Import LAS/LAZ strips and a trajectory into a mission bag (docs/import.md).
 
@@ -65,6 +68,9 @@ def import_mission(
         The trajectory, CRSs, time bases, strips, topics, memory and QA settings (default:
         :class:`ImportOptions`'s defaults: the trajectory estimated from multiple returns).
     progress : callable(stage, fraction), optional
+    executor : Executor, optional
+        Read the files there, each by a worker (``--dask``:
+        :mod:`lidarcal_ros.pipeline.importing.parts`; the same bag); None: here.
 
     Returns
     -------
@@ -100,7 +106,12 @@ def import_mission(
                                           accuracy=options.trajectory_accuracy)
     store = RunStore(options.memory_points, out.parent)
     try:
-        read = read_points(infos, store, frame, options, report_progress)
+        if executor is None:
+            read = read_points(infos, store, frame, options, report_progress)
+        else:
+            from lidarcal_ros.pipeline.importing.parts import read_in_parts
+
+            read = read_in_parts(infos, store, frame, options, report_progress, executor)
         return _assemble_and_write(out, read, header_base, given, options, report_progress)
     finally:
         store.cleanup()

@@ -133,6 +133,11 @@ class RunStore:
         self._buffered = 0
         self.runs: list[Path] = []
         self._tmp: Path | None = None
+        self._also: list[Path] = []
+
+    def also_remove(self, folder: Path) -> None:
+        """Remove ``folder`` (runs other stores spill there) with this store's runs."""
+        self._also.append(folder)
 
     def add(self, points: np.ndarray) -> None:
         """Buffer :data:`POINT_DTYPE` rows (spilling a sorted run when the buffer is full)."""
@@ -158,6 +163,17 @@ class RunStore:
             raise InputError(f"{path}: cannot spill points ({exc.strerror or exc})") from None
         self.runs.append(path)
 
+    def spill_all(self) -> None:
+        """Spill what is buffered too: every point is then in :attr:`runs`."""
+        if self._buffered:
+            self._spill()
+
+    def adopt(self, runs: list[Path]) -> None:
+        """Take ``runs`` spilled by another store (points read after this one's), in order,
+        after this one's spilled so far; whoever made them removes them."""
+        self.spill_all()
+        self.runs.extend(runs)
+
     def sources(self) -> list[np.ndarray]:
         """The sorted runs (memory-mapped) and the sorted in-memory rest."""
         rest = self._sorted_buffer()
@@ -168,9 +184,9 @@ class RunStore:
 
     def cleanup(self) -> None:
         """Remove the spilled runs."""
-        if self._tmp is not None:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            self._tmp = None
+        for folder in [self._tmp, *self._also] if self._tmp is not None else self._also:
+            shutil.rmtree(folder, ignore_errors=True)
+        self._tmp, self._also = None, []
 
 
 def merged_windows(
@@ -288,34 +304,78 @@ def read_points(infos: list[LasFileInfo], store: RunStore, frame: PointsFrame,
     InputError
         A non-finite GPS time, or no point to import.
     """
-    read = PointsRead(infos, store, frame,
-                      gap_bin=min(_GAP_BIN_MAX_S, options.strip_gap_s / 4.0),
-                      rays=RayCollector(options.ray_budget)
-                      if options.estimates_trajectory else None)
-    hfac, vfac = frame.unit_factors
-    scale = np.array([hfac, hfac, vfac])
+    read = new_read(infos, store, frame, options)
     total = sum(i.point_count for i in infos)
     for info in infos:
         if info.point_count == 0 and len(infos) > 1:
             logger.warning("%s: no points", info.path)
-        for chunk in iter_las_chunks(info.path, chunk_points=options.chunk_points):
-            xyz = chunk.xyz * scale
-            if not np.isfinite(chunk.gps_time).all():
-                raise InputError(f"{info.path}: non-finite GPS time")
-            read.n_read += len(chunk)
-            if read.rays is not None:
-                _collect_rays(read, chunk, xyz)
-            _note_sources(read, chunk, info.path.name)
-            keep = _returns_kept(chunk, options.returns)
-            store.add(_bag_rows(chunk, xyz, keep))
-            read.n_kept += int(keep.sum())
-            progress("reading", read.n_read / max(total, 1))
+        read_file(read, info, options, lambda n: progress("reading", n / max(total, 1)))
+    check_points_read(read, options)
+    return read
+
+
+def new_read(infos: list[LasFileInfo], store: RunStore, frame: PointsFrame,
+             options: ImportOptions) -> PointsRead:
+    """An empty :class:`PointsRead` of ``infos`` into ``store``, as ``options`` gather it."""
+    return PointsRead(infos, store, frame,
+                      gap_bin=min(_GAP_BIN_MAX_S, options.strip_gap_s / 4.0),
+                      rays=RayCollector(options.ray_budget)
+                      if options.estimates_trajectory else None)
+
+
+def read_file(read: PointsRead, info: LasFileInfo, options: ImportOptions,
+              progress: Callable[[int], None]) -> None:
+    """Read every point of one file into ``read`` (its store, counts, sources, rays);
+    ``progress(points read so far)`` after each chunk.
+
+    Raises
+    ------
+    InputError
+        A non-finite GPS time.
+    """
+    hfac, vfac = read.frame.unit_factors
+    scale = np.array([hfac, hfac, vfac])
+    for chunk in iter_las_chunks(info.path, chunk_points=options.chunk_points):
+        xyz = chunk.xyz * scale
+        if not np.isfinite(chunk.gps_time).all():
+            raise InputError(f"{info.path}: non-finite GPS time")
+        read.n_read += len(chunk)
+        if read.rays is not None:
+            _collect_rays(read, chunk, xyz)
+        _note_sources(read, chunk, info.path.name)
+        keep = _returns_kept(chunk, options.returns)
+        read.store.add(_bag_rows(chunk, xyz, keep))
+        read.n_kept += int(keep.sum())
+        progress(read.n_read)
+
+
+def merge_read(read: PointsRead, part: PointsRead) -> None:
+    """Add ``part`` (the read of later files, its store's runs all spilled) to ``read``: as
+    if ``read`` had read them (the runs adopted, the rays offered in the order read)."""
+    read.store.adopt(part.store.runs)
+    read.n_read += part.n_read
+    read.n_kept += part.n_kept
+    read.returns_seen = (read.returns_seen[0] + part.returns_seen[0],
+                         read.returns_seen[1] + part.returns_seen[1])
+    for value, span in part.sources.items():
+        mine = read.sources.setdefault(value, SourceSpan())
+        mine.count += span.count
+        mine.t_first = min(mine.t_first, span.t_first)
+        mine.t_last = max(mine.t_last, span.t_last)
+        mine.files |= span.files
+    for value, bins in part.occupancy.items():
+        read.occupancy.setdefault(value, set()).update(bins)
+    if read.rays is not None and part.rays is not None:
+        read.rays.merge(part.rays)
+
+
+def check_points_read(read: PointsRead, options: ImportOptions) -> None:
+    """Refuse a read without a point to import."""
     if read.n_kept == 0:
-        paths = [i.path for i in infos]
+        paths = [i.path for i in read.infos]
         raise InputError(f"{read.where}: no points to import (--returns {options.returns})"
                          if read.n_read else f"{read.where}: no points in the "
                          f"{'file' if len(paths) == 1 else 'files'}")
-    return read
 
 
 def _collect_rays(read: PointsRead, chunk: LasChunk, xyz: np.ndarray) -> None:
@@ -371,4 +431,5 @@ def _bag_rows(chunk: LasChunk, xyz: np.ndarray, keep: np.ndarray) -> np.ndarray:
 
 
 __all__ = ["POINT_DTYPE", "PointsFrame", "PointsRead", "Progress", "RunStore", "SourceSpan",
-           "header_time_base", "merged_windows", "points_frame", "read_points"]
+           "check_points_read", "header_time_base", "merge_read", "merged_windows", "new_read",
+           "points_frame", "read_file", "read_points"]

@@ -1,0 +1,153 @@
+"""The executors of ``--dask``: the local cluster's safety (loopback only, no dashboard,
+processes, a memory limit, every process gone once closed), tasks and their errors, and the
+one-line refusals of bad values and of a scheduler that does not answer."""
+
+from __future__ import annotations
+
+import os
+import socket
+from typing import Any
+
+import helpers_dask
+import pytest
+from distributed.comm.utils import get_tcp_server_addresses
+from helpers_cli import one_line_error, run
+
+import lidarcal_ros
+from lidarcal_ros.errors import ConfigError, InputError
+from lidarcal_ros.pipeline.executor import (
+    DaskExecutor,
+    DaskTarget,
+    SerialExecutor,
+    local_worker_limit,
+    open_executor,
+    parse_dask_option,
+)
+
+cluster = helpers_dask.cluster
+
+
+def _refuse(value: int) -> int:
+    raise InputError(f"value {value} refused")
+
+
+def _pid() -> int:
+    return os.getpid()
+
+
+def test_a_local_cluster_listens_on_the_loopback_only_without_dashboard(
+        cluster: DaskExecutor) -> None:
+    info = cluster.client.scheduler_info(n_workers=-1)
+    assert info["address"].startswith("tcp://127.0.0.1:")
+    scheduler = cluster.cluster.scheduler
+    # (Dask names its HTTP port "dashboard" whatever it serves: here nothing, on 127.0.0.1)
+    assert {host for host, _port in get_tcp_server_addresses(scheduler.http_server)} == {
+        "127.0.0.1"}
+    assert not scheduler.http_application.wildcard_router.rules
+    workers = info["workers"]
+    assert len(workers) == 2 and cluster.workers == 2
+    for address, worker in workers.items():
+        assert address.startswith("tcp://127.0.0.1:")
+        assert worker["nthreads"] == 1
+        assert 0 < worker["memory_limit"] <= 4 * 2**30
+
+
+def test_tasks_run_in_other_processes_and_their_errors_come_back(
+        cluster: DaskExecutor) -> None:
+    pids = {cluster.submit(_pid, key=f"pid-{i}").result() for i in range(4)}
+    assert os.getpid() not in pids
+    with pytest.raises(InputError, match="value 3 refused"):
+        cluster.submit(_refuse, 3, key="refuse-3").result()
+
+
+def test_closing_ends_every_process_of_the_local_cluster() -> None:
+    executor = open_executor("local:1")
+    assert isinstance(executor, DaskExecutor)
+    pid = executor.submit(_pid, key="pid").result()
+    nanny = executor.cluster
+    executor.close()
+    executor.close()  # (idempotent)
+    assert nanny.status.name == "closed"
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+
+
+def test_the_serial_executor_runs_at_once_and_keeps_errors() -> None:
+    with open_executor(None) as executor:
+        assert isinstance(executor, SerialExecutor)
+        assert executor.submit(_pid, key="a").result() == os.getpid()
+        failed = executor.submit(_refuse, 2, key="b")
+        with pytest.raises(InputError, match="value 2 refused"):
+            failed.result()
+
+
+@pytest.mark.parametrize(("value", "target"), [
+    ("local:2", DaskTarget(workers=2)),
+    ("local:1", DaskTarget(workers=1)),
+    ("tcp://10.0.0.5:8786", DaskTarget(address="tcp://10.0.0.5:8786")),
+    ("tcp://scheduler.example.org:8786/", DaskTarget(address="tcp://scheduler.example.org:8786")),
+])
+def test_values_are_parsed(value: str, target: DaskTarget) -> None:
+    assert parse_dask_option(value) == target
+
+
+def test_plain_local_takes_one_process_per_core() -> None:
+    assert parse_dask_option("local") == DaskTarget(workers=os.cpu_count() or 1)
+
+
+@pytest.mark.parametrize(("value", "says"), [
+    ("local:0", "N must be 1 to"),
+    (f"local:{local_worker_limit() + 1}", "N must be 1 to"),
+    ("local:two", "whole number"),
+    ("local:-1", "whole number"),
+    ("remote", "expected local, local:N or tcp://HOST:PORT"),
+    ("tls://10.0.0.5:8786", "only a tcp:// scheduler"),
+    ("tcp://10.0.0.5", "expected tcp://HOST:PORT"),
+    ("tcp://10.0.0.5:99999", "expected tcp://HOST:PORT"),
+    ("tcp://:8786", "expected tcp://HOST:PORT"),
+    ("tcp://10.0.0.5:8786/path", "expected tcp://HOST:PORT"),
+])
+def test_bad_values_are_refused_in_one_line(value: str, says: str) -> None:
+    with pytest.raises(ConfigError, match=f"--dask {value}: .*") as caught:
+        parse_dask_option(value)
+    assert says in str(caught.value) and "\n" not in str(caught.value)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_scheduler_that_does_not_answer_is_refused_within_the_timeout() -> None:
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    with pytest.raises(ConfigError, match="no Dask scheduler answered within 1 s"):
+        open_executor(address, timeout_s=1.0)
+
+
+def test_the_command_refuses_a_bad_value_before_any_work(
+        capsys: pytest.CaptureFixture[str], tmp_path: Any) -> None:
+    cal = tmp_path / "cal.yaml"
+    cal.write_text("lidarcal_calibration:\n  biases: {}\n")
+    rc, _out, err = run(capsys, "correct", tmp_path / "missing", "--calibration", cal,
+                        "-o", tmp_path / "out.laz", "--dask", "local:0")
+    assert "--dask local:0: N must be 1 to" in one_line_error(rc, err, "correct")
+
+
+def test_workers_of_another_version_are_refused(
+        cluster: DaskExecutor, monkeypatch: pytest.MonkeyPatch) -> None:
+    address = cluster.client.scheduler.address
+    monkeypatch.setattr(lidarcal_ros, "__version__", "0.0.1")
+    with pytest.raises(ConfigError, match=f"--dask {address}: workers run lidarcal_ros "
+                       r"\d+\.\d+\.\d+, this is 0\.0\.1: install the same version"):
+        open_executor(address)
+
+
+@pytest.mark.filterwarnings("ignore:Port .* is already in use")
+def test_a_scheduler_without_workers_is_refused() -> None:
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=0, processes=False, protocol="tcp://", host="127.0.0.1",
+                      dashboard_address=None) as empty:
+        with pytest.raises(ConfigError, match="the scheduler has no worker"):
+            open_executor(empty.scheduler_address, timeout_s=0.5)
