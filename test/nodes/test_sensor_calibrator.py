@@ -200,8 +200,11 @@ def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
     for n in (cal, probe_node):
         executor.add_node(n)
     stop = threading.Event()
-    thread = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.05)
-                                              for _ in iter(stop.is_set, True)], daemon=True)
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    thread = threading.Thread(target=spin, daemon=True)
     thread.start()
     try:
         _replay(flat, 20.0)
