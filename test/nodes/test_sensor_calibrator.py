@@ -8,11 +8,11 @@ refusals (no mounting, no orientation) are said on /diagnostics while the node k
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -85,10 +85,33 @@ class _Probe:
             self.node.destroy_client(client)
 
 
+@contextlib.contextmanager
+def _spinning(context: Any, *nodes: Any) -> Iterator[None]:
+    """Spin ``nodes`` in a multi-threaded executor in a background thread meanwhile."""
+    from rclpy.executors import MultiThreadedExecutor
+
+    executor = MultiThreadedExecutor(num_threads=4, context=context)
+    for n in nodes:
+        executor.add_node(n)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+        executor.shutdown(timeout_sec=5)
+
+
 @pytest.fixture(scope="module")
 def running(ros_context: Any, payload: Any) -> Iterator[tuple[Any, _Probe, Any]]:
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
 
     from lidarcal_ros.nodes.calibrator import CalibratorNode
@@ -102,26 +125,11 @@ def running(ros_context: Any, payload: Any) -> Iterator[tuple[Any, _Probe, Any]]
                          parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
     probe_node = rclpy.create_node("sensor_probe", context=ros_context)
     probe = _Probe(probe_node, "sensor_calibrator")
-    executor = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    for n in (cal, probe_node):
-        executor.add_node(n)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
+    with _spinning(ros_context, cal, probe_node):
         yield cal, probe, workdir
-    finally:
-        stop.set()
-        thread.join(timeout=10)
-        executor.shutdown(timeout_sec=5)
-        cal.close()
-        cal.destroy_node()
-        probe_node.destroy_node()
+    cal.close()
+    cal.destroy_node()
+    probe_node.destroy_node()
 
 
 def _replay(bag: Path, rate: float) -> str:
@@ -181,7 +189,6 @@ def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
                                                tmp_path: Path) -> None:
     """A trajectory without attitude: the refusal on /diagnostics; the node keeps serving."""
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
 
     from lidarcal_ros.nodes.calibrator import CalibratorNode
@@ -196,17 +203,7 @@ def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
                          parameter_overrides=[Parameter(k, value=v) for k, v in topics.items()])
     probe_node = rclpy.create_node("flat_probe", context=ros_context)
     probe = _Probe(probe_node, "flat_calibrator")
-    executor = MultiThreadedExecutor(num_threads=3, context=ros_context)
-    for n in (cal, probe_node):
-        executor.add_node(n)
-    stop = threading.Event()
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
+    with _spinning(ros_context, cal, probe_node):
         _replay(flat, 20.0)
         _wait(lambda: "lidarcal: sensor frame" in probe.diagnostics, 20, "sensor status")
         level, message = probe.diagnostics["lidarcal: sensor frame"]
@@ -215,11 +212,6 @@ def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
         solve = probe.call("/flat_calibrator/solve")
         assert not solve.success and "no orientation" in solve.message
         assert cal.calibration.sensor.lines.size == 0
-    finally:
-        stop.set()
-        thread.join(timeout=10)
-        executor.shutdown(timeout_sec=5)
-        cal.close()
-        cal.destroy_node()
-        probe_node.destroy_node()
-        time.sleep(0.1)
+    cal.close()
+    cal.destroy_node()
+    probe_node.destroy_node()
