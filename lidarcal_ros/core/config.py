@@ -86,6 +86,10 @@ SCHEMA: dict[str, ParameterSpec] = {
         "", "str", "Nominal mounting base_link -> sensor frame 'x,y,z,qx,qy,qz,qw' (m; "
         "quaternion as on /tf_static) for clouds in the sensor's frame; used instead of "
         "/tf_static where set; '' = from /tf_static"),
+    "sensor_frame.calibrated_frame": ParameterSpec(
+        "", "str", "Child frame of the calibrated mounting the calibrator offers on /tf_static "
+        "(base_link -> this frame) for clouds in the sensor's frame; '' = '<sensor "
+        "frame>_calibrated', beside the nominal robot_state_publisher sends"),
     "sensor_frame.time_convention": ParameterSpec(
         "auto", "str", "Per-point time of clouds in the sensor's frame: 'relative' to "
         "header.stamp, 'absolute', or 'auto' (from the first cloud's values against its "

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
@@ -22,9 +23,11 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 
 from lidarcal_ros.core.calibration.result import CalibrationResult
-from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS
+from lidarcal_ros.core.config import CALIBRATOR_NODE, NODE_PARAMETERS, SCHEMA
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints
-from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.errors import ConfigError, LidarcalError
+from lidarcal_ros.io.bag.format import stamp_seconds
 from lidarcal_ros.io.cloud.columns import extract_columns, extract_xyz
 from lidarcal_ros.io.cloud.messages import (
     ESTIMATE_COLUMN_LABEL,
@@ -38,6 +41,7 @@ from lidarcal_ros.io.cloud.messages import (
     warm_up_cloud_codec,
     worst_level,
 )
+from lidarcal_ros.io.cloud.sensor_time import SensorCloudDecoder
 from lidarcal_ros.nodes.parameters import FlightParameters
 from lidarcal_ros.nodes.process import run_main
 from lidarcal_ros.nodes.topics import (
@@ -54,6 +58,8 @@ from lidarcal_ros.pipeline.calibration.service import CalibrationService, Calibr
 __all__ = ["CALIBRATOR_PARAMETERS", "CalibratorNode"]
 
 CALIBRATOR_PARAMETERS = NODE_PARAMETERS[CALIBRATOR_NODE]
+#: Static transforms a late joiner takes from each publisher of ``/tf_static``.
+TF_STATIC_DEPTH = 100
 
 
 class CalibratorNode(Node):
@@ -69,6 +75,10 @@ class CalibratorNode(Node):
         self.calibration = CalibrationService(cfg, self._options(),
                                               on_result=self._publish_result)
         warm_up_cloud_codec()
+        self._decoder = SensorCloudDecoder(
+            field=cfg["time_field"] if cfg["time_field"] != SCHEMA["time_field"].default
+            else None, convention=cfg["sensor_frame.time_convention"])
+        self._offered: tuple[str, str, Mounting] | None = None
 
         self.estimate_pub = self.create_publisher(Float64MultiArray, ESTIMATE_TOPIC,
                                                   latched_qos())
@@ -85,6 +95,20 @@ class CalibratorNode(Node):
                                                 callback_group=input_group)
         self.create_subscription(PointCloud2, cfg["topics.control_points"], self._on_control,
                                  latched_qos(), raw=True, callback_group=input_group)
+        # the nominal mounting as robot_state_publisher offers it; the calibrated one back
+        self.tf_pub: Any = None
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:  # (the interfaces installed from wheels have no tf2_msgs)
+            self.get_logger().warning(
+                f"tf2_msgs is not installed: {cfg['topics.tf_static']} is neither read nor "
+                "offered; clouds in the sensor's frame take their mounting from "
+                "sensor_frame.mounting, the calibrated one is on the YAML topic")
+        else:
+            self.create_subscription(TFMessage, cfg["topics.tf_static"], self._on_tf_static,
+                                     latched_qos(TF_STATIC_DEPTH), callback_group=input_group)
+            self.tf_pub = self.create_publisher(TFMessage, cfg["topics.tf_static"],
+                                                latched_qos())
         for name, request in (("~/solve", self.calibration.solve),
                               ("~/reset", self.calibration.reset),
                               ("~/save", self.calibration.save)):
@@ -104,6 +128,11 @@ class CalibratorNode(Node):
         source = self.params["topics.points"]
         try:
             cloud = parse_cloud(raw, source=source)
+            names = cloud.points.dtype.names or ()
+            if cloud.frame_id != self.params["frame_id"] and "strip_id" not in names and \
+                    "point_source_id" not in names:
+                self._on_sensor_cloud(cloud, source)
+                return
             cols = extract_columns(cloud.points, time_field=self.params["time_field"],
                                    source=source,
                                    coordinate_tolerance_m=self.params["sensor.range_noise_m"])
@@ -115,6 +144,35 @@ class CalibratorNode(Node):
             self.get_logger().error(f"malformed cloud skipped: {exc}", throttle_duration_sec=2.0)
             return
         self.calibration.add_cloud(cols, cloud.frame_id)
+
+    def _on_sensor_cloud(self, cloud: Any, source: str) -> None:
+        """A driver's cloud in the sensor's frame (docs/method.md section 12), decoded as a
+        bag's is (:class:`SensorCloudDecoder`)."""
+        first = self._decoder.reading is None
+        xyz, t, _intensity = self._decoder.decode(
+            cloud.points, stamp_seconds(cloud.msg.header.stamp), source=source)
+        if first and self._decoder.reading is not None:
+            self.get_logger().warning(f"{source}: {self._decoder.reading.describe()}")
+        self.calibration.add_sensor_cloud(xyz, t, cloud.frame_id)
+
+    def _on_tf_static(self, msg: Any) -> None:
+        """Static transforms: the nominal mounting's chain (our own offer left out)."""
+        transforms: dict[str, tuple[str, Mounting]] = {}
+        for tf in msg.transforms:
+            if self._offered is not None and tf.child_frame_id == self._offered[1]:
+                continue
+            tr, q = tf.transform.translation, tf.transform.rotation
+            try:
+                transforms[str(tf.child_frame_id)] = (str(tf.header.frame_id),
+                                                      Mounting.from_quaternion(
+                                                          [tr.x, tr.y, tr.z],
+                                                          [q.x, q.y, q.z, q.w]))
+            except ConfigError as exc:
+                self.get_logger().error(f"{self.params['topics.tf_static']}: "
+                                        f"{tf.header.frame_id} -> {tf.child_frame_id} "
+                                        f"ignored: {exc}")
+        if transforms:
+            self.calibration.add_transforms(transforms, self.params["topics.tf_static"])
 
     def _on_control(self, raw: bytes) -> None:
         source = self.params["topics.control_points"]
@@ -149,7 +207,10 @@ class CalibratorNode(Node):
             MultiArrayDimension(label=ESTIMATE_COLUMN_LABEL, size=n_cols, stride=n_cols)]
         msg.data = estimate_matrix(result).ravel().tolist()
         self.estimate_pub.publish(msg)
-        self.yaml_pub.publish(String(data=calibration_yaml(result)))
+        cal, feed = self.calibration.mounting, self.calibration.sensor
+        extrinsic = None if cal is None else feed.extrinsic(cal)
+        self.yaml_pub.publish(String(data=calibration_yaml(result, extrinsic=extrinsic)))
+        self._offer_mounting()
         self._publish_diagnostics()
         statuses = self.calibration.estimate_statuses()
         summary = qa_summary(statuses)
@@ -158,6 +219,28 @@ class CalibratorNode(Node):
             self.get_logger().warning(summary)
         else:
             self.get_logger().info(summary)
+
+    def _offer_mounting(self) -> None:
+        """The calibrated mounting of clouds in the sensor's frame on ``/tf_static``:
+        ``base_link -> sensor_frame.calibrated_frame`` (default ``<sensor>_calibrated``,
+        beside the nominal, which stays robot_state_publisher's)."""
+        cal, feed = self.calibration.mounting, self.calibration.sensor
+        if cal is None or feed.frame_id is None or self.tf_pub is None:
+            return
+        from tf2_msgs.msg import TFMessage
+
+        child = self.params["sensor_frame.calibrated_frame"] or f"{feed.frame_id}_calibrated"
+        self._offered = (feed.base_frame, child, cal.mounting)
+        tf = TransformStamped()
+        tf.header.stamp = self.get_clock().now().to_msg()
+        tf.header.frame_id = feed.base_frame
+        tf.child_frame_id = child
+        t, q = cal.mounting.translation, cal.mounting.quaternion
+        tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = \
+            (float(v) for v in t)
+        (tf.transform.rotation.x, tf.transform.rotation.y, tf.transform.rotation.z,
+         tf.transform.rotation.w) = (float(v) for v in q)
+        self.tf_pub.publish(TFMessage(transforms=[tf]))
 
     def _publish_diagnostics(self) -> None:
         self.diagnostics.publish(diagnostic_array(self, self.calibration.statuses()))

@@ -148,17 +148,43 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
     origin = sensor_trajectory(trajectory, nominal)
     spans = straight_lines(trajectory) if lines is None else \
         np.asarray(lines, dtype=np.float64).reshape(-1, 2)
+    strips = line_strips(p, t, origin, nominal, spans)
+    result = calibrate(Mission(origin, strips, frame_id="map"), s, progress=progress)
+    return mounting_calibration(result, nominal, spans)
+
+
+def line_strips(points: np.ndarray, t: np.ndarray, origin: Trajectory, nominal: Mounting,
+                lines: np.ndarray) -> list[Strip]:
+    """The points of each line as a strip in the map frame (id: the line's index in
+    ``lines``; in the points' order), georeferenced with ``nominal``'s rotation from the
+    sensor's origin (:func:`sensor_trajectory`; module docstring); points in no line (the
+    turns) or at the origin (no return) left out. ``points`` (n, 3) m in the sensor's frame,
+    ``t`` (n,) absolute s, ``lines`` (k, 2) s. Batch and live alike (each point's own).
+
+    Raises
+    ------
+    TrajectoryError
+        A point of a line outside ``origin``'s span.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
     ok = np.isfinite(p).all(axis=1) & np.isfinite(t) & (np.einsum("ij,ij->i", p, p) > 0.0)
-    label = np.where(ok, line_of(t, spans), -1)
+    label = np.where(ok, line_of(t, lines), -1)
     keep = np.flatnonzero(label >= 0)
     # the rotation alone: the sensor's origin is the trajectory's (module docstring)
     geo = georeference(p[keep], t[keep], origin, Mounting(nominal.rotation, np.zeros(3)),
                        source="sensor-frame points")
     order = np.argsort(label[keep], kind="stable")
-    bounds = np.searchsorted(label[keep][order], np.arange(len(spans) + 1))
-    strips = [Strip(k, geo.xyz[order[a:b]], t[keep][order[a:b]])
-              for k, (a, b) in enumerate(pairwise(bounds)) if b > a]
-    result = calibrate(Mission(origin, strips, frame_id="map"), s, progress=progress)
+    bounds = np.searchsorted(label[keep][order], np.arange(len(lines) + 1))
+    return [Strip(k, geo.xyz[order[a:b]], t[keep][order[a:b]])
+            for k, (a, b) in enumerate(pairwise(bounds)) if b > a]
+
+
+def mounting_calibration(result: CalibrationResult, nominal: Mounting,
+                         lines: np.ndarray) -> MountingCalibration:
+    """The calibrated mounting of a calibration of sensor-frame strips (``result``: its
+    biases are the nominal's errors; ``lines``: the lines whose points made the strips),
+    batch (:func:`calibrate_mounting`) or live alike."""
     sol = result.solution
     delta, sigma = sol.delta.copy(), sol.sigma.copy()
     translation_sigma, rotation_sigma = _mounting_sigmas(sigma)
@@ -166,7 +192,7 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
         mounting=mounting_from_biases(nominal, delta), nominal=nominal,
         range_offset_m=float(delta[PARAMETER_INDEX["dr"]]), delta=delta, sigma=sigma,
         translation_sigma_m=translation_sigma, rotation_sigma_rad=rotation_sigma,
-        lines=spans, result=result)
+        lines=np.asarray(lines, dtype=np.float64).reshape(-1, 2), result=result)
 
 
 def _mounting_sigmas(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,4 +207,4 @@ def _mounting_sigmas(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 __all__ = ["MOUNTING_SOLVE_FOR", "MountingCalibration", "calibrate_mounting",
-           "mounting_settings", "sensor_trajectory"]
+           "line_strips", "mounting_calibration", "mounting_settings", "sensor_trajectory"]

@@ -33,17 +33,13 @@ from lidarcal_ros.io.bag.format import (
 from lidarcal_ros.io.bag.mission_bag import expect_topic_type
 from lidarcal_ros.io.bag.reader import BagReader, open_bag
 from lidarcal_ros.io.bag.writer import BagWriter
-from lidarcal_ros.io.cloud.columns import extract_xyz
 from lidarcal_ros.io.cloud.pointcloud import cloud_to_array
-from lidarcal_ros.io.cloud.sensor_time import TimeReading, time_reading
+from lidarcal_ros.io.cloud.sensor_time import SensorCloudDecoder, TimeReading
 from lidarcal_ros.io.cloud.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
 
 logger = logging.getLogger(__name__)
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
-#: FLOAT32 ``x, y, z`` in the sensor's frame are rounded to well under a millimetre within
-#: a driver's range; this tolerance only refuses map coordinates mistaken for them.
-_SENSOR_COORDINATE_TOLERANCE_M = 0.01
 
 
 @dataclass
@@ -217,7 +213,7 @@ def read_sensor_bag(
         xyz_parts: list[np.ndarray] = []
         t_parts: list[np.ndarray] = []
         intensity_parts: list[np.ndarray] | None = []
-        reading: TimeReading | None = None
+        decoder = SensorCloudDecoder(field=time_field, convention=time_convention)
         child_frame = ""
         decode_pose = functools.partial(bag.deserialize, topic=trajectory_topic)
         topics = [points_topic, trajectory_topic] + ([tf_topic] if use_tf else [])
@@ -238,32 +234,20 @@ def read_sensor_bag(
             points = cloud_to_array(msg, source=source)
             frames.add(str(msg.header.frame_id))
             stamp = stamp_seconds(msg.header.stamp)
-            if not len(points):
-                stamps.append(stamp)
-                xyz_parts.append(np.empty((0, 3)))
-                t_parts.append(np.empty(0))
-                if intensity_parts is not None:
-                    intensity_parts.append(np.empty(0, dtype=np.float32))
-                continue
-            if reading is None:
-                reading = time_reading(points, stamp, field=time_field,
-                                       convention=time_convention, source=source)
-            elif reading.field not in (points.dtype.names or ()):
-                raise InputError(f"{source}: a cloud at {stamp:.3f} s lacks the time field "
-                                 f"'{reading.field}' of the first")
+            xyz, t, intensity = decoder.decode(points, stamp, source=source)
             stamps.append(stamp)
-            xyz_parts.append(extract_xyz(points, source=source,
-                                         coordinate_tolerance_m=_SENSOR_COORDINATE_TOLERANCE_M))
-            t_parts.append(reading.absolute(points[reading.field], stamp))
+            xyz_parts.append(xyz)
+            t_parts.append(t)
             if intensity_parts is not None:
-                if "intensity" in (points.dtype.names or ()):
-                    intensity_parts.append(points["intensity"].astype(np.float32))
+                if intensity is not None:
+                    intensity_parts.append(intensity)
                 else:
                     intensity_parts = None
         if not stamps:
             raise BagError(f"{where}: topic {points_topic} has no messages")
         if not samples:
             raise BagError(f"{where}: topic {trajectory_topic} has no messages")
+        reading = decoder.reading
         if reading is None:
             raise InputError(f"{where}: all {len(stamps)} clouds on {points_topic} are empty")
         if len(frames) > 1:

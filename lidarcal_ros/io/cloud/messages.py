@@ -289,11 +289,13 @@ def parse_estimate(data: Sequence[float] | np.ndarray, labels: Sequence[str] = (
     return Estimate(values, sigmas, m[2:].copy(), converged)
 
 
-def calibration_yaml(result: Any) -> str:
-    """The calibration file of docs/interface.md as YAML text."""
+def calibration_yaml(result: Any, *, extrinsic: Any = None) -> str:
+    """The calibration file of docs/interface.md as YAML text (with the ``extrinsic`` block
+    of clouds in the sensor's frame where given)."""
     from lidarcal_ros.io.calibration_file import calibration_document
 
-    return yaml.safe_dump(calibration_document(result), sort_keys=False, width=120)
+    return yaml.safe_dump(calibration_document(result, extrinsic=extrinsic), sort_keys=False,
+                          width=120)
 
 
 # ---------------------------------------------------------------------------- diagnostics

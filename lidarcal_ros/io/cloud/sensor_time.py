@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidarcal_ros.core.georeferencing.sensor_frame import TimeConvention
-from lidarcal_ros.errors import CloudFormatError, ConfigError
+from lidarcal_ros.errors import CloudFormatError, ConfigError, InputError
+from lidarcal_ros.io.cloud.columns import extract_xyz
 from lidarcal_ros.io.cloud.pointcloud import (
     DATATYPE_NAMES,
     FLOAT32,
@@ -122,4 +123,59 @@ def time_reading(points: np.ndarray, stamp_s: float, *, field: str | None = None
     return TimeReading(found, code, scale, relative, convention == TimeConvention.AUTO)
 
 
-__all__ = ["SENSOR_TIME_FIELDS", "TimeReading", "time_reading"]
+#: FLOAT32 ``x, y, z`` in the sensor's frame are rounded to well under a millimetre within
+#: a driver's range; this tolerance only refuses map coordinates mistaken for them.
+SENSOR_COORDINATE_TOLERANCE_M = 0.01
+
+
+class SensorCloudDecoder:
+    """A driver's clouds, one after the other, as points in the sensor's frame with absolute
+    times: the time field read as the first non-empty cloud says (:func:`time_reading`). A
+    bag's reader and the live calibrator decode with it alike.
+
+    Parameters
+    ----------
+    field : str or None, keyword-only
+        The per-point time field (None: found by name).
+    convention : TimeConvention or str, keyword-only
+    """
+
+    def __init__(self, *, field: str | None = None,
+                 convention: TimeConvention | str = TimeConvention.AUTO) -> None:
+        self.field = field
+        self.convention = convention
+        #: How the time field is read (None until the first non-empty cloud).
+        self.reading: TimeReading | None = None
+
+    def decode(self, points: np.ndarray, stamp_s: float, *, source: str = "cloud"
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """One cloud (structured ``points`` stamped ``stamp_s`` s) as ``(xyz, t,
+        intensity)``: (n, 3) float64 m in the sensor's frame, (n,) float64 absolute s,
+        (n,) float32 or None.
+
+        Raises
+        ------
+        CloudFormatError
+            No usable time field or coordinates.
+        InputError
+            A cloud without the time field of the first.
+        """
+        names = points.dtype.names or ()
+        if not len(points):
+            return np.empty((0, 3)), np.empty(0), (np.empty(0, dtype=np.float32)
+                                                   if "intensity" in names else None)
+        if self.reading is None:
+            self.reading = time_reading(points, stamp_s, field=self.field,
+                                        convention=self.convention, source=source)
+        elif self.reading.field not in names:
+            raise InputError(f"{source}: a cloud at {stamp_s:.3f} s lacks the time field "
+                             f"'{self.reading.field}' of the first")
+        xyz = extract_xyz(points, source=source,
+                          coordinate_tolerance_m=SENSOR_COORDINATE_TOLERANCE_M)
+        t = self.reading.absolute(points[self.reading.field], stamp_s)
+        intensity = points["intensity"].astype(np.float32) if "intensity" in names else None
+        return xyz, t, intensity
+
+
+__all__ = ["SENSOR_COORDINATE_TOLERANCE_M", "SENSOR_TIME_FIELDS", "SensorCloudDecoder",
+           "TimeReading", "time_reading"]

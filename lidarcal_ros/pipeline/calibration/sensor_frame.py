@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from lidarcal_ros.core.calibration.calibrate import Progress
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Progress
 from lidarcal_ros.core.calibration.extrinsic import (
     MOUNTING_SOLVE_FOR,
     MountingCalibration,
@@ -23,6 +24,7 @@ from lidarcal_ros.core.calibration.extrinsic import (
     mounting_settings,
 )
 from lidarcal_ros.core.config import SCHEMA, FlightConfig
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel, ScannerKind
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.uav_payload import UavPayloadMission
@@ -92,17 +94,27 @@ def load_sensor_bag(bag: str | Path, config: FlightConfig, *,
         mounting=parse_mounting(config["sensor_frame.mounting"]))
 
 
-def calibrate_sensor_bag(data: SensorBag, *, solve_for: tuple[str, ...] | None = None,
-                         progress: Progress | None = None) -> MountingCalibration:
-    """Calibrate the mounting of a bag's sensor-frame clouds: the biases of ``solve_for``
-    (default :data:`~lidarcal_ros.core.calibration.extrinsic.MOUNTING_SOLVE_FOR`; ``dS`` is
-    no parameter of such clouds)."""
+def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None
+                                ) -> CalibrationSettings:
+    """The settings of a mounting's calibration, ``lidarcal calibrate``'s and the
+    calibrator node's: the biases of ``solve_for`` (default
+    :data:`~lidarcal_ros.core.calibration.extrinsic.MOUNTING_SOLVE_FOR`; ``dS`` is no
+    parameter of such clouds), a general scanner, the rigorous model."""
     names = MOUNTING_SOLVE_FOR if solve_for is None else \
         tuple(n for n in PARAMETER_NAMES if n in solve_for)
+    return replace(mounting_settings(solve_for=names), scanner=ScannerKind.GENERAL,
+                   model=PositioningModel.RIGOROUS)
+
+
+def calibrate_sensor_bag(data: SensorBag, *, solve_for: tuple[str, ...] | None = None,
+                         progress: Progress | None = None) -> MountingCalibration:
+    """Calibrate the mounting of a bag's sensor-frame clouds
+    (:func:`sensor_calibration_settings`)."""
     logger.info("%s: %d points in %s, mounting %s -> %s from %s", data.path, data.n_points,
                 data.frame_id, data.base_frame, data.frame_id, data.mounting_source)
     return calibrate_mounting(data.xyz, data.t, data.trajectory, data.mounting,
-                              settings=mounting_settings(solve_for=names), progress=progress)
+                              settings=sensor_calibration_settings(solve_for),
+                              progress=progress)
 
 
 def extrinsic_of(data: SensorBag, cal: MountingCalibration) -> Extrinsic:
@@ -110,12 +122,13 @@ def extrinsic_of(data: SensorBag, cal: MountingCalibration) -> Extrinsic:
     return Extrinsic(data.base_frame, data.frame_id, cal.mounting, cal.nominal)
 
 
-def write_mounting_calibration(path: str | Path, data: SensorBag, cal: MountingCalibration,
-                               *, overwrite: bool = True) -> Path:
+def write_mounting_calibration(path: str | Path, data: SensorBag | Extrinsic,
+                               cal: MountingCalibration, *, overwrite: bool = True) -> Path:
     """Write the calibration file of a mounting (the biases as any calibration's, the
-    ``extrinsic`` block) and the URDF joint beside it; the file's path."""
-    return write_calibration(path, cal.result, overwrite=overwrite,
-                             extrinsic=extrinsic_of(data, cal))
+    ``extrinsic`` block: of a bag's frames, or as given) and the URDF joint beside it; the
+    file's path. ``lidarcal calibrate`` and the calibrator's ``~/save`` alike."""
+    extrinsic = data if isinstance(data, Extrinsic) else extrinsic_of(data, cal)
+    return write_calibration(path, cal.result, overwrite=overwrite, extrinsic=extrinsic)
 
 
 def format_mounting(data: SensorBag, cal: MountingCalibration,
@@ -192,5 +205,5 @@ def truth_mounting(path: str | Path) -> Mounting | None:
 
 
 __all__ = ["calibrate_sensor_bag", "extrinsic_of", "format_mounting", "load_sensor_bag",
-           "parse_mounting", "truth_mounting", "write_mounting_calibration",
-           "write_uav_simulation"]
+           "parse_mounting", "sensor_calibration_settings", "truth_mounting",
+           "write_mounting_calibration", "write_uav_simulation"]

@@ -20,12 +20,21 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core.calibration.extrinsic import MountingCalibration
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.io.calibration_file import urdf_path
 from lidarcal_ros.io.cloud.columns import CloudColumns
-from lidarcal_ros.io.cloud.messages import ERROR, StatusSpec, qa_statuses
+from lidarcal_ros.io.cloud.messages import ERROR, OK, StatusSpec, qa_statuses
+from lidarcal_ros.pipeline.calibration.sensor_frame import (
+    parse_mounting,
+    sensor_calibration_settings,
+    write_mounting_calibration,
+)
+from lidarcal_ros.pipeline.calibration.sensor_stream import SensorFrameFeed
 from lidarcal_ros.pipeline.calibration.statuses import (
     InputCounts,
     ServiceCounts,
@@ -39,7 +48,8 @@ from lidarcal_ros.pipeline.throttled_log import ThrottledLog
 
 __all__ = [
     "REQUEST_TIMEOUT_S", "SAVE_CONVERGE_S", "SHUTDOWN_CONVERGE_S", "UPDATE_PERIOD_S",
-    "AddCloud", "AddPose", "CalibrationService", "CalibratorOptions", "Job",
+    "AddCloud", "AddPose", "AddSensorCloud", "AddTransforms", "CalibrationService",
+    "CalibratorOptions", "Job",
     "ReadControlFile", "Reset", "Save", "SetConfig", "SetControl", "SetOptions", "Solve",
 ]
 
@@ -103,6 +113,23 @@ class AddPose:
 
 
 @dataclass(frozen=True)
+class AddSensorCloud:
+    """A driver's cloud in the sensor's frame ``frame_id``: (n, 3) m, (n,) absolute s."""
+
+    xyz: np.ndarray
+    t: np.ndarray
+    frame_id: str
+
+
+@dataclass(frozen=True)
+class AddTransforms:
+    """Static transforms (``child: (parent, parent -> child)``) and where they came from."""
+
+    transforms: dict[str, tuple[str, Mounting]]
+    source: str
+
+
+@dataclass(frozen=True)
 class SetControl:
     """Control points, and where they came from (for the log)."""
 
@@ -152,8 +179,8 @@ class _Idle:
     """Nothing arrived for a moment (the worker's own job)."""
 
 
-Job = (AddCloud | AddPose | SetControl | ReadControlFile | SetConfig | SetOptions | Solve
-       | Reset | Save | _Idle)
+Job = (AddCloud | AddPose | AddSensorCloud | AddTransforms | SetControl | ReadControlFile
+       | SetConfig | SetOptions | Solve | Reset | Save | _Idle)
 
 
 class CalibrationService:
@@ -195,6 +222,9 @@ class CalibrationService:
         self.checkpoints = 0
         self.resumed_from = ""
         self._stream = self._open_stream()
+        self.sensor = self._new_feed(config)
+        #: The calibrated mounting of the latest estimate (clouds in the sensor's frame).
+        self.mounting: MountingCalibration | None = None
         if config["calibration.control_points_file"]:
             self._submit(ReadControlFile(config["calibration.control_points_file"]))
 
@@ -216,6 +246,19 @@ class CalibrationService:
                             stream.normal_equations.count)
                 return stream
         return StreamingCalibration(self.config, **kwargs)
+
+    @staticmethod
+    def _new_feed(config: FlightConfig) -> SensorFrameFeed:
+        return SensorFrameFeed(base_frame=config["sensor_frame.base_frame"],
+                               mounting=parse_mounting(config["sensor_frame.mounting"]))
+
+    def _sensor_frame_stream(self) -> StreamingCalibration:
+        """A calibration of clouds in the sensor's frame, as ``lidarcal calibrate`` sets
+        it (:func:`~lidarcal_ros.pipeline.calibration.sensor_frame.
+        sensor_calibration_settings`)."""
+        return StreamingCalibration(self.config, max_points=self.options.max_points,
+                                    strip_gap_s=float(self.options.strip_gap_s),
+                                    settings_of=lambda _config: sensor_calibration_settings())
 
     # -- state ----------------------------------------------------------------------------
     @property
@@ -254,6 +297,17 @@ class CalibrationService:
         """A trajectory sample (seconds; map frame, m; quaternion xyzw, NaN: none)."""
         self.input.poses += 1
         self._submit(AddPose(t, xyz, frame_id, orientation))
+
+    def add_sensor_cloud(self, xyz: np.ndarray, t: np.ndarray, frame_id: str) -> None:
+        """A driver's cloud in the sensor's frame (:class:`AddSensorCloud`)."""
+        self.input.clouds += 1
+        self.input.points += len(t)
+        self._submit(AddSensorCloud(xyz, t, frame_id))
+
+    def add_transforms(self, transforms: dict[str, tuple[str, Mounting]],
+                       source: str) -> None:
+        """Static transforms (:class:`AddTransforms`)."""
+        self._submit(AddTransforms(transforms, source))
 
     def set_control(self, control: ControlPoints, source: str) -> None:
         """Control points for the solves to come (``source`` names them in the log)."""
@@ -344,9 +398,14 @@ class CalibrationService:
 
     def _add_poses(self, poses: list[AddPose]) -> None:
         t = np.array([p.t for p in poses])
+        xyz, q = np.array([p.xyz for p in poses]), np.array([p.orientation for p in poses])
+        # (kept for clouds in the sensor's frame too: they may come after the first poses)
+        self.sensor.add_poses(t, xyz, q, poses[-1].frame_id)
+        if self.sensor.active:
+            self._traj_end = max(self._traj_end, float(t.max()))
+            return
         steps = self._stream.clock_steps[0]
-        self._stream.add_trajectory(t, np.array([p.xyz for p in poses]), poses[-1].frame_id,
-                                    np.array([p.orientation for p in poses]))
+        self._stream.add_trajectory(t, xyz, poses[-1].frame_id, q)
         steps_now, last = self._stream.clock_steps
         if steps_now > steps:  # the old clock's poses from there on were dropped
             logger.error("calibrator: trajectory: pose %s; the poses of the old clock from "
@@ -359,7 +418,14 @@ class CalibrationService:
         """Do one job; returns the reply of a request."""
         match job:
             case AddCloud(columns, frame_id):
+                if self.sensor.active:
+                    raise LidarcalError(f"cloud in the map frame '{frame_id}' among clouds "
+                                        f"in the sensor's frame '{self.sensor.frame_id}'")
                 self._add_cloud(columns, frame_id)
+            case AddSensorCloud(xyz, t, frame_id):
+                self._add_sensor_cloud(xyz, t, frame_id)
+            case AddTransforms(transforms, source):
+                self.sensor.add_transforms(transforms, source)
             case _Idle():
                 self._on_idle()
             case SetControl(control, source):
@@ -369,6 +435,9 @@ class CalibrationService:
                 self._read_control_file(path)
             case SetConfig(config, changed):
                 self.config = config
+                if changed & {"sensor_frame.mounting", "sensor_frame.base_frame"} and \
+                        not self.sensor.active:
+                    self.sensor = self._new_feed(config)
                 self._stream.update_config(config)
                 if "calibration.control_points_file" in changed and \
                         config["calibration.control_points_file"]:
@@ -402,6 +471,22 @@ class CalibrationService:
         if self._jobs.empty():
             self._update(None)
 
+    def _add_sensor_cloud(self, xyz: np.ndarray, t: np.ndarray, frame_id: str) -> None:
+        if not self.sensor.active:
+            if self._stream.n_points:
+                raise LidarcalError(f"cloud in the sensor's frame '{frame_id}' among clouds "
+                                    f"in the map frame '{self._stream.frame_id}'")
+            # the calibration of a mounting, on the trajectory of the sensor's origin
+            self._stream = self._sensor_frame_stream()
+        self.sensor.add_cloud(xyz, t, frame_id)
+        self._last_input = time.monotonic()
+        self._idle_closed = False
+        finite = t[np.isfinite(t)]
+        if finite.size:
+            self._point_end = max(self._point_end, float(finite.max()))
+        if self._jobs.empty():
+            self._update(None)
+
     def _on_idle(self) -> None:
         """Nothing arrived for a moment: close the strips idle long enough (all of them
         after ``idle_close_s`` without input), then take the refinement a step further."""
@@ -428,6 +513,8 @@ class CalibrationService:
         self._last_update = time.monotonic()
         started = time.perf_counter()
         try:
+            if self.sensor.active:
+                self.sensor.step(self._stream, final=now_s == math.inf)
             result = self._stream.update(now_s)
         except LidarcalError as exc:  # e.g. no trajectory yet: keep accumulating
             self._throttled.log(logging.WARNING, 10.0, f"not updated: {exc}")
@@ -453,6 +540,10 @@ class CalibrationService:
 
     def _solve(self) -> str:
         started = time.perf_counter()
+        if self.sensor.active:
+            self.sensor.step(self._stream, final=True)
+            if self.sensor.refusal:
+                raise LidarcalError(self.sensor.refusal)
         result = self._stream.solve()
         self._publish(result, time.perf_counter() - started)
         return (f"solved: {len(result.pairs)} strip pairs, {result.iterations} iterations, "
@@ -461,6 +552,8 @@ class CalibrationService:
 
     def _reset(self) -> str:
         self._stream.reset()
+        self.sensor.reset()
+        self.mounting = None
         self._point_end = self._traj_end = -math.inf
         with self._qa_lock:
             self._qa = []
@@ -484,7 +577,16 @@ class CalibrationService:
         result = self._stream.latest
         if result is None:
             raise LidarcalError("no estimate yet: " + (self._stream.waiting_for or "no data"))
-        path = write_calibration(self.config["calibration.calibration_file"], result)
+        target = self.config["calibration.calibration_file"]
+        if self.sensor.active:
+            cal = self.sensor.calibration(result)
+            if cal is None:
+                raise LidarcalError(self.sensor.refusal or "no mounting")
+            path = write_mounting_calibration(target, self.sensor.extrinsic(cal), cal)
+            return (f"calibration written to {Path(path).resolve()}, URDF joint to "
+                    f"{urdf_path(Path(path).resolve())}") + (
+                f" ({convergence})" if convergence else "")
+        path = write_calibration(target, result)
         return f"calibration written to {Path(path).resolve()}" + (
             f" ({convergence})" if convergence else "")
 
@@ -499,6 +601,8 @@ class CalibrationService:
         statuses.append(trajectory_status(result, cfg.calibration_settings().trajectory))
         with self._qa_lock:
             self._qa = statuses
+        if self.sensor.active:
+            self.mounting = self.sensor.calibration(result)
         self._on_result(result)
         if self.options.checkpoint_file:
             self._checkpoint(self.options.checkpoint_file)
@@ -522,11 +626,28 @@ class CalibrationService:
         """Everything the calibrator reports: :meth:`estimate_statuses`, then
         :meth:`operating_statuses` (an ERROR status if those fail)."""
         statuses = self.estimate_statuses()
+        if self.sensor.active or self.sensor.refusal:
+            statuses.append(self.sensor_status())
         try:
             statuses += self.operating_statuses()
         except Exception as exc:  # a report must not take the calibrator down
             statuses.append(StatusSpec(ERROR, "lidarcal: state", f"{type(exc).__name__}: {exc}"))
         return statuses
+
+    def sensor_status(self) -> StatusSpec:
+        """Clouds in the sensor's frame: ERROR with the refusal where they cannot go on
+        (no mounting, no orientation), else the mounting's source and the lines closed."""
+        feed = self.sensor
+        values = {"frame": feed.frame_id or "", "base_frame": feed.base_frame,
+                  "mounting_source": feed.mounting_source, "lines": str(len(feed.lines)),
+                  "pending_points": str(feed.pending_points),
+                  "turn_points": str(feed.turn_points), "late_points": str(feed.late_points)}
+        if feed.refusal:
+            return StatusSpec(ERROR, "lidarcal: sensor frame", feed.refusal, values)
+        return StatusSpec(OK, "lidarcal: sensor frame",
+                          f"clouds in '{feed.frame_id}', mounting {feed.base_frame} -> "
+                          f"{feed.frame_id} from {feed.mounting_source}; {len(feed.lines)} "
+                          "lines closed", values)
 
     def operating_statuses(self) -> list[StatusSpec]:
         """Memory, input and state statuses (the QA statuses come with each estimate), and

@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import NormalEquations
-from lidarcal_ros.core.calibration.calibrate import Calibrator
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Calibrator
 from lidarcal_ros.core.calibration.iteration import Iteration
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.calibration.thinning import first_per_cell
@@ -67,6 +67,10 @@ class StreamingCalibration:
         :func:`default_point_budget`.
     strip_gap_s : float
         Seconds of point time without a point of a strip after which it is complete.
+    settings_of : callable, optional
+        The calibration's settings of a configuration (default
+        :meth:`FlightConfig.calibration_settings`; clouds in the sensor's frame: the
+        mounting's, as ``lidarcal calibrate`` sets them).
     """
 
     #: The map frame of the points and the trajectory (None until the first message).
@@ -113,7 +117,9 @@ class StreamingCalibration:
         control: ControlPoints | None = None,
         max_points: int | None = None,
         strip_gap_s: float = 2.0,
+        settings_of: Callable[[FlightConfig], CalibrationSettings] | None = None,
     ) -> None:
+        self._settings_of = settings_of or FlightConfig.calibration_settings
         if max_points is None:
             max_points = default_point_budget()
         if max_points <= 0:
@@ -130,7 +136,7 @@ class StreamingCalibration:
 
     # ------------------------------------------------------------------ inputs
     def _new_models(self) -> ModelCalibrators:
-        return ModelCalibrators(self.config.calibration_settings(), control=self._control)
+        return ModelCalibrators(self._settings_of(self.config), control=self._control)
 
     @property
     def _calibrator(self) -> Calibrator:
@@ -207,7 +213,7 @@ class StreamingCalibration:
     def update_config(self, config: FlightConfig) -> None:
         """New configuration: where it changes the calibration's settings, the strips are
         re-prepared with it and the estimate converged again."""
-        changed = config.calibration_settings() != self.config.calibration_settings()
+        changed = self._settings_of(config) != self._settings_of(self.config)
         self.config = config
         if changed:
             self._rebuild()

@@ -1,0 +1,217 @@
+"""The calibrator on a driver's clouds in the sensor's frame over loopback DDS (issue 33).
+
+A small simulated UAV payload (three lines of 80 m, a VLP-16 of 48 columns) replayed by
+``lidarcal replay`` into a calibrator node; ``~/solve`` then ``~/save`` must write the mounting
+``lidarcal calibrate`` writes of the same bag (0.1 sigma), and the YAML topic carry it. The
+refusals (no mounting, no orientation) are said on /diagnostics while the node keeps serving.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from helpers_wait import wait_until as _wait
+
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.simulation.uav_payload import UavPayloadSpec, simulate_uav_payload
+from lidarcal_ros.io.bag.sensor_bag import write_sensor_bag
+from lidarcal_ros.io.calibration_file import read_calibration, urdf_path
+from lidarcal_ros.pipeline.calibration.sensor_frame import (
+    calibrate_sensor_bag,
+    load_sensor_bag,
+    write_mounting_calibration,
+    write_uav_simulation,
+)
+
+TOPICS = {"topics.points": "/velodyne_points", "topics.trajectory": "/ins/odometry"}
+
+
+def _mounting_text(m: Any) -> str:
+    return ",".join(repr(float(v)) for v in (*m.translation, *m.quaternion))
+
+
+@pytest.fixture(scope="module")
+def payload(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    mission = simulate_uav_payload(UavPayloadSpec(seed=3, columns=48, n_lines=3,
+                                                  line_length_m=80.0))
+    workdir = tmp_path_factory.mktemp("uav")
+    paths = write_uav_simulation(workdir / "uav", mission)
+    return mission, paths, workdir
+
+
+class _Probe:
+    def __init__(self, node: Any, prefix: str) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from std_msgs.msg import String
+
+        from lidarcal_ros.nodes.topics import latched_qos
+
+        self.node = node
+        self.yaml: list[str] = []
+        self.diagnostics: dict[str, tuple[int, str]] = {}
+        self.lock = threading.Lock()
+        node.create_subscription(String, "/lidar/calibration/yaml",
+                                 lambda m: self.yaml.append(m.data), latched_qos())
+
+        def on_diag(msg: Any) -> None:
+            with self.lock:
+                for s in msg.status:
+                    if s.hardware_id.startswith(prefix):
+                        level = s.level[0] if isinstance(s.level, bytes) else s.level
+                        self.diagnostics[s.name] = (int(level), s.message)
+
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 100)
+
+    def call(self, service: str, timeout: float = 120.0) -> Any:
+        from std_srvs.srv import Trigger
+
+        client = self.node.create_client(Trigger, service)
+        try:
+            assert client.wait_for_service(timeout_sec=10.0), service
+            future = client.call_async(Trigger.Request())
+            _wait(future.done, timeout, service)
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+
+@contextlib.contextmanager
+def _spinning(context: Any, *nodes: Any) -> Iterator[None]:
+    """Spin ``nodes`` in a multi-threaded executor in a background thread meanwhile."""
+    from rclpy.executors import MultiThreadedExecutor
+
+    executor = MultiThreadedExecutor(num_threads=4, context=context)
+    for n in nodes:
+        executor.add_node(n)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+        executor.shutdown(timeout_sec=5)
+
+
+@pytest.fixture(scope="module")
+def running(ros_context: Any, payload: Any) -> Iterator[tuple[Any, _Probe, Any]]:
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.nodes.calibrator import CalibratorNode
+
+    mission, _paths, workdir = payload
+    values = {**TOPICS, "trajectory_type": "nav_msgs/msg/Odometry",
+              "sensor_frame.mounting": _mounting_text(mission.nominal),
+              "calibration.calibration_file": str(workdir / "live.yaml"),
+              "idle_close_s": 0.5}
+    cal = CalibratorNode(context=ros_context, node_name="sensor_calibrator",
+                         parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+    probe_node = rclpy.create_node("sensor_probe", context=ros_context)
+    probe = _Probe(probe_node, "sensor_calibrator")
+    with _spinning(ros_context, cal, probe_node):
+        yield cal, probe, workdir
+    cal.close()
+    cal.destroy_node()
+    probe_node.destroy_node()
+
+
+def _replay(bag: Path, rate: float) -> str:
+    res = subprocess.run(
+        [sys.executable, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(rate),
+         "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20"],
+        env=dict(os.environ), capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    return res.stdout
+
+
+def test_replayed_payload_saves_the_offline_mounting(running: Any, payload: Any) -> None:
+    cal, probe, workdir = running
+    _mission, paths, _ = payload
+    _replay(paths["bag"], 10.0)
+    service = cal.calibration
+    # lines close as the turns begin; the last one when the input stops (idle_close_s)
+    _wait(lambda: len(service.sensor.lines) == 3 and service.queued_jobs == 0, 60,
+          "three lines", state=lambda: f"{service.sensor.lines}, {service.sensor.refusal}")
+    solve = probe.call("/sensor_calibrator/solve")
+    assert solve.success, solve.message
+    save = probe.call("/sensor_calibrator/save")
+    assert save.success and "URDF joint" in save.message, save.message
+    live_path = workdir / "live.yaml"
+    assert urdf_path(live_path).is_file()
+
+    config = FlightConfig.from_mapping(TOPICS)
+    data = load_sensor_bag(paths["bag"], config)
+    assert data is not None
+    offline = calibrate_sensor_bag(data)
+    offline_path = write_mounting_calibration(workdir / "offline.yaml", data, offline)
+    live_ext = read_calibration(live_path).extrinsic
+    offline_ext = read_calibration(offline_path).extrinsic
+    assert live_ext is not None and offline_ext is not None
+    assert (live_ext.parent, live_ext.child) == ("base_link", "velodyne")
+    # the same mounting within 0.1 sigma: translation (mm) and rotation (about base_link)
+    t_sigma = offline.translation_sigma_m
+    est = np.isfinite(t_sigma)
+    diff = np.abs(live_ext.mounting.translation - offline_ext.mounting.translation)
+    assert np.all(diff[est] <= 0.1 * t_sigma[est]), (diff, t_sigma)
+    assert np.allclose(live_ext.mounting.translation[~est],
+                       offline_ext.mounting.translation[~est], atol=1e-9)
+    r = live_ext.mounting.rotation.T @ offline_ext.mounting.rotation
+    angle = np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))
+    assert angle <= 0.1 * float(np.min(offline.rotation_sigma_rad))
+    # ... and the calibration moved the nominal by more than that: a test that can fail
+    moved = offline.nominal.rotation.T @ offline.mounting.rotation
+    assert np.arccos(np.clip((np.trace(moved) - 1.0) / 2.0, -1, 1)) > 10 * angle + 1e-6
+    # the estimate on the YAML topic carries the extrinsic block too
+    _wait(lambda: any("extrinsic:" in y for y in probe.yaml), 10, "YAML")
+    _wait(lambda: "lidarcal: sensor frame" in probe.diagnostics, 10, "sensor status")
+    level, message = probe.diagnostics["lidarcal: sensor frame"]
+    assert level == 0 and "3 lines closed" in message, message
+
+
+def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
+                                               tmp_path: Path) -> None:
+    """A trajectory without attitude: the refusal on /diagnostics; the node keeps serving."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.nodes.calibrator import CalibratorNode
+
+    mission, _paths, _ = payload
+    flat = write_sensor_bag(tmp_path / "flat", mission.clouds,
+                            Trajectory(mission.trajectory.t, mission.trajectory.xyz),
+                            mission.nominal)
+    topics = {**TOPICS, "trajectory_type": "nav_msgs/msg/Odometry",
+              "sensor_frame.mounting": _mounting_text(mission.nominal)}
+    cal = CalibratorNode(context=ros_context, node_name="flat_calibrator",
+                         parameter_overrides=[Parameter(k, value=v) for k, v in topics.items()])
+    probe_node = rclpy.create_node("flat_probe", context=ros_context)
+    probe = _Probe(probe_node, "flat_calibrator")
+    with _spinning(ros_context, cal, probe_node):
+        _replay(flat, 20.0)
+        _wait(lambda: "lidarcal: sensor frame" in probe.diagnostics, 20, "sensor status")
+        level, message = probe.diagnostics["lidarcal: sensor frame"]
+        assert level == 2 and "carries no orientation of base_link" in message
+        assert "\n" not in message
+        solve = probe.call("/flat_calibrator/solve")
+        assert not solve.success and "no orientation" in solve.message
+        assert cal.calibration.sensor.lines.size == 0
+    cal.close()
+    cal.destroy_node()
+    probe_node.destroy_node()
