@@ -73,6 +73,10 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="start at once, without waiting for subscribers")
     p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
                    help="subscribers each waited-for topic needs (default 1)")
+    p.add_argument("--linger", type=finite_float, default=2.0, metavar="SECONDS",
+                   help="keep the publishers this long after the last message (default 2): a "
+                   "subscriber still working through its queue loses what it has not taken "
+                   "when they go")
     p.add_argument("--delay", type=finite_float, default=0.0, metavar="SECONDS",
                    help="then wait this much longer before the first message (default 0)")
     p.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[],
@@ -88,8 +92,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rate must be a positive number, got {args.rate}")
     if args.queue < 1:
         raise ConfigError(f"--queue must be at least 1, got {args.queue}")
-    if not (math.isfinite(args.delay) and args.delay >= 0):
-        raise ConfigError(f"--delay must be a non-negative number of seconds, got {args.delay}")
+    for option, value in (("--delay", args.delay), ("--linger", args.linger)):
+        if not (math.isfinite(value) and value >= 0):
+            raise ConfigError(f"{option} must be a non-negative number of seconds, got {value}")
     if not (math.isfinite(args.wait_for_subscribers) and args.wait_for_subscribers >= 0):
         raise ConfigError("--wait-for-subscribers must be a non-negative number of seconds, "
                           f"got {args.wait_for_subscribers}")
@@ -123,6 +128,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
                            latched=node.latched, loop=args.loop,
                            stop=lambda: shutdown.requested)
             node.wait_for_all_acked(5.0)
+            # Fast DDS drops the samples of a writer that goes away which a reader has
+            # received but its node not yet taken: a busy subscriber would lose the tail.
+            if args.linger > 0 and not shutdown.requested:
+                shutdown.event.wait(args.linger)
             state = "interrupted" if stats.interrupted else "done"
             print(f"{state}: {stats.messages} messages in {stats.wall_s:.1f} s "
                   f"({stats.passes} pass{'es' if stats.passes != 1 else ''}, "

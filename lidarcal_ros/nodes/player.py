@@ -17,15 +17,19 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from lidarcal_ros.core.config import SCHEMA
+from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.bag.reader import BagReader
 from lidarcal_ros.nodes.serialized_publisher import SerializedPublisher
 from lidarcal_ros.nodes.suite import SUITE_TOPIC, read_suite_state
 from lidarcal_ros.nodes.topics import latched_qos, stream_qos
 from lidarcal_ros.pipeline.replay import SubscriberWait, wait_for_subscribers
 
-__all__ = ["PLAYER_NODE", "SUITE_INPUTS", "PlayerNode", "message_class", "topic_qos"]
+__all__ = ["PLAYER_NODE", "PUBLISH_STALL_S", "SUITE_INPUTS", "PlayerNode", "message_class",
+           "publish_patiently", "topic_qos"]
 
 PLAYER_NODE = "lidarcal_replay"
+#: How long a message may wait for a slow subscriber before the replay fails, s.
+PUBLISH_STALL_S = 30.0
 #: The streams the suite's nodes subscribe to (their default topics).
 SUITE_INPUTS = (SCHEMA["topics.points"].default, SCHEMA["topics.trajectory"].default)
 
@@ -51,6 +55,31 @@ def topic_qos(info: Any, queue: int) -> QoSProfile:
     return stream_qos(queue, best_effort=best_effort)
 
 
+def publish_patiently(publish: Callable[[], None], *, stall_s: float) -> bool:
+    """Call ``publish`` until it succeeds, for up to ``stall_s`` seconds; return whether it
+    had to wait. A reliable writer whose history is full waits Fast DDS's max_blocking_time
+    (100 ms) for the slowest reader to acknowledge, then fails: back-pressure from a busy
+    subscriber, not a broken topic.
+
+    Raises
+    ------
+    LidarcalError
+        Still refused after ``stall_s`` (the last refusal).
+    """
+    deadline = None
+    while True:
+        try:
+            publish()
+            return deadline is not None
+        except LidarcalError:
+            now = time.monotonic()
+            if deadline is None:
+                deadline = now + stall_s
+            elif now >= deadline:
+                raise
+            time.sleep(0.01)
+
+
 class PlayerNode(Node):
     """Publishers for the topics of an open bag (raw CDR)."""
 
@@ -62,6 +91,8 @@ class PlayerNode(Node):
         self._serialized: dict[str, SerializedPublisher] = {}
         self.latched: set[str] = set()
         self.skipped: dict[str, str] = {}
+        #: Messages that had to wait for a slow subscriber (:meth:`publish`).
+        self.stalls = 0
         for topic, info in bag.topics.items():
             if wanted is not None and topic not in wanted:
                 continue
@@ -100,8 +131,13 @@ class PlayerNode(Node):
         """Publish the CDR bytes ``raw`` of a bag message on ``topic`` as they are (topics not
         replayed: nothing)."""
         pub = self._serialized.get(topic)
-        if pub is not None:
-            pub.publish(raw)
+        if pub is None:
+            return
+        if publish_patiently(lambda: pub.publish(raw), stall_s=PUBLISH_STALL_S):
+            self.stalls += 1
+            if self.stalls == 1:
+                self.get_logger().warning(
+                    f"{topic}: a subscriber is not keeping up; the replay waited for it")
 
     def publish_clock(self, ns: int) -> None:
         """Publish the bag time ``ns`` (nanoseconds) on /clock, where ``clock`` was asked for."""

@@ -135,7 +135,8 @@ def running(ros_context: Any, payload: Any) -> Iterator[tuple[Any, _Probe, Any]]
 def _replay(bag: Path, rate: float) -> str:
     res = subprocess.run(
         [sys.executable, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(rate),
-         "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20"],
+         "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20",
+         "--queue", "5000", "--linger", "10"],
         env=dict(os.environ), capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     return res.stdout

@@ -77,6 +77,7 @@ class SensorFrameFeed:
         self._poses = TrajectorySamples()
         self._pending: list[tuple[np.ndarray, np.ndarray]] = []
         self._fed_t = -math.inf  # the newest pose of the sensor's origin handed on, s
+        self._newest_point_t = -math.inf  # the newest point's time received, s
 
     # -- inputs ---------------------------------------------------------------------------
     @property
@@ -110,9 +111,11 @@ class SensorFrameFeed:
                              f"'{self.frame_id}'")
         if not len(t):
             return
-        if self.lines.size and float(np.max(t)) <= self.lines[-1, 1]:
+        newest = float(np.max(t))
+        if self.lines.size and newest <= self.lines[-1, 1]:
             self.late_points += len(t)  # its line was handed on already
             return
+        self._newest_point_t = max(self._newest_point_t, newest)
         self._pending.append((xyz, t))
 
     # -- state ----------------------------------------------------------------------------
@@ -154,10 +157,13 @@ class SensorFrameFeed:
         self.refusal = reason
         return 0
 
-    def step(self, stream: StreamingCalibration, *, final: bool = False) -> int:
+    def step(self, stream: StreamingCalibration, *, final: bool = False,
+             covered: bool = False) -> int:
         """Hand ``stream`` the new poses of the sensor's origin and the points of the lines
-        closed since the last step (with ``final``: every line, the flight taken as ended);
-        returns the points handed on. What stops it is said in :attr:`refusal`."""
+        closed since the last step (with ``final``: every line, the flight taken as ended;
+        with ``covered`` too, only once the poses reach a ``WINDOW_S`` past the newest point,
+        so that the last line takes every point the whole trajectory would give it); returns
+        the points handed on. What stops it is said in :attr:`refusal`."""
         if self.frame_id is None or not self._poses:
             return 0
         nominal = self.mounting
@@ -184,7 +190,12 @@ class SensorFrameFeed:
                                   origin.orientation[new])
             self._fed_t = float(origin.t[-1])
         lines = straight_lines(base)
-        horizon = math.inf if final else float(base.t[-1]) - CLOSE_AFTER_S
+        if final and covered and float(base.t[-1]) < self._newest_point_t + WINDOW_S:
+            final = False  # poses of the last line's end still to come (queued behind)
+        # Both streams past the line's end: the clouds, larger, often arrive behind the
+        # poses, and points of a line handed on already are lost to it.
+        horizon = math.inf if final else \
+            min(float(base.t[-1]), self._newest_point_t) - CLOSE_AFTER_S
         closed = lines[lines[:, 1] <= horizon]
         if len(closed) <= len(self.lines) or not self._pending:
             return 0

@@ -402,6 +402,9 @@ class CalibrationService:
         # (kept for clouds in the sensor's frame too: they may come after the first poses)
         self.sensor.add_poses(t, xyz, q, poses[-1].frame_id)
         if self.sensor.active:
+            # the lines' ends come from the poses: the input is idle once they stop too
+            self._last_input = time.monotonic()
+            self._idle_closed = False
             self._traj_end = max(self._traj_end, float(t.max()))
             return
         steps = self._stream.clock_steps[0]
@@ -514,7 +517,7 @@ class CalibrationService:
         started = time.perf_counter()
         try:
             if self.sensor.active:
-                self.sensor.step(self._stream, final=now_s == math.inf)
+                self.sensor.step(self._stream, final=now_s == math.inf, covered=True)
             result = self._stream.update(now_s)
         except LidarcalError as exc:  # e.g. no trajectory yet: keep accumulating
             self._throttled.log(logging.WARNING, 10.0, f"not updated: {exc}")
