@@ -282,3 +282,89 @@ def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
     cal.close()
     cal.destroy_node()
     probe_node.destroy_node()
+
+
+def _tf2_msgs() -> Any:
+    """tf2_msgs.msg, or skip (fail under CI=true: scripts/bootstrap builds it there)."""
+    try:
+        import tf2_msgs.msg
+    except ImportError:
+        if os.environ.get("CI"):
+            raise
+        pytest.skip("tf2_msgs not installed (bash scripts/build-tf2-msgs builds it)")
+    return tf2_msgs.msg
+
+
+def test_nominal_from_live_tf_static_and_calibrated_back(ros_context: Any, payload: Any,
+                                                        offline: Any, tmp_path: Path) -> None:
+    """As robot_state_publisher runs it: the nominal mounting on /tf_static (transient local,
+    published before the calibrator starts, beside another joint); no sensor_frame.mounting.
+    The calibrator saves the offline mounting and offers base_link -> velodyne_cal there."""
+    import rclpy
+    from geometry_msgs.msg import TransformStamped
+    from rclpy.parameter import Parameter
+
+    from lidarcal_ros.nodes.calibrator import TF_STATIC_DEPTH, CalibratorNode
+    from lidarcal_ros.nodes.topics import latched_qos
+
+    msgs = _tf2_msgs()
+    mission, paths, _ = payload
+
+    def transform(parent: str, child: str, m: Mounting) -> Any:
+        tf = TransformStamped()
+        tf.header.frame_id, tf.child_frame_id = parent, child
+        t, q = m.translation, m.quaternion
+        tf.transform.translation.x, tf.transform.translation.y, tf.transform.translation.z = \
+            (float(v) for v in t)
+        (tf.transform.rotation.x, tf.transform.rotation.y, tf.transform.rotation.z,
+         tf.transform.rotation.w) = (float(v) for v in q)
+        return tf
+
+    imu = Mounting.from_quaternion([0.1, 0.0, -0.05], [0.0, 0.0, 0.0, 1.0])
+    rsp = rclpy.create_node("robot_state_publisher", context=ros_context)
+    static = rsp.create_publisher(msgs.TFMessage, "/tf_static", latched_qos())
+    static.publish(msgs.TFMessage(transforms=[transform("base_link", "imu_link", imu),
+                                              transform("base_link", "velodyne",
+                                                        mission.nominal)]))
+    values = {**TOPICS, "trajectory_type": "nav_msgs/msg/Odometry",
+              "sensor_frame.calibrated_frame": "velodyne_cal",
+              "calibration.calibration_file": str(tmp_path / "live.yaml"), "idle_close_s": 0.5}
+    cal = CalibratorNode(context=ros_context, node_name="tf_calibrator",
+                         parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+    probe_node = rclpy.create_node("tf_probe", context=ros_context)
+    probe = _Probe(probe_node, "tf_calibrator")
+    offered: list[Any] = []
+    probe_node.create_subscription(
+        msgs.TFMessage, "/tf_static", lambda m: offered.extend(
+            tf for tf in m.transforms if tf.child_frame_id == "velodyne_cal"),
+        latched_qos(TF_STATIC_DEPTH))
+    try:
+        with _spinning(ros_context, cal, probe_node, rsp):
+            service = cal.calibration
+            # the calibrator and the probe matched: the transforms are theirs (late joiners)
+            _wait(lambda: static.get_subscription_count() >= 2, 10, "/tf_static subscribers")
+            _replay(paths["bag"], 10.0)
+            _wait(lambda: len(service.sensor.lines) == 3 and service.queued_jobs == 0, 60,
+                  "three lines", state=lambda: f"{service.sensor.lines}, "
+                  f"{service.sensor.refusal}")
+            assert service.sensor.mounting is not None
+            _assert_same_mounting(service.sensor.mounting, mission.nominal)
+            solve = probe.call("/tf_calibrator/solve")
+            assert solve.success, solve.message
+            save = probe.call("/tf_calibrator/save")
+            assert save.success, save.message
+            _assert_offline_mounting(tmp_path / "live.yaml", offline)
+            saved = read_calibration(tmp_path / "live.yaml").extrinsic
+            assert saved is not None
+            _assert_same_mounting(saved.nominal, mission.nominal)
+            _wait(lambda: bool(offered) and bool(probe.extrinsic), 10, "the calibrated offer")
+            for msg in (offered[-1], probe.extrinsic[-1]):
+                parent, child, mounting = _transform(msg)
+                assert (parent, child) == ("base_link", "velodyne_cal")
+                _assert_same_mounting(mounting, saved.mounting)
+            # its own offer is not taken for the nominal mounting
+            _assert_same_mounting(service.sensor.mounting, mission.nominal)
+    finally:
+        cal.close()
+        for node in (cal, probe_node, rsp):
+            node.destroy_node()
