@@ -243,7 +243,11 @@ def _assert_late_joiner_gets(context: Any, want: Mounting) -> None:
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(late)
     try:
-        _wait(lambda: executor.spin_once(timeout_sec=0.05) or bool(got), 10, "late joiner")
+        def received() -> bool:
+            executor.spin_once(timeout_sec=0.05)
+            return bool(got)
+
+        _wait(received, 10, "late joiner")
         executor.spin_once(timeout_sec=0.5)
         assert len(got) == 1  # the last estimate only (depth 1)
         _assert_same_mounting(_transform(got[0])[2], want)
