@@ -55,7 +55,7 @@ THIRD_PARTY: dict[str, tuple[str, str | None]] = {
     "dask": ("python3-dask-pip", "dask"),
     "distributed": ("python3-distributed-pip", "distributed"),
     "lz4": ("python3-lz4", "lz4"),
-    # no wheel on PyPI: present on a ROS install, optional here (the calibrator says so)
+    # no wheel: scripts/build-tf2-msgs builds vendor/tf2_msgs into the venv
     "tf2_msgs": ("tf2_msgs", None),
     "launch": ("launch", None),
     "launch_ros": ("launch_ros", None),

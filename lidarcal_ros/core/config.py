@@ -78,6 +78,11 @@ SCHEMA: dict[str, ParameterSpec] = {
     "topics.tf_static": ParameterSpec(
         "/tf_static", "str", "Static transforms (tf2_msgs/TFMessage, transient local): the "
         "nominal mounting of clouds in the sensor's frame", read_only=True),
+    "topics.extrinsic": ParameterSpec(
+        "/lidar/calibration/extrinsic", "str", "The calibrated mounting of clouds in the "
+        "sensor's frame (geometry_msgs/TransformStamped, transient local): base_link -> "
+        "sensor_frame.calibrated_frame, as on /tf_static but needing no tf2_msgs",
+        read_only=True),
     "sensor_frame.base_frame": ParameterSpec(
         "base_link", "str", "The frame whose poses the trajectory gives (REP-105 base_link) "
         "when the clouds are in the sensor's frame (docs/method.md section 12); an "
@@ -88,8 +93,8 @@ SCHEMA: dict[str, ParameterSpec] = {
         "/tf_static where set; '' = from /tf_static"),
     "sensor_frame.calibrated_frame": ParameterSpec(
         "", "str", "Child frame of the calibrated mounting the calibrator offers on /tf_static "
-        "(base_link -> this frame) for clouds in the sensor's frame; '' = '<sensor "
-        "frame>_calibrated', beside the nominal robot_state_publisher sends"),
+        "and topics.extrinsic (base_link -> this frame) for clouds in the sensor's frame; "
+        "'' = '<sensor frame>_calibrated', beside the nominal robot_state_publisher sends"),
     "sensor_frame.time_convention": ParameterSpec(
         "auto", "str", "Per-point time of clouds in the sensor's frame: 'relative' to "
         "header.stamp, 'absolute', or 'auto' (from the first cloud's values against its "

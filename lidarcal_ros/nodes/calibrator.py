@@ -83,6 +83,9 @@ class CalibratorNode(Node):
         self.estimate_pub = self.create_publisher(Float64MultiArray, ESTIMATE_TOPIC,
                                                   latched_qos())
         self.yaml_pub = self.create_publisher(String, YAML_TOPIC, latched_qos())
+        # the calibrated mounting as a plain TransformStamped: live without tf2_msgs too
+        self.extrinsic_pub = self.create_publisher(TransformStamped, cfg["topics.extrinsic"],
+                                                   latched_qos())
         self.diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         input_group = MutuallyExclusiveCallbackGroup()
         service_group = ReentrantCallbackGroup()
@@ -103,7 +106,7 @@ class CalibratorNode(Node):
             self.get_logger().warning(
                 f"tf2_msgs is not installed: {cfg['topics.tf_static']} is neither read nor "
                 "offered; clouds in the sensor's frame take their mounting from "
-                "sensor_frame.mounting, the calibrated one is on the YAML topic")
+                f"sensor_frame.mounting, the calibrated one is on {cfg['topics.extrinsic']}")
         else:
             self.create_subscription(TFMessage, cfg["topics.tf_static"], self._on_tf_static,
                                      latched_qos(TF_STATIC_DEPTH), callback_group=input_group)
@@ -221,14 +224,13 @@ class CalibratorNode(Node):
             self.get_logger().info(summary)
 
     def _offer_mounting(self) -> None:
-        """The calibrated mounting of clouds in the sensor's frame on ``/tf_static``:
-        ``base_link -> sensor_frame.calibrated_frame`` (default ``<sensor>_calibrated``,
-        beside the nominal, which stays robot_state_publisher's)."""
+        """The calibrated mounting of clouds in the sensor's frame, ``base_link ->
+        sensor_frame.calibrated_frame`` (default ``<sensor>_calibrated``, beside the nominal,
+        which stays robot_state_publisher's): on ``topics.extrinsic`` and, where tf2_msgs is
+        installed, on ``/tf_static``. Translation in m, rotation as a unit quaternion."""
         cal, feed = self.calibration.mounting, self.calibration.sensor
-        if cal is None or feed.frame_id is None or self.tf_pub is None:
+        if cal is None or feed.frame_id is None:
             return
-        from tf2_msgs.msg import TFMessage
-
         child = self.params["sensor_frame.calibrated_frame"] or f"{feed.frame_id}_calibrated"
         self._offered = (feed.base_frame, child, cal.mounting)
         tf = TransformStamped()
@@ -240,7 +242,11 @@ class CalibratorNode(Node):
             (float(v) for v in t)
         (tf.transform.rotation.x, tf.transform.rotation.y, tf.transform.rotation.z,
          tf.transform.rotation.w) = (float(v) for v in q)
-        self.tf_pub.publish(TFMessage(transforms=[tf]))
+        self.extrinsic_pub.publish(tf)
+        if self.tf_pub is not None:
+            from tf2_msgs.msg import TFMessage
+
+            self.tf_pub.publish(TFMessage(transforms=[tf]))
 
     def _publish_diagnostics(self) -> None:
         self.diagnostics.publish(diagnostic_array(self, self.calibration.statuses()))
