@@ -812,5 +812,5 @@ def _run(cal: Calibrator) -> CalibrationResult:
     return result
 
 
-__all__ = ["CalibrationSettings", "Calibrator", "Progress", "WholeStrips", "calibrate", "choose_trajectory_model",
-           "with_trajectory_model"]
+__all__ = ["CalibrationSettings", "Calibrator", "Progress", "WholeStrips", "calibrate",
+           "choose_trajectory_model", "with_trajectory_model"]

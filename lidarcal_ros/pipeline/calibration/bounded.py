@@ -64,10 +64,13 @@ class ReducedMission(Mission):
 def load_reduced_mission(
     bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None,
     progress: Progress | None = None, spacings: float = NEIGHBOURHOOD_SPACINGS,
+    margin_m: float | None = None,
 ) -> ReducedMission:
     """Read ``bag`` in three passes into the reduced mission of a bounded-memory calibration
     (:func:`~lidarcal_ros.pipeline.calibration.procedure.load_mission`'s topics, control
-    points and checks; ``spacings`` as :data:`NEIGHBOURHOOD_SPACINGS`).
+    points and checks). The surface strip's points are held within ``spacings`` of its point
+    spacings plus ``margin_m`` (m; None: ``matching.max_normal_distance_m``) of a candidate
+    (:data:`NEIGHBOURHOOD_SPACINGS`).
 
     Raises
     ------
@@ -119,11 +122,11 @@ def load_reduced_mission(
     lowest = [LowestPriority(settings.max_candidates_per_pair) for _ in plans]
     for k, piece, index, priority in _numbered(blocks, ids, settings.seed):
         keys = FootprintGrid(cell).keys(piece.xyz)
-        for plan, keep in zip(plans, lowest, strict=True):
+        for plan, lowest_k in zip(plans, lowest, strict=True):
             if plan.a == k:
                 inside = np.isin(keys, plan.zone)
-                keep.add(priority[inside], index[inside], piece.xyz[inside, :2])
-    chosen = [keep.result() for keep in lowest]
+                lowest_k.add(priority[inside], index[inside], piece.xyz[inside, :2])
+    chosen = [lowest_k.result() for lowest_k in lowest]
 
     # pass 3: the candidates, the surface strips' points near them, the points near control
     report("reading the bag (3/3: neighbourhoods)", 2 / 3)
@@ -137,8 +140,9 @@ def load_reduced_mission(
                                        if plan.a == k])))
         xy = [xy for plan, (_, xy) in zip(plans, chosen, strict=True) if plan.b == k]
         radius = neighbourhood_radius(ext.density, spacings=spacings,
-                                      margin_m=settings.max_normal_distance_m)
-        near.append(NearCandidates(np.concatenate([np.empty((0, 2))] + xy), radius,
+                                      margin_m=settings.max_normal_distance_m
+                                      if margin_m is None else margin_m)
+        near.append(NearCandidates(np.concatenate([np.empty((0, 2)), *xy]), radius,
                                    near_control, cell))
     held: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {k: [] for k in
                                                                          range(len(ids))}

@@ -492,7 +492,7 @@ def _write_simulation_files(output: str | Path, control: Any,
 
 __all__ = [
     "Truth", "calibrate_mission", "convergence_warning", "format_agreement", "format_report",
-    "load_for_calibration", "load_mission", "parse_biases", "qa_level", "simulation_paths", "trajectory_lines",
-    "truth_document",
+    "load_for_calibration", "load_mission", "parse_biases", "qa_level", "simulation_paths",
+    "trajectory_lines", "truth_document",
     "unused_control", "write_simulation", "write_simulation_stream",
 ]

@@ -8,11 +8,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import helpers_missions
 import numpy as np
 import pytest
 from helpers_missions import MissionFiles
 
-import helpers_missions
 from lidarcal_ros.core.calibration.bounded import LowestPriority, StripExtent
 from lidarcal_ros.core.calibration.pairs import footprint_keys
 from lidarcal_ros.core.config import FlightConfig
@@ -36,7 +36,7 @@ SETTINGS: dict[str, Any] = {"matching.max_candidates_per_pair": 1500,
 TRUTH_TOLERANCE = {"dX": 0.02, "dY": 0.02, "dr": 0.02, "dS": 5e-5,
                    "domega": arcsec_to_rad(5), "dphi": arcsec_to_rad(5),
                    "dkappa": arcsec_to_rad(5)}
-MISSIONS = {
+MISSIONS: dict[str, dict[str, Any]] = {
     "level": {"density": 0.15, "line_length_m": 300.0, "seed": 11},
     "rough air": {"density": 0.15, "line_length_m": 300.0, "seed": 11, "rough_air": RoughAir()},
 }
