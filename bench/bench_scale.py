@@ -4,6 +4,10 @@
     .venv/bin/python bench/bench_scale.py                     # 1M and 4M points
     .venv/bin/python bench/bench_scale.py --max-points 100e6  # 1M, 4M, 16M, 64M, 100M
     .venv/bin/python bench/bench_scale.py --stages BAG        # calibrate's memory per stage
+    .venv/bin/python bench/bench_scale.py --memory whole,bounded  # both calibration.memory
+
+``--memory`` runs each size with each ``calibration.memory`` mode named and, with both,
+prints the bounded estimate's difference from the whole one in the whole one's sigmas.
 
 Each size is the paper's six strips at 0.5 points/m^2 (the 1150 m lines), lines as long as
 the size needs, written by ``lidarcal simulate`` (cached under bench/.cache/scale/). Each
@@ -24,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import machine
-from benchlib import BENCH, PYTHON, ROOT, run_child, tail
+from benchlib import BENCH, PYTHON, ROOT, read_estimate, run_child, tail
 
 DENSITY = 0.5
 #: Points of the six strips per metre of line at DENSITY (measured: 6.435M points a km of
@@ -56,15 +60,39 @@ def n_points(bag: Path) -> int:
     return int(truth["simulation"]["n_points"])
 
 
-def calibrate(bag: Path) -> dict[str, Any]:
-    """``lidarcal calibrate`` of ``bag`` in a fresh process."""
-    log = CACHE / f"{bag.name}.calibrate.log"
+def output(bag: Path, memory: str) -> Path:
+    """The calibration file of ``bag`` calibrated with ``calibration.memory`` ``memory``."""
+    return CACHE / f"{bag.name}.{memory}.calibration.yaml"
+
+
+def calibrate(bag: Path, memory: str = "whole") -> dict[str, Any]:
+    """``lidarcal calibrate`` of ``bag`` in a fresh process, ``calibration.memory``
+    ``memory``."""
+    log = CACHE / f"{bag.name}.{memory}.calibrate.log"
+    config = CACHE / f"memory_{memory}.yaml"
+    config.write_text(f"/**:\n  ros__parameters:\n    calibration:\n      memory: {memory}\n")
     run = run_child([PYTHON, "-m", "lidarcal_ros", "calibrate", str(bag), "-o",
-                     str(CACHE / f"{bag.name}.calibration.yaml"), "--overwrite",
+                     str(output(bag, memory)), "--overwrite", "--config", str(config),
                      "--control", f"{bag}_control.csv"], log=log)
     if run["rc"]:
         raise SystemExit(f"calibrate failed:\n{tail(log)}")
     return run
+
+
+def differences(bag: Path) -> str:
+    """The bounded estimate of ``bag`` minus the whole one, in the whole one's sigmas."""
+    whole, bounded = (read_estimate(output(bag, m)) for m in ("whole", "bounded"))
+    worst = 0.0
+    parts = []
+    for name, w in whole.items():
+        b = bounded.get(name)
+        if b is None or not w["sigma"]:
+            parts.append(f"{name} -")
+            continue
+        d = (b["value"] - w["value"]) / w["sigma"]
+        worst = max(worst, abs(d))
+        parts.append(f"{name} {d:+.4f}")
+    return f"bounded - whole, sigmas: {' '.join(parts)} (largest {worst:.4f})"
 
 
 def sizes(max_points: float) -> list[float]:
@@ -77,27 +105,36 @@ def sizes(max_points: float) -> list[float]:
     return out
 
 
-def scaling(max_points: float) -> None:
-    """The table of time per point and peak memory against the 1M-point run."""
-    rows = []
+def scaling(max_points: float, modes: list[str]) -> None:
+    """The table of time per point and peak memory against the 1M-point run of the same
+    ``calibration.memory`` mode, for each of ``modes``."""
+    rows: dict[str, list[tuple[int, dict[str, Any]]]] = {m: [] for m in modes}
+    notes = []
     # a first run unmeasured: it compiles the per-point loops (numba's cache), some 10 s
-    calibrate(mission(1e6))
+    calibrate(mission(1e6), modes[0])
     for size in sizes(max_points):
         bag = mission(size)
-        run = calibrate(bag)
         n = n_points(bag)
-        rows.append((n, run))
-        print(f"  {n / 1e6:7.2f}M points: {run['wall_s']:7.1f} s wall, {run['cpu_s']:7.1f} s CPU,"
-              f" peak {run['peak_mib']:7.0f} MiB", flush=True)
-    n0, r0 = rows[0]
-    print("\n| points | wall | ns/point | x 1M | CPU | peak RSS | x 1M | bytes/point |")
-    print("|---|---|---|---|---|---|---|---|")
-    for n, r in rows:
-        per = r["wall_s"] / n * 1e9
-        per0 = r0["wall_s"] / n0 * 1e9
-        print(f"| {n:,} | {r['wall_s']:.1f} s | {per:.0f} | {per / per0:.2f} | "
-              f"{r['cpu_s']:.1f} s | {r['peak_mib']:.0f} MiB | "
-              f"{r['peak_mib'] / r0['peak_mib']:.2f} | {r['peak_mib'] * 2**20 / n:.0f} |")
+        for memory in modes:
+            run = calibrate(bag, memory)
+            rows[memory].append((n, run))
+            print(f"  {n / 1e6:7.2f}M points, {memory}: {run['wall_s']:7.1f} s wall, "
+                  f"{run['cpu_s']:7.1f} s CPU, peak {run['peak_mib']:7.0f} MiB", flush=True)
+        if {"whole", "bounded"} <= set(modes):
+            notes.append(f"{n:,} points: {differences(bag)}")
+            print(f"  {notes[-1]}", flush=True)
+    print("\n| memory | points | wall | ns/point | x 1M | CPU | peak RSS | x 1M | bytes/point |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for memory, runs in rows.items():
+        n0, r0 = runs[0]
+        for n, r in runs:
+            per = r["wall_s"] / n * 1e9
+            per0 = r0["wall_s"] / n0 * 1e9
+            print(f"| {memory} | {n:,} | {r['wall_s']:.1f} s | {per:.0f} | {per / per0:.2f} | "
+                  f"{r['cpu_s']:.1f} s | {r['peak_mib']:.0f} MiB | "
+                  f"{r['peak_mib'] / r0['peak_mib']:.2f} | {r['peak_mib'] * 2**20 / n:.0f} |")
+    for note in notes:
+        print(note)
 
 
 def stages(bag: Path) -> None:
@@ -146,14 +183,19 @@ def main() -> None:
                         help="the largest mission (default 4e6)")
     parser.add_argument("--stages", type=Path, default=None, metavar="BAG",
                         help="calibrate's memory per stage of BAG, in this process")
+    parser.add_argument("--memory", default="whole",
+                        help="calibration.memory modes, comma-separated (default whole)")
     args = parser.parse_args()
+    modes = [m for m in args.memory.split(",") if m]
+    if not modes or set(modes) - {"whole", "bounded"}:
+        parser.error(f"--memory: whole and/or bounded, got {args.memory!r}")
     os.chdir(ROOT)
     print(machine.describe())
     print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
     if args.stages is not None:
         stages(args.stages)
     else:
-        scaling(args.max_points)
+        scaling(args.max_points, modes)
     print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
 
 

@@ -67,7 +67,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         convergence_warning,
         format_agreement,
         format_report,
-        load_mission,
+        load_for_calibration,
     )
     from lidarcal_ros.pipeline.calibration.sensor_frame import load_sensor_bag
 
@@ -95,7 +95,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     progress, close = progress_bar(not args.quiet)
     unestimated: NothingEstimated | None = None
     try:
-        mission = load_mission(args.bag, config, control_csv=args.control)
+        mission = load_for_calibration(args.bag, config, control_csv=args.control,
+                                       progress=progress)
         result = calibrate_mission(mission, config, solve_for=solve_for, progress=progress)
     except NothingEstimated as exc:
         unestimated, result = exc, exc.result

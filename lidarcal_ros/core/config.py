@@ -150,6 +150,12 @@ SCHEMA: dict[str, ParameterSpec] = {
         0.0, "Keep one point per square cell of this size (m) of the map per strip and cloud "
         "before calibrating (bounds memory and work for dense sensors; about 0.5 for tens of "
         "points per square metre); 0 keeps every point", 0.0, 100.0),
+    "calibration.memory": ParameterSpec(
+        "whole", "str", "How lidarcal calibrate holds the mission: 'whole' (every point in "
+        "memory, read once) or 'bounded' (the bag read three times; only each strip pair's "
+        "candidate points, the surface strip's points around them and those near a control "
+        "point are held: memory set by matching.max_candidates_per_pair, not by the "
+        "mission's size)", choices=("whole", "bounded")),
     "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
                                                   "Where ~/save writes the calibration"),
     "calibration.trajectory.model": ParameterSpec(

@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -21,6 +21,7 @@ from lidarcal_ros.core.adjustment.least_squares import (
     ParameterStatus,
     Solution,
 )
+from lidarcal_ros.core.calibration.bounded import StripExtent
 from lidarcal_ros.core.calibration.iteration import (
     Convergence,
     Iteration,
@@ -69,6 +70,9 @@ logger = logging.getLogger(__name__)
 
 #: Progress callback: (stage description, fraction done in [0, 1]).
 Progress = Callable[[str, float], None]
+#: By strip id, a whole strip's extent and the sampling priority of each of its points held
+#: (:func:`calibrate`).
+WholeStrips = Mapping[int, tuple[StripExtent, np.ndarray]]
 
 
 @dataclass
@@ -203,16 +207,18 @@ class Calibrator:
     @classmethod
     def from_mission(
         cls, mission: Mission, settings: CalibrationSettings, *,
-        progress: Progress | None = None,
+        progress: Progress | None = None, whole: WholeStrips | None = None,
     ) -> Calibrator:
-        """A calibrator holding every strip of ``mission``."""
+        """A calibrator holding every strip of ``mission`` (``whole``: as
+        :func:`calibrate`)."""
         if not mission.strips:
             raise CalibrationError("mission has no strips")
         cal = cls(settings, control=mission.control, progress=progress)
         cal.dropped_non_finite = mission.dropped_non_finite
         cal.thinned_points = mission.thinned_points
         for k, strip in enumerate(mission.strips):
-            cal.add_strip(strip, mission.trajectory)
+            cal.add_strip(strip, mission.trajectory,
+                          whole=None if whole is None else whole[strip.strip_id])
             cal._progress("local trajectories", (k + 1) / len(mission.strips))
         logger.info("%d overlapping strip pairs", len(cal.pairs))
         return cal
@@ -239,11 +245,13 @@ class Calibrator:
         self.control = control
         self._control_before = None
 
-    def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+    def add_strip(self, strip: Strip, trajectory: Trajectory, *,
+                  whole: tuple[StripExtent, np.ndarray] | None = None
+                  ) -> list[tuple[int, int]]:
         """Prepare a strip and find its pairs with the strips already held; the
         ``(strip_id, strip_id)`` pairs it forms (:meth:`PairMatcher.add_strip`, which says
-        what it raises)."""
-        return self.matcher.add_strip(strip, trajectory)
+        what it raises and what ``whole`` is)."""
+        return self.matcher.add_strip(strip, trajectory, whole=whole)
 
     def restart(self) -> None:
         """Back to where a new calibrator starts, the strips and pairs kept: the estimate at
@@ -725,8 +733,13 @@ def calibrate(
     settings: CalibrationSettings | None = None,
     *,
     progress: Progress | None = None,
+    whole: WholeStrips | None = None,
 ) -> CalibrationResult:
     """Calibrate a mission: see :class:`Calibrator`.
+
+    ``whole``: the mission's strips hold part of their points only (the reduced mission of
+    a bounded-memory calibration, :mod:`~lidarcal_ros.core.calibration.bounded`); by strip
+    id, each whole strip's extent and the sampling priority of each point held.
 
     Raises
     ------
@@ -737,14 +750,14 @@ def calibrate(
     """
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
-        return _calibrate_once(mission, settings, progress)
+        return _run(Calibrator.from_mission(mission, settings, progress=progress, whole=whole))
     # auto: the trajectory as exact, then with each strip's spline over the same prepared
     # strips (their TINs and geometry shared, as the live calibration shares them); the
     # spline is kept where it fits clearly better (the strips disagree by more than their
     # noise)
     first = Calibrator.from_mission(mission, with_trajectory_model(settings,
                                                                    TrajectoryModel.NONE),
-                                    progress=progress)
+                                    progress=progress, whole=whole)
     exact = _run(first)
     second = Calibrator(with_trajectory_model(settings, TrajectoryModel.SPLINE),
                         control=mission.control, progress=progress)
@@ -786,12 +799,6 @@ def choose_trajectory_model(exact: CalibrationResult,
     return chosen
 
 
-def _calibrate_once(mission: Mission, settings: CalibrationSettings,
-                    progress: Progress | None) -> CalibrationResult:
-    """:func:`calibrate` with one trajectory model."""
-    return _run(Calibrator.from_mission(mission, settings, progress=progress))
-
-
 def _run(cal: Calibrator) -> CalibrationResult:
     """:meth:`Calibrator.run`, its ``trajectory_choice`` its model (:func:`calibrate` says
     what it raises)."""
@@ -805,5 +812,5 @@ def _run(cal: Calibrator) -> CalibrationResult:
     return result
 
 
-__all__ = ["CalibrationSettings", "Calibrator", "Progress", "calibrate", "choose_trajectory_model",
-           "with_trajectory_model"]
+__all__ = ["CalibrationSettings", "Calibrator", "Progress", "WholeStrips", "calibrate",
+           "choose_trajectory_model", "with_trajectory_model"]

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import Observations
+from lidarcal_ros.core.calibration.bounded import StripExtent, control_cells
 from lidarcal_ros.core.calibration.control_surface import ControlSurface, fit_control_planes
 from lidarcal_ros.core.calibration.pairs import (
     FootprintGrid,
@@ -46,9 +47,6 @@ if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
     from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 
 
-#: Key offsets of a footprint cell and its eight neighbours (:func:`footprint_keys`).
-_NEIGHBOUR_CELL_OFFSETS = np.array([dx * (1 << 32) + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)],
-                                   dtype=np.int64)
 
 class PairMatcher:
     """The strips of a calibration, their pairs, and the matching of both.
@@ -86,9 +84,14 @@ class PairMatcher:
         """Points held (dropped strips excluded)."""
         return sum(len(ps.strip) for ps in self.strips if not ps.dropped)
 
-    def add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+    def add_strip(self, strip: Strip, trajectory: Trajectory, *,
+                  whole: tuple[StripExtent, np.ndarray] | None = None
+                  ) -> list[tuple[int, int]]:
         """Prepare a strip (local trajectory, footprint, sampling priority) and find its
-        pairs with the strips already held.
+        pairs with the strips already held. ``whole``: ``strip`` holds part of a strip's
+        points only (a bounded-memory calibration), whose whole :class:`StripExtent` and
+        the sampling priority of each point held are these (its footprint, density and
+        span are then the whole strip's).
 
         Returns the ``(strip_id, strip_id)`` pairs it forms.
 
@@ -100,9 +103,10 @@ class PairMatcher:
             A strip with this id is already held.
         """
         with self.clock("local trajectories"):
-            return self._add_strip(strip, trajectory)
+            return self._add_strip(strip, trajectory, whole)
 
-    def _add_strip(self, strip: Strip, trajectory: Trajectory) -> list[tuple[int, int]]:
+    def _add_strip(self, strip: Strip, trajectory: Trajectory,
+                   whole: tuple[StripExtent, np.ndarray] | None) -> list[tuple[int, int]]:
         s = self.settings
         if any(ps.strip_id == strip.strip_id for ps in self.strips):
             raise CalibrationError(f"strip {strip.strip_id} added twice")
@@ -114,13 +118,21 @@ class PairMatcher:
         speed = ground_speed(trajectory, strip.t)
         qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
         keys = self.footprint.keys(strip.xyz[:, :2])
-        cells = np.unique(keys)
-        density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
-        priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
-        span = (float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip) else None
+        span: tuple[float, float] | None
+        if whole is None:
+            cells = np.unique(keys)
+            density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
+            priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
+            span = (float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip) \
+                else None
+        else:
+            extent, priority = whole
+            cells, density, span = extent.cells, extent.density, extent.span
+            speed = ground_speed(trajectory, np.asarray(span))
         return self.add_prepared(PreparedStrip(
             strip, geom, density, keys, cells, priority, choice, qa, speed,
-            navigation_sigmas=None if span is None else strip_offset_sigmas(trajectory, *span)))
+            navigation_sigmas=None if span is None else strip_offset_sigmas(trajectory, *span),
+            span=None if whole is None else span))
 
     def add_released(self, strip_id: int, t0: float, t1: float) -> PreparedStrip:
         """Hold a strip released before a restart, flown from ``t0`` to ``t1`` (s), for its
@@ -146,6 +158,8 @@ class PairMatcher:
         s = self.settings
         strip = ps.strip
         self.strips.append(ps)
+        if span is None:
+            span = ps.span
         if span is None:
             span = ((float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip)
                     else (0.0, 0.0))
@@ -305,8 +319,7 @@ class PairMatcher:
         if k_points == 0:
             return fit_control_planes(control, xyz, np.empty(0, np.int64), k=3, max_radius=0.0)
         cell = self.settings.overlap_cell_m
-        near_cells = np.unique((self.footprint.keys(control[:, :2])[:, None]
-                                + _NEIGHBOUR_CELL_OFFSETS[None, :]).ravel())
+        near_cells = control_cells(control[:, :2], cell)
         candidates = np.flatnonzero(np.isin(ps.point_cells, near_cells))
         # Twice the radius that holds k points at the strip's density: sparser than that
         # (a gap, the strip's edge) the neighbours would not surround the control point.

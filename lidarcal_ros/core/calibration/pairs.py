@@ -89,6 +89,9 @@ class PreparedStrip:
     #: Sigmas (m, x y z) of its trajectory offset from the navigation solution's accuracy
     #: over its span (docs/method.md section 11), None where the trajectory has none.
     navigation_sigmas: np.ndarray | None = None
+    #: First and last time (s) of the whole strip where ``strip`` holds part of its points
+    #: (a bounded-memory calibration); None: those of ``strip``.
+    span: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         self.geometry = self.geometry0

@@ -41,6 +41,7 @@ from lidarcal_ros.io.bag.mission_bag import read_mission
 from lidarcal_ros.io.output_files import check_output, remove_quietly, write_text
 from lidarcal_ros.io.survey.control import read_control_csv
 from lidarcal_ros.io.yaml_file import read_yaml
+from lidarcal_ros.pipeline.calibration.bounded import ReducedMission, load_reduced_mission
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +77,18 @@ def load_mission(
     return mission
 
 
+def load_for_calibration(
+    bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None,
+    progress: Progress | None = None,
+) -> Mission:
+    """The mission of ``bag`` as ``calibration.memory`` says to hold it: every point
+    (:func:`load_mission`) or the reduced mission of a bounded-memory calibration
+    (:func:`~lidarcal_ros.pipeline.calibration.bounded.load_reduced_mission`)."""
+    if config["calibration.memory"] == "bounded":
+        return load_reduced_mission(bag, config, control_csv=control_csv, progress=progress)
+    return load_mission(bag, config, control_csv=control_csv)
+
+
 def calibrate_mission(
     mission: Mission,
     config: FlightConfig,
@@ -83,11 +96,14 @@ def calibrate_mission(
     solve_for: tuple[str, ...] | None = None,
     progress: Progress | None = None,
 ) -> CalibrationResult:
-    """Run the calibration of ``mission`` with the options of ``config``."""
+    """Run the calibration of ``mission`` (a
+    :class:`~lidarcal_ros.pipeline.calibration.bounded.ReducedMission` too) with the options
+    of ``config``."""
     settings = config.calibration_settings()
     if solve_for is not None:
         settings.solve_for = tuple(n for n in PARAMETER_NAMES if n in solve_for)
-    result = calibrate(mission, settings, progress=progress)
+    whole = mission.whole if isinstance(mission, ReducedMission) else None
+    result = calibrate(mission, settings, progress=progress, whole=whole)
     unused = unused_control(mission, result, config)
     if unused:
         logger.warning("%s", unused)
@@ -476,7 +492,7 @@ def _write_simulation_files(output: str | Path, control: Any,
 
 __all__ = [
     "Truth", "calibrate_mission", "convergence_warning", "format_agreement", "format_report",
-    "load_mission", "parse_biases", "qa_level", "simulation_paths", "trajectory_lines",
-    "truth_document",
+    "load_for_calibration", "load_mission", "parse_biases", "qa_level", "simulation_paths",
+    "trajectory_lines", "truth_document",
     "unused_control", "write_simulation", "write_simulation_stream",
 ]
