@@ -535,8 +535,8 @@ class CalibrationService:
         finite = t[np.isfinite(t)]
         if finite.size:
             self._point_end = max(self._point_end, float(finite.max()))
-        if self._jobs.empty():
-            self._update(None)
+        # (under a backlog too: the feed's step is what bounds the points it holds)
+        self._update(None)
 
     def _on_idle(self) -> None:
         """Nothing arrived for a moment: close the strips idle long enough (all of them
