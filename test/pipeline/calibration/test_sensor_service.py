@@ -78,12 +78,11 @@ def _events(m: UavPayloadMission, start: float = -np.inf,
 
 def _feed(service: CalibrationService, events: list[tuple[float, str, Any]]) -> None:
     for t, kind, payload in events:
-        if kind == "pose":
-            xyz, q = payload
-            service.add_pose(t, (float(xyz[0]), float(xyz[1]), float(xyz[2])), "map",
-                             tuple(float(v) for v in q))
-        else:
+        if kind != "pose":
             service.add_sensor_cloud(payload[0], payload[1], "velodyne")
+            continue
+        x, y, z = (float(v) for v in payload[0])
+        service.add_pose(t, (x, y, z), "map", tuple(float(v) for v in payload[1]))
 
 
 def _offline(m: UavPayloadMission, solve_for: tuple[str, ...]) -> MountingCalibration:
