@@ -136,19 +136,29 @@ def _calibrate_mounting(args: argparse.Namespace, config: Any, sensor: Any,
     """``lidarcal calibrate`` of clouds in the sensor's frame (docs/method.md section 12): the
     mounting calibrated, the file with its ``extrinsic`` block and the URDF joint beside it."""
     from lidarcal_ros.io.calibration_file import calibration_document, urdf_path
+    from lidarcal_ros.io.survey.control import read_control_csv
     from lidarcal_ros.pipeline.calibration.procedure import convergence_warning, format_report
     from lidarcal_ros.pipeline.calibration.sensor_frame import (
         calibrate_sensor_bag,
         extrinsic_of,
         format_mounting,
+        log_solve_for_note,
+        mounting_solve_for,
         truth_mounting,
         write_mounting_calibration,
     )
 
     check_output(urdf_path(args.output), overwrite=args.overwrite)
+    csv = args.control or config["calibration.control_points_file"] or None
+    control = read_control_csv(csv) if csv else None
+    # --solve-for, else calibration.solve_for, as the calibrator node takes it
+    requested = solve_for if solve_for is not None else config["calibration.solve_for"]
+    names, note = mounting_solve_for(requested, has_control=control is not None)
+    log_solve_for_note(note, requested)
     progress, close = progress_bar(not args.quiet)
     try:
-        cal = calibrate_sensor_bag(sensor, solve_for=solve_for, progress=progress)
+        cal = calibrate_sensor_bag(sensor, solve_for=names, control=control,
+                                   progress=progress)
     finally:
         close()
     path = write_mounting_calibration(args.output, sensor, cal, overwrite=args.overwrite)

@@ -95,7 +95,8 @@ class CalibratorNode(Node):
         self.trajectory_input = TrajectoryInput(self, cfg["topics.trajectory"],
                                                 self.params["trajectory_type"],
                                                 self.calibration.add_pose,
-                                                callback_group=input_group)
+                                                callback_group=input_group,
+                                                on_child_frame=self.calibration.set_base_frame)
         self.create_subscription(PointCloud2, cfg["topics.control_points"], self._on_control,
                                  latched_qos(), raw=True, callback_group=input_group)
         # the nominal mounting as robot_state_publisher offers it; the calibrated one back

@@ -43,10 +43,15 @@ class TrajectoryInput:
     def __init__(self, node: Node, topic: str, msgtype: str,
                  on_sample: Callable[[float, tuple[float, float, float], str,
                                       tuple[float, ...]], None],
-                 *, depth: int = 10000, callback_group: Any = None) -> None:
+                 *, depth: int = 10000, callback_group: Any = None,
+                 on_child_frame: Callable[[str], None] | None = None) -> None:
         self.node = node
         self.topic = topic
         self.on_sample = on_sample
+        #: Told the body frame the first message naming one names (an Odometry's
+        #: ``child_frame_id``), once.
+        self.on_child_frame = on_child_frame
+        self.child_frame_id = ""
         self.depth = depth
         self.group = callback_group
         self.msgtype: str | None = None
@@ -124,4 +129,9 @@ class TrajectoryInput:
             self.node.get_logger().error(f"{self.topic}: malformed {msgtype} skipped "
                                          f"({exc})", throttle_duration_sec=5.0)
             return
+        child = str(getattr(msg, "child_frame_id", "") or "")
+        if child and not self.child_frame_id:
+            self.child_frame_id = child
+            if self.on_child_frame is not None:
+                self.on_child_frame(child)
         self.on_sample(t, xyz, str(msg.header.frame_id), orientation)

@@ -31,7 +31,7 @@ from lidarcal_ros.core.georeferencing.sensor_frame import (
     georeference,
     mounting_from_biases,
 )
-from lidarcal_ros.core.mission import Mission, Strip, Trajectory
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.params import PARAMETER_INDEX
 from lidarcal_ros.core.trajectory.lines import line_of, straight_lines
 from lidarcal_ros.errors import ConfigError, TrajectoryError
@@ -107,6 +107,7 @@ def sensor_trajectory(trajectory: Trajectory, mounting: Mounting) -> Trajectory:
 def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory,
                        nominal: Mounting, *, settings: CalibrationSettings | None = None,
                        lines: np.ndarray | None = None,
+                       control: ControlPoints | None = None,
                        progress: Progress | None = None) -> MountingCalibration:
     """Calibrate the mounting ``base_link -> sensor`` from clouds in the sensor's frame
     (module docstring; docs/method.md section 12).
@@ -128,6 +129,8 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
         The lines' time spans, s (default:
         :func:`~lidarcal_ros.core.trajectory.lines.straight_lines` of ``trajectory``); the
         points outside them (turns) are left out.
+    control : ControlPoints, keyword-only, optional
+        Vertical control points (map frame), which make ``dZ`` observable.
 
     Raises
     ------
@@ -149,7 +152,8 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
     spans = straight_lines(trajectory) if lines is None else \
         np.asarray(lines, dtype=np.float64).reshape(-1, 2)
     strips = line_strips(p, t, origin, nominal, spans)
-    result = calibrate(Mission(origin, strips, frame_id="map"), s, progress=progress)
+    result = calibrate(Mission(origin, strips, control=control, frame_id="map"), s,
+                       progress=progress)
     return mounting_calibration(result, nominal, spans)
 
 

@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import NormalEquations, Observations
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints, Strip
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryRows
 from lidarcal_ros.errors import InputError
 
-__all__ = ["CHECKPOINT_VERSION", "ModelState", "StreamCheckpoint", "read_checkpoint",
-           "write_checkpoint"]
+__all__ = ["CHECKPOINT_VERSION", "ModelState", "SensorFrameState", "StreamCheckpoint",
+           "read_checkpoint", "write_checkpoint"]
 
 CHECKPOINT_VERSION = 3
 
@@ -52,6 +53,61 @@ class ModelState:
 
 
 @dataclass
+class SensorFrameState:
+    """Clouds in the sensor's frame fed to the calibration
+    (:class:`~lidarcal_ros.pipeline.calibration.sensor_stream.SensorFrameFeed`): its frames,
+    the nominal mounting the calibration's trajectory was made with (None: none yet), the
+    lines closed (k, 2) s, the poses of the base frame as received (times, positions,
+    quaternions xyzw), the points held in the sensor's frame (n, 3) m with their times s,
+    the newest pose handed on and the time up to which points were, s, and its counters
+    (turn, late, overflow points)."""
+
+    frame_id: str
+    base_frame: str
+    map_frame: str
+    nominal: Mounting | None
+    lines: np.ndarray
+    poses: tuple[np.ndarray, np.ndarray, np.ndarray]
+    pending_xyz: np.ndarray
+    pending_t: np.ndarray
+    fed_t: float
+    handed_t: float
+    counters: tuple[int, int, int]
+
+
+def _sensor_arrays(state: SensorFrameState) -> dict[str, np.ndarray]:
+    t, xyz, q = state.poses
+    # (the rotation matrix itself: a quaternion's round trip moves it by 1e-16)
+    nominal = np.full(12, np.nan) if state.nominal is None else \
+        np.concatenate([state.nominal.translation, state.nominal.rotation.ravel()])
+    return {"sensor_frames": np.array([state.frame_id, state.base_frame, state.map_frame]),
+            "sensor_nominal": nominal, "sensor_lines": state.lines, "sensor_traj_t": t,
+            "sensor_traj_xyz": xyz, "sensor_traj_orientation": q,
+            "sensor_pending_xyz": state.pending_xyz, "sensor_pending_t": state.pending_t,
+            "sensor_times": np.array([state.fed_t, state.handed_t]),
+            "sensor_counters": np.array(state.counters, dtype=np.int64)}
+
+
+def _sensor_of(data: np.lib.npyio.NpzFile) -> SensorFrameState | None:
+    if "sensor_frames" not in data:
+        return None
+    frame_id, base_frame, map_frame = (str(v) for v in data["sensor_frames"])
+    nominal = np.array(data["sensor_nominal"])
+    fed_t, handed_t = (float(v) for v in data["sensor_times"])
+    turn, late, overflow = (int(v) for v in data["sensor_counters"])
+    return SensorFrameState(
+        frame_id=frame_id, base_frame=base_frame, map_frame=map_frame,
+        nominal=None if np.isnan(nominal).any() else Mounting(nominal[3:].reshape(3, 3),
+                                                              nominal[:3]),
+        lines=np.array(data["sensor_lines"]).reshape(-1, 2),
+        poses=(np.array(data["sensor_traj_t"]), np.array(data["sensor_traj_xyz"]),
+               np.array(data["sensor_traj_orientation"])),
+        pending_xyz=np.array(data["sensor_pending_xyz"]),
+        pending_t=np.array(data["sensor_pending_t"]), fed_t=fed_t, handed_t=handed_t,
+        counters=(turn, late, overflow))
+
+
+@dataclass
 class StreamCheckpoint:
     """The state of a live calibration (docs/nodes.md); map frame, m, s, SI units."""
 
@@ -77,6 +133,9 @@ class StreamCheckpoint:
     dropped_strips: list[int] = field(default_factory=list)
     #: The trajectory model published, and where ``auto`` chose it, why.
     trajectory_choice: str = ""
+    #: Clouds in the sensor's frame (None: map-frame clouds; then the trajectory is the
+    #: sensor's origin's and the strips the lines').
+    sensor: SensorFrameState | None = None
 
 
 def _model_arrays(k: int, state: ModelState) -> dict[str, np.ndarray]:
@@ -160,6 +219,8 @@ def write_checkpoint(path: str | Path, state: StreamCheckpoint) -> Path:
     }
     for k, model in enumerate(state.models):
         arrays.update(_model_arrays(k, model))
+    if state.sensor is not None:
+        arrays.update(_sensor_arrays(state.sensor))
     if state.control is not None:
         arrays["control_xyz"] = state.control.xyz
         arrays["control_ids"] = np.array(state.control.ids)
@@ -215,6 +276,7 @@ def read_checkpoint(path: str | Path) -> StreamCheckpoint:
         if "uncovered_points" in data:
             state.uncovered_points = int(data["uncovered_points"])
             state.uncovered_strips = [int(v) for v in data["uncovered_strips"]]
+        state.sensor = _sensor_of(data)
         if "trajectory_choice" in data:
             state.trajectory_choice = str(data["trajectory_choice"])
         if "rejected_ids" in data:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from lidarcal_ros.core.calibration.extrinsic import (
 from lidarcal_ros.core.config import SCHEMA, FlightConfig
 from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel, ScannerKind
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
+from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.uav_payload import UavPayloadMission
 from lidarcal_ros.errors import ConfigError
@@ -94,6 +96,34 @@ def load_sensor_bag(bag: str | Path, config: FlightConfig, *,
         mounting=parse_mounting(config["sensor_frame.mounting"]))
 
 
+def mounting_solve_for(requested: Iterable[str], *,
+                       has_control: bool) -> tuple[tuple[str, ...], str]:
+    """The biases a mounting's calibration estimates of those asked for (``lidarcal
+    calibrate --solve-for``, else ``calibration.solve_for``; the calibrator's
+    ``calibration.solve_for``), in docs/method.md's order, and one line saying what was left
+    out ('': nothing). ``dS`` (a linear scanner's scale) is no parameter of a general
+    scanner's clouds: left out; ``dZ`` (the vertical lever arm, which moves every strip alike)
+    only with control points (``has_control``), else held at the nominal. The default
+    ``calibration.solve_for`` thus gives :data:`~lidarcal_ros.core.calibration.extrinsic.
+    MOUNTING_SOLVE_FOR`."""
+    names = tuple(n for n in PARAMETER_NAMES if n in set(requested))
+    why = {"dS": "dS is no parameter of clouds in the sensor's frame (a linear scanner's "
+                 "scale)"}
+    if not has_control:
+        why["dZ"] = "dZ needs control points (held at the nominal)"
+    left = [n for n in names if n in why]
+    kept = tuple(n for n in names if n not in why)
+    return kept, ("calibration.solve_for: " + "; ".join(why[n] for n in left) if left else "")
+
+
+def log_solve_for_note(note: str, requested: Iterable[str]) -> None:
+    """Say :func:`mounting_solve_for`'s note in one line: a warning where ``requested`` is
+    not the default ``calibration.solve_for`` (someone asked for it), else for the record."""
+    if note:
+        default = set(SCHEMA["calibration.solve_for"].default)
+        logger.log(logging.INFO if set(requested) == default else logging.WARNING, "%s", note)
+
+
 def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None
                                 ) -> CalibrationSettings:
     """The settings of a mounting's calibration, ``lidarcal calibrate``'s and the
@@ -107,14 +137,16 @@ def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None
 
 
 def calibrate_sensor_bag(data: SensorBag, *, solve_for: tuple[str, ...] | None = None,
+                         control: ControlPoints | None = None,
                          progress: Progress | None = None) -> MountingCalibration:
     """Calibrate the mounting of a bag's sensor-frame clouds
-    (:func:`sensor_calibration_settings`)."""
+    (:func:`sensor_calibration_settings`; ``solve_for`` as :func:`mounting_solve_for` gives
+    it), with vertical ``control`` points (map frame) where given."""
     logger.info("%s: %d points in %s, mounting %s -> %s from %s", data.path, data.n_points,
                 data.frame_id, data.base_frame, data.frame_id, data.mounting_source)
     return calibrate_mounting(data.xyz, data.t, data.trajectory, data.mounting,
                               settings=sensor_calibration_settings(solve_for),
-                              progress=progress)
+                              control=control, progress=progress)
 
 
 def extrinsic_of(data: SensorBag, cal: MountingCalibration) -> Extrinsic:
@@ -205,5 +237,6 @@ def truth_mounting(path: str | Path) -> Mounting | None:
 
 
 __all__ = ["calibrate_sensor_bag", "extrinsic_of", "format_mounting", "load_sensor_bag",
-           "parse_mounting", "sensor_calibration_settings", "truth_mounting",
-           "write_mounting_calibration", "write_uav_simulation"]
+           "log_solve_for_note", "mounting_solve_for", "parse_mounting",
+           "sensor_calibration_settings", "truth_mounting", "write_mounting_calibration",
+           "write_uav_simulation"]

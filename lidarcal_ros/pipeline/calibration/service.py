@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 from lidarcal_ros.core.calibration.extrinsic import MountingCalibration
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
@@ -28,8 +29,11 @@ from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.calibration_file import urdf_path
 from lidarcal_ros.io.cloud.columns import CloudColumns
-from lidarcal_ros.io.cloud.messages import ERROR, OK, StatusSpec, qa_statuses
+from lidarcal_ros.io.cloud.messages import ERROR, OK, WARN, StatusSpec, qa_statuses
+from lidarcal_ros.pipeline.calibration.checkpoint import read_checkpoint
 from lidarcal_ros.pipeline.calibration.sensor_frame import (
+    log_solve_for_note,
+    mounting_solve_for,
     parse_mounting,
     sensor_calibration_settings,
     write_mounting_calibration,
@@ -49,8 +53,8 @@ from lidarcal_ros.pipeline.throttled_log import ThrottledLog
 __all__ = [
     "REQUEST_TIMEOUT_S", "SAVE_CONVERGE_S", "SHUTDOWN_CONVERGE_S", "UPDATE_PERIOD_S",
     "AddCloud", "AddPose", "AddSensorCloud", "AddTransforms", "CalibrationService",
-    "CalibratorOptions", "Job",
-    "ReadControlFile", "Reset", "Save", "SetConfig", "SetControl", "SetOptions", "Solve",
+    "CalibratorOptions", "Job", "ReadControlFile", "Reset", "Save", "SetBaseFrame",
+    "SetConfig", "SetControl", "SetOptions", "Solve",
 ]
 
 logger = logging.getLogger(__name__)
@@ -130,6 +134,14 @@ class AddTransforms:
 
 
 @dataclass(frozen=True)
+class SetBaseFrame:
+    """The trajectory's body frame as its messages name it (an Odometry's
+    ``child_frame_id``)."""
+
+    frame: str
+
+
+@dataclass(frozen=True)
 class SetControl:
     """Control points, and where they came from (for the log)."""
 
@@ -179,8 +191,8 @@ class _Idle:
     """Nothing arrived for a moment (the worker's own job)."""
 
 
-Job = (AddCloud | AddPose | AddSensorCloud | AddTransforms | SetControl | ReadControlFile
-       | SetConfig | SetOptions | Solve | Reset | Save | _Idle)
+Job = (AddCloud | AddPose | AddSensorCloud | AddTransforms | SetBaseFrame | SetControl
+       | ReadControlFile | SetConfig | SetOptions | Solve | Reset | Save | _Idle)
 
 
 class CalibrationService:
@@ -214,6 +226,8 @@ class CalibrationService:
         self._qa: list[StatusSpec] = []
         self._qa_lock = threading.Lock()
         self._throttled = ThrottledLog(logger)
+        self._control: ControlPoints | None = None  # the latest given, for a new stream
+        self._solve_for_note = ""  # what the mounting's solve_for left out, said once
         self.input = InputCounts()
         #: Estimates given to ``on_result``, and the seconds the last one took.
         self.solves = 0
@@ -221,8 +235,8 @@ class CalibrationService:
         #: Checkpoints written, and the checkpoint resumed from at start ('' = none).
         self.checkpoints = 0
         self.resumed_from = ""
-        self._stream = self._open_stream()
         self.sensor = self._new_feed(config)
+        self._stream = self._open_stream()
         #: The calibrated mounting of the latest estimate (clouds in the sensor's frame).
         self.mounting: MountingCalibration | None = None
         if config["calibration.control_points_file"]:
@@ -236,9 +250,16 @@ class CalibrationService:
         path = self.options.checkpoint_file
         if path and Path(path).is_file():
             try:
-                stream = StreamingCalibration.load_checkpoint(path, self.config, **kwargs)
+                state = read_checkpoint(path)
+                if state.sensor is not None:  # a mounting's calibration, where it was
+                    self.sensor.restore(state.sensor)
+                    kwargs["settings_of"] = self._mounting_settings
+                self._control = state.control
+                stream = StreamingCalibration.from_checkpoint(state, self.config, **kwargs)
             except LidarcalError as exc:
                 logger.error("checkpoint not used: %s; starting afresh", exc)
+                self.sensor.reset()
+                self._control = None
             else:
                 self.resumed_from = str(path)
                 logger.info("resumed from %s: strips %s, %d points, %d observations in the "
@@ -247,18 +268,35 @@ class CalibrationService:
                 return stream
         return StreamingCalibration(self.config, **kwargs)
 
-    @staticmethod
-    def _new_feed(config: FlightConfig) -> SensorFrameFeed:
+    def _new_feed(self, config: FlightConfig) -> SensorFrameFeed:
         return SensorFrameFeed(base_frame=config["sensor_frame.base_frame"],
-                               mounting=parse_mounting(config["sensor_frame.mounting"]))
+                               mounting=parse_mounting(config["sensor_frame.mounting"]),
+                               max_points=self.options.max_points)
 
     def _sensor_frame_stream(self) -> StreamingCalibration:
         """A calibration of clouds in the sensor's frame, as ``lidarcal calibrate`` sets
-        it (:func:`~lidarcal_ros.pipeline.calibration.sensor_frame.
-        sensor_calibration_settings`)."""
-        return StreamingCalibration(self.config, max_points=self.options.max_points,
+        it (:meth:`_mounting_settings`), with the control points given so far."""
+        return StreamingCalibration(self.config, control=self._control,
+                                    max_points=self.options.max_points,
                                     strip_gap_s=float(self.options.strip_gap_s),
-                                    settings_of=lambda _config: sensor_calibration_settings())
+                                    settings_of=self._mounting_settings)
+
+    def _mounting_solve_for(self, config: FlightConfig) -> tuple[str, ...]:
+        """``calibration.solve_for`` as a mounting's calibration takes it
+        (:func:`~lidarcal_ros.pipeline.calibration.sensor_frame.mounting_solve_for`), what
+        it leaves out said once."""
+        requested = config["calibration.solve_for"]
+        names, note = mounting_solve_for(requested, has_control=self._control is not None)
+        if note != self._solve_for_note:
+            log_solve_for_note(note, requested)
+            self._solve_for_note = note
+        return names
+
+    def _mounting_settings(self, config: FlightConfig) -> CalibrationSettings:
+        """The settings of a mounting's calibration, ``lidarcal calibrate``'s
+        (:func:`~lidarcal_ros.pipeline.calibration.sensor_frame.
+        sensor_calibration_settings`)."""
+        return sensor_calibration_settings(self._mounting_solve_for(config))
 
     # -- state ----------------------------------------------------------------------------
     @property
@@ -308,6 +346,10 @@ class CalibrationService:
                        source: str) -> None:
         """Static transforms (:class:`AddTransforms`)."""
         self._submit(AddTransforms(transforms, source))
+
+    def set_base_frame(self, frame: str) -> None:
+        """The trajectory's body frame as its messages name it (:class:`SetBaseFrame`)."""
+        self._submit(SetBaseFrame(frame))
 
     def set_control(self, control: ControlPoints, source: str) -> None:
         """Control points for the solves to come (``source`` names them in the log)."""
@@ -429,10 +471,12 @@ class CalibrationService:
                 self._add_sensor_cloud(xyz, t, frame_id)
             case AddTransforms(transforms, source):
                 self.sensor.add_transforms(transforms, source)
+            case SetBaseFrame(frame):
+                self.sensor.set_base_frame(frame)
             case _Idle():
                 self._on_idle()
             case SetControl(control, source):
-                self._stream.set_control(control)
+                self._set_control(control)
                 logger.info("%d control points (%s)", len(control), source)
             case ReadControlFile(path):
                 self._read_control_file(path)
@@ -447,7 +491,7 @@ class CalibrationService:
                     self._read_control_file(config["calibration.control_points_file"])
             case SetOptions(options):
                 self.options = options
-                self._stream.max_points = options.max_points
+                self._stream.max_points = self.sensor.max_points = options.max_points
                 self._stream.strip_gap_s = float(options.strip_gap_s)
             case Solve():
                 return self._solve()
@@ -461,8 +505,15 @@ class CalibrationService:
         from lidarcal_ros.io.survey.control import read_control_csv
 
         control = read_control_csv(path)
-        self._stream.set_control(control)
+        self._set_control(control)
         logger.info("%d control points from %s", len(control), path)
+
+    def _set_control(self, control: ControlPoints) -> None:
+        had = self._control is not None
+        self._control = control
+        self._stream.set_control(control)
+        if self.sensor.active and not had:  # dZ may now be estimated (mounting_solve_for)
+            self._stream.update_config(self.config)
 
     def _add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
         self._stream.add_cloud(columns, frame_id)
@@ -487,8 +538,8 @@ class CalibrationService:
         finite = t[np.isfinite(t)]
         if finite.size:
             self._point_end = max(self._point_end, float(finite.max()))
-        if self._jobs.empty():
-            self._update(None)
+        # (under a backlog too: the feed's step is what bounds the points it holds)
+        self._update(None)
 
     def _on_idle(self) -> None:
         """Nothing arrived for a moment: close the strips idle long enough (all of them
@@ -517,7 +568,11 @@ class CalibrationService:
         started = time.perf_counter()
         try:
             if self.sensor.active:
-                self.sensor.step(self._stream, final=now_s == math.inf, covered=True)
+                final = now_s == math.inf
+                self.sensor.step(self._stream, final=final, covered=True)
+                # the open line's points go on in blocks up to the horizon: it is not idle
+                if not final:
+                    now_s = min(self.sensor.horizon, self._point_end)
             result = self._stream.update(now_s)
         except LidarcalError as exc:  # e.g. no trajectory yet: keep accumulating
             self._throttled.log(logging.WARNING, 10.0, f"not updated: {exc}")
@@ -554,6 +609,10 @@ class CalibrationService:
                 f"{result.solution.sigma0 * 100:.2f} cm")
 
     def _reset(self) -> str:
+        if self.sensor.active:  # the next clouds may be map-frame ones
+            self._stream = StreamingCalibration(
+                self.config, control=self._control, max_points=self.options.max_points,
+                strip_gap_s=float(self.options.strip_gap_s))
         self._stream.reset()
         self.sensor.reset()
         self.mounting = None
@@ -598,9 +657,10 @@ class CalibrationService:
         self.solves += 1
         self.last_solve_s = seconds
         cfg = self.config
+        solve_for = self._mounting_solve_for(cfg) if self.sensor.active else \
+            cfg["calibration.solve_for"]
         statuses = qa_statuses(result, warn_m=cfg["qa.rmsdz_warn_m"],
-                               error_m=cfg["qa.max_difference_m"],
-                               solve_for=cfg["calibration.solve_for"])
+                               error_m=cfg["qa.max_difference_m"], solve_for=solve_for)
         statuses.append(trajectory_status(result, cfg.calibration_settings().trajectory))
         with self._qa_lock:
             self._qa = statuses
@@ -612,7 +672,7 @@ class CalibrationService:
 
     def _checkpoint(self, path: str) -> None:
         try:
-            self._stream.save_checkpoint(path)
+            self._stream.save_checkpoint(path, sensor=self.sensor.state())
             self.checkpoints += 1
         except (OSError, LidarcalError) as exc:
             self._throttled.log(logging.ERROR, 30.0, f"checkpoint {path} not written: {exc}")
@@ -644,9 +704,12 @@ class CalibrationService:
         values = {"frame": feed.frame_id or "", "base_frame": feed.base_frame,
                   "mounting_source": feed.mounting_source, "lines": str(len(feed.lines)),
                   "pending_points": str(feed.pending_points),
-                  "turn_points": str(feed.turn_points), "late_points": str(feed.late_points)}
+                  "turn_points": str(feed.turn_points), "late_points": str(feed.late_points),
+                  "overflow_points": str(feed.overflow_points)}
         if feed.refusal:
             return StatusSpec(ERROR, "lidarcal: sensor frame", feed.refusal, values)
+        if feed.base_note:
+            return StatusSpec(WARN, "lidarcal: sensor frame", feed.base_note, values)
         return StatusSpec(OK, "lidarcal: sensor frame",
                           f"clouds in '{feed.frame_id}', mounting {feed.base_frame} -> "
                           f"{feed.frame_id} from {feed.mounting_source}; {len(feed.lines)} "

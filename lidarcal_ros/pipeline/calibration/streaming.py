@@ -26,6 +26,7 @@ from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.errors import CalibrationError, InputError, TrajectoryError
 from lidarcal_ros.io.cloud.columns import CloudColumns
 from lidarcal_ros.pipeline.calibration.checkpoint import (
+    SensorFrameState,
     StreamCheckpoint,
     read_checkpoint,
     write_checkpoint,
@@ -109,6 +110,7 @@ class StreamingCalibration:
     _late_strips: set[int]
     _coverage: StripCoverage
     _models: ModelCalibrators
+    _settings: CalibrationSettings  # the settings of ``_models``
 
     def __init__(
         self,
@@ -136,7 +138,8 @@ class StreamingCalibration:
 
     # ------------------------------------------------------------------ inputs
     def _new_models(self) -> ModelCalibrators:
-        return ModelCalibrators(self._settings_of(self.config), control=self._control)
+        self._settings = self._settings_of(self.config)
+        return ModelCalibrators(self._settings, control=self._control)
 
     @property
     def _calibrator(self) -> Calibrator:
@@ -211,9 +214,10 @@ class StreamingCalibration:
         self._data_changed()
 
     def update_config(self, config: FlightConfig) -> None:
-        """New configuration: where it changes the calibration's settings, the strips are
-        re-prepared with it and the estimate converged again."""
-        changed = self._settings_of(config) != self._settings_of(self.config)
+        """New configuration: where it changes the calibration's settings (``settings_of``
+        may look beyond it, e.g. at the control points), the strips are re-prepared with it
+        and the estimate converged again."""
+        changed = self._settings_of(config) != self._settings
         self.config = config
         if changed:
             self._rebuild()
@@ -584,9 +588,12 @@ class StreamingCalibration:
         self._data_changed()
 
     # ------------------------------------------------------------------ checkpoints
-    def save_checkpoint(self, path: str | Path) -> Path:
-        """Write everything needed to resume (:mod:`.checkpoint`)."""
+    def save_checkpoint(self, path: str | Path, *,
+                        sensor: SensorFrameState | None = None) -> Path:
+        """Write everything needed to resume (:mod:`.checkpoint`), with the state of the
+        clouds in the sensor's frame that feed it (``sensor``) where they do."""
         return write_checkpoint(path, StreamCheckpoint(
+            sensor=sensor,
             frame_id=self.frame_id, trajectory=self._samples.arrays(),
             closed=list(self._closed), open=list(self._open.strips()),
             models=self._models.states(), trajectory_choice=self._models.choice,
@@ -609,9 +616,19 @@ class StreamingCalibration:
         InputError
             Unreadable or incompatible checkpoint.
         """
-        state = read_checkpoint(path)
+        return cls.from_checkpoint(read_checkpoint(path), config, max_points=max_points,
+                                   strip_gap_s=strip_gap_s)
+
+    @classmethod
+    def from_checkpoint(
+        cls, state: StreamCheckpoint, config: FlightConfig, *, max_points: int | None = None,
+        strip_gap_s: float = 2.0,
+        settings_of: Callable[[FlightConfig], CalibrationSettings] | None = None,
+    ) -> StreamingCalibration:
+        """Resume from a checkpoint read (:func:`~.checkpoint.read_checkpoint`);
+        ``settings_of`` as the constructor's (a mounting's calibration: its own)."""
         self = cls(config, control=state.control, max_points=max_points,
-                   strip_gap_s=strip_gap_s)
+                   strip_gap_s=strip_gap_s, settings_of=settings_of)
         self.frame_id = state.frame_id
         t, xyz, orientation = state.trajectory
         if t.size:

@@ -1,0 +1,282 @@
+"""The calibrator's work on clouds in the sensor's frame without ROS (pipeline/calibration/
+service.py over sensor_stream.py, docs/method.md section 12): a small simulated UAV payload
+handed over message by message as the node hands it over.
+
+``calibration.solve_for`` is honoured as ``lidarcal calibrate`` honours it (dS and, without
+control, dZ left out in one line); a service stopped mid-flight without closing resumes from
+its checkpoint as a mounting's calibration and saves the mounting of the whole flight; the
+points held while a line is flown stay within :data:`HELD_S` of the trajectory.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from helpers_wait import wait_until as _wait
+
+from lidarcal_ros.core.calibration.extrinsic import (
+    MOUNTING_SOLVE_FOR,
+    MountingCalibration,
+    calibrate_mounting,
+)
+from lidarcal_ros.core.config import SCHEMA, FlightConfig
+from lidarcal_ros.core.mission import ControlPoints
+from lidarcal_ros.core.params import PARAMETER_INDEX
+from lidarcal_ros.core.simulation.uav_payload import (
+    NANOSECONDS_UINT32,
+    UavPayloadMission,
+    UavPayloadSpec,
+    simulate_uav_payload,
+)
+from lidarcal_ros.io.calibration_file import read_calibration
+from lidarcal_ros.pipeline.calibration.sensor_frame import (
+    log_solve_for_note,
+    mounting_solve_for,
+    sensor_calibration_settings,
+)
+from lidarcal_ros.pipeline.calibration.sensor_stream import HELD_S, SensorFrameFeed
+from lidarcal_ros.pipeline.calibration.service import CalibrationService, CalibratorOptions
+from lidarcal_ros.pipeline.calibration.streaming import StreamingCalibration
+
+
+@functools.cache
+def _mission() -> UavPayloadMission:
+    """Three lines of 80 m by a VLP-16 of 48 columns (the node test's payload)."""
+    return simulate_uav_payload(UavPayloadSpec(seed=3, columns=48, n_lines=3,
+                                               line_length_m=80.0))
+
+
+def _clouds(m: UavPayloadMission) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Each cloud: stamp s, points (n, 3) in the sensor's frame, absolute times s."""
+    c = m.clouds
+    scale = 1e-9 if c.time_units == NANOSECONDS_UINT32 else 1.0
+    out = []
+    for k, stamp in enumerate(c.stamps):
+        a, b = int(c.offsets[k]), int(c.offsets[k + 1])
+        out.append((float(stamp), np.asarray(c.xyz[a:b]),
+                    float(stamp) + np.asarray(c.time[a:b], dtype=np.float64) * scale))
+    return out
+
+
+def _events(m: UavPayloadMission, start: float = -np.inf,
+            end: float = np.inf) -> list[tuple[float, str, Any]]:
+    """Poses and clouds stamped in [start, end), in time order (poses first at a tie)."""
+    tr = m.trajectory
+    assert tr.orientation is not None
+    events: list[tuple[float, str, Any]] = [
+        (float(t), "pose", (xyz, q)) for t, xyz, q in zip(tr.t, tr.xyz, tr.orientation,
+                                                           strict=True)
+        if start <= t < end]
+    events += [(s, "~cloud", (xyz, t)) for s, xyz, t in _clouds(m) if start <= s < end]
+    return sorted(events, key=lambda e: (e[0], e[1]))
+
+
+def _feed(service: CalibrationService, events: list[tuple[float, str, Any]]) -> None:
+    for t, kind, payload in events:
+        if kind != "pose":
+            service.add_sensor_cloud(payload[0], payload[1], "velodyne")
+            continue
+        x, y, z = (float(v) for v in payload[0])
+        service.add_pose(t, (x, y, z), "map", tuple(float(v) for v in payload[1]))
+
+
+def _offline(m: UavPayloadMission, solve_for: tuple[str, ...]) -> MountingCalibration:
+    xyz = np.concatenate([c[1] for c in _clouds(m)])
+    t = np.concatenate([c[2] for c in _clouds(m)])
+    return calibrate_mounting(xyz, t, m.trajectory, m.nominal,
+                              settings=sensor_calibration_settings(solve_for))
+
+
+def _mounting_text(m: Any) -> str:
+    return ",".join(repr(float(v)) for v in (*m.translation, *m.quaternion))
+
+
+def _service(tmp_path: Path, **values: Any) -> CalibrationService:
+    m = _mission()
+    options = {"idle_close_s": 0.0, **{k: v for k, v in values.items() if "." not in k}}
+    config = FlightConfig.from_mapping({
+        "sensor_frame.mounting": _mounting_text(m.nominal),
+        "calibration.calibration_file": str(tmp_path / "live.yaml"),
+        **{k: v for k, v in values.items() if "." in k}})
+    service = CalibrationService(config, CalibratorOptions.from_parameters(options))
+    service.start()
+    return service
+
+
+def _stop_without_closing(service: CalibrationService) -> None:
+    """A kill: the worker stops, no last checkpoint."""
+    service._closing.set()
+    service._worker.join(timeout=30)
+
+
+def _same_mounting(saved: Path, offline: MountingCalibration, fraction: float) -> None:
+    record = read_calibration(saved)
+    assert record.extrinsic is not None
+    live = record.extrinsic.mounting
+    est = np.isfinite(offline.translation_sigma_m)
+    diff = np.abs(live.translation - offline.mounting.translation)
+    assert np.all(diff[est] <= fraction * offline.translation_sigma_m[est]), diff
+    assert np.allclose(diff[~est], 0.0, atol=1e-9)
+    r = live.rotation.T @ offline.mounting.rotation
+    angle = np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))
+    assert angle <= fraction * float(np.nanmin(offline.rotation_sigma_rad)), angle
+    off = np.abs(record.delta - offline.delta)[np.isfinite(offline.sigma)] / \
+        offline.sigma[np.isfinite(offline.sigma)]
+    assert np.all(off <= fraction), off
+
+
+# ------------------------------------------------------------------- solve_for
+
+def test_solve_for_of_a_mounting() -> None:
+    default = tuple(SCHEMA["calibration.solve_for"].default)
+    names, note = mounting_solve_for(default, has_control=False)
+    assert names == MOUNTING_SOLVE_FOR
+    assert note.startswith("calibration.solve_for: dS is no parameter") and "\n" not in note
+    names, note = mounting_solve_for(("dZ", "dX", "domega", "dS"), has_control=False)
+    assert names == ("dX", "domega") and "dZ needs control points" in note
+    names, note = mounting_solve_for(("dZ", "dX", "domega"), has_control=True)
+    assert names == ("dX", "dZ", "domega") and note == ""
+
+
+def test_the_note_is_a_warning_only_where_asked_for(caplog: pytest.LogCaptureFixture) -> None:
+    default = SCHEMA["calibration.solve_for"].default
+    with caplog.at_level(logging.INFO):
+        log_solve_for_note(mounting_solve_for(default, has_control=False)[1], default)
+        log_solve_for_note(mounting_solve_for(["dS", "dX"], has_control=False)[1],
+                           ["dS", "dX"])
+    assert [r.levelno for r in caplog.records] == [logging.INFO, logging.WARNING]
+
+
+def test_the_configured_solve_for_is_honoured_live_as_offline(tmp_path: Path) -> None:
+    """With dr not asked for (and dS, which is left out), the live service estimates dX, dY and
+    the boresight alone, and saves ``lidarcal calibrate``'s mounting of them (0.1 sigma)."""
+    m = _mission()
+    asked = ["dX", "dY", "domega", "dphi", "dkappa", "dS"]
+    service = _service(tmp_path, **{"calibration.solve_for": asked})
+    try:
+        _feed(service, _events(m))
+        assert "solved" in service.solve()
+        saved = service.save().split("written to ")[1].split(",")[0]
+    finally:
+        service.close()
+    latest = service.stream.latest
+    assert latest is not None
+    estimated = {n for n, i in PARAMETER_INDEX.items() if np.isfinite(latest.solution.sigma[i])}
+    assert estimated == {"dX", "dY", "domega", "dphi", "dkappa"}
+    offline = _offline(m, mounting_solve_for(asked, has_control=False)[0])
+    _same_mounting(Path(saved), offline, 0.1)
+    assert service.mounting is not None and service.mounting.range_offset_m == 0.0
+
+
+def test_control_arriving_brings_dz_in(tmp_path: Path) -> None:
+    """With dZ asked for, it is held until control points arrive, then estimated (the strips
+    re-prepared with the new settings)."""
+    m = _mission()
+    service = _service(tmp_path, **{"calibration.solve_for": ["dX", "dY", "dZ", "domega"]})
+    try:
+        service.add_sensor_cloud(*_clouds(m)[0][1:], "velodyne")
+        _wait(lambda: service.sensor.active and service.queued_jobs == 0, 30, "a cloud")
+        assert "dZ" not in service.stream._settings.solve_for
+        xyz = m.truth_xyz[::5000][:4]
+        service.set_control(ControlPoints([f"C{i}" for i in range(len(xyz))], xyz), "test")
+        _wait(lambda: service.queued_jobs == 0 and "dZ" in service.stream._settings.solve_for,
+              30, "dZ with control")
+    finally:
+        service.close()
+
+
+# ------------------------------------------------------------------- checkpoints
+
+def test_stopped_mid_flight_it_resumes_as_a_mounting_calibration(tmp_path: Path) -> None:
+    """Stopped without closing in the turn after the second line (its checkpoint written
+    at its last estimate), a new service resumes the mounting's calibration (mode, nominal,
+    lines, points held), is fed the rest and saves the whole flight's mounting (0.1 sigma
+    of ``lidarcal calibrate``'s)."""
+    m = _mission()
+    checkpoint = tmp_path / "ckpt.npz"
+    t_all = np.concatenate([c[2] for c in _clouds(m)])
+    line = m.line
+    end_1, start_2 = float(t_all[line == 1].max()), float(t_all[line == 2].min())
+    cut = (end_1 + start_2) / 2.0
+    first = _service(tmp_path, checkpoint_file=str(checkpoint))
+    _feed(first, _events(m, end=cut))
+    # the first estimate (lines 0, 1) and its convergence, checkpointed
+    _wait(lambda: first.queued_jobs == 0 and first.solves > 0 and first.stream.converged
+          and first.checkpoints >= first.solves, 120, "a converged estimate")
+    lines_before = first.sensor.lines.copy()
+    nominal_before = first.sensor.mounting
+    assert nominal_before is not None
+    _stop_without_closing(first)
+    assert len(lines_before) == 2
+
+    second = _service(tmp_path, checkpoint_file=str(checkpoint))
+    try:
+        assert second.resumed_from == str(checkpoint) and second.sensor.active
+        assert second.sensor.frame_id == "velodyne"
+        np.testing.assert_array_equal(second.sensor.lines, lines_before)
+        assert second.sensor.mounting is not None
+        np.testing.assert_array_equal(second.sensor.mounting.rotation, nominal_before.rotation)
+        np.testing.assert_array_equal(second.sensor.mounting.translation,
+                                      nominal_before.translation)
+        assert set(second.stream._settings.solve_for) == set(MOUNTING_SOLVE_FOR)
+        _feed(second, _events(m, start=cut))
+        assert "solved" in second.solve()
+        saved = second.save().split("written to ")[1].split(",")[0]
+    finally:
+        second.close()
+    assert len(second.sensor.lines) == 3
+    _same_mounting(Path(saved), _offline(m, MOUNTING_SOLVE_FOR), 0.1)
+
+
+# ------------------------------------------------------------------- memory
+
+def test_a_long_line_holds_no_more_than_the_bound() -> None:
+    """One long line (60 s): the feed hands its points on in blocks, holding at any moment
+    only those of the last HELD_S seconds of the trajectory and the cloud ahead of it, and
+    the strips it hands on are those the whole flight gives."""
+    m = simulate_uav_payload(UavPayloadSpec(seed=5, columns=24, n_lines=2,
+                                            line_length_m=480.0))
+    clouds = _clouds(m)
+    feed = SensorFrameFeed(base_frame="base_link", mounting=m.nominal)
+    stream = StreamingCalibration(FlightConfig(), settings_of=lambda _c:
+                                  sensor_calibration_settings())
+    tr = m.trajectory
+    assert tr.orientation is not None
+    all_t = np.sort(np.concatenate([c[2] for c in clouds]))
+    # the bound: the points of the last HELD_S s behind the newest pose, the cloud ahead of
+    # it and those of one step's period (0.2 s): at most the most points in such a window
+    window = HELD_S + 0.1 + 0.2
+    bound = int(np.max(np.searchsorted(all_t, all_t + window) - np.arange(all_t.size)))
+    most = 0
+    for k, (stamp, xyz, t) in enumerate(clouds):
+        new = (tr.t >= (clouds[k - 1][0] if k else -np.inf)) & (tr.t < stamp)
+        feed.add_poses(tr.t[new], tr.xyz[new], tr.orientation[new], "map")
+        feed.add_cloud(xyz, t, "velodyne")
+        if k % 2 == 0:  # (the service's update period: 0.2 s)
+            feed.step(stream)
+        most = max(most, feed.pending_points)
+    rest = tr.t >= clouds[-1][0]
+    feed.add_poses(tr.t[rest], tr.xyz[rest], tr.orientation[rest], "map")
+    feed.step(stream, final=True)
+    stream.update(np.inf)
+    total = all_t.size
+    print(f"{total} points; held at most {most} (bound {bound}: {window:.1f} s)")
+    assert most <= bound
+    assert most < total / 4  # (not the whole line)
+    assert feed.pending_points == 0 and len(feed.lines) == 2
+    # blocks make the strips a whole line makes
+    from lidarcal_ros.core.calibration.extrinsic import line_strips, sensor_trajectory
+
+    whole = line_strips(np.concatenate([c[1] for c in clouds]),
+                        np.concatenate([c[2] for c in clouds]),
+                        sensor_trajectory(tr, m.nominal), m.nominal, feed.lines)
+    held = {s.strip_id: s for s in stream.closed_strips}
+    assert sorted(held) == [s.strip_id for s in whole]
+    for s in whole:
+        np.testing.assert_array_equal(held[s.strip_id].t, s.t)
+        np.testing.assert_allclose(held[s.strip_id].xyz, s.xyz, atol=1e-9)
