@@ -137,8 +137,10 @@ class Trajectory:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         q = None if orientation is None else np.asarray(orientation,
                                                         dtype=np.float64).reshape(-1, 4)
-        ok = (np.isfinite(t) & np.isfinite(xyz).all(axis=1) if source is None
-              else screen_samples(t, xyz, source))
+        ok = (np.isfinite(t) & np.isfinite(xyz).all(axis=1) & ~beyond_map(xyz)
+              if source is None else screen_samples(t, xyz, source))
+        if source is not None and q is not None:
+            screen_orientations(q[ok], source)
         order = np.flatnonzero(ok)
         order = order[np.argsort(t[order], kind="stable")]
         if order.size:
@@ -192,6 +194,11 @@ class Trajectory:
 
 #: Samples at one stamp further apart than this (m) conflict: which one is right is unknown.
 CONFLICT_M = 0.001
+#: No map coordinate (projected, or geocentric: 6.4e6 m) reaches this (m); one beyond is a
+#: corrupt value, left out with the non-finite (and its square stays far from overflow).
+MAX_COORDINATE_M = 1e9
+#: An orientation whose quaternion's norm is this far from 1 is said once (then normalised).
+UNIT_TOLERANCE = 0.01
 #: A stamp up to this much (s) earlier than one read before it is sorted into place (messages
 #: reordered or late on their way, as live samples can be); more is a clock that stepped back
 #: (a reset, a leap second of 1 s, two sources on one topic), after which two paths share
@@ -275,6 +282,9 @@ def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
         back in the order given (:func:`stepped_back`), or fewer than two usable samples at
         distinct stamps: one line naming ``source`` and the counts.
     """
+    beyond = beyond_map(xyz)
+    if beyond.any():  # as if not finite from here on (their squares would overflow)
+        xyz = np.where(beyond[:, None], np.nan, xyz)
     finite = np.isfinite(t) & np.isfinite(xyz).all(axis=1)
     keep = finite.copy()
     order = np.flatnonzero(finite)
@@ -293,7 +303,11 @@ def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
     if conflicting.size:
         keep[order[np.isin(ts, conflicting)]] = False
     n_bad, n_conflict = int(np.count_nonzero(~finite)), int(np.count_nonzero(finite & ~keep))
-    parts = [f"{n_bad} with a non-finite stamp or position"] if n_bad else []
+    n_beyond = int(np.count_nonzero(beyond & np.isfinite(t)))
+    parts = [f"{n_bad - n_beyond} with a non-finite stamp or position"] if n_bad > n_beyond \
+        else []
+    if n_beyond:
+        parts.append(f"{n_beyond} with a coordinate beyond {MAX_COORDINATE_M:g} m")
     if n_conflict:
         parts.append(f"{n_conflict} at {conflicting.size} stamp"
                      f"{'' if conflicting.size == 1 else 's'} repeated at positions up to "
@@ -309,6 +323,36 @@ def screen_samples(t: np.ndarray, xyz: np.ndarray, source: str) -> np.ndarray:
         logger.warning("%s: %d of %d poses left out: %s", source, n_bad + n_conflict, t.size,
                        "; ".join(parts))
     return keep
+
+
+def beyond_map(xyz: np.ndarray) -> np.ndarray:
+    """(n,) bool: the rows of ``xyz`` (n, 3) with a finite coordinate beyond
+    :data:`MAX_COORDINATE_M` (m)."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        return (np.abs(xyz) > MAX_COORDINATE_M).any(axis=1)
+
+
+def screen_orientations(q: np.ndarray, source: str) -> None:
+    """Say in one warning line naming ``source`` how many quaternions ``q`` (n, 4) xyzw are
+    far from unit length (normalised) or zero among others that are not (read as poses
+    without orientation)."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    scale = np.abs(q).max(axis=1) if q.size else np.zeros(0)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        norm = scale * np.sqrt(np.einsum("ij,ij->i", q / scale[:, None], q / scale[:, None]))
+    given = np.isfinite(scale) & (scale > 0.0)  # (a norm past 1.8e308 overflows: far off)
+    off = given & ~(np.abs(norm - 1.0) <= UNIT_TOLERANCE)
+    zero = scale == 0.0
+    parts = []
+    if off.any():
+        parts.append(f"{int(off.sum())} not of unit length (norms {norm[off].min():.3g} to "
+                     f"{norm[off].max():.3g}): normalised")
+    if zero.any() and given.any():
+        parts.append(f"{int(zero.sum())} zero: read as poses without orientation")
+    if parts:
+        logger.warning("%s: of %d orientation quaternions, %s", source, q.shape[0],
+                       "; ".join(parts))
 
 
 @dataclass
@@ -372,6 +416,6 @@ class Mission:
         return sum(len(s) for s in self.strips)
 
 
-__all__ = ["CONFLICT_M", "LATE_POSE_M", "REORDER_S", "ControlPoints", "Mission", "Strip",
-           "Trajectory",
+__all__ = ["CONFLICT_M", "LATE_POSE_M", "MAX_COORDINATE_M", "REORDER_S", "UNIT_TOLERANCE",
+           "ControlPoints", "Mission", "Strip", "Trajectory", "beyond_map", "screen_orientations",
            "screen_samples", "stepped_back"]

@@ -63,8 +63,9 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     ------
     OutputError
         The output is an input; it exists and ``overwrite`` is False; it is a directory where
-        a file is written; its parent directory is missing or not writable (the operating
-        system's reason: permission denied, read-only file system...).
+        a file is written; it is a dangling symbolic link (whatever ``overwrite``); its parent
+        directory is missing or not writable (the operating system's reason: permission
+        denied, read-only file system...).
     """
     path = Path(path)
     for source in inputs:
@@ -73,6 +74,11 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
                               "elsewhere")
     if path.is_dir() and not directory:
         raise OutputError(f"{path}: is a directory; -o/--output takes a file name here")
+    if path.is_symlink() and not path.exists():
+        # Refused, not written through: the target may lie anywhere (a file would appear
+        # where the user did not name one); nor replaced: the link was put there for a reason.
+        raise OutputError(f"{path}: is a symbolic link to {os.readlink(path)}, which does not "
+                          "exist; remove the link or name the output itself")
     if (path.exists() or path.is_symlink()) and not overwrite:
         raise OutputError(f"{path}: {EXISTS}")
     parent = path.parent

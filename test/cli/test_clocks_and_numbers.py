@@ -9,12 +9,16 @@ line with the count and a result that lost nothing else.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import warnings
 from pathlib import Path
+from typing import Any
 
 import helpers_missions
 import numpy as np
 import pytest
+import yaml
 from helpers_cli import one_line_error, run
 from helpers_missions import (
     MissionFiles,
@@ -176,3 +180,102 @@ def test_option_numbers_that_are_not_finite_are_refused(capsys, tmp_path, text) 
     assert err.splitlines()[-1] == (f"lidarcal simulate: error: argument --density: expected "
                                     f"a finite number, got {text!r}")
     assert not list(tmp_path.iterdir())
+
+
+# ---------------------------------------------------------------------------- extreme numbers
+def _bag_with_numbers(path: Path, mission: Mission, *, pose: Any = None,
+                      cloud: Any = None) -> Path:
+    """The mission's bag with each pose given an orientation (its heading along the track)
+    and spoiled by ``pose(i, xyz, q)`` in place, each cloud by ``cloud(k, points)``."""
+    traj = mission.trajectory
+    d = np.gradient(traj.xyz[:, :2], axis=0)
+    yaw = np.arctan2(d[:, 1], d[:, 0])
+    quats = np.column_stack([np.zeros((yaw.size, 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
+    with BagWriter(path) as writer:
+        for s in mission.strips:
+            pts = strip_points(s)
+            for k, sl in enumerate(cloud_chunks(s, 0.5)):
+                part = pts[sl].copy()
+                if cloud is not None:
+                    cloud(k, part)
+                writer.write_cloud("/lidar/points", seconds_to_ns(float(s.t[sl.start])), "map",
+                                   part)
+        for i in range(len(traj)):
+            xyz, q = traj.xyz[i].copy(), quats[i].copy()
+            if pose is not None:
+                pose(i, xyz, q)
+            writer.write_pose("/lidar/trajectory", seconds_to_ns(float(traj.t[i])), "map", xyz,
+                              quaternion_xyzw=q)
+    return path
+
+
+def _huge_positions(i: int, xyz: np.ndarray, q: np.ndarray) -> None:
+    if i % 50 == 7:
+        xyz[0] = 1e308 if i % 100 == 7 else -1e308
+
+
+def _huge_points(k: int, points: np.ndarray) -> None:
+    if k == 1:
+        points["x"][:5], points["z"][5:10] = 1e308, -1e308
+
+
+def _subnormal_points(k: int, points: np.ndarray) -> None:
+    if k == 1:
+        points["x"][:5], points["z"][5:10] = 5e-324, -5e-324
+
+
+def _zero_quaternions(i: int, xyz: np.ndarray, q: np.ndarray) -> None:
+    if i % 50 == 7:
+        q[:] = 0.0
+
+
+NUMBERS: dict[str, tuple[dict[str, Any], str]] = {
+    "poses at +-1e308": ({"pose": _huge_positions},
+                         "trajectory /lidar/trajectory: {n50} of {n} poses left out: {n50} with "
+                         "a coordinate beyond 1e+09 m"),
+    "points at +-1e308": ({"cloud": _huge_points},
+                          "dropped 60 points with non-finite x, y, z or t (or a coordinate "
+                          "beyond 1e+09 m)"),
+    "subnormal points": ({"cloud": _subnormal_points}, ""),
+    "quaternions of norm 3": ({"pose": lambda i, xyz, q: q.__imul__(3.0)},
+                              "trajectory /lidar/trajectory: of {n} orientation quaternions, "
+                              "{n} not of unit length (norms 3 to 3): normalised"),
+    "quaternions of norm 1e308": ({"pose": lambda i, xyz, q: q.__imul__(1e308)},
+                                  "trajectory /lidar/trajectory: of {n} orientation "
+                                  "quaternions, {n} not of unit length (norms 1e+308 to "
+                                  "1e+308): normalised"),
+    "subnormal quaternions": ({"pose": lambda i, xyz, q: q.__imul__(5e-324)},
+                              "trajectory /lidar/trajectory: of {n} orientation quaternions, "
+                              "{n} not of unit length (norms 4.94e-324 to 4.94e-324): "
+                              "normalised"),
+    "zero quaternions among others": ({"pose": _zero_quaternions},
+                                      "trajectory /lidar/trajectory: of {n} orientation "
+                                      "quaternions, {n50} zero: read as poses without "
+                                      "orientation"),
+}
+
+
+@pytest.mark.parametrize("case", NUMBERS)
+def test_extreme_numbers_are_left_out_or_normalised_and_said(tmp_path, small_mission,
+                                                             case) -> None:
+    """Each case through ``calibrate`` in a fresh interpreter with numpy's RuntimeWarning an
+    error: exit 0, one warning line with the count (none for subnormal points, which are
+    numbers like any other), and every estimated bias within 4 sigmas of the truth (before:
+    'internal error: RuntimeWarning: overflow' for poses or points at 1e308, and quaternions
+    of norm 1e308 or 5e-324 read silently as no orientation)."""
+    mission = small_mission.mission
+    spoil, words = NUMBERS[case]
+    bag = _bag_with_numbers(tmp_path / "bag", mission, **spoil)
+    n = len(mission.trajectory)
+    out = tmp_path / "cal.yaml"
+    proc = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-m", "lidarcal_ros",
+                           "calibrate", bag, "-o", out, "--config", small_mission.fast_config,
+                           "-q"], capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    said = [line for line in proc.stderr.splitlines() if line.startswith("lidarcal")]
+    assert said == ([f"lidarcal calibrate: warning: {bag}: "
+                     + words.format(n=n, n50=len(range(7, n, 50)))] if words else []), said
+    biases = yaml.safe_load(out.read_text())["lidarcal_calibration"]["biases"]
+    for name, truth in small_mission.sim.biases.items():
+        if biases[name]["estimated"]:  # the truth within 4 sigmas: nothing silently wrong
+            assert abs(biases[name]["value"] - truth) < 4.0 * biases[name]["sigma"], name

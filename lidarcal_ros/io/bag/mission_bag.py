@@ -17,7 +17,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
+from lidarcal_ros.core.mission import (
+    MAX_COORDINATE_M,
+    ControlPoints,
+    Mission,
+    Strip,
+    Trajectory,
+)
 from lidarcal_ros.errors import BagError, ConfigError, InputError
 from lidarcal_ros.io.bag.format import POINTCLOUD2, seconds_to_ns
 from lidarcal_ros.io.bag.reader import BagReader, open_bag
@@ -152,7 +158,8 @@ def read_mission(
     if note:
         logger.warning("%s: %s: %s", path, points_topic, note)
     if dropped:
-        logger.warning("%s: dropped %d points with non-finite x, y, z or t", path, dropped)
+        logger.warning("%s: dropped %d points with non-finite x, y, z or t (or a coordinate "
+                       "beyond %g m)", path, dropped, MAX_COORDINATE_M)
     return Mission(trajectory, strips, control, frame, dropped, acc.thinned)
 
 

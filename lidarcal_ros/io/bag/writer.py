@@ -64,6 +64,14 @@ def _check_replaceable(path: Path) -> None:
         raise OutputError(f"{path}: refusing to overwrite a file that is not an .mcap")
 
 
+def _storage_name(name: str) -> str:
+    """``name`` cut (at a character) so that its storage file ``NAME.mcap`` fits in the 255
+    bytes of a file name."""
+    while len(f"{name}.mcap".encode()) > 255:
+        name = name[:-1]
+    return name
+
+
 class BagWriter:
     """Write a rosbag2 bag with MCAP storage; use as a context manager.
 
@@ -111,12 +119,15 @@ class BagWriter:
         self.latched_topics = set(latched_topics)
         self.compress = compress
         self._bare = self.path.suffix == ".mcap"
-        self._staged = staged or self._bare
+        inner = self.path.stem if self._bare else self.path.name
+        # A legal directory name of up to 255 bytes: the storage file in it, NAME.mcap, would
+        # pass the limit; such a bag is staged under a shorter name and renamed whole.
+        short = _storage_name(inner)
+        self._staged = staged or self._bare or short != inner
         self._staging = temporary_beside(self.path)
-        # The bag inside the staging directory keeps its final name (the names of its files
-        # in metadata.yaml come from it).
-        self._target = (self._staging / (self.path.stem if self._bare else self.path.name)
-                        if self._staged else self.path)
+        # The bag inside the staging directory keeps its final name where it can (the names
+        # of its files in metadata.yaml come from it).
+        self._target = self._staging / short if self._staged else self.path
         self._writer: BagWriterBackend | None = None
         self._connections: dict[str, Connection] = {}
         self._typestore = standard_typestore() if typestore is None else typestore

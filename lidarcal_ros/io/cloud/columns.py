@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lidarcal_ros.core.mission import beyond_map
 from lidarcal_ros.errors import CloudFormatError
 from lidarcal_ros.io.cloud.pointcloud import (
     DATATYPE_NAMES,
@@ -159,8 +160,21 @@ def extract_xyz(arr: np.ndarray, *, source: str = "cloud",
     """
     fields = _xyz_fields(arr, source)
     xyz = _stacked_xyz(fields)
+    _without_beyond_map(xyz)
     _checked_float32_step(fields, xyz, source, coordinate_tolerance_m)
     return xyz
+
+
+def _without_beyond_map(xyz: np.ndarray) -> bool:
+    """Set to NaN, in place, the points of ``xyz`` (n, 3) with a coordinate beyond
+    :data:`~lidarcal_ros.core.mission.MAX_COORDINATE_M` (a corrupt value, whose square
+    would overflow): they are dropped and counted with the non-finite. Whether there were
+    any."""
+    beyond = beyond_map(xyz)
+    if not beyond.any():
+        return False
+    xyz[beyond] = np.nan
+    return True
 
 
 def float32_step(xyz: np.ndarray) -> tuple[float, int, float]:
@@ -338,6 +352,8 @@ def extract_columns(
                      else np.empty(0, dtype=np.float32))
         strip_id = (sid_field.astype(np.uint32) if sid_field is not None
                     else np.empty(0, dtype=np.uint32))
+    if _without_beyond_map(xyz):
+        all_finite = False
     step = _checked_float32_step(fields, xyz, source, coordinate_tolerance_m)
     rn = nr = None
     if "return_number" in names:

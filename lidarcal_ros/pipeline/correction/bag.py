@@ -26,7 +26,7 @@ from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.georeferencing.heading import check_orientation
 from lidarcal_ros.core.georeferencing.rigorous import check_model_setting
 from lidarcal_ros.core.jit import start_without_blas
-from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.mission import MAX_COORDINATE_M, Trajectory
 from lidarcal_ros.core.radiometry import describe_alpha
 from lidarcal_ros.core.trajectory.strip_errors import (
     POSE_BEYOND_STRIPS,
@@ -559,7 +559,8 @@ def _warn_of_what_was_left(report: CorrectionReport, bag_path: Path, crs: Any) -
         logger.warning("%s: %s", bag_path, report.warnings[-1])
     if s.non_finite and kind == "bag":
         report.warnings.append(
-            f"{s.non_finite} of {s.points} points with a non-finite x, y or z: passed on as "
+            f"{s.non_finite} of {s.points} points with a non-finite x, y or z (or one beyond "
+            f"{MAX_COORDINATE_M:g} m): passed on as "
             f"delivered, flagged {FLAG_NOT_CORRECTED} in correction_flags")
         logger.warning("%s: %s", bag_path, report.warnings[-1])
     if s.no_intensity:
