@@ -29,11 +29,13 @@ def normalise_quaternions(q: np.ndarray, *, oriented: bool = False) -> np.ndarra
     interpolation needs the shorter arc).
     """
     q = np.array(q, dtype=np.float64, copy=True).reshape(-1, 4)
-    # Scaled by the largest component first: squares of 1e308 would overflow and squares of
-    # a subnormal vanish (a rotation read as none, silently).
     scale = np.abs(q).max(axis=1) if q.size else np.zeros(0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        q /= scale[:, None]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
+        # Rows far from unit length are scaled by their largest component first: squares of
+        # 1e308 overflow and squares of a subnormal vanish (a rotation read as none). Others
+        # are divided by their norm alone, so that every result stays bit for bit as before.
+        extreme = ~((scale > 1e-100) & (scale < 1e100))
+        q[extreme] /= scale[extreme, None]
         q /= np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
     absent = ~np.isfinite(q).all(axis=1) | ~(scale > 0.0)
     identity = (q[:, 0] == 0.0) & (q[:, 1] == 0.0) & (q[:, 2] == 0.0)
