@@ -157,7 +157,7 @@ def _calibrate_mounting(args: argparse.Namespace, config: Any, sensor: Any,
     log_solve_for_note(note, requested)
     progress, close = progress_bar(not args.quiet)
     try:
-        cal = calibrate_sensor_bag(sensor, solve_for=names, control=control,
+        cal = calibrate_sensor_bag(sensor, solve_for=names, config=config, control=control,
                                    progress=progress)
     finally:
         close()

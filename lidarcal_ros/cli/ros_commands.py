@@ -61,8 +61,10 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="replay this many seconds of the bag (default: to the end)")
     p.add_argument("--topics", nargs="+", default=None, metavar="TOPIC",
                    help="replay only these topics (default: all)")
-    p.add_argument("--queue", type=int, default=100,
-                   help="keep-last depth of the publishers (default 100)")
+    p.add_argument("--queue", type=int, default=None,
+                   help="keep-last depth of every publisher (default: each topic's 2 s of "
+                   "messages at the replay's rate, 100 to 10000: a 100 Hz Odometry at "
+                   "--rate 10 keeps 2000)")
     p.add_argument("--wait-for-subscribers", type=finite_float, default=30.0, metavar="SECONDS",
                    help="before the first message, wait up to this long until each played "
                    "topic the suite listens to (points, trajectory) has --min-subscribers, no "
@@ -90,7 +92,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     if not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"--rate must be a positive number, got {args.rate}")
-    if args.queue < 1:
+    if args.queue is not None and args.queue < 1:
         raise ConfigError(f"--queue must be at least 1, got {args.queue}")
     for option, value in (("--delay", args.delay), ("--linger", args.linger)):
         if not (math.isfinite(value) and value >= 0):
@@ -113,8 +115,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
         node = None
         try:
-            node = PlayerNode(bag, topics=args.topics, queue=args.queue, clock=args.clock,
-                              context=context)
+            node = PlayerNode(bag, topics=args.topics, queue=args.queue, rate=args.rate,
+                              clock=args.clock, context=context)
             pacer = Pacer(args.rate, clock=node.publish_clock if args.clock else None,
                           clock_hz=args.clock_hz, wait=shutdown.event.wait)
             if not args.no_wait and args.wait_for_subscribers > 0:

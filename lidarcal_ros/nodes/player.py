@@ -8,6 +8,7 @@ nodes of the CLI").
 from __future__ import annotations
 
 import importlib
+import math
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -42,6 +43,22 @@ def message_class(msgtype: str) -> Any:
         return getattr(module, name)
     except (ValueError, ImportError, AttributeError):
         return None
+
+
+#: Seconds of a topic's messages, at the replay's pace, its publisher keeps for a subscriber
+#: that falls behind (the default ``--queue``): a 100 Hz Odometry at ``--rate 10`` keeps
+#: 2000, a 10 Hz cloud 200 (1 MB each: 200 MB at most, and only while a reader lags).
+QUEUE_SECONDS = 2.0
+#: The depth of every topic at least, and of every topic at most (the default ``--queue``).
+MIN_QUEUE, MAX_QUEUE = 100, 10_000
+
+
+def topic_depth(info: Any, *, span_s: float, rate: float) -> int:
+    """The keep-last depth of a topic of ``info.count`` messages over ``span_s`` s of bag
+    time replayed at ``rate`` times real time: :data:`QUEUE_SECONDS` of its messages, within
+    :data:`MIN_QUEUE` and :data:`MAX_QUEUE`."""
+    per_s = info.count / span_s if span_s > 0 else 0.0
+    return int(min(MAX_QUEUE, max(MIN_QUEUE, math.ceil(per_s * rate * QUEUE_SECONDS))))
 
 
 def topic_qos(info: Any, queue: int) -> QoSProfile:
@@ -83,14 +100,18 @@ def publish_patiently(publish: Callable[[], None], *, stall_s: float) -> bool:
 class PlayerNode(Node):
     """Publishers for the topics of an open bag (raw CDR)."""
 
-    def __init__(self, bag: BagReader, *, topics: Iterable[str] | None = None, queue: int = 100,
-                 clock: bool = False, context: Any = None, node_name: str = PLAYER_NODE) -> None:
+    def __init__(self, bag: BagReader, *, topics: Iterable[str] | None = None,
+                 queue: int | None = None, rate: float = 1.0, clock: bool = False,
+                 context: Any = None, node_name: str = PLAYER_NODE) -> None:
         super().__init__(node_name, context=context)
         wanted = set(topics) if topics is not None else None
         self.publishers_by_topic: dict[str, Any] = {}
         self._serialized: dict[str, SerializedPublisher] = {}
         self.latched: set[str] = set()
         self.skipped: dict[str, str] = {}
+        #: The keep-last depth of each topic's publisher (``queue``, else
+        #: :func:`topic_depth` at ``rate``).
+        self.depths: dict[str, int] = {}
         #: Messages that had to wait for a slow subscriber (:meth:`publish`).
         self.stalls = 0
         for topic, info in bag.topics.items():
@@ -101,8 +122,11 @@ class PlayerNode(Node):
                 self.skipped[topic] = f"message type {info.msgtype} not available here"
                 self.get_logger().warning(f"{topic}: {self.skipped[topic]}; not replayed")
                 continue
+            depth = queue if queue is not None else topic_depth(
+                info, span_s=(bag.end_ns - bag.start_ns) * 1e-9, rate=rate)
+            self.depths[topic] = depth
             self.publishers_by_topic[topic] = self.create_publisher(cls, topic,
-                                                                    topic_qos(info, queue))
+                                                                    topic_qos(info, depth))
             # (a message is published from where the bag reader holds it: no bytes copy)
             self._serialized[topic] = SerializedPublisher(self.publishers_by_topic[topic])
             if info.transient_local:

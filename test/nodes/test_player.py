@@ -7,7 +7,7 @@ import time
 import pytest
 
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.nodes.player import publish_patiently
+from lidarcal_ros.nodes.player import publish_patiently, topic_depth
 
 
 class _Refusing:
@@ -55,3 +55,22 @@ def test_other_failures_are_not_retried() -> None:
     with pytest.raises(ValueError):
         publish_patiently(broken, stall_s=5.0)
     assert len(calls) == 1
+
+
+class _Topic:
+    """A bag topic's count, as TopicInfo gives it."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+
+
+@pytest.mark.parametrize(("count", "span_s", "rate", "depth"), [
+    (100 * 600, 600.0, 10.0, 2000),     # 100 Hz Odometry at 10x: 2 s of it
+    (100 * 600, 600.0, 1.0, 200),       # the same in real time
+    (10 * 600, 600.0, 1.0, 100),        # 10 Hz clouds: the floor
+    (1000 * 600, 600.0, 20.0, 10_000),  # a 1 kHz IMU at 20x: the ceiling
+    (1, 0.0, 1.0, 100),                 # one message (no span)
+])
+def test_a_topics_depth_holds_two_seconds_of_it_at_the_replays_pace(
+        count: int, span_s: float, rate: float, depth: int) -> None:
+    assert topic_depth(_Topic(count), span_s=span_s, rate=rate) == depth

@@ -192,7 +192,7 @@ def _replay(bag: Path, rate: float) -> str:
     res = subprocess.run(
         [sys.executable, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(rate),
          "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20",
-         "--queue", "5000", "--linger", "10"],
+         "--linger", "10"],
         env=dict(os.environ), capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     return res.stdout

@@ -30,6 +30,7 @@ from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.uav_payload import UavPayloadMission
+from lidarcal_ros.core.trajectory.strip_errors import TrajectoryModel
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.bag.sensor_bag import (
     SensorBag,
@@ -124,28 +125,46 @@ def log_solve_for_note(note: str, requested: Iterable[str]) -> None:
         logger.log(logging.INFO if set(requested) == default else logging.WARNING, "%s", note)
 
 
-def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None
-                                ) -> CalibrationSettings:
+def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None, *,
+                                config: FlightConfig | None = None) -> CalibrationSettings:
     """The settings of a mounting's calibration, ``lidarcal calibrate``'s and the
-    calibrator node's: the biases of ``solve_for`` (default
+    calibrator node's: ``config``'s matching, adjustment and trajectory options (default:
+    the defaults), on the biases of ``solve_for`` (default
     :data:`~lidarcal_ros.core.calibration.extrinsic.MOUNTING_SOLVE_FOR`; ``dS`` is no
-    parameter of such clouds), a general scanner, the rigorous model."""
+    parameter of such clouds), a general scanner, the rigorous model and no largest sigma of
+    a usable bias (:func:`~lidarcal_ros.core.calibration.extrinsic.mounting_settings`);
+    ``calibration.trajectory.model: auto`` is ``none`` here (no strip trajectory errors)."""
     names = MOUNTING_SOLVE_FOR if solve_for is None else \
         tuple(n for n in PARAMETER_NAMES if n in solve_for)
-    return replace(mounting_settings(solve_for=names), scanner=ScannerKind.GENERAL,
-                   model=PositioningModel.RIGOROUS)
+    if config is None:
+        base = mounting_settings(solve_for=names)
+    else:
+        configured = config.calibration_settings()
+        base = mounting_settings(**{
+            f.name: getattr(configured, f.name) for f in dataclasses.fields(configured)
+            if f.name not in ("solve_for", "limits")}, solve_for=names)
+        base = replace(base, limits=replace(base.limits,
+                                            max_correlation=configured.limits.max_correlation))
+        if base.trajectory.model is TrajectoryModel.AUTO:
+            # Strip trajectory errors take up what the lever arm moves (a shift of each
+            # strip): a mounting's calibration estimates them only where asked to.
+            base = replace(base, trajectory=replace(base.trajectory,
+                                                    model=TrajectoryModel.NONE))
+    return replace(base, scanner=ScannerKind.GENERAL, model=PositioningModel.RIGOROUS)
 
 
 def calibrate_sensor_bag(data: SensorBag, *, solve_for: tuple[str, ...] | None = None,
+                         config: FlightConfig | None = None,
                          control: ControlPoints | None = None,
                          progress: Progress | None = None) -> MountingCalibration:
     """Calibrate the mounting of a bag's sensor-frame clouds
-    (:func:`sensor_calibration_settings`; ``solve_for`` as :func:`mounting_solve_for` gives
-    it), with vertical ``control`` points (map frame) where given."""
+    (:func:`sensor_calibration_settings` of ``config``; ``solve_for`` as
+    :func:`mounting_solve_for` gives it), with vertical ``control`` points (map frame) where
+    given."""
     logger.info("%s: %d points in %s, mounting %s -> %s from %s", data.path, data.n_points,
                 data.frame_id, data.base_frame, data.frame_id, data.mounting_source)
     return calibrate_mounting(data.xyz, data.t, data.trajectory, data.mounting,
-                              settings=sensor_calibration_settings(solve_for),
+                              settings=sensor_calibration_settings(solve_for, config=config),
                               control=control, progress=progress)
 
 

@@ -296,7 +296,7 @@ class CalibrationService:
         """The settings of a mounting's calibration, ``lidarcal calibrate``'s
         (:func:`~lidarcal_ros.pipeline.calibration.sensor_frame.
         sensor_calibration_settings`)."""
-        return sensor_calibration_settings(self._mounting_solve_for(config))
+        return sensor_calibration_settings(self._mounting_solve_for(config), config=config)
 
     # -- state ----------------------------------------------------------------------------
     @property

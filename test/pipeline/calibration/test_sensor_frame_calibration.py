@@ -33,6 +33,7 @@ from lidarcal_ros.pipeline.calibration.sensor_frame import (
     calibrate_sensor_bag,
     load_sensor_bag,
     parse_mounting,
+    sensor_calibration_settings,
     write_mounting_calibration,
     write_uav_simulation,
 )
@@ -130,3 +131,25 @@ def test_the_mounting_parameter() -> None:
         parse_mounting("0.1,0,-0.2")
     with pytest.raises(ConfigError, match=r"sensor_frame.mounting: mounting quaternion"):
         parse_mounting("0,0,0,0,0,0,0")
+
+
+def test_the_flight_configurations_options_reach_a_mountings_calibration() -> None:
+    config = FlightConfig().with_values(
+        matching__per_class_cap=20_000, matching__max_candidates_per_pair=400_000,
+        calibration__robust_k=4.0, calibration__trajectory__model="offset",
+        calibration__trajectory__offset_sigma_horizontal_m=0.02, calibration__max_correlation=0.99)
+    s = sensor_calibration_settings(("dX", "dY", "domega"), config=config)
+    assert (s.per_class_cap, s.max_candidates_per_pair, s.robust_k) == (20_000, 400_000, 4.0)
+    assert s.trajectory.model.value == "offset"
+    assert s.trajectory.offset_sigma_horizontal_m == 0.02
+    assert s.solve_for == ("dX", "dY", "domega")
+    # a mounting's: a general scanner, the rigorous model, no bias held for its sigma
+    assert (s.scanner.value, s.model.value) == ("general", "rigorous")
+    assert s.limits.max_correlation == 0.99 and dict(s.limits.max_sigma) == {}
+    # the configuration's defaults are the settings without one
+    default = sensor_calibration_settings(config=FlightConfig())
+    bare = sensor_calibration_settings()
+    assert default.per_class_cap == bare.per_class_cap and default.robust_k == bare.robust_k
+    assert default.solve_for == bare.solve_for and dict(default.limits.max_sigma) == {}
+    # auto: none for a mounting (strip errors would take up the lever arm)
+    assert default.trajectory.model.value == "none" == bare.trajectory.model.value
