@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.georeferencing.attitude import (
     P_BODY,
@@ -163,6 +164,19 @@ def mounting_from_biases(nominal: Mounting, delta: np.ndarray | list[float]) -> 
     d = _biases(delta)
     rotation = _boresight(d).T @ nominal.rotation
     return Mounting(rotation, nominal.translation - P_BODY.T @ d[:3])
+
+
+def biases_between(nominal: Mounting, mounting: Mounting) -> np.ndarray:
+    """The biases (8,) SI, ``nominal - true``, that take ``nominal`` to ``mounting`` (the
+    inverse of :func:`mounting_from_biases`: exact, the boresight's angles those of
+    :func:`~lidarcal_ros.core.georeferencing.bias_model.boresight_matrix`); ``dr`` and ``dS``
+    zero."""
+    r_b = P_BODY @ (nominal.rotation @ mounting.rotation.T) @ P_BODY.T  # R_B (body frame)
+    dkappa, dphi, domega = Rotation.from_matrix(r_b).as_euler("ZYX")
+    d = np.zeros(N_PARAMETERS)
+    d[:3] = P_BODY @ (nominal.translation - mounting.translation)
+    d[3:6] = domega, dphi, dkappa
+    return d
 
 
 def mounting_with_biases(true: Mounting, delta: np.ndarray | list[float]) -> Mounting:
@@ -393,6 +407,7 @@ __all__ = [
     "Mounting",
     "SensorGeoreference",
     "TimeConvention",
+    "biases_between",
     "body_rates",
     "design_matrix",
     "general_columns",

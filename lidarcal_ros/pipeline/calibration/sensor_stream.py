@@ -22,6 +22,7 @@ from lidarcal_ros.core.calibration.extrinsic import (
 )
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
+from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.trajectory.lines import MIN_LINE_S, WINDOW_S, line_of, straight_lines
 from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.bag.sensor_bag import static_mounting
@@ -187,6 +188,16 @@ class SensorFrameFeed:
     def pending_points(self) -> int:
         """Points held until the trajectory settles their line."""
         return sum(len(t) for _, t in self._pending)
+
+    @property
+    def ended(self) -> bool:
+        """Every point was handed on, the flight taken as ended (a final :meth:`step`)."""
+        return self._handed_t == math.inf
+
+    @property
+    def base_trajectory(self) -> Trajectory:
+        """The poses of ``base_frame`` received (InputError before the first)."""
+        return self._poses.trajectory
 
     @property
     def horizon(self) -> float:

@@ -21,7 +21,11 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
-from lidarcal_ros.core.calibration.extrinsic import MountingCalibration
+from lidarcal_ros.core.calibration.extrinsic import (
+    MountingCalibration,
+    further_passes,
+    sensor_points,
+)
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
@@ -239,6 +243,7 @@ class CalibrationService:
         self._stream = self._open_stream()
         #: The calibrated mounting of the latest estimate (clouds in the sensor's frame).
         self.mounting: MountingCalibration | None = None
+        self._mounted: CalibrationResult | None = None  # the estimate ``mounting`` is of
         if config["calibration.control_points_file"]:
             self._submit(ReadControlFile(config["calibration.control_points_file"]))
 
@@ -615,7 +620,7 @@ class CalibrationService:
                 strip_gap_s=float(self.options.strip_gap_s))
         self._stream.reset()
         self.sensor.reset()
-        self.mounting = None
+        self.mounting, self._mounted = None, None
         self._point_end = self._traj_end = -math.inf
         with self._qa_lock:
             self._qa = []
@@ -641,7 +646,7 @@ class CalibrationService:
             raise LidarcalError("no estimate yet: " + (self._stream.waiting_for or "no data"))
         target = self.config["calibration.calibration_file"]
         if self.sensor.active:
-            cal = self.sensor.calibration(result)
+            cal = self.mounting if result is self._mounted else self._mounting_of(result)
             if cal is None:
                 raise LidarcalError(self.sensor.refusal or "no mounting")
             path = write_mounting_calibration(target, self.sensor.extrinsic(cal), cal)
@@ -659,16 +664,39 @@ class CalibrationService:
         cfg = self.config
         solve_for = self._mounting_solve_for(cfg) if self.sensor.active else \
             cfg["calibration.solve_for"]
+        if self.sensor.active:
+            self._mounted, self.mounting = result, self._mounting_of(result)
+            if self.mounting is not None:
+                result = self.mounting.result  # (a later pass's, where one was made)
         statuses = qa_statuses(result, warn_m=cfg["qa.rmsdz_warn_m"],
                                error_m=cfg["qa.max_difference_m"], solve_for=solve_for)
         statuses.append(trajectory_status(result, cfg.calibration_settings().trajectory))
         with self._qa_lock:
             self._qa = statuses
-        if self.sensor.active:
-            self.mounting = self.sensor.calibration(result)
         self._on_result(result)
         if self.options.checkpoint_file:
             self._checkpoint(self.options.checkpoint_file)
+
+    def _mounting_of(self, result: CalibrationResult) -> MountingCalibration | None:
+        """The calibrated mounting of an estimate of the lines handed on (None: no
+        mounting). Once the flight has ended, with the further passes ``lidarcal calibrate``
+        makes (:func:`~lidarcal_ros.core.calibration.extrinsic.further_passes`: the points
+        held back in the sensor's frame, georeferenced anew with the estimate), so that the
+        flight's calibration is the offline one; where a strip was released for the memory
+        budget, the live estimate alone (said once)."""
+        cal = self.sensor.calibration(result)
+        if cal is None or not self.sensor.ended:
+            return cal
+        strips = self._stream.held_strips()
+        if strips is None:
+            self._throttled.log(logging.WARNING, 600.0, (
+                "the mounting of the live estimate alone: strips were released for the "
+                "memory budget, so no further pass from it as lidarcal calibrate makes"))
+            return cal
+        points, t = sensor_points(strips, self._stream.trajectory, cal.nominal)
+        return further_passes(points, t, self.sensor.base_trajectory, cal,
+                              settings=self._mounting_settings(self.config),
+                              control=self._stream.control)
 
     def _checkpoint(self, path: str) -> None:
         try:

@@ -230,6 +230,18 @@ class StreamingCalibration:
         return self._samples.trajectory
 
     @property
+    def control(self) -> ControlPoints | None:
+        """The control points held (None: none)."""
+        return self._control
+
+    def held_strips(self) -> list[Strip] | None:
+        """The strips of the calibration with every point held (thinned where the budget
+        thinned them), in order; None where a strip was released or one is still open."""
+        if any(ps.dropped for ps in self._calibrator.strips) or self._open.n_points:
+            return None
+        return [ps.strip for ps in self._calibrator.strips]
+
+    @property
     def poses_left_out(self) -> int:
         """Poses left out of the trajectory: a non-finite stamp or position, or a stamp
         already held."""

@@ -30,6 +30,7 @@ from lidarcal_ros.core.georeferencing.laser_geometry import (
 from lidarcal_ros.core.georeferencing.sensor_frame import (
     Mounting,
     SensorGeoreference,
+    biases_between,
     body_rates,
     design_matrix,
     general_columns,
@@ -264,6 +265,9 @@ def test_calibrated_mounting_round_trip(seed: int) -> None:
     assert np.abs(nominal.rotation - true.rotation).max() > 1e-3
     recovered = mounting_from_biases(nominal, delta)
     np.testing.assert_allclose(recovered.rotation, true.rotation, atol=1e-12)
+    # and back: the biases between the two mountings (dr, dS no part of a transform)
+    np.testing.assert_allclose(biases_between(nominal, true), [*delta[:6], 0.0, 0.0],
+                               atol=1e-14)
     np.testing.assert_allclose(recovered.translation, true.translation, atol=1e-12)
     # the biases in method.md's body frame: the lever arm moves by [dX, dY, dZ] there,
     # and the boresight turns the laser vector by R_B = Rz(dkappa) Ry(dphi) Rx(domega)

@@ -1,0 +1,139 @@
+"""How well a UAV payload's mounting is calibrated, by the INS's grade (issue 33's bars).
+
+    .venv/bin/python bench/bench_uav_accuracy.py                      # vlp16 and os1-32, seeds 1-3
+    .venv/bin/python bench/bench_uav_accuracy.py --ins exact,tactical --seeds 1 --layouts vlp16
+
+Each run simulates a payload (``lidarcal simulate --uav``'s, ``--columns`` firings a
+revolution, in memory), calibrates its mounting as ``lidarcal calibrate`` does (the flight
+configuration's defaults, ``--models`` the trajectory models tried) and prints against the
+truth: the rotation's error (arcsec), the lever arm's x and y (mm; z is held without
+control), ``dr`` (mm), the largest |error / sigma| of an estimated bias, and how far the
+calibration's error moves the points (median, mm: the points georeferenced with the
+calibrated mounting against the true one, through the same delivered trajectory; and the same
+with the lever arm's z given its true value, as control points or a survey would). The INS
+grades: ``exact``; ``attitude`` (the tactical unit's attitude errors only); ``position``
+(its position errors only); ``tactical`` (both: position 2, 2, 3 cm, attitude 18, 18, 36
+arcsec, first-order Gauss-Markov over 30 s and 20 s). The baseline is the exact INS of the
+same seed and layout: the ratio of each grade's rotation error to it is printed too.
+The bars of issue 33 (tactical INS): 30 arcsec, 8 mm, dr 4 mm, honest sigmas (within 2-3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import dataclass
+
+import machine  # bench/machine.py: this script's folder is on sys.path
+import numpy as np
+
+from lidarcal_ros.core.calibration.extrinsic import MountingCalibration, calibrate_mounting
+from lidarcal_ros.core.config import FlightConfig
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting, georeference
+from lidarcal_ros.core.simulation.uav_payload import (
+    UavPayloadMission,
+    UavPayloadSpec,
+    simulate_uav_payload,
+)
+from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.pipeline.calibration.sensor_frame import sensor_calibration_settings
+
+ARCSEC = math.degrees(1.0) * 3600.0
+#: The INS grades: UavPayloadSpec's options (none: the tactical unit's defaults).
+GRADES: dict[str, dict[str, tuple[float, float, float]]] = {
+    "exact": {"ins_position_sigma_m": (0.0, 0.0, 0.0),
+              "ins_attitude_sigma_deg": (0.0, 0.0, 0.0)},
+    "attitude": {"ins_position_sigma_m": (0.0, 0.0, 0.0)},
+    "position": {"ins_attitude_sigma_deg": (0.0, 0.0, 0.0)},
+    "tactical": {},
+}
+
+
+@dataclass
+class Outcome:
+    """One calibration against the truth."""
+
+    rotation_arcsec: float
+    lever_mm: tuple[float, float]
+    dr_mm: float
+    worst_sigmas: float
+    moved_mm: float
+    moved_z_given_mm: float
+    seconds: float
+
+
+def _rotation_error(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, (float(np.trace(a.T @ b)) - 1.0) / 2.0))) * 3600.0
+
+
+def assess(m: UavPayloadMission, cal: MountingCalibration, seconds: float) -> Outcome:
+    """The calibration ``cal`` of ``m`` against its truth."""
+    true = m.truth_mounting
+    error = cal.delta - m.biases
+    used = np.isfinite(cal.sigma)
+    t = m.clouds.absolute_times()
+    pick = np.random.default_rng(0).choice(t.size, min(t.size, 200_000), replace=False)
+    xyz = m.clouds.xyz[pick]
+    # the true range bias is in the ranges: the same points as the true mounting puts them
+    truth = georeference(xyz, t[pick], m.trajectory, true,
+                         range_offset=float(m.biases[6])).xyz
+
+    def moved(mounting: Mounting) -> float:
+        calibrated = georeference(xyz, t[pick], m.trajectory, mounting,
+                                  range_offset=cal.range_offset_m).xyz
+        return float(np.median(np.linalg.norm(calibrated - truth, axis=1))) * 1e3
+
+    lever = (cal.mounting.translation - true.translation) * 1e3
+    return Outcome(_rotation_error(true.rotation, cal.mounting.rotation),
+                   (float(lever[0]), float(lever[1])), float(error[6]) * 1e3,
+                   float(np.max(np.abs(error[used] / cal.sigma[used]))), moved(cal.mounting),
+                   moved(Mounting(cal.mounting.rotation, np.array(
+                       [*cal.mounting.translation[:2], true.translation[2]]))), seconds)
+
+
+def main() -> None:
+    """Run the grid the options give and print a row a run."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--layouts", default="vlp16,os1-32")
+    ap.add_argument("--seeds", default="1,2,3")
+    ap.add_argument("--ins", default="exact,attitude,position,tactical")
+    ap.add_argument("--models", default="none",
+                    help="calibration.trajectory.model values tried (default none)")
+    ap.add_argument("--columns", type=int, default=360)
+    ap.add_argument("--lines", type=int, default=4)
+    args = ap.parse_args()
+    print(machine.describe())
+    print(f"{'layout':7s} {'seed':>4s} {'INS':9s} {'model':6s} {'rot':>7s} {'x':>7s} "
+          f"{'y':>7s} {'dr':>6s} {'|e|/s':>6s} {'moved':>6s} {'z given':>7s} {'x exact':>8s} "
+          f"{'time':>6s}")
+    for layout in args.layouts.split(","):
+        for seed in (int(s) for s in args.seeds.split(",")):
+            floor: dict[str, float] = {}
+            for grade in args.ins.split(","):
+                spec = UavPayloadSpec(layout=layout, seed=seed, columns=args.columns,
+                                      n_lines=args.lines, **GRADES[grade])  # type: ignore[arg-type]
+                m = simulate_uav_payload(spec)
+                for model in args.models.split(","):
+                    config = FlightConfig().with_values(calibration__trajectory__model=model)
+                    started = time.perf_counter()
+                    try:
+                        cal = calibrate_mounting(
+                            m.clouds.xyz, m.clouds.absolute_times(), m.trajectory, m.nominal,
+                            settings=sensor_calibration_settings(config=config))
+                    except LidarcalError as exc:
+                        print(f"{layout:7s} {seed:4d} {grade:9s} {model:6s} failed: {exc}")
+                        continue
+                    o = assess(m, cal, time.perf_counter() - started)
+                    base = floor.setdefault(model, o.rotation_arcsec) if grade == "exact" \
+                        else floor.get(model)
+                    ratio = f"{o.rotation_arcsec / base:8.1f}" if base else f"{'-':>8s}"
+                    print(f"{layout:7s} {seed:4d} {grade:9s} {model:6s} "
+                          f"{o.rotation_arcsec:6.1f}\" {o.lever_mm[0]:+7.1f} "
+                          f"{o.lever_mm[1]:+7.1f} {o.dr_mm:+6.1f} {o.worst_sigmas:6.1f} "
+                          f"{o.moved_mm:6.1f} {o.moved_z_given_mm:7.1f} {ratio} {o.seconds:5.1f}s",
+                          flush=True)
+
+
+if __name__ == "__main__":
+    main()
