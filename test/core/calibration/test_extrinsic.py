@@ -158,3 +158,18 @@ def test_a_second_pass_is_expressed_against_the_first_nominal() -> None:
     still = replace(one, delta=np.zeros_like(one.delta))
     assert further_passes(m.clouds.xyz, t, m.trajectory, still,
                           settings=mounting_settings()) is still
+
+
+def test_passes_leave_the_wrong_minimum_a_first_pass_can_hold() -> None:
+    # An OS1-32 whose first pass, its samples and TINs chosen where the nominal put the
+    # strips apart, matches 2k points and stops 28 arcsec and 24 mm off, with an exact INS
+    m = simulate_uav_payload(UavPayloadSpec(layout="os1-32", seed=2, columns=360, n_lines=4,
+                                            **EXACT_INS))  # type: ignore[arg-type]
+    t = m.clouds.absolute_times()
+    true = m.truth_mounting
+    one = calibrate_mounting(m.clouds.xyz, t, m.trajectory, m.nominal, passes=1)
+    assert _angle(one.mounting.rotation, true.rotation) > 20 * ARCSEC  # (the case's premise)
+    cal = calibrate_mounting(m.clouds.xyz, t, m.trajectory, m.nominal)
+    assert _angle(cal.mounting.rotation, true.rotation) < 5 * ARCSEC
+    assert np.abs(cal.mounting.translation - true.translation)[:2].max() < 0.004
+    assert cal.result.n_pair_correspondences > 20 * one.result.n_pair_correspondences
