@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.trajectory.buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.bag.format import ns_to_seconds
@@ -328,7 +329,9 @@ def warm_up_engine(settings: CorrectionSettings, options: ServiceOptions) -> Non
     takes seconds to work off."""
     from lidarcal_ros.io.cloud.pointcloud import make_point_dtype
 
-    engine = CorrectionEngine(dataclasses.replace(settings, time_field="t"),
+    # (model auto: the synthetic poses carry no orientation that a rigorous one would need)
+    engine = CorrectionEngine(dataclasses.replace(settings, time_field="t",
+                                                  model=PositioningModel.AUTO),
                      dataclasses.replace(options, workers=1, source="warm-up", sensor=None))
     t_traj = np.arange(0.0, 2.0, 0.01)
     engine.poses(t_traj, np.column_stack([np.zeros_like(t_traj), 60.0 * t_traj,

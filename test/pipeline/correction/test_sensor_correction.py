@@ -37,7 +37,7 @@ from lidarcal_ros.core.simulation.uav_payload import (
 )
 from lidarcal_ros.io.bag.reader import open_bag
 from lidarcal_ros.io.calibration_file import CalibrationRecord, Extrinsic, read_calibration
-from lidarcal_ros.io.cloud.messages import parse_cloud
+from lidarcal_ros.io.cloud.messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.cloud.pointcloud import cloud_to_array
 from lidarcal_ros.pipeline.calibration.sensor_frame import (
     calibrate_sensor_bag,
@@ -210,6 +210,24 @@ def test_live_corrector_gives_the_offline_correction(root: Path) -> None:
     assert not (a["correction_flags"] & FLAG_NOT_CORRECTED).any()
     assert np.array_equal(a["range"], b["range"])
     assert np.median(rel) < 1e-3
+
+
+def test_live_corrector_skips_a_cloud_of_another_sensor(root: Path) -> None:
+    case = _case("vlp16", 1, True, root)
+    options = dataclasses.replace(node_options(CorrectorOptions, CORRECTOR_NODE, {}),
+                                  separate_process=False)
+    live = LiveCorrector(CONFIG, options, publish=lambda _cdr: None,
+                         calibration=str(case.calibration))
+    try:
+        points = np.zeros(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                    ("time", "<f4")])
+        live.add_cloud(cloud_cdr(10**18, "os_sensor", points))
+        wait_until(lambda: live.stats.skipped == 1, 10, "the cloud skipped")
+    finally:
+        live.close()
+    assert live.stats.last_error == ("/velodyne_points: cloud in frame 'os_sensor'; the "
+                                     "calibration's extrinsic block is the mounting of "
+                                     "'velodyne'")
 
 
 def _corrected_by_stamp(case: _Case, out: Path) -> dict[int, np.ndarray]:
