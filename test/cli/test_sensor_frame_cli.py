@@ -59,7 +59,8 @@ def test_simulate_then_calibrate_an_ouster_payload(tmp_path: Path,
     clouds = _corrected_clouds(tmp_path / "out.mcap")
     assert {frame for frame, _ in clouds} == {"map"}
     points = np.concatenate([p for _, p in clouds])
-    assert {"reflectance", "range", "incidence", "correction_flags"} <= set(points.dtype.names or ())
+    fields = set(points.dtype.names or ())
+    assert {"reflectance", "range", "incidence", "correction_flags"} <= fields
     assert np.isfinite(points["reflectance"]).mean() > 0.8  # (NaN: no surface normal)
     las = laspy.read(tmp_path / "out.laz")
     assert len(las.points) == len(points)

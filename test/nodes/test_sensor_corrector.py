@@ -10,16 +10,13 @@ xyz identical (0.0000 mm), ranges bit for bit.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from helpers_ros import replay_payload, spinning
 from helpers_wait import wait_until
 
 from lidarcal_ros.core.config import FlightConfig
@@ -66,7 +63,6 @@ def offline(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[
 def corrector(ros_context: Any, offline: Any) -> Iterator[tuple[Any, list[bytes]]]:
     """A corrector node with the calibration, and the corrected clouds it publishes (CDR)."""
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import PointCloud2
 
@@ -81,41 +77,17 @@ def corrector(ros_context: Any, offline: Any) -> Iterator[tuple[Any, list[bytes]
     got: list[bytes] = []
     probe.create_subscription(PointCloud2, CORRECTED, lambda raw: got.append(bytes(raw)), 1000,
                               raw=True)
-    executor = MultiThreadedExecutor(num_threads=4, context=ros_context)
-    executor.add_node(node)
-    executor.add_node(probe)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
+    with spinning(ros_context, node, probe):
         yield node, got
-    finally:
-        stop.set()
-        thread.join(timeout=10)
-        executor.shutdown(timeout_sec=5)
-        node.close()
-        node.destroy_node()
-        probe.destroy_node()
-
-
-def _replay(bag: Path, rate: float) -> None:
-    res = subprocess.run(
-        [sys.executable, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(rate),
-         "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20",
-         "--queue", "5000", "--linger", "10"],
-        env=dict(os.environ), capture_output=True, text=True, timeout=120, check=False)
-    assert res.returncode == 0, res.stderr
+    node.close()
+    node.destroy_node()
+    probe.destroy_node()
 
 
 def test_replayed_payload_gives_the_offline_correction(corrector: Any, offline: Any) -> None:
     node, got = corrector
     bag, _cal, want = offline
-    _replay(bag, 10.0)
+    replay_payload(bag, 10.0)
     wait_until(lambda: len(got) >= len(want), 60, "every corrected cloud",
                state=lambda: f"{len(got)} of {len(want)}; {node.correction.status().message}")
     clouds = [parse_cloud(cdr) for cdr in got]
