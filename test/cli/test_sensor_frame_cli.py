@@ -1,20 +1,25 @@
 """``lidarcal simulate --uav``, ``calibrate`` and ``correct`` of clouds in the sensor's frame:
-the issue's command line, end to end on a small payload, and its refusals one line each."""
+the issue's command line, end to end on a small payload, and its refusals one line each (the
+corrected points against the truth: test/pipeline/correction/test_sensor_correction.py)."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pytest
 import yaml
 from helpers_cli import one_line_error, run
 
+from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.simulation.uav_payload import UavPayloadSpec, simulate_uav_payload
+from lidarcal_ros.io.bag.reader import open_bag
 from lidarcal_ros.io.bag.sensor_bag import write_sensor_bag
 from lidarcal_ros.io.calibration_file import read_calibration, urdf_path
+from lidarcal_ros.io.cloud.pointcloud import cloud_to_array
 from lidarcal_ros.pipeline.calibration.sensor_frame import truth_mounting
 
 ARCSEC = math.radians(1.0 / 3600.0)
@@ -43,12 +48,42 @@ def test_simulate_then_calibrate_an_ouster_payload(tmp_path: Path,
     assert angle < 15 * ARCSEC
     assert np.abs(record.extrinsic.mounting.translation - true.translation)[:2].max() < 0.005
     assert urdf_path(cal).read_text().count("<joint ") == 1
-    # correct: refused in one line for now
-    rc, _, err = run(capsys, "correct", bag, "--calibration", cal, "--points",
-                     "/velodyne_points", "--trajectory", "/ins/odometry", "-o",
-                     tmp_path / "out.mcap")
-    assert "in the sensor's frame 'os_sensor'; lidarcal correct takes map-frame clouds only" \
-        in one_line_error(rc, err, "correct")
+    # correct: into the map frame with the calibrated mounting, as a bag and as LAZ
+    topics = ("--points", "/velodyne_points", "--trajectory", "/ins/odometry")
+    for out_name in ("out.mcap", "out.laz"):
+        rc, out, err = run(capsys, "correct", bag, "--calibration", cal, *topics, "-o",
+                           tmp_path / out_name)
+        assert rc == 0, err
+        assert "model: rigorous (INS attitude at 100 Hz) for 100% of the points" in out
+        assert "not corrected (trajectory): 0" in out
+    clouds = _corrected_clouds(tmp_path / "out.mcap")
+    assert {frame for frame, _ in clouds} == {"map"}
+    points = np.concatenate([p for _, p in clouds])
+    fields = set(points.dtype.names or ())
+    assert {"reflectance", "range", "incidence", "correction_flags"} <= fields
+    assert np.isfinite(points["reflectance"]).mean() > 0.8  # (NaN: no surface normal)
+    las = laspy.read(tmp_path / "out.laz")
+    assert len(las.points) == len(points)
+    assert np.abs(np.sort(np.asarray(las.z)) - np.sort(points["z"])).max() < 0.001
+    # a calibration without the mounting: one line
+    doc = yaml.safe_load(cal.read_text())
+    del doc["lidarcal_calibration"]["extrinsic"]
+    no_extrinsic = tmp_path / "no_extrinsic.yaml"
+    no_extrinsic.write_text(yaml.safe_dump(doc))
+    rc, _, err = run(capsys, "correct", bag, "--calibration", no_extrinsic, *topics, "-o",
+                     tmp_path / "refused.mcap")
+    assert ("clouds in the sensor's frame 'os_sensor' need the calibrated mounting, and the "
+            "calibration has no extrinsic block") in one_line_error(rc, err, "correct")
+    assert not (tmp_path / "refused.mcap").exists()
+
+
+def _corrected_clouds(path: Path) -> list[tuple[str, np.ndarray]]:
+    """The corrected clouds of an output bag: (frame_id, points) each."""
+    topic = FlightConfig()["topics.corrected"]
+    with open_bag(path) as bag:
+        return [(msg.header.frame_id, cloud_to_array(msg, source=topic))
+                for msg in (bag.deserialize(memoryview(raw), msgtype, topic=topic)
+                            for _t, msgtype, _ns, raw in bag.messages([topic]))]
 
 
 @pytest.fixture(scope="module")

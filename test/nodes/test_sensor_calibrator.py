@@ -11,10 +11,7 @@ the calibrated one goes back there. The refusals (no mounting, no orientation) a
 
 from __future__ import annotations
 
-import contextlib
 import os
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers_ros import replay_payload, spinning
 from helpers_wait import wait_until as _wait
 
 from lidarcal_ros.core.config import FlightConfig
@@ -141,30 +139,6 @@ class _Probe:
             self.node.destroy_client(client)
 
 
-@contextlib.contextmanager
-def _spinning(context: Any, *nodes: Any) -> Iterator[None]:
-    """Spin ``nodes`` in a multi-threaded executor in a background thread meanwhile."""
-    from rclpy.executors import MultiThreadedExecutor
-
-    executor = MultiThreadedExecutor(num_threads=4, context=context)
-    for n in nodes:
-        executor.add_node(n)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.05)
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join(timeout=10)
-        executor.shutdown(timeout_sec=5)
-
-
 @pytest.fixture(scope="module")
 def running(ros_context: Any, payload: Any) -> Iterator[tuple[Any, _Probe, Any]]:
     import rclpy
@@ -181,28 +155,18 @@ def running(ros_context: Any, payload: Any) -> Iterator[tuple[Any, _Probe, Any]]
                          parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
     probe_node = rclpy.create_node("sensor_probe", context=ros_context)
     probe = _Probe(probe_node, "sensor_calibrator")
-    with _spinning(ros_context, cal, probe_node):
+    with spinning(ros_context, cal, probe_node):
         yield cal, probe, workdir
     cal.close()
     cal.destroy_node()
     probe_node.destroy_node()
 
 
-def _replay(bag: Path, rate: float) -> str:
-    res = subprocess.run(
-        [sys.executable, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(rate),
-         "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20",
-         "--linger", "10"],
-        env=dict(os.environ), capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr
-    return res.stdout
-
-
 def test_replayed_payload_saves_the_offline_mounting(running: Any, payload: Any,
                                                     offline: Any, ros_context: Any) -> None:
     cal, probe, workdir = running
     _mission, paths, _ = payload
-    _replay(paths["bag"], 10.0)
+    replay_payload(paths["bag"], 10.0)
     service = cal.calibration
     # lines close as the turns begin; the last one when the input stops (idle_close_s)
     _wait(lambda: len(service.sensor.lines) == 3 and service.queued_jobs == 0, 60,
@@ -275,8 +239,8 @@ def test_no_orientation_is_refused_in_one_line(ros_context: Any, payload: Any,
                          parameter_overrides=[Parameter(k, value=v) for k, v in topics.items()])
     probe_node = rclpy.create_node("flat_probe", context=ros_context)
     probe = _Probe(probe_node, "flat_calibrator")
-    with _spinning(ros_context, cal, probe_node):
-        _replay(flat, 20.0)
+    with spinning(ros_context, cal, probe_node):
+        replay_payload(flat, 20.0)
         _wait(lambda: "lidarcal: sensor frame" in probe.diagnostics, 20, "sensor status")
         level, message = probe.diagnostics["lidarcal: sensor frame"]
         assert level == 2 and "carries no orientation of base_link" in message
@@ -344,11 +308,11 @@ def test_nominal_from_live_tf_static_and_calibrated_back(ros_context: Any, paylo
             tf for tf in m.transforms if tf.child_frame_id == "velodyne_cal"),
         latched_qos(TF_STATIC_DEPTH))
     try:
-        with _spinning(ros_context, cal, probe_node, rsp):
+        with spinning(ros_context, cal, probe_node, rsp):
             service = cal.calibration
             # the calibrator and the probe matched: the transforms are theirs (late joiners)
             _wait(lambda: static.get_subscription_count() >= 2, 10, "/tf_static subscribers")
-            _replay(paths["bag"], 10.0)
+            replay_payload(paths["bag"], 10.0)
             _wait(lambda: len(service.sensor.lines) == 3 and service.queued_jobs == 0, 60,
                   "three lines", state=lambda: f"{service.sensor.lines}, "
                   f"{service.sensor.refusal}")

@@ -207,19 +207,18 @@ class CorrectOptions:
         return max(4 * self.batch_points, MIN_HELD_POINTS)
 
 
-def _refuse_sensor_frame(bag: Path, points_topic: str, trajectory_topic: str,
-                         map_frame: str) -> None:
-    """Clouds in the sensor's frame (docs/method.md section 12) are calibrated, not yet
-    corrected: refused in one line rather than read as map-frame clouds."""
+def _sensor_frame(bag: Path, record: CalibrationRecord, points_topic: str,
+                  trajectory_topic: str, map_frame: str) -> str | None:
+    """The sensor's frame of clouds in it (docs/method.md section 12), None for map-frame
+    clouds; refused in one line where the calibration holds no mounting of it."""
     from lidarcal_ros.io.bag.sensor_bag import sensor_frame_of
+    from lidarcal_ros.pipeline.correction.sensor_frame import sensor_extrinsic
 
     frame = sensor_frame_of(bag, points_topic=points_topic, trajectory_topic=trajectory_topic,
                             map_frame=map_frame)
     if frame is not None:
-        raise InputError(
-            f"{bag}: clouds on {points_topic} are in the sensor's frame '{frame}'; lidarcal "
-            "correct takes map-frame clouds only (lidarcal calibrate calibrates these: its "
-            "extrinsic block and URDF joint hold the mounting)")
+        sensor_extrinsic(record, frame, where=f"{bag}: {points_topic}")
+    return frame
 
 
 def correct_bag(
@@ -284,7 +283,11 @@ def correct_bag(
     bag_path = Path(bag_path)
     if out_path.resolve() == bag_path.resolve():
         raise InputError(f"{out_path}: output would overwrite the input bag")
-    _refuse_sensor_frame(bag_path, points_topic, traj_topic, config["frame_id"])
+    sensor = _sensor_frame(bag_path, record, points_topic, traj_topic, config["frame_id"])
+    if sensor is not None and options.trajectory_out is not None:
+        raise InputError(f"--trajectory-out {options.trajectory_out}: not written for clouds "
+                         f"in the sensor's frame '{sensor}' (the bag's trajectory is already "
+                         "the INS's)")
     if options.trajectory_out is not None and Path(options.trajectory_out).resolve() in (
             bag_path.resolve(), out_path.resolve()):
         raise InputError(f"{options.trajectory_out}: the trajectory output would overwrite "
@@ -308,10 +311,16 @@ def correct_bag(
                       corrected_topic if kind == "bag" else None, moved_topic)
         request = _Request(settings, config, options, out_path,
                            (points_topic, traj_topic, corrected_topic), moved_topic, progress,
-                           warnings, warm_up)
+                           warnings, warm_up, None if sensor is None else record)
         run = functools.partial(_correct_once, bag, request)
         report = None
-        if executor is not None:
+        if sensor is not None:
+            # (the trajectory first: the sensor's origin needs the poses around each cloud)
+            if executor is not None:
+                warnings.append("clouds in the sensor's frame are corrected in this process "
+                                "(not in parts)")
+                logger.warning("%s", warnings[-1])
+        elif executor is not None:
             from lidarcal_ros.pipeline.correction.parts import correct_in_parts
 
             report = correct_in_parts(bag, request, executor)
@@ -345,6 +354,8 @@ class _Request:
     progress: Callable[[str, float], None] | None
     warnings: list[str]
     warm_up: threading.Thread
+    #: The calibration of clouds in the sensor's frame (None: map-frame clouds).
+    sensor: CalibrationRecord | None = None
 
 
 def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> CorrectionReport:
@@ -368,6 +379,9 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
             if poses is not None:
                 poses.add(ns, msgtype, raw)
         trajectory, frame = _checked_trajectory(bag, traj_topic, samples, settings)
+    decode: _CloudDecoder = _cloud_points
+    if request.sensor is not None:
+        trajectory, settings, decode = _sensor_clouds(bag, request, trajectory, frame, settings)
     settings, meaning = radiometry_of(bag, request, settings)
     messages = _CorrectedMessages() if kind == "bag" else None
     corrector = StreamCorrector(trajectory, settings, batch_points=options.batch_points,
@@ -388,7 +402,7 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
                               reflectance=meaning, warnings=list(request.warnings))
     job = _Job(bag, corrector, gate, out_path, points_topic, traj_topic, corrected_topic,
                options.overwrite, n_clouds, progress, report, request.moved_topic, poses,
-               messages)
+               messages, decode)
     try:
         corrector.start()  # the workers start while the clouds are read
         if kind == "las":
@@ -403,12 +417,56 @@ def _correct_once(bag: Any, request: _Request, *, single_pass: bool) -> Correcti
     return report
 
 
+#: ``decode(bag, msgtype, raw, topic)``: a cloud message's bytes as ``(message, points)``,
+#: the points map-frame ones (and the message's header their frame and stamp).
+_CloudDecoder = Callable[[Any, str, bytes, str], tuple[Any, np.ndarray]]
+
+
+def _sensor_clouds(bag: Any, request: _Request, base: Trajectory, map_frame: str,
+                   settings: CorrectionSettings
+                   ) -> tuple[Trajectory, CorrectionSettings, _CloudDecoder]:
+    """For clouds in the sensor's frame (:mod:`lidarcal_ros.pipeline.correction.sensor_frame`):
+    the corrector's trajectory (the sensor's origin), its settings and the decoder of the
+    clouds into the map frame."""
+    from types import SimpleNamespace
+
+    from lidarcal_ros.io.bag.format import stamp_seconds
+    from lidarcal_ros.pipeline.correction.sensor_frame import SensorFrameGeoreference
+
+    assert request.sensor is not None
+    points_topic = request.topics[0]
+    where = f"{bag.path}: {points_topic}"
+    frame = request.sensor.extrinsic.child if request.sensor.extrinsic else ""
+    geo = SensorFrameGeoreference.from_config(request.sensor, request.config, frame,
+                                              map_frame, where=where)
+    origin = geo.set_trajectory(base)
+
+    def decode(bag: Any, msgtype: str, raw: bytes, topic: str) -> tuple[Any, np.ndarray]:
+        msg, points = _cloud_points(bag, msgtype, raw, topic)
+        if msg.header.frame_id != frame:
+            raise InputError(f"{where}: clouds in frame '{msg.header.frame_id}' and in the "
+                             f"sensor's frame '{frame}'")
+        cloud = geo.cloud(points, stamp_seconds(msg.header.stamp), source=where)
+        if geo.decoder.reading is not None and not said:
+            said.append(True)  # (said once, as lidarcal calibrate says it)
+            logger.warning("%s: %s", where, geo.decoder.reading.describe())
+        return SimpleNamespace(header=SimpleNamespace(stamp=msg.header.stamp,
+                                                      frame_id=map_frame)), cloud
+
+    said: list[bool] = []
+    logger.info("%s: clouds in the sensor's frame '%s' georeferenced with the calibrated "
+                "mounting %s -> %s and dr %+.1f mm", where, frame, geo.extrinsic.parent, frame,
+                geo.range_offset_m * 1e3)
+    return origin, geo.settings(settings), decode
+
+
 def radiometry_of(bag: Any, request: _Request, settings: CorrectionSettings
                   ) -> tuple[CorrectionSettings, str]:
     """``settings`` with the calibration constant a reference target in ``bag`` gives (where
-    the configuration names one), and what the reflectance then means."""
+    the configuration names one; not in clouds in the sensor's frame), and what the
+    reflectance then means."""
     meaning = settings.radiometry.meaning
-    if not settings.radiometry.absolute:
+    if not settings.radiometry.absolute and request.sensor is None:
         from lidarcal_ros.pipeline.correction.reflectance import (
             measure_target_in_bag,
             target_of,
@@ -571,6 +629,16 @@ def _warn_of_what_was_left(report: CorrectionReport, bag_path: Path, crs: Any) -
         logger.warning("%s: %s", out_path, report.warnings[-1])
 
 
+def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str) -> tuple[Any, np.ndarray]:
+    from lidarcal_ros.io.bag.format import POINTCLOUD2
+
+    if msgtype != POINTCLOUD2:
+        raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
+    # (through a memoryview: rosbags would copy bytes to cut off their CDR header)
+    msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
+    return msg, cloud_to_array(msg, source=topic)
+
+
 @dataclass(frozen=True)
 class _Job:
     """One :func:`correct_bag`: what its LAS and its bag writer share.
@@ -616,6 +684,7 @@ class _Job:
     moved_topic: str | None = None
     poses: _PoseMessages | None = None
     messages: _CorrectedMessages | None = None
+    decode: _CloudDecoder = _cloud_points
 
     @property
     def cloud_topics(self) -> list[str]:
@@ -623,16 +692,6 @@ class _Job:
         reads it as it comes."""
         return ([self.points_topic, self.trajectory_topic] if self.gate.reading
                 else [self.points_topic])
-
-
-def _cloud_points(bag: Any, msgtype: str, raw: bytes, topic: str) -> tuple[Any, np.ndarray]:
-    from lidarcal_ros.io.bag.format import POINTCLOUD2
-
-    if msgtype != POINTCLOUD2:
-        raise BagError(f"{bag.path}: topic {topic} carries a {msgtype} message")
-    # (through a memoryview: rosbags would copy bytes to cut off their CDR header)
-    msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
-    return msg, cloud_to_array(msg, source=topic)
 
 
 def _correct_to_las(job: _Job, crs: Any) -> None:
@@ -658,7 +717,7 @@ def _correct_to_las(job: _Job, crs: Any) -> None:
             if topic != points_topic:
                 gate.pose(msgtype, raw)
                 continue
-            msg, points = _cloud_points(bag, msgtype, raw, topic)
+            msg, points = job.decode(bag, msgtype, raw, topic)
             if time_field is None and len(points):
                 time_field = resolve_time_field(points, corrector.settings.time_field,
                                                 source=topic)
@@ -881,7 +940,7 @@ def _correct_to_bag(job: _Job) -> None:
             if copied is None:  # (copied, the input's messages are in the output already)
                 output.pass_through(k, topic, msgtype, ns, raw)
             if topic == points_topic:
-                msg, points = _cloud_points(bag, msgtype, raw, topic)
+                msg, points = job.decode(bag, msgtype, raw, topic)
                 output.hold(k)
                 messages.hold(k, ns, msg)
                 for tag, covered in gate.cloud(k, msg, points):

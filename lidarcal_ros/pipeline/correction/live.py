@@ -6,6 +6,7 @@ corrector").
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import threading
@@ -23,12 +24,14 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.trajectory.buffer import TrajectoryBuffer
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryEstimate
 from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.io.bag.format import ns_to_seconds
 from lidarcal_ros.io.calibration_file import read_calibration
 from lidarcal_ros.io.cloud.columns import resolve_time_field, time_span
 from lidarcal_ros.io.cloud.messages import OK, WARN, StatusSpec, parse_cloud
 from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
 from lidarcal_ros.pipeline.correction.backlog import Region, WaitingCloud, WaitingClouds, take_ready
 from lidarcal_ros.pipeline.correction.process import CorrectionProcess, InboundRegion
+from lidarcal_ros.pipeline.correction.sensor_frame import SensorFrameGeoreference
 from lidarcal_ros.pipeline.correction.service import LocalCorrection, ServiceOptions
 from lidarcal_ros.pipeline.throttled_log import ThrottledLog
 
@@ -135,10 +138,22 @@ class LiveCorrector:
         #: Each strip's trajectory error removed with the biases (the calibration file's,
         #: docs/method.md section 11), or None.
         self._trajectory_errors: TrajectoryEstimate | None = None
+        #: Georeferences clouds in the sensor's frame with the calibration file's mounting
+        #: (None: map-frame clouds; docs/nodes.md).
+        self.sensor: SensorFrameGeoreference | None = None
         if calibration:
             record = read_calibration(calibration)  # one line at start-up
             self._delta, self._trajectory_errors = record.delta, record.trajectory
             self.estimate_source = str(calibration)
+            if record.extrinsic is not None:
+                self.sensor = SensorFrameGeoreference.from_config(
+                    record, config, record.extrinsic.child, config["frame_id"],
+                    where=calibration)
+                self._times = copy.deepcopy(self.sensor.decoder)  # (the clouds' last times)
+                logger.info("clouds in the sensor's frame '%s' georeferenced with the "
+                            "calibrated mounting %s -> %s of %s into '%s'",
+                            record.extrinsic.child, record.extrinsic.parent,
+                            record.extrinsic.child, calibration, config["frame_id"])
         else:
             self._delta = _fixed_biases(config)
         self.settings = self._settings_of(config)
@@ -219,14 +234,22 @@ class LiveCorrector:
             self._settings_changed = True
 
     def _settings_of(self, config: FlightConfig) -> CorrectionSettings:
-        """The correction's settings: ``config``'s, the biases and trajectory errors held."""
-        return replace(CorrectionSettings.from_config(config, self._delta),
-                       trajectory_errors=self._trajectory_errors)
+        """The correction's settings: ``config``'s, the biases and trajectory errors held
+        (for clouds in the sensor's frame, none: the mounting holds them)."""
+        settings = replace(CorrectionSettings.from_config(config, self._delta),
+                           trajectory_errors=self._trajectory_errors)
+        return settings if self.sensor is None else self.sensor.settings(settings)
 
     def set_estimate(self, delta: np.ndarray, source: str,
                      trajectory_errors: TrajectoryEstimate | None = None) -> None:
         """New biases (docs/method.md order, SI) and each strip's trajectory error (none:
-        the trajectory as exact) from ``source``: applied from the next cloud on."""
+        the trajectory as exact) from ``source``: applied from the next cloud on (not to
+        clouds in the sensor's frame, which the calibration file's mounting corrects)."""
+        if self.sensor is not None:
+            self._throttled.log(logging.WARNING, 3600.0,
+                                f"estimate from {source} not applied: clouds in the sensor's "
+                                "frame are corrected with the calibration file's mounting")
+            return
         with self._lock:
             self._delta = delta
             self._trajectory_errors = trajectory_errors
@@ -330,7 +353,7 @@ class LiveCorrector:
         options = ServiceOptions(batch_points=o.batch_points, workers=o.workers,
                                  lookahead=o.lookahead, source=self.config["topics.points"],
                                  trajectory_keep_s=o.trajectory_buffer_s,
-                                 ring_bytes=o.shared_memory_mib << 20)
+                                 ring_bytes=o.shared_memory_mib << 20, sensor=self.sensor)
         if o.separate_process:
             try:
                 return CorrectionProcess(self.settings, options, on_result=self._on_result,
@@ -400,11 +423,24 @@ class LiveCorrector:
         try:
             parsed = parse_cloud(cloud.raw, source=source)
             traj_frame = self.trajectory.frame_id
-            if traj_frame is not None and parsed.frame_id != traj_frame:
-                raise LidarcalError(f"{source}: cloud in frame '{parsed.frame_id}' but the "
-                                    f"trajectory is in '{traj_frame}'")
-            tname = resolve_time_field(parsed.points, self.settings.time_field, source=source)
-            _, t_max = time_span(parsed.points[tname])
+            if self.sensor is not None:
+                if traj_frame is not None and traj_frame != self.sensor.map_frame:
+                    raise LidarcalError(f"{source}: the trajectory is in '{traj_frame}', not "
+                                        f"in frame_id '{self.sensor.map_frame}'")
+                if parsed.frame_id != self.sensor.extrinsic.child:
+                    raise LidarcalError(f"{source}: cloud in frame '{parsed.frame_id}'; the "
+                                        "calibration's extrinsic block is the mounting of "
+                                        f"'{self.sensor.extrinsic.child}'")
+                _, t, _ = self._times.decode(parsed.points, ns_to_seconds(parsed.stamp_ns),
+                                             source=source)
+                _, t_max = time_span(t)
+            else:
+                if traj_frame is not None and parsed.frame_id != traj_frame:
+                    raise LidarcalError(f"{source}: cloud in frame '{parsed.frame_id}' but "
+                                        f"the trajectory is in '{traj_frame}'")
+                tname = resolve_time_field(parsed.points, self.settings.time_field,
+                                           source=source)
+                _, t_max = time_span(parsed.points[tname])
             cloud.t_max = t_max if math.isfinite(t_max) else -math.inf
         except LidarcalError as exc:
             cloud.release()

@@ -6,6 +6,7 @@ thread, :class:`~lidarcal_ros.pipeline.correction.process.CorrectionProcess` in 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import time
@@ -16,10 +17,13 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.trajectory.buffer import TrajectoryBuffer
 from lidarcal_ros.errors import LidarcalError
+from lidarcal_ros.io.bag.format import ns_to_seconds
 from lidarcal_ros.io.cloud.messages import cloud_cdr, cloud_cdr_parts, parse_cloud
 from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
+from lidarcal_ros.pipeline.correction.sensor_frame import SensorFrameGeoreference
 from lidarcal_ros.pipeline.correction.stream import StreamCorrector
 
 __all__ = [
@@ -62,6 +66,10 @@ class ServiceOptions:
     ring_bytes : int
         Bytes of each of the two shared-memory rings of
         :class:`~lidarcal_ros.pipeline.correction.process.CorrectionProcess` (0: pipes only).
+    sensor : SensorFrameGeoreference or None
+        Clouds in the sensor's frame, georeferenced with this calibrated mounting (each
+        engine its own copy; the trajectory then the poses of ``base_link``); None: map-frame
+        clouds.
     """
 
     batch_points: int = 0
@@ -70,6 +78,7 @@ class ServiceOptions:
     source: str = "cloud"
     trajectory_keep_s: float = 600.0
     ring_bytes: int = RING_BYTES
+    sensor: SensorFrameGeoreference | None = None
 
 
 @dataclass(frozen=True)
@@ -138,6 +147,8 @@ class CorrectionEngine:
                  ) -> None:
         self.options = options
         self.trajectory = TrajectoryBuffer(options.trajectory_keep_s)
+        #: Georeferences clouds in the sensor's frame (None: map-frame clouds).
+        self.sensor = copy.deepcopy(options.sensor)
         self._placer = placer
         self._on_failed = on_failed
         self.corrector = StreamCorrector(
@@ -169,30 +180,60 @@ class CorrectionEngine:
         A malformed cloud goes to ``on_error`` and is skipped."""
         started = time.perf_counter()
         parsed: list[tuple[np.ndarray, Any]] = []
+        failure = self._set_trajectory()
         for tag, raw in clouds:
             try:
                 cloud = parse_cloud(raw, source=self.options.source)
+                frame, points = cloud.frame_id, cloud.points
+                if self.sensor is not None:
+                    if failure:
+                        raise LidarcalError(failure)
+                    frame, points = self._georeferenced(cloud.frame_id, cloud.stamp_ns,
+                                                        points)
             except LidarcalError as exc:
                 on_error(tag, str(exc))
                 continue
-            self._headers[tag] = (cloud.stamp_ns, cloud.frame_id, started)
-            parsed.append((cloud.points, tag))
+            self._headers[tag] = (cloud.stamp_ns, frame, started)
+            parsed.append((points, tag))
 
         def malformed(tag: Any, exc: LidarcalError) -> None:
             self._headers.pop(tag, None)
             on_error(tag, str(exc))
 
-        self.corrector.set_trajectory(self.trajectory.trajectory())
         return self._finish(self.corrector.push_many(parsed, on_error=malformed))
+
+    def _set_trajectory(self) -> str:
+        """Give the corrector the trajectory received (of the sensor's origin, for clouds in
+        the sensor's frame); why it cannot be ('' where it can)."""
+        trajectory = self.trajectory.trajectory()
+        if self.sensor is not None:
+            try:
+                trajectory = self.sensor.set_trajectory(trajectory)
+            except LidarcalError as exc:
+                return f"{self.options.source}: {exc}"
+        self.corrector.set_trajectory(trajectory)
+        return ""
+
+    def _georeferenced(self, frame_id: str, stamp_ns: int, points: np.ndarray
+                       ) -> tuple[str, np.ndarray]:
+        """A cloud in the sensor's frame in the map frame (its frame, its points)."""
+        sensor = self.sensor
+        assert sensor is not None
+        if frame_id != sensor.extrinsic.child:
+            raise LidarcalError(f"{self.options.source}: cloud in frame '{frame_id}'; the "
+                                "calibration's extrinsic block is the mounting of "
+                                f"'{sensor.extrinsic.child}'")
+        return sensor.map_frame, sensor.cloud(points, ns_to_seconds(stamp_ns),
+                                              source=self.options.source)
 
     def release(self) -> list[CorrectedMessage]:
         """Correct what is held now, without waiting for look-ahead."""
-        self.corrector.set_trajectory(self.trajectory.trajectory())
+        self._set_trajectory()
         return self._finish(self.corrector.release())
 
     def flush(self) -> list[CorrectedMessage]:
         """Correct everything held (the end of the stream)."""
-        self.corrector.set_trajectory(self.trajectory.trajectory())
+        self._set_trajectory()
         return self._finish(self.corrector.flush())
 
     def collect(self, timeout: float = 0.0) -> list[CorrectedMessage]:
@@ -288,8 +329,10 @@ def warm_up_engine(settings: CorrectionSettings, options: ServiceOptions) -> Non
     takes seconds to work off."""
     from lidarcal_ros.io.cloud.pointcloud import make_point_dtype
 
-    engine = CorrectionEngine(dataclasses.replace(settings, time_field="t"),
-                     dataclasses.replace(options, workers=1, source="warm-up"))
+    # (model auto: the synthetic poses carry no orientation that a rigorous one would need)
+    engine = CorrectionEngine(dataclasses.replace(settings, time_field="t",
+                                                  model=PositioningModel.AUTO),
+                     dataclasses.replace(options, workers=1, source="warm-up", sensor=None))
     t_traj = np.arange(0.0, 2.0, 0.01)
     engine.poses(t_traj, np.column_stack([np.zeros_like(t_traj), 60.0 * t_traj,
                                           np.full_like(t_traj, 1000.0)]))
