@@ -30,7 +30,9 @@ def add_simulate_command(sub: Any) -> None:
     p.add_argument("--biases", default=None,
                    help="e.g. 'dX=0.05,domega=-29arcsec,dr=11.8cm' (default: paper-like)")
     p.add_argument("--range-noise", type=finite_float, default=0.02, help="metres (default 0.02)")
-    p.add_argument("--control", type=int, default=1, help="number of control points")
+    p.add_argument("--control", type=int, default=None,
+                   help="number of vertical control points (default 1; with --uav 0), written "
+                   "to OUT_control.csv")
     p.add_argument("--origin", default="0,0",
                    help="map X,Y added to everything, e.g. 500000,5000000 (default 0,0)")
     p.add_argument("--wind", default=None,
@@ -67,8 +69,8 @@ def add_simulate_command(sub: Any) -> None:
         "(docs/method.md section 12) and writes its recording as ros2 bag record does: the "
         "driver's clouds in the sensor's frame on /velodyne_points, nav_msgs/Odometry of "
         "base_link on /ins/odometry at 100 Hz, the nominal mounting on /tf_static; OUT_truth.yaml "
-        "holds the biases and the true mounting. --seed applies; the linear scanner's options "
-        "do not")
+        "holds the biases and the true mounting. --seed and --control apply; the linear "
+        "scanner's other options do not")
     uav.add_argument("--uav", action="store_true", help="simulate a UAV payload")
     uav.add_argument("--layout", default="vlp16", choices=("vlp16", "os1-32"),
                      help="the scanner: Velodyne VLP-16 (frame velodyne, time FLOAT32 s) or "
@@ -235,7 +237,8 @@ def _simulate_uav(args: argparse.Namespace) -> int:
              "ins_attitude_sigma_deg": (0.0, 0.0, 0.0)} if args.exact_ins else {}
     spec = UavPayloadSpec(layout=args.layout, seed=args.seed, n_lines=args.uav_lines,
                           line_length_m=args.uav_line_length, columns=args.columns,
-                          biases=biases, **exact)  # type: ignore[arg-type]
+                          biases=biases, n_control=args.control or 0,
+                          **exact)  # type: ignore[arg-type]
     started = time.perf_counter()
     mission = simulate_uav_payload(spec)
     paths = write_uav_simulation(args.output, mission,
@@ -296,7 +299,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                           wind_mps=wind, rough_air=rough_air),
         sensor=SensorSpec(density=args.density, attitude=args.attitude),
         noise=NoiseSpec(range_noise_m=args.range_noise),
-        site=SiteSpec(n_control=args.control, origin=origin),
+        site=SiteSpec(n_control=1 if args.control is None else args.control, origin=origin),
         trajectory_errors=trajectory_errors)
     started = time.perf_counter()
     # a line at a time, a block of points at a time: a mission of any size in bounded memory

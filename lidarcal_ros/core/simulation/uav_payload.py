@@ -16,7 +16,7 @@ from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting, mounting_from_biases
-from lidarcal_ros.core.mission import Trajectory
+from lidarcal_ros.core.mission import ControlPoints, Trajectory
 from lidarcal_ros.core.params import N_PARAMETERS
 from lidarcal_ros.core.simulation.flight_path import G_MPS2, RoughAir, Turbulence
 from lidarcal_ros.core.simulation.ray_casting import cast_rays
@@ -110,6 +110,8 @@ class UavPayloadSpec:
     drag_tilt_deg : nose-down pitch of cruise (the thrust against drag), deg.
     terrain_kind : ``built-up`` or ``flat``.
     start_time_s : the time of the first cloud, s (absolute, the trajectory's clock).
+    n_control : vertical control points surveyed on open ground under the lines (0-100; the
+        terrain keeps its objects 15 m from them), which make ``dZ`` observable.
     """
 
     layout: str = "vlp16"
@@ -132,6 +134,7 @@ class UavPayloadSpec:
     drag_tilt_deg: float = 4.0
     terrain_kind: str = "built-up"
     start_time_s: float = 1_700_000_000.0
+    n_control: int = 0
 
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
@@ -145,6 +148,8 @@ class UavPayloadSpec:
                 raise ConfigError(f"uav payload: {name} must be positive, got {value}")
         if not self.heights_m or not all(20.0 <= h <= 300.0 for h in self.heights_m):
             raise ConfigError(f"uav payload: heights_m must be 20-300 m, got {self.heights_m}")
+        if not (isinstance(self.n_control, int) and 0 <= self.n_control <= 100):
+            raise ConfigError(f"uav payload: n_control must be 0-100, got {self.n_control!r}")
         if self.columns is not None and not (isinstance(self.columns, int)
                                              and 16 <= self.columns <= 4096):
             raise ConfigError(f"uav payload: columns must be 16-4096, got {self.columns!r}")
@@ -403,6 +408,8 @@ class UavPayloadMission:
     line : (n,) int64
         The line each point was recorded on (-1 in a turn).
     terrain : Terrain
+    control : ControlPoints or None
+        The vertical control points (``spec.n_control``; map frame), None without.
     """
 
     spec: UavPayloadSpec
@@ -417,6 +424,18 @@ class UavPayloadMission:
     on_wall: np.ndarray
     line: np.ndarray
     terrain: Terrain
+    control: ControlPoints | None = None
+
+
+def _control_points(spec: UavPayloadSpec) -> np.ndarray:
+    """``spec.n_control`` places (k, 2), m, spread over the area every line sees: across
+    the middle half of the lines' span, along their middle 70%, drawn from the seed."""
+    if not spec.n_control:
+        return np.zeros((0, 2))
+    rng = np.random.default_rng([spec.seed, 0xC0])
+    across = 0.25 * max(spec.n_lines - 1, 1) * spec.line_spacing_m
+    return np.column_stack([rng.uniform(-across, across, spec.n_control),
+                            rng.uniform(-0.35, 0.35, spec.n_control) * spec.line_length_m])
 
 
 def _firings(scanner: ScannerLayout, stamp_tau: float
@@ -500,7 +519,13 @@ def simulate_uav_payload(spec: UavPayloadSpec | None = None) -> UavPayloadMissio
     true = mounting_from_biases(nominal, biases)
     half = 0.5 * spec.line_length_m + 150.0
     across = 0.5 * (spec.n_lines - 1) * spec.line_spacing_m + 150.0
-    terrain = Terrain((-across, across, -half, half), seed=spec.seed, kind=spec.terrain_kind)
+    control_xy = _control_points(spec)
+    terrain = Terrain((-across, across, -half, half), seed=spec.seed, kind=spec.terrain_kind,
+                      keep_clear=control_xy)
+    control = ControlPoints(
+        [f"C{i + 1}" for i in range(len(control_xy))],
+        np.column_stack([control_xy, terrain.height_local(control_xy[:, 0], control_xy[:, 1])])
+    ) if len(control_xy) else None
     rng = np.random.default_rng([spec.seed, 0x0AF1])
 
     clouds, truth_xyz, on_wall = _scan(flight, scanner, true, terrain, biases, rng)
@@ -525,7 +550,7 @@ def simulate_uav_payload(spec: UavPayloadSpec | None = None) -> UavPayloadMissio
         spec=spec, scanner=scanner, clouds=clouds, trajectory=trajectory, nominal=nominal,
         truth_mounting=true, biases=biases, truth_trajectory=truth_trajectory,
         truth_xyz=truth_xyz, on_wall=on_wall,
-        line=flight.line_of(point_tau), terrain=terrain)
+        line=flight.line_of(point_tau), terrain=terrain, control=control)
 
 
 __all__ = [

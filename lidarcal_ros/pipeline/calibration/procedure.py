@@ -435,7 +435,7 @@ def write_simulation(output: str | Path, sim: Any, *, overwrite: bool = False) -
         write_mission_bag(path, sim.mission, overwrite=overwrite)
         return truth_document(sim.biases, sim.config)
 
-    return _write_simulation_files(output, sim.mission.control, bag, overwrite=overwrite)
+    return write_simulation_files(output, sim.mission.control, bag, overwrite=overwrite)
 
 
 def write_simulation_stream(output: str | Path, stream: Any, *, overwrite: bool = False
@@ -459,10 +459,10 @@ def write_simulation_stream(output: str | Path, stream: Any, *, overwrite: bool 
                                         overwrite=overwrite)[1]
         return truth_document(stream.biases, stream.config)
 
-    return _write_simulation_files(output, stream.control, bag, overwrite=overwrite), n_points
+    return write_simulation_files(output, stream.control, bag, overwrite=overwrite), n_points
 
 
-def _write_simulation_files(output: str | Path, control: Any,
+def write_simulation_files(output: str | Path, control: Any,
                             write_bag: Callable[[Path], dict[str, Any]], *, overwrite: bool
                             ) -> dict[str, Path]:
     """The bag (``write_bag``, which returns the truth document), the control points and the
@@ -494,5 +494,5 @@ __all__ = [
     "Truth", "calibrate_mission", "convergence_warning", "format_agreement", "format_report",
     "load_for_calibration", "load_mission", "parse_biases", "qa_level", "simulation_paths",
     "trajectory_lines", "truth_document",
-    "unused_control", "write_simulation", "write_simulation_stream",
+    "unused_control", "write_simulation", "write_simulation_files", "write_simulation_stream",
 ]

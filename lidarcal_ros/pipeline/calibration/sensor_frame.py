@@ -13,9 +13,9 @@ import logging
 from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import yaml
 
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Progress
 from lidarcal_ros.core.calibration.extrinsic import (
@@ -40,9 +40,11 @@ from lidarcal_ros.io.bag.sensor_bag import (
     write_sensor_bag,
 )
 from lidarcal_ros.io.calibration_file import Extrinsic, read_extrinsic, write_calibration
-from lidarcal_ros.io.output_files import check_output, remove_quietly, write_text
 from lidarcal_ros.io.yaml_file import read_yaml
-from lidarcal_ros.pipeline.calibration.procedure import simulation_paths, truth_document
+from lidarcal_ros.pipeline.calibration.procedure import (
+    truth_document,
+    write_simulation_files,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -106,8 +108,11 @@ def mounting_solve_for(requested: Iterable[str], *,
     scanner's clouds: left out; ``dZ`` (the vertical lever arm, which moves every strip alike)
     only with control points (``has_control``), else held at the nominal. The default
     ``calibration.solve_for`` thus gives :data:`~lidarcal_ros.core.calibration.extrinsic.
-    MOUNTING_SOLVE_FOR`."""
-    names = tuple(n for n in PARAMETER_NAMES if n in set(requested))
+    MOUNTING_SOLVE_FOR`, and ``dZ`` too with control points."""
+    wanted = set(requested)
+    if has_control and wanted == set(SCHEMA["calibration.solve_for"].default):
+        wanted.add("dZ")  # the default: what the data can see, the vertical lever arm too
+    names = tuple(n for n in PARAMETER_NAMES if n in wanted)
     why = {"dS": "dS is no parameter of clouds in the sensor's frame (a linear scanner's "
                  "scale)"}
     if not has_control:
@@ -223,28 +228,23 @@ def write_uav_simulation(output: str | Path, mission: UavPayloadMission, *,
                          overwrite: bool = False) -> dict[str, Path]:
     """Write a simulated UAV payload (:func:`~lidarcal_ros.core.simulation.uav_payload.
     simulate_uav_payload`) as ``ros2 bag record`` records it (the clouds on
-    ``/velodyne_points``, ``/ins/odometry``, ``/tf_static`` with the nominal mounting) and
-    the truth beside it (``OUT_truth.yaml``: the biases, the true and nominal mountings, the
-    spec); all or, where one fails, none of them."""
-    paths = simulation_paths(output)
-    paths.pop("control")
-    for key, path in paths.items():
-        check_output(path, overwrite=overwrite, directory=key == "bag")
+    ``/velodyne_points``, ``/ins/odometry``, ``/tf_static`` with the nominal mounting), its
+    control points (``OUT_control.csv``, where it has some) and the truth beside it
+    (``OUT_truth.yaml``: the biases, the true and nominal mountings, the spec); all or, where
+    one fails, none of them."""
     spec = {k: (list(v) if isinstance(v, tuple) else v)
             for k, v in dataclasses.asdict(mission.spec).items()}
     doc = truth_document(dict(zip(PARAMETER_NAMES, mission.biases.tolist(), strict=True)),
                          {"uav_payload": spec})
     doc["mounting"] = Extrinsic("base_link", mission.clouds.frame_id, mission.truth_mounting,
                                 mission.nominal).document()
-    write_sensor_bag(paths["bag"], mission.clouds, mission.trajectory, mission.nominal,
-                     time_format=time_format, overwrite=overwrite)
-    try:
-        write_text(paths["truth"], yaml.safe_dump(doc, sort_keys=False), what="truth file",
-                   overwrite=overwrite)
-    except BaseException:
-        remove_quietly(paths["bag"])
-        raise
-    return paths
+
+    def bag(path: Path) -> dict[str, Any]:
+        write_sensor_bag(path, mission.clouds, mission.trajectory, mission.nominal,
+                         time_format=time_format, overwrite=overwrite)
+        return doc
+
+    return write_simulation_files(output, mission.control, bag, overwrite=overwrite)
 
 
 def truth_mounting(path: str | Path) -> Mounting | None:

@@ -141,6 +141,9 @@ def test_solve_for_of_a_mounting() -> None:
     assert names == ("dX", "domega") and "dZ needs control points" in note
     names, note = mounting_solve_for(("dZ", "dX", "domega"), has_control=True)
     assert names == ("dX", "dZ", "domega") and note == ""
+    # the default with control points: the vertical lever arm too
+    names, _ = mounting_solve_for(default, has_control=True)
+    assert names == ("dX", "dY", "dZ", "domega", "dphi", "dkappa", "dr")
 
 
 def test_the_note_is_a_warning_only_where_asked_for(caplog: pytest.LogCaptureFixture) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from helpers_wait import wait_until
 
-from lidarcal_ros.core.config import CORRECTOR_NODE, FlightConfig, node_options
+from lidarcal_ros.core.config import CORRECTOR_NODE, SCHEMA, FlightConfig, node_options
 from lidarcal_ros.core.flags import FLAG_NOT_CORRECTED
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.params import PARAMETER_INDEX
@@ -39,9 +39,11 @@ from lidarcal_ros.io.bag.reader import open_bag
 from lidarcal_ros.io.calibration_file import CalibrationRecord, Extrinsic, read_calibration
 from lidarcal_ros.io.cloud.messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.cloud.pointcloud import cloud_to_array
+from lidarcal_ros.io.survey.control import read_control_csv
 from lidarcal_ros.pipeline.calibration.sensor_frame import (
     calibrate_sensor_bag,
     load_sensor_bag,
+    mounting_solve_for,
     write_mounting_calibration,
     write_uav_simulation,
 )
@@ -242,3 +244,29 @@ def _corrected_by_stamp(case: _Case, out: Path) -> dict[int, np.ndarray]:
             clouds[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec] = \
                 cloud_to_array(msg, source=topic)
     return clouds
+
+
+@pytest.mark.parametrize(("layout", "seed"), [("vlp16", 1), ("os1-32", 2)])
+def test_control_points_bring_the_vertical_lever_arm_and_the_points_to_the_truth(
+        root: Path, layout: str, seed: int) -> None:
+    # the drawn dZ (some cm) this time, and six control points under the lines
+    spec = UavPayloadSpec(layout=layout, seed=seed, columns={"vlp16": 100, "os1-32": 64}[layout],
+                          line_length_m=120.0, range_noise_m=0.0, n_control=6,
+                          **EXACT_INS)  # type: ignore[arg-type]
+    m = simulate_uav_payload(spec)
+    assert abs(m.biases[PARAMETER_INDEX["dZ"]]) > 0.02 and m.control is not None
+    workdir = root / f"{layout}-{seed}-control"
+    workdir.mkdir()
+    paths = write_uav_simulation(workdir / "uav", m)
+    control = read_control_csv(paths["control"])
+    np.testing.assert_allclose(control.xyz, m.control.xyz)
+    data = load_sensor_bag(paths["bag"], CONFIG)
+    assert data is not None
+    names, _ = mounting_solve_for(SCHEMA["calibration.solve_for"].default, has_control=True)
+    assert "dZ" in names  # the default with control points
+    cal = calibrate_sensor_bag(data, solve_for=names, control=control)
+    lever = cal.mounting.translation - m.truth_mounting.translation
+    assert np.abs(lever).max() < 0.008, lever  # z too now
+    case = _Case(m, paths["bag"], write_mounting_calibration(workdir / "cal.yaml", data, cal),
+                 workdir)
+    assert _median_to_truth(case, read_calibration(case.calibration), "calibrated") < 0.007
