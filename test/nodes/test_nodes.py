@@ -469,6 +469,11 @@ def test_a_parameter_set_at_run_time_changes_what_the_nodes_do(replayed: Replaye
     ({"radiometry__power_model": "quadratic"}, "not one of constant, pulse_rate"),
     ({"topics__points": "/elsewhere"}, "read-only"),
     ({"sensor__fov_deg": "wide"}, "type"),
+    # not numbers: out of a declared range (rclpy), or not finite (the node's own check)
+    ({"sensor__fov_deg": float("nan")}, "sensor.fov_deg out of range"),
+    ({"atmosphere__visibility_km": float("inf")}, "atmosphere.visibility_km out of range"),
+    ({"calibration__fixed__dX": float("nan")}, "calibration.fixed.dX: must be finite"),
+    ({"calibration__fixed__dr": -float("inf")}, "calibration.fixed.dr: must be finite"),
 ])
 def test_a_bad_value_is_refused_with_its_reason(suite: Suite, values: dict[str, Any],
                                                 reason: str) -> None:
@@ -560,6 +565,48 @@ def test_a_malformed_cloud_is_logged_and_skipped(replayed: Replayed) -> None:
     # the good cloud belongs to strip 1, complete since the mission's replay: ignored, said
     assert int(inputs.values["late_points"]) >= len(parse_cloud(raw).points)
     assert "already closed" in inputs.message
+
+
+def test_interleaved_malformed_clouds_are_counted_on_diagnostics(replayed: Replayed) -> None:
+    """A stream with a malformed cloud after every good one: the suite keeps correcting the
+    good ones, and /diagnostics counts every malformed one (calibrator and corrector)."""
+    from sensor_msgs.msg import PointCloud2
+
+    suite = replayed.suite
+    good_fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("t", "<f8"),
+                   ("intensity", "<f4"), ("strip_id", "<u2")]
+    bad = [cloud_cdr(10**18, "map", np.zeros(4, dtype=[("x", "<f8"), ("y", "<f8")])),
+           bytes(cloud_cdr(10**18, "map", np.zeros(5, dtype=good_fields))[:-41]),
+           b"\x00\x01\x00\x00junk",
+           cloud_cdr(10**18, "map", np.zeros(3, dtype=[("y", "<f8"), ("z", "<f8"),
+                                                        ("t", "<f8")]))]
+    with open_bag(suite.mission.bag) as b:
+        good = [bytes(raw) for _t, _m, _ns, raw in b.messages(["/lidar/points"])][:len(bad)]
+    cal_before = suite.cal.calibration.input.skipped
+    cor_before = suite.cor.correction.stats.skipped
+    with suite.probe.lock:
+        out_before = len(suite.probe.corrected)
+    pub = suite.probe_node.create_publisher(PointCloud2, "/lidar/points", 10)
+    try:
+        _wait(lambda: pub.get_subscription_count() >= 3, 10, "point subscribers")
+        for g, m in zip(good, bad, strict=True):
+            pub.publish(g)
+            pub.publish(m)
+
+        def counted() -> bool:
+            diag = suite.probe.diagnostics
+            return (diag.get("lidarcal: input", (0, "", {}))[2].get("skipped_clouds")
+                    == str(cal_before + len(bad)) and
+                    suite.cor.correction.stats.skipped == cor_before + len(bad))
+        _wait(counted, 20, "every malformed cloud counted on /diagnostics")
+        _wait(lambda: len(suite.probe.corrected) >= out_before + len(good), 20,
+              "every good cloud corrected")
+    finally:
+        suite.probe_node.destroy_publisher(pub)
+    level, message, _ = suite.probe.diagnostics["lidarcal: input"]
+    assert level == 1 and f"{cal_before + len(bad)} malformed clouds skipped" in message
+    status = suite.cor.status()
+    assert status.values["skipped_clouds"] == str(cor_before + len(bad))
 
 
 def test_a_dead_correction_process_is_replaced_and_the_next_cloud_corrected(
