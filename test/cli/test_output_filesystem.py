@@ -59,6 +59,8 @@ class Inputs:
             "calibrate": ("calibrate", self.bag, "-o", output, "--config", self.config),
             "import": ("import", self.strip, "--trajectory", self.sbet, "-o", output,
                        "--qa-cell", "0"),
+            "report": ("report", self.bag, "--calibration", self.calibration, "-o", output,
+                       "--config", self.config),
         }[command]
 
     def snapshot(self) -> list[tuple[str, bytes]]:
@@ -134,7 +136,8 @@ def _limit_file_size(nbytes: int) -> None:
 FULL_AT = {"cal.yaml": 1000}
 
 
-@pytest.mark.parametrize(("command", "name"), [*OUTPUTS, ("import", "bag")])
+@pytest.mark.parametrize(("command", "name"), [*OUTPUTS, ("import", "bag"), ("correct", "bag"),
+                                               ("report", "report.html")])
 def test_a_full_disk_is_one_line_and_leaves_the_previous_output(inputs, command,
                                                                 name) -> None:
     """In a child process whose files cannot grow past a limit: one line with the operating
@@ -152,7 +155,8 @@ def test_a_full_disk_is_one_line_and_leaves_the_previous_output(inputs, command,
                           capture_output=True, text=True, timeout=300, check=False,
                           preexec_fn=lambda: _limit_file_size(FULL_AT.get(name, 100_000)))
     # A bag fails while written or, its last chunk flushed on closing, while finished.
-    what = {".yaml": "write calibration ", ".las": "write ", ".laz": "write "}.get(
+    what = {".yaml": "write calibration ", ".las": "write ", ".laz": "write ",
+            ".html": "write the report "}.get(
         out.suffix, "(write|finish) bag ")
     assert re.fullmatch(f"{re.escape(str(out))}: cannot {what}\\(File too large\\)",
                         one_line_error(proc.returncode, proc.stderr, command))

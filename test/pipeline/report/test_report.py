@@ -759,3 +759,15 @@ def test_no_figure_is_left_without_a_unit_or_coordinates(reported: Reported) -> 
     text = reported.html.read_text(encoding="utf-8")
     assert "relative to (" not in text
     assert re.search(r"Coordinates: EPSG:32633 \(WGS 84 / UTM zone 33N\)", text)
+
+
+def test_a_file_with_an_empty_correlation_is_read(tmp_path: Path) -> None:
+    """``correlation: {names: [], matrix: []}`` (nothing correlated, as a file of surveyed
+    values writes it) is a 0 x 0 matrix, not a malformed one."""
+    from helpers_missions import write_calibration_yaml
+
+    from lidarcal_ros.core.params import PARAMETER_NAMES
+
+    path = write_calibration_yaml(tmp_path / "cal.yaml", dict.fromkeys(PARAMETER_NAMES, 0.0))
+    cal = read_report_calibration(path)
+    assert cal.correlation_names == [] and cal.correlation.shape == (0, 0)
