@@ -675,12 +675,17 @@ def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
     assert z_min == pytest.approx(1200 / 3937 * float(np.min(las.z)), abs=1e-3)
 
 
-def test_real_truncated_laz_one_line(tmp_path, capsys) -> None:
-    """autzen_trim.laz cut in half: ``lidarcal import`` fails with one line naming the file."""
+@pytest.mark.parametrize("keep", [100, 0.1, 0.5, 0.99, -8])
+def test_real_truncated_laz_one_line(tmp_path, capsys, keep) -> None:
+    """autzen_trim.laz cut in its header (100 bytes), in its points (10%, half, 99%) and in
+    the chunk table at its end (8 bytes short): ``lidarcal import`` fails with one line
+    naming the file and leaves no bag."""
     path = real_las_file("autzen_trim.laz")
     cut = tmp_path / "autzen_cut.laz"
     data = path.read_bytes()
-    cut.write_bytes(data[: len(data) // 2])
+    size = keep if isinstance(keep, int) and keep > 0 else \
+        len(data) + keep if isinstance(keep, int) else int(len(data) * keep)
+    cut.write_bytes(data[:size])
     rc = cli_main(["import", str(cut), "-o", str(tmp_path / "bag")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0
