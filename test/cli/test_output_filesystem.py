@@ -167,6 +167,24 @@ def test_a_full_disk_is_one_line_and_leaves_the_previous_output(inputs, command,
     assert inputs.snapshot() == before
 
 
+@pytest.mark.parametrize("uav", [False, True])
+def test_a_full_disk_while_simulating_leaves_none_of_the_files(tmp_path, uav) -> None:
+    """``lidarcal simulate`` writes a bag, control points and the truth: a file that cannot
+    grow is one line, and none of the three is left (nor a temporary)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    args = ["--uav", "--columns", "32", "--uav-line-length", "60", "--control", "3"] if uav \
+        else ["--density", "0.05", "--line-length", "300"]
+    proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", "simulate", "-o",
+                           str(out / "sim"), *args],
+                          capture_output=True, text=True, timeout=300, check=False,
+                          preexec_fn=lambda: _limit_file_size(100_000))
+    assert re.fullmatch(f"{re.escape(str(out / 'sim'))}: cannot (write|finish) bag "
+                        "\\(File too large\\)",
+                        one_line_error(proc.returncode, proc.stderr, "simulate"))
+    assert left_in(out) == []
+
+
 @pytest.mark.parametrize(("command", "name"), OUTPUTS)
 def test_a_read_only_file_system_is_one_line(capsys, inputs, monkeypatch, command,
                                              name) -> None:
