@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import helpers_missions
+import laspy
 import numpy as np
 import pytest
 import yaml
@@ -30,6 +31,7 @@ from helpers_missions import (
 from lidarcal_ros.core.mission import REORDER_S, Mission, screen_samples
 from lidarcal_ros.errors import TrajectoryError
 from lidarcal_ros.io.bag.format import POSE_STAMPED, seconds_to_ns
+from lidarcal_ros.io.bag.mission_bag import read_mission
 from lidarcal_ros.io.bag.writer import BagWriter
 
 mission_factory = helpers_missions.mission_factory
@@ -279,3 +281,34 @@ def test_extreme_numbers_are_left_out_or_normalised_and_said(tmp_path, small_mis
     for name, truth in small_mission.sim.biases.items():
         if biases[name]["estimated"]:  # the truth within 4 sigmas: nothing silently wrong
             assert abs(biases[name]["value"] - truth) < 4.0 * biases[name]["sigma"], name
+
+
+@pytest.mark.parametrize("suffix", [".mcap", ".las", ".laz"])
+@pytest.mark.parametrize("spoil", [_huge_points, _subnormal_points])
+def test_extreme_points_through_correct_to_every_format(tmp_path, small_mission, suffix,
+                                                         spoil) -> None:
+    """Points at +-1e308 (once a SIGABRT writing LAZ) and subnormal ones through ``correct``
+    to a bag, LAS and LAZ with numpy's RuntimeWarning an error: exit 0, the huge ones said
+    in one warning and left out of LAS/LAZ or passed on flagged in a bag, the file readable
+    by an independent reader with every other point."""
+    mission = small_mission.mission
+    bag = _bag_with_numbers(tmp_path / "bag", mission, cloud=spoil)
+    cal = write_calibration_yaml(tmp_path / "cal.yaml", small_mission.sim.biases)
+    out = tmp_path / f"out{suffix}"
+    crs = ["--crs", "EPSG:32633"] if suffix != ".mcap" else []
+    proc = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-m", "lidarcal_ros",
+                           "correct", bag, "--calibration", cal, "-o", out, *crs, "-q"],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    said = [line for line in proc.stderr.splitlines() if line.startswith("lidarcal")]
+    huge = spoil is _huge_points
+    assert len(said) == (1 if huge else 0) and (not huge or ("60 " in said[0] and
+                                                 "1e+09 m" in said[0])), said
+    n = mission.n_points
+    if suffix == ".mcap":
+        points = read_mission(out, points_topic="/lidar/points_corrected")
+        assert points.n_points == n - (60 if huge else 0)  # (the reader drops them again)
+    else:
+        las = laspy.read(str(out))
+        assert len(las.points) == n - (60 if huge else 0)
+        assert np.isfinite(np.asarray(las.x)).all() and np.abs(np.asarray(las.x)).max() < 1e7

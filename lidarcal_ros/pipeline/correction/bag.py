@@ -777,7 +777,8 @@ def las_warnings(report: CorrectionReport, stats: LasStats, out_path: Path) -> N
     """The report's warnings of points a LAS/LAZ writer could not store (``stats``: its
     counts)."""
     report.las_skipped_non_finite = stats.skipped_non_finite
-    for count, why in ((stats.skipped_non_finite, "with non-finite coordinates"),
+    for count, why in ((stats.skipped_non_finite, "with non-finite coordinates (or one "
+                        f"beyond {MAX_COORDINATE_M:g} m as delivered)"),
                        (stats.skipped_out_of_range, "more than 2147 km from the others "
                         "(beyond LAS's 32-bit coordinates)")):
         if count:
