@@ -126,6 +126,8 @@ def _correlation_matrix(path: Path, doc: Any) -> tuple[list[str], np.ndarray]:
         matrix = np.array(rows, dtype=np.float64)
     except (TypeError, ValueError):
         raise ConfigError(f"{path}: correlation.matrix is not a matrix of numbers") from None
+    if not names and matrix.size == 0:  # nothing estimated (--write-identity): [] is 0 x 0
+        matrix = matrix.reshape(0, 0)
     if matrix.shape != (len(names), len(names)):
         raise ConfigError(f"{path}: correlation.matrix is {matrix.shape}, expected "
                           f"{len(names)} x {len(names)} for its names")
