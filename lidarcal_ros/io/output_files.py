@@ -63,11 +63,15 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     ------
     OutputError
         The output is an input; it exists and ``overwrite`` is False; it is a directory where
-        a file is written; it is a dangling symbolic link (whatever ``overwrite``); its parent
-        directory is missing or not writable (the operating system's reason: permission
-        denied, read-only file system...).
+        a file is written; it is a dangling symbolic link (whatever ``overwrite``); its name
+        is longer than the file system takes; its parent directory is missing or not writable
+        (the operating system's reason: permission denied, read-only file system...).
     """
     path = Path(path)
+    name_max = _name_max(path.parent)
+    if len(path.name.encode()) > name_max:  # else the OS's "File name too long" alone
+        raise OutputError(f"{path}: name of {len(path.name.encode())} bytes; the file system "
+                          f"takes at most {name_max}")
     for source in inputs:
         if overlapping(path, Path(source)):
             raise OutputError(f"{path}: is also an input ({source}); write the output "
@@ -94,6 +98,14 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     finally:  # also when a signal arrives between the two
         remove_quietly(probe)
     return path
+
+
+def _name_max(directory: Path) -> int:
+    """The longest name, bytes, the file system of ``directory`` takes (255 if unsaid)."""
+    try:
+        return int(os.pathconf(directory, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
 
 
 def hidden_beside(path: Path, kind: str) -> Path:
