@@ -30,14 +30,14 @@ class Files:
     """A mission's inputs in one directory, under the names given."""
 
     def __init__(self, small: MissionFiles, root: Path, *, bag: str = "mission.mcap",
-                 strip: str = "strip.las", calibration: str = "cal.yaml") -> None:
+                 strip: str = "strip", calibration: str = "cal.yaml") -> None:
         self.root = root
         self.bag = Path(shutil.copy(next(small.bag.glob("*.mcap")), root / bag))
         self.calibration = write_calibration_yaml(root / calibration, small.sim.biases)
         self.config = Path(shutil.copy(small.fast_config, root / "fast.yaml"))
         self.control = Path(shutil.copy(small.control_csv, root / "control.csv"))
         (tiled,) = write_las_tiles(plain_strips(small.sim), root, tiles=(1, 1))
-        self.strip = tiled.rename(root / strip)
+        self.strip = tiled.rename(root / f"{strip}{tiled.suffix}")  # (a LAZ)
         self.sbet = write_mission_sbet(small.mission, root / "sbet.out")
         lines = [{"id": 1, "start": [0, -150], "end": [0, 150], "height": 1150},
                  {"id": 2, "start": [0, 150], "end": [0, -150], "height": 1150}]
@@ -123,7 +123,7 @@ def test_hostile_names_are_read_and_written(capsys, small_mission, tmp_path, nam
                                             suffix) -> None:
     """The inputs and the output under ``name``: the command succeeds and writes exactly the
     output named, no temporary beside it."""
-    files = Files(small_mission, tmp_path, bag=f"{name}.mcap", strip=f"{name}.las",
+    files = Files(small_mission, tmp_path, bag=f"{name}.mcap", strip=name,
                   calibration=f"{name}.cal.yaml")
     (tmp_path / "out").mkdir()
     out = tmp_path / "out" / f"{name}{suffix}"
