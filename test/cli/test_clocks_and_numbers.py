@@ -251,7 +251,9 @@ NUMBERS: dict[str, tuple[dict[str, Any], str]] = {
     "zero quaternions among others": ({"pose": _zero_quaternions},
                                       "trajectory /lidar/trajectory: of {n} orientation "
                                       "quaternions, {n50} zero: read as poses without "
-                                      "orientation"),
+                                      "orientation; {n50} poses without one between poses "
+                                      "with one at most 0.1 s apart: their orientation "
+                                      "interpolated"),
 }
 
 
