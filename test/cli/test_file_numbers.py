@@ -186,8 +186,9 @@ def test_duplicate_control_ids_are_refused(capsys, small_mission, tmp_path) -> N
 
 def test_a_million_control_points_are_refused_in_bounded_time_and_memory(small_mission,
                                                                          tmp_path) -> None:
-    """A million rows (32 MB): one line before any work, in a few seconds and a few hundred
-    MB (measured in the child: its peak resident set)."""
+    """A million rows (30 MB): one line before any work, in a few seconds, the rows past
+    the 100,000 taken counted, not held (peak resident set of the child: 261 MB, 237 MB
+    for a one-line file; 473 MB when the file was held as a list of lines)."""
     csv = tmp_path / "control.csv"
     with csv.open("w") as f:
         f.write("id,x,y,z\n")
@@ -207,5 +208,5 @@ def test_a_million_control_points_are_refused_in_bounded_time_and_memory(small_m
         f"{csv}: 1,000,000 control points; at most 100,000 are taken (thin the file, or give "
         "check points to lidarcal evaluate)")
     assert elapsed < 30, elapsed
-    assert int(peak_kb) < 600_000, peak_kb
+    assert int(peak_kb) < 400_000, peak_kb  # (237 MB for a one-line file; 473 MB before)
     assert not (tmp_path / "cal.yaml").exists()
