@@ -126,9 +126,12 @@ def test_an_output_in_a_missing_directory_is_refused(capsys, inputs, command, na
 
 
 def _limit_file_size(nbytes: int) -> None:
-    """In the child before exec: writes past ``nbytes`` fail with ``EFBIG`` ("File too
-    large"), as on a full disk, instead of killing the process with SIGXFSZ."""
-    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    """In the child before exec: files cannot grow past ``nbytes``, as a shell's ``ulimit -f``
+    would start it, SIGXFSZ at its default (killing the process). Writes past the limit
+    then fail with ``EFBIG`` ("File too large"), as on a full disk, because the interpreter
+    ignores SIGXFSZ on starting (as it does SIGPIPE); a command dying of it would leave its
+    temporaries behind, which each test would see."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_DFL)
     resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, resource.RLIM_INFINITY))
 
 
