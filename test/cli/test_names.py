@@ -177,3 +177,20 @@ def test_a_name_longer_than_the_file_system_takes_is_refused_before_any_work(
     assert one_line_error(rc, err, args[0]) == (
         f"{out}: name of 256 bytes; the file system takes at most 255")
     assert files.snapshot() == before
+
+
+def test_a_urdf_joint_name_past_the_limit_is_refused_before_writing(capsys, tmp_path) -> None:
+    """A sensor-frame calibration named in 255 bytes: its URDF joint beside it
+    (``NAME.urdf.xml``) would take 259; refused before the calibration, nothing written."""
+    bag = tmp_path / "uav"
+    rc, _, err = run(capsys, "simulate", "--uav", "--layout", "vlp16", "--seed", "2",
+                     "--columns", "16", "--uav-line-length", "40", "--exact-ins", "-o", bag)
+    assert rc == 0, err
+    out = tmp_path / ("ü" * 124 + "xx" + ".yaml")
+    assert len(out.name.encode()) == 255
+    rc, _, err = run(capsys, "calibrate", bag, "--points", "/velodyne_points", "--trajectory",
+                     "/ins/odometry", "-o", out, "-q")
+    urdf = out.with_name(out.stem + ".urdf.xml")
+    assert one_line_error(rc, err.splitlines()[-1] + "\n") == (
+        f"{urdf}: name of 259 bytes; the file system takes at most 255")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["uav", "uav_truth.yaml"]
