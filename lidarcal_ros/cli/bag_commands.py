@@ -84,8 +84,11 @@ def cmd_import(args: argparse.Namespace) -> int:
 
     if args.dask is not None:
         parse_dask_option(args.dask)  # (a malformed value refused before any work)
+    # The trajectory and its accuracy file are named by strings (or 'estimate', 'none').
+    named = [Path(v) for v in (args.trajectory_source, args.trajectory_accuracy)
+             if v not in (None, "estimate", "none")]
     check_output(args.output, overwrite=args.overwrite, directory=args.output.suffix != ".mcap",
-                 inputs=other_paths(args, "output"))
+                 inputs=[*other_paths(args, "output"), *named])
     options = ImportOptions(
         trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
         trajectory_accuracy=args.trajectory_accuracy,

@@ -148,7 +148,8 @@ def _calibrate_mounting(args: argparse.Namespace, config: Any, sensor: Any,
         write_mounting_calibration,
     )
 
-    check_output(urdf_path(args.output), overwrite=args.overwrite)
+    check_output(urdf_path(args.output), overwrite=args.overwrite,
+                 inputs=other_paths(args, "output"))
     csv = args.control or config["calibration.control_points_file"] or None
     control = read_control_csv(csv) if csv else None
     # --solve-for, else calibration.solve_for, as the calibrator node takes it

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from lidarcal_ros.cli.common import finite_float
+from lidarcal_ros.cli.common import finite_float, other_paths
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
 
@@ -277,7 +277,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     )
 
     for key, path in simulation_paths(args.output).items():
-        check_output(path, overwrite=args.overwrite, directory=key == "bag")
+        check_output(path, overwrite=args.overwrite, directory=key == "bag",
+                     inputs=other_paths(args, "output"))  # (--lines named as the truth)
     origin = _parse_two_numbers(args.origin, "--origin", "X,Y")
     if not args.density > 0:
         raise ConfigError(f"--density must be positive, got {args.density}")

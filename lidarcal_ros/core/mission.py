@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lidarcal_ros.core.georeferencing.attitude import (
+    bridge_missing,
     headings_from_quaternions,
     normalise_quaternions,
 )
@@ -139,8 +140,7 @@ class Trajectory:
                                                         dtype=np.float64).reshape(-1, 4)
         ok = (np.isfinite(t) & np.isfinite(xyz).all(axis=1) & ~beyond_map(xyz)
               if source is None else screen_samples(t, xyz, source))
-        if source is not None and q is not None:
-            screen_orientations(q[ok], source)
+        said = screen_orientations(q[ok]) if source is not None and q is not None else []
         order = np.flatnonzero(ok)
         order = order[np.argsort(t[order], kind="stable")]
         if order.size:
@@ -148,8 +148,18 @@ class Trajectory:
             order = order[np.concatenate(([True], np.diff(ts) > 0))]
         sigma = (None if position_sigma is None
                  else np.asarray(position_sigma, dtype=np.float64).reshape(-1, 3)[order])
-        return cls(t[order], xyz[order], None if q is None else q[order],
+        traj = cls(t[order], xyz[order], None if q is None else q[order],
                    full_attitude=full_attitude, position_sigma=sigma)
+        if source is not None and traj.orientation is not None:
+            traj.orientation, bridged = bridge_missing(traj.t, traj.orientation,
+                                                       max_gap_s=BRIDGE_S)
+            if bridged:
+                said.append(f"{bridged} poses without one between poses with one at most "
+                            f"{BRIDGE_S:g} s apart: their orientation interpolated")
+        if said:
+            logger.warning("%s: of %d orientation quaternions, %s", source,
+                           0 if q is None else int(ok.sum()), "; ".join(said))
+        return traj
 
     @classmethod
     def of_normalised(cls, t: np.ndarray, xyz: np.ndarray, orientation: np.ndarray | None,
@@ -199,6 +209,11 @@ CONFLICT_M = 0.001
 MAX_COORDINATE_M = 1e9
 #: An orientation whose quaternion's norm is this far from 1 is said once (then normalised).
 UNIT_TOLERANCE = 0.01
+#: Poses of a file without an orientation (zero, not finite) between two with one at most
+#: this far apart (s) get theirs by slerp between them, said once: an attitude field dropped
+#: from a message or two of an INS stream (at 50 Hz, 4 missing). Slerp misses a turbulent
+#: attitude (0.5 rad/s^2) by ``a h^2 / 8``: 6e-4 rad over 0.1 s at worst, at one pose.
+BRIDGE_S = 0.1
 #: A stamp up to this much (s) earlier than one read before it is sorted into place (messages
 #: reordered or late on their way, as live samples can be); more is a clock that stepped back
 #: (a reset, a leap second of 1 s, two sources on one topic), after which two paths share
@@ -333,10 +348,10 @@ def beyond_map(xyz: np.ndarray) -> np.ndarray:
         return np.asarray((np.abs(xyz) > MAX_COORDINATE_M).any(axis=1), dtype=bool)
 
 
-def screen_orientations(q: np.ndarray, source: str) -> None:
-    """Say in one warning line naming ``source`` how many quaternions ``q`` (n, 4) xyzw are
-    far from unit length (normalised) or zero among others that are not (read as poses
-    without orientation)."""
+def screen_orientations(q: np.ndarray) -> list[str]:
+    """What to say of the quaternions ``q`` (n, 4) xyzw of a file: how many are far from unit
+    length (normalised) or zero among others that are not (read as poses without
+    orientation); the parts of one warning line."""
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
     scale = np.abs(q).max(axis=1) if q.size else np.zeros(0)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -350,9 +365,7 @@ def screen_orientations(q: np.ndarray, source: str) -> None:
                      f"{norm[off].max():.3g}): normalised")
     if zero.any() and given.any():
         parts.append(f"{int(zero.sum())} zero: read as poses without orientation")
-    if parts:
-        logger.warning("%s: of %d orientation quaternions, %s", source, q.shape[0],
-                       "; ".join(parts))
+    return parts
 
 
 @dataclass
@@ -416,6 +429,6 @@ class Mission:
         return sum(len(s) for s in self.strips)
 
 
-__all__ = ["CONFLICT_M", "LATE_POSE_M", "MAX_COORDINATE_M", "REORDER_S", "UNIT_TOLERANCE",
-           "ControlPoints", "Mission", "Strip", "Trajectory", "beyond_map", "screen_orientations",
-           "screen_samples", "stepped_back"]
+__all__ = ["BRIDGE_S", "CONFLICT_M", "LATE_POSE_M", "MAX_COORDINATE_M", "REORDER_S",
+           "UNIT_TOLERANCE", "ControlPoints", "Mission", "Strip", "Trajectory", "beyond_map",
+           "screen_orientations", "screen_samples", "stepped_back"]

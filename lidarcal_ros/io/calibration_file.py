@@ -26,7 +26,7 @@ from lidarcal_ros.core.trajectory.strip_errors import (
 )
 from lidarcal_ros.core.units import finite_or_none
 from lidarcal_ros.errors import ConfigError, OutputError
-from lidarcal_ros.io.output_files import os_reason, write_text
+from lidarcal_ros.io.output_files import os_reason, write_together
 from lidarcal_ros.io.yaml_file import read_yaml
 
 ROOT_KEY = "lidarcal_calibration"
@@ -319,10 +319,11 @@ def write_calibration(path: str | Path, result: CalibrationResult, *,
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(f"{path}: cannot write calibration ({os_reason(exc)})") from None
-    if extrinsic is not None:
-        write_text(urdf_path(path), extrinsic.urdf_joint(), what="URDF joint",
-                   overwrite=overwrite)
-    return write_text(path, text, what="calibration", overwrite=overwrite)
+    files = [(path, text.encode("utf-8"), "calibration")]
+    if extrinsic is not None:  # both or neither: a joint beside no calibration misleads
+        files.append((urdf_path(path), extrinsic.urdf_joint().encode("utf-8"), "URDF joint"))
+    write_together(files, overwrite=overwrite)
+    return path
 
 
 def read_calibration(path: str | Path) -> CalibrationRecord:

@@ -10,7 +10,7 @@ import errno
 import hashlib
 import os
 import shutil
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from lidarcal_ros.errors import OutputError, one_line
@@ -63,11 +63,15 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     ------
     OutputError
         The output is an input; it exists and ``overwrite`` is False; it is a directory where
-        a file is written; it is a dangling symbolic link (whatever ``overwrite``); its parent
-        directory is missing or not writable (the operating system's reason: permission
-        denied, read-only file system...).
+        a file is written; it is a dangling symbolic link (whatever ``overwrite``); its name
+        is longer than the file system takes; its parent directory is missing or not writable
+        (the operating system's reason: permission denied, read-only file system...).
     """
     path = Path(path)
+    name_max = _name_max(path.parent)
+    if len(path.name.encode()) > name_max:  # else the OS's "File name too long" alone
+        raise OutputError(f"{path}: name of {len(path.name.encode())} bytes; the file system "
+                          f"takes at most {name_max}")
     for source in inputs:
         if overlapping(path, Path(source)):
             raise OutputError(f"{path}: is also an input ({source}); write the output "
@@ -94,6 +98,14 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool,
     finally:  # also when a signal arrives between the two
         remove_quietly(probe)
     return path
+
+
+def _name_max(directory: Path) -> int:
+    """The longest name, bytes, the file system of ``directory`` takes (255 if unsaid)."""
+    try:
+        return int(os.pathconf(directory, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
 
 
 def hidden_beside(path: Path, kind: str) -> Path:
@@ -161,43 +173,51 @@ def write_text(path: str | os.PathLike[str], text: str, *, what: str,
 
 def write_bytes(path: str | os.PathLike[str], data: bytes, *, what: str,
                 overwrite: bool = True) -> Path:
-    """Write a file completely or not at all.
+    """Write a file completely or not at all (:func:`write_together` of one file)."""
+    write_together([(Path(path), data, what)], overwrite=overwrite)
+    return Path(path)
+
+
+def write_together(files: Sequence[tuple[Path, bytes, str]], *, overwrite: bool = True) -> None:
+    """Write files that belong together (a calibration and its URDF joint beside it) all or
+    none: each to its temporary first, then, every one complete, each moved in place.
 
     Parameters
     ----------
-    path : path-like
-    data : bytes
-    what : str
-        What the file is, for the error line (``calibration``, ``report``...).
+    files : sequence of (path, data, what)
+        Each file's path, bytes and what it is, for the error line (``calibration``,
+        ``report``...).
     overwrite : bool, keyword-only
-        Replace a file at ``path``; otherwise one that appeared since the command checked
-        its output is refused (:func:`install`).
+        Replace a file at a path; otherwise one that appeared since the command checked its
+        output is refused (:func:`install`).
 
     Raises
     ------
     OutputError
-        ``"<path>: cannot write <what> (<OS reason>)"``; neither the new file nor a partial
-        one is left, and a previous file at ``path`` is untouched.
+        ``"<path>: cannot write <what> (<OS reason>)"``: no new file nor a partial one is
+        left (a disk filling up at the second file takes the first one's temporary away
+        too), and the previous files are untouched.
     """
-    path = Path(path)
-    tmp = temporary_beside(path)
+    temporaries = [temporary_beside(path) for path, _, _ in files]
+    path, what = files[0][0], files[0][2]  # the file being written or moved
     try:
-        with open(tmp, "wb") as stream:
-            stream.write(data)
-        install(tmp, path, overwrite=overwrite)
+        for entry, tmp in zip(files, temporaries, strict=True):
+            path, data, what = entry
+            with open(tmp, "wb") as stream:
+                stream.write(data)
+        for entry, tmp in zip(files, temporaries, strict=True):
+            path, _, what = entry
+            install(tmp, path, overwrite=overwrite)
     except FileExistsError:
-        remove_quietly(tmp)
         raise OutputError(f"{path}: {APPEARED}") from None
     except OSError as exc:
-        remove_quietly(tmp)
         raise OutputError(f"{path}: cannot write {what} ({os_reason(exc)})") from None
-    except BaseException:  # Ctrl-C, SIGTERM
-        remove_quietly(tmp)
-        raise
-    return path
+    finally:  # also on Ctrl-C or SIGTERM; an installed temporary is gone already
+        for tmp in temporaries:
+            remove_quietly(tmp)
 
 
 __all__ = [
     "APPEARED", "EXISTS", "check_output", "hidden_beside", "install", "os_reason", "overlapping",
-    "remove_quietly", "temporary_beside", "write_bytes", "write_text",
+    "remove_quietly", "temporary_beside", "write_bytes", "write_text", "write_together",
 ]

@@ -226,6 +226,11 @@ def _subnormal_points(k: int, points: np.ndarray) -> None:
         points["x"][:5], points["z"][5:10] = 5e-324, -5e-324
 
 
+def _subnormal_components(i: int, xyz: np.ndarray, q: np.ndarray) -> None:
+    """Roll and pitch of the level poses (their x, y) subnormal, not zero: of unit length."""
+    q[0], q[1] = 5e-324, -5e-324
+
+
 def _zero_quaternions(i: int, xyz: np.ndarray, q: np.ndarray) -> None:
     if i % 50 == 7:
         q[:] = 0.0
@@ -250,10 +255,13 @@ NUMBERS: dict[str, tuple[dict[str, Any], str]] = {
                               "trajectory /lidar/trajectory: of {n} orientation quaternions, "
                               "{n} not of unit length (norms 4.94e-324 to 4.94e-324): "
                               "normalised"),
+    "subnormal quaternion components": ({"pose": _subnormal_components}, ""),
     "zero quaternions among others": ({"pose": _zero_quaternions},
                                       "trajectory /lidar/trajectory: of {n} orientation "
                                       "quaternions, {n50} zero: read as poses without "
-                                      "orientation"),
+                                      "orientation; {n50} poses without one between poses "
+                                      "with one at most 0.1 s apart: their orientation "
+                                      "interpolated"),
 }
 
 

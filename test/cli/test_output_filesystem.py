@@ -59,8 +59,9 @@ class Inputs:
             "calibrate": ("calibrate", self.bag, "-o", output, "--config", self.config),
             "import": ("import", self.strip, "--trajectory", self.sbet, "-o", output,
                        "--qa-cell", "0"),
-            "report": ("report", self.bag, "--calibration", self.calibration, "-o", output,
-                       "--config", self.config),
+            "report": ("report", self.bag, "--calibration", self.calibration, "-o", output),
+            "simulate": ("simulate", "-o", output, "--scenario", "flat", "--density", "0.05",
+                         "--line-length", "300"),
         }[command]
 
     def snapshot(self) -> list[tuple[str, bytes]]:
@@ -125,9 +126,12 @@ def test_an_output_in_a_missing_directory_is_refused(capsys, inputs, command, na
 
 
 def _limit_file_size(nbytes: int) -> None:
-    """In the child before exec: writes past ``nbytes`` fail with ``EFBIG`` ("File too
-    large"), as on a full disk, instead of killing the process with SIGXFSZ."""
-    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    """In the child before exec: files cannot grow past ``nbytes``, as a shell's ``ulimit -f``
+    would start it, SIGXFSZ at its default (killing the process). Writes past the limit
+    then fail with ``EFBIG`` ("File too large"), as on a full disk, because the interpreter
+    ignores SIGXFSZ on starting (as it does SIGPIPE); a command dying of it would leave its
+    temporaries behind, which each test would see."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_DFL)
     resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, resource.RLIM_INFINITY))
 
 
@@ -137,30 +141,32 @@ FULL_AT = {"cal.yaml": 1000}
 
 
 @pytest.mark.parametrize(("command", "name"), [*OUTPUTS, ("import", "bag"), ("correct", "bag"),
-                                               ("report", "report.html")])
+                                               ("report", "report.html"), ("simulate", "sim")])
 def test_a_full_disk_is_one_line_and_leaves_the_previous_output(inputs, command,
                                                                 name) -> None:
     """In a child process whose files cannot grow past a limit: one line with the operating
     system's reason, no partial file or temporary, the previous output and inputs untouched."""
     out = inputs.root / "out" / name
-    args = [str(a) for a in inputs.args(command, out)]
-    rc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *args, "-q"],
+    args = [str(a) for a in inputs.args(command, out)] + (["-q"] if command != "simulate" else [])
+    rc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *args],
                         capture_output=True, text=True, timeout=300, check=False)
     assert rc.returncode == 0, rc.stderr
     kept = {p.relative_to(out.parent): p.read_bytes()
             for p in ([out, *out.rglob("*")] if out.is_dir() else [out]) if p.is_file()}
     assert sum(map(len, kept.values())) > FULL_AT.get(name, 100_000)
+    kept_beside = {p: p.read_bytes() for p in out.parent.iterdir() if p != out}
     before = inputs.snapshot()
-    proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *args, "-q", "--overwrite"],
+    proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *args, "--overwrite"],
                           capture_output=True, text=True, timeout=300, check=False,
                           preexec_fn=lambda: _limit_file_size(FULL_AT.get(name, 100_000)))
     # A bag fails while written or, its last chunk flushed on closing, while finished.
     what = {".yaml": "write calibration ", ".las": "write ", ".laz": "write ",
-            ".html": "write the report "}.get(
-        out.suffix, "(write|finish) bag ")
+            ".html": "write the report "}.get(out.suffix, "(write|finish) bag ")
     assert re.fullmatch(f"{re.escape(str(out))}: cannot {what}\\(File too large\\)",
                         one_line_error(proc.returncode, proc.stderr, command))
-    assert left_in(inputs.root / "out") == [name]
+    # simulate's control and truth files beside its bag: the previous ones, no new one
+    assert left_in(inputs.root / "out") == sorted([name, *(p.name for p in kept_beside)])
+    assert all(p.read_bytes() == data for p, data in kept_beside.items())
     after = {p.relative_to(out.parent): p.read_bytes()
              for p in ([out, *out.rglob("*")] if out.is_dir() else [out]) if p.is_file()}
     assert after == kept
@@ -232,3 +238,30 @@ def test_long_and_unicode_names_are_read_and_written(capsys, small_mission, tmp_
         topic = "/lidar/points_corrected" if command == "correct" else "/lidar/points"
         assert read_mission(out, points_topic=topic).n_points == \
             small_mission.mission.n_points
+
+
+def test_a_full_disk_leaves_neither_the_calibration_nor_its_urdf_joint(tmp_path) -> None:
+    """A sensor-frame calibration with its URDF joint beside it: the disk full at the
+    calibration (written with the joint, all or none) leaves no joint beside no calibration,
+    and the previous pair as it was (before: the new joint was left, the old calibration)."""
+    from lidarcal_ros.io.calibration_file import urdf_path
+
+    bag = tmp_path / "uav"
+    subprocess.run([sys.executable, "-m", "lidarcal_ros", "simulate", "--uav", "--layout",
+                    "os1-32", "--seed", "2", "--columns", "32", "--uav-line-length", "80",
+                    "--exact-ins", "-o", str(bag)], capture_output=True, timeout=300, check=True)
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / "mounting.yaml"
+    args = [sys.executable, "-m", "lidarcal_ros", "calibrate", str(bag), "--points",
+            "/velodyne_points", "--trajectory", "/ins/odometry", "-o", str(out), "-q"]
+    first = subprocess.run(args, capture_output=True, text=True, timeout=300, check=False)
+    assert first.returncode == 0, first.stderr
+    kept = {p.name: p.read_bytes() for p in (out, urdf_path(out))}
+    assert len(kept[out.name]) > 1000 > len(kept[urdf_path(out).name]) > 100
+    urdf_path(out).unlink()  # the joint the full disk would let through: none before either
+    proc = subprocess.run([*args, "--overwrite"], capture_output=True, text=True, timeout=300,
+                          check=False, preexec_fn=lambda: _limit_file_size(1000))
+    assert one_line_error(proc.returncode, proc.stderr.splitlines()[-1] + "\n", "calibrate") \
+        == f"{out}: cannot write calibration (File too large)"
+    assert left_in(tmp_path / "out") == [out.name]
+    assert out.read_bytes() == kept[out.name]

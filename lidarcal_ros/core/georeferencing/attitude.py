@@ -42,12 +42,61 @@ def normalise_quaternions(q: np.ndarray, *, oriented: bool = False) -> np.ndarra
     if not oriented and not (~absent & ~identity).any():
         absent |= identity  # identity everywhere: the producer has no attitude
     q[absent] = np.nan
+    _one_hemisphere(q)
+    return q
+
+
+def _one_hemisphere(q: np.ndarray) -> None:
+    """Flip rows of ``q`` (n, 4) in place so that consecutive rows lie in one hemisphere (a
+    NaN row breaks the chain: the row after it is not compared)."""
     if q.shape[0] > 1:
         flip = np.einsum("ij,ij->i", q[1:], q[:-1]) < 0.0
         # Cumulative parity: a row is flipped when an odd number of sign changes precede it.
         parity = np.concatenate(([False], np.logical_xor.accumulate(flip)))
         q[parity] = -q[parity]
-    return q
+
+
+def bridge_missing(t: np.ndarray, q: np.ndarray, *, max_gap_s: float
+                   ) -> tuple[np.ndarray, int]:
+    """Orientations for the samples that lack one between two that have one at most
+    ``max_gap_s`` apart (an attitude field dropped from a message or two of an INS stream):
+    spherical linear interpolation between those two.
+
+    Parameters
+    ----------
+    t : (n,) float64
+        Sample times, s, strictly increasing.
+    q : (n, 4) float64
+        Unit quaternions xyzw (:func:`normalise_quaternions`), NaN rows where absent.
+    max_gap_s : float, keyword-only
+        The longest time between the two samples with an orientation around a gap bridged, s.
+
+    Returns
+    -------
+    (n, 4) float64
+        ``q`` itself where nothing is bridged; else a copy with the bridged rows filled, the
+        rows in one hemisphere across them.
+    int
+        The samples bridged.
+    """
+    missing = np.isnan(q[:, 0])
+    has = np.flatnonzero(~missing)
+    if not missing.any() or has.size < 2:
+        return q, 0
+    gaps = np.flatnonzero(missing)
+    after = np.searchsorted(has, gaps)
+    inside = (after > 0) & (after < has.size)
+    before_t = t[has[np.clip(after - 1, 0, has.size - 1)]]
+    after_t = t[has[np.clip(after, 0, has.size - 1)]]
+    bridged = gaps[inside & (after_t - before_t <= max_gap_s * (1.0 + 1e-9))]  # (0.68-0.58)
+    if not bridged.size:
+        return q, 0
+    known = q[has]
+    _one_hemisphere(known)  # (the rows either side of a gap were not compared)
+    out = q.copy()
+    out[has] = known
+    out[bridged] = slerp(t[has], known, t[bridged])
+    return out, int(bridged.size)
 
 
 def rotation_matrices(q: np.ndarray) -> np.ndarray:
@@ -376,6 +425,7 @@ __all__ = [
     "attitude_from_quaternions",
     "body_rotations",
     "body_rotations_from_attitude",
+    "bridge_missing",
     "headings_from_quaternions",
     "interpolated_frames",
     "normalise_quaternions",

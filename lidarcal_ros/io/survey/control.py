@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -48,18 +49,24 @@ def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8-sig")
+        with open(p, encoding="utf-8-sig", newline=None) as stream:
+            return _read_rows(p, stream)
     except FileNotFoundError:
         raise InputError(f"{p}: control point file not found") from None
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"{p}: cannot read control point file ({err})") from None
-    lines = [
-        (no, line) for no, line in enumerate(text.splitlines(), start=1)
-        if line.strip() and not line.lstrip().startswith("#")
-    ]
-    if not lines:
+
+
+def _read_rows(p: Path, stream: Iterable[str]) -> ControlPoints:
+    """The control points of the lines of an open file, read one at a time: a file of more
+    than :data:`MAX_CONTROL_POINTS` rows is counted, not held (a million rows: some 30 MB
+    of text, 450 MB as a list of lines)."""
+    lines = ((no, line) for no, line in enumerate(stream, start=1)
+             if line.strip() and not line.lstrip().startswith("#"))
+    first = next(lines, None)
+    if first is None:
         raise InputError(f"{p}: empty control point file (expected header id,x,y,z)")
-    header_no, header = lines[0]
+    header_no, header = first
     names = [c.strip().lower() for c in header.split(",")]
     missing = [c for c in COLUMNS if c not in names]
     if missing:
@@ -68,14 +75,15 @@ def read_control_csv(path: str | os.PathLike[str]) -> ControlPoints:
             f"(found: {header.strip()})"
         )
     col = {c: names.index(c) for c in COLUMNS}
-    if len(lines) - 1 > MAX_CONTROL_POINTS:
-        raise InputError(f"{p}: {len(lines) - 1:,} control points; at most "
-                         f"{MAX_CONTROL_POINTS:,} are taken (thin the file, or give check points "
-                         "to lidarcal evaluate)")
     ids: list[str] = []
     seen: set[str] = set()
     xyz: list[tuple[float, float, float]] = []
-    for no, line in lines[1:]:
+    for no, line in lines:
+        if len(ids) == MAX_CONTROL_POINTS:
+            rows = len(ids) + 1 + sum(1 for _ in lines)
+            raise InputError(f"{p}: {rows:,} control points; at most "
+                             f"{MAX_CONTROL_POINTS:,} are taken (thin the file, or give check "
+                             "points to lidarcal evaluate)")
         cells = [c.strip() for c in line.split(",")]
         if len(cells) < len(names):
             raise InputError(

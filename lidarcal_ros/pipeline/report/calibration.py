@@ -96,14 +96,21 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
         facts.append(("point-positioning model", str(body["model_detail"])))
     corr = body.get("correspondences")
     if isinstance(corr, Mapping):
-        facts.append(("correspondences", f"{corr.get('strip_pairs', '?')} strip-pair, "
-                                         f"{corr.get('control', '?')} control"))
+        counts = [corr.get(k) if isinstance(corr.get(k), int) else "?"  # (not .nan, 1e400)
+                  for k in ("strip_pairs", "control")]
+        facts.append(("correspondences", f"{counts[0]} strip-pair, {counts[1]} control"))
     coverage = {}
-    for pair in body.get("strip_pairs") or []:
+    for k, pair in enumerate(body.get("strip_pairs") or []):
         strips = pair.get("strips") if isinstance(pair, Mapping) else None
         value = pair.get("coverage") if isinstance(pair, Mapping) else None
         if isinstance(strips, list) and len(strips) == 2 and isinstance(value, (int, float)):
-            a, b = sorted(int(s) for s in strips)
+            if not all(isinstance(s, int) and not isinstance(s, bool) for s in strips):
+                raise ConfigError(f"{path}: strip_pairs[{k}].strips must be two strip ids, got "
+                                  f"{strips!r}")
+            if not 0.0 <= value <= 1.0:  # (NaN too)
+                raise ConfigError(f"{path}: strip_pairs[{k}].coverage must be a fraction in "
+                                  f"[0, 1], got {value!r}")
+            a, b = sorted(strips)
             coverage[(a, b)] = float(value)
     warnings = [str(w) for w in body.get("warnings") or []]
     for strip in body.get("strips") or []:
@@ -126,10 +133,14 @@ def _correlation_matrix(path: Path, doc: Any) -> tuple[list[str], np.ndarray]:
         matrix = np.array(rows, dtype=np.float64)
     except (TypeError, ValueError):
         raise ConfigError(f"{path}: correlation.matrix is not a matrix of numbers") from None
-    if not names and matrix.size == 0:  # nothing estimated: [] as a file writes it
+    if not names and matrix.size == 0:  # nothing estimated (--write-identity): [] is 0 x 0
         matrix = matrix.reshape(0, 0)
     if matrix.shape != (len(names), len(names)):
         raise ConfigError(f"{path}: correlation.matrix is {matrix.shape}, expected "
                           f"{len(names)} x {len(names)} for its names")
+    # (a correlation is within [-1, 1]; round-off of the file's digits aside; NaN is not)
+    if not (np.abs(matrix) <= 1.0 + 1e-9).all():
+        raise ConfigError(f"{path}: correlation.matrix holds values outside [-1, 1] or not "
+                          "finite")
     return [str(n) for n in names], matrix
 
