@@ -345,7 +345,7 @@ def beyond_map(xyz: np.ndarray) -> np.ndarray:
     :data:`MAX_COORDINATE_M` (m)."""
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     with np.errstate(invalid="ignore"):
-        return (np.abs(xyz) > MAX_COORDINATE_M).any(axis=1)
+        return np.asarray((np.abs(xyz) > MAX_COORDINATE_M).any(axis=1))
 
 
 def screen_orientations(q: np.ndarray) -> list[str]:

@@ -41,7 +41,7 @@ MALFORMED = ("point_step", "no time field", "truncated")
 def _spoilt(raw: bytes, how: str) -> bytes:
     """A good cloud's CDR made malformed ``how``."""
     store = standard_typestore()
-    msg = store.deserialize_cdr(raw, POINTCLOUD2)
+    msg: Any = store.deserialize_cdr(raw, POINTCLOUD2)
     if how == "point_step":  # the fields reach past the step
         msg.point_step = 8
         msg.row_step = msg.width * 8
