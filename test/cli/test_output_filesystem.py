@@ -299,3 +299,17 @@ def test_a_directory_this_user_cannot_write_is_one_line(small_mission, tmp_path)
         assert left_in(out_dir) == []
     finally:
         shutil.rmtree(root)  # (as root: the 0555 directory's mode stops nothing)
+
+
+def test_a_full_disk_leaves_neither_the_cloud_nor_the_trajectory_out(inputs) -> None:
+    """``correct -o out.laz --trajectory-out traj.mcap`` with files limited below the
+    cloud's size: one line, neither output nor a temporary of either."""
+    out, trajectory = inputs.root / "out" / "out.laz", inputs.root / "out" / "traj.mcap"
+    args = [str(a) for a in inputs.args("correct", out)]
+    proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *args, "--trajectory-out",
+                           str(trajectory), "-q"], capture_output=True, text=True,
+                          timeout=300, check=False,
+                          preexec_fn=lambda: _limit_file_size(100_000))
+    assert one_line_error(proc.returncode, proc.stderr, "correct") == (
+        f"{out}: cannot write (File too large)")
+    assert left_in(inputs.root / "out") == []
