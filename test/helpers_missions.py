@@ -288,6 +288,16 @@ def strip_points(strip: Strip, dtype: np.dtype | list[tuple[str, str]] | None = 
     return out
 
 
+def write_mission_clouds(writer: BagWriter, mission: Mission, *,
+                         topic: str = "/lidar/points", chunk_seconds: float = 0.5) -> None:
+    """The mission's clouds in chunks of ``chunk_seconds``, strip after strip, each logged at
+    its first point's time, in the map frame (the poses are the caller's)."""
+    for s in mission.strips:
+        pts = strip_points(s)
+        for sl in cloud_chunks(s, chunk_seconds):
+            writer.write_cloud(topic, seconds_to_ns(float(s.t[sl.start])), "map", pts[sl])
+
+
 def write_cloud_bag(
     path: Path,
     mission: Mission,
@@ -427,6 +437,7 @@ __all__ = [
     "without_trajectory",
     "write_cloud_bag",
     "write_mcap_ros2_bag",
+    "write_mission_clouds",
     "write_params_file",
 ]
 

@@ -226,6 +226,12 @@ def _subnormal_points(k: int, points: np.ndarray) -> None:
         points["x"][:5], points["z"][5:10] = 5e-324, -5e-324
 
 
+def _subnormal_positions(i: int, xyz: np.ndarray, q: np.ndarray) -> None:
+    """The poses of the line flown along x = 0 (1636 of the mission's) at x = +-5e-324."""
+    if xyz[0] == 0.0:
+        xyz[0] = 5e-324 if i % 2 else -5e-324
+
+
 def _subnormal_components(i: int, xyz: np.ndarray, q: np.ndarray) -> None:
     """Roll and pitch of the level poses (their x, y) subnormal, not zero: of unit length."""
     q[0], q[1] = 5e-324, -5e-324
@@ -255,6 +261,7 @@ NUMBERS: dict[str, tuple[dict[str, Any], str]] = {
                               "trajectory /lidar/trajectory: of {n} orientation quaternions, "
                               "{n} not of unit length (norms 4.94e-324 to 4.94e-324): "
                               "normalised"),
+    "subnormal pose coordinates": ({"pose": _subnormal_positions}, ""),
     "subnormal quaternion components": ({"pose": _subnormal_components}, ""),
     "zero quaternions among others": ({"pose": _zero_quaternions},
                                       "trajectory /lidar/trajectory: of {n} orientation "

@@ -54,47 +54,43 @@ def files(small_mission: MissionFiles, tmp_path: Path) -> Files:
     return Files(small_mission, tmp_path)
 
 
-#: Each command with each of its inputs named as its output: the command line (``OUT`` the
-#: input's place), the input, and the refusal.
+#: Each command's inputs on its command line (the names of :class:`Files`' attributes).
+COMMAND_INPUTS: dict[str, tuple[str, ...]] = {
+    "calibrate": ("bag",), "correct": ("bag", "--calibration", "calibration"),
+    "report": ("bag", "--calibration", "calibration"),
+    "import": ("strip", "--trajectory", "sbet"), "recover": ("bag",)}
 INPUT = "is also an input"
 YAML_OUT = "lidarcal correct does not write .yaml files"
-SAME_PATH: dict[str, tuple[tuple[str, ...], str, str]] = {
-    "calibrate -o BAG": (("calibrate", "bag", "-o", "OUT"), "bag", INPUT),
-    "calibrate -o CONFIG": (("calibrate", "bag", "--config", "config", "-o", "OUT"), "config",
-                            INPUT),
-    "calibrate -o CONTROL": (("calibrate", "bag", "--control", "control", "-o", "OUT"),
-                             "control", INPUT),
-    "correct -o BAG": (("correct", "bag", "--calibration", "calibration", "-o", "OUT"), "bag",
-                       INPUT),
-    "correct -o CALIBRATION": (("correct", "bag", "--calibration", "calibration", "-o", "OUT"),
-                               "calibration", YAML_OUT),
-    "correct -o CONFIG": (("correct", "bag", "--calibration", "calibration", "--config",
-                           "config", "-o", "OUT"), "config", YAML_OUT),
-    "report -o BAG": (("report", "bag", "--calibration", "calibration", "-o", "OUT"), "bag",
-                      INPUT),
-    "report -o CALIBRATION": (("report", "bag", "--calibration", "calibration", "-o", "OUT"),
-                              "calibration", INPUT),
-    "report -o CONTROL": (("report", "bag", "--calibration", "calibration", "--control",
-                           "control", "-o", "OUT"), "control", INPUT),
-    "import -o STRIP": (("import", "strip", "--trajectory", "sbet", "-o", "OUT"), "strip",
-                        INPUT),
-    "import -o TRAJECTORY": (("import", "strip", "--trajectory", "sbet", "-o", "OUT"), "sbet",
-                             INPUT),
-    "recover -o BAG": (("recover", "bag", "-o", "OUT"), "bag",
-                       "the output must not be the damaged bag itself"),
-}
+#: Each command with one of its inputs (with the options naming it, if more) as its output,
+#: and the refusal.
+SAME_PATH: dict[str, tuple[str, str, tuple[str, ...], str]] = {
+    f"{command} -o {victim}": (command, victim, extra, refusal)
+    for command, victim, extra, refusal in [
+        ("calibrate", "bag", (), INPUT),
+        ("calibrate", "config", ("--config", "config"), INPUT),
+        ("calibrate", "control", ("--control", "control"), INPUT),
+        ("correct", "bag", (), INPUT),
+        ("correct", "calibration", (), YAML_OUT),
+        ("correct", "config", ("--config", "config"), YAML_OUT),
+        ("report", "bag", (), INPUT),
+        ("report", "calibration", (), INPUT),
+        ("report", "control", ("--control", "control"), INPUT),
+        ("import", "strip", (), INPUT),
+        ("import", "sbet", (), INPUT),
+        ("recover", "bag", (), "the output must not be the damaged bag itself"),
+    ]}
 
 
 @pytest.mark.parametrize("case", SAME_PATH)
 def test_an_output_that_is_its_own_input_is_refused(capsys, files, case) -> None:
     """With ``--overwrite``: refused before any work (``correct`` refuses a YAML output by
     its kind first), the input's bytes as they were."""
-    argv, which, refusal = SAME_PATH[case]
+    command, which, extra, refusal = SAME_PATH[case]
     victim = getattr(files, which)
-    args = [victim if a == "OUT" else getattr(files, a, a) for a in argv]
+    args = [getattr(files, a, a) for a in (*COMMAND_INPUTS[command], *extra)]
     before = files.snapshot()
-    rc, _, err = run(capsys, *args, "--overwrite")
-    reason = one_line_error(rc, err, argv[0])
+    rc, _, err = run(capsys, command, *args, "-o", victim, "--overwrite")
+    reason = one_line_error(rc, err, command)
     assert reason.startswith(f"{victim}: {refusal}"), reason
     assert files.snapshot() == before
 

@@ -18,6 +18,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -265,3 +266,68 @@ def test_a_full_disk_leaves_neither_the_calibration_nor_its_urdf_joint(tmp_path)
         == f"{out}: cannot write calibration (File too large)"
     assert left_in(tmp_path / "out") == [out.name]
     assert out.read_bytes() == kept[out.name]
+
+
+def _as_another_user() -> Any:
+    """A ``preexec_fn`` that runs a child as ``nobody`` (root here: permissions do not stop
+    root), None when this process is not root; the test skipped, saying why, when such a
+    child cannot run ``lidarcal`` at all."""
+    if os.geteuid() != 0:
+        return None
+
+    def drop() -> None:
+        os.setgid(65534)
+        os.setuid(65534)
+
+    try:
+        probe = subprocess.run([sys.executable, "-c", "import lidarcal_ros"], preexec_fn=drop,
+                               capture_output=True, text=True, timeout=60, check=False)
+        refusal = probe.stderr.strip().splitlines()[-1:] if probe.returncode else []
+    except OSError as exc:
+        refusal = [str(exc)]
+    if refusal:
+        pytest.skip("a real read-only directory needs a user other than root, and this "
+                    f"machine's interpreter ({sys.executable}) or checkout cannot be run by "
+                    f"one ({refusal[0]}); test_a_read_only_file_system_is_one_line simulates "
+                    "it (EROFS) instead")
+    return drop
+
+
+def test_a_directory_this_user_cannot_write_is_one_line(small_mission, tmp_path) -> None:
+    """As a user who may not write the output directory (mode 0555): one line with the
+    operating system's reason, before any work, nothing written."""
+    preexec = _as_another_user()
+    root = Path(tempfile.mkdtemp(prefix="lidarcal-ro-"))
+    try:
+        os.chmod(root, 0o755)
+        bag = Path(shutil.copytree(small_mission.bag, root / "mission"))
+        calibration = write_calibration_yaml(root / "cal.yaml", small_mission.sim.biases)
+        for p in [bag, *bag.iterdir(), calibration]:
+            os.chmod(p, 0o755 if p.is_dir() else 0o644)
+        out_dir = root / "out"
+        out_dir.mkdir(mode=0o555)
+        os.chmod(out_dir, 0o555)
+        out = out_dir / "out.laz"
+        proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", "correct", str(bag),
+                               "--calibration", str(calibration), "-o", str(out), "--crs",
+                               "EPSG:32633"], preexec_fn=preexec, capture_output=True,
+                              text=True, timeout=300, check=False)
+        assert one_line_error(proc.returncode, proc.stderr, "correct") == (
+            f"{out}: cannot write in {out_dir} (Permission denied)")
+        assert left_in(out_dir) == []
+    finally:
+        shutil.rmtree(root)  # (as root: the 0555 directory's mode stops nothing)
+
+
+def test_a_full_disk_leaves_neither_the_cloud_nor_the_trajectory_out(inputs) -> None:
+    """``correct -o out.laz --trajectory-out traj.mcap`` with files limited below the
+    cloud's size: one line, neither output nor a temporary of either."""
+    out, trajectory = inputs.root / "out" / "out.laz", inputs.root / "out" / "traj.mcap"
+    args = [str(a) for a in inputs.args("correct", out)]
+    proc = subprocess.run([sys.executable, "-m", "lidarcal_ros", *args, "--trajectory-out",
+                           str(trajectory), "-q"], capture_output=True, text=True,
+                          timeout=300, check=False,
+                          preexec_fn=lambda: _limit_file_size(100_000))
+    assert one_line_error(proc.returncode, proc.stderr, "correct") == (
+        f"{out}: cannot write (File too large)")
+    assert left_in(inputs.root / "out") == []

@@ -20,7 +20,7 @@ import helpers_missions
 import numpy as np
 import pytest
 import yaml
-from helpers_missions import MissionFiles, cloud_chunks, strip_points, write_params_file
+from helpers_missions import MissionFiles, write_mission_clouds, write_params_file
 
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.io.bag.format import ODOMETRY, seconds_to_ns
@@ -42,11 +42,7 @@ def _odometry_bag(path: Path, mission: Mission,
     traj = mission.trajectory
     assert traj.orientation is not None
     with BagWriter(path) as writer:
-        for s in mission.strips:
-            pts = strip_points(s)
-            for sl in cloud_chunks(s, 0.5):
-                writer.write_cloud("/lidar/points", seconds_to_ns(float(s.t[sl.start])), "map",
-                                   pts[sl])
+        write_mission_clouds(writer, mission)
         t: Any = writer._types
         zero3 = t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
         for i in range(len(traj)):

@@ -106,3 +106,38 @@ def test_long_and_unicode_names_are_written(tmp_path: Path, name: str) -> None:
     write_text(path, "done\n", what="calibration", overwrite=False)
     assert path.read_text() == "done\n"
     assert [p.name for p in tmp_path.iterdir()] == [name]
+
+
+def test_files_written_together_are_all_or_none(tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The second file's write fails (a full disk): neither file is new, the first's
+    previous content kept, no temporary left; both written when nothing fails."""
+    from lidarcal_ros.io import output_files
+
+    first, second = tmp_path / "cal.yaml", tmp_path / "cal.urdf.xml"
+    first.write_text("old calibration")
+    real_open = open
+
+    def full_at_second(path: object, *args: object, **kwargs: object) -> object:
+        if Path(str(path)) == temporary_beside(second):
+            raise OSError(28, "No space left on device", str(path))
+        return real_open(path, *args, **kwargs)  # type: ignore[call-overload]
+
+    monkeypatch.setattr(output_files, "open", full_at_second, raising=False)
+    files = [(first, b"new calibration", "calibration"), (second, b"<joint/>", "URDF joint")]
+    with pytest.raises(OutputError) as raised:
+        output_files.write_together(files)
+    assert str(raised.value) == f"{second}: cannot write URDF joint (No space left on device)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.yaml"]
+    assert first.read_text() == "old calibration"
+    monkeypatch.undo()
+    output_files.write_together(files)
+    assert first.read_bytes() == b"new calibration" and second.read_bytes() == b"<joint/>"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.urdf.xml", "cal.yaml"]
+
+
+def test_a_name_longer_than_the_file_system_takes_is_refused(tmp_path: Path) -> None:
+    assert check_output(tmp_path / ("a" * 255), overwrite=False) == tmp_path / ("a" * 255)
+    with pytest.raises(OutputError, match=r"name of 256 bytes; the file system takes at most "
+                                          r"255$"):
+        check_output(tmp_path / ("ü" * 128), overwrite=False)

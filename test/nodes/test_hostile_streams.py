@@ -239,3 +239,29 @@ def test_nan_inf_and_out_of_range_are_refused_naming_the_parameter(nodes: Nodes,
             assert node.params[name] == old, (name, value)
             tried += 1
     assert tried > 40
+
+
+@pytest.mark.parametrize(("node_name", "name", "value"), [
+    ("lidarcal_calibrator", "idle_close_s", math.nan),
+    ("lidarcal_calibrator", "strip_gap_s", math.inf),
+    ("lidarcal_corrector", "max_trajectory_wait_s", -math.inf),
+    ("lidarcal_corrector", "max_backlog_mib", 1 << 30),
+])
+def test_a_refused_value_over_the_parameter_service(nodes: Nodes, node_name: str, name: str,
+                                                    value: Any) -> None:
+    """The same through the nodes' set_parameters service, as ``ros2 param set`` calls it:
+    the response says why, naming the parameter; the node's value unchanged."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    node = nodes.cal if node_name == "lidarcal_calibrator" else nodes.cor
+    old = node.params[name]
+    client = AsyncParameterClient(nodes.probe, node_name)
+    assert client.wait_for_services(timeout_sec=10.0)
+    future = client.set_parameters([Parameter(name, value=value)])
+    wait_until(future.done, 10.0, f"set_parameters on {node_name}")
+    response = future.result()
+    assert response is not None
+    (result,) = response.results
+    assert not result.successful and name in result.reason, result.reason
+    assert node.params[name] == old and node.get_parameter(name).value == old
