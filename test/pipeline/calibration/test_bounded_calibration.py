@@ -106,8 +106,8 @@ def test_lowest_priority_keeps_the_k_lowest_of_all_blocks() -> None:
     for start in range(0, priority.size, 333):
         stop = start + 333
         keep.add(priority[start:stop], np.arange(start, min(stop, priority.size)),
-                 np.zeros((priority[start:stop].size, 2)))
-    index, _ = keep.result()
+                 np.zeros((priority[start:stop].size, 3)))
+    index, _, _ = keep.result()
     np.testing.assert_array_equal(index, np.sort(np.argsort(priority)[:700]))
 
 
