@@ -145,7 +145,7 @@ def load_reduced_mission(
     report("reading the bag (3/4: samples)", 2 / 4)
     surface_of = [[c for plan, c in zip(plans, choosers, strict=True) if plan.b == k]
                   for k in range(len(ids))]
-    for block, piece in _pieces(blocks, passed=choosers):
+    for _, piece in _pieces(blocks, passed=choosers):
         users = surface_of[position[piece.strip_id]]
         if users:
             keys = FootprintGrid(cell).keys(piece.xyz)
