@@ -239,19 +239,22 @@ class SampleChooser:
     cell : float
         Footprint cell of ``keys`` (:meth:`offer`), m.
     batch : int
-        Candidates matched together (one TIN) at the least, until the last.
+        Candidates matched together (one TIN) at the least, until the last, unless more than
+        ``max_held`` surface points are held.
+    max_held : int
+        Surface points held beyond which the candidates ready are matched however few.
     """
 
     def __init__(self, index: np.ndarray, xyz: np.ndarray, priority: np.ndarray,
                  ready: np.ndarray, *, radius: float, quality: TinQuality, threshold: float,
                  per_class_cap: int, flat_class_factor: int, cell: float,
-                 batch: int = 8192) -> None:
+                 batch: int = 8192, max_held: int = 1 << 18) -> None:
         self.index, self.xyz, self.priority = index, xyz, priority
         self.ready = ready
         self.order = np.argsort(ready, kind="stable")
         self.radius, self.quality, self.threshold = float(radius), quality, float(threshold)
         self.per_class_cap, self.flat_class_factor = per_class_cap, flat_class_factor
-        self.batch = int(batch)
+        self.batch, self.max_held = int(batch), int(max_held)
         self.cell = cell
         n = len(index)
         self.valid = np.zeros(n, dtype=bool)
@@ -265,8 +268,6 @@ class SampleChooser:
             if n else np.empty(0, np.int64)
         self._held: list[np.ndarray] = []
         self._waiting = self._tree(self.order)
-        #: Most surface points held at once (the memory this chooser took).
-        self.peak_held = 0
 
     def _tree(self, which: np.ndarray) -> cKDTree | None:
         return cKDTree(self.xyz[which, :2]) if which.size else None
@@ -293,13 +294,13 @@ class SampleChooser:
         pts = pts[self._near(self._waiting, pts)]
         if len(pts):
             self._held.append(pts)
-            self.peak_held = max(self.peak_held, self.held)
 
     def passed(self, block: int) -> None:
         """The blocks up to ``block`` have all been offered: match the candidates they
-        complete (in batches of ``batch``)."""
+        complete (``batch`` at a time, fewer where more than ``max_held`` points wait)."""
         upto = int(np.searchsorted(self.ready[self.order], block, side="right"))
-        if upto - self.done >= self.batch:
+        if upto - self.done >= self.batch or (upto > self.done and
+                                              self.held > self.max_held):
             self._match(upto)
 
     def _match(self, upto: int) -> None:

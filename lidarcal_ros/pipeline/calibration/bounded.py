@@ -1,10 +1,11 @@
 """A mission bag read for a bounded-memory calibration (``calibration.memory: bounded``).
 
-Three passes over the bag (:mod:`lidarcal_ros.core.calibration.bounded`): the strips'
-footprints, sizes and spans; each pair's candidate points; the surface strips' points near
-the candidates and every strip's points near a control point. What is held does not grow with
-the mission beyond ``matching.max_candidates_per_pair`` candidates a pair and their
-neighbourhoods. Map frame, metres; seconds.
+Four passes over the bag (:mod:`lidarcal_ros.core.calibration.bounded`): the strips'
+footprints, sizes and spans; each pair's candidate points; each pair's sample, chosen from
+its candidates as the surface strip's points near them go by; the sample points, the surface
+strips' points near them and every strip's points near a control point. What is held does
+not grow with the mission beyond the pairs' samples and their neighbourhoods. Map frame,
+metres; seconds.
 """
 
 from __future__ import annotations
@@ -45,9 +46,14 @@ logger = logging.getLogger(__name__)
 CHOICE_SPACINGS = 8.0
 
 #: Radius of the surface strip's points held around a sample point, in its point spacings
-#: (the candidate's patch, its neighbours for the bend test and Delaunay's reach beyond
-#: them), plus ``matching.max_normal_distance_m`` for how far the estimate moves it.
-NEIGHBOURHOOD_SPACINGS = 8.0
+#: (the patch under it and Delaunay's reach), plus :data:`NEIGHBOURHOOD_MARGIN_M` for how
+#: far the estimate moves it: some 30-45 points a sample point at 0.1-0.5 points/m^2 (against
+#: 8 spacings and 2 m, 280 points at 0.5 points/m^2, the estimate moves by 0.05 sigma at
+#: most on the test and benchmark missions; 2 spacings and 1 m reach 0.13 sigma:
+#: bench/README.md, "Scaling to large missions").
+NEIGHBOURHOOD_SPACINGS = 3.0
+#: See :data:`NEIGHBOURHOOD_SPACINGS`, m.
+NEIGHBOURHOOD_MARGIN_M = 1.0
 
 
 @dataclass
@@ -58,6 +64,8 @@ class ReducedMission(Mission):
     whole: WholeStrips = field(default_factory=dict)
     #: Each strip pair's sample points, chosen while reading (:class:`ChosenSamples`).
     samples: ChosenSamples = field(default_factory=dict)
+    #: Most surface points held at once while the samples were chosen.
+    held_choosing: int = 0
 
     @property
     def n_points(self) -> int:
@@ -73,13 +81,12 @@ class ReducedMission(Mission):
 def load_reduced_mission(
     bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None,
     progress: Progress | None = None, spacings: float = NEIGHBOURHOOD_SPACINGS,
-    margin_m: float | None = None,
+    margin_m: float = NEIGHBOURHOOD_MARGIN_M,
 ) -> ReducedMission:
-    """Read ``bag`` in three passes into the reduced mission of a bounded-memory calibration
+    """Read ``bag`` in four passes into the reduced mission of a bounded-memory calibration
     (:func:`~lidarcal_ros.pipeline.calibration.procedure.load_mission`'s topics, control
     points and checks). The surface strip's points are held within ``spacings`` of its point
-    spacings plus ``margin_m`` (m; None: ``matching.max_normal_distance_m``) of a candidate
-    (:data:`NEIGHBOURHOOD_SPACINGS`).
+    spacings plus ``margin_m`` (m) of a sample point (:data:`NEIGHBOURHOOD_SPACINGS`).
 
     Raises
     ------
@@ -145,14 +152,15 @@ def load_reduced_mission(
     report("reading the bag (3/4: samples)", 2 / 4)
     surface_of = [[c for plan, c in zip(plans, choosers, strict=True) if plan.b == k]
                   for k in range(len(ids))]
+    peak_choosing = 0
     for _, piece in _pieces(blocks, passed=choosers):
         users = surface_of[position[piece.strip_id]]
         if users:
             keys = FootprintGrid(cell).keys(piece.xyz)
             for chooser in users:
                 chooser.offer(piece.xyz, keys)
+            peak_choosing = max(peak_choosing, sum(c.held for c in choosers))
     chosen = [chooser.result() for chooser in choosers]
-    peak_choosing = sum(c.peak_held for c in choosers)
     del choosers, surface_of
 
     # pass 4: the sample points, the surface strips' points near them, the points near control
@@ -167,9 +175,7 @@ def load_reduced_mission(
                                        zip(plans, chosen, strict=True) if plan.a == k])))
         xy = [xyz[:, :2] for plan, (_, xyz, _) in zip(plans, chosen, strict=True)
               if plan.b == k]
-        radius = neighbourhood_radius(ext.density, spacings=spacings,
-                                      margin_m=settings.max_normal_distance_m
-                                      if margin_m is None else margin_m)
+        radius = neighbourhood_radius(ext.density, spacings=spacings, margin_m=margin_m)
         near.append(NearCandidates(np.concatenate([np.empty((0, 2)), *xy]), radius,
                                    near_control, cell))
     held: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]] = {
@@ -190,7 +196,8 @@ def load_reduced_mission(
                for plan, (sample, _, before) in zip(plans, chosen, strict=True)}
     report("reading the bag", 1.0)
     mission = ReducedMission(trajectory, strips, control, blocks.frame,
-                             blocks.dropped_non_finite, 0, whole=whole, samples=samples)
+                             blocks.dropped_non_finite, 0, whole=whole, samples=samples,
+                             held_choosing=peak_choosing)
     logger.info("%s: %d of %d points held for %d strip pairs (%d held at most while "
                 "choosing their samples)", bag, mission.n_held, mission.n_points, len(plans),
                 peak_choosing)
@@ -200,14 +207,15 @@ def load_reduced_mission(
 def _chooser(candidates: tuple[np.ndarray, np.ndarray, np.ndarray], surface: StripExtent,
              settings: CalibrationSettings) -> SampleChooser:
     """The :class:`SampleChooser` of a pair's ``candidates`` (strip indices, x y z,
-    priorities) against the whole strip ``surface``."""
+    priorities) against the whole strip ``surface``, matching an eighth of them or 8192 at
+    a time (one TIN each)."""
     index, xyz, priority = candidates
     radius = neighbourhood_radius(surface.density, spacings=CHOICE_SPACINGS, margin_m=0.0)
     return SampleChooser(
         index, xyz, priority, surface.last_block_near(xyz[:, :2], radius), radius=radius,
         quality=settings.tin_quality(surface.density), threshold=settings.max_normal_distance_m,
         per_class_cap=settings.per_class_cap, flat_class_factor=settings.flat_class_factor,
-        cell=settings.overlap_cell_m)
+        cell=settings.overlap_cell_m, batch=min(8192, max(64, len(index) // 8)))
 
 
 def _pieces(blocks: MissionBlocks, *, passed: Sequence[SampleChooser] = ()
@@ -237,4 +245,5 @@ def _numbered(blocks: MissionBlocks, ids: list[int], seed: int
         yield position[sid], piece, index, rngs[sid].random(n)
 
 
-__all__ = ["CHOICE_SPACINGS", "NEIGHBOURHOOD_SPACINGS", "ReducedMission", "load_reduced_mission"]
+__all__ = ["CHOICE_SPACINGS", "NEIGHBOURHOOD_MARGIN_M", "NEIGHBOURHOOD_SPACINGS", "ReducedMission",
+           "load_reduced_mission"]
