@@ -152,10 +152,11 @@ SCHEMA: dict[str, ParameterSpec] = {
         "points per square metre); 0 keeps every point", 0.0, 100.0),
     "calibration.memory": ParameterSpec(
         "whole", "str", "How lidarcal calibrate holds the mission: 'whole' (every point in "
-        "memory, read once) or 'bounded' (the bag read three times; only each strip pair's "
-        "candidate points, the surface strip's points around them and those near a control "
-        "point are held: memory set by matching.max_candidates_per_pair, not by the "
-        "mission's size)", choices=("whole", "bounded")),
+        "memory, read once) or 'bounded' (the bag read four times; each strip pair's sample "
+        "points chosen as whole chooses them, then only they, the surface strip's points "
+        "within 3 point spacings + 1 m of them and those near a control point are held: "
+        "memory set by the samples (matching.per_class_cap), not by the mission's size; "
+        "the estimate within 0.05 sigma of whole's)", choices=("whole", "bounded")),
     "calibration.calibration_file": ParameterSpec("lidarcal_calibration.yaml", "str",
                                                   "Where ~/save writes the calibration"),
     "calibration.trajectory.model": ParameterSpec(

@@ -21,7 +21,7 @@ from lidarcal_ros.core.adjustment.least_squares import (
     ParameterStatus,
     Solution,
 )
-from lidarcal_ros.core.calibration.bounded import StripExtent
+from lidarcal_ros.core.calibration.bounded import ChosenSamples, StripExtent
 from lidarcal_ros.core.calibration.iteration import (
     Convergence,
     Iteration,
@@ -208,8 +208,9 @@ class Calibrator:
     def from_mission(
         cls, mission: Mission, settings: CalibrationSettings, *,
         progress: Progress | None = None, whole: WholeStrips | None = None,
+        samples: ChosenSamples | None = None,
     ) -> Calibrator:
-        """A calibrator holding every strip of ``mission`` (``whole``: as
+        """A calibrator holding every strip of ``mission`` (``whole`` and ``samples``: as
         :func:`calibrate`)."""
         if not mission.strips:
             raise CalibrationError("mission has no strips")
@@ -221,7 +222,21 @@ class Calibrator:
                           whole=None if whole is None else whole[strip.strip_id])
             cal._progress("local trajectories", (k + 1) / len(mission.strips))
         logger.info("%d overlapping strip pairs", len(cal.pairs))
+        if samples is not None:
+            cal.use_samples(samples)
         return cal
+
+    def use_samples(self, samples: ChosenSamples) -> None:
+        """Take the sample points (and "before" distances) of the pairs formed so far from
+        ``samples`` (by the pair's strip ids: point strip, surface strip) instead of choosing
+        them from candidates held (a bounded-memory calibration, whose strips hold little
+        beyond the samples' surroundings)."""
+        for pair in self.pairs:
+            key = (self.strips[pair.a].strip_id, self.strips[pair.b].strip_id)
+            if pair.sample is None and key in samples:
+                pair.sample, before = samples[key]
+                pair.candidates = pair.sample
+                pair.before = before
 
     # ------------------------------------------------------------------ strips
     @property
@@ -734,12 +749,14 @@ def calibrate(
     *,
     progress: Progress | None = None,
     whole: WholeStrips | None = None,
+    samples: ChosenSamples | None = None,
 ) -> CalibrationResult:
     """Calibrate a mission: see :class:`Calibrator`.
 
     ``whole``: the mission's strips hold part of their points only (the reduced mission of
     a bounded-memory calibration, :mod:`~lidarcal_ros.core.calibration.bounded`); by strip
     id, each whole strip's extent and the sampling priority of each point held.
+    ``samples``: the pairs' sample points chosen already (:meth:`Calibrator.use_samples`).
 
     Raises
     ------
@@ -750,14 +767,15 @@ def calibrate(
     """
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
-        return _run(Calibrator.from_mission(mission, settings, progress=progress, whole=whole))
+        return _run(Calibrator.from_mission(mission, settings, progress=progress, whole=whole,
+                                            samples=samples))
     # auto: the trajectory as exact, then with each strip's spline over the same prepared
     # strips (their TINs and geometry shared, as the live calibration shares them); the
     # spline is kept where it fits clearly better (the strips disagree by more than their
     # noise)
     first = Calibrator.from_mission(mission, with_trajectory_model(settings,
                                                                    TrajectoryModel.NONE),
-                                    progress=progress, whole=whole)
+                                    progress=progress, whole=whole, samples=samples)
     exact = _run(first)
     second = Calibrator(with_trajectory_model(settings, TrajectoryModel.SPLINE),
                         control=mission.control, progress=progress)
@@ -765,6 +783,8 @@ def calibrate(
         first.thinned_points
     for ps in first.strips:
         second.add_prepared_strip(ps)
+    if samples is not None:
+        second.use_samples(samples)
     try:
         spline: CalibrationResult | CalibrationError = _run(second)
     except CalibrationError as exc:  # (NothingEstimated too)

@@ -102,8 +102,10 @@ def calibrate_mission(
     settings = config.calibration_settings()
     if solve_for is not None:
         settings.solve_for = tuple(n for n in PARAMETER_NAMES if n in solve_for)
-    whole = mission.whole if isinstance(mission, ReducedMission) else None
-    result = calibrate(mission, settings, progress=progress, whole=whole)
+    reduced = mission if isinstance(mission, ReducedMission) else None
+    result = calibrate(mission, settings, progress=progress,
+                       whole=None if reduced is None else reduced.whole,
+                       samples=None if reduced is None else reduced.samples)
     unused = unused_control(mission, result, config)
     if unused:
         logger.warning("%s", unused)
