@@ -106,9 +106,11 @@ def nodes(ros_context: Any, small_mission: Any) -> Iterator[Nodes]:
     from lidarcal_ros.nodes.corrector import CorrectorNode
 
     overrides = [Parameter(k, value=v) for k, v in helpers_missions.FAST_SETTINGS.items()]
-    cal = CalibratorNode(context=ros_context, parameter_overrides=[
+    # Names of their own: the suite of test_nodes.py runs nodes of the default names next,
+    # in the same process and domain, and must not meet these in the DDS graph.
+    cal = CalibratorNode(context=ros_context, node_name="hostile_calibrator", parameter_overrides=[
         *overrides, Parameter("idle_close_s", value=0.5)])
-    cor = CorrectorNode(context=ros_context, parameter_overrides=[
+    cor = CorrectorNode(context=ros_context, node_name="hostile_corrector", parameter_overrides=[
         *overrides, Parameter("separate_process", value=False)])
     probe = rclpy.create_node("hostile_probe", context=ros_context)
     lock = threading.Lock()
@@ -242,10 +244,10 @@ def test_nan_inf_and_out_of_range_are_refused_naming_the_parameter(nodes: Nodes,
 
 
 @pytest.mark.parametrize(("node_name", "name", "value"), [
-    ("lidarcal_calibrator", "idle_close_s", math.nan),
-    ("lidarcal_calibrator", "strip_gap_s", math.inf),
-    ("lidarcal_corrector", "max_trajectory_wait_s", -math.inf),
-    ("lidarcal_corrector", "max_backlog_mib", 1 << 30),
+    ("hostile_calibrator", "idle_close_s", math.nan),
+    ("hostile_calibrator", "strip_gap_s", math.inf),
+    ("hostile_corrector", "max_trajectory_wait_s", -math.inf),
+    ("hostile_corrector", "max_backlog_mib", 1 << 30),
 ])
 def test_a_refused_value_over_the_parameter_service(nodes: Nodes, node_name: str, name: str,
                                                     value: Any) -> None:
@@ -254,7 +256,7 @@ def test_a_refused_value_over_the_parameter_service(nodes: Nodes, node_name: str
     from rclpy.parameter import Parameter
     from rclpy.parameter_client import AsyncParameterClient
 
-    node = nodes.cal if node_name == "lidarcal_calibrator" else nodes.cor
+    node = nodes.cal if node_name == "hostile_calibrator" else nodes.cor
     old = node.params[name]
     client = AsyncParameterClient(nodes.probe, node_name)
     assert client.wait_for_services(timeout_sec=10.0)
