@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import machine  # bench/machine.py: this script's folder is on sys.path
 import numpy as np
+import yaml
 
 from lidarcal_ros.core.calibration.extrinsic import MountingCalibration, calibrate_mounting
 from lidarcal_ros.core.config import FlightConfig
@@ -100,6 +101,9 @@ def main() -> None:
     ap.add_argument("--ins", default="exact,attitude,position,tactical")
     ap.add_argument("--models", default="none",
                     help="calibration.trajectory.model values tried (default none)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a flight configuration value for every calibration (repeatable), "
+                    "e.g. calibration.trajectory.continuous=true")
     ap.add_argument("--columns", type=int, default=360)
     ap.add_argument("--lines", type=int, default=4)
     args = ap.parse_args()
@@ -115,7 +119,10 @@ def main() -> None:
                                       n_lines=args.lines, **GRADES[grade])  # type: ignore[arg-type]
                 m = simulate_uav_payload(spec)
                 for model in args.models.split(","):
-                    config = FlightConfig().with_values(calibration__trajectory__model=model)
+                    config = FlightConfig().with_values(**{
+                        k.replace(".", "__"): yaml.safe_load(v) for k, v in
+                        (item.split("=", 1) for item in args.set)},
+                        calibration__trajectory__model=model)
                     started = time.perf_counter()
                     try:
                         cal = calibrate_mounting(

@@ -466,8 +466,6 @@ def test_the_replay_waits_for_subscribers_that_come_late(ros_context: Any,
     assert strips[:1] == [0] and len(strips) == 20
     found = [line for line in out.splitlines() if "subscribers found" in line]
     assert len(found) == 1 and "/lidar/points (1), /lidar/trajectory (1)" in found[0], out
-    waited_s = float(found[0].split(" after ")[1].split(" s")[0])
-    assert waited_s >= 3.0
 
 
 @pytest.mark.parametrize("options", [("--no-wait",), ("--wait-for-subscribers", "1.5")])

@@ -166,13 +166,18 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
     t = np.asarray(t, dtype=np.float64).reshape(-1)
     if t.shape[0] != p.shape[0]:
         raise ConfigError(f"mounting calibration: {p.shape[0]} points but {t.shape[0]} times")
-    base = settings or mounting_settings()
-    s = replace(base, scanner=ScannerKind.GENERAL, model=PositioningModel.RIGOROUS)
+    s = _general_rigorous(settings or mounting_settings())
     spans = straight_lines(trajectory) if lines is None else \
         np.asarray(lines, dtype=np.float64).reshape(-1, 2)
     first = _one_pass(p, t, trajectory, nominal, s, spans, control, progress)
     return further_passes(p, t, trajectory, first, settings=s, control=control,
                           progress=progress, passes=passes)
+
+
+def _general_rigorous(settings: CalibrationSettings) -> CalibrationSettings:
+    """``settings`` for sensor-frame strips: their laser vectors are a general scanner's, the
+    model the rigorous one (docs/method.md section 12)."""
+    return replace(settings, scanner=ScannerKind.GENERAL, model=PositioningModel.RIGOROUS)
 
 
 def _one_pass(points: np.ndarray, t: np.ndarray, trajectory: Trajectory, nominal: Mounting,
@@ -196,13 +201,12 @@ def further_passes(points: np.ndarray, t: np.ndarray, trajectory: Trajectory,
     (``points`` in the sensor's frame, ``t`` absolute s, on ``first.lines``) are
     georeferenced anew with its mounting and calibrated again, up to ``passes`` in all; the
     last expressed against ``first.nominal`` (:func:`rebased`)."""
-    s = replace(settings, scanner=ScannerKind.GENERAL, model=PositioningModel.RIGOROUS)
+    s = _general_rigorous(settings)
     typical_range = _typical_range(points)
     cal, number = first, 1
-    while number < passes and points_moved(cal.delta, typical_range) > REPASS_MOVE_M:
+    while number < passes and (moved := points_moved(cal.delta, typical_range)) > REPASS_MOVE_M:
         logger.info("mounting pass %d moved the points by %.3f m (at %.0f m): georeferenced "
-                    "anew with its mounting", number, points_moved(cal.delta, typical_range),
-                    typical_range)
+                    "anew with its mounting", number, moved, typical_range)
         number += 1
         cal = _one_pass(points, t, trajectory, cal.mounting, s, first.lines, control, progress)
     return cal if number == 1 else rebased(cal, first.nominal, first, number)
