@@ -32,11 +32,13 @@ import yaml
 from lidarcal_ros.core.calibration.extrinsic import MountingCalibration, calibrate_mounting
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting, georeference
+from lidarcal_ros.core.mission import Trajectory
 from lidarcal_ros.core.simulation.uav_payload import (
     UavPayloadMission,
     UavPayloadSpec,
     simulate_uav_payload,
 )
+from lidarcal_ros.core.trajectory.lines import straight_lines
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.pipeline.calibration.sensor_frame import sensor_calibration_settings
 
@@ -93,6 +95,16 @@ def assess(m: UavPayloadMission, cal: MountingCalibration, seconds: float) -> Ou
                        [*cal.mounting.translation[:2], true.translation[2]]))), seconds)
 
 
+def strip_spans(trajectory: Trajectory, *, through_turns: bool) -> np.ndarray:
+    """The strips' time spans (k, 2), s: the straight lines, or (``through_turns``) the
+    flight cut in the middle of each turn."""
+    lines = straight_lines(trajectory)
+    if not through_turns:
+        return lines
+    middle = 0.5 * (lines[1:, 0] + lines[:-1, 1])
+    return np.column_stack([np.r_[lines[0, 0], middle + 1e-3], np.r_[middle, lines[-1, 1]]])
+
+
 def main() -> None:
     """Run the grid the options give and print a row a run."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -104,6 +116,12 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a flight configuration value for every calibration (repeatable), "
                     "e.g. calibration.trajectory.continuous=true")
+    ap.add_argument("--strips", choices=("lines", "turns"), default="lines",
+                    help="lines: each line a strip, the turns left out (lidarcal calibrate's "
+                    "way); turns: the flight cut in the middle of each turn, each strip a "
+                    "line with the halves of the turns beside it")
+    ap.add_argument("--position-correlation-s", type=float, default=30.0,
+                    help="correlation time of the INS's position errors, s")
     ap.add_argument("--columns", type=int, default=360)
     ap.add_argument("--lines", type=int, default=4)
     args = ap.parse_args()
@@ -116,8 +134,11 @@ def main() -> None:
             floor: dict[str, float] = {}
             for grade in args.ins.split(","):
                 spec = UavPayloadSpec(layout=layout, seed=seed, columns=args.columns,
-                                      n_lines=args.lines, **GRADES[grade])  # type: ignore[arg-type]
+                                      n_lines=args.lines, ins_correlation_s=(
+                                          args.position_correlation_s, 20.0),
+                                      **GRADES[grade])  # type: ignore[arg-type]
                 m = simulate_uav_payload(spec)
+                spans = strip_spans(m.trajectory, through_turns=args.strips == "turns")
                 for model in args.models.split(","):
                     config = FlightConfig().with_values(**{
                         k.replace(".", "__"): yaml.safe_load(v) for k, v in
@@ -127,7 +148,7 @@ def main() -> None:
                     try:
                         cal = calibrate_mounting(
                             m.clouds.xyz, m.clouds.absolute_times(), m.trajectory, m.nominal,
-                            settings=sensor_calibration_settings(config=config))
+                            settings=sensor_calibration_settings(config=config), lines=spans)
                     except LidarcalError as exc:
                         print(f"{layout:7s} {seed:4d} {grade:9s} {model:6s} failed: {exc}")
                         continue

@@ -299,11 +299,30 @@ def mounting_calibration(result: CalibrationResult, nominal: Mounting,
     sol = result.solution
     delta, sigma = sol.delta.copy(), sol.sigma.copy()
     translation_sigma, rotation_sigma = _mounting_sigmas(sigma)
+    said = _lever_arm_by_priors(result)
+    if said and said not in sol.warnings:
+        sol.warnings.append(said)
     return MountingCalibration(
         mounting=mounting_from_biases(nominal, delta), nominal=nominal,
         range_offset_m=float(delta[PARAMETER_INDEX["dr"]]), delta=delta, sigma=sigma,
         translation_sigma_m=translation_sigma, rotation_sigma_rad=rotation_sigma,
         lines=np.asarray(lines, dtype=np.float64).reshape(-1, 2), result=result)
+
+
+def _lever_arm_by_priors(result: CalibrationResult) -> str:
+    """The warning that the horizontal lever arm is known through the priors of the strips'
+    trajectory errors only (docs/method.md section 11: on straight lines it is a constant
+    shift of each strip, as an offset is), or "" where no such errors were estimated with it."""
+    sol, trajectory = result.solution, result.trajectory
+    lever = [n for n in ("dX", "dY") if n in sol.estimated]
+    if trajectory is None or not trajectory.model.estimated or not lever:
+        return ""
+    sigmas = ", ".join(f"{n} {sol.sigma[PARAMETER_INDEX[n]] * 1e3:.1f} mm" for n in lever)
+    return (f"the lever arm across and along the track ({sigmas}) is told from the strips' "
+            "trajectory offsets only by their a-priori sigmas "
+            "(calibration.trajectory.offset_sigma_horizontal_m): the line's shift is the "
+            "same either way; where the lever arm was surveyed better, hold it "
+            "(calibration.solve_for without dX and dY)")
 
 
 def _mounting_sigmas(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

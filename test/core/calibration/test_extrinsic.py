@@ -42,6 +42,7 @@ from lidarcal_ros.core.simulation.uav_payload import (
     simulate_uav_payload,
 )
 from lidarcal_ros.core.trajectory.lines import straight_lines
+from lidarcal_ros.core.trajectory.strip_errors import TrajectoryErrorSettings, TrajectoryModel
 from lidarcal_ros.errors import ConfigError, TrajectoryError
 
 ARCSEC = math.radians(1.0 / 3600.0)
@@ -173,3 +174,26 @@ def test_passes_leave_the_wrong_minimum_a_first_pass_can_hold() -> None:
     assert _angle(cal.mounting.rotation, true.rotation) < 5 * ARCSEC
     assert np.abs(cal.mounting.translation - true.translation)[:2].max() < 0.004
     assert cal.result.n_pair_correspondences > 20 * one.result.n_pair_correspondences
+
+
+@pytest.mark.parametrize("layout", ["vlp16", "os1-32"])
+def test_strip_offsets_leave_the_lever_arm_to_their_priors_and_say_so(layout: str) -> None:
+    """A tactical INS (its default errors: 2-3 cm of position over 30 s): with per-strip
+    trajectory offsets (section 11) and the INS's own sigmas as their priors, the lever arm
+    across and along the track is known through those priors only. The calibration says so,
+    and its sigmas allow for it: the truth within 3 sigma; without the offsets (the default)
+    nothing is said."""
+    m = simulate_uav_payload(UavPayloadSpec(layout=layout, seed=1, columns=COLUMNS[layout],
+                                            n_lines=4, line_length_m=120.0))
+    trajectory = TrajectoryErrorSettings(TrajectoryModel.OFFSET, offset_sigma_horizontal_m=0.02,
+                                         offset_sigma_vertical_m=0.03)
+    cal = calibrate_mounting(m.clouds.xyz, m.clouds.absolute_times(), m.trajectory, m.nominal,
+                             settings=mounting_settings(trajectory=trajectory))
+    said = [w for w in cal.result.solution.warnings if "lever arm across" in w]
+    assert len(said) == 1 and "dX" in said[0] and "dY" in said[0], cal.result.solution.warnings
+    lever = [PARAMETER_INDEX["dX"], PARAMETER_INDEX["dY"]]
+    z = (cal.delta - m.biases)[lever] / cal.sigma[lever]
+    print(layout, (cal.delta - m.biases)[lever] * 1e3, cal.sigma[lever] * 1e3, z)
+    assert np.abs(z).max() < 3.0
+    plain = _calibrate(m, m.nominal)
+    assert not [w for w in plain.result.solution.warnings if "lever arm across" in w]
