@@ -59,6 +59,10 @@ class _Strip:
 
     normals: StripNormals
     t_last: float
+    #: Heading of the trajectory at the strip's first cloud, rad: what a turn is measured
+    #: from (not the grid's, which is known only once the grid starts: a batch may hold the
+    #: strip's first points and the turn after them).
+    heading: float
 
 
 class StreamCorrector:
@@ -307,7 +311,7 @@ class StreamCorrector:
                     strip = None
                 if strip is None:
                     strip = _Strip(StripNormals(self._heading_at, lookahead=self.lookahead),
-                                   t_hi)
+                                   t_hi, heading)
                     self._strips[strip_id] = strip
                 if math.isfinite(t_hi):
                     strip.t_last = (max(strip.t_last, t_hi) if math.isfinite(strip.t_last)
@@ -325,8 +329,8 @@ class StreamCorrector:
     @staticmethod
     def _strip_ended(strip: _Strip, heading: float, t_lo: float) -> bool:
         """A gap in time or a turn: the strip's grid no longer fits the new points."""
-        turn = abs(math.remainder(heading - strip.normals.heading, 2.0 * math.pi))
-        if not math.isfinite(turn):  # (grid not started yet)
+        turn = abs(math.remainder(heading - strip.heading, 2.0 * math.pi))
+        if not math.isfinite(turn):
             turn = 0.0
         gap = t_lo - strip.t_last if math.isfinite(t_lo + strip.t_last) else 0.0
         return turn > _MAX_GRID_TURN_RAD or gap > MAX_GRID_GAP_S
