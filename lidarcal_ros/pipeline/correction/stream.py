@@ -43,9 +43,12 @@ logger = logging.getLogger(__name__)
 
 #: Default batch of the offline correction, points.
 DEFAULT_BATCH_POINTS = 200_000
-#: Most points of a strip held for their look-ahead beyond a batch: bounds memory when the
-#: points stop advancing along track (they would otherwise wait for ever).
-_MAX_LOOKAHEAD_POINTS = 500_000
+#: Points of a strip held for their look-ahead beyond a batch, at least (the limit is twice
+#: what the strip's pace needs, :meth:`StripNormals.lookahead_points`: a spinning scanner's
+#: clouds wait for a revolution's depth, some 50 m along track) and at most: bounds memory
+#: when the points stop advancing along track (they would otherwise wait for ever).
+_MIN_LOOKAHEAD_POINTS = 500_000
+_MAX_LOOKAHEAD_POINTS = 3_000_000
 #: A strip's normals grid is restarted after a turn of more than this (rad) or a gap in time
 #: of more than this (s): the grid is aligned with the flight line. (A pause of more than
 #: MAX_GRID_GAP_S in the clouds is where ``lidarcal correct --dask`` cuts a mission in parts.)
@@ -360,7 +363,9 @@ class StreamCorrector:
         for s in self._strips.values():
             # A strip whose points stop advancing along track (hovering, stalled times)
             # would hold its clouds for ever: bounded.
-            stalled = s.normals.pending_points() > _MAX_LOOKAHEAD_POINTS + self.batch_points
+            limit = min(max(2.0 * s.normals.lookahead_points(), _MIN_LOOKAHEAD_POINTS),
+                        _MAX_LOOKAHEAD_POINTS)
+            stalled = s.normals.pending_points() > limit + self.batch_points
             self._schedule(s.normals.take_ready(final=final or stalled,
                                                 min_points=self.batch_points))
         done: list[HeldCloud] = []
