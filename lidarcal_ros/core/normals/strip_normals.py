@@ -100,10 +100,14 @@ class StripNormals:
 
     The edge tolerance comes from the typical plane-fit residual of the strip's first points.
     With ``lookahead`` the points of a part are evaluated once the *watermark*, the lowest
-    row of the newest part, is three rows beyond the part's highest row (a scanner's points
-    advance along track; the newest part's lowest row bounds where later points land), which
-    gives exactly the normals of :func:`~lidarcal_ros.core.normals.grid_normals.grid_normals` over
-    the whole strip in the same grid.
+    row of the newest part, is :attr:`late_rows` and three rows beyond the part's highest row
+    (a scanner's points advance along track; later points land at most :attr:`late_rows`
+    behind the newest part's lowest row), which gives exactly the normals of
+    :func:`~lidarcal_ros.core.normals.grid_normals.grid_normals` over the whole strip in the
+    same grid. :attr:`late_rows` is the median row span of the latest parts, at least 2: a
+    later part reaches at most about its own span behind an earlier one's lowest row (a
+    spinning multi-beam's revolution spans some 50-100 m along track, and one without returns
+    at the swath's edges has its lowest row ahead of the next one's).
     Without ``lookahead`` each part is evaluated as soon as it is added, against the points
     that came before it (least latency; the normals at a part's leading edge see neighbours
     behind them only).
@@ -122,7 +126,12 @@ class StripNormals:
     -----
     Points that arrive behind rows already dropped, or far outside the part's own extent
     (outliers), are not binned and get no normal (``valid`` False); ``late_points`` counts
-    them.
+    them. The grid keeps :attr:`late_rows` and two rows behind the watermark.
+
+    Attributes
+    ----------
+    late_rows : int
+        Grid rows behind the watermark that later points may land in (see above).
     """
 
     def __init__(self, heading_at: Callable[[float], float], *, lookahead: bool = True,
