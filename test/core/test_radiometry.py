@@ -586,6 +586,58 @@ def test_stream_normals_outliers_and_late_points_get_no_normal() -> None:
     assert out["last"].valid.mean() > 0.95
 
 
+def _spinning_strip(revolutions: int, columns: int = 360, seed: int = 7
+                    ) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """A spinning 16-beam scanner (its spin axis forward, pitched up 20 deg; beams -15..15
+    deg) flying north at 8 m/s, 60 m over a gable roof (ridge along track), one cloud per
+    revolution at 10 Hz, returns within 100 m: points, times and the cuts between clouds.
+    Each revolution's footprint spans some 50 m along track, from behind the sensor at the
+    swath's edges to 40 m ahead; every third revolution has returns within 20 deg of nadir
+    only (water at the sides), so its lowest row lies some 7 m ahead of the next one's."""
+    rng = np.random.default_rng(seed)
+    tilt, h = math.radians(20.0), 60.0
+    elev = np.radians(np.arange(-15.0, 16.0, 2.0))[:, None]
+    theta = np.linspace(-math.pi / 2, math.pi / 2, columns // 2)[None, :]  # the ground side
+    # the beam directions in an (east, north, up) frame of the sensor flying north
+    east = np.cos(elev) * np.sin(theta) + 0.0 * elev
+    north = np.cos(elev) * np.cos(theta) * math.sin(tilt) + np.sin(elev) * math.cos(tilt)
+    down = np.cos(elev) * np.cos(theta) * math.cos(tilt) - np.sin(elev) * math.sin(tilt)
+    rng_m = h / np.where(down > 0, down, np.nan)
+    keep = rng_m < 100.0
+    xyz, t, cuts = [], [], []
+    for k in range(revolutions):
+        ok = keep & (np.abs(theta) < math.radians(20.0)) if k % 3 == 1 else keep
+        tk = k * 0.1 + 0.1 * (theta + math.pi / 2) / math.pi + 0.0 * elev
+        x = (rng_m * east)[ok]
+        y = (rng_m * north)[ok] + 8.0 * tk[ok]
+        order = np.argsort(tk[ok], kind="stable")
+        z = 10.0 - 0.5 * np.abs(x) + rng.normal(0, 0.02, x.size)
+        xyz.append(np.column_stack([x, y, z])[order])
+        t.append(tk[ok][order])
+        cuts.append(sum(len(a) for a in t))
+    return np.concatenate(xyz), np.concatenate(t), cuts[:-1]
+
+
+def test_spinning_scanner_clouds_give_the_normals_of_the_whole_strip() -> None:
+    """A revolution's points land over some 50 m along track, and a later one's lowest row
+    lies rows behind an earlier one's: the lateness allowed follows the parts' row span,
+    so every point is binned and each cloud's normals are those of the strip at once."""
+    xyz, t, cuts = _spinning_strip(revolutions=500)
+    whole, _, _ = _stream(xyz, t, [])
+    parts, sn, released = _stream(xyz, t, cuts)
+    assert sn.late_points == 0
+    assert sn.late_rows > 5  # (the fewest: 2 rows)
+    assert whole.valid.mean() > 0.99 and (parts.valid == whole.valid).all()
+    both = whole.valid & parts.valid
+    np.testing.assert_allclose(parts.normals[both], whole.normals[both], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(parts.rough, whole.rough)
+    # released along the strip, some two footprints (14 s) behind, not at its end; the grid
+    # holds the rows of some three footprints, not the strip's 450 m
+    assert sum(r <= 300 for r in released) > 300 - 150
+    rows = (xyz[:, 1].max() - xyz[:, 1].min()) / sn.cell[0]
+    assert sn.moment_grid.shape[0] < rows / 2
+
+
 @pytest.mark.parametrize("widening", [False, True], ids=["steady-swath", "widening-swath"])
 def test_a_long_strip_advances_the_grid_in_place_with_the_normals_of_the_whole(
         monkeypatch: pytest.MonkeyPatch, widening: bool) -> None:

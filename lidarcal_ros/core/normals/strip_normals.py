@@ -41,9 +41,13 @@ from lidarcal_ros.core.normals.grid_planes import (
 STREAM_START_POINTS = 10_000
 STREAM_START_SECONDS = 0.02
 
-#: Rows kept behind the oldest points not yet evaluated, so that points arriving a little
-#: late (behind the watermark) still land in the grid.
+#: Fewest rows a later part's points may land behind the watermark (the lowest row of the
+#: newest part): the lateness allowed where parts span few rows (a linear scanner's).
 _LATE_ROWS = 2
+
+#: The lateness allowed is the median row span of this many of the latest parts
+#: (:attr:`StripNormals.late_rows`).
+_SPAN_PARTS = 32
 
 #: Rows zeroed ahead of the points at a time, and the least room left ahead when the grid
 #: advances in place (:meth:`StripNormals._fit_grid`).
@@ -96,10 +100,14 @@ class StripNormals:
 
     The edge tolerance comes from the typical plane-fit residual of the strip's first points.
     With ``lookahead`` the points of a part are evaluated once the *watermark*, the lowest
-    row of the newest part, is three rows beyond the part's highest row (a scanner's points
-    advance along track; the newest part's lowest row bounds where later points land), which
-    gives exactly the normals of :func:`~lidarcal_ros.core.normals.grid_normals.grid_normals` over
-    the whole strip in the same grid.
+    row of the newest part, is :attr:`late_rows` and three rows beyond the part's highest row
+    (a scanner's points advance along track; later points land at most :attr:`late_rows`
+    behind the newest part's lowest row), which gives exactly the normals of
+    :func:`~lidarcal_ros.core.normals.grid_normals.grid_normals` over the whole strip in the
+    same grid. :attr:`late_rows` is the median row span of the latest parts, at least 2: a
+    later part reaches at most about its own span behind an earlier one's lowest row (a
+    spinning multi-beam's revolution spans some 50-100 m along track, and one without returns
+    at the swath's edges has its lowest row ahead of the next one's).
     Without ``lookahead`` each part is evaluated as soon as it is added, against the points
     that came before it (least latency; the normals at a part's leading edge see neighbours
     behind them only).
@@ -118,7 +126,12 @@ class StripNormals:
     -----
     Points that arrive behind rows already dropped, or far outside the part's own extent
     (outliers), are not binned and get no normal (``valid`` False); ``late_points`` counts
-    them.
+    them. The grid keeps :attr:`late_rows` and two rows behind the watermark.
+
+    Attributes
+    ----------
+    late_rows : int
+        Grid rows behind the watermark that later points may land in (see above).
     """
 
     def __init__(self, heading_at: Callable[[float], float], *, lookahead: bool = True,
@@ -139,6 +152,10 @@ class StripNormals:
         self._clean_to = 0  # rows from here on hold stale sums (zeroed before use)
         self._parts: deque[_Part] = deque()
         self._watermark = -(2**62)
+        self._spans: deque[int] = deque(maxlen=_SPAN_PARTS)
+        self.late_rows = _LATE_ROWS
+        self._binned = 0  # points binned since the grid started
+        self._first_watermark: int | None = None
 
     @property
     def moment_grid(self) -> np.ndarray:
@@ -288,7 +305,29 @@ class StripNormals:
                                      iv[lo:hi], r_min, r_max))
             if piu.size:
                 self._watermark = r_min
+                if self._first_watermark is None:
+                    self._first_watermark = r_min
+                self._binned += piu.size
+                self._note_span(r_max - r_min)
             start += n
+
+    def lookahead_points(self) -> float:
+        """Points a part waits for before it is evaluated, at the strip's pace so far: the
+        rows the watermark must pass (a part's median span, 3 rows of neighbours and
+        :attr:`late_rows`) times the points binned per row the watermark advanced (inf
+        while it has not advanced: hovering, or the strip's first part)."""
+        advanced = self._watermark - (self._first_watermark or self._watermark)
+        if advanced <= 0:
+            return math.inf
+        span = sorted(self._spans)[(len(self._spans) - 1) // 2]
+        return (span + 3 + self.late_rows) * self._binned / advanced
+
+    def _note_span(self, rows: int) -> None:
+        """Take a part's row span into :attr:`late_rows`: the median span of the latest
+        parts (a part with outliers, or a short one, moves it little)."""
+        self._spans.append(rows)
+        spans = sorted(self._spans)
+        self.late_rows = max(_LATE_ROWS, spans[(len(spans) - 1) // 2])
 
     def _inliers(self, iu: np.ndarray, iv: np.ndarray, r_lo: int, r_hi: int, c_lo: int,
                  c_hi: int) -> np.ndarray | None:
@@ -373,7 +412,7 @@ class StripNormals:
         """Lowest row still needed: by the points not yet evaluated and by late points."""
         low = min((p.row_min for p in self._parts if p.row_max >= p.row_min),
                   default=self._watermark)
-        return min(low, self._watermark) - 2 - _LATE_ROWS
+        return min(low, self._watermark - self.late_rows) - 2
 
     def pop_ready(self, *, final: bool = False, min_points: int = 0
                   ) -> list[tuple[object, GridNormals]]:
@@ -415,7 +454,7 @@ class StripNormals:
         count = 0
         for part in self._parts:
             if not (final or not self.lookahead or part.iu.size == 0
-                    or part.row_max + 3 <= self._watermark):
+                    or part.row_max + 3 + self.late_rows <= self._watermark):
                 break
             ready.append(part)
             count += part.n

@@ -43,9 +43,12 @@ logger = logging.getLogger(__name__)
 
 #: Default batch of the offline correction, points.
 DEFAULT_BATCH_POINTS = 200_000
-#: Most points of a strip held for their look-ahead beyond a batch: bounds memory when the
-#: points stop advancing along track (they would otherwise wait for ever).
-_MAX_LOOKAHEAD_POINTS = 500_000
+#: Points of a strip held for their look-ahead beyond a batch, at least (the limit is twice
+#: what the strip's pace needs, :meth:`StripNormals.lookahead_points`: a spinning scanner's
+#: clouds wait for a revolution's depth, some 50 m along track) and at most: bounds memory
+#: when the points stop advancing along track (they would otherwise wait for ever).
+_MIN_LOOKAHEAD_POINTS = 500_000
+_MAX_LOOKAHEAD_POINTS = 3_000_000
 #: A strip's normals grid is restarted after a turn of more than this (rad) or a gap in time
 #: of more than this (s): the grid is aligned with the flight line. (A pause of more than
 #: MAX_GRID_GAP_S in the clouds is where ``lidarcal correct --dask`` cuts a mission in parts.)
@@ -59,6 +62,10 @@ class _Strip:
 
     normals: StripNormals
     t_last: float
+    #: Heading of the trajectory at the strip's first cloud, rad: what a turn is measured
+    #: from (not the grid's, which is known only once the grid starts: a batch may hold the
+    #: strip's first points and the turn after them).
+    heading: float
 
 
 class StreamCorrector:
@@ -307,7 +314,7 @@ class StreamCorrector:
                     strip = None
                 if strip is None:
                     strip = _Strip(StripNormals(self._heading_at, lookahead=self.lookahead),
-                                   t_hi)
+                                   t_hi, heading)
                     self._strips[strip_id] = strip
                 if math.isfinite(t_hi):
                     strip.t_last = (max(strip.t_last, t_hi) if math.isfinite(strip.t_last)
@@ -325,8 +332,8 @@ class StreamCorrector:
     @staticmethod
     def _strip_ended(strip: _Strip, heading: float, t_lo: float) -> bool:
         """A gap in time or a turn: the strip's grid no longer fits the new points."""
-        turn = abs(math.remainder(heading - strip.normals.heading, 2.0 * math.pi))
-        if not math.isfinite(turn):  # (grid not started yet)
+        turn = abs(math.remainder(heading - strip.heading, 2.0 * math.pi))
+        if not math.isfinite(turn):
             turn = 0.0
         gap = t_lo - strip.t_last if math.isfinite(t_lo + strip.t_last) else 0.0
         return turn > _MAX_GRID_TURN_RAD or gap > MAX_GRID_GAP_S
@@ -356,7 +363,9 @@ class StreamCorrector:
         for s in self._strips.values():
             # A strip whose points stop advancing along track (hovering, stalled times)
             # would hold its clouds for ever: bounded.
-            stalled = s.normals.pending_points() > _MAX_LOOKAHEAD_POINTS + self.batch_points
+            limit = min(max(2.0 * s.normals.lookahead_points(), _MIN_LOOKAHEAD_POINTS),
+                        _MAX_LOOKAHEAD_POINTS)
+            stalled = s.normals.pending_points() > limit + self.batch_points
             self._schedule(s.normals.take_ready(final=final or stalled,
                                                 min_points=self.batch_points))
         done: list[HeldCloud] = []
