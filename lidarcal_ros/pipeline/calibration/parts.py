@@ -40,11 +40,13 @@ R = TypeVar("R")
 
 class ExecutorPairWork:
     """:class:`~lidarcal_ros.core.calibration.pair_work.PairWork` on an executor's workers
-    (its strips by strip id: the calibrators of ``auto`` share them)."""
+    (each strip sent once: the calibrators of ``auto`` share them)."""
 
     def __init__(self, executor: Executor) -> None:
         self.executor = executor
-        self._strips: dict[int, TaskFuture[PreparedStrip]] = {}
+        #: By strip id, the strip sent and its future (sent again where another strip of
+        #: that id comes).
+        self._strips: dict[int, tuple[PreparedStrip, TaskFuture[PreparedStrip]]] = {}
         self._token = uuid.uuid4().hex[:8]
         self._numbers = itertools.count()
 
@@ -58,12 +60,13 @@ class ExecutorPairWork:
     def _strip(self, matcher: PairMatcher, k: int) -> TaskFuture[PreparedStrip]:
         """Strip ``k`` of ``matcher`` on the workers, with its TIN (submitted once)."""
         ps = matcher.strips[k]
-        future = self._strips.get(ps.strip_id)
-        if future is None:
-            # (a copy as delivered: no TIN, no correction held)
-            copy = dataclasses.replace(ps, tin=None, corrected=None)
-            future = self._submit(with_tin, copy, matcher.settings, name=f"strip{ps.strip_id}")
-            self._strips[ps.strip_id] = future
+        sent = self._strips.get(ps.strip_id)
+        if sent is not None and sent[0] is ps:
+            return sent[1]
+        # (a copy as delivered: no TIN, no correction held)
+        copy = dataclasses.replace(ps, tin=None, corrected=None)
+        future = self._submit(with_tin, copy, matcher.settings, name=f"strip{ps.strip_id}")
+        self._strips[ps.strip_id] = (ps, future)
         return future
 
     def _map(self, fn: Callable[[PreparedStrip, PreparedStrip, PairJob], R],
