@@ -66,8 +66,10 @@ class PairJob:
     @classmethod
     def of(cls, matcher: PairMatcher, pair: StripPair, delta: np.ndarray | None = None,
            threshold: float = 0.0) -> PairJob:
-        """The job of ``matcher``'s ``pair`` (copies: the matcher goes on changing)."""
-        slim = StripPair(pair.index, pair.a, pair.b, pair.coverage, pair.candidates,
+        """The job of ``matcher``'s ``pair`` (copies: the matcher goes on changing; its
+        candidates only while it has no sample: they are what a sample is chosen from)."""
+        candidates = pair.candidates if pair.sample is None else np.empty(0, np.int64)
+        slim = StripPair(pair.index, pair.a, pair.b, pair.coverage, candidates,
                          sample=pair.sample, last_triangle=pair.last_triangle)
         return cls(matcher.settings, _copy_state(matcher.trajectory), slim,
                    np.zeros(N_PARAMETERS) if delta is None else np.array(delta, np.float64),

@@ -36,10 +36,10 @@ MISSIONS: dict[str, dict[str, Any]] = {
 
 
 def _calibrated(files: MissionFiles, executor: Executor | None = None,
-                **values: Any) -> CalibrationResult:
+                values: dict[str, Any] | None = None) -> CalibrationResult:
     """The mission calibrated with its fast settings and ``values`` (dotted names as
     ``with_values`` takes them), its pairs matched by ``executor`` if given."""
-    config = load_flight_config(files.fast_config).with_values(**values)
+    config = load_flight_config(files.fast_config).with_values(**(values or {}))
     mission = load_for_calibration(files.bag, config)
     return calibrate_mission(mission, config, executor=executor)
 
@@ -63,8 +63,8 @@ def test_two_workers_give_the_serial_estimate(
         trajectory: str) -> None:
     files = mission_factory(**MISSIONS[kind])
     values = {"calibration__memory": memory, "calibration__trajectory__model": trajectory}
-    serial = _calibrated(files, **values)
-    parted = _calibrated(files, cluster, **values)
+    serial = _calibrated(files, None, values)
+    parted = _calibrated(files, cluster, values)
     _assert_same(parted, serial)
     want = PositioningModel.RIGOROUS if kind == "rigorous" else PositioningModel.LEVEL
     assert {c.model for c in parted.models.values()} == {want}
@@ -77,18 +77,18 @@ def test_two_workers_give_the_serial_estimate(
 
 def test_the_in_process_executor_gives_the_serial_estimate(small_mission: MissionFiles) -> None:
     values = {"calibration__trajectory__model": "drift"}
-    _assert_same(_calibrated(small_mission, SerialExecutor(), **values),
-                 _calibrated(small_mission, **values))
+    _assert_same(_calibrated(small_mission, SerialExecutor(), values),
+                 _calibrated(small_mission, None, values))
 
 
 def test_a_killed_worker_is_replaced_and_the_estimate_unchanged(
         small_mission: MissionFiles, cluster: DaskExecutor, tmp_path: Path) -> None:
     values = {"calibration__trajectory__model": "none"}
-    serial = _calibrated(small_mission, **values)
+    serial = _calibrated(small_mission, None, values)
     marker = tmp_path / "killed"
     # (killed in an iteration's matching: the strips it held are prepared again elsewhere)
     killing = helpers_dask.KillingExecutor(cluster, marker, part="-observe")
-    parted = _calibrated(small_mission, killing, **values)  # type: ignore[arg-type]
+    parted = _calibrated(small_mission, killing, values)
     assert marker.exists()  # (a worker did die)
     _assert_same(parted, serial)
 
