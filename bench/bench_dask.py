@@ -1,15 +1,18 @@
-"""Benchmark of ``lidarcal correct --dask local:N`` against the serial run of the same mission.
+"""Benchmark of ``lidarcal correct --dask local:N`` and ``lidarcal calibrate --dask local:N``
+against the serial runs of the same mission.
 
     .venv/bin/python bench/bench_dask.py                        # the ~6M-point mission, .mcap
     .venv/bin/python bench/bench_dask.py --density 0.3 --line-length 600 --format laz
     .venv/bin/python bench/bench_dask.py --workers 2 --repeats 3
+    .venv/bin/python bench/bench_dask.py --commands calibrate --density 0.3 --line-length 500
 
-Each run is ``lidarcal correct BAG --calibration CAL -o OUT`` in a fresh process (its wall
-time includes the process start and, with ``--dask``, the local cluster's start), serial and
-``--dask local:N`` alternately, ``--repeats`` times each; printed: the wall times (min,
-median), the speed-up (serial / Dask, of the minima), the peak resident memory of each
-process tree, and whether the two outputs are byte for byte the same (each run writes an
-output of the same name in its own folder: a bag's metadata holds its file name).
+Each run is ``lidarcal correct BAG --calibration CAL -o OUT`` (or ``lidarcal calibrate BAG
+--control CSV -o CAL``) in a fresh process (its wall time includes the process start and,
+with ``--dask``, the local cluster's start), serial and ``--dask local:N`` alternately,
+``--repeats`` times each; printed per command: the wall times (min, median), the speed-up
+(serial / Dask, of the minima), the peak resident memory of each process tree, and whether
+the two outputs are byte for byte the same (each run writes an output of the same name in its
+own folder: a bag's metadata holds its file name; a calibration file holds no time).
 The mission is simulated once and cached under ``bench/.cache/`` (bench/benchlib.py).
 """
 
@@ -38,20 +41,43 @@ def _same(a: Path, b: Path) -> bool:
         filecmp.cmp(a / n, b / n, shallow=False) for n in names)
 
 
-def _run(meta: dict[str, Any], out: Path, dask: str | None) -> dict[str, Any]:
-    """One ``lidarcal correct`` of the mission ``meta`` to ``out``: its figures."""
+def _run(meta: dict[str, Any], command: str, out: Path, dask: str | None) -> dict[str, Any]:
+    """One ``lidarcal correct`` (or ``calibrate``) of the mission ``meta`` to ``out``: its
+    figures."""
     if out.parent.exists():
         shutil.rmtree(out.parent)
     out.parent.mkdir(parents=True)
     log = WORK / "last.log"
-    cmd = [PYTHON, "-m", "lidarcal_ros", "correct", meta["bag"], "--calibration",
-           str(calibration_of(meta)), "-o", str(out), "-q"]
+    inputs = (["--calibration", str(calibration_of(meta))] if command == "correct" else
+              ["--control", meta["control"]])
+    cmd = [PYTHON, "-m", "lidarcal_ros", command, meta["bag"], *inputs, "-o", str(out), "-q"]
     if dask is not None:
         cmd += ["--dask", dask]
     res = run_child(cmd, log=log, tree_memory=True)
     if res["rc"] != 0:
-        raise SystemExit(f"lidarcal correct failed (exit {res['rc']}):\n{tail(log)}")
+        raise SystemExit(f"lidarcal {command} failed (exit {res['rc']}):\n{tail(log)}")
     return res
+
+
+def _compare(meta: dict[str, Any], command: str, name: str, dask: str, repeats: int) -> bool:
+    """``command`` serial and with ``--dask`` alternately, ``repeats`` times: print the
+    figures; whether the outputs are the same bytes."""
+    times: dict[str, list[float]] = {"serial": [], dask: []}
+    peaks: dict[str, list[float]] = {"serial": [], dask: []}
+    for _ in range(repeats):
+        for label, option in (("serial", None), (dask, dask)):
+            res = _run(meta, command, WORK / command / label / name, option)
+            times[label].append(res["wall_s"])
+            peaks[label].append(res["peak_mib"])
+    same = _same(WORK / command / "serial" / name, WORK / command / dask / name)
+    print(f"lidarcal {command}:")
+    for label in times:
+        print(f"  {label:>8}: wall {median_min(times[label])} s (min/median), peak "
+              f"{max(peaks[label]):.0f} MiB (process tree)")
+    speedup = min(times["serial"]) / min(times[dask])
+    print(f"  speed-up of --dask {dask}: {speedup:.2f}x; outputs byte-identical: {same}; "
+          f"load average {benchlib.load_average():.2f}", flush=True)
+    return same
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,29 +88,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--format", choices=("mcap", "laz", "las"), default="mcap")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--commands", default="correct,calibrate",
+                    help="comma-separated: correct, calibrate")
     args = ap.parse_args(argv)
+    commands = [c.strip() for c in args.commands.split(",") if c.strip()]
+    if not commands or set(commands) - {"correct", "calibrate"}:
+        ap.error(f"--commands: expected correct and/or calibrate, got {args.commands!r}")
     spec = MissionSpec(args.density, args.line_length)
     meta = benchlib.prepare_mission(spec)
     print(f"mission: {spec.describe()}: {meta['n_points'] / 1e6:.2f}M points; load average "
           f"{benchlib.load_average():.2f}", flush=True)
     dask = f"local:{args.workers}"
-    name = f"out.{args.format}"
-    times: dict[str, list[float]] = {"serial": [], dask: []}
-    peaks: dict[str, list[float]] = {"serial": [], dask: []}
-    for _ in range(args.repeats):
-        for label, option in (("serial", None), (dask, dask)):
-            res = _run(meta, WORK / label / name, option)
-            times[label].append(res["wall_s"])
-            peaks[label].append(res["peak_mib"])
-    same = _same(WORK / "serial" / name, WORK / dask / name)
-    for label in times:
-        print(f"  {label:>8}: wall {median_min(times[label])} s (min/median), peak "
-              f"{max(peaks[label]):.0f} MiB (process tree)")
-    speedup = min(times["serial"]) / min(times[dask])
-    print(f"  speed-up of --dask {dask}: {speedup:.2f}x; outputs byte-identical: {same}; "
-          f"load average {benchlib.load_average():.2f}")
+    names = {"correct": f"out.{args.format}", "calibrate": "calibration.yaml"}
+    same = [_compare(meta, c, names[c], dask, args.repeats) for c in commands]
     shutil.rmtree(WORK, ignore_errors=True)
-    return 0 if same else 1
+    return 0 if all(same) else 1
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@ from typing import Any
 
 from lidarcal_ros.cli.common import (
     add_bag_and_calibration_arguments,
+    add_dask_option,
     add_quiet_option,
     other_paths,
     progress_bar,
@@ -51,6 +52,7 @@ def add_calibrate_command(sub: Any) -> None:
                    "estimated; converged false) with the strips' agreement as delivered, "
                    "which lidarcal correct accepts; exit status 5 instead of 1")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_dask_option(p)
     add_quiet_option(p)
     p.set_defaults(func=cmd_calibrate)
 
@@ -59,6 +61,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Run ``lidarcal calibrate`` with the parsed ``args``; its exit status."""
     from lidarcal_ros.core.calibration.result import NothingEstimated
     from lidarcal_ros.core.params import parse_parameter_list
+    from lidarcal_ros.io.bag.sensor_bag import sensor_frame_of
     from lidarcal_ros.io.calibration_file import calibration_document, write_calibration
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.pipeline.calibration.procedure import (
@@ -70,7 +73,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         load_for_calibration,
     )
     from lidarcal_ros.pipeline.calibration.sensor_frame import load_sensor_bag
+    from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
 
+    if args.dask is not None:
+        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     check_output(args.output, overwrite=args.overwrite, inputs=other_paths(args, "output"))
     config = load_flight_config(args.config)
     overrides = {}
@@ -89,6 +95,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise ConfigError(f"--solve-for: {exc}") from None
     truth = Truth.read(args.truth) if args.truth else None
     started = time.perf_counter()
+    if args.dask is not None and sensor_frame_of(
+            args.bag, points_topic=config["topics.points"],
+            trajectory_topic=config["topics.trajectory"], map_frame=config["frame_id"]):
+        raise ConfigError(f"--dask: {args.bag} holds clouds in the sensor's frame, whose "
+                          "mounting is calibrated in this process only; leave --dask out")
     sensor = load_sensor_bag(args.bag, config)
     if sensor is not None:
         return _calibrate_mounting(args, config, sensor, solve_for, truth, started)
@@ -97,7 +108,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     try:
         mission = load_for_calibration(args.bag, config, control_csv=args.control,
                                        progress=progress)
-        result = calibrate_mission(mission, config, solve_for=solve_for, progress=progress)
+        # (the cluster, if any, is shut down on every way out: errors, Ctrl-C, SIGTERM)
+        with open_executor(args.dask) as executor:
+            result = calibrate_mission(mission, config, solve_for=solve_for,
+                                       progress=progress,
+                                       executor=None if args.dask is None else executor)
     except NothingEstimated as exc:
         unestimated, result = exc, exc.result
     finally:

@@ -73,10 +73,12 @@ class SerialExecutor:
     description = "serial (this process)"
 
     def submit(self, fn: Callable[..., T], *args: Any, key: str) -> TaskFuture[T]:
-        """Run ``fn(*args)`` now; a finished future (its exception kept for ``result``)."""
+        """Run ``fn(*args)`` now (an argument that is a future of this executor's: its
+        result, as Dask passes a task the results of those it takes); a finished future
+        (its exception kept for ``result``)."""
         future: Future[T] = Future()
         try:
-            future.set_result(fn(*args))
+            future.set_result(fn(*(a.result() if isinstance(a, Future) else a for a in args)))
         except Exception as exc:  # raised again by result(), as Dask's futures do
             future.set_exception(exc)
         return future

@@ -109,3 +109,8 @@ def test_calibrate_refusals_are_one_line(tmp_path: Path, capsys: pytest.CaptureF
     rc, _, err = run(capsys, "calibrate", no_tf, *args, "--time-field", "stamp")
     assert "no per-point time field (stamp); fields present: x, y, z, intensity, time, ring" \
         in one_line_error(rc, err)
+    good = write_sensor_bag(tmp_path / "good", m.clouds, m.trajectory,  # type: ignore[attr-defined]
+                            m.nominal)  # type: ignore[attr-defined]
+    rc, _, err = run(capsys, "calibrate", good, *args, "--dask", "local:2")
+    assert f"--dask: {good} holds clouds in the sensor's frame, whose mounting is calibrated " \
+        "in this process only; leave --dask out" in one_line_error(rc, err)

@@ -35,6 +35,7 @@ from lidarcal_ros.core.calibration.iteration import (
     robust_solve,
 )
 from lidarcal_ros.core.calibration.matching import PairMatcher
+from lidarcal_ros.core.calibration.pair_work import PairWork
 from lidarcal_ros.core.calibration.pairs import (
     PreparedStrip,
     StripPair,
@@ -412,15 +413,19 @@ class Calibrator:
         pause between pairs. ``corrected`` (by strip) gains the strips corrected on the way."""
 
         def observe(pair: StripPair) -> tuple[Observations, np.ndarray]:
-            assert pair.sample is not None
             for k in (pair.a, pair.b):
                 if k not in corrected:
                     corrected[k] = self.matcher.corrected(k, delta)
-            m = self.matcher.match_pair(pair, pair.sample, delta, corrected, self.threshold)
-            return (self.matcher.pair_observations(pair, pair.sample, m),
-                    np.where(m.valid, m.triangle, -1))
+            return self.matcher.observe(pair, delta, corrected, self.threshold)
 
         label = f"iteration {iteration}: matching"
+        remote = self.matcher.remote
+        if remote is not None:  # (the strips corrected where the pairs are matched)
+            self._progress(label, 0.0)
+            for pair, (last, patches) in zip(live, remote.observe(self.matcher, live, delta,
+                                                                  self.threshold), strict=True):
+                yield pair, last, patches
+            return
         if self.workers.running:
             # Every strip corrected first, so that the threads only read ``corrected``.
             corrected.update(self.matcher.corrected_many(self.matcher.used_strips(live), delta))
@@ -711,8 +716,16 @@ class Calibrator:
                                         s.max_normal_distance_m)
             return m.distance[m.valid]
 
+        remote = self.matcher.remote
+        if remote is None:
+            afters = self.workers.map(after_of, self.pairs)
+        else:
+            matched = [p for p in self.pairs if p.frozen is None or p.frozen_delta is None]
+            found = dict(zip((p.index for p in matched), remote.distances(
+                self.matcher, matched, delta, s.max_normal_distance_m), strict=True))
+            afters = [found[p.index] if p.index in found else after_of(p) for p in self.pairs]
         stats = []
-        for pair, after in zip(self.pairs, self.workers.map(after_of, self.pairs), strict=True):
+        for pair, after in zip(self.pairs, afters, strict=True):
             assert pair.before is not None
             ids = sorted((self.strips[pair.a].strip_id, self.strips[pair.b].strip_id))
             rms_after, p95_after = robust_qa(after, s.min_normal_distance_m)
@@ -750,6 +763,7 @@ def calibrate(
     progress: Progress | None = None,
     whole: WholeStrips | None = None,
     samples: ChosenSamples | None = None,
+    pair_work: PairWork | None = None,
 ) -> CalibrationResult:
     """Calibrate a mission: see :class:`Calibrator`.
 
@@ -757,6 +771,9 @@ def calibrate(
     a bounded-memory calibration, :mod:`~lidarcal_ros.core.calibration.bounded`); by strip
     id, each whole strip's extent and the sampling priority of each point held.
     ``samples``: the pairs' sample points chosen already (:meth:`Calibrator.use_samples`).
+    ``pair_work``: where the strip pairs are matched, if not in this process's threads
+    (:attr:`PairMatcher.remote <lidarcal_ros.core.calibration.matching.PairMatcher.remote>`;
+    the same estimate).
 
     Raises
     ------
@@ -768,7 +785,7 @@ def calibrate(
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
         return _run(Calibrator.from_mission(mission, settings, progress=progress, whole=whole,
-                                            samples=samples))
+                                            samples=samples), pair_work)
     # auto: the trajectory as exact, then with each strip's spline over the same prepared
     # strips (their TINs and geometry shared, as the live calibration shares them); the
     # spline is kept where it fits clearly better (the strips disagree by more than their
@@ -776,7 +793,7 @@ def calibrate(
     first = Calibrator.from_mission(mission, with_trajectory_model(settings,
                                                                    TrajectoryModel.NONE),
                                     progress=progress, whole=whole, samples=samples)
-    exact = _run(first)
+    exact = _run(first, pair_work)
     second = Calibrator(with_trajectory_model(settings, TrajectoryModel.SPLINE),
                         control=mission.control, progress=progress)
     second.dropped_non_finite, second.thinned_points = first.dropped_non_finite, \
@@ -786,7 +803,7 @@ def calibrate(
     if samples is not None:
         second.use_samples(samples)
     try:
-        spline: CalibrationResult | CalibrationError = _run(second)
+        spline: CalibrationResult | CalibrationError = _run(second, pair_work)
     except CalibrationError as exc:  # (NothingEstimated too)
         spline = exc
     return choose_trajectory_model(exact, spline)
@@ -819,9 +836,10 @@ def choose_trajectory_model(exact: CalibrationResult,
     return chosen
 
 
-def _run(cal: Calibrator) -> CalibrationResult:
-    """:meth:`Calibrator.run`, its ``trajectory_choice`` its model (:func:`calibrate` says
-    what it raises)."""
+def _run(cal: Calibrator, pair_work: PairWork | None = None) -> CalibrationResult:
+    """:meth:`Calibrator.run`, its pairs matched by ``pair_work`` if given, its
+    ``trajectory_choice`` its model (:func:`calibrate` says what it raises)."""
+    cal.matcher.remote = pair_work
     try:
         result = cal.run()
     except NothingEstimated:

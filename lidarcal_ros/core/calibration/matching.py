@@ -45,6 +45,7 @@ from lidarcal_ros.errors import CalibrationError
 
 if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
     from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
+    from lidarcal_ros.core.calibration.pair_work import PairWork
 
 
 
@@ -78,6 +79,8 @@ class PairMatcher:
         #: Every strip's trajectory error as estimated so far (docs/method.md section 11).
         self.trajectory = TrajectoryState(settings.trajectory.model,
                                           settings.trajectory.knot_interval_s)
+        #: Where the per-pair matching runs instead of the threads (other processes), if set.
+        self.remote: PairWork | None = None
 
     @property
     def n_points(self) -> int:
@@ -433,18 +436,36 @@ class PairMatcher:
         points and keep their "before" discrepancies."""
         if not pairs:
             return
-        s = self.settings
-        zero = np.zeros(N_PARAMETERS)
-        self.build_tins(p.b for p in pairs)
-        delivered = self.corrected_many(self.used_strips(pairs), zero, delivered=True)
+        if self.remote is not None:
+            chosen = self.remote.choose(self, pairs)
+        else:
+            self.build_tins(p.b for p in pairs)
+            delivered = self.corrected_many(self.used_strips(pairs), np.zeros(N_PARAMETERS),
+                                            delivered=True)
+            chosen = self.workers.map(lambda pair: self.choose_sample(pair, delivered), pairs,
+                                      "choosing sample points")
+        for pair, (sample, before) in zip(pairs, chosen, strict=True):
+            pair.sample, pair.before = sample, before
 
-        def choose(pair: StripPair) -> None:
-            m = self.match_pair(pair, pair.candidates, zero, delivered, s.max_normal_distance_m)
-            pair.sample = self._select_sample(pair, m)
-            before = m.take(np.isin(pair.candidates, pair.sample)).distance
-            pair.before = before[np.isfinite(before)]
+    def choose_sample(self, pair: StripPair, delivered: dict[int, tuple[np.ndarray, np.ndarray]]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """A pair's sample points (indices into its strip ``a``) and their normal distances
+        (m) to strip ``b`` as delivered (its "before" QA): its candidates matched at zero
+        correction (``delivered``: by strip, as :meth:`corrected` with ``delivered``)."""
+        m = self.match_pair(pair, pair.candidates, np.zeros(N_PARAMETERS), delivered,
+                            self.settings.max_normal_distance_m)
+        sample = self._select_sample(pair, m)
+        before = m.take(np.isin(pair.candidates, sample)).distance
+        return sample, before[np.isfinite(before)]
 
-        self.workers.map(choose, pairs, "choosing sample points")
+    def observe(self, pair: StripPair, delta: np.ndarray,
+                corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float
+                ) -> tuple[Observations, np.ndarray]:
+        """The pair's sample matched at ``delta`` (:meth:`match_pair`'s arguments): its
+        correspondences and the patch of each sample point (-1: none)."""
+        assert pair.sample is not None
+        m = self.match_pair(pair, pair.sample, delta, corrected, threshold)
+        return self.pair_observations(pair, pair.sample, m), np.where(m.valid, m.triangle, -1)
 
     def match_samples(
         self, delta: np.ndarray

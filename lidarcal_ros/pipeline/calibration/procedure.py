@@ -42,6 +42,8 @@ from lidarcal_ros.io.output_files import check_output, remove_quietly, write_tex
 from lidarcal_ros.io.survey.control import read_control_csv
 from lidarcal_ros.io.yaml_file import read_yaml
 from lidarcal_ros.pipeline.calibration.bounded import ReducedMission, load_reduced_mission
+from lidarcal_ros.pipeline.calibration.parts import ExecutorPairWork
+from lidarcal_ros.pipeline.executor import Executor
 
 logger = logging.getLogger(__name__)
 
@@ -95,17 +97,20 @@ def calibrate_mission(
     *,
     solve_for: tuple[str, ...] | None = None,
     progress: Progress | None = None,
+    executor: Executor | None = None,
 ) -> CalibrationResult:
     """Run the calibration of ``mission`` (a
     :class:`~lidarcal_ros.pipeline.calibration.bounded.ReducedMission` too) with the options
-    of ``config``."""
+    of ``config``; its strip pairs matched on the workers of ``executor`` if given
+    (:mod:`~lidarcal_ros.pipeline.calibration.parts`: the same estimate)."""
     settings = config.calibration_settings()
     if solve_for is not None:
         settings.solve_for = tuple(n for n in PARAMETER_NAMES if n in solve_for)
     reduced = mission if isinstance(mission, ReducedMission) else None
     result = calibrate(mission, settings, progress=progress,
                        whole=None if reduced is None else reduced.whole,
-                       samples=None if reduced is None else reduced.samples)
+                       samples=None if reduced is None else reduced.samples,
+                       pair_work=None if executor is None else ExecutorPairWork(executor))
     unused = unused_control(mission, result, config)
     if unused:
         logger.warning("%s", unused)

@@ -8,14 +8,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 import re
 import signal
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import cloudpickle
 import helpers_dask
@@ -50,7 +47,6 @@ from lidarcal_ros.pipeline.executor import (
     DaskExecutor,
     Executor,
     SerialExecutor,
-    TaskFuture,
     open_executor,
 )
 
@@ -168,38 +164,13 @@ def test_a_scheduler_by_its_address_and_a_path_its_workers_do_not_see(
             remote.submit(_correct_part, task, key="unseen").result()
 
 
-def _dies_once(marker: str, fn: Callable[..., Any], *args: Any) -> Any:
-    """``fn(*args)``, but the first call anywhere (no ``marker`` file yet) kills its own
-    worker process instead."""
-    try:
-        os.close(os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
-    except FileExistsError:
-        return fn(*args)
-    os.kill(os.getpid(), signal.SIGKILL)
-    raise AssertionError("not reached")
-
-
-class _KillingExecutor:
-    """``inner``, whose first task kills the worker it runs on."""
-
-    def __init__(self, inner: DaskExecutor, marker: Path) -> None:
-        self.inner, self.marker = inner, marker
-        self.workers, self.description = inner.workers, inner.description
-
-    def submit(self, fn: Callable[..., Any], *args: Any, key: str) -> TaskFuture[Any]:
-        return self.inner.submit(_dies_once, str(self.marker), fn, *args, key=key)
-
-    def close(self) -> None:
-        pass
-
-
 def test_a_killed_worker_is_replaced_and_the_output_unchanged(
         small_mission: MissionFiles, calibration: Path, cluster: DaskExecutor,
         tmp_path: Path) -> None:
     serial = _corrected(small_mission.bag, calibration, tmp_path / "serial", "out.mcap")
     marker = tmp_path / "killed"
     parted = _corrected(small_mission.bag, calibration, tmp_path / "dask", "out.mcap",
-                        _KillingExecutor(cluster, marker))
+                        helpers_dask.KillingExecutor(cluster, marker))
     assert marker.exists()  # (a worker did die)
     assert parted == serial
 
