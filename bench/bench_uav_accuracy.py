@@ -16,6 +16,9 @@ grades: ``exact``; ``attitude`` (the tactical unit's attitude errors only); ``po
 arcsec, first-order Gauss-Markov over 30 s and 20 s). The baseline is the exact INS of the
 same seed and layout: the ratio of each grade's rotation error to it is printed too.
 The bars of issue 33 (tactical INS): 30 arcsec, 8 mm, dr 4 mm, honest sigmas (within 2-3).
+``--set`` passes flight configuration values (e.g. the trajectory model's priors),
+``--strips turns`` cuts the flight in the middle of each turn instead of leaving the turns
+out, ``--position-correlation-s`` sets how long the INS's position errors stay alike.
 """
 
 from __future__ import annotations
