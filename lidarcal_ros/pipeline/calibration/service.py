@@ -415,7 +415,10 @@ class CalibrationService:
                 job, future = _Idle(), None
             if isinstance(job, AddPose):
                 poses.append(job)
+                # Input again: an idle close that came before the poses covering the last
+                # strip (an INS lagging the clouds) is made again once they stop.
                 self._last_input = time.monotonic()
+                self._idle_closed = False
                 continue
             if poses:
                 try:
@@ -449,9 +452,6 @@ class CalibrationService:
         # (kept for clouds in the sensor's frame too: they may come after the first poses)
         self.sensor.add_poses(t, xyz, q, poses[-1].frame_id)
         if self.sensor.active:
-            # the lines' ends come from the poses: the input is idle once they stop too
-            self._last_input = time.monotonic()
-            self._idle_closed = False
             self._traj_end = max(self._traj_end, float(t.max()))
             return
         steps = self._stream.clock_steps[0]

@@ -10,6 +10,7 @@ the calibration refuses is counted with its reason while the next one is taken.
 from __future__ import annotations
 
 import shutil
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,5 +190,29 @@ def test_a_refused_cloud_is_counted_with_its_reason_and_the_next_taken(
         assert service.stream.max_points == 5000
         inputs = next(s for s in service.statuses() if s.name == "lidarcal: input")
         assert inputs.level == 1 and "1 malformed clouds skipped" in inputs.message
+    finally:
+        service.close()
+
+
+def test_poses_that_lag_the_last_cloud_past_the_idle_close_still_close_the_strip(
+        small_mission: Any, tmp_path: Path) -> None:
+    """An INS whose last poses come after the clouds have been idle for ``idle_close_s``: the
+    idle close finds the last strip not yet covered by the trajectory and leaves it open; the
+    lagging poses then arrive, and once they too stop, the strip is closed (it used to stay
+    open for good: the idle close was not made again after input)."""
+    events = helpers_missions.stream_events(small_mission.mission)
+    last_cloud = max(t for t, kind, _ in events if kind == "cloud")
+    cut = next(i for i, (t, kind, _) in enumerate(events) if kind == "pose" and t > last_cloud)
+    service = _started(_config(small_mission, tmp_path), [], idle_close_s=0.3)
+    try:
+        _feed(service, events[:cut])
+        stream = service.stream
+        wait_until(lambda: len(stream.strip_ids) == 6 and service.queued_jobs == 0
+                   and len(stream.open_strip_ids) == 1, 60, "five strips closed, one open")
+        time.sleep(1.0)  # (the idle close has come and gone: the last strip is not covered)
+        assert stream.open_strip_ids == [6]
+        _feed(service, events[cut:])
+        wait_until(lambda: not stream.open_strip_ids, 30, "the last strip closed")
+        assert stream.strip_ids == [1, 2, 3, 4, 5, 6]
     finally:
         service.close()
