@@ -12,6 +12,7 @@ lidR's when available).
 
 from __future__ import annotations
 
+import argparse
 import copy
 import logging
 import math
@@ -30,12 +31,14 @@ from helpers_las import (
     write_mission_sbet,
 )
 
+from lidarcal_ros.cli.main import build_parser
 from lidarcal_ros.cli.main import main as cli_main
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation.spec import SimulationSpec
-from lidarcal_ros.errors import InputError, TrajectoryError
+from lidarcal_ros.core.trajectory.segments import SegmentModel
+from lidarcal_ros.errors import ConfigError, InputError, TrajectoryError
 from lidarcal_ros.io.bag.mission_bag import read_mission
 from lidarcal_ros.io.survey.las_reader import GpsTimeType
 from lidarcal_ros.io.survey.las_writer import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
@@ -43,14 +46,17 @@ from lidarcal_ros.io.survey.trajectory_crs import map_orientation
 from lidarcal_ros.io.survey.trajectory_files import (
     WEEK_S,
     TimeBase,
+    TrajectoryFile,
+    TrajectoryFileKind,
     read_ascii_trajectory,
     read_sbet,
     read_trajectory_file,
     write_sbet,
 )
+from lidarcal_ros.pipeline.importing import importer
 from lidarcal_ros.pipeline.importing.importer import import_mission
 from lidarcal_ros.pipeline.importing.options import ImportOptions, Returns
-from lidarcal_ros.pipeline.importing.time_bases import reconcile_times
+from lidarcal_ros.pipeline.importing.time_bases import reconcile_times, trajectory_readings
 
 ORIGIN = (500_000.0, 5_000_000.0)
 FAST: dict[str, Any] = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
@@ -460,6 +466,7 @@ def test_rebuilt_trajectory_lies_near_the_truth(sim, multi_return) -> None:
     est = report.estimate
     assert est is not None and not est.failed_strips
     assert {q.level for q in est.segments} == {"OK"}
+    assert {q.model for q in est.segments} == {SegmentModel.RAYS}  # (no fallback needed)
     traj = est.trajectory
     truth = sim.mission.trajectory
     at = np.column_stack([np.interp(traj.t, truth.t, truth.xyz[:, i]) for i in range(3)])
@@ -498,6 +505,30 @@ def test_reconcile_week_from_points() -> None:
     assert rule.week == 2287
 
 
+def _times_file(kind: TrajectoryFileKind, t: np.ndarray) -> TrajectoryFile:
+    zero = np.zeros_like(t)
+    return TrajectoryFile(Path("traj"), kind, t, zero, zero, zero, False)
+
+
+def test_trajectory_readings_given_or_chosen() -> None:
+    """A base given is the one reading; None chooses: an SBET's week seconds (restarting at
+    0 past the week's end: continued), an ASCII file's by the times' magnitude."""
+    across = np.array([WEEK_S - 10.0, WEEK_S - 5.0, 0.0, 5.0])
+    sbet = _times_file(TrajectoryFileKind.SBET, across)
+    assert trajectory_readings(sbet, None)[0] == [TimeBase.WEEK]
+    assert trajectory_readings(sbet, None)[1].tolist() == [WEEK_S - 10, WEEK_S - 5, WEEK_S,
+                                                           WEEK_S + 5]
+    bases, raw = trajectory_readings(sbet, TimeBase.ADJUSTED)
+    assert bases == [TimeBase.ADJUSTED] and raw is sbet.t  # (no week continued)
+    for t, want in [(across, [TimeBase.WEEK, TimeBase.ADJUSTED]),
+                    (np.array([1.38e9, 1.38e9 + 60]),
+                     [TimeBase.GPS, TimeBase.UNIX, TimeBase.ADJUSTED]),
+                    (np.array([3.3e8, 3.3e8 + 60]), [TimeBase.ADJUSTED])]:
+        assert trajectory_readings(_times_file(TrajectoryFileKind.ASCII, t), None)[0] == want
+    ascii_ = _times_file(TrajectoryFileKind.ASCII, across)
+    assert trajectory_readings(ascii_, TimeBase.UNIX)[0] == [TimeBase.UNIX]
+
+
 def test_reconcile_refuses_disjoint_times() -> None:
     with pytest.raises(TrajectoryError, match="do not overlap"):
         reconcile_times(TimeBase.WEEK, (1000.0, 2000.0), (5000.0, 6000.0),
@@ -507,6 +538,60 @@ def test_reconcile_refuses_disjoint_times() -> None:
 # ---------------------------------------------------------------------------- bad input
 def _cli(*args: str | Path) -> int:
     return cli_main(["import", *map(str, args)])
+
+
+def test_options_take_the_flags_strings() -> None:
+    """``ImportOptions`` turns the flags' strings into their enums (``auto``: None) and
+    refuses any other in one line naming the flag."""
+    def options(**flags: Any) -> ImportOptions:  # (the strings, as a caller without types)
+        return ImportOptions(**flags)
+
+    got = options(returns="first", trajectory_time="gps")
+    assert got.returns is Returns.FIRST and got.trajectory_time is TimeBase.GPS
+    assert options(trajectory_time="auto").trajectory_time is None
+    assert ImportOptions().returns is Returns.ALL and ImportOptions().trajectory_time is None
+    with pytest.raises(ConfigError) as bad:
+        options(returns="most")
+    assert str(bad.value) == "--returns must be one of all, first, last, got 'most'"
+    with pytest.raises(ConfigError) as bad:
+        options(trajectory_time="utc")
+    assert str(bad.value) == "--trajectory-time: unknown time base 'utc'"
+
+
+def _import_parser() -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["import"]
+
+
+def test_cli_import_modes_are_the_enums(tmp_path, monkeypatch) -> None:
+    """The choices of ``--returns`` and ``--trajectory-time`` are the values of
+    :class:`Returns` and :class:`TimeBase` (and ``auto``), and each reaches the import as its
+    member (``auto``: None); another is refused by the parser."""
+    choices = {a.dest: a.choices for a in _import_parser()._actions}
+    assert choices["returns"] == tuple(Returns)
+    assert choices["trajectory_time"] == ("auto", *TimeBase)
+    got: list[ImportOptions] = []
+
+    class _Report:
+        def lines(self) -> list[str]:
+            return []
+
+    def fake_import(inputs: Any, out: Any, options: ImportOptions, *_: Any, **__: Any) -> Any:
+        got.append(options)
+        return _Report()
+
+    monkeypatch.setattr(importer, "import_mission", fake_import)
+    strip = tmp_path / "strip.las"
+    strip.write_bytes(b"")
+    assert _cli(strip, "-o", tmp_path / "bag") == 0
+    assert got[-1].returns is Returns.ALL and got[-1].trajectory_time is None
+    for k, base in enumerate(TimeBase):
+        returns = list(Returns)[k % len(Returns)]
+        assert _cli(strip, "-o", tmp_path / "bag", "--returns", returns,
+                    "--trajectory-time", base) == 0
+        assert got[-1].returns is returns and got[-1].trajectory_time is base
+    with pytest.raises(SystemExit):
+        _cli(strip, "-o", tmp_path / "bag", "--trajectory-time", "utc")
 
 
 def test_cli_import_and_calibrate(exported, tmp_path, capsys) -> None:
