@@ -22,6 +22,7 @@ import pytest
 from lidarcal_ros.core.mission import Mission
 from lidarcal_ros.core.simulation.exact_model import biased_from_pulse
 from lidarcal_ros.core.simulation.simulate import SimulatedMission
+from lidarcal_ros.io.survey.las_reader import GpsTimeType
 from lidarcal_ros.io.survey.las_writer import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
 from lidarcal_ros.io.survey.trajectory_files import WEEK_S, write_sbet
 
@@ -93,13 +94,14 @@ def plain_strips(sim: SimulatedMission) -> list[dict[str, np.ndarray]]:
 
 def write_las_tiles(
     strips: list[dict[str, np.ndarray]], directory: Path, *, crs: str | None = CRS,
-    tiles: tuple[int, int] = (2, 2), laz: Sequence[int] = (0,), time_type: str = "adjusted",
+    tiles: tuple[int, int] = (2, 2), laz: Sequence[int] = (0,),
+    time_type: GpsTimeType = GpsTimeType.ADJUSTED,
     version: str = "1.4", point_format: int = 6, point_source_id: bool = True,
 ) -> list[Path]:
     """Write the points as a grid of LAS/LAZ tiles (0.001 m scale).
 
-    ``time_type``: ``"adjusted"`` (UNIX times to adjusted standard GPS time, encoding bit
-    set) or ``"week"`` (GPS week seconds, bit clear). Tiles listed in ``laz`` are LAZ.
+    ``time_type``: ``ADJUSTED`` (UNIX times to adjusted standard GPS time, encoding bit
+    set) or ``WEEK`` (GPS week seconds, bit clear). Tiles listed in ``laz`` are LAZ.
     Points within a tile are stored in reverse time order (the importer must sort).
     """
     import laspy
@@ -108,7 +110,7 @@ def write_las_tiles(
     cols = {key: np.concatenate([s[key] for s in strips]) for key in strips[0]}
     xyz = cols["xyz"]
     gps = unix_to_adjusted_gps(cols["t"])
-    if time_type == "week":
+    if time_type is GpsTimeType.WEEK:
         gps = np.mod(gps + ADJUSTED_GPS_OFFSET, WEEK_S)
     nx, ny = tiles
     ex = np.quantile(xyz[:, 0], np.linspace(0, 1, nx + 1)[1:-1])
@@ -121,7 +123,7 @@ def write_las_tiles(
         header.scales = np.array([0.001, 0.001, 0.001])
         header.offsets = np.floor(xyz[sel].min(axis=0) / 1000.0) * 1000.0
         header.global_encoding.gps_time_type = (
-            laspy.header.GpsTimeType.STANDARD if time_type == "adjusted"
+            laspy.header.GpsTimeType.STANDARD if time_type is GpsTimeType.ADJUSTED
             else laspy.header.GpsTimeType.WEEK_TIME)
         if version == "1.4" and point_format >= 6:
             header.global_encoding.wkt = True

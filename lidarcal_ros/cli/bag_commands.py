@@ -50,6 +50,8 @@ def add_import_command(sub: Any) -> None:
     p.add_argument("--trajectory-crs",
                    help="CRS of the trajectory positions (default EPSG:4979 for SBET and "
                    "lat/lon columns, the points' CRS for ASCII x,y,z)")
+    # (the choices of --trajectory-time and --returns are the values of TimeBase and
+    # Returns, spelled out: their modules are too heavy to import for the parser)
     p.add_argument("--trajectory-time", default="auto",
                    choices=("auto", "week", "adjusted", "gps", "unix"),
                    help="time base of the trajectory file (default: SBET week seconds, ASCII "
@@ -78,9 +80,10 @@ def add_import_command(sub: Any) -> None:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Run ``lidarcal import`` with the parsed ``args``; its exit status."""
+    from lidarcal_ros.io.survey.trajectory_files import TimeBase
     from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
     from lidarcal_ros.pipeline.importing.importer import import_mission
-    from lidarcal_ros.pipeline.importing.options import ImportOptions
+    from lidarcal_ros.pipeline.importing.options import AUTO_TIME, ImportOptions, Returns
 
     if args.dask is not None:
         parse_dask_option(args.dask)  # (a malformed value refused before any work)
@@ -92,8 +95,10 @@ def cmd_import(args: argparse.Namespace) -> int:
     options = ImportOptions(
         trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
         trajectory_accuracy=args.trajectory_accuracy,
-        trajectory_time=args.trajectory_time, gps_week=args.gps_week,
-        strip_gap_s=args.strip_gap, returns=args.returns, frame_id=args.frame,
+        trajectory_time=(None if args.trajectory_time == AUTO_TIME
+                         else TimeBase(args.trajectory_time)),
+        gps_week=args.gps_week, strip_gap_s=args.strip_gap, returns=Returns(args.returns),
+        frame_id=args.frame,
         points_topic=args.points, trajectory_topic=args.trajectory_topic,
         trajectory_rate_hz=args.trajectory_rate, memory_points=args.memory_points,
         qa_cell_m=args.qa_cell, overwrite=args.overwrite)

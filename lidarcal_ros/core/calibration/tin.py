@@ -6,9 +6,9 @@ its vertices and keep its triangles.
 
 from __future__ import annotations
 
+import enum
 import logging
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -95,7 +95,16 @@ class Tin:
         return self._locator.locate(xy - self.origin[:2], start)
 
 
-def delaunay(xy: np.ndarray, *, backend: Literal["auto", "triangle", "scipy"] = "auto"
+class TinBackend(enum.StrEnum):
+    """The library that triangulates (:func:`delaunay`)."""
+
+    #: Shewchuk's Triangle (the ``triangle`` package).
+    TRIANGLE = "triangle"
+    #: qhull, through scipy.
+    SCIPY = "scipy"
+
+
+def delaunay(xy: np.ndarray, *, backend: TinBackend | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
     """Delaunay triangulation of 2-D points.
 
@@ -103,8 +112,8 @@ def delaunay(xy: np.ndarray, *, backend: Literal["auto", "triangle", "scipy"] = 
     ----------
     xy : (n, 2) float64
         Points, ideally about a local origin.
-    backend : ``"auto"``, ``"triangle"`` or ``"scipy"``
-        ``auto`` uses Triangle when installed, else qhull (scipy).
+    backend : TinBackend or None
+        None: Triangle when installed, else qhull (scipy).
 
     Returns
     -------
@@ -113,7 +122,7 @@ def delaunay(xy: np.ndarray, *, backend: Literal["auto", "triangle", "scipy"] = 
     neighbors : (m, 3) int32
         Triangle opposite each vertex, -1 on the hull.
     """
-    if backend == "triangle" or (backend == "auto" and _triangle is not None):
+    if backend is TinBackend.TRIANGLE or (backend is None and _triangle is not None):
         if _triangle is None:
             raise ImportError("the 'triangle' package is not installed")
         out = _triangle.triangulate({"vertices": xy}, "Qzn")
@@ -306,4 +315,5 @@ def _match_block(
     out.distance[where] = best_d
 
 
-__all__ = ["GridLocator", "PatchMatches", "Tin", "TinQuality", "delaunay", "match_to_tin"]
+__all__ = ["GridLocator", "PatchMatches", "Tin", "TinBackend", "TinQuality", "delaunay",
+           "match_to_tin"]

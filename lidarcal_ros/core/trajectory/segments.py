@@ -6,9 +6,9 @@ frame, metres (docs/import.md, "Without a trajectory").
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -70,6 +70,15 @@ class EstimateSettings:
         return max(self.min_rays, 3 * (self.degree + 1))
 
 
+class SegmentModel(enum.StrEnum):
+    """How a segment's sensor path was fitted (:attr:`SegmentQuality.model`)."""
+
+    #: The polynomial fitted to the rays alone.
+    RAYS = "rays"
+    #: Level flight (one height), the fallback of a weak segment.
+    LEVEL = "level"
+
+
 @dataclass
 class SegmentQuality:
     """How well one segment of the flight path was rebuilt.
@@ -103,8 +112,8 @@ class SegmentQuality:
         Spread of the rays across the track (5th to 95th percentile of their angle from the
         vertical in the plane across the track), degrees: the crossing of the fan fixes the
         height, and a narrow fan (the tile holds one edge of the swath) fixes it poorly.
-    model : ``"rays"`` or ``"level"``
-        ``rays``: the polynomial fitted to the rays alone. ``level``: the fallback of a weak
+    model : SegmentModel
+        ``RAYS``: the polynomial fitted to the rays alone. ``LEVEL``: the fallback of a weak
         segment, level flight (one height), the height also drawn from ``altitude_from``.
     altitude_from : tuple of int
         Strips whose rebuilt altitude went into a ``level`` fit as a prior (the strip itself
@@ -134,7 +143,7 @@ class SegmentQuality:
     altitude_m: float = math.nan
     altitude_sigma_m: float = math.nan
     fan_deg: float = math.nan
-    model: Literal["rays", "level"] = "rays"
+    model: SegmentModel = SegmentModel.RAYS
     altitude_from: tuple[int, ...] = ()
     weak: bool = False
     level: str = "ERROR"
@@ -322,7 +331,7 @@ def fit_segment(
         altitude_m=float(coef[0, 2]),
         altitude_sigma_m=float(np.sqrt(cov[2, 2])),
         fan_deg=fan,
-        model="level" if level else "rays",
+        model=SegmentModel.LEVEL if level else SegmentModel.RAYS,
     )
     return coef, cov, q, tc, half
 
@@ -376,5 +385,5 @@ def flight_problems(q: SegmentQuality) -> list[str]:
     return problems
 
 
-__all__ = ["EstimateSettings", "SegmentFit", "SegmentQuality", "fit_segment", "flight_problems",
-           "grade", "legendre", "segment_edges"]
+__all__ = ["EstimateSettings", "SegmentFit", "SegmentModel", "SegmentQuality", "fit_segment",
+           "flight_problems", "grade", "legendre", "segment_edges"]

@@ -7,13 +7,14 @@ the factors to metres); GPS times raw, in the base the header names (docs/import
 from __future__ import annotations
 
 import datetime
+import enum
 import logging
 import os
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
@@ -39,7 +40,14 @@ quiet_laspy_errors("laspy.lasreader")
 #: Points decoded per chunk (about 60 MB of columns).
 CHUNK_POINTS = 1_000_000
 
-GpsTimeType = Literal["week", "adjusted"]
+
+class GpsTimeType(enum.StrEnum):
+    """What a LAS header's GPS times count: its global-encoding bit 0."""
+
+    #: Bit 0 clear: GPS seconds of the week.
+    WEEK = "week"
+    #: Bit 0 set: Adjusted Standard GPS Time (GPS seconds since the GPS epoch minus 1e9).
+    ADJUSTED = "adjusted"
 
 
 class LasFileError(InputError):
@@ -59,7 +67,7 @@ class LasFileInfo:
     point_count : int
     compressed : bool
         LAZ.
-    gps_time_type : ``"week"`` or ``"adjusted"``
+    gps_time_type : GpsTimeType
         Global encoding bit 0: clear = GPS week seconds, set = Adjusted Standard GPS Time.
     creation_date : datetime.date or None
         Header creation date (processing date, usually on or after the flight).
@@ -203,7 +211,7 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
     except Exception as exc:  # a malformed CRS VLR: usable with --crs
         logger.warning("%s: cannot parse the CRS VLR (%s)", p, one_line(exc))
     encoding = header.global_encoding.gps_time_type
-    gps_type: GpsTimeType = "adjusted" if int(encoding) == 1 else "week"
+    gps_type = GpsTimeType.ADJUSTED if int(encoding) == 1 else GpsTimeType.WEEK
     return LasFileInfo(
         path=p,
         version=f"{header.version.major}.{header.version.minor}",

@@ -28,6 +28,7 @@ from lidarcal_ros.errors import InputError, OutputError, TrajectoryError
 from lidarcal_ros.io.survey.trajectory_files import (
     SBET_DTYPE,
     WEEK_S,
+    TimeBase,
     TrajectoryFile,
     to_gps_seconds,
 )
@@ -242,7 +243,7 @@ def _week_seconds(t: np.ndarray, p: Path, gps_epoch_unix: float) -> tuple[np.nda
             logger.warning("%s: the trajectory's times are before 1980 (not UNIX/ROS times?): "
                            "written unchanged as week seconds", p)
         return np.asarray(t, dtype=np.float64), None
-    gps = to_gps_seconds(t, "unix")
+    gps = to_gps_seconds(t, TimeBase.UNIX)
     week = int(math.floor(float(gps[0]) / WEEK_S))
     return gps - week * WEEK_S, week
 

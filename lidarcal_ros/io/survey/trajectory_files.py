@@ -6,6 +6,7 @@ positions and attitude in the map's CRS: :mod:`lidarcal_ros.io.survey.trajectory
 
 from __future__ import annotations
 
+import enum
 import io
 import logging
 import math
@@ -14,7 +15,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,8 +31,30 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-TimeBase = Literal["week", "adjusted", "gps", "unix"]
-TIME_BASES: tuple[str, ...] = ("week", "adjusted", "gps", "unix")
+
+class TimeBase(enum.StrEnum):
+    """What raw times count (docs/import.md, "GPS time"); ``--trajectory-time`` takes these
+    or ``auto``."""
+
+    #: GPS seconds of the week (an SBET's; a LAS header's global-encoding bit 0 clear).
+    WEEK = "week"
+    #: Adjusted standard GPS time: GPS seconds since the GPS epoch minus 1e9 (bit 0 set).
+    ADJUSTED = "adjusted"
+    #: GPS seconds since the GPS epoch (1980-01-06), no leap seconds.
+    GPS = "gps"
+    #: UNIX (UTC) seconds, leap seconds applied.
+    UNIX = "unix"
+
+
+class TrajectoryFileKind(enum.StrEnum):
+    """The format of a trajectory file."""
+
+    #: Applanix SBET: binary records of :data:`SBET_FIELDS`.
+    SBET = "sbet"
+    #: Text lines ``time,x,y,z[,...]``, with or without a header line.
+    ASCII = "ascii"
+
+
 WEEK_S = 604_800.0
 
 SBET_FIELDS: tuple[str, ...] = (
@@ -86,7 +109,7 @@ class TrajectoryFile:
     Attributes
     ----------
     path : Path
-    kind : ``"sbet"`` or ``"ascii"``
+    kind : TrajectoryFileKind
     t : (n,) float64
         Raw times, seconds, in the file's time base (SBET: week seconds).
     a, b, c : (n,) float64
@@ -102,7 +125,7 @@ class TrajectoryFile:
     """
 
     path: Path
-    kind: Literal["sbet", "ascii"]
+    kind: TrajectoryFileKind
     t: np.ndarray
     a: np.ndarray
     b: np.ndarray
@@ -138,26 +161,27 @@ def gps_week_of_unix(unix_time: float) -> int:
     return int(math.floor((unix_time - GPS_EPOCH_UNIX) / WEEK_S))
 
 
-def to_gps_seconds(values: np.ndarray, base: str, *, week: int | None = None) -> np.ndarray:
+def to_gps_seconds(values: np.ndarray, base: TimeBase, *, week: int | None = None
+                   ) -> np.ndarray:
     """Times of ``base`` as GPS seconds since the GPS epoch.
 
     Parameters
     ----------
     values : (n,) float64
-    base : ``"week"``, ``"adjusted"``, ``"gps"`` or ``"unix"``
+    base : TimeBase
     week : int, keyword-only
-        GPS week of ``week`` times (required for them).
+        GPS week of ``WEEK`` times (required for them).
     """
     v = np.asarray(values, dtype=np.float64)
-    if base == "week":
+    if base is TimeBase.WEEK:
         if week is None:
             raise ValueError("week times need the GPS week")
         return v + week * WEEK_S
-    if base == "adjusted":
+    if base is TimeBase.ADJUSTED:
         return v + ADJUSTED_GPS_OFFSET
-    if base == "gps":
+    if base is TimeBase.GPS:
         return v
-    if base == "unix":
+    if base is TimeBase.UNIX:
         from lidarcal_ros.io.survey.las_writer import unix_to_adjusted_gps
 
         return np.asarray(unix_to_adjusted_gps(v)) + ADJUSTED_GPS_OFFSET
@@ -229,8 +253,8 @@ def read_sbet(path: str | os.PathLike[str]) -> TrajectoryFile:
         heading = np.degrees(platform_heading - wander)  # true heading (Applanix)
         heading[~np.isfinite(heading)] = np.nan
     roll_pitch = _roll_and_pitch(p, heading, roll, pitch, ("roll field", "pitch field"))
-    return TrajectoryFile(p, "sbet", t, lon_deg, np.degrees(lat), alt, True, heading,
-                          *roll_pitch)
+    return TrajectoryFile(p, TrajectoryFileKind.SBET, t, lon_deg, np.degrees(lat), alt, True,
+                          heading, *roll_pitch)
 
 
 def write_sbet(
@@ -479,8 +503,9 @@ def read_ascii_trajectory(path: str | os.PathLike[str]) -> TrajectoryFile:
         pitch = _angle_column(p, body, col_pitch, labels[1], fallback)
     elif heading is not None and (col_roll, col_pitch) != (None, None):
         logger.warning("%s: %s but %s: heading only", p, *labels)
-    return TrajectoryFile(p, "ascii", data[:, 0], data[:, 1], data[:, 2], data[:, 3],
-                          geographic, heading, *_roll_and_pitch(p, heading, roll, pitch, labels))
+    return TrajectoryFile(p, TrajectoryFileKind.ASCII, data[:, 0], data[:, 1], data[:, 2],
+                          data[:, 3], geographic, heading,
+                          *_roll_and_pitch(p, heading, roll, pitch, labels))
 
 
 def _column_label(name: str, col: int | None) -> str:
@@ -605,34 +630,34 @@ def _check_file(path: str | os.PathLike[str]) -> Path:
 
 
 def read_trajectory_file(
-    path: str | os.PathLike[str], *, kind: Literal["auto", "sbet", "ascii"] = "auto"
+    path: str | os.PathLike[str], *, kind: TrajectoryFileKind | None = None
 ) -> TrajectoryFile:
     """Read an SBET or ASCII trajectory.
 
-    ``kind="auto"`` decides by suffix (``.out``, ``.sbet``, ``.bin``: SBET; ``.csv``,
+    ``kind`` None decides by suffix (``.out``, ``.sbet``, ``.bin``: SBET; ``.csv``,
     ``.txt``, ``.pos``, ...: ASCII), else by content (text or not).
     """
     p = _check_file(path)
-    if kind == "auto":
+    if kind is None:
         suffix = p.suffix.lower()
         if suffix in _SBET_SUFFIXES:
-            kind = "sbet"
+            kind = TrajectoryFileKind.SBET
         elif suffix in _ASCII_SUFFIXES:
-            kind = "ascii"
+            kind = TrajectoryFileKind.ASCII
         else:
             with p.open("rb") as fh:
                 head = fh.read(4096)
             textual = bool(head) and all(b in b"\t\n\r" or 32 <= b < 127 for b in head)
-            kind = "ascii" if textual else "sbet"
-    traj = read_sbet(p) if kind == "sbet" else read_ascii_trajectory(p)
+            kind = TrajectoryFileKind.ASCII if textual else TrajectoryFileKind.SBET
+    traj = read_sbet(p) if kind is TrajectoryFileKind.SBET else read_ascii_trajectory(p)
     if len(traj) < 2:
         raise TrajectoryFileError(f"{p}: {len(traj)} trajectory sample(s); need at least 2")
     return traj
 
 
 __all__ = ["SBET_DTYPE", "SBET_FIELDS", "SBET_RECORD_BYTES", "SMRMSG_DTYPE", "SMRMSG_FIELDS",
-           "SMRMSG_RECORD_BYTES", "TIME_BASES", "WEEK_S", "TimeBase", "TrajectoryAccuracy",
-           "TrajectoryFile", "TrajectoryFileError", "gps_to_unix", "gps_week_of_unix",
+           "SMRMSG_RECORD_BYTES", "WEEK_S", "TimeBase", "TrajectoryAccuracy", "TrajectoryFile",
+           "TrajectoryFileError", "TrajectoryFileKind", "gps_to_unix", "gps_week_of_unix",
            "read_ascii_trajectory", "read_sbet", "read_smrmsg", "read_trajectory_file",
            "smrmsg_beside", "to_gps_seconds", "write_ascii_trajectory", "write_sbet",
            "write_smrmsg"]

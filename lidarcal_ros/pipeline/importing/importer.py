@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.survey.las_reader import inspect_las
+from lidarcal_ros.io.survey.las_reader import GpsTimeType, inspect_las
 from lidarcal_ros.pipeline.executor import Executor
 from lidarcal_ros.pipeline.importing.options import ImportOptions
 from lidarcal_ros.pipeline.importing.points import (
@@ -117,7 +117,7 @@ def import_mission(
         store.cleanup()
 
 
-def _time_rule(read: PointsRead, header_base: str, given: DeliveredTrajectory | None,
+def _time_rule(read: PointsRead, header_base: GpsTimeType, given: DeliveredTrajectory | None,
                options: ImportOptions) -> tuple[TimeRule, np.ndarray | None]:
     """How the times meet (:mod:`.import_time_bases`), and the trajectory file's raw times
     as read under it (None without a file)."""
@@ -135,7 +135,7 @@ def _time_rule(read: PointsRead, header_base: str, given: DeliveredTrajectory | 
     return rule, raw_t
 
 
-def _assemble_and_write(out: Path, read: PointsRead, header_base: str,
+def _assemble_and_write(out: Path, read: PointsRead, header_base: GpsTimeType,
                         given: DeliveredTrajectory | None, options: ImportOptions,
                         progress: Progress) -> ImportReport:
     """From the points read to the bag written: strips, time rule, trajectory, bag."""

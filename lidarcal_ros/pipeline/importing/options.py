@@ -7,20 +7,28 @@ made, each in one line naming the flag.
 
 from __future__ import annotations
 
+import enum
 import os
 from dataclasses import dataclass, field
-from typing import Literal, get_args
 
 from lidarcal_ros.core.trajectory.rays import RayBudget
 from lidarcal_ros.core.trajectory.segments import EstimateSettings
 from lidarcal_ros.errors import ConfigError
+from lidarcal_ros.io.survey.trajectory_files import TimeBase
 
-#: Which returns an import can write.
-Returns = Literal["all", "first", "last"]
-#: Time bases a trajectory file's times can be read in (``auto``: chosen by the importer).
-TrajectoryTime = Literal["auto", "week", "adjusted", "gps", "unix"]
-RETURNS: tuple[str, ...] = get_args(Returns)
-TRAJECTORY_TIMES: tuple[str, ...] = get_args(TrajectoryTime)
+
+class Returns(enum.StrEnum):
+    """Which returns an import writes to the bag: the values of ``--returns``."""
+
+    ALL = "all"
+    #: The first return of each pulse (``return_number`` 1).
+    FIRST = "first"
+    #: The last return of each pulse (single returns included).
+    LAST = "last"
+
+
+#: ``--trajectory-time``'s word for None: the importer chooses the time base.
+AUTO_TIME = "auto"
 
 
 @dataclass(frozen=True)
@@ -31,7 +39,7 @@ class ImportOptions:
     ----------
     crs : str or None
         CRS of the points (``EPSG:N``), overriding the LAS headers.
-    returns : ``"all"``, ``"first"`` or ``"last"``
+    returns : Returns
         Which returns go into the bag (all returns feed a trajectory estimate).
     strip_gap_s : float
         GPS-time gap that separates strips where point source ids do not, seconds.
@@ -55,9 +63,9 @@ class ImportOptions:
         The trajectory file's accuracy file (Applanix ``smrmsg``: per-epoch position RMS, on
         the file's clock); None: ``smrmsg_NAME.out`` beside ``sbet_NAME.out`` where there is
         one (POSPac's names); ``"none"``: none.
-    trajectory_time : ``"auto"``, ``"week"``, ``"adjusted"``, ``"gps"`` or ``"unix"``
-        Time base of the trajectory file (``auto``: an SBET's week seconds, an ASCII file's
-        by magnitude and overlap with the points).
+    trajectory_time : TimeBase or None
+        Time base of the trajectory file (None, ``--trajectory-time auto``: an SBET's week
+        seconds, an ASCII file's by magnitude and overlap with the points).
     gps_week : int or None
         GPS week of week-second times.
     trajectory_rate_hz : float
@@ -84,7 +92,7 @@ class ImportOptions:
 
     # the points
     crs: str | None = None
-    returns: Returns = "all"
+    returns: Returns = Returns.ALL
     strip_gap_s: float = 10.0
     chunk_points: int = 1_000_000
     memory_points: int = 2_000_000
@@ -93,7 +101,7 @@ class ImportOptions:
     trajectory: str | os.PathLike[str] | None = "estimate"
     trajectory_crs: str | None = None
     trajectory_accuracy: str | os.PathLike[str] | None = None
-    trajectory_time: TrajectoryTime = "auto"
+    trajectory_time: TimeBase | None = None
     gps_week: int | None = None
     trajectory_rate_hz: float = 50.0
     estimate: EstimateSettings = field(default_factory=EstimateSettings)
@@ -106,11 +114,20 @@ class ImportOptions:
     overwrite: bool = False
 
     def __post_init__(self) -> None:
-        if self.returns not in RETURNS:
-            raise ConfigError(f"--returns must be one of {', '.join(RETURNS)}, "
-                              f"got '{self.returns}'")
-        if self.trajectory_time not in TRAJECTORY_TIMES:
-            raise ConfigError(f"--trajectory-time: unknown time base '{self.trajectory_time}'")
+        # (the strings of the flags are taken too: the enums' values)
+        try:
+            object.__setattr__(self, "returns", Returns(self.returns))
+        except ValueError:
+            raise ConfigError(f"--returns must be one of {', '.join(Returns)}, "
+                              f"got '{self.returns}'") from None
+        if self.trajectory_time == AUTO_TIME:
+            object.__setattr__(self, "trajectory_time", None)
+        elif self.trajectory_time is not None:
+            try:
+                object.__setattr__(self, "trajectory_time", TimeBase(self.trajectory_time))
+            except ValueError:
+                raise ConfigError("--trajectory-time: unknown time base "
+                                  f"'{self.trajectory_time}'") from None
         if not self.strip_gap_s > 0:
             raise ConfigError(f"--strip-gap must be positive, got {self.strip_gap_s}")
         if self.trajectory_accuracy is not None and self.estimates_trajectory and \
@@ -126,4 +143,4 @@ class ImportOptions:
         return self.trajectory is None or str(self.trajectory) == "estimate"
 
 
-__all__ = ["RETURNS", "TRAJECTORY_TIMES", "ImportOptions", "Returns", "TrajectoryTime"]
+__all__ = ["AUTO_TIME", "ImportOptions", "Returns"]

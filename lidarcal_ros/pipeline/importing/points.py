@@ -19,8 +19,14 @@ import numpy as np
 
 from lidarcal_ros.core.trajectory.rays import RayCollector, rays_from_returns
 from lidarcal_ros.errors import InputError
-from lidarcal_ros.io.survey.las_reader import LasChunk, LasFileInfo, crs_units, iter_las_chunks
-from lidarcal_ros.pipeline.importing.options import ImportOptions
+from lidarcal_ros.io.survey.las_reader import (
+    GpsTimeType,
+    LasChunk,
+    LasFileInfo,
+    crs_units,
+    iter_las_chunks,
+)
+from lidarcal_ros.pipeline.importing.options import ImportOptions, Returns
 
 logger = logging.getLogger(__name__)
 
@@ -39,8 +45,8 @@ _GAP_BIN_MAX_S = 0.5
 
 
 # ---------------------------------------------------------------------------- headers
-def header_time_base(infos: list[LasFileInfo]) -> str:
-    """The GPS time type all the files share (``week`` or ``adjusted``).
+def header_time_base(infos: list[LasFileInfo]) -> GpsTimeType:
+    """The GPS time type all the files share.
 
     Raises
     ------
@@ -49,8 +55,8 @@ def header_time_base(infos: list[LasFileInfo]) -> str:
     """
     bases = {i.gps_time_type for i in infos}
     if len(bases) > 1:
-        adj = next(i.path for i in infos if i.gps_time_type == "adjusted")
-        week = next(i.path for i in infos if i.gps_time_type == "week")
+        adj = next(i.path for i in infos if i.gps_time_type is GpsTimeType.ADJUSTED)
+        week = next(i.path for i in infos if i.gps_time_type is GpsTimeType.WEEK)
         raise InputError(f"{week}: GPS week time, but {adj} holds adjusted standard GPS time; "
                          "import them separately or convert one")
     return bases.pop()
@@ -406,13 +412,13 @@ def _note_sources(read: PointsRead, chunk: LasChunk, file_name: str) -> None:
             np.unique(np.floor(ts / read.gap_bin).astype(np.int64)).tolist())
 
 
-def _returns_kept(chunk: LasChunk, returns: str) -> np.ndarray:
-    """Which points of the chunk the bag gets (``returns``: all, first or last)."""
+def _returns_kept(chunk: LasChunk, returns: Returns) -> np.ndarray:
+    """Which points of the chunk the bag gets."""
     rn = chunk.return_number.astype(np.int16)
     nr = chunk.number_of_returns.astype(np.int16)
-    if returns == "first":
+    if returns is Returns.FIRST:
         return rn <= 1
-    if returns == "last":
+    if returns is Returns.LAST:
         return (rn >= nr) | (nr <= 1)
     return np.ones(len(chunk), dtype=bool)
 

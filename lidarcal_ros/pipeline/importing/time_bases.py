@@ -12,9 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from lidarcal_ros.errors import TrajectoryError
+from lidarcal_ros.io.survey.las_reader import GpsTimeType
 from lidarcal_ros.io.survey.trajectory_files import (
     WEEK_S,
+    TimeBase,
     TrajectoryFile,
+    TrajectoryFileKind,
     gps_to_unix,
     gps_week_of_unix,
     to_gps_seconds,
@@ -23,8 +26,11 @@ from lidarcal_ros.io.survey.trajectory_files import (
 logger = logging.getLogger(__name__)
 
 #: Time bases of raw times, in words.
-TIME_BASE_NAMES = {"week": "GPS week seconds", "adjusted": "adjusted standard GPS time",
-              "gps": "GPS seconds", "unix": "UNIX seconds"}
+TIME_BASE_NAMES = {TimeBase.WEEK: "GPS week seconds",
+                   TimeBase.ADJUSTED: "adjusted standard GPS time",
+                   TimeBase.GPS: "GPS seconds", TimeBase.UNIX: "UNIX seconds"}
+#: The time base a LAS header's GPS time type names.
+_HEADER_BASES = {GpsTimeType.WEEK: TimeBase.WEEK, GpsTimeType.ADJUSTED: TimeBase.ADJUSTED}
 
 
 @dataclass
@@ -33,23 +39,24 @@ class TimeRule:
 
     Attributes
     ----------
-    points_base, trajectory_base : str
-        ``week``, ``adjusted``, ``gps`` or ``unix`` (trajectory: None without a file).
+    points_base, trajectory_base : TimeBase
+        Of the raw times (trajectory: None without a file).
     week : int or None
         GPS week given to week-second times; None when the bag keeps week seconds.
-    clock : ``"unix"`` or ``"week"``
+    clock : TimeBase
+        Of the bag: ``UNIX``, or ``WEEK`` where no GPS week is known.
     note : str
         The rule applied, in words.
     """
 
-    points_base: str
-    trajectory_base: str | None
+    points_base: TimeBase
+    trajectory_base: TimeBase | None
     week: int | None
-    clock: str
+    clock: TimeBase
     note: str
 
-    def _convert(self, raw: np.ndarray, base: str) -> np.ndarray:
-        if self.clock == "week":
+    def _convert(self, raw: np.ndarray, base: TimeBase) -> np.ndarray:
+        if self.clock is TimeBase.WEEK:
             return np.asarray(raw, dtype=np.float64)
         return gps_to_unix(to_gps_seconds(raw, base, week=self.week))
 
@@ -63,25 +70,25 @@ class TimeRule:
         return self._convert(raw, self.trajectory_base)
 
 
-def points_time_base(header_base: str, last_time: float, where: str) -> str:
+def points_time_base(header_base: GpsTimeType, last_time: float, where: str) -> TimeBase:
     """The time base of LAS points: their header's, unless their times cannot be week seconds.
 
     Parameters
     ----------
-    header_base : ``"week"`` or ``"adjusted"``
+    header_base : GpsTimeType
         What the global-encoding bit says.
     last_time : float
         Latest raw point time, seconds.
     where : str
         Named in the warning.
     """
-    if header_base == "week" and last_time > 1.5 * WEEK_S:
+    if header_base is GpsTimeType.WEEK and last_time > 1.5 * WEEK_S:
         # Many producers leave the global-encoding bit at 0 while writing adjusted standard
         # time; week seconds never reach 1.5 weeks, adjusted standard time after 2011 does.
         logger.warning("%s: header says GPS week seconds, but times reach %.0f s; read as "
                        "adjusted standard GPS time", where, last_time)
-        return "adjusted"
-    return header_base
+        return TimeBase.ADJUSTED
+    return _HEADER_BASES[header_base]
 
 
 def gps_week_of_creation(dates: Sequence[datetime.date]) -> int | None:
@@ -92,42 +99,42 @@ def gps_week_of_creation(dates: Sequence[datetime.date]) -> int | None:
     return gps_week_of_unix(calendar.timegm((d.year, d.month, d.day, 0, 0, 0)))
 
 
-def trajectory_readings(traj: TrajectoryFile, trajectory_time: str
-                        ) -> tuple[list[str], np.ndarray]:
+def trajectory_readings(traj: TrajectoryFile, trajectory_time: TimeBase | None
+                        ) -> tuple[list[TimeBase], np.ndarray]:
     """Readings of a trajectory file's times to try, likeliest first, and its raw times.
 
     Parameters
     ----------
     traj : TrajectoryFile
-    trajectory_time : str
-        ``auto`` (an SBET: week seconds; ASCII: every reading plausible for the times'
-        magnitude) or the one base to use.
+    trajectory_time : TimeBase or None
+        The one base to use; None: chosen (an SBET: week seconds; ASCII: every reading
+        plausible for the times' magnitude).
 
     Returns
     -------
-    bases : list of str
+    bases : list of TimeBase
     raw : (n,) float64
         The file's times, seconds; when week seconds come first, those restarting at 0 past
         the end of the week continue past 604800.
     """
-    if trajectory_time != "auto":
+    if trajectory_time is not None:
         bases = [trajectory_time]
-    elif traj.kind == "sbet":
-        bases = ["week"]
+    elif traj.kind is TrajectoryFileKind.SBET:
+        bases = [TimeBase.WEEK]
     else:
         bases = _candidate_bases(traj.t)
-    raw = unwrap_week(traj.t) if bases[0] == "week" else traj.t
+    raw = unwrap_week(traj.t) if bases[0] is TimeBase.WEEK else traj.t
     return bases, raw
 
 
-def _candidate_bases(values: np.ndarray) -> list[str]:
+def _candidate_bases(values: np.ndarray) -> list[TimeBase]:
     """Readings of ASCII trajectory times plausible for their magnitude, likeliest first."""
     lo, hi = float(np.min(values)), float(np.max(values))
     if lo >= 0 and hi <= 1.5 * WEEK_S:
-        return ["week", "adjusted"]
+        return [TimeBase.WEEK, TimeBase.ADJUSTED]
     if lo >= 5e8:
-        return ["gps", "unix", "adjusted"]
-    return ["adjusted"]
+        return [TimeBase.GPS, TimeBase.UNIX, TimeBase.ADJUSTED]
+    return [TimeBase.ADJUSTED]
 
 
 def unwrap_week(t: np.ndarray) -> np.ndarray:
@@ -149,10 +156,10 @@ def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
 
 
 def reconcile_times(
-    points_base: str,
+    points_base: TimeBase,
     points_range: tuple[float, float],
     trajectory_range: tuple[float, float] | None,
-    trajectory_bases: Sequence[str],
+    trajectory_bases: Sequence[TimeBase],
     *,
     gps_week: int | None = None,
     creation_week: int | None = None,
@@ -162,12 +169,13 @@ def reconcile_times(
 
     Parameters
     ----------
-    points_base : ``"week"`` or ``"adjusted"``
+    points_base : TimeBase
+        ``WEEK`` or ``ADJUSTED``.
     points_range : (float, float)
         First and last raw point time.
     trajectory_range : (float, float) or None
         First and last raw trajectory time; None: no trajectory file.
-    trajectory_bases : sequence of str
+    trajectory_bases : sequence of TimeBase
         Readings of the trajectory times to try, likeliest first.
     gps_week : int, keyword-only
         GPS week of week-second times, if known.
@@ -183,22 +191,22 @@ def reconcile_times(
     """
     p0, p1 = points_range
     if trajectory_range is None:
-        if points_base == "adjusted":
-            return TimeRule("adjusted", None, None, "unix",
+        if points_base is TimeBase.ADJUSTED:
+            return TimeRule(TimeBase.ADJUSTED, None, None, TimeBase.UNIX,
                             "points in adjusted standard GPS time, written as UNIX time")
         if gps_week is not None:
-            return TimeRule("week", None, gps_week, "unix",
+            return TimeRule(TimeBase.WEEK, None, gps_week, TimeBase.UNIX,
                             f"points in week seconds of GPS week {gps_week} (given), written "
                             "as UNIX time")
-        return TimeRule("week", None, None, "week",
+        return TimeRule(TimeBase.WEEK, None, None, TimeBase.WEEK,
                         "points in GPS week seconds, written unchanged (no GPS week known)")
     t0, t1 = trajectory_range
     scored: list[tuple[float, int, int, TimeRule]] = []
     tried = []
     for rank, base in enumerate(trajectory_bases):
         tried.append(TIME_BASE_NAMES[base])
-        if points_base == "week" and base == "week" and gps_week is None:
-            rule = TimeRule("week", "week", None, "week",
+        if points_base is base is TimeBase.WEEK and gps_week is None:
+            rule = TimeRule(TimeBase.WEEK, TimeBase.WEEK, None, TimeBase.WEEK,
                             "points and trajectory both in GPS week seconds, written unchanged")
             scored.append((_overlap(p0, p1, t0, t1), 0, -rank, rule))
             continue
@@ -211,7 +219,8 @@ def reconcile_times(
                     + "; written as UNIX time")
             tie = -abs(week - creation_week) if (week is not None and creation_week is not None
                                                  ) else 0
-            scored.append((cov, tie, -rank, TimeRule(points_base, base, week, "unix", note)))
+            scored.append((cov, tie, -rank,
+                           TimeRule(points_base, base, week, TimeBase.UNIX, note)))
     best = max(scored, key=lambda s: s[:3]) if scored else None
     if best is None or best[0] <= 0.0:
         readings = ", ".join(tried) or "none"
@@ -226,16 +235,16 @@ def reconcile_times(
     return best[3]
 
 
-def _weeks(points_base: str, p: tuple[float, float], traj_base: str, t: tuple[float, float],
-           gps_week: int | None) -> list[int | None]:
+def _weeks(points_base: TimeBase, p: tuple[float, float], traj_base: TimeBase,
+           t: tuple[float, float], gps_week: int | None) -> list[int | None]:
     """GPS weeks to try for the week-second side (None: no side is in week seconds)."""
-    if points_base != "week" and traj_base != "week":
+    if points_base is not TimeBase.WEEK and traj_base is not TimeBase.WEEK:
         return [None]
     if gps_week is not None:
         return [gps_week]
-    if points_base != "week":
+    if points_base is not TimeBase.WEEK:
         g = float(to_gps_seconds(np.array([p[0]]), points_base)[0])
-    elif traj_base != "week":
+    elif traj_base is not TimeBase.WEEK:
         g = float(to_gps_seconds(np.array([t[0]]), traj_base)[0])
     else:
         return [None]

@@ -26,6 +26,7 @@ from lidarcal_ros.errors import InputError, TrajectoryError
 from lidarcal_ros.io.survey.trajectory_crs import map_orientation, project
 from lidarcal_ros.io.survey.trajectory_files import (
     TrajectoryFile,
+    TrajectoryFileKind,
     read_smrmsg,
     read_trajectory_file,
     smrmsg_beside,
@@ -141,7 +142,7 @@ def _accuracy_file(accuracy: str | os.PathLike[str] | None, traj: TrajectoryFile
     ``smrmsg`` beside it."""
     if accuracy is not None:
         return None if str(accuracy) == "none" else Path(accuracy)
-    return smrmsg_beside(traj.path) if traj.kind == "sbet" else None
+    return smrmsg_beside(traj.path) if traj.kind is TrajectoryFileKind.SBET else None
 
 
 def _trajectory_crs(text: str | None, traj: TrajectoryFile) -> Any:
@@ -240,7 +241,7 @@ def _trajectory_kind(traj: Trajectory, traj_file: TrajectoryFile
                      ) -> tuple[str, dict[str, tuple[float, float]]]:
     """What the imported poses carry, in words, and the range of their roll and pitch
     (degrees, from the quaternions written: what the calibration will see)."""
-    name = f"{traj_file.kind.upper()} {traj_file.path.name}"
+    name = f"{traj_file.kind.value.upper()} {traj_file.path.name}"
     if traj.orientation is None:
         return f"{name}, positions only", {}
     if not traj.full_attitude:

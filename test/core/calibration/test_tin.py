@@ -42,8 +42,8 @@ def test_triangle_and_qhull_triangulate_alike(layout: str) -> None:
     else:  # along-track rows of a scanner, slightly irregular (no four points cocircular)
         across, along = np.meshgrid(np.linspace(-300, 300, 120), np.arange(40) * 1.7)
         xy = np.column_stack([across.ravel(), along.ravel()]) + rng.normal(0, 0.05, (4800, 2))
-    by_triangle = _by_vertices(*tin.delaunay(xy, backend="triangle"))
-    by_qhull = _by_vertices(*tin.delaunay(xy, backend="scipy"))
+    by_triangle = _by_vertices(*tin.delaunay(xy, backend=tin.TinBackend.TRIANGLE))
+    by_qhull = _by_vertices(*tin.delaunay(xy, backend=tin.TinBackend.SCIPY))
     assert len(by_triangle) > 1.9 * len(xy)  # 2n - 2 - (points on the hull)
     assert by_triangle == by_qhull
 

@@ -37,10 +37,11 @@ from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation.spec import SimulationSpec
 from lidarcal_ros.core.trajectory.estimation import EstimateSettings
+from lidarcal_ros.core.trajectory.segments import SegmentModel
 from lidarcal_ros.io.bag.mission_bag import read_mission, write_mission_bag
 from lidarcal_ros.io.config_file import load_flight_config
 from lidarcal_ros.pipeline.importing.importer import import_mission
-from lidarcal_ros.pipeline.importing.options import ImportOptions
+from lidarcal_ros.pipeline.importing.options import ImportOptions, Returns
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission
@@ -79,7 +80,7 @@ def test_weak_line_on_one_edge_of_its_swath_is_kept(three_lines, tmp_path) -> No
     strips = add_first_returns(three_lines, fraction=0.3, seed=4, scan_band_deg={3: (13, 16)})
     tiles = write_las_tiles(strips, tmp_path, tiles=(1, 1), laz=())
     report = import_mission(tiles, tmp_path / "bag",
-                            ImportOptions(trajectory="estimate", returns="last"))
+                            ImportOptions(trajectory="estimate", returns=Returns.LAST))
     est = report.estimate
     assert est is not None and not est.failed_strips
     assert [s.strip_id for s in report.strips] == [1, 2, 3]
@@ -94,7 +95,8 @@ def test_weak_line_on_one_edge_of_its_swath_is_kept(three_lines, tmp_path) -> No
     assert "kept, level flight at the altitude of strips 1 and 2, 1150 +- " in weak.summary
     assert f"    {weak.summary}" in report.lines()
     (q,) = [q for q in est.segments if q.strip_id == 3]
-    assert q.level == "WARN" and q.weak and q.model == "level" and q.altitude_from == (1, 2)
+    assert q.level == "WARN" and q.weak and q.model is SegmentModel.LEVEL
+    assert q.altitude_from == (1, 2)
     assert q.fan_deg < 4.0
     t0, t1 = report.strips[2].t_first, report.strips[2].t_last
     error = _position_error(est.trajectory, three_lines.mission.trajectory, t0, t1)
@@ -103,7 +105,7 @@ def test_weak_line_on_one_edge_of_its_swath_is_kept(three_lines, tmp_path) -> No
 
     # Not allowed a sigma that large, the line is left out and the report says why.
     report = import_mission(tiles, tmp_path / "strict", ImportOptions(
-        trajectory="estimate", returns="last",
+        trajectory="estimate", returns=Returns.LAST,
         estimate=EstimateSettings(max_weak_fraction=0.01)))
     assert report.dropped_strips == [3]
     assert report.estimate is not None
@@ -127,7 +129,7 @@ def test_weak_line_flown_at_another_altitude_keeps_its_own(tmp_path) -> None:
     strips[2] = {key: np.delete(v, drop, axis=0) for key, v in third.items()}
     tiles = write_las_tiles(strips, tmp_path, tiles=(1, 1), laz=())
     report = import_mission(tiles, tmp_path / "bag",
-                            ImportOptions(trajectory="estimate", returns="last"))
+                            ImportOptions(trajectory="estimate", returns=Returns.LAST))
     est = report.estimate
     assert est is not None and not est.failed_strips
     weak = {s.strip_id: s for s in est.strips}[3]

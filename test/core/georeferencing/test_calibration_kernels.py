@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lidarcal_ros.core.calibration import tin_kernels
-from lidarcal_ros.core.calibration.tin import GridLocator, Tin, TinQuality, delaunay
+from lidarcal_ros.core.calibration.tin import GridLocator, Tin, TinBackend, TinQuality, delaunay
 from lidarcal_ros.core.georeferencing.bias_model import (
     add_geometry_normal_rows,
     boresight_matrix,
@@ -234,7 +234,7 @@ def test_locate_is_the_numpy_grid_walk_and_scan(max_steps: int,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(11)
     xy = rng.uniform(0.0, 100.0, (3000, 2))
-    simplices, neighbors = delaunay(xy, backend="scipy")
+    simplices, neighbors = delaunay(xy, backend=TinBackend.SCIPY)
     monkeypatch.setattr(GridLocator, "MAX_WALK", max_steps)
     locator = GridLocator(xy, simplices, neighbors)
     grid = _grid_numpy(xy, simplices)
@@ -256,7 +256,7 @@ def test_locate_is_the_numpy_grid_walk_and_scan(max_steps: int,
 def test_shifted_queries_move_by_the_mean_shift_of_their_triangle() -> None:
     rng = np.random.default_rng(3)
     xy = rng.uniform(0.0, 50.0, (500, 2))
-    simplices, _ = delaunay(xy, backend="scipy")
+    simplices, _ = delaunay(xy, backend=TinBackend.SCIPY)
     shift = rng.normal(0.0, 0.1, (500, 3))
     q = rng.uniform(0.0, 50.0, (800, 2))
     tri = np.asarray(rng.integers(-1, simplices.shape[0], q.shape[0]), dtype=np.int64)

@@ -12,6 +12,7 @@ lidR's when available).
 
 from __future__ import annotations
 
+import argparse
 import copy
 import logging
 import math
@@ -30,25 +31,32 @@ from helpers_las import (
     write_mission_sbet,
 )
 
+from lidarcal_ros.cli.main import build_parser
 from lidarcal_ros.cli.main import main as cli_main
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation.spec import SimulationSpec
-from lidarcal_ros.errors import InputError, TrajectoryError
+from lidarcal_ros.core.trajectory.segments import SegmentModel
+from lidarcal_ros.errors import ConfigError, InputError, TrajectoryError
 from lidarcal_ros.io.bag.mission_bag import read_mission
+from lidarcal_ros.io.survey.las_reader import GpsTimeType
 from lidarcal_ros.io.survey.las_writer import ADJUSTED_GPS_OFFSET, unix_to_adjusted_gps
 from lidarcal_ros.io.survey.trajectory_crs import map_orientation
 from lidarcal_ros.io.survey.trajectory_files import (
     WEEK_S,
+    TimeBase,
+    TrajectoryFile,
+    TrajectoryFileKind,
     read_ascii_trajectory,
     read_sbet,
     read_trajectory_file,
     write_sbet,
 )
+from lidarcal_ros.pipeline.importing import importer
 from lidarcal_ros.pipeline.importing.importer import import_mission
-from lidarcal_ros.pipeline.importing.options import ImportOptions
-from lidarcal_ros.pipeline.importing.time_bases import reconcile_times
+from lidarcal_ros.pipeline.importing.options import ImportOptions, Returns
+from lidarcal_ros.pipeline.importing.time_bases import reconcile_times, trajectory_readings
 
 ORIGIN = (500_000.0, 5_000_000.0)
 FAST: dict[str, Any] = {"max_candidates_per_pair": 10_000, "per_class_cap": 500}
@@ -97,7 +105,7 @@ def multi_return(sim: SimulatedMission, tmp_path_factory: pytest.TempPathFactory
     work = tmp_path_factory.mktemp("multi")
     tiles = write_las_tiles(add_first_returns(sim, fraction=0.3, seed=4), work, laz=(1, 2))
     bag = work / "estimated"
-    report = import_mission(tiles, bag, ImportOptions(trajectory="estimate", returns="last"))
+    report = import_mission(tiles, bag, ImportOptions(trajectory="estimate", returns=Returns.LAST))
     return {"tiles": tiles, "bag": bag, "report": report}
 
 
@@ -367,8 +375,8 @@ def test_sbet_round_trip_gives_the_same_points(sim, exported, tmp_path) -> None:
     bag = tmp_path / "imported"
     report = import_mission(exported["tiles"], bag, ImportOptions(trajectory=exported["sbet"]))
     assert report.trajectory_kind == "SBET mission.out, positions only"
-    assert report.time_rule.clock == "unix"
-    assert report.time_rule.trajectory_base == "week"
+    assert report.time_rule.clock is TimeBase.UNIX
+    assert report.time_rule.trajectory_base is TimeBase.WEEK
     mission = read_mission(bag)
     assert [s.strip_id for s in mission.strips] == [s.strip_id for s in sim.mission.strips]
     for got, want in zip(mission.strips, sim.mission.strips, strict=True):
@@ -400,15 +408,15 @@ def test_week_time_las_and_ascii_trajectory(sim, tmp_path) -> None:
     """LAS 1.2 in GPS week seconds, no point source ids, an ASCII trajectory in adjusted
     standard time: strips come from time gaps, the week from the trajectory."""
     tiles = write_las_tiles(plain_strips(sim), tmp_path, tiles=(1, 2), laz=(), version="1.2",
-                            point_format=3, time_type="week", point_source_id=False)
+                            point_format=3, time_type=GpsTimeType.WEEK, point_source_id=False)
     traj = sim.mission.trajectory
     csv = tmp_path / "trajectory.csv"
     rows = np.column_stack([unix_to_adjusted_gps(traj.t), traj.xyz])
     np.savetxt(csv, rows, delimiter=",", fmt="%.6f", header="time,x,y,z", comments="")
     bag = tmp_path / "bag"
     report = import_mission(tiles, bag, ImportOptions(trajectory=csv))
-    assert report.time_rule.points_base == "week"
-    assert report.time_rule.trajectory_base == "adjusted"
+    assert report.time_rule.points_base is TimeBase.WEEK
+    assert report.time_rule.trajectory_base is TimeBase.ADJUSTED
     mission = read_mission(bag)
     assert [s.strip_id for s in mission.strips] == list(range(1, 7))
     assert all(s.source == "split at GPS-time gaps" for s in report.strips)
@@ -420,17 +428,17 @@ def test_week_time_las_and_ascii_trajectory(sim, tmp_path) -> None:
 
 def test_week_time_las_and_sbet_keep_week_seconds(sim, exported, tmp_path) -> None:
     tiles = write_las_tiles(plain_strips(sim), tmp_path, tiles=(1, 1), laz=(),
-                            time_type="week")
+                            time_type=GpsTimeType.WEEK)
     bag = tmp_path / "bag"
     report = import_mission(tiles, bag, ImportOptions(trajectory=exported["sbet"]))
-    assert report.time_rule.clock == "week"
+    assert report.time_rule.clock is TimeBase.WEEK
     mission = read_mission(bag)
     sow = np.mod(unix_to_adjusted_gps(sim.mission.strips[0].t) + ADJUSTED_GPS_OFFSET, WEEK_S)
     assert np.max(np.abs(mission.strips[0].t - sow)) < 1e-6
     # with the GPS week given, UNIX time again
     report = import_mission(tiles, tmp_path / "bag2", ImportOptions(
         trajectory=exported["sbet"], gps_week=report_week(sim)))
-    assert report.time_rule.clock == "unix"
+    assert report.time_rule.clock is TimeBase.UNIX
     assert np.max(np.abs(read_mission(tmp_path / "bag2").strips[0].t
                          - sim.mission.strips[0].t)) < 1e-6
 
@@ -458,6 +466,7 @@ def test_rebuilt_trajectory_lies_near_the_truth(sim, multi_return) -> None:
     est = report.estimate
     assert est is not None and not est.failed_strips
     assert {q.level for q in est.segments} == {"OK"}
+    assert {q.model for q in est.segments} == {SegmentModel.RAYS}  # (no fallback needed)
     traj = est.trajectory
     truth = sim.mission.trajectory
     at = np.column_stack([np.interp(traj.t, truth.t, truth.xyz[:, i]) for i in range(3)])
@@ -487,23 +496,102 @@ def test_no_multiple_returns_cannot_be_estimated(exported, tmp_path) -> None:
 # ---------------------------------------------------------------------------- time rules
 def test_reconcile_week_from_points() -> None:
     gps = 2288 * WEEK_S + 250_000.0
-    rule = reconcile_times("adjusted", (gps - 1e9, gps - 1e9 + 600), (249_000.0, 252_000.0),
-                           ["week"])
-    assert rule.week == 2288 and rule.clock == "unix"
+    rule = reconcile_times(TimeBase.ADJUSTED, (gps - 1e9, gps - 1e9 + 600),
+                           (249_000.0, 252_000.0), [TimeBase.WEEK])
+    assert rule.week == 2288 and rule.clock is TimeBase.UNIX
     # a flight across the week boundary: trajectory week seconds of the previous week
-    rule = reconcile_times("adjusted", (gps - 1e9 - 250_100, gps - 1e9 - 250_000),
-                           (WEEK_S - 200.0, WEEK_S + 1.0), ["week"])
+    rule = reconcile_times(TimeBase.ADJUSTED, (gps - 1e9 - 250_100, gps - 1e9 - 250_000),
+                           (WEEK_S - 200.0, WEEK_S + 1.0), [TimeBase.WEEK])
     assert rule.week == 2287
+
+
+def _times_file(kind: TrajectoryFileKind, t: np.ndarray) -> TrajectoryFile:
+    zero = np.zeros_like(t)
+    return TrajectoryFile(Path("traj"), kind, t, zero, zero, zero, False)
+
+
+def test_trajectory_readings_given_or_chosen() -> None:
+    """A base given is the one reading; None chooses: an SBET's week seconds (restarting at
+    0 past the week's end: continued), an ASCII file's by the times' magnitude."""
+    across = np.array([WEEK_S - 10.0, WEEK_S - 5.0, 0.0, 5.0])
+    sbet = _times_file(TrajectoryFileKind.SBET, across)
+    assert trajectory_readings(sbet, None)[0] == [TimeBase.WEEK]
+    assert trajectory_readings(sbet, None)[1].tolist() == [WEEK_S - 10, WEEK_S - 5, WEEK_S,
+                                                           WEEK_S + 5]
+    bases, raw = trajectory_readings(sbet, TimeBase.ADJUSTED)
+    assert bases == [TimeBase.ADJUSTED] and raw is sbet.t  # (no week continued)
+    for t, want in [(across, [TimeBase.WEEK, TimeBase.ADJUSTED]),
+                    (np.array([1.38e9, 1.38e9 + 60]),
+                     [TimeBase.GPS, TimeBase.UNIX, TimeBase.ADJUSTED]),
+                    (np.array([3.3e8, 3.3e8 + 60]), [TimeBase.ADJUSTED])]:
+        assert trajectory_readings(_times_file(TrajectoryFileKind.ASCII, t), None)[0] == want
+    ascii_ = _times_file(TrajectoryFileKind.ASCII, across)
+    assert trajectory_readings(ascii_, TimeBase.UNIX)[0] == [TimeBase.UNIX]
 
 
 def test_reconcile_refuses_disjoint_times() -> None:
     with pytest.raises(TrajectoryError, match="do not overlap"):
-        reconcile_times("week", (1000.0, 2000.0), (5000.0, 6000.0), ["week", "adjusted"])
+        reconcile_times(TimeBase.WEEK, (1000.0, 2000.0), (5000.0, 6000.0),
+                        [TimeBase.WEEK, TimeBase.ADJUSTED])
 
 
 # ---------------------------------------------------------------------------- bad input
 def _cli(*args: str | Path) -> int:
     return cli_main(["import", *map(str, args)])
+
+
+def test_options_take_the_flags_strings() -> None:
+    """``ImportOptions`` turns the flags' strings into their enums (``auto``: None) and
+    refuses any other in one line naming the flag."""
+    def options(**flags: Any) -> ImportOptions:  # (the strings, as a caller without types)
+        return ImportOptions(**flags)
+
+    got = options(returns="first", trajectory_time="gps")
+    assert got.returns is Returns.FIRST and got.trajectory_time is TimeBase.GPS
+    assert options(trajectory_time="auto").trajectory_time is None
+    assert ImportOptions().returns is Returns.ALL and ImportOptions().trajectory_time is None
+    with pytest.raises(ConfigError) as bad:
+        options(returns="most")
+    assert str(bad.value) == "--returns must be one of all, first, last, got 'most'"
+    with pytest.raises(ConfigError) as bad:
+        options(trajectory_time="utc")
+    assert str(bad.value) == "--trajectory-time: unknown time base 'utc'"
+
+
+def _import_parser() -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["import"]
+
+
+def test_cli_import_modes_are_the_enums(tmp_path, monkeypatch) -> None:
+    """The choices of ``--returns`` and ``--trajectory-time`` are the values of
+    :class:`Returns` and :class:`TimeBase` (and ``auto``), and each reaches the import as its
+    member (``auto``: None); another is refused by the parser."""
+    choices = {a.dest: a.choices for a in _import_parser()._actions}
+    assert choices["returns"] == tuple(Returns)
+    assert choices["trajectory_time"] == ("auto", *TimeBase)
+    got: list[ImportOptions] = []
+
+    class _Report:
+        def lines(self) -> list[str]:
+            return []
+
+    def fake_import(inputs: Any, out: Any, options: ImportOptions, *_: Any, **__: Any) -> Any:
+        got.append(options)
+        return _Report()
+
+    monkeypatch.setattr(importer, "import_mission", fake_import)
+    strip = tmp_path / "strip.las"
+    strip.write_bytes(b"")
+    assert _cli(strip, "-o", tmp_path / "bag") == 0
+    assert got[-1].returns is Returns.ALL and got[-1].trajectory_time is None
+    for k, base in enumerate(TimeBase):
+        returns = list(Returns)[k % len(Returns)]
+        assert _cli(strip, "-o", tmp_path / "bag", "--returns", returns,
+                    "--trajectory-time", base) == 0
+        assert got[-1].returns is returns and got[-1].trajectory_time is base
+    with pytest.raises(SystemExit):
+        _cli(strip, "-o", tmp_path / "bag", "--trajectory-time", "utc")
 
 
 def test_cli_import_and_calibrate(exported, tmp_path, capsys) -> None:
@@ -592,7 +680,7 @@ def test_real_laspy_simple_strips_from_point_source_ids(tmp_path) -> None:
     ids, counts = np.unique(np.asarray(las.point_source_id), return_counts=True)
     assert [s.strip_id for s in mission.strips] == ids.tolist()
     assert [len(s) for s in mission.strips] == counts.tolist()
-    assert report.time_rule.clock == "week"
+    assert report.time_rule.clock is TimeBase.WEEK
 
 
 def _made_up_trajectory(path: Path, csv: Path, *, gap_s: float = 10.0,
@@ -638,7 +726,8 @@ def test_real_laspy_lambert93_adjusted_time_and_overlap_qa(tmp_path) -> None:
     assert [len(s) for s in mission.strips] == counts.tolist()
     assert report.crs_name == "RGF93 / Lambert-93" and report.unit_factors == (1.0, 1.0)
     rule = report.time_rule
-    assert (rule.points_base, rule.trajectory_base, rule.clock) == ("adjusted", "week", "unix")
+    assert (rule.points_base, rule.trajectory_base, rule.clock) == (
+        TimeBase.ADJUSTED, TimeBase.WEEK, TimeBase.UNIX)
     sel = np.asarray(las.point_source_id) == 802
     want = np.sort(gps_to_unix(np.asarray(las.gps_time)[sel] + 1e9))
     assert np.allclose(np.sort(mission.strips[3].t), want, rtol=0, atol=1e-6)
@@ -661,7 +750,7 @@ def test_real_nebraska_wrong_time_flag_gaps_and_crs_vlrs(tmp_path) -> None:
     t_las = _made_up_trajectory(path, tmp_path / "traj.csv")
     report = import_mission([path], tmp_path / "bag",
                             ImportOptions(trajectory=tmp_path / "traj.csv"))
-    assert report.time_rule.points_base == report.time_rule.trajectory_base == "adjusted"
+    assert report.time_rule.points_base is report.time_rule.trajectory_base is TimeBase.ADJUSTED
     assert report.crs_name == "NAD83_2011_Nebraska_ft"
     assert report.unit_factors == pytest.approx((1200 / 3937, 1200 / 3937))
     passes = 1 + int(np.sum(np.diff(t_las) > 10.0))
@@ -749,7 +838,7 @@ def test_real_autzen_feet_to_metres(tmp_path) -> None:
     path = real_las_file("autzen_trim.laz")
     report = import_mission([path], tmp_path / "bag", ImportOptions(trajectory="estimate"))
     assert report.unit_factors == (0.3048, 0.3048)
-    assert report.time_rule.clock == "week"
+    assert report.time_rule.clock is TimeBase.WEEK
     est = report.estimate
     assert est is not None and est.segments[0].level in ("OK", "WARN")
     assert 300.0 < est.segments[0].height_m < 3000.0

@@ -18,7 +18,7 @@ from lidarcal_ros.core.simulation.spec import SimulationSpec
 from lidarcal_ros.errors import InputError
 from lidarcal_ros.pipeline.executor import DaskExecutor, Executor, SerialExecutor
 from lidarcal_ros.pipeline.importing.importer import import_mission
-from lidarcal_ros.pipeline.importing.options import ImportOptions
+from lidarcal_ros.pipeline.importing.options import ImportOptions, Returns
 
 #: Runs of at most this many points: the serial and the parted import spill at other places.
 MEMORY_POINTS = 20_000
@@ -59,7 +59,7 @@ def test_the_trajectory_rebuilt_from_the_workers_rays_is_the_serial_one(
         sim: SimulatedMission, cluster: DaskExecutor, tmp_path: Path) -> None:
     tiles = write_las_tiles(add_first_returns(sim, fraction=0.3, seed=4),
                             _tiles(tmp_path / "tiles"), laz=(0,))
-    options = ImportOptions(trajectory="estimate", returns="last",
+    options = ImportOptions(trajectory="estimate", returns=Returns.LAST,
                             memory_points=MEMORY_POINTS)
     serial = _imported(tiles, tmp_path / "serial", options)
     assert _imported(tiles, tmp_path / "dask", options, cluster) == serial
