@@ -34,7 +34,7 @@ from lidarcal_ros.io.bag.format import (
     normalize_msgtype,
     standard_typestore,
 )
-from lidarcal_ros.io.cloud.pointcloud import array_to_cloud_parts
+from lidarcal_ros.io.cloud.pointcloud import array_to_cloud_parts, without_padding_garbage
 from lidarcal_ros.io.output_files import (
     APPEARED,
     EXISTS,
@@ -356,7 +356,7 @@ class BagWriter:
         is_dense : bool or None, keyword-only
             Default: whether ``x, y, z`` (if present) are all finite.
         """
-        fields, point_step, data = array_to_cloud_parts(points)
+        fields, point_step, data = array_to_cloud_parts(without_padding_garbage(points))
         n = data.size // point_step if point_step else 0
         if is_dense is None:
             names = points.dtype.names or ()

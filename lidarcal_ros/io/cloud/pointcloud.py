@@ -269,6 +269,19 @@ def array_to_cloud_parts(arr: np.ndarray) -> tuple[list[FieldTuple], int, np.nda
     return fields, int(dtype.itemsize), flat.view(np.uint8).reshape(-1)
 
 
+def without_padding_garbage(arr: np.ndarray) -> np.ndarray:
+    """``arr`` itself where its structured layout has no padding; else a copy with the
+    padding zero. numpy's copies of an aligned layout (concatenate, take, copy) move field by
+    field and leave the padding with whatever memory was there: a file written from it would
+    differ from run to run and carry the process's memory."""
+    dtype = arr.dtype
+    if sum(f[0].itemsize for f in (dtype.fields or {}).values()) >= dtype.itemsize:
+        return arr
+    clean = np.zeros(arr.shape, dtype=dtype)
+    clean[...] = arr
+    return clean
+
+
 def make_point_dtype(
     extra_float32_fields: Sequence[str] = (), *, intensity: bool = True
 ) -> np.dtype[np.void]:
@@ -301,4 +314,5 @@ def make_point_dtype(
 
 __all__ = ["DATATYPE_NAMES", "DATATYPE_TO_NUMPY", "FLOAT32", "FLOAT64", "INT8", "INT16", "INT32",
            "NUMPY_TO_DATATYPE", "UINT8", "UINT16", "UINT32", "FieldTuple", "array_to_cloud_parts",
-           "cloud_dtype", "cloud_to_array", "make_point_dtype", "point_fields"]
+           "cloud_dtype", "cloud_to_array", "make_point_dtype", "point_fields",
+           "without_padding_garbage"]

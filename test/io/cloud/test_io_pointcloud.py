@@ -20,6 +20,7 @@ from lidarcal_ros.io.cloud.pointcloud import (
     cloud_dtype,
     cloud_to_array,
     make_point_dtype,
+    without_padding_garbage,
 )
 
 
@@ -38,6 +39,23 @@ def _msg(fields, point_step, data, width, height=1, row_step=None, is_bigendian=
 def _cloud_from(arr: np.ndarray, **kw):
     fields, step, data = array_to_cloud_parts(arr)
     return _msg(fields, step, data.tobytes(), len(arr), **kw)
+
+
+def test_padding_is_zeroed_whatever_memory_held() -> None:
+    """An aligned layout's padding after numpy's copies holds whatever memory was there;
+    ``without_padding_garbage`` gives the same fields with the padding zero, and a layout
+    without padding back as it is."""
+    dt = np.dtype([("x", "<f8"), ("intensity", "<f4"), ("ring", "u1")], align=True)
+    assert dt.itemsize == 16  # 3 bytes of padding
+    junk = np.frombuffer(bytearray(b"\xab" * 16 * 64), dtype=dt)  # (writable, no copy)
+    junk["x"], junk["intensity"], junk["ring"] = np.arange(64.0), 2.5, 7
+    assert np.frombuffer(junk.tobytes(), np.uint8).reshape(-1, 16)[:, 13:].all()
+    clean = without_padding_garbage(junk)
+    assert not np.frombuffer(clean.tobytes(), np.uint8).reshape(-1, 16)[:, 13:].any()
+    for name in dt.names or ():
+        assert np.array_equal(clean[name], junk[name])
+    packed = np.zeros(8, dtype=[("x", "<f8"), ("y", "<f8")])
+    assert without_padding_garbage(packed) is packed
 
 
 def test_padding_and_odd_order_round_trip():
