@@ -4,6 +4,7 @@
     .venv/bin/python bench/bench_scale.py                     # 1M and 4M points
     .venv/bin/python bench/bench_scale.py --max-points 100e6  # 1M, 4M, 16M, 64M, 100M
     .venv/bin/python bench/bench_scale.py --stages BAG        # calibrate's memory per stage
+    .venv/bin/python bench/bench_scale.py --stages BAG --memory bounded  # the same, bounded
     .venv/bin/python bench/bench_scale.py --memory whole,bounded  # both calibration.memory
 
 ``--memory`` runs each size with each ``calibration.memory`` mode named and, with both,
@@ -137,10 +138,14 @@ def scaling(max_points: float, modes: list[str]) -> None:
         print(note)
 
 
-def stages(bag: Path) -> None:
-    """Resident memory per stage of one calibration of ``bag`` (in this process)."""
+def stages(bag: Path, memory: str = "whole") -> None:
+    """Resident memory per stage of one calibration of ``bag`` (in this process), the
+    mission held as ``calibration.memory`` ``memory`` says."""
     from lidarcal_ros.core.config import FlightConfig
-    from lidarcal_ros.pipeline.calibration.procedure import calibrate_mission, load_mission
+    from lidarcal_ros.pipeline.calibration.procedure import (
+        calibrate_mission,
+        load_for_calibration,
+    )
 
     def rss_mib() -> float:
         with open("/proc/self/statm") as f:
@@ -162,18 +167,25 @@ def stages(bag: Path) -> None:
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
     started = time.perf_counter()
-    config = FlightConfig()
+    config = FlightConfig().with_values(calibration__memory=memory)
     stage[0] = "reading the bag"
-    mission_ = load_mission(bag, config, control_csv=f"{bag}_control.csv")
+    mission_ = load_for_calibration(bag, config, control_csv=f"{bag}_control.csv",
+                                    progress=progress)
     n = mission_.n_points
+    held = getattr(mission_, "n_held", n)
     calibrate_mission(mission_, config, progress=progress)
     done.set()
     sampler.join()
-    print(f"{bag.name}: {n:,} points, {time.perf_counter() - started:.1f} s")
-    print("| stage (first seen in order) | seconds | peak RSS | bytes/point |")
-    print("|---|---|---|---|")
+    print(f"{bag.name} ({memory}): {n:,} points, {held:,} held, "
+          f"{time.perf_counter() - started:.1f} s")
+    print("| stage (first seen in order) | seconds | peak RSS | added | added per held point |")
+    print("|---|---|---|---|---|")
+    before = 0.0
     for name, (t0, peak, t1) in peaks.items():
-        print(f"| {name} | {t1 - t0:.1f} | {peak:.0f} MiB | {peak * 2**20 / n:.0f} |")
+        added = max(peak - before, 0.0)
+        print(f"| {name} | {t1 - t0:.1f} | {peak:.0f} MiB | {added:.0f} MiB | "
+              f"{added * 2**20 / held:.0f} B |")
+        before = max(before, peak)
 
 
 def main() -> None:
@@ -193,7 +205,7 @@ def main() -> None:
     print(machine.describe())
     print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
     if args.stages is not None:
-        stages(args.stages)
+        stages(args.stages, modes[0])
     else:
         scaling(args.max_points, modes)
     print(f"load average (1 min): {os.getloadavg()[0]:.1f}")

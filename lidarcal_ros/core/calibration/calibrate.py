@@ -498,6 +498,10 @@ class Calibrator:
                 parts.append(self.matcher.control_observations(control, delta, corrected,
                                                         s.max_normal_distance_m)[0])
             obs = Observations.concatenate(parts)
+            # the strips corrected at this estimate are not held past the matching: the next
+            # correction (the next iteration's, the QA's) then replaces them strip by strip
+            # instead of adding a whole corrected copy of every strip
+            corrected.clear()
             if len(obs) == 0:
                 raise CalibrationError(
                     "no point-to-patch correspondences: the overlaps hold no usable patches"
