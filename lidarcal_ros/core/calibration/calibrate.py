@@ -712,13 +712,11 @@ class Calibrator:
                                                   speed_mps=ps.speed_mps)
 
         def after_of(pair: StripPair) -> np.ndarray:
-            assert pair.sample is not None
             if pair.frozen is not None and pair.frozen_delta is not None:
                 return pair.frozen.residuals(delta - pair.frozen_delta) if len(pair.frozen) \
                     else np.empty(0)
-            m = self.matcher.match_pair(pair, pair.sample, delta, corrected,
-                                        s.max_normal_distance_m)
-            return m.distance[m.valid]
+            return self.matcher.sample_distances(pair, delta, corrected,
+                                                 s.max_normal_distance_m)
 
         remote = self.matcher.remote
         if remote is None:

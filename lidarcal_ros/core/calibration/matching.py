@@ -461,6 +461,15 @@ class PairMatcher:
         before = m.take(np.isin(pair.candidates, sample)).distance
         return sample, before[np.isfinite(before)]
 
+    def sample_distances(self, pair: StripPair, delta: np.ndarray,
+                         corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float
+                         ) -> np.ndarray:
+        """The normal distances (m) of the pair's sample points matched at ``delta``
+        (:meth:`match_pair`'s arguments), those matched only: its "after" QA."""
+        assert pair.sample is not None
+        m = self.match_pair(pair, pair.sample, delta, corrected, threshold)
+        return m.distance[m.valid]
+
     def observe(self, pair: StripPair, delta: np.ndarray,
                 corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float
                 ) -> tuple[Observations, np.ndarray]:

@@ -124,13 +124,12 @@ def observe_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
 
 def distances_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                    ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The normal distances of the pair's matched sample points and its ``last_triangle``
-    (a task; :meth:`PairWork.distances`)."""
+    """:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.sample_distances` of the
+    pair and its ``last_triangle`` (a task; :meth:`PairWork.distances`)."""
     matcher = _matcher(a, b, job)
-    assert job.pair.sample is not None
-    m = matcher.match_pair(job.pair, job.pair.sample, job.delta, _corrected(matcher, job),
-                           job.threshold)
-    return m.distance[m.valid], job.pair.last_triangle
+    distances = matcher.sample_distances(job.pair, job.delta, _corrected(matcher, job),
+                                         job.threshold)
+    return distances, job.pair.last_triangle
 
 
 __all__ = ["PairJob", "PairWork", "choose_task", "distances_task", "observe_task", "with_tin"]
