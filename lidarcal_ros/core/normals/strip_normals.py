@@ -319,15 +319,18 @@ class StripNormals:
         advanced = self._watermark - (self._first_watermark or self._watermark)
         if advanced <= 0:
             return math.inf
-        span = sorted(self._spans)[(len(self._spans) - 1) // 2]
-        return (span + 3 + self.late_rows) * self._binned / advanced
+        return (self._median_span() + 3 + self.late_rows) * self._binned / advanced
+
+    def _median_span(self) -> int:
+        """The (lower) median row span of the latest parts."""
+        spans = sorted(self._spans)
+        return spans[(len(spans) - 1) // 2]
 
     def _note_span(self, rows: int) -> None:
         """Take a part's row span into :attr:`late_rows`: the median span of the latest
         parts (a part with outliers, or a short one, moves it little)."""
         self._spans.append(rows)
-        spans = sorted(self._spans)
-        self.late_rows = max(_LATE_ROWS, spans[(len(spans) - 1) // 2])
+        self.late_rows = max(_LATE_ROWS, self._median_span())
 
     def _inliers(self, iu: np.ndarray, iv: np.ndarray, r_lo: int, r_hi: int, c_lo: int,
                  c_hi: int) -> np.ndarray | None:
