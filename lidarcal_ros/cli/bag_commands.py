@@ -80,10 +80,9 @@ def add_import_command(sub: Any) -> None:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Run ``lidarcal import`` with the parsed ``args``; its exit status."""
-    from lidarcal_ros.io.survey.trajectory_files import TimeBase
     from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
     from lidarcal_ros.pipeline.importing.importer import import_mission
-    from lidarcal_ros.pipeline.importing.options import AUTO_TIME, ImportOptions, Returns
+    from lidarcal_ros.pipeline.importing.options import ImportOptions
 
     if args.dask is not None:
         parse_dask_option(args.dask)  # (a malformed value refused before any work)
@@ -95,10 +94,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     options = ImportOptions(
         trajectory=args.trajectory_source, crs=args.crs, trajectory_crs=args.trajectory_crs,
         trajectory_accuracy=args.trajectory_accuracy,
-        trajectory_time=(None if args.trajectory_time == AUTO_TIME
-                         else TimeBase(args.trajectory_time)),
-        gps_week=args.gps_week, strip_gap_s=args.strip_gap, returns=Returns(args.returns),
-        frame_id=args.frame,
+        # (the flags' words: ImportOptions makes them TimeBase, None for auto, and Returns)
+        trajectory_time=args.trajectory_time, gps_week=args.gps_week,
+        strip_gap_s=args.strip_gap, returns=args.returns, frame_id=args.frame,
         points_topic=args.points, trajectory_topic=args.trajectory_topic,
         trajectory_rate_hz=args.trajectory_rate, memory_points=args.memory_points,
         qa_cell_m=args.qa_cell, overwrite=args.overwrite)
