@@ -16,6 +16,7 @@ error of ``P t_bs``.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import re
@@ -389,6 +390,9 @@ def mounting_calibration(result: CalibrationResult, nominal: Mounting,
     """The calibrated mounting of a calibration of sensor-frame strips (``result``: its
     biases are the nominal's errors; ``lines``: the lines whose points made the strips),
     batch (:func:`calibrate_mounting`) or live alike."""
+    # (a copy: the live calibrator asks for the mounting of one estimate more than once)
+    result = replace(result, solution=copy.deepcopy(result.solution),
+                     history=[h.copy() for h in result.history])
     sol = result.solution
     timing = _take_timing(result)
     delta, sigma = sol.delta.copy(), sol.sigma.copy()
