@@ -228,21 +228,23 @@ def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
 def geometry_offsets(delta: np.ndarray, geometry: LaserGeometry) -> np.ndarray:
     """``A @ delta`` (n, 3, map frame, m) of each point of ``geometry``, either model (with
     the timing bias where ``geometry.timing`` is given)."""
-    d, dt = _split_timing(delta, geometry)
+    d, moved = _split_timing(delta, geometry)
     out = _offsets(d, geometry.x, geometry.z, geometry.kappa, geometry.beta,
                    geometry.trig(), np.empty((0, 3)), geometry.rotation, geometry.general_y)
-    return out + dt * geometry.timing if dt else out
+    return out if moved is None else out + moved
 
 
-def _split_timing(delta: np.ndarray, geometry: LaserGeometry) -> tuple[np.ndarray, float]:
-    """``delta`` without the timing bias and the timing bias ``dt`` (s): the eighth bias where
-    ``geometry`` carries a timing column (docs/method.md section 12), else ``(delta, 0)``."""
+def _split_timing(delta: np.ndarray, geometry: LaserGeometry
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """``delta`` without the timing bias, and what the timing bias moves each point (``dt``
+    times the timing column, (n, 3) m): the eighth bias where ``geometry`` carries a timing
+    column (docs/method.md section 12), else ``(delta, None)``."""
     d = np.asarray(delta, dtype=np.float64)
     if geometry.timing is None or not d[7]:
-        return d, 0.0
+        return d, None
     rest = d.copy()
     rest[7] = 0.0
-    return rest, float(d[7])
+    return rest, d[7] * geometry.timing
 
 
 def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
@@ -251,9 +253,9 @@ def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.shape != (np.shape(geometry.x)[0], 3):
         raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(geometry.x)[0]} points")
-    d, dt = _split_timing(delta, geometry)
-    if dt:
-        xyz = xyz - dt * geometry.timing
+    d, moved = _split_timing(delta, geometry)
+    if moved is not None:
+        xyz = xyz - moved
     return _offsets(d, geometry.x, geometry.z, geometry.kappa, geometry.beta,
                     geometry.trig(), xyz, geometry.rotation, geometry.general_y)
 
@@ -360,10 +362,7 @@ def exact_correction(
     n = xyz.shape[0]
     if xyz.shape != (np.shape(frame.x)[0], 3):
         raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(frame.x)[0]} points")
-    d, dt = _split_timing(delta, frame)
-    delivered = xyz
-    if dt:  # the pose looked up dt late moved the point by dt times its rate (section 12)
-        xyz = xyz - dt * frame.timing
+    d, moved = _split_timing(delta, frame)
     c, s = frame.cos_kappa, frame.sin_kappa
     if c is None or s is None:
         c, s, _, _ = frame.trig()
@@ -380,8 +379,12 @@ def exact_correction(
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
         d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb, general)
-    if dt:
-        shift = delivered - corrected
+    if moved is not None:
+        # the pose looked up dt late moved the point by dt times its rate (section 12): the
+        # mounting corrected in that pose, then the point moved back; the laser vector (the
+        # geometry) is the mounting's, whatever the time
+        corrected -= moved
+        shift += moved
     geometry = LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
                              cos_kappa=c, sin_kappa=s, sin_beta=sb, cos_beta=cb,
                              heading_from=frame.heading_from, crab_deg=frame.crab_deg,

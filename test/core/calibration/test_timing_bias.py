@@ -5,7 +5,7 @@ known ``dt`` (delivered - true time): recovered within 3 sigma with the mounting
 
 Exact INS, four lines of 120 m (as test_extrinsic.py, whose docstring says why dY's sigma is
 not held to the truth: its 2-3 mm leak reaches dt through their correlation of -0.6).
-Measured: VLP-16 dt 3 ms -> 3.013 +- 0.088 ms, OS1-32 -4 ms -> -3.884 +- 0.046 ms (2.5 sigma),
+Measured: VLP-16 dt 3 ms -> 3.014 +- 0.089 ms, OS1-32 -4 ms -> -3.885 +- 0.046 ms (2.5 sigma),
 a true 0 -> +0.083 +- 0.083 ms (the multirotor's wobble shows dt: its correlations with the
 mounting's biases 0.64 at most); without wobble the lines at one speed leave dt 0.99
 correlated with dY (multiple correlation 0.996): held at 0.

@@ -4,8 +4,9 @@ reader), and ``lidarcal correct`` takes it off the points' times (pipeline/corre
 sensor_frame.py; docs/method.md section 12), against the simulator's truth.
 
 A VLP-16 payload with a true dt of 3 ms (exact INS, no range noise, dZ 0: as
-test_sensor_correction.py). Measured: dt 2.9989 ms (sigma 0.2 us without range noise); the calibrated mounting with its dt
-put the points 0.0 mm from the truth (median), the same mounting without dt 26.7 mm.
+test_sensor_correction.py). Measured: dt 2.9989 ms (sigma 0.2 us without range noise); the
+calibrated mounting with its dt put the points 0.0 mm from the truth (median), the same
+mounting without dt 26.7 mm.
 """
 
 from __future__ import annotations
