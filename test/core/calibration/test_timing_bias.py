@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers_missions import light_payload, rotation_angle
 
 from lidarcal_ros.core.calibration.extrinsic import (
     TIMING_MAX_CORRELATION,
@@ -26,31 +27,20 @@ from lidarcal_ros.core.calibration.extrinsic import (
     mounting_settings,
 )
 from lidarcal_ros.core.params import PARAMETER_INDEX
-from lidarcal_ros.core.simulation.uav_payload import (
-    UavPayloadMission,
-    UavPayloadSpec,
-    simulate_uav_payload,
-)
+from lidarcal_ros.core.simulation.uav_payload import UavPayloadMission, simulate_uav_payload
 
 ARCSEC = math.radians(1.0 / 3600.0)
-COLUMNS = {"vlp16": 100, "os1-32": 64}
-EXACT_INS = {"ins_position_sigma_m": (0.0, 0.0, 0.0), "ins_attitude_sigma_deg": (0.0, 0.0, 0.0)}
 
 
 @functools.cache
 def _mission(layout: str, seed: int, dt: float, wobble_deg: float = 1.0) -> UavPayloadMission:
-    return simulate_uav_payload(UavPayloadSpec(
-        layout=layout, seed=seed, columns=COLUMNS[layout], n_lines=4, line_length_m=120.0,
-        time_offset_s=dt, wobble_deg=wobble_deg, **EXACT_INS))  # type: ignore[arg-type]
+    return simulate_uav_payload(light_payload(layout, seed, time_offset_s=dt,
+                                              wobble_deg=wobble_deg))
 
 
 def _calibrate(m: UavPayloadMission, *, timing: bool = True) -> MountingCalibration:
     return calibrate_mounting(m.clouds.xyz, m.clouds.absolute_times(), m.trajectory, m.nominal,
                               settings=mounting_settings(timing=timing))
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return math.acos(min(1.0, max(-1.0, (np.trace(a.T @ b) - 1.0) / 2.0)))
 
 
 @pytest.mark.parametrize(("layout", "dt"), [("vlp16", 0.003), ("os1-32", -0.004)])
@@ -66,7 +56,7 @@ def test_the_timing_bias_and_the_mounting_are_recovered(layout: str, dt: float) 
     assert max(abs(r) for r in cal.time_offset_correlation.values()) < TIMING_MAX_CORRELATION
     # the mounting within issue 33's bars; the result holds the eight biases, dS at 0
     true = m.truth_mounting
-    assert _angle(cal.mounting.rotation, true.rotation) < 30 * ARCSEC
+    assert rotation_angle(cal.mounting.rotation, true.rotation) < 30 * ARCSEC
     assert np.all(np.abs(cal.mounting.translation[:2] - true.translation[:2]) < 0.008)
     assert abs(cal.range_offset_m - m.biases[PARAMETER_INDEX["dr"]]) < 0.004
     sol = cal.result.solution
@@ -110,4 +100,4 @@ def test_a_flight_that_cannot_see_it_holds_it_at_zero_and_says_so() -> None:
     sol = cal.result.solution
     assert set(sol.estimated) == {"dX", "dY", "domega", "dphi", "dkappa", "dr"}
     assert cal.sigma[PARAMETER_INDEX["dY"]] < 0.002
-    assert _angle(cal.mounting.rotation, m.truth_mounting.rotation) < 30 * ARCSEC
+    assert rotation_angle(cal.mounting.rotation, m.truth_mounting.rotation) < 30 * ARCSEC

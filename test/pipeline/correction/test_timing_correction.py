@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers_missions import light_payload
 
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.params import PARAMETER_INDEX
 from lidarcal_ros.core.simulation.uav_payload import (
     UavPayloadMission,
-    UavPayloadSpec,
     draw_biases,
     simulate_uav_payload,
 )
@@ -58,10 +58,9 @@ class _Case:
 def _case(root: Path) -> _Case:
     biases = draw_biases(1)
     biases[PARAMETER_INDEX["dZ"]] = 0.0
-    mission = simulate_uav_payload(UavPayloadSpec(
-        layout="vlp16", seed=1, columns=100, line_length_m=120.0, range_noise_m=0.0,
-        biases=tuple(float(b) for b in biases), time_offset_s=TRUE_DT,
-        ins_position_sigma_m=(0.0, 0.0, 0.0), ins_attitude_sigma_deg=(0.0, 0.0, 0.0)))
+    mission = simulate_uav_payload(light_payload(
+        "vlp16", 1, range_noise_m=0.0, biases=tuple(float(b) for b in biases),
+        time_offset_s=TRUE_DT))
     paths = write_uav_simulation(root / "uav", mission)
     data = load_sensor_bag(paths["bag"], CONFIG)
     assert data is not None
