@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,7 @@ from lidarcal_ros.core.mission import Mission, Strip, Trajectory
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation.spec import SimulationSpec
+from lidarcal_ros.core.simulation.uav_payload import UavPayloadSpec
 from lidarcal_ros.io.bag.format import seconds_to_ns
 from lidarcal_ros.io.bag.writer import BagWriter
 from lidarcal_ros.io.cloud.columns import CloudColumns
@@ -473,3 +475,24 @@ def with_trajectory_errors(mission: Mission, *, seed: int, offset_m: Sequence[fl
     out.trajectory = Trajectory(traj.t, xyz, traj.orientation,
                                 full_attitude=traj.full_attitude)
     return out, errors
+
+
+# ------------------------------------------------------------------ UAV payloads
+
+#: A payload's INS without errors (UavPayloadSpec's options).
+EXACT_INS: dict[str, Any] = {"ins_position_sigma_m": (0.0, 0.0, 0.0),
+                             "ins_attitude_sigma_deg": (0.0, 0.0, 0.0)}
+#: Firings a revolution of a light payload mission by layout (a tenth of the VLP-16's).
+LIGHT_COLUMNS = {"vlp16": 100, "os1-32": 64}
+
+
+def light_payload(layout: str, seed: int, **options: Any) -> UavPayloadSpec:
+    """A light UAV payload (4 lines of 120 m, :data:`LIGHT_COLUMNS`, an exact INS; some 0.4M
+    points), ``options`` over it."""
+    return UavPayloadSpec(**{"layout": layout, "seed": seed, "columns": LIGHT_COLUMNS[layout],
+                             "n_lines": 4, "line_length_m": 120.0, **EXACT_INS, **options})
+
+
+def rotation_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between two rotation matrices, rad."""
+    return math.acos(min(1.0, max(-1.0, (float(np.trace(a.T @ b)) - 1.0) / 2.0)))

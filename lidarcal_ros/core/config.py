@@ -99,6 +99,12 @@ SCHEMA: dict[str, ParameterSpec] = {
         "auto", "str", "Per-point time of clouds in the sensor's frame: 'relative' to "
         "header.stamp, 'absolute', or 'auto' (from the first cloud's values against its "
         "stamp; the assumption is printed)", choices=tuple(c.value for c in TimeConvention)),
+    "sensor_frame.estimate_timing": ParameterSpec(
+        False, "bool", "Estimate the timing bias dt of clouds in the sensor's frame (delivered "
+        "- true per-point time, s; docs/method.md section 12) with their mounting: written as "
+        "the extrinsic block's time_offset_s and taken off the points' times by the "
+        "correction; held at 0, said so, where the flight cannot see it (straight lines at "
+        "one speed and a steady attitude)"),
     "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
     "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
     "sensor.fov_deg": float_parameter(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,9 @@ from lidarcal_ros.io.output_files import os_reason, write_together
 from lidarcal_ros.io.yaml_file import read_yaml
 
 ROOT_KEY = "lidarcal_calibration"
+#: The largest timing bias of a file, s: beyond it the value is taken as written in other
+#: units (ms).
+MAX_TIME_OFFSET_S = 1.0
 #: The file's ``model`` (plain strings: YAML writes no enum).
 _LEVEL = PositioningModel.LEVEL.value
 _FILE_MODELS = (_LEVEL, PositioningModel.RIGOROUS.value, MIXED)
@@ -61,22 +64,40 @@ class CalibrationRecord:
 @dataclass(frozen=True)
 class Extrinsic:
     """The calibration file's ``extrinsic`` block: the calibrated mounting ``parent ->
-    child`` (REP-103; docs/interface.md) and the nominal one it was calibrated from."""
+    child`` (REP-103; docs/interface.md) and the nominal one it was calibrated from, with the
+    clouds' timing bias (the project's extension: ``time_offset_s``, delivered - true
+    per-point time, s, which a correction takes off each point's time; absent from a file:
+    0, not estimated)."""
 
     parent: str
     child: str
     mounting: Mounting
     nominal: Mounting
+    time_offset_s: float = 0.0
+    #: Its sigma, s; None: not estimated (held at ``time_offset_s``).
+    time_offset_sigma_s: float | None = None
+    #: Its correlation with each bias estimated with it (written where estimated).
+    time_offset_correlation: Mapping[str, float] = field(default_factory=dict)
+    #: Why it was held at 0 where it was asked for and the flight cannot see it ("": not so).
+    time_offset_note: str = ""
 
     def document(self) -> dict[str, Any]:
         """The block as docs/interface.md writes it (translation m, rotation ``[qx, qy, qz,
-        qw]``)."""
+        qw]``, the timing bias s)."""
         def transform(m: Mounting) -> dict[str, list[float]]:
             return {"translation": [float(v) for v in m.translation],
                     "rotation": [float(v) for v in m.quaternion]}
 
-        return {"parent": self.parent, "child": self.child, **transform(self.mounting),
-                "nominal": transform(self.nominal)}
+        doc: dict[str, Any] = {"parent": self.parent, "child": self.child,
+                               **transform(self.mounting), "nominal": transform(self.nominal),
+                               "time_offset_s": float(self.time_offset_s),
+                               "time_offset_sigma_s": finite_or_none(self.time_offset_sigma_s)}
+        if self.time_offset_correlation:
+            doc["time_offset_correlation"] = {k: float(v) for k, v in
+                                              self.time_offset_correlation.items()}
+        if self.time_offset_note:
+            doc["time_offset_not_estimable"] = self.time_offset_note
+        return doc
 
     def urdf_joint(self) -> str:
         """The calibrated mounting as a URDF ``<joint>`` (fixed; ``origin`` xyz in m, rpy
@@ -390,9 +411,23 @@ def read_extrinsic(path: Path, block: Any) -> Extrinsic:
     if not isinstance(block, Mapping) or not all(
             isinstance(block.get(k), str) and block.get(k) for k in ("parent", "child")):
         raise ConfigError(f"{path}: extrinsic must name its parent and child frames")
+    offset = block.get("time_offset_s", 0.0)
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or \
+            not math.isfinite(offset) or abs(offset) > MAX_TIME_OFFSET_S:
+        raise ConfigError(f"{path}: extrinsic.time_offset_s must be a number of seconds within "
+                          f"+-{MAX_TIME_OFFSET_S:g}, got {offset!r}")
+    correlation = block.get("time_offset_correlation") or {}
+    note = block.get("time_offset_not_estimable") or ""
+    if not isinstance(correlation, Mapping) or not isinstance(note, str):
+        raise ConfigError(f"{path}: extrinsic.time_offset_correlation must map bias names to "
+                          "numbers, time_offset_not_estimable be a text")
     return Extrinsic(block["parent"], block["child"],
                      _transform(path, "extrinsic", block),
-                     _transform(path, "extrinsic.nominal", block.get("nominal")))
+                     _transform(path, "extrinsic.nominal", block.get("nominal")),
+                     float(offset),
+                     _sigma(path, "extrinsic.time_offset_sigma_s",
+                            block.get("time_offset_sigma_s")),
+                     {str(k): float(v) for k, v in correlation.items()}, note)
 
 
 def _sigma(path: Path, key: str, value: Any) -> float | None:
@@ -422,6 +457,7 @@ def _check_units(path: Path, name: str, value: float) -> None:
 
 
 __all__ = [
+    "MAX_TIME_OFFSET_S",
     "ROOT_KEY",
     "CalibrationRecord",
     "Extrinsic",

@@ -102,6 +102,11 @@ class CalibrationSettings:
     #: georeferenced from the sensor's frame (any scanner; the trajectory that of the
     #: sensor's origin), with ``model`` ``rigorous`` and no ``dS``.
     scanner: ScannerKind = ScannerKind.LINEAR
+    #: A ``GENERAL`` scanner's eighth bias (``dS``'s place: it has no mirror scale) is the
+    #: timing bias ``dt`` (delivered - true time, s; docs/method.md section 12), its column
+    #: each point's rate ``v + w x (X - X_o)`` on the mission's trajectory (the sensor's
+    #: origin's).
+    timing: bool = False
     #: Largest point-to-patch distance matched at the first iteration, m.
     max_normal_distance_m: float = 2.0
     #: Smallest matching threshold later iterations shrink to, m.
@@ -149,8 +154,11 @@ class CalibrationSettings:
 
     def __post_init__(self) -> None:
         self.solve_for = tuple(n for n in PARAMETER_NAMES if n in self.solve_for)
-        if self.scanner is ScannerKind.GENERAL and ("dS" in self.solve_for
-                                                    or self.fixed.get("dS", 0.0)):
+        if self.timing and self.scanner is not ScannerKind.GENERAL:
+            raise ConfigError("calibration: a timing bias is a parameter of clouds in the "
+                              "sensor's frame (a general scanner's) only")
+        if self.scanner is ScannerKind.GENERAL and not self.timing and (
+                "dS" in self.solve_for or self.fixed.get("dS", 0.0)):
             raise ConfigError("calibration: dS (a mirror's scale) is no parameter of a general "
                               "scanner; leave it out of solve_for and fixed")
 

@@ -16,14 +16,23 @@ error of ``P t_bs``.
 
 from __future__ import annotations
 
+import copy
 import logging
+import math
+import re
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import pairwise
+from typing import Any
 
 import numpy as np
 
-from lidarcal_ros.core.adjustment.least_squares import ObservabilityLimits
+from lidarcal_ros.core.adjustment.least_squares import (
+    ObservabilityLimits,
+    ParameterState,
+    ParameterStatus,
+    Solution,
+)
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Progress, calibrate
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.georeferencing.attitude import P_BODY, rotation_matrices
@@ -47,6 +56,18 @@ logger = logging.getLogger(__name__)
 #: general scanner.
 MOUNTING_SOLVE_FOR = ("dX", "dY", "domega", "dphi", "dkappa", "dr")
 
+#: The largest sigma of a usable timing bias ``dt``, s: a flight that determines it less well
+#: (straight lines at one speed: ``dt`` then moves every line along its track as ``dY`` does)
+#: holds it at 0 and says so (:func:`mounting_settings` with ``timing``).
+TIMING_MAX_SIGMA_S = 0.001
+#: The largest multiple correlation of a usable timing bias with the mounting's biases
+#: (:func:`timing_unseen`); measured: 0.99 (with ``dY``) on straight lines at one speed and
+#: no wobble, where ``dY``'s sigma grew seven-fold; 0.6 with a multirotor's wobble.
+TIMING_MAX_CORRELATION = 0.95
+#: Where a calibration with a timing bias says what ``dt`` is (docs/method.md section 12): a
+#: general scanner has no mirror scale, and ``dS``'s place holds ``dt``.
+TIMING_SLOT = "dS"
+
 #: Passes of a mounting's calibration at most (:func:`calibrate_mounting`).
 MAX_PASSES = 3
 #: A pass whose estimate moves the points by more than this (m; :func:`points_moved`) is
@@ -62,10 +83,20 @@ def mounting_settings(**options: object) -> CalibrationSettings:
     """The calibration settings of a mounting (:func:`calibrate_mounting`): ``options`` over
     :data:`MOUNTING_SOLVE_FOR` and no largest sigma of a usable bias (an airborne
     calibration holds a bias at 0 where its sigma says it is of no use; a mounting's bias
-    held at 0 is the nominal's error, tenths of a degree: worse than any estimate)."""
+    held at 0 is the nominal's error, tenths of a degree: worse than any estimate). With
+    ``timing`` the timing bias ``dt`` is estimated too (in :data:`TIMING_SLOT`'s place),
+    held at 0 where its sigma exceeds :data:`TIMING_MAX_SIGMA_S`."""
     base: dict[str, object] = {"solve_for": MOUNTING_SOLVE_FOR,
                                "limits": ObservabilityLimits(max_sigma={})}
-    return CalibrationSettings(**{**base, **options})  # type: ignore[arg-type]
+    merged = {**base, **options}
+    if merged.get("timing"):
+        merged["solve_for"] = (*tuple(merged["solve_for"]), TIMING_SLOT)  # type: ignore[arg-type]
+        limits = merged["limits"]
+        assert isinstance(limits, ObservabilityLimits)
+        merged["limits"] = replace(limits, max_sigma={**limits.max_sigma,
+                                                      TIMING_SLOT: TIMING_MAX_SIGMA_S})
+        merged["scanner"], merged["model"] = ScannerKind.GENERAL, PositioningModel.RIGOROUS
+    return CalibrationSettings(**merged)  # type: ignore[arg-type]
 
 
 @dataclass
@@ -91,7 +122,19 @@ class MountingCalibration:
         The lines flown (first and last time, s) whose points made the strips, strip ids
         their indices.
     result : CalibrationResult
-        The calibration of the strips (QA, convergence, warnings).
+        The calibration of the strips (QA, convergence, warnings); its biases are the
+        eight of docs/method.md, ``dS`` held at 0 (the timing bias is taken out of its
+        place into the fields below).
+    time_offset_s : float
+        The timing bias ``dt`` (delivered - true per-point time, s; docs/method.md section
+        12): 0 where not estimated.
+    time_offset_sigma_s : float
+        Its sigma, s (NaN: not estimated).
+    time_offset_correlation : dict
+        Its correlation with each bias estimated with it.
+    time_offset_note : str
+        Where ``dt`` was asked for but the flight cannot see it: the statement (held at 0);
+        else "".
     """
 
     mounting: Mounting
@@ -103,6 +146,15 @@ class MountingCalibration:
     rotation_sigma_rad: np.ndarray
     lines: np.ndarray
     result: CalibrationResult
+    time_offset_s: float = 0.0
+    time_offset_sigma_s: float = math.nan
+    time_offset_correlation: dict[str, float] = field(default_factory=dict)
+    time_offset_note: str = ""
+
+    @property
+    def timing_asked(self) -> bool:
+        """The timing bias was asked for (estimated, or held at 0 with a note)."""
+        return bool(np.isfinite(self.time_offset_sigma_s) or self.time_offset_note)
 
 
 def sensor_trajectory(trajectory: Trajectory, mounting: Mounting) -> Trajectory:
@@ -186,9 +238,51 @@ def _one_pass(points: np.ndarray, t: np.ndarray, trajectory: Trajectory, nominal
     """The clouds georeferenced with ``nominal`` and calibrated once."""
     origin = sensor_trajectory(trajectory, nominal)
     strips = line_strips(points, t, origin, nominal, spans)
-    result = calibrate(Mission(origin, strips, control=control, frame_id="map"), settings,
-                       progress=progress)
+    mission = Mission(origin, strips, control=control, frame_id="map")
+    result = calibrate(mission, settings, progress=progress)
+    unseen = timing_unseen(result.solution, settings)
+    if unseen:
+        # dt took (or blurred) biases the flight sees without it: again, dt held at 0
+        logger.info("the timing bias cannot be told from the mounting (%s): calibrated "
+                    "again without it", unseen)
+        result = calibrate(mission, without_timing(settings), progress=progress)
+        result.solution.status[TIMING_SLOT] = ParameterStatus(ParameterState.NOT_ESTIMABLE,
+                                                              unseen)
     return mounting_calibration(result, nominal, spans)
+
+
+def timing_unseen(sol: Solution, settings: CalibrationSettings) -> str:
+    """Why a calibration with the timing bias (``settings.timing``) is to be made again
+    without it, or "": ``dt`` was held (not estimable) and took another bias with it, or it
+    was estimated but depends on the mounting's biases nearly (its multiple correlation with
+    them above :data:`TIMING_MAX_CORRELATION`: straight lines at one speed and a steady
+    attitude, where ``dt`` moves each line along its track as ``dY`` does)."""
+    if not settings.timing:
+        return ""
+    said = sol.status[TIMING_SLOT]
+    if said.state is not ParameterState.ESTIMATED:
+        took = [n for n in settings.solve_for if n != TIMING_SLOT
+                and sol.status[n].state is ParameterState.NOT_ESTIMABLE]
+        return said.reason if took else ""
+    j = sol.estimated.index(TIMING_SLOT)
+    inverse = np.linalg.inv(sol.correlation)
+    multiple = math.sqrt(max(0.0, 1.0 - 1.0 / float(inverse[j, j])))
+    if multiple <= TIMING_MAX_CORRELATION:
+        return ""
+    r = sol.correlation[j].copy()
+    r[j] = 0.0
+    k = int(np.argmax(np.abs(r)))
+    return (f"{TIMING_SLOT} depends on the other biases nearly (multiple correlation "
+            f"{multiple:.3f}, {float(r[k]):+.2f} with {sol.estimated[k]}): only their "
+            "combination is determined")
+
+
+def without_timing(settings: CalibrationSettings) -> CalibrationSettings:
+    """``settings`` with no timing bias."""
+    return replace(settings, timing=False,
+                   solve_for=tuple(n for n in settings.solve_for if n != TIMING_SLOT),
+                   limits=replace(settings.limits, max_sigma={
+                       k: v for k, v in settings.limits.max_sigma.items() if k != TIMING_SLOT}))
 
 
 def further_passes(points: np.ndarray, t: np.ndarray, trajectory: Trajectory,
@@ -296,7 +390,11 @@ def mounting_calibration(result: CalibrationResult, nominal: Mounting,
     """The calibrated mounting of a calibration of sensor-frame strips (``result``: its
     biases are the nominal's errors; ``lines``: the lines whose points made the strips),
     batch (:func:`calibrate_mounting`) or live alike."""
+    # (a copy: the live calibrator asks for the mounting of one estimate more than once)
+    result = replace(result, solution=copy.deepcopy(result.solution),
+                     history=[h.copy() for h in result.history])
     sol = result.solution
+    timing = _take_timing(result)
     delta, sigma = sol.delta.copy(), sol.sigma.copy()
     translation_sigma, rotation_sigma = _mounting_sigmas(sigma)
     said = _lever_arm_by_priors(result)
@@ -306,7 +404,50 @@ def mounting_calibration(result: CalibrationResult, nominal: Mounting,
         mounting=mounting_from_biases(nominal, delta), nominal=nominal,
         range_offset_m=float(delta[PARAMETER_INDEX["dr"]]), delta=delta, sigma=sigma,
         translation_sigma_m=translation_sigma, rotation_sigma_rad=rotation_sigma,
-        lines=np.asarray(lines, dtype=np.float64).reshape(-1, 2), result=result)
+        lines=np.asarray(lines, dtype=np.float64).reshape(-1, 2), result=result, **timing)
+
+
+def _take_timing(result: CalibrationResult) -> dict[str, Any]:
+    """The timing bias out of :data:`TIMING_SLOT`'s place of ``result`` (which is left with
+    the eight biases of docs/method.md, ``dS`` held at 0, the warnings naming ``dt``): the
+    :class:`MountingCalibration` fields of ``dt``. Nothing where it was not asked for (the
+    slot held: a general scanner's ``dS`` is no parameter)."""
+    sol = result.solution
+    said = sol.status[TIMING_SLOT]
+    if said.state is ParameterState.FIXED:
+        return {}
+    i = PARAMETER_INDEX[TIMING_SLOT]
+    out: dict[str, Any] = {}
+    if said.state is ParameterState.ESTIMATED:
+        j = sol.estimated.index(TIMING_SLOT)
+        out = {"time_offset_s": float(sol.delta[i]), "time_offset_sigma_s": float(sol.sigma[i]),
+               "time_offset_correlation": {n: float(sol.correlation[j, k])
+                                           for k, n in enumerate(sol.estimated) if k != j}}
+    else:
+        out = {"time_offset_note": timing_statement(said.reason)}
+    keep = [k for k, n in enumerate(sol.estimated) if n != TIMING_SLOT]
+    sol.covariance = sol.covariance[np.ix_(keep, keep)]
+    sol.correlation = sol.correlation[np.ix_(keep, keep)]
+    sol.estimated = tuple(sol.estimated[k] for k in keep)
+    sol.delta[i], sol.sigma[i] = 0.0, math.nan
+    sol.status[TIMING_SLOT] = ParameterStatus(ParameterState.FIXED)
+    sol.warnings = [re.sub(rf"\b{TIMING_SLOT}\b", "dt", w) for w in sol.warnings]
+    if "time_offset_note" in out:
+        sol.warnings.append(out["time_offset_note"])
+    for h in result.history:
+        h[i] = 0.0
+    return out
+
+
+def timing_statement(reason: str) -> str:
+    """What a calibration says where the timing bias was asked for and the flight cannot see
+    it (``reason``: the adjustment's, naming :data:`TIMING_SLOT`)."""
+    why = re.sub(r"\(dS needs [^)]*\)", f"(its sigma above {TIMING_MAX_SIGMA_S * 1e3:g} ms)",
+                 reason)
+    why = re.sub(rf"\b{TIMING_SLOT}\b", "dt", why)
+    return (f"the timing bias dt cannot be seen on this flight ({why}): held at 0; it shows "
+            "where the speed or the attitude's rate differs between overlapping strips "
+            "(turns, lines flown at other speeds)")
 
 
 def _lever_arm_by_priors(result: CalibrationResult) -> str:
@@ -340,6 +481,9 @@ __all__ = [
     "MAX_PASSES",
     "MOUNTING_SOLVE_FOR",
     "REPASS_MOVE_M",
+    "TIMING_MAX_CORRELATION",
+    "TIMING_MAX_SIGMA_S",
+    "TIMING_SLOT",
     "MountingCalibration",
     "calibrate_mounting",
     "further_passes",
@@ -350,4 +494,7 @@ __all__ = [
     "rebased",
     "sensor_points",
     "sensor_trajectory",
+    "timing_statement",
+    "timing_unseen",
+    "without_timing",
 ]

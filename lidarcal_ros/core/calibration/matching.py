@@ -34,6 +34,7 @@ from lidarcal_ros.core.georeferencing.rigorous import (
     laser_vector_qa,
     strip_geometry,
 )
+from lidarcal_ros.core.georeferencing.sensor_frame import point_rates
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
 from lidarcal_ros.core.params import N_PARAMETERS
 from lidarcal_ros.core.trajectory.strip_errors import (
@@ -118,6 +119,9 @@ class PairMatcher:
                                       source=f"strip {strip.strip_id}",
                                       heading_source=s.heading_source, model=s.model,
                                       scanner=s.scanner)
+        if s.timing:  # dS's place holds the timing bias dt (docs/method.md section 12)
+            geom.timing = point_rates(strip.t, strip.xyz, geom.origin, trajectory,
+                                      source=f"strip {strip.strip_id}")
         speed = ground_speed(trajectory, strip.t)
         qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
         keys = self.footprint.keys(strip.xyz[:, :2])

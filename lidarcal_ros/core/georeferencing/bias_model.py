@@ -158,15 +158,21 @@ def geometry_design_matrix(geometry: LaserGeometry) -> np.ndarray:
     cols = body_columns(geometry.x, geometry.z, geometry.beta, sb, cb, y=_general_y(geometry))
     if geometry.rotation is None:  # R_kappa: the rows of eq. [8]
         return design_matrix(geometry.x, geometry.z, geometry.kappa, geometry.beta)
-    return np.einsum("nij,njk->nik", geometry.rotation, cols)
+    a = np.einsum("nij,njk->nik", geometry.rotation, cols)
+    if geometry.timing is not None:  # dS's place holds the timing bias dt (section 12)
+        a[:, :, 7] = geometry.timing
+    return a
 
 
 def geometry_normal_rows(normal: np.ndarray, geometry: LaserGeometry) -> np.ndarray:
     """``n^T A`` of each point of ``geometry`` (either model) and its patch normal ``normal``
     (n, 3, map frame): :func:`body_normal_rows` of the normal turned into the body frame."""
     _, _, sb, cb = geometry.trig()
-    return body_normal_rows(geometry.to_body(normal), geometry.x, geometry.z, geometry.beta,
+    rows = body_normal_rows(geometry.to_body(normal), geometry.x, geometry.z, geometry.beta,
                             sb, cb, y=_general_y(geometry))
+    if geometry.timing is not None:  # dS's place holds the timing bias dt (section 12)
+        rows[:, 7] = np.einsum("ij,ij->i", normal, geometry.timing)
+    return rows
 
 
 def _general_y(geometry: LaserGeometry) -> np.ndarray | None:
@@ -220,9 +226,25 @@ def _offsets(delta: np.ndarray, x: np.ndarray, z: np.ndarray, kappa: np.ndarray,
 
 
 def geometry_offsets(delta: np.ndarray, geometry: LaserGeometry) -> np.ndarray:
-    """``A @ delta`` (n, 3, map frame, m) of each point of ``geometry``, either model."""
-    return _offsets(delta, geometry.x, geometry.z, geometry.kappa, geometry.beta,
-                    geometry.trig(), np.empty((0, 3)), geometry.rotation, geometry.general_y)
+    """``A @ delta`` (n, 3, map frame, m) of each point of ``geometry``, either model (with
+    the timing bias where ``geometry.timing`` is given)."""
+    d, moved = _split_timing(delta, geometry)
+    out = _offsets(d, geometry.x, geometry.z, geometry.kappa, geometry.beta,
+                   geometry.trig(), np.empty((0, 3)), geometry.rotation, geometry.general_y)
+    return out if moved is None else out + moved
+
+
+def _split_timing(delta: np.ndarray, geometry: LaserGeometry
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """``delta`` without the timing bias, and what the timing bias moves each point (``dt``
+    times the timing column, (n, 3) m): the eighth bias where ``geometry`` carries a timing
+    column (docs/method.md section 12), else ``(delta, None)``."""
+    d = np.asarray(delta, dtype=np.float64)
+    if geometry.timing is None or not d[7]:
+        return d, None
+    rest = d.copy()
+    rest[7] = 0.0
+    return rest, d[7] * geometry.timing
 
 
 def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
@@ -231,7 +253,10 @@ def correct_geometry(xyz: np.ndarray, delta: np.ndarray, geometry: LaserGeometry
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.shape != (np.shape(geometry.x)[0], 3):
         raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(geometry.x)[0]} points")
-    return _offsets(delta, geometry.x, geometry.z, geometry.kappa, geometry.beta,
+    d, moved = _split_timing(delta, geometry)
+    if moved is not None:
+        xyz = xyz - moved
+    return _offsets(d, geometry.x, geometry.z, geometry.kappa, geometry.beta,
                     geometry.trig(), xyz, geometry.rotation, geometry.general_y)
 
 
@@ -337,7 +362,7 @@ def exact_correction(
     n = xyz.shape[0]
     if xyz.shape != (np.shape(frame.x)[0], 3):
         raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(frame.x)[0]} points")
-    d = np.asarray(delta, dtype=np.float64)
+    d, moved = _split_timing(delta, frame)
     c, s = frame.cos_kappa, frame.sin_kappa
     if c is None or s is None:
         c, s, _, _ = frame.trig()
@@ -354,11 +379,17 @@ def exact_correction(
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
         d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb, general)
+    if moved is not None:
+        # the pose looked up dt late moved the point by dt times its rate (section 12): the
+        # mounting corrected in that pose, then the point moved back; the laser vector (the
+        # geometry) is the mounting's, whatever the time
+        corrected -= moved
+        shift += moved
     geometry = LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
                              cos_kappa=c, sin_kappa=s, sin_beta=sb, cos_beta=cb,
                              heading_from=frame.heading_from, crab_deg=frame.crab_deg,
                              rotation=frame.rotation, y=y if rigorous else None,
-                             model=frame.model, scanner=frame.scanner)
+                             model=frame.model, scanner=frame.scanner, timing=frame.timing)
     return corrected, shift, geometry
 
 
@@ -376,6 +407,9 @@ def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: Lase
         _NO_COLUMN if weight is None else np.ascontiguousarray(weight, dtype=np.float64),
         geometry.x, geometry.general_y, geometry.z, geometry.beta, sb, cb, c, s,
         _NO_ROTATION if geometry.rotation is None else geometry.rotation, out)
+    if geometry.timing is not None:  # dS's place holds the timing bias dt (section 12)
+        rate = np.einsum("ij,ij->i", normal, geometry.timing[index])
+        out[:, 7] += rate if weight is None else weight * rate
 
 
 __all__ = [

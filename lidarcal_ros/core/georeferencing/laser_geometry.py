@@ -61,6 +61,11 @@ class LaserGeometry:
     scanner : ScannerKind
         ``GENERAL`` (rigorous only): ``y`` is part of the laser vector and enters the bias
         columns and the correction; ``LINEAR``: it does not.
+    timing : (n, 3) or None
+        A ``GENERAL`` scanner's timing column (docs/method.md section 12: ``v + w x (X -
+        X_o)``, map frame, m/s; the derivative of a point in its time): where given, the
+        eighth bias (``dS``'s place; a general scanner has no ``dS``) is the timing bias
+        ``dt`` (delivered - true time, s). None: no timing bias.
     """
 
     x: np.ndarray
@@ -84,6 +89,7 @@ class LaserGeometry:
     y: np.ndarray | None = None
     model: PositioningModel = PositioningModel.LEVEL
     scanner: ScannerKind = ScannerKind.LINEAR
+    timing: np.ndarray | None = None
 
     @property
     def range(self) -> np.ndarray:
@@ -142,7 +148,7 @@ class LaserGeometry:
             sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
             heading_from=self.heading_from, crab_deg=self.crab_deg,
             rotation=part(self.rotation), y=part(self.y), model=self.model,
-            scanner=self.scanner,
+            scanner=self.scanner, timing=part(self.timing),
         )
 
     @classmethod
@@ -187,7 +193,7 @@ def geometry_at(xyz: np.ndarray, frame: LaserGeometry) -> LaserGeometry:
     return LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
                          cos_kappa=c, sin_kappa=s, heading_from=frame.heading_from,
                          crab_deg=frame.crab_deg, rotation=frame.rotation, y=y,
-                         model=frame.model, scanner=frame.scanner)
+                         model=frame.model, scanner=frame.scanner, timing=frame.timing)
 
 
 _NO_Y = np.zeros(0)

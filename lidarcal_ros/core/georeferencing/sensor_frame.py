@@ -402,6 +402,15 @@ def timing_column(geo: SensorGeoreference, v: np.ndarray, w: np.ndarray) -> np.n
     return np.asarray(v) + np.cross(np.asarray(w), geo.xyz - geo.origin)
 
 
+def point_rates(t: np.ndarray, xyz: np.ndarray, origin: np.ndarray, trajectory: Trajectory,
+                *, source: str = "points") -> np.ndarray:
+    """:func:`timing_column` of points ``xyz`` (n, 3, map frame, m) at times ``t`` (s) seen
+    from ``origin`` (n, 3: the trajectory's position at each time), the rates those of
+    ``trajectory`` (:func:`body_rates`): ``v + w x (X - origin)``, m/s."""
+    v, w = body_rates(t, trajectory, source=source)
+    return v + np.cross(w, np.asarray(xyz, dtype=np.float64) - origin)
+
+
 __all__ = [
     "ORTHONORMAL_TOLERANCE",
     "Mounting",
@@ -414,6 +423,7 @@ __all__ = [
     "georeference",
     "mounting_from_biases",
     "mounting_with_biases",
+    "point_rates",
     "quaternion_from_matrix",
     "timing_column",
 ]

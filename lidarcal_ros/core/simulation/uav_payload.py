@@ -112,6 +112,9 @@ class UavPayloadSpec:
     start_time_s : the time of the first cloud, s (absolute, the trajectory's clock).
     n_control : vertical control points surveyed on open ground under the lines (0-100; the
         terrain keeps its objects 15 m from them), which make ``dZ`` observable.
+    time_offset_s : the timing bias ``dt`` of the clouds' times (delivered - true, s; at most
+        0.1 s; docs/method.md section 12): every stamp, and so every point's time, is ``dt``
+        late on the trajectory's clock.
     """
 
     layout: str = "vlp16"
@@ -135,8 +138,12 @@ class UavPayloadSpec:
     terrain_kind: str = "built-up"
     start_time_s: float = 1_700_000_000.0
     n_control: int = 0
+    time_offset_s: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.time_offset_s) and abs(self.time_offset_s) <= 0.1):
+            raise ConfigError(f"uav payload: time_offset_s must be within +-0.1 s, got "
+                              f"{self.time_offset_s}")
         if self.layout not in LAYOUTS:
             raise ConfigError(f"uav payload: layout {self.layout!r} unknown; known: "
                               f"{', '.join(LAYOUTS)}")
@@ -529,7 +536,7 @@ def simulate_uav_payload(spec: UavPayloadSpec | None = None) -> UavPayloadMissio
     rng = np.random.default_rng([spec.seed, 0x0AF1])
 
     clouds, truth_xyz, on_wall = _scan(flight, scanner, true, terrain, biases, rng)
-    clouds.stamps += spec.start_time_s
+    clouds.stamps += spec.start_time_s + spec.time_offset_s
 
     # The INS at its rate over the whole flight, and its errors.
     step = 1.0 / spec.trajectory_rate_hz
@@ -545,7 +552,7 @@ def simulate_uav_payload(spec: UavPayloadSpec | None = None) -> UavPayloadMissio
                             for s in spec.ins_attitude_sigma_deg])
     delivered = attitude * Rotation.from_rotvec(datt)
     trajectory = Trajectory(t_abs, position + dpos, delivered.as_quat())
-    point_tau = clouds.absolute_times() - spec.start_time_s
+    point_tau = clouds.absolute_times() - spec.start_time_s - spec.time_offset_s
     return UavPayloadMission(
         spec=spec, scanner=scanner, clouds=clouds, trajectory=trajectory, nominal=nominal,
         truth_mounting=true, biases=biases, truth_trajectory=truth_trajectory,

@@ -20,6 +20,7 @@ import numpy as np
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, Progress
 from lidarcal_ros.core.calibration.extrinsic import (
     MOUNTING_SOLVE_FOR,
+    TIMING_SLOT,
     MountingCalibration,
     calibrate_mounting,
     mounting_settings,
@@ -137,17 +138,19 @@ def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None, *,
     the defaults), on the biases of ``solve_for`` (default
     :data:`~lidarcal_ros.core.calibration.extrinsic.MOUNTING_SOLVE_FOR`; ``dS`` is no
     parameter of such clouds), a general scanner, the rigorous model and no largest sigma of
-    a usable bias (:func:`~lidarcal_ros.core.calibration.extrinsic.mounting_settings`);
+    a usable bias (:func:`~lidarcal_ros.core.calibration.extrinsic.mounting_settings`), the
+    timing bias with ``sensor_frame.estimate_timing``;
     ``calibration.trajectory.model: auto`` is ``none`` here (no strip trajectory errors)."""
     names = MOUNTING_SOLVE_FOR if solve_for is None else \
-        tuple(n for n in PARAMETER_NAMES if n in solve_for)
+        tuple(n for n in PARAMETER_NAMES if n in solve_for and n != TIMING_SLOT)
     if config is None:
         base = mounting_settings(solve_for=names)
     else:
         configured = config.calibration_settings()
         base = mounting_settings(**{
             f.name: getattr(configured, f.name) for f in dataclasses.fields(configured)
-            if f.name not in ("solve_for", "limits")}, solve_for=names)
+            if f.name not in ("solve_for", "limits", "timing")}, solve_for=names,
+            timing=bool(config["sensor_frame.estimate_timing"]))
         base = replace(base, limits=replace(base.limits,
                                             max_correlation=configured.limits.max_correlation))
         if base.trajectory.model is TrajectoryModel.AUTO:
@@ -175,7 +178,17 @@ def calibrate_sensor_bag(data: SensorBag, *, solve_for: tuple[str, ...] | None =
 
 def extrinsic_of(data: SensorBag, cal: MountingCalibration) -> Extrinsic:
     """The calibration file's ``extrinsic`` block of a calibrated bag."""
-    return Extrinsic(data.base_frame, data.frame_id, cal.mounting, cal.nominal)
+    return with_timing(Extrinsic(data.base_frame, data.frame_id, cal.mounting, cal.nominal),
+                       cal)
+
+
+def with_timing(extrinsic: Extrinsic, cal: MountingCalibration) -> Extrinsic:
+    """``extrinsic`` with the timing bias of ``cal`` (0 and no sigma where not estimated)."""
+    sigma = cal.time_offset_sigma_s
+    return replace(extrinsic, time_offset_s=cal.time_offset_s,
+                   time_offset_sigma_s=float(sigma) if np.isfinite(sigma) else None,
+                   time_offset_correlation=dict(cal.time_offset_correlation),
+                   time_offset_note=cal.time_offset_note)
 
 
 def write_mounting_calibration(path: str | Path, data: SensorBag | Extrinsic,
@@ -183,7 +196,7 @@ def write_mounting_calibration(path: str | Path, data: SensorBag | Extrinsic,
     """Write the calibration file of a mounting (the biases as any calibration's, the
     ``extrinsic`` block: of a bag's frames, or as given) and the URDF joint beside it; the
     file's path. ``lidarcal calibrate`` and the calibrator's ``~/save`` alike."""
-    extrinsic = data if isinstance(data, Extrinsic) else extrinsic_of(data, cal)
+    extrinsic = with_timing(data, cal) if isinstance(data, Extrinsic) else extrinsic_of(data, cal)
     return write_calibration(path, cal.result, overwrite=overwrite, extrinsic=extrinsic)
 
 
@@ -211,6 +224,12 @@ def format_mounting(data: SensorBag, cal: MountingCalibration,
                                        for v in cal.rotation_sigma_rad) + " arcsec)",
              f"  moved from the nominal by {moved:.0f} arcsec and {shift_mm:.1f} mm; "
              f"range offset dr {cal.range_offset_m * 1e3:+.1f} mm"]
+    if np.isfinite(cal.time_offset_sigma_s):
+        lines.append(f"  timing bias dt {cal.time_offset_s * 1e3:+.3f} ms (sigma "
+                     f"{cal.time_offset_sigma_s * 1e3:.3f} ms): taken off the points' times "
+                     "by lidarcal correct")
+    elif cal.time_offset_note:
+        lines.append("  timing bias dt not estimated: held at 0 (the flight cannot see it)")
     if truth is not None:
         d = (t - truth.translation) * 1e3
         lines.append(f"  against the truth: rotation "
@@ -257,5 +276,5 @@ def truth_mounting(path: str | Path) -> Mounting | None:
 
 __all__ = ["calibrate_sensor_bag", "extrinsic_of", "format_mounting", "load_sensor_bag",
            "log_solve_for_note", "mounting_solve_for", "parse_mounting",
-           "sensor_calibration_settings", "truth_mounting", "write_mounting_calibration",
-           "write_uav_simulation"]
+           "sensor_calibration_settings", "truth_mounting", "with_timing",
+           "write_mounting_calibration", "write_uav_simulation"]

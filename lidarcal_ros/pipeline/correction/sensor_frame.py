@@ -1,7 +1,8 @@
 """Clouds in the sensor's frame georeferenced with a calibration's mounting, then corrected.
 
 docs/method.md section 12: each point ``X = X_mb(t) + R_mb(t) (t_bs + R_bs p)`` with the
-calibrated mounting of the calibration file's ``extrinsic`` block and the range less ``dr``.
+calibrated mounting of the calibration file's ``extrinsic`` block, the range less ``dr`` and
+the time less the block's timing bias ``time_offset_s``.
 The points then go through the map-frame correction (reflectance, flags) with no biases left
 to remove, on the trajectory of the sensor's origin and the rigorous model, whose laser vector
 ``R_ins^T (X - X_o)`` is then the sensor's ``P R_bs p`` exactly (the same interpolation both
@@ -134,7 +135,9 @@ class SensorFrameGeoreference:
 
     def cloud(self, points: np.ndarray, stamp_s: float, *, source: str) -> np.ndarray:
         """A driver's cloud (structured, stamped ``stamp_s`` s) in the map frame
-        (:func:`map_layout`, the points' order kept): points without a return (at the
+        (:func:`map_layout`, the points' order kept), each point's time less the
+        calibration's timing bias (``extrinsic.time_offset_s``: the true time, at which its
+        pose is looked up and which its ``t`` holds): points without a return (at the
         sensor's origin or not finite), or outside the trajectory's span, NaN (the
         correction flags them not corrected).
 
@@ -144,6 +147,8 @@ class SensorFrameGeoreference:
             No usable time field or coordinates.
         """
         xyz, t, intensity = self.decoder.decode(points, stamp_s, source=source)
+        if self.extrinsic.time_offset_s:  # the true times: the poses are looked up there
+            t = t - self.extrinsic.time_offset_s
         out = np.empty(len(t), dtype=map_layout(intensity is not None))
         out[TIME_FIELD] = t
         if intensity is not None:

@@ -37,6 +37,7 @@ from lidarcal_ros.core.georeferencing.sensor_frame import (
     georeference,
     mounting_from_biases,
     mounting_with_biases,
+    point_rates,
     quaternion_from_matrix,
     timing_column,
 )
@@ -379,3 +380,54 @@ def test_a_general_scanners_exact_correction_is_the_calibrated_mounting(seed: in
     # first order: eq. [13] with section 12's columns, within the square of the biases
     first = correct_geometry(delivered.xyz, delta, frame)
     assert np.abs(first - truth).max() < 120.0 * np.abs(delta[3:6]).sum() ** 2 + 1e-3
+
+
+@pytest.mark.parametrize("seed", [18, 19])
+def test_the_timing_bias_takes_ds_place_in_a_general_scanners_rows(seed: int) -> None:
+    """With a timing column (``LaserGeometry.timing``) the eighth bias is ``dt``: its rows are
+    ``n^T (v + w x (X - X_o))``, its offset ``dt`` times the column; the exact correction
+    of points georeferenced ``dt`` late (the times delivered ``dt`` after the true ones) with
+    the nominal mounting gives the true points, to the square of ``dt``."""
+    rng = np.random.default_rng(seed)
+    traj = _trajectory(rng)
+    true = _mounting(rng)
+    # dt 0.2 ms: this body's velocity jumps by some 10 m/s at each pose and its rate by a
+    # radian a second in 10 ms, so that what dt's first order leaves (a millimetre here,
+    # decimetres at 4 ms) stays below what it corrects
+    delta = np.array([0.04, -0.03, 0.05, 0.006, -0.004, 0.007, 0.02, 2e-4])
+    nominal = mounting_with_biases(true, np.r_[delta[:7], 0.0])
+    t = _times(rng, traj, 40)
+    p_true = _points(rng, true, 40)
+    r = np.linalg.norm(p_true, axis=1)
+    p_measured = p_true * (1.0 + delta[PARAMETER_INDEX["dr"]] / r)[:, None]
+    truth = georeference(p_true, t, traj, true).xyz
+    late = t + delta[7]  # the pose looked up at the delivered time
+    delivered = georeference(p_measured, late, traj, nominal)
+    origin = delivered.origin + delivered.rotation @ nominal.lever_arm
+    v, w = body_rates(late, traj)  # base_link's: seen from its origin
+    column = v + np.cross(w, delivered.xyz - delivered.origin)
+    np.testing.assert_allclose(point_rates(late, delivered.xyz, delivered.origin, traj),
+                               column, atol=1e-9)
+    frame = replace(_general_geometry(delivered, origin), timing=column)
+    corrected, shift, _ = exact_correction(delivered.xyz, frame, delta)
+    without = exact_correction(delivered.xyz, replace(frame, timing=None), delta)[0]
+    error, error_without = (np.abs(c - truth).max() for c in (corrected, without))
+    print(f"from the truth: {error * 1e3:.2f} mm, without dt {error_without * 1e3:.1f} mm")
+    assert error < 3e-3 and error < 0.1 * error_without
+    np.testing.assert_allclose(shift, delivered.xyz - corrected, atol=1e-12)
+    # the rows: dS's column is the timing column, the others a general scanner's
+    normal = rng.normal(size=(40, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    a = geometry_design_matrix(frame)
+    np.testing.assert_allclose(a[:, :, 7], column, atol=1e-12)
+    np.testing.assert_allclose(a[:, :, :7], geometry_design_matrix(replace(frame, timing=None))
+                               [:, :, :7], atol=1e-12)
+    expected = np.einsum("ni,nik->nk", normal, a)
+    np.testing.assert_allclose(geometry_normal_rows(normal, frame), expected, atol=1e-9)
+    weight = rng.uniform(0.5, 2.0, 40)
+    rows = np.zeros((40, N_PARAMETERS))
+    add_geometry_normal_rows(rows, normal, frame, np.arange(40), weight)
+    np.testing.assert_allclose(rows, weight[:, None] * expected, atol=1e-9)
+    np.testing.assert_allclose(geometry_offsets(delta, frame), a @ delta, atol=1e-9)
+    np.testing.assert_allclose(correct_geometry(delivered.xyz, delta, frame),
+                               delivered.xyz - a @ delta, atol=1e-9)
