@@ -326,8 +326,9 @@ def evaluate_mission(
                  for k in range(len(ids)) if seen_by[k].any()}
         heights = {which: np.full((len(ids), len(check_points)), np.nan)
                    for which in ("before", "after")}
-        for k, future in found.items():
-            heights["before"][k, seen_by[k]], heights["after"][k, seen_by[k]] = future.result()
+        for k, strip_heights in found.items():
+            heights["before"][k, seen_by[k]], heights["after"][k, seen_by[k]] = \
+                strip_heights.result()
         for c, pid in enumerate(check_points.ids):
             seen = np.isfinite(heights["before"][:, c]) | np.isfinite(heights["after"][:, c])
             if not seen.any():

@@ -69,7 +69,7 @@ def test_a_killed_worker_is_replaced_and_the_content_unchanged(
     marker = tmp_path / "killed"
     # (killed in a strip's pass: the strips it held are sent again from the scheduler)
     killing = helpers_dask.KillingExecutor(cluster, marker, part="-pass")
-    parted = _content(small_mission, calibration, killing)  # type: ignore[arg-type]
+    parted = _content(small_mission, calibration, killing)
     assert marker.exists()  # (a worker did die)
     assert helpers_dask.differences(parted, serial) == []
 
