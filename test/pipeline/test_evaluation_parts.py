@@ -13,7 +13,7 @@ import helpers_missions
 import numpy as np
 import pytest
 from helpers_cli import one_line_error, run
-from helpers_missions import MissionFiles, write_calibration_yaml
+from helpers_missions import MissionFiles
 
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 from lidarcal_ros.core.params import as_vector
@@ -23,6 +23,7 @@ from lidarcal_ros.pipeline.executor import DaskExecutor, Executor
 small_mission = helpers_missions.small_mission
 mission_factory = helpers_missions.mission_factory
 cluster = helpers_dask.cluster
+calibration = helpers_missions.small_calibration
 
 #: Points per pair: fewer than most pairs share, so that their subsets are drawn.
 MAX_POINTS = 3000
@@ -68,11 +69,10 @@ def test_a_killed_worker_is_replaced_and_the_evaluation_unchanged(
 
 def test_the_command_through_a_scheduler_prints_the_serial_json(
         capsys: pytest.CaptureFixture[str], small_mission: MissionFiles,
-        cluster: DaskExecutor, tmp_path: Path) -> None:
-    cal = write_calibration_yaml(tmp_path / "cal.yaml", small_mission.sim.biases)
+        cluster: DaskExecutor, calibration: Path) -> None:
     docs: dict[str, Any] = {}
     for label, extra in (("serial", []), ("dask", ["--dask", cluster.client.scheduler.address])):
-        rc, out, err = run(capsys, "evaluate", small_mission.bag, "--calibration", cal,
+        rc, out, err = run(capsys, "evaluate", small_mission.bag, "--calibration", calibration,
                            "--check-points", small_mission.control_csv, "--json",
                            "--max-points", MAX_POINTS, *extra)
         assert rc == 0, err

@@ -12,7 +12,7 @@ import helpers_dask
 import helpers_missions
 import pytest
 from helpers_cli import one_line_error, run
-from helpers_missions import MissionFiles, write_calibration_yaml
+from helpers_missions import MissionFiles
 
 from lidarcal_ros.io.config_file import load_flight_config
 from lidarcal_ros.io.report.content import ReportContent
@@ -22,13 +22,7 @@ from lidarcal_ros.pipeline.report.build import build_report
 small_mission = helpers_missions.small_mission
 mission_factory = helpers_missions.mission_factory
 cluster = helpers_dask.cluster
-
-
-@pytest.fixture(scope="module")
-def calibration(small_mission: MissionFiles, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A calibration file of the small mission's true biases."""
-    return write_calibration_yaml(tmp_path_factory.mktemp("report") / "cal.yaml",
-                                  small_mission.sim.biases)
+calibration = helpers_missions.small_calibration
 
 
 def _content(files: MissionFiles, calibration: Path, executor: Executor | None = None
