@@ -17,6 +17,7 @@ ruff's F811 quiet where a fixture argument would shadow an imported name)::
 :class:`MissionFiles` for other settings; results are cached for the session, so reuse is
 free. Missions are treated as read-only; the transforms below (``subset``, ``shift_strip``,
 ``without_trajectory``, ``with_non_finite``, ``without_control``) return modified copies.
+``small_calibration`` is a calibration file of the small mission's true biases.
 ``write_cloud_bag`` writes clouds of any field layout and frames with lidarcal's BagWriter,
 and ``write_mcap_ros2_bag`` writes the same mission with the mcap project's own ROS 2 writer
 (a bare ``.mcap`` whose schema names lack ``/msg/``).
@@ -153,6 +154,15 @@ def mission_factory(
 def small_mission(mission_factory: Callable[..., MissionFiles]) -> MissionFiles:
     """The :data:`SMALL_MISSION` (six overlapping strips, one control point)."""
     return mission_factory()
+
+
+@pytest.fixture(scope="session")
+def small_calibration(small_mission: MissionFiles,
+                      tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A calibration file of the :data:`SMALL_MISSION`'s true biases (expose it under the
+    name a module uses, e.g. ``calibration = helpers_missions.small_calibration``)."""
+    return write_calibration_yaml(tmp_path_factory.mktemp("cal") / "cal.yaml",
+                                  small_mission.sim.biases)
 
 
 # ------------------------------------------------------------------ mission transforms

@@ -215,6 +215,7 @@ def add_evaluate_command(sub: Any) -> None:
     p.add_argument("--max-points", type=int, default=100_000,
                    help="points per pair used by the ICP (default 100000)")
     p.add_argument("--json", action="store_true", help="print JSON (SI units)")
+    add_dask_option(p)
     p.set_defaults(func=cmd_evaluate)
 
 
@@ -227,15 +228,21 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.survey.control import read_control_csv
     from lidarcal_ros.pipeline.calibration.procedure import load_mission
     from lidarcal_ros.pipeline.evaluation import evaluate_mission, format_evaluation
+    from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
 
+    if args.dask is not None:
+        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     if args.max_points < 100:
         raise ConfigError(f"--max-points must be at least 100, got {args.max_points}")
     config = load_flight_config(args.config)
     calibration = read_calibration(args.calibration)
     check = read_control_csv(args.check_points) if args.check_points else None
     mission = load_mission(args.bag, config)
-    ev = evaluate_mission(mission, calibration.delta, config.calibration_settings(),
-                          check_points=check, max_points_per_pair=args.max_points)
+    # (the cluster, if any, is shut down on every way out: errors, Ctrl-C, SIGTERM)
+    with open_executor(args.dask) as executor:
+        ev = evaluate_mission(mission, calibration.delta, config.calibration_settings(),
+                              check_points=check, max_points_per_pair=args.max_points,
+                              executor=executor)
     print(json.dumps(ev.as_dict(), indent=1) if args.json else format_evaluation(ev))
     return 0
 
@@ -266,6 +273,7 @@ def add_report_command(sub: Any) -> None:
                    help="JSON of 'lidarcal evaluate --json' for the same bag and calibration "
                    "(default: evaluate here)")
     p.add_argument("--crs", help="CRS of the map frame, named on the maps, e.g. EPSG:32633")
+    add_dask_option(p)
     add_quiet_option(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_report)
@@ -278,19 +286,25 @@ def cmd_report(args: argparse.Namespace) -> int:
     from lidarcal_ros.io.config_file import load_flight_config
     from lidarcal_ros.io.report.page import write_html_report
     from lidarcal_ros.io.survey.las_writer import parse_crs
+    from lidarcal_ros.pipeline.executor import open_executor, parse_dask_option
     from lidarcal_ros.pipeline.report.build import build_report
 
+    if args.dask is not None:
+        parse_dask_option(args.dask)  # (a malformed value refused before any work)
     check_output(args.output, overwrite=args.overwrite, inputs=other_paths(args, "output"))
     config = load_flight_config(args.config)
     crs = parse_crs(args.crs) if args.crs else None
     started = time.perf_counter()
     progress, close = progress_bar(not args.quiet)
     try:
-        content = build_report(args.bag, args.calibration, config, control_csv=args.control,
-                               config_source=args.config, check_points_csv=args.check_points,
-                               evaluation_json=args.evaluation, crs=crs,
-                               command=shlex.join(["lidarcal", *args.argv]),
-                               progress=progress)
+        # (the cluster, if any, is shut down on every way out: errors, Ctrl-C, SIGTERM)
+        with open_executor(args.dask) as executor:
+            content = build_report(args.bag, args.calibration, config,
+                                   control_csv=args.control, config_source=args.config,
+                                   check_points_csv=args.check_points,
+                                   evaluation_json=args.evaluation, crs=crs,
+                                   command=shlex.join(["lidarcal", *args.argv]),
+                                   progress=progress, executor=executor)
         path = write_html_report(args.output, content, overwrite=args.overwrite,
                                  progress=progress)
     finally:

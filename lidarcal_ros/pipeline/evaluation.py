@@ -1,6 +1,9 @@
 """``lidarcal evaluate``: the paper's accuracy measures on a mission, before and after calibration.
 
-Numerics in :mod:`lidarcal_ros.core.qa.accuracy` (docs/method.md section 9).
+Numerics in :mod:`lidarcal_ros.core.qa.accuracy` (docs/method.md section 9). The strips'
+correction, each pair's ICP and each strip's check-point heights are tasks of an executor
+(here, or on Dask workers: ``--dask``), each strip sent once in its task; the pairs' subsets
+are drawn and the results gathered here in the serial order.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 from lidarcal_ros.core.calibration.pairs import footprint_keys
 from lidarcal_ros.core.calibration.tin import Tin
 from lidarcal_ros.core.georeferencing.bias_model import correct_geometry
-from lidarcal_ros.core.mission import ControlPoints, Mission
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES
 from lidarcal_ros.core.qa.accuracy import (
     RIGID_NAMES,
@@ -29,6 +32,7 @@ from lidarcal_ros.core.qa.accuracy import (
 from lidarcal_ros.core.units import finite_or_none, format_cm
 from lidarcal_ros.errors import CalibrationError, ConfigError
 from lidarcal_ros.pipeline.correction.apply import flagged_geometry
+from lidarcal_ros.pipeline.executor import CommandTasks, Executor, SerialExecutor, TaskFuture
 
 logger = logging.getLogger(__name__)
 
@@ -147,23 +151,89 @@ def corrected_strips(
 ) -> list[np.ndarray]:
     """Every strip's points corrected by ``delta`` (eq. [13]), map frame, metres; points the
     trajectory cannot serve are left out."""
-    out = []
-    for strip in mission.strips:
-        ok, geo = flagged_geometry(strip.t, strip.xyz, mission.trajectory,
-                                   window=settings.window,
-                                   source=f"strip {strip.strip_id}",
-                                   heading_source=settings.heading_source,
-                                   model=settings.model)
-        xyz = strip.xyz[ok]
-        if np.any(delta):
-            xyz = correct_geometry(xyz, delta, geo)
-        out.append(xyz)
-    return out
+    return [_corrected(strip, mission.trajectory, delta, settings) for strip in mission.strips]
 
 
-def _tin(xyz: np.ndarray, n_cells: int, settings: CalibrationSettings) -> Tin:
-    density = xyz.shape[0] / max(n_cells * settings.overlap_cell_m ** 2, 1.0)
-    return Tin(xyz, settings.tin_quality(density))
+def _corrected(strip: Strip, trajectory: Trajectory, delta: np.ndarray,
+               settings: CalibrationSettings) -> np.ndarray:
+    """``strip``'s points the trajectory serves, corrected by ``delta`` (map frame, m)."""
+    ok, geo = flagged_geometry(strip.t, strip.xyz, trajectory, window=settings.window,
+                               source=f"strip {strip.strip_id}",
+                               heading_source=settings.heading_source, model=settings.model)
+    xyz = strip.xyz[ok]
+    if np.any(delta):
+        xyz = correct_geometry(xyz, delta, geo)
+    return xyz
+
+
+@dataclass
+class _StripStates:
+    """A strip as the evaluation holds it (a task's result, kept where it ran): its points
+    the trajectory serves as delivered (``before``) and corrected (``after``), map frame,
+    metres, and the vertex shift of the corrected ones (delivered - corrected); its footprint
+    cells (sorted keys of :func:`footprint_keys`) and the points in each."""
+
+    before: np.ndarray
+    after: np.ndarray
+    shift: np.ndarray
+    cells: np.ndarray
+    counts: np.ndarray
+
+
+@dataclass(frozen=True)
+class _PairJob:
+    """One pair's ICP for a task: the footprint cells the two strips share, which of the
+    first strip's points in them to use (their ranks; None: all), the settings."""
+
+    common: np.ndarray
+    pick: np.ndarray | None
+    settings: CalibrationSettings
+
+
+def _strip_states(strip: Strip, trajectory: Trajectory, delta: np.ndarray,
+                  settings: CalibrationSettings) -> _StripStates:
+    """``strip`` delivered and corrected by ``delta`` (a task)."""
+    before = _corrected(strip, trajectory, np.zeros(N_PARAMETERS), settings)
+    after = _corrected(strip, trajectory, delta, settings)
+    cells, counts = np.unique(footprint_keys(before, settings.overlap_cell_m),
+                              return_counts=True)
+    return _StripStates(before, after, before - after, cells, counts)
+
+
+def _footprint(states: _StripStates) -> tuple[np.ndarray, np.ndarray]:
+    """The strip's footprint cells and their points (a task: what this process needs)."""
+    return states.cells, states.counts
+
+
+def _strip_tin(states: _StripStates, settings: CalibrationSettings) -> Tin:
+    """The TIN of the strip's delivered points (a task); after the correction its vertices
+    move by a smooth field of centimetres to decimetres (as in the calibration's own
+    matching)."""
+    density = states.before.shape[0] / max(states.cells.size * settings.overlap_cell_m ** 2,
+                                           1.0)
+    return Tin(states.before, settings.tin_quality(density))
+
+
+def _pair_fits(a: _StripStates, b: _StripStates, tin_b: Tin, job: _PairJob
+               ) -> tuple[RigidFit | None, RigidFit | None]:
+    """The rigid fits of ``a``'s points in the shared cells onto ``b``'s TIN, as delivered
+    and as corrected (a task)."""
+    s = job.settings
+    inside = np.flatnonzero(np.isin(footprint_keys(a.before, s.overlap_cell_m), job.common))
+    if job.pick is not None:
+        inside = inside[job.pick]
+    return (rigid_icp(a.before[inside], tin_b, b.before,
+                      max_normal_distance=s.max_normal_distance_m, vertex_shift=None),
+            rigid_icp(a.after[inside], tin_b, b.after,
+                      max_normal_distance=s.max_normal_distance_m, vertex_shift=b.shift))
+
+
+def _check_heights(states: _StripStates, tin: Tin, xy: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The strip's surface heights at ``xy`` (map frame, m), delivered and corrected (a
+    task)."""
+    return (tin_heights(tin, states.before, xy, vertex_shift=None),
+            tin_heights(tin, states.after, xy, vertex_shift=states.shift))
 
 
 def evaluate_mission(
@@ -175,6 +245,7 @@ def evaluate_mission(
     max_points_per_pair: int = 100_000,
     seed: int = 0,
     progress: Callable[[str, float], None] | None = None,
+    executor: Executor | CommandTasks | None = None,
 ) -> Evaluation:
     """Tables 3 and 4 of the paper for ``mission`` before and after the estimate ``delta``.
 
@@ -192,6 +263,10 @@ def evaluate_mission(
     seed : int
         Seed of that subset.
     progress : callable(stage, fraction), optional
+    executor : Executor or CommandTasks, optional
+        Where the strips are corrected and each pair's ICP and each strip's check-point
+        heights computed (default: here); the subsets are drawn and the results gathered
+        here, in the serial order, so the evaluation is the serial one.
 
     Raises
     ------
@@ -199,61 +274,61 @@ def evaluate_mission(
         No two strips overlap and there are no check points: nothing to evaluate.
     """
     delta = np.asarray(delta, dtype=np.float64).reshape(N_PARAMETERS)
+    tasks = executor if isinstance(executor, CommandTasks) else \
+        CommandTasks(executor or SerialExecutor(), "evaluate")
     rng = np.random.default_rng(seed)
     if progress is not None:
         progress("evaluation: correcting strips", 0.0)
-    states = {"before": corrected_strips(mission, np.zeros(N_PARAMETERS), settings),
-              "after": corrected_strips(mission, delta, settings)}
-    cells = [np.unique(footprint_keys(x, settings.overlap_cell_m)) for x in states["before"]]
-    # One TIN per strip, on its delivered points; after the correction its vertices move by
-    # a smooth field of centimetres to decimetres (as in the calibration's own matching).
-    tins: dict[int, Tin] = {}
-    shifts: dict[str, list[np.ndarray | None]] = {
-        "before": [None] * len(states["before"]),
-        "after": [b - a for b, a in zip(states["before"], states["after"])]}
+    trajectory = tasks.send(mission.trajectory, "trajectory")
+    states = [tasks.submit(_strip_states, tasks.send(strip, f"strip{strip.strip_id}"),
+                           trajectory, delta, settings, key=f"states{k}")
+              for k, strip in enumerate(mission.strips)]
+    footprints = [f.result() for f in [tasks.submit(_footprint, s, key=f"footprint{k}")
+                                       for k, s in enumerate(states)]]
+    cells = [c for c, _ in footprints]
+    tins: dict[int, TaskFuture[Tin]] = {}
 
-    def tin(k: int) -> Tin:
+    def tin(k: int) -> TaskFuture[Tin]:
         if k not in tins:
-            tins[k] = _tin(states["before"][k], cells[k].size, settings)
+            tins[k] = tasks.submit(_strip_tin, states[k], settings, key=f"tin{k}")
         return tins[k]
 
-    pairs: list[PairAlignment] = []
     ids = [s.strip_id for s in mission.strips]
+    pair_fits: list[tuple[int, int, int, TaskFuture[tuple[RigidFit | None, RigidFit | None]]]] = []
     for a in range(len(ids)):
-        if progress is not None:
-            progress("evaluation: co-alignment (ICP)", a / max(len(ids), 1))
         for b in range(a + 1, len(ids)):
             common = np.intersect1d(cells[a], cells[b], assume_unique=True)
             if common.size < settings.min_overlap_cells:
                 continue
-            inside = np.flatnonzero(np.isin(footprint_keys(states["before"][a],
-                                                   settings.overlap_cell_m), common))
-            if inside.size > max_points_per_pair:
-                inside = np.sort(rng.choice(inside, max_points_per_pair, replace=False))
-            fits: dict[str, RigidFit | None] = {}
-            for which in ("before", "after"):
-                fits[which] = rigid_icp(states[which][a][inside], tin(b), states[which][b],
-                                        max_normal_distance=settings.max_normal_distance_m,
-                                        vertex_shift=shifts[which][b])
-            pairs.append(PairAlignment(ids[a], ids[b], int(common.size),
-                                       fits["before"], fits["after"]))
-            logger.info("strips %d & %d: rigid fit %s -> %s", ids[a], ids[b],
-                        _short(fits["before"]), _short(fits["after"]))
+            # (the subset drawn here, pair after pair, as a serial run draws it)
+            n_inside = int(footprints[a][1][np.isin(cells[a], common)].sum())
+            pick = np.sort(rng.choice(n_inside, max_points_per_pair, replace=False)) \
+                if n_inside > max_points_per_pair else None
+            pair_fits.append((a, b, int(common.size), tasks.submit(
+                _pair_fits, states[a], states[b], tin(b), _PairJob(common, pick, settings),
+                key=f"pair{a}-{b}")))
+    pairs: list[PairAlignment] = []
+    for i, (a, b, n_common, future) in enumerate(pair_fits):
+        if progress is not None:
+            progress("evaluation: co-alignment (ICP)", i / len(pair_fits))
+        before, after = future.result()
+        pairs.append(PairAlignment(ids[a], ids[b], n_common, before, after))
+        logger.info("strips %d & %d: rigid fit %s -> %s", ids[a], ids[b], _short(before),
+                    _short(after))
     residuals: list[CheckPointResidual] = []
     if check_points is not None and len(check_points):
         if progress is not None:
             progress("evaluation: check points", 0.0)
-        heights: dict[str, np.ndarray] = {}
-        for which in ("before", "after"):
-            per_strip = np.full((len(ids), len(check_points)), np.nan)
-            cp_cells = footprint_keys(check_points.xyz, settings.overlap_cell_m)
-            for k in range(len(ids)):
-                seen = np.isin(cp_cells, cells[k])
-                if seen.any():
-                    per_strip[k, seen] = tin_heights(tin(k), states[which][k],
-                                                     check_points.xyz[seen, :2],
-                                                     vertex_shift=shifts[which][k])
-            heights[which] = per_strip
+        cp_cells = footprint_keys(check_points.xyz, settings.overlap_cell_m)
+        seen_by = [np.isin(cp_cells, cells[k]) for k in range(len(ids))]
+        found = {k: tasks.submit(_check_heights, states[k], tin(k),
+                                 check_points.xyz[seen_by[k], :2], key=f"check{k}")
+                 for k in range(len(ids)) if seen_by[k].any()}
+        heights = {which: np.full((len(ids), len(check_points)), np.nan)
+                   for which in ("before", "after")}
+        for k, strip_heights in found.items():
+            heights["before"][k, seen_by[k]], heights["after"][k, seen_by[k]] = \
+                strip_heights.result()
         for c, pid in enumerate(check_points.ids):
             seen = np.isfinite(heights["before"][:, c]) | np.isfinite(heights["after"][:, c])
             if not seen.any():

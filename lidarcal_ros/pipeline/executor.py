@@ -9,9 +9,11 @@ out of its ``with`` block.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
 import re
+import uuid
 import warnings
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -22,9 +24,9 @@ from urllib.parse import urlsplit
 from lidarcal_ros.errors import ConfigError
 
 __all__ = [
-    "CONNECT_TIMEOUT_S", "LOCAL_WORKER_MEMORY_BYTES", "DaskExecutor", "DaskTarget",
-    "Executor", "SerialExecutor", "TaskFuture", "local_worker_limit", "open_executor",
-    "parse_dask_option",
+    "CONNECT_TIMEOUT_S", "LOCAL_WORKER_MEMORY_BYTES", "CommandTasks", "DaskExecutor",
+    "DaskTarget", "Executor", "SerialExecutor", "TaskFuture", "local_worker_limit",
+    "open_executor", "parse_dask_option",
 ]
 
 logger = logging.getLogger(__name__)
@@ -91,6 +93,48 @@ class SerialExecutor:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _value(value: T) -> T:
+    """``value`` itself (a task: what :meth:`CommandTasks.send` sends)."""
+    return value
+
+
+class CommandTasks:
+    """One command's tasks on ``executor``: each key made unique (a scheduler shared by
+    several commands keeps a finished key's result), a value the tasks share sent once.
+
+    Values go to the workers inside their tasks, which the scheduler keeps: a task whose
+    worker died runs again elsewhere from them, and no shared file system is needed.
+    """
+
+    def __init__(self, executor: Executor, command: str) -> None:
+        self.executor = executor
+        self.workers, self.description = executor.workers, executor.description
+        self._prefix = f"{command}-{uuid.uuid4().hex[:8]}"
+        self._numbers = itertools.count()
+        #: By id, the value sent and its future (the value held: its id stays its own).
+        self._sent: dict[int, tuple[object, TaskFuture[Any]]] = {}
+
+    def submit(self, fn: Callable[..., T], *args: Any, key: str) -> TaskFuture[T]:
+        """``fn(*args)`` on the executor (``key``: the task's name, made unique here)."""
+        with warnings.catch_warnings():
+            # (data in its task is what keeps the work resilient: no other copy to load)
+            warnings.filterwarnings("ignore", message=".*[Ll]arge (graph|object)")
+            return self.executor.submit(
+                fn, *args, key=f"{self._prefix}-{key}-{next(self._numbers)}")
+
+    def send(self, value: T, name: str) -> TaskFuture[T]:
+        """``value`` on the workers, to pass to tasks in its place (sent once however often
+        it is asked for)."""
+        sent = self._sent.get(id(value))
+        if sent is None or sent[0] is not value:
+            sent = (value, self.submit(_value, value, key=name))
+            self._sent[id(value)] = sent
+        return sent[1]
+
+    def close(self) -> None:
+        """Nothing to stop (the executor's owner closes it)."""
 
 
 @dataclass(frozen=True)

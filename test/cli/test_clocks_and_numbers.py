@@ -22,7 +22,6 @@ import pytest
 import yaml
 from helpers_cli import one_line_error, run
 from helpers_missions import (
-    MissionFiles,
     cloud_chunks,
     strip_points,
     write_calibration_yaml,
@@ -36,13 +35,7 @@ from lidarcal_ros.io.bag.writer import BagWriter
 
 mission_factory = helpers_missions.mission_factory
 small_mission = helpers_missions.small_mission
-
-
-@pytest.fixture(scope="module")
-def calibration(small_mission: MissionFiles, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The small mission's true biases as a calibration file."""
-    return write_calibration_yaml(tmp_path_factory.mktemp("cal") / "cal.yaml",
-                                  small_mission.sim.biases)
+calibration = helpers_missions.small_calibration
 
 
 def _bag_with_stamps(path: Path, mission: Mission, stamps: np.ndarray, *,

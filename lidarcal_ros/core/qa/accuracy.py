@@ -172,7 +172,9 @@ def rigid_icp(
         x[~determined] = 0.0
         resid = d + jac @ x
         dof = max(n_used - int(determined.sum()), 1)
-        sigma0 = math.sqrt(float(resid @ resid) / dof)
+        # (numpy's pairwise sum: BLAS's dot splits a long sum among its threads, so its last
+        # bits follow their number, which a Dask worker sets to one)
+        sigma0 = math.sqrt(float(np.sum(resid * resid)) / dof)
         cov_diag = np.diag(inv) / scale**2 * sigma0**2
         step = x.copy()
         step[3:] /= size

@@ -13,11 +13,8 @@ TINs built again from the task's own copy of them (the scheduler's).
 from __future__ import annotations
 
 import dataclasses
-import itertools
-import uuid
-import warnings
 from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import numpy as np
 
@@ -31,7 +28,7 @@ from lidarcal_ros.core.calibration.pair_work import (
     with_tin,
 )
 from lidarcal_ros.core.calibration.pairs import PreparedStrip, StripPair
-from lidarcal_ros.pipeline.executor import Executor, TaskFuture
+from lidarcal_ros.pipeline.executor import CommandTasks, Executor, TaskFuture
 
 __all__ = ["ExecutorPairWork"]
 
@@ -43,19 +40,10 @@ class ExecutorPairWork:
     (each strip sent once: the calibrators of ``auto`` share them)."""
 
     def __init__(self, executor: Executor) -> None:
-        self.executor = executor
+        self.tasks = CommandTasks(executor, "calibrate")
         #: By strip id, the strip sent and its future (sent again where another strip of
         #: that id comes).
         self._strips: dict[int, tuple[PreparedStrip, TaskFuture[PreparedStrip]]] = {}
-        self._token = uuid.uuid4().hex[:8]
-        self._numbers = itertools.count()
-
-    def _submit(self, fn: Callable[..., R], *args: Any, name: str) -> TaskFuture[R]:
-        with warnings.catch_warnings():
-            # (a strip in its task is what keeps the work resilient: no other copy to load)
-            warnings.filterwarnings("ignore", message=".*[Ll]arge (graph|object)")
-            return self.executor.submit(
-                fn, *args, key=f"calibrate-{name}-{self._token}-{next(self._numbers)}")
 
     def _strip(self, matcher: PairMatcher, k: int) -> TaskFuture[PreparedStrip]:
         """Strip ``k`` of ``matcher`` on the workers, with its TIN (submitted once)."""
@@ -65,16 +53,16 @@ class ExecutorPairWork:
             return sent[1]
         # (a copy as delivered: no TIN, no correction held)
         copy = dataclasses.replace(ps, tin=None, corrected=None)
-        future = self._submit(with_tin, copy, matcher.settings, name=f"strip{ps.strip_id}")
+        future = self.tasks.submit(with_tin, copy, matcher.settings, key=f"strip{ps.strip_id}")
         self._strips[ps.strip_id] = (ps, future)
         return future
 
     def _map(self, fn: Callable[[PreparedStrip, PreparedStrip, PairJob], R],
              matcher: PairMatcher, pairs: Sequence[StripPair], delta: np.ndarray | None,
              threshold: float, name: str) -> list[R]:
-        futures = [self._submit(fn, self._strip(matcher, p.a), self._strip(matcher, p.b),
-                                PairJob.of(matcher, p, delta, threshold),
-                                name=f"{name}{p.index}") for p in pairs]
+        futures = [self.tasks.submit(fn, self._strip(matcher, p.a), self._strip(matcher, p.b),
+                                     PairJob.of(matcher, p, delta, threshold),
+                                     key=f"{name}{p.index}") for p in pairs]
         return [f.result() for f in futures]
 
     def choose(self, matcher: PairMatcher, pairs: Sequence[StripPair]

@@ -1,4 +1,8 @@
-"""The block pass of ``lidarcal report``: every strip once through the correction, what it keeps."""
+"""The block pass of ``lidarcal report``: every strip once through the correction, what it keeps.
+
+Each strip is a task of an executor (here, or a Dask worker: ``--dask``), sent in it; what
+the tasks keep is summed here in the strips' order, as a serial pass sums it.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +22,7 @@ from lidarcal_ros.core.flags import (
     FLAG_ROUGH,
     FLAG_VOLUME,
 )
-from lidarcal_ros.core.mission import ControlPoints, Mission, Trajectory
+from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.normals.grid_normals import cell_size, finite_rows, grid_normals
 from lidarcal_ros.core.qa.swath_differences import (
     SMOOTH_SLOPE_DEG,
@@ -34,6 +38,7 @@ from lidarcal_ros.pipeline.correction.apply import (
     surface_points,
     trajectory_heading,
 )
+from lidarcal_ros.pipeline.executor import CommandTasks, Executor, SerialExecutor
 
 __all__ = [
     "EXCLUDED_FLAGS", "FOOTPRINT_CELL_M", "MAP_MAX_CELLS", "MAP_STRIP_SPACINGS",
@@ -134,6 +139,77 @@ def _strip_row(strip_id: int, t: np.ndarray, z: np.ndarray, trajectory: Trajecto
                     t.size / footprint.area_m2 if footprint.area_m2 > 0 else math.nan)
 
 
+@dataclass
+class _BlockGrids:
+    """The grids of a block pass (:func:`block_grids`)."""
+
+    swath: BlockGrid
+    footprint: BlockGrid
+    map: BlockGrid
+
+
+@dataclass
+class _StripPass:
+    """What the block pass keeps of one strip (a task's result; the fields of
+    :class:`BlockPass` for one strip, the map's sums only in ``map_cells``: None without
+    intensity)."""
+
+    surface: tuple[int, float, CellHeights, CellHeights]
+    footprint: StripFootprint
+    row: StripRow
+    map_cells: np.ndarray | None = None
+    map_sums: np.ndarray | None = None
+    slope: np.ndarray | None = None
+    intensity: np.ndarray | None = None
+    reflectance: np.ndarray | None = None
+
+
+def _strip_pass(strip: Strip, trajectory: Trajectory, settings: CorrectionSettings,
+                grids: _BlockGrids) -> _StripPass:
+    """One strip through the correction, what the report keeps of it (a task)."""
+    heading = trajectory_heading(trajectory, float(np.nanmedian(strip.t)))
+    finite = finite_rows(strip.xyz) & np.isfinite(strip.t)
+    # The normals of the last returns (volume returns: none, as lidarcal correct).
+    volume = volume_returns(strip.extra.get("return_number"),
+                            strip.extra.get("number_of_returns"))
+    surface = surface_points(strip.xyz, volume)
+    fitted = finite_rows(surface) & np.isfinite(strip.t)
+    normals = grid_normals(surface, heading,
+                           cell_m=cell_size(surface[fitted], heading, strip.t[fitted]))
+    res = correct_columns(strip.xyz, strip.t, strip.intensity, trajectory,
+                          settings, normals=normals, source=f"strip {strip.strip_id}",
+                          volume=volume, strip_id=strip.strip_id)
+    with np.errstate(invalid="ignore"):
+        slope = np.degrees(np.arccos(np.clip(np.abs(normals.normals[:, 2]), 0.0, 1.0)))
+    rough = normals.rough if normals.rough is not None else np.zeros(len(strip), bool)
+    corrected = (res.flags & FLAG_NOT_CORRECTED) == 0
+    smooth = normals.valid & ~rough & (slope < SMOOTH_SLOPE_DEG) & corrected
+    keys = grids.footprint.keys(strip.xyz[finite, :2])
+    footprint = StripFootprint(strip.strip_id, np.unique(keys[keys >= 0]))
+    out = _StripPass((strip.strip_id, float(np.nanmedian(strip.t)),
+                      cell_heights(grids.swath, strip.xyz, normals.normals, smooth),
+                      cell_heights(grids.swath, res.xyz, normals.normals, smooth)),
+                     footprint, _strip_row(strip.strip_id, strip.t[finite],
+                                           res.xyz[finite, 2], trajectory, footprint))
+    if strip.intensity is None:
+        return out
+    intensity = np.asarray(strip.intensity, dtype=np.float64)
+    mapped = np.isfinite(res.reflectance) & np.isfinite(intensity)
+    m = grids.map
+    sums = np.array([cell_sums(res.xyz[mapped, :2], values, x0=m.x0, y0=m.y0, cell_m=m.cell_m,
+                               shape=(m.ny, m.nx))[0]
+                     for values in (intensity[mapped], res.reflectance[mapped],
+                                    np.ones(int(mapped.sum())))])
+    # (the cells holding points: the others' sums are zeros, which add nothing)
+    out.map_cells = np.flatnonzero(sums[2])
+    out.map_sums = sums[:, out.map_cells]
+    usable = mapped & ((res.flags & EXCLUDED_FLAGS) == 0) & np.isfinite(slope)
+    out.slope = slope[usable].astype(np.float32)
+    out.intensity = intensity[usable].astype(np.float32)
+    out.reflectance = res.reflectance[usable]
+    return out
+
+
 def block_pass(
     mission: Mission,
     settings: CorrectionSettings,
@@ -142,6 +218,7 @@ def block_pass(
     footprint_grid: BlockGrid,
     map_grid: BlockGrid,
     progress: Progress | None = None,
+    executor: Executor | CommandTasks | None = None,
 ) -> BlockPass:
     """Correct every strip once and keep what the report needs of it (docs/internals.md).
 
@@ -155,52 +232,35 @@ def block_pass(
     map_grid : BlockGrid
         The grid of the intensity and reflectance maps (:func:`block_grids`).
     progress : callable, optional
+    executor : Executor or CommandTasks, optional
+        Where each strip is corrected, a task a strip (default: here); what they keep is
+        gathered here in the strips' order, so the pass is the serial one.
     """
-    x0, y0, cell, shape = map_grid.x0, map_grid.y0, map_grid.cell_m, (map_grid.ny, map_grid.nx)
-    out = BlockPass(map_sums=np.zeros((3, shape[0] * shape[1])))
+    tasks = executor if isinstance(executor, CommandTasks) else \
+        CommandTasks(executor or SerialExecutor(), "report")
+    out = BlockPass(map_sums=np.zeros((3, map_grid.ny * map_grid.nx)))
     strips = [s for s in mission.strips if len(s)]
-    for k, strip in enumerate(strips):
+    trajectory = tasks.send(mission.trajectory, "trajectory")
+    grids = _BlockGrids(swath_grid, footprint_grid, map_grid)
+    futures = [tasks.submit(_strip_pass, tasks.send(strip, f"strip{strip.strip_id}"),
+                            trajectory, settings, grids, key=f"pass{k}")
+               for k, strip in enumerate(strips)]
+    for k, (strip, future) in enumerate(zip(strips, futures, strict=True)):
         if progress is not None:
             progress("correcting strips", k / len(strips))
-        heading = trajectory_heading(mission.trajectory, float(np.nanmedian(strip.t)))
-        finite = finite_rows(strip.xyz) & np.isfinite(strip.t)
-        # The normals of the last returns (volume returns: none, as lidarcal correct).
-        volume = volume_returns(strip.extra.get("return_number"),
-                                strip.extra.get("number_of_returns"))
-        surface = surface_points(strip.xyz, volume)
-        fitted = finite_rows(surface) & np.isfinite(strip.t)
-        normals = grid_normals(surface, heading,
-                               cell_m=cell_size(surface[fitted], heading, strip.t[fitted]))
-        res = correct_columns(strip.xyz, strip.t, strip.intensity, mission.trajectory,
-                              settings, normals=normals, source=f"strip {strip.strip_id}",
-                              volume=volume, strip_id=strip.strip_id)
-        with np.errstate(invalid="ignore"):
-            slope = np.degrees(np.arccos(np.clip(np.abs(normals.normals[:, 2]), 0.0, 1.0)))
-        rough = normals.rough if normals.rough is not None else np.zeros(len(strip), bool)
-        corrected = (res.flags & FLAG_NOT_CORRECTED) == 0
-        smooth = normals.valid & ~rough & (slope < SMOOTH_SLOPE_DEG) & corrected
-        out.surfaces.append((strip.strip_id, float(np.nanmedian(strip.t)),
-                             cell_heights(swath_grid, strip.xyz, normals.normals, smooth),
-                             cell_heights(swath_grid, res.xyz, normals.normals, smooth)))
-        keys = footprint_grid.keys(strip.xyz[finite, :2])
-        footprint = StripFootprint(strip.strip_id, np.unique(keys[keys >= 0]))
-        out.footprints.append(footprint)
-        out.rows.append(_strip_row(strip.strip_id, strip.t[finite], res.xyz[finite, 2],
-                                   mission.trajectory, footprint))
-        if strip.intensity is None:
+        part = future.result()
+        out.surfaces.append(part.surface)
+        out.footprints.append(part.footprint)
+        out.rows.append(part.row)
+        if part.map_cells is None:
             continue
-        intensity = np.asarray(strip.intensity, dtype=np.float64)
-        mapped = np.isfinite(res.reflectance) & np.isfinite(intensity)
+        assert part.map_sums is not None and part.slope is not None and \
+            part.intensity is not None and part.reflectance is not None
         out.n_radiometric += len(strip)
-        for row, values in enumerate((intensity[mapped], res.reflectance[mapped],
-                                      np.ones(int(mapped.sum())))):
-            sums, _ = cell_sums(res.xyz[mapped, :2], values, x0=x0, y0=y0, cell_m=cell,
-                                 shape=shape)
-            out.map_sums[row] += sums
-        usable = mapped & ((res.flags & EXCLUDED_FLAGS) == 0) & np.isfinite(slope)
-        out.slope.append(slope[usable].astype(np.float32))
-        out.intensity.append(intensity[usable].astype(np.float32))
-        out.reflectance.append(res.reflectance[usable])
+        out.map_sums[:, part.map_cells] += part.map_sums
+        out.slope.append(part.slope)
+        out.intensity.append(part.intensity)
+        out.reflectance.append(part.reflectance)
     return out
 
 

@@ -46,6 +46,7 @@ from lidarcal_ros.pipeline.correction.reflectance import (
     with_constant,
 )
 from lidarcal_ros.pipeline.evaluation import Evaluation, evaluate_mission
+from lidarcal_ros.pipeline.executor import CommandTasks, Executor, SerialExecutor
 from lidarcal_ros.pipeline.report.block import (
     FOOTPRINT_CELL_M,
     StripFootprint,
@@ -194,9 +195,13 @@ def report_mission(
     inputs: ReportInputs | None = None,
     *,
     progress: Progress | None = None,
+    executor: Executor | None = None,
 ) -> ReportContent:
-    """The report of a mission under a calibration (docs/internals.md, "The HTML report")."""
+    """The report of a mission under a calibration (docs/internals.md, "The HTML report");
+    the block pass and the evaluation as tasks of ``executor`` (default: here), each strip
+    sent to it once."""
     inputs = inputs or ReportInputs()
+    tasks = CommandTasks(executor or SerialExecutor(), "report")
     delta = calibration.record.delta
     pairs, control = geometric_sections(mission, delta, config, coverage=calibration.coverage,
                                         progress=progress)
@@ -208,7 +213,8 @@ def report_mission(
         settings = with_constant(settings, measured.constant)
     footprint_grid, swath_grid, map_grid = block_grids(mission, config)
     passed = block_pass(mission, settings, swath_grid=swath_grid,
-                        footprint_grid=footprint_grid, map_grid=map_grid, progress=progress)
+                        footprint_grid=footprint_grid, map_grid=map_grid, progress=progress,
+                        executor=tasks)
     if progress is not None:
         progress("swath differences", 0.0)
     swath = swath_differences(swath_grid, passed.surfaces)
@@ -217,7 +223,8 @@ def report_mission(
     source = inputs.evaluation_source
     if evaluation is None:
         evaluation = evaluate_mission(mission, delta, config.calibration_settings(),
-                                      check_points=inputs.check_points, progress=progress)
+                                      check_points=inputs.check_points, progress=progress,
+                                      executor=tasks)
         source = "Computed for this report as lidarcal evaluate does (100000 points per pair)."
     evaluated = evaluation_section(evaluation, source)
     quality = quality_assessment(swath, passed.footprints, mission.n_points, evaluated)
@@ -297,6 +304,7 @@ def build_report(
     crs: Any = None,
     command: str = "",
     progress: Progress | None = None,
+    executor: Executor | None = None,
 ) -> ReportContent:
     """Read a mission bag and a calibration file and compute the report.
 
@@ -322,6 +330,8 @@ def build_report(
     command : str
         The command line, recorded in the provenance.
     progress : callable, optional
+    executor : Executor, optional
+        Where the strips are corrected and evaluated (:func:`report_mission`).
     """
     from lidarcal_ros.io.survey.control import read_control_csv
 
@@ -350,4 +360,5 @@ def build_report(
         check_points=check, evaluation=evaluation,
         evaluation_source=f"Read from {evaluation_json} (lidarcal evaluate --json)."
         if evaluation_json else "", crs=crs_name, provenance=provenance)
-    return report_mission(mission, calibration, config, inputs, progress=progress)
+    return report_mission(mission, calibration, config, inputs, progress=progress,
+                          executor=executor)
