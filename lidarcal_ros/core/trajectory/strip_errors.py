@@ -177,16 +177,28 @@ class StripBasis:
         """Basis values ``(n, size)`` at absolute times ``t`` (s)."""
         t = np.asarray(t, dtype=np.float64).reshape(-1)
         if self.knots is not None:
-            inside = np.clip(t, self.knots[3], self.knots[-4])
-            return BSpline.design_matrix(inside, self.knots, 3).toarray()
+            return self.sparse_values(t).toarray()
         out = np.ones((t.shape[0], self.size))
         if self.size > 1:
             out[:, 1] = t - self.t_ref
         return out
 
+    def sparse_values(self, t: np.ndarray) -> sparse.csr_matrix:
+        """:meth:`values` as a sparse matrix: a spline's row has four values, whatever its
+        knots (dense, a long strip's row would cost 8 bytes a knot)."""
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        if self.knots is None:
+            return sparse.csr_matrix(self.values(t))
+        inside = np.clip(t, self.knots[3], self.knots[-4])
+        return BSpline.design_matrix(inside, self.knots, 3).tocsr()
+
     def error(self, coefficients: np.ndarray, t: np.ndarray) -> np.ndarray:
         """``e(t)`` (n, 3) of ``coefficients`` (size * 3,) at times ``t`` (s), map frame, m."""
-        return self.values(t) @ np.asarray(coefficients, dtype=np.float64).reshape(-1, 3)
+        c = np.asarray(coefficients, dtype=np.float64).reshape(-1, 3)
+        if self.knots is None:
+            return self.values(t) @ c
+        # (sparse: the dense values of every held point of a 30 km strip took gigabytes)
+        return np.asarray(self.sparse_values(t) @ c)
 
     def prior(self, settings: TrajectoryErrorSettings) -> sparse.csr_matrix:
         """The priors' information (size * 3, size * 3) in units of 1/sigma^2: each
@@ -271,23 +283,47 @@ class TrajectoryState:
 
 def error_columns(state: TrajectoryState, rows: TrajectoryRows) -> sparse.csr_matrix:
     """The trajectory columns of the correspondences (k, all coefficients), sparse CSR: a
-    point of strip ``a`` adds ``+n b(t_a)``, the patch of strip ``b`` ``-n b(t_b)``."""
+    point of strip ``a`` adds ``+n b(t_a)``, the patch of strip ``b`` ``-n b(t_b)``.
+
+    Built in place, row by row in column order (each strip's coefficients one range, in
+    strip order: the lower strip's side of a row first), from the basis values that are not
+    zero: the dense values and their COO copies took some 0.5 GB at 300,000 rows, gigabytes
+    on long strips."""
     k = len(rows)
-    cols, vals, row_idx = [], [], []
-    for strips, times, sign in ((rows.strip_a, rows.t_a, 1.0), (rows.strip_b, rows.t_b, -1.0)):
+    shape = (k, state.params.shape[0])
+    sides = ((rows.strip_a, rows.t_a, 1.0), (rows.strip_b, rows.t_b, -1.0))
+    groups = []
+    counts = [np.zeros(k, np.int64), np.zeros(k, np.int64)]
+    for side, (strips, times, sign) in enumerate(sides):
         for s in np.unique(strips[strips >= 0]):
             r = np.flatnonzero(strips == s)
-            b = state.bases[int(s)].values(times[r])  # (h, size)
-            coef = sign * b[:, :, None] * rows.normal[r][:, None, :]  # (h, size, 3)
-            row_idx.append(np.broadcast_to(r[:, None, None], coef.shape).ravel())
-            cols.append((state.starts[int(s)] + np.arange(coef.shape[1] * 3)
-                         .reshape(1, -1, 3)).repeat(r.size, axis=0).ravel())
-            vals.append(coef.ravel())
-    shape = (k, state.params.shape[0])
-    if not vals:
+            b = state.bases[int(s)].sparse_values(times[r])
+            b.sort_indices()
+            counts[side][r] = 3 * np.diff(b.indptr)
+            groups.append((side, r, b, int(s), sign))
+    if not groups:
         return sparse.csr_matrix(shape)
-    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(row_idx),
-                                                     np.concatenate(cols))), shape=shape)
+    total = counts[0] + counts[1]
+    index = np.int32 if max(int(total.sum()), shape[1]) < 2**31 else np.int64
+    indptr = np.zeros(k + 1, index)
+    np.cumsum(total, out=indptr[1:])
+    data = np.empty(int(indptr[-1]))
+    indices = np.empty(int(indptr[-1]), index)
+    # where each side's entries begin in its row: after the other side's if that strip is lower
+    a_first = rows.strip_a < rows.strip_b
+    begin = [indptr[:-1] + np.where(a_first, 0, counts[1]),
+             indptr[:-1] + np.where(a_first, counts[0], 0)]
+    xyz = np.arange(3)
+    for side, r, b, s, sign in groups:
+        row = np.repeat(np.arange(r.size), np.diff(b.indptr))
+        at = begin[side][r[row]] + 3 * (np.arange(b.nnz) - b.indptr[row])
+        pos = at[:, None] + xyz
+        data[pos] = sign * b.data[:, None] * rows.normal[r[row]]
+        indices[pos] = state.starts[s] + 3 * b.indices[:, None] + xyz
+    out = sparse.csr_matrix((data, indices, indptr), shape=shape)
+    if np.any((rows.strip_a >= 0) & (rows.strip_a == rows.strip_b)):
+        out.sum_duplicates()  # a strip against itself: both sides in the same columns
+    return out
 
 
 @dataclass
