@@ -6,6 +6,7 @@
     .venv/bin/python bench/bench_scale.py --stages BAG        # calibrate's memory per stage
     .venv/bin/python bench/bench_scale.py --stages BAG --memory bounded  # the same, bounded
     .venv/bin/python bench/bench_scale.py --memory whole,bounded  # both calibration.memory
+    .venv/bin/python bench/bench_scale.py --correct           # lidarcal correct of each too
 
 ``--memory`` runs each size with each ``calibration.memory`` mode named and, with both,
 prints the bounded estimate's difference from the whole one in the whole one's sigmas.
@@ -13,10 +14,12 @@ prints the bounded estimate's difference from the whole one in the whole one's s
 Each size is the paper's six strips at 0.5 points/m^2 (the 1150 m lines), lines as long as
 the size needs, written by ``lidarcal simulate`` (cached under bench/.cache/scale/). Each
 ``lidarcal calibrate`` runs in a fresh process, as a user runs it (after one unmeasured run
-that compiles the per-point loops); time per point and peak
-resident memory are printed with their ratios to the 1M-point run of the same invocation.
-``--stages`` runs the calibration in this process and samples its resident memory every
-20 ms, per stage of its progress (what grows with the points).
+that compiles the per-point loops); time per point and peak resident memory are printed
+with their ratios to the 1M-point run of the same invocation. ``--correct`` also runs
+``lidarcal correct`` of each size with its calibration (to an MCAP bag, removed after: the
+output is as large as the input). ``--stages`` runs the calibration in this process and
+samples its resident memory every 20 ms, per stage of its progress (what grows with the
+points).
 """
 
 from __future__ import annotations
@@ -80,6 +83,36 @@ def calibrate(bag: Path, memory: str = "whole") -> dict[str, Any]:
     return run
 
 
+def correct(bag: Path, memory: str) -> dict[str, Any]:
+    """``lidarcal correct`` of ``bag`` with its ``memory`` calibration, in a fresh process
+    (the corrected bag removed after)."""
+    log = CACHE / f"{bag.name}.correct.log"
+    out = CACHE / f"{bag.name}.corrected.mcap"
+    try:
+        run = run_child([PYTHON, "-m", "lidarcal_ros", "correct", str(bag), "--calibration",
+                         str(output(bag, memory)), "-o", str(out), "--overwrite"], log=log)
+    finally:
+        out.unlink(missing_ok=True)
+    if run["rc"]:
+        raise SystemExit(f"correct failed:\n{tail(log)}")
+    return run
+
+
+def table(rows: dict[str, list[tuple[int, dict[str, Any]]]], first: str) -> None:
+    """Time per point and peak memory of each run against the first (1M-point) run of
+    its row group."""
+    print(f"\n| {first} | points | wall | ns/point | x 1M | CPU | peak RSS | x 1M | bytes/point |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, runs in rows.items():
+        n0, r0 = runs[0]
+        for n, r in runs:
+            per = r["wall_s"] / n * 1e9
+            per0 = r0["wall_s"] / n0 * 1e9
+            print(f"| {name} | {n:,} | {r['wall_s']:.1f} s | {per:.0f} | {per / per0:.2f} | "
+                  f"{r['cpu_s']:.1f} s | {r['peak_mib']:.0f} MiB | "
+                  f"{r['peak_mib'] / r0['peak_mib']:.2f} | {r['peak_mib'] * 2**20 / n:.0f} |")
+
+
 def differences(bag: Path) -> str:
     """The bounded estimate of ``bag`` minus the whole one, in the whole one's sigmas."""
     whole, bounded = (read_estimate(output(bag, m)) for m in ("whole", "bounded"))
@@ -106,10 +139,12 @@ def sizes(max_points: float) -> list[float]:
     return out
 
 
-def scaling(max_points: float, modes: list[str]) -> None:
+def scaling(max_points: float, modes: list[str], *, with_correct: bool = False) -> None:
     """The table of time per point and peak memory against the 1M-point run of the same
-    ``calibration.memory`` mode, for each of ``modes``."""
+    ``calibration.memory`` mode, for each of ``modes`` (and, ``with_correct``, of
+    ``lidarcal correct`` with the first mode's calibration)."""
     rows: dict[str, list[tuple[int, dict[str, Any]]]] = {m: [] for m in modes}
+    corrections: dict[str, list[tuple[int, dict[str, Any]]]] = {"correct": []}
     notes = []
     # a first run unmeasured: it compiles the per-point loops (numba's cache), some 10 s
     calibrate(mission(1e6), modes[0])
@@ -121,19 +156,17 @@ def scaling(max_points: float, modes: list[str]) -> None:
             rows[memory].append((n, run))
             print(f"  {n / 1e6:7.2f}M points, {memory}: {run['wall_s']:7.1f} s wall, "
                   f"{run['cpu_s']:7.1f} s CPU, peak {run['peak_mib']:7.0f} MiB", flush=True)
+        if with_correct:
+            run = correct(bag, modes[0])
+            corrections["correct"].append((n, run))
+            print(f"  {n / 1e6:7.2f}M points, correct: {run['wall_s']:7.1f} s wall, "
+                  f"{run['cpu_s']:7.1f} s CPU, peak {run['peak_mib']:7.0f} MiB", flush=True)
         if {"whole", "bounded"} <= set(modes):
             notes.append(f"{n:,} points: {differences(bag)}")
             print(f"  {notes[-1]}", flush=True)
-    print("\n| memory | points | wall | ns/point | x 1M | CPU | peak RSS | x 1M | bytes/point |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for memory, runs in rows.items():
-        n0, r0 = runs[0]
-        for n, r in runs:
-            per = r["wall_s"] / n * 1e9
-            per0 = r0["wall_s"] / n0 * 1e9
-            print(f"| {memory} | {n:,} | {r['wall_s']:.1f} s | {per:.0f} | {per / per0:.2f} | "
-                  f"{r['cpu_s']:.1f} s | {r['peak_mib']:.0f} MiB | "
-                  f"{r['peak_mib'] / r0['peak_mib']:.2f} | {r['peak_mib'] * 2**20 / n:.0f} |")
+    table(rows, "memory")
+    if with_correct:
+        table(corrections, "command")
     for note in notes:
         print(note)
 
@@ -197,6 +230,8 @@ def main() -> None:
                         help="calibrate's memory per stage of BAG, in this process")
     parser.add_argument("--memory", default="whole",
                         help="calibration.memory modes, comma-separated (default whole)")
+    parser.add_argument("--correct", action="store_true",
+                        help="also lidarcal correct of each size (the first mode's calibration)")
     args = parser.parse_args()
     modes = [m for m in args.memory.split(",") if m]
     if not modes or set(modes) - {"whole", "bounded"}:
@@ -207,7 +242,7 @@ def main() -> None:
     if args.stages is not None:
         stages(args.stages, modes[0])
     else:
-        scaling(args.max_points, modes)
+        scaling(args.max_points, modes, with_correct=args.correct)
     print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
 
 
