@@ -434,6 +434,8 @@ class LiveCorrector:
                 _, t, _ = self._times.decode(parsed.points, ns_to_seconds(parsed.stamp_ns),
                                              source=source)
                 _, t_max = time_span(t)
+                # the poses are looked up at the true times (a timing bias below 0: later)
+                t_max -= self.sensor.extrinsic.time_offset_s
             else:
                 if traj_frame is not None and parsed.frame_id != traj_frame:
                     raise LidarcalError(f"{source}: cloud in frame '{parsed.frame_id}' but "
