@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 from helpers_wait import wait_until
 
 from lidarcal_ros.core.config import CORRECTOR_NODE, SCHEMA, FlightConfig, node_options
@@ -36,7 +38,12 @@ from lidarcal_ros.core.simulation.uav_payload import (
     simulate_uav_payload,
 )
 from lidarcal_ros.io.bag.reader import open_bag
-from lidarcal_ros.io.calibration_file import CalibrationRecord, Extrinsic, read_calibration
+from lidarcal_ros.io.calibration_file import (
+    ROOT_KEY,
+    CalibrationRecord,
+    Extrinsic,
+    read_calibration,
+)
 from lidarcal_ros.io.cloud.messages import cloud_cdr, parse_cloud
 from lidarcal_ros.io.cloud.pointcloud import cloud_to_array
 from lidarcal_ros.io.survey.control import read_control_csv
@@ -260,6 +267,54 @@ def test_live_corrector_skips_a_cloud_of_another_sensor(root: Path) -> None:
     assert live.stats.last_error == ("/velodyne_points: cloud in frame 'os_sensor'; the "
                                      "calibration's extrinsic block is the mounting of "
                                      "'velodyne'")
+
+
+def test_live_cloud_waits_for_the_poses_at_its_true_times(root: Path, tmp_path: Path) -> None:
+    """A timing bias below 0 (here -0.2 s) looks a cloud's poses up after its delivered
+    times: the corrector holds the cloud while the poses reach its delivered last time only,
+    and corrects every point once they reach its true last time."""
+    case = _case("vlp16", 1, True, root)
+    doc = yaml.safe_load(case.calibration.read_text())
+    doc[ROOT_KEY]["extrinsic"]["time_offset_s"] = -0.2
+    late = tmp_path / "late.yaml"
+    late.write_text(yaml.safe_dump(doc))
+    poses: list[tuple[float, Any, str, Any]] = []
+    raws: list[bytes] = []
+    with open_bag(case.bag) as bag:
+        for topic, msgtype, _ns, raw in bag.messages(["/velodyne_points", "/ins/odometry"]):
+            if topic == "/velodyne_points":
+                raws.append(bytes(raw))
+                continue
+            msg = bag.deserialize(memoryview(raw), msgtype, topic=topic)
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            poses.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9,
+                          (p.x, p.y, p.z), msg.header.frame_id, (q.x, q.y, q.z, q.w)))
+    cloud = parse_cloud(raws[len(raws) // 2])
+    delivered_last = cloud.stamp_ns * 1e-9 + float(np.max(cloud.points["time"]))
+    published: list[bytes] = []
+    options = dataclasses.replace(node_options(CorrectorOptions, CORRECTOR_NODE, {}),
+                                  separate_process=False, max_trajectory_wait_s=600.0)
+    live = LiveCorrector(CONFIG, options, publish=lambda cdr: published.append(bytes(cdr)),
+                         calibration=str(late))
+    try:
+        live.add_cloud(raws[len(raws) // 2])
+        for pose in (p for p in poses if p[0] <= delivered_last + 0.1):
+            live.add_pose(*pose)
+        # (covered to its delivered last time and 0.1 s beyond: not yet to its true one)
+        wait_until(lambda: live.waiting_clouds == 1, 10.0, "the cloud received")
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline and not published:
+            time.sleep(0.05)
+        assert not published and live.waiting_clouds == 1
+        for pose in (p for p in poses if delivered_last + 0.1 < p[0] <= delivered_last + 0.5):
+            live.add_pose(*pose)
+        wait_until(lambda: bool(published), 30.0, "the cloud corrected",
+                   state=lambda: f"{live.waiting_clouds} waiting")
+    finally:
+        live.close()
+    flags = parse_cloud(published[0]).points["correction_flags"]
+    assert len(flags) == len(cloud.points)
+    assert not (flags & FLAG_NOT_CORRECTED).any()
 
 
 def _corrected_by_stamp(case: _Case, out: Path) -> dict[int, np.ndarray]:
