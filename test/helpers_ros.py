@@ -36,13 +36,14 @@ def spinning(context: Any, *nodes: Any) -> Iterator[None]:
         executor.shutdown(timeout_sec=5)
 
 
-def replay_payload(bag: Path, rate: float) -> str:
+def replay_payload(bag: Path, rate: float, *options: str) -> str:
     """``lidarcal replay`` of a UAV payload's clouds and odometry (the default queue, 2 s of
-    each topic at ``rate``; ``--linger 10``: none lost to a slow subscriber); its stdout."""
+    each topic at ``rate``; ``--linger 10``: none lost to a slow subscriber; ``options``
+    added, e.g. ``--start``); its stdout."""
     res = subprocess.run(
         [sys.executable, "-m", "lidarcal_ros", "replay", str(bag), "--rate", str(rate),
          "--topics", "/velodyne_points", "/ins/odometry", "--wait-for-subscribers", "20",
-         "--linger", "10"],
+         "--linger", "10", *options],
         env=dict(os.environ), capture_output=True, text=True, timeout=120, check=False)
     assert res.returncode == 0, res.stderr
     return res.stdout

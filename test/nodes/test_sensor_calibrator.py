@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -193,6 +194,33 @@ def test_replayed_payload_saves_the_offline_mounting(running: Any, payload: Any,
     assert not np.allclose(mounting.rotation, saved.nominal.rotation, atol=1e-6)
     # a probe joining after the estimate still gets it (transient local), once
     _assert_late_joiner_gets(ros_context, saved.mounting)
+
+
+def test_a_replay_paused_mid_line_saves_the_offline_mounting(running: Any, payload: Any,
+                                                             offline: Any) -> None:
+    """The replay stops in the first line for longer than ``idle_close_s`` (as a starved
+    player or a link drop does) and goes on: no line is closed in part, no point is late, and
+    the saved mounting is still the offline one (0.1 sigma)."""
+    cal, probe, workdir = running
+    mission, paths, _ = payload
+    assert probe.call("/sensor_calibrator/reset").success
+    service = cal.calibration
+    # 80% into the first line (a line from 5 s on), s after the bag's first message
+    c = mission.clouds
+    on_first = np.repeat(c.stamps, np.diff(c.offsets))[mission.line == 0]
+    cut = float(on_first.min()) + 0.8 * float(np.ptp(on_first)) - \
+        min(float(mission.trajectory.t[0]), float(c.stamps[0]))
+    replay_payload(paths["bag"], 10.0, "--duration", f"{cut:.3f}")
+    _wait(lambda: service.queued_jobs == 0, 30, "the first part")
+    time.sleep(1.0)  # (the idle close, 0.5 s, has come and gone)
+    assert service.stream.closed_strips == (), service.stream.strip_ids
+    replay_payload(paths["bag"], 10.0, "--start", f"{cut:.3f}")
+    _wait(lambda: len(service.sensor.lines) == 3 and service.queued_jobs == 0, 60,
+          "three lines", state=lambda: f"{service.sensor.lines}, {service.sensor.refusal}")
+    assert service.stream.late_points == 0 and service.sensor.late_points == 0
+    assert probe.call("/sensor_calibrator/solve").success
+    assert probe.call("/sensor_calibrator/save").success
+    _assert_offline_mounting(workdir / "live.yaml", offline)
 
 
 def _assert_late_joiner_gets(context: Any, want: Mounting) -> None:
@@ -396,3 +424,4 @@ def test_live_timing_bias_is_the_offline_one(ros_context: Any, tmp_path: Path) -
     assert abs(live.time_offset_s - offline.time_offset_s) <= 0.1 * sigma
     assert live.time_offset_sigma_s is not None
     assert abs(live.time_offset_sigma_s - sigma) <= 0.1 * sigma
+

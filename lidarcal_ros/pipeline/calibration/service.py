@@ -573,10 +573,12 @@ class CalibrationService:
         started = time.perf_counter()
         try:
             if self.sensor.active:
-                final = now_s == math.inf
-                self.sensor.step(self._stream, final=final, covered=True)
-                # the open line's points go on in blocks up to the horizon: it is not idle
-                if not final:
+                self.sensor.step(self._stream, final=now_s == math.inf, covered=True)
+                # Unless the flight was taken as ended, the open line's points go on in
+                # blocks up to the horizon: it is not idle. (An idle close whose poses stop
+                # short of the newest points is no end either, as for clouds in the map
+                # frame: the poses may be behind, or the input only paused mid-line.)
+                if not self.sensor.ended:
                     now_s = min(self.sensor.horizon, self._point_end)
             result = self._stream.update(now_s)
         except LidarcalError as exc:  # e.g. no trajectory yet: keep accumulating

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -191,6 +192,34 @@ def test_control_arriving_brings_dz_in(tmp_path: Path) -> None:
               30, "dZ with control")
     finally:
         service.close()
+
+
+# ------------------------------------------------------------------- idle closes
+
+def test_input_pausing_mid_line_loses_no_point(tmp_path: Path) -> None:
+    """The input stops mid-line for longer than ``idle_close_s`` (a link drop, a starved
+    player), its poses short of its newest points as a recorder interleaves them: the idle
+    close takes no end of the flight from it, no line is closed in part, and once the rest
+    comes the saved mounting is ``lidarcal calibrate``'s (0.1 sigma). It used to close the
+    line at the pause and leave its later points out as late."""
+    m = _mission()
+    t_all = np.concatenate([c[2] for c in _clouds(m)])
+    on_first = t_all[m.line == 0]
+    cut = float(on_first.min()) + 0.8 * float(np.ptp(on_first))  # (a line from 5 s on)
+    service = _service(tmp_path, idle_close_s=0.3)
+    try:
+        _feed(service, _events(m, end=cut))
+        _wait(lambda: service.queued_jobs == 0, 60, "the first half of the first line")
+        time.sleep(1.0)  # (the idle close has come and gone)
+        assert service.stream.closed_strips == (), service.stream.strip_ids
+        _feed(service, _events(m, start=cut))
+        assert "solved" in service.solve()
+        saved = service.save().split("written to ")[1].split(",")[0]
+    finally:
+        service.close()
+    assert service.stream.late_points == 0 and service.sensor.late_points == 0
+    assert len(service.sensor.lines) == 3
+    _same_mounting(Path(saved), _offline(m, MOUNTING_SOLVE_FOR), 0.1)
 
 
 # ------------------------------------------------------------------- checkpoints
