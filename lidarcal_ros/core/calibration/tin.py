@@ -173,7 +173,11 @@ class GridLocator:
         self.y0 = float(xy[:, 1].min()) if len(xy) else 0.0
         self.nx = int((xy[:, 0].max() - self.x0) / self.cell) + 1 if len(xy) else 1
         self.ny = int((xy[:, 1].max() - self.y0) / self.cell) + 1 if len(xy) else 1
-        self.starts = np.empty(self.nx * self.ny + 1, dtype=np.int64)
+        # int32 where the lists cannot outgrow it: a bounded calibration's held points lie
+        # in small clusters along 30 km strips, whose grids have millions of empty cells
+        most = self.MAX_CELLS_PER_TRIANGLE * len(simplices)
+        self.starts = np.empty(self.nx * self.ny + 1,
+                               dtype=np.int32 if most < 2**31 else np.int64)
         self.entries = tin_kernels.grid_lists(
             simplices, box, self.x0, self.y0, self.cell, self.nx, self.ny,
             self.MAX_CELLS_PER_TRIANGLE, self.starts)

@@ -105,7 +105,7 @@ def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cel
     simplices : (m, 3) int
     box : (m, 4) float64
         :func:`triangle_boxes`.
-    starts : (nx * ny + 1,) int64
+    starts : (nx * ny + 1,) int32 or int64
         Receives the start of each cell's list in the returned entries.
 
     Returns
@@ -115,7 +115,8 @@ def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cel
     """
     m = simplices.shape[0]
     n_cells = nx * ny
-    counts = np.zeros(n_cells + 1, np.int64)
+    counts = starts  # (counted in place: a long strip's grid has millions of cells)
+    counts[:] = 0
     span = np.empty((m, 4), np.int64)
     for t in range(m):
         ix0 = np.int64((box[t, 0] - x0) // cell)
@@ -129,7 +130,6 @@ def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cel
                     counts[cx * ny + cy + 1] += 1
     for c in range(n_cells):
         counts[c + 1] += counts[c]
-    starts[:] = counts
     fill = counts[:n_cells].copy()
     entries = np.empty(counts[n_cells], np.int32)
     for t in range(m):
