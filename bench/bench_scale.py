@@ -7,6 +7,7 @@
     .venv/bin/python bench/bench_scale.py --stages BAG --memory bounded  # the same, bounded
     .venv/bin/python bench/bench_scale.py --memory whole,bounded  # both calibration.memory
     .venv/bin/python bench/bench_scale.py --correct           # lidarcal correct of each too
+    .venv/bin/python bench/bench_scale.py --points 1e6,100e6 --memory bounded --dask local:2
 
 ``--memory`` runs each size with each ``calibration.memory`` mode named and, with both,
 prints the bounded estimate's difference from the whole one in the whole one's sigmas.
@@ -19,7 +20,10 @@ with their ratios to the 1M-point run of the same invocation. ``--correct`` also
 ``lidarcal correct`` of each size with its calibration (to an MCAP bag, removed after: the
 output is as large as the input). ``--stages`` runs the calibration in this process and
 samples its resident memory every 20 ms, per stage of its progress (what grows with the
-points).
+points). ``--dask SPEC`` also runs each calibration with ``--dask SPEC`` and prints its
+speed-up, the peak of its process tree and of its largest process, and its estimate against
+the serial one's (byte-identical files, or the largest difference in sigmas); ``--points``
+names the sizes instead of 1M, x4, ... ``--max-points``.
 """
 
 from __future__ import annotations
@@ -64,20 +68,24 @@ def n_points(bag: Path) -> int:
     return int(truth["simulation"]["n_points"])
 
 
-def output(bag: Path, memory: str) -> Path:
-    """The calibration file of ``bag`` calibrated with ``calibration.memory`` ``memory``."""
-    return CACHE / f"{bag.name}.{memory}.calibration.yaml"
+def output(bag: Path, memory: str, dask: str | None = None) -> Path:
+    """The calibration file of ``bag`` calibrated with ``calibration.memory`` ``memory``
+    (on ``--dask dask``: another file)."""
+    on = "" if dask is None else ".dask"
+    return CACHE / f"{bag.name}.{memory}{on}.calibration.yaml"
 
 
-def calibrate(bag: Path, memory: str = "whole") -> dict[str, Any]:
+def calibrate(bag: Path, memory: str = "whole", dask: str | None = None) -> dict[str, Any]:
     """``lidarcal calibrate`` of ``bag`` in a fresh process, ``calibration.memory``
-    ``memory``."""
-    log = CACHE / f"{bag.name}.{memory}.calibrate.log"
+    ``memory`` (with ``--dask dask``: the memory of its process tree too)."""
+    log = CACHE / f"{bag.name}.{memory}{'' if dask is None else '.dask'}.calibrate.log"
     config = CACHE / f"memory_{memory}.yaml"
     config.write_text(f"/**:\n  ros__parameters:\n    calibration:\n      memory: {memory}\n")
-    run = run_child([PYTHON, "-m", "lidarcal_ros", "calibrate", str(bag), "-o",
-                     str(output(bag, memory)), "--overwrite", "--config", str(config),
-                     "--control", f"{bag}_control.csv"], log=log)
+    cmd = [PYTHON, "-m", "lidarcal_ros", "calibrate", str(bag), "-o",
+           str(output(bag, memory, dask)), "--overwrite", "--config", str(config),
+           "--control", f"{bag}_control.csv"]
+    run = run_child(cmd + ([] if dask is None else ["--dask", dask]), log=log,
+                    tree_memory=dask is not None)
     if run["rc"]:
         raise SystemExit(f"calibrate failed:\n{tail(log)}")
     return run
@@ -113,9 +121,22 @@ def table(rows: dict[str, list[tuple[int, dict[str, Any]]]], first: str) -> None
                   f"{r['peak_mib'] / r0['peak_mib']:.2f} | {r['peak_mib'] * 2**20 / n:.0f} |")
 
 
-def differences(bag: Path) -> str:
-    """The bounded estimate of ``bag`` minus the whole one, in the whole one's sigmas."""
-    whole, bounded = (read_estimate(output(bag, m)) for m in ("whole", "bounded"))
+def on_dask(bag: Path, memory: str, serial: dict[str, Any], dask: str) -> str:
+    """``memory``'s calibration of ``bag`` on ``--dask dask`` against ``serial``'s run: one
+    line of figures."""
+    run = calibrate(bag, memory, dask)
+    a, b = output(bag, memory), output(bag, memory, dask)
+    same = a.read_bytes() == b.read_bytes()
+    return (f"--dask {dask} ({memory}): {run['wall_s']:.1f} s wall against {serial['wall_s']:.1f}"
+            f" s serial ({serial['wall_s'] / run['wall_s']:.2f}x), peak {run['peak_mib']:.0f} "
+            f"MiB the process tree, {run['largest_mib']:.0f} MiB its largest process (serial "
+            f"{serial['peak_mib']:.0f} MiB); the calibration file "
+            + ("byte-identical" if same else "differs: " + differences(a, b, "serial", "dask")))
+
+
+def differences(first: Path, second: Path, first_name: str, second_name: str) -> str:
+    """The estimate of file ``second`` minus that of ``first``, in ``first``'s sigmas."""
+    whole, bounded = read_estimate(first), read_estimate(second)
     worst = 0.0
     parts = []
     for name, w in whole.items():
@@ -126,7 +147,8 @@ def differences(bag: Path) -> str:
         d = (b["value"] - w["value"]) / w["sigma"]
         worst = max(worst, abs(d))
         parts.append(f"{name} {d:+.4f}")
-    return f"bounded - whole, sigmas: {' '.join(parts)} (largest {worst:.4f})"
+    return (f"{second_name} - {first_name}, sigmas: {' '.join(parts)} "
+            f"(largest {worst:.4f})")
 
 
 def sizes(max_points: float) -> list[float]:
@@ -139,16 +161,18 @@ def sizes(max_points: float) -> list[float]:
     return out
 
 
-def scaling(max_points: float, modes: list[str], *, with_correct: bool = False) -> None:
-    """The table of time per point and peak memory against the 1M-point run of the same
-    ``calibration.memory`` mode, for each of ``modes`` (and, ``with_correct``, of
-    ``lidarcal correct`` with the first mode's calibration)."""
+def scaling(points: list[float], modes: list[str], *, with_correct: bool = False,
+            dask: str | None = None) -> None:
+    """The table of time per point and peak memory against the first size's run of the
+    same ``calibration.memory`` mode, for each of ``modes`` (and, ``with_correct``, of
+    ``lidarcal correct`` with the first mode's calibration; with ``dask``, each
+    calibration on ``--dask dask`` too)."""
     rows: dict[str, list[tuple[int, dict[str, Any]]]] = {m: [] for m in modes}
     corrections: dict[str, list[tuple[int, dict[str, Any]]]] = {"correct": []}
     notes = []
     # a first run unmeasured: it compiles the per-point loops (numba's cache), some 10 s
     calibrate(mission(1e6), modes[0])
-    for size in sizes(max_points):
+    for size in points:
         bag = mission(size)
         n = n_points(bag)
         for memory in modes:
@@ -156,13 +180,18 @@ def scaling(max_points: float, modes: list[str], *, with_correct: bool = False) 
             rows[memory].append((n, run))
             print(f"  {n / 1e6:7.2f}M points, {memory}: {run['wall_s']:7.1f} s wall, "
                   f"{run['cpu_s']:7.1f} s CPU, peak {run['peak_mib']:7.0f} MiB", flush=True)
+            if dask is not None:
+                notes.append(f"{n:,} points: {on_dask(bag, memory, run, dask)}")
+                print(f"  {notes[-1]}", flush=True)
         if with_correct:
             run = correct(bag, modes[0])
             corrections["correct"].append((n, run))
             print(f"  {n / 1e6:7.2f}M points, correct: {run['wall_s']:7.1f} s wall, "
                   f"{run['cpu_s']:7.1f} s CPU, peak {run['peak_mib']:7.0f} MiB", flush=True)
         if {"whole", "bounded"} <= set(modes):
-            notes.append(f"{n:,} points: {differences(bag)}")
+            notes.append(f"{n:,} points: "
+                         + differences(output(bag, "whole"), output(bag, "bounded"), "whole",
+                                       "bounded"))
             print(f"  {notes[-1]}", flush=True)
     table(rows, "memory")
     if with_correct:
@@ -232,6 +261,11 @@ def main() -> None:
                         help="calibration.memory modes, comma-separated (default whole)")
     parser.add_argument("--correct", action="store_true",
                         help="also lidarcal correct of each size (the first mode's calibration)")
+    parser.add_argument("--points", default=None,
+                        help="the sizes, comma-separated, e.g. 1e6,100e6 (default: 1M, x4, "
+                        "... --max-points)")
+    parser.add_argument("--dask", default=None, metavar="SPEC",
+                        help="also calibrate each size with --dask SPEC, e.g. local:2")
     args = parser.parse_args()
     modes = [m for m in args.memory.split(",") if m]
     if not modes or set(modes) - {"whole", "bounded"}:
@@ -242,7 +276,12 @@ def main() -> None:
     if args.stages is not None:
         stages(args.stages, modes[0])
     else:
-        scaling(args.max_points, modes, with_correct=args.correct)
+        try:
+            points = sizes(args.max_points) if args.points is None else \
+                [float(p) for p in args.points.split(",") if p]
+        except ValueError:
+            parser.error(f"--points: numbers separated by commas, got {args.points!r}")
+        scaling(points, modes, with_correct=args.correct, dask=args.dask)
     print(f"load average (1 min): {os.getloadavg()[0]:.1f}")
 
 

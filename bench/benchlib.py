@@ -155,8 +155,9 @@ def _prepare_worker(spec: MissionSpec, where: Path) -> None:
 
 
 # ---------------------------------------------------------------------------- children
-def _tree_rss_mib(root: int) -> float:
-    """Resident memory of a process and all its descendants, MiB, from /proc."""
+def _tree_rss_mib(root: int) -> tuple[float, float]:
+    """Resident memory of a process and all its descendants, MiB, from /proc: their sum and
+    the largest one's."""
     parent: dict[int, int] = {}
     rss: dict[int, int] = {}
     for entry in os.listdir("/proc"):
@@ -177,7 +178,9 @@ def _tree_rss_mib(root: int) -> float:
             if ppid in tree and pid not in tree:
                 tree.add(pid)
                 grew = True
-    return sum(rss.get(pid, 0) for pid in tree) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    page_mib = os.sysconf("SC_PAGE_SIZE") / 2**20
+    sizes = [rss.get(pid, 0) for pid in tree]
+    return sum(sizes) * page_mib, max(sizes) * page_mib
 
 
 _compiled = False
@@ -209,11 +212,14 @@ def run_child(cmd: list[str], *, log: Path | None = None, limit_s: float | None 
         (user + system of the child, ``wait4``), ``peak_mib`` (the child's own peak RSS: its
         ``VmHWM`` read every few ms, which a forked child does not inherit from the
         benchmark's process as ``ru_maxrss`` does; or with ``tree_memory`` that of its
-        process tree sampled every 50 ms if larger), ``rc``, ``timed_out``.
+        process tree sampled every 50 ms if larger), with ``tree_memory`` also
+        ``largest_mib`` (the largest single process of the tree, sampled; at least the
+        child's own peak), ``rc``, ``timed_out``.
     """
     compile_package()
     out = open(log, "wb") if log else subprocess.DEVNULL
     tree_peak = 0.0
+    largest = 0.0
     own_peak = 0.0
     timed_out = False
     try:
@@ -233,7 +239,8 @@ def run_child(cmd: list[str], *, log: Path | None = None, limit_s: float | None 
                 pid, status, usage = os.wait4(proc.pid, 0)
                 break
             if tree_memory and now - last_sample >= 0.05:
-                tree_peak = max(tree_peak, _tree_rss_mib(proc.pid))
+                total, one = _tree_rss_mib(proc.pid)
+                tree_peak, largest = max(tree_peak, total), max(largest, one)
                 last_sample = now
             time.sleep(0.005)
         wall = time.perf_counter() - started
@@ -241,9 +248,12 @@ def run_child(cmd: list[str], *, log: Path | None = None, limit_s: float | None 
     finally:
         if log:
             out.close()
-    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
-            "peak_mib": max(own_peak or usage.ru_maxrss / 1024.0, tree_peak),
-            "rc": proc.returncode, "timed_out": timed_out}
+    own = own_peak or usage.ru_maxrss / 1024.0
+    run = {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
+           "peak_mib": max(own, tree_peak), "rc": proc.returncode, "timed_out": timed_out}
+    if tree_memory:
+        run["largest_mib"] = max(own, largest)
+    return run
 
 
 def _hwm_mib(pid: int) -> float:
