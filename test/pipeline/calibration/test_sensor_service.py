@@ -297,9 +297,10 @@ def test_the_estimate_line_and_the_sensor_status_say_the_timing_bias(case: str) 
     statement = timing_statement("dS depends on the other biases nearly (multiple "
                                  "correlation 0.996, -0.99 with dY): only their combination "
                                  "is determined")
-    timing: dict[str, Any] = {
+    cases: dict[str, dict[str, Any]] = {
         "estimated": {"time_offset_s": 0.0030142, "time_offset_sigma_s": 8.9e-5},
-        "held": {"time_offset_note": statement}, "not tried": {}}[case]
+        "held": {"time_offset_note": statement}, "not tried": {}}
+    timing = cases[case]
     nominal = Mounting(np.eye(3), np.array([0.1, 0.0, -0.05]))
     block = Extrinsic("base_link", "velodyne", nominal, nominal, **timing)
     said = {"estimated": "dt +3.01 +- 0.09 ms", "held": "dt held at 0", "not tried": ""}[case]

@@ -796,9 +796,11 @@ def test_the_mounting_and_its_timing_bias_in_the_calibration_table(tmp_path: Pat
     statement = timing_statement("dS depends on the other biases nearly (multiple "
                                  "correlation 0.996, -0.99 with dY): only their combination "
                                  "is determined")
-    timing = {"estimated": {"time_offset_s": 0.0030142, "time_offset_sigma_s": 8.9e-5,
-                            "time_offset_correlation": {"dY": -0.6}},
-              "held": {"time_offset_note": statement}, "not tried": {}}[case]
+    cases: dict[str, dict[str, Any]] = {
+        "estimated": {"time_offset_s": 0.0030142, "time_offset_sigma_s": 8.9e-5,
+                      "time_offset_correlation": {"dY": -0.6}},
+        "held": {"time_offset_note": statement}, "not tried": {}}
+    timing = cases[case]
     doc = yaml.safe_load(path.read_text())
     doc["lidarcal_calibration"]["extrinsic"] = Extrinsic("base_link", "velodyne", turned,
                                                          nominal, **timing).document()
