@@ -105,6 +105,14 @@ SCHEMA: dict[str, ParameterSpec] = {
         "the extrinsic block's time_offset_s and taken off the points' times by the "
         "correction; held at 0, said so, where the flight cannot see it (straight lines at "
         "one speed and a steady attitude)"),
+    "sensor_frame.timing_max_sigma_s": float_parameter(
+        0.001, "With sensor_frame.estimate_timing: the largest sigma of a usable timing bias "
+        "dt, s; a flight that determines it less well holds it at 0 and says so", 1e-6, 1.0),
+    "sensor_frame.timing_max_correlation": float_parameter(
+        0.95, "With sensor_frame.estimate_timing: the largest multiple correlation of a "
+        "usable timing bias dt with the mounting's biases (0.99 with dY on straight lines at "
+        "one speed, 0.6 with a multirotor's wobble); beyond it dt is held at 0, said so, and "
+        "the mounting calibrated again without it", 0.5, 1.0),
     "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
     "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
     "sensor.fov_deg": float_parameter(

@@ -211,8 +211,8 @@ class CalibratorNode(Node):
             MultiArrayDimension(label=ESTIMATE_COLUMN_LABEL, size=n_cols, stride=n_cols)]
         msg.data = estimate_matrix(result).ravel().tolist()
         self.estimate_pub.publish(msg)
-        cal, feed = self.calibration.mounting, self.calibration.sensor
-        extrinsic = None if cal is None else feed.extrinsic(cal)
+        # (the block as ~/save writes it: with the timing bias)
+        extrinsic = self.calibration.timed_extrinsic()
         self.yaml_pub.publish(String(data=calibration_yaml(result, extrinsic=extrinsic)))
         self._offer_mounting()
         self._publish_diagnostics()

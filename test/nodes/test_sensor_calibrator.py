@@ -12,6 +12,7 @@ the calibrated one goes back there. The refusals (no mounting, no orientation) a
 from __future__ import annotations
 
 import os
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -370,8 +371,9 @@ def test_nominal_from_live_tf_static_and_calibrated_back(ros_context: Any, paylo
 def test_live_timing_bias_is_the_offline_one(ros_context: Any, tmp_path: Path) -> None:
     """With ``sensor_frame.estimate_timing`` the calibrator saves the timing bias ``dt``
     (``time_offset_s``) and the mounting ``lidarcal calibrate`` writes of the same bag, within
-    0.1 sigma; the offline ``dt`` within 3 sigma of the truth. Measured (3 ms true, the
-    payload above): 3.10 +- 0.53 ms."""
+    0.1 sigma; the offline ``dt`` within 3 sigma of the truth; the estimate's line on
+    /diagnostics (and the sensor status, the published YAML) says it. Measured (3 ms true,
+    the payload above): 3.10 +- 0.53 ms."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -410,6 +412,12 @@ def test_live_timing_bias_is_the_offline_one(ros_context: Any, tmp_path: Path) -
             assert solve.success, solve.message
             save = probe.call("/timing_calibrator/save")
             assert save.success, save.message
+            # the estimate's line and the sensor status say dt; the published YAML holds it
+            _wait(lambda: all("dt " in probe.diagnostics.get(name, (0, ""))[1] for name in
+                              ("lidarcal: estimate", "lidarcal: sensor frame"))
+                  and bool(probe.yaml) and "time_offset_sigma_s: null" not in probe.yaml[-1],
+                  10, "dt on /diagnostics and the YAML")
+            line = probe.diagnostics["lidarcal: estimate"][1]
     finally:
         cal.close()
         cal.destroy_node()
@@ -424,4 +432,6 @@ def test_live_timing_bias_is_the_offline_one(ros_context: Any, tmp_path: Path) -
     assert abs(live.time_offset_s - offline.time_offset_s) <= 0.1 * sigma
     assert live.time_offset_sigma_s is not None
     assert abs(live.time_offset_sigma_s - sigma) <= 0.1 * sigma
-
+    said = re.search(r", dt ([+-][0-9.]+) \+- ([0-9.]+) ms$", line)
+    assert said is not None, line
+    assert abs(float(said[1]) - live.time_offset_s * 1e3) <= 0.01 + 0.1 * sigma * 1e3, line

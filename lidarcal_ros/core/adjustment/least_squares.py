@@ -14,7 +14,13 @@ from functools import cached_property
 
 import numpy as np
 
-from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_INDEX, PARAMETER_NAMES, as_vector
+from lidarcal_ros.core.params import (
+    N_PARAMETERS,
+    PARAMETER_INDEX,
+    PARAMETER_NAMES,
+    as_vector,
+    format_value,
+)
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryRows
 from lidarcal_ros.errors import CalibrationError
 
@@ -428,11 +434,17 @@ def _estimate(neq: NormalEquations, scaled: _ScaledSystem, base: np.ndarray,
 
 def _too_weak(idx: np.ndarray, sigma: np.ndarray,
               limits: ObservabilityLimits) -> list[tuple[int, str]]:
-    """(d) The parameters determined too weakly to be of use, and why."""
-    return [(int(idx[j]), "the data flown determines it too weakly to be useful "
-                          f"({_weak_hint(PARAMETER_NAMES[idx[j]])})")
-            for j in range(len(idx))
-            if sigma[j] > limits.max_sigma.get(PARAMETER_NAMES[idx[j]], np.inf)]
+    """(d) The parameters determined too weakly to be of use, and why (their sigma against
+    its limit, as people read them, and what would determine them)."""
+    out = []
+    for j in range(len(idx)):
+        name = PARAMETER_NAMES[idx[j]]
+        limit = limits.max_sigma.get(name, np.inf)
+        if sigma[j] > limit:
+            out.append((int(idx[j]), "the data flown determines it too weakly to be useful "
+                        f"(sigma {format_value(name, sigma[j], sign=False)} above "
+                        f"{format_value(name, limit, sign=False)}; {_weak_hint(name)})"))
+    return out
 
 
 def _zero_at(vector: np.ndarray, idx: np.ndarray) -> np.ndarray:

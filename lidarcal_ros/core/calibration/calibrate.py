@@ -107,6 +107,11 @@ class CalibrationSettings:
     #: each point's rate ``v + w x (X - X_o)`` on the mission's trajectory (the sensor's
     #: origin's).
     timing: bool = False
+    #: With ``timing``: the largest multiple correlation of a usable ``dt`` with the other
+    #: biases estimated (``sensor_frame.timing_max_correlation``; a mounting's calibration
+    #: holds ``dt`` at 0 beyond it: :func:`~lidarcal_ros.core.calibration.extrinsic.
+    #: timing_unseen`, whose module gives the default and why).
+    timing_max_correlation: float = 0.95
     #: Largest point-to-patch distance matched at the first iteration, m.
     max_normal_distance_m: float = 2.0
     #: Smallest matching threshold later iterations shrink to, m.

@@ -56,13 +56,15 @@ logger = logging.getLogger(__name__)
 #: general scanner.
 MOUNTING_SOLVE_FOR = ("dX", "dY", "domega", "dphi", "dkappa", "dr")
 
-#: The largest sigma of a usable timing bias ``dt``, s: a flight that determines it less well
-#: (straight lines at one speed: ``dt`` then moves every line along its track as ``dY`` does)
-#: holds it at 0 and says so (:func:`mounting_settings` with ``timing``).
+#: The default largest sigma of a usable timing bias ``dt``, s
+#: (``sensor_frame.timing_max_sigma_s``): a flight that determines it less well (straight
+#: lines at one speed: ``dt`` then moves every line along its track as ``dY`` does) holds it
+#: at 0 and says so (:func:`mounting_settings` with ``timing``).
 TIMING_MAX_SIGMA_S = 0.001
-#: The largest multiple correlation of a usable timing bias with the mounting's biases
-#: (:func:`timing_unseen`); measured: 0.99 (with ``dY``) on straight lines at one speed and
-#: no wobble, where ``dY``'s sigma grew seven-fold; 0.6 with a multirotor's wobble.
+#: The default largest multiple correlation of a usable timing bias with the mounting's biases
+#: (``sensor_frame.timing_max_correlation``, ``CalibrationSettings.timing_max_correlation``;
+#: :func:`timing_unseen`); measured: 0.99 (with ``dY``) on straight lines at one speed and no
+#: wobble, where ``dY``'s sigma grew seven-fold; 0.6 with a multirotor's wobble.
 TIMING_MAX_CORRELATION = 0.95
 #: Where a calibration with a timing bias says what ``dt`` is (docs/method.md section 12): a
 #: general scanner has no mirror scale, and ``dS``'s place holds ``dt``.
@@ -79,22 +81,25 @@ MAX_PASSES = 3
 REPASS_MOVE_M = 0.05
 
 
-def mounting_settings(**options: object) -> CalibrationSettings:
+def mounting_settings(*, timing_max_sigma_s: float = TIMING_MAX_SIGMA_S,
+                      **options: object) -> CalibrationSettings:
     """The calibration settings of a mounting (:func:`calibrate_mounting`): ``options`` over
     :data:`MOUNTING_SOLVE_FOR` and no largest sigma of a usable bias (an airborne
     calibration holds a bias at 0 where its sigma says it is of no use; a mounting's bias
     held at 0 is the nominal's error, tenths of a degree: worse than any estimate). With
     ``timing`` the timing bias ``dt`` is estimated too (in :data:`TIMING_SLOT`'s place),
-    held at 0 where its sigma exceeds :data:`TIMING_MAX_SIGMA_S`."""
+    held at 0 where its sigma exceeds ``timing_max_sigma_s`` (s) or its multiple correlation
+    with the mounting's biases ``timing_max_correlation`` (:func:`timing_unseen`)."""
     base: dict[str, object] = {"solve_for": MOUNTING_SOLVE_FOR,
-                               "limits": ObservabilityLimits(max_sigma={})}
+                               "limits": ObservabilityLimits(max_sigma={}),
+                               "timing_max_correlation": TIMING_MAX_CORRELATION}
     merged = {**base, **options}
     if merged.get("timing"):
         merged["solve_for"] = (*tuple(merged["solve_for"]), TIMING_SLOT)  # type: ignore[arg-type]
         limits = merged["limits"]
         assert isinstance(limits, ObservabilityLimits)
         merged["limits"] = replace(limits, max_sigma={**limits.max_sigma,
-                                                      TIMING_SLOT: TIMING_MAX_SIGMA_S})
+                                                      TIMING_SLOT: timing_max_sigma_s})
         merged["scanner"], merged["model"] = ScannerKind.GENERAL, PositioningModel.RIGOROUS
     return CalibrationSettings(**merged)  # type: ignore[arg-type]
 
@@ -255,7 +260,7 @@ def timing_unseen(sol: Solution, settings: CalibrationSettings) -> str:
     """Why a calibration with the timing bias (``settings.timing``) is to be made again
     without it, or "": ``dt`` was held (not estimable) and took another bias with it, or it
     was estimated but depends on the mounting's biases nearly (its multiple correlation with
-    them above :data:`TIMING_MAX_CORRELATION`: straight lines at one speed and a steady
+    them above ``settings.timing_max_correlation``: straight lines at one speed and a steady
     attitude, where ``dt`` moves each line along its track as ``dY`` does)."""
     if not settings.timing:
         return ""
@@ -267,14 +272,14 @@ def timing_unseen(sol: Solution, settings: CalibrationSettings) -> str:
     j = sol.estimated.index(TIMING_SLOT)
     inverse = np.linalg.inv(sol.correlation)
     multiple = math.sqrt(max(0.0, 1.0 - 1.0 / float(inverse[j, j])))
-    if multiple <= TIMING_MAX_CORRELATION:
+    if multiple <= settings.timing_max_correlation:
         return ""
     r = sol.correlation[j].copy()
     r[j] = 0.0
     k = int(np.argmax(np.abs(r)))
     return (f"{TIMING_SLOT} depends on the other biases nearly (multiple correlation "
-            f"{multiple:.3f}, {float(r[k]):+.2f} with {sol.estimated[k]}): only their "
-            "combination is determined")
+            f"{multiple:.3f} above {settings.timing_max_correlation:g}, {float(r[k]):+.2f} "
+            f"with {sol.estimated[k]}): only their combination is determined")
 
 
 def without_timing(settings: CalibrationSettings) -> CalibrationSettings:
@@ -441,13 +446,31 @@ def _take_timing(result: CalibrationResult) -> dict[str, Any]:
 
 def timing_statement(reason: str) -> str:
     """What a calibration says where the timing bias was asked for and the flight cannot see
-    it (``reason``: the adjustment's, naming :data:`TIMING_SLOT`)."""
-    why = re.sub(r"\(dS needs [^)]*\)", f"(its sigma above {TIMING_MAX_SIGMA_S * 1e3:g} ms)",
-                 reason)
+    it (``reason``: the adjustment's, naming :data:`TIMING_SLOT`; where its sigma exceeded
+    the limit, the two in ms)."""
+    why = re.sub(r"\(sigma (\S+) above (\S+); dS needs [^)]*\)",
+                 lambda m: f"(its sigma {float(m[1]) * 1e3:.3g} ms above "
+                           f"{float(m[2]) * 1e3:.3g} ms)", reason)
     why = re.sub(rf"\b{TIMING_SLOT}\b", "dt", why)
     return (f"the timing bias dt cannot be seen on this flight ({why}): held at 0; it shows "
             "where the speed or the attitude's rate differs between overlapping strips "
             "(turns, lines flown at other speeds)")
+
+
+def timing_text(offset_s: float, sigma_s: float | None, note: str, *,
+                plus_minus: str = "+-") -> str:
+    """The timing bias ``dt`` (``offset_s`` and its sigma ``sigma_s``, s; ``note``: the
+    statement of one held at 0) in a few words, ms: ``+3.01 +- 0.09 ms`` where estimated
+    (as many decimals as the sigma's first digit needs, 2 at least), ``held at 0`` where
+    asked for and held, ``+1.00 ms (not estimated)`` where given another way, '' where not
+    asked for (0, no sigma, no statement)."""
+    if sigma_s is not None and math.isfinite(sigma_s):
+        ms = sigma_s * 1e3
+        digits = min(6, max(2, -math.floor(math.log10(ms)))) if ms > 0 else 2
+        return f"{offset_s * 1e3:+.{digits}f} {plus_minus} {ms:.{digits}f} ms"
+    if note:
+        return "held at 0"
+    return f"{offset_s * 1e3:+.2f} ms (not estimated)" if offset_s else ""
 
 
 def _lever_arm_by_priors(result: CalibrationResult) -> str:
@@ -495,6 +518,7 @@ __all__ = [
     "sensor_points",
     "sensor_trajectory",
     "timing_statement",
+    "timing_text",
     "timing_unseen",
     "without_timing",
 ]

@@ -139,7 +139,8 @@ def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None, *,
     :data:`~lidarcal_ros.core.calibration.extrinsic.MOUNTING_SOLVE_FOR`; ``dS`` is no
     parameter of such clouds), a general scanner, the rigorous model and no largest sigma of
     a usable bias (:func:`~lidarcal_ros.core.calibration.extrinsic.mounting_settings`), the
-    timing bias with ``sensor_frame.estimate_timing``;
+    timing bias with ``sensor_frame.estimate_timing`` (its limits
+    ``sensor_frame.timing_max_sigma_s`` and ``timing_max_correlation``);
     ``calibration.trajectory.model: auto`` is ``none`` here (no strip trajectory errors)."""
     names = MOUNTING_SOLVE_FOR if solve_for is None else \
         tuple(n for n in PARAMETER_NAMES if n in solve_for and n != TIMING_SLOT)
@@ -149,8 +150,10 @@ def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None, *,
         configured = config.calibration_settings()
         base = mounting_settings(**{
             f.name: getattr(configured, f.name) for f in dataclasses.fields(configured)
-            if f.name not in ("solve_for", "limits", "timing")}, solve_for=names,
-            timing=bool(config["sensor_frame.estimate_timing"]))
+            if f.name not in ("solve_for", "limits", "timing", "timing_max_correlation")},
+            solve_for=names, timing=bool(config["sensor_frame.estimate_timing"]),
+            timing_max_sigma_s=float(config["sensor_frame.timing_max_sigma_s"]),
+            timing_max_correlation=float(config["sensor_frame.timing_max_correlation"]))
         base = replace(base, limits=replace(base.limits,
                                             max_correlation=configured.limits.max_correlation))
         if base.trajectory.model is TrajectoryModel.AUTO:

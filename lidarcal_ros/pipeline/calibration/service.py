@@ -31,7 +31,7 @@ from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.errors import LidarcalError
-from lidarcal_ros.io.calibration_file import urdf_path
+from lidarcal_ros.io.calibration_file import Extrinsic, urdf_path
 from lidarcal_ros.io.cloud.columns import CloudColumns
 from lidarcal_ros.io.cloud.messages import ERROR, OK, WARN, StatusSpec, qa_statuses
 from lidarcal_ros.pipeline.calibration.checkpoint import read_checkpoint
@@ -40,6 +40,7 @@ from lidarcal_ros.pipeline.calibration.sensor_frame import (
     mounting_solve_for,
     parse_mounting,
     sensor_calibration_settings,
+    with_timing,
     write_mounting_calibration,
 )
 from lidarcal_ros.pipeline.calibration.sensor_stream import SensorFrameFeed
@@ -49,6 +50,7 @@ from lidarcal_ros.pipeline.calibration.statuses import (
     operating_statuses,
     refinement_status,
     trajectory_status,
+    with_timing_bias,
 )
 from lidarcal_ros.pipeline.calibration.stream_inputs import default_point_budget
 from lidarcal_ros.pipeline.calibration.streaming import StreamingCalibration
@@ -672,6 +674,10 @@ class CalibrationService:
                 result = self.mounting.result  # (a later pass's, where one was made)
         statuses = qa_statuses(result, warn_m=cfg["qa.rmsdz_warn_m"],
                                error_m=cfg["qa.max_difference_m"], solve_for=solve_for)
+        if self.sensor.active:  # (the estimate's line: the mounting's timing bias too)
+            timed = self.timed_extrinsic()
+            statuses = [with_timing_bias(s, timed) if s.name == "lidarcal: estimate" else s
+                        for s in statuses]
         statuses.append(trajectory_status(result, cfg.calibration_settings().trajectory))
         with self._qa_lock:
             self._qa = statuses
@@ -699,6 +705,12 @@ class CalibrationService:
         return further_passes(points, t, self.sensor.base_trajectory, cal,
                               settings=self._mounting_settings(self.config),
                               control=self._stream.control)
+
+    def timed_extrinsic(self) -> Extrinsic | None:
+        """The calibration file's ``extrinsic`` block of the latest mounting, with its timing
+        bias (None: no mounting)."""
+        cal = self.mounting
+        return None if cal is None else with_timing(self.sensor.extrinsic(cal), cal)
 
     def _checkpoint(self, path: str) -> None:
         try:
@@ -729,7 +741,9 @@ class CalibrationService:
 
     def sensor_status(self) -> StatusSpec:
         """Clouds in the sensor's frame: ERROR with the refusal where they cannot go on
-        (no mounting, no orientation), else the mounting's source and the lines closed."""
+        (no mounting, no orientation), else the mounting's source, the lines closed and the
+        latest mounting's timing bias where it was asked for (:func:`~lidarcal_ros.pipeline.
+        calibration.statuses.with_timing_bias`)."""
         feed = self.sensor
         values = {"frame": feed.frame_id or "", "base_frame": feed.base_frame,
                   "mounting_source": feed.mounting_source, "lines": str(len(feed.lines)),
@@ -740,10 +754,10 @@ class CalibrationService:
             return StatusSpec(ERROR, "lidarcal: sensor frame", feed.refusal, values)
         if feed.base_note:
             return StatusSpec(WARN, "lidarcal: sensor frame", feed.base_note, values)
-        return StatusSpec(OK, "lidarcal: sensor frame",
-                          f"clouds in '{feed.frame_id}', mounting {feed.base_frame} -> "
-                          f"{feed.frame_id} from {feed.mounting_source}; {len(feed.lines)} "
-                          "lines closed", values)
+        return with_timing_bias(StatusSpec(
+            OK, "lidarcal: sensor frame", f"clouds in '{feed.frame_id}', mounting "
+            f"{feed.base_frame} -> {feed.frame_id} from {feed.mounting_source}; "
+            f"{len(feed.lines)} lines closed", values), self.timed_extrinsic())
 
     def operating_statuses(self) -> list[StatusSpec]:
         """Memory, input and state statuses (the QA statuses come with each estimate), and

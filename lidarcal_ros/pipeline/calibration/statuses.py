@@ -10,13 +10,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import ParameterState
+from lidarcal_ros.core.calibration.extrinsic import timing_text
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.trajectory.strip_errors import StripError, TrajectoryErrorSettings
+from lidarcal_ros.io.calibration_file import Extrinsic
 from lidarcal_ros.io.cloud.messages import ERROR, OK, WARN, StatusSpec
 from lidarcal_ros.pipeline.calibration.streaming import StreamingCalibration
 
 __all__ = ["TRAJECTORY_ERROR_FACTOR", "TRAJECTORY_WARN_FACTOR", "InputCounts", "ServiceCounts",
-           "operating_statuses", "refinement_status", "trajectory_status"]
+           "operating_statuses", "refinement_status", "timing_status_text", "trajectory_status",
+           "with_timing_bias"]
 
 #: A strip's estimated trajectory offset (horizontal or vertical) or drift rate beyond this
 #: many times its configured a-priori sigma is a WARN: a 3-sigma event of a navigation solution
@@ -60,6 +63,34 @@ def refinement_status(stream: StreamingCalibration, status: StatusSpec) -> Statu
         f"converging: iteration {stream.refinement_iteration + 1} on the strips held (latest "
         f"estimate: {status.message})"), values={
             **status.values, "converged": "False", "refining": "true"})
+
+
+def timing_status_text(extrinsic: Extrinsic | None) -> str:
+    """The timing bias ``dt`` of a mounting's calibration (``extrinsic``: its block, with the
+    timing bias) as the estimate's line says it: ``dt +3.01 +- 0.09 ms`` where estimated,
+    ``dt held at 0`` where asked for and the flight could not see it, '' where not asked for
+    (or no mounting)."""
+    if extrinsic is None or (extrinsic.time_offset_sigma_s is None
+                             and not extrinsic.time_offset_note):
+        return ""
+    return "dt " + timing_text(extrinsic.time_offset_s, extrinsic.time_offset_sigma_s,
+                               extrinsic.time_offset_note)
+
+
+def with_timing_bias(status: StatusSpec, extrinsic: Extrinsic | None) -> StatusSpec:
+    """``status`` (``lidarcal: estimate`` or ``lidarcal: sensor frame``) with the timing bias
+    of ``extrinsic`` (:func:`timing_status_text`) after its message and in its values
+    (``dt``; ``time_offset_s`` and ``time_offset_sigma_s``, s, '' where not estimated;
+    ``time_offset_not_estimable``); unchanged where the calibration did not try."""
+    text = timing_status_text(extrinsic)
+    if not text or extrinsic is None:
+        return status
+    sep = "; " if status.name == "lidarcal: sensor frame" else ", "
+    sigma = extrinsic.time_offset_sigma_s
+    return replace(status, message=f"{status.message}{sep}{text}", values={
+        **status.values, "dt": text, "time_offset_s": repr(float(extrinsic.time_offset_s)),
+        "time_offset_sigma_s": "" if sigma is None else repr(float(sigma)),
+        "time_offset_not_estimable": extrinsic.time_offset_note})
 
 
 def operating_statuses(stream: StreamingCalibration, received: InputCounts,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,13 +11,19 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import ParameterState
+from lidarcal_ros.core.calibration.extrinsic import timing_text
 from lidarcal_ros.core.params import PARAMETER_NAMES
 from lidarcal_ros.errors import ConfigError
-from lidarcal_ros.io.calibration_file import ROOT_KEY, CalibrationRecord, read_calibration
+from lidarcal_ros.io.calibration_file import (
+    ROOT_KEY,
+    CalibrationRecord,
+    Extrinsic,
+    read_calibration,
+)
 from lidarcal_ros.io.report.content import BiasEntry
 from lidarcal_ros.io.yaml_file import read_yaml
 
-__all__ = ["ReportCalibration", "read_report_calibration"]
+__all__ = ["ReportCalibration", "extrinsic_facts", "read_report_calibration"]
 
 
 @dataclass
@@ -34,7 +41,8 @@ class ReportCalibration:
     correlation : (m, m) float64
         Correlations of the estimated parameters (empty when the file has none).
     facts : list of (str, str)
-        sigma0, redundancy, iterations, convergence, correspondences, as in the file.
+        sigma0, redundancy, iterations, convergence, the mounting and timing bias of clouds
+        in the sensor's frame (:func:`extrinsic_facts`), correspondences, as in the file.
     coverage : dict
         ``(strip, strip) -> overlap fraction`` of the pairs the file lists.
     warnings : list of str
@@ -94,6 +102,8 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
         facts.append(("converged", "yes" if body["converged"] else "NO"))
     if body.get("model_detail"):
         facts.append(("point-positioning model", str(body["model_detail"])))
+    if record.extrinsic is not None:
+        facts.extend(extrinsic_facts(record.extrinsic))
     corr = body.get("correspondences")
     if isinstance(corr, Mapping):
         counts = [corr.get(k) if isinstance(corr.get(k), int) else "?"  # (not .nan, 1e400)
@@ -119,6 +129,29 @@ def read_report_calibration(path: str | Path) -> ReportCalibration:
     choice = body.get("trajectory_model")
     return ReportCalibration(path, record, biases, names, matrix, facts, coverage, warnings,
                              str(choice) if choice is not None else "")
+
+
+def extrinsic_facts(extrinsic: Extrinsic) -> list[tuple[str, str]]:
+    """The mounting of clouds in the sensor's frame as the report's facts: the calibrated
+    transform against the nominal (mm, arcsec) and the timing bias ``dt`` (ms, with its
+    sigma where estimated; held at 0 with the calibration's statement; no line where the
+    calibration did not try)."""
+    m, nominal = extrinsic.mounting, extrinsic.nominal
+    shift_mm = float(np.linalg.norm(m.translation - nominal.translation)) * 1e3
+    cos = (float(np.trace(nominal.rotation.T @ m.rotation)) - 1.0) / 2.0
+    turn = math.degrees(math.acos(min(1.0, max(-1.0, cos)))) * 3600.0
+    out = [("mounting", f"{extrinsic.parent} -> {extrinsic.child}: translation "
+            + ", ".join(f"{v:+.4f}" for v in m.translation) + " m, rotation (qx, qy, qz, qw) "
+            + ", ".join(f"{v:+.6f}" for v in m.quaternion)
+            + f"; {shift_mm:.1f} mm and {turn:.1f} arcsec from the nominal")]
+    # (a statement says it was held at 0, and why)
+    text = extrinsic.time_offset_note or timing_text(
+        extrinsic.time_offset_s, extrinsic.time_offset_sigma_s, "", plus_minus="\u00b1")
+    if extrinsic.time_offset_sigma_s is not None and not extrinsic.time_offset_note:
+        text += ", estimated with the mounting (the correction takes it off each point's time)"
+    if text:
+        out.append(("timing bias dt", text))
+    return out
 
 
 def _correlation_matrix(path: Path, doc: Any) -> tuple[list[str], np.ndarray]:

@@ -17,8 +17,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_cli import one_line_error, run
+from helpers_missions import write_params_file
 from scipy.spatial.transform import Rotation
 
+from lidarcal_ros.core.calibration.extrinsic import (
+    TIMING_MAX_CORRELATION,
+    TIMING_MAX_SIGMA_S,
+    TIMING_SLOT,
+)
 from lidarcal_ros.core.config import FlightConfig
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.params import PARAMETER_INDEX
@@ -153,3 +160,40 @@ def test_the_flight_configurations_options_reach_a_mountings_calibration() -> No
     assert default.solve_for == bare.solve_for and dict(default.limits.max_sigma) == {}
     # auto: none for a mounting (strip errors would take up the lever arm)
     assert default.trajectory.model.value == "none" == bare.trajectory.model.value
+
+
+def test_the_timing_limits_reach_a_mountings_calibration() -> None:
+    """``sensor_frame.timing_max_sigma_s`` and ``timing_max_correlation`` become the
+    settings' limits of ``dt`` (their effect on a payload: test/core/calibration/
+    test_timing_bias.py); their defaults are the core's constants; without
+    ``estimate_timing`` no limit of dt is set."""
+    config = FlightConfig().with_values(sensor_frame__estimate_timing=True,
+                                        sensor_frame__timing_max_sigma_s=2e-4,
+                                        sensor_frame__timing_max_correlation=0.8)
+    s = sensor_calibration_settings(config=config)
+    assert s.timing and TIMING_SLOT in s.solve_for
+    assert dict(s.limits.max_sigma) == {TIMING_SLOT: 2e-4}
+    assert s.timing_max_correlation == 0.8
+    default = sensor_calibration_settings(config=FlightConfig().with_values(
+        sensor_frame__estimate_timing=True))
+    assert dict(default.limits.max_sigma) == {TIMING_SLOT: TIMING_MAX_SIGMA_S}
+    assert default.timing_max_correlation == TIMING_MAX_CORRELATION
+    off = sensor_calibration_settings(config=FlightConfig())
+    assert not off.timing and dict(off.limits.max_sigma) == {}
+
+
+@pytest.mark.parametrize(("name", "value", "words"), [
+    ("sensor_frame.timing_max_correlation", 1.5,
+     "sensor_frame.timing_max_correlation: 1.5 is above the maximum 1.0"),
+    ("sensor_frame.timing_max_sigma_s", 0.0,
+     "sensor_frame.timing_max_sigma_s: 0.0 is below the minimum 1e-06"),
+])
+def test_a_timing_limit_out_of_range_is_refused_in_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str, value: float,
+        words: str) -> None:
+    params = write_params_file(tmp_path / "config.yaml", {name: value,
+                                                          "sensor_frame.estimate_timing": True})
+    rc, _, err = run(capsys, "calibrate", tmp_path / "no_bag", "-o", tmp_path / "cal.yaml",
+                     "--config", params)
+    assert words in one_line_error(rc, err)
+    assert not (tmp_path / "cal.yaml").exists()

@@ -24,8 +24,10 @@ from lidarcal_ros.core.calibration.extrinsic import (
     MOUNTING_SOLVE_FOR,
     MountingCalibration,
     calibrate_mounting,
+    timing_statement,
 )
 from lidarcal_ros.core.config import SCHEMA, FlightConfig
+from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints
 from lidarcal_ros.core.params import PARAMETER_INDEX
 from lidarcal_ros.core.simulation.uav_payload import (
@@ -34,7 +36,8 @@ from lidarcal_ros.core.simulation.uav_payload import (
     UavPayloadSpec,
     simulate_uav_payload,
 )
-from lidarcal_ros.io.calibration_file import read_calibration
+from lidarcal_ros.io.calibration_file import Extrinsic, read_calibration
+from lidarcal_ros.io.cloud.messages import OK, StatusSpec, qa_summary
 from lidarcal_ros.pipeline.calibration.sensor_frame import (
     log_solve_for_note,
     mounting_solve_for,
@@ -42,6 +45,7 @@ from lidarcal_ros.pipeline.calibration.sensor_frame import (
 )
 from lidarcal_ros.pipeline.calibration.sensor_stream import HELD_S, SensorFrameFeed
 from lidarcal_ros.pipeline.calibration.service import CalibrationService, CalibratorOptions
+from lidarcal_ros.pipeline.calibration.statuses import timing_status_text, with_timing_bias
 from lidarcal_ros.pipeline.calibration.streaming import StreamingCalibration
 
 
@@ -312,3 +316,42 @@ def test_a_long_line_holds_no_more_than_the_bound() -> None:
     for s in whole:
         np.testing.assert_array_equal(held[s.strip_id].t, s.t)
         np.testing.assert_allclose(held[s.strip_id].xyz, s.xyz, atol=1e-9)
+
+
+@pytest.mark.parametrize("case", ["estimated", "held", "not tried"])
+def test_the_estimate_line_and_the_sensor_status_say_the_timing_bias(case: str) -> None:
+    """The estimate's one-line status (logged by the calibrator, ``lidarcal: estimate``) and
+    ``lidarcal: sensor frame`` end with dt in ms where it was estimated, 'dt held at 0' (the
+    statement in the values) where asked for and held, nothing where not asked for."""
+    statement = timing_statement("dS depends on the other biases nearly (multiple "
+                                 "correlation 0.996, -0.99 with dY): only their combination "
+                                 "is determined")
+    cases: dict[str, dict[str, Any]] = {
+        "estimated": {"time_offset_s": 0.0030142, "time_offset_sigma_s": 8.9e-5},
+        "held": {"time_offset_note": statement}, "not tried": {}}
+    timing = cases[case]
+    nominal = Mounting(np.eye(3), np.array([0.1, 0.0, -0.05]))
+    block = Extrinsic("base_link", "velodyne", nominal, nominal, **timing)
+    said = {"estimated": "dt +3.01 +- 0.09 ms", "held": "dt held at 0", "not tried": ""}[case]
+    assert timing_status_text(block) == said
+    assert timing_status_text(None) == ""
+    line = "dX +1.20 +- 0.10 cm, dphi -90.98 +- 0.04 arcsec"
+    estimate = with_timing_bias(StatusSpec(OK, "lidarcal: estimate", line), block)
+    sensor = with_timing_bias(StatusSpec(OK, "lidarcal: sensor frame", "3 lines closed",
+                                         {"lines": "3"}), block)
+    if case == "not tried":
+        assert (estimate.message, estimate.values) == (line, {})
+        assert (sensor.message, sensor.values) == ("3 lines closed", {"lines": "3"})
+        return
+    assert estimate.message == f"{line}, {said}"
+    assert qa_summary([estimate]) == f"{line}, {said}"
+    assert sensor.message == f"3 lines closed; {said}" and sensor.values["lines"] == "3"
+    assert sensor.values["dt"] == estimate.values["dt"] == said
+    if case == "estimated":
+        assert float(estimate.values["time_offset_s"]) == 0.0030142
+        assert float(estimate.values["time_offset_sigma_s"]) == 8.9e-5
+        assert estimate.values["time_offset_not_estimable"] == ""
+    else:
+        assert float(estimate.values["time_offset_s"]) == 0.0
+        assert estimate.values["time_offset_sigma_s"] == ""
+        assert estimate.values["time_offset_not_estimable"] == statement

@@ -771,3 +771,57 @@ def test_a_file_with_an_empty_correlation_is_read(tmp_path: Path) -> None:
     path = write_calibration_yaml(tmp_path / "cal.yaml", dict.fromkeys(PARAMETER_NAMES, 0.0))
     cal = read_report_calibration(path)
     assert cal.correlation_names == [] and cal.correlation.shape == (0, 0)
+
+
+@pytest.mark.parametrize("case", ["estimated", "held", "not tried"])
+def test_the_mounting_and_its_timing_bias_in_the_calibration_table(tmp_path: Path,
+                                                                    case: str) -> None:
+    """A calibration file with the ``extrinsic`` block of clouds in the sensor's frame: the
+    written page's calibration table shows the mounting against the nominal and the timing
+    bias dt in ms with its sigma where estimated, held at 0 with the calibration's statement
+    where the flight could not see it, no line where the calibration did not try."""
+    from helpers_missions import write_calibration_yaml
+
+    from lidarcal_ros.core.calibration.extrinsic import timing_statement
+    from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
+    from lidarcal_ros.core.params import PARAMETER_NAMES
+    from lidarcal_ros.io.calibration_file import Extrinsic
+    from lidarcal_ros.io.report.page import write_html_report
+
+    path = write_calibration_yaml(tmp_path / "cal.yaml", dict.fromkeys(PARAMETER_NAMES, 0.0))
+    nominal = Mounting(np.eye(3), np.array([0.10, 0.0, -0.05]))
+    turned = Mounting(np.array([[1.0, 0.0, 0.0], [0.0, math.cos(1e-3), -math.sin(1e-3)],
+                                [0.0, math.sin(1e-3), math.cos(1e-3)]]),
+                      np.array([0.103, 0.004, -0.05]))  # 5.0 mm and 206.3 arcsec
+    statement = timing_statement("dS depends on the other biases nearly (multiple "
+                                 "correlation 0.996, -0.99 with dY): only their combination "
+                                 "is determined")
+    cases: dict[str, dict[str, Any]] = {
+        "estimated": {"time_offset_s": 0.0030142, "time_offset_sigma_s": 8.9e-5,
+                      "time_offset_correlation": {"dY": -0.6}},
+        "held": {"time_offset_note": statement}, "not tried": {}}
+    timing = cases[case]
+    doc = yaml.safe_load(path.read_text())
+    doc["lidarcal_calibration"]["extrinsic"] = Extrinsic("base_link", "velodyne", turned,
+                                                         nominal, **timing).document()
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    cal = read_report_calibration(path)
+    content = ReportContent(title="t", facts=[], biases=cal.biases,
+                            correlation_names=cal.correlation_names,
+                            correlation=cal.correlation, pairs=[], control=[],
+                            radiometry=None, calibration_facts=cal.facts)
+    page = _parse(write_html_report(tmp_path / "report.html", content).read_text("utf-8"))
+    rows = page.table("calibration", "")
+    assert re.fullmatch(r"base_link -> velodyne: translation \+0\.1030, \+0\.0040, -0\.0500 m, "
+                        r"rotation \(qx, qy, qz, qw\) \+0\.000500, [+-]0\.000000, "
+                        r"[+-]0\.000000, \+1\.000000; 5\.0 mm and 206\.3 arcsec from the "
+                        r"nominal", rows["mounting"][1]), rows["mounting"]
+    if case == "not tried":
+        assert "timing bias dt" not in rows and "dt" not in page.text["calibration"]
+        return
+    dt = rows["timing bias dt"][1]
+    if case == "estimated":
+        assert dt.startswith("+3.01 \u00b1 0.09 ms, estimated with the mounting")
+    else:
+        assert dt == statement and ": held at 0; " in dt
+        assert "multiple correlation 0.996, -0.99 with dY" in dt
