@@ -719,10 +719,10 @@ class Calibrator:
         s = self.settings
         corrected = self.matcher.corrected_all(delta)
         with self.clock("QA"):
-            for ps in self.strips:
-                if not ps.dropped:
-                    ps.laser_qa = laser_vector_qa(ps.geometry, fov_deg=s.fov_deg,
-                                                  speed_mps=ps.speed_mps)
+            for k, ps in enumerate(self.strips):
+                if not ps.dropped:  # (one strip's geometry at a time)
+                    ps.laser_qa = laser_vector_qa(self.matcher.whole_geometry(k),
+                                                  fov_deg=s.fov_deg, speed_mps=ps.speed_mps)
 
         def after_of(pair: StripPair) -> np.ndarray:
             if pair.frozen is not None and pair.frozen_delta is not None:

@@ -16,6 +16,7 @@ from lidarcal_ros.core.adjustment.least_squares import Observations
 from lidarcal_ros.core.calibration.bounded import StripExtent, control_cells
 from lidarcal_ros.core.calibration.control_surface import ControlSurface, fit_control_planes
 from lidarcal_ros.core.calibration.pairs import (
+    Correction,
     FootprintGrid,
     PreparedStrip,
     StripPair,
@@ -26,7 +27,12 @@ from lidarcal_ros.core.calibration.pairs import (
 )
 from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import PatchMatches, Tin, match_to_tin
-from lidarcal_ros.core.georeferencing.bias_model import add_geometry_normal_rows, exact_correction
+from lidarcal_ros.core.georeferencing.bias_model import (
+    add_geometry_normal_rows,
+    corrected_geometry,
+    exact_correction,
+    exact_shift,
+)
 from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import (
     LaserVectorQA,
@@ -203,7 +209,7 @@ class PairMatcher:
                 ps.tin = None
                 empty = np.empty((0, 3))
                 ps.strip = Strip(ps.strip_id, empty, np.empty(0))
-                ps.geometry0 = ps.geometry = ps.geometry0.take(np.zeros(0, dtype=np.int64))
+                ps.geometry0 = ps.geometry0.take(np.zeros(0, dtype=np.int64))
                 ps.corrected = None
                 ps.point_cells = np.empty(0, dtype=np.int64)
                 ps.priority = np.empty(0)
@@ -231,31 +237,72 @@ class PairMatcher:
         ``delivered`` by ``delta`` alone (the strips as delivered at ``delta`` zero: what a
         pair's sample points are chosen on, whatever the errors estimated by then).
 
-        Also re-evaluates the strip's laser-frame geometry (x, z, beta) at the corrected
-        points: the design rows are the Jacobian at the current estimate. Evaluated at the
-        delivered points instead, effects that cancel between opposite lines (dr, dS, dkappa)
-        would appear not to cancel, and mimic dphi.
+        The strip's laser-frame geometry (x, z, beta) is then that of the corrected points
+        (:meth:`geometry`): the design rows are the Jacobian at the current estimate.
+        Evaluated at the delivered points instead, effects that cancel between opposite lines
+        (dr, dS, dkappa) would appear not to cancel, and mimic dphi.
         """
         ps = self.strips[k]
         error = self.trajectory.strip_params(k) if self.trajectory.active and not delivered \
             else np.zeros(0)
         key = np.asarray(delta, dtype=np.float64).tobytes() + error.tobytes()
-        if ps.corrected is None or ps.corrected[0] != key:
+        if ps.corrected is None or ps.corrected.key != key:
             # the strip's last correction released first (unless a caller still holds it):
             # it and the new one held at once cost some 90 bytes a point more at the peak
-            ps.corrected, ps.geometry = None, ps.geometry0
+            ps.corrected = None
             with self.clock("corrections"):
-                corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
-                                                              delta)
-                if error.size and np.any(error):
+                geometry: LaserGeometry | None = None
+                if ps.geometry0.timing is None:
+                    # the geometry only where the design rows want it (:meth:`geometry`): 40
+                    # to 48 bytes a held point less
+                    corrected, shift = exact_shift(ps.strip.xyz, ps.geometry0, delta)
+                else:
+                    corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
+                                                                  delta)
+                removed = error.copy() if error.size and np.any(error) else None
+                if removed is not None:
                     # docs/method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
-                    # geometry stays that of the delivered positions
+                    # geometry stays that of the points before e_s (:meth:`geometry`)
                     e = self.trajectory.error(k, ps.strip.t)
                     corrected -= e
                     shift += e
-            ps.corrected = (key, corrected, shift, geometry)
-        _, corrected, shift, ps.geometry = ps.corrected
-        return corrected, shift
+            ps.corrected = Correction(key, corrected, shift, geometry, removed)
+        return ps.corrected.corrected, ps.corrected.shift
+
+    def geometry(self, k: int, index: np.ndarray) -> tuple[LaserGeometry, np.ndarray]:
+        """The laser geometry of strip ``k``'s points ``index`` (any shape) at its latest
+        correction (:meth:`corrected`; before any, as delivered), and where each point of
+        ``index`` is in it: ``geometry.take(where)`` are the points ``index``."""
+        ps = self.strips[k]
+        if ps.corrected is None:
+            return ps.geometry0, index
+        if ps.corrected.geometry is not None:
+            return ps.corrected.geometry, index
+        wanted, where = np.unique(index, return_inverse=True)
+        return self._geometry_of(k, wanted), where.reshape(index.shape)
+
+    def whole_geometry(self, k: int) -> LaserGeometry:
+        """:meth:`geometry` of every point of strip ``k`` (made for the call where not
+        held: 40-48 bytes a point while it is used)."""
+        ps = self.strips[k]
+        if ps.corrected is None:
+            return ps.geometry0
+        if ps.corrected.geometry is not None:
+            return ps.corrected.geometry
+        return self._geometry_of(k, np.arange(len(ps.strip)))
+
+    def _geometry_of(self, k: int, index: np.ndarray) -> LaserGeometry:
+        """The geometry of strip ``k``'s corrected points ``index`` (unique, sorted), from
+        the points before the trajectory error where one was removed (to the last bits: ``(X
+        - e) + e``)."""
+        ps = self.strips[k]
+        assert ps.corrected is not None
+        error = ps.corrected.error
+        if error is None or not len(index):
+            return corrected_geometry(ps.corrected.corrected, ps.geometry0, index)
+        before = ps.corrected.corrected[index] + \
+            self.trajectory.bases[k].error(error, ps.strip.t[index])
+        return corrected_geometry(before, ps.geometry0.take(index), np.arange(len(index)))
 
     def match_pair(
         self, pair: StripPair, points_idx: np.ndarray, delta: np.ndarray,
@@ -303,10 +350,10 @@ class PairMatcher:
         foot (s)."""
         with self.clock("design rows"):
             n = self._observed_normal(normal, sloped)
-            geometry = self.strips[k].geometry
+            geometry, where = self.geometry(k, verts)
             rows = np.zeros((verts.shape[0], N_PARAMETERS))
             for v in range(verts.shape[1]):
-                add_geometry_normal_rows(rows, n, geometry, verts[:, v], w[:, v])
+                add_geometry_normal_rows(rows, n, geometry, where[:, v], w[:, v])
             y = distance * (n * normal).sum(axis=1)
             t_foot = (self.strips[k].strip.t[verts] * w).sum(axis=1)
         return n, rows, y, t_foot
@@ -363,7 +410,8 @@ class PairMatcher:
         n, patch_rows, y, t_foot = self._patch_terms(pair.b, m)
         with self.clock("design rows"):
             rows = np.zeros_like(patch_rows)
-            add_geometry_normal_rows(rows, n, sa.geometry, idx)
+            geometry, where = self.geometry(pair.a, idx)
+            add_geometry_normal_rows(rows, n, geometry, where)
             rows -= patch_rows
             cluster = self._cluster_of(sa.strip.xyz[idx])
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster,

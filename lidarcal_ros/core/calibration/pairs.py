@@ -7,7 +7,8 @@ one by one share one grid.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -61,6 +62,22 @@ class FootprintGrid:
         return cells[keep]
 
 
+class Correction(NamedTuple):
+    """A strip corrected by an estimate (:meth:`~lidarcal_ros.core.calibration.matching.
+    PairMatcher.corrected`)."""
+
+    key: bytes  # the estimate and trajectory error it is of (their bytes)
+    corrected: np.ndarray  # (n, 3) the corrected points, map frame, m
+    shift: np.ndarray  # (n, 3) delivered - corrected, m
+    #: Their laser geometry where a timing bias is estimated; else None: the geometry of
+    #: the points wanted is computed from them (:meth:`~lidarcal_ros.core.calibration.
+    #: matching.PairMatcher.geometry`).
+    geometry: LaserGeometry | None
+    #: The coefficients of the strip's trajectory error removed after the biases (a copy;
+    #: None: none): the geometry is that of the points before it (docs/method.md section 11).
+    error: np.ndarray | None
+
+
 @dataclass
 class PreparedStrip:
     """A strip with what the calibration computes once."""
@@ -77,11 +94,9 @@ class PreparedStrip:
     laser_qa: LaserVectorQA
     speed_mps: float  # ground speed over the strip, m/s
     tin: Tin | None = None
-    geometry: LaserGeometry = field(init=False)  # at the points corrected by the estimate
     #: The latest correction (:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.
-    #: corrected`): the estimate it is of (its bytes), the corrected points,
-    #: ``delivered - corrected`` and their geometry.
-    corrected: tuple[bytes, np.ndarray, np.ndarray, LaserGeometry] | None = None
+    #: corrected`).
+    corrected: Correction | None = None
     dropped: bool = False  # points released (memory budget); its pairs are frozen
     #: Released before a restart: held for its trajectory error alone (no points, no pairs,
     #: not in a result's strips).
@@ -92,9 +107,6 @@ class PreparedStrip:
     #: First and last time (s) of the whole strip where ``strip`` holds part of its points
     #: (a bounded-memory calibration); None: those of ``strip``.
     span: tuple[float, float] | None = None
-
-    def __post_init__(self) -> None:
-        self.geometry = self.geometry0
 
     @property
     def strip_id(self) -> int:
@@ -247,7 +259,7 @@ def height_agreement(strips: Sequence[PreparedStrip], *, points_per_cell: float 
 
 
 __all__ = [
-    "FootprintGrid", "PreparedStrip", "StripPair", "find_pair", "footprint_keys",
+    "Correction", "FootprintGrid", "PreparedStrip", "StripPair", "find_pair", "footprint_keys",
     "ground_speed", "height_agreement", "no_overlap_reason", "outside_strips",
     "stratified_sample",
 ]

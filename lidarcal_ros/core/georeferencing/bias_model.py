@@ -336,7 +336,7 @@ def correct_points_exact(
     delta : (8,) float64
         Biases, SI.
     """
-    return exact_correction(xyz, frame, delta)[0]
+    return _exact(xyz, frame, delta, with_geometry=False)[0]
 
 
 def exact_correction(
@@ -358,6 +358,53 @@ def exact_correction(
         Of the corrected points (``kappa``, ``origin`` and ``rotation`` shared with
         ``frame``).
     """
+    corrected, shift, geometry = _exact(xyz, frame, delta, with_geometry=True)
+    assert geometry is not None
+    return corrected, shift, geometry
+
+
+def exact_shift(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`exact_correction`'s corrected points and shift (the same bits) without the
+    geometry of every point (40-48 bytes a point): :func:`corrected_geometry` gives it
+    where wanted. ``frame`` without a timing column (the timing bias moves the points after
+    the geometry is taken: :func:`exact_correction` then)."""
+    if frame.timing is not None:
+        raise ValueError("exact_shift of a frame with a timing column: use exact_correction")
+    corrected, shift, _ = _exact(xyz, frame, delta, with_geometry=False)
+    return corrected, shift
+
+
+def corrected_geometry(corrected: np.ndarray, frame: LaserGeometry,
+                       index: np.ndarray) -> LaserGeometry:
+    """The geometry :func:`exact_correction` gives the points ``index`` of ``corrected``
+    (from :func:`exact_shift` of the same ``frame``), the same bits, without computing it
+    for the others: ``geometry.take(index)``."""
+    index = np.ascontiguousarray(index, dtype=np.int64)
+    k = index.shape[0]
+    rigorous = frame.rotation is not None
+    c, s = frame.cos_kappa, frame.sin_kappa
+    if c is None or s is None:
+        c, s, _, _ = frame.trig()
+    x, z, beta, sb, cb = (np.empty(k) for _ in range(5))
+    y = np.empty(k) if rigorous else _NO_COLUMN
+    calibration_kernels.corrected_geometry(
+        np.ascontiguousarray(corrected, dtype=np.float64),
+        np.ascontiguousarray(frame.origin, dtype=np.float64),
+        np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
+        _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
+        index, x, y, z, beta, sb, cb)
+    part = frame.take(index)
+    return LaserGeometry(x=x, z=z, kappa=part.kappa, beta=beta, origin=part.origin,
+                         cos_kappa=c[index], sin_kappa=s[index], sin_beta=sb, cos_beta=cb,
+                         heading_from=frame.heading_from, crab_deg=frame.crab_deg,
+                         rotation=part.rotation, y=y if rigorous else None,
+                         model=frame.model, scanner=frame.scanner, timing=part.timing)
+
+
+def _exact(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray, *, with_geometry: bool
+           ) -> tuple[np.ndarray, np.ndarray, LaserGeometry | None]:
+    """:func:`exact_correction`, its geometry only ``with_geometry`` (else None)."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = xyz.shape[0]
     if xyz.shape != (np.shape(frame.x)[0], 3):
@@ -372,26 +419,29 @@ def exact_correction(
         raise ValueError("a general scanner's laser vectors need the rigorous model")
     corrected = np.empty((n, 3))
     shift = np.empty((n, 3))
-    x, z, beta, sb, cb = (np.empty(n) for _ in range(5))
-    y = np.empty(n) if rigorous else _NO_COLUMN
+    m = n if with_geometry else 0
+    x, z, beta, sb, cb = (np.empty(m) for _ in range(5))
+    y = np.empty(m) if rigorous and with_geometry else _NO_COLUMN
     calibration_kernels.exact_correction_and_geometry(
         xyz, np.ascontiguousarray(frame.origin, dtype=np.float64),
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
-        d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb, general)
+        d, boresight_matrix(d[3], d[4], d[5]), corrected, shift, x, y, z, beta, sb, cb, general,
+        with_geometry)
     if moved is not None:
         # the pose looked up dt late moved the point by dt times its rate (section 12): the
         # mounting corrected in that pose, then the point moved back; the laser vector (the
         # geometry) is the mounting's, whatever the time
         corrected -= moved
         shift += moved
+    if not with_geometry:
+        return corrected, shift, None
     geometry = LaserGeometry(x=x, z=z, kappa=frame.kappa, beta=beta, origin=frame.origin,
                              cos_kappa=c, sin_kappa=s, sin_beta=sb, cos_beta=cb,
                              heading_from=frame.heading_from, crab_deg=frame.crab_deg,
                              rotation=frame.rotation, y=y if rigorous else None,
                              model=frame.model, scanner=frame.scanner, timing=frame.timing)
     return corrected, shift, geometry
-
 
 
 def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: LaserGeometry,
@@ -414,7 +464,7 @@ def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: Lase
 
 __all__ = [
     "Trig", "add_geometry_normal_rows", "body_columns", "body_normal_rows", "boresight_matrix",
-    "correct_geometry", "correct_points", "correct_points_exact", "design_matrix",
-    "exact_correction", "geometry_design_matrix", "geometry_normal_rows", "geometry_offsets",
-    "normal_design_rows", "point_offsets",
+    "correct_geometry", "correct_points", "correct_points_exact", "corrected_geometry",
+    "design_matrix", "exact_correction", "exact_shift", "geometry_design_matrix",
+    "geometry_normal_rows", "geometry_offsets", "normal_design_rows", "point_offsets",
 ]

@@ -45,7 +45,7 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
                                   corrected: np.ndarray, shift: np.ndarray, x: np.ndarray,
                                   y: np.ndarray, z: np.ndarray, beta: np.ndarray,
                                   sin_beta: np.ndarray, cos_beta: np.ndarray,
-                                  general: bool) -> None:
+                                  general: bool, with_geometry: bool) -> None:
     """The biases removed exactly and the laser geometry of the corrected points, in one
     pass: :func:`lidarcal_ros.core.georeferencing.bias_model.correct_points_exact` followed by
     :func:`lidarcal_ros.core.georeferencing.laser_geometry.geometry_at` and its :meth:`trig`.
@@ -83,6 +83,9 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
         pass an empty array for the level one).
     general : bool
         A general scanner's correction (above) instead of a linear one's.
+    with_geometry : bool
+        False: the geometry is not computed (its arrays may be empty; where wanted, the
+        geometry of some points comes from :func:`corrected_geometry`).
     """
     n = xyz.shape[0]
     rigorous = rotation.shape[0] == n and n > 0
@@ -115,20 +118,48 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
         shift[i, 0] = xyz[i, 0] - cx
         shift[i, 1] = xyz[i, 1] - cy
         shift[i, 2] = xyz[i, 2] - cz
-        ex, ey, ez = cx - ox, cy - oy, cz - oz
-        if rigorous:
-            gx, gy, gz = _to_body(True, rotation, cos_kappa, sin_kappa, i, ex, ey, ez)
-            y[i] = gy
-            r = math.sqrt(gx * gx + gy * gy + gz * gz)
-        else:
-            gx, gz = ex * cos_kappa[i] + ey * sin_kappa[i], ez
-            r = math.hypot(gx, gz)
-        x[i] = gx
-        z[i] = gz
-        beta[i] = math.atan(gx / gz)
-        inv_r = 1.0 / r
-        sin_beta[i] = -gx * inv_r
-        cos_beta[i] = -gz * inv_r
+        if with_geometry:
+            _geometry_at(rigorous, rotation, cos_kappa, sin_kappa, i, i, cx - ox, cy - oy,
+                         cz - oz, x, y, z, beta, sin_beta, cos_beta)
+
+
+@inlined
+def _geometry_at(rigorous: bool, rotation: np.ndarray, cos_kappa: np.ndarray,
+                 sin_kappa: np.ndarray, i: int, j: int, ex: float, ey: float, ez: float,
+                 x: np.ndarray, y: np.ndarray, z: np.ndarray, beta: np.ndarray,
+                 sin_beta: np.ndarray, cos_beta: np.ndarray) -> None:
+    """The geometry of point ``i`` seen at ``e = X_c - X_o`` (map frame, m) from its firing
+    position, written at ``j``: ``(x, y, z) = R^T e`` (level: ``y`` not kept), ``beta``,
+    ``sin beta``, ``cos beta`` (:func:`exact_correction_and_geometry`)."""
+    if rigorous:
+        gx, gy, gz = _to_body(True, rotation, cos_kappa, sin_kappa, i, ex, ey, ez)
+        y[j] = gy
+        r = math.sqrt(gx * gx + gy * gy + gz * gz)
+    else:
+        gx, gz = ex * cos_kappa[i] + ey * sin_kappa[i], ez
+        r = math.hypot(gx, gz)
+    x[j] = gx
+    z[j] = gz
+    beta[j] = math.atan(gx / gz)
+    inv_r = 1.0 / r
+    sin_beta[j] = -gx * inv_r
+    cos_beta[j] = -gz * inv_r
+
+
+@compiled
+def corrected_geometry(corrected: np.ndarray, origin: np.ndarray, cos_kappa: np.ndarray,
+                       sin_kappa: np.ndarray, rotation: np.ndarray, index: np.ndarray,
+                       x: np.ndarray, y: np.ndarray, z: np.ndarray, beta: np.ndarray,
+                       sin_beta: np.ndarray, cos_beta: np.ndarray) -> None:
+    """The geometry :func:`exact_correction_and_geometry` gives the corrected points, of the
+    points ``index`` of ``corrected`` (n, 3) only, written at ``0 .. len(index)`` (the same
+    arithmetic: the same bits)."""
+    rigorous = rotation.shape[0] == corrected.shape[0] and corrected.shape[0] > 0
+    for j in range(index.shape[0]):
+        i = index[j]
+        _geometry_at(rigorous, rotation, cos_kappa, sin_kappa, i, j,
+                     corrected[i, 0] - origin[i, 0], corrected[i, 1] - origin[i, 1],
+                     corrected[i, 2] - origin[i, 2], x, y, z, beta, sin_beta, cos_beta)
 
 
 @compiled
@@ -184,4 +215,4 @@ def add_normal_rows(normal: np.ndarray, index: np.ndarray, weight: np.ndarray,
                 out[i, j] += row[j]
 
 
-__all__ = ["add_normal_rows", "exact_correction_and_geometry"]
+__all__ = ["add_normal_rows", "corrected_geometry", "exact_correction_and_geometry"]

@@ -5,6 +5,7 @@ on simulated strips of both point-positioning models."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,10 +15,16 @@ from lidarcal_ros.core.calibration.tin import GridLocator, Tin, TinBackend, TinQ
 from lidarcal_ros.core.georeferencing.bias_model import (
     add_geometry_normal_rows,
     boresight_matrix,
+    corrected_geometry,
     exact_correction,
+    exact_shift,
     geometry_normal_rows,
 )
-from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, geometry_at
+from lidarcal_ros.core.georeferencing.laser_geometry import (
+    LaserGeometry,
+    ScannerKind,
+    geometry_at,
+)
 
 ARCSEC = math.pi / 180.0 / 3600.0
 #: Large biases (150 arcsec, 0.2 m, 2e-4): the exact correction's whole range.
@@ -90,6 +97,38 @@ def test_exact_correction_is_the_numpy_correction_and_geometry(
     # the biases move the points by decimetres; none moves them not at all
     moved = np.abs(shift).max()
     assert (moved > 0.1) if scale else (moved < 1e-9)
+
+
+@pytest.mark.parametrize("model", ["level", "rigorous", "general"])
+def test_the_geometry_of_some_corrected_points_is_that_of_all_to_the_bit(
+        geometries: dict[str, tuple[np.ndarray, LaserGeometry]], model: str) -> None:
+    """exact_shift gives exact_correction's points and shifts, and corrected_geometry at
+    some of them (repeated, out of order) exact_correction's geometry there, bit for bit;
+    a general scanner's (section 12) too."""
+    xyz, g0 = geometries["level" if model == "level" else "rigorous"]
+    if model == "general":
+        g0 = replace(g0, scanner=ScannerKind.GENERAL)
+    corrected, shift, g = exact_correction(xyz, g0, DELTA)
+    got_corrected, got_shift = exact_shift(xyz, g0, DELTA)
+    np.testing.assert_array_equal(got_corrected, corrected)
+    np.testing.assert_array_equal(got_shift, shift)
+    index = np.random.default_rng(2).integers(0, len(xyz), 5000)
+    part, want = corrected_geometry(corrected, g0, index), g.take(index)
+    for name in ("x", "z", "beta", "sin_beta", "cos_beta", "cos_kappa", "sin_kappa", "kappa",
+                 "origin"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(want, name), name)
+    if model == "level":
+        assert part.y is None and part.rotation is None
+    else:
+        assert part.y is not None and want.y is not None and part.rotation is not None
+        np.testing.assert_array_equal(part.y, want.y)
+        np.testing.assert_array_equal(part.rotation, want.rotation)
+    assert (part.model, part.scanner) == (g.model, g.scanner)
+    # the biases moved the points: the geometry is not the delivered one's
+    assert np.abs(part.beta - g0.beta[index]).max() > 1e-4
+    # a timing column moves the points after the geometry is taken: refused
+    with pytest.raises(ValueError, match="timing"):
+        exact_shift(xyz, replace(g0, timing=np.zeros((len(xyz), 3))), DELTA)
 
 
 @pytest.mark.parametrize("model", ["level", "rigorous"])
