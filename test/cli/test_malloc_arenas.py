@@ -1,0 +1,36 @@
+"""One glibc malloc arena for the command line's threads (cli/main.py, limit_malloc_arenas)."""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+import sys
+
+import pytest
+
+#: Four threads malloc (blocks over pymalloc's 512 bytes), then glibc's malloc_stats prints
+#: one "Arena N:" line a heap to stderr.
+_PROGRAM = """
+import ctypes, sys, threading
+if sys.argv[1] == "one":
+    from lidarcal_ros.cli.main import limit_malloc_arenas
+    limit_malloc_arenas()
+def work():
+    held = [bytearray(4000) for _ in range(200)]
+threads = [threading.Thread(target=work) for _ in range(4)]
+for t in threads: t.start()
+for t in threads: t.join()
+ctypes.CDLL(None).malloc_stats()
+"""
+
+
+def _arenas(mode: str) -> int:
+    res = subprocess.run([sys.executable, "-c", _PROGRAM, mode], capture_output=True,
+                         text=True, timeout=120, check=True)
+    return sum(line.startswith("Arena ") for line in res.stderr.splitlines())
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc only")
+def test_the_threads_share_one_arena() -> None:
+    assert _arenas("default") > 1  # (each thread its own: what the limit is for)
+    assert _arenas("one") == 1
