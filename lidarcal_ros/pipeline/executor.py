@@ -261,7 +261,11 @@ def _start_local(workers: int, timeout_s: float) -> DaskExecutor:
     # Processes (the correction's Python holds the interpreter lock), one thread each,
     # listening on the loopback only, no dashboard (and no page at all on the HTTP port a
     # scheduler and its workers open anyway, there too); the nannies restart a dead worker.
+    # Each worker one malloc arena, as the command line has (cli/main.py).
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}),
+               "MALLOC_ARENA_MAX": 1}
     with dask.config.set({"distributed.worker.daemon": True,
+                          "distributed.nanny.pre-spawn-environ": environ,
                           "distributed.scheduler.http.routes": [],
                           "distributed.worker.http.routes": [],
                           "distributed.comm.timeouts.connect": f"{timeout_s}s"}), \

@@ -52,6 +52,18 @@ def test_a_local_cluster_listens_on_the_loopback_only_without_dashboard(
         assert 0 < worker["memory_limit"] <= 4 * 2**30
 
 
+def _environ(name: str) -> str | None:
+    return os.environ.get(name)
+
+
+def test_the_workers_have_one_malloc_arena_and_dasks_own_settings(
+        cluster: DaskExecutor) -> None:
+    """As the command line (cli/main.py): one glibc arena a process; Dask's own settings
+    for its workers (e.g. MALLOC_TRIM_THRESHOLD_) kept."""
+    assert cluster.submit(_environ, "MALLOC_ARENA_MAX", key="arenas").result() == "1"
+    assert cluster.submit(_environ, "MALLOC_TRIM_THRESHOLD_", key="trim").result() == "65536"
+
+
 def test_tasks_run_in_other_processes_and_their_errors_come_back(
         cluster: DaskExecutor) -> None:
     pids = {cluster.submit(_pid, key=f"pid-{i}").result() for i in range(4)}
