@@ -34,7 +34,7 @@ from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.calibration_file import Extrinsic, urdf_path
 from lidarcal_ros.io.cloud.columns import CloudColumns
 from lidarcal_ros.io.cloud.messages import ERROR, OK, WARN, StatusSpec, qa_statuses
-from lidarcal_ros.pipeline.calibration.checkpoint import read_checkpoint
+from lidarcal_ros.pipeline.calibration.checkpoint import StreamCheckpoint, read_checkpoint
 from lidarcal_ros.pipeline.calibration.sensor_frame import (
     log_solve_for_note,
     mounting_solve_for,
@@ -226,6 +226,9 @@ class CalibrationService:
                                         daemon=True)
         self._last_input = time.monotonic()
         self._idle_closed = True
+        #: The calibration before the last idle close that closed strips, taken back if
+        #: input comes again (:meth:`_input_again`); None: none to take back.
+        self._before_idle: StreamCheckpoint | None = None
         self._point_end = -math.inf  # newest point time, s
         self._traj_end = -math.inf  # newest trajectory time, s
         self._last_update = 0.0
@@ -417,10 +420,7 @@ class CalibrationService:
                 job, future = _Idle(), None
             if isinstance(job, AddPose):
                 poses.append(job)
-                # Input again: an idle close that came before the poses covering the last
-                # strip (an INS lagging the clouds) is made again once they stop.
-                self._last_input = time.monotonic()
-                self._idle_closed = False
+                self._input_again()
                 continue
             if poses:
                 try:
@@ -468,6 +468,8 @@ class CalibrationService:
 
     def _run(self, job: Job) -> str | None:
         """Do one job; returns the reply of a request."""
+        if isinstance(job, SetControl | ReadControlFile | SetConfig | SetOptions | Reset):
+            self._before_idle = None  # (a calibration taken back would not have it)
         match job:
             case AddCloud(columns, frame_id):
                 if self.sensor.active:
@@ -522,10 +524,28 @@ class CalibrationService:
         if self.sensor.active and not had:  # dZ may now be estimated (mounting_solve_for)
             self._stream.update_config(self.config)
 
-    def _add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
-        self._stream.add_cloud(columns, frame_id)
+    def _input_again(self) -> None:
+        """Input came: an idle close is made again once it stops (e.g. after the poses of an
+        INS lagging the clouds), and one that closed strips is taken back (the input had only
+        paused: a link drop, a starved player), so that their later points are not late."""
         self._last_input = time.monotonic()
         self._idle_closed = False
+        state, self._before_idle = self._before_idle, None
+        if state is None:
+            return
+        if state.sensor is not None:
+            self.sensor.restore(state.sensor)
+        self._stream = StreamingCalibration.from_checkpoint(
+            state, self.config, max_points=self.options.max_points,
+            strip_gap_s=float(self.options.strip_gap_s),
+            settings_of=self._mounting_settings if state.sensor is not None else None)
+        logger.warning("input again after the idle close: the strips it closed are open "
+                       "again (%s)", ", ".join(map(str, self._stream.open_strip_ids)) or
+                       "none")
+
+    def _add_cloud(self, columns: CloudColumns, frame_id: str) -> None:
+        self._input_again()
+        self._stream.add_cloud(columns, frame_id)
         finite = columns.t[np.isfinite(columns.t)]
         if finite.size:
             self._point_end = max(self._point_end, float(finite.max()))
@@ -539,9 +559,8 @@ class CalibrationService:
                                     f"in the map frame '{self._stream.frame_id}'")
             # the calibration of a mounting, on the trajectory of the sensor's origin
             self._stream = self._sensor_frame_stream()
+        self._input_again()
         self.sensor.add_cloud(xyz, t, frame_id)
-        self._last_input = time.monotonic()
-        self._idle_closed = False
         finite = t[np.isfinite(t)]
         if finite.size:
             self._point_end = max(self._point_end, float(finite.max()))
@@ -555,7 +574,11 @@ class CalibrationService:
         if (not self._idle_closed and idle > 0
                 and time.monotonic() - self._last_input >= idle):
             self._idle_closed = True
+            before = self._stream.checkpoint(sensor=self.sensor.state())
+            closed = len(self._stream.closed_strips)
             self._update(math.inf)
+            if len(self._stream.closed_strips) > closed or self.sensor.ended:
+                self._before_idle = before  # (what to take back if input comes again)
         elif self._jobs.empty():
             self._update(None)
         if self._jobs.empty():

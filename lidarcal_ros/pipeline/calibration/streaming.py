@@ -604,7 +604,12 @@ class StreamingCalibration:
                         sensor: SensorFrameState | None = None) -> Path:
         """Write everything needed to resume (:mod:`.checkpoint`), with the state of the
         clouds in the sensor's frame that feed it (``sensor``) where they do."""
-        return write_checkpoint(path, StreamCheckpoint(
+        return write_checkpoint(path, self.checkpoint(sensor=sensor))
+
+    def checkpoint(self, *, sensor: SensorFrameState | None = None) -> StreamCheckpoint:
+        """:meth:`save_checkpoint`'s state, in memory (the strips shared, not copied):
+        :meth:`from_checkpoint` resumes from it."""
+        return StreamCheckpoint(
             sensor=sensor,
             frame_id=self.frame_id, trajectory=self._samples.arrays(),
             closed=list(self._closed), open=list(self._open.strips()),
@@ -614,7 +619,7 @@ class StreamingCalibration:
             thinned_points=self.thinned_points, auto_thinning_cell_m=self.auto_thinning_cell_m,
             uncovered_points=self.uncovered_points,
             uncovered_strips=list(self.uncovered_strips),
-            rejected_strips=list(self.rejected_strips), dropped_strips=list(self.dropped_strips)))
+            rejected_strips=list(self.rejected_strips), dropped_strips=list(self.dropped_strips))
 
     @classmethod
     def load_checkpoint(

@@ -216,3 +216,35 @@ def test_poses_that_lag_the_last_cloud_past_the_idle_close_still_close_the_strip
         assert stream.strip_ids == [1, 2, 3, 4, 5, 6]
     finally:
         service.close()
+
+
+def test_input_pausing_mid_strip_with_the_poses_ahead_loses_no_point(
+        fed: Fed, small_mission: Any, tmp_path: Path) -> None:
+    """The input stops in the middle of strip 3 for longer than ``idle_close_s``, the poses
+    1.5 s ahead of the clouds' stamps (past the trajectory window, so the idle close closes
+    the strip; short of ``strip_gap_s``), then goes on: the close is taken back, the strip
+    closes whole and the estimate converges to the offline one (0.1 sigma). Before, the
+    strip's later points were left out as late."""
+    mission = small_mission.mission
+    strip = next(s for s in mission.strips if s.strip_id == 3)
+    cut = float(strip.t[0] + strip.t[-1]) / 2.0
+    before = [(e[1] == "pose" and e[0] < cut + 1.5) or (e[1] == "cloud" and e[0] < cut)
+              for e in fed.events]
+    results: list[CalibrationResult] = []
+    service = _started(fed.config, results, idle_close_s=0.3)
+    try:
+        _feed(service, [e for e, b in zip(fed.events, before, strict=True) if b])
+        wait_until(lambda: service.queued_jobs == 0, 60, "the first part")
+        time.sleep(1.0)  # (the idle close has come and gone)
+        assert 3 in [s.strip_id for s in service.stream.closed_strips]
+        _feed(service, [e for e, b in zip(fed.events, before, strict=True) if not b])
+        wait_until(lambda: len(service.stream.closed_strips) == 6
+                   and not service.stream.refinement_pending and service.queued_jobs == 0
+                   and bool(results) and results[-1].converged, 120,
+                   "a converged estimate over the six strips")
+        stream = service.stream
+        assert stream.late_points == 0
+        assert stream.n_points == sum(len(s) for s in mission.strips)
+        _within(results[-1], fed.offline, 0.1)
+    finally:
+        service.close()

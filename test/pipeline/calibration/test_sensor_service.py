@@ -226,6 +226,33 @@ def test_input_pausing_mid_line_loses_no_point(tmp_path: Path) -> None:
     _same_mounting(Path(saved), _offline(m, MOUNTING_SOLVE_FOR), 0.1)
 
 
+def test_input_pausing_mid_line_with_the_poses_ahead_loses_no_point(tmp_path: Path) -> None:
+    """As above, the poses 3 s ahead of the clouds at the pause: the idle close takes the
+    flight as ended and closes the line; the input goes on, the close is taken back, and the
+    saved mounting is ``lidarcal calibrate``'s (0.1 sigma), no point late."""
+    m = _mission()
+    t_all = np.concatenate([c[2] for c in _clouds(m)])
+    on_first = t_all[m.line == 0]
+    cut = float(on_first.min()) + 0.8 * float(np.ptp(on_first))
+    events = _events(m)
+    first = [(e[1] == "pose" and e[0] < cut + 3.0) or (e[1] != "pose" and e[0] < cut)
+             for e in events]
+    service = _service(tmp_path, idle_close_s=0.3)
+    try:
+        _feed(service, [e for e, b in zip(events, first, strict=True) if b])
+        _wait(lambda: service.queued_jobs == 0, 60, "the first part")
+        time.sleep(1.0)  # (the idle close has come and gone)
+        assert service.sensor.ended and service.stream.closed_strips != ()
+        _feed(service, [e for e, b in zip(events, first, strict=True) if not b])
+        assert "solved" in service.solve()
+        saved = service.save().split("written to ")[1].split(",")[0]
+    finally:
+        service.close()
+    assert service.stream.late_points == 0 and service.sensor.late_points == 0
+    assert len(service.sensor.lines) == 3
+    _same_mounting(Path(saved), _offline(m, MOUNTING_SOLVE_FOR), 0.1)
+
+
 # ------------------------------------------------------------------- checkpoints
 
 def test_stopped_mid_flight_it_resumes_as_a_mounting_calibration(tmp_path: Path) -> None:
