@@ -71,14 +71,18 @@ def n_points(bag: Path) -> int:
 def output(bag: Path, memory: str, dask: str | None = None) -> Path:
     """The calibration file of ``bag`` calibrated with ``calibration.memory`` ``memory``
     (on ``--dask dask``: another file)."""
-    on = "" if dask is None else ".dask"
-    return CACHE / f"{bag.name}.{memory}{on}.calibration.yaml"
+    return CACHE / f"{bag.name}.{memory}{_on(dask)}.calibration.yaml"
+
+
+def _on(dask: str | None) -> str:
+    """What the names of a run's files add with ``--dask``."""
+    return "" if dask is None else ".dask"
 
 
 def calibrate(bag: Path, memory: str = "whole", dask: str | None = None) -> dict[str, Any]:
     """``lidarcal calibrate`` of ``bag`` in a fresh process, ``calibration.memory``
     ``memory`` (with ``--dask dask``: the memory of its process tree too)."""
-    log = CACHE / f"{bag.name}.{memory}{'' if dask is None else '.dask'}.calibrate.log"
+    log = CACHE / f"{bag.name}.{memory}{_on(dask)}.calibrate.log"
     config = CACHE / f"memory_{memory}.yaml"
     config.write_text(f"/**:\n  ros__parameters:\n    calibration:\n      memory: {memory}\n")
     cmd = [PYTHON, "-m", "lidarcal_ros", "calibrate", str(bag), "-o",
@@ -136,11 +140,11 @@ def on_dask(bag: Path, memory: str, serial: dict[str, Any], dask: str) -> str:
 
 def differences(first: Path, second: Path, first_name: str, second_name: str) -> str:
     """The estimate of file ``second`` minus that of ``first``, in ``first``'s sigmas."""
-    whole, bounded = read_estimate(first), read_estimate(second)
+    reference, other = read_estimate(first), read_estimate(second)
     worst = 0.0
     parts = []
-    for name, w in whole.items():
-        b = bounded.get(name)
+    for name, w in reference.items():
+        b = other.get(name)
         if b is None or not w["sigma"]:
             parts.append(f"{name} -")
             continue

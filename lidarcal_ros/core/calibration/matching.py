@@ -293,8 +293,8 @@ class PairMatcher:
 
     def _geometry_of(self, k: int, index: np.ndarray) -> LaserGeometry:
         """The geometry of strip ``k``'s corrected points ``index`` (unique, sorted), from
-        the points before the trajectory error where one was removed (to the last bits: ``(X
-        - e) + e``)."""
+        the points before the trajectory error where one was removed (``(X - e) + e``: within
+        an ulp of them, not their bits)."""
         ps = self.strips[k]
         assert ps.corrected is not None
         error = ps.corrected.error
