@@ -32,7 +32,13 @@ from lidarcal_ros.core.qa.accuracy import (
 from lidarcal_ros.core.units import finite_or_none, format_cm
 from lidarcal_ros.errors import CalibrationError, ConfigError
 from lidarcal_ros.pipeline.correction.apply import flagged_geometry
-from lidarcal_ros.pipeline.executor import CommandTasks, Executor, SerialExecutor, TaskFuture
+from lidarcal_ros.pipeline.executor import (
+    CommandTasks,
+    Executor,
+    SerialExecutor,
+    TaskFuture,
+    results_in_order,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -283,8 +289,8 @@ def evaluate_mission(
     states = [tasks.submit(_strip_states, tasks.send(strip, f"strip{strip.strip_id}"),
                            trajectory, delta, settings, key=f"states{k}")
               for k, strip in enumerate(mission.strips)]
-    footprints = [f.result() for f in [tasks.submit(_footprint, s, key=f"footprint{k}")
-                                       for k, s in enumerate(states)]]
+    footprints = results_in_order([tasks.submit(_footprint, s, key=f"footprint{k}")
+                                   for k, s in enumerate(states)])
     cells = [c for c, _ in footprints]
     tins: dict[int, TaskFuture[Tin]] = {}
 

@@ -15,7 +15,7 @@ import os
 import re
 import uuid
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
@@ -26,7 +26,7 @@ from lidarcal_ros.errors import ConfigError
 __all__ = [
     "CONNECT_TIMEOUT_S", "LOCAL_WORKER_MEMORY_BYTES", "CommandTasks", "DaskExecutor",
     "DaskTarget", "Executor", "SerialExecutor", "TaskFuture", "local_worker_limit",
-    "open_executor", "parse_dask_option",
+    "open_executor", "parse_dask_option", "results_in_order",
 ]
 
 logger = logging.getLogger(__name__)
@@ -93,6 +93,21 @@ class SerialExecutor:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def results_in_order(futures: Sequence[TaskFuture[T]]) -> list[T]:
+    """Each future's value, in order. A task that fails for good (its exception, or Dask's
+    ``KilledWorker`` once its workers died too often) raises here as soon as it has failed,
+    not after every task before it has ended: a cluster short of memory ends the command
+    instead of restarting its workers for as long as the others take."""
+    remote = [f for f in futures if not isinstance(f, Future)]
+    if remote:
+        from distributed import as_completed
+
+        for future in as_completed(remote):
+            if future.status == "error":
+                future.result()  # (raises the task's exception)
+    return [f.result() for f in futures]
 
 
 def _value(value: T) -> T:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 import socket
+import time
+from pathlib import Path
 from typing import Any
 
 import helpers_dask
@@ -22,6 +24,7 @@ from lidarcal_ros.pipeline.executor import (
     local_worker_limit,
     open_executor,
     parse_dask_option,
+    results_in_order,
 )
 
 cluster = helpers_dask.cluster
@@ -70,6 +73,33 @@ def test_tasks_run_in_other_processes_and_their_errors_come_back(
     assert os.getpid() not in pids
     with pytest.raises(InputError, match="value 3 refused"):
         cluster.submit(_refuse, 3, key="refuse-3").result()
+
+
+def _held_until(release: str) -> str:
+    """Runs until the file ``release`` exists (two minutes at most)."""
+    end = time.monotonic() + 120.0
+    while not os.path.exists(release) and time.monotonic() < end:
+        time.sleep(0.05)
+    return "released"
+
+
+def test_a_failed_task_raises_before_the_tasks_ahead_of_it_end(
+        cluster: DaskExecutor, tmp_path: Path) -> None:
+    release = tmp_path / "release"
+    failing = cluster.submit(_refuse, 5, key="refuse-5")
+    held = cluster.submit(_held_until, str(release), key="held")
+    try:
+        with pytest.raises(InputError, match="value 5 refused"):
+            results_in_order([held, failing])
+        assert held.status == "pending"  # (raised while the task ahead still ran)
+    finally:
+        release.touch()
+    assert held.result() == "released"
+    assert results_in_order([held, cluster.submit(_pid, key="pid-after")])[0] == "released"
+    with open_executor(None) as serial:
+        done = [serial.submit(_pid, key="a"), serial.submit(_refuse, 6, key="b")]
+        with pytest.raises(InputError, match="value 6 refused"):
+            results_in_order(done)
 
 
 def test_closing_ends_every_process_of_the_local_cluster() -> None:

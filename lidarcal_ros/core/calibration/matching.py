@@ -130,10 +130,12 @@ class PairMatcher:
                                       source=f"strip {strip.strip_id}")
         speed = ground_speed(trajectory, strip.t)
         qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
-        keys = self.footprint.keys(strip.xyz[:, :2])
+        # the laser vectors of the delivered points are not held (40-48 bytes a point):
+        # every correction and design row computes those of the points it moves
+        geom = geom.firing_frames()
         span: tuple[float, float] | None
         if whole is None:
-            cells = np.unique(keys)
+            cells = np.unique(self.footprint.keys(strip.xyz[:, :2]))
             density = len(strip) / max(cells.size * s.overlap_cell_m**2, 1.0)
             priority = np.random.default_rng([s.seed, strip.strip_id]).random(len(strip))
             span = (float(np.nanmin(strip.t)), float(np.nanmax(strip.t))) if len(strip) \
@@ -143,7 +145,7 @@ class PairMatcher:
             cells, density, span = extent.cells, extent.density, extent.span
             speed = ground_speed(trajectory, np.asarray(span))
         return self.add_prepared(PreparedStrip(
-            strip, geom, density, keys, cells, priority, choice, qa, speed,
+            strip, geom, density, cells, priority, choice, qa, speed,
             navigation_sigmas=None if span is None else strip_offset_sigmas(trajectory, *span),
             span=None if whole is None else span))
 
@@ -152,7 +154,7 @@ class PairMatcher:
         trajectory error alone (a placeholder: no points, no pairs); returns it."""
         empty = np.empty(0, dtype=np.int64)
         ps = PreparedStrip(Strip(strip_id, np.empty((0, 3)), np.empty(0)), LaserGeometry.empty(),
-                           0.0, empty, empty.copy(), np.empty(0),
+                           0.0, empty, np.empty(0),
                            ModelChoice(PositioningModel.LEVEL, "released before a restart"),
                            LaserVectorQA(*(math.nan,) * 5), math.nan, dropped=True,
                            placeholder=True)
@@ -211,7 +213,6 @@ class PairMatcher:
                 ps.strip = Strip(ps.strip_id, empty, np.empty(0))
                 ps.geometry0 = ps.geometry0.take(np.zeros(0, dtype=np.int64))
                 ps.corrected = None
-                ps.point_cells = np.empty(0, dtype=np.int64)
                 ps.priority = np.empty(0)
                 return n
         return 0
@@ -274,9 +275,7 @@ class PairMatcher:
         correction (:meth:`corrected`; before any, as delivered), and where each point of
         ``index`` is in it: ``geometry.take(where)`` are the points ``index``."""
         ps = self.strips[k]
-        if ps.corrected is None:
-            return ps.geometry0, index
-        if ps.corrected.geometry is not None:
+        if ps.corrected is not None and ps.corrected.geometry is not None:
             return ps.corrected.geometry, index
         wanted, where = np.unique(index, return_inverse=True)
         return self._geometry_of(k, wanted), where.reshape(index.shape)
@@ -285,21 +284,25 @@ class PairMatcher:
         """:meth:`geometry` of every point of strip ``k`` (made for the call where not
         held: 40-48 bytes a point while it is used)."""
         ps = self.strips[k]
-        if ps.corrected is None:
-            return ps.geometry0
-        if ps.corrected.geometry is not None:
+        if ps.corrected is not None and ps.corrected.geometry is not None:
             return ps.corrected.geometry
-        return self._geometry_of(k, np.arange(len(ps.strip)))
+        return self._geometry_of(k, None)
 
-    def _geometry_of(self, k: int, index: np.ndarray) -> LaserGeometry:
-        """The geometry of strip ``k``'s corrected points ``index`` (unique, sorted), from
-        the points before the trajectory error where one was removed (``(X - e) + e``: within
-        an ulp of them, not their bits)."""
+    def _geometry_of(self, k: int, index: np.ndarray | None) -> LaserGeometry:
+        """The geometry of strip ``k``'s corrected points ``index`` (unique, sorted; None:
+        every point; before any correction, the delivered points'), from the points before
+        the trajectory error where one was removed (``(X - e) + e``: within an ulp of them,
+        not their bits)."""
         ps = self.strips[k]
-        assert ps.corrected is not None
+        if ps.corrected is None:
+            return corrected_geometry(ps.strip.xyz, ps.geometry0, index)
         error = ps.corrected.error
-        if error is None or not len(index):
+        if error is None or (index is not None and not len(index)):
             return corrected_geometry(ps.corrected.corrected, ps.geometry0, index)
+        if index is None:
+            before = self.trajectory.bases[k].error(error, ps.strip.t)
+            before += ps.corrected.corrected
+            return corrected_geometry(before, ps.geometry0, None)
         before = ps.corrected.corrected[index] + \
             self.trajectory.bases[k].error(error, ps.strip.t[index])
         return corrected_geometry(before, ps.geometry0.take(index), np.arange(len(index)))
@@ -377,7 +380,8 @@ class PairMatcher:
             return fit_control_planes(control, xyz, np.empty(0, np.int64), k=3, max_radius=0.0)
         cell = self.settings.overlap_cell_m
         near_cells = control_cells(control[:, :2], cell)
-        candidates = np.flatnonzero(np.isin(ps.point_cells, near_cells))
+        candidates = np.flatnonzero(np.isin(self.footprint.keys(ps.strip.xyz[:, :2]),
+                                            near_cells))
         # Twice the radius that holds k points at the strip's density: sparser than that
         # (a gap, the strip's edge) the neighbours would not surround the control point.
         radius = min(2.0 * math.sqrt(k_points / (math.pi * ps.density)), cell)

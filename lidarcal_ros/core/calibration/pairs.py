@@ -83,10 +83,12 @@ class PreparedStrip:
     """A strip with what the calibration computes once."""
 
     strip: Strip
-    geometry0: LaserGeometry  # at the delivered points
+    #: The firing frames of the delivered points (:meth:`LaserGeometry.firing_frames`).
+    geometry0: LaserGeometry
     density: float  # points per m^2 over its footprint
-    point_cells: np.ndarray  # footprint cell key of every point (int64)
-    cells: np.ndarray  # sorted unique footprint cells
+    #: Its sorted unique footprint cells (those of its points: ``FootprintGrid.keys``, not
+    #: held: 8 bytes a point)
+    cells: np.ndarray
     priority: np.ndarray  # random rank of every point for sampling, fixed per strip
     choice: ModelChoice  # the point-positioning model it got, and why
     #: What its laser vectors say (as delivered; at the estimate once calibrated: what the
@@ -155,7 +157,7 @@ def find_pair(
     a, b = (i, j) if si.density <= sj.density else (j, i)
     zone = np.intersect1d(strips[a].cells, footprint.interior(strips[b].cells),
                           assume_unique=True)
-    cand = np.flatnonzero(np.isin(strips[a].point_cells, zone))
+    cand = np.flatnonzero(np.isin(footprint.keys(strips[a].strip.xyz[:, :2]), zone))
     if cand.size == 0:
         return None
     if cand.size > max_candidates:

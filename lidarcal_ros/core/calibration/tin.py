@@ -60,7 +60,7 @@ class Tin:
     """
 
     def __init__(self, xyz: np.ndarray, quality: TinQuality) -> None:
-        xyz = np.asarray(xyz, dtype=np.float64)
+        xyz = np.ascontiguousarray(xyz, dtype=np.float64)
         # Triangulate about a local origin: projected coordinates (1e5-1e6 m) would cost qhull
         # digits it needs for sub-millimetre geometry.
         self.origin = xyz.mean(axis=0)
@@ -68,7 +68,9 @@ class Tin:
         self.simplices, self.neighbors = delaunay(local[:, :2])
         self.quality = quality
         self.usable = self._judge(local)
-        self._locator = GridLocator(local[:, :2], self.simplices, self.neighbors)
+        # (the locator reads the points themselves, held anyway, not a local copy)
+        self._locator = GridLocator(xyz, self.simplices, self.neighbors,
+                                    offset=self.origin[:2])
         logger.debug(
             "TIN of %d points: %d triangles, %.0f%% usable",
             xyz.shape[0], self.simplices.shape[0], 100.0 * self.usable.mean(),
@@ -147,11 +149,13 @@ class GridLocator:
 
     Parameters
     ----------
-    xy : (n, 2) float64
-        Vertices (local origin).
+    xy : (n, 2 or more) float64
+        Vertices: their first two columns, less ``offset``, are the triangulation's XY.
     simplices : (m, 3) int
     neighbors : (m, 3) int
         Triangle opposite each vertex, -1 on the hull.
+    offset : (2,) float64 or None
+        The local origin (None: 0); queries are in the local XY.
     """
 
     #: Triangles whose bounding box spans more cells than this are not listed (they are far
@@ -160,26 +164,31 @@ class GridLocator:
     #: Most walking steps before falling back to a scan.
     MAX_WALK = 64
 
-    def __init__(self, xy: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray) -> None:
+    def __init__(self, xy: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray, *,
+                 offset: np.ndarray | None = None) -> None:
         self.xy = np.ascontiguousarray(xy, dtype=np.float64)
+        self.offset = np.zeros(2) if offset is None else \
+            np.ascontiguousarray(offset, dtype=np.float64)
         self.simplices = simplices
         self.neighbors = neighbors
-        box = tin_kernels.triangle_boxes(self.xy, simplices)
-        size = float(np.median(np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]))) \
-            if len(box) else 1.0
+        size = float(np.median(tin_kernels.triangle_sizes(self.xy, self.offset, simplices))) \
+            if len(simplices) else 1.0
         self.cell = max(size, 1e-3)
-        xy = self.xy
-        self.x0 = float(xy[:, 0].min()) if len(xy) else 0.0
-        self.y0 = float(xy[:, 1].min()) if len(xy) else 0.0
-        self.nx = int((xy[:, 0].max() - self.x0) / self.cell) + 1 if len(xy) else 1
-        self.ny = int((xy[:, 1].max() - self.y0) / self.cell) + 1 if len(xy) else 1
+        n = len(self.xy)
+        x = self.xy[:, 0] - self.offset[0] if n else None
+        y = self.xy[:, 1] - self.offset[1] if n else None
+        self.x0 = float(x.min()) if x is not None else 0.0
+        self.y0 = float(y.min()) if y is not None else 0.0
+        self.nx = int((x.max() - self.x0) / self.cell) + 1 if x is not None else 1
+        self.ny = int((y.max() - self.y0) / self.cell) + 1 if y is not None else 1
+        del x, y
         # int32 where the lists cannot outgrow it: a bounded calibration's held points lie
         # in small clusters along 30 km strips, whose grids have millions of empty cells
         most = self.MAX_CELLS_PER_TRIANGLE * len(simplices)
         self.starts = np.empty(self.nx * self.ny + 1,
                                dtype=np.int32 if most < 2**31 else np.int64)
         self.entries = tin_kernels.grid_lists(
-            simplices, box, self.x0, self.y0, self.cell, self.nx, self.ny,
+            self.xy, self.offset, simplices, self.x0, self.y0, self.cell, self.nx, self.ny,
             self.MAX_CELLS_PER_TRIANGLE, self.starts)
 
     def locate(self, q: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
@@ -189,7 +198,8 @@ class GridLocator:
         tin_kernels.locate_points(
             np.ascontiguousarray(q, dtype=np.float64),
             _NO_START if start is None else np.ascontiguousarray(start, dtype=np.int64),
-            self.xy, self.simplices, self.neighbors, self.entries, self.starts, self.x0,
+            self.xy, self.offset, self.simplices, self.neighbors, self.entries, self.starts,
+            self.x0,
             self.y0, self.cell, self.nx, self.ny, self.MAX_WALK, out)
         return out
 

@@ -75,36 +75,56 @@ def tin_quality(local: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray,
                 sloped[t] = False
 
 
+@inlined
+def _box(xy: np.ndarray, off: np.ndarray, simplices: np.ndarray, t: int
+         ) -> tuple[float, float, float, float]:
+    """Bounding box of triangle ``t``: x min, y min, x max, y max (local XY: ``xy - off``)."""
+    a, b, c = simplices[t, 0], simplices[t, 1], simplices[t, 2]
+    ax, bx, cx = xy[a, 0] - off[0], xy[b, 0] - off[0], xy[c, 0] - off[0]
+    ay, by, cy = xy[a, 1] - off[1], xy[b, 1] - off[1], xy[c, 1] - off[1]
+    return min(ax, bx, cx), min(ay, by, cy), max(ax, bx, cx), max(ay, by, cy)
+
+
 @compiled
-def triangle_boxes(xy: np.ndarray, simplices: np.ndarray) -> np.ndarray:
-    """Bounding box of each triangle, ``(m, 4)``: x min, y min, x max, y max (local XY)."""
+def triangle_sizes(xy: np.ndarray, off: np.ndarray, simplices: np.ndarray) -> np.ndarray:
+    """The larger side of each triangle's bounding box, ``(m,)``, m (vertices ``xy - off``:
+    see :func:`grid_lists`)."""
     m = simplices.shape[0]
-    box = np.empty((m, 4))
+    size = np.empty(m)
     for t in range(m):
-        a, b, c = simplices[t, 0], simplices[t, 1], simplices[t, 2]
-        box[t, 0] = min(xy[a, 0], xy[b, 0], xy[c, 0])
-        box[t, 1] = min(xy[a, 1], xy[b, 1], xy[c, 1])
-        box[t, 2] = max(xy[a, 0], xy[b, 0], xy[c, 0])
-        box[t, 3] = max(xy[a, 1], xy[b, 1], xy[c, 1])
-    return box
+        x0, y0, x1, y1 = _box(xy, off, simplices, t)
+        size[t] = max(x1 - x0, y1 - y0)
+    return size
+
+
+@inlined
+def _cells_of(xy: np.ndarray, off: np.ndarray, simplices: np.ndarray, t: int, x0: float,
+              y0: float, cell: float) -> tuple[np.int64, np.int64, np.int64, np.int64]:
+    """First and last grid column and row triangle ``t``'s bounding box touches."""
+    bx0, by0, bx1, by1 = _box(xy, off, simplices, t)
+    return (np.int64((bx0 - x0) // cell), np.int64((by0 - y0) // cell),
+            np.int64((bx1 - x0) // cell), np.int64((by1 - y0) // cell))
 
 
 @compiled
-def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cell: float,
-               nx: int, ny: int, max_cells: int, starts: np.ndarray) -> np.ndarray:
+def grid_lists(xy: np.ndarray, off: np.ndarray, simplices: np.ndarray, x0: float, y0: float,
+               cell: float, nx: int, ny: int, max_cells: int, starts: np.ndarray
+               ) -> np.ndarray:
     """The triangle lists of a uniform grid
     (:class:`lidarcal_ros.core.calibration.tin.GridLocator`).
 
     Each triangle whose bounding box spans at most ``max_cells`` cells is listed in every
     cell the box touches (cell ``(floor((x - x0) / cell), floor((y - y0) / cell))``, index
     ``ix * ny + iy``); the lists are in triangle order, what a stable sort of the cells of
-    every listing gives.
+    every listing gives. The boxes are computed in each of the two passes rather than held
+    (64 bytes a triangle, 128 with their cells: a large TIN's biggest temporaries).
 
     Parameters
     ----------
+    xy : (n, 2 or more) float64; off : (2,) float64
+        Vertices, m: their local XY is ``xy[:, :2] - off`` (computed where used: a copy
+        would cost 16 bytes a point for as long as the grid is held).
     simplices : (m, 3) int
-    box : (m, 4) float64
-        :func:`triangle_boxes`.
     starts : (nx * ny + 1,) int32 or int64
         Receives the start of each cell's list in the returned entries.
 
@@ -117,13 +137,8 @@ def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cel
     n_cells = nx * ny
     counts = starts  # (counted in place: a long strip's grid has millions of cells)
     counts[:] = 0
-    span = np.empty((m, 4), np.int64)
     for t in range(m):
-        ix0 = np.int64((box[t, 0] - x0) // cell)
-        iy0 = np.int64((box[t, 1] - y0) // cell)
-        ix1 = np.int64((box[t, 2] - x0) // cell)
-        iy1 = np.int64((box[t, 3] - y0) // cell)
-        span[t, 0], span[t, 1], span[t, 2], span[t, 3] = ix0, iy0, ix1, iy1
+        ix0, iy0, ix1, iy1 = _cells_of(xy, off, simplices, t, x0, y0, cell)
         if (ix1 - ix0 + 1) * (iy1 - iy0 + 1) <= max_cells:
             for cy in range(iy0, iy1 + 1):
                 for cx in range(ix0, ix1 + 1):
@@ -133,7 +148,7 @@ def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cel
     fill = counts[:n_cells].copy()
     entries = np.empty(counts[n_cells], np.int32)
     for t in range(m):
-        ix0, iy0, ix1, iy1 = span[t, 0], span[t, 1], span[t, 2], span[t, 3]
+        ix0, iy0, ix1, iy1 = _cells_of(xy, off, simplices, t, x0, y0, cell)
         if (ix1 - ix0 + 1) * (iy1 - iy0 + 1) > max_cells:
             continue
         for cy in range(iy0, iy1 + 1):
@@ -145,16 +160,16 @@ def grid_lists(simplices: np.ndarray, box: np.ndarray, x0: float, y0: float, cel
 
 
 @inlined
-def _barycentric(xy: np.ndarray, simplices: np.ndarray, t: int, qx: float, qy: float
-                 ) -> tuple[float, float]:
+def _barycentric(xy: np.ndarray, off: np.ndarray, simplices: np.ndarray, t: int, qx: float,
+                 qy: float) -> tuple[float, float]:
     """``(l1, l2) = inv @ (q - a)`` of a query in triangle ``t``: ``a`` its first vertex,
     ``inv`` the inverse of the columns ``b - a``, ``c - a`` (a zero determinant taken as
     infinite). The same operations as the transforms numpy precomputed for every triangle:
     computed where needed, they cost no memory (96 bytes a triangle)."""
     p, q, r = simplices[t, 0], simplices[t, 1], simplices[t, 2]
-    ax, ay = xy[p, 0], xy[p, 1]
-    m00, m10 = xy[q, 0] - ax, xy[q, 1] - ay
-    m01, m11 = xy[r, 0] - ax, xy[r, 1] - ay
+    ax, ay = xy[p, 0] - off[0], xy[p, 1] - off[1]
+    m00, m10 = (xy[q, 0] - off[0]) - ax, (xy[q, 1] - off[1]) - ay
+    m01, m11 = (xy[r, 0] - off[0]) - ax, (xy[r, 1] - off[1]) - ay
     det = m00 * m11 - m01 * m10
     if det == 0:
         det = math.inf
@@ -165,10 +180,10 @@ def _barycentric(xy: np.ndarray, simplices: np.ndarray, t: int, qx: float, qy: f
 
 
 @compiled
-def locate_points(q: np.ndarray, start: np.ndarray, xy: np.ndarray, simplices: np.ndarray,
-                  neighbors: np.ndarray, entries: np.ndarray, starts: np.ndarray, x0: float,
-                  y0: float, cell: float, nx: int, ny: int, max_steps: int,
-                  out: np.ndarray) -> None:
+def locate_points(q: np.ndarray, start: np.ndarray, xy: np.ndarray, off: np.ndarray,
+                  simplices: np.ndarray, neighbors: np.ndarray, entries: np.ndarray,
+                  starts: np.ndarray, x0: float, y0: float, cell: float, nx: int, ny: int,
+                  max_steps: int, out: np.ndarray) -> None:
     """The triangle containing each query
     (:meth:`lidarcal_ros.core.calibration.tin.GridLocator.locate`),
     -1 outside.
@@ -187,8 +202,8 @@ def locate_points(q: np.ndarray, start: np.ndarray, xy: np.ndarray, simplices: n
     q : (k, 2) float64
         Queries, the triangulation's local XY.
     start : (k,) or (0,) int64
-    xy : (n, 2) float64; simplices, neighbors : (m, 3) int
-        The triangulation.
+    xy : (n, 2 or more) float64; off : (2,) float64; simplices, neighbors : (m, 3) int
+        The triangulation (its vertices ``xy[:, :2] - off``).
     entries, starts, x0, y0, cell, nx, ny
         The grid (:func:`grid_lists`).
     out : (k,) int64
@@ -215,7 +230,7 @@ def locate_points(q: np.ndarray, start: np.ndarray, xy: np.ndarray, simplices: n
             continue
         settled = False
         for _ in range(max_steps):
-            l1, l2 = _barycentric(xy, simplices, t, qx, qy)
+            l1, l2 = _barycentric(xy, off, simplices, t, qx, qy)
             worst, low = 0, 1.0 - l1 - l2
             if l1 < low:
                 worst, low = 1, l1
@@ -233,7 +248,7 @@ def locate_points(q: np.ndarray, start: np.ndarray, xy: np.ndarray, simplices: n
             continue
         for e in range(starts[c], starts[c + 1]):  # rare: a degenerate walk
             tri = entries[e]
-            l1, l2 = _barycentric(xy, simplices, tri, qx, qy)
+            l1, l2 = _barycentric(xy, off, simplices, tri, qx, qy)
             if l1 >= -1e-12 and l2 >= -1e-12 and 1.0 - l1 - l2 >= -1e-12:
                 out[i] = tri
                 break
@@ -344,4 +359,4 @@ def best_patches(points: np.ndarray, tri: np.ndarray, simplices: np.ndarray,
 
 
 __all__ = ["best_patches", "grid_lists", "locate_points", "shifted_queries", "tin_quality",
-           "triangle_boxes"]
+           "triangle_sizes"]

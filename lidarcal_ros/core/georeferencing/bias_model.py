@@ -376,11 +376,14 @@ def exact_shift(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray
 
 
 def corrected_geometry(corrected: np.ndarray, frame: LaserGeometry,
-                       index: np.ndarray) -> LaserGeometry:
+                       index: np.ndarray | None) -> LaserGeometry:
     """The geometry :func:`exact_correction` gives the points ``index`` of ``corrected``
     (from :func:`exact_shift` of the same ``frame``), the same bits, without computing it
-    for the others: ``geometry.take(index)``."""
-    index = np.ascontiguousarray(index, dtype=np.int64)
+    for the others: ``geometry.take(index)``; ``index`` None: every point, ``frame``'s own
+    arrays shared (no copy of them)."""
+    every = index is None
+    index = np.arange(corrected.shape[0]) if index is None else \
+        np.ascontiguousarray(index, dtype=np.int64)
     k = index.shape[0]
     rigorous = frame.rotation is not None
     c, s = frame.cos_kappa, frame.sin_kappa
@@ -394,9 +397,10 @@ def corrected_geometry(corrected: np.ndarray, frame: LaserGeometry,
         np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(s, dtype=np.float64),
         _NO_ROTATION if frame.rotation is None else np.ascontiguousarray(frame.rotation),
         index, x, y, z, beta, sb, cb)
-    part = frame.take(index)
+    part = frame if every else frame.take(index)
     return LaserGeometry(x=x, z=z, kappa=part.kappa, beta=beta, origin=part.origin,
-                         cos_kappa=c[index], sin_kappa=s[index], sin_beta=sb, cos_beta=cb,
+                         cos_kappa=c if every else c[index],
+                         sin_kappa=s if every else s[index], sin_beta=sb, cos_beta=cb,
                          heading_from=frame.heading_from, crab_deg=frame.crab_deg,
                          rotation=part.rotation, y=y if rigorous else None,
                          model=frame.model, scanner=frame.scanner, timing=part.timing)
@@ -407,8 +411,8 @@ def _exact(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray, *, with_geo
     """:func:`exact_correction`, its geometry only ``with_geometry`` (else None)."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = xyz.shape[0]
-    if xyz.shape != (np.shape(frame.x)[0], 3):
-        raise ValueError(f"xyz of shape {xyz.shape} for {np.shape(frame.x)[0]} points")
+    if xyz.shape != (frame.origin.shape[0], 3):
+        raise ValueError(f"xyz of shape {xyz.shape} for {frame.origin.shape[0]} points")
     d, moved = _split_timing(delta, frame)
     c, s = frame.cos_kappa, frame.sin_kappa
     if c is None or s is None:

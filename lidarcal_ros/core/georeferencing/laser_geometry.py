@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -107,6 +107,9 @@ class LaserGeometry:
         from the coordinates: ``sin beta = -x / r``, ``cos beta = -z / r`` with ``r`` the
         :attr:`range` (docs/method.md section 10: ``sb = -x / r``, ``cb = -z / r``).
         """
+        if not self.has_laser_frame:
+            raise ValueError("the firing frames alone have no laser vectors: "
+                             "corrected_geometry gives them")
         if self.cos_kappa is None or self.sin_kappa is None:
             self.cos_kappa = np.cos(self.kappa)
             self.sin_kappa = np.sin(self.kappa)
@@ -137,13 +140,37 @@ class LaserGeometry:
         out[:, 2] = v[:, 2]
         return out
 
+    @property
+    def has_laser_frame(self) -> bool:
+        """Whether it holds the laser vectors (``x``, ``z``, ``beta`` ...), not only the
+        firing frames (:meth:`firing_frames`)."""
+        return self.x.shape[0] == self.origin.shape[0]
+
+    def firing_frames(self) -> LaserGeometry:
+        """The firing positions and body frames alone (``origin``, heading or ``rotation``,
+        ``timing``): what a correction starts from. The laser vectors (``x``, ``y``, ``z``,
+        ``beta`` and its sine and cosine: 40-48 bytes a point) are left out, empty;
+        :func:`~lidarcal_ros.core.georeferencing.bias_model.corrected_geometry` gives them
+        where wanted."""
+        c, s = self.cos_kappa, self.sin_kappa
+        if c is None or s is None:
+            c, s = np.cos(self.kappa), np.sin(self.kappa)
+        empty = np.empty(0)
+        return replace(self, x=empty, z=empty, beta=empty, cos_kappa=c, sin_kappa=s,
+                       sin_beta=None, cos_beta=None, y=None)
+
     def take(self, index: np.ndarray) -> LaserGeometry:
-        """A subset of the points (fancy or boolean index)."""
+        """A subset of the points (fancy or boolean index); the firing frames alone stay
+        so."""
         def part(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[index]
 
+        def vector(a: np.ndarray) -> np.ndarray:
+            return a[index] if self.has_laser_frame else a
+
         return LaserGeometry(
-            self.x[index], self.z[index], self.kappa[index], self.beta[index], self.origin[index],
+            vector(self.x), vector(self.z), self.kappa[index], vector(self.beta),
+            self.origin[index],
             cos_kappa=part(self.cos_kappa), sin_kappa=part(self.sin_kappa),
             sin_beta=part(self.sin_beta), cos_beta=part(self.cos_beta),
             heading_from=self.heading_from, crab_deg=self.crab_deg,

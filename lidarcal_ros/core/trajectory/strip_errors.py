@@ -76,6 +76,8 @@ class TrajectoryErrorSettings:
 #: too optimistic (a sigma of a millimetre) would make the strips rigid, their true errors
 #: then pushed into the biases.
 NAVIGATION_SIGMA_FLOOR_M = 0.005
+#: Points whose spline error is evaluated at once (:meth:`StripBasis.error`).
+_ERROR_BLOCK = 65_536
 
 
 def strip_offset_sigmas(trajectory: Trajectory, t0: float, t1: float) -> np.ndarray | None:
@@ -197,8 +199,15 @@ class StripBasis:
         c = np.asarray(coefficients, dtype=np.float64).reshape(-1, 3)
         if self.knots is None:
             return self.values(t) @ c
-        # (sparse: the dense values of every held point of a 30 km strip took gigabytes)
-        return np.asarray(self.sparse_values(t) @ c)
+        # (sparse: the dense values of every held point of a 30 km strip took gigabytes;
+        # in blocks: a whole strip's sparse values and their making took some 150 bytes a
+        # point at once. Each row is its own sum: the same bits either way.)
+        t = np.asarray(t, dtype=np.float64).reshape(-1)
+        out = np.empty((t.shape[0], 3))
+        for start in range(0, t.shape[0], _ERROR_BLOCK):
+            end = start + _ERROR_BLOCK
+            out[start:end] = self.sparse_values(t[start:end]) @ c
+        return out
 
     def prior(self, settings: TrajectoryErrorSettings) -> sparse.csr_matrix:
         """The priors' information (size * 3, size * 3) in units of 1/sigma^2: each

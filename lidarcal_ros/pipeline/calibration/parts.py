@@ -28,7 +28,12 @@ from lidarcal_ros.core.calibration.pair_work import (
     with_tin,
 )
 from lidarcal_ros.core.calibration.pairs import PreparedStrip, StripPair
-from lidarcal_ros.pipeline.executor import CommandTasks, Executor, TaskFuture
+from lidarcal_ros.pipeline.executor import (
+    CommandTasks,
+    Executor,
+    TaskFuture,
+    results_in_order,
+)
 
 __all__ = ["ExecutorPairWork"]
 
@@ -63,7 +68,7 @@ class ExecutorPairWork:
         futures = [self.tasks.submit(fn, self._strip(matcher, p.a), self._strip(matcher, p.b),
                                      PairJob.of(matcher, p, delta, threshold),
                                      key=f"{name}{p.index}") for p in pairs]
-        return [f.result() for f in futures]
+        return results_in_order(futures)
 
     def choose(self, matcher: PairMatcher, pairs: Sequence[StripPair]
                ) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -292,6 +292,26 @@ def test_locate_is_the_numpy_grid_walk_and_scan(max_steps: int,
         assert (expected[inside] >= 0).mean() > 0.99 and (expected[~inside] >= 0).mean() < 0.5
 
 
+def test_locator_on_the_points_themselves_is_the_locator_on_a_local_copy() -> None:
+    # the TIN's locator reads the strip's own (n, 3) points less an offset instead of
+    # holding a local XY copy: the same grid and the same triangles, bit for bit
+    rng = np.random.default_rng(12)
+    origin = np.array([512_345.678, 5_432_109.876, 250.0])
+    xyz = origin + rng.uniform(-60.0, 60.0, (4000, 3))
+    local = xyz - origin
+    simplices, neighbors = delaunay(local[:, :2])
+    copy = GridLocator(np.ascontiguousarray(local[:, :2]), simplices, neighbors)
+    own = GridLocator(xyz, simplices, neighbors, offset=origin[:2])
+    np.testing.assert_array_equal(own.entries, copy.entries)
+    np.testing.assert_array_equal(own.starts, copy.starts)
+    assert (own.cell, own.x0, own.y0, own.nx, own.ny) == \
+        (copy.cell, copy.x0, copy.y0, copy.nx, copy.ny)
+    q = np.vstack([rng.uniform(-70.0, 70.0, (6000, 2)), local[:300, :2]])
+    found = own.locate(q)
+    np.testing.assert_array_equal(found, copy.locate(q))
+    assert (found >= 0).mean() > 0.7
+
+
 def test_shifted_queries_move_by_the_mean_shift_of_their_triangle() -> None:
     rng = np.random.default_rng(3)
     xy = rng.uniform(0.0, 50.0, (500, 2))
