@@ -87,7 +87,7 @@ def test_a_failed_task_raises_before_the_tasks_ahead_of_it_end(
         cluster: DaskExecutor, tmp_path: Path) -> None:
     release = tmp_path / "release"
     failing = cluster.submit(_refuse, 5, key="refuse-5")
-    held = cluster.submit(_held_until, str(release), key="held")
+    held: Any = cluster.submit(_held_until, str(release), key="held")
     try:
         with pytest.raises(InputError, match="value 5 refused"):
             results_in_order([held, failing])

@@ -37,6 +37,7 @@ from lidarcal_ros.core.calibration.iteration import (
 from lidarcal_ros.core.calibration.matching import PairMatcher
 from lidarcal_ros.core.calibration.pair_work import PairWork
 from lidarcal_ros.core.calibration.pairs import (
+    CorrectedStrips,
     PreparedStrip,
     StripPair,
     height_agreement,
@@ -418,7 +419,7 @@ class Calibrator:
 
     def _matched_pairs(
         self, live: Sequence[StripPair], delta: np.ndarray,
-        corrected: dict[int, tuple[np.ndarray, np.ndarray]], iteration: int,
+        corrected: CorrectedStrips, iteration: int,
     ) -> Iterator[tuple[StripPair, Observations, np.ndarray]]:
         """Each live pair's sample matched at ``delta``: the pair, its observations and the
         patch of each sample point (-1: none). Within :meth:`run` every pair is matched at
@@ -492,7 +493,7 @@ class Calibrator:
         while True:
             iteration += 1
             delta = self.delta.copy()
-            corrected: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            corrected: CorrectedStrips = {}
             # Kept correspondences re-expressed at the current estimate (Gauss-Newton form).
             parts = [reexpress_observations(obs, at, delta, self.trajectory)
                      for obs, at in frozen]
@@ -677,7 +678,7 @@ class Calibrator:
 
     def control_residuals(
         self, delta: np.ndarray,
-        corrected: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+        corrected: CorrectedStrips | None = None,
     ) -> list[ControlResidual]:
         """Normal discrepancy of every control point against every strip that sees it, as
         delivered and after correcting the strips by ``delta`` (metres; NaN where the point

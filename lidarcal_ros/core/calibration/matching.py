@@ -16,6 +16,7 @@ from lidarcal_ros.core.adjustment.least_squares import Observations
 from lidarcal_ros.core.calibration.bounded import StripExtent, control_cells
 from lidarcal_ros.core.calibration.control_surface import ControlSurface, fit_control_planes
 from lidarcal_ros.core.calibration.pairs import (
+    CorrectedStrips,
     Correction,
     FootprintGrid,
     PreparedStrip,
@@ -231,9 +232,8 @@ class PairMatcher:
                        not self.strips[k].dropped}, key=lambda k: -len(self.strips[k].strip))
         self.workers.map(self.tin, todo, "building TINs" if todo else None)
 
-    def corrected(self, k: int, delta: np.ndarray, *,
-                  delivered: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Corrected coordinates of strip k and the shift ``delivered - corrected``: by the
+    def corrected(self, k: int, delta: np.ndarray, *, delivered: bool = False) -> np.ndarray:
+        """Corrected coordinates of strip k ((n, 3), map frame, m): by the
         estimate ``delta`` and the strip's trajectory error as estimated, or with
         ``delivered`` by ``delta`` alone (the strips as delivered at ``delta`` zero: what a
         pair's sample points are chosen on, whatever the errors estimated by then).
@@ -256,19 +256,17 @@ class PairMatcher:
                 if ps.geometry0.timing is None:
                     # the geometry only where the design rows want it (:meth:`geometry`): 40
                     # to 48 bytes a held point less
-                    corrected, shift = exact_shift(ps.strip.xyz, ps.geometry0, delta)
+                    corrected, _ = exact_shift(ps.strip.xyz, ps.geometry0, delta)
                 else:
-                    corrected, shift, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
-                                                                  delta)
+                    corrected, _, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
+                                                              delta)
                 removed = error.copy() if error.size and np.any(error) else None
                 if removed is not None:
                     # docs/method.md section 11: X_corrected = X_b - A delta - e_s(t); the laser
                     # geometry stays that of the points before e_s (:meth:`geometry`)
-                    e = self.trajectory.error(k, ps.strip.t)
-                    corrected -= e
-                    shift += e
-            ps.corrected = Correction(key, corrected, shift, geometry, removed)
-        return ps.corrected.corrected, ps.corrected.shift
+                    corrected -= self.trajectory.error(k, ps.strip.t)
+            ps.corrected = Correction(key, corrected, geometry, removed)
+        return ps.corrected.corrected
 
     def geometry(self, k: int, index: np.ndarray) -> tuple[LaserGeometry, np.ndarray]:
         """The laser geometry of strip ``k``'s points ``index`` (any shape) at its latest
@@ -309,24 +307,27 @@ class PairMatcher:
 
     def match_pair(
         self, pair: StripPair, points_idx: np.ndarray, delta: np.ndarray,
-        corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float,
+        corrected: CorrectedStrips, threshold: float,
     ) -> PatchMatches:
         """Match the points ``points_idx`` of the pair's strip ``a`` to the TIN of its strip
         ``b``, both corrected by the estimate ``delta`` (``corrected``: by strip, the
-        corrected points and ``delivered - corrected``), within ``threshold`` metres."""
-        a_xyz, _ = corrected[pair.a]
-        b_xyz, b_shift = corrected[pair.b]
-        shift = b_shift if np.any(delta) or (self._moved(pair.b) and np.any(b_shift)) else None
+        corrected points), within ``threshold`` metres."""
+        a_xyz, b_xyz = corrected[pair.a], corrected[pair.b]
         # The sample is matched every iteration: start each search at its last patch.
         on_sample = points_idx is pair.sample
         start = pair.last_triangle if on_sample else None
         tin = self.tin(pair.b)
         with self.clock("matching"):
             m = match_to_tin(a_xyz[points_idx], tin, b_xyz, max_normal_distance=threshold,
-                             vertex_shift=shift, start=start)
+                             delivered=self._delivered_if_moved(pair.b, delta), start=start)
         if on_sample:
             pair.last_triangle = m.triangle
         return m
+
+    def _delivered_if_moved(self, k: int, delta: np.ndarray) -> np.ndarray | None:
+        """Strip ``k``'s delivered points where ``delta`` or its trajectory error moves
+        them (its TIN's queries are then located in the delivered geometry), else None."""
+        return self.strips[k].strip.xyz if np.any(delta) or self._moved(k) else None
 
     def _moved(self, k: int) -> bool:
         """Strip ``k``'s points are moved by a trajectory error estimated for it."""
@@ -446,7 +447,7 @@ class PairMatcher:
 
     def control_observations(
         self, control: ControlPoints, delta: np.ndarray,
-        corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float,
+        corrected: CorrectedStrips, threshold: float,
     ) -> tuple[Observations, list[tuple[int, int, float]]]:
         """Match the control points to the TINs of the strips whose footprint holds them
         (:meth:`match_pair`'s arguments): their correspondences (eq. [12]), and (control
@@ -463,12 +464,11 @@ class PairMatcher:
             if not inside.any():
                 continue
             cps = np.flatnonzero(inside)
-            xyz, shift = corrected[k]
+            xyz = corrected[k]
             tin = self.tin(k)
             with self.clock("matching"):
                 m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
-                                 vertex_shift=shift if np.any(delta) or
-                                 (self._moved(k) and np.any(shift)) else None)
+                                 delivered=self._delivered_if_moved(k, delta))
             if not m.valid.any():
                 continue
             # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate: on the plane of the
@@ -506,7 +506,7 @@ class PairMatcher:
         for pair, (sample, before) in zip(pairs, chosen, strict=True):
             pair.sample, pair.before = sample, before
 
-    def choose_sample(self, pair: StripPair, delivered: dict[int, tuple[np.ndarray, np.ndarray]]
+    def choose_sample(self, pair: StripPair, delivered: CorrectedStrips
                       ) -> tuple[np.ndarray, np.ndarray]:
         """A pair's sample points (indices into its strip ``a``) and their normal distances
         (m) to strip ``b`` as delivered (its "before" QA): its candidates matched at zero
@@ -518,7 +518,7 @@ class PairMatcher:
         return sample, before[np.isfinite(before)]
 
     def sample_distances(self, pair: StripPair, delta: np.ndarray,
-                         corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float
+                         corrected: CorrectedStrips, threshold: float
                          ) -> np.ndarray:
         """The normal distances (m) of the pair's sample points matched at ``delta``
         (:meth:`match_pair`'s arguments), those matched only: its "after" QA."""
@@ -527,7 +527,7 @@ class PairMatcher:
         return m.distance[m.valid]
 
     def observe(self, pair: StripPair, delta: np.ndarray,
-                corrected: dict[int, tuple[np.ndarray, np.ndarray]], threshold: float
+                corrected: CorrectedStrips, threshold: float
                 ) -> tuple[Observations, np.ndarray]:
         """The pair's sample matched at ``delta`` (:meth:`match_pair`'s arguments): its
         correspondences and the patch of each sample point (-1: none)."""
@@ -537,7 +537,7 @@ class PairMatcher:
 
     def match_samples(
         self, delta: np.ndarray
-    ) -> tuple[list[tuple[StripPair, PatchMatches]], dict[int, tuple[np.ndarray, np.ndarray]]]:
+    ) -> tuple[list[tuple[StripPair, PatchMatches]], CorrectedStrips]:
         """Match the sample points of every pair holding its points at the estimate ``delta``
         (first threshold), choosing the samples of pairs met for the first time.
 
@@ -555,13 +555,13 @@ class PairMatcher:
 
         return list(zip(live, self.workers.map(match, live), strict=True)), corrected
 
-    def corrected_all(self, delta: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def corrected_all(self, delta: np.ndarray) -> CorrectedStrips:
         """:meth:`corrected` of every strip that holds its points."""
         return self.corrected_many((k for k in range(len(self.strips))
                                     if not self.strips[k].dropped), delta)
 
     def corrected_many(self, strips: Iterable[int], delta: np.ndarray, *,
-                       delivered: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+                       delivered: bool = False) -> CorrectedStrips:
         """:meth:`corrected` of ``strips`` (in the threads)."""
         ks = sorted(set(strips))
         return dict(zip(ks, self.workers.map(

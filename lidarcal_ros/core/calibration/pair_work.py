@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Protocol, cast
 import numpy as np
 
 from lidarcal_ros.core.adjustment.least_squares import Observations
-from lidarcal_ros.core.calibration.pairs import PreparedStrip, StripPair
+from lidarcal_ros.core.calibration.pairs import CorrectedStrips, PreparedStrip, StripPair
 from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import Tin
 from lidarcal_ros.core.params import N_PARAMETERS
@@ -100,7 +100,7 @@ def _matcher(a: PreparedStrip, b: PreparedStrip, job: PairJob) -> PairMatcher:
 
 
 def _corrected(matcher: PairMatcher, job: PairJob, *, delivered: bool = False
-               ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+               ) -> CorrectedStrips:
     return {k: matcher.corrected(k, job.delta, delivered=delivered)
             for k in (job.pair.a, job.pair.b)}
 

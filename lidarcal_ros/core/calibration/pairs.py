@@ -67,8 +67,9 @@ class Correction(NamedTuple):
     PairMatcher.corrected`)."""
 
     key: bytes  # the estimate and trajectory error it is of (their bytes)
-    corrected: np.ndarray  # (n, 3) the corrected points, map frame, m
-    shift: np.ndarray  # (n, 3) delivered - corrected, m
+    #: (n, 3) the corrected points, map frame, m (their shift, delivered - corrected, is
+    #: computed where used: 24 bytes a point)
+    corrected: np.ndarray
     #: Their laser geometry where a timing bias is estimated; else None: the geometry of
     #: the points wanted is computed from them (:meth:`~lidarcal_ros.core.calibration.
     #: matching.PairMatcher.geometry`).
@@ -76,6 +77,11 @@ class Correction(NamedTuple):
     #: The coefficients of the strip's trajectory error removed after the biases (a copy;
     #: None: none): the geometry is that of the points before it (docs/method.md section 11).
     error: np.ndarray | None
+
+
+#: By strip index, the strip's points corrected by an estimate ((n, 3), map frame, m:
+#: :meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.corrected`).
+CorrectedStrips = dict[int, np.ndarray]
 
 
 @dataclass
@@ -261,7 +267,7 @@ def height_agreement(strips: Sequence[PreparedStrip], *, points_per_cell: float 
 
 
 __all__ = [
-    "Correction", "FootprintGrid", "PreparedStrip", "StripPair", "find_pair", "footprint_keys",
-    "ground_speed", "height_agreement", "no_overlap_reason", "outside_strips",
+    "CorrectedStrips", "Correction", "FootprintGrid", "PreparedStrip", "StripPair", "find_pair",
+    "footprint_keys", "ground_speed", "height_agreement", "no_overlap_reason", "outside_strips",
     "stratified_sample",
 ]

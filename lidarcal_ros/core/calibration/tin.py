@@ -205,6 +205,7 @@ class GridLocator:
 
 
 _NO_START = np.zeros(0, dtype=np.int64)
+_NO_VERTICES = np.zeros((0, 3))
 
 
 @dataclass
@@ -246,6 +247,7 @@ def match_to_tin(
     *,
     max_normal_distance: float,
     vertex_shift: np.ndarray | None = None,
+    delivered: np.ndarray | None = None,
     start: np.ndarray | None = None,
 ) -> PatchMatches:
     """Match points to the closest usable patch of a TIN (docs/method.md section 6).
@@ -269,7 +271,12 @@ def match_to_tin(
     vertex_shift : (n, 3) float64, optional
         ``delivered - current`` for each vertex, used to locate queries in the delivered
         triangulation. None when ``vertices`` are the delivered coordinates.
+    delivered : (n, 3) float64, optional
+        Instead of ``vertex_shift``: the vertices as delivered (the shift is then computed
+        at the vertices used, not held).
     """
+    if vertex_shift is not None and delivered is not None:
+        raise ValueError("match_to_tin: vertex_shift or delivered, not both")
     k = points.shape[0]
     out = PatchMatches(
         valid=np.zeros(k, dtype=bool),
@@ -280,8 +287,9 @@ def match_to_tin(
     )
     for b0 in range(0, k, _MATCH_BLOCK):
         b1 = min(k, b0 + _MATCH_BLOCK)
-        _match_block(points[b0:b1], tin, vertices, max_normal_distance, vertex_shift,
-                     None if start is None else start[b0:b1],
+        _match_block(points[b0:b1], tin, vertices, max_normal_distance,
+                     vertex_shift if delivered is None else delivered,
+                     delivered is not None, None if start is None else start[b0:b1],
                      out, slice(b0, b1))
     return out
 
@@ -292,6 +300,7 @@ def _match_block(
     vertices: np.ndarray,
     max_normal_distance: float,
     vertex_shift: np.ndarray | None,
+    shift_is_delivered: bool,
     start: np.ndarray | None,
     out: PatchMatches,
     where: slice,
@@ -308,7 +317,9 @@ def _match_block(
             guess[fresh] = tin.locate(xy[fresh])
         xy2 = tin_kernels.shifted_queries(
             np.ascontiguousarray(xy), guess, tin.simplices,
-            np.ascontiguousarray(vertex_shift, dtype=np.float64))
+            np.ascontiguousarray(vertex_shift, dtype=np.float64),
+            np.ascontiguousarray(vertices, dtype=np.float64) if shift_is_delivered
+            else _NO_VERTICES)
         tri = tin.locate(xy2, guess)
     n = points.shape[0]
     best_tri = np.full(n, -1, dtype=np.int64)

@@ -256,18 +256,25 @@ def locate_points(q: np.ndarray, start: np.ndarray, xy: np.ndarray, off: np.ndar
 
 @compiled
 def shifted_queries(q: np.ndarray, triangle: np.ndarray, simplices: np.ndarray,
-                    vertex_shift: np.ndarray) -> np.ndarray:
+                    shift: np.ndarray, current: np.ndarray) -> np.ndarray:
     """Queries moved by the mean XY shift of the vertices of their triangle (where it is
     >= 0): ``q + vertex_shift[simplices[triangle]].mean(axis=1)[:, :2]``
-    (:func:`lidarcal_ros.core.calibration.tin.match_to_tin`)."""
+    (:func:`lidarcal_ros.core.calibration.tin.match_to_tin`), ``vertex_shift`` being
+    ``shift`` where ``current`` is empty, else ``shift - current`` (``shift`` then the
+    delivered vertices, ``current`` the corrected ones: the shift of the vertices used
+    only)."""
     out = q.copy()
+    difference = current.shape[0] > 0
     for i in range(q.shape[0]):
         t = triangle[i]
         if t < 0:
             continue
         a, b, c = simplices[t, 0], simplices[t, 1], simplices[t, 2]
-        out[i, 0] += (vertex_shift[a, 0] + vertex_shift[b, 0] + vertex_shift[c, 0]) / 3.0
-        out[i, 1] += (vertex_shift[a, 1] + vertex_shift[b, 1] + vertex_shift[c, 1]) / 3.0
+        for j in range(2):
+            sa, sb, sc = shift[a, j], shift[b, j], shift[c, j]
+            if difference:
+                sa, sb, sc = sa - current[a, j], sb - current[b, j], sc - current[c, j]
+            out[i, j] += (sa + sb + sc) / 3.0
     return out
 
 

@@ -323,4 +323,13 @@ def test_shifted_queries_move_by_the_mean_shift_of_their_triangle() -> None:
     found = tri >= 0
     expected[found] += shift[simplices[tri[found]]].mean(axis=1)[:, :2]
     np.testing.assert_array_equal(
-        tin_kernels.shifted_queries(q, tri, simplices, shift), expected)
+        tin_kernels.shifted_queries(q, tri, simplices, shift, np.zeros((0, 3))), expected)
+    # the shift of the vertices used, from the delivered and the corrected vertices: the
+    # bits of the shift held whole (delivered - corrected)
+    delivered = rng.uniform(0.0, 50.0, (500, 3)) + np.array([512_000.0, 5_400_000.0, 100.0])
+    corrected = delivered - shift
+    held = delivered - corrected
+    expected = q.copy()
+    expected[found] += held[simplices[tri[found]]].mean(axis=1)[:, :2]
+    np.testing.assert_array_equal(
+        tin_kernels.shifted_queries(q, tri, simplices, delivered, corrected), expected)
