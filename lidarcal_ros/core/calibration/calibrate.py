@@ -252,6 +252,10 @@ class Calibrator:
                 pair.sample, before = samples[key]
                 pair.candidates = pair.sample
                 pair.before = before
+        if all(pair.sample is not None for pair in self.pairs):
+            # every sample chosen: the sampling priorities are not needed (8 bytes a point)
+            for ps in self.strips:
+                ps.priority = np.empty(0)
 
     # ------------------------------------------------------------------ strips
     @property

@@ -32,7 +32,7 @@ from lidarcal_ros.core.georeferencing.bias_model import (
     add_geometry_normal_rows,
     corrected_geometry,
     exact_correction,
-    exact_shift,
+    exact_points,
 )
 from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import (
@@ -256,7 +256,7 @@ class PairMatcher:
                 if ps.geometry0.timing is None:
                     # the geometry only where the design rows want it (:meth:`geometry`): 40
                     # to 48 bytes a held point less
-                    corrected, _ = exact_shift(ps.strip.xyz, ps.geometry0, delta)
+                    corrected = exact_points(ps.strip.xyz, ps.geometry0, delta)
                 else:
                     corrected, _, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
                                                               delta)

@@ -95,7 +95,9 @@ class PreparedStrip:
     #: Its sorted unique footprint cells (those of its points: ``FootprintGrid.keys``, not
     #: held: 8 bytes a point)
     cells: np.ndarray
-    priority: np.ndarray  # random rank of every point for sampling, fixed per strip
+    #: Random rank of every point for sampling, fixed per strip (empty once every sample is
+    #: chosen: :meth:`~lidarcal_ros.core.calibration.calibrate.Calibrator.use_samples`)
+    priority: np.ndarray
     choice: ModelChoice  # the point-positioning model it got, and why
     #: What its laser vectors say (as delivered; at the estimate once calibrated: what the
     #: biases do not explain).
@@ -167,8 +169,11 @@ def find_pair(
     if cand.size == 0:
         return None
     if cand.size > max_candidates:
-        prio = strips[a].priority[cand]
-        cand = np.sort(cand[np.argpartition(prio, max_candidates)[:max_candidates]])
+        if strips[a].priority.size == len(strips[a].strip):
+            prio = strips[a].priority[cand]
+            cand = np.sort(cand[np.argpartition(prio, max_candidates)[:max_candidates]])
+        else:  # (released: the samples are given, replacing the candidates)
+            cand = cand[:max_candidates]
     return StripPair(index, a, b, coverage, cand)
 
 

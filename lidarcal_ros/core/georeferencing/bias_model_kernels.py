@@ -77,7 +77,8 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
     boresight : (3, 3) float64
         :func:`~lidarcal_ros.core.georeferencing.bias_model.boresight_matrix` of ``delta``.
     corrected, shift : (n, 3) float64
-        Receive the corrected points and ``xyz - corrected``, m.
+        Receive the corrected points and ``xyz - corrected``, m (``shift`` empty: not
+        computed).
     x, y, z, beta, sin_beta, cos_beta : (n,) float64
         Receive the geometry of the corrected points (``y`` only for the rigorous model:
         pass an empty array for the level one).
@@ -89,6 +90,7 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
     """
     n = xyz.shape[0]
     rigorous = rotation.shape[0] == n and n > 0
+    with_shift = shift.shape[0] == n
     d0, d1, d2, d6, d7 = delta[0], delta[1], delta[2], delta[6], delta[7]
     b = boresight
     for i in range(n):
@@ -115,9 +117,10 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
                                  -r_true * math.sin(theta), ry, -r_true * math.cos(theta))
         cx, cy, cz = ox + mx, oy + my, oz + mz
         corrected[i, 0], corrected[i, 1], corrected[i, 2] = cx, cy, cz
-        shift[i, 0] = xyz[i, 0] - cx
-        shift[i, 1] = xyz[i, 1] - cy
-        shift[i, 2] = xyz[i, 2] - cz
+        if with_shift:
+            shift[i, 0] = xyz[i, 0] - cx
+            shift[i, 1] = xyz[i, 1] - cy
+            shift[i, 2] = xyz[i, 2] - cz
         if with_geometry:
             _geometry_at(rigorous, rotation, cos_kappa, sin_kappa, i, i, cx - ox, cy - oy,
                          cz - oz, x, y, z, beta, sin_beta, cos_beta)

@@ -17,6 +17,7 @@ from lidarcal_ros.core.georeferencing.bias_model import (
     boresight_matrix,
     corrected_geometry,
     exact_correction,
+    exact_points,
     exact_shift,
     geometry_normal_rows,
 )
@@ -112,7 +113,19 @@ def test_the_geometry_of_some_corrected_points_is_that_of_all_to_the_bit(
     got_corrected, got_shift = exact_shift(xyz, g0, DELTA)
     np.testing.assert_array_equal(got_corrected, corrected)
     np.testing.assert_array_equal(got_shift, shift)
+    np.testing.assert_array_equal(exact_points(xyz, g0, DELTA), corrected)
+    # the firing frames alone (what a prepared strip holds) give the same, every point too
+    frames = g0.firing_frames()
+    assert not frames.has_laser_frame and frames.x.size == 0
+    with pytest.raises(ValueError, match="laser vectors"):
+        frames.trig()
+    np.testing.assert_array_equal(exact_points(xyz, frames, DELTA), corrected)
+    every = corrected_geometry(corrected, frames, None)
+    for name in ("x", "z", "beta", "sin_beta", "cos_beta", "cos_kappa", "sin_kappa"):
+        np.testing.assert_array_equal(getattr(every, name), getattr(g, name), name)
     index = np.random.default_rng(2).integers(0, len(xyz), 5000)
+    np.testing.assert_array_equal(corrected_geometry(corrected, frames, index).beta,
+                                  g.take(index).beta)
     part, want = corrected_geometry(corrected, g0, index), g.take(index)
     for name in ("x", "z", "beta", "sin_beta", "cos_beta", "cos_kappa", "sin_kappa", "kappa",
                  "origin"):
@@ -129,6 +142,8 @@ def test_the_geometry_of_some_corrected_points_is_that_of_all_to_the_bit(
     # a timing column moves the points after the geometry is taken: refused
     with pytest.raises(ValueError, match="timing"):
         exact_shift(xyz, replace(g0, timing=np.zeros((len(xyz), 3))), DELTA)
+    with pytest.raises(ValueError, match="timing"):
+        exact_points(xyz, replace(g0, timing=np.zeros((len(xyz), 3))), DELTA)
 
 
 @pytest.mark.parametrize("model", ["level", "rigorous"])
