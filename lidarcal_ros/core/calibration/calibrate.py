@@ -230,6 +230,7 @@ class Calibrator:
         if not mission.strips:
             raise CalibrationError("mission has no strips")
         cal = cls(settings, control=mission.control, progress=progress)
+        cal.matcher.tins_in_turn = whole is not None
         cal.dropped_non_finite = mission.dropped_non_finite
         cal.thinned_points = mission.thinned_points
         for k, strip in enumerate(mission.strips):
@@ -818,6 +819,7 @@ def calibrate(
                         control=mission.control, progress=progress)
     second.dropped_non_finite, second.thinned_points = first.dropped_non_finite, \
         first.thinned_points
+    second.matcher.tins_in_turn = first.matcher.tins_in_turn
     for ps in first.strips:
         second.add_prepared_strip(ps)
     if samples is not None:

@@ -89,6 +89,10 @@ class PairMatcher:
                                           settings.trajectory.knot_interval_s)
         #: Where the per-pair matching runs instead of the threads (other processes), if set.
         self.remote: PairWork | None = None
+        #: Build the TINs one at a time (a bounded-memory calibration: Triangle holds the
+        #: interpreter lock anyway, and a second strip's temporaries beside its mesh raised
+        #: the peak)
+        self.tins_in_turn = False
 
     @property
     def n_points(self) -> int:
@@ -230,7 +234,8 @@ class PairMatcher:
         """Build the TINs of ``strips`` not built yet (largest first, in the threads)."""
         todo = sorted({k for k in strips if self.strips[k].tin is None and
                        not self.strips[k].dropped}, key=lambda k: -len(self.strips[k].strip))
-        self.workers.map(self.tin, todo, "building TINs" if todo else None)
+        self.workers.map(self.tin, todo, "building TINs" if todo else None,
+                         in_turn=self.tins_in_turn)
 
     def corrected(self, k: int, delta: np.ndarray, *, delivered: bool = False) -> np.ndarray:
         """Corrected coordinates of strip k ((n, 3), map frame, m): by the

@@ -87,13 +87,14 @@ class WorkerPool:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    def map(self, fn: Callable[[_T], _R], items: Sequence[_T], stage: str | None = None
-            ) -> list[_R]:
-        """``[fn(item) for item in items]``, in the threads while they run, reporting
-        progress in ``stage``."""
+    def map(self, fn: Callable[[_T], _R], items: Sequence[_T], stage: str | None = None, *,
+            in_turn: bool = False) -> list[_R]:
+        """``[fn(item) for item in items]``, in the threads while they run (``in_turn``: one
+        after another in the caller's thread all the same), reporting progress in
+        ``stage``."""
         if stage:
             self._progress(stage, 0.0)
-        if self._pool is None or len(items) < 2:
+        if self._pool is None or len(items) < 2 or in_turn:
             out = []
             for i, item in enumerate(items):
                 out.append(fn(item))
