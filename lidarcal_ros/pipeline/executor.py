@@ -15,10 +15,10 @@ import os
 import re
 import uuid
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, cast
 from urllib.parse import urlsplit
 
 from lidarcal_ros.errors import ConfigError
@@ -26,7 +26,7 @@ from lidarcal_ros.errors import ConfigError
 __all__ = [
     "CONNECT_TIMEOUT_S", "LOCAL_WORKER_MEMORY_BYTES", "CommandTasks", "DaskExecutor",
     "DaskTarget", "Executor", "SerialExecutor", "TaskFuture", "local_worker_limit",
-    "open_executor", "parse_dask_option", "results_in_order",
+    "open_executor", "parse_dask_option", "results_in_order", "results_in_turn",
 ]
 
 logger = logging.getLogger(__name__)
@@ -95,19 +95,31 @@ class SerialExecutor:
         self.close()
 
 
-def results_in_order(futures: Sequence[TaskFuture[T]]) -> list[T]:
-    """Each future's value, in order. A task that fails for good (its exception, or Dask's
-    ``KilledWorker`` once its workers died too often) raises here as soon as it has failed,
-    not after every task before it has ended: a cluster short of memory ends the command
-    instead of restarting its workers for as long as the others take."""
+def results_in_turn(futures: Sequence[TaskFuture[T]]) -> Iterator[T]:
+    """Each future's value, in order, each as soon as it and those before it are done. A
+    task that fails for good (its exception, or Dask's ``KilledWorker`` once its workers died
+    too often) raises here as soon as it has failed, not after every task before it has
+    ended: a cluster short of memory ends the command instead of restarting its workers for
+    as long as the others take."""
     remote = [f for f in futures if not isinstance(f, Future)]
+    finished: Iterator[Any] = iter(())
     if remote:
         from distributed import as_completed
 
-        for future in as_completed(remote):
-            if future.status == "error":
-                future.result()  # (raises the task's exception)
-    return [f.result() for f in futures]
+        finished = iter(as_completed(remote))
+    for future in futures:
+        while not isinstance(future, Future) and not cast(Any, future).done():
+            other = next(finished, None)
+            if other is None:
+                break
+            if other.status == "error":
+                other.result()  # (raises the task's exception)
+        yield future.result()
+
+
+def results_in_order(futures: Sequence[TaskFuture[T]]) -> list[T]:
+    """Each future's value, in order (:func:`results_in_turn`: a failure raises at once)."""
+    return list(results_in_turn(futures))
 
 
 def _value(value: T) -> T:

@@ -25,6 +25,7 @@ from lidarcal_ros.pipeline.executor import (
     open_executor,
     parse_dask_option,
     results_in_order,
+    results_in_turn,
 )
 
 cluster = helpers_dask.cluster
@@ -100,6 +101,23 @@ def test_a_failed_task_raises_before_the_tasks_ahead_of_it_end(
         done = [serial.submit(_pid, key="a"), serial.submit(_refuse, 6, key="b")]
         with pytest.raises(InputError, match="value 6 refused"):
             results_in_order(done)
+
+
+def test_results_in_turn_come_in_order_and_a_failure_ahead_raises_at_once(
+        cluster: DaskExecutor, tmp_path: Path) -> None:
+    release = tmp_path / "release"
+    first = cluster.submit(_pid, key="pid-first")
+    failing = cluster.submit(_refuse, 7, key="refuse-7")
+    held: Any = cluster.submit(_held_until, str(release), key="held-2")
+    try:
+        results = results_in_turn([first, held, failing])
+        assert next(results) == first.result()
+        with pytest.raises(InputError, match="value 7 refused"):
+            next(results)
+        assert held.status == "pending"  # (the failure behind it raised while it ran)
+    finally:
+        release.touch()
+    assert list(results_in_turn([held, first])) == ["released", first.result()]
 
 
 def test_closing_ends_every_process_of_the_local_cluster() -> None:

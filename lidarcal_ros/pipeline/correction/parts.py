@@ -34,7 +34,7 @@ from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
 from lidarcal_ros.pipeline.correction.corrected_cloud import CorrectionStats
 from lidarcal_ros.pipeline.correction.stream import MAX_GRID_GAP_S, StreamCorrector
 from lidarcal_ros.pipeline.correction.trajectory_gate import TrajectoryGate
-from lidarcal_ros.pipeline.executor import Executor, TaskFuture
+from lidarcal_ros.pipeline.executor import Executor, TaskFuture, results_in_turn
 
 __all__ = ["PARTS_PER_WORKER", "CloudSpan", "correct_in_parts", "plan_parts"]
 
@@ -177,8 +177,8 @@ class _Parts:
     def __iter__(self) -> Any:
         """``(log time ns, array)`` of every corrected cloud, in order (uint8 message bytes
         for a bag, the corrected points for LAS), the parts' counts merged as they come."""
-        for i, (future, path) in enumerate(zip(self._futures, self._paths, strict=True)):
-            part = future.result()
+        for i, (part, path) in enumerate(zip(results_in_turn(self._futures), self._paths,
+                                             strict=True)):
             self.stats.merge(part.stats)
             for strip, (lo, hi) in part.strip_spans.items():
                 old = self.strip_spans.get(strip, (lo, hi))

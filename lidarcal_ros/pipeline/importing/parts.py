@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 
 from lidarcal_ros.io.survey.las_reader import LasFileInfo
-from lidarcal_ros.pipeline.executor import Executor
+from lidarcal_ros.pipeline.executor import Executor, results_in_turn
 from lidarcal_ros.pipeline.importing.options import ImportOptions
 from lidarcal_ros.pipeline.importing.points import (
     PointsFrame,
@@ -61,8 +61,8 @@ def read_in_parts(infos: list[LasFileInfo], store: RunStore, frame: PointsFrame,
     futures = [executor.submit(_read_one, info, frame, options, folder,
                                key=f"lidarcal-import-{folder}-{i}")
                for i, info in enumerate(infos)]
-    for i, future in enumerate(futures):
-        merge_read(read, future.result())
+    for i, part in enumerate(results_in_turn(futures)):
+        merge_read(read, part)
         progress("reading", (i + 1) / len(futures))
     check_points_read(read, options)
     return read

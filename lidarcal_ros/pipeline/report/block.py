@@ -38,7 +38,12 @@ from lidarcal_ros.pipeline.correction.apply import (
     surface_points,
     trajectory_heading,
 )
-from lidarcal_ros.pipeline.executor import CommandTasks, Executor, SerialExecutor
+from lidarcal_ros.pipeline.executor import (
+    CommandTasks,
+    Executor,
+    SerialExecutor,
+    results_in_turn,
+)
 
 __all__ = [
     "EXCLUDED_FLAGS", "FOOTPRINT_CELL_M", "MAP_MAX_CELLS", "MAP_STRIP_SPACINGS",
@@ -245,10 +250,11 @@ def block_pass(
     futures = [tasks.submit(_strip_pass, tasks.send(strip, f"strip{strip.strip_id}"),
                             trajectory, settings, grids, key=f"pass{k}")
                for k, strip in enumerate(strips)]
-    for k, (strip, future) in enumerate(zip(strips, futures, strict=True)):
+    if progress is not None:
+        progress("correcting strips", 0.0)
+    for k, (strip, part) in enumerate(zip(strips, results_in_turn(futures), strict=True)):
         if progress is not None:
             progress("correcting strips", k / len(strips))
-        part = future.result()
         out.surfaces.append(part.surface)
         out.footprints.append(part.footprint)
         out.rows.append(part.row)
