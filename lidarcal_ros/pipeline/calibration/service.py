@@ -255,17 +255,12 @@ class CalibrationService:
     def _open_stream(self) -> StreamingCalibration:
         """The checkpoint's calibration if there is a checkpoint to resume from, else a new
         one."""
-        kwargs: dict[str, Any] = {"max_points": self.options.max_points,
-                                  "strip_gap_s": float(self.options.strip_gap_s)}
         path = self.options.checkpoint_file
         if path and Path(path).is_file():
             try:
                 state = read_checkpoint(path)
-                if state.sensor is not None:  # a mounting's calibration, where it was
-                    self.sensor.restore(state.sensor)
-                    kwargs["settings_of"] = self._mounting_settings
                 self._control = state.control
-                stream = StreamingCalibration.from_checkpoint(state, self.config, **kwargs)
+                stream = self._resumed(state)
             except LidarcalError as exc:
                 logger.error("checkpoint not used: %s; starting afresh", exc)
                 self.sensor.reset()
@@ -276,7 +271,18 @@ class CalibrationService:
                             "normal equations", path, stream.strip_ids, stream.n_points,
                             stream.normal_equations.count)
                 return stream
-        return StreamingCalibration(self.config, **kwargs)
+        return StreamingCalibration(self.config, max_points=self.options.max_points,
+                                    strip_gap_s=float(self.options.strip_gap_s))
+
+    def _resumed(self, state: StreamCheckpoint) -> StreamingCalibration:
+        """The calibration ``state`` holds, with the feed of clouds in the sensor's frame it
+        had (a mounting's calibration, where it was)."""
+        if state.sensor is not None:
+            self.sensor.restore(state.sensor)
+        return StreamingCalibration.from_checkpoint(
+            state, self.config, max_points=self.options.max_points,
+            strip_gap_s=float(self.options.strip_gap_s),
+            settings_of=self._mounting_settings if state.sensor is not None else None)
 
     def _new_feed(self, config: FlightConfig) -> SensorFrameFeed:
         return SensorFrameFeed(base_frame=config["sensor_frame.base_frame"],
@@ -533,12 +539,7 @@ class CalibrationService:
         state, self._before_idle = self._before_idle, None
         if state is None:
             return
-        if state.sensor is not None:
-            self.sensor.restore(state.sensor)
-        self._stream = StreamingCalibration.from_checkpoint(
-            state, self.config, max_points=self.options.max_points,
-            strip_gap_s=float(self.options.strip_gap_s),
-            settings_of=self._mounting_settings if state.sensor is not None else None)
+        self._stream = self._resumed(state)
         logger.warning("input again after the idle close: the strips it closed are open "
                        "again (%s)", ", ".join(map(str, self._stream.open_strip_ids)) or
                        "none")
