@@ -30,9 +30,9 @@ from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import PatchMatches, Tin, match_to_tin
 from lidarcal_ros.core.georeferencing.bias_model import (
     add_geometry_normal_rows,
+    correct_points_exact,
     corrected_geometry,
     exact_correction,
-    exact_points,
 )
 from lidarcal_ros.core.georeferencing.laser_geometry import LaserGeometry, PositioningModel
 from lidarcal_ros.core.georeferencing.rigorous import (
@@ -261,7 +261,7 @@ class PairMatcher:
                 if ps.geometry0.timing is None:
                     # the geometry only where the design rows want it (:meth:`geometry`): 40
                     # to 48 bytes a held point less
-                    corrected = exact_points(ps.strip.xyz, ps.geometry0, delta)
+                    corrected = correct_points_exact(ps.strip.xyz, ps.geometry0, delta)
                 else:
                     corrected, _, geometry = exact_correction(ps.strip.xyz, ps.geometry0,
                                                               delta)

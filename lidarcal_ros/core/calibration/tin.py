@@ -174,13 +174,11 @@ class GridLocator:
         size = float(np.median(tin_kernels.triangle_sizes(self.xy, self.offset, simplices))) \
             if len(simplices) else 1.0
         self.cell = max(size, 1e-3)
-        n = len(self.xy)
-        x = self.xy[:, 0] - self.offset[0] if n else None
-        y = self.xy[:, 1] - self.offset[1] if n else None
-        self.x0 = float(x.min()) if x is not None else 0.0
-        self.y0 = float(y.min()) if y is not None else 0.0
-        self.nx = int((x.max() - self.x0) / self.cell) + 1 if x is not None else 1
-        self.ny = int((y.max() - self.y0) / self.cell) + 1 if y is not None else 1
+        x, y = self.xy[:, 0] - self.offset[0], self.xy[:, 1] - self.offset[1]  # (local)
+        self.x0 = float(x.min()) if len(x) else 0.0
+        self.y0 = float(y.min()) if len(y) else 0.0
+        self.nx = int((x.max() - self.x0) / self.cell) + 1 if len(x) else 1
+        self.ny = int((y.max() - self.y0) / self.cell) + 1 if len(y) else 1
         del x, y
         # int32 where the lists cannot outgrow it: a bounded calibration's held points lie
         # in small clusters along 30 km strips, whose grids have millions of empty cells
@@ -199,8 +197,7 @@ class GridLocator:
             np.ascontiguousarray(q, dtype=np.float64),
             _NO_START if start is None else np.ascontiguousarray(start, dtype=np.int64),
             self.xy, self.offset, self.simplices, self.neighbors, self.entries, self.starts,
-            self.x0,
-            self.y0, self.cell, self.nx, self.ny, self.MAX_WALK, out)
+            self.x0, self.y0, self.cell, self.nx, self.ny, self.MAX_WALK, out)
         return out
 
 
@@ -285,12 +282,16 @@ def match_to_tin(
         weights=np.zeros((k, 3)),
         distance=np.full(k, np.nan),
     )
+    # the shift as tin_kernels.shifted_queries takes it: held, or delivered - current
+    shift: tuple[np.ndarray, np.ndarray] | None = None
+    if delivered is not None:
+        shift = (delivered, vertices)
+    elif vertex_shift is not None:
+        shift = (vertex_shift, _NO_VERTICES)
     for b0 in range(0, k, _MATCH_BLOCK):
         b1 = min(k, b0 + _MATCH_BLOCK)
-        _match_block(points[b0:b1], tin, vertices, max_normal_distance,
-                     vertex_shift if delivered is None else delivered,
-                     delivered is not None, None if start is None else start[b0:b1],
-                     out, slice(b0, b1))
+        _match_block(points[b0:b1], tin, vertices, max_normal_distance, shift,
+                     None if start is None else start[b0:b1], out, slice(b0, b1))
     return out
 
 
@@ -299,14 +300,13 @@ def _match_block(
     tin: Tin,
     vertices: np.ndarray,
     max_normal_distance: float,
-    vertex_shift: np.ndarray | None,
-    shift_is_delivered: bool,
+    shift: tuple[np.ndarray, np.ndarray] | None,
     start: np.ndarray | None,
     out: PatchMatches,
     where: slice,
 ) -> None:
     xy = points[:, :2]
-    if vertex_shift is None:
+    if shift is None:
         tri = tin.locate(xy, start)
     else:
         # Move the query into the delivered geometry by the local shift of the TIN, taken at
@@ -317,9 +317,7 @@ def _match_block(
             guess[fresh] = tin.locate(xy[fresh])
         xy2 = tin_kernels.shifted_queries(
             np.ascontiguousarray(xy), guess, tin.simplices,
-            np.ascontiguousarray(vertex_shift, dtype=np.float64),
-            np.ascontiguousarray(vertices, dtype=np.float64) if shift_is_delivered
-            else _NO_VERTICES)
+            *(np.ascontiguousarray(a, dtype=np.float64) for a in shift))
         tri = tin.locate(xy2, guess)
     n = points.shape[0]
     best_tri = np.full(n, -1, dtype=np.int64)

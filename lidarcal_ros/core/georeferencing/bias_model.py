@@ -363,30 +363,10 @@ def exact_correction(
     return corrected, shift, geometry
 
 
-def exact_shift(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`exact_correction`'s corrected points and shift (the same bits) without the
-    geometry of every point (40-48 bytes a point): :func:`corrected_geometry` gives it
-    where wanted. ``frame`` without a timing column (the timing bias moves the points after
-    the geometry is taken: :func:`exact_correction` then)."""
-    if frame.timing is not None:
-        raise ValueError("exact_shift of a frame with a timing column: use exact_correction")
-    corrected, shift, _ = _exact(xyz, frame, delta, with_geometry=False)
-    return corrected, shift
-
-
-def exact_points(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray) -> np.ndarray:
-    """:func:`exact_shift`'s corrected points alone (the same bits; the shift, 24 bytes a
-    point, not made)."""
-    if frame.timing is not None:
-        raise ValueError("exact_points of a frame with a timing column: use exact_correction")
-    return _exact(xyz, frame, delta, with_geometry=False, with_shift=False)[0]
-
-
 def corrected_geometry(corrected: np.ndarray, frame: LaserGeometry,
                        index: np.ndarray | None) -> LaserGeometry:
     """The geometry :func:`exact_correction` gives the points ``index`` of ``corrected``
-    (from :func:`exact_shift` of the same ``frame``), the same bits, without computing it
+    (from :func:`correct_points_exact` of the same ``frame``), the same bits, without computing it
     for the others: ``geometry.take(index)``; ``index`` None: every point, ``frame``'s own
     arrays shared (no copy of them)."""
     every = index is None
@@ -414,10 +394,10 @@ def corrected_geometry(corrected: np.ndarray, frame: LaserGeometry,
                          model=frame.model, scanner=frame.scanner, timing=part.timing)
 
 
-def _exact(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray, *, with_geometry: bool,
-           with_shift: bool = True) -> tuple[np.ndarray, np.ndarray, LaserGeometry | None]:
-    """:func:`exact_correction`, its geometry only ``with_geometry`` (else None), its
-    shift only ``with_shift`` (else empty)."""
+def _exact(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray, *, with_geometry: bool
+           ) -> tuple[np.ndarray, np.ndarray, LaserGeometry | None]:
+    """:func:`exact_correction`, its shift and geometry only ``with_geometry`` (else empty
+    and None: 24 and 40-48 bytes a point not made)."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = xyz.shape[0]
     if xyz.shape != (frame.origin.shape[0], 3):
@@ -431,7 +411,7 @@ def _exact(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray, *, with_geo
     if general and not rigorous:
         raise ValueError("a general scanner's laser vectors need the rigorous model")
     corrected = np.empty((n, 3))
-    shift = np.empty((n if with_shift else 0, 3))
+    shift = np.empty((n if with_geometry else 0, 3))
     m = n if with_geometry else 0
     x, z, beta, sb, cb = (np.empty(m) for _ in range(5))
     y = np.empty(m) if rigorous and with_geometry else _NO_COLUMN
@@ -446,7 +426,7 @@ def _exact(xyz: np.ndarray, frame: LaserGeometry, delta: np.ndarray, *, with_geo
         # mounting corrected in that pose, then the point moved back; the laser vector (the
         # geometry) is the mounting's, whatever the time
         corrected -= moved
-        if with_shift:
+        if with_geometry:
             shift += moved
     if not with_geometry:
         return corrected, shift, None
@@ -479,6 +459,6 @@ def add_geometry_normal_rows(out: np.ndarray, normal: np.ndarray, geometry: Lase
 __all__ = [
     "Trig", "add_geometry_normal_rows", "body_columns", "body_normal_rows", "boresight_matrix",
     "correct_geometry", "correct_points", "correct_points_exact", "corrected_geometry",
-    "design_matrix", "exact_correction", "exact_points", "exact_shift", "geometry_design_matrix",
+    "design_matrix", "exact_correction", "geometry_design_matrix",
     "geometry_normal_rows", "geometry_offsets", "normal_design_rows", "point_offsets",
 ]

@@ -77,20 +77,18 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
     boresight : (3, 3) float64
         :func:`~lidarcal_ros.core.georeferencing.bias_model.boresight_matrix` of ``delta``.
     corrected, shift : (n, 3) float64
-        Receive the corrected points and ``xyz - corrected``, m (``shift`` empty: not
-        computed).
+        Receive the corrected points and ``xyz - corrected``, m.
     x, y, z, beta, sin_beta, cos_beta : (n,) float64
         Receive the geometry of the corrected points (``y`` only for the rigorous model:
         pass an empty array for the level one).
     general : bool
         A general scanner's correction (above) instead of a linear one's.
     with_geometry : bool
-        False: the geometry is not computed (its arrays may be empty; where wanted, the
-        geometry of some points comes from :func:`corrected_geometry`).
+        False: neither the shift nor the geometry is computed (their arrays may be empty;
+        where wanted, the geometry of some points comes from :func:`corrected_geometry`).
     """
     n = xyz.shape[0]
     rigorous = rotation.shape[0] == n and n > 0
-    with_shift = shift.shape[0] == n
     d0, d1, d2, d6, d7 = delta[0], delta[1], delta[2], delta[6], delta[7]
     b = boresight
     for i in range(n):
@@ -117,11 +115,10 @@ def exact_correction_and_geometry(xyz: np.ndarray, origin: np.ndarray, cos_kappa
                                  -r_true * math.sin(theta), ry, -r_true * math.cos(theta))
         cx, cy, cz = ox + mx, oy + my, oz + mz
         corrected[i, 0], corrected[i, 1], corrected[i, 2] = cx, cy, cz
-        if with_shift:
+        if with_geometry:
             shift[i, 0] = xyz[i, 0] - cx
             shift[i, 1] = xyz[i, 1] - cy
             shift[i, 2] = xyz[i, 2] - cz
-        if with_geometry:
             _geometry_at(rigorous, rotation, cos_kappa, sin_kappa, i, i, cx - ox, cy - oy,
                          cz - oz, x, y, z, beta, sin_beta, cos_beta)
 

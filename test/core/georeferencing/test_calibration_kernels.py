@@ -15,10 +15,9 @@ from lidarcal_ros.core.calibration.tin import GridLocator, Tin, TinBackend, TinQ
 from lidarcal_ros.core.georeferencing.bias_model import (
     add_geometry_normal_rows,
     boresight_matrix,
+    correct_points_exact,
     corrected_geometry,
     exact_correction,
-    exact_points,
-    exact_shift,
     geometry_normal_rows,
 )
 from lidarcal_ros.core.georeferencing.laser_geometry import (
@@ -103,23 +102,22 @@ def test_exact_correction_is_the_numpy_correction_and_geometry(
 @pytest.mark.parametrize("model", ["level", "rigorous", "general"])
 def test_the_geometry_of_some_corrected_points_is_that_of_all_to_the_bit(
         geometries: dict[str, tuple[np.ndarray, LaserGeometry]], model: str) -> None:
-    """exact_shift gives exact_correction's points and shifts, and corrected_geometry at
+    """correct_points_exact gives exact_correction's points (their shift the bits of ``xyz -
+    corrected``, as the matching computes it where used), and corrected_geometry at
     some of them (repeated, out of order) exact_correction's geometry there, bit for bit;
     a general scanner's (section 12) too."""
     xyz, g0 = geometries["level" if model == "level" else "rigorous"]
     if model == "general":
         g0 = replace(g0, scanner=ScannerKind.GENERAL)
     corrected, shift, g = exact_correction(xyz, g0, DELTA)
-    got_corrected, got_shift = exact_shift(xyz, g0, DELTA)
-    np.testing.assert_array_equal(got_corrected, corrected)
-    np.testing.assert_array_equal(got_shift, shift)
-    np.testing.assert_array_equal(exact_points(xyz, g0, DELTA), corrected)
+    np.testing.assert_array_equal(correct_points_exact(xyz, g0, DELTA), corrected)
+    np.testing.assert_array_equal(shift, xyz - corrected)
     # the firing frames alone (what a prepared strip holds) give the same, every point too
     frames = g0.firing_frames()
     assert not frames.has_laser_frame and frames.x.size == 0
     with pytest.raises(ValueError, match="laser vectors"):
         frames.trig()
-    np.testing.assert_array_equal(exact_points(xyz, frames, DELTA), corrected)
+    np.testing.assert_array_equal(correct_points_exact(xyz, frames, DELTA), corrected)
     every = corrected_geometry(corrected, frames, None)
     for name in ("x", "z", "beta", "sin_beta", "cos_beta", "cos_kappa", "sin_kappa"):
         np.testing.assert_array_equal(getattr(every, name), getattr(g, name), name)
@@ -140,10 +138,6 @@ def test_the_geometry_of_some_corrected_points_is_that_of_all_to_the_bit(
     # the biases moved the points: the geometry is not the delivered one's
     assert np.abs(part.beta - g0.beta[index]).max() > 1e-4
     # a timing column moves the points after the geometry is taken: refused
-    with pytest.raises(ValueError, match="timing"):
-        exact_shift(xyz, replace(g0, timing=np.zeros((len(xyz), 3))), DELTA)
-    with pytest.raises(ValueError, match="timing"):
-        exact_points(xyz, replace(g0, timing=np.zeros((len(xyz), 3))), DELTA)
 
 
 @pytest.mark.parametrize("model", ["level", "rigorous"])
