@@ -51,10 +51,14 @@ class KillingExecutor:
         self.inner, self.marker, self.part = inner, marker, part
         self.workers, self.description = inner.workers, inner.description
 
-    def submit(self, fn: Callable[..., Any], *args: Any, key: str) -> TaskFuture[Any]:
+    def submit(self, fn: Callable[..., Any], *args: Any, key: str,
+               place: str | None = None) -> TaskFuture[Any]:
         if self.part not in key or self.marker.exists():
-            return self.inner.submit(fn, *args, key=key)
-        return self.inner.submit(dies_once, str(self.marker), fn, *args, key=key)
+            return self.inner.submit(fn, *args, key=key, place=place)
+        return self.inner.submit(dies_once, str(self.marker), fn, *args, key=key, place=place)
+
+    def places(self) -> list[str]:
+        return self.inner.places()
 
     def close(self) -> None:
         pass

@@ -59,8 +59,14 @@ class Executor(Protocol):
     #: Words for the summary, e.g. ``"Dask local cluster, 2 worker processes"``.
     description: str
 
-    def submit(self, fn: Callable[..., T], *args: Any, key: str) -> TaskFuture[T]:
-        """Run ``fn(*args)`` (``key``: a name unique among the command's tasks)."""
+    def submit(self, fn: Callable[..., T], *args: Any, key: str,
+               place: str | None = None) -> TaskFuture[T]:
+        """Run ``fn(*args)`` (``key``: a name unique among the command's tasks), on the
+        worker ``place`` (one of :meth:`places`) while it is there."""
+        ...
+
+    def places(self) -> list[str]:
+        """The workers a task can be placed on (none: one place, this process)."""
         ...
 
     def close(self) -> None:
@@ -74,7 +80,8 @@ class SerialExecutor:
     workers = 1
     description = "serial (this process)"
 
-    def submit(self, fn: Callable[..., T], *args: Any, key: str) -> TaskFuture[T]:
+    def submit(self, fn: Callable[..., T], *args: Any, key: str,
+               place: str | None = None) -> TaskFuture[T]:
         """Run ``fn(*args)`` now (an argument that is a future of this executor's: its
         result, as Dask passes a task the results of those it takes); a finished future
         (its exception kept for ``result``)."""
@@ -84,6 +91,10 @@ class SerialExecutor:
         except Exception as exc:  # raised again by result(), as Dask's futures do
             future.set_exception(exc)
         return future
+
+    def places(self) -> list[str]:
+        """None: every task runs here."""
+        return []
 
     def close(self) -> None:
         """Nothing to stop."""
@@ -143,13 +154,15 @@ class CommandTasks:
         #: By id, the value sent and its future (the value held: its id stays its own).
         self._sent: dict[int, tuple[object, TaskFuture[Any]]] = {}
 
-    def submit(self, fn: Callable[..., T], *args: Any, key: str) -> TaskFuture[T]:
-        """``fn(*args)`` on the executor (``key``: the task's name, made unique here)."""
+    def submit(self, fn: Callable[..., T], *args: Any, key: str,
+               place: str | None = None) -> TaskFuture[T]:
+        """``fn(*args)`` on the executor (``key``: the task's name, made unique here; ``place``:
+        :meth:`Executor.submit`'s)."""
         with warnings.catch_warnings():
             # (data in its task is what keeps the work resilient: no other copy to load)
             warnings.filterwarnings("ignore", message=".*[Ll]arge (graph|object)")
             return self.executor.submit(
-                fn, *args, key=f"{self._prefix}-{key}-{next(self._numbers)}")
+                fn, *args, key=f"{self._prefix}-{key}-{next(self._numbers)}", place=place)
 
     def send(self, value: T, name: str) -> TaskFuture[T]:
         """``value`` on the workers, to pass to tasks in its place (sent once however often
@@ -224,12 +237,20 @@ class DaskExecutor:
         self.client, self.cluster, self.description = client, cluster, description
         self.workers = max(len(client.scheduler_info(n_workers=-1)["workers"]), 1)
 
-    def submit(self, fn: Callable[..., T], *args: Any, key: str) -> TaskFuture[T]:
-        """``fn(*args)`` on a worker (retried on another if its worker dies: parts are
-        written atomically and written again whole)."""
-        # (pure=False: a part is run again when asked again, never served from a cache)
-        future: TaskFuture[T] = self.client.submit(fn, *args, key=key, pure=False)
+    def submit(self, fn: Callable[..., T], *args: Any, key: str,
+               place: str | None = None) -> TaskFuture[T]:
+        """``fn(*args)`` on a worker, ``place`` while it lives (retried on another if its
+        worker dies: parts are written atomically and written again whole)."""
+        # (pure=False: a part is run again when asked again, never served from a cache;
+        # a place is loose: a worker that died comes back at another address)
+        where: dict[str, Any] = {} if place is None else {"workers": [place],
+                                                          "allow_other_workers": True}
+        future: TaskFuture[T] = self.client.submit(fn, *args, key=key, pure=False, **where)
         return future
+
+    def places(self) -> list[str]:
+        """The workers' addresses, as the scheduler knows them now."""
+        return sorted(self.client.scheduler_info(n_workers=-1)["workers"])
 
     def close(self) -> None:
         """Close the client, then stop the local cluster (its processes) if this made one."""

@@ -76,6 +76,26 @@ def test_tasks_run_in_other_processes_and_their_errors_come_back(
         cluster.submit(_refuse, 3, key="refuse-3").result()
 
 
+def _address() -> str:
+    """The address of the worker running the task."""
+    from distributed import get_worker
+
+    return str(get_worker().address)
+
+
+def test_a_task_runs_at_its_place_and_a_place_gone_is_no_error(
+        cluster: DaskExecutor) -> None:
+    places = cluster.places()
+    assert len(places) == 2 and all(p.startswith("tcp://127.0.0.1:") for p in places)
+    for i, place in enumerate(places * 3):
+        assert cluster.submit(_address, key=f"at-{i}", place=place).result() == place
+    # (a worker that died comes back at another address: its tasks run elsewhere)
+    assert cluster.submit(_address, key="gone", place="tcp://127.0.0.1:9").result() in places
+    with open_executor(None) as serial:
+        assert serial.places() == []
+        assert serial.submit(_pid, key="here", place=None).result() == os.getpid()
+
+
 def _held_until(release: str) -> str:
     """Runs until the file ``release`` exists (two minutes at most)."""
     end = time.monotonic() + 120.0

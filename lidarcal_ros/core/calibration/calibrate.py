@@ -56,7 +56,6 @@ from lidarcal_ros.core.calibration.tin import TinQuality
 from lidarcal_ros.core.georeferencing.heading import HeadingSource
 from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel, ScannerKind
 from lidarcal_ros.core.georeferencing.local_trajectory import DEFAULT_WINDOW, TrajectoryWindow
-from lidarcal_ros.core.georeferencing.rigorous import laser_vector_qa
 from lidarcal_ros.core.mission import ControlPoints, Mission, Strip, Trajectory
 from lidarcal_ros.core.params import N_PARAMETERS, PARAMETER_NAMES, display_value
 from lidarcal_ros.core.trajectory.strip_errors import (
@@ -223,16 +222,17 @@ class Calibrator:
     def from_mission(
         cls, mission: Mission, settings: CalibrationSettings, *,
         progress: Progress | None = None, whole: WholeStrips | None = None,
-        samples: ChosenSamples | None = None,
+        samples: ChosenSamples | None = None, pair_work: PairWork | None = None,
     ) -> Calibrator:
-        """A calibrator holding every strip of ``mission`` (``whole`` and ``samples``: as
-        :func:`calibrate`)."""
+        """A calibrator holding every strip of ``mission`` (``whole``, ``samples`` and
+        ``pair_work``: as :func:`calibrate`)."""
         if not mission.strips:
             raise CalibrationError("mission has no strips")
         cal = cls(settings, control=mission.control, progress=progress)
         cal.matcher.tins_in_turn = whole is not None
         cal.dropped_non_finite = mission.dropped_non_finite
         cal.thinned_points = mission.thinned_points
+        cal.matcher.remote = pair_work  # (each strip sent as soon as it is prepared)
         for k, strip in enumerate(mission.strips):
             cal.add_strip(strip, mission.trajectory,
                           whole=None if whole is None else whole[strip.strip_id])
@@ -511,11 +511,8 @@ class Calibrator:
                 parts.append(last)
                 yield None
             if control is not None and len(control):
-                corrected.update(self.matcher.corrected_many(
-                    (k for k in range(len(self.strips))
-                     if k not in corrected and not self.strips[k].dropped), delta))
-                parts.append(self.matcher.control_observations(control, delta, corrected,
-                                                        s.max_normal_distance_m)[0])
+                parts.append(self.matcher.control_observations(
+                    control, delta, s.max_normal_distance_m, corrected=corrected)[0])
             obs = Observations.concatenate(parts)
             # the strips corrected at this estimate are not held past the matching: the next
             # correction (the next iteration's, the QA's) then replaces them strip by strip
@@ -651,8 +648,9 @@ class Calibrator:
             parts = [self.matcher.pair_observations(pair, pair.sample, m) for pair, m in matched
                      if pair.sample is not None]
             if self.control is not None and len(self.control):
-                parts.append(self.matcher.control_observations(self.control, delta, corrected,
-                                                        self.settings.max_normal_distance_m)[0])
+                parts.append(self.matcher.control_observations(
+                    self.control, delta, self.settings.max_normal_distance_m,
+                    corrected=corrected)[0])
         return Observations.concatenate(parts)
 
     def pair_discrepancies(self, delta: np.ndarray) -> list[PairDiscrepancies]:
@@ -693,10 +691,8 @@ class Calibrator:
         if control is None or not len(control):
             return []
         before = self._control_matches_before()  # before ``corrected``: it resets geometries
-        if corrected is None:
-            corrected = self.matcher.corrected_all(delta)
         _, found_after = self.matcher.control_observations(
-            control, delta, corrected, self.settings.max_normal_distance_m)
+            control, delta, self.settings.max_normal_distance_m, corrected=corrected)
         after_map = {(c, k): d for c, k, d in found_after}
         return [ControlResidual(control.ids[c], self.strips[k].strip_id, d,
                                 after_map.get((c, k), float("nan")))
@@ -709,11 +705,9 @@ class Calibrator:
             control = self.control
             if control is None or not len(control):
                 return []
-            zero = np.zeros(N_PARAMETERS)
-            delivered = self.matcher.corrected_many(range(len(self.strips)), zero,
-                                                    delivered=True)
             self._control_before = self.matcher.control_observations(
-                control, zero, delivered, self.settings.max_normal_distance_m)[1]
+                control, np.zeros(N_PARAMETERS), self.settings.max_normal_distance_m,
+                delivered=True)[1]
         return self._control_before
 
     def _finish(
@@ -723,12 +717,12 @@ class Calibrator:
         """QA: re-match the samples with the final estimate at the first threshold; the
         laser vectors of the points corrected by it."""
         s = self.settings
-        corrected = self.matcher.corrected_all(delta)
+        remote = self.matcher.remote
+        # (with remote matching the strips are corrected where they are held)
+        corrected = self.matcher.corrected_all(delta) if remote is None else {}
         with self.clock("QA"):
-            for k, ps in enumerate(self.strips):
-                if not ps.dropped:  # (one strip's geometry at a time)
-                    ps.laser_qa = laser_vector_qa(self.matcher.whole_geometry(k),
-                                                  fov_deg=s.fov_deg, speed_mps=ps.speed_mps)
+            for k, qa in self.matcher.laser_qa(delta).items():
+                self.strips[k].laser_qa = qa
 
         def after_of(pair: StripPair) -> np.ndarray:
             if pair.frozen is not None and pair.frozen_delta is not None:
@@ -737,7 +731,6 @@ class Calibrator:
             return self.matcher.sample_distances(pair, delta, corrected,
                                                  s.max_normal_distance_m)
 
-        remote = self.matcher.remote
         if remote is None:
             afters = self.workers.map(after_of, self.pairs)
         else:
@@ -806,20 +799,22 @@ def calibrate(
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
         return _run(Calibrator.from_mission(mission, settings, progress=progress, whole=whole,
-                                            samples=samples), pair_work)
+                                            samples=samples, pair_work=pair_work), pair_work)
     # auto: the trajectory as exact, then with each strip's spline over the same prepared
     # strips (their TINs and geometry shared, as the live calibration shares them); the
     # spline is kept where it fits clearly better (the strips disagree by more than their
     # noise)
     first = Calibrator.from_mission(mission, with_trajectory_model(settings,
                                                                    TrajectoryModel.NONE),
-                                    progress=progress, whole=whole, samples=samples)
+                                    progress=progress, whole=whole, samples=samples,
+                                    pair_work=pair_work)
     exact = _run(first, pair_work)
     second = Calibrator(with_trajectory_model(settings, TrajectoryModel.SPLINE),
                         control=mission.control, progress=progress)
     second.dropped_non_finite, second.thinned_points = first.dropped_non_finite, \
         first.thinned_points
     second.matcher.tins_in_turn = first.matcher.tins_in_turn
+    second.matcher.remote = pair_work
     for ps in first.strips:
         second.add_prepared_strip(ps)
     if samples is not None:

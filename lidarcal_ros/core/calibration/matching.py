@@ -178,6 +178,8 @@ class PairMatcher:
         s = self.settings
         strip = ps.strip
         self.strips.append(ps)
+        if self.remote is not None and not ps.dropped:
+            self.remote.hold(self, len(self.strips) - 1)
         if span is None:
             span = ps.span
         if span is None:
@@ -451,49 +453,79 @@ class PairMatcher:
                                      flat_class_factor=self.settings.flat_class_factor)
 
     def control_observations(
-        self, control: ControlPoints, delta: np.ndarray,
-        corrected: CorrectedStrips, threshold: float,
+        self, control: ControlPoints, delta: np.ndarray, threshold: float, *,
+        corrected: CorrectedStrips | None = None, delivered: bool = False,
     ) -> tuple[Observations, list[tuple[int, int, float]]]:
-        """Match the control points to the TINs of the strips whose footprint holds them
-        (:meth:`match_pair`'s arguments): their correspondences (eq. [12]), and (control
-        index, strip index, normal distance in metres) of each match."""
+        """Match the control points to the TINs of the strips whose footprint holds them,
+        corrected by the estimate ``delta`` (with ``delivered``: by ``delta`` alone, as
+        :meth:`corrected`), within ``threshold`` metres: their correspondences (eq. [12]),
+        and (control index, strip index, normal distance in metres) of each match.
+        ``corrected``: strips corrected so already (by strip)."""
+        cp_cells = self.footprint.keys(control.xyz[:, :2])
+        seen = {k: np.flatnonzero(np.isin(cp_cells, ps.cells))
+                for k, ps in enumerate(self.strips) if not ps.dropped}
+        seen = {k: cps for k, cps in seen.items() if cps.size}
+        if self.remote is not None:
+            return self.remote.control(self, control, seen, delta, threshold,
+                                       delivered=delivered)
+        self.build_tins(seen)
+        corrected = {**(corrected or {}), **self.corrected_many(
+            (k for k in seen if k not in (corrected or {})), delta, delivered=delivered)}
+        parts: list[Observations] = []
+        found: list[tuple[int, int, float]] = []
+        for k, cps in seen.items():
+            obs, matched = self.strip_control_observations(k, control, cps, delta,
+                                                           corrected[k], threshold)
+            parts.append(obs)
+            found.extend(matched)
+        return Observations.concatenate(parts), found
+
+    def strip_control_observations(
+        self, k: int, control: ControlPoints, cps: np.ndarray, delta: np.ndarray,
+        xyz: np.ndarray, threshold: float,
+    ) -> tuple[Observations, list[tuple[int, int, float]]]:
+        """:meth:`control_observations` of the control points ``cps`` (indices) against strip
+        ``k``, its points corrected by ``delta`` to ``xyz``."""
         parts = []
         found: list[tuple[int, int, float]] = []
-        cp_cells = self.footprint.keys(control.xyz[:, :2])
-        self.build_tins(k for k, ps in enumerate(self.strips)
-                        if not ps.dropped and np.isin(cp_cells, ps.cells).any())
-        for k, ps in enumerate(self.strips):
-            if ps.dropped:
+        tin = self.tin(k)
+        with self.clock("matching"):
+            m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
+                             delivered=self._delivered_if_moved(k, delta))
+        if not m.valid.any():
+            return Observations.empty(), found
+        # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate: on the plane of the
+        # control point's neighbours where they make one, else on the TIN facet.
+        plane = self._control_surface(k, control.xyz[cps], xyz, threshold)
+        on_plane = plane.valid & m.valid
+        on_facet = m.valid & ~on_plane
+        for ok, terms, distance in (
+                (on_plane, self._plane_terms(k, plane.take(on_plane)), plane.distance),
+                (on_facet, self._patch_terms(k, m.take(on_facet)), m.distance)):
+            if not ok.any():
                 continue
-            inside = np.isin(cp_cells, ps.cells)
-            if not inside.any():
-                continue
-            cps = np.flatnonzero(inside)
-            xyz = corrected[k]
-            tin = self.tin(k)
-            with self.clock("matching"):
-                m = match_to_tin(control.xyz[cps], tin, xyz, max_normal_distance=threshold,
-                                 delivered=self._delivered_if_moved(k, delta))
-            if not m.valid.any():
-                continue
-            # eq. [12]: n . (X_C - X_B), X_B corrected by the estimate: on the plane of the
-            # control point's neighbours where they make one, else on the TIN facet.
-            plane = self._control_surface(k, control.xyz[cps], xyz, threshold)
-            on_plane = plane.valid & m.valid
-            on_facet = m.valid & ~on_plane
-            for ok, terms, distance in (
-                    (on_plane, self._plane_terms(k, plane.take(on_plane)), plane.distance),
-                    (on_facet, self._patch_terms(k, m.take(on_facet)), m.distance)):
-                if not ok.any():
-                    continue
-                n, patch_rows, y, t_foot = terms
-                weights = np.full(y.size, self.settings.control_weight)
-                parts.append(Observations(-patch_rows, y, weights, -1 - cps[ok],
-                                          self._cluster_of(control.xyz[cps[ok]]),
-                                          self._trajectory_rows(-1, np.zeros(y.size), k,
-                                                                t_foot, n)))
-                found.extend((int(c), k, float(d)) for c, d in zip(cps[ok], distance[ok]))
+            n, patch_rows, y, t_foot = terms
+            weights = np.full(y.size, self.settings.control_weight)
+            parts.append(Observations(-patch_rows, y, weights, -1 - cps[ok],
+                                      self._cluster_of(control.xyz[cps[ok]]),
+                                      self._trajectory_rows(-1, np.zeros(y.size), k,
+                                                            t_foot, n)))
+            found.extend((int(c), k, float(d)) for c, d in zip(cps[ok], distance[ok]))
         return Observations.concatenate(parts), found
+
+    def laser_qa(self, delta: np.ndarray) -> dict[int, LaserVectorQA]:
+        """By strip (index, those holding their points), what the laser vectors of its points
+        corrected by ``delta`` say (one strip's geometry at a time)."""
+        if self.remote is not None:
+            return self.remote.laser_qa(self, delta)
+        return {k: self.strip_laser_qa(k, delta) for k, ps in enumerate(self.strips)
+                if not ps.dropped}
+
+    def strip_laser_qa(self, k: int, delta: np.ndarray) -> LaserVectorQA:
+        """:meth:`laser_qa` of strip ``k``."""
+        self.corrected(k, delta)
+        return laser_vector_qa(self.whole_geometry(k), fov_deg=self.settings.fov_deg,
+                               speed_mps=self.strips[k].speed_mps)
 
     def choose_samples(self, pairs: Sequence[StripPair]) -> None:
         """Match pairs met for the first time once at zero correction: choose their sample

@@ -2,15 +2,18 @@
 
 A :class:`PairWork` set on a :class:`~lidarcal_ros.core.calibration.matching.PairMatcher`
 (``remote``) matches its strip pairs instead of the threads: the samples chosen, each
-iteration's correspondences, the QA's distances. Each task is a pure function of the two
-prepared strips (their TINs built by :func:`with_tin`) and a :class:`PairJob`, and computes
-what the matcher computes in this process, with its own methods, so the estimate is the same.
+iteration's correspondences, the QA's distances, and what is matched against one strip
+(the control points, the laser vectors' QA). A pair's task takes strip ``b`` whole (its TIN
+built by :func:`with_tin`) and of strip ``a`` the points it matches (:func:`sample_side`),
+with a :class:`PairJob`; a strip's task takes the strip and a :class:`StripJob`. Each
+computes what the matcher computes in this process, with its own methods, point by point
+the same arithmetic, so the estimate is the same.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Protocol, cast
 
 import numpy as np
@@ -19,6 +22,8 @@ from lidarcal_ros.core.adjustment.least_squares import Observations
 from lidarcal_ros.core.calibration.pairs import CorrectedStrips, PreparedStrip, StripPair
 from lidarcal_ros.core.calibration.threads import StageClock, WorkerPool
 from lidarcal_ros.core.calibration.tin import Tin
+from lidarcal_ros.core.georeferencing.rigorous import LaserVectorQA
+from lidarcal_ros.core.mission import ControlPoints, Strip
 from lidarcal_ros.core.params import N_PARAMETERS
 from lidarcal_ros.core.trajectory.strip_errors import TrajectoryState
 
@@ -30,6 +35,11 @@ if TYPE_CHECKING:  # (the matcher and its options, which drive this module)
 class PairWork(Protocol):
     """Matches a matcher's strip pairs elsewhere; each method returns one item per pair, in
     the order of ``pairs``."""
+
+    def hold(self, matcher: PairMatcher, k: int) -> None:
+        """Send strip ``k`` of ``matcher`` where its pairs will be matched, now (its TIN built
+        there while this process prepares the strips after it)."""
+        ...
 
     def choose(self, matcher: PairMatcher, pairs: Sequence[StripPair]
                ) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -48,6 +58,17 @@ class PairWork(Protocol):
                   threshold: float) -> list[np.ndarray]:
         """The normal distances (m) of each pair's sample points matched at ``delta`` within
         ``threshold`` m (those matched only); each pair's ``last_triangle`` updated."""
+        ...
+
+    def control(self, matcher: PairMatcher, control: ControlPoints,
+                seen: dict[int, np.ndarray], delta: np.ndarray, threshold: float, *,
+                delivered: bool) -> tuple[Observations, list[tuple[int, int, float]]]:
+        """:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.control_observations`,
+        ``seen`` the control points (indices) each strip's footprint holds, by strip."""
+        ...
+
+    def laser_qa(self, matcher: PairMatcher, delta: np.ndarray) -> dict[int, LaserVectorQA]:
+        """:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.laser_qa`."""
         ...
 
 
@@ -76,6 +97,38 @@ class PairJob:
                    float(threshold))
 
 
+    def on_side(self) -> PairJob:
+        """The job as its task takes it, strip ``a`` being :func:`sample_side` of the pair's
+        sample (or, without one, of its candidates): those points numbered 0, 1, ..."""
+        pair = self.pair
+        if pair.sample is not None:
+            slim = replace(pair, sample=np.arange(pair.sample.size))
+        else:
+            slim = replace(pair, candidates=np.arange(pair.candidates.size))
+        return replace(self, pair=slim)
+
+
+@dataclass(frozen=True)
+class StripJob:
+    """What is matched against one strip (its index ``strip``) for a task: the estimate
+    ``delta`` (8 biases, SI; with ``delivered``, without the trajectory errors), the
+    trajectory errors, the matching threshold (m), and the calibration's settings."""
+
+    settings: CalibrationSettings
+    trajectory: TrajectoryState
+    strip: int
+    delta: np.ndarray
+    threshold: float = 0.0
+    delivered: bool = False
+
+    @classmethod
+    def of(cls, matcher: PairMatcher, k: int, delta: np.ndarray, threshold: float = 0.0, *,
+           delivered: bool = False) -> StripJob:
+        """The job of ``matcher``'s strip ``k`` (copies: the matcher goes on changing)."""
+        return cls(matcher.settings, _copy_state(matcher.trajectory), k,
+                   np.array(delta, np.float64), float(threshold), delivered)
+
+
 def _copy_state(state: TrajectoryState) -> TrajectoryState:
     return TrajectoryState(state.model, state.knot_interval_s, list(state.bases),
                            state.params.copy(), list(state.starts))
@@ -87,16 +140,30 @@ def with_tin(ps: PreparedStrip, settings: CalibrationSettings) -> PreparedStrip:
     return ps
 
 
-def _matcher(a: PreparedStrip, b: PreparedStrip, job: PairJob) -> PairMatcher:
-    """A matcher holding the pair's two strips at their indices, the job's trajectory
-    errors."""
+def sample_side(ps: PreparedStrip, index: np.ndarray) -> PreparedStrip:
+    """The points ``index`` of ``ps`` alone, in that order (a task: strip ``a`` as a pair's
+    task takes it, :meth:`PairJob.on_side`); no TIN, no correction."""
+    strip = ps.strip
+    return replace(ps, strip=Strip(strip.strip_id, strip.xyz[index], strip.t[index]),
+                   geometry0=ps.geometry0.take(index),
+                   priority=ps.priority[index] if ps.priority.size else ps.priority,
+                   tin=None, corrected=None)
+
+
+def _matcher(strips: dict[int, PreparedStrip], settings: CalibrationSettings,
+             trajectory: TrajectoryState) -> PairMatcher:
+    """A matcher holding ``strips`` at their indices, the job's trajectory errors."""
     from lidarcal_ros.core.calibration.matching import PairMatcher
 
-    matcher = PairMatcher(job.settings, StageClock(), WorkerPool(1, lambda stage, f: None))
-    # (indexed as the calibration's strips: a mapping of the two its methods read)
-    matcher.strips = cast(list[PreparedStrip], {job.pair.a: a, job.pair.b: b})
-    matcher.trajectory = job.trajectory
+    matcher = PairMatcher(settings, StageClock(), WorkerPool(1, lambda stage, f: None))
+    # (indexed as the calibration's strips: a mapping of those its methods read)
+    matcher.strips = cast(list[PreparedStrip], strips)
+    matcher.trajectory = trajectory
     return matcher
+
+
+def _pair_matcher(a: PreparedStrip, b: PreparedStrip, job: PairJob) -> PairMatcher:
+    return _matcher({job.pair.a: a, job.pair.b: b}, job.settings, job.trajectory)
 
 
 def _corrected(matcher: PairMatcher, job: PairJob, *, delivered: bool = False
@@ -107,8 +174,9 @@ def _corrected(matcher: PairMatcher, job: PairJob, *, delivered: bool = False
 
 def choose_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """The pair's sample and "before" distances (a task; :meth:`PairWork.choose`)."""
-    matcher = _matcher(a, b, job)
+    """The pair's sample and "before" distances (a task; :meth:`PairWork.choose`; ``a`` and
+    the sample as ``job``'s pair numbers its points)."""
+    matcher = _pair_matcher(a, b, job)
     return matcher.choose_sample(job.pair, _corrected(matcher, job, delivered=True))
 
 
@@ -116,7 +184,7 @@ def observe_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                  ) -> tuple[Observations, np.ndarray, np.ndarray | None]:
     """The pair's correspondences, the patch of each sample point (-1: none) and its
     ``last_triangle`` (a task; :meth:`PairWork.observe`)."""
-    matcher = _matcher(a, b, job)
+    matcher = _pair_matcher(a, b, job)
     obs, patches = matcher.observe(job.pair, job.delta, _corrected(matcher, job),
                                    job.threshold)
     return obs, patches, job.pair.last_triangle
@@ -126,10 +194,28 @@ def distances_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                    ) -> tuple[np.ndarray, np.ndarray | None]:
     """:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.sample_distances` of the
     pair and its ``last_triangle`` (a task; :meth:`PairWork.distances`)."""
-    matcher = _matcher(a, b, job)
+    matcher = _pair_matcher(a, b, job)
     distances = matcher.sample_distances(job.pair, job.delta, _corrected(matcher, job),
                                          job.threshold)
     return distances, job.pair.last_triangle
 
 
-__all__ = ["PairJob", "PairWork", "choose_task", "distances_task", "observe_task", "with_tin"]
+def control_task(ps: PreparedStrip, control: ControlPoints, cps: np.ndarray, job: StripJob
+                 ) -> tuple[Observations, list[tuple[int, int, float]]]:
+    """The control points ``cps`` (indices) matched to the strip (a task; the strip's part of
+    :meth:`PairWork.control`)."""
+    matcher = _matcher({job.strip: ps}, job.settings, job.trajectory)
+    xyz = matcher.corrected(job.strip, job.delta, delivered=job.delivered)
+    return matcher.strip_control_observations(job.strip, control, cps, job.delta, xyz,
+                                              job.threshold)
+
+
+def laser_qa_task(ps: PreparedStrip, job: StripJob) -> LaserVectorQA:
+    """What the laser vectors of the strip's points corrected by the job's estimate say (a
+    task; the strip's part of :meth:`PairWork.laser_qa`)."""
+    matcher = _matcher({job.strip: ps}, job.settings, job.trajectory)
+    return matcher.strip_laser_qa(job.strip, job.delta)
+
+
+__all__ = ["PairJob", "PairWork", "StripJob", "choose_task", "control_task", "distances_task",
+           "laser_qa_task", "observe_task", "sample_side", "with_tin"]

@@ -1,13 +1,16 @@
 """``lidarcal calibrate --dask``: the strip pairs matched on the workers, adjusted here.
 
-Each strip, prepared here (its local trajectory, footprint, pairs), goes to the workers once,
-in a task that builds its TIN (:func:`~lidarcal_ros.core.calibration.pair_work.with_tin`);
-each pair's matching (its samples chosen, each iteration's correspondences, the QA's
-distances) is then a task on the two strips' results, which the workers keep and pass among
-themselves. The correspondences come back here, where the normal equations (with the strips'
-trajectory blocks, docs/method.md section 11) are formed and solved as in a serial run, so
-the estimate is the serial run's. A task whose worker dies runs again on another, its strips'
-TINs built again from the task's own copy of them (the scheduler's).
+Each strip, prepared here (its local trajectory, footprint, pairs), goes to one worker, its
+home, in a task that builds its TIN there
+(:func:`~lidarcal_ros.core.calibration.pair_work.with_tin`), and stays there: a pair's
+matching (its samples chosen, each iteration's correspondences, the QA's distances) runs at
+the home of its strip ``b`` on the points of strip ``a`` it matches, cut at ``a``'s home
+(:func:`~lidarcal_ros.core.calibration.pair_work.sample_side`); the control points and the
+laser vectors' QA run at each strip's home. So a worker holds its own strips, not every
+strip its pairs touch. The correspondences come back here, where the normal equations (with
+the strips' trajectory blocks, docs/method.md section 11) are formed and solved as in a
+serial run, so the estimate is the serial run's. A task whose worker dies runs again on
+another, its strips' TINs built again from the task's own copy of them (the scheduler's).
 """
 
 from __future__ import annotations
@@ -22,12 +25,18 @@ from lidarcal_ros.core.adjustment.least_squares import Observations
 from lidarcal_ros.core.calibration.matching import PairMatcher
 from lidarcal_ros.core.calibration.pair_work import (
     PairJob,
+    StripJob,
     choose_task,
+    control_task,
     distances_task,
+    laser_qa_task,
     observe_task,
+    sample_side,
     with_tin,
 )
 from lidarcal_ros.core.calibration.pairs import PreparedStrip, StripPair
+from lidarcal_ros.core.georeferencing.rigorous import LaserVectorQA
+from lidarcal_ros.core.mission import ControlPoints, Strip
 from lidarcal_ros.pipeline.executor import (
     CommandTasks,
     Executor,
@@ -42,38 +51,78 @@ R = TypeVar("R")
 
 class ExecutorPairWork:
     """:class:`~lidarcal_ros.core.calibration.pair_work.PairWork` on an executor's workers
-    (each strip sent once: the calibrators of ``auto`` share them)."""
+    (each strip sent once, to its home: the calibrators of ``auto`` share them)."""
 
     def __init__(self, executor: Executor) -> None:
         self.tasks = CommandTasks(executor, "calibrate")
-        #: By strip id, the strip sent and its future (sent again where another strip of
-        #: that id comes).
-        self._strips: dict[int, tuple[PreparedStrip, TaskFuture[PreparedStrip]]] = {}
+        #: By strip id, the strip sent, its future and its home (sent again where another
+        #: strip of that id comes).
+        self._strips: dict[int, tuple[PreparedStrip, TaskFuture[PreparedStrip], str | None]] \
+            = {}
+        #: By (strip a's id, strip b's id), the points of a that pair's tasks take and their
+        #: future.
+        self._sides: dict[tuple[int, int], tuple[np.ndarray, TaskFuture[PreparedStrip]]] = {}
+        #: Points held at each worker (the homes: the least held first).
+        self._held: dict[str, int] = {}
 
-    def _strip(self, matcher: PairMatcher, k: int) -> TaskFuture[PreparedStrip]:
-        """Strip ``k`` of ``matcher`` on the workers, with its TIN (submitted once)."""
+    def _strip(self, matcher: PairMatcher, k: int) -> tuple[TaskFuture[PreparedStrip],
+                                                             str | None]:
+        """Strip ``k`` of ``matcher`` on the workers, with its TIN (submitted once), and its
+        home."""
         ps = matcher.strips[k]
         sent = self._strips.get(ps.strip_id)
         if sent is not None and sent[0] is ps:
-            return sent[1]
-        # (a copy as delivered: no TIN, no correction held)
-        copy = dataclasses.replace(ps, tin=None, corrected=None)
-        future = self.tasks.submit(with_tin, copy, matcher.settings, key=f"strip{ps.strip_id}")
-        self._strips[ps.strip_id] = (ps, future)
-        return future
+            return sent[1], sent[2]
+        if not self._held:
+            self._held = dict.fromkeys(self.tasks.executor.places(), 0)
+        home = min(self._held, key=lambda place: (self._held[place], place)) \
+            if self._held else None
+        if home is not None:
+            self._held[home] += len(ps.strip)
+        # (a copy as delivered, of what matching reads: no intensity, no TIN, no correction)
+        copy = dataclasses.replace(ps, strip=Strip(ps.strip_id, ps.strip.xyz, ps.strip.t),
+                                   tin=None, corrected=None)
+        future = self.tasks.submit(with_tin, copy, matcher.settings, key=f"strip{ps.strip_id}",
+                                   place=home)
+        self._strips[ps.strip_id] = (ps, future, home)
+        return future, home
+
+    def hold(self, matcher: PairMatcher, k: int) -> None:
+        """Strip ``k`` sent to its home (its TIN built there meanwhile)."""
+        self._strip(matcher, k)
+
+    def _side(self, matcher: PairMatcher, pair: StripPair) -> TaskFuture[PreparedStrip]:
+        """The points of the pair's strip ``a`` its tasks match (:meth:`PairJob.on_side`),
+        cut at that strip's home (once while they stay the same)."""
+        index = pair.candidates if pair.sample is None else pair.sample
+        ids = (matcher.strips[pair.a].strip_id, matcher.strips[pair.b].strip_id)
+        cut = self._sides.get(ids)
+        strip, home = self._strip(matcher, pair.a)
+        if cut is None or not np.array_equal(cut[0], index):
+            cut = (index, self.tasks.submit(sample_side, strip, index,
+                                            key=f"side{ids[0]}-{ids[1]}", place=home))
+            self._sides[ids] = cut
+        return cut[1]
 
     def _map(self, fn: Callable[[PreparedStrip, PreparedStrip, PairJob], R],
              matcher: PairMatcher, pairs: Sequence[StripPair], delta: np.ndarray | None,
              threshold: float, name: str) -> list[R]:
-        futures = [self.tasks.submit(fn, self._strip(matcher, p.a), self._strip(matcher, p.b),
-                                     PairJob.of(matcher, p, delta, threshold),
-                                     key=f"{name}{p.index}") for p in pairs]
+        futures = []
+        for p in pairs:
+            side = self._side(matcher, p)
+            strip, home = self._strip(matcher, p.b)
+            futures.append(self.tasks.submit(
+                fn, side, strip, PairJob.of(matcher, p, delta, threshold).on_side(),
+                key=f"{name}{p.index}", place=home))
         return results_in_order(futures)
 
     def choose(self, matcher: PairMatcher, pairs: Sequence[StripPair]
                ) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each pair's sample and "before" distances, chosen on the workers."""
-        return self._map(choose_task, matcher, pairs, None, 0.0, "choose")
+        # (the sample as the side numbers its points, then as strip a does: sorted, as
+        # ``stratified_sample`` gives it)
+        return [(np.sort(p.candidates[sample]), before) for p, (sample, before) in zip(
+            pairs, self._map(choose_task, matcher, pairs, None, 0.0, "choose"), strict=True)]
 
     def observe(self, matcher: PairMatcher, pairs: Sequence[StripPair], delta: np.ndarray,
                 threshold: float) -> list[tuple[Observations, np.ndarray]]:
@@ -94,3 +143,28 @@ class ExecutorPairWork:
             pair.last_triangle = last
             out.append(distance)
         return out
+
+    def control(self, matcher: PairMatcher, control: ControlPoints,
+                seen: dict[int, np.ndarray], delta: np.ndarray, threshold: float, *,
+                delivered: bool) -> tuple[Observations, list[tuple[int, int, float]]]:
+        """The control points matched at each strip's home (in the strips' order)."""
+        futures = []
+        for k, cps in seen.items():
+            strip, home = self._strip(matcher, k)
+            job = StripJob.of(matcher, k, delta, threshold, delivered=delivered)
+            futures.append(self.tasks.submit(control_task, strip, control, cps, job,
+                                             key=f"control{k}", place=home))
+        parts = results_in_order(futures)
+        return (Observations.concatenate(obs for obs, _ in parts),
+                [match for _, found in parts for match in found])
+
+    def laser_qa(self, matcher: PairMatcher, delta: np.ndarray) -> dict[int, LaserVectorQA]:
+        """Each strip's laser-vector QA at ``delta``, at its home."""
+        ks = [k for k, ps in enumerate(matcher.strips) if not ps.dropped]
+        futures = []
+        for k in ks:
+            strip, home = self._strip(matcher, k)
+            futures.append(self.tasks.submit(laser_qa_task, strip,
+                                             StripJob.of(matcher, k, delta),
+                                             key=f"laserqa{k}", place=home))
+        return dict(zip(ks, results_in_order(futures), strict=True))

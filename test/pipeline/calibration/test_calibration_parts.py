@@ -81,6 +81,55 @@ def test_the_in_process_executor_gives_the_serial_estimate(small_mission: Missio
                  _calibrated(small_mission, None, values))
 
 
+class _PlacingExecutor(SerialExecutor):
+    """The in-process executor with two made-up places, recording where each task went."""
+
+    def __init__(self) -> None:
+        #: (key, place, args) of each task, in order; the place of each future (by id).
+        self.tasks: list[tuple[str, str | None, tuple[Any, ...]]] = []
+        self.place_of: dict[int, str | None] = {}
+
+    def places(self) -> list[str]:
+        return ["tcp://worker-1", "tcp://worker-2"]
+
+    def submit(self, fn: Any, *args: Any, key: str, place: str | None = None) -> Any:
+        self.tasks.append((key, place, args))
+        future = super().submit(fn, *args, key=key, place=place)
+        self.place_of[id(future)] = place
+        return future
+
+
+def test_strips_stay_at_their_homes_and_pairs_go_to_their_surface_strip(
+        small_mission: MissionFiles) -> None:
+    values = {"calibration__trajectory__model": "auto"}
+    placing = _PlacingExecutor()
+    _assert_same(_calibrated(small_mission, placing, values),
+                 _calibrated(small_mission, None, values))
+    kind = {key: key.split("-")[2].rstrip("0123456789") for key, _, _ in placing.tasks}
+    strips = [(place, args[0]) for key, place, args in placing.tasks if kind[key] == "strip"]
+    # each strip sent once (both of auto's models share it), homes balanced by points
+    assert len({ps.strip_id for _, ps in strips}) == len(strips) == 6
+    held = {place: sum(len(ps.strip) for p, ps in strips if p == place)
+            for place in placing.places()}
+    assert abs(held["tcp://worker-1"] - held["tcp://worker-2"]) <= \
+        max(len(ps.strip) for _, ps in strips)
+    pair_tasks = [(place, args) for key, place, args in placing.tasks
+                  if kind[key] in ("choose", "observe", "qa")]
+    assert len(pair_tasks) > 2 * 15
+    for place, (side, strip, job) in pair_tasks:
+        # at the home of strip b, with strip a's matched points cut at strip a's home
+        assert place == placing.place_of[id(strip)]
+        a = side.result()
+        index = job.pair.candidates if job.pair.sample is None else job.pair.sample
+        assert len(a.strip) == index.size < len(strip.result().strip)
+    cuts = [(place, args) for key, place, args in placing.tasks if kind[key] == "side"]
+    homes = {ps.strip_id: place for place, ps in strips}
+    assert cuts and all(place == homes[args[0].result().strip_id] for place, args in cuts)
+    strip_tasks = [(place, args[0]) for key, place, args in placing.tasks
+                   if kind[key] in ("control", "laserqa")]
+    assert strip_tasks and all(place == placing.place_of[id(s)] for place, s in strip_tasks)
+
+
 def test_a_killed_worker_is_replaced_and_the_estimate_unchanged(
         small_mission: MissionFiles, cluster: DaskExecutor, tmp_path: Path) -> None:
     values = {"calibration__trajectory__model": "none"}
