@@ -106,13 +106,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     progress, close = progress_bar(not args.quiet)
     unestimated: NothingEstimated | None = None
     try:
-        mission = load_for_calibration(args.bag, config, control_csv=args.control,
-                                       progress=progress)
         # (the cluster, if any, is shut down on every way out: errors, Ctrl-C, SIGTERM)
         with open_executor(args.dask) as executor:
+            parts = None if args.dask is None else executor
+            mission = load_for_calibration(args.bag, config, control_csv=args.control,
+                                           progress=progress, executor=parts)
             result = calibrate_mission(mission, config, solve_for=solve_for,
-                                       progress=progress,
-                                       executor=None if args.dask is None else executor)
+                                       progress=progress, executor=parts)
     except NothingEstimated as exc:
         unestimated, result = exc, exc.result
     finally:

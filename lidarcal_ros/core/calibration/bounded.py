@@ -252,6 +252,8 @@ class SampleChooser:
         self.index, self.xyz, self.priority = index, xyz, priority
         self.ready = ready
         self.order = np.argsort(ready, kind="stable")
+        #: ``ready`` in the order of ``order`` (searched at every block that goes by)
+        self._ready_in_order = ready[self.order]
         self.radius, self.quality, self.threshold = float(radius), quality, float(threshold)
         self.per_class_cap, self.flat_class_factor = per_class_cap, flat_class_factor
         self.batch, self.max_held = int(batch), int(max_held)
@@ -267,6 +269,7 @@ class SampleChooser:
         self.near_cells = np.unique((footprint_keys(xyz, cell)[:, None] + offsets).ravel()) \
             if n else np.empty(0, np.int64)
         self._held: list[np.ndarray] = []
+        self._n_held = 0
         self._waiting = self._tree(self.order)
 
     def _tree(self, which: np.ndarray) -> cKDTree | None:
@@ -281,7 +284,7 @@ class SampleChooser:
     @property
     def held(self) -> int:
         """Surface points held."""
-        return sum(len(p) for p in self._held)
+        return self._n_held
 
     def offer(self, xyz: np.ndarray, keys: np.ndarray) -> None:
         """Take a block of the surface strip's points (map x, y, z, m; ``keys`` their
@@ -294,11 +297,12 @@ class SampleChooser:
         pts = pts[self._near(self._waiting, pts)]
         if len(pts):
             self._held.append(pts)
+            self._n_held += len(pts)
 
     def passed(self, block: int) -> None:
         """The blocks up to ``block`` have all been offered: match the candidates they
         complete (``batch`` at a time, fewer where more than ``max_held`` points wait)."""
-        upto = int(np.searchsorted(self.ready[self.order], block, side="right"))
+        upto = int(np.searchsorted(self._ready_in_order, block, side="right"))
         if upto - self.done >= self.batch or (upto > self.done and
                                               self.held > self.max_held):
             self._match(upto)
@@ -316,6 +320,7 @@ class SampleChooser:
         self._waiting = self._tree(self.order[upto:])
         held = held[self._near(self._waiting, held)]
         self._held = [held] if len(held) else []
+        self._n_held = len(held)
 
     def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Once every block has been offered: the sample (indices into the whole point

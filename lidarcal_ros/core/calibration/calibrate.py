@@ -222,17 +222,16 @@ class Calibrator:
     def from_mission(
         cls, mission: Mission, settings: CalibrationSettings, *,
         progress: Progress | None = None, whole: WholeStrips | None = None,
-        samples: ChosenSamples | None = None, pair_work: PairWork | None = None,
+        samples: ChosenSamples | None = None,
     ) -> Calibrator:
-        """A calibrator holding every strip of ``mission`` (``whole``, ``samples`` and
-        ``pair_work``: as :func:`calibrate`)."""
+        """A calibrator holding every strip of ``mission`` (``whole`` and ``samples``: as
+        :func:`calibrate`)."""
         if not mission.strips:
             raise CalibrationError("mission has no strips")
         cal = cls(settings, control=mission.control, progress=progress)
         cal.matcher.tins_in_turn = whole is not None
         cal.dropped_non_finite = mission.dropped_non_finite
         cal.thinned_points = mission.thinned_points
-        cal.matcher.remote = pair_work  # (each strip sent as soon as it is prepared)
         for k, strip in enumerate(mission.strips):
             cal.add_strip(strip, mission.trajectory,
                           whole=None if whole is None else whole[strip.strip_id])
@@ -514,10 +513,11 @@ class Calibrator:
                 parts.append(self.matcher.control_observations(
                     control, delta, s.max_normal_distance_m, corrected=corrected)[0])
             obs = Observations.concatenate(parts)
-            # the strips corrected at this estimate are not held past the matching: the next
-            # correction (the next iteration's, the QA's) then replaces them strip by strip
-            # instead of adding a whole corrected copy of every strip
+            # the strips corrected at this estimate are not held past the matching (24 bytes
+            # a held point): the adjustment's normal equations and trajectory blocks peak
+            # without them, and the next estimate corrects every strip anew anyway
             corrected.clear()
+            self.matcher.release_corrections()
             if len(obs) == 0:
                 raise CalibrationError(
                     "no point-to-patch correspondences: the overlaps hold no usable patches"
@@ -799,22 +799,20 @@ def calibrate(
     settings = settings or CalibrationSettings()
     if settings.trajectory.model is not TrajectoryModel.AUTO:
         return _run(Calibrator.from_mission(mission, settings, progress=progress, whole=whole,
-                                            samples=samples, pair_work=pair_work), pair_work)
+                                            samples=samples), pair_work)
     # auto: the trajectory as exact, then with each strip's spline over the same prepared
     # strips (their TINs and geometry shared, as the live calibration shares them); the
     # spline is kept where it fits clearly better (the strips disagree by more than their
     # noise)
     first = Calibrator.from_mission(mission, with_trajectory_model(settings,
                                                                    TrajectoryModel.NONE),
-                                    progress=progress, whole=whole, samples=samples,
-                                    pair_work=pair_work)
+                                    progress=progress, whole=whole, samples=samples)
     exact = _run(first, pair_work)
     second = Calibrator(with_trajectory_model(settings, TrajectoryModel.SPLINE),
                         control=mission.control, progress=progress)
     second.dropped_non_finite, second.thinned_points = first.dropped_non_finite, \
         first.thinned_points
     second.matcher.tins_in_turn = first.matcher.tins_in_turn
-    second.matcher.remote = pair_work
     for ps in first.strips:
         second.add_prepared_strip(ps)
     if samples is not None:

@@ -39,6 +39,7 @@ from lidarcal_ros.core.georeferencing.rigorous import (
     LaserVectorQA,
     ModelChoice,
     laser_vector_qa,
+    scan_qa,
     strip_geometry,
 )
 from lidarcal_ros.core.georeferencing.sensor_frame import point_rates
@@ -55,6 +56,10 @@ if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
     from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
     from lidarcal_ros.core.calibration.pair_work import PairWork
 
+
+
+#: Points whose laser vectors the laser-vector QA of a strip makes at a time.
+QA_BLOCK = 1 << 18
 
 
 class PairMatcher:
@@ -178,8 +183,6 @@ class PairMatcher:
         s = self.settings
         strip = ps.strip
         self.strips.append(ps)
-        if self.remote is not None and not ps.dropped:
-            self.remote.hold(self, len(self.strips) - 1)
         if span is None:
             span = ps.span
         if span is None:
@@ -275,6 +278,11 @@ class PairMatcher:
             ps.corrected = Correction(key, corrected, geometry, removed)
         return ps.corrected.corrected
 
+    def release_corrections(self) -> None:
+        """Forget every strip's latest correction (:meth:`corrected` makes it again)."""
+        for ps in self.strips:
+            ps.corrected = None
+
     def geometry(self, k: int, index: np.ndarray) -> tuple[LaserGeometry, np.ndarray]:
         """The laser geometry of strip ``k``'s points ``index`` (any shape) at its latest
         correction (:meth:`corrected`; before any, as delivered), and where each point of
@@ -285,29 +293,16 @@ class PairMatcher:
         wanted, where = np.unique(index, return_inverse=True)
         return self._geometry_of(k, wanted), where.reshape(index.shape)
 
-    def whole_geometry(self, k: int) -> LaserGeometry:
-        """:meth:`geometry` of every point of strip ``k`` (made for the call where not
-        held: 40-48 bytes a point while it is used)."""
-        ps = self.strips[k]
-        if ps.corrected is not None and ps.corrected.geometry is not None:
-            return ps.corrected.geometry
-        return self._geometry_of(k, None)
-
-    def _geometry_of(self, k: int, index: np.ndarray | None) -> LaserGeometry:
-        """The geometry of strip ``k``'s corrected points ``index`` (unique, sorted; None:
-        every point; before any correction, the delivered points'), from the points before
-        the trajectory error where one was removed (``(X - e) + e``: within an ulp of them,
-        not their bits)."""
+    def _geometry_of(self, k: int, index: np.ndarray) -> LaserGeometry:
+        """The geometry of strip ``k``'s corrected points ``index`` (unique, sorted; before
+        any correction, the delivered points'), from the points before the trajectory error
+        where one was removed (``(X - e) + e``: within an ulp of them, not their bits)."""
         ps = self.strips[k]
         if ps.corrected is None:
             return corrected_geometry(ps.strip.xyz, ps.geometry0, index)
         error = ps.corrected.error
-        if error is None or (index is not None and not len(index)):
+        if error is None or not len(index):
             return corrected_geometry(ps.corrected.corrected, ps.geometry0, index)
-        if index is None:
-            before = self.trajectory.bases[k].error(error, ps.strip.t)
-            before += ps.corrected.corrected
-            return corrected_geometry(before, ps.geometry0, None)
         before = ps.corrected.corrected[index] + \
             self.trajectory.bases[k].error(error, ps.strip.t[index])
         return corrected_geometry(before, ps.geometry0.take(index), np.arange(len(index)))
@@ -522,10 +517,26 @@ class PairMatcher:
                 if not ps.dropped}
 
     def strip_laser_qa(self, k: int, delta: np.ndarray) -> LaserVectorQA:
-        """:meth:`laser_qa` of strip ``k``."""
+        """:meth:`laser_qa` of strip ``k`` (the laser vectors of :data:`QA_BLOCK` points at a
+        time: their scan angles and along-track parts held, 8-16 bytes a point, not all of
+        them: 40-48)."""
         self.corrected(k, delta)
-        return laser_vector_qa(self.whole_geometry(k), fov_deg=self.settings.fov_deg,
-                               speed_mps=self.strips[k].speed_mps)
+        ps = self.strips[k]
+        if ps.corrected is not None and ps.corrected.geometry is not None:
+            parts: Iterable[LaserGeometry] = [ps.corrected.geometry]
+        else:
+            n = len(ps.strip)
+            parts = (self._geometry_of(k, np.arange(start, min(start + QA_BLOCK, n)))
+                     for start in range(0, n, QA_BLOCK))
+        beta, along = [], []
+        for part in parts:
+            beta.append(part.beta)
+            if part.y is not None:
+                along.append(part.y)
+        g = ps.geometry0
+        return scan_qa(np.concatenate([np.empty(0), *beta]),
+                       np.concatenate(along) if along else None, scanner=g.scanner,
+                       model=g.model, fov_deg=self.settings.fov_deg, speed_mps=ps.speed_mps)
 
     def choose_samples(self, pairs: Sequence[StripPair]) -> None:
         """Match pairs met for the first time once at zero correction: choose their sample
@@ -609,4 +620,4 @@ class PairMatcher:
         return {k for p in pairs for k in (p.a, p.b)}
 
 
-__all__ = ["PairMatcher"]
+__all__ = ["QA_BLOCK", "PairMatcher"]

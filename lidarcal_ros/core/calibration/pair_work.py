@@ -36,11 +36,6 @@ class PairWork(Protocol):
     """Matches a matcher's strip pairs elsewhere; each method returns one item per pair, in
     the order of ``pairs``."""
 
-    def hold(self, matcher: PairMatcher, k: int) -> None:
-        """Send strip ``k`` of ``matcher`` where its pairs will be matched, now (its TIN built
-        there while this process prepares the strips after it)."""
-        ...
-
     def choose(self, matcher: PairMatcher, pairs: Sequence[StripPair]
                ) -> list[tuple[np.ndarray, np.ndarray]]:
         """:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.choose_sample` of each

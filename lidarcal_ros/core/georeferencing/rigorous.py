@@ -393,8 +393,17 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
     speed_mps : float
         Ground speed over the strip, m/s: turns an along-track offset into a time.
     """
-    beta = np.degrees(geometry.beta[np.isfinite(geometry.beta)])
-    if geometry.scanner is ScannerKind.GENERAL:  # no along-track part, no scan angle to judge
+    return scan_qa(geometry.beta, geometry.y, scanner=geometry.scanner, model=geometry.model,
+                   fov_deg=fov_deg, speed_mps=speed_mps)
+
+
+def scan_qa(beta: np.ndarray, along: np.ndarray | None, *, scanner: ScannerKind,
+            model: PositioningModel, fov_deg: float, speed_mps: float) -> LaserVectorQA:
+    """:func:`laser_vector_qa` of a strip's scan angles ``beta`` (rad) and the along-track
+    parts ``along`` of its laser vectors (m; None: the level model's, not known), as the
+    ``scanner`` and point ``model`` give them."""
+    beta = np.degrees(beta[np.isfinite(beta)])
+    if scanner is ScannerKind.GENERAL:  # no along-track part, no scan angle to judge
         return LaserVectorQA(math.nan, math.nan, math.nan, math.nan, math.nan,
                              skipped=GENERAL_QA_SKIPS)
     if not beta.size:
@@ -404,8 +413,8 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
     outside = float(np.mean(np.abs(beta) > half + 1.0))
     warnings = []
     median = spread = math.nan
-    if geometry.y is not None and geometry.y.size:
-        p5, p50, p95 = (float(v) for v in np.percentile(geometry.y, [5, 50, 95]))
+    if along is not None and along.size:
+        p5, p50, p95 = (float(v) for v in np.percentile(along, [5, 50, 95]))
         median, spread = p50, 0.5 * (p95 - p5)
         if abs(median) > MAX_MEDIAN_ALONG_M:
             ms = 1000.0 * median / speed_mps if speed_mps > 0 else math.nan
@@ -420,7 +429,7 @@ def laser_vector_qa(geometry: LaserGeometry, *, fov_deg: float, speed_mps: float
     if outside > MAX_OUTSIDE_FOV:
         reach = (f"{100.0 * outside:.1f}% of the scan angles lie beyond the field of view "
                  f"(+-{half:g} deg; {lo:+.1f} to {hi:+.1f} deg)")
-        if geometry.model == PositioningModel.RIGOROUS:
+        if model == PositioningModel.RIGOROUS:
             warnings.append(f"{reach}: sensor.fov_deg, or the body convention?")
         else:
             warnings.append(f"{reach}: the platform rolls, and the level model reads its roll "
@@ -482,5 +491,5 @@ __all__ = [
     "MODEL_SPAN_PAD_S", "LaserVectorQA", "ModelChoice",
     "attitude_segments", "check_model_setting", "choose_model", "describe_model_policy",
     "describe_models",
-    "laser_vector_qa", "models_summary", "rigorous_geometry", "strip_geometry",
+    "laser_vector_qa", "models_summary", "rigorous_geometry", "scan_qa", "strip_geometry",
 ]

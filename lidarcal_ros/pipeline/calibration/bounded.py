@@ -38,6 +38,7 @@ from lidarcal_ros.core.mission import Mission, Strip
 from lidarcal_ros.errors import InputError
 from lidarcal_ros.io.bag.mission_blocks import MissionBlocks
 from lidarcal_ros.io.survey.control import read_control_csv
+from lidarcal_ros.pipeline.executor import CommandTasks, Executor, results_in_order
 
 logger = logging.getLogger(__name__)
 
@@ -81,12 +82,14 @@ class ReducedMission(Mission):
 def load_reduced_mission(
     bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None,
     progress: Progress | None = None, spacings: float = NEIGHBOURHOOD_SPACINGS,
-    margin_m: float = NEIGHBOURHOOD_MARGIN_M,
+    margin_m: float = NEIGHBOURHOOD_MARGIN_M, executor: Executor | None = None,
 ) -> ReducedMission:
     """Read ``bag`` in four passes into the reduced mission of a bounded-memory calibration
     (:func:`~lidarcal_ros.pipeline.calibration.procedure.load_mission`'s topics, control
     points and checks). The surface strip's points are held within ``spacings`` of its point
-    spacings plus ``margin_m`` (m) of a sample point (:data:`NEIGHBOURHOOD_SPACINGS`).
+    spacings plus ``margin_m`` (m) of a sample point (:data:`NEIGHBOURHOOD_SPACINGS`). With
+    ``executor``, the pairs' samples are chosen on its workers, which read the bag by its
+    path (the same samples).
 
     Raises
     ------
@@ -129,7 +132,6 @@ def load_reduced_mission(
     if csv:
         control = read_control_csv(csv)
     ids = sorted(extents)
-    position = {sid: k for k, sid in enumerate(ids)}
     ordered = [extents[sid].finish() for sid in ids]
     plans = plan_pairs(ordered, footprint=FootprintGrid(cell),
                        min_overlap_cells=settings.min_overlap_cells)
@@ -150,18 +152,9 @@ def load_reduced_mission(
     # pass 3: each pair's sample, its candidates matched at zero correction as the surface
     # strip's points near them go by (held only until the candidates near them are matched)
     report("reading the bag (3/4: samples)", 2 / 4)
-    surface_of = [[c for plan, c in zip(plans, choosers, strict=True) if plan.b == k]
-                  for k in range(len(ids))]
-    peak_choosing = 0
-    for _, piece in _pieces(blocks, passed=choosers):
-        users = surface_of[position[piece.strip_id]]
-        if users:
-            keys = FootprintGrid(cell).keys(piece.xyz)
-            for chooser in users:
-                chooser.offer(piece.xyz, keys)
-            peak_choosing = max(peak_choosing, sum(c.held for c in choosers))
-    chosen = [chooser.result() for chooser in choosers]
-    del choosers, surface_of
+    surfaces = [ids[plan.b] for plan in plans]
+    chosen, peak_choosing = _choose_samples(blocks, choosers, surfaces, cell, executor)
+    del choosers
 
     # pass 4: the sample points, the surface strips' points near them, the points near control
     report("reading the bag (4/4: neighbourhoods)", 3 / 4)
@@ -202,6 +195,58 @@ def load_reduced_mission(
                 "choosing their samples)", bag, mission.n_held, mission.n_points, len(plans),
                 peak_choosing)
     return mission
+
+
+def _choose_samples(blocks: MissionBlocks, choosers: list[SampleChooser], surfaces: list[int],
+                    cell: float, executor: Executor | None
+                    ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+    """Pass 3 (:func:`choose_in_pass`) here, or with ``executor`` in as many tasks as it has
+    workers, each choosing some pairs' samples on its own pass over the bag (read from its
+    path); the results in the order of ``choosers``, and the surface points held at most (with
+    tasks: the sum of theirs)."""
+    places = executor.places() if executor is not None else []
+    if executor is None or len(places) < 2 or len(choosers) < 2:
+        return choose_in_pass(blocks, choosers, surfaces, cell)
+    # the pairs dealt to the tasks largest first, each to the one with the fewest
+    # candidates (the matching's work grows with them)
+    groups: list[list[int]] = [[] for _ in places[:len(choosers)]]
+    load = [0] * len(groups)
+    for i in sorted(range(len(choosers)), key=lambda i: -len(choosers[i].index)):
+        g = load.index(min(load))
+        groups[g].append(i)
+        load[g] += len(choosers[i].index)
+    tasks = CommandTasks(executor, "calibrate")
+    futures = [tasks.submit(choose_in_pass, blocks, [choosers[i] for i in group],
+                            [surfaces[i] for i in group], cell, key=f"samples{g}", place=place)
+               for g, (group, place) in enumerate(zip(groups, places, strict=False))]
+    chosen: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = [None] * len(choosers)
+    peak = 0
+    for group, (results, held) in zip(groups, results_in_order(futures), strict=True):
+        for i, result in zip(group, results, strict=True):
+            chosen[i] = result
+        peak += held
+    return [c for c in chosen if c is not None], peak
+
+
+def choose_in_pass(blocks: MissionBlocks, choosers: list[SampleChooser], surfaces: list[int],
+                   cell: float) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+    """One pass over the bag of ``blocks`` offering each chooser its surface strip's points
+    (``surfaces``: that strip's id, by chooser; ``cell``: the footprint cell, m): each
+    chooser's :meth:`~lidarcal_ros.core.calibration.bounded.SampleChooser.result`, and the
+    surface points held at most (a task of :func:`load_reduced_mission` with an executor)."""
+    users: dict[int, list[SampleChooser]] = {}
+    for chooser, sid in zip(choosers, surfaces, strict=True):
+        users.setdefault(sid, []).append(chooser)
+    grid = FootprintGrid(cell)
+    peak = 0
+    for _, piece in _pieces(blocks, passed=choosers):
+        offered = users.get(piece.strip_id)
+        if offered:
+            keys = grid.keys(piece.xyz)
+            for chooser in offered:
+                chooser.offer(piece.xyz, keys)
+            peak = max(peak, sum(c.held for c in choosers))
+    return [chooser.result() for chooser in choosers], peak
 
 
 def _chooser(candidates: tuple[np.ndarray, np.ndarray, np.ndarray], surface: StripExtent,
@@ -246,4 +291,4 @@ def _numbered(blocks: MissionBlocks, ids: list[int], seed: int
 
 
 __all__ = ["CHOICE_SPACINGS", "NEIGHBOURHOOD_MARGIN_M", "NEIGHBOURHOOD_SPACINGS", "ReducedMission",
-           "load_reduced_mission"]
+           "choose_in_pass", "load_reduced_mission"]

@@ -62,8 +62,10 @@ class ExecutorPairWork:
         #: By (strip a's id, strip b's id), the points of a that pair's tasks take and their
         #: future.
         self._sides: dict[tuple[int, int], tuple[np.ndarray, TaskFuture[PreparedStrip]]] = {}
-        #: Points held at each worker (the homes: the least held first).
-        self._held: dict[str, int] = {}
+        #: At each worker, the pairs matched there and the points of the strips it holds.
+        self._load: dict[str, tuple[int, int]] = {}
+        #: By strip id, the strip dealt a home and that home.
+        self._homes: dict[int, tuple[PreparedStrip, str]] = {}
 
     def _strip(self, matcher: PairMatcher, k: int) -> tuple[TaskFuture[PreparedStrip],
                                                              str | None]:
@@ -73,12 +75,10 @@ class ExecutorPairWork:
         sent = self._strips.get(ps.strip_id)
         if sent is not None and sent[0] is ps:
             return sent[1], sent[2]
-        if not self._held:
-            self._held = dict.fromkeys(self.tasks.executor.places(), 0)
-        home = min(self._held, key=lambda place: (self._held[place], place)) \
-            if self._held else None
-        if home is not None:
-            self._held[home] += len(ps.strip)
+        dealt = self._homes.get(ps.strip_id)
+        if dealt is None or dealt[0] is not ps:
+            self._deal(matcher)
+        home = self._homes[ps.strip_id][1] if ps.strip_id in self._homes else None
         # (a copy as delivered, of what matching reads: no intensity, no TIN, no correction)
         copy = dataclasses.replace(ps, strip=Strip(ps.strip_id, ps.strip.xyz, ps.strip.t),
                                    tin=None, corrected=None)
@@ -87,9 +87,24 @@ class ExecutorPairWork:
         self._strips[ps.strip_id] = (ps, future, home)
         return future, home
 
-    def hold(self, matcher: PairMatcher, k: int) -> None:
-        """Strip ``k`` sent to its home (its TIN built there meanwhile)."""
-        self._strip(matcher, k)
+    def _deal(self, matcher: PairMatcher) -> None:
+        """A home for each strip of ``matcher`` without one: a pair's matching runs at the
+        home of its strip ``b``, so the strips are dealt the most pairs first, each to the
+        worker with the fewest pairs so far (then points: the TINs' memory)."""
+        if not self._load:
+            self._load = {place: (0, 0) for place in self.tasks.executor.places()}
+        if not self._load:
+            return
+        pairs = [0] * len(matcher.strips)
+        for pair in matcher.pairs:
+            pairs[pair.b] += 1
+        todo = [k for k, ps in enumerate(matcher.strips) if ps.strip_id not in self._homes
+                or self._homes[ps.strip_id][0] is not ps]
+        for k in sorted(todo, key=lambda k: (-pairs[k], -len(matcher.strips[k].strip), k)):
+            home = min(self._load, key=lambda place: (self._load[place], place))
+            n_pairs, n_points = self._load[home]
+            self._load[home] = (n_pairs + pairs[k], n_points + len(matcher.strips[k].strip))
+            self._homes[matcher.strips[k].strip_id] = (matcher.strips[k], home)
 
     def _side(self, matcher: PairMatcher, pair: StripPair) -> TaskFuture[PreparedStrip]:
         """The points of the pair's strip ``a`` its tasks match (:meth:`PairJob.on_side`),

@@ -81,13 +81,15 @@ def load_mission(
 
 def load_for_calibration(
     bag: str | Path, config: FlightConfig, *, control_csv: str | Path | None = None,
-    progress: Progress | None = None,
+    progress: Progress | None = None, executor: Executor | None = None,
 ) -> Mission:
     """The mission of ``bag`` as ``calibration.memory`` says to hold it: every point
     (:func:`load_mission`) or the reduced mission of a bounded-memory calibration
-    (:func:`~lidarcal_ros.pipeline.calibration.bounded.load_reduced_mission`)."""
+    (:func:`~lidarcal_ros.pipeline.calibration.bounded.load_reduced_mission`, its samples
+    chosen on the workers of ``executor`` if given)."""
     if config["calibration.memory"] == "bounded":
-        return load_reduced_mission(bag, config, control_csv=control_csv, progress=progress)
+        return load_reduced_mission(bag, config, control_csv=control_csv, progress=progress,
+                                    executor=executor)
     return load_mission(bag, config, control_csv=control_csv)
 
 
