@@ -25,7 +25,8 @@ from lidarcal_ros.errors import ConfigError
 
 __all__ = [
     "CONNECT_TIMEOUT_S", "LOCAL_WORKER_MEMORY_BYTES", "CommandTasks", "DaskExecutor",
-    "DaskTarget", "Executor", "SerialExecutor", "TaskFuture", "local_worker_limit",
+    "DaskTarget", "Executor", "SerialExecutor", "TaskFuture", "deal_heaviest_first",
+    "local_worker_limit",
     "open_executor", "parse_dask_option", "results_in_order", "results_in_turn",
 ]
 
@@ -131,6 +132,20 @@ def results_in_turn(futures: Sequence[TaskFuture[T]]) -> Iterator[T]:
 def results_in_order(futures: Sequence[TaskFuture[T]]) -> list[T]:
     """Each future's value, in order (:func:`results_in_turn`: a failure raises at once)."""
     return list(results_in_turn(futures))
+
+
+def deal_heaviest_first(weights: Sequence[tuple[int, ...]],
+                        loads: list[tuple[int, ...]]) -> list[int]:
+    """Items dealt to bins, the heaviest first (then in their order), each to the bin of
+    least load so far (then the first): the bin of each item, in the items' order.
+    ``loads`` (one per bin, tuples as long as the weights, compared in order) are updated:
+    each bin's load is the sum of its items' weights, element by element."""
+    bins = [0] * len(weights)
+    for i in sorted(range(len(weights)), key=lambda i: (tuple(-w for w in weights[i]), i)):
+        b = min(range(len(loads)), key=lambda b: (loads[b], b))
+        loads[b] = tuple(load + w for load, w in zip(loads[b], weights[i], strict=True))
+        bins[i] = b
+    return bins
 
 
 def _value(value: T) -> T:

@@ -21,6 +21,7 @@ from lidarcal_ros.pipeline.executor import (
     DaskExecutor,
     DaskTarget,
     SerialExecutor,
+    deal_heaviest_first,
     local_worker_limit,
     open_executor,
     parse_dask_option,
@@ -94,6 +95,18 @@ def test_a_task_runs_at_its_place_and_a_place_gone_is_no_error(
     with open_executor(None) as serial:
         assert serial.places() == []
         assert serial.submit(_pid, key="here", place=None).result() == os.getpid()
+
+
+def test_items_are_dealt_heaviest_first_to_the_least_loaded_bin() -> None:
+    # six strips, each the surface strip of 0 to 5 pairs: 5+2+1 and 4+3+0, not 6 and 9
+    loads: list[tuple[int, ...]] = [(0,), (0,)]
+    bins = deal_heaviest_first([(0,), (1,), (2,), (3,), (4,), (5,)], loads)
+    assert bins == [1, 0, 0, 1, 1, 0] and loads == [(8,), (7,)]
+    # ties on the first element broken by the next, then by the item's order; the loads
+    # carried over from an earlier call
+    loads = [(1, 0), (0, 0)]
+    assert deal_heaviest_first([(1, 5), (1, 9), (1, 9)], loads) == [1, 1, 0]
+    assert loads == [(2, 9), (2, 14)]
 
 
 def _held_until(release: str) -> str:

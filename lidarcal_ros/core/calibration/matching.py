@@ -464,8 +464,9 @@ class PairMatcher:
             return self.remote.control(self, control, seen, delta, threshold,
                                        delivered=delivered)
         self.build_tins(seen)
-        corrected = {**(corrected or {}), **self.corrected_many(
-            (k for k in seen if k not in (corrected or {})), delta, delivered=delivered)}
+        given = corrected or {}
+        corrected = {**given, **self.corrected_many((k for k in seen if k not in given), delta,
+                                                    delivered=delivered)}
         parts: list[Observations] = []
         found: list[tuple[int, int, float]] = []
         for k, cps in seen.items():

@@ -91,7 +91,6 @@ class PairJob:
                    np.zeros(N_PARAMETERS) if delta is None else np.array(delta, np.float64),
                    float(threshold))
 
-
     def on_side(self) -> PairJob:
         """The job as its task takes it, strip ``a`` being :func:`sample_side` of the pair's
         sample (or, without one, of its candidates): those points numbered 0, 1, ..."""

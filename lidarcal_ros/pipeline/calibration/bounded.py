@@ -38,7 +38,12 @@ from lidarcal_ros.core.mission import Mission, Strip
 from lidarcal_ros.errors import InputError
 from lidarcal_ros.io.bag.mission_blocks import MissionBlocks
 from lidarcal_ros.io.survey.control import read_control_csv
-from lidarcal_ros.pipeline.executor import CommandTasks, Executor, results_in_order
+from lidarcal_ros.pipeline.executor import (
+    CommandTasks,
+    Executor,
+    deal_heaviest_first,
+    results_in_order,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -210,11 +215,9 @@ def _choose_samples(blocks: MissionBlocks, choosers: list[SampleChooser], surfac
     # the pairs dealt to the tasks largest first, each to the one with the fewest
     # candidates (the matching's work grows with them)
     groups: list[list[int]] = [[] for _ in places[:len(choosers)]]
-    load = [0] * len(groups)
-    for i in sorted(range(len(choosers)), key=lambda i: -len(choosers[i].index)):
-        g = load.index(min(load))
+    for i, g in enumerate(deal_heaviest_first([(len(c.index),) for c in choosers],
+                                              [(0,)] * len(groups))):
         groups[g].append(i)
-        load[g] += len(choosers[i].index)
     tasks = CommandTasks(executor, "calibrate")
     futures = [tasks.submit(choose_in_pass, blocks, [choosers[i] for i in group],
                             [surfaces[i] for i in group], cell, key=f"samples{g}", place=place)

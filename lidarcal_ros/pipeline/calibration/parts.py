@@ -41,6 +41,7 @@ from lidarcal_ros.pipeline.executor import (
     CommandTasks,
     Executor,
     TaskFuture,
+    deal_heaviest_first,
     results_in_order,
 )
 
@@ -55,15 +56,17 @@ class ExecutorPairWork:
 
     def __init__(self, executor: Executor) -> None:
         self.tasks = CommandTasks(executor, "calibrate")
-        #: By strip id, the strip sent, its future and its home (sent again where another
-        #: strip of that id comes).
-        self._strips: dict[int, tuple[PreparedStrip, TaskFuture[PreparedStrip], str | None]] \
-            = {}
-        #: By (strip a's id, strip b's id), the points of a that pair's tasks take and their
-        #: future.
-        self._sides: dict[tuple[int, int], tuple[np.ndarray, TaskFuture[PreparedStrip]]] = {}
-        #: At each worker, the pairs matched there and the points of the strips it holds.
-        self._load: dict[str, tuple[int, int]] = {}
+        #: By strip id, the strip sent and its future (sent again where another strip of
+        #: that id comes).
+        self._strips: dict[int, tuple[PreparedStrip, TaskFuture[PreparedStrip]]] = {}
+        #: By (strip a's id, strip b's id), the future of strip a these points were cut from,
+        #: the points (indices) and the future of the cut.
+        self._sides: dict[tuple[int, int], tuple[TaskFuture[PreparedStrip], np.ndarray,
+                                                 TaskFuture[PreparedStrip]]] = {}
+        #: The workers (as first asked) and at each the pairs matched there and the points
+        #: of the strips it holds.
+        self._places: list[str] = []
+        self._load: list[tuple[int, ...]] = []
         #: By strip id, the strip dealt a home and that home.
         self._homes: dict[int, tuple[PreparedStrip, str]] = {}
 
@@ -72,52 +75,51 @@ class ExecutorPairWork:
         """Strip ``k`` of ``matcher`` on the workers, with its TIN (submitted once), and its
         home."""
         ps = matcher.strips[k]
-        sent = self._strips.get(ps.strip_id)
-        if sent is not None and sent[0] is ps:
-            return sent[1], sent[2]
         dealt = self._homes.get(ps.strip_id)
         if dealt is None or dealt[0] is not ps:
             self._deal(matcher)
         home = self._homes[ps.strip_id][1] if ps.strip_id in self._homes else None
+        sent = self._strips.get(ps.strip_id)
+        if sent is not None and sent[0] is ps:
+            return sent[1], home
         # (a copy as delivered, of what matching reads: no intensity, no TIN, no correction)
         copy = dataclasses.replace(ps, strip=Strip(ps.strip_id, ps.strip.xyz, ps.strip.t),
                                    tin=None, corrected=None)
         future = self.tasks.submit(with_tin, copy, matcher.settings, key=f"strip{ps.strip_id}",
                                    place=home)
-        self._strips[ps.strip_id] = (ps, future, home)
+        self._strips[ps.strip_id] = (ps, future)
         return future, home
 
     def _deal(self, matcher: PairMatcher) -> None:
         """A home for each strip of ``matcher`` without one: a pair's matching runs at the
         home of its strip ``b``, so the strips are dealt the most pairs first, each to the
         worker with the fewest pairs so far (then points: the TINs' memory)."""
-        if not self._load:
-            self._load = {place: (0, 0) for place in self.tasks.executor.places()}
-        if not self._load:
+        if not self._places:
+            self._places = self.tasks.executor.places()
+            self._load = [(0, 0)] * len(self._places)
+        if not self._places:
             return
         pairs = [0] * len(matcher.strips)
         for pair in matcher.pairs:
             pairs[pair.b] += 1
         todo = [k for k, ps in enumerate(matcher.strips) if ps.strip_id not in self._homes
                 or self._homes[ps.strip_id][0] is not ps]
-        for k in sorted(todo, key=lambda k: (-pairs[k], -len(matcher.strips[k].strip), k)):
-            home = min(self._load, key=lambda place: (self._load[place], place))
-            n_pairs, n_points = self._load[home]
-            self._load[home] = (n_pairs + pairs[k], n_points + len(matcher.strips[k].strip))
-            self._homes[matcher.strips[k].strip_id] = (matcher.strips[k], home)
+        weights = [(pairs[k], len(matcher.strips[k].strip)) for k in todo]
+        for k, b in zip(todo, deal_heaviest_first(weights, self._load), strict=True):
+            self._homes[matcher.strips[k].strip_id] = (matcher.strips[k], self._places[b])
 
     def _side(self, matcher: PairMatcher, pair: StripPair) -> TaskFuture[PreparedStrip]:
         """The points of the pair's strip ``a`` its tasks match (:meth:`PairJob.on_side`),
-        cut at that strip's home (once while they stay the same)."""
+        cut at that strip's home (once while the strip and the points stay the same)."""
         index = pair.candidates if pair.sample is None else pair.sample
         ids = (matcher.strips[pair.a].strip_id, matcher.strips[pair.b].strip_id)
-        cut = self._sides.get(ids)
         strip, home = self._strip(matcher, pair.a)
-        if cut is None or not np.array_equal(cut[0], index):
-            cut = (index, self.tasks.submit(sample_side, strip, index,
-                                            key=f"side{ids[0]}-{ids[1]}", place=home))
+        cut = self._sides.get(ids)
+        if cut is None or cut[0] is not strip or not np.array_equal(cut[1], index):
+            cut = (strip, index, self.tasks.submit(sample_side, strip, index,
+                                                   key=f"side{ids[0]}-{ids[1]}", place=home))
             self._sides[ids] = cut
-        return cut[1]
+        return cut[2]
 
     def _map(self, fn: Callable[[PreparedStrip, PreparedStrip, PairJob], R],
              matcher: PairMatcher, pairs: Sequence[StripPair], delta: np.ndarray | None,
