@@ -51,6 +51,10 @@ class TaskFuture(Protocol[T_co]):
         """The task's value (its exception raised here)."""
         ...
 
+    def done(self) -> bool:
+        """The task has ended (run, failed or cancelled)."""
+        ...
+
 
 class Executor(Protocol):
     """Runs the parts of a command: :meth:`submit` each, then take each future's result."""

@@ -211,5 +211,12 @@ def laser_qa_task(ps: PreparedStrip, job: StripJob) -> LaserVectorQA:
     return matcher.strip_laser_qa(job.strip, job.delta)
 
 
+def release_task(ps: PreparedStrip, *done: object) -> None:
+    """Forget the strip's latest correction (a task, after ``done``: the tasks that read it;
+    a process holds a strip's corrected points only while what matches against it runs,
+    24 bytes a point)."""
+    ps.corrected = None
+
+
 __all__ = ["PairJob", "PairWork", "StripJob", "choose_task", "control_task", "distances_task",
-           "laser_qa_task", "observe_task", "sample_side", "with_tin"]
+           "laser_qa_task", "observe_task", "release_task", "sample_side", "with_tin"]

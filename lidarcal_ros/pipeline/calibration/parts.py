@@ -31,6 +31,7 @@ from lidarcal_ros.core.calibration.pair_work import (
     distances_task,
     laser_qa_task,
     observe_task,
+    release_task,
     sample_side,
     with_tin,
 )
@@ -69,6 +70,8 @@ class ExecutorPairWork:
         self._load: list[tuple[int, ...]] = []
         #: By strip id, the strip dealt a home and that home.
         self._homes: dict[int, tuple[PreparedStrip, str]] = {}
+        #: The tasks releasing corrections not known to have run.
+        self._releases: list[TaskFuture[None]] = []
 
     def _strip(self, matcher: PairMatcher, k: int) -> tuple[TaskFuture[PreparedStrip],
                                                              str | None]:
@@ -124,14 +127,32 @@ class ExecutorPairWork:
     def _map(self, fn: Callable[[PreparedStrip, PreparedStrip, PairJob], R],
              matcher: PairMatcher, pairs: Sequence[StripPair], delta: np.ndarray | None,
              threshold: float, name: str) -> list[R]:
-        futures = []
-        for p in pairs:
-            side = self._side(matcher, p)
-            strip, home = self._strip(matcher, p.b)
-            futures.append(self.tasks.submit(
-                fn, side, strip, PairJob.of(matcher, p, delta, threshold).on_side(),
-                key=f"{name}{p.index}", place=home))
-        return results_in_order(futures)
+        """``fn`` of each pair at the home of its strip ``b``, the pairs of one strip ``b``
+        together and that strip's correction released after them."""
+        by_b: dict[int, list[int]] = {}
+        for i, p in enumerate(pairs):
+            by_b.setdefault(p.b, []).append(i)
+        futures: dict[int, TaskFuture[R]] = {}
+        for b, members in by_b.items():
+            strip, home = self._strip(matcher, b)
+            for i in members:
+                p = pairs[i]
+                futures[i] = self.tasks.submit(
+                    fn, self._side(matcher, p), strip,
+                    PairJob.of(matcher, p, delta, threshold).on_side(),
+                    key=f"{name}{p.index}", place=home)
+            self._release(strip, home, [futures[i] for i in members])
+        return results_in_order([futures[i] for i in range(len(pairs))])
+
+    def _release(self, strip: TaskFuture[PreparedStrip], home: str | None,
+                 done: Sequence[TaskFuture[object]]) -> None:
+        """The strip's correction forgotten at its home once the tasks ``done`` have run
+        (the next that needs it makes it again: with the strips of one process matched in
+        turn, one strip is corrected whole at a time, not every one)."""
+        # (held till done: Dask forgets a task whose future nobody holds, run or not)
+        self._releases = [f for f in self._releases if not f.done()]
+        self._releases.append(self.tasks.submit(release_task, strip, *done, key="release",
+                                                place=home))
 
     def choose(self, matcher: PairMatcher, pairs: Sequence[StripPair]
                ) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -171,6 +192,7 @@ class ExecutorPairWork:
             job = StripJob.of(matcher, k, delta, threshold, delivered=delivered)
             futures.append(self.tasks.submit(control_task, strip, control, cps, job,
                                              key=f"control{k}", place=home))
+            self._release(strip, home, futures[-1:])
         parts = results_in_order(futures)
         return (Observations.concatenate(obs for obs, _ in parts),
                 [match for _, found in parts for match in found])
@@ -184,4 +206,5 @@ class ExecutorPairWork:
             futures.append(self.tasks.submit(laser_qa_task, strip,
                                              StripJob.of(matcher, k, delta),
                                              key=f"laserqa{k}", place=home))
+            self._release(strip, home, futures[-1:])
         return dict(zip(ks, results_in_order(futures), strict=True))

@@ -17,10 +17,12 @@ import yaml
 from helpers_cli import one_line_error, run
 from helpers_missions import MissionFiles
 
+from lidarcal_ros.core.calibration.calibrate import calibrate
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.simulation.flight_path import RoughAir
 from lidarcal_ros.io.config_file import load_flight_config
+from lidarcal_ros.pipeline.calibration.bounded import ReducedMission
 from lidarcal_ros.pipeline.calibration.procedure import calibrate_mission, load_for_calibration
 from lidarcal_ros.pipeline.executor import DaskExecutor, Executor, SerialExecutor
 
@@ -142,6 +144,59 @@ def test_a_bounded_missions_samples_are_chosen_in_a_pass_a_worker(
     assert sorted(str(place) for place, _ in passes) == placing.places()
     dealt = [len(args[1]) for _, args in passes]
     assert min(dealt) >= 1 and sum(dealt) == 15
+
+
+@pytest.mark.parametrize("kind", sorted(MISSIONS))
+def test_a_bounded_serial_run_matches_as_tasks_with_the_threads_estimate(
+        mission_factory: Any, kind: str) -> None:
+    files = mission_factory(**MISSIONS[kind])
+    config = load_flight_config(files.fast_config).with_values(
+        calibration__memory="bounded", calibration__trajectory__model="auto")
+    mission = load_for_calibration(files.bag, config)
+    assert isinstance(mission, ReducedMission)
+    # (the serial command's way, one strip b's pairs after another in this process, against
+    # the matcher's own threads on the same reduced mission)
+    tasks = calibrate_mission(mission, config)
+    threads = calibrate(mission, config.calibration_settings(), whole=mission.whole,
+                        samples=mission.samples)
+    _assert_same(tasks, threads)
+
+
+class _HeldCorrections(_PlacingExecutor):
+    """The placing executor counting, as each task starts, the strips (as sent, whole)
+    holding a correction."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sent: list[Any] = []
+        self.held: list[tuple[str, int]] = []
+
+    def submit(self, fn: Any, *args: Any, key: str, place: str | None = None) -> Any:
+        if "-strip" in key:
+            self.sent.append(args[0])
+        self.held.append((key, sum(ps.corrected is not None for ps in self.sent)))
+        return super().submit(fn, *args, key=key, place=place)
+
+
+def test_one_whole_strip_is_corrected_at_a_time(small_mission: MissionFiles) -> None:
+    values = {"calibration__trajectory__model": "drift", "calibration__memory": "bounded"}
+    held = _HeldCorrections()
+    _assert_same(_calibrated(small_mission, held, values),
+                 _calibrated(small_mission, None, values))
+    kinds = Counter(key.split("-")[2].rstrip("0123456789") for key, _ in held.held)
+    assert kinds["observe"] > 2 * 15 and kinds["release"] >= kinds["observe"] // 15
+    # each task finds at most the strip it runs at corrected (of the strips as sent)
+    assert max(n for _, n in held.held) == 1
+    assert all(ps.corrected is None for ps in held.sent)
+    # the pairs of one strip b matched together, then it released before the next b's
+    last, released = None, True
+    for key, _, args in held.tasks:
+        name = key.split("-")[2]
+        if name.startswith("release") and args[0] is last:
+            released = True
+        elif name.startswith("observe") and args[1] is not last:
+            assert released, key
+            last, released = args[1], False
 
 
 def test_a_killed_worker_is_replaced_and_the_estimate_unchanged(
