@@ -54,6 +54,7 @@ THIRD_PARTY: dict[str, tuple[str, str | None]] = {
     "backports": ("python3-backports-zstd-pip", "backports.zstd"),  # only backports.zstd
     "dask": ("python3-dask-pip", "dask"),
     "distributed": ("python3-distributed-pip", "distributed"),
+    "fsspec": ("python3-fsspec-pip", "fsspec"),
     "lz4": ("python3-lz4", "lz4"),
     # no wheel: scripts/build-tf2-msgs builds vendor/tf2_msgs into the venv
     "tf2_msgs": ("tf2_msgs", None),

@@ -14,6 +14,7 @@ from lidarcal_ros.cli.common import (
     progress_bar,
 )
 from lidarcal_ros.io.output_files import check_output
+from lidarcal_ros.io.url_cache import source_of
 
 __all__ = ["add_import_command", "add_recover_command", "cmd_import", "cmd_recover"]
 
@@ -33,8 +34,8 @@ def add_import_command(sub: Any) -> None:
                        "positions (EPSG:4979) are projected to the points' CRS, heights kept "
                        "ellipsoidal unless the CRS is compound; coordinates in feet are "
                        "converted to metres.")
-    p.add_argument("inputs", nargs="+", type=Path, metavar="STRIP",
-                   help="LAS or LAZ files")
+    p.add_argument("inputs", nargs="+", type=source_of, metavar="STRIP",
+                   help="LAS or LAZ files (paths or URLs: s3://, https://...)")
     p.add_argument("-o", "--output", required=True, type=Path,
                    help="output rosbag2 directory (or .mcap file)")
     p.add_argument("--trajectory", dest="trajectory_source", default="estimate",

@@ -8,7 +8,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_bag_and_calibration_arguments", "add_dask_option", "add_quiet_option",
+from lidarcal_ros.io.url_cache import source_of
+
+#: The help of a bag argument.
+BAG_HELP = ("rosbag2 directory or .mcap file: a path, or a URL (s3://, https://...) that fsspec "
+            "reads here (each process reading it keeps a copy: docs/interface.md)")
+
+__all__ = ["BAG_HELP", "add_bag_and_calibration_arguments", "add_dask_option", "add_quiet_option",
            "finite_float", "other_paths", "progress_bar"]
 
 
@@ -41,7 +47,7 @@ def add_quiet_option(p: Any) -> None:
 
 def add_bag_and_calibration_arguments(p: Any) -> None:
     """The arguments of the commands that read a mission bag with a calibration."""
-    p.add_argument("bag", type=Path, help="rosbag2 directory or .mcap file")
+    p.add_argument("bag", type=source_of, help=BAG_HELP)
     p.add_argument("--calibration", required=True, type=Path,
                    help="calibration YAML (lidarcal calibrate)")
 

@@ -12,7 +12,6 @@ import functools
 import logging
 import os
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 from lidarcal_ros.core.mission import ControlPoints, Strip, Trajectory
@@ -23,6 +22,7 @@ from lidarcal_ros.io.bag.reader import open_bag
 from lidarcal_ros.io.cloud.columns import DEFAULT_COORDINATE_TOLERANCE_M
 from lidarcal_ros.io.cloud.strip_accumulator import StripAccumulator
 from lidarcal_ros.io.cloud.trajectory_messages import TRAJECTORY_TYPES, TrajectorySamples
+from lidarcal_ros.io.url_cache import source_of
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ class MissionBlocks:
             raise ConfigError("calibration.memory bounded reads every point: leave "
                               "calibration.thinning_cell_m at 0 (a thinned mission is read "
                               "whole)")
-        self.path = Path(path)
+        self.path = source_of(path)
         self.points_topic = points_topic
         self.trajectory_topic = trajectory_topic
         self.control_topic = control_topic

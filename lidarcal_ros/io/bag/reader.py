@@ -38,6 +38,7 @@ from lidarcal_ros.io.bag.mcap_bounds import (
     chunk_records,
     decompress_file,
 )
+from lidarcal_ros.io.url_cache import local_source
 
 logger = logging.getLogger(__name__)
 
@@ -161,7 +162,7 @@ class BagReader:
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
+        self.path = local_source(path, what="bag")  # (a URL: its copy here)
         self.topics: dict[str, TopicInfo] = {}
         self.start_ns = 0
         self.end_ns = 0

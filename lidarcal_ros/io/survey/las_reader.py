@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from lidarcal_ros.errors import InputError, one_line
+from lidarcal_ros.io.url_cache import local_source
 
 logger = logging.getLogger(__name__)
 
@@ -182,7 +183,7 @@ def inspect_las(path: str | os.PathLike[str]) -> LasFileInfo:
     """
     import laspy
 
-    p = Path(path)
+    p = local_source(path, what="LAS file")
     _check_path(p)
     try:
         with laspy.open(str(p)) as reader:
@@ -249,7 +250,7 @@ def iter_las_chunks(
     """
     import laspy
 
-    p = Path(path)
+    p = local_source(path, what="LAS file")
     _check_path(p)
     done = 0
     expected = -1

@@ -38,6 +38,7 @@ from lidarcal_ros.io.bag.prefetch import WriteBehind, prefetched
 from lidarcal_ros.io.calibration_file import CalibrationRecord, read_calibration
 from lidarcal_ros.io.cloud.columns import resolve_time_field
 from lidarcal_ros.io.cloud.pointcloud import cloud_to_array, make_point_dtype
+from lidarcal_ros.io.url_cache import source_of
 from lidarcal_ros.pipeline.correction.apply import CorrectionSettings
 from lidarcal_ros.pipeline.correction.corrected_cloud import CorrectionStats
 from lidarcal_ros.pipeline.correction.stream import DEFAULT_BATCH_POINTS, StreamCorrector
@@ -207,7 +208,7 @@ class CorrectOptions:
         return max(4 * self.batch_points, MIN_HELD_POINTS)
 
 
-def _sensor_frame(bag: Path, record: CalibrationRecord, points_topic: str,
+def _sensor_frame(bag: str | Path, record: CalibrationRecord, points_topic: str,
                   trajectory_topic: str, map_frame: str) -> str | None:
     """The sensor's frame of clouds in it (docs/method.md section 12), None for map-frame
     clouds; refused in one line where the calibration holds no mounting of it."""
@@ -280,8 +281,9 @@ def correct_bag(
     # (written where there is something to correct it by)
     moved_topic = (str(config["topics.trajectory_corrected"])
                    if kind == "bag" and record.trajectory is not None else None)
-    bag_path = Path(bag_path)
-    if out_path.resolve() == bag_path.resolve():
+    bag_path = source_of(bag_path)  # (a URL as given: each process reading it fetches it)
+    inputs = [bag_path.resolve()] if isinstance(bag_path, Path) else []
+    if out_path.resolve() in inputs:
         raise InputError(f"{out_path}: output would overwrite the input bag")
     sensor = _sensor_frame(bag_path, record, points_topic, traj_topic, config["frame_id"])
     if sensor is not None and options.trajectory_out is not None:
@@ -289,7 +291,7 @@ def correct_bag(
                          f"in the sensor's frame '{sensor}' (the bag's trajectory is already "
                          "the INS's)")
     if options.trajectory_out is not None and Path(options.trajectory_out).resolve() in (
-            bag_path.resolve(), out_path.resolve()):
+            *inputs, out_path.resolve()):
         raise InputError(f"{options.trajectory_out}: the trajectory output would overwrite "
                          "the input bag or the corrected output")
     warnings: list[str] = []
@@ -605,7 +607,7 @@ def _check_topics(bag: Any, points_topic: str, trajectory_topic: str,
                        "another input or output topic")
 
 
-def _warn_of_what_was_left(report: CorrectionReport, bag_path: Path, crs: Any) -> None:
+def _warn_of_what_was_left(report: CorrectionReport, bag_path: str | Path, crs: Any) -> None:
     """The report's (and the log's) warnings of points left uncorrected or without
     reflectance, and of a LAS/LAZ file without a CRS."""
     s, kind, out_path = report.stats, report.kind, report.output

@@ -10,6 +10,7 @@ from lidarcal_ros.core.calibration.calibrate import Progress
 from lidarcal_ros.core.config import SCHEMA, FlightConfig
 from lidarcal_ros.io.report.content import InputFile
 from lidarcal_ros.io.report.digest import digest
+from lidarcal_ros.io.url_cache import local_source, source_of
 
 __all__ = ["configuration_table", "describe_inputs"]
 
@@ -27,12 +28,12 @@ def _parameter_text(value: Any) -> str:
 def describe_inputs(files: Sequence[tuple[str, str | Path | None]], *,
                     progress: Progress | None = None) -> list[InputFile]:
     """Size and SHA-256 of each input (role, path); None paths are left out."""
-    present = [(role, Path(path)) for role, path in files if path is not None]
+    present = [(role, source_of(path)) for role, path in files if path is not None]
     out = []
     for k, (role, path) in enumerate(present):
         if progress is not None:
             progress(f"hashing {role}", k / max(len(present), 1))
-        size, sha = digest(path)
+        size, sha = digest(local_source(path, what=role))  # (a URL: its copy here)
         out.append(InputFile(role, str(path), size, sha))
     return out
 
