@@ -12,7 +12,9 @@ the same arithmetic, so the estimate is the same.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Protocol, cast
 
@@ -144,6 +146,22 @@ def sample_side(ps: PreparedStrip, index: np.ndarray) -> PreparedStrip:
                    tin=None, corrected=None)
 
 
+#: By strip (its id() in this process), the lock of the tasks that use it (:func:`_alone_with`).
+_STRIP_LOCKS: dict[int, threading.Lock] = {}
+_STRIP_LOCKS_LOCK = threading.Lock()
+
+
+@contextmanager
+def _alone_with(ps: PreparedStrip) -> Iterator[None]:
+    """``ps`` used by this task alone in this process: the strip held at its home keeps its
+    latest correction (``corrected``), which a worker's tasks share and a release forgets,
+    so the threads of a worker of several take it in turn (a task reads it more than once)."""
+    with _STRIP_LOCKS_LOCK:
+        lock = _STRIP_LOCKS.setdefault(id(ps), threading.Lock())
+    with lock:
+        yield
+
+
 def _matcher(strips: dict[int, PreparedStrip], settings: CalibrationSettings,
              trajectory: TrajectoryState) -> PairMatcher:
     """A matcher holding ``strips`` at their indices, the job's trajectory errors."""
@@ -170,17 +188,19 @@ def choose_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The pair's sample and "before" distances (a task; :meth:`PairWork.choose`; ``a`` and
     the sample as ``job``'s pair numbers its points)."""
-    matcher = _pair_matcher(a, b, job)
-    return matcher.choose_sample(job.pair, _corrected(matcher, job, delivered=True))
+    with _alone_with(b):
+        matcher = _pair_matcher(a, b, job)
+        return matcher.choose_sample(job.pair, _corrected(matcher, job, delivered=True))
 
 
 def observe_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                  ) -> tuple[Observations, np.ndarray, np.ndarray | None]:
     """The pair's correspondences, the patch of each sample point (-1: none) and its
     ``last_triangle`` (a task; :meth:`PairWork.observe`)."""
-    matcher = _pair_matcher(a, b, job)
-    obs, patches = matcher.observe(job.pair, job.delta, _corrected(matcher, job),
-                                   job.threshold)
+    with _alone_with(b):
+        matcher = _pair_matcher(a, b, job)
+        obs, patches = matcher.observe(job.pair, job.delta, _corrected(matcher, job),
+                                       job.threshold)
     return obs, patches, job.pair.last_triangle
 
 
@@ -188,9 +208,10 @@ def distances_task(a: PreparedStrip, b: PreparedStrip, job: PairJob
                    ) -> tuple[np.ndarray, np.ndarray | None]:
     """:meth:`~lidarcal_ros.core.calibration.matching.PairMatcher.sample_distances` of the
     pair and its ``last_triangle`` (a task; :meth:`PairWork.distances`)."""
-    matcher = _pair_matcher(a, b, job)
-    distances = matcher.sample_distances(job.pair, job.delta, _corrected(matcher, job),
-                                         job.threshold)
+    with _alone_with(b):
+        matcher = _pair_matcher(a, b, job)
+        distances = matcher.sample_distances(job.pair, job.delta, _corrected(matcher, job),
+                                             job.threshold)
     return distances, job.pair.last_triangle
 
 
@@ -198,24 +219,27 @@ def control_task(ps: PreparedStrip, control: ControlPoints, cps: np.ndarray, job
                  ) -> tuple[Observations, list[tuple[int, int, float]]]:
     """The control points ``cps`` (indices) matched to the strip (a task; the strip's part of
     :meth:`PairWork.control`)."""
-    matcher = _matcher({job.strip: ps}, job.settings, job.trajectory)
-    xyz = matcher.corrected(job.strip, job.delta, delivered=job.delivered)
-    return matcher.strip_control_observations(job.strip, control, cps, job.delta, xyz,
-                                              job.threshold)
+    with _alone_with(ps):
+        matcher = _matcher({job.strip: ps}, job.settings, job.trajectory)
+        xyz = matcher.corrected(job.strip, job.delta, delivered=job.delivered)
+        return matcher.strip_control_observations(job.strip, control, cps, job.delta, xyz,
+                                                  job.threshold)
 
 
 def laser_qa_task(ps: PreparedStrip, job: StripJob) -> LaserVectorQA:
     """What the laser vectors of the strip's points corrected by the job's estimate say (a
     task; the strip's part of :meth:`PairWork.laser_qa`)."""
-    matcher = _matcher({job.strip: ps}, job.settings, job.trajectory)
-    return matcher.strip_laser_qa(job.strip, job.delta)
+    with _alone_with(ps):
+        matcher = _matcher({job.strip: ps}, job.settings, job.trajectory)
+        return matcher.strip_laser_qa(job.strip, job.delta)
 
 
 def release_task(ps: PreparedStrip, *done: object) -> None:
     """Forget the strip's latest correction (a task, after ``done``: the tasks that read it;
     a process holds a strip's corrected points only while what matches against it runs,
     24 bytes a point)."""
-    ps.corrected = None
+    with _alone_with(ps):
+        ps.corrected = None
 
 
 __all__ = ["PairJob", "PairWork", "StripJob", "choose_task", "control_task", "distances_task",

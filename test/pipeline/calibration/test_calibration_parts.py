@@ -6,6 +6,7 @@ estimate unchanged; the one-line refusals."""
 from __future__ import annotations
 
 from collections import Counter
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -197,6 +198,32 @@ def test_one_whole_strip_is_corrected_at_a_time(small_mission: MissionFiles) -> 
         elif name.startswith("observe") and args[1] is not last:
             assert released, key
             last, released = args[1], False
+
+
+class _TwoThreads(SerialExecutor):
+    """Tasks in two threads of this process, as a Dask worker of two threads runs them (a
+    task's future arguments waited for in its thread)."""
+
+    def __init__(self) -> None:
+        self.pool = ThreadPoolExecutor(2)
+
+    def submit(self, fn: Any, *args: Any, key: str, place: str | None = None) -> Any:
+        return self.pool.submit(
+            lambda: fn(*(a.result() if isinstance(a, Future) else a for a in args)))
+
+
+@pytest.mark.parametrize("memory", ["whole", "bounded"])
+def test_a_worker_of_two_threads_gives_the_serial_estimate(
+        small_mission: MissionFiles, memory: str) -> None:
+    # (two tasks of one strip share its latest correction, and a release forgets it: they
+    # take the strip in turn)
+    values = {"calibration__trajectory__model": "drift", "calibration__memory": memory}
+    threads = _TwoThreads()
+    try:
+        _assert_same(_calibrated(small_mission, threads, values),
+                     _calibrated(small_mission, None, values))
+    finally:
+        threads.pool.shutdown()
 
 
 def test_a_killed_worker_is_replaced_and_the_estimate_unchanged(
