@@ -19,6 +19,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from lidarcal_ros.errors import InputError, one_line
 
@@ -77,7 +78,7 @@ def local_source(source: str | os.PathLike[str], *, what: str) -> Path:
                          f"({one_line(exc)})") from None
     if "file" in _protocols(fs):
         return Path(path)
-    name = posixpath.basename(path.rstrip("/")) or "source"
+    name = _name_of(path) or "source"
     home = cache_root() / hashlib.sha256(url.encode()).hexdigest()[:16]
     try:
         with _locked(home):
@@ -87,7 +88,7 @@ def local_source(source: str | os.PathLike[str], *, what: str) -> Path:
                 if not files:
                     raise InputError(f"{what} {url}: an empty directory")
                 for entry in files:
-                    base = posixpath.basename(entry["name"].rstrip("/"))
+                    base = _name_of(entry["name"])
                     _fetch(fs, entry, home / name / base, home / f".{name}.{base}.stamp")
             else:
                 _fetch(fs, fs.info(path), home / name, home / f".{name}.stamp")
@@ -98,6 +99,12 @@ def local_source(source: str | os.PathLike[str], *, what: str) -> Path:
     except Exception as exc:  # (the filesystem's own: network, credentials, permissions)
         raise InputError(f"{what} {url}: cannot be fetched ({one_line(exc)})") from None
     return home / name
+
+
+def _name_of(path: str) -> str:
+    """The last part of a filesystem's path or URL, without its query (a signed link's
+    signature is no part of the name, whose suffix the readers go by)."""
+    return posixpath.basename((urlsplit(path).path if is_url(path) else path).rstrip("/"))
 
 
 def _protocols(fs: Any) -> tuple[str, ...]:
