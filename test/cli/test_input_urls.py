@@ -5,6 +5,7 @@ one line."""
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -70,6 +71,18 @@ def test_calibrate_reads_a_bag_url_as_its_path(
     from_path = _calibrate(capsys, small_mission.bag, config, tmp_path / "path.yaml")
     assert _calibrate(capsys, url, config, tmp_path / "url.yaml") == from_path
     assert any(url_cache.rglob("metadata.yaml"))
+
+
+def test_evaluate_reads_a_bag_url_as_its_path(
+        capsys: pytest.CaptureFixture[str], small_mission: MissionFiles, site: str,
+        small_calibration: Path) -> None:
+    answers = []
+    for bag in (f"{site}/{small_mission.bag.name}", small_mission.bag):
+        rc, out, err = run(capsys, "evaluate", bag, "--calibration", small_calibration,
+                           "--json")
+        assert rc == 0, err
+        answers.append(json.loads(out))
+    assert answers[0] == answers[1]
 
 
 def test_workers_fetch_the_bag_themselves(
