@@ -93,12 +93,26 @@ def local_source(source: str | os.PathLike[str], *, what: str) -> Path:
             else:
                 _fetch(fs, fs.info(path), home / name, home / f".{name}.stamp")
     except FileNotFoundError:
+        _forget_if_empty(home)
         raise InputError(f"{what} {url}: not found") from None
     except InputError:
+        _forget_if_empty(home)
         raise
     except Exception as exc:  # (the filesystem's own: network, credentials, permissions)
+        _forget_if_empty(home)
         raise InputError(f"{what} {url}: cannot be fetched ({one_line(exc)})") from None
     return home / name
+
+
+def _forget_if_empty(home: Path) -> None:
+    """``home`` removed where nothing was fetched into it (its lock only): a URL refused
+    leaves no trace in the cache."""
+    try:
+        if [p.name for p in home.iterdir()] == [".lock"]:
+            (home / ".lock").unlink()
+            home.rmdir()
+    except OSError:  # (another process fetching it now, or already gone)
+        pass
 
 
 def _name_of(path: str) -> str:

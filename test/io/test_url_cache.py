@@ -92,3 +92,4 @@ def test_refusals_are_one_line_naming_the_url(site: Path, cache: Path) -> None:
     with pytest.raises(InputError, match=r"^bag http://127\.0\.0\.1:\d+/flight: cannot be "
                                          r"fetched \(.+\)$"):
         local_source(f"{base}/flight", what="bag")
+    assert not cache.exists() or not any(cache.iterdir())  # (no trace of what was refused)
