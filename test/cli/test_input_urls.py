@@ -1,7 +1,7 @@
 """Bags and LAS files named by URL (http:// on loopback, as s3:// would be): ``calibrate``,
-``correct`` and ``import`` give what they give from the paths, serially and on a two-worker
-Dask cluster whose workers fetch the bag themselves; a URL that names nothing is refused in
-one line."""
+``correct``, ``evaluate`` and ``import`` give what they give from the paths, serially and on a
+two-worker Dask cluster whose workers fetch the bag themselves; ``report`` names the URL with
+the bag's digest; a URL that names nothing is refused in one line."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from helpers_missions import MissionFiles
 from lidarcal_ros.core.simulation.simulate import simulate_mission
 from lidarcal_ros.core.simulation.spec import SimulationSpec
 from lidarcal_ros.io.bag.mission_bag import read_mission
+from lidarcal_ros.io.report.digest import digest
 from lidarcal_ros.io.url_cache import CACHE_ENV
 from lidarcal_ros.pipeline.executor import DaskExecutor
 
@@ -83,6 +84,19 @@ def test_evaluate_reads_a_bag_url_as_its_path(
         assert rc == 0, err
         answers.append(json.loads(out))
     assert answers[0] == answers[1]
+
+
+def test_the_report_of_a_bag_url_names_it_with_the_paths_digest(
+        capsys: pytest.CaptureFixture[str], small_mission: MissionFiles, site: str,
+        small_calibration: Path, tmp_path: Path) -> None:
+    url = f"{site}/{small_mission.bag.name}"
+    out = tmp_path / "report.html"
+    rc, _, err = run(capsys, "report", url, "--calibration", small_calibration, "-o", out,
+                     "-q")
+    assert rc == 0, err
+    page = out.read_text()
+    _, sha = digest(small_mission.bag)
+    assert url in page and sha in page
 
 
 def test_workers_fetch_the_bag_themselves(
