@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from lidarcal_ros.cli.common import (
-    BAG_HELP,
     add_bag_and_calibration_arguments,
+    add_bag_argument,
     add_dask_option,
     add_quiet_option,
     other_paths,
@@ -19,7 +19,6 @@ from lidarcal_ros.cli.common import (
 from lidarcal_ros.cli.exit_status import EXIT_NOT_CONVERGED, EXIT_NOTHING_ESTIMATED, EXIT_OK
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
-from lidarcal_ros.io.url_cache import source_of
 
 __all__ = [
     "add_calibrate_command", "add_evaluate_command", "add_report_command", "cmd_calibrate",
@@ -34,7 +33,7 @@ def add_calibrate_command(sub: Any) -> None:
     p = sub.add_parser("calibrate", help="estimate the system biases from a mission bag",
                        description="Quasi-rigorous calibration (Habib et al. 2011) of a "
                        "mission bag; writes the calibration file and prints a report.")
-    p.add_argument("bag", type=source_of, help=BAG_HELP)
+    add_bag_argument(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="calibration YAML")
     p.add_argument("--config", type=Path, help="flight configuration (ROS 2 parameters file)")
     p.add_argument("--control", type=Path, help="control points CSV id,x,y,z")

@@ -10,12 +10,8 @@ from typing import Any
 
 from lidarcal_ros.io.url_cache import source_of
 
-#: The help of a bag argument.
-BAG_HELP = ("rosbag2 directory or .mcap file: a path, or a URL (s3://, https://...) that fsspec "
-            "reads here (each process reading it keeps a copy: docs/interface.md)")
-
-__all__ = ["BAG_HELP", "add_bag_and_calibration_arguments", "add_dask_option", "add_quiet_option",
-           "finite_float", "other_paths", "progress_bar"]
+__all__ = ["add_bag_and_calibration_arguments", "add_bag_argument", "add_dask_option",
+           "add_quiet_option", "finite_float", "other_paths", "progress_bar"]
 
 
 def add_dask_option(p: Any) -> None:
@@ -45,9 +41,18 @@ def add_quiet_option(p: Any) -> None:
                    help="no progress bar (it shows only on a terminal anyway)")
 
 
+def add_bag_argument(p: Any) -> None:
+    """The input bag of a command: a path, or a URL kept as given (a Path would fold
+    ``s3://`` into ``s3:/``), which the readers fetch."""
+    p.add_argument("bag", type=source_of,
+                   help="rosbag2 directory or .mcap file: a path, or a URL (s3://, https://...) "
+                   "that fsspec reads here (each process reading it keeps a copy: "
+                   "docs/interface.md)")
+
+
 def add_bag_and_calibration_arguments(p: Any) -> None:
     """The arguments of the commands that read a mission bag with a calibration."""
-    p.add_argument("bag", type=source_of, help=BAG_HELP)
+    add_bag_argument(p)
     p.add_argument("--calibration", required=True, type=Path,
                    help="calibration YAML (lidarcal calibrate)")
 

@@ -18,10 +18,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from lidarcal_ros.cli.common import BAG_HELP, finite_float, other_paths
+from lidarcal_ros.cli.common import add_bag_argument, finite_float, other_paths
 from lidarcal_ros.errors import ConfigError
 from lidarcal_ros.io.output_files import check_output
-from lidarcal_ros.io.url_cache import source_of
 
 __all__ = [
     "NODE_CHOICES", "add_record_arguments", "add_record_command", "add_replay_arguments",
@@ -48,7 +47,7 @@ def _start_ros(argv: list[str]) -> tuple[Any, Any]:
 # ---------------------------------------------------------------------------- replay
 def add_replay_arguments(p: argparse.ArgumentParser) -> None:
     """The arguments of ``lidarcal replay`` (times in seconds)."""
-    p.add_argument("bag", type=source_of, help=BAG_HELP)
+    add_bag_argument(p)
     p.add_argument("--rate", type=finite_float, default=1.0,
                    help="speed factor of the original timing (default 1; 10 = ten times faster)")
     p.add_argument("--loop", action="store_true", help="start again at the end (Ctrl-C stops)")
