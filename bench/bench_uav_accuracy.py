@@ -18,7 +18,8 @@ same seed and layout: the ratio of each grade's rotation error to it is printed 
 The bars of issue 33 (tactical INS): 30 arcsec, 8 mm, dr 4 mm, honest sigmas (within 2-3).
 ``--set`` passes flight configuration values (e.g. the trajectory model's priors),
 ``--strips turns`` cuts the flight in the middle of each turn instead of leaving the turns
-out, ``--position-correlation-s`` sets how long the INS's position errors stay alike.
+out, ``--position-correlation-s`` and ``--attitude-correlation-s`` set how long the INS's
+position and attitude errors stay alike (0.01: white noise, each 100 Hz pose its own).
 """
 
 from __future__ import annotations
@@ -125,6 +126,8 @@ def main() -> None:
                     "line with the halves of the turns beside it")
     ap.add_argument("--position-correlation-s", type=float, default=30.0,
                     help="correlation time of the INS's position errors, s")
+    ap.add_argument("--attitude-correlation-s", type=float, default=20.0,
+                    help="correlation time of the INS's attitude errors, s")
     ap.add_argument("--columns", type=int, default=360)
     ap.add_argument("--lines", type=int, default=4)
     args = ap.parse_args()
@@ -138,7 +141,8 @@ def main() -> None:
             for grade in args.ins.split(","):
                 spec = UavPayloadSpec(layout=layout, seed=seed, columns=args.columns,
                                       n_lines=args.lines, ins_correlation_s=(
-                                          args.position_correlation_s, 20.0),
+                                          args.position_correlation_s,
+                                          args.attitude_correlation_s),
                                       **GRADES[grade])  # type: ignore[arg-type]
                 m = simulate_uav_payload(spec)
                 spans = strip_spans(m.trajectory, through_turns=args.strips == "turns")

@@ -167,6 +167,15 @@ class CalibrationSettings:
             raise ConfigError("calibration: dS (a mirror's scale) is no parameter of a general "
                               "scanner; leave it out of solve_for and fixed")
 
+    def held(self, delta: np.ndarray) -> np.ndarray:
+        """A copy of the estimate ``delta`` (SI) with the biases not solved for at their
+        ``fixed`` values, as a solve leaves them."""
+        out = np.array(delta, dtype=np.float64)
+        for k, name in enumerate(PARAMETER_NAMES):
+            if name not in self.solve_for:
+                out[k] = float(self.fixed.get(name, 0.0))
+        return out
+
     def tin_quality(self, density: float) -> TinQuality:
         """Patch rules for a strip of ``density`` points per m^2 (edges up to
         ``max_edge_factor`` point spacings)."""

@@ -20,11 +20,16 @@ from typing import Any
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.least_squares import ParameterState, ParameterStatus
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
 from lidarcal_ros.core.calibration.extrinsic import (
+    TIMING_SLOT,
     MountingCalibration,
+    calibrate_mounting,
     further_passes,
     sensor_points,
+    timing_unseen,
+    without_timing,
 )
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
@@ -237,6 +242,9 @@ class CalibrationService:
         self._throttled = ThrottledLog(logger)
         self._control: ControlPoints | None = None  # the latest given, for a new stream
         self._solve_for_note = ""  # what the mounting's solve_for left out, said once
+        #: Why the mounting's timing bias is held at 0 ('' = it is not, or was not asked
+        #: for): an estimate could not tell it from the mounting (:meth:`_timing_seen`).
+        self._timing_held = ""
         self.input = InputCounts()
         #: Estimates given to ``on_result``, and the seconds the last one took.
         self.solves = 0
@@ -310,6 +318,12 @@ class CalibrationService:
 
     def _mounting_settings(self, config: FlightConfig) -> CalibrationSettings:
         """The settings of a mounting's calibration, ``lidarcal calibrate``'s
+        (:meth:`_asked_mounting_settings`), without the timing bias once it is held."""
+        asked = self._asked_mounting_settings(config)
+        return without_timing(asked) if self._timing_held else asked
+
+    def _asked_mounting_settings(self, config: FlightConfig) -> CalibrationSettings:
+        """The settings of a mounting's calibration as ``lidarcal calibrate`` starts it
         (:func:`~lidarcal_ros.pipeline.calibration.sensor_frame.
         sensor_calibration_settings`)."""
         return sensor_calibration_settings(self._mounting_solve_for(config), config=config)
@@ -649,6 +663,9 @@ class CalibrationService:
         self._stream.reset()
         self.sensor.reset()
         self.mounting, self._mounted = None, None
+        if self._timing_held:  # (the next flight may see it)
+            self._timing_held = ""
+            self._stream.update_config(self.config)
         self._point_end = self._traj_end = -math.inf
         with self._qa_lock:
             self._qa = []
@@ -687,6 +704,11 @@ class CalibrationService:
 
     def _publish(self, result: CalibrationResult, seconds: float) -> None:
         """Hand an estimate on (its QA statuses first), then checkpoint."""
+        if self.sensor.active:
+            seen = self._timing_seen(result)
+            if seen is None:
+                return
+            result = seen
         self.solves += 1
         self.last_solve_s = seconds
         cfg = self.config
@@ -709,6 +731,31 @@ class CalibrationService:
         if self.options.checkpoint_file:
             self._checkpoint(self.options.checkpoint_file)
 
+    def _timing_seen(self, result: CalibrationResult) -> CalibrationResult | None:
+        """``result``, or where the timing bias it estimated cannot be told from the
+        mounting (:func:`~lidarcal_ros.core.calibration.extrinsic.timing_unseen`, the test
+        ``lidarcal calibrate``'s first pass makes) the estimate converged again with ``dt``
+        held at 0, as that pass is calibrated again (None: no estimate without it yet).
+        Held from then on, said in ``dt``'s status; once the flight has ended
+        :meth:`_mounting_of` decides on the whole flight as ``lidarcal calibrate`` does."""
+        if not self._timing_held and not self.sensor.ended:
+            unseen = timing_unseen(result.solution,
+                                   self._asked_mounting_settings(self.config))
+            if not unseen:
+                return result
+            logger.info("the timing bias cannot be told from the mounting (%s): held at 0 "
+                        "and the estimate converged again without it", unseen)
+            self._timing_held = unseen
+            self._stream.update_config(self.config)  # (the strips' calibration rebuilt)
+            held = self._stream.converge()
+            if held is None:
+                return None
+            result = held
+        if self._timing_held:
+            result.solution.status[TIMING_SLOT] = ParameterStatus(
+                ParameterState.NOT_ESTIMABLE, self._timing_held)
+        return result
+
     def _mounting_of(self, result: CalibrationResult) -> MountingCalibration | None:
         """The calibrated mounting of an estimate of the lines handed on (None: no
         mounting). Once the flight has ended, with the further passes ``lidarcal calibrate``
@@ -726,6 +773,13 @@ class CalibrationService:
                 "memory budget, so no further pass from it as lidarcal calibrate makes"))
             return cal
         points, t = sensor_points(strips, self._stream.trajectory, cal.nominal)
+        asked = self._asked_mounting_settings(self.config)
+        if asked.timing and (self._timing_held or timing_unseen(result.solution, asked)):
+            # Whether the flight sees dt is the whole flight's to say: the offline procedure
+            # from its first pass, dt asked for (the live one held it on fewer lines).
+            return calibrate_mounting(points, t, self.sensor.base_trajectory, cal.nominal,
+                                      settings=asked, lines=cal.lines,
+                                      control=self._stream.control)
         return further_passes(points, t, self.sensor.base_trajectory, cal,
                               settings=self._mounting_settings(self.config),
                               control=self._stream.control)

@@ -595,7 +595,8 @@ class StreamingCalibration:
         for strip in self._closed:
             models.add_strip(strip, self.trajectory)
         for cal in models.calibrators:
-            cal.delta = self._calibrator.delta.copy()
+            # (a bias no longer solved for goes to its held value, as a new calibration's)
+            cal.delta = cal.settings.held(self._calibrator.delta)
         self._models = models
         self._data_changed()
 

@@ -363,3 +363,83 @@ def test_the_estimate_line_and_the_sensor_status_say_the_timing_bias(case: str) 
         assert float(estimate.values["time_offset_s"]) == 0.0
         assert estimate.values["time_offset_sigma_s"] == ""
         assert estimate.values["time_offset_not_estimable"] == statement
+
+
+# ------------------------------------------------------------------- the timing bias
+
+@functools.cache
+def _steady_mission() -> UavPayloadMission:
+    """The payload above flown without wobble, its clock 3 ms late: straight lines at one
+    speed and a steady attitude, where dt moves each line along its track as dY does."""
+    return simulate_uav_payload(UavPayloadSpec(seed=3, columns=48, n_lines=3,
+                                               line_length_m=80.0, wobble_deg=0.0,
+                                               time_offset_s=0.003))
+
+
+@pytest.mark.parametrize("steady", [True, False])
+def test_a_timing_bias_the_lines_cannot_see_is_held_live_as_offline(
+        tmp_path: Path, steady: bool) -> None:
+    """With ``sensor_frame.estimate_timing`` (its sigma limit wide, so that the multiple
+    correlation decides): on a steady flight every estimate the service publishes, in flight
+    and after, holds dt at 0 and says why once dt proved inseparable from the mounting (the
+    calibration rebuilt without it, no blurred dt in the mounting), and the saved mounting is
+    ``lidarcal calibrate``'s, which held dt too (0.1 sigma); with the multirotor's wobble dt
+    is estimated live and offline alike. A reset forgets the hold."""
+    m = _steady_mission() if steady else simulate_uav_payload(UavPayloadSpec(
+        seed=3, columns=48, n_lines=3, line_length_m=80.0, time_offset_s=0.003))
+    published: list[Any] = []
+    config = FlightConfig.from_mapping({
+        "sensor_frame.mounting": _mounting_text(m.nominal),
+        "sensor_frame.estimate_timing": True,
+        "sensor_frame.timing_max_sigma_s": 0.05,
+        "calibration.calibration_file": str(tmp_path / "live.yaml")})
+    service = CalibrationService(config, CalibratorOptions.from_parameters(
+        {"idle_close_s": 0.0}), on_result=published.append)
+    service.start()
+    t_all = np.concatenate([c[2] for c in _clouds(m)])
+    third = float(t_all[m.line == 2].min()) + 2.0  # (two lines flown, the third begun)
+    try:
+        _feed(service, _events(m, end=third))
+        _wait(lambda: service.queued_jobs == 0 and bool(published), 120,
+              "an estimate of two lines")
+        assert not service.sensor.ended
+        during = len(published)
+        _feed(service, _events(m, start=third))
+        _wait(lambda: service.queued_jobs == 0, 120, "the flight")
+        assert "solved" in service.solve()
+        saved = service.save().split("written to ")[1].split(",")[0]
+        held = service._timing_held
+        service.reset()
+        _wait(lambda: service.queued_jobs == 0, 30, "the reset")
+        assert service._timing_held == ""
+        assert service._mounting_settings(config).timing  # (the next flight's stream's)
+    finally:
+        service.close()
+    xyz = np.concatenate([c[1] for c in _clouds(m)])
+    t = np.concatenate([c[2] for c in _clouds(m)])
+    offline = calibrate_mounting(xyz, t, m.trajectory, m.nominal, settings=(
+        sensor_calibration_settings(MOUNTING_SOLVE_FOR, config=config)))
+    assert offline.timing_asked
+    record = read_calibration(Path(saved))
+    assert record.extrinsic is not None
+    slot = PARAMETER_INDEX["dS"]
+    assert 0 < during < len(published)
+    if steady:
+        assert "cannot be seen" in offline.time_offset_note and offline.time_offset_s == 0.0
+        assert "multiple correlation" in held
+        assert record.extrinsic.time_offset_s == 0.0
+        assert record.extrinsic.time_offset_sigma_s is None
+        assert "dt cannot be seen on this flight" in record.extrinsic.time_offset_note
+        # (the mounting's calibration takes dt out of the result: the slot held, a warning)
+        for result in published:
+            assert result.solution.delta[slot] == 0.0 and "dS" not in result.solution.estimated
+            assert any(w.startswith("the timing bias dt cannot be seen") and
+                       "multiple correlation" in w for w in result.solution.warnings)
+    else:
+        assert offline.time_offset_note == "" and np.isfinite(offline.time_offset_sigma_s)
+        assert held == ""
+        assert record.extrinsic.time_offset_sigma_s is not None
+        assert abs(record.extrinsic.time_offset_s - offline.time_offset_s) <= \
+            0.1 * offline.time_offset_sigma_s
+        assert not any("dt cannot be seen" in w for r in published for w in r.solution.warnings)
+    _same_mounting(Path(saved), offline, 0.1)
