@@ -70,8 +70,11 @@ TIMING_MAX_CORRELATION = 0.95
 #: general scanner has no mirror scale, and ``dS``'s place holds ``dt``.
 TIMING_SLOT = "dS"
 
-#: Passes of a mounting's calibration at most (:func:`calibrate_mounting`).
-MAX_PASSES = 3
+#: Passes of a mounting's calibration at most (:func:`calibrate_mounting`), the first (on the
+#: boresight and range, the lever arm held) counted.
+MAX_PASSES = 4
+#: The lever-arm biases, held in a calibration's first pass (:func:`calibrate_mounting`).
+LEVER_ARM = ("dX", "dY", "dZ")
 #: A pass whose estimate moves the points by more than this (m; :func:`points_moved`) is
 #: followed by another, the clouds georeferenced anew with the mounting it gave: the strips'
 #: TINs are built on the points as georeferenced, and where a boresight error of tenths of a
@@ -205,9 +208,13 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
     control : ControlPoints, keyword-only, optional
         Vertical control points (map frame), which make ``dZ`` observable.
     passes : int, keyword-only
-        Calibrations at most: while a pass moves the points by more than
-        :data:`REPASS_MOVE_M`, the next georeferences them anew with the mounting it gave
-        (:func:`rebased` then expresses the last against ``nominal``).
+        Calibrations at most. With more than one, the first estimates the boresight and
+        ``dr`` with the lever arm held at the nominal (a nominal rotation tenths of a degree
+        off puts the strips decimetres apart, where the first matches can trade a lever arm
+        decimetres off against the rotation), the second everything from the mounting it
+        gave; while a pass moves the points by more than :data:`REPASS_MOVE_M`, the next
+        georeferences them anew with the mounting it gave (:func:`rebased` then expresses
+        the last against ``nominal``).
 
     Raises
     ------
@@ -226,9 +233,30 @@ def calibrate_mounting(points: np.ndarray, t: np.ndarray, trajectory: Trajectory
     s = _general_rigorous(settings or mounting_settings())
     spans = straight_lines(trajectory) if lines is None else \
         np.asarray(lines, dtype=np.float64).reshape(-1, 2)
-    first = _one_pass(p, t, trajectory, nominal, s, spans, control, progress)
-    return further_passes(p, t, trajectory, first, settings=s, control=control,
-                          progress=progress, passes=passes)
+    held = _lever_arm_held(s) if passes > 1 else None
+    if held is None:
+        first = _one_pass(p, t, trajectory, nominal, s, spans, control, progress)
+        return further_passes(p, t, trajectory, first, settings=s, control=control,
+                              progress=progress, passes=passes)
+    boresight = _one_pass(p, t, trajectory, nominal, held, spans, control, progress)
+    logger.info("mounting pass 1 (the lever arm held) moved the points by %.3f m: "
+                "georeferenced anew with its boresight",
+                points_moved(boresight.delta, _typical_range(p)))
+    second = _one_pass(p, t, trajectory, boresight.mounting, s, spans, control, progress)
+    return further_passes(p, t, trajectory, second, settings=s, control=control,
+                          progress=progress, passes=passes, origin=boresight, made=2)
+
+
+def _lever_arm_held(settings: CalibrationSettings) -> CalibrationSettings | None:
+    """The settings of a first pass on the boresight and ``dr`` alone, the lever arm (and a
+    timing bias, which would take its along-track part) held; None where ``settings``
+    solve for no lever arm or no rotation."""
+    names = settings.solve_for
+    if not any(n in names for n in LEVER_ARM) or \
+            not any(n in names for n in ("domega", "dphi", "dkappa")):
+        return None
+    return replace(without_timing(settings),
+                   solve_for=tuple(n for n in names if n not in LEVER_ARM and n != TIMING_SLOT))
 
 
 def _general_rigorous(settings: CalibrationSettings) -> CalibrationSettings:
@@ -293,22 +321,24 @@ def without_timing(settings: CalibrationSettings) -> CalibrationSettings:
 def further_passes(points: np.ndarray, t: np.ndarray, trajectory: Trajectory,
                    first: MountingCalibration, *, settings: CalibrationSettings,
                    control: ControlPoints | None = None, progress: Progress | None = None,
-                   passes: int = MAX_PASSES) -> MountingCalibration:
-    """After a first calibration (``first``: a pass of :func:`calibrate_mounting`, or the
-    live calibrator's of the same points), the passes :func:`calibrate_mounting` goes on
-    with: while a pass moved the points by more than :data:`REPASS_MOVE_M`, the clouds
-    (``points`` in the sensor's frame, ``t`` absolute s, on ``first.lines``) are
-    georeferenced anew with its mounting and calibrated again, up to ``passes`` in all; the
-    last expressed against ``first.nominal`` (:func:`rebased`)."""
+                   passes: int = MAX_PASSES, origin: MountingCalibration | None = None,
+                   made: int = 1) -> MountingCalibration:
+    """After a calibration (``first``: a pass of :func:`calibrate_mounting`, the ``made``-th),
+    the passes :func:`calibrate_mounting` goes on with: while a pass moved the points by
+    more than :data:`REPASS_MOVE_M`, the clouds (``points`` in the sensor's frame, ``t``
+    absolute s, on ``first.lines``) are georeferenced anew with its mounting and calibrated
+    again, up to ``passes`` in all; the last expressed against the first pass's nominal
+    (``origin``, default ``first``; :func:`rebased`)."""
     s = _general_rigorous(settings)
+    origin = first if origin is None else origin
     typical_range = _typical_range(points)
-    cal, number = first, 1
+    cal, number = first, made
     while number < passes and (moved := points_moved(cal.delta, typical_range)) > REPASS_MOVE_M:
         logger.info("mounting pass %d moved the points by %.3f m (at %.0f m): georeferenced "
                     "anew with its mounting", number, moved, typical_range)
         number += 1
         cal = _one_pass(points, t, trajectory, cal.mounting, s, first.lines, control, progress)
-    return cal if number == 1 else rebased(cal, first.nominal, first, number)
+    return cal if number == 1 else rebased(cal, origin.nominal, origin, number)
 
 
 def sensor_points(strips: Sequence[Strip], origin: Trajectory,
@@ -356,10 +386,13 @@ def rebased(cal: MountingCalibration, nominal: Mounting, first: MountingCalibrat
         if was is not None:
             q.rms_before, q.n_before = was.rms_before, was.n_before
     result.history = [h + (delta - cal.delta) for h in result.history]
+    held = first.result.solution.status["dX"].state is ParameterState.FIXED and \
+        cal.result.solution.status["dX"].state is not ParameterState.FIXED
     result.solution.warnings.append(
         f"calibrated in {passes} passes: each pass after the first georeferenced the clouds "
-        f"anew with the mounting the one before gave (the first moved the points by more "
-        f"than {REPASS_MOVE_M * 100:.0f} cm)")
+        f"anew with the mounting the one before gave " + (
+            "(the first estimated the boresight and dr with the lever arm held)" if held else
+            f"(the first moved the points by more than {REPASS_MOVE_M * 100:.0f} cm)"))
     return replace(cal, nominal=nominal, delta=delta, result=result)
 
 
@@ -501,6 +534,7 @@ def _mounting_sigmas(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 __all__ = [
+    "LEVER_ARM",
     "MAX_PASSES",
     "MOUNTING_SOLVE_FOR",
     "REPASS_MOVE_M",

@@ -26,7 +26,6 @@ from lidarcal_ros.core.calibration.extrinsic import (
     TIMING_SLOT,
     MountingCalibration,
     calibrate_mounting,
-    further_passes,
     sensor_points,
     timing_unseen,
     without_timing,
@@ -758,11 +757,12 @@ class CalibrationService:
 
     def _mounting_of(self, result: CalibrationResult) -> MountingCalibration | None:
         """The calibrated mounting of an estimate of the lines handed on (None: no
-        mounting). Once the flight has ended, with the further passes ``lidarcal calibrate``
-        makes (:func:`~lidarcal_ros.core.calibration.extrinsic.further_passes`: the points
-        held back in the sensor's frame, georeferenced anew with the estimate), so that the
-        flight's calibration is the offline one; where a strip was released for the memory
-        budget, the live estimate alone (said once)."""
+        mounting). Once the flight has ended, the mounting ``lidarcal calibrate`` gives of
+        the points held back in the sensor's frame
+        (:func:`~lidarcal_ros.core.calibration.extrinsic.calibrate_mounting`: its passes
+        from the nominal, the first with the lever arm held; whether the flight sees ``dt``
+        decided on all of it), so that the flight's calibration is the offline one; where a
+        strip was released for the memory budget, the live estimate alone (said once)."""
         cal = self.sensor.calibration(result)
         if cal is None or not self.sensor.ended:
             return cal
@@ -770,19 +770,12 @@ class CalibrationService:
         if strips is None:
             self._throttled.log(logging.WARNING, 600.0, (
                 "the mounting of the live estimate alone: strips were released for the "
-                "memory budget, so no further pass from it as lidarcal calibrate makes"))
+                "memory budget, so not calibrated again as lidarcal calibrate does"))
             return cal
         points, t = sensor_points(strips, self._stream.trajectory, cal.nominal)
-        asked = self._asked_mounting_settings(self.config)
-        if asked.timing and (self._timing_held or timing_unseen(result.solution, asked)):
-            # Whether the flight sees dt is the whole flight's to say: the offline procedure
-            # from its first pass, dt asked for (the live one held it on fewer lines).
-            return calibrate_mounting(points, t, self.sensor.base_trajectory, cal.nominal,
-                                      settings=asked, lines=cal.lines,
-                                      control=self._stream.control)
-        return further_passes(points, t, self.sensor.base_trajectory, cal,
-                              settings=self._mounting_settings(self.config),
-                              control=self._stream.control)
+        return calibrate_mounting(points, t, self.sensor.base_trajectory, cal.nominal,
+                                  settings=self._asked_mounting_settings(self.config),
+                                  lines=cal.lines, control=self._stream.control)
 
     def timed_extrinsic(self) -> Extrinsic | None:
         """The calibration file's ``extrinsic`` block of the latest mounting, with its timing
