@@ -113,6 +113,10 @@ SCHEMA: dict[str, ParameterSpec] = {
         "usable timing bias dt with the mounting's biases (0.99 with dY on straight lines at "
         "one speed, 0.6 with a multirotor's wobble); beyond it dt is held at 0, said so, and "
         "the mounting calibrated again without it", 0.5, 1.0),
+    "sensor_frame.lever_arm_sigma_m": float_parameter(
+        0.05, "How well the nominal mounting's lever arm is known, 1 sigma per axis, m: a "
+        "lever-arm bias held at it (dZ without control points) moves the others through the "
+        "attitude's changes, and their sigmas allow for that (0: taken as exact)", 0.0, 1.0),
     "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
     "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
     "sensor.fov_deg": float_parameter(

@@ -27,6 +27,7 @@ from lidarcal_ros.core.calibration.iteration import (
     Iteration,
     MatchedSet,
     TrajectoryTerms,
+    allow_for_held_biases,
     allow_for_shared_errors,
     judge_convergence,
     next_threshold,
@@ -88,6 +89,10 @@ class CalibrationSettings:
     solve_for: tuple[str, ...] = ("dX", "dY", "domega", "dphi", "dkappa", "dr", "dS")
     #: Value of each bias not estimated, SI units (0 where not given).
     fixed: dict[str, float] = field(default_factory=dict)
+    #: How far a held bias's value may be off, 1 sigma SI, by name (e.g. a robot
+    #: description's lever arm): the estimated biases' covariance allows for what it moves
+    #: them by (:func:`~lidarcal_ros.core.calibration.iteration.allow_for_held_biases`).
+    held_sigma: dict[str, float] = field(default_factory=dict)
     #: The local-trajectory window (``matching.trajectory_window_s``;
     #: :mod:`lidarcal_ros.core.georeferencing.local_trajectory`).
     window: TrajectoryWindow = DEFAULT_WINDOW
@@ -582,6 +587,8 @@ class Calibrator:
             if terms is None or terms.blocks is None or terms.step is None:
                 self.normal_equations = NormalEquations.from_observations(last.observations)
                 allow_for_shared_errors(last.solution, last.observations, last.step)
+                allow_for_held_biases(last.solution, last.observations,
+                                      self.settings.held_sigma)
                 trajectory = None
             else:
                 # the biases' equations with the trajectory errors reduced out; the shared
@@ -591,9 +598,10 @@ class Calibrator:
                 obs = last.observations
                 reduced = blocks.reduced_rows(obs)
                 v = blocks.residuals(obs, last.step, terms.step)
-                allow_for_shared_errors(last.solution, Observations(
-                    reduced, v + reduced @ last.step, obs.weights, obs.group, obs.cluster),
-                    last.step)
+                partialled = Observations(reduced, v + reduced @ last.step, obs.weights,
+                                          obs.group, obs.cluster)
+                allow_for_shared_errors(last.solution, partialled, last.step)
+                allow_for_held_biases(last.solution, partialled, self.settings.held_sigma)
                 trajectory = TrajectoryEstimate.from_state(
                     self.trajectory, [ps.strip_id for ps in self.strips],
                     blocks.tau_sigma(last.solution))

@@ -75,6 +75,11 @@ TIMING_SLOT = "dS"
 MAX_PASSES = 4
 #: The lever-arm biases, held in a calibration's first pass (:func:`calibrate_mounting`).
 LEVER_ARM = ("dX", "dY", "dZ")
+#: How well a robot description's lever arm is known, 1 sigma per axis, m (a tape measure's
+#: few centimetres): a lever-arm bias held at it (``dZ`` without control) moves the others
+#: through the attitude's changes (measured: 2-4 mm of ``dX`` from 4-5 cm of ``dZ``, ten
+#: formal sigmas), so their sigmas allow for it (``sensor_frame.lever_arm_sigma_m``).
+NOMINAL_LEVER_ARM_SIGMA_M = 0.05
 #: A pass whose estimate moves the points by more than this (m; :func:`points_moved`) is
 #: followed by another, the clouds georeferenced anew with the mounting it gave: the strips'
 #: TINs are built on the points as georeferenced, and where a boresight error of tenths of a
@@ -85,6 +90,7 @@ REPASS_MOVE_M = 0.05
 
 
 def mounting_settings(*, timing_max_sigma_s: float = TIMING_MAX_SIGMA_S,
+                      lever_arm_sigma_m: float = NOMINAL_LEVER_ARM_SIGMA_M,
                       **options: object) -> CalibrationSettings:
     """The calibration settings of a mounting (:func:`calibrate_mounting`): ``options`` over
     :data:`MOUNTING_SOLVE_FOR` and no largest sigma of a usable bias (an airborne
@@ -92,10 +98,13 @@ def mounting_settings(*, timing_max_sigma_s: float = TIMING_MAX_SIGMA_S,
     held at 0 is the nominal's error, tenths of a degree: worse than any estimate). With
     ``timing`` the timing bias ``dt`` is estimated too (in :data:`TIMING_SLOT`'s place),
     held at 0 where its sigma exceeds ``timing_max_sigma_s`` (s) or its multiple correlation
-    with the mounting's biases ``timing_max_correlation`` (:func:`timing_unseen`)."""
+    with the mounting's biases ``timing_max_correlation`` (:func:`timing_unseen`). A
+    lever-arm bias held (``dZ`` without control) is taken as known to ``lever_arm_sigma_m``
+    (m; :data:`NOMINAL_LEVER_ARM_SIGMA_M`), the others' sigmas allowing for it."""
     base: dict[str, object] = {"solve_for": MOUNTING_SOLVE_FOR,
                                "limits": ObservabilityLimits(max_sigma={}),
-                               "timing_max_correlation": TIMING_MAX_CORRELATION}
+                               "timing_max_correlation": TIMING_MAX_CORRELATION,
+                               "held_sigma": {n: lever_arm_sigma_m for n in LEVER_ARM}}
     merged = {**base, **options}
     if merged.get("timing"):
         merged["solve_for"] = (*tuple(merged["solve_for"]), TIMING_SLOT)  # type: ignore[arg-type]
@@ -537,6 +546,7 @@ __all__ = [
     "LEVER_ARM",
     "MAX_PASSES",
     "MOUNTING_SOLVE_FOR",
+    "NOMINAL_LEVER_ARM_SIGMA_M",
     "REPASS_MOVE_M",
     "TIMING_MAX_CORRELATION",
     "TIMING_MAX_SIGMA_S",

@@ -372,9 +372,38 @@ def allow_for_shared_errors(sol: Solution, obs: Observations, step: np.ndarray) 
     sol.covariance = sol.correlation * wider[:, None] * wider[None, :]
 
 
+def allow_for_held_biases(sol: Solution, obs: Observations,
+                          held_sigma: Mapping[str, float]) -> None:
+    """Widen the covariance of ``sol`` by what the biases held at values known only to
+    ``held_sigma`` (1 sigma SI, by name; those estimated or of sigma 0 ignored) move the
+    estimate by: ``S C_h S^T`` with ``S = -N_ee^-1 N_eh`` from the weighted design rows of
+    ``obs`` (the held biases as "consider" parameters). E.g. a mounting's ``dZ``, held at a
+    robot description's value without control, moves ``dX`` through the attitude's
+    changes: millimetres per centimetre it is off. Only the sigmas grow (the correlations
+    stay the formal ones, the covariance positive semi-definite)."""
+    names = [n for n, s in held_sigma.items() if s > 0 and n not in sol.estimated]
+    if not names or not sol.estimated:
+        return
+    e = [PARAMETER_NAMES.index(n) for n in sol.estimated]
+    h = [PARAMETER_NAMES.index(n) for n in names]
+    weighted = obs.rows[:, e] * obs.weights[:, None]
+    n_ee = weighted.T @ obs.rows[:, e]
+    n_eh = weighted.T @ obs.rows[:, h]
+    try:
+        sensitivity = -np.linalg.solve(n_ee, n_eh)
+    except np.linalg.LinAlgError:  # (the solve itself would have said so)
+        return
+    c_h = np.diag([float(held_sigma[n]) ** 2 for n in names])
+    # As allow_for_shared_errors: the sigmas grow, the correlations stay the data's (what
+    # tells whether a bias can be told from another, e.g. timing_unseen's test)
+    sigma = np.sqrt(np.diag(sol.covariance + sensitivity @ c_h @ sensitivity.T))
+    sol.sigma[e] = sigma
+    sol.covariance = sol.correlation * sigma[:, None] * sigma[None, :]
+
+
 __all__ = [
     "CYCLE_FACTOR", "NOISE_Z", "SETTLED_MAX_SIGMA", "Convergence", "Iteration", "MatchedSet",
-    "TrajectoryTerms",
-    "allow_for_shared_errors", "has_converged", "judge_convergence", "matching_cycle",
+    "TrajectoryTerms", "allow_for_held_biases", "allow_for_shared_errors", "has_converged",
+    "judge_convergence", "matching_cycle",
     "next_threshold", "reexpress_observations", "rematching_noise", "robust_solve",
 ]

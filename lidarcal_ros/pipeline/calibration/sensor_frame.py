@@ -150,10 +150,12 @@ def sensor_calibration_settings(solve_for: tuple[str, ...] | None = None, *,
         configured = config.calibration_settings()
         base = mounting_settings(**{
             f.name: getattr(configured, f.name) for f in dataclasses.fields(configured)
-            if f.name not in ("solve_for", "limits", "timing", "timing_max_correlation")},
+            if f.name not in ("solve_for", "limits", "timing", "timing_max_correlation",
+                              "held_sigma")},
             solve_for=names, timing=bool(config["sensor_frame.estimate_timing"]),
             timing_max_sigma_s=float(config["sensor_frame.timing_max_sigma_s"]),
-            timing_max_correlation=float(config["sensor_frame.timing_max_correlation"]))
+            timing_max_correlation=float(config["sensor_frame.timing_max_correlation"]),
+            lever_arm_sigma_m=float(config["sensor_frame.lever_arm_sigma_m"]))
         base = replace(base, limits=replace(base.limits,
                                             max_correlation=configured.limits.max_correlation))
         if base.trajectory.model is TrajectoryModel.AUTO:

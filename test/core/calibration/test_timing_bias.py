@@ -106,11 +106,12 @@ def test_a_flight_that_cannot_see_it_holds_it_at_zero_and_says_so() -> None:
     assert "the timing bias dt cannot be seen on this flight" in cal.time_offset_note
     assert "dY" in cal.time_offset_note
     assert cal.time_offset_note in cal.result.solution.warnings
-    # the mounting is the one calibrated without dt: every other bias estimated, its sigma a
-    # millimetre (with dt it was 6.6 mm)
+    # the mounting is the one calibrated without dt: every other bias estimated, dY's sigma
+    # 3.6 mm with the held dZ's 5 cm allowed for (a millimetre without; with dt 6.6 mm
+    # without)
     sol = cal.result.solution
     assert set(sol.estimated) == {"dX", "dY", "domega", "dphi", "dkappa", "dr"}
-    assert cal.sigma[PARAMETER_INDEX["dY"]] < 0.002
+    assert cal.sigma[PARAMETER_INDEX["dY"]] < 0.004
     assert rotation_angle(cal.mounting.rotation, m.truth_mounting.rotation) < 30 * ARCSEC
 
 

@@ -22,6 +22,7 @@ from helpers_missions import write_params_file
 from scipy.spatial.transform import Rotation
 
 from lidarcal_ros.core.calibration.extrinsic import (
+    NOMINAL_LEVER_ARM_SIGMA_M,
     TIMING_MAX_CORRELATION,
     TIMING_MAX_SIGMA_S,
     TIMING_SLOT,
@@ -180,6 +181,19 @@ def test_the_timing_limits_reach_a_mountings_calibration() -> None:
     assert default.timing_max_correlation == TIMING_MAX_CORRELATION
     off = sensor_calibration_settings(config=FlightConfig())
     assert not off.timing and dict(off.limits.max_sigma) == {}
+
+
+def test_the_lever_arms_sigma_reaches_a_mountings_calibration() -> None:
+    """``sensor_frame.lever_arm_sigma_m`` is the held lever arm's sigma (its effect on a
+    payload's sigmas: test/core/calibration/test_extrinsic.py), 5 cm by default; a map-frame
+    calibration considers no held bias."""
+    s = sensor_calibration_settings(config=FlightConfig().with_values(
+        sensor_frame__lever_arm_sigma_m=0.02))
+    assert s.held_sigma == {"dX": 0.02, "dY": 0.02, "dZ": 0.02}
+    default = sensor_calibration_settings(config=FlightConfig())
+    assert default.held_sigma == {n: NOMINAL_LEVER_ARM_SIGMA_M for n in ("dX", "dY", "dZ")}
+    assert NOMINAL_LEVER_ARM_SIGMA_M == 0.05
+    assert FlightConfig().calibration_settings().held_sigma == {}
 
 
 @pytest.mark.parametrize(("name", "value", "words"), [
