@@ -395,8 +395,9 @@ def rebased(cal: MountingCalibration, nominal: Mounting, first: MountingCalibrat
         if was is not None:
             q.rms_before, q.n_before = was.rms_before, was.n_before
     result.history = [h + (delta - cal.delta) for h in result.history]
-    held = first.result.solution.status["dX"].state is ParameterState.FIXED and \
-        cal.result.solution.status["dX"].state is not ParameterState.FIXED
+    held = any(first.result.solution.status[n].state is ParameterState.FIXED and
+               cal.result.solution.status[n].state is not ParameterState.FIXED
+               for n in LEVER_ARM)
     result.solution.warnings.append(
         f"calibrated in {passes} passes: each pass after the first georeferenced the clouds "
         f"anew with the mounting the one before gave " + (

@@ -198,6 +198,20 @@ def test_the_first_pass_holds_the_lever_arm_so_it_cannot_trade_against_the_rotat
     assert np.abs(one.mounting.translation - true.translation)[:2].max() > 0.1
 
 
+def test_a_lever_arm_in_part_is_held_in_the_first_pass_and_said() -> None:
+    """With dX not asked for, the first pass still holds dY (the lever arm the rest of the
+    passes estimate) and the result says so; dX stays the nominal's."""
+    m = _mission("vlp16", 1)
+    cal = calibrate_mounting(m.clouds.xyz, m.clouds.absolute_times(), m.trajectory, m.nominal,
+                             settings=mounting_settings(
+                                 solve_for=("dY", "domega", "dphi", "dkappa", "dr")))
+    said = cal.result.solution.warnings[-1]
+    assert said.startswith("calibrated in ") and \
+        said.endswith("(the first estimated the boresight and dr with the lever arm held)")
+    assert "dY" in cal.result.solution.estimated and "dX" not in cal.result.solution.estimated
+    assert cal.mounting.translation[1] == m.nominal.translation[1]  # (dX: base_link's y)
+
+
 @pytest.mark.parametrize("layout", ["vlp16", "os1-32"])
 def test_strip_offsets_leave_the_lever_arm_to_their_priors_and_say_so(layout: str) -> None:
     """A tactical INS (its default errors: 2-3 cm of position over 30 s): with per-strip
