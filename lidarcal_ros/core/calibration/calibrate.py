@@ -587,7 +587,7 @@ class Calibrator:
             if terms is None or terms.blocks is None or terms.step is None:
                 self.normal_equations = NormalEquations.from_observations(last.observations)
                 allow_for_shared_errors(last.solution, last.observations, last.step)
-                allow_for_held_biases(last.solution, last.observations,
+                allow_for_held_biases(last.solution, self.normal_equations.n,
                                       self.settings.held_sigma)
                 trajectory = None
             else:
@@ -598,10 +598,11 @@ class Calibrator:
                 obs = last.observations
                 reduced = blocks.reduced_rows(obs)
                 v = blocks.residuals(obs, last.step, terms.step)
-                partialled = Observations(reduced, v + reduced @ last.step, obs.weights,
-                                          obs.group, obs.cluster)
-                allow_for_shared_errors(last.solution, partialled, last.step)
-                allow_for_held_biases(last.solution, partialled, self.settings.held_sigma)
+                allow_for_shared_errors(last.solution, Observations(
+                    reduced, v + reduced @ last.step, obs.weights, obs.group, obs.cluster),
+                    last.step)
+                allow_for_held_biases(last.solution, self.normal_equations.n,
+                                      self.settings.held_sigma)
                 trajectory = TrajectoryEstimate.from_state(
                     self.trajectory, [ps.strip_id for ps in self.strips],
                     blocks.tau_sigma(last.solution))

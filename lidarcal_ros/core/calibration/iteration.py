@@ -372,25 +372,22 @@ def allow_for_shared_errors(sol: Solution, obs: Observations, step: np.ndarray) 
     sol.covariance = sol.correlation * wider[:, None] * wider[None, :]
 
 
-def allow_for_held_biases(sol: Solution, obs: Observations,
+def allow_for_held_biases(sol: Solution, normal: np.ndarray,
                           held_sigma: Mapping[str, float]) -> None:
     """Widen the covariance of ``sol`` by what the biases held at values known only to
     ``held_sigma`` (1 sigma SI, by name; those estimated or of sigma 0 ignored) move the
-    estimate by: ``S C_h S^T`` with ``S = -N_ee^-1 N_eh`` from the weighted design rows of
-    ``obs`` (the held biases as "consider" parameters). E.g. a mounting's ``dZ``, held at a
-    robot description's value without control, moves ``dX`` through the attitude's
-    changes: millimetres per centimetre it is off. Only the sigmas grow (the correlations
-    stay the formal ones, the covariance positive semi-definite)."""
+    estimate by: ``S C_h S^T`` with ``S = -N_ee^-1 N_eh`` from ``normal`` (8, 8), the normal
+    matrix ``sol`` was solved from (the held biases as "consider" parameters). E.g. a
+    mounting's ``dZ``, held at a robot description's value without control, moves ``dX``
+    through the attitude's changes: millimetres per centimetre it is off. Only the sigmas
+    grow (the correlations stay the formal ones, the covariance positive semi-definite)."""
     names = [n for n, s in held_sigma.items() if s > 0 and n not in sol.estimated]
     if not names or not sol.estimated:
         return
     e = [PARAMETER_NAMES.index(n) for n in sol.estimated]
     h = [PARAMETER_NAMES.index(n) for n in names]
-    weighted = obs.rows[:, e] * obs.weights[:, None]
-    n_ee = weighted.T @ obs.rows[:, e]
-    n_eh = weighted.T @ obs.rows[:, h]
     try:
-        sensitivity = -np.linalg.solve(n_ee, n_eh)
+        sensitivity = -np.linalg.solve(normal[np.ix_(e, e)], normal[np.ix_(e, h)])
     except np.linalg.LinAlgError:  # (the solve itself would have said so)
         return
     c_h = np.diag([float(held_sigma[n]) ** 2 for n in names])
