@@ -33,7 +33,7 @@ from lidarcal_ros.core.calibration.extrinsic import (
 from lidarcal_ros.core.calibration.result import CalibrationResult
 from lidarcal_ros.core.config import CALIBRATOR_NODE, FlightConfig, node_options
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
-from lidarcal_ros.core.mission import ControlPoints
+from lidarcal_ros.core.mission import ControlPoints, Strip
 from lidarcal_ros.errors import LidarcalError
 from lidarcal_ros.io.calibration_file import Extrinsic, urdf_path
 from lidarcal_ros.io.cloud.columns import CloudColumns
@@ -256,6 +256,10 @@ class CalibrationService:
         #: The calibrated mounting of the latest estimate (clouds in the sensor's frame).
         self.mounting: MountingCalibration | None = None
         self._mounted: CalibrationResult | None = None  # the estimate ``mounting`` is of
+        #: The flight's mounting as ``lidarcal calibrate`` gives it, with what it was made
+        #: of (:meth:`_flight_mounting`; None: none made yet).
+        self._flight: tuple[tuple[Any, ...], ControlPoints | None, MountingCalibration] | \
+            None = None
         if config["calibration.control_points_file"]:
             self._submit(ReadControlFile(config["calibration.control_points_file"]))
 
@@ -661,7 +665,7 @@ class CalibrationService:
                 strip_gap_s=float(self.options.strip_gap_s))
         self._stream.reset()
         self.sensor.reset()
-        self.mounting, self._mounted = None, None
+        self.mounting, self._mounted, self._flight = None, None, None
         if self._timing_held:  # (the next flight may see it)
             self._timing_held = ""
             self._stream.update_config(self.config)
@@ -772,10 +776,28 @@ class CalibrationService:
                 "the mounting of the live estimate alone: strips were released for the "
                 "memory budget, so not calibrated again as lidarcal calibrate does"))
             return cal
+        return self._flight_mounting(strips, cal)
+
+    def _flight_mounting(self, strips: list[Strip],
+                         cal: MountingCalibration) -> MountingCalibration:
+        """:func:`~lidarcal_ros.core.calibration.extrinsic.calibrate_mounting` of the
+        ``strips`` held (back in the sensor's frame) from ``cal``'s nominal on its lines:
+        made once for the same strips, poses, settings and control points (every estimate
+        published after the flight's end would otherwise calibrate the flight again)."""
+        settings = self._asked_mounting_settings(self.config)
+        control = self._stream.control
+        made_of = (tuple((s.strip_id, len(s), float(s.t[0]), float(s.t[-1])) for s in strips),
+                   len(self._stream.trajectory), len(self.sensor.base_trajectory),
+                   cal.nominal.rotation.tobytes(), cal.nominal.translation.tobytes(),
+                   cal.lines.tobytes(), settings)
+        if self._flight is not None and self._flight[0] == made_of and \
+                self._flight[1] is control:
+            return self._flight[2]
         points, t = sensor_points(strips, self._stream.trajectory, cal.nominal)
-        return calibrate_mounting(points, t, self.sensor.base_trajectory, cal.nominal,
-                                  settings=self._asked_mounting_settings(self.config),
-                                  lines=cal.lines, control=self._stream.control)
+        flight = calibrate_mounting(points, t, self.sensor.base_trajectory, cal.nominal,
+                                    settings=settings, lines=cal.lines, control=control)
+        self._flight = (made_of, control, flight)
+        return flight
 
     def timed_extrinsic(self) -> Extrinsic | None:
         """The calibration file's ``extrinsic`` block of the latest mounting, with its timing

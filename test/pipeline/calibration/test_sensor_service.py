@@ -443,3 +443,38 @@ def test_a_timing_bias_the_lines_cannot_see_is_held_live_as_offline(
             0.1 * offline.time_offset_sigma_s
         assert not any("dt cannot be seen" in w for r in published for w in r.solution.warnings)
     _same_mounting(Path(saved), offline, 0.1)
+
+
+def test_the_flight_is_calibrated_once_after_its_end(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """After the flight's end every estimate published (the refinement's, ``~/solve``'s,
+    ``~/save``'s) carries the mounting ``lidarcal calibrate`` gives of the points held: made
+    once for the same strips and settings, again when the settings change."""
+    from lidarcal_ros.pipeline.calibration import service as service_module
+
+    made: list[int] = []
+    real = service_module.calibrate_mounting
+
+    def counted(*args: Any, **kwargs: Any) -> MountingCalibration:
+        made.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(service_module, "calibrate_mounting", counted)
+    m = _mission()
+    service = _service(tmp_path)
+    try:
+        _feed(service, _events(m))
+        assert "solved" in service.solve()
+        first = service.mounting
+        assert "solved" in service.solve()
+        service.save()
+        assert len(made) == 1 and service.mounting is first
+        service.set_config(service.config.with_values(sensor_frame__lever_arm_sigma_m=0.02),
+                           {"sensor_frame.lever_arm_sigma_m"})
+        assert "solved" in service.solve()
+    finally:
+        service.close()
+    assert len(made) == 2 and service.mounting is not first
+    assert service.mounting is not None and first is not None
+    dx = PARAMETER_INDEX["dX"]
+    assert service.mounting.sigma[dx] < first.sigma[dx]  # (the held dZ known better)
