@@ -20,7 +20,8 @@ The bars of issue 33 (tactical INS): 30 arcsec, 8 mm, dr 4 mm, honest sigmas (wi
 ``--strips turns`` cuts the flight in the middle of each turn instead of leaving the turns
 out, ``--nominal truth`` starts from the true mounting, ``--position-correlation-s`` and
 ``--attitude-correlation-s`` set how long the INS's position and attitude errors stay alike
-(0.01: white noise, each 100 Hz pose its own).
+(0.01: white noise, each 100 Hz pose its own), ``--told`` gives the calibration the INS's
+errors (``ins.*``) so that its sigmas allow for them.
 """
 
 from __future__ import annotations
@@ -101,6 +102,16 @@ def assess(m: UavPayloadMission, cal: MountingCalibration, seconds: float) -> Ou
                        [*cal.mounting.translation[:2], true.translation[2]]))), seconds)
 
 
+def told(spec: UavPayloadSpec) -> dict[str, float]:
+    """The flight configuration's ``ins.*`` values of the payload's INS (its errors)."""
+    position, attitude = spec.ins_position_sigma_m, spec.ins_attitude_sigma_deg
+    return {"ins__position_sigma_m": max(position[:2]), "ins__height_sigma_m": position[2],
+            "ins__attitude_sigma_arcsec": max(attitude[:2]) * 3600.0,
+            "ins__heading_sigma_arcsec": attitude[2] * 3600.0,
+            "ins__position_correlation_s": spec.ins_correlation_s[0],
+            "ins__attitude_correlation_s": spec.ins_correlation_s[1]}
+
+
 def strip_spans(trajectory: Trajectory, *, through_turns: bool) -> np.ndarray:
     """The strips' time spans (k, 2), s: the straight lines, or (``through_turns``) the
     flight cut in the middle of each turn."""
@@ -134,6 +145,10 @@ def main() -> None:
                     help="robot: the mounting off by tenths of a degree and centimetres (the "
                     "robot description's); truth: the true mounting, whose estimate should "
                     "be zero within 2 sigma (dr the true range bias)")
+    ap.add_argument("--told", action="store_true",
+                    help="give the calibration each grade's INS errors (ins.* of the flight "
+                    "configuration: sigmas and correlation times), as a user would from the "
+                    "unit's datasheet; without, the INS is taken as exact")
     ap.add_argument("--columns", type=int, default=360)
     ap.add_argument("--lines", type=int, default=4)
     args = ap.parse_args()
@@ -159,7 +174,8 @@ def main() -> None:
                     config = FlightConfig().with_values(**{
                         k.replace(".", "__"): yaml.safe_load(v) for k, v in
                         (item.split("=", 1) for item in args.set)},
-                        calibration__trajectory__model=model)
+                        calibration__trajectory__model=model,
+                        **(told(spec) if args.told else {}))
                     started = time.perf_counter()
                     try:
                         cal = calibrate_mounting(

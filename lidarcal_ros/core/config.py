@@ -117,6 +117,24 @@ SCHEMA: dict[str, ParameterSpec] = {
         0.05, "How well the nominal mounting's lever arm is known, 1 sigma per axis, m: a "
         "lever-arm bias held at it (dZ without control points) moves the others through the "
         "attitude's changes, and their sigmas allow for that (0: taken as exact)", 0.0, 1.0),
+    "ins.position_sigma_m": float_parameter(
+        0.0, "The INS's horizontal position error, 1 sigma per axis (east, north), m: the "
+        "biases' sigmas allow for what it moves them by (0 with the other ins.* sigmas: the "
+        "INS taken as exact)", 0.0, 10.0),
+    "ins.height_sigma_m": float_parameter(
+        0.0, "The INS's height error, 1 sigma, m (as ins.position_sigma_m)", 0.0, 10.0),
+    "ins.attitude_sigma_arcsec": float_parameter(
+        0.0, "The INS's roll and pitch errors, 1 sigma each, arcsec (as "
+        "ins.position_sigma_m)", 0.0, 36000.0),
+    "ins.heading_sigma_arcsec": float_parameter(
+        0.0, "The INS's heading error, 1 sigma, arcsec (as ins.position_sigma_m)", 0.0,
+        36000.0),
+    "ins.position_correlation_s": float_parameter(
+        30.0, "How long the INS's position errors stay alike (first-order Gauss-Markov), s; "
+        "0: white noise, each sample its own", 0.0, 86400.0),
+    "ins.attitude_correlation_s": float_parameter(
+        20.0, "How long the INS's attitude errors stay alike (first-order Gauss-Markov), s; "
+        "0: white noise, each sample its own", 0.0, 86400.0),
     "sensor.wavelength_nm": float_parameter(1064.0, "Laser wavelength, nm", 300.0, 2000.0),
     "sensor.beam_divergence_mrad": float_parameter(0.33, "Beam divergence, mrad", 0.01, 10.0),
     "sensor.fov_deg": float_parameter(
@@ -514,6 +532,7 @@ class FlightConfig:
 
     def calibration_settings(self) -> CalibrationSettings:
         """The adjustment options this configuration sets."""
+        from lidarcal_ros.core.adjustment.ins_noise import InsNoise
         from lidarcal_ros.core.calibration.calibrate import CalibrationSettings
         from lidarcal_ros.core.georeferencing.local_trajectory import TrajectoryWindow
 
@@ -549,6 +568,11 @@ class FlightConfig:
                 offset_sigma_vertical_m=values["calibration.trajectory.offset_sigma_vertical_m"],
                 drift_sigma_m_per_s=values["calibration.trajectory.drift_sigma_m_per_s"],
                 knot_interval_s=values["calibration.trajectory.knot_interval_s"]),
+            ins_noise=InsNoise(
+                (values["ins.position_sigma_m"],) * 2 + (values["ins.height_sigma_m"],),
+                (math.radians(values["ins.attitude_sigma_arcsec"] / 3600.0),) * 2
+                + (math.radians(values["ins.heading_sigma_arcsec"] / 3600.0),),
+                (values["ins.position_correlation_s"], values["ins.attitude_correlation_s"])),
         )
 
 

@@ -14,6 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.ins_noise import PoseLoading
 from lidarcal_ros.core.params import (
     N_PARAMETERS,
     PARAMETER_INDEX,
@@ -108,6 +109,9 @@ class Observations:
     trajectory : TrajectoryRows, optional
         The trajectory terms of each row, where trajectory errors are estimated (docs/method.md
         section 11).
+    pose_loading : PoseLoading, optional
+        How each row's discrepancy moves with the INS's errors, where they are given
+        (:mod:`~lidarcal_ros.core.adjustment.ins_noise`).
     """
 
     rows: np.ndarray
@@ -116,6 +120,7 @@ class Observations:
     group: np.ndarray
     cluster: np.ndarray
     trajectory: TrajectoryRows | None = None
+    pose_loading: PoseLoading | None = None
 
     @classmethod
     def empty(cls) -> Observations:
@@ -136,6 +141,12 @@ class Observations:
             trajectory = TrajectoryRows.concatenate(
                 p.trajectory if p.trajectory is not None else TrajectoryRows.none(len(p))
                 for p in parts)
+        loading = None
+        if any(p.pose_loading is not None for p in parts):
+            # (rows without a loading move with no INS error the calibration knows of)
+            loading = PoseLoading.concatenate(
+                p.pose_loading if p.pose_loading is not None else PoseLoading.none(len(p))
+                for p in parts)
         return cls(
             np.concatenate([p.rows for p in parts]),
             np.concatenate([p.y for p in parts]),
@@ -143,6 +154,7 @@ class Observations:
             np.concatenate([p.group for p in parts]),
             np.concatenate([p.cluster for p in parts]),
             trajectory,
+            loading,
         )
 
     def __len__(self) -> int:

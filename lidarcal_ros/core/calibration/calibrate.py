@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.ins_noise import InsNoise
 from lidarcal_ros.core.adjustment.least_squares import (
     NormalEquations,
     ObservabilityLimits,
@@ -28,6 +29,7 @@ from lidarcal_ros.core.calibration.iteration import (
     MatchedSet,
     TrajectoryTerms,
     allow_for_held_biases,
+    allow_for_ins_noise,
     allow_for_shared_errors,
     judge_convergence,
     next_threshold,
@@ -93,6 +95,10 @@ class CalibrationSettings:
     #: description's lever arm): the estimated biases' covariance allows for what it moves
     #: them by (:func:`~lidarcal_ros.core.calibration.iteration.allow_for_held_biases`).
     held_sigma: dict[str, float] = field(default_factory=dict)
+    #: The INS's own errors (``ins.*``): the biases' covariance allows for what they move
+    #: them by (:func:`~lidarcal_ros.core.calibration.iteration.allow_for_ins_noise`); all
+    #: zero: the INS taken as exact.
+    ins_noise: InsNoise = field(default_factory=InsNoise)
     #: The local-trajectory window (``matching.trajectory_window_s``;
     #: :mod:`lidarcal_ros.core.georeferencing.local_trajectory`).
     window: TrajectoryWindow = DEFAULT_WINDOW
@@ -587,6 +593,7 @@ class Calibrator:
             if terms is None or terms.blocks is None or terms.step is None:
                 self.normal_equations = NormalEquations.from_observations(last.observations)
                 allow_for_shared_errors(last.solution, last.observations, last.step)
+                allow_for_ins_noise(last.solution, last.observations, self._ins_noise())
                 allow_for_held_biases(last.solution, self.normal_equations.n,
                                       self.settings.held_sigma)
                 trajectory = None
@@ -598,9 +605,11 @@ class Calibrator:
                 obs = last.observations
                 reduced = blocks.reduced_rows(obs)
                 v = blocks.residuals(obs, last.step, terms.step)
-                allow_for_shared_errors(last.solution, Observations(
-                    reduced, v + reduced @ last.step, obs.weights, obs.group, obs.cluster),
-                    last.step)
+                rows_alone = Observations(reduced, v + reduced @ last.step, obs.weights,
+                                          obs.group, obs.cluster,
+                                          pose_loading=obs.pose_loading)
+                allow_for_shared_errors(last.solution, rows_alone, last.step)
+                allow_for_ins_noise(last.solution, rows_alone, self._ins_noise())
                 allow_for_held_biases(last.solution, self.normal_equations.n,
                                       self.settings.held_sigma)
                 trajectory = TrajectoryEstimate.from_state(
@@ -612,6 +621,11 @@ class Calibrator:
         result.trajectory = trajectory
         result.convergence = last.outcome
         return result
+
+    def _ins_noise(self) -> InsNoise:
+        """The INS's errors on the grid of the trajectory's samples (the matcher's settings
+        hold its step once a strip is added)."""
+        return self.matcher.settings.ins_noise
 
     def _weak_with_trajectory(self, sol: Solution) -> None:
         """Warn of the biases whose sigma exceeds what a calibration can use (the limits the

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.ins_noise import PoseLoading, side_loading
 from lidarcal_ros.core.adjustment.least_squares import Observations
 from lidarcal_ros.core.calibration.bounded import StripExtent, control_cells
 from lidarcal_ros.core.calibration.control_surface import ControlSurface, fit_control_planes
@@ -138,6 +140,11 @@ class PairMatcher:
         if s.timing:  # dS's place holds the timing bias dt (docs/method.md section 12)
             geom.timing = point_rates(strip.t, strip.xyz, geom.origin, trajectory,
                                       source=f"strip {strip.strip_id}")
+        if s.ins_noise.active and s.ins_noise.step_s is None and trajectory.t.size > 1:
+            # the INS's errors on its samples' grid (the trajectory's median step); in the
+            # settings, which the pair jobs of other processes carry
+            self.settings = replace(s, ins_noise=replace(
+                s.ins_noise, step_s=float(np.median(np.diff(trajectory.t)))))
         speed = ground_speed(trajectory, strip.t)
         qa = laser_vector_qa(geom, fov_deg=s.fov_deg, speed_mps=speed)
         # the laser vectors of the delivered points are not held (40-48 bytes a point):
@@ -421,8 +428,35 @@ class PairMatcher:
             add_geometry_normal_rows(rows, n, geometry, where)
             rows -= patch_rows
             cluster = self._cluster_of(sa.strip.xyz[idx])
+        loading = None
+        if self.settings.ins_noise.active and self.settings.ins_noise.step_s is not None:
+            ok = m.valid
+            with self.clock("design rows"):
+                loading = self._pose_loading(pair, idx, self.tin(pair.b).simplices[
+                    m.triangle[ok]], m.weights[ok], n)
         return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster,
-                            self._trajectory_rows(pair.a, sa.strip.t[idx], pair.b, t_foot, n))
+                            self._trajectory_rows(pair.a, sa.strip.t[idx], pair.b, t_foot, n),
+                            loading)
+
+    def _pose_loading(self, pair: StripPair, idx: np.ndarray, verts: np.ndarray,
+                      w: np.ndarray, n: np.ndarray) -> PoseLoading:
+        """How the discrepancies of strip ``pair.a``'s points ``idx`` against strip
+        ``pair.b``'s patches (vertices ``verts`` (q, 3), barycentric weights ``w``) along
+        ``n`` move with the INS's errors (:mod:`~lidarcal_ros.core.adjustment.ins_noise`)."""
+        step = self.settings.ins_noise.step_s
+        assert step is not None
+
+        def side(k: int, index: np.ndarray, weight: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+            strip = self.strips[k].strip
+            geometry, where = self.geometry(k, index)
+            frames = geometry.take(where)
+            lever = frames.to_body(np.cross(strip.xyz[index] - frames.origin, n))
+            return side_loading(strip.t[index], n, lever, step, weight)
+
+        return PoseLoading.of_sides(side(pair.a, idx, None),
+                                    [side(pair.b, verts[:, j], w[:, j])
+                                     for j in range(verts.shape[1])])
 
     def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
         """Spatial cluster (cell of ``cluster_cell_m``) of observations at ``xyz``."""

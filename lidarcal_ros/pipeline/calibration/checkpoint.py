@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidarcal_ros.core.adjustment.ins_noise import PoseLoading
 from lidarcal_ros.core.adjustment.least_squares import NormalEquations, Observations
 from lidarcal_ros.core.georeferencing.sensor_frame import Mounting
 from lidarcal_ros.core.mission import ControlPoints, Strip
@@ -151,6 +152,10 @@ def _model_arrays(k: int, state: ModelState) -> dict[str, np.ndarray]:
     if rows is not None:
         for name in _ROWS_FIELDS:
             arrays[f"{pre}frozen_traj_{name}"] = getattr(rows, name)
+    loading = state.frozen.pose_loading
+    if loading is not None:
+        arrays[f"{pre}frozen_loading_nodes"] = loading.nodes
+        arrays[f"{pre}frozen_loading_coef"] = loading.coef
     return arrays
 
 
@@ -161,7 +166,11 @@ def _model_of(data: np.lib.npyio.NpzFile, k: int) -> ModelState:
         rows = TrajectoryRows(*(np.array(data[f"{pre}frozen_traj_{name}"])
                                 for name in _ROWS_FIELDS))
     a, y, w, group, cluster = (np.array(data[f"{pre}frozen_{name}"]) for name in _FROZEN_FIELDS)
-    frozen = Observations(a, y, w, group, cluster, rows)
+    loading = None
+    if f"{pre}frozen_loading_nodes" in data:  # (where the INS's errors were given)
+        loading = PoseLoading(np.array(data[f"{pre}frozen_loading_nodes"], dtype=np.int64),
+                              np.array(data[f"{pre}frozen_loading_coef"], dtype=np.float32))
+    frozen = Observations(a, y, w, group, cluster, rows, loading)
     state = ModelState("none", np.array(data[f"{pre}delta"]), float(data[f"{pre}threshold"]),
                        frozen)
     if f"{pre}traj_spans" in data:  # (files of earlier versions: the trajectory as exact)

@@ -141,7 +141,7 @@ def _state_of(cal: Calibrator) -> ModelState:
         frozen = Observations(frozen.rows, frozen.y, frozen.weights, frozen.group,
                               frozen.cluster, TrajectoryRows(
                                   by_id[rows.strip_a], rows.t_a, by_id[rows.strip_b], rows.t_b,
-                                  rows.normal, rows.applied))
+                                  rows.normal, rows.applied), frozen.pose_loading)
     return ModelState(cal.settings.trajectory.model.value, cal.delta.copy(),
                       float(cal.threshold), frozen, ids, cal.trajectory.spans,
                       cal.trajectory.params.copy(),
@@ -166,7 +166,7 @@ def _restore(cal: Calibrator, state: ModelState) -> None:
     if rows is not None:
         rows = _renumbered(rows, held) if same else None
         frozen = Observations(frozen.rows, frozen.y, frozen.weights, frozen.group,
-                              frozen.cluster, rows)
+                              frozen.cluster, rows, frozen.pose_loading)
     cal.restore_frozen(frozen)  # (expressed at the saved estimate and trajectory errors)
 
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lidarcal_ros.core.adjustment.ins_noise import InsNoise
 from lidarcal_ros.core.calibration.calibrate import CalibrationSettings, calibrate
 from lidarcal_ros.core.calibration.result import CalibrationResult
+from lidarcal_ros.core.georeferencing.laser_geometry import PositioningModel
 from lidarcal_ros.core.params import PARAMETER_NAMES, arcsec_to_rad
 from lidarcal_ros.core.simulation.simulate import SimulatedMission, simulate_mission
 from lidarcal_ros.core.simulation.spec import HIGH, LOW, SimulationSpec
@@ -250,3 +252,23 @@ def test_a_crab_the_method_cannot_see_moves_the_estimate_by_millimetres_and_arcs
     worst = max(p.rms_after for p in windy_result.pairs)
     assert worst < 1.05 * max(p.rms_after for p in calm_result.pairs)
     assert windy_result.converged
+
+
+@pytest.mark.parametrize("model", [PositioningModel.LEVEL, PositioningModel.RIGOROUS])
+def test_the_ins_errors_widen_a_map_frame_calibrations_sigmas(model: PositioningModel) -> None:
+    """Told the INS's errors (``ins.*``), a map-frame calibration's sigmas allow for them, in
+    either positioning model, the estimate the same: with errors correlated over 30 s, those
+    of the biases a shift of the strips moves (the lever arm, dr) grow most."""
+    sim = _small(biases=BIASES, seed=17, line_length_m=300.0, attitude=True)
+    plain = calibrate(sim.mission, CalibrationSettings(model=model))
+    noise = InsNoise((0.03, 0.03, 0.05), (arcsec_to_rad(10.0),) * 2 + (arcsec_to_rad(20.0),),
+                     (30.0, 20.0))
+    told = calibrate(sim.mission, CalibrationSettings(model=model, ins_noise=noise))
+    np.testing.assert_allclose(told.solution.delta, plain.solution.delta, rtol=0, atol=1e-12)
+    est = [PARAMETER_NAMES.index(n) for n in plain.solution.estimated]
+    grown = told.solution.sigma[est] / plain.solution.sigma[est]
+    print(dict(zip(plain.solution.estimated, np.round(grown, 2), strict=True)))
+    assert np.all(grown >= 1.0)
+    # 3-5 cm of position error shared by a strip's points: centimetres of dX, dY and dr
+    for name in ("dX", "dY", "dr"):
+        assert told.solution.sigma[PARAMETER_NAMES.index(name)] > 0.01

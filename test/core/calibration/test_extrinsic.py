@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from lidarcal_ros.core.adjustment.ins_noise import InsNoise
 from lidarcal_ros.core.calibration.extrinsic import (
     REPASS_MOVE_M,
     MountingCalibration,
@@ -233,3 +234,37 @@ def test_strip_offsets_leave_the_lever_arm_to_their_priors_and_say_so(layout: st
     assert np.abs(z).max() < 3.0
     plain = _calibrate(m, m.nominal)
     assert not [w for w in plain.result.solution.warnings if "lever arm across" in w]
+
+
+#: A tactical unit's errors (the simulator's: 2, 2, 3 cm; 18, 18, 36 arcsec).
+TACTICAL = {"ins_position_sigma_m": (0.02, 0.02, 0.03),
+            "ins_attitude_sigma_deg": (0.005, 0.005, 0.01)}
+
+
+@pytest.mark.parametrize(("layout", "seed", "correlation_s"), [
+    ("vlp16", 3, (0.01, 0.01)), ("os1-32", 1, (0.01, 0.01)), ("vlp16", 1, (30.0, 20.0))])
+def test_the_sigmas_allow_for_the_ins_errors_they_are_told(
+        layout: str, seed: int, correlation_s: tuple[float, float]) -> None:
+    """An INS with a tactical unit's errors, white (each 100 Hz pose its own) or correlated
+    over tens of seconds: told them (``ins.*``), the calibration's sigmas hold the truth;
+    without, they are those of an exact INS and too narrow (one pose's error moves its whole
+    footprint, tens of metres, beyond the sandwich's cells)."""
+    m = simulate_uav_payload(UavPayloadSpec(
+        layout=layout, seed=seed, columns=COLUMNS[layout], n_lines=4, line_length_m=120.0,
+        ins_correlation_s=correlation_s, **TACTICAL))  # type: ignore[arg-type]
+    blind = _calibrate(m, m.nominal)
+    noise = InsNoise((0.02, 0.02, 0.03), (math.radians(0.005),) * 2 + (math.radians(0.01),),
+                     correlation_s)
+    told = calibrate_mounting(m.clouds.xyz, m.clouds.absolute_times(), m.trajectory, m.nominal,
+                              settings=replace(mounting_settings(), ins_noise=noise))
+    # the same estimate (the errors change the covariance, not the solve)
+    np.testing.assert_allclose(told.delta, blind.delta, rtol=0, atol=1e-12)
+    est = np.isfinite(told.sigma)
+    assert np.all(told.sigma[est] >= blind.sigma[est])
+    z_blind = np.abs(told.delta - m.biases)[HONEST] / blind.sigma[HONEST]
+    z_told = np.abs(told.delta - m.biases)[HONEST] / told.sigma[HONEST]
+    print(f"{layout} seed {seed}, errors over {correlation_s} s: |error| / sigma told "
+          f"{np.round(z_told, 2)}, blind {np.round(z_blind, 2)}")
+    assert z_told.max() < 2.5, dict(zip([PARAMETER_NAMES[i] for i in HONEST], z_told,
+                                        strict=True))
+    assert z_blind.max() > z_told.max()

@@ -61,13 +61,20 @@ def _assert_same(parted: CalibrationResult, serial: CalibrationResult) -> None:
     assert parted.n_pair_correspondences == serial.n_pair_correspondences > 0
 
 
-@pytest.mark.parametrize(("kind", "memory", "trajectory"), [
-    ("level", "whole", "auto"), ("rigorous", "whole", "none"), ("level", "bounded", "none")])
+#: A tactical INS's errors (``ins.*``): the sigmas allow for them, whatever runs the pairs.
+INS_ERRORS = {"ins__position_sigma_m": 0.02, "ins__height_sigma_m": 0.03,
+              "ins__attitude_sigma_arcsec": 18.0, "ins__heading_sigma_arcsec": 36.0}
+
+
+@pytest.mark.parametrize(("kind", "memory", "trajectory", "ins"), [
+    ("level", "whole", "auto", False), ("rigorous", "whole", "none", True),
+    ("level", "bounded", "none", True)])
 def test_two_workers_give_the_serial_estimate(
         mission_factory: Any, cluster: DaskExecutor, kind: str, memory: str,
-        trajectory: str) -> None:
+        trajectory: str, ins: bool) -> None:
     files = mission_factory(**MISSIONS[kind])
-    values = {"calibration__memory": memory, "calibration__trajectory__model": trajectory}
+    values = {"calibration__memory": memory, "calibration__trajectory__model": trajectory,
+              **(INS_ERRORS if ins else {})}
     serial = _calibrated(files, None, values)
     parted = _calibrated(files, cluster, values)
     _assert_same(parted, serial)
@@ -84,6 +91,14 @@ def test_the_in_process_executor_gives_the_serial_estimate(small_mission: Missio
     values = {"calibration__trajectory__model": "drift"}
     _assert_same(_calibrated(small_mission, SerialExecutor(), values),
                  _calibrated(small_mission, None, values))
+    # told the INS's errors, with the strips' trajectory errors reduced out: the same again,
+    # the estimate unchanged and every sigma wider
+    told = _calibrated(small_mission, SerialExecutor(), {**values, **INS_ERRORS})
+    _assert_same(told, _calibrated(small_mission, None, {**values, **INS_ERRORS}))
+    plain = _calibrated(small_mission, None, values).solution
+    assert np.array_equal(told.solution.delta, plain.delta)
+    est = np.isfinite(plain.sigma)
+    assert np.all(told.solution.sigma[est] > plain.sigma[est])
 
 
 class _PlacingExecutor(SerialExecutor):

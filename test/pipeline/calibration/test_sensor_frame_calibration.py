@@ -196,6 +196,24 @@ def test_the_lever_arms_sigma_reaches_a_mountings_calibration() -> None:
     assert FlightConfig().calibration_settings().held_sigma == {}
 
 
+def test_the_ins_errors_reach_both_kinds_of_calibration() -> None:
+    """``ins.*`` (metres, arcsec, seconds) become the settings' INS errors (SI; attitude about
+    the body's right, forward, up: pitch, roll, heading), for a mounting's calibration and a
+    map-frame one alike; all zero by default (the INS taken as exact)."""
+    config = FlightConfig().with_values(
+        ins__position_sigma_m=0.02, ins__height_sigma_m=0.03, ins__attitude_sigma_arcsec=18.0,
+        ins__heading_sigma_arcsec=36.0, ins__position_correlation_s=0.0,
+        ins__attitude_correlation_s=5.0)
+    for s in (sensor_calibration_settings(config=config), config.calibration_settings()):
+        assert s.ins_noise.active
+        assert s.ins_noise.position_sigma_m == (0.02, 0.02, 0.03)
+        np.testing.assert_allclose(s.ins_noise.attitude_sigma_rad,
+                                   np.radians([18 / 3600, 18 / 3600, 36 / 3600]))
+        assert s.ins_noise.correlation_s == (0.0, 5.0)
+    assert not sensor_calibration_settings(config=FlightConfig()).ins_noise.active
+    assert not FlightConfig().calibration_settings().ins_noise.active
+
+
 @pytest.mark.parametrize(("name", "value", "words"), [
     ("sensor_frame.timing_max_correlation", 1.5,
      "sensor_frame.timing_max_correlation: 1.5 is above the maximum 1.0"),

@@ -498,3 +498,50 @@ def test_the_trajectory_status_warns_of_a_strip_off_by_20_cm(sim: SimulatedMissi
                    for part in status.message.split("; ") for sid in (1, 2, 4, 5, 6))
     tight = TrajectoryErrorSettings(settings.trajectory.model, offset_sigma_vertical_m=0.03)
     assert trajectory_status(shifted, tight).level == ERROR
+
+
+def test_the_ins_errors_widen_the_live_sigmas_as_the_offline_ones(sim: SimulatedMission) -> None:
+    """Told the INS's errors (``ins.*``), the stream's sigmas are the offline calibration's;
+    under a memory budget the released strips' frozen correspondences keep what the errors
+    do to them (their sigmas still wider than an untold stream's)."""
+    told = FlightConfig().with_values(ins__position_sigma_m=0.03, ins__height_sigma_m=0.05,
+                                      ins__position_correlation_s=10.0)
+    offline = calibrate(sim.mission, told.calibration_settings())
+    stream = StreamingCalibration(told, control=sim.mission.control)
+    _feed(stream, stream_events(sim.mission))
+    live = stream.solve()
+    est = np.isfinite(offline.solution.sigma)
+    ratio = live.solution.sigma[est] / offline.solution.sigma[est]
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    plain = calibrate(sim.mission, FlightConfig().calibration_settings())
+    assert np.all(offline.solution.sigma[est] > 1.5 * plain.solution.sigma[est])
+    budget = int(3.5 * len(sim.mission.strips[0]))
+    bounded = {}
+    for name, config in (("told", told), ("plain", FlightConfig())):
+        s = StreamingCalibration(config, control=sim.mission.control, max_points=budget)
+        _feed(s, stream_events(sim.mission))
+        assert s.dropped_strips
+        bounded[name] = s.solve().solution.sigma[est]
+    assert np.all(bounded["told"] > 1.5 * bounded["plain"])
+
+
+def test_a_checkpoint_keeps_what_the_ins_errors_do_to_frozen_correspondences(
+        sim: SimulatedMission, tmp_path: Path) -> None:
+    """A stream told the INS's errors, checkpointed after strips were released: the frozen
+    correspondences come back with their loadings (what the errors do to them), so the
+    resumed stream's sigmas still allow for the errors."""
+    told = FlightConfig().with_values(ins__position_sigma_m=0.03, ins__height_sigma_m=0.05)
+    budget = int(3.5 * len(sim.mission.strips[0]))
+    events = stream_events(sim.mission)
+    stream = StreamingCalibration(told, control=sim.mission.control, max_points=budget)
+    _feed(stream, events, stop=len(events) * 5 // 6)
+    assert stream.dropped_strips
+    frozen = stream._models.active.frozen_observations()
+    assert frozen.pose_loading is not None and len(frozen) > 0
+    assert np.any(frozen.pose_loading.coef != 0)
+    resumed = StreamingCalibration.load_checkpoint(
+        stream.save_checkpoint(tmp_path / "cal.npz"), told)
+    back = resumed._models.active.frozen_observations()
+    assert back.pose_loading is not None
+    np.testing.assert_array_equal(back.pose_loading.nodes, frozen.pose_loading.nodes)
+    np.testing.assert_array_equal(back.pose_loading.coef, frozen.pose_loading.coef)
