@@ -3,9 +3,11 @@ docs/method.md section 12) on simulated UAV payload missions against their truth
 bars (the rotation within 30 arcsec, the lever arm within 8 mm, dr within 4 mm, the truth
 within 3 sigma; the true mounting as nominal gives zero within 2 sigma).
 
-The INS here is exact: a tactical-grade INS's position errors (2-3 cm, correlated over 30 s)
-shift each line by centimetres, which the lever arm (a shift flipping with the direction of
-flight) cannot be told from on missions this size (figures in the commit adding this file).
+The INS is exact but in the last tests: a tactical-grade INS's position errors (2-3 cm,
+correlated over 30 s) shift each line by centimetres, which the lever arm (a shift flipping with
+the direction of flight) cannot be told from on missions this size (figures in the commit adding
+this file); told such errors (``ins.*``), the sigmas allow for them, and with them as white
+noise eight lines meet the bars.
 The vertical lever arm moves every strip alike: held at the nominal, and its error (2-4 cm
 here) leaks into dY through the 4 degrees of pitch of cruise, 2-3 mm that the sigmas allow for
 (``sensor_frame.lever_arm_sigma_m``, 5 cm: the held dZ as a consider parameter; before, dY's
