@@ -129,9 +129,10 @@ def ins_meat(weighted_rows: np.ndarray, loading: PoseLoading, noise: InsNoise) -
     for c, (sigma, tau) in enumerate(zip(noise.sigmas(), noise.correlations(), strict=True)):
         if sigma <= 0:
             continue
-        m = np.zeros((size, p))
-        for j in range(N_SAMPLES):  # (a sample at a time: no (8k, p) copy of the rows)
-            np.add.at(m, index[:, j], rows * coef[:, j, c:c + 1].astype(np.float64))
+        load = coef[:, :, c].astype(np.float64)  # (k, 8)
+        m = np.column_stack([  # (bincount: an order of magnitude quicker than np.add.at)
+            np.bincount(index.ravel(), weights=(rows[:, col:col + 1] * load).ravel(),
+                        minlength=size) for col in range(p)])
         rho = math.exp(-step / tau) if tau > 0 else 0.0
         # K m by two first-order recursions (forward and backward) less the diagonal
         forward = lfilter([1.0], [1.0, -rho], m, axis=0)
