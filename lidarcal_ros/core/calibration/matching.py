@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -62,6 +62,20 @@ if TYPE_CHECKING:  # (the options of calibrate(), which drives this module)
 
 #: Points whose laser vectors the laser-vector QA of a strip makes at a time.
 QA_BLOCK = 1 << 18
+
+
+class SurfaceTerms(NamedTuple):
+    """A surface's side of correspondences (:meth:`PairMatcher._surface_terms`): the observed
+    normals (q, 3), ``n^T A_B`` at the foot (q, 8), the observed discrepancy (q,) m, the
+    foot's time (q,) s, and the vertices' laser geometry (``geometry.take(where)``, where
+    (q, K))."""
+
+    normal: np.ndarray
+    rows: np.ndarray
+    y: np.ndarray
+    t_foot: np.ndarray
+    geometry: LaserGeometry
+    where: np.ndarray
 
 
 class PairMatcher:
@@ -344,7 +358,7 @@ class PairMatcher:
 
     def _patch_terms(
         self, k: int, m: PatchMatches
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> SurfaceTerms:
         """:meth:`_surface_terms` of the valid matches to strip ``k``'s TIN facets (the foot
         barycentric in its triangle)."""
         ok = m.valid
@@ -355,12 +369,12 @@ class PairMatcher:
     def _surface_terms(
         self, k: int, verts: np.ndarray, w: np.ndarray, normal: np.ndarray,
         distance: np.ndarray, sloped: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> SurfaceTerms:
         """For correspondences with strip ``k``'s surface, its foot ``sum w_j X_j`` over the
         points ``verts`` (q, K) with weights ``w`` (q, K), its normal and signed distance (m):
         the observed normals (vertical unless ``sloped``), ``n^T A_B`` at the foot, the
-        observed discrepancy (the distance along the observed normal) and the time of the
-        foot (s)."""
+        observed discrepancy (the distance along the observed normal), the time of the
+        foot (s) and the vertices' laser geometry."""
         with self.clock("design rows"):
             n = self._observed_normal(normal, sloped)
             geometry, where = self.geometry(k, verts)
@@ -369,11 +383,11 @@ class PairMatcher:
                 add_geometry_normal_rows(rows, n, geometry, where[:, v], w[:, v])
             y = distance * (n * normal).sum(axis=1)
             t_foot = (self.strips[k].strip.t[verts] * w).sum(axis=1)
-        return n, rows, y, t_foot
+        return SurfaceTerms(n, rows, y, t_foot, geometry, where)
 
     def _plane_terms(
         self, k: int, plane: ControlSurface
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> SurfaceTerms:
         """:meth:`_surface_terms` of control points on the planes of strip ``k``'s points
         (the foot a least-squares combination of the plane's neighbours)."""
         flat = plane.normal[:, 2] >= math.cos(math.radians(self.settings.flat_slope_deg))
@@ -421,42 +435,40 @@ class PairMatcher:
         idx = points_idx[m.valid]
         # eq. [11]: the discrepancy n . (X_A - X_B) left by the current estimate; the
         # adjustment solves for the increment that removes it (Gauss-Newton).
-        n, patch_rows, y, t_foot = self._patch_terms(pair.b, m)
+        patch = self._patch_terms(pair.b, m)
+        n = patch.normal
         with self.clock("design rows"):
-            rows = np.zeros_like(patch_rows)
+            rows = np.zeros_like(patch.rows)
             geometry, where = self.geometry(pair.a, idx)
             add_geometry_normal_rows(rows, n, geometry, where)
-            rows -= patch_rows
+            rows -= patch.rows
             cluster = self._cluster_of(sa.strip.xyz[idx])
         loading = None
         if self.settings.ins_noise.active and self.settings.ins_noise.step_s is not None:
             ok = m.valid
             with self.clock("design rows"):
-                loading = self._pose_loading(pair, idx, self.tin(pair.b).simplices[
-                    m.triangle[ok]], m.weights[ok], n)
-        return Observations(rows, y, np.ones(idx.size), np.full(idx.size, pair.index), cluster,
-                            self._trajectory_rows(pair.a, sa.strip.t[idx], pair.b, t_foot, n),
-                            loading)
+                verts = self.tin(pair.b).simplices[m.triangle[ok]]
+                loading = PoseLoading.of_sides(
+                    self._side_loading(pair.a, idx, geometry, where, n, None),
+                    [self._side_loading(pair.b, verts[:, j], patch.geometry,
+                                        patch.where[:, j], n, m.weights[ok][:, j])
+                     for j in range(verts.shape[1])])
+        return Observations(rows, patch.y, np.ones(idx.size), np.full(idx.size, pair.index),
+                            cluster, self._trajectory_rows(pair.a, sa.strip.t[idx], pair.b,
+                                                           patch.t_foot, n), loading)
 
-    def _pose_loading(self, pair: StripPair, idx: np.ndarray, verts: np.ndarray,
-                      w: np.ndarray, n: np.ndarray) -> PoseLoading:
-        """How the discrepancies of strip ``pair.a``'s points ``idx`` against strip
-        ``pair.b``'s patches (vertices ``verts`` (q, 3), barycentric weights ``w``) along
-        ``n`` move with the INS's errors (:mod:`~lidarcal_ros.core.adjustment.ins_noise`)."""
+    def _side_loading(self, k: int, index: np.ndarray, geometry: LaserGeometry,
+                      where: np.ndarray, n: np.ndarray, weight: np.ndarray | None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """How strip ``k``'s points ``index`` (their laser geometry ``geometry.take(where)``)
+        seen along ``n`` move with the INS's errors, each scaled by ``weight``
+        (:func:`~lidarcal_ros.core.adjustment.ins_noise.side_loading`)."""
         step = self.settings.ins_noise.step_s
         assert step is not None
-
-        def side(k: int, index: np.ndarray, weight: np.ndarray | None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-            strip = self.strips[k].strip
-            geometry, where = self.geometry(k, index)
-            frames = geometry.take(where)
-            lever = frames.to_body(np.cross(strip.xyz[index] - frames.origin, n))
-            return side_loading(strip.t[index], n, lever, step, weight)
-
-        return PoseLoading.of_sides(side(pair.a, idx, None),
-                                    [side(pair.b, verts[:, j], w[:, j])
-                                     for j in range(verts.shape[1])])
+        strip = self.strips[k].strip
+        frames = geometry.take(where)
+        lever = frames.to_body(np.cross(strip.xyz[index] - frames.origin, n))
+        return side_loading(strip.t[index], n, lever, step, weight)
 
     def _cluster_of(self, xyz: np.ndarray) -> np.ndarray:
         """Spatial cluster (cell of ``cluster_cell_m``) of observations at ``xyz``."""
@@ -534,12 +546,11 @@ class PairMatcher:
                 (on_facet, self._patch_terms(k, m.take(on_facet)), m.distance)):
             if not ok.any():
                 continue
-            n, patch_rows, y, t_foot = terms
-            weights = np.full(y.size, self.settings.control_weight)
-            parts.append(Observations(-patch_rows, y, weights, -1 - cps[ok],
+            weights = np.full(terms.y.size, self.settings.control_weight)
+            parts.append(Observations(-terms.rows, terms.y, weights, -1 - cps[ok],
                                       self._cluster_of(control.xyz[cps[ok]]),
-                                      self._trajectory_rows(-1, np.zeros(y.size), k,
-                                                            t_foot, n)))
+                                      self._trajectory_rows(-1, np.zeros(terms.y.size), k,
+                                                            terms.t_foot, terms.normal)))
             found.extend((int(c), k, float(d)) for c, d in zip(cps[ok], distance[ok]))
         return Observations.concatenate(parts), found
 
