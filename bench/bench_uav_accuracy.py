@@ -132,7 +132,7 @@ def main() -> None:
                     help="calibration.trajectory.model values tried (default none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a flight configuration value for every calibration (repeatable), "
-                    "e.g. calibration.trajectory.continuous=true")
+                    "e.g. calibration.trajectory.correlation_s=30")
     ap.add_argument("--strips", choices=("lines", "turns"), default="lines",
                     help="lines: each line a strip, the turns left out (lidarcal calibrate's "
                     "way); turns: the flight cut in the middle of each turn, each strip a "

@@ -214,6 +214,11 @@ SCHEMA: dict[str, ParameterSpec] = {
         "the change between knots, per second)", 1e-6, 1.0),
     "calibration.trajectory.knot_interval_s": float_parameter(
         20.0, "Time between the knots of the spline model, s", 1.0, 3600.0),
+    "calibration.trajectory.correlation_s": float_parameter(
+        0.0, "How long the navigation solution's position error stays alike, s: the strips' "
+        "errors tied across the flight as a first-order Gauss-Markov process (strips flown "
+        "close in time alike; the offset sigmas its sigmas); 0: each strip's independent",
+        0.0, 36000.0),
     "matching.trajectory_window_s": float_parameter(
         0.5, "Half-width of the local-trajectory window, s", 0.01, 60.0),
     "matching.heading_source": ParameterSpec(
@@ -567,7 +572,8 @@ class FlightConfig:
                     "calibration.trajectory.offset_sigma_horizontal_m"],
                 offset_sigma_vertical_m=values["calibration.trajectory.offset_sigma_vertical_m"],
                 drift_sigma_m_per_s=values["calibration.trajectory.drift_sigma_m_per_s"],
-                knot_interval_s=values["calibration.trajectory.knot_interval_s"]),
+                knot_interval_s=values["calibration.trajectory.knot_interval_s"],
+                correlation_s=values["calibration.trajectory.correlation_s"]),
             ins_noise=InsNoise(
                 (values["ins.position_sigma_m"],) * 2 + (values["ins.height_sigma_m"],),
                 (math.radians(values["ins.attitude_sigma_arcsec"] / 3600.0),) * 2

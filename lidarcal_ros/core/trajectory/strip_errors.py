@@ -64,6 +64,10 @@ class TrajectoryErrorSettings:
     observation_sigma_m: float = 0.03
     #: Time between a spline's knots, s.
     knot_interval_s: float = 20.0
+    #: How long the navigation solution's position error stays alike, s (a first-order
+    #: Gauss-Markov process across the flight: :func:`gauss_markov_prior`); 0: each strip's
+    #: error independent of the others'.
+    correlation_s: float = 0.0
 
     @property
     def offset_sigmas(self) -> np.ndarray:
@@ -274,9 +278,12 @@ class TrajectoryState:
         return error_columns(self, rows) @ self.params if len(rows) else np.empty(0)
 
     def prior(self, settings: TrajectoryErrorSettings) -> sparse.csr_matrix:
-        """The priors' information of every coefficient (block diagonal, 1/sigma^2)."""
+        """The priors' information of every coefficient (1/sigma^2): block diagonal, or
+        with ``settings.correlation_s`` the flight-wide :func:`gauss_markov_prior`."""
         if not self.bases:
             return sparse.csr_matrix((0, 0))
+        if settings.correlation_s > 0.0:
+            return gauss_markov_prior(self, settings)
         return sparse.block_diag([b.prior(settings) for b in self.bases], format="csr")
 
     def prior_sigmas(self, settings: TrajectoryErrorSettings) -> np.ndarray:
@@ -288,6 +295,58 @@ class TrajectoryState:
                 scale[3:] = settings.drift_sigma_m_per_s
             out.append(scale)
         return np.concatenate(out) if out else np.zeros(0)
+
+
+#: The least share of a Gauss-Markov step's variance (``1 - phi^2``) a prior keeps: two
+#: coefficients at the same time are then tied by a sigma a hundredth of the process's,
+#: not by an infinite weight.
+_GAUSS_MARKOV_FLOOR = 1e-4
+
+
+def coefficient_times(basis: StripBasis) -> np.ndarray:
+    """The time (s) each offset-like coefficient of ``basis`` stands for: a spline's
+    Greville abscissae (the mean of the three knots after its first), else the strip's
+    reference time (a drift's rate coefficients have none: NaN)."""
+    if basis.knots is not None:
+        k = basis.knots
+        return (k[1:-3] + k[2:-2] + k[3:-1]) / 3.0
+    out = np.full(basis.size, np.nan)
+    out[:1] = basis.t_ref
+    return out
+
+
+def gauss_markov_prior(state: TrajectoryState,
+                       settings: TrajectoryErrorSettings) -> sparse.csr_matrix:
+    """The priors' information (1/sigma^2) of every strip's coefficients with the
+    navigation error a first-order Gauss-Markov process across the flight (docs/method.md
+    section 11): per axis, the offset-like coefficients sorted by their time
+    (:func:`coefficient_times`), ``x_1 ~ N(0, s_1^2)`` and
+    ``x_i+1 / s_i+1 = phi_i x_i / s_i + w_i``, ``phi_i = exp(-(t_i+1 - t_i) / correlation_s)``,
+    ``var(w_i) = 1 - phi_i^2``; ``s`` each strip's offset sigma. Strips near in time are tied
+    (the same INS error), far ones independent. A drift's rate keeps its own prior."""
+    size = state.params.shape[0]
+    times = np.repeat(np.concatenate([coefficient_times(b) for b in state.bases]), 3)
+    sigmas = np.concatenate([np.tile(b.offset_sigmas(settings), b.size) for b in state.bases])
+    axes = np.tile(np.arange(3), size // 3)
+    rates = np.flatnonzero(~np.isfinite(times))
+    parts = [sparse.csr_matrix((np.full(rates.size, settings.drift_sigma_m_per_s ** -2.0),
+                                (rates, rates)), shape=(size, size))]
+    for axis in range(3):
+        chain = np.flatnonzero(np.isfinite(times) & (axes == axis))
+        chain = chain[np.argsort(times[chain], kind="stable")]
+        if not chain.size:
+            continue
+        inverse = 1.0 / sigmas[chain]
+        phi = np.exp(-np.diff(times[chain]) / settings.correlation_s)
+        scale = 1.0 / np.sqrt(np.maximum(1.0 - phi ** 2, _GAUSS_MARKOV_FLOOR))
+        # the rows of a square root: x_1 / s_1, then each step's innovation over its sigma
+        steps = np.arange(1, chain.size)
+        root = sparse.csr_matrix((
+            np.concatenate([inverse[:1], scale * inverse[1:], -scale * phi * inverse[:-1]]),
+            (np.concatenate([[0], steps, steps]),
+             np.concatenate([chain[:1], chain[1:], chain[:-1]]))), shape=(chain.size, size))
+        parts.append(root.T @ root)
+    return sum(parts[1:], parts[0]).tocsr()
 
 
 def error_columns(state: TrajectoryState, rows: TrajectoryRows) -> sparse.csr_matrix:
@@ -543,7 +602,9 @@ __all__ = [
     "TrajectoryModel",
     "TrajectoryRows",
     "TrajectoryState",
+    "coefficient_times",
     "error_columns",
+    "gauss_markov_prior",
     "strip_offset_sigmas",
     "trajectory_corrections",
 ]

@@ -1,5 +1,6 @@
 """Each strip's trajectory-error priors from the navigation solution's own per-epoch sigmas
-(an SBET's smrmsg carried by the trajectory; docs/method.md section 11)."""
+(an SBET's smrmsg carried by the trajectory; docs/method.md section 11), and their ties
+across the flight (a Gauss-Markov process)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ from lidarcal_ros.core.trajectory.strip_errors import (
     NAVIGATION_SIGMA_FLOOR_M,
     TrajectoryErrorSettings,
     TrajectoryModel,
+    TrajectoryState,
+    coefficient_times,
     strip_offset_sigmas,
 )
 
@@ -166,3 +169,51 @@ def test_a_trusted_strip_anchors_the_others() -> None:
 
     assert worst(told) < 0.015, worst(told)
     assert worst(configured) > 0.03, worst(configured)
+
+
+@pytest.mark.parametrize("model", [TrajectoryModel.OFFSET, TrajectoryModel.DRIFT,
+                                   TrajectoryModel.SPLINE], ids=["offset", "drift", "spline"])
+def test_the_gauss_markov_prior_is_the_process_s_covariance(model: TrajectoryModel) -> None:
+    """With ``correlation_s`` the offset-like coefficients of all strips are one first-order
+    Gauss-Markov process per axis: the prior's inverse is ``s_i s_j exp(-|t_i - t_j| / tau)``
+    at their times (a spline's Greville abscissae), each strip's sigmas its own; a drift's
+    rate keeps its own sigma and no tie; strips an hour apart are independent, as without
+    ``correlation_s``."""
+    state = TrajectoryState(model, 7.0)
+    state.add_strip(0.0, 25.0)
+    state.add_strip(40.0, 61.0, navigation_sigmas=np.array([0.01, 0.01, 0.04]))
+    state.add_strip(3700.0, 3730.0)
+    settings = TrajectoryErrorSettings(model, 0.02, 0.03, knot_interval_s=7.0,
+                                       correlation_s=30.0)
+    prior = state.prior(settings).toarray()
+    times = np.repeat(np.concatenate([coefficient_times(b) for b in state.bases]), 3)
+    axes = np.tile(np.arange(3), times.size // 3)
+    sigmas = state.prior_sigmas(settings)
+    rate = ~np.isfinite(times)
+    with np.errstate(invalid="ignore"):
+        want = np.where(axes[:, None] == axes[None, :], np.outer(sigmas, sigmas)
+                        * np.exp(-np.abs(times[:, None] - times[None, :]) / 30.0), 0.0)
+    want[rate] = 0.0
+    want[:, rate] = 0.0
+    want[rate, rate] = settings.drift_sigma_m_per_s ** 2
+    np.testing.assert_allclose(np.linalg.inv(prior), want, atol=1e-9 * want.max())
+    assert rate.any() == (model is TrajectoryModel.DRIFT)
+    last = state.starts[2]
+    assert np.abs(np.linalg.inv(prior)[:last, last:]).max() < 1e-12
+    independent = state.prior(replace(settings, correlation_s=0.0)).toarray()
+    np.testing.assert_allclose(independent[last:, last:],
+                               state.bases[2].prior(settings).toarray())
+    assert np.count_nonzero(independent[:last, last:]) == 0
+
+
+def test_a_shared_time_ties_two_strips_by_a_hundredth_of_the_sigma() -> None:
+    """Two strips flown at once (two scanners on one INS) have coefficients at one time: the
+    prior ties them with a sigma of a hundredth of the process's (no infinite weight)."""
+    state = TrajectoryState(TrajectoryModel.OFFSET)
+    state.add_strip(0.0, 20.0)
+    state.add_strip(0.0, 20.0)
+    settings = TrajectoryErrorSettings(TrajectoryModel.OFFSET, 0.02, 0.02, correlation_s=30.0)
+    covariance = np.linalg.inv(state.prior(settings).toarray())
+    difference = covariance[0, 0] + covariance[3, 3] - 2.0 * covariance[0, 3]
+    assert np.sqrt(difference) == pytest.approx(0.02 * 0.01, rel=0.02)
+    assert np.sqrt(covariance[0, 0]) == pytest.approx(0.02, rel=1e-6)
