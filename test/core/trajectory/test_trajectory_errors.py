@@ -133,8 +133,9 @@ def _simulated(rough: bool) -> SimulatedMission:
         seed=7, density=0.2, biases=dict(DEFAULT_BIASES), n_control=6, **extra))
 
 
-def _settings(model: TrajectoryModel) -> CalibrationSettings:
-    return CalibrationSettings(solve_for=ALL, trajectory=TrajectoryErrorSettings(model))
+def _settings(model: TrajectoryModel, correlation_s: float = 0.0) -> CalibrationSettings:
+    return CalibrationSettings(solve_for=ALL, trajectory=TrajectoryErrorSettings(
+        model, correlation_s=correlation_s))
 
 
 def _vertical_errors(sim: SimulatedMission, mission_strips: list, result: CalibrationResult,
@@ -156,20 +157,25 @@ def _rms90(dz: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sort(dz ** 2)[:int(0.9 * dz.size)])))
 
 
-@pytest.mark.parametrize(("rough", "model"), [
-    (False, TrajectoryModel.DRIFT), (False, TrajectoryModel.SPLINE),
-    (True, TrajectoryModel.SPLINE)], ids=["level-drift", "level-spline", "rough-air-spline"])
-def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool,
-                                                          model: TrajectoryModel) -> None:
+@pytest.mark.parametrize(("rough", "model", "correlation_s"), [
+    (False, TrajectoryModel.DRIFT, 0.0), (False, TrajectoryModel.SPLINE, 0.0),
+    (True, TrajectoryModel.SPLINE, 0.0), (False, TrajectoryModel.OFFSET, 60.0),
+    (True, TrajectoryModel.SPLINE, 60.0)],
+    ids=["level-drift", "level-spline", "rough-air-spline", "level-offset-tied",
+         "rough-air-spline-tied"])
+def test_drifting_trajectory_is_estimated_with_the_biases(rough: bool, model: TrajectoryModel,
+                                                          correlation_s: float) -> None:
     """Offsets (4 cm horizontal, 5 cm vertical), drifts (1 cm per 10 s) and a slow 1 cm
     oscillation per strip: the model recovers dphi within 1 arcsec, dr within 1 cm, every
     estimated bias within 3 sigma, and corrects the points to within 5 mm (median) of the
     true surface with an rms90 within 1.25 times the error-free mission's; the trajectory
-    taken as exact misses dr and the surface by centimetres."""
+    taken as exact misses dr and the surface by centimetres. The same with the strips'
+    priors tied over a minute (``correlation_s``; the strips' errors here independent): the
+    ties do not hold the strips' own errors back."""
     sim = _simulated(rough)
     mission, errors = with_trajectory_errors(sim.mission, seed=11)
     exact = calibrate(mission, _settings(TrajectoryModel.NONE))
-    drift = calibrate(mission, _settings(model))
+    drift = calibrate(mission, _settings(model, correlation_s))
     sol = drift.solution
     truth = np.array([sim.biases.get(n, 0.0) for n in PARAMETER_NAMES])
     i = {n: PARAMETER_NAMES.index(n) for n in PARAMETER_NAMES}
