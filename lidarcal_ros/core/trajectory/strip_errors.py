@@ -5,7 +5,8 @@ true; ``c_s[j]`` a 3-vector): ``offset`` has the basis ``[1]``, ``drift`` ``[1, 
 (``t_s`` the strip's mid time, s), ``spline`` the cubic B-splines of uniform knots
 ``knot_interval_s`` apart over the strip (times beyond its ends clipped to them). A strip's
 offset priors come from the trajectory's per-epoch position sigmas over its span where it
-has them (:func:`strip_offset_sigmas`), else from the settings.
+has them (:func:`strip_offset_sigmas`), else from the settings; with ``correlation_s`` the
+strips' priors are tied across the flight (:func:`gauss_markov_prior`).
 """
 
 from __future__ import annotations
