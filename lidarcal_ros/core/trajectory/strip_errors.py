@@ -327,7 +327,7 @@ def gauss_markov_prior(state: TrajectoryState,
     (the same INS error), far ones independent. A drift's rate keeps its own prior."""
     size = state.params.shape[0]
     times = np.repeat(np.concatenate([coefficient_times(b) for b in state.bases]), 3)
-    sigmas = np.concatenate([np.tile(b.offset_sigmas(settings), b.size) for b in state.bases])
+    sigmas = state.prior_sigmas(settings)  # (a rate's entry unused: not in a chain)
     axes = np.tile(np.arange(3), size // 3)
     rates = np.flatnonzero(~np.isfinite(times))
     parts = [sparse.csr_matrix((np.full(rates.size, settings.drift_sigma_m_per_s ** -2.0),
